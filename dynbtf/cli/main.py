@@ -1,0 +1,45 @@
+"""Entry point of the ``dynbtf`` command.
+
+User mistakes (:class:`dynbtf.errors.DynBTFError`) are printed as one clear line
+on standard error with exit status 2, never as a traceback.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from ..errors import DynBTFError
+from .app import app
+
+# Command modules register themselves on ``app`` when imported.
+from . import data_commands  # noqa: F401,E402
+
+__all__ = ["app", "main"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the exit status."""
+    try:
+        app(args=argv, standalone_mode=False)
+    except DynBTFError as e:
+        print(f"dynbtf: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("dynbtf: interrupted (long jobs resume when run again with the same output)", file=sys.stderr)
+        return 130
+    except SystemExit as e:  # typer/click usage errors already printed
+        return int(e.code or 0)
+    except Exception as e:  # click exceptions in non-standalone mode
+        import click
+
+        if isinstance(e, click.exceptions.Abort):
+            return 130
+        if isinstance(e, click.ClickException):
+            e.show()
+            return e.exit_code
+        raise
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,82 @@
+"""Bilinear fetches from feature planes: the one texture-sampling primitive.
+
+Planes are torch tensors ``(H, W, C)`` (channels last, like images). Two
+addressing modes exist:
+
+* :func:`fetch_wrap` -- positional planes: ``uv`` in units of one plane repeat,
+  wrapped (periodic) in both axes, texel ``[i, j]`` centred at
+  ``((j + 0.5) / W, (i + 0.5) / H)``. ``uv`` may be float64 and arbitrarily
+  large: the integer part is removed in the input's precision before the
+  (float32) interpolation, so ``uv = 1e6 + x`` fetches the same value as ``x``
+  (exactly, when ``x`` is representable).
+* :func:`fetch_angular` -- angular planes indexed by
+  :func:`dynbtf.conventions.angular_plane_coords` ``(s, t)``: rows follow
+  ``s`` (theta, clamped at the edges), columns follow ``t`` (phi, wrapped).
+
+Both are differentiable with respect to the plane (training) and run on any
+device (implemented with ``torch.nn.functional.grid_sample`` on a padded plane).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["fetch_wrap", "fetch_angular", "wrap_uv"]
+
+
+def wrap_uv(uv: torch.Tensor) -> torch.Tensor:
+    """``uv - floor(uv)`` computed in ``uv``'s own dtype: the fraction in ``[0, 1)``."""
+    frac = uv - torch.floor(uv)
+    # float rounding can give exactly 1.0 for tiny negative inputs
+    return torch.where(frac >= 1.0, frac - 1.0, frac)
+
+
+def _grid_sample_hwc(padded_chw: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Sample a padded ``(C, Hp, Wp)`` plane at padded-texel coordinates ``x, y`` (N,)."""
+    c, hp, wp = padded_chw.shape
+    gx = x * (2.0 / (wp - 1)) - 1.0
+    gy = y * (2.0 / (hp - 1)) - 1.0
+    grid = torch.stack([gx, gy], dim=-1).to(padded_chw.dtype).view(1, 1, -1, 2)
+    out = F.grid_sample(padded_chw[None], grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return out[0, :, 0, :].transpose(0, 1)  # (N, C)
+
+
+def fetch_wrap(plane: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Bilinear, periodic fetch of ``plane`` ``(H, W, C)`` at ``uv`` ``(..., 2)`` -> ``(..., C)``.
+
+    Examples
+    --------
+    >>> import torch
+    >>> plane = torch.arange(4.0).view(2, 2, 1)          # [[0, 1], [2, 3]]
+    >>> fetch_wrap(plane, torch.tensor([[0.25, 0.25], [0.5, 0.25], [1e6 + 0.25, 0.75]], dtype=torch.float64))
+    tensor([[0.0000],
+            [0.5000],
+            [2.0000]])
+    """
+    h, w, c = plane.shape
+    batch = uv.shape[:-1]
+    frac = wrap_uv(uv.reshape(-1, 2))
+    x = (frac[:, 0] * w + 0.5).to(plane.dtype)  # padded coordinate: texel j centre at j + 1
+    y = (frac[:, 1] * h + 0.5).to(plane.dtype)
+    chw = plane.permute(2, 0, 1)
+    padded = F.pad(chw[None], (1, 1, 1, 1), mode="circular")[0]
+    return _grid_sample_hwc(padded, x, y).reshape(*batch, c)
+
+
+def fetch_angular(plane: torch.Tensor, st: torch.Tensor) -> torch.Tensor:
+    """Bilinear fetch of an angular plane ``(R_s, R_t, C)`` at ``st`` ``(..., 2)`` -> ``(..., C)``.
+
+    ``s`` (rows, theta) clamps to the edge texels; ``t`` (columns, phi) wraps.
+    """
+    rs, rt, c = plane.shape
+    batch = st.shape[:-1]
+    st = st.reshape(-1, 2)
+    s = st[:, 0].clamp(0.0, 1.0)
+    t = wrap_uv(st[:, 1])
+    y = (s * rs + 0.5).to(plane.dtype)  # rows padded by one replicated texel each side
+    x = (t * rt + 0.5).to(plane.dtype)
+    chw = plane.permute(2, 0, 1)[None]
+    padded = F.pad(chw, (1, 1, 0, 0), mode="circular")
+    padded = F.pad(padded, (0, 0, 1, 1), mode="replicate")[0]
+    return _grid_sample_hwc(padded, x, y).reshape(*batch, c)
