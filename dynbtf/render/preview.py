@@ -1,0 +1,221 @@
+"""Fast preview: an infinite flat surface with a (synthesized) BTF, one light, a pinhole camera.
+
+No Mitsuba, no path tracing: every pixel's camera ray is intersected with the
+plane ``z = 0`` analytically, and the BTF is queried once per pixel sample with
+the exact view and light directions. This is for quick looks and for the report;
+:mod:`dynbtf.render.mitsuba_bsdf` is the renderer for real scenes.
+
+Geometry and units
+------------------
+* World space = the surface's local frame: the plane is ``z = 0`` with normal
+  ``+z``; world ``x`` and ``y`` **are** the BTF's ``u`` and ``v`` (one world
+  unit = one exemplar repeat), so a camera 3 units above the plane sees a few
+  repeats, one 50 units away at a grazing angle sees hundreds.
+* Pixel values are ``value * cos(theta_light) * E``: the BTF value (which
+  excludes the cosine, :mod:`dynbtf.conventions`) times the cosine times the
+  normal irradiance ``E`` of the light at the point (``E = irradiance`` for a
+  :class:`DirectionalLight`, ``intensity / r^2`` for a :class:`PointLight`).
+  A white Lambertian surface lit head-on by ``E = 1`` shows 1, like the
+  measured BTF images; multiply by ``1 / pi`` for radiance.
+* Pixels whose ray misses the plane (above the horizon) get ``background``.
+* Image row 0 is the top of the picture; ``up`` points towards row 0.
+
+Examples
+--------
+>>> import numpy as np
+>>> class White:                                   # a white Lambertian "BTF"
+...     def eval(self, uv, w_view, w_light):
+...         return np.ones(uv.shape[:-1] + (3,), dtype=np.float32)
+>>> cam = PinholeCamera(origin=(0, 0, 2), target=(0, 0, 0), up=(0, 1, 0), fov=30)
+>>> img = render_preview(White(), cam, DirectionalLight((0, 0, 1), 1.0), resolution=(4, 4))
+>>> float(img.min()), float(img.max())
+(1.0, 1.0)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import InputError
+
+__all__ = ["PinholeCamera", "DirectionalLight", "PointLight", "render_preview", "grazing_camera", "top_camera"]
+
+
+def _unit(v, name):
+    v = np.asarray(v, dtype=np.float64).reshape(3)
+    n = float(np.linalg.norm(v))
+    if not np.isfinite(v).all() or n == 0.0:
+        raise InputError(f"{name}: expected a finite non-zero 3-vector, got {v.tolist()}")
+    return v / n
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """A pinhole camera.
+
+    Parameters
+    ----------
+    origin, target : 3-vectors
+        Eye position and the point it looks at (world = surface frame, uv units).
+    up : 3-vector
+        Approximate up direction of the image.
+    fov : float
+        Vertical field of view in degrees (0 < fov < 180).
+    """
+
+    origin: tuple = (0.0, -4.0, 2.0)
+    target: tuple = (0.0, 0.0, 0.0)
+    up: tuple = (0.0, 0.0, 1.0)
+    fov: float = 40.0
+
+    def rays(self, height: int, width: int, jitter: np.ndarray | None = None):
+        """Ray origins ``(3,)`` and unit directions ``(height, width, 3)`` through pixel centres (+ jitter).
+
+        ``jitter`` ``(2,)`` in pixels, in ``[-0.5, 0.5)``, shifts every ray (for supersampling).
+        """
+        if not 0.0 < float(self.fov) < 180.0:
+            raise InputError(f"camera fov: expected degrees in (0, 180), got {self.fov}")
+        o = np.asarray(self.origin, dtype=np.float64).reshape(3)
+        forward = _unit(np.asarray(self.target, dtype=np.float64) - o, "camera target - origin")
+        right = np.cross(forward, _unit(self.up, "camera up"))
+        if np.linalg.norm(right) < 1e-9:
+            raise InputError("camera up: must not be parallel to the viewing direction")
+        right /= np.linalg.norm(right)
+        true_up = np.cross(right, forward)
+        half_h = math.tan(math.radians(self.fov) / 2.0)
+        half_w = half_h * width / height
+        jx, jy = (0.0, 0.0) if jitter is None else (float(jitter[0]), float(jitter[1]))
+        xs = ((np.arange(width) + 0.5 + jx) / width * 2.0 - 1.0) * half_w
+        ys = (1.0 - (np.arange(height) + 0.5 + jy) / height * 2.0) * half_h
+        d = forward + xs[None, :, None] * right + ys[:, None, None] * true_up
+        return o, d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+@dataclass(frozen=True)
+class DirectionalLight:
+    """A distant light: ``direction`` points **towards** the light; ``irradiance`` is its normal irradiance E."""
+
+    direction: tuple = (0.3, -0.5, 0.8)
+    irradiance: float = 1.0
+
+    def at(self, points: np.ndarray):
+        w = _unit(self.direction, "light direction")
+        return np.broadcast_to(w, points.shape).copy(), np.full(points.shape[:-1], float(self.irradiance))
+
+
+@dataclass(frozen=True)
+class PointLight:
+    """An isotropic point light at ``position``: normal irradiance ``intensity / r^2``."""
+
+    position: tuple = (1.0, -1.0, 2.0)
+    intensity: float = 5.0
+
+    def at(self, points: np.ndarray):
+        p = np.asarray(self.position, dtype=np.float64).reshape(3)
+        if p[2] <= 0.0:
+            raise InputError(f"point light position: must be above the plane (z > 0), got {p.tolist()}")
+        to_light = p - points
+        r2 = (to_light ** 2).sum(-1)
+        return to_light / np.sqrt(r2)[..., None], float(self.intensity) / r2
+
+
+def _stratified_jitter(spp: int) -> np.ndarray:
+    """``spp`` sub-pixel offsets in ``[-0.5, 0.5)^2`` on a deterministic ``n x m`` grid."""
+    n = int(math.ceil(math.sqrt(spp)))
+    m = int(math.ceil(spp / n))
+    g = [((i + 0.5) / n - 0.5, (j + 0.5) / m - 0.5) for j in range(m) for i in range(n)]
+    return np.asarray(g[:spp], dtype=np.float64)
+
+
+def render_preview(btf, camera: PinholeCamera, light, *, resolution=(256, 256), spp: int = 1,
+                   background=(0.0, 0.0, 0.0), progress: bool = False) -> np.ndarray:
+    """Render the infinite plane ``z = 0`` covered by ``btf``.
+
+    Parameters
+    ----------
+    btf : object with ``eval(uv, w_view, w_light)``
+        E.g. a :class:`dynbtf.synthesized.SynthesizedBTF`, or any object whose
+        ``eval`` takes float64 NumPy arrays ``uv (N, 2)``, ``w_view, w_light (N, 3)``
+        (or torch tensors: NumPy inputs are converted when the call needs tensors)
+        and returns ``(N, 3)`` linear RGB values excluding cos(theta_light).
+    camera : PinholeCamera
+    light : DirectionalLight or PointLight
+    resolution : (height, width)
+    spp : int
+        Samples per pixel on a stratified sub-pixel grid (box filter), >= 1.
+    background : RGB
+        Colour of pixels whose ray misses the plane.
+    progress : bool
+        Show a tqdm bar over the ``spp`` passes.
+
+    Returns
+    -------
+    float32 ``(height, width, 3)`` linear RGB (see the module docstring for units).
+    """
+    try:
+        height, width = (int(resolution[0]), int(resolution[1]))
+    except (TypeError, ValueError, IndexError):
+        raise InputError(f"resolution: expected (height, width), got {resolution!r}") from None
+    if height < 1 or width < 1:
+        raise InputError(f"resolution: expected positive (height, width), got {resolution!r}")
+    if int(spp) < 1:
+        raise InputError(f"spp: expected a positive number of samples per pixel, got {spp}")
+    if not (hasattr(light, "at")):
+        raise InputError(f"light: expected a DirectionalLight or PointLight, got {type(light).__name__}")
+    if float(np.asarray(camera.origin, dtype=np.float64).reshape(3)[2]) <= 0.0:
+        raise InputError(f"camera origin: must be above the plane (z > 0), got {list(camera.origin)}")
+    background = np.asarray(background, dtype=np.float32).reshape(3)
+    acc = np.zeros((height, width, 3), dtype=np.float64)
+    from tqdm.auto import tqdm
+
+    for jitter in tqdm(_stratified_jitter(int(spp)), desc="preview", unit="pass", disable=not progress):
+        o, d = camera.rays(height, width, jitter)
+        hit = d[..., 2] < -1e-12
+        t = np.where(hit, -o[2] / np.where(hit, d[..., 2], -1.0), 0.0)
+        points = (o + t[..., None] * d)[hit]
+        w_light, irradiance = light.at(points)
+        w_view = -d[hit]
+        cos_l = w_light[:, 2]
+        lit = cos_l > 0.0
+        rgb = np.zeros((int(hit.sum()), 3), dtype=np.float64)
+        if lit.any():
+            uv = points[lit][:, :2]
+            value = _eval(btf, uv, w_view[lit], w_light[lit])
+            rgb[lit] = value * (cos_l[lit] * irradiance[lit])[:, None]
+        img = np.empty((height, width, 3), dtype=np.float64)
+        img[:] = background
+        img[hit] = rgb
+        acc += img
+    return (acc / int(spp)).astype(np.float32)
+
+
+def _eval(btf, uv, w_view, w_light) -> np.ndarray:
+    """Call ``btf.eval`` with NumPy or (on TypeError/AttributeError) torch inputs; return float64 ``(N, 3)``."""
+    try:
+        out = btf.eval(uv, w_view, w_light)
+    except (TypeError, AttributeError):
+        import torch
+
+        out = btf.eval(torch.from_numpy(uv), torch.from_numpy(w_view).float(), torch.from_numpy(w_light).float())
+    if hasattr(out, "detach"):
+        out = out.detach().cpu().numpy()
+    return np.asarray(out, dtype=np.float64).reshape(-1, 3)
+
+
+def grazing_camera(distance: float = 6.0, height: float = 0.6, fov: float = 40.0, center=(0.0, 0.0)) -> PinholeCamera:
+    """A camera low over the plane looking at ``center`` (uv) from ``distance`` away: repetition shows here."""
+    cx, cy = float(center[0]), float(center[1])
+    return PinholeCamera(origin=(cx, cy - distance, height), target=(cx, cy, 0.0), up=(0.0, 0.0, 1.0), fov=fov)
+
+
+def top_camera(extent: float = 1.0, center=(0.5, 0.5), distance: float = 10.0) -> PinholeCamera:
+    """A camera straight above ``center`` whose vertical field of view spans ``extent`` uv units.
+
+    Image rows follow ``+v`` downwards like :mod:`dynbtf.conventions` images (``up = -y``).
+    """
+    cx, cy = float(center[0]), float(center[1])
+    fov = math.degrees(2.0 * math.atan(extent / 2.0 / distance))
+    return PinholeCamera(origin=(cx, cy, distance), target=(cx, cy, 0.0), up=(0.0, -1.0, 0.0), fov=fov)
