@@ -1,0 +1,96 @@
+"""Image-quality metrics used to compare a representation with the measured BTF.
+
+Conventions (as in the BTF compression literature and the paper):
+
+* :func:`psnr` -- on **linear** values, peak ``data_range`` (default 1.0: a white
+  Lambertian surface; highlights above 1 count as ordinary errors).
+* :func:`dssim` ``= (1 - SSIM) / 2`` and :func:`flip` -- on **clamped,
+  sRGB-encoded** images (what a viewer sees), computed from linear inputs here.
+
+All functions take linear RGB images ``(H, W, 3)`` (NumPy arrays or anything
+``np.asarray`` accepts) and validate them: a wrong shape, mismatched sizes or
+non-finite values raise :class:`dynbtf.errors.InputError` naming the argument.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+from ..io import linear_to_srgb
+
+__all__ = ["psnr", "dssim", "flip", "flip_map", "check_image_pair"]
+
+
+def check_image_pair(reference, test) -> tuple[np.ndarray, np.ndarray]:
+    """Validate two linear RGB images; return them as float32 ``(H, W, 3)`` arrays."""
+    out = []
+    for name, img in (("reference", reference), ("test", test)):
+        arr = np.asarray(img, dtype=np.float32)
+        if arr.ndim != 3 or arr.shape[-1] != 3:
+            raise InputError(f"{name}: expected a linear RGB image of shape (H, W, 3), got shape {arr.shape}")
+        if not np.isfinite(arr).all():
+            raise InputError(f"{name}: contains NaN or infinite values")
+        out.append(arr)
+    if out[0].shape != out[1].shape:
+        raise InputError(f"reference and test images differ in shape: {out[0].shape} vs {out[1].shape}")
+    return out[0], out[1]
+
+
+def psnr(reference, test, *, data_range: float = 1.0) -> float:
+    """Peak signal-to-noise ratio in dB on linear values: ``10 log10(data_range^2 / MSE)``.
+
+    Identical images give ``inf``.
+
+    >>> import numpy as np
+    >>> round(psnr(np.zeros((2, 2, 3)), np.full((2, 2, 3), 0.1)), 6)
+    20.0
+    """
+    ref, tst = check_image_pair(reference, test)
+    mse = float(np.mean((ref.astype(np.float64) - tst.astype(np.float64)) ** 2))
+    if mse == 0.0:
+        return float("inf")
+    return float(10.0 * np.log10(data_range ** 2 / mse))
+
+
+def dssim(reference, test) -> float:
+    """Structural dissimilarity ``(1 - SSIM) / 2`` of the clamped sRGB-encoded images.
+
+    SSIM is scikit-image's ``structural_similarity`` (7x7 uniform window,
+    ``data_range=1``, averaged over the three channels). 0 for identical images,
+    at most 1. Images smaller than 7x7 use the largest odd window that fits.
+    """
+    from skimage.metrics import structural_similarity
+
+    ref, tst = check_image_pair(reference, test)
+    win = min(7, ref.shape[0], ref.shape[1])
+    win -= 1 - win % 2
+    if win < 3:
+        raise InputError(f"dssim: images must be at least 3x3 texels, got {ref.shape[:2]}")
+    ssim = structural_similarity(linear_to_srgb(ref), linear_to_srgb(tst), channel_axis=-1, data_range=1.0,
+                                 win_size=win)
+    return float((1.0 - ssim) / 2.0)
+
+
+def flip_map(reference, test) -> tuple[np.ndarray, float]:
+    """NVIDIA FLIP (LDR) of the clamped sRGB-encoded images: ``(error map (H, W) in [0, 1], mean)``.
+
+    Uses the ``flip-evaluator`` package, which silently misreads uint8 or
+    channels-first input; this function always passes it contiguous float32
+    ``(H, W, 3)`` sRGB values in ``[0, 1]``.
+    """
+    import flip_evaluator
+
+    ref, tst = check_image_pair(reference, test)
+    ref_srgb = np.ascontiguousarray(linear_to_srgb(ref), dtype=np.float32)
+    tst_srgb = np.ascontiguousarray(linear_to_srgb(tst), dtype=np.float32)
+    error_map, mean, _ = flip_evaluator.evaluate(ref_srgb, tst_srgb, "LDR")
+    error_map = np.asarray(error_map, dtype=np.float32)
+    if error_map.ndim == 3:
+        error_map = error_map[..., 0]
+    return error_map, float(mean)
+
+
+def flip(reference, test) -> float:
+    """Mean NVIDIA FLIP error (LDR, on clamped sRGB) in ``[0, 1]``; 0 for identical images."""
+    return flip_map(reference, test)[1]
