@@ -1,0 +1,184 @@
+"""Rendering BTF images of a height-field material: parallax, masking, cast shadows, shading.
+
+For one (view, light) pair the value of output texel ``p`` (a point of the
+reference plane ``z = 0``) is::
+
+    x     = trace_view(h, w_view, p)                     visible surface point (parallax, masking)
+    n     = normal of h at x
+    value = pi f_r(n; w_view, w_light; material at x) * max(n.l, 0) / cos(theta_light) * V_light(x)
+            + albedo(x) * albedo_mean * (1 - sky(x)) * E_mean(w_light)          (one-bounce fill)
+
+* ``pi f_r`` is the clear-coated GGX model of :mod:`.shading` evaluated in the
+  local frame of ``n`` (micro-scale masking/shadowing by Smith's ``G``).
+* ``max(n.l, 0) / cos(theta_light)``: the local irradiance of a tilted facet
+  relative to the macro surface's. dynbtf's stored values exclude the macro
+  ``cos(theta_light)`` (:mod:`dynbtf.conventions`), exactly as a measurement
+  divides it out, so this ratio -- which can exceed 1 on facets turned towards
+  a grazing light -- is part of the value.
+* ``V_light`` is the cast-shadow visibility (:func:`.geometry.light_visibility`),
+  tabulated per light on the grid and interpolated at ``x``.
+* The fill term approximates light reflected once by the surrounding relief:
+  the point sees the surroundings over ``1 - sky(x)`` of its (cosine-weighted)
+  hemisphere, and they have the mean albedo and, on average, the macro-relative
+  irradiance ``E_mean = mean_grid(max(n.l, 0) / cos(theta_light) * V_light)``.
+  It keeps shadows from being pitch black, as in photographs; it is 0 on a
+  flat surface, where the model reduces exactly to the analytic BRDF.
+* ``n . w_view`` is clamped to at least :data:`GRAZING_COS`: a visible point
+  can only face away from the camera through the interpolation of normals.
+
+The renderer caches the per-view trace (hit points and the material fetched
+there) and the per-light visibility maps, so shading a pair is cheap
+elementwise math batched over lights.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+
+import numpy as np
+import torch
+
+from ...texture import fetch_wrap
+from .geometry import light_visibility, normals_from_height, sky_view_factor, trace_view
+from .materials import MaterialMaps
+from .shading import dot3, layered_brdf
+
+__all__ = ["HeightFieldRenderer", "GRAZING_COS"]
+
+#: Smallest ``n . w_view`` used in shading (see module docstring).
+GRAZING_COS = 0.02
+
+
+class HeightFieldRenderer:
+    """Renders ``pi f_r``-valued images of a tabulated material for given directions.
+
+    Parameters
+    ----------
+    maps : MaterialMaps
+        The material on a ``(G, G)`` grid.
+    out_size : int
+        Output images are ``(out_size, out_size, 3)``; texel ``[i, j]`` is the
+        reference-plane point ``uv = ((j + .5) / S, (i + .5) / S)``.
+    spread_deg : float
+        Angular size of the light source (soft shadow edge), degrees.
+    interreflection : bool
+        Add the one-bounce fill term (see module docstring).
+    shadows : bool
+        Cast shadows on (``False`` gives ``V_light = 1``: for comparisons).
+    device : torch device or None
+        Where to compute (default CPU).
+    view_cache : int
+        How many views' traces to keep.
+    """
+
+    def __init__(self, maps: MaterialMaps, out_size: int, *, spread_deg: float = 2.0, interreflection: bool = True,
+                 shadows: bool = True, device=None, view_cache: int = 2):
+        self.device = torch.device("cpu") if device is None else torch.device(device)
+        self.maps = maps
+        self.out_size = int(out_size)
+        self.spread_deg = float(spread_deg)
+        self.interreflection = bool(interreflection)
+        self.shadows = bool(shadows)
+        self.height = torch.as_tensor(maps.height, dtype=torch.float64, device=self.device)
+        normals = normals_from_height(self.height).to(torch.float32)
+        sky = sky_view_factor(self.height) if interreflection else torch.ones_like(normals[..., 0])
+        f32 = dict(dtype=torch.float32, device=self.device)
+        self._normals = normals
+        self._plane = torch.cat([
+            normals,
+            torch.as_tensor(maps.albedo, **f32),
+            torch.as_tensor(maps.alpha, **f32)[..., None],
+            torch.as_tensor(maps.f0, **f32)[..., None],
+            torch.as_tensor(maps.coat, **f32)[..., None],
+            sky[..., None],
+        ], dim=-1)  # (G, G, 10)
+        self.albedo_mean = torch.as_tensor(np.asarray(maps.albedo).reshape(-1, 3).mean(0), **f32)
+        s = self.out_size
+        c = (torch.arange(s, dtype=torch.float64, device=self.device) + 0.5) / s
+        vv, uu = torch.meshgrid(c, c, indexing="ij")
+        self._texel_uv = torch.stack([uu.reshape(-1), vv.reshape(-1)], dim=-1)  # (S*S, 2)
+        self._views: OrderedDict = OrderedDict()
+        self._view_cache = max(1, int(view_cache))
+        self._lights: dict = {}
+
+    # ----------------------------------------------------------- cached pieces
+    def view_trace(self, w_view) -> dict:
+        """Hit points of the texels' camera rays and the material there (cached per view).
+
+        Returns a dict with ``uv`` (N, 2) float64 hit positions, ``z`` (N,) hit
+        heights, and ``n`` (N, 3), ``albedo`` (N, 3), ``alpha``, ``f0``, ``coat``,
+        ``sky`` (N,) float32, ``N = out_size**2``.
+        """
+        key = tuple(round(float(x), 12) for x in w_view)
+        if key in self._views:
+            self._views.move_to_end(key)
+            return self._views[key]
+        hit_uv, hit_z = trace_view(self.height, w_view, self._texel_uv)
+        attrs = fetch_wrap(self._plane, hit_uv)
+        n = attrs[:, 0:3]
+        n = n / torch.linalg.vector_norm(n, dim=-1, keepdim=True)
+        entry = dict(uv=hit_uv, z=hit_z, n=n, albedo=attrs[:, 3:6], alpha=attrs[:, 6], f0=attrs[:, 7],
+                     coat=attrs[:, 8], sky=attrs[:, 9])
+        self._views[key] = entry
+        while len(self._views) > self._view_cache:
+            self._views.popitem(last=False)
+        return entry
+
+    def light_maps(self, w_light) -> tuple[torch.Tensor, float]:
+        """Visibility map ``(G, G)`` and ``E_mean`` of one light direction (cached)."""
+        key = tuple(round(float(x), 12) for x in w_light)
+        if key not in self._lights:
+            g = self.height.shape[0]
+            if self.shadows:
+                vis = light_visibility(self.height, w_light, spread_deg=self.spread_deg)
+            else:
+                vis = torch.ones((g, g), dtype=torch.float32, device=self.device)
+            l = torch.as_tensor([float(x) for x in w_light], dtype=torch.float32, device=self.device)
+            irr = (dot3(self._normals, l).clamp_min(0.0) / max(float(w_light[2]), 1e-6)) * vis
+            self._lights[key] = (vis, float(irr.mean()))
+        return self._lights[key]
+
+    # ----------------------------------------------------------- rendering
+    def render(self, w_view, w_lights) -> torch.Tensor:
+        """Images for one view and several lights: ``(L, S, S, 3)`` float32 values ``pi f_r``.
+
+        Parameters
+        ----------
+        w_view : sequence of 3 floats
+            View direction, unit, ``z > 0``.
+        w_lights : array ``(L, 3)``
+            Light directions, unit, ``z > 0``.
+        """
+        w_lights = np.asarray(w_lights, dtype=np.float64).reshape(-1, 3)
+        t = self.view_trace(w_view)
+        vis_planes, e_mean = [], []
+        for wl in w_lights:
+            vis, em = self.light_maps(wl)
+            vis_planes.append(vis)
+            e_mean.append(em)
+        f32 = dict(dtype=torch.float32, device=self.device)
+        vis_at_hit = fetch_wrap(torch.stack(vis_planes, dim=-1), t["uv"]).transpose(0, 1)  # (L, N)
+        v = torch.as_tensor([float(x) for x in w_view], **f32)
+        l = torch.as_tensor(w_lights, **f32)[:, None, :]          # (L, 1, 3)
+        h = v + l
+        h = h / torch.sqrt(dot3(h, h))[..., None]
+        n = t["n"][None]                                          # (1, N, 3)
+        cos_l = dot3(n, l)                                        # (L, N)
+        cos_v = dot3(n, v).expand_as(cos_l)
+        cos_h = dot3(n, h).clamp(0.0, 1.0)
+        cos_d = dot3(v, h).clamp(0.0, 1.0).expand_as(cos_l)       # (L, 1) -> (L, N)
+        ok = cos_l > 0.0
+        cl, cv = cos_l.clamp_min(1e-6), cos_v.clamp_min(GRAZING_COS)
+        value = layered_brdf(cl, cv, cos_h, cos_d, albedo=t["albedo"][None], alpha=t["alpha"][None],
+                             f0=t["f0"][None], coat=t["coat"][None], coat_alpha=self.maps.coat_alpha,
+                             coat_f0=self.maps.coat_f0)
+        cos_macro = l[..., 2].clamp_min(1e-6)                     # (L, 1)
+        direct = torch.where(ok, cos_l / cos_macro * vis_at_hit, torch.zeros_like(cos_l))
+        value = value * direct[..., None]
+        if self.interreflection:
+            em = torch.as_tensor(e_mean, **f32)[:, None, None]    # (L, 1, 1)
+            fill = t["albedo"] * self.albedo_mean * (1.0 - t["sky"])[:, None]  # (N, 3)
+            value = value + fill[None] * em
+        s = self.out_size
+        return value.reshape(len(w_lights), s, s, 3).contiguous()
