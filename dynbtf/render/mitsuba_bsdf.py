@@ -96,7 +96,6 @@ def _build_class(mi):
     import drjit as dr
 
     from ..representations.model_file import load_model
-    from .drjit_synthesis import make_dr_synthesizer
 
     class DynBTFBSDF(mi.BSDF):
         __doc__ = PLUGIN_DOC
@@ -115,7 +114,7 @@ def _build_class(mi):
             self.seed = int(props["seed"]) if props.has_property("seed") else 0
             if not Path(self.filename).exists():
                 raise InputError(f"dynbtf BSDF: parameter 'filename': model file {self.filename!r} not found")
-            model = load_model(self.filename)
+            model, _ = load_model(self.filename, device="cpu")
             self.evaluator = DynBTFEvaluator(model, self.method, self.seed)
             self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
             self.m_components = [self.m_flags]
