@@ -252,6 +252,12 @@ class TriplePlane(Representation):
         return split_mlp_l1_loss(positional_pre, image_pre, self.decoder.rest, self.decoder.negative_slope,
                                  target, chunk_texels=chunk_texels, workers=workers)
 
+    def param_groups(self) -> list[dict[str, Any]]:
+        """Optimizer parameter groups, the paper's recipe: AdamW (PyTorch's default weight
+        decay 0.01, "AdamW with the default setting"), lr 1e-3 for the planes, 3e-4 for the decoder."""
+        return [{"params": [self.f_u, self.f_h, self.f_d], "lr": 1e-3, "weight_decay": 0.01, "name": "planes"},
+                {"params": list(self.decoder.parameters()), "lr": 3e-4, "weight_decay": 0.01, "name": "decoder"}]
+
     def angular_planes(self) -> dict[str, torch.Tensor]:
         """The angular feature planes by name (``f_H``, ``f_D``), for visualization."""
         return {"f_H": self.f_h, "f_D": self.f_d}

@@ -1,0 +1,13 @@
+"""Fitting representations to BTFs, evaluating them, and the fast whole-image training path.
+
+* :func:`fit` / :class:`TrainConfig` -- gradient training (the paper's recipe), resumable.
+* :func:`get_fitter` / :func:`register_fitter` -- ``dynbtf fit --repr KIND``.
+* :func:`evaluate_model` -- PSNR / DSSIM / FLIP on held-out pairs, tables and images.
+"""
+
+from .fit import FitResult, TrainConfig, checkpoint_path, fit, predict_images, texel_image_loss, training_provenance
+from .fitters import FITTERS, get_fitter, register_fitter
+from .images import ImageStore, held_out_split
+
+__all__ = ["fit", "TrainConfig", "FitResult", "checkpoint_path", "predict_images", "texel_image_loss",
+           "training_provenance", "get_fitter", "register_fitter", "FITTERS", "held_out_split", "ImageStore"]

@@ -1,0 +1,446 @@
+"""Fitting a representation to a BTF by gradient descent on whole-image batches (the paper's recipe).
+
+Recipe (paper, supplementary): L1 loss; AdamW with the representation's
+parameter groups (Triple Plane: lr 1e-3 for the planes, 3e-4 for the decoder,
+PyTorch's default weight decay 0.01); the learning rate is multiplied by 0.9
+after every epoch; each step uses 16 whole images, each under one (view, light)
+pair. An **epoch** is one pass over the training pairs in a random order.
+
+Any :class:`~dynbtf.representations.base.Representation` with parameters trains
+with :func:`fit`. The loop uses, when the representation provides them:
+
+* ``param_groups()`` -- optimizer groups (dicts with ``params``, ``lr``,
+  ``weight_decay``, ``name``); default: all parameters, lr 1e-3, weight decay 0.01;
+* ``texel_image_l1_loss(w_view, w_light, target, texels, chunk_texels=, workers=)``
+  -- a fused whole-image loss (the Triple Plane's,
+  :func:`dynbtf.training.fused_mlp.split_mlp_l1_loss`);
+* ``predict_texel_images(w_view, w_light, texels)`` -- whole images at texel centres;
+  otherwise the model is queried at the texel centres (``model(uv, w_view, w_light)``).
+
+Held-out pairs (``held_out_fraction`` of all pairs, drawn from ``seed``) are never
+used for training; they are stored in the checkpoint and in the model file.
+
+Determinism and resuming
+------------------------
+All randomness is counter-based: the pair order of epoch ``e`` comes from
+``numpy.random.default_rng([seed, 1, e])`` and the texel subset of step ``s``
+(option ``texels_per_image``) from ``default_rng([seed, 2, e, s])``; the model is
+initialized from ``seed``. A checkpoint (``<output>.ckpt``, written atomically
+with ``torch.save`` and read back with ``weights_only=True``) holds the model,
+the optimizer state and the position (epoch, step); it is written every
+``checkpoint_every`` steps, at the end of each epoch, when the time budget runs
+out and when the run is interrupted (Ctrl-C, or an exception raised by a
+``callback`` between steps). Running :func:`fit` again with the same output
+continues from the checkpoint and ends with the same parameters as an
+uninterrupted run (same ``workers``, same machine).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import signal
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from ..conventions import texel_centers_uv
+from ..data.base import BTFSource
+from ..device import resolve_device
+from ..errors import FormatError, InputError
+from ..io import atomic_path
+from ..representations.base import Representation
+from ..representations.model_file import model_size_report, save_model
+from .images import ImageStore, held_out_split
+
+__all__ = ["TrainConfig", "FitResult", "fit", "checkpoint_path", "texel_image_loss", "predict_images",
+           "training_provenance"]
+
+CHECKPOINT_VERSION = 1
+
+
+@dataclass
+class TrainConfig:
+    """Options of :func:`fit` (defaults: the paper's recipe at the demo scale).
+
+    Attributes
+    ----------
+    epochs : int
+        Passes over the training pairs (the paper: 50 at 400^2 x 151^2). The
+        default 12 converges on the 128 x 128 x 81 x 81 demo BTF.
+    images_per_step : int
+        Whole images per optimizer step (16 as in the paper).
+    lr_decay : float
+        Learning-rate factor applied after every epoch (0.9).
+    held_out_fraction : float
+        Fraction of (view, light) pairs never trained on (0.05).
+    seed : int
+        Seed of the split, the pair order, texel subsets and the initialization.
+    texels_per_image : int or None
+        Train on a random subset of this many texels per step (shared by the
+        step's images) instead of whole images: for very large BTFs.
+    max_minutes : float or None
+        Stop (checkpointed, model written) after this much training time in this
+        run; run again to continue.
+    checkpoint_every : int
+        Steps between checkpoints (also at every epoch end).
+    memory_budget_mb : float
+        RAM the float16 image cache may use; larger BTFs are decoded per step.
+    workers : int or None
+        Threads of the fused loss (default: torch's thread count).
+    chunk_texels : int
+        Texels per chunk of the fused loss.
+    monitor_pairs : int
+        Held-out pairs evaluated (PSNR) after each epoch for the progress display.
+    device : str
+        ``"auto"`` (CUDA if available), ``"cpu"``, ``"cuda:0"``, ...
+    """
+
+    epochs: int = 12
+    images_per_step: int = 16
+    lr_decay: float = 0.9
+    held_out_fraction: float = 0.05
+    seed: int = 0
+    texels_per_image: int | None = None
+    max_minutes: float | None = None
+    checkpoint_every: int = 100
+    memory_budget_mb: float = 2048.0
+    workers: int | None = None
+    chunk_texels: int = 256
+    monitor_pairs: int = 16
+    device: str = "auto"
+
+    def validate(self) -> "TrainConfig":
+        checks = [("epochs", self.epochs >= 1), ("images_per_step", self.images_per_step >= 1),
+                  ("lr_decay", 0 < self.lr_decay <= 1), ("held_out_fraction", 0 <= self.held_out_fraction < 1),
+                  ("texels_per_image", self.texels_per_image is None or self.texels_per_image >= 1),
+                  ("max_minutes", self.max_minutes is None or self.max_minutes > 0),
+                  ("checkpoint_every", self.checkpoint_every >= 1), ("chunk_texels", self.chunk_texels >= 1),
+                  ("workers", self.workers is None or self.workers >= 1), ("monitor_pairs", self.monitor_pairs >= 0)]
+        for name, ok in checks:
+            if not ok:
+                raise InputError(f"training option {name}={getattr(self, name)!r} is out of range")
+        return self
+
+    # options that change the result: a checkpoint must agree on them to be resumed
+    RESULT_FIELDS = ("images_per_step", "lr_decay", "held_out_fraction", "seed", "texels_per_image", "chunk_texels")
+
+
+@dataclass
+class FitResult:
+    """What :func:`fit` returns."""
+
+    model_path: Path
+    representation: Representation
+    metadata: dict[str, Any]
+    history: list[dict[str, float]] = field(default_factory=list)
+    finished: bool = True
+
+
+def checkpoint_path(model_path) -> Path:
+    """The checkpoint written next to a model file: ``<model_path>.ckpt``."""
+    model_path = Path(model_path)
+    return model_path.with_name(model_path.name + ".ckpt")
+
+
+# ---------------------------------------------------------------------------- predictions and loss
+def _texel_uv(rep_or_source_hw: tuple[int, int], texels: torch.Tensor | None, device, dtype) -> torch.Tensor:
+    h, w = rep_or_source_hw
+    uv = torch.from_numpy(texel_centers_uv(h, w)).reshape(-1, 2).to(device=device, dtype=dtype)
+    return uv if texels is None else uv.index_select(0, texels)
+
+
+def predict_images(rep: Representation, w_view: torch.Tensor, w_light: torch.Tensor, size: tuple[int, int],
+                   texels: torch.Tensor | None = None) -> torch.Tensor:
+    """Model images at texel centres, ``(B, N, 3)``, for ``w_view, w_light (B, 3)``.
+
+    Uses ``rep.predict_texel_images`` when available, else queries ``rep`` at the
+    texel-centre ``uv`` of an image of ``size = (H, W)``.
+    """
+    if hasattr(rep, "predict_texel_images"):
+        return rep.predict_texel_images(w_view, w_light, texels)
+    uv = _texel_uv(size, texels, w_view.device, torch.float64)
+    b, n = w_view.shape[0], uv.shape[0]
+    return rep(uv[None].expand(b, n, 2), w_view[:, None].expand(b, n, 3), w_light[:, None].expand(b, n, 3))
+
+
+def texel_image_loss(rep: Representation, w_view: torch.Tensor, w_light: torch.Tensor, target: torch.Tensor,
+                     size: tuple[int, int], texels: torch.Tensor | None = None, *, chunk_texels: int = 256,
+                     workers: int = 1) -> torch.Tensor:
+    """Mean L1 loss of a whole-image batch: the fused path when the representation has one."""
+    if hasattr(rep, "texel_image_l1_loss"):
+        return rep.texel_image_l1_loss(w_view, w_light, target, texels, chunk_texels=chunk_texels, workers=workers)
+    return (predict_images(rep, w_view, w_light, size, texels) - target).abs().mean()
+
+
+def _param_groups(rep: Representation) -> list[dict[str, Any]]:
+    if hasattr(rep, "param_groups"):
+        groups = [dict(g) for g in rep.param_groups()]
+    else:
+        groups = [{"params": [p for p in rep.parameters() if p.requires_grad], "lr": 1e-3, "weight_decay": 0.01,
+                   "name": "all"}]
+    for g in groups:
+        g["initial_lr"] = g["lr"]
+    if not any(len(g["params"]) for g in groups):
+        raise InputError(f"representation {rep.kind!r} has no trainable parameters: it cannot be fitted by "
+                         "gradient descent (use its closed-form fitter)")
+    return groups
+
+
+# ---------------------------------------------------------------------------- provenance
+def training_provenance(source: BTFSource, held_out: np.ndarray, **extra) -> dict[str, Any]:
+    """The provenance block every fitter stores in a model file (source, held-out pairs, extras)."""
+    return {
+        "source": {"name": source.name, "height": source.height, "width": source.width,
+                   "n_views": source.n_views, "n_lights": source.n_lights,
+                   "views": np.asarray(source.views).tolist(), "lights": np.asarray(source.lights).tolist(),
+                   "raw_float32_bytes": source.nbytes_float32},
+        "held_out_pairs": np.asarray(held_out, dtype=np.int64).tolist(),
+        **extra,
+    }
+
+
+def _psnr_of_pairs(rep, store: ImageStore, source: BTFSource, pairs: np.ndarray, device) -> float:
+    """PSNR (linear, peak 1) pooled over the given pairs, using the fast image path."""
+    if len(pairs) == 0:
+        return float("nan")
+    se, count = 0.0, 0
+    size = (source.height, source.width)
+    with torch.no_grad():
+        for k in range(0, len(pairs), 8):
+            chunk = pairs[k:k + 8]
+            target = torch.from_numpy(store.get(chunk)).to(device)
+            wv = torch.as_tensor(source.views[chunk[:, 0]], dtype=torch.float32, device=device)
+            wl = torch.as_tensor(source.lights[chunk[:, 1]], dtype=torch.float32, device=device)
+            pred = predict_images(rep, wv, wl, size).float()
+            se += float(((pred - target) ** 2).sum(dtype=torch.float64))
+            count += target.numel()
+    mse = se / count
+    return float("inf") if mse == 0 else float(-10.0 * math.log10(mse))
+
+
+# ---------------------------------------------------------------------------- checkpoints
+def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def _load_checkpoint(path: Path) -> dict[str, Any]:
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # truncated zip, unpickling refused, ...
+        raise FormatError(path, f"damaged checkpoint ({e}); delete it to start over") from None
+    if not isinstance(state, dict) or state.get("format") != "dynbtf-checkpoint":
+        raise FormatError(path, "not a dynbtf checkpoint; delete it to start over")
+    if state.get("version", 0) > CHECKPOINT_VERSION:
+        raise FormatError(path, f"checkpoint version {state.get('version')} is newer than this dynbtf supports")
+    return state
+
+
+def _fingerprint(rep: Representation, source: BTFSource, config: TrainConfig) -> dict[str, Any]:
+    return {"kind": rep.kind, "config": rep.config(), "source": [source.name, *source.shape],
+            **{name: getattr(config, name) for name in TrainConfig.RESULT_FIELDS}}
+
+
+class _InterruptFlag:
+    """Turns SIGINT into a flag checked between steps (main thread only)."""
+
+    def __init__(self) -> None:
+        self.raised = False
+        self._previous = None
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def _handler(self, signum, frame):
+        if self.raised:  # second Ctrl-C: give up at once
+            raise KeyboardInterrupt
+        self.raised = True
+
+    def __exit__(self, *exc):
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+
+
+# ---------------------------------------------------------------------------- the loop
+def fit(representation: Representation, source: BTFSource, config: TrainConfig | None = None,
+        output=None, *, progress: bool = True, callback: Callable[[dict[str, Any]], None] | None = None,
+        extra_provenance: dict[str, Any] | None = None) -> FitResult:
+    """Train ``representation`` on ``source``; write the model file ``output`` (and its checkpoint).
+
+    Parameters
+    ----------
+    representation : Representation
+        A freshly constructed model of the BTF's size (its initial values are
+        replaced by the checkpoint's when resuming).
+    source : BTFSource
+        The BTF (images are decoded per step, cached in RAM within the budget).
+    config : TrainConfig
+        Options; see :class:`TrainConfig`.
+    output : str or Path
+        Model file to write (``.dbtfm``); the checkpoint is ``<output>.ckpt``.
+        If that checkpoint exists, training continues from it.
+    progress : bool
+        Show a tqdm progress bar (loss, samples/s, held-out PSNR, ETA).
+    callback : callable, optional
+        Called after every optimizer step with a dict (epoch, step, global_step,
+        loss); an exception it raises stops training after a checkpoint.
+    extra_provenance : dict, optional
+        Added to the model file's provenance.
+
+    Returns
+    -------
+    FitResult
+        ``finished`` is False when the time budget stopped training early.
+    """
+    from tqdm.auto import tqdm
+
+    config = (config or TrainConfig()).validate()
+    if output is None:
+        raise InputError("output: a model file path is required")
+    output = Path(output)
+    if (representation.positional_plane().shape[0], representation.positional_plane().shape[1]) != \
+            (source.height, source.width):
+        raise InputError(f"representation's positional plane is {tuple(representation.positional_plane().shape[:2])} "
+                         f"but the BTF {source.name!r} is {source.height} x {source.width} texels")
+    device = resolve_device(config.device)
+    rep = representation.to(device)
+    rep.train()
+    workers = int(config.workers or torch.get_num_threads())
+    train_pairs, held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction, config.seed)
+    b = config.images_per_step
+    steps_per_epoch = math.ceil(len(train_pairs) / b)
+    n_texels = source.height * source.width
+    texels_per_image = min(config.texels_per_image or n_texels, n_texels)
+    groups = _param_groups(rep)
+    optimizer = torch.optim.AdamW(groups)
+    store = ImageStore(source, int(config.memory_budget_mb * 1024 ** 2))
+    views = torch.as_tensor(source.views, dtype=torch.float32, device=device)
+    lights = torch.as_tensor(source.lights, dtype=torch.float32, device=device)
+    monitor = held_out[np.linspace(0, len(held_out) - 1, min(config.monitor_pairs, len(held_out))).astype(int)] \
+        if len(held_out) else held_out
+
+    ckpt_path = checkpoint_path(output)
+    fingerprint = _fingerprint(rep, source, config)
+    epoch, step, elapsed, history = 0, 0, 0.0, []
+    if ckpt_path.exists():
+        state = _load_checkpoint(ckpt_path)
+        if state["fingerprint"] != fingerprint:
+            diff = [k for k in fingerprint if state["fingerprint"].get(k) != fingerprint[k]]
+            raise InputError(f"{ckpt_path}: checkpoint belongs to a different training run (differs in {diff}); "
+                             "delete it or choose another output to start over")
+        rep.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        epoch, step, elapsed = int(state["epoch"]), int(state["step"]), float(state["elapsed_seconds"])
+        history = list(state["history"])
+
+    def checkpoint() -> None:
+        _save_checkpoint(ckpt_path, {
+            "format": "dynbtf-checkpoint", "version": CHECKPOINT_VERSION, "fingerprint": fingerprint,
+            "model": rep.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch, "step": step,
+            "elapsed_seconds": elapsed, "history": history, "held_out_pairs": torch.from_numpy(held_out)})
+
+    def batch_for(e: int, s: int):
+        order = np.random.default_rng([config.seed, 1, e]).permutation(len(train_pairs))
+        pairs = train_pairs[order[s * b:(s + 1) * b]]
+        texels = None
+        if texels_per_image < n_texels:
+            texels = np.sort(np.random.default_rng([config.seed, 2, e, s]).choice(n_texels, texels_per_image,
+                                                                                   replace=False))
+        return pairs, texels, store.get(pairs, texels)
+
+    total_steps = config.epochs * steps_per_epoch
+    done_steps = min(epoch * steps_per_epoch + step, total_steps)
+    size_info = model_size_report(rep, source.nbytes_float32)
+    bar = tqdm(total=total_steps, initial=done_steps, unit="step", disable=not progress, dynamic_ncols=True,
+               desc=f"fit {rep.kind} on {source.name}")
+    if progress:
+        bar.write(f"{size_info['summary']}; {len(train_pairs)} training pairs, {len(held_out)} held out; "
+                  f"{steps_per_epoch} steps/epoch x {config.epochs} epochs, {workers} worker thread(s)" +
+                  (f" (resuming at epoch {epoch}, step {step})" if done_steps else ""))
+    if epoch < config.epochs:
+        store.fill(progress=progress)
+    run_start = time.perf_counter()
+    budget = None if config.max_minutes is None else config.max_minutes * 60.0
+    finished = epoch >= config.epochs
+    consistent = True  # model/optimizer state matches (epoch, step)
+    prefetch = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dynbtf-prefetch")
+    last_checkpoint_step = done_steps
+    try:
+        with _InterruptFlag() as interrupt:
+            pending = prefetch.submit(batch_for, epoch, step) if not finished else None
+            while not finished:
+                for g in optimizer.param_groups:
+                    g["lr"] = g["initial_lr"] * config.lr_decay ** epoch
+                t0 = time.perf_counter()
+                pairs, texels, target = pending.result()
+                nxt = (epoch, step + 1) if step + 1 < steps_per_epoch else (epoch + 1, 0)
+                pending = prefetch.submit(batch_for, *nxt) if nxt[0] < config.epochs else None
+                consistent = False
+                wv, wl = views[pairs[:, 0]], lights[pairs[:, 1]]
+                texel_t = None if texels is None else torch.from_numpy(texels).to(device)
+                loss = texel_image_loss(rep, wv, wl, torch.from_numpy(target).to(device), (source.height, source.width),
+                                        texel_t, chunk_texels=config.chunk_texels, workers=workers)
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+                epoch, step = nxt
+                consistent = True
+                dt = time.perf_counter() - t0
+                elapsed += dt
+                loss_value = float(loss)
+                done_steps += 1
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss_value:.4f}", samples_s=f"{target.size // 3 / dt:.3g}",
+                                **({"heldout_psnr": f"{history[-1]['held_out_psnr']:.2f}"} if history else {}))
+                info = {"epoch": epoch if step else epoch - 1, "step": step or steps_per_epoch,
+                        "global_step": done_steps, "loss": loss_value}
+                if step == 0:  # an epoch ended
+                    psnr = _psnr_of_pairs(rep, store, source, monitor, device)
+                    history.append({"epoch": epoch, "loss": loss_value, "held_out_psnr": psnr,
+                                    "elapsed_seconds": elapsed})
+                    finished = epoch >= config.epochs
+                if step == 0 or done_steps - last_checkpoint_step >= config.checkpoint_every:
+                    checkpoint()
+                    last_checkpoint_step = done_steps
+                if callback is not None:
+                    callback(info)
+                if interrupt.raised:
+                    raise KeyboardInterrupt
+                if budget is not None and time.perf_counter() - run_start >= budget and not finished:
+                    bar.write(f"time budget of {config.max_minutes} min reached at epoch {epoch}, step {step}; "
+                              "run again to continue")
+                    break
+    except BaseException:
+        if consistent and done_steps > last_checkpoint_step:
+            checkpoint()
+        raise
+    finally:
+        prefetch.shutdown(wait=True, cancel_futures=True)
+        bar.close()
+    if done_steps > last_checkpoint_step:
+        checkpoint()
+
+    rep.eval()
+    completed_epochs = epoch + step / steps_per_epoch
+    provenance = training_provenance(
+        source, held_out, seed=config.seed, training=dataclasses.asdict(config) | {"workers": workers},
+        epochs_completed=completed_epochs, finished=finished, training_seconds=elapsed, history=history,
+        samples_per_epoch=len(train_pairs) * texels_per_image, size=size_info, **(extra_provenance or {}))
+    if history:
+        provenance["held_out_psnr_monitor"] = history[-1]["held_out_psnr"]
+    save_model(output, rep, provenance)
+    if progress:
+        print(f"wrote {output} ({size_info['summary']}; {completed_epochs:.2f} epochs in {elapsed / 60:.1f} min"
+              + (f", held-out PSNR {history[-1]['held_out_psnr']:.2f} dB" if history else "") + ")")
+    from ..representations.model_file import read_model_metadata
+
+    return FitResult(output, rep, read_model_metadata(output), history, finished)
