@@ -16,10 +16,10 @@ import math
 from ..errors import InputError
 from ..synthesis import hash as _hash
 from ..synthesis import lattice as _lattice
-from .drjit_ops import _dr, _flat, fetch_wrap, mi_module
+from .drjit_ops import _dr, _flat, fetch_wrap, gather_channels, mi_module
 
 __all__ = ["mix32", "hash_vertex", "vertex_offsets", "triangle_lattice", "lut_lookup", "DrTiling",
-           "make_dr_synthesizer"]
+           "DrLatticeBlending", "make_dr_synthesizer"]
 
 
 # ---------------------------------------------------------------- integer hash (dynbtf.synthesis.hash)
@@ -114,6 +114,160 @@ def lut_lookup(table, size: int, channel: int, g_min: float, step: float, g):
     x0 = dr.gather(mi.Float, table, base + lo)
     x1 = dr.gather(mi.Float, table, base + lo + 1)
     return x0 + t * (x1 - x0)
+
+
+def _mod(k, n: int):
+    """Non-negative ``k mod n`` for ``mi.Int32`` ``k`` (Python semantics, as numba's and torch's)."""
+    dr = _dr()
+    r = k % n
+    return dr.select(r < 0, r + n, r)
+
+
+class DrLatticeBlending:
+    """Lattice blending of three hashed exemplar samples: :func:`dynbtf.synthesis.kernels.lattice_blend` in Dr.Jit.
+
+    The same computation, step for step: the triangle lattice in float64, the
+    vertices' integer hash, whole-texel offsets wrapped on the (preprocessed)
+    plane, one shared sub-texel bilinear footprint, then per mode
+
+    * ``"linear"``: weights = barycentrics;
+    * ``"hist"``: ``w_i = b_i^gamma / sum``, variance-preserving scale
+      ``1 / sqrt(sum w_i^2)`` (Gaussian space, mean 0), then the inverse
+      transform per channel through the :class:`~dynbtf.synthesis.histogram.InverseLUT`;
+    * ``"hex"``: ``w_i = (1 - beta + beta lum_i) b_i^7`` normalized, contrast gain
+      ``g(x)`` with exponent ``gain_k``, renormalized;
+
+    and finally the output map ``features = latent @ matrix + offset`` (the PCA
+    un-projection of decorrelated methods), if any.
+
+    Parameters
+    ----------
+    plane : float32 ``(H', W', C)``
+        The plane the method blends (Gaussian-transformed coefficients for hist).
+    density : (int, int)
+        Texels per repeat along ``u`` and ``v``.
+    seed : int
+    mode : {"linear", "hist", "hex"}
+    gamma, beta, gain_k : float
+    luminance : float32 ``(H', W')``, for hex
+    lut : float32 ``(C, L)``, ``g_min``, ``step``: for hist
+    matrix : ``(C, C)``, ``offset`` ``(C,)``, optional: the output map
+    """
+
+    def __init__(self, plane, density, seed: int, mode: str, *, gamma: float = 1.0, beta: float = 0.0,
+                 gain_k: float = 1.0, luminance=None, lut=None, g_min: float = 0.0, step: float = 1.0,
+                 matrix=None, offset=None) -> None:
+        import numpy as np
+
+        mi = mi_module()
+        if mode not in ("linear", "hist", "hex"):
+            raise InputError(f"lattice blending mode: expected linear, hist or hex, got {mode!r}")
+        plane = np.asarray(plane, dtype=np.float32)
+        self.ph, self.pw, self.channels = (int(x) for x in plane.shape)
+        self.plane = _flat(mi, plane)
+        self.density = (int(density[0]), int(density[1]))
+        self.seed = int(seed) & 0xFFFFFFFF
+        self.mode = mode
+        self.gamma, self.beta, self.gain_k = float(gamma), float(beta), float(gain_k)
+        self.luminance = _flat(mi, luminance) if luminance is not None else None
+        if mode == "hex" and luminance is None:
+            raise InputError("hex blending needs the luminance plane")
+        if mode == "hist":
+            if lut is None:
+                raise InputError("hist blending needs the inverse-transform LUT")
+            lut = np.asarray(lut, dtype=np.float32)
+            self.lut_size = int(lut.shape[1])
+            self.lut = _flat(mi, lut)
+            self.g_min, self.step = float(g_min), float(step)
+        self.matrix = None if matrix is None else np.asarray(matrix, dtype=np.float32)
+        self.offset = None if offset is None else np.asarray(offset, dtype=np.float32)
+
+    def _gain(self, x):
+        dr = _dr()
+        k = self.gain_k
+        lo = 0.5 * dr.power(2.0 * x, k)
+        hi = 1.0 - 0.5 * dr.power(dr.maximum(2.0 - 2.0 * x, 0.0), k)
+        return dr.select(x < 0.5, lo, hi)
+
+    def _weights(self, bary, taps_of_sample):
+        mi, dr = mi_module(), _dr()
+        if self.mode == "linear":
+            return [mi.Float(b) for b in bary]
+        if self.mode == "hist":
+            s = list(bary) if self.gamma == 1.0 else [dr.power(dr.maximum(b, 0.0), self.gamma) for b in bary]
+            total = s[0] + s[1] + s[2]
+            s = [x / total for x in s]
+            scale = 1.0 / dr.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2])
+            return [mi.Float(x * scale) for x in s]
+        lum = [mi.Float64(gather_one(self.luminance, taps)) for taps in taps_of_sample]
+        s = [(1.0 - self.beta + self.beta * l) * dr.power(dr.maximum(b, 0.0), 7) for l, b in zip(lum, bary)]
+        total = s[0] + s[1] + s[2]
+        s = [x / total for x in s]
+        if self.gain_k != 1.0:
+            s = [self._gain(x) for x in s]
+            total = s[0] + s[1] + s[2]
+            s = [x / total for x in s]
+        return [mi.Float(x) for x in s]
+
+    def latent(self, u, v, active=True):
+        """Blended values before the output map: list of ``C`` mi.Float."""
+        mi, dr = mi_module(), _dr()
+        u, v = mi.Float64(u), mi.Float64(v)
+        verts, bary = triangle_lattice(u, v)
+        wu, wv = dr.floor(u), dr.floor(v)
+        fu, fv = u - wu, v - wv
+        cu, cv = fu >= 1.0, fv >= 1.0
+        wu, fu = dr.select(cu, wu + 1.0, wu), dr.select(cu, fu - 1.0, fu)
+        wv, fv = dr.select(cv, wv + 1.0, wv), dr.select(cv, fv - 1.0, fv)
+        dw, dh = self.density
+        pw, ph = self.pw, self.ph
+        # (iu * density) mod plane size, reduced before multiplying so nothing overflows
+        mu = _mod(_mod(mi.Int32(wu), pw) * (dw % pw), pw)
+        mv = _mod(_mod(mi.Int32(wv), ph) * (dh % ph), ph)
+        px = mi.Float64(mu) + fu * dw - 0.5
+        py = mi.Float64(mv) + fv * dh - 0.5
+        x0, y0 = dr.floor(px), dr.floor(py)
+        tx, ty = mi.Float(px - x0), mi.Float(py - y0)
+        xi, yi = mi.Int32(x0), mi.Int32(y0)
+        wts = ((1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty)
+        taps_of_sample = []
+        for vx, vy in verts:
+            h = hash_vertex(vx, vy, self.seed)
+            ox = mi.Int32(h % pw)
+            oy = mi.Int32(mix32(h ^ _hash._SECOND_STREAM) % ph)
+            ca, cb = _mod(xi + ox, pw), _mod(xi + ox + 1, pw)
+            ra, rb = _mod(yi + oy, ph), _mod(yi + oy + 1, ph)
+            idx = (mi.UInt32(ra * pw + ca), mi.UInt32(ra * pw + cb), mi.UInt32(rb * pw + ca), mi.UInt32(rb * pw + cb))
+            taps_of_sample.append(list(zip(idx, wts)))
+        weights = self._weights(bary, taps_of_sample)
+        c_count = self.channels
+        out = []
+        fetched = [gather_channels(self.plane, c_count, taps, active) for taps in taps_of_sample]
+        for c in range(c_count):
+            acc = weights[0] * fetched[0][c] + weights[1] * fetched[1][c] + weights[2] * fetched[2][c]
+            if self.mode == "hist":
+                acc = lut_lookup(self.lut, self.lut_size, c, self.g_min, self.step, acc)
+            out.append(acc)
+        return out
+
+    def features(self, u, v, active=True):
+        """Synthesized positional features at ``(u, v)``: list of ``C`` mi.Float."""
+        dr = _dr()
+        latent = self.latent(u, v, active)
+        if self.matrix is None:
+            return latent
+        out = []
+        for j in range(self.matrix.shape[1]):
+            acc = latent[0] * float(self.matrix[0, j]) + float(self.offset[j])
+            for i in range(1, self.matrix.shape[0]):
+                acc = dr.fma(latent[i], float(self.matrix[i, j]), acc)
+            out.append(acc)
+        return out
+
+
+def gather_one(buffer, taps):
+    """Bilinear combination of a one-channel buffer over ``taps`` (as :func:`~dynbtf.render.drjit_ops.gather_channels`)."""
+    return gather_channels(buffer, 1, taps)[0]
 
 
 class DrTiling:
