@@ -1,0 +1,338 @@
+"""The paper's comparisons in one call: representations (Figs. 4 and 8) and synthesis methods.
+
+:func:`compare_representations` fits (or loads) each representation kind on one
+BTF with the **same** held-out split, evaluates every model on the **same**
+held-out (view, light) pairs and writes, into one output directory:
+
+* ``<kind>.dbtfm`` -- the model files (kept: running again reuses them, and an
+  unfinished gradient fit -- stopped by ``max_minutes`` -- continues from its
+  checkpoint);
+* ``representations.csv`` / ``.json`` -- one row per kind: mean PSNR (linear),
+  DSSIM and FLIP (clamped sRGB) over the held-out pairs, storage in bytes (all
+  parameters and buffers; and the positional plane alone, the part a non-dynamic
+  synthesis must pre-generate at the output size), fit time; the JSON also
+  holds every pair's numbers;
+* ``representations.png`` and ``images/`` -- the figure in the layout of the
+  paper's Figs. 4 and 8: one row per held-out example, columns
+  ``GT | each representation | FLIP error map of each`` (FLIP maps in the
+  magma colour map, black = no error);
+* ``index.html`` -- the table and the figure on one page.
+
+:func:`compare_synthesis` (the second part, the paper's Fig. 7 and its
+storage argument) renders one representation's positional plane synthesized
+by each method at ``scale`` x the exemplar and reports the synthesis quality
+numbers of :mod:`dynbtf.synthesis.quality` next to each method's storage: the
+dynamic methods need only the exemplar (the representation), quilting must
+store its pre-generated planes.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from .data.base import BTFSource
+from .errors import InputError
+from .io import atomic_path, save_image, to_uint8_srgb
+from .metrics import dssim, flip_map, psnr
+from .report.html import HtmlReport
+from .representations.base import Representation
+from .representations.model_file import load_model, read_model_metadata
+from .training.fit import TrainConfig, checkpoint_path, predict_images
+from .training.fitters import get_fitter
+from .training.images import held_out_split
+
+__all__ = ["DEFAULT_KINDS", "RepresentationScore", "fit_or_load", "evaluate_pairs", "compare_representations",
+           "flip_colormap", "compare_synthesis", "DEFAULT_SYNTHESIS_METHODS"]
+
+#: The paper's four representations, in the order of its figures.
+DEFAULT_KINDS = ("triple", "neumip", "pca", "sh")
+#: The synthesis methods of the paper's Fig. 7.
+DEFAULT_SYNTHESIS_METHODS = ("tile", "hist", "hex", "quilt")
+
+# Polynomial fit of matplotlib's "magma" colour map (FLIP's error-map colours); max error 0.02.
+_MAGMA = np.array([
+    [-0.002136485053939582, -0.000749655052795221, -0.005386127855323933],
+    [0.2516605407371642, 0.6775232436837668, 2.494026599312351],
+    [8.353717279216625, -3.577719514958484, 0.3144679030132573],
+    [-27.66873308576866, 14.26473078096533, -13.64921318813922],
+    [52.17613981234068, -27.94360607168351, 12.94416944238394],
+    [-50.76852536473588, 29.04658282127291, 4.23415299384598],
+    [18.65570506591883, -11.48977351997711, -5.601961508734096]])
+
+
+def flip_colormap(error: np.ndarray) -> np.ndarray:
+    """FLIP error map ``(H, W)`` in ``[0, 1]`` -> display sRGB ``(H, W, 3)`` in ``[0, 1]`` (magma).
+
+    >>> flip_colormap(np.array([[0.0, 1.0]])).round(2).tolist()
+    [[[0.0, 0.0, 0.0], [0.99, 0.99, 0.75]]]
+    """
+    t = np.clip(np.asarray(error, dtype=np.float64), 0.0, 1.0)[..., None]
+    out = np.zeros(t.shape[:-1] + (3,))
+    for coefficient in _MAGMA[::-1]:  # Horner
+        out = out * t + coefficient
+    return np.clip(out, 0.0, 1.0).astype(np.float32)
+
+
+@dataclass
+class RepresentationScore:
+    """One row of the representation table (means over the held-out pairs)."""
+
+    kind: str
+    psnr: float
+    dssim: float
+    flip: float
+    storage_bytes: int
+    positional_bytes: int
+    fit_seconds: float
+    finished: bool
+    model_path: str
+    per_pair: list[dict[str, Any]] = field(default_factory=list, repr=False)
+
+    def row(self) -> dict[str, Any]:
+        """The table columns (without per-pair numbers)."""
+        return {k: v for k, v in asdict(self).items() if k != "per_pair"}
+
+
+# ---------------------------------------------------------------------- fitting
+def _provenance_matches(meta: dict[str, Any], source: BTFSource, held_out: np.ndarray) -> str | None:
+    """Why a stored model does not belong to this comparison (``None`` if it does)."""
+    prov = meta.get("provenance", {})
+    src = prov.get("source", {})
+    expected = {"name": source.name, "height": source.height, "width": source.width,
+                "n_views": source.n_views, "n_lights": source.n_lights}
+    for key, value in expected.items():
+        if src.get(key) != value:
+            return f"it was fitted to {src.get('name')!r} ({key}={src.get(key)!r}, expected {value!r})"
+    if prov.get("held_out_pairs") != np.asarray(held_out).tolist():
+        return "its held-out pairs differ from this comparison's (other --held-out or --seed)"
+    return None
+
+
+def fit_or_load(kind: str, source: BTFSource, path, config: TrainConfig, *, progress: bool = True
+                ) -> tuple[Representation, dict[str, Any]]:
+    """The model of ``kind`` at ``path``: loaded if it is a finished fit of this source and split, else fitted.
+
+    An unfinished gradient fit (its checkpoint exists) continues. A model file
+    that belongs to another BTF or split raises :class:`InputError` (nothing is
+    overwritten).
+    """
+    path = Path(path)
+    _, held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction, config.seed)
+    if path.exists():
+        meta = read_model_metadata(path)
+        problem = meta.get("kind") != kind and f"it is a {meta.get('kind')!r} model" or \
+            _provenance_matches(meta, source, held_out)
+        if problem:
+            raise InputError(f"{path}: cannot reuse this model file: {problem}; remove it or choose another "
+                             "output directory")
+        if meta["provenance"].get("finished", True) or not checkpoint_path(path).exists():
+            rep, meta = load_model(path)
+            return rep, meta
+    result = get_fitter(kind)(source, path, config, progress=progress)
+    return result.representation, result.metadata
+
+
+# ---------------------------------------------------------------------- evaluation
+def evaluate_pairs(rep: Representation, source: BTFSource, pairs: np.ndarray, *, keep: Sequence[int] = (),
+                   batch: int = 8) -> tuple[list[dict[str, Any]], dict[int, tuple[np.ndarray, np.ndarray]]]:
+    """PSNR, DSSIM and FLIP of ``rep`` against ``source`` at each (view, light) pair.
+
+    Returns ``(rows, kept)``: one dict per pair (``view``, ``light``, ``psnr``,
+    ``dssim``, ``flip``) and, for the pair positions listed in ``keep``, the
+    model image and FLIP map ``(H, W, 3), (H, W)``.
+    """
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    device = rep.device
+    rows, kept = [], {}
+    keep = set(int(k) for k in keep)
+    with torch.no_grad():
+        for start in range(0, len(pairs), batch):
+            chunk = pairs[start:start + batch]
+            wv = torch.as_tensor(source.views[chunk[:, 0]], dtype=torch.float32, device=device)
+            wl = torch.as_tensor(source.lights[chunk[:, 1]], dtype=torch.float32, device=device)
+            pred = predict_images(rep, wv, wl, (source.height, source.width)).float().cpu().numpy()
+            for j, (v, l) in enumerate(chunk):
+                image = pred[j].reshape(source.height, source.width, 3)
+                truth = source.image(int(v), int(l))
+                error, mean_flip = flip_map(truth, image)
+                rows.append({"view": int(v), "light": int(l), "psnr": psnr(truth, image),
+                             "dssim": dssim(truth, image), "flip": mean_flip})
+                if start + j in keep:
+                    kept[start + j] = (image, error)
+    return rows, kept
+
+
+def _example_positions(n_pairs: int, examples: int) -> list[int]:
+    """``examples`` positions spread evenly over the held-out list (deterministic)."""
+    if n_pairs == 0 or examples <= 0:
+        return []
+    return sorted(set(np.linspace(0, n_pairs - 1, min(examples, n_pairs)).round().astype(int).tolist()))
+
+
+def _mean(rows, key) -> float:
+    values = [r[key] for r in rows if math.isfinite(r[key])]
+    return float(np.mean(values)) if values else float("nan")
+
+
+def _upscale(image: np.ndarray, factor: int) -> np.ndarray:
+    return np.repeat(np.repeat(image, factor, axis=0), factor, axis=1)
+
+
+def _labelled_grid(cells: list[list[np.ndarray]], column_labels: list[str], row_labels: list[str],
+                   scale: int) -> np.ndarray:
+    """Compose display sRGB cells ``[row][col] (h, w, 3)`` with text labels into one uint8 image."""
+    from PIL import Image, ImageDraw
+
+    h, w = cells[0][0].shape[:2]
+    h, w, pad, top, left = h * scale, w * scale, 4, 18, 110
+    canvas = Image.new("RGB", (left + len(column_labels) * (w + pad), top + len(cells) * (h + pad)), "white")
+    draw = ImageDraw.Draw(canvas)
+    for c, label in enumerate(column_labels):
+        draw.text((left + c * (w + pad) + 2, 3), label, fill="black")
+    for r, row in enumerate(cells):
+        draw.text((3, top + r * (h + pad) + h // 2 - 5), row_labels[r], fill="black")
+        for c, cell in enumerate(row):
+            tile = np.round(_upscale(np.clip(cell, 0, 1), scale) * 255).astype(np.uint8)
+            canvas.paste(Image.fromarray(tile), (left + c * (w + pad), top + r * (h + pad)))
+    return np.asarray(canvas)
+
+
+def _write_png(path: Path, srgb_uint8: np.ndarray) -> None:
+    import imageio.v3 as iio
+
+    with atomic_path(path) as tmp:
+        iio.imwrite(tmp, srgb_uint8, extension=".png")
+
+
+def _write_table(output_dir: Path, stem: str, rows: list[dict[str, Any]], extra: dict[str, Any]) -> None:
+    """``<stem>.csv`` (the rows) and ``<stem>.json`` (rows + ``extra``), atomically."""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    with atomic_path(output_dir / f"{stem}.csv") as tmp:
+        tmp.write_text(buffer.getvalue())
+    with atomic_path(output_dir / f"{stem}.json") as tmp:
+        tmp.write_text(json.dumps({"rows": rows, **extra}, indent=1, default=float))
+
+
+def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] = DEFAULT_KINDS,
+                            config: TrainConfig | None = None, *, examples: int = 3, progress: bool = True,
+                            report: HtmlReport | None = None) -> list[RepresentationScore]:
+    """Fit or load each kind, evaluate all on the same held-out pairs, write table and figure.
+
+    Parameters
+    ----------
+    source : BTFSource
+        The measured (or simulated) BTF.
+    output_dir : str or Path
+        Where models, tables, images and ``index.html`` go (created).
+    kinds : sequence of str
+        Registered fitter kinds (``triple``, ``neumip``, ``pca``, ``sh``).
+    config : TrainConfig
+        Shared by all fits: the held-out split (``held_out_fraction``, ``seed``)
+        and, for gradient-trained kinds, the training options (``max_minutes``
+        is the budget of each gradient fit in this run).
+    examples : int
+        Held-out pairs shown in the figure (rows).
+    progress : bool
+        Progress bars and summary lines.
+    report : HtmlReport, optional
+        Append to this report instead of writing ``index.html`` (used by the CLI
+        to put both comparisons on one page).
+
+    Returns
+    -------
+    list of RepresentationScore, in the order of ``kinds``.
+    """
+    config = (config or TrainConfig()).validate()
+    kinds = list(dict.fromkeys(kinds))
+    if not kinds:
+        raise InputError("--repr: expected at least one representation kind")
+    for kind in kinds:
+        get_fitter(kind)  # fail early on an unknown kind
+    output_dir = Path(output_dir)
+    (output_dir / "images").mkdir(parents=True, exist_ok=True)
+    _, held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction, config.seed)
+    if len(held_out) == 0:
+        raise InputError("held-out fraction is 0: there are no held-out pairs to compare on")
+    shown = _example_positions(len(held_out), examples)
+    truths = {p: source.image(*map(int, held_out[p])) for p in shown}
+
+    scores, kept = [], {}
+    for kind in kinds:
+        start = time.perf_counter()
+        rep, meta = fit_or_load(kind, source, output_dir / f"{kind}.dbtfm", config, progress=progress)
+        wall = time.perf_counter() - start
+        prov = meta.get("provenance", {})
+        rows, kept[kind] = evaluate_pairs(rep, source, held_out, keep=shown)
+        plane = rep.positional_plane()
+        score = RepresentationScore(
+            kind=kind, psnr=_mean(rows, "psnr"), dssim=_mean(rows, "dssim"), flip=_mean(rows, "flip"),
+            storage_bytes=int(rep.storage_bytes()), positional_bytes=int(plane.numel() * plane.element_size()),
+            fit_seconds=float(prov.get("training_seconds", wall)), finished=bool(prov.get("finished", True)),
+            model_path=str(output_dir / f"{kind}.dbtfm"), per_pair=rows)
+        scores.append(score)
+        if progress:
+            print(f"{kind}: PSNR {score.psnr:.2f} dB, DSSIM {score.dssim:.4f}, FLIP {score.flip:.4f}, "
+                  f"{score.storage_bytes / 1e6:.3g} MB, fit {score.fit_seconds:.0f} s")
+
+    table = [s.row() for s in scores]
+    _write_table(output_dir, "representations", table, {
+        "source": source.describe(), "held_out_pairs": held_out.tolist(),
+        "per_pair": {s.kind: s.per_pair for s in scores},
+        "metrics": "PSNR on linear values (peak 1); DSSIM = (1 - SSIM)/2 and FLIP (LDR) on clamped sRGB"})
+
+    # the figure: GT | reps | FLIP maps, one row per example
+    cells, row_labels, figure_items = [], [], []
+    for p in shown:
+        v, l = map(int, held_out[p])
+        gt_path = output_dir / "images" / f"v{v:03d}_l{l:03d}_gt.png"
+        save_image(gt_path, truths[p])
+        row = [to_uint8_srgb(truths[p]) / 255.0]
+        items = [(gt_path, f"GT (view {v}, light {l})")]
+        maps = []
+        for s in scores:
+            image, error = kept[s.kind][p]
+            img_path = output_dir / "images" / f"v{v:03d}_l{l:03d}_{s.kind}.png"
+            map_path = output_dir / "images" / f"v{v:03d}_l{l:03d}_{s.kind}_flip.png"
+            save_image(img_path, image)
+            _write_png(map_path, np.round(flip_colormap(error) * 255).astype(np.uint8))
+            row.append(to_uint8_srgb(image) / 255.0)
+            maps.append(flip_colormap(error))
+            items.append((img_path, f"{s.kind}"))
+            pair_flip = next(r["flip"] for r in s.per_pair if (r["view"], r["light"]) == (v, l))
+            items.append((map_path, f"{s.kind} FLIP {pair_flip:.3f}"))
+        cells.append(row + maps)
+        row_labels.append(f"v{v} l{l}")
+        figure_items.append(items)
+    labels = ["GT", *[s.kind for s in scores], *[f"FLIP {s.kind}" for s in scores]]
+    scale = max(1, 128 // max(source.height, source.width))
+    _write_png(output_dir / "representations.png", _labelled_grid(cells, labels, row_labels, scale))
+
+    own_report = report is None
+    report = report or HtmlReport(f"dynbtf compare: {source.name}",
+                                  f"{source.height} x {source.width} texels, {source.n_views} views x "
+                                  f"{source.n_lights} lights; {len(held_out)} held-out pairs")
+    report.section("Representations", "Means over the same held-out (view, light) pairs, never used in any fit. "
+                   "PSNR on linear values; DSSIM and FLIP on clamped sRGB. Storage: all parameters and buffers; "
+                   "positional: the positional plane alone.")
+    report.table(table, columns=["kind", "psnr", "dssim", "flip", "storage_bytes", "positional_bytes",
+                                 "fit_seconds", "finished"], caption="Held-out error, storage and fit time")
+    report.images([(output_dir / "representations.png", "GT | representations | FLIP error maps (magma)")],
+                  width=min(1400, 160 * len(labels)))
+    for items in figure_items:
+        report.images(items, width=128, pixelated=True)
+    if own_report:
+        report.write(output_dir / "index.html")
+    return scores
