@@ -14,6 +14,7 @@ from .app import app
 # Command modules register themselves on ``app`` when imported.
 from . import data_commands  # noqa: F401,E402
 from . import render_commands  # noqa: F401,E402
+from . import model_commands  # noqa: F401,E402
 
 __all__ = ["app", "main"]
 

@@ -1,0 +1,114 @@
+"""``dynbtf fit``, ``dynbtf eval`` and ``dynbtf inspect``: make, measure and look at model files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from .app import app
+
+
+def _open_source(spec: str):
+    """A BTF source from a path or spec (``sim:leather?size=64``, a .btf file, ...)."""
+    from ..data.open import open_btf
+
+    return open_btf(spec)
+
+
+@app.command()
+def fit(
+    btf: str = typer.Argument(..., help="BTF to fit: a file path or a spec such as 'sim:leather?size=128'."),
+    output: Path = typer.Option(..., "-o", "--output", help="Model file to write (.dbtfm). Its checkpoint "
+                                "<output>.ckpt makes a re-run continue where an interrupted one stopped."),
+    repr: str = typer.Option("triple", "--repr", help="Representation kind: triple (the paper's Triple Plane), "
+                             "or another registered kind (neumip, pca, sh)."),
+    epochs: int = typer.Option(12, help="Passes over the training (view, light) pairs (the paper: 50)."),
+    max_minutes: Optional[float] = typer.Option(None, "--max-minutes", help="Stop after this many minutes of "
+                                                "training (checkpointed; run again to continue). Default: no limit."),
+    seed: int = typer.Option(0, help="Seed of the held-out split, batch order and initialization."),
+    held_out_fraction: float = typer.Option(0.05, "--held-out-fraction", help="Fraction of (view, light) pairs "
+                                            "never trained on, for evaluation."),
+    images_per_step: int = typer.Option(16, "--images-per-step", help="Whole images per optimizer step."),
+    texels_per_image: Optional[int] = typer.Option(None, "--texels-per-image", help="Train on a random subset of "
+                                                   "this many texels per step (very large BTFs). Default: all."),
+    memory_mb: float = typer.Option(2048.0, "--memory-mb", help="RAM (MB) for the decoded-image cache; larger "
+                                    "BTFs are decoded per step (bounded memory)."),
+    workers: Optional[int] = typer.Option(None, help="Threads of the fused training kernel (default: torch's)."),
+    device: str = typer.Option("auto", help="auto (CUDA if available), cpu, cuda:0, ..."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
+) -> None:
+    """Fit a representation to a BTF with the paper's recipe (L1, AdamW, x0.9 lr per epoch, 16 images/step)."""
+    from ..training import TrainConfig, get_fitter
+
+    config = TrainConfig(epochs=epochs, max_minutes=max_minutes, seed=seed, held_out_fraction=held_out_fraction,
+                         images_per_step=images_per_step, texels_per_image=texels_per_image,
+                         memory_budget_mb=memory_mb, workers=workers, device=device)
+    fitter = get_fitter(repr)
+    source = _open_source(btf)
+    result = fitter(source, output, config, progress=not quiet)
+    if quiet:
+        size = result.metadata.get("provenance", {}).get("size", {})
+        typer.echo(f"wrote {result.model_path}" + (f" ({size['summary']})" if "summary" in size else ""))
+
+
+@app.command("eval")
+def eval_command(
+    model: Path = typer.Argument(..., help="Model file (.dbtfm)."),
+    btf: str = typer.Argument(..., help="The BTF it was fitted to: a file path or spec (as given to `dynbtf fit`)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Directory for metrics.csv, metrics.json and "
+                                "side-by-side PNGs (ground truth | model | FLIP error map)."),
+    pairs: str = typer.Option("held-out", help="Pairs to evaluate: held-out (never trained on), all, or a file "
+                              "of 'view_index,light_index' lines."),
+    images: int = typer.Option(8, help="Number of side-by-side PNGs."),
+    device: str = typer.Option("auto", help="auto, cpu, cuda:0, ..."),
+) -> None:
+    """Evaluate a model against its BTF: PSNR (linear), DSSIM and FLIP (clamped sRGB), per pair and mean."""
+    from ..representations.model_file import load_model
+    from ..training.evaluate import evaluate_model, resolve_eval_pairs
+
+    rep, meta = load_model(model, device=device)
+    source = _open_source(btf)
+    chosen = resolve_eval_pairs(pairs, source, meta)
+    result = evaluate_model(rep, source, chosen, out_dir=output, images=images)
+    typer.echo(f"{model.name} on {source.name}: {result.summary()}; wrote {output}")
+
+
+@app.command()
+def inspect(
+    model: Path = typer.Argument(..., help="Model file (.dbtfm)."),
+    output: Optional[Path] = typer.Option(None, "-o", "--output", help="Directory for feature-plane PNGs "
+                                          "(positional plane's first 3 principal components as RGB, angular planes)."),
+    as_json: bool = typer.Option(False, "--json", help="Print the full metadata as JSON."),
+) -> None:
+    """Show a model file's metadata and size (vs the raw BTF); optionally write feature-plane pictures."""
+    from ..representations.model_file import load_model, model_size_report
+
+    rep, meta = load_model(model)
+    prov = meta.get("provenance", {})
+    src = prov.get("source", {})
+    if as_json:
+        typer.echo(json.dumps(meta, indent=1))
+    else:
+        size = model_size_report(rep, src.get("raw_float32_bytes"))
+        lines = [f"{model}: {meta['kind']} (format {meta['format']} v{meta['format_version']})",
+                 f"  config: {json.dumps(meta['config'])}",
+                 f"  size: {size['summary']}; {size['n_parameters']} parameters"]
+        if src:
+            lines.append(f"  fitted to: {src.get('name')} ({src.get('height')}x{src.get('width')} texels, "
+                         f"{src.get('n_views')} views x {src.get('n_lights')} lights)")
+        if "epochs_completed" in prov:
+            lines.append(f"  training: {prov['epochs_completed']:.2f} epochs, {prov.get('training_seconds', 0) / 60:.1f} "
+                         f"min, seed {prov.get('seed')}, finished={prov.get('finished')}")
+        if "held_out_pairs" in prov:
+            lines.append(f"  held-out pairs: {len(prov['held_out_pairs'])}"
+                         + (f" (monitor PSNR {prov['held_out_psnr_monitor']:.2f} dB)"
+                            if "held_out_psnr_monitor" in prov else ""))
+        typer.echo("\n".join(lines))
+    if output is not None:
+        from ..representations.visualize import write_feature_plane_pngs
+
+        paths = write_feature_plane_pngs(rep, output)
+        typer.echo(f"wrote {len(paths)} feature-plane images to {output}")
