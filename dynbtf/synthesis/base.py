@@ -1,0 +1,201 @@
+"""The synthesizer interface: exemplar plane + query uv -> synthesized features.
+
+A synthesizer is built from an exemplar plane ``(H, W, C)`` (e.g. the Triple
+Plane's positional features ``f_U``), a ``seed`` and method parameters. Its
+costly precomputation (tileable preprocessing, PCA, histogram transform tables,
+or the whole quilt for non-dynamic quilting) runs once in the constructor and
+is exposed as the ``prepared`` attribute; passing it back as ``prepared=`` to a
+new synthesizer of the same method and exemplar (e.g. with another seed) skips
+it, like nvdiffrast's ``texture_construct_mip`` -> ``mip=``.
+
+Calling the synthesizer, ``synth(uv)``, maps ``uv (..., 2)`` -- float32 or
+float64, in units of one exemplar repeat, any real value -- to features
+``(..., C)`` float32. Dynamic methods compute every query independently from
+``uv`` alone (``dynamic = True``); quilting is not dynamic: it synthesizes a
+finite plane up front and wraps it.
+
+Texel density is that of the original exemplar: one unit of ``uv`` spans ``W``
+texels along ``u`` and ``H`` along ``v`` even when preprocessing crops the plane.
+
+Methods register by name (:func:`register_synthesizer`) and are built with
+:func:`make_synthesizer`: ``tile``, ``linear``, ``hist``, ``hex``, ``quilt``.
+"""
+
+from __future__ import annotations
+
+import abc
+import inspect
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+
+__all__ = [
+    "Synthesizer",
+    "SYNTHESIZERS",
+    "register_synthesizer",
+    "make_synthesizer",
+    "synthesizer_class",
+    "check_uv",
+    "wrapped_texel_position",
+    "MIN_EXEMPLAR_TEXELS",
+]
+
+#: name -> class, filled by :func:`register_synthesizer`.
+SYNTHESIZERS: dict[str, type["Synthesizer"]] = {}
+
+#: Smallest exemplar side (texels) any method accepts: below it a lattice
+#: triangle (0.289 repeats) spans fewer than ~2.3 texels and the blending
+#: footprint of the three patches covers the whole exemplar.
+MIN_EXEMPLAR_TEXELS = 8
+
+
+def register_synthesizer(name: str):
+    """Class decorator: make a synthesizer constructible by ``name``."""
+
+    def deco(cls):
+        cls.name = name
+        SYNTHESIZERS[name] = cls
+        return cls
+
+    return deco
+
+
+def synthesizer_class(name: str) -> type["Synthesizer"]:
+    """The class registered as ``name``; unknown names raise :class:`InputError` listing the known ones."""
+    from . import blending, hex_tiling, histogram_blending, quilting, tiling  # noqa: F401  (register built-ins)
+
+    try:
+        return SYNTHESIZERS[name]
+    except KeyError:
+        raise InputError(f"synthesis method {name!r} is unknown; expected one of {sorted(SYNTHESIZERS)}") from None
+
+
+def make_synthesizer(name: str, exemplar, seed: int = 0, **params) -> "Synthesizer":
+    """Build the synthesizer ``name`` on ``exemplar (H, W, C)`` with ``seed`` and method ``params``.
+
+    Unknown parameter names raise :class:`InputError` listing the accepted ones.
+    """
+    cls = synthesizer_class(name)
+    accepted = [p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "exemplar", "seed")]
+    unknown = sorted(set(params) - set(accepted))
+    if unknown:
+        raise InputError(f"synthesis method {name!r}: unknown parameter(s) {unknown}; accepted: {accepted}")
+    return cls(exemplar, seed=seed, **params)
+
+
+def check_uv(uv, name: str = "uv") -> torch.Tensor:
+    """Validate query positions: a float tensor/array ``(..., 2)`` of finite values -> tensor."""
+    if not isinstance(uv, torch.Tensor):
+        try:
+            uv = torch.as_tensor(np.asarray(uv, dtype=np.float64))
+        except (TypeError, ValueError) as e:
+            raise InputError(f"{name}: expected a float array of shape (..., 2) ({e})") from None
+    if not uv.is_floating_point():
+        uv = uv.to(torch.float64)
+    if uv.ndim == 0 or uv.shape[-1] != 2:
+        raise InputError(f"{name}: expected shape (..., 2), got {tuple(uv.shape)}")
+    if uv.numel() and not bool(torch.isfinite(uv).all()):
+        bad = int((~torch.isfinite(uv)).any(-1).sum())
+        raise InputError(f"{name}: {bad} position(s) contain NaN or infinite values; expected finite uv")
+    return uv
+
+
+def wrapped_texel_position(whole: torch.Tensor, frac: torch.Tensor, density: int, period: int) -> torch.Tensor:
+    """Exact texel coordinate ``(whole + frac) * density`` modulo ``period``, float64 in ``[0, period)``.
+
+    ``whole`` is int64, ``frac`` float64 in ``[0, 1)``: the integer part is reduced
+    in int64, so the result does not depend on the size of ``whole``.
+    """
+    p = torch.remainder(whole * density, period).to(torch.float64) + frac * density
+    return torch.remainder(p, float(period))
+
+
+class Synthesizer(abc.ABC):
+    """Base class: an exemplar plane synthesized as an infinite texture.
+
+    Parameters
+    ----------
+    exemplar : tensor or array ``(H, W, C)``
+        The exemplar plane (channels last), at least ``MIN_EXEMPLAR_TEXELS`` texels
+        on each side, finite. Kept on its device; outputs follow it.
+    seed : int
+        Seed of every random choice (integer hashes of lattice vertices).
+
+    Attributes
+    ----------
+    name : str
+        Registry name.
+    dynamic : bool
+        True if any ``uv`` is computed independently without pre-generation.
+    prepared : object
+        Result of the costly precomputation (method-specific; pass back as ``prepared=``).
+    """
+
+    name: ClassVar[str] = "abstract"
+    dynamic: ClassVar[bool] = True
+
+    def __init__(self, exemplar, seed: int = 0) -> None:
+        self.exemplar = self.check_exemplar(exemplar)
+        if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool):
+            raise InputError(f"seed: expected an integer, got {seed!r}")
+        self.seed = int(seed)
+
+    @staticmethod
+    def check_exemplar(exemplar, min_texels: int = MIN_EXEMPLAR_TEXELS) -> torch.Tensor:
+        """Validate an exemplar: a finite float ``(H, W, C)`` plane at least ``min_texels`` on each side."""
+        if not isinstance(exemplar, torch.Tensor):
+            exemplar = torch.as_tensor(np.asarray(exemplar, dtype=np.float32))
+        exemplar = exemplar.detach()
+        if exemplar.ndim != 3:
+            raise InputError(f"exemplar: expected a plane of shape (H, W, C), got shape {tuple(exemplar.shape)}")
+        h, w, c = exemplar.shape
+        if min(h, w) < min_texels or c < 1:
+            raise InputError(f"exemplar: {h}x{w}x{c} is smaller than the blending footprint; expected at least "
+                             f"{min_texels}x{min_texels} texels and 1 channel")
+        if not exemplar.is_floating_point():
+            exemplar = exemplar.to(torch.float32)
+        if not bool(torch.isfinite(exemplar).all()):
+            raise InputError("exemplar: contains NaN or infinite values")
+        return exemplar.to(torch.float32).contiguous()
+
+    @property
+    def channels(self) -> int:
+        return int(self.exemplar.shape[-1])
+
+    @property
+    def device(self) -> torch.device:
+        return self.exemplar.device
+
+    def __call__(self, uv) -> torch.Tensor:
+        """Synthesized features ``(..., C)`` float32 at ``uv (..., 2)`` (exemplar repeats, any real value)."""
+        uv = check_uv(uv).to(self.device)
+        batch = uv.shape[:-1]
+        flat = uv.reshape(-1, 2).to(torch.float64)
+        latent = self.latent(flat)
+        matrix, offset = self.output_map()
+        out = latent if matrix is None else latent @ matrix.to(latent.dtype) + offset.to(latent.dtype)
+        return out.reshape(*batch, self.channels)
+
+    # ------------------------------------------------------------ to implement
+    @abc.abstractmethod
+    def latent(self, uv: torch.Tensor) -> torch.Tensor:
+        """Synthesized values before the output map: ``uv (N, 2)`` float64 -> ``(N, C)`` float32."""
+
+    def output_map(self) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """``(matrix (C, C), offset (C,))`` with ``features = latent @ matrix + offset``, or ``(None, None)``.
+
+        Methods that synthesize decorrelated coefficients return the PCA
+        un-projection here, so that a decoder can fold it into its first layer.
+        """
+        return None, None
+
+    def parameters(self) -> dict[str, Any]:
+        """The method's parameters (JSON-serializable), for reports."""
+        return {}
+
+    def storage_bytes(self) -> int:
+        """Bytes the synthesizer stores beyond the exemplar (tables, or the pre-generated plane)."""
+        return 0

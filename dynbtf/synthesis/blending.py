@@ -1,0 +1,202 @@
+"""Blending on the triangle lattice: the shared machinery of ``linear``, ``hist`` and ``hex``.
+
+Every query ``uv`` lies in one triangle of the lattice (:mod:`~dynbtf.synthesis.lattice`);
+each of its three vertices owns a random whole-texel offset (:mod:`~dynbtf.synthesis.hash`);
+the exemplar is read at ``uv`` shifted by each offset (bilinear, wrapped) and the
+three samples are blended with weights from the barycentrics. Methods differ only
+in what plane they read and how they blend:
+
+* ``linear`` -- plain linear blending of the raw features, weights ``b_i``
+  (for comparison: loses contrast and creates ghosts).
+* ``hist``  -- :class:`~dynbtf.synthesis.histogram_blending.HistogramBlending`.
+* ``hex``   -- :class:`~dynbtf.synthesis.hex_tiling.HexTiling`.
+
+Two implementations compute the same thing: a torch reference path (any device;
+three :func:`dynbtf.texture.fetch_wrap` reads) and the fused numba kernel
+(:func:`dynbtf.synthesis.kernels.lattice_blend`, CPU), used on the CPU unless
+``fast=False``.
+
+Preprocessing ``tileable``: ``"auto"`` (default) makes the exemplar periodic with
+:func:`~dynbtf.synthesis.tileable.make_tileable` when its wrap seams are visible,
+i.e. when :func:`~dynbtf.synthesis.tileable.seam_discontinuity` exceeds
+:data:`SEAM_THRESHOLD`; ``True``/``False`` force it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from ..texture import fetch_wrap
+from .base import Synthesizer, register_synthesizer, wrapped_texel_position
+from .hash import vertex_offsets
+from .lattice import split_uv, triangle_lattice
+from .tileable import make_tileable, seam_discontinuity
+
+__all__ = ["LatticeBlending", "LinearBlending", "LatticePlane", "SEAM_THRESHOLD"]
+
+#: ``tileable="auto"`` preprocesses exemplars whose wrap seams differ more than
+#: this factor from interior neighbour differences (see :func:`seam_discontinuity`).
+SEAM_THRESHOLD = 1.5
+
+
+@dataclass
+class LatticePlane:
+    """Precomputed plane that the lattice blend reads.
+
+    Attributes
+    ----------
+    plane : float32 ``(H', W', C)``
+        What the three samples fetch (raw features, or their Gaussian transform).
+    tileable : bool
+        Whether the exemplar was made periodic (then ``H' < H``, ``W' < W``).
+    seam_before, seam_after : float
+        :func:`seam_discontinuity` of the exemplar and of the plane actually read.
+    extras : dict
+        Method-specific tables (histogram transform, PCA, LUT, luminance).
+    """
+
+    plane: torch.Tensor
+    tileable: bool
+    seam_before: float
+    seam_after: float
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    def storage_bytes(self) -> int:
+        tensors = [self.plane] + [v for v in self.extras.values() if isinstance(v, torch.Tensor)]
+        return sum(t.numel() * t.element_size() for t in tensors)
+
+
+def _resolve_tileable(exemplar: torch.Tensor, tileable, band: int | None) -> tuple[torch.Tensor, bool, float]:
+    if tileable not in ("auto", True, False):
+        raise InputError(f"tileable: expected 'auto', True or False, got {tileable!r}")
+    seam = seam_discontinuity(exemplar)
+    apply = seam > SEAM_THRESHOLD if tileable == "auto" else bool(tileable)
+    return (make_tileable(exemplar, band) if apply else exemplar), apply, seam
+
+
+class LatticeBlending(Synthesizer):
+    """Base of the lattice-blending synthesizers (see the module docstring).
+
+    Parameters
+    ----------
+    exemplar : ``(H, W, C)``
+    seed : int, default 0
+    tileable : {"auto", True, False}, default "auto"
+        Make the exemplar periodic first ("Avoiding Cuts").
+    band : int, optional
+        Cross-fade band of the tileable preprocessing, texels (default ``0.165 min(H, W)``).
+    fast : bool, optional
+        Use the fused numba kernel (default: when the exemplar is on the CPU).
+    prepared : LatticePlane, optional
+        The ``prepared`` attribute of an earlier synthesizer of the same method
+        and exemplar: skips the precomputation.
+    """
+
+    mode: ClassVar[int]
+
+    def __init__(self, exemplar, seed: int = 0, *, tileable="auto", band: int | None = None, fast: bool | None = None,
+                 prepared: LatticePlane | None = None) -> None:
+        super().__init__(exemplar, seed)
+        self.tileable_option = tileable
+        self.band = band
+        self.fast = self.device.type == "cpu" if fast is None else bool(fast)
+        if self.fast and self.device.type != "cpu":
+            raise InputError(f"fast: the fused kernel runs on the CPU; the exemplar is on {self.device}")
+        if prepared is None:
+            source, applied, seam = _resolve_tileable(self.exemplar, tileable, band)
+            prepared = self.prepare(source)
+            prepared.tileable, prepared.seam_before = applied, seam
+            prepared.seam_after = seam_discontinuity(source) if applied else seam
+        elif not isinstance(prepared, LatticePlane) or prepared.plane.shape[-1] != self.plane_channels():
+            raise InputError(f"prepared: expected the LatticePlane of a {self.name!r} synthesizer "
+                             f"of a {self.channels}-channel exemplar")
+        self.prepared = prepared
+        self._numpy_cache: dict[str, np.ndarray] = {}
+
+    # ------------------------------------------------------------ method hooks
+    def prepare(self, source: torch.Tensor) -> LatticePlane:
+        """Precompute the plane that is read (``source`` is the possibly tileable exemplar)."""
+        return LatticePlane(source, False, 0.0, 0.0)
+
+    def plane_channels(self) -> int:
+        return self.channels
+
+    def blend(self, samples: torch.Tensor, barycentrics: torch.Tensor, uv_samples: torch.Tensor) -> torch.Tensor:
+        """Reference blend of ``samples (N, 3, C')`` with ``barycentrics (N, 3)`` float64 -> ``(N, C)`` float32.
+
+        ``uv_samples (N, 3, 2)`` are the wrapped read positions (for extra fetches).
+        """
+        return (barycentrics.to(samples.dtype)[..., None] * samples).sum(-2)
+
+    def kernel_arguments(self) -> dict[str, Any]:
+        """Keyword arguments of :func:`dynbtf.synthesis.kernels.lattice_blend` besides uv/plane/density/seed."""
+        return {}
+
+    # ------------------------------------------------------------ evaluation
+    @property
+    def density(self) -> tuple[int, int]:
+        """Texels per repeat ``(W, H)`` of the original exemplar."""
+        return int(self.exemplar.shape[1]), int(self.exemplar.shape[0])
+
+    def sample_positions(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Read positions and barycentrics of the three samples of each query.
+
+        Returns ``uv_samples (N, 3, 2)`` float64 in ``[0, 1)`` (fractions of the read
+        plane, wrapped) and ``barycentrics (N, 3)`` float64, for ``uv (N, 2)`` float64.
+        """
+        ph, pw = self.prepared.plane.shape[:2]
+        whole, frac = split_uv(uv)
+        vertices, bary = triangle_lattice(uv)
+        ox, oy = vertex_offsets(vertices[..., 0], vertices[..., 1], self.seed, pw, ph)
+        dw, dh = self.density
+        x = wrapped_texel_position(whole[:, 0], frac[:, 0], dw, pw)[:, None] + ox
+        y = wrapped_texel_position(whole[:, 1], frac[:, 1], dh, ph)[:, None] + oy
+        return torch.stack([torch.remainder(x, pw) / pw, torch.remainder(y, ph) / ph], dim=-1), bary
+
+    def reference_latent(self, uv: torch.Tensor) -> torch.Tensor:
+        """The torch reference path of :meth:`latent` (any device)."""
+        uv_samples, bary = self.sample_positions(uv)
+        samples = fetch_wrap(self.prepared.plane, uv_samples)
+        return self.blend(samples, bary, uv_samples).to(torch.float32)
+
+    def _numpy(self, name: str, tensor: torch.Tensor) -> np.ndarray:
+        if name not in self._numpy_cache:
+            self._numpy_cache[name] = np.ascontiguousarray(tensor.detach().cpu().numpy(), dtype=np.float32)
+        return self._numpy_cache[name]
+
+    def latent(self, uv: torch.Tensor, out: np.ndarray | None = None) -> torch.Tensor:
+        """Blended values ``(N, C)`` float32 for ``uv (N, 2)`` float64 (fused kernel when ``fast``)."""
+        if not self.fast:
+            return self.reference_latent(uv)
+        from .kernels import lattice_blend
+
+        kwargs = {k: (self._numpy(k, v) if isinstance(v, torch.Tensor) else v)
+                  for k, v in self.kernel_arguments().items()}
+        result = lattice_blend(uv.detach().cpu().numpy(), self._numpy("plane", self.prepared.plane), self.density,
+                               self.seed, self.mode, out=out, **kwargs)
+        return torch.from_numpy(result)
+
+    def parameters(self) -> dict[str, Any]:
+        return {"tileable": self.prepared.tileable, "band": self.band, "fast": self.fast,
+                "seam_before": round(self.prepared.seam_before, 4), "seam_after": round(self.prepared.seam_after, 4)}
+
+    def storage_bytes(self) -> int:
+        return self.prepared.storage_bytes()
+
+
+@register_synthesizer("linear")
+class LinearBlending(LatticeBlending):
+    """Plain linear blending on the lattice (weights = barycentrics), for comparison.
+
+    Same lattice, offsets and preprocessing as ``hist``, no histogram transform
+    and no variance correction: contrast drops towards triangle centres (the
+    variance of a blend of independent samples is ``sum b_i^2 <= 1`` times the
+    exemplar's, down to 1/3) and new, averaged features appear.
+    """
+
+    from .kernels import MODE_LINEAR as mode  # noqa: E402
