@@ -3,7 +3,7 @@
 The sample is a height field ``z = h(u, v)`` over the unit torus (period 1 in
 ``u`` and ``v``), tabulated on a ``(G, G)`` grid (point ``[i, j]`` at
 ``uv = ((j + 0.5) / G, (i + 0.5) / G)``) and interpolated bilinearly with
-periodic wrap (:func:`dynbtf.texture.fetch_wrap`). Heights are in **uv units**
+periodic wrap. Heights are in **uv units**
 (the same unit as the exemplar's side length), so a height of ``0.01`` seen at
 ``theta = 45 deg`` shifts by ``0.01`` in uv. The **reference plane** -- the plane a
 measurement rectifies its images to -- is ``z = 0`` (the materials' mean height).
@@ -29,11 +29,10 @@ import math
 
 import torch
 
-from ...texture import fetch_wrap
 
 __all__ = [
     "normals_from_height",
-    "grid_points_uv",
+    "shift_periodic",
     "trace_view",
     "horizon_tangent",
     "light_visibility",
@@ -42,13 +41,6 @@ __all__ = [
 
 #: March step of the view and shadow rays, in grid cells (horizontal distance).
 STEP_CELLS = 0.5
-
-
-def grid_points_uv(size: int, *, dtype=torch.float64, device=None) -> torch.Tensor:
-    """uv of the ``(size, size)`` grid points, shape ``(size * size, 2)``, row-major."""
-    c = (torch.arange(size, dtype=dtype, device=device) + 0.5) / size
-    v, u = torch.meshgrid(c, c, indexing="ij")
-    return torch.stack([u.reshape(-1), v.reshape(-1)], dim=-1)
 
 
 def normals_from_height(height: torch.Tensor) -> torch.Tensor:
@@ -70,12 +62,34 @@ def normals_from_height(height: torch.Tensor) -> torch.Tensor:
     return n / torch.linalg.vector_norm(n, dim=-1, keepdim=True)
 
 
-def _fetch_height(height_plane: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    return fetch_wrap(height_plane, uv)[..., 0].to(uv.dtype)
+def shift_periodic(field: torch.Tensor, offset_cells) -> torch.Tensor:
+    """``field(x + offset)`` at every grid point ``x``: a bilinear, periodic shift of a ``(G, G)`` field.
+
+    ``offset_cells = (dx, dy)`` in grid cells (``x`` along columns, ``y`` along
+    rows). Equal to a bilinear periodic fetch at the shifted grid points, but
+    costs four rolls (no per-point gather), which is what makes marching cheap.
+
+    >>> import torch
+    >>> f = torch.arange(4.0).view(1, 4).expand(2, 4)
+    >>> shift_periodic(f, (0.5, 0.0))[0].tolist()
+    [0.5, 1.5, 2.5, 1.5]
+    """
+    dx, dy = float(offset_cells[0]), float(offset_cells[1])
+    ix, iy = math.floor(dx), math.floor(dy)
+    fx, fy = dx - ix, dy - iy
+    a = torch.roll(field, shifts=(-iy, -ix), dims=(0, 1))
+    b = torch.roll(a, shifts=-1, dims=1)
+    top = a + (b - a) * fx if fx else a
+    if not fy:
+        return top
+    c = torch.roll(a, shifts=-1, dims=0)
+    d = torch.roll(b, shifts=-1, dims=0)
+    bottom = c + (d - c) * fx if fx else c
+    return top + (bottom - top) * fy
 
 
-def trace_view(height: torch.Tensor, w_view, uv: torch.Tensor, *, refine: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
-    """Where the camera ray through each reference-plane point first hits the height field.
+def trace_view(height: torch.Tensor, w_view, stride: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where the camera rays through the output texels first hit the height field.
 
     Parameters
     ----------
@@ -83,67 +97,65 @@ def trace_view(height: torch.Tensor, w_view, uv: torch.Tensor, *, refine: int = 
         Periodic height field in uv units.
     w_view : sequence of 3 floats
         View direction (towards the camera), unit vector with ``z > 0``.
-    uv : float64 ``(N, 2)`` tensor
-        Points of the reference plane ``z = 0`` (e.g. output texel centres).
-    refine : int
-        Bisection steps after the linear search (each halves the error).
+    stride : int
+        Odd number of grid cells per output texel: the output has ``S = G / stride``
+        texels per side, and texel ``[i, j]`` (centre ``((j + .5) / S, (i + .5) / S)``)
+        is grid point ``[stride * i + stride // 2, stride * j + stride // 2]``.
 
     Returns
     -------
-    hit_uv : float64 ``(N, 2)``
-        uv of the visible surface point (not wrapped; fetches wrap).
-    hit_z : float64 ``(N,)``
+    hit_uv : float64 ``(S * S, 2)``
+        uv of the visible surface point of each texel, row-major (not wrapped).
+    hit_z : float64 ``(S * S,)``
         Its height.
 
     Notes
     -----
-    The ray through ``p`` at height ``z`` is at ``p + z * (w_x, w_y) / w_z``. It is
-    marched from the field's maximum down to its minimum in steps of at most
-    :data:`STEP_CELLS` grid cells horizontally; the first step below the surface
-    brackets the intersection, which bisection then refines. A vertical ray hits
-    ``h(p)`` directly. Features thinner than a step can be missed (never more
-    than half a grid cell).
+    The ray through reference-plane point ``p`` is at ``p + z * (w_x, w_y) / w_z``
+    at height ``z``. It is marched from the field's maximum down to its minimum
+    in steps of at most :data:`STEP_CELLS` grid cells horizontally (every step is
+    the same offset for all texels: one :func:`shift_periodic`); the first sample
+    at or below the surface and the one before bracket the intersection, which
+    is then placed by linear interpolation of ``h - z`` between them. A vertical
+    ray hits ``h(p)`` directly. Features narrower than a step can be missed.
     """
     g = height.shape[0]
-    plane = height[..., None].to(torch.float32)
-    wx, wy, wz = (float(c) for c in w_view)
-    slope = torch.tensor([wx / wz, wy / wz], dtype=uv.dtype, device=uv.device)
+    stride = int(stride)
+    if stride < 1 or stride % 2 == 0 or g % stride:
+        raise ValueError(f"stride must be an odd divisor of the grid size {g}, got {stride}")
+    first = stride // 2
+    s = g // stride
+    texels = height[first::stride, first::stride].reshape(-1)
+    c = (torch.arange(s, dtype=torch.float64, device=height.device) + 0.5) / s
+    vv, uu = torch.meshgrid(c, c, indexing="ij")
+    uv = torch.stack([uu.reshape(-1), vv.reshape(-1)], dim=-1)
+    wx, wy, wz = (float(x) for x in w_view)
+    slope = (wx / wz, wy / wz)
     h_max, h_min = float(height.max()), float(height.min())
     reach = (h_max - h_min) * math.hypot(wx, wy) / wz * g  # horizontal ray length, in grid cells
     if reach < 1e-6:
-        z = _fetch_height(plane, uv)
-        return uv.clone(), z
+        return uv, texels.to(torch.float64)
     n_steps = max(2, int(math.ceil(reach / STEP_CELLS)))
     dz = (h_max - h_min) / n_steps
-    # a tiny margin above the maximum so the first sample is always above the surface
-    z_top = h_max + 1e-9
-    z_hi = torch.full(uv.shape[:1], z_top, dtype=uv.dtype, device=uv.device)   # above the surface
-    z_lo = torch.full_like(z_hi, h_min)                                          # at or below it
-    found = torch.zeros(uv.shape[:1], dtype=torch.bool, device=uv.device)
-    z_prev = z_top
+    z_top = h_max + 1e-9 * max(1.0, abs(h_max))
+    f_prev = texels.new_full(texels.shape, -1e-9)            # h - z at the previous sample (< 0)
+    z_hit = torch.full(texels.shape, h_min, dtype=torch.float64, device=height.device)
+    found = torch.zeros(texels.shape, dtype=torch.bool, device=height.device)
     for k in range(1, n_steps + 1):
         z = z_top - k * dz if k < n_steps else h_min
-        todo = ~found
-        if not bool(todo.any()):
-            break
-        idx = todo.nonzero(as_tuple=True)[0]
-        below = _fetch_height(plane, uv[idx] + z * slope) >= z
-        hit_idx = idx[below]
-        z_lo[hit_idx] = z
-        z_hi[hit_idx] = z_prev
-        found[hit_idx] = True
-        z_prev = z
-    for _ in range(refine):
-        z_mid = 0.5 * (z_hi + z_lo)
-        below = _fetch_height(plane, uv + z_mid[:, None] * slope) >= z_mid
-        z_lo = torch.where(below, z_mid, z_lo)
-        z_hi = torch.where(below, z_hi, z_mid)
-    # final secant step between the bracketing heights
-    f_hi = _fetch_height(plane, uv + z_hi[:, None] * slope) - z_hi   # < 0 (above the surface)
-    f_lo = _fetch_height(plane, uv + z_lo[:, None] * slope) - z_lo   # >= 0
-    t = (f_lo / (f_lo - f_hi).clamp_min(1e-30)).clamp(0.0, 1.0)
-    z = z_lo + t * (z_hi - z_lo)
-    return uv + z[:, None] * slope, z
+        shifted = shift_periodic(height, (z * slope[0] * g, z * slope[1] * g))
+        f = shifted[first::stride, first::stride].reshape(-1) - z
+        new = (f >= 0.0) & ~found
+        if bool(new.any()):
+            t = (f / (f - f_prev)).clamp(0.0, 1.0)            # fraction of the step back up
+            z_k = z + t * (z_top - (k - 1) * dz - z)
+            z_hit = torch.where(new, z_k.to(torch.float64), z_hit)
+            found |= new
+            if bool(found.all()):
+                break
+        f_prev = f
+    hit = uv + z_hit[:, None] * torch.tensor(slope, dtype=torch.float64, device=height.device)
+    return hit, z_hit
 
 
 def horizon_tangent(height: torch.Tensor, azimuth_xy, max_distance: float) -> torch.Tensor:
@@ -156,17 +168,14 @@ def horizon_tangent(height: torch.Tensor, azimuth_xy, max_distance: float) -> to
     ``-inf`` where ``max_distance`` is shorter than one step.
     """
     g = height.shape[0]
-    plane = height[..., None].to(torch.float32)
-    pts = grid_points_uv(g, device=height.device)
-    h0 = height.reshape(-1).to(torch.float64)
-    a = torch.tensor([float(azimuth_xy[0]), float(azimuth_xy[1])], dtype=torch.float64, device=height.device)
+    ax, ay = float(azimuth_xy[0]), float(azimuth_xy[1])
     step = STEP_CELLS / g
     n = int(math.floor(max_distance / step + 1e-9))
-    best = torch.full_like(h0, -math.inf)
+    best = torch.full_like(height, -math.inf)
     for k in range(1, n + 1):
         r = k * step
-        best = torch.maximum(best, (_fetch_height(plane, pts + r * a) - h0) / r)
-    return best.reshape(g, g)
+        best = torch.maximum(best, (shift_periodic(height, (r * ax * g, r * ay * g)) - height) * (1.0 / r))
+    return best
 
 
 def light_visibility(height: torch.Tensor, w_light, *, spread_deg: float = 2.0) -> torch.Tensor:

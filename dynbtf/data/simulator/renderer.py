@@ -77,14 +77,19 @@ class HeightFieldRenderer:
         self.device = torch.device("cpu") if device is None else torch.device(device)
         self.maps = maps
         self.out_size = int(out_size)
+        g = maps.size
+        if g % self.out_size or (g // self.out_size) % 2 == 0:
+            raise ValueError(f"the material grid ({g}) must be an odd multiple of the output size ({out_size})")
+        self.stride = g // self.out_size
         self.spread_deg = float(spread_deg)
         self.interreflection = bool(interreflection)
         self.shadows = bool(shadows)
-        self.height = torch.as_tensor(maps.height, dtype=torch.float64, device=self.device)
-        normals = normals_from_height(self.height).to(torch.float32)
-        sky = sky_view_factor(self.height) if interreflection else torch.ones_like(normals[..., 0])
         f32 = dict(dtype=torch.float32, device=self.device)
+        self.height = torch.as_tensor(maps.height, **f32)
+        normals = normals_from_height(self.height)
+        sky = sky_view_factor(self.height) if interreflection else torch.ones_like(normals[..., 0])
         self._normals = normals
+        self.has_coat = bool(np.asarray(maps.coat).max() > 0.0)
         self._plane = torch.cat([
             normals,
             torch.as_tensor(maps.albedo, **f32),
@@ -94,10 +99,6 @@ class HeightFieldRenderer:
             sky[..., None],
         ], dim=-1)  # (G, G, 10)
         self.albedo_mean = torch.as_tensor(np.asarray(maps.albedo).reshape(-1, 3).mean(0), **f32)
-        s = self.out_size
-        c = (torch.arange(s, dtype=torch.float64, device=self.device) + 0.5) / s
-        vv, uu = torch.meshgrid(c, c, indexing="ij")
-        self._texel_uv = torch.stack([uu.reshape(-1), vv.reshape(-1)], dim=-1)  # (S*S, 2)
         self._views: OrderedDict = OrderedDict()
         self._view_cache = max(1, int(view_cache))
         self._lights: dict = {}
@@ -114,7 +115,7 @@ class HeightFieldRenderer:
         if key in self._views:
             self._views.move_to_end(key)
             return self._views[key]
-        hit_uv, hit_z = trace_view(self.height, w_view, self._texel_uv)
+        hit_uv, hit_z = trace_view(self.height, w_view, self.stride)
         attrs = fetch_wrap(self._plane, hit_uv)
         n = attrs[:, 0:3]
         n = n / torch.linalg.vector_norm(n, dim=-1, keepdim=True)
@@ -162,23 +163,22 @@ class HeightFieldRenderer:
         v = torch.as_tensor([float(x) for x in w_view], **f32)
         l = torch.as_tensor(w_lights, **f32)[:, None, :]          # (L, 1, 3)
         h = v + l
-        h = h / torch.sqrt(dot3(h, h))[..., None]
-        n = t["n"][None]                                          # (1, N, 3)
-        cos_l = dot3(n, l)                                        # (L, N)
-        cos_v = dot3(n, v).expand_as(cos_l)
-        cos_h = dot3(n, h).clamp(0.0, 1.0)
-        cos_d = dot3(v, h).clamp(0.0, 1.0).expand_as(cos_l)       # (L, 1) -> (L, N)
-        ok = cos_l > 0.0
-        cl, cv = cos_l.clamp_min(1e-6), cos_v.clamp_min(GRAZING_COS)
-        value = layered_brdf(cl, cv, cos_h, cos_d, albedo=t["albedo"][None], alpha=t["alpha"][None],
-                             f0=t["f0"][None], coat=t["coat"][None], coat_alpha=self.maps.coat_alpha,
-                             coat_f0=self.maps.coat_f0)
+        h = h / torch.sqrt(dot3(h, h))[..., None]                 # (L, 1, 3)
+        n_t = t["n"].transpose(0, 1)                              # (3, N)
+        cos_l = l[:, 0, :] @ n_t                                  # (L, N)
+        cos_v = dot3(t["n"], v).clamp_min(GRAZING_COS)[None]      # (1, N)
+        cos_h = (h[:, 0, :] @ n_t).clamp_(0.0, 1.0)               # (L, N)
+        cos_d = dot3(v, h).clamp(0.0, 1.0)                        # (L, 1)
+        value = layered_brdf(cos_l.clamp_min(1e-6), cos_v, cos_h, cos_d, albedo=t["albedo"][None],
+                             alpha=t["alpha"][None], f0=t["f0"][None],
+                             coat=t["coat"][None] if self.has_coat else None,
+                             coat_alpha=self.maps.coat_alpha, coat_f0=self.maps.coat_f0)
         cos_macro = l[..., 2].clamp_min(1e-6)                     # (L, 1)
-        direct = torch.where(ok, cos_l / cos_macro * vis_at_hit, torch.zeros_like(cos_l))
-        value = value * direct[..., None]
+        direct = cos_l.clamp_(min=0.0).mul_(vis_at_hit).div_(cos_macro)  # (L, N)
+        value.mul_(direct[..., None])
         if self.interreflection:
             em = torch.as_tensor(e_mean, **f32)[:, None, None]    # (L, 1, 1)
             fill = t["albedo"] * self.albedo_mean * (1.0 - t["sky"])[:, None]  # (N, 3)
-            value = value + fill[None] * em
+            value.addcmul_(fill[None], em)
         s = self.out_size
-        return value.reshape(len(w_lights), s, s, 3).contiguous()
+        return value.reshape(len(w_lights), s, s, 3)

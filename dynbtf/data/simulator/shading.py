@@ -2,9 +2,7 @@
 
 All functions are elementwise torch code on broadcastable tensors of cosines
 (measured against the *local* shading normal ``n`` of the meso-scale surface,
-not the macro normal). Dot products are written out component by component so
-the result of one (view, light) pair never depends on how many pairs are
-evaluated together (bitwise reproducible under any batching).
+not the macro normal).
 
 Model (``x = n . w`` cosines, ``h = normalize(v + l)``)::
 
@@ -38,15 +36,15 @@ def dot3(a, b) -> torch.Tensor:
 def ggx_ndf(cos_h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     """GGX normal distribution ``D`` (per steradian of micro-normal) at ``cos(n, h)``."""
     a2 = alpha * alpha
-    c2 = cos_h * cos_h
-    d = c2 * (a2 - 1.0) + 1.0
-    return a2 / (math.pi * d * d)
+    d = (cos_h * cos_h * (a2 - 1.0)).add_(1.0)
+    return a2 / d.square_().mul_(math.pi)
 
 
 def smith_g1(cos_w: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     """Smith masking of GGX for a direction at ``cos(n, w) > 0``."""
     a2 = alpha * alpha
-    return 2.0 * cos_w / (cos_w + torch.sqrt(a2 + (1.0 - a2) * cos_w * cos_w))
+    root = (cos_w * cos_w * (1.0 - a2)).add_(a2).sqrt_()
+    return 2.0 * cos_w / root.add_(cos_w)
 
 
 def schlick_fresnel(f0, cos_d: torch.Tensor) -> torch.Tensor:
@@ -57,12 +55,20 @@ def schlick_fresnel(f0, cos_d: torch.Tensor) -> torch.Tensor:
 
 
 def ggx_specular(cos_l, cos_v, cos_h, cos_d, alpha, f0) -> torch.Tensor:
-    """Microfacet specular lobe ``f_spec`` (1/sr) for positive ``cos_l, cos_v``."""
-    num = ggx_ndf(cos_h, alpha) * smith_g1(cos_l, alpha) * smith_g1(cos_v, alpha) * schlick_fresnel(f0, cos_d)
-    return num / (4.0 * cos_l * cos_v)
+    """Microfacet specular lobe ``f_spec`` (1/sr) for positive ``cos_l, cos_v``.
+
+    Arguments broadcast; pass per-light and per-texel factors with singleton
+    axes (e.g. ``cos_d`` as ``(L, 1)``, ``cos_v`` as ``(1, N)``) so each factor is
+    computed at its own size before the product.
+    """
+    g1_over_cos_l = smith_g1(cos_l, alpha).div_(cos_l)
+    g1_over_cos_v = smith_g1(cos_v, alpha).div_(cos_v)
+    spec = ggx_ndf(cos_h, alpha) * g1_over_cos_l * (g1_over_cos_v * 0.25)
+    return spec * schlick_fresnel(f0, cos_d)
 
 
-def layered_brdf(cos_l, cos_v, cos_h, cos_d, *, albedo, alpha, f0, coat, coat_alpha, coat_f0) -> torch.Tensor:
+def layered_brdf(cos_l, cos_v, cos_h, cos_d, *, albedo, alpha, f0, coat=None, coat_alpha=0.05,
+                 coat_f0=0.04) -> torch.Tensor:
     """``pi * f_r`` of the clear-coated microfacet model (see module docstring).
 
     Parameters
@@ -74,21 +80,25 @@ def layered_brdf(cos_l, cos_v, cos_h, cos_d, *, albedo, alpha, f0, coat, coat_al
         ``n . h`` and ``v . h`` with ``h = normalize(v + l)``.
     albedo : tensor ``(..., 3)``
         Lambertian base albedo (linear RGB).
-    alpha, f0, coat : tensors ``(...)``
-        Base GGX roughness, base specular reflectance at normal incidence, and
-        clear-coat weight in ``[0, 1]``.
+    alpha, f0 : tensors ``(...)``
+        Base GGX roughness and base specular reflectance at normal incidence.
+    coat : tensor ``(...)`` or None
+        Clear-coat weight in ``[0, 1]``; ``None`` means no coat anywhere.
     coat_alpha, coat_f0 : float
         Clear-coat GGX roughness and reflectance at normal incidence.
+
+    All arguments broadcast against each other (``albedo`` with an extra RGB axis).
 
     Returns
     -------
     tensor ``(..., 3)``: ``pi * f_r``.
     """
-    spec = ggx_specular(cos_l, cos_v, cos_h, cos_d, alpha, f0)
-    base = albedo * (1.0 / math.pi) + spec[..., None]
+    base = albedo + ggx_specular(cos_l, cos_v, cos_h, cos_d, alpha, f0).mul_(math.pi)[..., None]
+    if coat is None:
+        return base
     ca = torch.as_tensor(coat_alpha, dtype=cos_l.dtype, device=cos_l.device)
     coat_spec = ggx_specular(cos_l, cos_v, cos_h, cos_d, ca, coat_f0)
     transmit = (1.0 - schlick_fresnel(coat_f0, cos_l)) * (1.0 - schlick_fresnel(coat_f0, cos_v))
-    coated = coat_spec[..., None] + transmit[..., None] * base
-    c = coat[..., None]
-    return math.pi * (c * coated + (1.0 - c) * base)
+    # coat * [spec_c + T base] + (1 - coat) base  =  base (1 - coat + coat T) + coat spec_c
+    through = 1.0 - coat + coat * transmit
+    return base * through[..., None] + (math.pi * coat * coat_spec)[..., None]
