@@ -284,9 +284,31 @@ class DrTiling:
         return fetch_wrap(self.plane, self.size, self.channels, u, v, active)
 
 
-def make_dr_synthesizer(model, method: str, seed: int):
-    """The Dr.Jit synthesizer for ``method`` on ``model``'s positional plane (same tables as torch's)."""
-    if method == "tile":
-        return DrTiling(model.positional_plane())
-    raise InputError(f"method: expected one of ['tile', 'hist', 'hex'], got {method!r}")
+def make_dr_synthesizer(synthesizer):
+    """The Dr.Jit twin of a :class:`dynbtf.synthesis.base.Synthesizer` (same tables, same function).
 
+    Supported: plain tiling and every lattice-blending method (``linear``,
+    ``hist``, ``hex``); quilting is not dynamic and has no kernel form.
+    """
+    from ..synthesis.blending import LatticeBlending
+    from ..synthesis.kernels import MODE_HEX, MODE_HIST, MODE_LINEAR
+
+    def host(x):
+        return x.detach().cpu().numpy() if hasattr(x, "detach") else x
+
+    if isinstance(synthesizer, LatticeBlending):
+        mode = {MODE_LINEAR: "linear", MODE_HIST: "hist", MODE_HEX: "hex"}[synthesizer.mode]
+        kwargs = {k: host(v) for k, v in synthesizer.kernel_arguments().items()}
+        matrix, offset = synthesizer.output_map()
+        return DrLatticeBlending(host(synthesizer.prepared.plane), synthesizer.density, synthesizer.seed, mode,
+                                 matrix=None if matrix is None else host(matrix),
+                                 offset=None if offset is None else host(offset), **kwargs)
+    if getattr(synthesizer, "name", None) == "tile":
+        return DrTiling(tiling_plane(synthesizer))
+    raise InputError(f"synthesis method {getattr(synthesizer, 'name', synthesizer)!r} has no Dr.Jit form; "
+                     f"expected one of ['tile', 'linear', 'hist', 'hex']")
+
+
+def tiling_plane(synthesizer):
+    """The plane a tiling synthesizer repeats (its exemplar)."""
+    return synthesizer.exemplar

@@ -184,10 +184,12 @@ class DynBTFEvaluator:
     """
 
     def __init__(self, model, method: str, seed: int) -> None:
+        from ..synthesized import SynthesizedBTF
         from .drjit_synthesis import make_dr_synthesizer
 
         self.model = drjit_ops.DrTriplePlane(model)
-        self.synthesizer = make_dr_synthesizer(model, method, seed)
+        self.btf = SynthesizedBTF(model, method, scale=1.0, seed=seed)
+        self.synthesizer = make_dr_synthesizer(self.btf.synthesizer)
 
     def features(self, u, v, active=True):
         """Synthesized positional features at ``(u, v)``: list of ``C_U`` mi.Float."""
