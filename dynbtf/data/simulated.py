@@ -28,6 +28,7 @@ import torch
 from ..device import resolve_device
 from ..errors import InputError
 from .base import BTFSource
+from .directions import direction_set
 from .simulator import MATERIALS, HeightFieldRenderer, build_material
 
 __all__ = ["SimulatedBTF", "simulated_btf", "MATERIALS", "GRIDS", "SIMULATOR_VERSION", "MIN_GRID"]
@@ -46,12 +47,6 @@ MIN_GRID = 64
 
 #: Sizes accepted for ``size`` (texels per side).
 SIZE_RANGE = (4, 4096)
-
-
-def _direction_grid(grid: str) -> np.ndarray:
-    from . import directions
-
-    return np.asarray(directions.direction_set(grid), dtype=np.float64)
 
 
 class SimulatedBTF(BTFSource):
@@ -84,7 +79,7 @@ class SimulatedBTF(BTFSource):
         material, size, grid, seed = _check_arguments(material, size, grid, seed)
         self.material, self.grid, self.seed = material, grid, seed
         self.height = self.width = size
-        self.views = _direction_grid(grid)
+        self.views = np.asarray(direction_set(grid), dtype=np.float64)
         self.lights = self.views.copy()
         self.name = f"sim:{material}"
         self.device = resolve_device(device)
