@@ -12,6 +12,8 @@ held-out (view, light) pairs and writes, into one output directory:
   parameters and buffers; and the positional plane alone, the part a non-dynamic
   synthesis must pre-generate at the output size), fit time; the JSON also
   holds every pair's numbers;
+* ``eval_<kind>/`` -- each model's ``dynbtf eval`` output on the held-out pairs
+  (:func:`dynbtf.training.evaluate.evaluate_model`: per-pair metrics, side-by-side PNGs);
 * ``representations.png`` and ``images/`` -- the figure in the layout of the
   paper's Figs. 4 and 8: one row per held-out example, columns
   ``GT | each representation | FLIP error map of each`` (FLIP maps in the
@@ -31,7 +33,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -43,45 +44,19 @@ import torch
 from .data.base import BTFSource
 from .errors import InputError
 from .io import atomic_path, save_image, to_uint8_srgb
-from .metrics import dssim, flip_map, psnr
+from .metrics import flip_map
 from .report.html import HtmlReport
 from .representations.base import Representation
 from .representations.model_file import load_model, read_model_metadata
 from .training.fit import TrainConfig, checkpoint_path, predict_images
 from .training.fitters import get_fitter
+from .training.evaluate import evaluate_model, flip_colormap
 from .training.images import held_out_split
 
-__all__ = ["DEFAULT_KINDS", "RepresentationScore", "fit_or_load", "evaluate_pairs", "compare_representations",
-           "flip_colormap", "compare_synthesis", "DEFAULT_SYNTHESIS_METHODS"]
+__all__ = ["DEFAULT_KINDS", "RepresentationScore", "fit_or_load", "example_images", "compare_representations"]
 
 #: The paper's four representations, in the order of its figures.
 DEFAULT_KINDS = ("triple", "neumip", "pca", "sh")
-#: The synthesis methods of the paper's Fig. 7.
-DEFAULT_SYNTHESIS_METHODS = ("tile", "hist", "hex", "quilt")
-
-# Polynomial fit of matplotlib's "magma" colour map (FLIP's error-map colours); max error 0.02.
-_MAGMA = np.array([
-    [-0.002136485053939582, -0.000749655052795221, -0.005386127855323933],
-    [0.2516605407371642, 0.6775232436837668, 2.494026599312351],
-    [8.353717279216625, -3.577719514958484, 0.3144679030132573],
-    [-27.66873308576866, 14.26473078096533, -13.64921318813922],
-    [52.17613981234068, -27.94360607168351, 12.94416944238394],
-    [-50.76852536473588, 29.04658282127291, 4.23415299384598],
-    [18.65570506591883, -11.48977351997711, -5.601961508734096]])
-
-
-def flip_colormap(error: np.ndarray) -> np.ndarray:
-    """FLIP error map ``(H, W)`` in ``[0, 1]`` -> display sRGB ``(H, W, 3)`` in ``[0, 1]`` (magma).
-
-    >>> flip_colormap(np.array([[0.0, 1.0]])).round(2).tolist()
-    [[[0.0, 0.0, 0.0], [0.99, 0.99, 0.75]]]
-    """
-    t = np.clip(np.asarray(error, dtype=np.float64), 0.0, 1.0)[..., None]
-    out = np.zeros(t.shape[:-1] + (3,))
-    for coefficient in _MAGMA[::-1]:  # Horner
-        out = out * t + coefficient
-    return np.clip(out, 0.0, 1.0).astype(np.float32)
-
 
 @dataclass
 class RepresentationScore:
@@ -143,33 +118,23 @@ def fit_or_load(kind: str, source: BTFSource, path, config: TrainConfig, *, prog
 
 
 # ---------------------------------------------------------------------- evaluation
-def evaluate_pairs(rep: Representation, source: BTFSource, pairs: np.ndarray, *, keep: Sequence[int] = (),
-                   batch: int = 8) -> tuple[list[dict[str, Any]], dict[int, tuple[np.ndarray, np.ndarray]]]:
-    """PSNR, DSSIM and FLIP of ``rep`` against ``source`` at each (view, light) pair.
-
-    Returns ``(rows, kept)``: one dict per pair (``view``, ``light``, ``psnr``,
-    ``dssim``, ``flip``) and, for the pair positions listed in ``keep``, the
-    model image and FLIP map ``(H, W, 3), (H, W)``.
-    """
+def example_images(rep: Representation, source: BTFSource, pairs: np.ndarray
+                   ) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """Model image ``(H, W, 3)``, FLIP map ``(H, W)`` and mean FLIP at each (view, light) pair (for figures)."""
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    device = rep.device
-    rows, kept = [], {}
-    keep = set(int(k) for k in keep)
+    if len(pairs) == 0:
+        return []
+    device = rep.positional_plane().device
     with torch.no_grad():
-        for start in range(0, len(pairs), batch):
-            chunk = pairs[start:start + batch]
-            wv = torch.as_tensor(source.views[chunk[:, 0]], dtype=torch.float32, device=device)
-            wl = torch.as_tensor(source.lights[chunk[:, 1]], dtype=torch.float32, device=device)
-            pred = predict_images(rep, wv, wl, (source.height, source.width)).float().cpu().numpy()
-            for j, (v, l) in enumerate(chunk):
-                image = pred[j].reshape(source.height, source.width, 3)
-                truth = source.image(int(v), int(l))
-                error, mean_flip = flip_map(truth, image)
-                rows.append({"view": int(v), "light": int(l), "psnr": psnr(truth, image),
-                             "dssim": dssim(truth, image), "flip": mean_flip})
-                if start + j in keep:
-                    kept[start + j] = (image, error)
-    return rows, kept
+        wv = torch.as_tensor(source.views[pairs[:, 0]], dtype=torch.float32, device=device)
+        wl = torch.as_tensor(source.lights[pairs[:, 1]], dtype=torch.float32, device=device)
+        pred = predict_images(rep, wv, wl, (source.height, source.width)).float().cpu().numpy()
+    out = []
+    for j, (v, l) in enumerate(pairs):
+        image = pred[j].reshape(source.height, source.width, 3)
+        error, mean = flip_map(source.image(int(v), int(l)), image)
+        out.append((image, error, mean))
+    return out
 
 
 def _example_positions(n_pairs: int, examples: int) -> list[int]:
@@ -177,11 +142,6 @@ def _example_positions(n_pairs: int, examples: int) -> list[int]:
     if n_pairs == 0 or examples <= 0:
         return []
     return sorted(set(np.linspace(0, n_pairs - 1, min(examples, n_pairs)).round().astype(int).tolist()))
-
-
-def _mean(rows, key) -> float:
-    values = [r[key] for r in rows if math.isfinite(r[key])]
-    return float(np.mean(values)) if values else float("nan")
 
 
 def _upscale(image: np.ndarray, factor: int) -> np.ndarray:
@@ -275,13 +235,15 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
         rep, meta = fit_or_load(kind, source, output_dir / f"{kind}.dbtfm", config, progress=progress)
         wall = time.perf_counter() - start
         prov = meta.get("provenance", {})
-        rows, kept[kind] = evaluate_pairs(rep, source, held_out, keep=shown)
+        evaluation = evaluate_model(rep, source, held_out, out_dir=output_dir / f"eval_{kind}", images=examples,
+                                    progress=progress)
+        kept[kind] = example_images(rep, source, held_out[shown])
         plane = rep.positional_plane()
         score = RepresentationScore(
-            kind=kind, psnr=_mean(rows, "psnr"), dssim=_mean(rows, "dssim"), flip=_mean(rows, "flip"),
+            kind=kind, psnr=evaluation.mean["psnr"], dssim=evaluation.mean["dssim"], flip=evaluation.mean["flip"],
             storage_bytes=int(rep.storage_bytes()), positional_bytes=int(plane.numel() * plane.element_size()),
             fit_seconds=float(prov.get("training_seconds", wall)), finished=bool(prov.get("finished", True)),
-            model_path=str(output_dir / f"{kind}.dbtfm"), per_pair=rows)
+            model_path=str(output_dir / f"{kind}.dbtfm"), per_pair=evaluation.rows)
         scores.append(score)
         if progress:
             print(f"{kind}: PSNR {score.psnr:.2f} dB, DSSIM {score.dssim:.4f}, FLIP {score.flip:.4f}, "
@@ -295,7 +257,7 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
 
     # the figure: GT | reps | FLIP maps, one row per example
     cells, row_labels, figure_items = [], [], []
-    for p in shown:
+    for row_index, p in enumerate(shown):
         v, l = map(int, held_out[p])
         gt_path = output_dir / "images" / f"v{v:03d}_l{l:03d}_gt.png"
         save_image(gt_path, truths[p])
@@ -303,7 +265,7 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
         items = [(gt_path, f"GT (view {v}, light {l})")]
         maps = []
         for s in scores:
-            image, error = kept[s.kind][p]
+            image, error, pair_flip = kept[s.kind][row_index]
             img_path = output_dir / "images" / f"v{v:03d}_l{l:03d}_{s.kind}.png"
             map_path = output_dir / "images" / f"v{v:03d}_l{l:03d}_{s.kind}_flip.png"
             save_image(img_path, image)
@@ -311,7 +273,6 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
             row.append(to_uint8_srgb(image) / 255.0)
             maps.append(flip_colormap(error))
             items.append((img_path, f"{s.kind}"))
-            pair_flip = next(r["flip"] for r in s.per_pair if (r["view"], r["light"]) == (v, l))
             items.append((map_path, f"{s.kind} FLIP {pair_flip:.3f}"))
         cells.append(row + maps)
         row_labels.append(f"v{v} l{l}")

@@ -103,6 +103,10 @@ def test_streamed_randomized_svd_matches_numpy_svd(btf, centered):
         np.testing.assert_allclose(vt[c].T @ vt[c], vt_ref[c, :4].T @ vt_ref[c, :4], atol=1e-6)
         np.testing.assert_allclose(np.abs(u[c].T @ u_ref[c, :, :4]), np.eye(4), atol=1e-6)
     assert np.allclose(means, btf_matrix(btf).mean(axis=1).T) if centered else not means.any()
+    # streaming every pass from the source (no in-memory cache) gives the same result
+    streamed = streamed_randomized_svd(btf, None, 4, centered=centered, block=7, progress=False, cache_mb=0)
+    for x, y in zip(streamed, (u, s, vt, means)):
+        np.testing.assert_array_equal(x, y)
 
 
 @pytest.mark.parametrize("centered", [False, True])

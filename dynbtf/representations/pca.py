@@ -156,14 +156,26 @@ def _check_pairs(btf: BTFSource, pairs) -> np.ndarray:
     return arr.astype(np.int64)
 
 
-def _image_blocks(btf: BTFSource, pairs: np.ndarray, block: int, centered: bool, bar):
-    """Yield ``(slice, A (3, T, b) float64, column means (b, 3))`` over the pairs, in order."""
+def _image_blocks(btf: BTFSource, pairs: np.ndarray, block: int, centered: bool, bar, cache: np.ndarray | None,
+                  cached: bool):
+    """Yield ``(slice, A (3, T, b) float64, column means (b, 3))`` over the pairs, in order.
+
+    With a ``cache`` array ``(P, T, 3)`` float32 the images are stored into it
+    (``cached=False``, first pass) or read from it (``cached=True``) instead of
+    being decoded again.
+    """
     t = btf.height * btf.width
     for start in range(0, len(pairs), block):
         chunk = pairs[start:start + block]
         a = np.empty((3, t, len(chunk)), dtype=np.float64)
         for j, (v, l) in enumerate(chunk):
-            a[:, :, j] = btf.image(int(v), int(l)).reshape(t, 3).T
+            if cached:
+                image = cache[start + j]
+            else:
+                image = btf.image(int(v), int(l)).reshape(t, 3)
+                if cache is not None:
+                    cache[start + j] = image
+            a[:, :, j] = image.T
         means = a.mean(axis=1).T if centered else np.zeros((len(chunk), 3))
         if centered:
             a -= means.T[:, None, :]
@@ -172,7 +184,8 @@ def _image_blocks(btf: BTFSource, pairs: np.ndarray, block: int, centered: bool,
 
 
 def streamed_randomized_svd(btf: BTFSource, pairs, rank: int, *, centered: bool = True, oversampling: int = 10,
-                            power_iterations: int = 2, seed: int = 0, block: int = 64, progress: bool = True):
+                            power_iterations: int = 2, seed: int = 0, block: int = 64, progress: bool = True,
+                            cache_mb: float = 1024.0):
     """Top-``rank`` SVD of each colour channel's texel x pair matrix, streamed image by image.
 
     Parameters
@@ -194,6 +207,10 @@ def streamed_randomized_svd(btf: BTFSource, pairs, rank: int, *, centered: bool 
         Images per matrix product (memory ``3 x T x block`` float64).
     progress : bool
         Show a tqdm bar over the ``(2 + power_iterations) x P`` image reads.
+    cache_mb : float
+        If the fitted images fit in this many MB as float32, the first pass keeps
+        them and the later passes read them from memory instead of decoding the
+        BTF again (same result); otherwise every pass streams from ``btf``.
 
     Returns
     -------
@@ -213,22 +230,23 @@ def streamed_randomized_svd(btf: BTFSource, pairs, rank: int, *, centered: bool 
     omega = rng.standard_normal((3, p, width))
     bar = tqdm(total=(2 + power_iterations) * p, desc="PCA: randomized SVD", unit="img", disable=not progress)
     means = np.zeros((p, 3))
+    cache = np.empty((p, t, 3), dtype=np.float32) if p * t * 3 * 4 <= cache_mb * 1024 ** 2 else None
     try:
         # range finder: Y = A Omega
         y = np.zeros((3, t, width))
-        for sl, a, m in _image_blocks(btf, pairs, block, centered, bar):
+        for sl, a, m in _image_blocks(btf, pairs, block, centered, bar, cache, False):
             y += a @ omega[:, sl]
             means[sl] = m
         q = np.linalg.qr(y)[0]
         # power iterations: Y = A (A^T Q), one pass each
         for _ in range(power_iterations):
             y = np.zeros((3, t, width))
-            for sl, a, _m in _image_blocks(btf, pairs, block, centered, bar):
+            for sl, a, _m in _image_blocks(btf, pairs, block, centered, bar, cache, cache is not None):
                 y += a @ (a.transpose(0, 2, 1) @ q)
             q = np.linalg.qr(y)[0]
         # projection: B^T = A^T Q
         bt = np.zeros((3, p, width))
-        for sl, a, _m in _image_blocks(btf, pairs, block, centered, bar):
+        for sl, a, _m in _image_blocks(btf, pairs, block, centered, bar, cache, cache is not None):
             bt[:, sl] = a.transpose(0, 2, 1) @ q
     finally:
         bar.close()
@@ -263,7 +281,7 @@ def _fill_missing_pairs(table: np.ndarray, known: np.ndarray, views: np.ndarray,
 
 def fit_pca(btf: BTFSource, *, pairs=None, components: int = 5, centered: bool = True, neighbours: int = 3,
             oversampling: int = 10, power_iterations: int = 2, seed: int = 0, block: int = 64,
-            progress: bool = True) -> PCA:
+            progress: bool = True, cache_mb: float = 1024.0) -> PCA:
     """Fit the PCA baseline to ``btf`` using only the (view, light) ``pairs`` given.
 
     Parameters
@@ -276,7 +294,7 @@ def fit_pca(btf: BTFSource, *, pairs=None, components: int = 5, centered: bool =
     components : int, default 5
         Components per RGB channel (the paper: 5, i.e. 15 in all).
     centered, neighbours : see :class:`PCA`.
-    oversampling, power_iterations, seed, block, progress : see :func:`streamed_randomized_svd`.
+    oversampling, power_iterations, seed, block, progress, cache_mb : see :func:`streamed_randomized_svd`.
 
     Returns
     -------
@@ -286,7 +304,7 @@ def fit_pca(btf: BTFSource, *, pairs=None, components: int = 5, centered: bool =
     pairs = _check_pairs(btf, pairs)
     u, s, vt, means = streamed_randomized_svd(btf, pairs, components, centered=centered, oversampling=oversampling,
                                               power_iterations=power_iterations, seed=seed, block=block,
-                                              progress=progress)
+                                              progress=progress, cache_mb=cache_mb)
     model = PCA(btf.height, btf.width, btf.n_views, btf.n_lights, components, centered, neighbours)
     coef = (u * s[:, None, :]).transpose(1, 0, 2).reshape(btf.height, btf.width, 3 * components)
     table = np.zeros((btf.n_views, btf.n_lights, 3, components + 1))
