@@ -33,3 +33,22 @@ def render(
     save_image(output, result.image, exposure=exposure)
     typer.echo(f"wrote {output} ({size}x{size}, {spp} spp, {result.variant}, {result.seconds:.1f} s "
                f"incl. {result.compile_seconds:.1f} s kernel compilation)")
+
+
+@app.command()
+def demo(
+    output: Path = typer.Option(Path("dynbtf-demo"), "-o", "--output", help="Output directory (rerun to resume)."),
+    material: str = typer.Option("leather", help="Simulated material: stone, leather, lacquered_wood or woven_fabric."),
+    size: int = typer.Option(128, help="Texels per side of the simulated BTF."),
+    btf: Optional[str] = typer.Option(None, help="Your own BTF (file or sim: spec) instead of a simulated one."),
+    minutes: float = typer.Option(10.0, help="Target wall time in minutes; training gets what the other stages leave."),
+    seed: int = typer.Option(0, help="Seed of simulation, training and synthesis."),
+    render_size: int = typer.Option(384, help="Mitsuba render side in pixels."),
+    spp: int = typer.Option(16, help="Mitsuba samples per pixel."),
+    quick: bool = typer.Option(False, "--quick", help="Tiny sizes everywhere (a smoke test in about a minute)."),
+) -> None:
+    """Simulate, fit, evaluate, synthesize (tile/hist/hex at 1x-45x), render, and write report.html."""
+    from ..demo import DemoConfig, run_demo
+
+    run_demo(DemoConfig(output=str(output), material=material, size=size, btf=btf, minutes=minutes, seed=seed,
+                        quick=quick, render_size=render_size, spp=spp))

@@ -1,0 +1,368 @@
+"""``dynbtf demo``: the whole pipeline on one material, into one ``report.html``.
+
+Stages (each shows progress and records its results and wall time in
+``<output>/stages/<stage>.json``; a rerun with the same output directory and
+options skips finished stages, and the training stage resumes its checkpoint):
+
+1. ``data``      -- open the BTF: a simulated material (default: ``leather``,
+                    128 x 128 texels on the UBO2003 81 x 81 grid, no download)
+                    or the user's own file; write a few of its images.
+2. ``fit``       -- fit the Triple Plane (the paper's recipe; :func:`dynbtf.training.fit.fit`)
+                    within a share of the time budget.
+3. ``evaluate``  -- held-out (view, light) pairs: PSNR, DSSIM, FLIP; side-by-side
+                    ground truth | model | FLIP map images; model size vs raw size.
+4. ``features``  -- pictures of the feature planes (the paper's Fig. 2).
+5. ``synthesis`` -- the synthesized BTF by tiling, histogram-preserving blending and
+                    hex-tiling at 1x, 8x, 25x, 45x the exemplar's area, a grazing
+                    preview of an infinite plane per method, and the synthesis
+                    quality numbers.
+6. ``render``    -- Mitsuba 3 renders with the ``dynbtf`` plugin: plane, sphere and
+                    cloth under two lighting conditions (the paper's teaser), and
+                    the grazing plane per synthesis method.
+7. ``report``    -- ``report.html`` with every image and table.
+
+``quick=True`` shrinks every stage (tiny images, one epoch, one small render)
+so that the whole demo runs in well under a minute: what the tests use.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from .errors import InputError
+from .io import atomic_path, save_image
+
+__all__ = ["DemoConfig", "run_demo", "STAGES", "SCALES", "METHODS"]
+
+STAGES = ("data", "fit", "evaluate", "features", "synthesis", "render", "report")
+#: Synthesized areas shown, in multiples of the exemplar's side (the paper's Figs. 5-6 use 8x, 25x, 45x).
+SCALES = (1, 8, 25, 45)
+#: Synthesis methods compared.
+METHODS = ("tile", "hist", "hex")
+METHOD_TITLES = {"tile": "tiling (repetition)", "hist": "histogram-preserving blending", "hex": "hex-tiling"}
+
+
+@dataclass
+class DemoConfig:
+    """Options of :func:`run_demo`.
+
+    Attributes
+    ----------
+    output : str
+        Output directory (created; reruns resume there).
+    material : str
+        Simulated material (``dynbtf.data.simulated.MATERIALS``) when ``btf`` is not given.
+    size : int
+        Texels per side of the simulated BTF.
+    btf : str, optional
+        The user's own BTF: a file or ``sim:`` spec understood by ``dynbtf.data.open_btf``.
+    minutes : float
+        Target wall time of the whole demo; training gets what the other stages leave.
+    seed : int
+        Seed of the simulation, training split/initialization and synthesis.
+    quick : bool
+        Tiny everything (tests, smoke runs).
+    render_size : int
+        Mitsuba image side in pixels.
+    spp : int
+        Mitsuba samples per pixel.
+    """
+
+    output: str = "dynbtf-demo"
+    material: str = "leather"
+    size: int = 128
+    btf: str | None = None
+    minutes: float = 10.0
+    seed: int = 0
+    quick: bool = False
+    render_size: int = 384
+    spp: int = 16
+
+    def result_key(self) -> dict[str, Any]:
+        """Options that change results (a finished stage is reused only if they agree)."""
+        d = asdict(self)
+        d.pop("output")
+        d.pop("minutes")
+        return d
+
+
+@dataclass
+class _Context:
+    config: DemoConfig
+    out: Path
+    progress: bool
+    log: Callable[[str], None]
+    results: dict[str, Any] = field(default_factory=dict)
+    _source: Any = None
+    _model: Any = None
+    _metadata: Any = None
+
+    def rel(self, path: Path) -> str:
+        return Path(path).resolve().relative_to(self.out.resolve()).as_posix()
+
+    # ---- lazily opened shared objects (reruns open them again)
+    def source(self):
+        if self._source is None:
+            cfg = self.config
+            if cfg.btf:
+                from .data import open_btf
+
+                self._source = open_btf(cfg.btf)
+            else:
+                from .data.simulated import simulated_btf
+
+                self._source = simulated_btf(cfg.material, size=cfg.size, grid="ubo2003", seed=cfg.seed)
+        return self._source
+
+    def model(self):
+        if self._model is None:
+            from .representations.model_file import load_model
+
+            self._model, self._metadata = load_model(self.out / "model.dbtfm", device="cpu")
+        return self._model
+
+    def metadata(self):
+        self.model()
+        return self._metadata
+
+
+# ---------------------------------------------------------------------------------------------- stages
+def _stage_data(ctx: _Context) -> dict[str, Any]:
+    src = ctx.source()
+    d = ctx.out / "data"
+    views = [src.nearest_view([0.0, 0.0, 1.0]), src.nearest_view([0.5, 0.0, 0.866])]
+    lights = [src.nearest_light([0.5, 0.3, 0.81]), src.nearest_light([-0.7, 0.2, 0.68])]
+    images = []
+    for v, l in zip(views, lights):
+        p = save_image(d / f"btf_v{v:03d}_l{l:03d}.png", src.image(v, l))
+        images.append({"path": ctx.rel(p), "view": int(v), "light": int(l)})
+    return {"describe": {k: v for k, v in src.describe().items() if isinstance(v, (int, float, str))},
+            "images": images, "raw_bytes": int(src.nbytes_float32)}
+
+
+def _fit_minutes(cfg: DemoConfig) -> float:
+    """Training's share of the time budget (the other stages take ~3 minutes at the defaults)."""
+    if cfg.quick:
+        return max(0.2, cfg.minutes)
+    return max(0.5, cfg.minutes - 3.5)
+
+
+def _stage_fit(ctx: _Context) -> dict[str, Any]:
+    from .representations.triple_plane import TriplePlane
+    from .training.fit import TrainConfig, fit
+
+    cfg = ctx.config
+    src = ctx.source()
+    train = TrainConfig(seed=cfg.seed, max_minutes=_fit_minutes(cfg), device="cpu")
+    if cfg.quick:
+        train.epochs = 1
+        train.monitor_pairs = 2
+    rep = TriplePlane(src.height, src.width, seed=cfg.seed)
+    result = fit(rep, src, train, ctx.out / "model.dbtfm", progress=ctx.progress)
+    history = [{k: float(v) for k, v in h.items() if isinstance(v, (int, float))} for h in result.history]
+    return {"finished": bool(result.finished), "epochs_configured": train.epochs,
+            "max_minutes": train.max_minutes, "history_tail": history[-5:]}
+
+
+def _stage_evaluate(ctx: _Context) -> dict[str, Any]:
+    from .representations.model_file import model_size_report
+    from .training.evaluate import evaluate_model, resolve_eval_pairs
+
+    src, rep = ctx.source(), ctx.model()
+    pairs = resolve_eval_pairs("held-out", src, ctx.metadata())
+    if ctx.config.quick:
+        pairs = pairs[:6]
+    ev = evaluate_model(rep, src, pairs, out_dir=ctx.out / "evaluate", images=4 if ctx.config.quick else 6,
+                        progress=ctx.progress)
+    images = []
+    for p in ev.images:
+        row = next((r for r in ev.rows if f"v{r['view_index']:03d}_l{r['light_index']:03d}" in Path(p).name), None)
+        images.append({"path": ctx.rel(p), "row": row})
+    size = model_size_report(rep, src.nbytes_float32)
+    return {"mean": ev.mean, "n_pairs": len(ev.rows), "images": images, "rows": ev.rows, "size": _jsonable(size)}
+
+
+def _stage_features(ctx: _Context) -> dict[str, Any]:
+    from .representations.visualize import write_feature_plane_pngs
+
+    paths = write_feature_plane_pngs(ctx.model(), ctx.out / "features")
+    return {"images": [ctx.rel(p) for p in paths]}
+
+
+def _synth_resolution(cfg: DemoConfig) -> int:
+    return 96 if cfg.quick else 320
+
+
+def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
+    import torch
+    from tqdm.auto import tqdm
+
+    from .render.preview import DirectionalLight, grazing_camera, render_preview
+    from .synthesized import SynthesizedBTF
+
+    cfg = ctx.config
+    rep = ctx.model()
+    res = _synth_resolution(cfg)
+    view = np.array([0.0, 0.0, 1.0])
+    light = np.array([0.5, -0.35, 0.79])
+    light /= np.linalg.norm(light)
+    scales = SCALES[:2] if cfg.quick else SCALES
+    out_dir = ctx.out / "synthesis"
+    grid: dict[str, dict[str, Any]] = {}
+    timings = {}
+    jobs = [(m, s) for m in METHODS for s in scales]
+    for method, scale in tqdm(jobs, desc="synthesis", unit="image", disable=not ctx.progress):
+        btf = SynthesizedBTF(rep, method, scale=1.0, seed=cfg.seed)
+        # supersample 2x2 above 1x: a 45x area has ~20 texels per pixel
+        ss = 1 if scale == 1 else 2
+        t0 = time.perf_counter()
+        img = btf.image(view, light, (0.0, 0.0, float(scale), float(scale)), (res * ss, res * ss))
+        img = np.asarray(img.detach().cpu().numpy() if hasattr(img, "detach") else img, dtype=np.float32)
+        if ss > 1:
+            img = img.reshape(res, ss, res, ss, 3).mean(axis=(1, 3))
+        timings[f"{method}@{scale}x"] = time.perf_counter() - t0
+        p = save_image(out_dir / f"{method}_{scale:02d}x.png", img * float(light[2]))
+        grid.setdefault(method, {})[str(scale)] = ctx.rel(p)
+    # an infinite plane at a grazing angle, per method: repetition shows as a grid towards the horizon
+    previews = {}
+    cam = grazing_camera(distance=6.0, height=0.9, fov=50.0, center=(0.5, 4.0))
+    sun = DirectionalLight((0.45, 0.6, 0.66), irradiance=1.0)
+    pres = (72, 128) if cfg.quick else (288, 512)
+    for method in tqdm(METHODS, desc="grazing previews", unit="image", disable=not ctx.progress):
+        btf = SynthesizedBTF(rep, method, scale=1.0, seed=cfg.seed)
+        img = render_preview(btf, cam, sun, resolution=pres, spp=1 if cfg.quick else 4, background=(0.55, 0.65, 0.8))
+        previews[method] = ctx.rel(save_image(out_dir / f"grazing_{method}.png", img))
+    quality = _synthesis_quality(ctx, rep)
+    return {"grid": grid, "scales": list(scales), "resolution": res, "view": view.tolist(), "light": light.tolist(),
+            "timings": timings, "previews": previews, "quality": quality}
+
+
+def _synthesis_quality(ctx: _Context, rep) -> list[dict[str, Any]]:
+    """Synthesis quality numbers per method (:mod:`dynbtf.synthesis.quality`)."""
+    from .synthesis.quality import quality_report
+
+    rows = []
+    for method in METHODS:
+        report = quality_report(rep, method, seed=ctx.config.seed, quick=ctx.config.quick)
+        rows.append({"method": method, **{k: v for k, v in _jsonable(report).items() if not isinstance(v, (list, dict))}})
+    return rows
+
+
+def _render_jobs(cfg: DemoConfig) -> list[dict[str, Any]]:
+    if cfg.quick:
+        return [{"scene": "plane", "lighting": "sky", "method": "hist", "scale": 25.0}]
+    jobs = [{"scene": s, "lighting": li, "method": "hist", "scale": sc}
+            for s, sc in (("plane", 25.0), ("sphere", 6.0), ("cloth", 5.0)) for li in ("sky", "point")]
+    jobs += [{"scene": "plane", "lighting": "sky", "method": m, "scale": 25.0} for m in ("tile", "hex")]
+    return jobs
+
+
+def _stage_render(ctx: _Context) -> dict[str, Any]:
+    from .render.mitsuba_render import render_scene
+
+    cfg = ctx.config
+    size = 64 if cfg.quick else cfg.render_size
+    spp = 4 if cfg.quick else cfg.spp
+    rows = []
+    for k, job in enumerate(_render_jobs(cfg)):
+        ctx.log(f"render {k + 1}/{len(_render_jobs(cfg))}: {job['scene']} / {job['lighting']} / {job['method']}")
+        r = render_scene(ctx.out / "model.dbtfm", resolution=(size, size), spp=spp, seed=cfg.seed,
+                         progress=ctx.progress, **job)
+        name = f"{job['scene']}_{job['lighting']}_{job['method']}"
+        p = save_image(ctx.out / "render" / f"{name}.png", r.image)
+        save_image(ctx.out / "render" / f"{name}.exr", r.image)
+        rows.append({**job, "path": ctx.rel(p), "seconds": round(r.seconds, 2),
+                     "compile_seconds": round(r.compile_seconds, 2), "size": size, "spp": spp, "variant": r.variant})
+    return {"renders": rows}
+
+
+def _stage_report(ctx: _Context) -> dict[str, Any]:
+    from .report.demo_report import write_demo_report
+
+    path = write_demo_report(ctx.out, ctx.config, ctx.results)
+    return {"report": ctx.rel(path)}
+
+
+_STAGE_FUNCS = {"data": _stage_data, "fit": _stage_fit, "evaluate": _stage_evaluate, "features": _stage_features,
+                "synthesis": _stage_synthesis, "render": _stage_render, "report": _stage_report}
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return float(x)
+    if isinstance(x, (np.integer, int)) and not isinstance(x, bool):
+        return int(x)
+    if isinstance(x, (str, bool)) or x is None:
+        return x
+    if hasattr(x, "item") and getattr(x, "ndim", 1) == 0:
+        return x.item()
+    return str(x)
+
+
+def run_demo(config: DemoConfig | None = None, *, progress: bool = True, log: Callable[[str], None] | None = None,
+             stages: tuple[str, ...] = STAGES) -> dict[str, Any]:
+    """Run (or resume) the demo; return every stage's results (also in ``<output>/stages/*.json``).
+
+    A stage whose record exists with the same :meth:`DemoConfig.result_key` is
+    skipped; delete ``<output>/stages/<stage>.json`` to redo one stage (and the
+    ones after it, whose inputs it produced).
+    """
+    cfg = config or DemoConfig()
+    _check_config(cfg)
+    out = Path(cfg.output)
+    out.mkdir(parents=True, exist_ok=True)
+    say = log or (lambda s: print(f"[dynbtf demo] {s}", flush=True))
+    ctx = _Context(cfg, out, progress, say)
+    key = _jsonable(cfg.result_key())
+    redo = False
+    t_start = time.perf_counter()
+    for i, name in enumerate(stages):
+        record = out / "stages" / f"{name}.json"
+        if not redo and record.exists():
+            try:
+                saved = json.loads(record.read_text())
+            except json.JSONDecodeError:
+                saved = {}
+            if saved.get("key") == key and name != "report":
+                ctx.results[name] = saved
+                say(f"stage {i + 1}/{len(stages)} {name}: done earlier ({saved.get('seconds', 0):.1f} s), skipped")
+                continue
+        redo = True  # later stages depend on this one's outputs
+        say(f"stage {i + 1}/{len(stages)} {name} ...")
+        t0 = time.perf_counter()
+        result = _STAGE_FUNCS[name](ctx)
+        seconds = time.perf_counter() - t0
+        saved = {"key": key, "seconds": seconds, **_jsonable(result)}
+        ctx.results[name] = saved
+        if name == "fit" and not result.get("finished", True):
+            redo = True
+        with atomic_path(record) as tmp:
+            tmp.write_text(json.dumps(saved, indent=1))
+        say(f"stage {i + 1}/{len(stages)} {name}: {seconds:.1f} s")
+    total = time.perf_counter() - t_start
+    say(f"report: {out / 'report.html'} (this run {total / 60:.1f} min)")
+    return ctx.results
+
+
+def _check_config(cfg: DemoConfig) -> None:
+    from .data.simulated import MATERIALS
+
+    if cfg.btf is None and cfg.material not in MATERIALS:
+        raise InputError(f"--material: expected one of {sorted(MATERIALS)}, got {cfg.material!r}")
+    if not 8 <= int(cfg.size) <= 1024:
+        raise InputError(f"--size: expected 8..1024 texels, got {cfg.size}")
+    if not (math.isfinite(cfg.minutes) and cfg.minutes > 0):
+        raise InputError(f"--minutes: expected a positive time budget, got {cfg.minutes}")
+    if cfg.render_size < 16 or cfg.spp < 1:
+        raise InputError(f"render size/spp: expected >= 16 pixels and >= 1 spp, got {cfg.render_size}, {cfg.spp}")
