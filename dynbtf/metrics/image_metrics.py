@@ -26,7 +26,11 @@ def check_image_pair(reference, test) -> tuple[np.ndarray, np.ndarray]:
     """Validate two linear RGB images; return them as float32 ``(H, W, 3)`` arrays."""
     out = []
     for name, img in (("reference", reference), ("test", test)):
-        arr = np.asarray(img, dtype=np.float32)
+        arr = np.asarray(img)
+        if not np.issubdtype(arr.dtype, np.floating):
+            raise InputError(f"{name}: expected linear float values, got dtype {arr.dtype} (decode 8-bit sRGB "
+                             "images with dynbtf.io.srgb_to_linear(x / 255) first)")
+        arr = arr.astype(np.float32, copy=False)
         if arr.ndim != 3 or arr.shape[-1] != 3:
             raise InputError(f"{name}: expected a linear RGB image of shape (H, W, 3), got shape {arr.shape}")
         if not np.isfinite(arr).all():
@@ -75,7 +79,8 @@ def dssim(reference, test) -> float:
 def flip_map(reference, test) -> tuple[np.ndarray, float]:
     """NVIDIA FLIP (LDR) of the clamped sRGB-encoded images: ``(error map (H, W) in [0, 1], mean)``.
 
-    Uses the ``flip-evaluator`` package, which silently misreads uint8 or
+    The map is the raw per-pixel error (no colour map applied; see
+    :func:`dynbtf.training.evaluate.flip_colormap`). Uses the ``flip-evaluator`` package, which silently misreads uint8 or
     channels-first input; this function always passes it contiguous float32
     ``(H, W, 3)`` sRGB values in ``[0, 1]``.
     """
@@ -84,7 +89,7 @@ def flip_map(reference, test) -> tuple[np.ndarray, float]:
     ref, tst = check_image_pair(reference, test)
     ref_srgb = np.ascontiguousarray(linear_to_srgb(ref), dtype=np.float32)
     tst_srgb = np.ascontiguousarray(linear_to_srgb(tst), dtype=np.float32)
-    error_map, mean, _ = flip_evaluator.evaluate(ref_srgb, tst_srgb, "LDR")
+    error_map, mean, _ = flip_evaluator.evaluate(ref_srgb, tst_srgb, "LDR", inputsRGB=True, applyMagma=False)
     error_map = np.asarray(error_map, dtype=np.float32)
     if error_map.ndim == 3:
         error_map = error_map[..., 0]

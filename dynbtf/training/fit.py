@@ -367,7 +367,7 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
                   f"{steps_per_epoch} steps/epoch x {config.epochs} epochs, {workers} worker thread(s)" +
                   (f" (resuming at epoch {epoch}, step {step})" if done_steps else ""))
     if epoch < config.epochs:
-        store.fill(progress=progress)
+        store.fill(np.concatenate([train_pairs, monitor]), progress=progress)
     run_start = time.perf_counter()
     budget = None if config.max_minutes is None else config.max_minutes * 60.0
     finished = epoch >= config.epochs
@@ -396,7 +396,7 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
                 consistent = True
                 dt = time.perf_counter() - t0
                 elapsed += dt
-                loss_value = float(loss)
+                loss_value = float(loss.detach())
                 done_steps += 1
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss_value:.4f}", samples_s=f"{target.size // 3 / dt:.3g}",
