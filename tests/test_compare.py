@@ -1,0 +1,73 @@
+"""``dynbtf.compare``: one held-out split for all representations, tables, figure, reuse of model files."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from dynbtf.compare import compare_representations, example_images, fit_or_load
+from dynbtf.errors import InputError
+from dynbtf.metrics import flip, psnr
+from dynbtf.training import TrainConfig, held_out_split
+
+from test_baselines import analytic_btf
+
+
+@pytest.fixture(autouse=True, scope="module")
+def single_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def btf():
+    return analytic_btf(12, 12, seed=1)
+
+
+CONFIG = TrainConfig(epochs=2, held_out_fraction=0.1, seed=2, device="cpu", workers=1)
+
+
+def test_compare_writes_tables_and_figure_on_the_same_held_out_pairs(btf, tmp_path):
+    scores = compare_representations(btf, tmp_path, ["pca", "sh", "neumip"], CONFIG, examples=2, progress=False)
+    assert [s.kind for s in scores] == ["pca", "sh", "neumip"]
+    _, held = held_out_split(btf.n_views, btf.n_lights, 0.1, 2)
+    for s in scores:
+        assert [(r["view_index"], r["light_index"]) for r in s.per_pair] == [tuple(p) for p in held.tolist()]
+        assert s.storage_bytes >= s.positional_bytes > 0 and s.finished
+    # the table's numbers are the means of independent per-pair recomputations
+    pca = scores[0]
+    rep, _ = fit_or_load("pca", btf, tmp_path / "pca.dbtfm", CONFIG, progress=False)
+    images = example_images(rep, btf, held)
+    truths = [btf.image(int(v), int(l)) for v, l in held]
+    assert pca.flip == pytest.approx(np.mean([flip(t, img) for t, (img, _, _) in zip(truths, images)]), rel=1e-6)
+    assert pca.psnr == pytest.approx(np.mean([psnr(t, img) for t, (img, _, _) in zip(truths, images)]), rel=1e-6)
+    with open(tmp_path / "representations.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["kind"] for r in rows] == ["pca", "sh", "neumip"]
+    assert float(rows[1]["flip"]) == pytest.approx(scores[1].flip)
+    data = json.loads((tmp_path / "representations.json").read_text())
+    assert data["held_out_pairs"] == held.tolist() and set(data["per_pair"]) == {"pca", "sh", "neumip"}
+    html = (tmp_path / "index.html").read_text()
+    assert "representations.png" in html and "<table" in html
+    import imageio.v3 as iio
+
+    figure = iio.imread(tmp_path / "representations.png")
+    assert figure.ndim == 3 and figure.shape[1] > figure.shape[0]  # 2 rows x 7 columns (GT, 3 reps, 3 maps)
+
+
+def test_compare_reuses_models_and_refuses_foreign_ones(btf, tmp_path):
+    compare_representations(btf, tmp_path, ["pca"], CONFIG, examples=1, progress=False)
+    before = (tmp_path / "pca.dbtfm").stat().st_mtime_ns
+    compare_representations(btf, tmp_path, ["pca"], CONFIG, examples=1, progress=False)
+    assert (tmp_path / "pca.dbtfm").stat().st_mtime_ns == before  # loaded, not refitted
+    other = TrainConfig(epochs=2, held_out_fraction=0.1, seed=3, device="cpu", workers=1)
+    with pytest.raises(InputError, match="held-out pairs differ"):
+        compare_representations(btf, tmp_path, ["pca"], other, examples=1, progress=False)
+    with pytest.raises(InputError, match="no fitter for 'nope'"):
+        compare_representations(btf, tmp_path, ["nope"], CONFIG, progress=False)
