@@ -1,0 +1,187 @@
+"""``dynbtf info``, ``dynbtf convert`` and ``dynbtf show``: look at and convert BTF sources.
+
+Every command takes a BTF as a path or spec understood by
+:func:`dynbtf.data.open_btf`: a UBO2014 ``.btf``, a UBO2003 ``.zip``, a stored
+``*.dbtf`` directory or ``sim:<material>[?size=128&grid=ubo2003&seed=0]``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from .app import app
+
+__all__ = ["info", "convert", "show", "btf_summary", "parse_direction"]
+
+_BTF_HELP = ("BTF to read: a UBO2014 .btf, a UBO2003 .zip, a stored *.dbtf directory, or "
+             "'sim:<material>[?size=128&grid=ubo2003&seed=0]'.")
+
+
+def _theta_range(w: np.ndarray) -> tuple[float, float]:
+    from ..conventions import direction_to_spherical
+
+    theta, _ = direction_to_spherical(w)
+    return float(theta.min()), float(theta.max())
+
+
+def _path_bytes(spec: str) -> int | None:
+    path = Path(spec)
+    if path.is_file():
+        return path.stat().st_size
+    if path.is_dir():
+        return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+    return None
+
+
+def btf_summary(source, spec: str, n_images: int = 8) -> dict:
+    """What ``dynbtf info`` prints, as a dict: size, directions, value range over ``n_images`` images.
+
+    The value range is estimated from ``n_images`` (view, light) pairs spread
+    evenly over all pairs (first and last included).
+    """
+    pairs = np.unique(np.linspace(0, source.n_pairs - 1, max(1, min(n_images, source.n_pairs))).round().astype(int))
+    lo, hi, total, count = np.inf, -np.inf, 0.0, 0
+    for k in pairs:
+        img = source.image(*divmod(int(k), source.n_lights))
+        lo, hi = min(lo, float(img.min())), max(hi, float(img.max()))
+        total, count = total + float(img.sum(dtype=np.float64)), count + img.size
+    on_disk = _path_bytes(spec)
+    return {
+        "source": spec,
+        "format": source.metadata.get("format", type(source).__name__),
+        "name": source.name,
+        "height": source.height,
+        "width": source.width,
+        "n_views": source.n_views,
+        "view_theta_range_deg": _theta_range(source.views),
+        "n_lights": source.n_lights,
+        "light_theta_range_deg": _theta_range(source.lights),
+        "n_images": source.n_pairs,
+        "value_range_sampled": (lo, hi),
+        "value_mean_sampled": total / max(count, 1),
+        "images_sampled": int(len(pairs)),
+        "raw_float32_bytes": source.nbytes_float32,
+        "bytes_on_disk": on_disk,
+    }
+
+
+def _gib(n: int | None) -> str:
+    return "-" if n is None else f"{n / 2**30:.3f} GiB" if n >= 2**28 else f"{n / 2**20:.2f} MiB"
+
+
+@app.command()
+def info(
+    btf: str = typer.Argument(..., help=_BTF_HELP),
+    images: int = typer.Option(8, "--images", min=1, help="Number of images sampled (evenly over all view/light "
+                               "pairs) to estimate the value range."),
+    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+) -> None:
+    """Describe a BTF: format, size in texels, direction counts and theta ranges (degrees), value range.
+
+    Example: dynbtf info leather.dbtf
+    """
+    from ..data.open import open_btf
+
+    with open_btf(btf) as source:
+        s = btf_summary(source, btf, images)
+    if as_json:
+        typer.echo(json.dumps(s, indent=1))
+        return
+    typer.echo(f"{s['source']}: {s['format']} ({s['name']})")
+    typer.echo(f"  size       {s['height']} x {s['width']} texels (rows x columns)")
+    typer.echo(f"  views      {s['n_views']}, theta {s['view_theta_range_deg'][0]:.1f}..{s['view_theta_range_deg'][1]:.1f} deg")
+    typer.echo(f"  lights     {s['n_lights']}, theta {s['light_theta_range_deg'][0]:.1f}..{s['light_theta_range_deg'][1]:.1f} deg")
+    typer.echo(f"  images     {s['n_images']}")
+    typer.echo(f"  values     {s['value_range_sampled'][0]:.4g} .. {s['value_range_sampled'][1]:.4g}, mean "
+               f"{s['value_mean_sampled']:.4g} (linear RGB, excluding cos(theta_light); from {s['images_sampled']} images)")
+    typer.echo(f"  raw size   {_gib(s['raw_float32_bytes'])} as float32; on disk {_gib(s['bytes_on_disk'])}")
+
+
+@app.command()
+def convert(
+    src: str = typer.Argument(..., help=_BTF_HELP),
+    output: Path = typer.Option(..., "-o", "--output", help="Stored BTF directory to write (conventionally *.dbtf). "
+                                "An interrupted conversion resumes when run again with the same arguments."),
+    dtype: str = typer.Option("float16", help="Stored value type: float16 (half the size, ~1e-3 relative error) "
+                              "or float32."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
+) -> None:
+    """Convert any readable BTF into a stored BTF (streamed image by image, atomic, resumable).
+
+    Example: dynbtf convert carpet.btf -o carpet.dbtf --dtype float16
+    """
+    from ..data.open import open_btf
+    from ..data.stored import write_stored
+
+    with open_btf(src) as source:
+        write_stored(output, source, dtype=dtype, progress=not quiet, overwrite=overwrite)
+        typer.echo(f"wrote {output}: {source.height}x{source.width} texels, {source.n_views} views x "
+                   f"{source.n_lights} lights ({dtype})")
+
+
+def parse_direction(text: str, directions: np.ndarray, what: str) -> int:
+    """``"INDEX"`` or ``"THETA,PHI"`` (degrees) -> index of the nearest of ``directions`` ``(N, 3)``."""
+    from ..conventions import spherical_to_direction
+    from ..errors import InputError
+
+    parts = [p.strip() for p in str(text).split(",")]
+    numbers = []
+    for p in parts:
+        try:
+            numbers.append(float(p))
+        except ValueError:
+            break
+    if len(parts) == 1 and len(numbers) == 1 and numbers[0].is_integer():
+        index = int(numbers[0])
+        if not 0 <= index < len(directions):
+            raise InputError(f"--{what}: index {index} out of range 0..{len(directions) - 1}")
+        return index
+    if len(parts) == 2 and len(numbers) == 2 and all(np.isfinite(numbers)):
+        theta, phi = numbers
+        if not 0.0 <= theta <= 90.0:
+            raise InputError(f"--{what}: theta must be 0..90 degrees, got {parts[0]}")
+        w = spherical_to_direction(np.array(theta), np.array(phi))
+        return int(np.argmax(directions @ w))
+    raise InputError(f"--{what}: expected an index (e.g. 12) or THETA,PHI in degrees (e.g. 30,90), got {text!r}")
+
+
+@app.command()
+def show(
+    btf: str = typer.Argument(..., help=_BTF_HELP),
+    view: str = typer.Option(..., "--view", help="View direction: an index, or THETA,PHI in degrees (the nearest "
+                             "measured direction is used)."),
+    light: str = typer.Option(..., "--light", help="Light direction: an index, or THETA,PHI in degrees (nearest)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Image to write: .png (sRGB 8-bit, clamped) or .exr "
+                                "(linear float)."),
+    exposure: float = typer.Option(1.0, "--exposure", help="Multiply the linear values by this factor before "
+                                   "writing (default 1)."),
+    cosine: bool = typer.Option(False, "--cosine", help="Multiply by cos(theta_light), i.e. show the image as "
+                                "lit by a unit-irradiance directional light (values exclude it otherwise)."),
+) -> None:
+    """Write one BTF image (one view and one light direction) as PNG or EXR.
+
+    Example: dynbtf show leather.dbtf --view 0 --light 45,90 -o leather.png
+    """
+    from ..conventions import direction_to_spherical
+    from ..data.open import open_btf
+    from ..errors import InputError
+    from ..io import save_image
+
+    if not np.isfinite(exposure) or exposure <= 0:
+        raise InputError(f"--exposure: expected a positive number, got {exposure}")
+    with open_btf(btf) as source:
+        v = parse_direction(view, source.views, "view")
+        l = parse_direction(light, source.lights, "light")
+        img = source.image(v, l) * np.float32(exposure)
+        if cosine:
+            img = img * np.float32(max(source.lights[l, 2], 0.0))
+        save_image(output, img)
+        tv, pv = direction_to_spherical(source.views[v])
+        tl, pl = direction_to_spherical(source.lights[l])
+    typer.echo(f"wrote {output}: view {v} (theta {float(tv):.1f}, phi {float(pv):.1f} deg), "
+               f"light {l} (theta {float(tl):.1f}, phi {float(pl):.1f} deg)")

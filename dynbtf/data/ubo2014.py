@@ -1,0 +1,588 @@
+"""UBO2014 ``.btf`` files (Bonn "DFMF" format): reader and writer.
+
+A DFMF file stores a BTF as one truncated SVD per colour channel: a matrix of
+``rows = n_views * n_lights`` (row ``view * n_lights + light``) by
+``cols = W * H`` (texels) is factored as ``U (rows x C)`` times ``SxV (cols x C)^T``.
+One image is therefore one matrix product ``U[row] @ SxV.T`` per channel; the
+reader memory-maps the factors and decodes images on demand, so a 400 x 400
+texel, 151 x 151 direction file (44 GB as raw float32) is never materialized.
+
+File layout (little endian)
+---------------------------
+==========================  ================================================================
+``'!' 'DFMF' '08FC'``       magic (9 bytes); an optional ``'R'`` follows (rotations included)
+common header               ``u32 size`` (bytes of the header from this field on),
+                            ``u32 version``, three ``char[80]`` (measurement setup, image
+                            sensor, light source), ``f32 ppmm``, ``3 x f32`` RGB scale;
+                            version > 1: ``u32`` cosine flag; > 2: ``u32 n`` + ``n`` bytes
+                            of XML; > 3: ``u32`` channel count + per channel ``u32 n`` +
+                            ``n`` bytes of name
+directions                  ``u32 n_views``; per view ``f32 theta, f32 phi`` (radians),
+                            ``u32 n_lights`` and ``n_lights x (f32 theta, f32 phi)`` (the
+                            same light list for every view)
+size                        ``u32 width, u32 height``; with ``'R'``: ``u32 n`` + ``n``
+                            3x3 ``f32`` rotation matrices
+colour                      ``u32`` components, ``u32`` colour model (0 = RGB,
+                            11 = log-YUV), ``3 x f32`` colour mean, ``9 x f32`` transform
+per channel (3)             ``u8`` scalar size (2 half, 4 float, 8 double), ``u32 C``,
+                            ``u32 rows``, ``u32 cols``, ``C`` singular values, ``U``
+                            (rows x C), ``SxV`` (cols x C), row-major; the file ends here
+==========================  ================================================================
+
+Colour model 11 decodes the three channel values ``c`` as ``Y = exp(c0) - 1e-5``,
+``U = c1 Y + 1e-5``, ``V = c2 Y + 1e-5``, then ``R = Y + 1.13983 V``,
+``G = Y - 0.39465 U - 0.5806 V``, ``B = Y + 2.03211 U``, clamped to ``[0, 1]``
+(exactly as btf-extractor does; the colour mean and transform are read,
+validated and recorded but, as in btf-extractor, not applied).
+
+Relation to btf-extractor (``btf_extractor.Ubo2014``)
+-----------------------------------------------------
+For light index ``l`` and view index ``v`` (btf-extractor's ``angles_set``
+tuples are ``(theta_l, phi_l, theta_v, phi_v)`` in degrees, rounded to 0.1):
+
+* ``our.image(v, l) == btfx.angles_to_image(*angles)[..., ::-1]``: the same
+  vertical orientation (both flip the file's rows: our row ``i`` is file texel
+  row ``H - 1 - i``), channels reversed (btf-extractor returns BGR, we RGB).
+* ``btf_extractor_angles(our, v, l)`` returns that tuple (unrounded);
+  ``theta = acos(z)``, ``phi = atan2(y, x) mod 360`` of our unit vectors.
+* Deliberate differences: we accept ``n_views != n_lights`` (btf-extractor
+  assumes equal counts), and when a file's cosine flag is set we divide by
+  ``cos(theta_light)`` so that values exclude it (dynbtf's convention;
+  btf-extractor ignores the flag).
+
+Examples
+--------
+>>> import numpy as np, tempfile, os
+>>> from dynbtf.data.array import ArrayBTF
+>>> rng = np.random.default_rng(0)
+>>> src = ArrayBTF(rng.random((2, 3, 4, 5, 3)), [[0, 0, 1.0], [0.6, 0, 0.8]],
+...                [[0, 0, 1.0], [0, 0.6, 0.8], [-0.6, 0, 0.8]])
+>>> path = os.path.join(tempfile.mkdtemp(), "tiny.btf")
+>>> _ = write_ubo2014(path, src, components=6, scalar="double")
+>>> with UBO2014BTF(path) as btf:
+...     bool(np.allclose(btf.image(1, 2), src.image(1, 2), atol=1e-6))
+True
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..conventions import direction_to_spherical, spherical_to_direction
+from ..errors import FormatError, InputError
+from ..io import atomic_path
+from .array import ArrayBTF
+from .base import BTFSource
+
+__all__ = ["UBO2014BTF", "DFMFHeader", "read_ubo2014", "write_ubo2014", "btf_extractor_angles",
+           "DFMF_MAGIC", "COLOUR_MODELS", "SCALAR_TYPES"]
+
+#: The 9 magic bytes every DFMF file starts with.
+DFMF_MAGIC = b"!DFMF08FC"
+#: Supported colour models.
+COLOUR_MODELS = {0: "RGB", 11: "log-YUV (Y = exp(c0) - 1e-5, U = c1 Y, V = c2 Y)"}
+#: Scalar size in bytes -> little-endian numpy dtype, and the names the writer accepts.
+SCALAR_TYPES = {2: np.dtype("<f2"), 4: np.dtype("<f4"), 8: np.dtype("<f8")}
+_SCALAR_NAMES = {"half": 2, "float": 4, "double": 8}
+
+_DRR_EPS = 1e-5  # the offset of the log-YUV model
+_COMMON_HEADER = struct.Struct("<II80s80s80sf3f")  # size, version, 3 strings, ppmm, rgb
+_MAX_COUNT = 1 << 24  # directions, components, names: anything above is absurd
+_CHUNK_BYTES = 1 << 25  # decode / validate in chunks of ~32 MB
+_MIN_COS_LIGHT = float(np.cos(np.radians(89.0)))  # cosine flag: divide by at most this much
+
+
+@dataclass
+class _ChannelLayout:
+    """Where one colour channel's factors live in the file (byte offsets)."""
+
+    scalar_size: int
+    components: int
+    rows: int
+    cols: int
+    singular_values_offset: int
+    u_offset: int
+    sxv_offset: int
+
+
+@dataclass
+class DFMFHeader:
+    """Every header field of a DFMF file (angles in radians, as stored)."""
+
+    version: int
+    rotations_included: bool
+    measurement_setup: str
+    image_sensor: str
+    light_source: str
+    ppmm: float
+    rgb_scale: tuple[float, float, float]
+    cosine_flag: int
+    xml: str
+    channel_names: list[str]
+    view_angles: np.ndarray  # (n_views, 2) theta, phi radians
+    light_angles: np.ndarray  # (n_lights, 2)
+    width: int
+    height: int
+    rotations: np.ndarray  # (n, 3, 3)
+    components: int
+    colour_model: int
+    colour_mean: np.ndarray  # (3,)
+    colour_transform: np.ndarray  # (3, 3)
+    channels: list[_ChannelLayout] = field(default_factory=list)
+
+
+class _Cursor:
+    """Bounds-checked little-endian reads from a byte buffer; errors name the field."""
+
+    def __init__(self, path: Path, buf, size: int):
+        self.path, self.buf, self.size, self.pos = path, buf, size, 0
+
+    def fail(self, problem: str):
+        raise FormatError(self.path, problem)
+
+    def take(self, n: int, what: str) -> bytes:
+        if n < 0 or self.pos + n > self.size:
+            self.fail(f"truncated: {what} needs {n} bytes at offset {self.pos} but the file has "
+                      f"{self.size} bytes")
+        out = bytes(self.buf[self.pos:self.pos + n])
+        self.pos += n
+        return out
+
+    def skip(self, n: int, what: str) -> int:
+        if n < 0 or self.pos + n > self.size:
+            self.fail(f"truncated: {what} needs {n} bytes at offset {self.pos} but the file has "
+                      f"{self.size} bytes")
+        start = self.pos
+        self.pos += n
+        return start
+
+    def u8(self, what: str) -> int:
+        return self.take(1, what)[0]
+
+    def u32(self, what: str) -> int:
+        return struct.unpack("<I", self.take(4, what))[0]
+
+    def count(self, what: str, *, minimum: int = 0, maximum: int = _MAX_COUNT, item_bytes: int = 1) -> int:
+        """A u32 count, checked against a sane range and the bytes left in the file."""
+        n = self.u32(what)
+        if n < minimum or n > maximum:
+            self.fail(f"{what} is {n}; expected {minimum}..{maximum}")
+        if n * item_bytes > self.size - self.pos:
+            self.fail(f"{what} is {n} but only {self.size - self.pos} bytes remain after offset {self.pos} "
+                      f"(needs {n * item_bytes})")
+        return n
+
+    def f32(self, n: int, what: str) -> np.ndarray:
+        values = np.frombuffer(self.take(4 * n, what), dtype="<f4").astype(np.float64)
+        if not np.isfinite(values).all():
+            self.fail(f"{what} contains NaN or infinite values")
+        return values
+
+    def text(self, n: int, what: str) -> str:
+        return self.take(n, what).split(b"\0", 1)[0].decode("latin-1")
+
+
+def _check_angles(cur: _Cursor, angles: np.ndarray, what: str) -> None:
+    theta = angles[:, 0]
+    bad = (theta < -1e-6) | (theta > np.pi / 2 + 1e-6)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        cur.fail(f"{what} {k} has theta = {np.degrees(theta[k]):.6g} deg: directions must lie in the upper "
+                 f"hemisphere (0..90 deg; below the horizon is not a valid measurement)")
+    if (np.abs(angles[:, 1]) > 8 * np.pi).any():
+        cur.fail(f"{what}: phi outside -1440..1440 deg (corrupt angle values)")
+
+
+def _parse_header(path: Path, buf, size: int) -> tuple[DFMFHeader, int]:
+    """Parse and validate every header field; returns the header and the end offset of the data."""
+    cur = _Cursor(path, buf, size)
+    magic = cur.take(min(len(DFMF_MAGIC), size), "magic")
+    if magic != DFMF_MAGIC:
+        if magic[:1] == b"!" and magic[1:5] in (b"FMF0", b"FMF1", b"PVF0", b"BDIF"):
+            cur.fail(f"unsupported BTF variant {magic[1:5].decode()!r}: only DFMF (UBO2014) files are supported")
+        cur.fail(f"bad magic {magic!r}: expected {DFMF_MAGIC!r} (a UBO2014 DFMF .btf file)")
+    rotations_included = cur.pos < size and bytes(buf[cur.pos:cur.pos + 1]) == b"R"
+    if rotations_included:
+        cur.pos += 1
+
+    start = cur.pos
+    hsize, version, setup, sensor, light_src, ppmm, r, g, b = _COMMON_HEADER.unpack(
+        cur.take(_COMMON_HEADER.size, "common header"))
+    if not np.isfinite([ppmm, r, g, b]).all():
+        cur.fail("common header: ppmm or RGB scale contains NaN or infinite values")
+    cosine_flag, xml, names = 0, "", ["R", "G", "B"]
+    if version > 1:
+        cosine_flag = cur.u32("cosine flag")
+    if version > 2:
+        n = cur.count("XML string length", item_bytes=1)
+        xml = cur.text(n, "XML string")
+    if version > 3:
+        n_channels = cur.count("channel count", item_bytes=4)
+        if n_channels != 3:
+            cur.fail(f"channel count is {n_channels}; only 3-channel (colour) files are supported")
+        names = []
+        for k in range(n_channels):
+            n = cur.count(f"length of channel name {k}", item_bytes=1)
+            names.append(cur.text(n, f"channel name {k}"))
+    if cur.pos - start != hsize:
+        cur.fail(f"common header size field says {hsize} bytes but version {version}'s fields take "
+                 f"{cur.pos - start} bytes (corrupt header or unsupported version)")
+
+    n_views = cur.count("view count", minimum=1, item_bytes=12)
+    view_angles = np.empty((n_views, 2))
+    light_angles = None
+    for v in range(n_views):
+        view_angles[v] = cur.f32(2, f"angles of view {v}")
+        n_lights = cur.count(f"light count of view {v}", minimum=1, item_bytes=8)
+        if light_angles is None:
+            light_angles = cur.f32(2 * n_lights, "light angles").reshape(n_lights, 2)
+        elif n_lights != len(light_angles):
+            cur.fail(f"light count of view {v} is {n_lights} but view 0 has {len(light_angles)} lights "
+                     f"(sizes disagree)")
+        else:
+            cur.skip(8 * n_lights, f"light angles of view {v}")
+    _check_angles(cur, view_angles, "view")
+    _check_angles(cur, light_angles, "light")
+
+    width = cur.count("width", minimum=1, maximum=1 << 20)
+    height = cur.count("height", minimum=1, maximum=1 << 20)
+    rotations = np.zeros((0, 3, 3))
+    if rotations_included:
+        n = cur.count("rotation count", item_bytes=36)
+        rotations = cur.f32(9 * n, "rotations").reshape(n, 3, 3)
+
+    components = cur.u32("component count")
+    colour_model = cur.u32("colour model")
+    if colour_model not in COLOUR_MODELS:
+        cur.fail(f"unsupported colour model {colour_model}; supported: "
+                 + ", ".join(f"{k} ({v})" for k, v in COLOUR_MODELS.items()))
+    colour_mean = cur.f32(3, "colour mean")
+    colour_transform = cur.f32(9, "colour transform").reshape(3, 3)
+
+    rows, cols = n_views * len(light_angles), width * height
+    channels = []
+    for c in range(len(names)):
+        scalar_size = cur.u8(f"scalar size of channel {c}")
+        if scalar_size not in SCALAR_TYPES:
+            cur.fail(f"scalar size of channel {c} is {scalar_size}; expected 2 (half), 4 (float) or 8 (double)")
+        n_comp = cur.count(f"component count of channel {c}", minimum=1)
+        n_rows = cur.u32(f"row count of channel {c}")
+        n_cols = cur.u32(f"column count of channel {c}")
+        if n_rows != rows:
+            cur.fail(f"row count of channel {c} is {n_rows} but n_views * n_lights = {n_views} * "
+                     f"{len(light_angles)} = {rows} (sizes disagree)")
+        if n_cols != cols:
+            cur.fail(f"column count of channel {c} is {n_cols} but width * height = {width} * {height} = "
+                     f"{cols} (sizes disagree)")
+        sv = cur.skip(n_comp * scalar_size, f"singular values of channel {c}")
+        u = cur.skip(rows * n_comp * scalar_size, f"U matrix of channel {c} ({rows} x {n_comp})")
+        sxv = cur.skip(cols * n_comp * scalar_size, f"SxV matrix of channel {c} ({cols} x {n_comp})")
+        channels.append(_ChannelLayout(scalar_size, n_comp, rows, cols, sv, u, sxv))
+    if cur.pos != size:
+        cur.fail(f"{size - cur.pos} unexpected bytes after the last channel's data (offset {cur.pos}); "
+                 f"the header's sizes disagree with the file size")
+    header = DFMFHeader(
+        version=version, rotations_included=rotations_included,
+        measurement_setup=setup.split(b"\0", 1)[0].decode("latin-1"),
+        image_sensor=sensor.split(b"\0", 1)[0].decode("latin-1"),
+        light_source=light_src.split(b"\0", 1)[0].decode("latin-1"),
+        ppmm=float(ppmm), rgb_scale=(float(r), float(g), float(b)), cosine_flag=cosine_flag, xml=xml,
+        channel_names=names, view_angles=view_angles, light_angles=light_angles, width=width,
+        height=height, rotations=rotations, components=components, colour_model=colour_model,
+        colour_mean=colour_mean, colour_transform=colour_transform, channels=channels)
+    return header, cur.pos
+
+
+def _angles_to_vectors(angles: np.ndarray) -> np.ndarray:
+    return spherical_to_direction(np.degrees(angles[:, 0]), np.degrees(angles[:, 1]))
+
+
+class UBO2014BTF(BTFSource):
+    """A UBO2014 DFMF ``.btf`` file, memory-mapped and decoded image by image.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.btf`` file.
+    check_payload : bool
+        Scan the ``U`` and ``SxV`` factors for NaN/Inf when opening (default
+        True; reads the factors once, in chunks). Decoded images are always
+        checked.
+
+    Attributes
+    ----------
+    header : DFMFHeader
+        Every header field.
+    views, lights : float64 ``(N, 3)``
+        Unit vectors from the stored (theta, phi) radians.
+
+    Raises
+    ------
+    FormatError
+        Missing file, bad magic, truncated or inconsistent header, unsupported
+        colour model or scalar size, directions below the horizon, NaN/Inf.
+    """
+
+    def __init__(self, path, *, check_payload: bool = True):
+        super().__init__()
+        self.path = Path(path)
+        if not self.path.exists():
+            raise FormatError(self.path, "file not found")
+        if not self.path.is_file():
+            raise FormatError(self.path, "not a file (expected a UBO2014 .btf file)")
+        size = self.path.stat().st_size
+        if size == 0:
+            raise FormatError(self.path, "empty file (expected a UBO2014 .btf file)")
+        try:
+            buf = np.memmap(self.path, dtype=np.uint8, mode="r")
+        except OSError as e:
+            raise FormatError(self.path, f"cannot open ({e.strerror or e})") from None
+        try:
+            self.header, _ = _parse_header(self.path, buf, size)
+        finally:
+            del buf
+        h = self.header
+        self.height, self.width = h.height, h.width
+        self.views = _angles_to_vectors(h.view_angles)
+        self.lights = _angles_to_vectors(h.light_angles)
+        self.name = self.path.name
+        self._u = [np.memmap(self.path, SCALAR_TYPES[c.scalar_size], "r", c.u_offset, (c.rows, c.components))
+                   for c in h.channels]
+        self._sxv = [np.memmap(self.path, SCALAR_TYPES[c.scalar_size], "r", c.sxv_offset, (c.cols, c.components))
+                     for c in h.channels]
+        if check_payload:
+            self._check_payload()
+        self.metadata = {
+            "format": "ubo2014-dfmf",
+            "path": str(self.path),
+            "version": h.version,
+            "colour_model": h.colour_model,
+            "scalar_bytes": h.channels[0].scalar_size,
+            "components": [c.components for c in h.channels],
+            "cosine_flag": h.cosine_flag,
+            "measurement_setup": h.measurement_setup,
+            "image_sensor": h.image_sensor,
+            "light_source": h.light_source,
+            "ppmm": h.ppmm,
+            "colour_mean": h.colour_mean.tolist(),
+            "colour_transform": h.colour_transform.tolist(),
+            "file_bytes": size,
+        }
+
+    def _check_payload(self) -> None:
+        for c, (u, sxv) in enumerate(zip(self._u, self._sxv)):
+            for what, m in (("U", u), ("SxV", sxv)):
+                step = max(1, _CHUNK_BYTES // max(1, m.shape[1] * m.itemsize))
+                for a in range(0, len(m), step):
+                    if not np.isfinite(m[a:a + step]).all():
+                        raise FormatError(self.path, f"{what} matrix of channel {c} contains NaN or infinite "
+                                                     f"values (rows {a}..{min(a + step, len(m)) - 1})")
+
+    def close(self) -> None:
+        self._u, self._sxv = [], []
+
+    # ------------------------------------------------------------------ decoding
+    def _decode_rows(self, rows: np.ndarray) -> np.ndarray:
+        """Decode file rows (``view * n_lights + light``) -> ``(k, H, W, 3)`` float32."""
+        if not self._u:
+            raise InputError(f"{self.path}: the file was closed")
+        k = len(rows)
+        out = np.empty((k, self.height * self.width, 3), dtype=np.float32)
+        for c, (u, sxv) in enumerate(zip(self._u, self._sxv)):
+            compute = np.float64 if u.dtype.itemsize == 8 else np.float32
+            coeff = np.asarray(u[rows], dtype=compute)  # (k, C)
+            step = max(1, _CHUNK_BYTES // max(1, sxv.shape[1] * 4))
+            for a in range(0, sxv.shape[0], step):
+                block = np.asarray(sxv[a:a + step], dtype=compute)  # (n, C)
+                out[:, a:a + step, c] = coeff @ block.T
+        out = out.reshape(k, self.height, self.width, 3)[:, ::-1]  # file rows bottom-up -> ours top-down
+        if self.header.colour_model == 11:
+            out = _log_yuv_to_rgb(out)
+        if self.header.cosine_flag:
+            cos_l = np.maximum(self.lights[rows % self.n_lights, 2], _MIN_COS_LIGHT).astype(np.float32)
+            out = out / cos_l[:, None, None, None]
+        if not np.isfinite(out).all():
+            raise FormatError(self.path, "decoded values are not finite (overflow in the stored factors)")
+        return np.ascontiguousarray(out, dtype=np.float32)
+
+    def _read_image(self, view_index: int, light_index: int) -> np.ndarray:
+        return self._decode_rows(np.array([view_index * self.n_lights + light_index]))[0]
+
+    def view_images(self, view_index: int, light_indices=None) -> np.ndarray:
+        """Images of one view for several lights, ``(L, H, W, 3)`` float32 (default all lights).
+
+        One matrix product per channel for all requested lights: much faster per
+        image than :meth:`image` when streaming a whole BTF.
+        """
+        v, _ = self._check_pair(view_index, 0)
+        lights = np.arange(self.n_lights) if light_indices is None else np.asarray(light_indices, np.int64).reshape(-1)
+        for l in lights:
+            self._check_pair(v, l)
+        return self._decode_rows(v * self.n_lights + lights)
+
+
+def _log_yuv_to_rgb(c: np.ndarray) -> np.ndarray:
+    """Colour model 11: log-YUV channel values ``(..., 3)`` -> RGB clamped to ``[0, 1]``."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        y = np.exp(c[..., 0]) - _DRR_EPS
+        u = c[..., 1] * y + _DRR_EPS
+        v = c[..., 2] * y + _DRR_EPS
+        rgb = np.stack([y + 1.13983 * v, y - 0.39465 * u - 0.5806 * v, y + 2.03211 * u], axis=-1)
+    return np.clip(rgb, 0.0, 1.0).astype(np.float32)
+
+
+_YUV_TO_RGB = np.array([[1.0, 0.0, 1.13983], [1.0, -0.39465, -0.5806], [1.0, 2.03211, 0.0]])
+
+
+def _rgb_to_log_yuv(rgb: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`_log_yuv_to_rgb` for RGB in ``[0, 1]`` ``(..., 3)`` -> channel values."""
+    yuv = np.clip(rgb, 0.0, 1.0).astype(np.float64) @ np.linalg.inv(_YUV_TO_RGB).T
+    y = np.maximum(yuv[..., 0], 0.0)
+    y_safe = np.maximum(y, 1e-4)  # black texels: chroma is irrelevant, keep the ratios bounded
+    return np.stack([np.log(y + _DRR_EPS), (yuv[..., 1] - _DRR_EPS) / y_safe,
+                     (yuv[..., 2] - _DRR_EPS) / y_safe], axis=-1)
+
+
+def read_ubo2014(path, **kwargs) -> UBO2014BTF:
+    """Open a UBO2014 ``.btf`` file (see :class:`UBO2014BTF`)."""
+    return UBO2014BTF(path, **kwargs)
+
+
+def btf_extractor_angles(source: BTFSource, view_index: int, light_index: int) -> tuple[float, float, float, float]:
+    """btf-extractor's angle tuple ``(theta_l, phi_l, theta_v, phi_v)`` in degrees (unrounded).
+
+    btf-extractor rounds these to one decimal for its ``angles_set`` keys.
+    """
+    tl, pl = direction_to_spherical(source.lights[light_index])
+    tv, pv = direction_to_spherical(source.views[view_index])
+    return float(tl), float(pl), float(tv), float(pv)
+
+
+def _truncated_svd(m: np.ndarray, k: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rank-``k`` SVD of ``m`` (rows x cols): ``U (rows, k)``, ``s (k,)``, ``SxV (cols, k)``."""
+    k = min(k, *m.shape)
+    if min(m.shape) <= 512 or k >= min(m.shape) - 1:
+        u, s, vt = np.linalg.svd(m, full_matrices=False)
+        u, s, vt = u[:, :k], s[:k], vt[:k]
+    else:
+        from scipy.sparse.linalg import svds
+
+        v0 = np.random.default_rng(seed).standard_normal(min(m.shape))
+        u, s, vt = svds(m, k=k, v0=v0)
+        order = np.argsort(s)[::-1]
+        u, s, vt = u[:, order], s[order], vt[order]
+    return u, s, (vt.T * s)
+
+
+def write_ubo2014(path, source_or_arrays, *, components: int = 16, scalar: str = "half",
+                  colour_model: int = 0, version: int = 3, views=None, lights=None,
+                  max_bytes: int = 2 << 30, seed: int = 0) -> Path:
+    """Compress a (small) BTF into a UBO2014 DFMF ``.btf`` file, written atomically.
+
+    Each colour channel's ``(n_views * n_lights) x (H * W)`` matrix is replaced by
+    its rank-``components`` truncated SVD, stored as ``U`` and ``SxV = V S``.
+    The whole BTF is held in memory as float64 while compressing (intended for
+    small BTFs: tests and hand-over to other tools).
+
+    Parameters
+    ----------
+    path : str or Path
+        Output ``.btf`` file.
+    source_or_arrays : BTFSource or array ``(n_views, n_lights, H, W, 3)``
+        The BTF (linear RGB); an array needs ``views`` and ``lights``.
+    components : int
+        Components ``C`` per channel (clipped to the matrix rank bound); default 16.
+    scalar : ``"half"``, ``"float"`` or ``"double"``
+        Stored scalar type (default ``"half"``, as UBO2014).
+    colour_model : 0 or 11
+        0 stores RGB; 11 stores log-YUV (values are clamped to ``[0, 1]`` on
+        reading, as btf-extractor does, so use it only for values in ``[0, 1]``).
+    version : int
+        Common-header version 1..4 (default 3: cosine flag 0 and an XML
+        provenance string; 4 adds channel names "R", "G", "B").
+    views, lights : arrays ``(N, 3)``, only with an array input.
+    max_bytes : int
+        Refuse BTFs whose float64 matrices exceed this (default 2 GiB).
+    seed : int
+        Seed of the iterative SVD's start vector (large matrices only).
+
+    Returns
+    -------
+    Path : the file written. Our reader returns images equal to the input up to
+    the SVD truncation and the scalar precision.
+    """
+    source = source_or_arrays
+    if not isinstance(source, BTFSource):
+        if views is None or lights is None:
+            raise InputError("write_ubo2014: an array input needs views= and lights= direction arrays")
+        source = ArrayBTF(source, views, lights, name="array")
+    if scalar not in _SCALAR_NAMES:
+        raise InputError(f"scalar: expected one of {sorted(_SCALAR_NAMES)}, got {scalar!r}")
+    if colour_model not in COLOUR_MODELS:
+        raise InputError(f"colour_model: expected one of {sorted(COLOUR_MODELS)}, got {colour_model!r}")
+    if int(components) < 1:
+        raise InputError(f"components: expected a positive integer, got {components!r}")
+    if version not in (1, 2, 3, 4):
+        raise InputError(f"version: expected 1, 2, 3 or 4, got {version!r}")
+    if (source.views[:, 2] < -1e-6).any() or (source.lights[:, 2] < -1e-6).any():
+        raise InputError(f"{source.name}: directions below the horizon cannot be stored in a .btf file")
+    rows, cols = source.n_pairs, source.height * source.width
+    if rows * cols * 3 * 8 > max_bytes:
+        raise InputError(f"write_ubo2014: {source.name} needs {rows * cols * 24 / 2**30:.2f} GiB while "
+                         f"compressing (max_bytes={max_bytes}); it is meant for small BTFs")
+    size = _SCALAR_NAMES[scalar]
+    dtype = SCALAR_TYPES[size]
+
+    # one matrix per channel, rows view-major, columns = file texels (rows bottom-up)
+    matrix = np.empty((rows, source.height, source.width, 3), dtype=np.float64)
+    for v, l in source.pairs():
+        matrix[v * source.n_lights + l] = source.image(v, l)[::-1]
+    if colour_model == 11:
+        matrix = _rgb_to_log_yuv(matrix)
+    matrix = matrix.reshape(rows, cols, 3)
+
+    def angles(w):
+        theta, phi = direction_to_spherical(w)
+        return np.stack([np.radians(theta), np.radians(phi)], axis=1).astype("<f4")
+
+    view_angles, light_angles = angles(source.views), angles(source.lights)
+    xml = (f'<dynbtf source="{source.name}" writer="dynbtf.data.ubo2014.write_ubo2014" '
+           f'components="{components}" scalar="{scalar}"/>').encode()
+    extra = b""
+    if version > 1:
+        extra += struct.pack("<I", 0)  # cosine flag: values exclude cos(theta_light)
+    if version > 2:
+        extra += struct.pack("<I", len(xml)) + xml
+    if version > 3:
+        extra += struct.pack("<I", 3) + b"".join(struct.pack("<I", 1) + n for n in (b"R", b"G", b"B"))
+    common = _COMMON_HEADER.pack(_COMMON_HEADER.size + len(extra), version, b"dynbtf", b"simulated or converted",
+                                 b"", 0.0, 1.0, 1.0, 1.0) + extra
+
+    path = Path(path)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(DFMF_MAGIC)
+        f.write(common)
+        f.write(struct.pack("<I", source.n_views))
+        lights_block = struct.pack("<I", source.n_lights) + light_angles.tobytes()
+        for v in range(source.n_views):
+            f.write(view_angles[v].tobytes() + lights_block)
+        f.write(struct.pack("<II", source.width, source.height))
+        f.write(struct.pack("<II", components, colour_model))
+        f.write(np.zeros(3, "<f4").tobytes() + np.eye(3, dtype="<f4").tobytes())
+        for c in range(3):
+            u, s, sxv = _truncated_svd(matrix[:, :, c], int(components), seed)
+            k = len(s)
+            f.write(struct.pack("<BIII", size, k, rows, cols))
+            f.write(s.astype(dtype).tobytes())
+            f.write(np.ascontiguousarray(u, dtype=dtype).tobytes())
+            f.write(np.ascontiguousarray(sxv, dtype=dtype).tobytes())
+        f.flush()
+        os.fsync(f.fileno())
+    return path
+
