@@ -201,7 +201,6 @@ def _synth_resolution(cfg: DemoConfig) -> int:
 
 
 def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
-    import torch
     from tqdm.auto import tqdm
 
     from .render.preview import DirectionalLight, grazing_camera, render_preview
@@ -210,9 +209,8 @@ def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
     cfg = ctx.config
     rep = ctx.model()
     res = _synth_resolution(cfg)
-    view = np.array([0.0, 0.0, 1.0])
-    light = np.array([0.5, -0.35, 0.79])
-    light /= np.linalg.norm(light)
+    view, light = (0.0, 0.0), (40.0, 300.0)  # (theta, phi) in degrees
+    cos_light = math.cos(math.radians(light[0]))
     scales = SCALES[:2] if cfg.quick else SCALES
     out_dir = ctx.out / "synthesis"
     grid: dict[str, dict[str, Any]] = {}
@@ -224,11 +222,10 @@ def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
         ss = 1 if scale == 1 else 2
         t0 = time.perf_counter()
         img = btf.image(view, light, (0.0, 0.0, float(scale), float(scale)), (res * ss, res * ss))
-        img = np.asarray(img.detach().cpu().numpy() if hasattr(img, "detach") else img, dtype=np.float32)
         if ss > 1:
             img = img.reshape(res, ss, res, ss, 3).mean(axis=(1, 3))
         timings[f"{method}@{scale}x"] = time.perf_counter() - t0
-        p = save_image(out_dir / f"{method}_{scale:02d}x.png", img * float(light[2]))
+        p = save_image(out_dir / f"{method}_{scale:02d}x.png", img * cos_light)
         grid.setdefault(method, {})[str(scale)] = ctx.rel(p)
     # an infinite plane at a grazing angle, per method: repetition shows as a grid towards the horizon
     previews = {}
@@ -240,7 +237,7 @@ def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
         img = render_preview(btf, cam, sun, resolution=pres, spp=1 if cfg.quick else 4, background=(0.55, 0.65, 0.8))
         previews[method] = ctx.rel(save_image(out_dir / f"grazing_{method}.png", img))
     quality = _synthesis_quality(ctx, rep)
-    return {"grid": grid, "scales": list(scales), "resolution": res, "view": view.tolist(), "light": light.tolist(),
+    return {"grid": grid, "scales": list(scales), "resolution": res, "view": list(view), "light": list(light),
             "timings": timings, "previews": previews, "quality": quality}
 
 

@@ -33,7 +33,7 @@ def model_file(tmp_path_factory):
     from dynbtf.representations.model_file import save_model
     from dynbtf.representations.triple_plane import TriplePlane
 
-    model = TriplePlane(24, 20, seed=5)
+    model = TriplePlane(24, 20, positional_channels=6, angular_channels=3, hidden=12, seed=5)  # small: fast kernel compiles
     with torch.no_grad():
         model.decoder.rest[-1].bias.add_(0.6)  # mostly positive values, like a material
     path = tmp_path_factory.mktemp("model") / "random.dbtfm"

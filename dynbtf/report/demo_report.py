@@ -99,7 +99,7 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
     # ------------------------------------------------------------------ synthesis
     if syn.get("grid"):
         r.section("Dynamic synthesis at 1x, 8x, 25x and 45x the exemplar's area",
-                  f"Top view, light from ({syn['light'][0]:.2f}, {syn['light'][1]:.2f}, {syn['light'][2]:.2f}); "
+                  f"Top view, light at theta {syn['light'][0]:g} deg, phi {syn['light'][1]:g} deg; "
                   f"each image spans N x N exemplar repeats at {syn.get('resolution')} pixels (2x2 supersampled above 1x). "
                   "Every texel is computed on demand from its uv: nothing is pre-generated.")
         for m in METHODS:
