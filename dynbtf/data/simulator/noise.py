@@ -89,7 +89,10 @@ def fourier_noise(size: int, rng: np.random.Generator, *, k_max: int, k_min: flo
     e = np.exp(2j * np.pi * np.outer(x, ks))  # (size, 2K+1): e[j, k] = exp(2 pi i k x_j)
     # rows follow v, columns follow u: n[i, j] = sum c[ku, kv] e[j, ku] e[i, kv]
     n = np.real(e @ c.T @ e.T)
-    power = 0.5 * float((np.abs(c) ** 2).sum())  # variance of Re(sum c_k e_k) over the torus
+    # Re(c_k e_k + c_-k e_-k) = Re((c_k + conj(c_-k)) e_k): the variance over the torus is
+    # 1/2 sum over the half plane of |c_k + conj(c_-k)|^2 = 1/4 of that sum over the full plane
+    paired = c + np.conj(c[::-1, ::-1])
+    power = 0.25 * float((np.abs(paired) ** 2).sum())
     return n / np.sqrt(max(power, 1e-30))
 
 

@@ -1,0 +1,259 @@
+"""Tests of the simulated measured BTF (dynbtf.data.simulated, dynbtf.data.simulator).
+
+References used here are independent of the simulator's code: a closed-form GGX
+evaluation written with Walter et al.'s Lambda form of Smith masking (the
+simulator uses the equivalent G1 = 2x / (x + sqrt(a^2 + (1 - a^2) x^2))), and the
+elementary geometry of shadows and parallax of a raised plateau
+(shadow length = H tan(theta_light), parallax shift = H tan(theta_view)).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from dynbtf.conventions import spherical_to_direction
+from dynbtf.data.simulated import MATERIALS, SimulatedBTF, simulated_btf, tabulation_size
+from dynbtf.data.simulator.geometry import light_visibility, trace_view
+from dynbtf.data.simulator.materials import MaterialMaps, build_material
+from dynbtf.data.simulator.noise import derive_rng, fourier_noise, worley
+from dynbtf.data.simulator.renderer import HeightFieldRenderer
+from dynbtf.errors import DynBTFError, InputError
+
+
+# ----------------------------------------------------------------------------- helpers
+def _maps(height, albedo=(0.5, 0.4, 0.3), alpha=0.3, f0=0.04, coat=0.0, coat_alpha=0.05, coat_f0=0.04):
+    g = height.shape[0]
+    albedo = np.broadcast_to(np.asarray(albedo, dtype=np.float64), (g, g, 3)).copy()
+    return MaterialMaps(height=np.asarray(height, dtype=np.float64), albedo=albedo,
+                        alpha=np.full((g, g), alpha), f0=np.full((g, g), f0), coat=np.full((g, g), coat),
+                        coat_alpha=coat_alpha, coat_f0=coat_f0)
+
+
+def _plateau(g, x0, x1, y0, y1, h):
+    """Height field (G, G) with a raised rectangle [x0, x1) x [y0, y1) (uv) of height h on a flat floor."""
+    c = (np.arange(g) + 0.5) / g
+    u, v = np.meshgrid(c, c)
+    return np.where((u >= x0) & (u < x1) & (v >= y0) & (v < y1), h, 0.0)
+
+
+def _ggx_reference(w_view, w_light, albedo, alpha, f0, coat=0.0, coat_alpha=0.05, coat_f0=0.04):
+    """pi * f_r of a flat GGX + Lambert (+ clear coat) surface, float64 closed form."""
+    v, l = np.asarray(w_view, float), np.asarray(w_light, float)
+    h = (v + l) / np.linalg.norm(v + l)
+    cv, cl, ch, cd = v[2], l[2], h[2], float(v @ h)
+
+    def lam(c, a):  # Smith Lambda of GGX: (-1 + sqrt(1 + a^2 tan^2)) / 2
+        tan2 = (1.0 - c * c) / (c * c)
+        return 0.5 * (-1.0 + math.sqrt(1.0 + a * a * tan2))
+
+    def spec(a, F0):
+        d = a * a / (math.pi * (ch * ch * (a * a - 1.0) + 1.0) ** 2)
+        g = 1.0 / (1.0 + lam(cl, a)) / (1.0 + lam(cv, a))
+        f = F0 + (1.0 - F0) * (1.0 - cd) ** 5
+        return d * g * f / (4.0 * cl * cv)
+
+    base = np.asarray(albedo, float) / math.pi + spec(alpha, f0)
+    fc = lambda c: coat_f0 + (1.0 - coat_f0) * (1.0 - c) ** 5  # noqa: E731
+    coated = spec(coat_alpha, coat_f0) + (1.0 - fc(cl)) * (1.0 - fc(cv)) * base
+    return math.pi * (coat * coated + (1.0 - coat) * base)
+
+
+# ----------------------------------------------------------------------------- flat case = analytic BRDF
+@pytest.mark.parametrize("coat", [0.0, 0.7])
+def test_flat_height_field_reduces_to_closed_form_ggx(coat):
+    g = 16
+    albedo, alpha, f0 = (0.6, 0.3, 0.1), 0.25, 0.05
+    maps = _maps(np.zeros((g, g)), albedo, alpha, f0, coat=coat, coat_alpha=0.08, coat_f0=0.045)
+    r = HeightFieldRenderer(maps, g)
+    rng = np.random.default_rng(1)
+    views = spherical_to_direction(rng.uniform(0, 80, 6), rng.uniform(0, 360, 6))
+    lights = spherical_to_direction(np.r_[rng.uniform(0, 80, 7), 0.0, 75.0], np.r_[rng.uniform(0, 360, 7), 0, 10])
+    for v in views:
+        imgs = r.render(v, lights).numpy()
+        # a flat surface is uniform
+        assert np.ptp(imgs.reshape(len(lights), -1, 3), axis=1).max() < 1e-5
+        for k, l in enumerate(lights):
+            ref = _ggx_reference(v, l, albedo, alpha, f0, coat, 0.08, 0.045)
+            np.testing.assert_allclose(imgs[k, 3, 5], ref, rtol=2e-4, atol=1e-6)
+
+
+def test_flat_case_is_reciprocal():
+    """Swapping view and light leaves a flat GGX/Lambert/coat surface's value unchanged."""
+    g = 8
+    r = HeightFieldRenderer(_maps(np.zeros((g, g)), coat=0.5), g)
+    rng = np.random.default_rng(2)
+    dirs = spherical_to_direction(rng.uniform(0, 75, 8), rng.uniform(0, 360, 8))
+    table = np.stack([r.render(v, dirs).numpy()[:, 0, 0] for v in dirs])  # [view, light, rgb]
+    np.testing.assert_allclose(table, table.transpose(1, 0, 2), rtol=1e-5)
+
+
+# ----------------------------------------------------------------------------- cast shadows
+def test_shadow_of_a_plateau_has_the_closed_form_length():
+    g, h, theta = 128, 0.05, 60.0
+    height = torch.as_tensor(_plateau(g, 0.45, 0.55, 0.0, 1.0, h))  # a ridge along v
+    light = spherical_to_direction(np.array(theta), np.array(0.0))   # from +u: shadow falls towards -u
+    vis = light_visibility(height, light, spread_deg=1.0).numpy()
+    length = h * math.tan(math.radians(theta))                         # 0.0866 uv = 11 texels
+    u = (np.arange(g) + 0.5) / g
+    row = vis[g // 2]
+    shadowed = (u > 0.45 - length + 1.5 / g) & (u < 0.45 - 1.0 / g)
+    lit = (u < 0.45 - length - 1.5 / g) | (u > 0.56)
+    assert row[shadowed].max() < 0.05
+    assert row[lit].min() > 0.95
+    # a light from the other side casts the shadow on the other side
+    vis_other = light_visibility(height, spherical_to_direction(np.array(theta), np.array(180.0))).numpy()[g // 2]
+    assert vis_other[shadowed].min() > 0.95
+
+
+def test_grazing_light_darkens_texels_compared_to_no_shadows():
+    maps = build_material("stone", 64, seed=0)
+    with_shadows = HeightFieldRenderer(maps, 64)
+    without = HeightFieldRenderer(maps, 64, shadows=False)
+    view = [0.0, 0.0, 1.0]
+    lights = spherical_to_direction(np.array([0.0, 75.0]), np.array([0.0, 30.0]))
+    a, b = with_shadows.render(view, lights).numpy(), without.render(view, lights).numpy()
+    lum_a, lum_b = a.mean(-1), b.mean(-1)
+    darker = lum_a < 0.5 * lum_b
+    assert darker[1].mean() > 0.10            # a grazing light casts shadows over many texels
+    assert darker[0].mean() == 0.0            # a light at the zenith casts none
+    assert (lum_a <= lum_b + 1e-6).all()      # shadows never brighten
+
+
+# ----------------------------------------------------------------------------- parallax and masking
+def test_parallax_shift_and_masking_of_a_plateau():
+    g, h, theta = 64, 0.05, 60.0
+    height = _plateau(g, 0.4, 0.6, 0.3, 0.7, h)
+    c = (np.arange(g) + 0.5) / g
+    u, v = np.meshgrid(c, c)
+    albedo = np.where((height > 0)[..., None], [0.8, 0.05, 0.05], [0.05, 0.05, 0.8])
+    marker = (u >= 0.34) & (u < 0.38) & (v >= 0.3) & (v < 0.7)       # green strip just before the plateau
+    albedo[marker] = [0.05, 0.8, 0.05]
+    maps = _maps(height)
+    maps.albedo = albedo
+    r = HeightFieldRenderer(maps, g, interreflection=False)
+    zenith = np.array([[0.0, 0.0, 1.0]])
+    top_view = r.render([0.0, 0.0, 1.0], zenith).numpy()[0]
+    w_view = spherical_to_direction(np.array(theta), np.array(0.0))    # camera towards +u
+    side_view = r.render(w_view, zenith).numpy()[0]
+
+    def red_columns(img):
+        red = (img[..., 0] > 2 * img[..., 2]) & (img[..., 0] > 2 * img[..., 1])
+        cols = np.nonzero(red[g // 2])[0]
+        return cols.min(), cols.max()
+
+    shift = h * math.tan(math.radians(theta)) * g                       # 5.5 texels towards -u
+    # the plateau's far edge (whose wall faces away from the camera) moves by -h tan(theta);
+    # at the near edge the wall facing the camera becomes visible, so only the far edge is sharp
+    (a0, _), (b0, _) = red_columns(top_view), red_columns(side_view)
+    assert abs((b0 - a0) + shift) <= 1.0
+    # the green strip behind the plateau (seen from the camera) is hidden at grazing view
+    def green(img):
+        return ((img[..., 1] > 2 * img[..., 0]) & (img[..., 1] > 2 * img[..., 2]))[20:44].sum()
+    assert green(top_view) > 20 and green(side_view) == 0
+    # the traced hit points on the plateau top are displaced by exactly h tan(theta)
+    hit_uv, hit_z = trace_view(torch.as_tensor(height, dtype=torch.float32), w_view)
+    on_top = hit_z.numpy() > 0.99 * h
+    texel_u = np.tile(c, g)
+    np.testing.assert_allclose(hit_uv.numpy()[on_top, 0] - texel_u[on_top], shift / g, atol=1e-3)
+
+
+# ----------------------------------------------------------------------------- determinism, tiling, resolution
+def test_same_seed_identical_bytes_other_seed_different():
+    a = simulated_btf("leather", size=16, seed=3)
+    b = simulated_btf("leather", size=16, seed=3)
+    c = simulated_btf("leather", size=16, seed=4)
+    for v, l in [(0, 0), (40, 7), (80, 80)]:
+        assert a.image(v, l).tobytes() == b.image(v, l).tobytes()
+        assert a.image(v, l).tobytes() != c.image(v, l).tobytes()
+
+
+def test_derive_rng_streams_are_fixed():
+    # PCG64 streams are specified bit for bit; these numbers must never change
+    x = derive_rng(7, "stone/pebbles").random(3)
+    y = derive_rng(7, "stone/pebbles").random(3)
+    z = derive_rng(7, "stone/grain").random(3)
+    assert np.array_equal(x, y) and not np.array_equal(x, z)
+
+
+@pytest.mark.parametrize("name", list(MATERIALS))
+def test_material_height_field_tiles_seamlessly(name):
+    maps = build_material(name, 128, seed=1)
+    h = maps.height
+    neighbour = np.abs(np.diff(h, axis=1)).mean()
+    seam = np.abs(h[:, 0] - h[:, -1]).mean()
+    assert seam < 2.0 * neighbour
+    neighbour_v = np.abs(np.diff(h, axis=0)).mean()
+    seam_v = np.abs(h[0, :] - h[-1, :]).mean()
+    assert seam_v < 2.0 * neighbour_v
+    for field in (maps.albedo[..., 1], maps.alpha):
+        assert np.abs(field[:, 0] - field[:, -1]).mean() < 2.0 * np.abs(np.diff(field, axis=1)).mean() + 1e-12
+
+
+@pytest.mark.parametrize("name", list(MATERIALS))
+def test_material_is_resolution_independent(name):
+    """The same continuous material sampled on a 3x finer grid (up to the mean height)."""
+    coarse, fine = build_material(name, 32, seed=2), build_material(name, 96, seed=2)
+    sub = fine.height[1::3, 1::3]
+    np.testing.assert_allclose(coarse.height - coarse.height.mean(), sub - sub.mean(), atol=1e-9)
+    np.testing.assert_allclose(coarse.albedo, fine.albedo[1::3, 1::3], atol=1e-9)
+
+
+def test_noise_is_periodic_and_normalized():
+    n = fourier_noise(64, derive_rng(0, "t"), k_max=8)
+    assert abs(n.mean()) < 1e-9 and abs(n.std() - 1.0) < 1e-9
+    cells = worley(48, derive_rng(0, "w"), cells=4)
+    assert cells.f1.min() >= 0 and (cells.f2 >= cells.f1).all()
+    # wrap: the distance field is continuous across the seam
+    assert np.abs(cells.f1[:, 0] - cells.f1[:, -1]).max() < 4 * np.abs(np.diff(cells.f1, axis=1)).max()
+
+
+# ----------------------------------------------------------------------------- the BTF source
+def test_source_shape_dtype_range_and_metadata():
+    btf = SimulatedBTF("woven_fabric", size=16, grid="ubo2014", seed=0)
+    assert btf.shape == (151, 151, 16, 16)
+    assert tabulation_size(16) == 80
+    img = btf.image(150, 3)
+    assert img.shape == (16, 16, 3) and img.dtype == np.float32
+    imgs = btf.view_images(60)
+    assert imgs.shape == (151, 16, 16, 3) and np.isfinite(imgs).all() and imgs.min() >= 0.0
+    np.testing.assert_allclose(imgs[3], btf.image(60, 3), rtol=1e-5, atol=1e-7)
+    assert 0.02 < float(imgs.mean()) < 2.0
+    assert btf.metadata["material"] == "woven_fabric" and btf.metadata["grid"] == "ubo2014"
+    samples = btf.sample(50, np.random.default_rng(0))
+    assert samples.rgb.shape == (50, 3) and np.isfinite(samples.rgb).all()
+
+
+def test_images_show_view_dependent_structure():
+    """Not a per-texel BRDF: at a fixed light, the spatial pattern changes with the view (parallax)."""
+    btf = simulated_btf("stone", size=32)
+    normal = btf.image(0, 0).mean(-1)
+    grazing = btf.image(btf.nearest_view(spherical_to_direction(np.array(75.0), np.array(0.0))), 0).mean(-1)
+    corr = np.corrcoef(normal.ravel(), grazing.ravel())[0, 1]
+    assert corr < 0.8
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    (dict(material="velvet"), ["velvet", "stone", "leather", "lacquered_wood", "woven_fabric"]),
+    (dict(material="stone", grid="ubo1999"), ["ubo1999", "ubo2003", "ubo2014"]),
+    (dict(material="stone", size=0), ["size", "0"]),
+    (dict(material="stone", size=2.5), ["size"]),
+    (dict(material="stone", size="big"), ["size", "big"]),
+    (dict(material="stone", seed=-1), ["seed"]),
+])
+def test_bad_arguments_raise_input_error(kwargs, words):
+    with pytest.raises(InputError) as e:
+        simulated_btf(**kwargs)
+    for w in words:
+        assert w in str(e.value)
+
+
+def test_bad_indices_raise():
+    btf = simulated_btf("stone", size=8)
+    with pytest.raises(DynBTFError, match="view index 81"):
+        btf.image(81, 0)
+    with pytest.raises(DynBTFError, match="light index"):
+        btf.view_images(0, [0, 99])
