@@ -71,3 +71,19 @@ def test_compare_reuses_models_and_refuses_foreign_ones(btf, tmp_path):
         compare_representations(btf, tmp_path, ["pca"], other, examples=1, progress=False)
     with pytest.raises(InputError, match="no fitter for 'nope'"):
         compare_representations(btf, tmp_path, ["nope"], CONFIG, progress=False)
+
+
+def test_compare_command_line(btf, tmp_path, capsys):
+    from dynbtf.cli.main import main
+    from dynbtf.data.stored import write_stored
+
+    path = tmp_path / "small.dbtf"
+    write_stored(path, btf, dtype="float32", progress=False)
+    out = tmp_path / "out"
+    assert main(["compare", str(path), "-o", str(out), "--repr", "pca,sh", "--examples", "1",
+                 "--held-out-fraction", "0.1", "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "pca" in printed and "sh" in printed and (out / "index.html").exists()
+    assert (out / "pca.dbtfm").exists() and (out / "eval_sh" / "metrics.csv").exists()
+    assert main(["compare", str(path), "-o", str(out), "--repr", "pca,bogus"]) == 2
+    assert "no fitter for 'bogus'" in capsys.readouterr().err

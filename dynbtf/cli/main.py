@@ -16,6 +16,7 @@ from . import data_commands  # noqa: F401,E402
 from . import render_commands  # noqa: F401,E402
 from . import model_commands  # noqa: F401,E402
 from . import simulate_commands  # noqa: F401,E402
+from . import compare_commands  # noqa: F401,E402
 
 __all__ = ["app", "main"]
 

@@ -98,6 +98,15 @@ class NeuMIP(Representation):
         """NeuMIP's angular input ``[light_x, light_y, view_x, view_y]``, ``(..., 4)``."""
         return torch.cat([w_light[..., :2], w_view[..., :2]], dim=-1)
 
+    def angular_features(self, w_view: torch.Tensor, w_light: torch.Tensor) -> torch.Tensor:
+        """The decoder's angular input, ``(..., 4)`` (:meth:`direction_inputs`).
+
+        Same role as the Triple Plane's ``angular_features``: with it the
+        synthesized BTF (:class:`dynbtf.synthesized.SynthesizedBTF`) takes its fast
+        path (layer 1's angular part once per chunk).
+        """
+        return self.direction_inputs(w_view, w_light)
+
     def decode(self, features: torch.Tensor, w_view: torch.Tensor, w_light: torch.Tensor) -> torch.Tensor:
         """RGB ``(..., 3)`` from texture features ``(..., C)`` and directions ``(..., 3)``.
 
