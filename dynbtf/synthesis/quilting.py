@@ -32,7 +32,16 @@ from .base import Synthesizer, register_synthesizer, wrapped_texel_position
 from .histogram import Decorrelation
 from .lattice import split_uv
 
-__all__ = ["Quilting", "min_error_cut", "quilt", "overlap_errors"]
+__all__ = ["Quilting", "min_error_cut", "quilt", "overlap_errors", "quilted_storage_bytes"]
+
+
+def quilted_storage_bytes(height: int, width: int, channels: int, repeats: float, bytes_per_value: int = 4) -> int:
+    """Bytes of a quilted plane covering ``repeats x repeats`` repeats of an ``H x W x C`` exemplar.
+
+    >>> round(quilted_storage_bytes(400, 400, 16, 15) / 2**30, 2)  # the paper's 15x: 2.15 GB
+    2.15
+    """
+    return round(repeats * height) * round(repeats * width) * channels * bytes_per_value
 
 
 def min_error_cut(errors: np.ndarray) -> np.ndarray:
