@@ -27,6 +27,7 @@ from ..io import atomic_path, linear_to_srgb, save_image, srgb_to_linear
 from ..metrics import dssim, flip_map, psnr
 from ..representations.base import Representation
 from .fit import predict_images
+from .fused_mlp import single_intra_op_thread
 
 __all__ = ["Evaluation", "evaluate_model", "resolve_eval_pairs", "flip_colormap", "side_by_side", "write_evaluation"]
 
@@ -138,7 +139,7 @@ def evaluate_model(rep: Representation, source: BTFSource, pairs, *, out_dir=Non
     rows, shown = [], []
     was_training = rep.training
     rep.eval()
-    with torch.no_grad():
+    with torch.no_grad(), single_intra_op_thread(device.type == "cpu"):
         for k0 in tqdm(range(0, len(pairs), batch), disable=not progress, desc="evaluating", unit="batch",
                        dynamic_ncols=True):
             chunk = pairs[k0:k0 + batch]

@@ -57,6 +57,7 @@ from ..errors import FormatError, InputError
 from ..io import atomic_path
 from ..representations.base import Representation
 from ..representations.model_file import model_size_report, save_model
+from .fused_mlp import single_intra_op_thread
 from .images import ImageStore, held_out_split
 
 __all__ = ["TrainConfig", "FitResult", "fit", "checkpoint_path", "texel_image_loss", "predict_images",
@@ -78,6 +79,8 @@ class TrainConfig:
         Whole images per optimizer step (16 as in the paper).
     lr_decay : float
         Learning-rate factor applied after every epoch (0.9).
+    lr_scale : float
+        Multiplies every parameter group's learning rate (1: the paper's rates).
     held_out_fraction : float
         Fraction of (view, light) pairs never trained on (0.05).
     seed : int
@@ -105,6 +108,7 @@ class TrainConfig:
     epochs: int = 12
     images_per_step: int = 16
     lr_decay: float = 0.9
+    lr_scale: float = 1.0
     held_out_fraction: float = 0.05
     seed: int = 0
     texels_per_image: int | None = None
@@ -118,7 +122,8 @@ class TrainConfig:
 
     def validate(self) -> "TrainConfig":
         checks = [("epochs", self.epochs >= 1), ("images_per_step", self.images_per_step >= 1),
-                  ("lr_decay", 0 < self.lr_decay <= 1), ("held_out_fraction", 0 <= self.held_out_fraction < 1),
+                  ("lr_decay", 0 < self.lr_decay <= 1), ("lr_scale", self.lr_scale > 0),
+                  ("held_out_fraction", 0 <= self.held_out_fraction < 1),
                   ("texels_per_image", self.texels_per_image is None or self.texels_per_image >= 1),
                   ("max_minutes", self.max_minutes is None or self.max_minutes > 0),
                   ("checkpoint_every", self.checkpoint_every >= 1), ("chunk_texels", self.chunk_texels >= 1),
@@ -129,7 +134,7 @@ class TrainConfig:
         return self
 
     # options that change the result: a checkpoint must agree on them to be resumed
-    RESULT_FIELDS = ("images_per_step", "lr_decay", "held_out_fraction", "seed", "texels_per_image", "chunk_texels")
+    RESULT_FIELDS = ("images_per_step", "lr_decay", "lr_scale", "held_out_fraction", "seed", "texels_per_image", "chunk_texels")
 
 
 @dataclass
@@ -179,14 +184,14 @@ def texel_image_loss(rep: Representation, w_view: torch.Tensor, w_light: torch.T
     return (predict_images(rep, w_view, w_light, size, texels) - target).abs().mean()
 
 
-def _param_groups(rep: Representation) -> list[dict[str, Any]]:
+def _param_groups(rep: Representation, lr_scale: float = 1.0) -> list[dict[str, Any]]:
     if hasattr(rep, "param_groups"):
         groups = [dict(g) for g in rep.param_groups()]
     else:
         groups = [{"params": [p for p in rep.parameters() if p.requires_grad], "lr": 1e-3, "weight_decay": 0.01,
                    "name": "all"}]
     for g in groups:
-        g["initial_lr"] = g["lr"]
+        g["lr"] = g["initial_lr"] = g["lr"] * lr_scale
     if not any(len(g["params"]) for g in groups):
         raise InputError(f"representation {rep.kind!r} has no trainable parameters: it cannot be fitted by "
                          "gradient descent (use its closed-form fitter)")
@@ -320,7 +325,7 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     steps_per_epoch = math.ceil(len(train_pairs) / b)
     n_texels = source.height * source.width
     texels_per_image = min(config.texels_per_image or n_texels, n_texels)
-    groups = _param_groups(rep)
+    groups = _param_groups(rep, config.lr_scale)
     optimizer = torch.optim.AdamW(groups)
     store = ImageStore(source, int(config.memory_budget_mb * 1024 ** 2))
     views = torch.as_tensor(source.views, dtype=torch.float32, device=device)
@@ -374,8 +379,10 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     consistent = True  # model/optimizer state matches (epoch, step)
     prefetch = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dynbtf-prefetch")
     last_checkpoint_step = done_steps
+    # On the CPU the loop runs torch kernels on one intra-op thread and parallelizes the fused loss over
+    # ``workers`` Python threads instead: OpenMP barriers stall badly on a shared, oversubscribed machine.
     try:
-        with _InterruptFlag() as interrupt:
+        with _InterruptFlag() as interrupt, single_intra_op_thread(device.type == "cpu"):
             pending = prefetch.submit(batch_for, epoch, step) if not finished else None
             while not finished:
                 for g in optimizer.param_groups:
