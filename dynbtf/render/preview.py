@@ -214,8 +214,10 @@ def grazing_camera(distance: float = 6.0, height: float = 0.6, fov: float = 40.0
 def top_camera(extent: float = 1.0, center=(0.5, 0.5), distance: float = 10.0) -> PinholeCamera:
     """A camera straight above ``center`` whose vertical field of view spans ``extent`` uv units.
 
-    Image rows follow ``+v`` downwards like :mod:`dynbtf.conventions` images (``up = -y``).
+    Seen from above, ``+u`` runs to the right and ``+v`` upwards in the image
+    (a physical view; texture arrays of :mod:`dynbtf.conventions` store row 0 = ``v = 0`` at the top,
+    so they appear flipped vertically relative to it).
     """
     cx, cy = float(center[0]), float(center[1])
     fov = math.degrees(2.0 * math.atan(extent / 2.0 / distance))
-    return PinholeCamera(origin=(cx, cy, distance), target=(cx, cy, 0.0), up=(0.0, -1.0, 0.0), fov=fov)
+    return PinholeCamera(origin=(cx, cy, distance), target=(cx, cy, 0.0), up=(0.0, 1.0, 0.0), fov=fov)
