@@ -174,7 +174,7 @@ class _Cursor:
         if n < minimum or n > maximum:
             self.fail(f"{what} is {n}; expected {minimum}..{maximum}")
         if n * item_bytes > self.size - self.pos:
-            self.fail(f"{what} is {n} but only {self.size - self.pos} bytes remain after offset {self.pos} "
+            self.fail(f"truncated: {what} is {n} but only {self.size - self.pos} bytes remain after offset {self.pos} "
                       f"(needs {n * item_bytes})")
         return n
 

@@ -1,0 +1,152 @@
+"""open_btf dispatch, sim: specs, and the info / convert / show commands (via dynbtf.cli.main.main)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from dynbtf.cli.main import main
+from dynbtf.data import (ArrayBTF, StoredBTF, UBO2003BTF, UBO2014BTF, open_btf, parse_sim_spec, sniff_format,
+                         write_stored, write_ubo2003, write_ubo2014)
+from dynbtf.data.directions import ubo2003_directions
+from dynbtf.errors import FormatError, InputError
+from dynbtf.io import load_image
+
+
+def small_source(seed=0) -> ArrayBTF:
+    rng = np.random.default_rng(seed)
+    dirs, _ = ubo2003_directions()
+    return ArrayBTF(rng.uniform(0.05, 0.9, (3, 4, 5, 6, 3)), dirs[[0, 7, 30]], dirs[[1, 19, 40, 80]], name="small")
+
+
+@pytest.fixture
+def files(tmp_path):
+    src = small_source()
+    return {
+        "src": src,
+        "btf": write_ubo2014(tmp_path / "a.btf", src, components=100, scalar="float"),
+        "zip": write_ubo2003(tmp_path / "a.zip", src, image_format="png"),
+        "dbtf": write_stored(tmp_path / "a.dbtf", src, dtype="float32", progress=False),
+    }
+
+
+def test_open_btf_dispatches_on_content_not_name(files, tmp_path):
+    assert sniff_format(files["btf"]) == "ubo2014" and type(open_btf(files["btf"])) is UBO2014BTF
+    assert sniff_format(files["zip"]) == "ubo2003" and type(open_btf(files["zip"])) is UBO2003BTF
+    assert sniff_format(files["dbtf"]) == "stored" and type(open_btf(files["dbtf"])) is StoredBTF
+    assert type(open_btf(files["dbtf"] / "meta.json")) is StoredBTF
+    renamed = tmp_path / "data.bin"
+    renamed.write_bytes(files["btf"].read_bytes())
+    assert type(open_btf(renamed)) is UBO2014BTF
+    src = files["src"]
+    for key in ("btf", "dbtf"):
+        np.testing.assert_allclose(open_btf(files[key]).image(2, 3), src.image(2, 3), atol=1e-5)
+    assert open_btf(src) is src
+
+
+def test_open_btf_errors(tmp_path):
+    with pytest.raises(FormatError, match="not found"):
+        open_btf(tmp_path / "missing.btf")
+    junk = tmp_path / "junk.dat"
+    junk.write_bytes(b"\x00\x01 nothing we know")
+    with pytest.raises(FormatError, match="unrecognized format"):
+        open_btf(junk)
+    with pytest.raises(FormatError, match="without meta.json"):
+        open_btf(tmp_path)
+
+
+def test_parse_sim_spec():
+    assert parse_sim_spec("sim:leather") == ("leather", {"size": 128, "grid": "ubo2003", "seed": 0})
+    assert parse_sim_spec("sim:stone?size=32&grid=ubo2014&seed=7") == ("stone", {"size": 32, "grid": "ubo2014",
+                                                                                 "seed": 7})
+    with pytest.raises(InputError, match="unknown option 'colour'"):
+        parse_sim_spec("sim:stone?colour=red")
+    with pytest.raises(InputError, match="'size' must be an integer"):
+        parse_sim_spec("sim:stone?size=big")
+    with pytest.raises(InputError, match="sim:<material>"):
+        parse_sim_spec("sim:")
+
+
+def test_open_simulated_spec():
+    btf = open_btf("sim:leather?size=8&seed=1")
+    assert btf.shape == (81, 81, 8, 8)
+    np.testing.assert_allclose(btf.views, ubo2003_directions()[0], atol=1e-12)
+    with pytest.raises(InputError):
+        open_btf("sim:no_such_material?size=8")
+
+
+# ------------------------------------------------------------------ command line
+def run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_info(files, capsys):
+    code, out, err = run(capsys, "info", files["btf"])
+    assert code == 0, err
+    assert "ubo2014-dfmf" in out and "5 x 6 texels" in out and "views      3" in out and "lights     4" in out
+    code, out, _ = run(capsys, "info", files["dbtf"], "--json", "--images", "12")
+    s = json.loads(out)
+    src = files["src"]
+    all_values = src.values
+    assert s["images_sampled"] == 12 and s["n_images"] == 12
+    assert s["value_range_sampled"][0] == pytest.approx(float(all_values.min()), abs=1e-6)
+    assert s["value_range_sampled"][1] == pytest.approx(float(all_values.max()), abs=1e-6)
+    assert s["view_theta_range_deg"] == pytest.approx([0.0, 45.0])
+    assert s["raw_float32_bytes"] == 12 * 5 * 6 * 3 * 4 and s["bytes_on_disk"] > s["raw_float32_bytes"]
+
+
+def test_convert_and_show(files, tmp_path, capsys):
+    out_dir = tmp_path / "c.dbtf"
+    code, out, err = run(capsys, "convert", files["zip"], "-o", out_dir, "--dtype", "float32", "--quiet")
+    assert code == 0, err
+    converted, original = StoredBTF(out_dir), UBO2003BTF(files["zip"])
+    np.testing.assert_array_equal(converted.image(1, 2), original.image(1, 2))
+    # show: nearest direction by angles, by index; PNG (sRGB 8-bit) and EXR (linear)
+    code, out, err = run(capsys, "show", out_dir, "--view", "29,2", "--light", "2", "-o", tmp_path / "a.exr")
+    assert code == 0, err
+    v = 1  # the views are (0, 0), (30, 0), (45, 220) deg: (30, 0) is the nearest to (29, 2)
+    assert "view 1 (theta 30.0, phi 0.0 deg)" in out
+    np.testing.assert_allclose(load_image(tmp_path / "a.exr"), converted.image(v, 2), atol=1e-6)
+    code, _, err = run(capsys, "show", out_dir, "--view", "0", "--light", "0", "-o", tmp_path / "a.png",
+                       "--exposure", "0.5")
+    assert code == 0, err
+    np.testing.assert_allclose(load_image(tmp_path / "a.png"), converted.image(0, 0) * 0.5, atol=0.01)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["info", "{tmp}/missing.btf"], "missing.btf: not found"),
+    (["show", "{btf}", "--view", "abc", "--light", "0", "-o", "{tmp}/x.png"], "--view: expected an index"),
+    (["show", "{btf}", "--view", "99", "--light", "0", "-o", "{tmp}/x.png"], "--view: index 99 out of range"),
+    (["show", "{btf}", "--view", "0", "--light", "95,0", "-o", "{tmp}/x.png"], "theta must be 0..90"),
+    (["show", "{btf}", "--view", "0", "--light", "0", "-o", "{tmp}/x.gif"], "unsupported image extension"),
+    (["show", "{btf}", "--view", "0", "--light", "0", "-o", "{tmp}/x.png", "--exposure", "-1"], "--exposure"),
+    (["convert", "{btf}", "-o", "{dbtf}"], "already exists"),
+    (["convert", "{btf}", "-o", "{tmp}/n.dbtf", "--dtype", "int8"], "dtype"),
+    (["info", "sim:stone?size=abc"], "'size' must be an integer"),
+])
+def test_user_errors_are_one_line_with_status_2(files, tmp_path, capsys, argv, message):
+    argv = [a.format(tmp=tmp_path, btf=files["btf"], dbtf=files["dbtf"]) for a in argv]
+    code, out, err = run(capsys, *argv)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("dynbtf: error: ") and message in lines[0], err
+
+
+def test_corrupt_file_through_the_command_line(files, tmp_path, capsys):
+    bad = tmp_path / "bad.btf"
+    bad.write_bytes(files["btf"].read_bytes()[:500])
+    code, _, err = run(capsys, "info", bad)
+    assert code == 2 and err.startswith(f"dynbtf: error: {bad}: truncated") and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("command", [[], ["info"], ["convert"], ["show"]])
+def test_help(capsys, command):
+    code, out, _ = run(capsys, *command, "--help")
+    assert code == 0 and "Usage" in out
+    if command == ["show"]:
+        text = " ".join(out.replace("\u2502", " ").split())  # undo rich's wrapping and box borders
+        assert "THETA,PHI in degrees" in text and ".exr" in text and "[default: 1.0]" in text
