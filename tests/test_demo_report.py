@@ -1,0 +1,92 @@
+"""``dynbtf demo --quick`` end to end, resumed, and its report checked in headless Chromium."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+
+from dynbtf.demo import STAGES, DemoConfig, run_demo
+from dynbtf.errors import InputError
+from dynbtf.report.browser import check_in_browser, find_chromium
+from dynbtf.report.html import HtmlReport
+
+
+@pytest.fixture(scope="module")
+def quick_demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    logs: list[str] = []
+    results = run_demo(DemoConfig(output=str(out), size=16, quick=True), progress=False, log=logs.append)
+    return out, results, logs
+
+
+def test_quick_demo_writes_every_stage_and_the_report(quick_demo):
+    out, results, logs = quick_demo
+    assert list(results) == list(STAGES)
+    for stage in STAGES:
+        record = json.loads((out / "stages" / f"{stage}.json").read_text())
+        assert record["seconds"] >= 0
+    assert (out / "model.dbtfm").is_file()
+    assert results["evaluate"]["n_pairs"] > 0 and results["evaluate"]["mean"]["psnr"] > 5.0
+    assert {row["method"] for row in results["synthesis"]["quality"]} == {"tile", "hist", "hex"}
+    # tiling repeats exactly; histogram-preserving blending does not
+    score = {row["method"]: row["repetition score"] for row in results["synthesis"]["quality"]}
+    assert score["tile"] > 0.9 and score["hist"] < 0.5 * score["tile"]
+    html = (out / "report.html").read_text()
+    for src in re.findall(r"src='([^']+)'", html):
+        assert (out / src).is_file(), src
+    assert any("stage 7/7 report" in line for line in logs)
+
+
+def test_rerun_resumes_by_skipping_finished_stages(quick_demo):
+    out, first, _ = quick_demo
+    logs: list[str] = []
+    again = run_demo(DemoConfig(output=str(out), size=16, quick=True), progress=False, log=logs.append)
+    skipped = [line for line in logs if "skipped" in line]
+    assert len(skipped) == len(STAGES) - 1  # everything but the (cheap) report
+    assert again["evaluate"]["mean"] == first["evaluate"]["mean"]
+
+
+def test_demo_rejects_bad_options(tmp_path):
+    with pytest.raises(InputError, match="--material"):
+        run_demo(DemoConfig(output=str(tmp_path), material="velvet"), progress=False)
+    with pytest.raises(InputError, match="--size"):
+        run_demo(DemoConfig(output=str(tmp_path), size=2), progress=False)
+
+
+@pytest.mark.browser
+def test_report_as_a_person_sees_it_in_headless_chromium(quick_demo):
+    if find_chromium() is None:
+        pytest.skip("headless Chromium not installed (Debian: apt-get install chromium)")
+    out, results, _ = quick_demo
+    shot = out / "report-screenshot.png"
+    seen = check_in_browser(out / "report.html", screenshot=shot, window=(1400, 2600))
+    assert seen.title.startswith("dynbtf")
+    assert len(seen.images) >= 15
+    assert seen.broken_images == []
+    assert all(i["naturalWidth"] > 0 and i["naturalHeight"] > 0 for i in seen.images)
+    captions = " ".join(t["caption"] for t in seen.tables)
+    for needed in ("Held-out metrics", "Model size", "Synthesis quality", "Render settings", "Wall time"):
+        assert needed in captions
+    assert all(t["rows"] >= 2 for t in seen.tables)  # header + at least one row
+    import imageio.v3 as iio
+
+    pixels = iio.imread(shot)
+    assert pixels.shape[0] >= 2000 and pixels.std() > 10  # a real page, not a blank one
+
+
+@pytest.mark.browser
+def test_browser_check_notices_a_broken_image(tmp_path):
+    if find_chromium() is None:
+        pytest.skip("headless Chromium not installed (Debian: apt-get install chromium)")
+    from dynbtf.io import save_image
+    import numpy as np
+
+    save_image(tmp_path / "ok.png", np.full((8, 8, 3), 0.5, dtype=np.float32))
+    r = HtmlReport("probe")
+    r.images([(tmp_path / "ok.png", "fine"), (tmp_path / "missing.png", "broken")])
+    r.table([{"a": 1}], caption="t")
+    seen = check_in_browser(r.write(tmp_path / "report.html"))
+    assert seen.broken_images == ["missing.png"]
+    assert [t["rows"] for t in seen.tables] == [2]
