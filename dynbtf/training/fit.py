@@ -297,7 +297,7 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
         Show a tqdm progress bar (loss, samples/s, held-out PSNR, ETA).
     callback : callable, optional
         Called after every optimizer step with a dict (epoch, step, global_step,
-        loss); an exception it raises stops training after a checkpoint.
+        loss, step_seconds, samples); an exception it raises stops training after a checkpoint.
     extra_provenance : dict, optional
         Added to the model file's provenance.
 
@@ -409,7 +409,8 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
                 bar.set_postfix(loss=f"{loss_value:.4f}", samples_s=f"{target.size // 3 / dt:.3g}",
                                 **({"heldout_psnr": f"{history[-1]['held_out_psnr']:.2f}"} if history else {}))
                 info = {"epoch": epoch if step else epoch - 1, "step": step or steps_per_epoch,
-                        "global_step": done_steps, "loss": loss_value}
+                        "global_step": done_steps, "loss": loss_value, "step_seconds": dt,
+                        "samples": target.size // 3}
                 if step == 0:  # an epoch ended
                     psnr = _psnr_of_pairs(rep, store, source, monitor, device)
                     history.append({"epoch": epoch, "loss": loss_value, "held_out_psnr": psnr,

@@ -1,0 +1,209 @@
+"""Training benchmark: the paper's recipe run naively vs dynbtf's whole-image path, side by side.
+
+Both train the same Triple Plane (same initialization, same held-out pairs,
+same AdamW groups and learning rates) on the same simulated BTF:
+
+* **naive** -- per-sample random batches (``--naive-batch`` samples drawn over random
+  (texel, view, light) of the training pairs), the model's plain forward (three
+  ``grid_sample`` fetches per sample, standard autograd MLP), L1, AdamW. Its torch
+  thread count is the faster of 1 and all threads (measured first).
+* **ours** -- :func:`dynbtf.training.fit` (16 whole images per step, angular features
+  once per image, layer 1's positional product once per texel, the fused chunked
+  loss of :mod:`dynbtf.training.fused_mlp`).
+
+Both decay the learning rate by 0.9 per epoch of ``pairs x texels`` samples. The
+held-out PSNR (linear, peak 1, pooled over a fixed subset of held-out pairs) is
+measured every ``--eval-every`` seconds of training time (evaluation excluded from
+the clock). Printed: samples/s of each and their ratio, naive's final PSNR, and
+the training time each needs to first reach it, and that ratio.
+
+Targets (issue 3): ours >= 10x naive samples/s; ours reaches naive's final
+PSNR in <= 1/10 of naive's time.
+
+Run: ``python benchmarks/bench_training.py`` (a few minutes; ``--help`` for options).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dynbtf.conventions import texel_centers_uv
+from dynbtf.data.open import open_btf
+from dynbtf.representations.triple_plane import TriplePlane
+from dynbtf.training import ImageStore, TrainConfig, fit, held_out_split, predict_images
+from dynbtf.training.fused_mlp import single_intra_op_thread
+
+
+class Stop(Exception):
+    """Raised from the training callback to end a timed run."""
+
+
+def held_out_psnr(rep, source, store, pairs) -> float:
+    se, count = 0.0, 0
+    with torch.no_grad(), single_intra_op_thread():
+        for k in range(0, len(pairs), 8):
+            chunk = pairs[k:k + 8]
+            target = torch.from_numpy(store.get(chunk))
+            wv = torch.as_tensor(source.views[chunk[:, 0]], dtype=torch.float32)
+            wl = torch.as_tensor(source.lights[chunk[:, 1]], dtype=torch.float32)
+            pred = predict_images(rep, wv, wl, (source.height, source.width))
+            se += float(((pred - target) ** 2).sum(dtype=torch.float64))
+            count += target.numel()
+    return -10.0 * math.log10(se / count)
+
+
+class Curve:
+    """Training-time clock with periodic held-out PSNR measurements (evaluation excluded)."""
+
+    def __init__(self, rep, source, store, pairs, every: float):
+        self.rep, self.source, self.store, self.pairs, self.every = rep, source, store, pairs, every
+        self.train_seconds, self.samples, self.points, self._next = 0.0, 0, [], every
+
+    def step(self, seconds: float, samples: int) -> None:
+        self.train_seconds += seconds
+        self.samples += samples
+        if self.train_seconds >= self._next:
+            self.measure()
+            self._next = self.train_seconds + self.every
+
+    def measure(self) -> float:
+        psnr = held_out_psnr(self.rep, self.source, self.store, self.pairs)
+        self.points.append((self.train_seconds, psnr))
+        return psnr
+
+    def time_to_reach(self, psnr: float) -> float | None:
+        for t, p in self.points:
+            if p >= psnr:
+                return t
+        return None
+
+
+def naive_training(source, store, train_pairs, eval_pairs, budget, batch, eval_every, seed):
+    rep = TriplePlane(source.height, source.width, seed=seed)
+    optimizer = torch.optim.AdamW(rep.param_groups())
+    initial = [g["lr"] for g in optimizer.param_groups]
+    n = source.height * source.width
+    uv_all = torch.from_numpy(texel_centers_uv(source.height, source.width)).reshape(-1, 2).float()
+    views = torch.as_tensor(source.views, dtype=torch.float32)
+    lights = torch.as_tensor(source.lights, dtype=torch.float32)
+    images = torch.from_numpy(store.get(train_pairs)).to(torch.float16)  # (P, N, 3), already decoded
+    rng = np.random.default_rng(seed)
+    samples_per_epoch = len(train_pairs) * n
+
+    def step():
+        p = torch.from_numpy(rng.integers(0, len(train_pairs), batch))
+        t = torch.from_numpy(rng.integers(0, n, batch))
+        pairs = torch.from_numpy(train_pairs)[p]
+        target = images[p, t].float()
+        pred = rep(uv_all[t], views[pairs[:, 0]], lights[pairs[:, 1]])
+        loss = (pred - target).abs().mean()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+
+    # pick the faster thread setting for the naive path (OpenMP can stall on a shared machine)
+    threads = torch.get_num_threads()
+    speeds = {}
+    for setting in sorted({1, threads}):
+        torch.set_num_threads(setting)
+        step()
+        t0 = time.perf_counter()
+        for _ in range(3):
+            step()
+        speeds[setting] = 3 * batch / (time.perf_counter() - t0)
+    best = max(speeds, key=speeds.get)
+    torch.set_num_threads(best)
+    # restart from the same initialization for the timed run
+    rep = TriplePlane(source.height, source.width, seed=seed)
+    optimizer = torch.optim.AdamW(rep.param_groups())
+    curve = Curve(rep, source, store, eval_pairs, eval_every)
+    curve.measure()
+    try:
+        while curve.train_seconds < budget:
+            epoch = curve.samples // samples_per_epoch
+            for g, lr in zip(optimizer.param_groups, initial):
+                g["lr"] = lr * 0.9 ** epoch
+            t0 = time.perf_counter()
+            step()
+            curve.step(time.perf_counter() - t0, batch)
+    finally:
+        torch.set_num_threads(threads)
+    curve.measure()
+    return curve, best, speeds
+
+
+def our_training(source, store, eval_pairs, budget, stop_psnr, eval_every, seed, workdir):
+    rep = TriplePlane(source.height, source.width, seed=seed)
+    curve = Curve(rep, source, store, eval_pairs, eval_every)
+    curve.measure()
+
+    def callback(info):
+        curve.step(info["step_seconds"], info["samples"])
+        if curve.train_seconds >= budget or (stop_psnr is not None and curve.points[-1][1] >= stop_psnr):
+            raise Stop
+
+    config = TrainConfig(epochs=1000, seed=seed, held_out_fraction=0.05, monitor_pairs=0, checkpoint_every=10 ** 9)
+    try:
+        fit(rep, source, config, Path(workdir) / "ours.dbtfm", progress=False, callback=callback)
+    except Stop:
+        pass
+    curve.measure()
+    return curve
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--btf", default="sim:leather?size=64", help="BTF path or spec (default %(default)s)")
+    parser.add_argument("--naive-seconds", type=float, default=150.0, help="naive path's training time budget")
+    parser.add_argument("--ours-seconds", type=float, default=None,
+                        help="our path's budget (default: naive's; stops early once it reaches naive's final PSNR)")
+    parser.add_argument("--naive-batch", type=int, default=65536, help="samples per naive step")
+    parser.add_argument("--eval-pairs", type=int, default=32, help="held-out pairs in the PSNR measurement")
+    parser.add_argument("--eval-every", type=float, default=5.0, help="seconds of training between PSNR measurements")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+
+    source = open_btf(args.btf)
+    train_pairs, held_out = held_out_split(source.n_views, source.n_lights, 0.05, args.seed)
+    eval_pairs = held_out[np.linspace(0, len(held_out) - 1, min(args.eval_pairs, len(held_out))).astype(int)]
+    store = ImageStore(source)
+    t0 = time.perf_counter()
+    store.fill(progress=True)
+    print(f"BTF {source!r}: decoded in {time.perf_counter() - t0:.1f} s; {len(train_pairs)} training pairs, "
+          f"PSNR on {len(eval_pairs)} held-out pairs; torch threads {torch.get_num_threads()}")
+
+    naive, naive_threads, speeds = naive_training(source, store, train_pairs, eval_pairs, args.naive_seconds,
+                                                  args.naive_batch, args.eval_every, args.seed)
+    naive_rate = naive.samples / naive.train_seconds
+    target = naive.points[-1][1]
+    print(f"naive: {naive_rate / 1e6:.3f} M samples/s (threads {naive_threads}; warm-up "
+          + ", ".join(f"{k} thread(s) {v / 1e6:.3f} M/s" for k, v in speeds.items())
+          + f"), final held-out PSNR {target:.2f} dB after {naive.train_seconds:.1f} s")
+    with tempfile.TemporaryDirectory() as workdir:
+        ours = our_training(source, store, eval_pairs, args.ours_seconds or args.naive_seconds, target,
+                            args.eval_every / 5, args.seed, workdir)
+    ours_rate = ours.samples / ours.train_seconds
+    print(f"ours:  {ours_rate / 1e6:.3f} M samples/s, held-out PSNR {ours.points[-1][1]:.2f} dB after "
+          f"{ours.train_seconds:.1f} s")
+    t_naive = naive.time_to_reach(target)
+    t_ours = ours.time_to_reach(target)
+    print("\nRESULTS")
+    print(f"  samples/s ratio (ours / naive):            {ours_rate / naive_rate:.1f}x   (target >= 10x)")
+    if t_ours is None:
+        print(f"  ours did not reach naive's final PSNR ({target:.2f} dB) within its budget")
+    else:
+        print(f"  time to reach {target:.2f} dB: naive {t_naive:.1f} s, ours {t_ours:.1f} s -> "
+              f"{t_naive / max(t_ours, 1e-9):.1f}x faster   (target >= 10x)")
+    print("  naive curve (s, dB): " + ", ".join(f"({t:.0f}, {p:.1f})" for t, p in naive.points[::max(1, len(naive.points) // 8)]))
+    print("  ours curve  (s, dB): " + ", ".join(f"({t:.1f}, {p:.1f})" for t, p in ours.points[::max(1, len(ours.points) // 8)]))
+
+
+if __name__ == "__main__":
+    main()
