@@ -10,13 +10,10 @@ from __future__ import annotations
 
 import itertools
 import math
-from decimal import Decimal, getcontext
-from fractions import Fraction
 
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 from scipy.special import ndtr
 
 from dynbtf.errors import InputError
@@ -26,36 +23,10 @@ from dynbtf.synthesis.histogram import (Decorrelation, GaussianTransform, blend_
 from dynbtf.synthesis.lattice import LATTICE_SCALE, TRIANGLE_EDGE, triangle_lattice, vertex_uv
 from dynbtf.synthesis.quilting import Quilting, min_error_cut, overlap_errors, quilt, quilted_storage_bytes
 from dynbtf.synthesis.tileable import make_tileable, seam_discontinuity
-
-
-def smooth_lognormal(h=48, w=48, c=4, seed=0, periodic=False):
-    """Correlated, smooth, non-Gaussian exemplar ``(h, w, c)``."""
-    g = torch.Generator().manual_seed(seed)
-    x = torch.randn(1, c, h, w, generator=g)
-    mix = torch.eye(c) + 0.6 * torch.ones(c, c) / c
-    x = torch.einsum("ij,bjhw->bihw", mix, x)
-    x = F.avg_pool2d(F.pad(x, (2, 2, 2, 2), mode="circular" if periodic else "reflect"), 5, 1)
-    return (x[0].permute(1, 2, 0) * 2.0).exp().contiguous()
+from synthesis_reference import exact_lattice, reference_hash, smooth_lognormal
 
 
 # ---------------------------------------------------------------- hash
-def lowbias32(x: int) -> int:
-    m = 0xFFFFFFFF
-    x ^= x >> 16
-    x = (x * 0x7FEB352D) & m
-    x ^= x >> 15
-    x = (x * 0x846CA68B) & m
-    return x ^ (x >> 16)
-
-
-def reference_hash(vx: int, vy: int, seed: int) -> int:
-    m = 0xFFFFFFFF
-    h = lowbias32((seed ^ 0x85EBCA6B) & m)
-    for word in (vx & m, (vx >> 32) & m, vy & m, (vy >> 32) & m):
-        h = lowbias32(h ^ word)
-    return h
-
-
 def test_hash_fixed_values_and_reference():
     # pinned: any change breaks reproducibility of every synthesized material
     assert int(H.hash_vertex(np.int64(0), np.int64(0), 0)) == 4125828455
@@ -103,16 +74,6 @@ def test_lattice_barycentrics_and_equilateral_triangles():
         d = (pos[:, i] - pos[:, j]).norm(dim=-1)
         torch.testing.assert_close(d, torch.full_like(d, TRIANGLE_EDGE), rtol=0, atol=1e-12)
     assert TRIANGLE_EDGE == pytest.approx(0.2887, abs=1e-4)
-
-
-def exact_lattice(u: float, v: float):
-    """(base vertex, fractional k) with sqrt(3) to 40 digits: the independent reference."""
-    getcontext().prec = 60
-    s3 = Fraction(Decimal(3).sqrt())
-    kx = 2 * s3 * Fraction(u) - 2 * Fraction(v)
-    ky = 4 * Fraction(v)
-    bx, by = math.floor(kx), math.floor(ky)
-    return (bx, by), (float(kx - bx), float(ky - by))
 
 
 @pytest.mark.parametrize("offset", [0.0, 1e6, -3e7, 1e9])

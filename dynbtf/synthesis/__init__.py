@@ -1,0 +1,31 @@
+"""Stage 2, Synthesize: dynamic by-example synthesis of a positional feature plane.
+
+A synthesizer turns an exemplar plane ``(H, W, C)`` into an infinite texture
+queried at any real ``uv`` (in exemplar repeats): see :mod:`.base` for the
+interface. Methods (registry names):
+
+========  ==========================================================  =======
+name      method                                                      dynamic
+========  ==========================================================  =======
+tile      repetitive tiling (the reference point)                     yes
+linear    plain linear blending on the triangle lattice (comparison)  yes
+hist      histogram-preserving blending (Heitz & Neyret 2018)         yes
+hex       hex-tiling (Mikkelsen 2022), rotation off                   yes
+quilt     image quilting (Efros & Freeman 2001), pre-generated        no
+========  ==========================================================  =======
+
+Building blocks: :mod:`.lattice` (triangle grid, exact at any coordinate),
+:mod:`.hash` (integer vertex hash), :mod:`.histogram` (Gaussian transforms,
+PCA, variance-preserving blend), :mod:`.tileable` ("Avoiding Cuts"),
+:mod:`.kernels` (fused numba kernel), :mod:`.quality` (report).
+"""
+
+from .base import SYNTHESIZERS, Synthesizer, make_synthesizer, register_synthesizer, synthesizer_class
+from .blending import LatticeBlending, LinearBlending
+from .hex_tiling import HexTiling
+from .histogram_blending import HistogramBlending
+from .quilting import Quilting
+from .tiling import Tiling
+
+__all__ = ["Synthesizer", "SYNTHESIZERS", "make_synthesizer", "register_synthesizer", "synthesizer_class",
+           "Tiling", "LatticeBlending", "LinearBlending", "HistogramBlending", "HexTiling", "Quilting"]

@@ -65,7 +65,7 @@ def register_synthesizer(name: str):
 
 def synthesizer_class(name: str) -> type["Synthesizer"]:
     """The class registered as ``name``; unknown names raise :class:`InputError` listing the known ones."""
-    from . import blending, hex_tiling, histogram_blending, quilting, tiling  # noqa: F401  (register built-ins)
+    import dynbtf.synthesis  # noqa: F401  (the package imports and so registers the built-in methods)
 
     try:
         return SYNTHESIZERS[name]
@@ -90,7 +90,7 @@ def check_uv(uv, name: str = "uv") -> torch.Tensor:
     """Validate query positions: a float tensor/array ``(..., 2)`` of finite values -> tensor."""
     if not isinstance(uv, torch.Tensor):
         try:
-            uv = torch.as_tensor(np.asarray(uv, dtype=np.float64))
+            uv = torch.from_numpy(np.array(uv, dtype=np.float64))  # a writable copy
         except (TypeError, ValueError) as e:
             raise InputError(f"{name}: expected a float array of shape (..., 2) ({e})") from None
     if not uv.is_floating_point():

@@ -1,0 +1,238 @@
+"""Synthesizers and the synthesized BTF: exactness at any uv, quality pins, fast path vs reference, errors.
+
+The brute-force reference (tests/synthesis_reference.py) recomputes every query
+one at a time in exact fractions / Python integers from the synthesizer's
+prepared tables; the quality pins follow the issue (hist W1/std < 0.05 where
+linear blending is not; hist repetition <= 1/5 of plain tiling's).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dynbtf.conventions import spherical_to_direction
+from dynbtf.errors import InputError
+from dynbtf.representations.base import Representation
+from dynbtf.representations.triple_plane import TriplePlane
+from dynbtf.synthesis import make_synthesizer
+from dynbtf.synthesis.quality import format_report, quality_report, save_report
+from dynbtf.synthesized import SynthesizedBTF
+from synthesis_reference import brute_force_lattice_blend, smooth_lognormal
+
+DYNAMIC_BLENDS = ("linear", "hist", "hex")
+
+
+@pytest.fixture(scope="module")
+def exemplar():
+    return smooth_lognormal(40, 48, 4, seed=7)  # non-periodic: tileable preprocessing kicks in
+
+
+@pytest.fixture(scope="module")
+def model():
+    return TriplePlane(32, 32, seed=3)
+
+
+def random_directions(n, rng, max_theta=80.0):
+    return torch.from_numpy(spherical_to_direction(rng.random(n) * max_theta, rng.random(n) * 360.0)).float()
+
+
+# ---------------------------------------------------------------- synthesizers
+@pytest.mark.parametrize("method", DYNAMIC_BLENDS)
+@pytest.mark.parametrize("offset", [0.0, 1e6, -2.5e7])
+def test_features_match_brute_force_at_any_coordinate(exemplar, method, offset):
+    synth = make_synthesizer(method, exemplar, seed=11)
+    assert synth.prepared.tileable  # the non-periodic exemplar was made tileable
+    rng = np.random.default_rng(int(abs(offset)) % 1000)
+    uv = rng.random((40, 2)) * 3 + offset
+    expected = brute_force_lattice_blend(synth, uv, method)
+    scale = exemplar.reshape(-1, 4).std(0).numpy()
+    reference = synth.reference_latent(torch.from_numpy(uv))
+    matrix, shift = synth.output_map()
+    if matrix is not None:
+        reference = reference @ matrix + shift
+    np.testing.assert_allclose(reference.numpy() / scale, expected / scale, atol=2e-5)
+    # the fused kernel: identical except the inverse LUT of histogram blending
+    fast = synth(torch.from_numpy(uv)).numpy()
+    np.testing.assert_allclose(fast / scale, expected / scale, atol=5e-3 if method == "hist" else 2e-5)
+
+
+@pytest.mark.parametrize("method", DYNAMIC_BLENDS)
+def test_blend_is_continuous_across_triangle_edges(exemplar, method):
+    synth = make_synthesizer(method, exemplar, seed=2)
+    t = torch.linspace(0, 2, 20001, dtype=torch.float64)
+    line = torch.stack([0.13 + t, 0.71 + 0.37 * t], -1)  # crosses ~30 triangle edges
+    eps = torch.tensor([1e-7, 0.0], dtype=torch.float64)
+    jump = (synth(line + eps) - synth(line)).abs().max(0).values / exemplar.reshape(-1, 4).std(0)
+    assert float(jump.max()) < 2e-3
+
+
+def test_seeds_are_deterministic_and_distinct(exemplar):
+    uv = torch.rand(500, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 4
+    a = make_synthesizer("hist", exemplar, seed=5)
+    b = make_synthesizer("hist", exemplar, seed=5, prepared=a.prepared)
+    c = make_synthesizer("hist", exemplar, seed=6, prepared=a.prepared)
+    assert torch.equal(a(uv), b(uv))
+    assert (a(uv) - c(uv)).abs().max() > 0.1
+
+
+def test_tile_and_quilt_are_exact_at_large_coordinates(exemplar):
+    uv = torch.from_numpy(np.random.default_rng(0).integers(0, 2**16, (100, 2)) / 2**16)
+    tile = make_synthesizer("tile", exemplar)
+    assert torch.equal(tile(uv + 1e6), tile(uv))
+    quilt = make_synthesizer("quilt", exemplar[:32, :32], seed=1, repeats=2, block=12)
+    assert torch.equal(quilt(uv + 2e6), quilt(uv))
+
+
+def test_decorrelation_and_tileable_options(exemplar):
+    plain = make_synthesizer("hist", exemplar, decorrelate=False, tileable=False)
+    assert plain.output_map() == (None, None) and not plain.prepared.tileable
+    assert plain.prepared.plane.shape == exemplar.shape
+    uv = torch.rand(200, 2, dtype=torch.float64)
+    np.testing.assert_allclose(plain(uv).numpy(), plain.reference_latent(uv).numpy(),
+                               atol=5e-3 * float(exemplar.std()))
+
+
+# ---------------------------------------------------------------- quality pins
+@pytest.fixture(scope="module")
+def reports(model):
+    out = {}
+    for method in ("tile", "linear", "hist", "hex"):
+        out[method] = quality_report(SynthesizedBTF(model, method, scale=4.0), repeats=8, rgb_side=128,
+                                     pairs=(((0.0, 0.0), (0.0, 0.0)), ((40.0, 30.0), (50.0, 200.0))))
+    return out
+
+
+def test_histogram_blending_preserves_histograms_where_linear_does_not(reports):
+    hist, linear = reports["hist"], reports["linear"]
+    assert hist["feature_w1_over_std_max"] < 0.05
+    assert linear["feature_w1_over_std_max"] > 0.05
+    assert min(hist["feature_std_ratio"]) > 0.95 and max(linear["feature_std_ratio"]) < 0.85
+    assert hist["rgb_w1_over_std_max"] < 0.05 < linear["rgb_w1_over_std_max"]
+
+
+def test_repetition_and_verbatim_scores(reports, tmp_path):
+    assert reports["tile"]["repetition"]["score"] > 0.95
+    assert reports["tile"]["verbatim_fraction"] > 0.99
+    for method in ("hist", "hex"):
+        assert reports[method]["repetition"]["score"] <= reports["tile"]["repetition"]["score"] / 5
+    assert reports["linear"]["verbatim_fraction"] < 0.1
+    table = format_report(list(reports.values()))
+    assert "hist" in table and "repetition" in table
+    save_report(list(reports.values()), tmp_path / "q.json")
+    import json
+
+    assert json.loads((tmp_path / "q.json").read_text())["reports"][2]["method"] == "hist"
+
+
+# ---------------------------------------------------------------- the synthesized BTF
+@pytest.mark.parametrize("method", ["tile", "hist", "hex"])
+def test_eval_equals_decoding_the_synthesized_features(model, method):
+    rng = np.random.default_rng(1)
+    btf = SynthesizedBTF(model, method, scale=8.0, seed=4, chunk_size=777)
+    uv = torch.from_numpy(rng.random((3000, 2)) * 5 + 1e6)
+    wv, wl = random_directions(3000, rng), random_directions(3000, rng)
+    expected = model.decode(btf.features(uv), wv, wl)
+    torch.testing.assert_close(btf.eval(uv, wv, wl), expected, rtol=0, atol=2e-5)
+
+
+def test_bf16_decoder_error_is_bounded(model):
+    rng = np.random.default_rng(2)
+    uv = torch.from_numpy(rng.random((20000, 2)) * 30)
+    wv, wl = random_directions(20000, rng), random_directions(20000, rng)
+    full = SynthesizedBTF(model, "hist", scale=1.0).eval(uv, wv, wl)
+    half = SynthesizedBTF(model, "hist", scale=1.0, precision="bf16").eval(uv, wv, wl)
+    err = (half - full).abs()
+    spread = float(full.std())
+    assert float(err.max()) < 0.03 * spread + 0.01 and float(err.mean()) < 0.005 * spread + 0.002
+
+
+def test_batch_shapes_numpy_and_horizon(model):
+    btf = SynthesizedBTF(model, "hist", scale=2.0)
+    rng = np.random.default_rng(3)
+    uv = rng.random((4, 5, 2))
+    w = spherical_to_direction(rng.random((4, 5)) * 60, rng.random((4, 5)) * 360)
+    out = btf.eval(uv, w, w)
+    assert isinstance(out, np.ndarray) and out.shape == (4, 5, 3) and out.dtype == np.float32
+    below = w.copy()
+    below[0, 0] = [0.6, 0.0, -0.8]
+    out2 = btf.eval(uv, below, w)
+    assert np.all(out2[0, 0] == 0) and np.array_equal(out2[1:], out[1:])
+    feats = btf.features(torch.from_numpy(uv))
+    assert feats.shape == (4, 5, 16)
+    assert btf.eval(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros((0, 3))).shape == (0, 3)
+
+
+def test_image_matches_eval_at_pixel_centres(model):
+    btf = SynthesizedBTF(model, "hex", scale=25.0)
+    img = btf.image(view=(30, 40), light=(20, 200), uv_rect=(1e6, 1e6, 1e6 + 0.1, 1e6 + 0.05), resolution=(8, 16))
+    assert img.shape == (8, 16, 3)
+    wv = spherical_to_direction(np.array(30.0), np.array(40.0))
+    wl = spherical_to_direction(np.array(20.0), np.array(200.0))
+    uv = np.array([[1e6 + (3 + 0.5) * 0.1 / 16, 1e6 + (5 + 0.5) * 0.05 / 8]])
+    np.testing.assert_allclose(img[5, 3], btf.eval(uv, wv[None], wl[None])[0], atol=1e-6)
+
+
+class _ScaledPlane(Representation):
+    """A representation without a split first layer: value = mean(features) * (1, 2, 3) * w_light.z."""
+
+    def __init__(self, plane):
+        super().__init__()
+        self.plane = torch.nn.Parameter(plane)
+
+    def positional_plane(self):
+        return self.plane
+
+    def decode(self, features, w_view, w_light):
+        return features.mean(-1, keepdim=True) * torch.tensor([1.0, 2.0, 3.0]) * w_light[..., 2:]
+
+    def config(self):
+        return {}
+
+
+def test_generic_representation_path(exemplar):
+    rep = _ScaledPlane(exemplar)
+    btf = SynthesizedBTF(rep, "hist", scale=3.0)
+    uv = torch.rand(100, 2, dtype=torch.float64)
+    w = torch.tensor([[0.0, 0.6, 0.8]]).expand(100, 3)
+    expected = btf.features(uv).mean(-1, keepdim=True) * torch.tensor([1.0, 2.0, 3.0]) * 0.8
+    torch.testing.assert_close(btf.eval(uv, w, w), expected)
+
+
+# ---------------------------------------------------------------- errors
+def test_bad_input_raises_clear_errors(model, exemplar):
+    btf = SynthesizedBTF(model, "hist")
+    w = torch.tensor([[0.0, 0.0, 1.0]])
+    with pytest.raises(InputError, match="uv.*NaN or infinite"):
+        btf.eval(torch.tensor([[float("nan"), 0.0]]), w, w)
+    with pytest.raises(InputError, match="uv.*NaN or infinite"):
+        btf.features(np.array([[np.inf, 0.0]]))
+    with pytest.raises(InputError, match="w_view.*NaN"):
+        btf.eval(torch.zeros(1, 2), torch.tensor([[0.0, float("nan"), 1.0]]), w)
+    with pytest.raises(InputError, match="w_light.*unit"):
+        btf.eval(torch.zeros(1, 2), w, 2 * w)
+    with pytest.raises(InputError, match="w_light: batch shape"):
+        btf.eval(torch.zeros(2, 2), w.expand(2, 3), w)
+    with pytest.raises(InputError, match=r"uv: expected shape \(\.\.\., 2\)"):
+        btf.eval(torch.zeros(1, 3), w, w)
+    with pytest.raises(InputError, match="blending footprint"):
+        make_synthesizer("hist", torch.rand(6, 40, 4))
+    with pytest.raises(InputError, match="exemplar: contains NaN"):
+        make_synthesizer("hex", torch.full((16, 16, 2), float("nan")))
+    with pytest.raises(InputError, match="unknown; expected one of"):
+        SynthesizedBTF(model, "wang")
+    with pytest.raises(InputError, match="unknown parameter"):
+        make_synthesizer("hist", exemplar, contrast=0.7)
+    with pytest.raises(InputError, match="contrast"):
+        make_synthesizer("hex", exemplar, contrast=1.5)
+    with pytest.raises(InputError, match="scale"):
+        SynthesizedBTF(model, "hist", scale=0)
+    with pytest.raises(InputError, match="precision"):
+        SynthesizedBTF(model, "hist", precision="fp8")
+    with pytest.raises(InputError, match="resolution"):
+        btf.image(resolution=0)
+    with pytest.raises(InputError, match="view"):
+        btf.image(view=(float("nan"), 0))
+    with pytest.raises(InputError, match="seed"):
+        make_synthesizer("hist", exemplar, seed=1.5)
