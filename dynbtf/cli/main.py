@@ -17,6 +17,7 @@ from . import render_commands  # noqa: F401,E402
 from . import model_commands  # noqa: F401,E402
 from . import simulate_commands  # noqa: F401,E402
 from . import compare_commands  # noqa: F401,E402
+from . import synth_commands  # noqa: F401,E402
 
 __all__ = ["app", "main"]
 
