@@ -105,8 +105,8 @@ def fit_or_load(kind: str, source: BTFSource, path, config: TrainConfig, *, prog
     _, held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction, config.seed)
     if path.exists():
         meta = read_model_metadata(path)
-        problem = meta.get("kind") != kind and f"it is a {meta.get('kind')!r} model" or \
-            _provenance_matches(meta, source, held_out)
+        problem = (f"it is a {meta.get('kind')!r} model" if meta.get("kind") != kind
+                   else _provenance_matches(meta, source, held_out))
         if problem:
             raise InputError(f"{path}: cannot reuse this model file: {problem}; remove it or choose another "
                              "output directory")

@@ -16,13 +16,19 @@ and 0 on the others.
 This is deliberately simple (no triangulation of the measurement grid); it is
 continuous wherever the set of ``k`` nearest directions does not change and
 reproduces the measured data exactly, which is what the comparison needs.
+
+:func:`check_pairs` validates lists of measured (view, light) index pairs (the
+columns a tabulated baseline is fitted to).
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
-__all__ = ["nearest_direction_weights"]
+from ..errors import InputError
+
+__all__ = ["nearest_direction_weights", "check_pairs"]
 
 
 def nearest_direction_weights(w: torch.Tensor, directions: torch.Tensor, k: int = 3,
@@ -67,3 +73,21 @@ def nearest_direction_weights(w: torch.Tensor, directions: torch.Tensor, k: int 
     first[:, 0] = 1.0
     weight = torch.where(on_measured, first, weight)
     return index.reshape(*batch, k), weight.reshape(*batch, k)
+
+
+def check_pairs(btf, pairs) -> np.ndarray:
+    """Validated ``(P, 2)`` int64 (view, light) index pairs of ``btf`` (a BTFSource).
+
+    ``None`` means all pairs, view-major. Anything else must be a non-empty
+    integer array of in-range indices, else :class:`InputError` says what is wrong.
+    """
+    if pairs is None:
+        return np.array(list(btf.pairs()), dtype=np.int64).reshape(-1, 2)
+    arr = np.asarray(pairs)
+    if arr.ndim != 2 or arr.shape[1] != 2 or len(arr) == 0 or not np.issubdtype(arr.dtype, np.integer):
+        raise InputError(f"pairs: expected a non-empty (P, 2) integer array of (view, light) indices, got {arr.shape}")
+    bad = (arr[:, 0] < 0) | (arr[:, 0] >= btf.n_views) | (arr[:, 1] < 0) | (arr[:, 1] >= btf.n_lights)
+    if bad.any():
+        raise InputError(f"pairs: {int(bad.sum())} pair(s) out of range for {btf.name} "
+                         f"({btf.n_views} views x {btf.n_lights} lights), e.g. {arr[bad][0].tolist()}")
+    return arr.astype(np.int64)

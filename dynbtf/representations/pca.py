@@ -49,7 +49,7 @@ from ..data.base import BTFSource
 from ..errors import InputError
 from .base import Representation, register
 from ..training.fitters import register_fitter
-from .measured_directions import nearest_direction_weights
+from .measured_directions import check_pairs, nearest_direction_weights
 
 __all__ = ["PCA", "fit_pca", "streamed_randomized_svd", "fit_pca_model"]
 
@@ -142,20 +142,6 @@ class PCA(Representation):
 
 
 # ---------------------------------------------------------------------- fitting
-def _check_pairs(btf: BTFSource, pairs) -> np.ndarray:
-    """Validated ``(P, 2)`` int64 (view, light) pairs; all pairs, view-major, if ``None``."""
-    if pairs is None:
-        return np.array(list(btf.pairs()), dtype=np.int64).reshape(-1, 2)
-    arr = np.asarray(pairs)
-    if arr.ndim != 2 or arr.shape[1] != 2 or len(arr) == 0 or not np.issubdtype(arr.dtype, np.integer):
-        raise InputError(f"pairs: expected a non-empty (P, 2) integer array of (view, light) indices, got {arr.shape}")
-    bad = (arr[:, 0] < 0) | (arr[:, 0] >= btf.n_views) | (arr[:, 1] < 0) | (arr[:, 1] >= btf.n_lights)
-    if bad.any():
-        raise InputError(f"pairs: {int(bad.sum())} pair(s) out of range for {btf.name} "
-                         f"({btf.n_views} views x {btf.n_lights} lights), e.g. {arr[bad][0].tolist()}")
-    return arr.astype(np.int64)
-
-
 def _image_blocks(btf: BTFSource, pairs: np.ndarray, block: int, centered: bool, bar, cache: np.ndarray | None,
                   cached: bool):
     """Yield ``(slice, A (3, T, b) float64, column means (b, 3))`` over the pairs, in order.
@@ -219,7 +205,7 @@ def streamed_randomized_svd(btf: BTFSource, pairs, rank: int, *, centered: bool 
         when ``centered``). Signs are fixed so that each right singular vector's
         largest-magnitude entry is positive.
     """
-    pairs = _check_pairs(btf, pairs)
+    pairs = check_pairs(btf, pairs)
     t, p = btf.height * btf.width, len(pairs)
     if not isinstance(rank, int) or rank < 1:
         raise InputError(f"rank: expected a positive integer, got {rank!r}")
@@ -301,7 +287,7 @@ def fit_pca(btf: BTFSource, *, pairs=None, components: int = 5, centered: bool =
     PCA
         On the CPU, float32.
     """
-    pairs = _check_pairs(btf, pairs)
+    pairs = check_pairs(btf, pairs)
     u, s, vt, means = streamed_randomized_svd(btf, pairs, components, centered=centered, oversampling=oversampling,
                                               power_iterations=power_iterations, seed=seed, block=block,
                                               progress=progress, cache_mb=cache_mb)

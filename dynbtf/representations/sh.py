@@ -41,8 +41,7 @@ from ..data.base import BTFSource
 from ..errors import InputError
 from .base import Representation, register
 from ..training.fitters import register_fitter
-from .measured_directions import nearest_direction_weights
-from .pca import _check_pairs
+from .measured_directions import check_pairs, nearest_direction_weights
 
 __all__ = ["SphericalHarmonics", "fit_sh", "real_sh_basis", "SH_NORMALIZATION", "fit_sh_model"]
 
@@ -178,7 +177,7 @@ def fit_sh(btf: BTFSource, *, pairs=None, bands: int = 3, neighbours: int = 3, p
     SphericalHarmonics
         On the CPU, float32.
     """
-    pairs = _check_pairs(btf, pairs)
+    pairs = check_pairs(btf, pairs)
     n = bands * bands
     model = SphericalHarmonics(btf.height, btf.width, btf.n_views, bands, neighbours)
     t = btf.height * btf.width
