@@ -3,11 +3,9 @@ btf-extractor's conventions (and the package itself when installed), and fuzzing
 
 from __future__ import annotations
 
-import json
 import os
 import struct
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +15,7 @@ from dfmf_reference import dfmf_bytes, reference_decode
 from dynbtf.conventions import direction_to_spherical
 from dynbtf.data import ArrayBTF, UBO2014BTF, btf_extractor_angles, open_btf, write_ubo2014
 from dynbtf.data.directions import ubo2003_directions, ubo2014_directions
-from dynbtf.errors import DynBTFError, FormatError, InputError
+from dynbtf.errors import FormatError, InputError
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -343,3 +341,17 @@ def test_against_btf_extractor(tmp_path, scalar, colour_model):
             ours = btf.image(v, l)
             np.testing.assert_allclose(image[..., ::-1], ours, atol=2e-6, rtol=1e-5)
             np.testing.assert_allclose(angles, np.round(btf_extractor_angles(btf, v, l), 1), atol=0.051)
+
+
+def test_streamed_factors_equal_cached_factors(tmp_path, monkeypatch):
+    """Without the float32 SxV cache, decoding converts the factors chunk by chunk: same images."""
+    import dynbtf.data.ubo2014 as ubo2014
+
+    src = small_source(3, 4, 9, 10)
+    path = write_ubo2014(tmp_path / "s.btf", src, components=5, scalar="half")
+    cached = UBO2014BTF(path)
+    monkeypatch.setattr(ubo2014, "_CHUNK_BYTES", 5 * 4 * 7)  # 7 texels per chunk: many chunks
+    streamed = UBO2014BTF(path, factor_cache_bytes=0)
+    for v, l in src.pairs():
+        np.testing.assert_allclose(streamed.image(v, l), cached.image(v, l), rtol=1e-6, atol=1e-7)
+    assert cached._sxv_cached is not None and streamed._sxv_cached is None
