@@ -53,7 +53,7 @@ from .training.fitters import get_fitter
 from .training.evaluate import evaluate_model, flip_colormap
 from .training.images import held_out_split
 
-__all__ = ["DEFAULT_KINDS", "RepresentationScore", "fit_or_load", "example_images", "compare_representations"]
+__all__ = ["DEFAULT_KINDS", "RepresentationScore", "fit_or_load", "example_images", "CachedPairs", "compare_representations"]
 
 #: The paper's four representations, in the order of its figures.
 DEFAULT_KINDS = ("triple", "neumip", "pca", "sh")
@@ -118,6 +118,31 @@ def fit_or_load(kind: str, source: BTFSource, path, config: TrainConfig, *, prog
 
 
 # ---------------------------------------------------------------------- evaluation
+class CachedPairs(BTFSource):
+    """A view of ``source`` that decodes the images of ``pairs`` once and keeps them in memory.
+
+    Every representation is evaluated on the same held-out pairs: without the
+    cache a procedural or compressed source would decode each ground-truth image
+    once per representation. Other pairs pass through to ``source``. Memory:
+    ``len(pairs) x H x W x 3`` float32.
+    """
+
+    def __init__(self, source: BTFSource, pairs: np.ndarray) -> None:
+        super().__init__()
+        self.source = source
+        self.height, self.width = source.height, source.width
+        self.views, self.lights = source.views, source.lights
+        self.name, self.metadata = source.name, source.metadata
+        self._images = {(int(v), int(l)): source.image(int(v), int(l)) for v, l in np.asarray(pairs)}
+
+    def _read_image(self, view_index: int, light_index: int) -> np.ndarray:
+        image = self._images.get((view_index, light_index))
+        return self.source.image(view_index, light_index) if image is None else image
+
+    def describe(self) -> dict[str, Any]:
+        return self.source.describe()
+
+
 def example_images(rep: Representation, source: BTFSource, pairs: np.ndarray
                    ) -> list[tuple[np.ndarray, np.ndarray, float]]:
     """Model image ``(H, W, 3)``, FLIP map ``(H, W)`` and mean FLIP at each (view, light) pair (for figures)."""
@@ -188,7 +213,7 @@ def _write_table(output_dir: Path, stem: str, rows: list[dict[str, Any]], extra:
 
 def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] = DEFAULT_KINDS,
                             config: TrainConfig | None = None, *, examples: int = 3, progress: bool = True,
-                            report: HtmlReport | None = None) -> list[RepresentationScore]:
+                            report: HtmlReport | None = None, cache_mb: float = 1024.0) -> list[RepresentationScore]:
     """Fit or load each kind, evaluate all on the same held-out pairs, write table and figure.
 
     Parameters
@@ -210,6 +235,9 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
     report : HtmlReport, optional
         Append to this report instead of writing ``index.html`` (used by the CLI
         to put both comparisons on one page).
+    cache_mb : float
+        The held-out ground-truth images are decoded once and kept in memory
+        when they fit in this many MB (:class:`CachedPairs`).
 
     Returns
     -------
@@ -227,7 +255,10 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
     if len(held_out) == 0:
         raise InputError("held-out fraction is 0: there are no held-out pairs to compare on")
     shown = _example_positions(len(held_out), examples)
-    truths = {p: source.image(*map(int, held_out[p])) for p in shown}
+    ground_truth = source
+    if len(held_out) * source.height * source.width * 12 <= cache_mb * 1024 ** 2:
+        ground_truth = CachedPairs(source, held_out)
+    truths = {p: ground_truth.image(*map(int, held_out[p])) for p in shown}
 
     scores, kept = [], {}
     for kind in kinds:
@@ -235,9 +266,9 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
         rep, meta = fit_or_load(kind, source, output_dir / f"{kind}.dbtfm", config, progress=progress)
         wall = time.perf_counter() - start
         prov = meta.get("provenance", {})
-        evaluation = evaluate_model(rep, source, held_out, out_dir=output_dir / f"eval_{kind}", images=examples,
+        evaluation = evaluate_model(rep, ground_truth, held_out, out_dir=output_dir / f"eval_{kind}", images=examples,
                                     progress=progress)
-        kept[kind] = example_images(rep, source, held_out[shown])
+        kept[kind] = example_images(rep, ground_truth, held_out[shown])
         plane = rep.positional_plane()
         score = RepresentationScore(
             kind=kind, psnr=evaluation.mean["psnr"], dssim=evaluation.mean["dssim"], flip=evaluation.mean["flip"],
