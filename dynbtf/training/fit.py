@@ -319,12 +319,14 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     device = resolve_device(config.device)
     rep = representation.to(device)
     rep.train()
-    workers = int(config.workers or torch.get_num_threads())
+    # CPU: cache-sized chunks over worker threads; GPU: one chunk, one launch sequence
+    workers = int(config.workers or torch.get_num_threads()) if device.type == "cpu" else 1
     train_pairs, held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction, config.seed)
     b = config.images_per_step
     steps_per_epoch = math.ceil(len(train_pairs) / b)
     n_texels = source.height * source.width
     texels_per_image = min(config.texels_per_image or n_texels, n_texels)
+    chunk_texels = config.chunk_texels if device.type == "cpu" else texels_per_image
     groups = _param_groups(rep, config.lr_scale)
     optimizer = torch.optim.AdamW(groups)
     store = ImageStore(source, int(config.memory_budget_mb * 1024 ** 2))
@@ -395,7 +397,7 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
                 wv, wl = views[pairs[:, 0]], lights[pairs[:, 1]]
                 texel_t = None if texels is None else torch.from_numpy(texels).to(device)
                 loss = texel_image_loss(rep, wv, wl, torch.from_numpy(target).to(device), (source.height, source.width),
-                                        texel_t, chunk_texels=config.chunk_texels, workers=workers)
+                                        texel_t, chunk_texels=chunk_texels, workers=workers)
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
