@@ -14,7 +14,7 @@ name                kind        what it looks like
                                 dark creases, pores, soft sheen
 ``lacquered_wood``  specular    lacquered parquet: oak-like grain in planks with
                                 V-grooves, a glossy clear coat with sharp highlights
-``woven_fabric``    structured  plain weave of twisted yarns (dark red warp, cream
+``woven_fabric``    structured  plain weave of twisted yarns (navy warp, cream
                                 weft) that pass over and under each other
 ==================  ==========  ===================================================
 """
@@ -113,20 +113,22 @@ def leather(grid: int, seed: int) -> MaterialMaps:
     """Brown grained leather: rounded pebble grain between creases, pores (stochastic)."""
     warp_u = 0.01 * fourier_noise(grid, derive_rng(seed, "leather/warp-u"), k_max=10)
     warp_v = 0.01 * fourier_noise(grid, derive_rng(seed, "leather/warp-v"), k_max=10)
-    cells = worley(grid, derive_rng(seed, "leather/grain"), cells=12, jitter=1.0, warp=(warp_u, warp_v))
+    cells = worley(grid, derive_rng(seed, "leather/grain"), cells=14, jitter=1.0, warp=(warp_u, warp_v))
     rnd = cells.cell_random[cells.cell]
     edge = cells.edge                                          # cell units, ~0..0.5
     crease = np.exp(-(edge / 0.06) ** 2)                        # 1 in the creases
     plateau = np.sqrt(np.clip(edge / 0.35, 0.0, 1.0))          # rounded grain bumps
+    fine = worley(grid, derive_rng(seed, "leather/fine-grain"), cells=36, jitter=1.0, warp=(warp_u, warp_v))
+    fine_crease = np.exp(-(fine.edge / 0.08) ** 2)
     large = fourier_noise(grid, derive_rng(seed, "leather/large"), k_max=5, slope=1.5)
     pores = fourier_noise(grid, derive_rng(seed, "leather/pores"), k_min=40, k_max=64, slope=0.0)
     pore = smoothstep(2.0, 2.8, pores)
-    height = (0.005 * plateau * (0.8 + 0.4 * rnd[..., 0]) - 0.002 * crease
+    height = (0.005 * plateau * (0.8 + 0.4 * rnd[..., 0]) - 0.002 * crease - 0.0008 * fine_crease
               + 0.002 * large - 0.0006 * pore)
     tint = fourier_noise(grid, derive_rng(seed, "leather/tint"), k_max=8, slope=1.2)
     base = np.array([0.17, 0.075, 0.032]) * (1.0 + 0.2 * np.tanh(tint))[..., None]
     base = base * (0.92 + 0.16 * rnd[..., 1])[..., None]
-    albedo = _lerp(base, base * 0.55, 0.6 * crease + 0.5 * pore)
+    albedo = _lerp(base, base * 0.55, np.clip(0.6 * crease + 0.25 * fine_crease + 0.5 * pore, 0.0, 1.0))
     alpha = 0.42 + 0.2 * crease + 0.06 * rnd[..., 2]
     return _finish(height, albedo, alpha, 0.04)
 
@@ -184,22 +186,22 @@ def woven_fabric(grid: int, seed: int) -> MaterialMaps:
     prof_warp = np.sqrt(np.clip(1.0 - (fa / half_width) ** 2, 0.0, 1.0))
     prof_weft = np.sqrt(np.clip(1.0 - (fb / half_width) ** 2, 0.0, 1.0))
     # twisted plies: diagonal ridges across each yarn
-    twist_warp = np.cos(2 * np.pi * (3.0 * b + 1.2 * fa)) * prof_warp
-    twist_weft = np.cos(2 * np.pi * (3.0 * a - 1.2 * fb)) * prof_weft
+    twist_warp = np.cos(2 * np.pi * (4.0 * b + 2.0 * fa)) * prof_warp
+    twist_weft = np.cos(2 * np.pi * (4.0 * a - 2.0 * fb)) * prof_weft
     rng = derive_rng(seed, "fabric/threads")
     thread_r = rng.random((2, n, 2))
     fuzz = fourier_noise(grid, derive_rng(seed, "fabric/fuzz"), k_min=30, k_max=64, slope=0.0)
-    h_warp = z_warp + radius * prof_warp * (1.0 + 0.06 * twist_warp) - radius * (1 - prof_warp) * 0.6
-    h_weft = z_weft + radius * prof_weft * (1.0 + 0.06 * twist_weft) - radius * (1 - prof_weft) * 0.6
+    h_warp = z_warp + radius * prof_warp * (1.0 + 0.08 * twist_warp) - radius * (1 - prof_warp) * 0.6
+    h_weft = z_weft + radius * prof_weft * (1.0 + 0.08 * twist_weft) - radius * (1 - prof_weft) * 0.6
     h_warp = h_warp + 0.002 * (thread_r[0, k.astype(int) % n, 0] - 0.5)
     h_weft = h_weft + 0.002 * (thread_r[1, m.astype(int) % n, 0] - 0.5)
     on_warp = h_warp >= h_weft
     top = smoothstep(-0.0015, 0.0015, h_warp - h_weft)           # soft transition between yarns
     height = np.maximum(h_warp, h_weft) + 0.0004 * fuzz
-    warp_c = np.array([0.30, 0.035, 0.04]) * (0.85 + 0.3 * thread_r[0, k.astype(int) % n, 1])[..., None]
-    weft_c = np.array([0.62, 0.56, 0.45]) * (0.9 + 0.2 * thread_r[1, m.astype(int) % n, 1])[..., None]
-    fibre_w = 0.8 + 0.2 * (0.5 + 0.5 * twist_warp)
-    fibre_f = 0.8 + 0.2 * (0.5 + 0.5 * twist_weft)
+    warp_c = np.array([0.025, 0.045, 0.13]) * (0.85 + 0.3 * thread_r[0, k.astype(int) % n, 1])[..., None]
+    weft_c = np.array([0.55, 0.50, 0.40]) * (0.9 + 0.2 * thread_r[1, m.astype(int) % n, 1])[..., None]
+    fibre_w = 0.7 + 0.3 * (0.5 + 0.5 * twist_warp)
+    fibre_f = 0.75 + 0.25 * (0.5 + 0.5 * twist_weft)
     albedo = _lerp(weft_c * fibre_f[..., None], warp_c * fibre_w[..., None], top)
     albedo *= (1.0 + 0.08 * np.tanh(fuzz))[..., None]
     alpha = np.where(on_warp, 0.55, 0.6)
@@ -218,7 +220,7 @@ MATERIALS: dict[str, str] = {
     "stone": "stochastic: rounded pebbles of varied colour in a grainy recessed mortar; rough, deep cast shadows",
     "leather": "stochastic: brown grained leather with polygonal grain, dark creases, pores and a soft sheen",
     "lacquered_wood": "glossy: parquet planks with wood grain and V-grooves under a clear coat (sharp highlights)",
-    "woven_fabric": "structured: plain weave of twisted yarns, dark red warp over/under cream weft",
+    "woven_fabric": "structured: plain weave of twisted yarns, navy warp over/under cream weft",
 }
 
 

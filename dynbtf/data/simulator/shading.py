@@ -25,7 +25,7 @@ import math
 
 import torch
 
-__all__ = ["ggx_ndf", "smith_g1", "schlick_fresnel", "ggx_specular", "layered_brdf", "dot3"]
+__all__ = ["ggx_ndf", "smith_g1", "smith_g1_over_cos", "schlick_fresnel", "ggx_specular", "layered_brdf", "dot3"]
 
 
 def dot3(a, b) -> torch.Tensor:
@@ -42,9 +42,14 @@ def ggx_ndf(cos_h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
 
 def smith_g1(cos_w: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     """Smith masking of GGX for a direction at ``cos(n, w) > 0``."""
+    return smith_g1_over_cos(cos_w, alpha).mul_(cos_w)
+
+
+def smith_g1_over_cos(cos_w: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """``G1(w) / cos(n, w) = 2 / (x + sqrt(a^2 + (1 - a^2) x^2))`` (what the specular lobe needs)."""
     a2 = alpha * alpha
     root = (cos_w * cos_w * (1.0 - a2)).add_(a2).sqrt_()
-    return 2.0 * cos_w / root.add_(cos_w)
+    return root.add_(cos_w).reciprocal_().mul_(2.0)
 
 
 def schlick_fresnel(f0, cos_d: torch.Tensor) -> torch.Tensor:
@@ -61,9 +66,9 @@ def ggx_specular(cos_l, cos_v, cos_h, cos_d, alpha, f0) -> torch.Tensor:
     axes (e.g. ``cos_d`` as ``(L, 1)``, ``cos_v`` as ``(1, N)``) so each factor is
     computed at its own size before the product.
     """
-    g1_over_cos_l = smith_g1(cos_l, alpha).div_(cos_l)
-    g1_over_cos_v = smith_g1(cos_v, alpha).div_(cos_v)
-    spec = ggx_ndf(cos_h, alpha) * g1_over_cos_l * (g1_over_cos_v * 0.25)
+    g1_over_cos_l = smith_g1_over_cos(cos_l, alpha)
+    g1_over_cos_v = smith_g1_over_cos(cos_v, alpha)
+    spec = ggx_ndf(cos_h, alpha).mul_(g1_over_cos_l).mul_(g1_over_cos_v * 0.25)
     return spec * schlick_fresnel(f0, cos_d)
 
 
