@@ -49,11 +49,12 @@ def normals_from_height(height: torch.Tensor) -> torch.Tensor:
     Central differences with wrap: ``n = normalize(-dh/du, -dh/dv, 1)``, ``u`` along
     columns (x), ``v`` along rows (y).
 
-    >>> import torch
-    >>> g = 8; u = (torch.arange(g, dtype=torch.float64) + 0.5) / g
-    >>> n = normals_from_height(0.0 * u[None, :] + 0.0 * u[:, None])
-    >>> n[3, 4].tolist()
-    [0.0, 0.0, 1.0]
+    >>> import math, torch
+    >>> g = 64; u = (torch.arange(g, dtype=torch.float64) + 0.5) / g
+    >>> n = normals_from_height(0.01 * torch.sin(2 * math.pi * u)[None, :].expand(g, g))
+    >>> slope = -n[0, 0, 0] / n[0, 0, 2]        # dh/du at u ~ 0: 0.02 pi
+    >>> round(float(slope), 3), round(0.02 * math.pi, 3)
+    (0.063, 0.063)
     """
     g_rows, g_cols = height.shape
     dhdu = (torch.roll(height, -1, dims=1) - torch.roll(height, 1, dims=1)) * (g_cols / 2.0)
