@@ -144,3 +144,32 @@ def test_writer_rejects_non_integer_angles_and_bad_options(tmp_path):
     with pytest.raises(InputError, match="quality"):
         write_ubo2003(tmp_path / "x.zip", small_source(), quality=0)
     assert not list(tmp_path.iterdir())
+
+
+def test_fuzz_damaged_zips_raise_only_format_error(tmp_path):
+    """Truncated zips and random byte flips (names, headers, deflate streams, JPEG/PNG data)."""
+    rng = np.random.default_rng(7)
+    src = small_source(3, 2, 2, (8, 8))
+    bases = [write_ubo2003(tmp_path / "j.zip", src).read_bytes(),
+             write_ubo2003(tmp_path / "p.zip", src, image_format="png").read_bytes()]
+    path = tmp_path / "mutant.zip"
+    outcomes = {"ok": 0, "format_error": 0}
+    for k in range(300):
+        b = bytearray(bases[k % 2])
+        if k % 3 == 0:
+            b = b[:int(rng.integers(0, len(b)))]
+        else:
+            for _ in range(int(rng.integers(1, 6))):
+                b[int(rng.integers(0, len(b)))] = int(rng.integers(0, 256))
+        path.write_bytes(bytes(b))
+        try:
+            with UBO2003BTF(path) as btf:
+                for v, l in btf.pairs():
+                    assert np.isfinite(btf.image(v, l)).all()
+            outcomes["ok"] += 1
+        except FormatError as e:
+            assert str(e).startswith(str(path))
+            outcomes["format_error"] += 1
+        except Exception as e:  # pragma: no cover - the failure this test exists to catch
+            pytest.fail(f"mutant {k} raised {type(e).__name__}: {e}")
+    assert outcomes["format_error"] > 100 and outcomes["ok"] > 0

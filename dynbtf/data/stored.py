@@ -35,6 +35,7 @@ Examples
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 from pathlib import Path
@@ -323,7 +324,7 @@ class StoredBTF(BTFSource):
         self.height, self.width = dims["height"], dims["width"]
         self.dtype = np.dtype(dtype).newbyteorder("<")
         shape = (dims["n_views"], dims["n_lights"], self.height, self.width, 3)
-        expected = int(np.prod(shape, dtype=np.int64)) * self.dtype.itemsize
+        expected = math.prod(shape) * self.dtype.itemsize
         data_path = path / data_name
         if not data_path.is_file():
             raise FormatError(data_path, "data file not found")

@@ -34,7 +34,10 @@ from __future__ import annotations
 
 import io
 import re
+import struct
+import warnings
 import zipfile
+import zlib
 from pathlib import Path, PurePosixPath
 
 import numpy as np
@@ -88,7 +91,7 @@ class UBO2003BTF(BTFSource):
             raise FormatError(self.path, "not a file (expected a UBO2003 .zip of images)")
         try:
             self._zip = zipfile.ZipFile(self.path)
-        except (zipfile.BadZipFile, OSError) as e:
+        except (zipfile.BadZipFile, OSError, NotImplementedError, ValueError, EOFError) as e:
             raise FormatError(self.path, f"not a zip file ({e}); expected a UBO2003 .zip of images") from None
         entries: dict[tuple[int, int, int, int], str] = {}
         for name in self._zip.namelist():
@@ -130,18 +133,34 @@ class UBO2003BTF(BTFSource):
         self.metadata = {"format": "ubo2003-zip", "path": str(self.path), "images": len(entries),
                          "encoding": "8-bit sRGB"}
 
+    def _open_entry(self, name: str, *, decode: bool):
+        """Image size ``(H, W)`` from the header (``decode=False``) or the ``(H, W, 3)`` uint8 pixels.
+
+        Every way a damaged zip member or image can fail (bad CRC, broken
+        deflate stream, unsupported zip feature, truncated or absurd image data)
+        becomes a FormatError naming the entry.
+        """
+        from PIL import Image
+
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("error", Image.DecompressionBombWarning)
+                if not decode:
+                    with self._zip.open(name) as f, Image.open(f) as im:
+                        return im.height, im.width
+                with Image.open(io.BytesIO(self._zip.read(name))) as im:
+                    return np.asarray(im.convert("RGB"))
+        except (OSError, ValueError, EOFError, RuntimeError, NotImplementedError, KeyError, struct.error,
+                zipfile.BadZipFile, zlib.error, Image.DecompressionBombWarning, Image.DecompressionBombError) as e:
+            what = "cannot be decoded" if decode else "is not a readable image"
+            raise FormatError(self.path, f"entry {name!r} {what} ({type(e).__name__}: {e})") from None
+
     def _check_sizes(self) -> tuple[int, int]:
         """Read every image's size from its header; all must agree."""
-        from PIL import Image, UnidentifiedImageError
-
         first = None
         for row in self._names:
             for name in row:
-                try:
-                    with self._zip.open(name) as f, Image.open(f) as im:
-                        size = (im.height, im.width)
-                except (UnidentifiedImageError, OSError, zipfile.BadZipFile, ValueError) as e:
-                    raise FormatError(self.path, f"entry {name!r} is not a readable image ({e})") from None
+                size = self._open_entry(name, decode=False)
                 if first is None:
                     first = (size, name)
                 elif size != first[0]:
@@ -155,14 +174,8 @@ class UBO2003BTF(BTFSource):
         return [n for row in self._names for n in row]
 
     def _read_image(self, view_index: int, light_index: int) -> np.ndarray:
-        from PIL import Image, UnidentifiedImageError
-
         name = self._names[view_index][light_index]
-        try:
-            with Image.open(io.BytesIO(self._zip.read(name))) as im:
-                pixels = np.asarray(im.convert("RGB"))
-        except (UnidentifiedImageError, OSError, zipfile.BadZipFile, ValueError, EOFError) as e:
-            raise FormatError(self.path, f"entry {name!r} cannot be decoded ({e})") from None
+        pixels = self._open_entry(name, decode=True)
         if pixels.shape[:2] != (self.height, self.width):
             raise FormatError(self.path, f"entry {name!r} decodes to {pixels.shape[1]}x{pixels.shape[0]} pixels; "
                                          f"expected {self.width}x{self.height}")

@@ -178,7 +178,8 @@ class _Cursor:
         return n
 
     def f32(self, n: int, what: str) -> np.ndarray:
-        values = np.frombuffer(self.take(4 * n, what), dtype="<f4").astype(np.float64)
+        with np.errstate(invalid="ignore"):  # signalling NaN bit patterns
+            values = np.frombuffer(self.take(4 * n, what), dtype="<f4").astype(np.float64)
         if not np.isfinite(values).all():
             self.fail(f"{what} contains NaN or infinite values")
         return values
@@ -414,17 +415,18 @@ class UBO2014BTF(BTFSource):
         if not self._u:
             raise InputError(f"{self.path}: the file was closed")
         k = len(rows)
-        out = np.empty((k, self.height * self.width, 3), dtype=np.float32)
-        for c, u in enumerate(self._u):
-            coeff = np.asarray(u[rows], dtype=self._compute[c])  # (k, C)
-            for a, block in self._sxv_blocks(c):  # block: (n, C)
-                out[:, a:a + len(block), c] = coeff @ block.T
-        out = out.reshape(k, self.height, self.width, 3)[:, ::-1]  # file rows bottom-up -> ours top-down
-        if self.header.colour_model == 11:
-            out = _log_yuv_to_rgb(out)
-        if self.header.cosine_flag:
-            cos_l = np.maximum(self.lights[rows % self.n_lights, 2], _MIN_COS_LIGHT).astype(np.float32)
-            out = out / cos_l[:, None, None, None]
+        with np.errstate(over="ignore", invalid="ignore"):  # corrupt factors: caught by the check below
+            out = np.empty((k, self.height * self.width, 3), dtype=np.float32)
+            for c, u in enumerate(self._u):
+                coeff = np.asarray(u[rows], dtype=self._compute[c])  # (k, C)
+                for a, block in self._sxv_blocks(c):  # block: (n, C)
+                    out[:, a:a + len(block), c] = coeff @ block.T
+            out = out.reshape(k, self.height, self.width, 3)[:, ::-1]  # file rows bottom-up -> ours top-down
+            if self.header.colour_model == 11:
+                out = _log_yuv_to_rgb(out)
+            if self.header.cosine_flag:
+                cos_l = np.maximum(self.lights[rows % self.n_lights, 2], _MIN_COS_LIGHT).astype(np.float32)
+                out = out / cos_l[:, None, None, None]
         if not np.isfinite(out).all():
             raise FormatError(self.path, "decoded values are not finite (overflow in the stored factors)")
         return np.ascontiguousarray(out, dtype=np.float32)
