@@ -117,6 +117,20 @@ def test_convert_and_show(files, tmp_path, capsys):
     np.testing.assert_allclose(load_image(tmp_path / "a.png"), converted.image(0, 0) * 0.5, atol=0.01)
 
 
+def test_convert_to_the_exchange_formats(files, tmp_path, capsys):
+    src = files["src"]
+    code, out, err = run(capsys, "convert", files["dbtf"], "-o", tmp_path / "x.btf", "--components", "12",
+                         "--scalar", "float")
+    assert code == 0 and "UBO2014 DFMF, 12 components, float" in out, err
+    np.testing.assert_allclose(open_btf(tmp_path / "x.btf").image(2, 1), src.image(2, 1), atol=1e-5)
+    code, out, err = run(capsys, "convert", files["btf"], "-o", tmp_path / "x.zip")
+    assert code == 0, err
+    zipped = open_btf(tmp_path / "x.zip")
+    assert type(zipped) is UBO2003BTF and zipped.shape == src.shape
+    code, _, err = run(capsys, "convert", files["btf"], "-o", tmp_path / "x.zip")
+    assert code == 2 and "already exists" in err
+
+
 @pytest.mark.parametrize("argv, message", [
     (["info", "{tmp}/missing.btf"], "missing.btf: not found"),
     (["show", "{btf}", "--view", "abc", "--light", "0", "-o", "{tmp}/x.png"], "--view: expected an index"),
@@ -126,6 +140,7 @@ def test_convert_and_show(files, tmp_path, capsys):
     (["show", "{btf}", "--view", "0", "--light", "0", "-o", "{tmp}/x.png", "--exposure", "-1"], "--exposure"),
     (["convert", "{btf}", "-o", "{dbtf}"], "already exists"),
     (["convert", "{btf}", "-o", "{tmp}/n.dbtf", "--dtype", "int8"], "dtype"),
+    (["convert", "{btf}", "-o", "{tmp}/n.btf", "--scalar", "quad"], "scalar"),
     (["info", "sim:stone?size=abc"], "'size' must be an integer"),
 ])
 def test_user_errors_are_one_line_with_status_2(files, tmp_path, capsys, argv, message):

@@ -104,24 +104,42 @@ def info(
 @app.command()
 def convert(
     src: str = typer.Argument(..., help=_BTF_HELP),
-    output: Path = typer.Option(..., "-o", "--output", help="Stored BTF directory to write (conventionally *.dbtf). "
-                                "An interrupted conversion resumes when run again with the same arguments."),
-    dtype: str = typer.Option("float16", help="Stored value type: float16 (half the size, ~1e-3 relative error) "
-                              "or float32."),
+    output: Path = typer.Option(..., "-o", "--output", help="Where to write. A directory (conventionally *.dbtf): "
+                                "a stored BTF, streamed and resumable (rerun after an interruption). A .btf file: "
+                                "UBO2014 DFMF (truncated SVD, for small BTFs). A .zip file: UBO2003 JPEGs."),
+    dtype: str = typer.Option("float16", help="Stored BTF value type: float16 (half the size, ~1e-3 relative "
+                              "error) or float32."),
+    components: int = typer.Option(16, min=1, help=".btf output: SVD components per colour channel."),
+    scalar: str = typer.Option("half", help=".btf output: scalar type half, float or double."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
 ) -> None:
-    """Convert any readable BTF into a stored BTF (streamed image by image, atomic, resumable).
+    """Convert any readable BTF into a stored BTF (or a UBO2014 .btf / UBO2003 .zip for other tools).
 
-    Example: dynbtf convert carpet.btf -o carpet.dbtf --dtype float16
+    Examples: dynbtf convert carpet.btf -o carpet.dbtf --dtype float16;
+    dynbtf convert "sim:leather?size=32" -o leather.btf --components 32
     """
     from ..data.open import open_btf
     from ..data.stored import write_stored
+    from ..data.ubo2003 import write_ubo2003
+    from ..data.ubo2014 import write_ubo2014
+    from ..errors import InputError
 
+    suffix = output.suffix.lower()
+    if suffix in (".btf", ".zip") and output.exists() and not overwrite:
+        raise InputError(f"{output}: already exists (pass --overwrite to replace it)")
     with open_btf(src) as source:
-        write_stored(output, source, dtype=dtype, progress=not quiet, overwrite=overwrite)
+        if suffix == ".btf":
+            write_ubo2014(output, source, components=components, scalar=scalar)
+            what = f"UBO2014 DFMF, {components} components, {scalar}"
+        elif suffix == ".zip":
+            write_ubo2003(output, source)
+            what = "UBO2003 zip of JPEGs"
+        else:
+            write_stored(output, source, dtype=dtype, progress=not quiet, overwrite=overwrite)
+            what = f"stored, {dtype}"
         typer.echo(f"wrote {output}: {source.height}x{source.width} texels, {source.n_views} views x "
-                   f"{source.n_lights} lights ({dtype})")
+                   f"{source.n_lights} lights ({what})")
 
 
 def parse_direction(text: str, directions: np.ndarray, what: str) -> int:
