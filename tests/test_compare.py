@@ -87,3 +87,21 @@ def test_compare_command_line(btf, tmp_path, capsys):
     assert (out / "pca.dbtfm").exists() and (out / "eval_sh" / "metrics.csv").exists()
     assert main(["compare", str(path), "-o", str(out), "--repr", "pca,bogus"]) == 2
     assert "no fitter for 'bogus'" in capsys.readouterr().err
+
+
+def test_compare_synthesis_reports_quality_and_quilting_storage(btf, tmp_path):
+    from dynbtf.compare import compare_synthesis
+    from dynbtf.representations.pca import fit_pca
+
+    model = fit_pca(btf, components=2, progress=False)
+    rows = compare_synthesis(model, tmp_path, ["tile", "quilt"], scale=3, seed=1, resolution=24, progress=False)
+    by = {r["method"]: r for r in rows}
+    plane = model.positional_plane()
+    assert by["tile"]["synthesis_storage_bytes"] == 0 and by["tile"]["repetition"] > 0.9
+    assert by["tile"]["dynamic"] and not by["quilt"]["dynamic"]
+    # quilting stores its pre-generated plane: (at least) 3 x 3 exemplars of the plane's channels, float32
+    assert by["quilt"]["synthesis_storage_bytes"] >= 9 * plane.numel() * 4 * 0.9
+    assert all(r["total_bytes"] == r["representation_bytes"] + r["synthesis_storage_bytes"] for r in rows)
+    assert (tmp_path / "synthesis.csv").exists() and (tmp_path / "images" / "synthesis_quilt.png").exists()
+    with pytest.raises(InputError, match="scale"):
+        compare_synthesis(model, tmp_path, ["tile"], scale=1)

@@ -26,6 +26,12 @@ def compare(
     held_out_fraction: float = typer.Option(0.05, "--held-out-fraction", help="Fraction of (view, light) pairs "
                                             "held out of every fit and used for the comparison."),
     examples: int = typer.Option(3, help="Held-out pairs shown in the figure (rows)."),
+    synthesis: Optional[str] = typer.Option(None, "--synthesis", help="Also compare synthesis methods on the "
+                                            "fitted model of this kind (e.g. triple): quality numbers, storage "
+                                            "and one image per method, in synthesis.csv/.json."),
+    methods: str = typer.Option("tile,hist,hex,quilt", "--methods", help="Synthesis methods (with --synthesis)."),
+    scale: float = typer.Option(15.0, help="Synthesized area in exemplar repeats per side (with --synthesis; "
+                                "quilting pre-generates a plane of this size)."),
     workers: Optional[int] = typer.Option(None, help="Threads of the fused training kernel (default: torch's)."),
     device: str = typer.Option("auto", help="auto (CUDA if available), cpu, cuda:0, ..."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress bars."),
@@ -44,6 +50,8 @@ def compare(
     kinds = [k.strip() for k in repr.split(",") if k.strip()]
     if not kinds:
         raise InputError("--repr: expected a comma-separated list of representation kinds, e.g. triple,pca")
+    if synthesis is not None and synthesis not in kinds:
+        raise InputError(f"--synthesis {synthesis!r}: expected one of the compared kinds {kinds}")
     config = TrainConfig(epochs=epochs, max_minutes=budget_minutes, seed=seed, held_out_fraction=held_out_fraction,
                          workers=workers, device=device)
     source = open_btf(btf)
@@ -51,6 +59,12 @@ def compare(
                         f"{source.height} x {source.width} texels, {source.n_views} views x {source.n_lights} lights")
     scores = compare_representations(source, output, kinds, config, examples=examples, progress=not quiet,
                                      report=report)
+    if synthesis:
+        from ..compare import compare_synthesis
+
+        compare_synthesis(Path(output) / f"{synthesis}.dbtfm", output,
+                          [m.strip() for m in methods.split(",") if m.strip()], scale=scale, seed=seed,
+                          report=report, progress=not quiet)
     report.write(Path(output) / "index.html")
     width = max(len(s.kind) for s in scores)
     lines = [f"{'kind':<{width}}  PSNR dB   DSSIM    FLIP    storage B   fit s"]
