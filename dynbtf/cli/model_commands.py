@@ -32,6 +32,8 @@ def fit(
     held_out_fraction: float = typer.Option(0.05, "--held-out-fraction", help="Fraction of (view, light) pairs "
                                             "never trained on, for evaluation."),
     images_per_step: int = typer.Option(16, "--images-per-step", help="Whole images per optimizer step."),
+    lr_scale: float = typer.Option(1.0, "--lr-scale", help="Multiplier of the learning rates (1: the paper's "
+                                   "1e-3 for planes, 3e-4 for the decoder)."),
     texels_per_image: Optional[int] = typer.Option(None, "--texels-per-image", help="Train on a random subset of "
                                                    "this many texels per step (very large BTFs). Default: all."),
     memory_mb: float = typer.Option(2048.0, "--memory-mb", help="RAM (MB) for the decoded-image cache; larger "
@@ -44,7 +46,7 @@ def fit(
     from ..training import TrainConfig, get_fitter
 
     config = TrainConfig(epochs=epochs, max_minutes=max_minutes, seed=seed, held_out_fraction=held_out_fraction,
-                         images_per_step=images_per_step, texels_per_image=texels_per_image,
+                         images_per_step=images_per_step, lr_scale=lr_scale, texels_per_image=texels_per_image,
                          memory_budget_mb=memory_mb, workers=workers, device=device)
     fitter = get_fitter(repr)
     source = _open_source(btf)
