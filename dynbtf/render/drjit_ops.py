@@ -183,6 +183,11 @@ class DrTriplePlane:
     ----------
     model : TriplePlane
         A fitted model (any device; its tensors are copied to the host once).
+    output_map : (matrix ``(C, C)``, offset ``(C,)``), optional
+        A linear map applied to the positional features before the decoder
+        (a synthesizer's PCA un-projection), folded into the first layer:
+        ``W_U (latent @ M + o) = (W_U M^T) latent + W_U o``. Then :meth:`decode`
+        takes the synthesizer's latent values.
 
     Examples
     --------
@@ -191,7 +196,7 @@ class DrTriplePlane:
     equal (to float32 rounding) to ``model.decode(features, w_view, w_light)``.
     """
 
-    def __init__(self, model) -> None:
+    def __init__(self, model, output_map=(None, None)) -> None:
         from ..errors import InputError
 
         if getattr(model, "kind", None) != "triple" or not hasattr(model, "decoder"):
@@ -207,8 +212,17 @@ class DrTriplePlane:
         self.diff = _flat(mi, diff)
         dec = model.decoder
         self.negative_slope = float(dec.negative_slope)
-        self.layers = [(layer.weight.detach().float().cpu().numpy(), layer.bias.detach().float().cpu().numpy())
+        self.layers = [(layer.weight.detach().double().cpu().numpy(), layer.bias.detach().double().cpu().numpy())
                        for layer in [dec.first, *dec.rest]]
+        matrix, offset = output_map
+        if matrix is not None:
+            c = self.positional_channels
+            w_first, b_first = self.layers[0]
+            w_pos = w_first[:, :c]
+            folded = np.concatenate([w_pos @ np.asarray(matrix, dtype=np.float64).T, w_first[:, c:]], axis=1)
+            bias = b_first + w_pos @ np.asarray(offset, dtype=np.float64)
+            self.layers[0] = (folded, bias)
+        self.layers = [(w.astype(np.float32), b.astype(np.float32)) for w, b in self.layers]
 
     def angular_features(self, wv, wl, active=True):
         """``concat(f_H(h), f_D(d))`` as a list of ``2 C_A`` mi.Float."""

@@ -1,7 +1,6 @@
 """The ``dynbtf`` BSDF plugin for Mitsuba 3: a synthesized BTF evaluated inside the rendering kernel.
 
-Import this module (or call :func:`register_plugin`) and Mitsuba knows a BSDF of
-type ``"dynbtf"``::
+Call :func:`register_plugin` once and Mitsuba knows a BSDF of type ``"dynbtf"``::
 
     import mitsuba as mi
     mi.set_variant("llvm_ad_rgb")          # or a cuda_* variant
@@ -121,8 +120,10 @@ def _build_class(mi):
 
         # ------------------------------------------------------------ BTF value
         def _value(self, si, wo, active):
-            u = si.uv.x * self.scale
-            v = si.uv.y * self.scale_v
+            # opaque: the scale is a kernel parameter, not a literal, so scenes that differ
+            # only in scale share one compiled kernel
+            u = si.uv.x * dr.opaque(mi.Float, self.scale)
+            v = si.uv.y * dr.opaque(mi.Float, self.scale_v)
             return self.evaluator.eval(u, v, si.wi, wo, active)
 
         def _valid(self, si, wo, active):
@@ -187,15 +188,22 @@ class DynBTFEvaluator:
         from ..synthesized import SynthesizedBTF
         from .drjit_synthesis import make_dr_synthesizer
 
-        self.model = drjit_ops.DrTriplePlane(model)
         self.btf = SynthesizedBTF(model, method, scale=1.0, seed=seed)
         self.synthesizer = make_dr_synthesizer(self.btf.synthesizer)
+        # fold the synthesizer's output map (PCA un-projection) into the decoder's first layer,
+        # as SynthesizedBTF's fast path does: 16 x 16 fewer multiply-adds per shading point
+        matrix, offset = getattr(self.synthesizer, "matrix", None), getattr(self.synthesizer, "offset", None)
+        self.model = drjit_ops.DrTriplePlane(model, output_map=(matrix, offset))
+        self._latent = matrix is not None
 
     def features(self, u, v, active=True):
         """Synthesized positional features at ``(u, v)``: list of ``C_U`` mi.Float."""
         return self.synthesizer.features(u, v, active)
 
     def eval(self, u, v, w_view, w_light, active=True):
+        """RGB value (``mi.Color3f``) of the synthesized BTF, excluding cos(theta_light)."""
+        if self._latent:  # the output map is folded into the decoder
+            return self.model.decode(self.synthesizer.latent(u, v, active), w_view, w_light, active)
         return self.model.decode(self.features(u, v, active), w_view, w_light, active)
 
 
