@@ -42,6 +42,7 @@ import torch
 from ...texture import fetch_wrap
 from .geometry import light_visibility, normals_from_height, sky_view_factor, trace_view
 from .materials import MaterialMaps
+from .kernels import bilinear_taps, shade_view
 from .shading import dot3, layered_brdf
 
 __all__ = ["HeightFieldRenderer", "GRAZING_COS"]
@@ -70,11 +71,20 @@ class HeightFieldRenderer:
         Where to compute (default CPU).
     view_cache : int
         How many views' traces to keep.
+    backend : ``"auto"``, ``"torch"`` or ``"numba"``
+        Shading implementation: the fused numba kernel (:mod:`.kernels`, CPU
+        only, several times faster) or whole-array torch code (any device, the
+        reference). ``auto`` picks numba on the CPU.
     """
 
     def __init__(self, maps: MaterialMaps, out_size: int, *, spread_deg: float = 2.0, interreflection: bool = True,
-                 shadows: bool = True, device=None, view_cache: int = 2):
+                 shadows: bool = True, device=None, view_cache: int = 2, backend: str = "auto"):
         self.device = torch.device("cpu") if device is None else torch.device(device)
+        if backend not in ("auto", "torch", "numba"):
+            raise ValueError(f"backend must be 'auto', 'torch' or 'numba', got {backend!r}")
+        if backend == "numba" and self.device.type != "cpu":
+            raise ValueError(f"the numba backend runs on the CPU only, not on {self.device}")
+        self.backend = ("numba" if self.device.type == "cpu" else "torch") if backend == "auto" else backend
         self.maps = maps
         self.out_size = int(out_size)
         g = maps.size
@@ -102,6 +112,8 @@ class HeightFieldRenderer:
         self._views: OrderedDict = OrderedDict()
         self._view_cache = max(1, int(view_cache))
         self._lights: dict = {}
+        self._stack_key: bytes | None = None
+        self._stack = None
 
     # ----------------------------------------------------------- cached pieces
     def view_trace(self, w_view) -> dict:
@@ -140,6 +152,16 @@ class HeightFieldRenderer:
             self._lights[key] = (vis, float(irr.mean()))
         return self._lights[key]
 
+    def _light_stack(self, w_lights: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """Visibility maps ``(L, G * G)`` and fill irradiances ``(L,)`` of a light list (last list cached)."""
+        key = w_lights.tobytes()
+        if self._stack_key != key:
+            maps = [self.light_maps(wl) for wl in w_lights]
+            vis = torch.stack([m[0].reshape(-1) for m in maps])
+            em = torch.tensor([m[1] if self.interreflection else 0.0 for m in maps], dtype=torch.float32)
+            self._stack_key, self._stack = key, (vis, em)
+        return self._stack
+
     # ----------------------------------------------------------- rendering
     def render(self, w_view, w_lights) -> torch.Tensor:
         """Images for one view and several lights: ``(L, S, S, 3)`` float32 values ``pi f_r``.
@@ -153,13 +175,28 @@ class HeightFieldRenderer:
         """
         w_lights = np.asarray(w_lights, dtype=np.float64).reshape(-1, 3)
         t = self.view_trace(w_view)
-        vis_planes, e_mean = [], []
-        for wl in w_lights:
-            vis, em = self.light_maps(wl)
-            vis_planes.append(vis)
-            e_mean.append(em)
+        vis_maps, e_mean = self._light_stack(w_lights)
+        fill = t["albedo"] * self.albedo_mean * (1.0 - t["sky"])[:, None]                 # (N, 3)
+        if self.backend == "numba":
+            if "taps" not in t:
+                t["taps"], t["weights"] = bilinear_taps(t["uv"].numpy(), self.height.shape[0])
+            value = torch.from_numpy(shade_view(
+                w_lights, w_view, vis_maps.numpy(), t["taps"], t["weights"], e_mean.numpy(), t["n"].numpy(),
+                t["albedo"].numpy(), t["alpha"].numpy(), t["f0"].numpy(), t["coat"].numpy(), fill.numpy(),
+                coat_alpha=self.maps.coat_alpha, coat_f0=self.maps.coat_f0, has_coat=self.has_coat,
+                grazing_cos=GRAZING_COS))
+        else:
+            g = self.height.shape[0]
+            planes = vis_maps.reshape(len(w_lights), g, g).permute(1, 2, 0)
+            vis_at_hit = fetch_wrap(planes, t["uv"]).transpose(0, 1)  # (L, N)
+            value = self._shade_torch(t, w_view, w_lights, vis_at_hit, e_mean, fill)
+        s = self.out_size
+        return value.reshape(len(w_lights), s, s, 3)
+
+    def _shade_torch(self, t: dict, w_view, w_lights: np.ndarray, vis_at_hit: torch.Tensor, e_mean,
+                     fill: torch.Tensor) -> torch.Tensor:
+        """Values ``(L, N, 3)`` of one traced view: the reference (any device) implementation."""
         f32 = dict(dtype=torch.float32, device=self.device)
-        vis_at_hit = fetch_wrap(torch.stack(vis_planes, dim=-1), t["uv"]).transpose(0, 1)  # (L, N)
         v = torch.as_tensor([float(x) for x in w_view], **f32)
         l = torch.as_tensor(w_lights, **f32)[:, None, :]          # (L, 1, 3)
         h = v + l
@@ -176,9 +213,5 @@ class HeightFieldRenderer:
         cos_macro = l[..., 2].clamp_min(1e-6)                     # (L, 1)
         direct = cos_l.clamp_(min=0.0).mul_(vis_at_hit).div_(cos_macro)  # (L, N)
         value.mul_(direct[..., None])
-        if self.interreflection:
-            em = torch.as_tensor(e_mean, **f32)[:, None, None]    # (L, 1, 1)
-            fill = t["albedo"] * self.albedo_mean * (1.0 - t["sky"])[:, None]  # (N, 3)
-            value.addcmul_(fill[None], em)
-        s = self.out_size
-        return value.reshape(len(w_lights), s, s, 3)
+        em = e_mean.to(**f32)[:, None, None]                      # (L, 1, 1)
+        return value.addcmul_(fill[None], em)
