@@ -23,7 +23,6 @@ Examples
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from ..device import resolve_device
 from ..errors import InputError

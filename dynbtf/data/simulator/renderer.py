@@ -28,12 +28,12 @@ reference plane ``z = 0``) is::
 
 The renderer caches the per-view trace (hit points and the material fetched
 there) and the per-light visibility maps, so shading a pair is cheap
-elementwise math batched over lights.
+elementwise math batched over lights: on the CPU one fused numba kernel
+(:mod:`.kernels`), elsewhere whole-array torch code (the reference).
 """
 
 from __future__ import annotations
 
-import math
 from collections import OrderedDict
 
 import numpy as np
@@ -41,8 +41,8 @@ import torch
 
 from ...texture import fetch_wrap
 from .geometry import light_visibility, normals_from_height, sky_view_factor, trace_view
-from .materials import MaterialMaps
 from .kernels import bilinear_taps, shade_view
+from .materials import MaterialMaps
 from .shading import dot3, layered_brdf
 
 __all__ = ["HeightFieldRenderer", "GRAZING_COS"]
