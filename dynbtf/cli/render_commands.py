@@ -43,7 +43,7 @@ def demo(
     btf: Optional[str] = typer.Option(None, help="Your own BTF (file or sim: spec) instead of a simulated one."),
     minutes: float = typer.Option(10.0, help="Target wall time in minutes; training gets what the other stages leave."),
     seed: int = typer.Option(0, help="Seed of simulation, training and synthesis."),
-    render_size: int = typer.Option(384, help="Mitsuba render side in pixels."),
+    render_size: int = typer.Option(360, help="Mitsuba render side in pixels."),
     spp: int = typer.Option(16, help="Mitsuba samples per pixel."),
     quick: bool = typer.Option(False, "--quick", help="Tiny sizes everywhere (a smoke test in about a minute)."),
 ) -> None:

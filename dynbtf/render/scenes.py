@@ -93,7 +93,7 @@ def cloth_mesh(bsdf, *, resolution: int = 160, size: float = 3.0):
         a = np.arctan2(y, x)
         drape = 0.9 * np.exp(-(r / 0.9) ** 2)
         folds = 0.09 * np.sin(7.0 * a + 1.5 * r) * np.clip(r / 0.8, 0.0, 1.0) * np.exp(-((r - 1.0) / 0.9) ** 2)
-        return drape + folds
+        return 0.12 + drape + folds  # lifted: the folds' troughs stay above the floor
 
     z = height(x, y)
     eps = 1e-4
@@ -158,7 +158,7 @@ def scene_dict(scene: str, material: dict, *, lighting: str = "sky", resolution=
                        "to_world": _look_at(mi, (0.0, -19.0, 1.4), (0.0, 4.0, -1.2)), "film": film, "sampler": sampler}
         d["surface"] = {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale([20.0, 20.0, 1.0]),
                         "bsdf": dict(material)}
-        light_pos, light_power = (4.0, -12.0, 5.0), 120.0
+        light_pos, light_power = (3.0, -8.0, 9.0), 220.0
     elif scene == "sphere":
         mat = dict(material)
         if mat.get("type") == "dynbtf" and "scale_v" not in mat:

@@ -66,7 +66,8 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
     fit = results.get("fit", {})
     if ev:
         r.section("Representation: ground truth vs model on held-out pairs",
-                  "Pairs the training never saw. Each image: ground truth | Triple Plane | FLIP error map.")
+                  "Pairs the training never saw (up to 48, evenly spaced over the held-out set; `dynbtf eval` "
+                  "scores all of them). Each image: ground truth | Triple Plane | FLIP error map.")
         mean = ev.get("mean", {})
         r.table([{"pairs": ev.get("n_pairs"), "PSNR (dB, linear)": mean.get("psnr"), "DSSIM": mean.get("dssim"),
                   "FLIP": mean.get("flip"), "training finished": fit.get("finished"),
@@ -100,7 +101,7 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
     if syn.get("grid"):
         r.section("Dynamic synthesis at 1x, 8x, 25x and 45x the exemplar's area",
                   f"Top view, light at theta {syn['light'][0]:g} deg, phi {syn['light'][1]:g} deg; "
-                  f"each image spans N x N exemplar repeats at {syn.get('resolution')} pixels (2x2 supersampled above 1x). "
+                  f"each image spans N x N exemplar repeats at {syn.get('resolution')} pixels (2x2 supersampled at 25x and 45x). "
                   "Every texel is computed on demand from its uv: nothing is pre-generated.")
         for m in METHODS:
             row = syn["grid"].get(m, {})
