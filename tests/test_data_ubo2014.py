@@ -355,3 +355,18 @@ def test_streamed_factors_equal_cached_factors(tmp_path, monkeypatch):
     for v, l in src.pairs():
         np.testing.assert_allclose(streamed.image(v, l), cached.image(v, l), rtol=1e-6, atol=1e-7)
     assert cached._sxv_cached is not None and streamed._sxv_cached is None
+
+
+@pytest.mark.parametrize("shape", [(530, 620), (620, 530)])
+def test_gram_path_of_the_truncated_svd_equals_lapack(shape):
+    """Matrices above 512 on both sides use the Gram eigen-decomposition: compare with a full SVD."""
+    from dynbtf.data.ubo2014 import _truncated_svd
+
+    rng = np.random.default_rng(5)
+    m = rng.standard_normal((shape[0], 6)) @ rng.standard_normal((6, shape[1])) + 0.01 * rng.standard_normal(shape)
+    u, s, sxv = _truncated_svd(m, 8)
+    u_ref, s_ref, vt_ref = np.linalg.svd(m, full_matrices=False)
+    np.testing.assert_allclose(s, s_ref[:8], rtol=1e-9)
+    best = (u_ref[:, :8] * s_ref[:8]) @ vt_ref[:8]
+    np.testing.assert_allclose(u @ sxv.T, best, atol=1e-9)
+    np.testing.assert_allclose(u.T @ u, np.eye(8), atol=1e-9)

@@ -485,25 +485,38 @@ def btf_extractor_angles(source: BTFSource, view_index: int, light_index: int) -
     return float(tl), float(pl), float(tv), float(pv)
 
 
-def _truncated_svd(m: np.ndarray, k: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rank-``k`` SVD of ``m`` (rows x cols): ``U (rows, k)``, ``s (k,)``, ``SxV (cols, k)``."""
-    k = min(k, *m.shape)
-    if min(m.shape) <= 512 or k >= min(m.shape) - 1:
-        u, s, vt = np.linalg.svd(m, full_matrices=False)
-        u, s, vt = u[:, :k], s[:k], vt[:k]
-    else:
-        from scipy.sparse.linalg import svds
+def _truncated_svd(m: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rank-``k`` SVD of ``m`` (rows x cols): ``U (rows, k)``, ``s (k,)``, ``SxV (cols, k)``.
 
-        v0 = np.random.default_rng(seed).standard_normal(min(m.shape))
-        u, s, vt = svds(m, k=k, v0=v0)
-        order = np.argsort(s)[::-1]
-        u, s, vt = u[:, order], s[order], vt[order]
-    return u, s, (vt.T * s)
+    Exact LAPACK SVD for small matrices; otherwise the eigen-decomposition of
+    the Gram matrix on the smaller side (deterministic, and fast when ``k`` is
+    much smaller than the matrix: one ``m^T m`` product and one symmetric
+    eigen-solve). Either way ``U @ SxV.T`` is the projection of ``m`` onto its
+    top ``k`` singular vectors.
+    """
+    k = min(k, *m.shape)
+    if min(m.shape) <= 512:
+        u, s, vt = np.linalg.svd(m, full_matrices=False)
+        return u[:, :k], s[:k], vt[:k].T * s[:k]
+    from scipy.linalg import eigh
+
+    def top_eigenvectors(gram):
+        n = len(gram)
+        evals, evecs = eigh(gram, subset_by_index=[n - k, n - 1])  # ascending
+        return np.sqrt(np.maximum(evals[::-1], 0.0)), evecs[:, ::-1]
+
+    if m.shape[0] < m.shape[1]:  # left singular vectors from m m^T
+        s, u = top_eigenvectors(m @ m.T)
+        return u, s, m.T @ u
+    s, v = top_eigenvectors(m.T @ m)  # right singular vectors from m^T m
+    mv = m @ v
+    u = np.divide(mv, s, out=np.zeros_like(mv), where=s > s[0] * 1e-12)
+    return u, s, v * s
 
 
 def write_ubo2014(path, source_or_arrays, *, components: int = 16, scalar: str = "half",
                   colour_model: int = 0, version: int = 3, views=None, lights=None,
-                  max_bytes: int = 2 << 30, seed: int = 0) -> Path:
+                  max_bytes: int = 2 << 30) -> Path:
     """Compress a (small) BTF into a UBO2014 DFMF ``.btf`` file, written atomically.
 
     Each colour channel's ``(n_views * n_lights) x (H * W)`` matrix is replaced by
@@ -530,8 +543,6 @@ def write_ubo2014(path, source_or_arrays, *, components: int = 16, scalar: str =
     views, lights : arrays ``(N, 3)``, only with an array input.
     max_bytes : int
         Refuse BTFs whose float64 matrices exceed this (default 2 GiB).
-    seed : int
-        Seed of the iterative SVD's start vector (large matrices only).
 
     Returns
     -------
@@ -559,12 +570,14 @@ def write_ubo2014(path, source_or_arrays, *, components: int = 16, scalar: str =
                          f"compressing (max_bytes={max_bytes}); it is meant for small BTFs")
     # one matrix per channel, rows view-major, columns = file texels (rows bottom-up)
     matrix = np.empty((rows, source.height, source.width, 3), dtype=np.float64)
-    for v, l in source.pairs():
-        matrix[v * source.n_lights + l] = source.image(v, l)[::-1]
+    view_images = getattr(source, "view_images", None)  # all lights of a view at once, when offered
+    for v in range(source.n_views):
+        images = view_images(v) if view_images is not None else [source.image(v, l) for l in range(source.n_lights)]
+        matrix[v * source.n_lights:(v + 1) * source.n_lights] = np.asarray(images)[:, ::-1]
     if colour_model == 11:
         matrix = _rgb_to_log_yuv(matrix)
     matrix = matrix.reshape(rows, cols, 3)
-    factors = [_truncated_svd(matrix[:, :, c], int(components), seed) for c in range(3)]
+    factors = [_truncated_svd(np.ascontiguousarray(matrix[:, :, c]), int(components)) for c in range(3)]
     del matrix
     provenance = (f'<dynbtf source="{source.name}" writer="dynbtf.data.ubo2014.write_ubo2014" '
                   f'components="{components}" scalar="{scalar}"/>')
