@@ -160,7 +160,9 @@ def _stage_fit(ctx: _Context) -> dict[str, Any]:
 
     cfg = ctx.config
     src = ctx.source()
-    train = TrainConfig(seed=cfg.seed, max_minutes=_fit_minutes(cfg), device="cpu")
+    # a short budget: 3x the paper's learning rates (docs/triple_plane.md) so the positional
+    # plane picks up the material's structure within a few epochs
+    train = TrainConfig(seed=cfg.seed, max_minutes=_fit_minutes(cfg), device="cpu", lr_scale=3.0)
     if cfg.quick:
         train.epochs = 1
         train.monitor_pairs = 2
