@@ -1,0 +1,85 @@
+"""Shading-point throughput of the Mitsuba plugin's Dr.Jit evaluation vs ``SynthesizedBTF.eval``.
+
+Evaluates the same 1920 x 1080 random queries (uv within 25 repeats, upper-hemisphere
+view and light) through
+
+(a) ``SynthesizedBTF.eval`` (dynbtf's CPU fast path: numba synthesis kernel + torch decoder), and
+(b) ``DynBTFEvaluator.eval`` (what the ``dynbtf`` BSDF runs per shading point: the whole chain
+    traced by Dr.Jit into one kernel), timed after a warm-up run that compiles the kernel,
+
+and prints queries/s of each, their ratio, the one-off compile time and the largest difference.
+Run: ``python benchmarks/bench_render.py [MODEL] [--method hist]`` (default: a random model of the
+paper's size, 128 x 128 texels).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("model", nargs="?", default=None)
+    parser.add_argument("--method", default="hist", choices=["tile", "hist", "hex"])
+    parser.add_argument("--queries", type=int, default=1920 * 1080)
+    args = parser.parse_args()
+
+    from dynbtf.render.drjit_ops import mi_module
+    from dynbtf.render.mitsuba_bsdf import DynBTFEvaluator, configure_jit
+    from dynbtf.representations.triple_plane import TriplePlane
+    from dynbtf.synthesized import SynthesizedBTF
+
+    if args.model:
+        from dynbtf.representations.model_file import load_model
+
+        model, _ = load_model(args.model)
+    else:
+        model = TriplePlane(128, 128, seed=0)
+    mi = mi_module()
+    import drjit as dr
+
+    configure_jit()
+    rng = np.random.default_rng(0)
+    n = args.queries
+    uv = (rng.random((n, 2)) * 25.0).astype(np.float32)
+
+    def hemisphere():
+        w = rng.normal(size=(n, 3))
+        w[:, 2] = np.abs(w[:, 2]) + 0.05
+        return (w / np.linalg.norm(w, axis=1, keepdims=True)).astype(np.float32)
+
+    wv, wl = hemisphere(), hemisphere()
+    btf = SynthesizedBTF(model, args.method)
+    t0 = time.perf_counter()
+    ref = btf.eval(uv.astype(np.float64), wv, wl)
+    t_torch = time.perf_counter() - t0
+
+    ev = DynBTFEvaluator(model, args.method, 0)
+    U, V = mi.Float(uv[:, 0]), mi.Float(uv[:, 1])
+    WV = mi.Vector3f(*(mi.Float(wv[:, k]) for k in range(3)))
+    WL = mi.Vector3f(*(mi.Float(wl[:, k]) for k in range(3)))
+    dr.eval(U, V, WV, WL)
+    t0 = time.perf_counter()
+    out = ev.eval(U, V, WV, WL)
+    dr.eval(out)
+    t_first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    out = ev.eval(U, V, WV, WL)
+    dr.eval(out)
+    t_drjit = time.perf_counter() - t0
+    got = np.stack([np.asarray(out[k]) for k in range(3)], -1)
+    print(f"{n} queries, method {args.method}, model {tuple(model.positional_plane().shape)}")
+    print(f"(a) SynthesizedBTF.eval   : {n / t_torch / 1e6:7.2f} M queries/s ({t_torch:.3f} s)")
+    print(f"(b) plugin Dr.Jit kernel  : {n / t_drjit / 1e6:7.2f} M queries/s ({t_drjit:.3f} s; "
+          f"first call incl. compile {t_first:.1f} s)")
+    print(f"ratio (b)/(a)             : {t_torch / t_drjit:7.2f}x")
+    print(f"max |difference|          : {np.abs(got - ref).max():.2e} (values up to {np.abs(ref).max():.2f})")
+
+
+if __name__ == "__main__":
+    with torch.no_grad():
+        main()
