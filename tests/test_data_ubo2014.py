@@ -370,3 +370,8 @@ def test_gram_path_of_the_truncated_svd_equals_lapack(shape):
     best = (u_ref[:, :8] * s_ref[:8]) @ vt_ref[:8]
     np.testing.assert_allclose(u @ sxv.T, best, atol=1e-9)
     np.testing.assert_allclose(u.T @ u, np.eye(8), atol=1e-9)
+
+
+def test_writer_reports_bad_directions_as_input_errors(tmp_path):
+    with pytest.raises(InputError, match="below the horizon"):
+        write_ubo2014(tmp_path / "x.btf", np.zeros((1, 1, 2, 2, 3)), views=[[0, 0.6, -0.8]], lights=[[0, 0, 1.0]])

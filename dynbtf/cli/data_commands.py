@@ -130,10 +130,10 @@ def convert(
         raise InputError(f"{output}: already exists (pass --overwrite to replace it)")
     with open_btf(src) as source:
         if suffix == ".btf":
-            write_ubo2014(output, source, components=components, scalar=scalar)
+            write_ubo2014(output, source, components=components, scalar=scalar, progress=not quiet)
             what = f"UBO2014 DFMF, {components} components, {scalar}"
         elif suffix == ".zip":
-            write_ubo2003(output, source)
+            write_ubo2003(output, source, progress=not quiet)
             what = "UBO2003 zip of JPEGs"
         else:
             write_stored(output, source, dtype=dtype, progress=not quiet, overwrite=overwrite)

@@ -206,7 +206,8 @@ def _integer_degrees(w: np.ndarray, what: str) -> list[tuple[int, int]]:
     return out
 
 
-def write_ubo2003(path, source: BTFSource, *, image_format: str = "jpg", quality: int = 95) -> Path:
+def write_ubo2003(path, source: BTFSource, *, image_format: str = "jpg", quality: int = 95,
+                  progress: bool = False) -> Path:
     """Write ``source`` as a UBO2003 zip of angle-named 8-bit sRGB images, atomically.
 
     Parameters
@@ -220,6 +221,8 @@ def write_ubo2003(path, source: BTFSource, *, image_format: str = "jpg", quality
         JPEG (lossy, as the database; 4:4:4, ``quality``) or PNG (lossless 8-bit).
     quality : int
         JPEG quality 1..100 (default 95).
+    progress : bool
+        Show a tqdm progress bar (images, rate, ETA).
 
     Returns
     -------
@@ -235,7 +238,10 @@ def write_ubo2003(path, source: BTFSource, *, image_format: str = "jpg", quality
     lights = _integer_degrees(source.lights, "light")
     path = Path(path)
     compression = zipfile.ZIP_STORED if image_format == "jpg" else zipfile.ZIP_DEFLATED
-    with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w", compression=compression) as zf:
+    from tqdm.auto import tqdm
+
+    with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w", compression=compression) as zf, \
+            tqdm(total=source.n_pairs, unit="img", desc=f"writing {path.name}", disable=not progress) as bar:
         for v, (tv, pv) in enumerate(views):
             for l, (tl, pl) in enumerate(lights):
                 buf = io.BytesIO()
@@ -245,4 +251,5 @@ def write_ubo2003(path, source: BTFSource, *, image_format: str = "jpg", quality
                 else:
                     im.save(buf, format="PNG")
                 zf.writestr(ubo2003_entry_name(tl, pl, tv, pv, image_format), buf.getvalue())
+                bar.update(1)
     return path

@@ -74,7 +74,7 @@ from pathlib import Path
 import numpy as np
 
 from ..conventions import direction_to_spherical, spherical_to_direction
-from ..errors import FormatError, InputError
+from ..errors import DynBTFError, FormatError, InputError
 from ..io import atomic_path
 from .array import ArrayBTF
 from .base import BTFSource
@@ -516,7 +516,7 @@ def _truncated_svd(m: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.nd
 
 def write_ubo2014(path, source_or_arrays, *, components: int = 16, scalar: str = "half",
                   colour_model: int = 0, version: int = 3, views=None, lights=None,
-                  max_bytes: int = 2 << 30) -> Path:
+                  max_bytes: int = 2 << 30, progress: bool = False) -> Path:
     """Compress a (small) BTF into a UBO2014 DFMF ``.btf`` file, written atomically.
 
     Each colour channel's ``(n_views * n_lights) x (H * W)`` matrix is replaced by
@@ -543,6 +543,8 @@ def write_ubo2014(path, source_or_arrays, *, components: int = 16, scalar: str =
     views, lights : arrays ``(N, 3)``, only with an array input.
     max_bytes : int
         Refuse BTFs whose float64 matrices exceed this (default 2 GiB).
+    progress : bool
+        Show a tqdm progress bar while reading the source (views, rate, ETA).
 
     Returns
     -------
@@ -553,7 +555,12 @@ def write_ubo2014(path, source_or_arrays, *, components: int = 16, scalar: str =
     if not isinstance(source, BTFSource):
         if views is None or lights is None:
             raise InputError("write_ubo2014: an array input needs views= and lights= direction arrays")
-        source = ArrayBTF(source, views, lights, name="array")
+        try:
+            source = ArrayBTF(source, views, lights, name="array")
+        except DynBTFError:
+            raise
+        except ValueError as e:  # check_directions' plain ValueError names the argument
+            raise InputError(f"write_ubo2014: {e}") from None
     if scalar not in _SCALAR_NAMES:
         raise InputError(f"scalar: expected one of {sorted(_SCALAR_NAMES)}, got {scalar!r}")
     if colour_model not in COLOUR_MODELS:
@@ -571,7 +578,9 @@ def write_ubo2014(path, source_or_arrays, *, components: int = 16, scalar: str =
     # one matrix per channel, rows view-major, columns = file texels (rows bottom-up)
     matrix = np.empty((rows, source.height, source.width, 3), dtype=np.float64)
     view_images = getattr(source, "view_images", None)  # all lights of a view at once, when offered
-    for v in range(source.n_views):
+    from tqdm.auto import tqdm
+
+    for v in tqdm(range(source.n_views), unit="view", desc=f"reading {source.name}", disable=not progress):
         images = view_images(v) if view_images is not None else [source.image(v, l) for l in range(source.n_lights)]
         matrix[v * source.n_lights:(v + 1) * source.n_lights] = np.asarray(images)[:, ::-1]
     if colour_model == 11:
