@@ -155,8 +155,9 @@ def checkpoint_path(model_path) -> Path:
 
 
 # ---------------------------------------------------------------------------- predictions and loss
-def _texel_uv(rep_or_source_hw: tuple[int, int], texels: torch.Tensor | None, device, dtype) -> torch.Tensor:
-    h, w = rep_or_source_hw
+def _texel_uv(size: tuple[int, int], texels: torch.Tensor | None, device, dtype) -> torch.Tensor:
+    """Texel-centre uv ``(N, 2)`` of an ``(H, W)`` image, optionally at flat ``texels`` only."""
+    h, w = size
     uv = torch.from_numpy(texel_centers_uv(h, w)).reshape(-1, 2).to(device=device, dtype=dtype)
     return uv if texels is None else uv.index_select(0, texels)
 
