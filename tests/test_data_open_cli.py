@@ -115,6 +115,10 @@ def test_convert_and_show(files, tmp_path, capsys):
                        "--exposure", "0.5")
     assert code == 0, err
     np.testing.assert_allclose(load_image(tmp_path / "a.png"), converted.image(0, 0) * 0.5, atol=0.01)
+    code, _, err = run(capsys, "show", out_dir, "--view", "0", "--light", "2", "--cosine", "-o", tmp_path / "c.exr")
+    assert code == 0, err
+    np.testing.assert_allclose(load_image(tmp_path / "c.exr"), converted.image(0, 2) * converted.lights[2, 2],
+                               rtol=1e-6)
 
 
 def test_convert_to_the_exchange_formats(files, tmp_path, capsys):
