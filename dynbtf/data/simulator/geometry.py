@@ -33,6 +33,7 @@ import torch
 __all__ = [
     "normals_from_height",
     "shift_periodic",
+    "bilinear_taps",
     "trace_view",
     "horizon_tangent",
     "light_visibility",
@@ -41,6 +42,33 @@ __all__ = [
 
 #: March step of the view and shadow rays, in grid cells (horizontal distance).
 STEP_CELLS = 0.5
+
+
+def bilinear_taps(uv: torch.Tensor, grid: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Periodic bilinear interpolation of ``(grid, grid)`` fields at ``uv`` ``(N, 2)``: flat indices and weights.
+
+    Returns ``taps`` int64 ``(N, 4)`` into a row-major flattened field and
+    ``weights`` float32 ``(N, 4)`` (summing to 1): ``sum_k weights[:, k] * field.reshape(-1)[taps[:, k]]``
+    is the bilinear, wrapped value, with grid point ``[i, j]`` at
+    ``((j + .5) / grid, (i + .5) / grid)`` (the convention of
+    :func:`dynbtf.texture.fetch_wrap`). Computed once per view, it serves every
+    field and every light's shadow map.
+
+    >>> import torch
+    >>> taps, w = bilinear_taps(torch.tensor([[0.25, 0.0]], dtype=torch.float64), 2)
+    >>> taps.tolist(), w.tolist()                  # halfway between rows 1 (wrapped) and 0
+    ([[2, 3, 0, 1]], [[0.5, 0.0, 0.5, 0.0]])
+    """
+    x = uv[:, 0] * grid - 0.5
+    y = uv[:, 1] * grid - 0.5
+    x0, y0 = torch.floor(x), torch.floor(y)
+    fx, fy = x - x0, y - y0
+    j0 = torch.remainder(x0.to(torch.int64), grid)
+    i0 = torch.remainder(y0.to(torch.int64), grid)
+    j1, i1 = (j0 + 1) % grid, (i0 + 1) % grid
+    taps = torch.stack([i0 * grid + j0, i0 * grid + j1, i1 * grid + j0, i1 * grid + j1], dim=-1)
+    weights = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], dim=-1)
+    return taps, weights.to(torch.float32)
 
 
 def normals_from_height(height: torch.Tensor) -> torch.Tensor:

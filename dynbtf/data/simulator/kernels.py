@@ -18,7 +18,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["shade_view", "bilinear_taps"]
+__all__ = ["shade_view"]
 
 
 @numba.njit(inline="always")
@@ -73,30 +73,6 @@ def _shade_kernel(lights, half, cos_d, view, vis_maps, taps, weights, e_mean, no
                 out[li, t, k] = value + fill[t, k] * em
 
 
-def bilinear_taps(uv: np.ndarray, grid: int) -> tuple[np.ndarray, np.ndarray]:
-    """Periodic bilinear interpolation of a ``(grid, grid)`` field at ``uv`` ``(N, 2)``: flat indices and weights.
-
-    Returns ``taps`` int64 ``(N, 4)`` into the row-major flattened field and
-    ``weights`` float32 ``(N, 4)`` (summing to 1), with grid point ``[i, j]`` at
-    ``((j + .5) / grid, (i + .5) / grid)`` -- the convention of
-    :func:`dynbtf.texture.fetch_wrap`.
-
-    >>> taps, w = bilinear_taps(np.array([[0.25, 0.0]]), 2)   # halfway between rows 1 and 0, column 0
-    >>> taps.tolist(), w.tolist()
-    ([[2, 3, 0, 1]], [[0.5, 0.0, 0.5, 0.0]])
-    """
-    x = np.asarray(uv[:, 0], dtype=np.float64) * grid - 0.5
-    y = np.asarray(uv[:, 1], dtype=np.float64) * grid - 0.5
-    x0, y0 = np.floor(x), np.floor(y)
-    fx, fy = x - x0, y - y0
-    j0 = np.mod(x0.astype(np.int64), grid)
-    i0 = np.mod(y0.astype(np.int64), grid)
-    j1, i1 = (j0 + 1) % grid, (i0 + 1) % grid
-    taps = np.stack([i0 * grid + j0, i0 * grid + j1, i1 * grid + j0, i1 * grid + j1], axis=-1)
-    weights = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=-1)
-    return taps, weights.astype(np.float32)
-
-
 def shade_view(w_lights, w_view, vis_maps, taps, weights, e_mean, normals, albedo, alpha, f0, coat, fill, *,
                coat_alpha: float, coat_f0: float, has_coat: bool, grazing_cos: float) -> np.ndarray:
     """Values ``(L, N, 3)`` float32 of one view for ``L`` lights at ``N`` traced texels.
@@ -109,7 +85,7 @@ def shade_view(w_lights, w_view, vis_maps, taps, weights, e_mean, normals, albed
         Cast-shadow visibility maps of the lights, flattened row-major.
     taps, weights : ``(N, 4)``
         Bilinear interpolation of the maps at the texels' hit points
-        (:func:`bilinear_taps`).
+        (:func:`dynbtf.data.simulator.geometry.bilinear_taps`).
     e_mean : float ``(L,)``
         Mean macro-relative irradiance per light (fill term; zeros disable it).
     normals, albedo : float32 ``(N, 3)``; alpha, f0, coat : float32 ``(N,)``

@@ -39,9 +39,8 @@ from collections import OrderedDict
 import numpy as np
 import torch
 
-from ...texture import fetch_wrap
-from .geometry import light_visibility, normals_from_height, sky_view_factor, trace_view
-from .kernels import bilinear_taps, shade_view
+from .geometry import bilinear_taps, light_visibility, normals_from_height, sky_view_factor, trace_view
+from .kernels import shade_view
 from .materials import MaterialMaps
 from .shading import dot3, layered_brdf
 
@@ -120,7 +119,8 @@ class HeightFieldRenderer:
         """Hit points of the texels' camera rays and the material there (cached per view).
 
         Returns a dict with ``uv`` (N, 2) float64 hit positions, ``z`` (N,) hit
-        heights, and ``n`` (N, 3), ``albedo`` (N, 3), ``alpha``, ``f0``, ``coat``,
+        heights, ``taps``/``weights`` (N, 4) their bilinear interpolation
+        (:func:`.geometry.bilinear_taps`), and ``n`` (N, 3), ``albedo`` (N, 3), ``alpha``, ``f0``, ``coat``,
         ``sky`` (N,) float32, ``N = out_size**2``.
         """
         key = tuple(round(float(x), 12) for x in w_view)
@@ -128,10 +128,11 @@ class HeightFieldRenderer:
             self._views.move_to_end(key)
             return self._views[key]
         hit_uv, hit_z = trace_view(self.height, w_view, self.stride)
-        attrs = fetch_wrap(self._plane, hit_uv)
+        taps, weights = bilinear_taps(hit_uv, self.height.shape[0])
+        attrs = (self._plane.reshape(-1, self._plane.shape[-1])[taps] * weights[..., None]).sum(1)
         n = attrs[:, 0:3]
         n = n / torch.linalg.vector_norm(n, dim=-1, keepdim=True)
-        entry = dict(uv=hit_uv, z=hit_z, n=n, albedo=attrs[:, 3:6], alpha=attrs[:, 6], f0=attrs[:, 7],
+        entry = dict(uv=hit_uv, z=hit_z, taps=taps, weights=weights, n=n, albedo=attrs[:, 3:6], alpha=attrs[:, 6], f0=attrs[:, 7],
                      coat=attrs[:, 8], sky=attrs[:, 9])
         self._views[key] = entry
         while len(self._views) > self._view_cache:
@@ -178,17 +179,14 @@ class HeightFieldRenderer:
         vis_maps, e_mean = self._light_stack(w_lights)
         fill = t["albedo"] * self.albedo_mean * (1.0 - t["sky"])[:, None]                 # (N, 3)
         if self.backend == "numba":
-            if "taps" not in t:
-                t["taps"], t["weights"] = bilinear_taps(t["uv"].numpy(), self.height.shape[0])
             value = torch.from_numpy(shade_view(
-                w_lights, w_view, vis_maps.numpy(), t["taps"], t["weights"], e_mean.numpy(), t["n"].numpy(),
+                w_lights, w_view, vis_maps.numpy(), t["taps"].numpy(), t["weights"].numpy(), e_mean.numpy(),
+                t["n"].numpy(),
                 t["albedo"].numpy(), t["alpha"].numpy(), t["f0"].numpy(), t["coat"].numpy(), fill.numpy(),
                 coat_alpha=self.maps.coat_alpha, coat_f0=self.maps.coat_f0, has_coat=self.has_coat,
                 grazing_cos=GRAZING_COS))
         else:
-            g = self.height.shape[0]
-            planes = vis_maps.reshape(len(w_lights), g, g).permute(1, 2, 0)
-            vis_at_hit = fetch_wrap(planes, t["uv"]).transpose(0, 1)  # (L, N)
+            vis_at_hit = (vis_maps[:, t["taps"]] * t["weights"]).sum(-1)  # (L, N)
             value = self._shade_torch(t, w_view, w_lights, vis_at_hit, e_mean, fill)
         s = self.out_size
         return value.reshape(len(w_lights), s, s, 3)
