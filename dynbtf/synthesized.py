@@ -26,7 +26,8 @@ queries). Per chunk: the fused numba kernel synthesizes the decorrelated
 latent features (lattice + hash + three fetches + blend + inverse LUT in one
 pass); the PCA un-projection is folded into the decoder's first-layer
 positional weights; the angular features and first-layer angular product are
-computed once per chunk; layers 2.. run in ``precision`` (``"bf16"`` is ~2x
+computed by a second fused kernel with the angular planes pre-multiplied by
+their layer-1 weights (:mod:`dynbtf.fast_decode`); layers 2.. run in ``precision`` (``"bf16"`` is ~2x
 faster on CPUs with bf16 matrix units, differing from float32 by < 0.01,
 bounded in the tests). Representations without a split first layer are decoded
 with their own ``decode``.
@@ -160,8 +161,18 @@ class SynthesizedBTF:
             offset = torch.zeros(c, device=w_pos.device) if offset is None else offset.to(w_pos.device).float()
             dtype = PRECISIONS[self.precision]
             rest = [(layer.weight.detach().to(dtype), layer.bias.detach().to(dtype)) for layer in decoder.rest]
-            return {"weight": (matrix @ w_pos.T).contiguous(), "bias": offset @ w_pos.T, "rest": rest,
-                    "slope": float(decoder.negative_slope), "dtype": dtype}
+            fold = {"weight": (matrix @ w_pos.T).contiguous(), "bias": offset @ w_pos.T, "rest": rest,
+                    "slope": float(decoder.negative_slope), "dtype": dtype, "planes": None}
+            from .representations.triple_plane import TriplePlane
+
+            if isinstance(self.model, TriplePlane) and self.device.type == "cpu":
+                from .fast_decode import fold_angular_planes
+
+                fold["planes"] = fold_angular_planes(self.model.f_h, self.model.f_d,
+                                                     decoder.first.weight[:, decoder.positional_channels:])
+                fold["numpy"] = (np.ascontiguousarray(fold["weight"].cpu().numpy()),
+                                 np.ascontiguousarray((fold["bias"] + decoder.first.bias.detach().float()).cpu().numpy()))
+            return fold
 
     # ------------------------------------------------------------ queries
     @property
@@ -193,9 +204,15 @@ class SynthesizedBTF:
             features = self.synthesizer(uv * self.scale)
             return self.model.decode(features, wv, wl).float()
         latent = self.synthesizer.latent(uv * self.scale).to(self.device)
-        decoder = self.model.decoder
-        pre = torch.addmm(fold["bias"], latent, fold["weight"])
-        pre += decoder.first_layer_angular(self.model.angular_features(wv, wl).float())
+        if fold["planes"] is not None:  # fused CPU kernel: angular planes pre-multiplied by layer 1
+            from .fast_decode import first_layer_preactivation
+
+            pre = torch.from_numpy(first_layer_preactivation(
+                latent.numpy(), *fold["numpy"], wv.float().numpy(), wl.float().numpy(), *fold["planes"]))
+        else:
+            decoder = self.model.decoder
+            pre = torch.addmm(fold["bias"], latent, fold["weight"])
+            pre += decoder.first_layer_angular(self.model.angular_features(wv, wl).float())
         x = F.leaky_relu(pre, fold["slope"]).to(fold["dtype"])
         for k, (weight, bias) in enumerate(fold["rest"]):
             x = F.linear(x, weight, bias)

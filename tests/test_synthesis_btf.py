@@ -133,8 +133,14 @@ def test_eval_equals_decoding_the_synthesized_features(model, method):
     btf = SynthesizedBTF(model, method, scale=8.0, seed=4, chunk_size=777)
     uv = torch.from_numpy(rng.random((3000, 2)) * 5 + 1e6)
     wv, wl = random_directions(3000, rng), random_directions(3000, rng)
-    expected = model.decode(btf.features(uv), wv, wl)
+    # reference angular features from float64 directions: near the pole of h (theta_h ~ 1 deg) float32
+    # rounding moves phi_h and so d visibly; the fused kernel computes the directions in float64
+    with torch.no_grad():
+        expected = model.decode_with_angular(btf.features(uv), model.angular_features(wv.double(), wl.double()).float())
     torch.testing.assert_close(btf.eval(uv, wv, wl), expected, rtol=0, atol=2e-5)
+    # the same without the fused first-layer kernel (torch angular features, float32 directions)
+    btf._fold["planes"] = None
+    torch.testing.assert_close(btf.eval(uv, wv, wl), model.decode(btf.features(uv), wv, wl), rtol=0, atol=2e-5)
 
 
 def test_bf16_decoder_error_is_bounded(model):
