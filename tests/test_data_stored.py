@@ -182,3 +182,15 @@ def test_nan_in_data_is_reported_on_read(tmp_path):
     btf = StoredBTF(path / META_FILE)  # the meta.json path works too
     with pytest.raises(FormatError, match=r"view 0, light 0"):
         btf.image(0, 0)
+
+
+def test_view_images_reports_the_bad_light(tmp_path):
+    path = write_stored(tmp_path / "n.dbtf", small_source(), progress=False, dtype="float32")
+    values = np.memmap(path / DATA_FILE, dtype="<f4", mode="r+", shape=(3, 5, 4, 6, 3))
+    values[1, 3, 2, 2, 1] = np.inf
+    values.flush()
+    del values
+    btf = StoredBTF(path)
+    np.testing.assert_array_equal(btf.view_images(1, [0, 1, 2]), np.stack([btf.image(1, l) for l in range(3)]))
+    with pytest.raises(FormatError, match=r"view 1, light 3"):
+        btf.view_images(1)

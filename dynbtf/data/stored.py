@@ -353,7 +353,13 @@ class StoredBTF(BTFSource):
         lights = np.arange(self.n_lights) if light_indices is None else np.asarray(light_indices, np.int64).reshape(-1)
         for l in lights:
             self._check_pair(v, l)
-        return np.stack([self._read_image(v, int(l)) for l in lights])
+        if self._values is None:
+            raise InputError(f"{self.path}: the stored BTF was closed")
+        images = np.asarray(self._values[v][lights], dtype=np.float32)  # one read per light block
+        if not np.isfinite(images).all():
+            bad = int(lights[np.flatnonzero(~np.isfinite(images).reshape(len(lights), -1).all(axis=1))[0]])
+            raise FormatError(self.path, f"image (view {v}, light {bad}) contains NaN or infinite values")
+        return images
 
     def close(self) -> None:
         self._values = None

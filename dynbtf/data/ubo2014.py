@@ -19,7 +19,8 @@ common header               ``u32 size`` (bytes of the header from this field on
                             ``n`` bytes of name
 directions                  ``u32 n_views``; per view ``f32 theta, f32 phi`` (radians),
                             ``u32 n_lights`` and ``n_lights x (f32 theta, f32 phi)`` (the
-                            same light list for every view)
+                            same light list for every view; as btf-extractor, we use the
+                            first view's list and check only the later lists' counts)
 size                        ``u32 width, u32 height``; with ``'R'``: ``u32 n`` + ``n``
                             3x3 ``f32`` rotation matrices
 colour                      ``u32`` components, ``u32`` colour model (0 = RGB,
