@@ -88,6 +88,7 @@ def test_info(files, capsys):
     code, out, err = run(capsys, "info", files["btf"])
     assert code == 0, err
     assert "ubo2014-dfmf" in out and "5 x 6 texels" in out and "views      3" in out and "lights     4" in out
+    assert "colour_model=0" in out and "components=[12, 12, 12]" in out and "scalar_bytes=4" in out
     code, out, _ = run(capsys, "info", files["dbtf"], "--json", "--images", "12")
     s = json.loads(out)
     src = files["src"]
@@ -97,6 +98,7 @@ def test_info(files, capsys):
     assert s["value_range_sampled"][1] == pytest.approx(float(all_values.max()), abs=1e-6)
     assert s["view_theta_range_deg"] == pytest.approx([0.0, 45.0])
     assert s["raw_float32_bytes"] == 12 * 5 * 6 * 3 * 4 and s["bytes_on_disk"] > s["raw_float32_bytes"]
+    assert s["details"]["dtype"] == "float32" and s["details"]["provenance.source_kind"] == "ArrayBTF"
 
 
 def test_convert_and_show(files, tmp_path, capsys):

@@ -40,6 +40,9 @@ def _path_bytes(spec: str) -> int | None:
 def btf_summary(source, spec: str, n_images: int = 8) -> dict:
     """What ``dynbtf info`` prints, as a dict: size, directions, value range over ``n_images`` images.
 
+    ``details`` holds the source's short metadata (e.g. a .btf file's colour
+    model and components, a stored BTF's dtype and provenance).
+
     The value range is estimated from ``n_images`` (view, light) pairs spread
     evenly over all pairs (first and last included).
     """
@@ -50,6 +53,16 @@ def btf_summary(source, spec: str, n_images: int = 8) -> dict:
         lo, hi = min(lo, float(img.min())), max(hi, float(img.max()))
         total, count = total + float(img.sum(dtype=np.float64)), count + img.size
     on_disk = _path_bytes(spec)
+    details = {}
+    for key, value in source.metadata.items():
+        items = value.items() if isinstance(value, dict) else [(None, value)]
+        for sub, v in items:
+            if key in ("format", "path") or sub == "values" or v == "" or not isinstance(v, (str, int, float, list)):
+                continue
+            if isinstance(v, list) and any(isinstance(x, list) for x in v):
+                continue  # matrices (e.g. a colour transform) do not fit on a line
+            if len(str(v)) <= 60:
+                details[key if sub is None else f"{key}.{sub}"] = v
     return {
         "source": spec,
         "format": source.metadata.get("format", type(source).__name__),
@@ -66,6 +79,7 @@ def btf_summary(source, spec: str, n_images: int = 8) -> dict:
         "images_sampled": int(len(pairs)),
         "raw_float32_bytes": source.nbytes_float32,
         "bytes_on_disk": on_disk,
+        "details": details,
     }
 
 
@@ -99,6 +113,8 @@ def info(
     typer.echo(f"  values     {s['value_range_sampled'][0]:.4g} .. {s['value_range_sampled'][1]:.4g}, mean "
                f"{s['value_mean_sampled']:.4g} (linear RGB, excluding cos(theta_light); from {s['images_sampled']} images)")
     typer.echo(f"  raw size   {_gib(s['raw_float32_bytes'])} as float32; on disk {_gib(s['bytes_on_disk'])}")
+    if s["details"]:
+        typer.echo("  details    " + ", ".join(f"{k}={v}" for k, v in s["details"].items()))
 
 
 @app.command()
