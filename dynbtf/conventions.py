@@ -56,6 +56,8 @@ from typing import Any
 
 import numpy as np
 
+from .errors import InputError
+
 try:  # torch is a hard dependency of the package, but keep this module light
     import torch
 except ImportError:  # pragma: no cover
@@ -254,21 +256,22 @@ def check_directions(w, name: str, *, allow_below_horizon: bool = False, atol: f
 
     Checks: last axis of size 3, finite values, unit length within ``atol``,
     and (unless ``allow_below_horizon``) ``z >= -HORIZON_EPS``.
-    Returns the input unchanged.
+    Returns the input unchanged. Raises :class:`dynbtf.errors.InputError`
+    (a ``ValueError``).
     """
     w = _asarray(w)
     shape = tuple(w.shape)
     if len(shape) == 0 or shape[-1] != 3:
-        raise ValueError(f"{name}: expected directions of shape (..., 3), got shape {shape}")
+        raise InputError(f"{name}: expected directions of shape (..., 3), got shape {shape}")
     xp = _xp(w)
     if not bool(xp.isfinite(w).all()):
-        raise ValueError(f"{name}: contains NaN or infinite values")
+        raise InputError(f"{name}: contains NaN or infinite values")
     if w.numel() if _is_torch(w) else w.size:
         norm = xp.sqrt((w * w).sum(-1))
         bad = xp.abs(norm - 1.0) > atol
         if bool(bad.any()):
             worst = float(xp.abs(norm - 1.0).max())
-            raise ValueError(f"{name}: directions must be unit vectors (|norm - 1| up to {worst:.3g})")
+            raise InputError(f"{name}: directions must be unit vectors (|norm - 1| up to {worst:.3g})")
         if not allow_below_horizon and bool((w[..., 2] < -HORIZON_EPS).any()):
-            raise ValueError(f"{name}: directions below the horizon (z < 0) are not allowed here")
+            raise InputError(f"{name}: directions below the horizon (z < 0) are not allowed here")
     return w
