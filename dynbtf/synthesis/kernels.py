@@ -25,7 +25,7 @@ import numpy as np
 from .hash import _SECOND_STREAM, _mulmod32, hash_vertex, mix32
 from .lattice import _C_HI, _C_LO, LATTICE_SCALE
 
-__all__ = ["lattice_blend", "MODE_LINEAR", "MODE_HIST", "MODE_HEX"]
+__all__ = ["lattice_blend", "tile_fetch", "MODE_LINEAR", "MODE_HIST", "MODE_HEX"]
 
 MODE_LINEAR, MODE_HIST, MODE_HEX = 0, 1, 2
 
@@ -56,11 +56,23 @@ def _scaled_integer(i):
 
 
 @numba.njit(inline="always")
+def _wrap(i, period):
+    """``i mod period`` for ``-period <= i < 2 period`` without a division."""
+    if i >= period:
+        return i - period
+    if i < 0:
+        return i + period
+    return i
+
+
+@numba.njit(inline="always")
 def _sample_texels(h, xi, yi, pw, ph):
     """Columns/rows of the 2x2 bilinear footprint of a sample offset by hash ``h`` (wrapped)."""
     ox = h % pw
     oy = _mix32(h ^ _SECOND_STREAM) % ph
-    return (xi + ox) % pw, (xi + ox + 1) % pw, (yi + oy) % ph, (yi + oy + 1) % ph
+    c0 = _wrap(xi + ox, pw)
+    r0 = _wrap(yi + oy, ph)
+    return c0, _wrap(c0 + 1, pw), r0, _wrap(r0 + 1, ph)
 
 
 @numba.njit(inline="always")
@@ -74,6 +86,7 @@ def _gain(x, k):
 def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_k, lut, g_min, inv_step, out):
     n_queries = uv.shape[0]
     ph, pw, nc = plane.shape
+    flat = plane.reshape(ph * pw * nc)
     lut_size = lut.shape[1]
     for n in numba.prange(n_queries):
         u = uv[n, 0]
@@ -116,8 +129,8 @@ def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_
         y0 = math.floor(py)
         tx = np.float32(px - x0)
         ty = np.float32(py - y0)
-        xi = np.int64(x0)
-        yi = np.int64(y0)
+        xi = np.int64(x0) % pw  # one division per axis; the samples then wrap by comparison
+        yi = np.int64(y0) % ph
         ca0, cb0, ra0, rb0 = _sample_texels(_hash_vertex(v0x, v0y, seed), xi, yi, pw, ph)
         ca1, cb1, ra1, rb1 = _sample_texels(_hash_vertex(v1x, v1y, seed), xi, yi, pw, ph)
         ca2, cb2, ra2, rb2 = _sample_texels(_hash_vertex(v2x, v2y, seed), xi, yi, pw, ph)
@@ -154,15 +167,21 @@ def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_
         ws0 = np.float32(s0 * scale)
         ws1 = np.float32(s1 * scale)
         ws2 = np.float32(s2 * scale)
-        # ---- three bilinear fetches, blended
+        # ---- three bilinear fetches, blended (flat plane: texel (r, c) starts at (r * pw + c) * nc)
+        o00, o01, o10, o11 = (ra0 * pw + ca0) * nc, (ra0 * pw + cb0) * nc, (rb0 * pw + ca0) * nc, (rb0 * pw + cb0) * nc
+        p00, p01, p10, p11 = (ra1 * pw + ca1) * nc, (ra1 * pw + cb1) * nc, (rb1 * pw + ca1) * nc, (rb1 * pw + cb1) * nc
+        q00, q01, q10, q11 = (ra2 * pw + ca2) * nc, (ra2 * pw + cb2) * nc, (rb2 * pw + ca2) * nc, (rb2 * pw + cb2) * nc
+        a00, a01, a10, a11 = ws0 * w00, ws0 * w01, ws0 * w10, ws0 * w11
+        b00, b01, b10, b11 = ws1 * w00, ws1 * w01, ws1 * w10, ws1 * w11
+        d00, d01, d10, d11 = ws2 * w00, ws2 * w01, ws2 * w10, ws2 * w11
+        row = out[n]
         for c in range(nc):
-            acc = (ws0 * (w00 * plane[ra0, ca0, c] + w01 * plane[ra0, cb0, c]
-                          + w10 * plane[rb0, ca0, c] + w11 * plane[rb0, cb0, c])
-                   + ws1 * (w00 * plane[ra1, ca1, c] + w01 * plane[ra1, cb1, c]
-                            + w10 * plane[rb1, ca1, c] + w11 * plane[rb1, cb1, c])
-                   + ws2 * (w00 * plane[ra2, ca2, c] + w01 * plane[ra2, cb2, c]
-                            + w10 * plane[rb2, ca2, c] + w11 * plane[rb2, cb2, c]))
-            if mode == MODE_HIST:
+            row[c] = (a00 * flat[o00 + c] + a01 * flat[o01 + c] + a10 * flat[o10 + c] + a11 * flat[o11 + c]
+                      + b00 * flat[p00 + c] + b01 * flat[p01 + c] + b10 * flat[p10 + c] + b11 * flat[p11 + c]
+                      + d00 * flat[q00 + c] + d01 * flat[q01 + c] + d10 * flat[q10 + c] + d11 * flat[q11 + c])
+        if mode == MODE_HIST:
+            for c in range(nc):
+                acc = row[c]
                 pos = (acc - g_min) * inv_step
                 if pos < 0.0:
                     pos = 0.0
@@ -170,8 +189,7 @@ def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_
                     pos = lut_size - 1.0
                 lo = min(np.int64(pos), lut_size - 2)
                 t = np.float32(pos - lo)
-                acc = lut[c, lo] + t * (lut[c, lo + 1] - lut[c, lo])
-            out[n, c] = acc
+                row[c] = lut[c, lo] + t * (lut[c, lo + 1] - lut[c, lo])
 
 
 def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], seed: int, mode: int, *,
@@ -218,4 +236,38 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
             np.ascontiguousarray(luminance, dtype=np.float32), int(density[0]), int(density[1]), int(seed) & 0xFFFFFFFF,
             int(mode), float(gamma), float(beta), float(gain_k), np.ascontiguousarray(lut, dtype=np.float32),
             float(g_min), 1.0 / float(step), out)
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _tile_kernel(uv, plane, out):
+    n_queries = uv.shape[0]
+    ph, pw, nc = plane.shape
+    for n in numba.prange(n_queries):
+        u = uv[n, 0]
+        v = uv[n, 1]
+        px = (u - math.floor(u)) * pw - 0.5
+        py = (v - math.floor(v)) * ph - 0.5
+        x0 = math.floor(px)
+        y0 = math.floor(py)
+        tx = np.float32(px - x0)
+        ty = np.float32(py - y0)
+        c0 = np.int64(x0) % pw
+        c1 = (c0 + 1) % pw
+        r0 = np.int64(y0) % ph
+        r1 = (r0 + 1) % ph
+        for c in range(nc):
+            out[n, c] = ((1 - tx) * (1 - ty) * plane[r0, c0, c] + tx * (1 - ty) * plane[r0, c1, c]
+                         + (1 - tx) * ty * plane[r1, c0, c] + tx * ty * plane[r1, c1, c])
+
+
+def tile_fetch(uv: np.ndarray, plane: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Bilinear periodic fetch of ``plane (H, W, C)`` float32 at ``uv (N, 2)`` float64 -> ``(N, C)`` float32.
+
+    The fused twin of :func:`dynbtf.texture.fetch_wrap` (the fraction of ``uv`` is
+    taken in float64, so any ``uv`` is exact).
+    """
+    if out is None:
+        out = np.empty((uv.shape[0], plane.shape[2]), dtype=np.float32)
+    _tile_kernel(np.ascontiguousarray(uv, dtype=np.float64), np.ascontiguousarray(plane, dtype=np.float32), out)
     return out
