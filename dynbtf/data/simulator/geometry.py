@@ -34,6 +34,7 @@ __all__ = [
     "normals_from_height",
     "shift_periodic",
     "bilinear_taps",
+    "interpolate_taps",
     "trace_view",
     "horizon_tangent",
     "light_visibility",
@@ -69,6 +70,24 @@ def bilinear_taps(uv: torch.Tensor, grid: int) -> tuple[torch.Tensor, torch.Tens
     taps = torch.stack([i0 * grid + j0, i0 * grid + j1, i1 * grid + j0, i1 * grid + j1], dim=-1)
     weights = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], dim=-1)
     return taps, weights.to(torch.float32)
+
+
+def interpolate_taps(values: torch.Tensor, taps: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Apply :func:`bilinear_taps`: ``values`` ``(..., G * G)`` -> ``(..., N)``.
+
+    (On the CPU the gather runs in NumPy, which is several times faster than
+    torch's advanced indexing there; elsewhere in torch.)
+    """
+    if values.device.type == "cpu":
+        v, t, w = values.numpy(), taps.numpy(), weights.numpy()
+        out = v[..., t[:, 0]] * w[:, 0]
+        for k in range(1, 4):
+            out += v[..., t[:, k]] * w[:, k]
+        return torch.from_numpy(out)
+    out = values[..., taps[:, 0]] * weights[:, 0]
+    for k in range(1, 4):
+        out = out + values[..., taps[:, k]] * weights[:, k]
+    return out
 
 
 def normals_from_height(height: torch.Tensor) -> torch.Tensor:

@@ -39,7 +39,7 @@ from collections import OrderedDict
 import numpy as np
 import torch
 
-from .geometry import bilinear_taps, light_visibility, normals_from_height, sky_view_factor, trace_view
+from .geometry import bilinear_taps, interpolate_taps, light_visibility, normals_from_height, sky_view_factor, trace_view
 from .kernels import shade_view
 from .materials import MaterialMaps
 from .shading import dot3, layered_brdf
@@ -99,7 +99,7 @@ class HeightFieldRenderer:
         sky = sky_view_factor(self.height) if interreflection else torch.ones_like(normals[..., 0])
         self._normals = normals
         self.has_coat = bool(np.asarray(maps.coat).max() > 0.0)
-        self._plane = torch.cat([
+        plane = torch.cat([
             normals,
             torch.as_tensor(maps.albedo, **f32),
             torch.as_tensor(maps.alpha, **f32)[..., None],
@@ -107,6 +107,7 @@ class HeightFieldRenderer:
             torch.as_tensor(maps.coat, **f32)[..., None],
             sky[..., None],
         ], dim=-1)  # (G, G, 10)
+        self._plane_channels = plane.reshape(-1, plane.shape[-1]).transpose(0, 1).contiguous()  # (10, G*G)
         self.albedo_mean = torch.as_tensor(np.asarray(maps.albedo).reshape(-1, 3).mean(0), **f32)
         self._views: OrderedDict = OrderedDict()
         self._view_cache = max(1, int(view_cache))
@@ -129,7 +130,7 @@ class HeightFieldRenderer:
             return self._views[key]
         hit_uv, hit_z = trace_view(self.height, w_view, self.stride)
         taps, weights = bilinear_taps(hit_uv, self.height.shape[0])
-        attrs = (self._plane.reshape(-1, self._plane.shape[-1])[taps] * weights[..., None]).sum(1)
+        attrs = interpolate_taps(self._plane_channels, taps, weights).transpose(0, 1)  # (N, 10)
         n = attrs[:, 0:3]
         n = n / torch.linalg.vector_norm(n, dim=-1, keepdim=True)
         entry = dict(uv=hit_uv, z=hit_z, taps=taps, weights=weights, n=n, albedo=attrs[:, 3:6], alpha=attrs[:, 6], f0=attrs[:, 7],
@@ -186,7 +187,7 @@ class HeightFieldRenderer:
                 coat_alpha=self.maps.coat_alpha, coat_f0=self.maps.coat_f0, has_coat=self.has_coat,
                 grazing_cos=GRAZING_COS))
         else:
-            vis_at_hit = (vis_maps[:, t["taps"]] * t["weights"]).sum(-1)  # (L, N)
+            vis_at_hit = interpolate_taps(vis_maps, t["taps"], t["weights"])  # (L, N)
             value = self._shade_torch(t, w_view, w_lights, vis_at_hit, e_mean, fill)
         s = self.out_size
         return value.reshape(len(w_lights), s, s, 3)
