@@ -138,9 +138,11 @@ def test_time_budget_stops_early_and_a_rerun_finishes(tmp_path, btf):
     assert done.finished and done.metadata["provenance"]["epochs_completed"] == 3
 
 
-def test_texel_subsets_train(tmp_path, btf):
-    result = fit_triple_plane(btf, tmp_path / "m.dbtfm", small_config(epochs=3, texels_per_image=20),
-                              progress=False)
+def test_texel_subsets_train_streamed_without_cache(tmp_path, btf, monkeypatch):
+    """The large-BTF path: no image cache (every step decodes), random texel subsets."""
+    monkeypatch.setattr(ImageStore, "fill", lambda *a, **k: pytest.fail("a streamed run must not pre-decode"))
+    result = fit_triple_plane(btf, tmp_path / "m.dbtfm", small_config(epochs=3, texels_per_image=20,
+                                                                      memory_budget_mb=0), progress=False)
     assert result.metadata["provenance"]["samples_per_epoch"] == 20 * 203
     assert np.isfinite(result.history[-1]["held_out_psnr"])
 

@@ -374,7 +374,7 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
         bar.write(f"{size_info['summary']}; {len(train_pairs)} training pairs, {len(held_out)} held out; "
                   f"{steps_per_epoch} steps/epoch x {config.epochs} epochs, {workers} worker thread(s)" +
                   (f" (resuming at epoch {epoch}, step {step})" if done_steps else ""))
-    if epoch < config.epochs:
+    if epoch < config.epochs and store.cached:
         store.fill(np.concatenate([train_pairs, monitor]), progress=progress)
     run_start = time.perf_counter()
     budget = None if config.max_minutes is None else config.max_minutes * 60.0
