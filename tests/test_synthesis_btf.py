@@ -242,3 +242,23 @@ def test_bad_input_raises_clear_errors(model, exemplar):
         btf.image(view=(float("nan"), 0))
     with pytest.raises(InputError, match="seed"):
         make_synthesizer("hist", exemplar, seed=1.5)
+
+
+# ---------------------------------------------------------------- command line
+def test_synth_command_writes_image_and_report(model, tmp_path, capsys):
+    from dynbtf.cli.main import main
+    from dynbtf.io import load_image
+    from dynbtf.representations.model_file import save_model
+
+    path = save_model(tmp_path / "m.dbtfm", model)
+    out = tmp_path / "hist.png"
+    assert main(["synth", str(path), "--method", "hist", "--scale", "45", "--view", "0,0", "--light", "30,90",
+                 "--resolution", "48", "--center", "1e6,1e6", "-o", str(out)]) == 0
+    assert load_image(out).shape == (48, 48, 3)
+    assert main(["synth", str(path), "--report", "--report-methods", "tile,hist", "--repeats", "4",
+                 "--report-json", str(tmp_path / "q.json")]) == 0
+    printed = capsys.readouterr().out
+    assert "hist" in printed and "repetition" in printed and (tmp_path / "q.json").exists()
+    assert main(["synth", str(path), "--view", "30", "-o", str(out)]) == 2
+    assert "--view: expected two comma-separated numbers" in capsys.readouterr().err
+    assert main(["synth", str(path)]) == 2
