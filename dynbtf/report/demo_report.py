@@ -100,13 +100,16 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
     # ------------------------------------------------------------------ synthesis
     if syn.get("grid"):
         r.section("Dynamic synthesis at 1x, 8x, 25x and 45x the exemplar's area",
-                  f"Top view, light at theta {syn['light'][0]:g} deg, phi {syn['light'][1]:g} deg; "
-                  f"each image spans N x N exemplar repeats at {syn.get('resolution')} pixels (2x2 supersampled at 25x and 45x). "
+                  f"BTF values (excluding cos(theta_light)), top view, light at theta {syn['light'][0]:g} deg, "
+                  f"phi {syn['light'][1]:g} deg; "
+                  f"each image spans N x N exemplar repeats at {syn.get('resolution')} x {syn.get('resolution')} pixels, one query per pixel "
+                  "(at 25x and 45x several texels fall in a pixel: fine detail averages out, large-scale "
+                  "repetition -- or its absence -- remains). "
                   "Every texel is computed on demand from its uv: nothing is pre-generated.")
         for m in METHODS:
             row = syn["grid"].get(m, {})
             r.section(METHOD_TITLES[m], level=3)
-            r.images([(img(row[str(s)]), f"{s}x") for s in syn.get("scales", []) if str(s) in row], width=280)
+            r.images([(img(row[str(s)]), f"{s}x") for s in syn.get("scales", []) if str(s) in row], width=340)
         q = syn.get("quality", [])
         if q:
             r.table(q, caption="Synthesis quality (dynbtf.synthesis.quality): histogram distance of the "
