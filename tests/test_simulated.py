@@ -338,3 +338,21 @@ def test_simulate_command_lists_materials_and_reports_bad_input(tmp_path, capsys
     assert main(["simulate", "stone"]) == 2
     assert "--output" in capsys.readouterr().err
     assert not (tmp_path / "x.dbtf").exists()
+
+
+def test_numba_marching_matches_torch_shifts(monkeypatch):
+    """Traces and horizons of the numba kernels (CPU) equal the whole-field torch versions (other devices)."""
+    from dynbtf.data.simulator import geometry
+
+    height = torch.as_tensor(build_material("stone", 96, seed=0).height, dtype=torch.float32)
+    views = spherical_to_direction(np.array([0.0, 30.0, 75.0]), np.array([0.0, 200.0, 33.0]))
+    fast = [geometry.trace_view(height, w, 3) for w in views]
+    fast_h = geometry.light_visibility(height, views[2])
+    monkeypatch.setattr(geometry, "_TORCH_MARCHING", True)
+    ref = [geometry.trace_view(height, w, 3) for w in views]
+    ref_h = geometry.light_visibility(height, views[2])
+    for (uv_a, z_a), (uv_b, z_b) in zip(fast, ref):
+        torch.testing.assert_close(z_a, z_b, rtol=0, atol=1e-6)
+        torch.testing.assert_close(uv_a, uv_b, rtol=0, atol=1e-5)
+    torch.testing.assert_close(fast_h, ref_h, rtol=0, atol=1e-3)
+    assert float(ref_h.min()) < 0.5 < float(ref_h.max())      # the case has shadows

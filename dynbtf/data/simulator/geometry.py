@@ -20,13 +20,16 @@ Three operations make the BTF effects a per-texel BRDF cannot produce:
 * :func:`sky_view_factor` -- the cosine-weighted fraction of the sky a point sees
   (used for the one-bounce interreflection fill-in of the renderer).
 
-All functions take torch tensors and run on their device.
+All functions take torch tensors and run on their device: whole-field torch
+shifts in general, the equivalent per-point numba kernels of :mod:`.kernels`
+on the CPU (several times faster there).
 """
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 
@@ -43,6 +46,9 @@ __all__ = [
 
 #: March step of the view and shadow rays, in grid cells (horizontal distance).
 STEP_CELLS = 0.5
+
+#: Force the whole-field torch marching on the CPU too (tests compare it with the numba kernels).
+_TORCH_MARCHING = False
 
 
 def bilinear_taps(uv: torch.Tensor, grid: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -186,6 +192,14 @@ def trace_view(height: torch.Tensor, w_view, stride: int = 1) -> tuple[torch.Ten
     n_steps = max(2, int(math.ceil(reach / STEP_CELLS)))
     dz = (h_max - h_min) / n_steps
     z_top = h_max + 1e-9 * max(1.0, abs(h_max))
+    if height.device.type == "cpu" and not _TORCH_MARCHING:
+        from .kernels import trace_view_kernel
+
+        z_np = np.empty(s * s, dtype=np.float64)
+        trace_view_kernel(height.numpy().astype(np.float64), slope[0], slope[1], stride, z_top, dz, h_min,
+                          n_steps, z_np)
+        z_hit = torch.from_numpy(z_np)
+        return uv + z_hit[:, None] * torch.tensor(slope, dtype=torch.float64), z_hit
     f_prev = texels.new_full(texels.shape, -1e-9)            # h - z at the previous sample (< 0)
     z_hit = torch.full(texels.shape, h_min, dtype=torch.float64, device=height.device)
     found = torch.zeros(texels.shape, dtype=torch.bool, device=height.device)
@@ -219,6 +233,12 @@ def horizon_tangent(height: torch.Tensor, azimuth_xy, max_distance: float) -> to
     ax, ay = float(azimuth_xy[0]), float(azimuth_xy[1])
     step = STEP_CELLS / g
     n = int(math.floor(max_distance / step + 1e-9))
+    if height.device.type == "cpu" and not _TORCH_MARCHING:
+        from .kernels import horizon_tangent_kernel
+
+        out = np.empty((g, g), dtype=np.float64)
+        horizon_tangent_kernel(height.numpy().astype(np.float64), ax, ay, STEP_CELLS, n, out)
+        return torch.from_numpy(out).to(height.dtype)
     best = torch.full_like(height, -math.inf)
     for k in range(1, n + 1):
         r = k * step

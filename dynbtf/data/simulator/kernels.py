@@ -1,4 +1,4 @@
-"""Fused CPU kernel of the simulator's per-pair shading (numba).
+"""Fused CPU kernels of the simulator (numba): per-pair shading and height-field marching.
 
 Computes exactly the value of :meth:`HeightFieldRenderer._shade_torch
 <dynbtf.data.simulator.renderer.HeightFieldRenderer>` -- the clear-coated GGX
@@ -7,6 +7,11 @@ visibility, plus the interreflection fill -- in one pass per element instead of
 ~40 whole-array torch operations (memory bound on a CPU). It is what the
 renderer uses on the CPU; the torch path serves every other device and is the
 reference the tests compare this kernel to.
+
+The marching kernels (:func:`trace_view_kernel`, :func:`horizon_tangent_kernel`)
+do per grid point what :func:`.geometry.trace_view` and
+:func:`.geometry.horizon_tangent` do with whole-field shifts in torch (their
+implementation on other devices and their reference in the tests).
 
 Arithmetic is float64 inside, float32 out.
 """
@@ -18,7 +23,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["shade_view"]
+__all__ = ["shade_view", "horizon_tangent_kernel", "trace_view_kernel"]
 
 
 @numba.njit(inline="always")
@@ -106,3 +111,63 @@ def shade_view(w_lights, w_view, vis_maps, taps, weights, e_mean, normals, albed
                   f32(normals), f32(albedo), f32(alpha), f32(f0), f32(coat), f32(fill),
                   float(coat_alpha), float(coat_f0), bool(has_coat), float(grazing_cos), out)
     return out
+
+
+# --------------------------------------------------------------------------- height-field marching
+@numba.njit(inline="always")
+def _sample_periodic(h, x, y):
+    """Bilinear, periodic sample of ``h`` (G, G) at grid coordinates ``(x, y)`` (column, row)."""
+    g = h.shape[0]
+    x0 = math.floor(x)
+    y0 = math.floor(y)
+    fx = x - x0
+    fy = y - y0
+    j0 = int(x0) % g
+    i0 = int(y0) % g
+    j1 = (j0 + 1) % g
+    i1 = (i0 + 1) % g
+    top = h[i0, j0] + (h[i0, j1] - h[i0, j0]) * fx
+    bottom = h[i1, j0] + (h[i1, j1] - h[i1, j0]) * fx
+    return top + (bottom - top) * fy
+
+
+@numba.njit(parallel=True, cache=True)
+def horizon_tangent_kernel(h, ax, ay, step_cells, n_steps, out):
+    """``out[i, j] = max_k (h(x + r_k a) - h(x)) / r_k``, ``r_k = k step_cells`` grid cells (see geometry)."""
+    g = h.shape[0]
+    for i in numba.prange(g):
+        for j in range(g):
+            h0 = h[i, j]
+            best = -math.inf
+            for k in range(1, n_steps + 1):
+                r = k * step_cells
+                val = _sample_periodic(h, j + r * ax, i + r * ay)
+                t = (val - h0) * g / r
+                if t > best:
+                    best = t
+            out[i, j] = best
+
+
+@numba.njit(parallel=True, cache=True)
+def trace_view_kernel(h, slope_x, slope_y, stride, z_top, dz, h_min, n_steps, z_hit):
+    """First intersection height of each output texel's camera ray (see geometry.trace_view)."""
+    g = h.shape[0]
+    s = g // stride
+    first = stride // 2
+    for i in numba.prange(s):
+        for j in range(s):
+            gi = stride * i + first
+            gj = stride * j + first
+            f_prev = -1e-9
+            z_prev = z_top
+            hit = h_min
+            for k in range(1, n_steps + 1):
+                z = z_top - k * dz if k < n_steps else h_min
+                f = _sample_periodic(h, gj + z * slope_x * g, gi + z * slope_y * g) - z
+                if f >= 0.0:
+                    t = min(max(f / (f - f_prev), 0.0), 1.0)
+                    hit = z + t * (z_prev - z)
+                    break
+                f_prev = f
+                z_prev = z
+            z_hit[i * s + j] = hit
