@@ -6,8 +6,9 @@
 """
 
 from .fit import FitResult, TrainConfig, checkpoint_path, fit, predict_images, texel_image_loss, training_provenance
+from .evaluate import Evaluation, evaluate_model, resolve_eval_pairs
 from .fitters import FITTERS, get_fitter, register_fitter
 from .images import ImageStore, held_out_split
 
 __all__ = ["fit", "TrainConfig", "FitResult", "checkpoint_path", "predict_images", "texel_image_loss",
-           "training_provenance", "get_fitter", "register_fitter", "FITTERS", "held_out_split", "ImageStore"]
+           "training_provenance", "evaluate_model", "Evaluation", "resolve_eval_pairs", "get_fitter", "register_fitter", "FITTERS", "held_out_split", "ImageStore"]
