@@ -145,6 +145,8 @@ def test_bad_parameters_are_clear_errors(variant, model_file, tmp_path):
     path, _ = model_file
     with pytest.raises(Exception, match="method"):
         mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "quilt"})
+    with pytest.raises(Exception, match="scale"):
+        mi.load_dict({"type": "dynbtf", "filename": str(path), "scale": -2.0})
     with pytest.raises(Exception, match="not found"):
         mi.load_dict({"type": "dynbtf", "filename": str(tmp_path / "missing.dbtfm")})
 

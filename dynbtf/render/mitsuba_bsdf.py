@@ -14,6 +14,7 @@ plugin's reference page.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from ..errors import InputError
@@ -111,6 +112,10 @@ def _build_class(mi):
             self.scale = float(props["scale"]) if props.has_property("scale") else 1.0
             self.scale_v = float(props["scale_v"]) if props.has_property("scale_v") else self.scale
             self.seed = int(props["seed"]) if props.has_property("seed") else 0
+            for name, value in (("scale", self.scale), ("scale_v", self.scale_v)):
+                if not (math.isfinite(value) and value > 0):
+                    raise InputError(f"dynbtf BSDF: parameter '{name}' must be a positive number of repeats, "
+                                     f"got {value}")
             if not Path(self.filename).exists():
                 raise InputError(f"dynbtf BSDF: parameter 'filename': model file {self.filename!r} not found")
             model, _ = load_model(self.filename, device="cpu")
