@@ -259,7 +259,8 @@ class SynthesizedBTF:
 
     __call__ = eval
 
-    def image(self, view=(0.0, 0.0), light=(0.0, 0.0), uv_rect=(0.0, 0.0, 1.0, 1.0), resolution=512) -> np.ndarray:
+    def image(self, view=(0.0, 0.0), light=(0.0, 0.0), uv_rect=(0.0, 0.0, 1.0, 1.0), resolution=512,
+              spp: int = 1) -> np.ndarray:
         """A flat sample under one directional (view, light) pair, like the paper's Figs. 5-6.
 
         Parameters
@@ -271,6 +272,9 @@ class SynthesizedBTF:
             square shows 45 x 45 exemplar repeats. May lie anywhere (e.g. around 1e6).
         resolution : int or (height, width)
             Pixels; pixel ``[i, j]`` shows ``uv = (u0 + (j + .5) (u1 - u0) / W, v0 + (i + .5) (v1 - v0) / H)``.
+        spp : int, default 1
+            Supersampling: the mean of ``spp x spp`` samples on a regular sub-pixel grid
+            (a box filter; use it when a pixel covers many texels, e.g. 45x at 512 px).
 
         Returns
         -------
@@ -296,13 +300,19 @@ class SynthesizedBTF:
             if not (np.isfinite(theta) and np.isfinite(phi)):
                 raise InputError(f"{name}: (theta, phi) must be finite, got {pair!r}")
             directions.append(spherical_to_direction(np.array(theta), np.array(phi)))
-        u = u0 + (np.arange(width, dtype=np.float64) + 0.5) * ((u1 - u0) / width)
-        v = v0 + (np.arange(height, dtype=np.float64) + 0.5) * ((v1 - v0) / height)
-        uu, vv = np.meshgrid(u, v)
-        uv = np.stack([uu, vv], axis=-1)
-        wv = np.broadcast_to(directions[0], uv.shape[:-1] + (3,))
-        wl = np.broadcast_to(directions[1], uv.shape[:-1] + (3,))
-        return self.eval(uv, wv, wl).astype(np.float32)
+        if int(spp) < 1:
+            raise InputError(f"spp: expected a positive number of samples per pixel axis, got {spp}")
+        spp = int(spp)
+        wv = np.broadcast_to(directions[0], (height, width, 3))
+        wl = np.broadcast_to(directions[1], (height, width, 3))
+        total = np.zeros((height, width, 3), dtype=np.float64)
+        for sy in range(spp):
+            for sx in range(spp):
+                u = u0 + (np.arange(width, dtype=np.float64) + (sx + 0.5) / spp) * ((u1 - u0) / width)
+                v = v0 + (np.arange(height, dtype=np.float64) + (sy + 0.5) / spp) * ((v1 - v0) / height)
+                uu, vv = np.meshgrid(u, v)
+                total += self.eval(np.stack([uu, vv], axis=-1), wv, wl)
+        return (total / (spp * spp)).astype(np.float32)
 
     def describe(self) -> dict[str, Any]:
         """Method, seed, scale and parameters (JSON-serializable)."""

@@ -33,6 +33,8 @@ def synth(
     light: str = typer.Option("30,0", help="Light direction THETA,PHI in degrees."),
     resolution: int = typer.Option(1024, help="Image width and height in pixels."),
     seed: int = typer.Option(0, help="Synthesis seed."),
+    spp: int = typer.Option(1, help="Supersampling: spp x spp samples per pixel (box filter) against aliasing "
+                                    "when a pixel covers many texels."),
     center: str = typer.Option("0.5,0.5", help="uv of the image centre (the image spans one uv unit), "
                                                "e.g. 1e6,1e6 to look far from the origin."),
     exposure: float = typer.Option(1.0, help="Multiplier applied before sRGB encoding (PNG only)."),
@@ -64,7 +66,7 @@ def synth(
     if output is not None:
         btf = SynthesizedBTF(rep, method, scale=scale, seed=seed)
         img = btf.image(view=view_dir, light=light_dir, uv_rect=(cu - 0.5, cv - 0.5, cu + 0.5, cv + 0.5),
-                        resolution=resolution)
+                        resolution=resolution, spp=spp)
         cos_light = max(float(spherical_to_direction(light_dir[0], light_dir[1])[2]), 0.0)
         save_image(output, img * cos_light, exposure=exposure)
         typer.echo(f"wrote {output} ({resolution}x{resolution}, {method}, {scale:g}x, centre {cu:g},{cv:g})")
