@@ -90,3 +90,11 @@ def test_browser_check_notices_a_broken_image(tmp_path):
     seen = check_in_browser(r.write(tmp_path / "report.html"))
     assert seen.broken_images == ["missing.png"]
     assert [t["rows"] for t in seen.tables] == [2]
+
+
+def test_demo_opens_a_users_btf_spec(tmp_path):
+    results = run_demo(DemoConfig(output=str(tmp_path), btf="sim:stone?size=16", quick=True), progress=False,
+                       log=lambda s: None, stages=("data",))
+    d = results["data"]["describe"]
+    assert (d["height"], d["width"]) == (16, 16) and "stone" in d["name"]
+    assert all((tmp_path / x["path"]).is_file() for x in results["data"]["images"])
