@@ -87,6 +87,11 @@ def test_compare_command_line(btf, tmp_path, capsys):
     assert (out / "pca.dbtfm").exists() and (out / "eval_sh" / "metrics.csv").exists()
     assert main(["compare", str(path), "-o", str(out), "--repr", "pca,bogus"]) == 2
     assert "no fitter for 'bogus'" in capsys.readouterr().err
+    # the same baselines through `dynbtf fit --repr` and `dynbtf eval`
+    assert main(["fit", str(path), "--repr", "sh", "-o", str(tmp_path / "sh.dbtfm"), "--held-out-fraction", "0.1",
+                 "--quiet"]) == 0
+    assert main(["eval", str(tmp_path / "sh.dbtfm"), str(path), "-o", str(tmp_path / "eval"), "--images", "1"]) == 0
+    assert "FLIP" in capsys.readouterr().out and (tmp_path / "eval" / "metrics.csv").exists()
 
 
 def test_compare_synthesis_reports_quality_and_quilting_storage(btf, tmp_path):
