@@ -164,9 +164,9 @@ def lacquered_wood(grid: int, seed: int) -> MaterialMaps:
     d_end = np.minimum(along, 1.0 - along)
     groove = np.maximum(1.0 - np.minimum(d_side, d_end) / 0.007, 0.0)
     peel = fourier_noise(grid, derive_rng(seed, "wood/orange-peel"), k_min=6, k_max=20, slope=1.0)
-    height = -0.006 * groove ** 1.5 + 0.0003 * late - 0.0004 * pores + 0.0002 * peel
+    height = -0.006 * groove ** 1.5 + 0.0003 * late - 0.0006 * pores + 0.0003 * peel
     alpha = 0.35 + 0.1 * late
-    coat = 1.0 - 0.8 * groove                                    # the lacquer thins into the grooves
+    coat = 1.0 - 0.8 * groove - 0.6 * pores                      # the lacquer thins into grooves and open pores
     albedo = _lerp(albedo, albedo * 0.5, groove)
     return _finish(height, albedo, alpha, 0.04, coat, coat_alpha=0.06, coat_f0=0.045)
 
