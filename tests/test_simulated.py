@@ -356,3 +356,29 @@ def test_numba_marching_matches_torch_shifts(monkeypatch):
         torch.testing.assert_close(uv_a, uv_b, rtol=0, atol=1e-5)
     torch.testing.assert_close(fast_h, ref_h, rtol=0, atol=1e-3)
     assert float(ref_h.min()) < 0.5 < float(ref_h.max())      # the case has shadows
+
+
+def test_interrupted_write_of_a_simulated_btf_resumes(tmp_path):
+    """The simulated source's metadata is stable, so write_stored resumes where it stopped."""
+    from dynbtf.data.stored import read_stored, write_stored
+
+    out = tmp_path / "leather.dbtf"
+
+    class Stop(Exception):
+        pass
+
+    def stop_after_some(done):
+        if done >= 81 * 10:
+            raise Stop
+
+    with pytest.raises(Stop):
+        write_stored(out, simulated_btf("leather", size=8, seed=1), dtype="float32", progress=False,
+                     callback=stop_after_some)
+    assert not out.exists()
+    seen = []
+    write_stored(out, simulated_btf("leather", size=8, seed=1), dtype="float32", progress=False,
+                 callback=seen.append)
+    assert seen[0] > 81 * 10 - 1            # resumed, not restarted
+    stored, fresh = read_stored(out), simulated_btf("leather", size=8, seed=1)
+    for v, l in [(2, 3), (50, 60)]:
+        np.testing.assert_array_equal(stored.image(v, l), fresh.image(v, l))
