@@ -63,12 +63,13 @@ def _ggx_reference(w_view, w_light, albedo, alpha, f0, coat=0.0, coat_alpha=0.05
 
 
 # ----------------------------------------------------------------------------- flat case = analytic BRDF
+@pytest.mark.parametrize("backend", ["numba", "torch"])
 @pytest.mark.parametrize("coat", [0.0, 0.7])
-def test_flat_height_field_reduces_to_closed_form_ggx(coat):
+def test_flat_height_field_reduces_to_closed_form_ggx(coat, backend):
     g = 16
     albedo, alpha, f0 = (0.6, 0.3, 0.1), 0.25, 0.05
     maps = _maps(np.zeros((g, g)), albedo, alpha, f0, coat=coat, coat_alpha=0.08, coat_f0=0.045)
-    r = HeightFieldRenderer(maps, g)
+    r = HeightFieldRenderer(maps, g, backend=backend)
     rng = np.random.default_rng(1)
     views = spherical_to_direction(rng.uniform(0, 80, 6), rng.uniform(0, 360, 6))
     lights = spherical_to_direction(np.r_[rng.uniform(0, 80, 7), 0.0, 75.0], np.r_[rng.uniform(0, 360, 7), 0, 10])
