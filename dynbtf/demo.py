@@ -148,10 +148,10 @@ def _stage_data(ctx: _Context) -> dict[str, Any]:
 
 
 def _fit_minutes(cfg: DemoConfig) -> float:
-    """Training's share of the time budget (the other stages take ~4.5 minutes at the defaults on 2 busy cores)."""
+    """Training's share of the time budget (the other stages take ~5 minutes at the defaults on 2 busy cores)."""
     if cfg.quick:
         return min(0.15, cfg.minutes)
-    return max(0.5, cfg.minutes - 5.5)
+    return max(0.5, cfg.minutes - 6.0)
 
 
 def _stage_fit(ctx: _Context) -> dict[str, Any]:
@@ -235,7 +235,7 @@ def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
     pres = (72, 128) if cfg.quick else (288, 512)
     for method in tqdm(METHODS, desc="grazing previews", unit="image", disable=not ctx.progress):
         btf = SynthesizedBTF(rep, method, scale=1.0, seed=cfg.seed)
-        img = render_preview(btf, cam, sun, resolution=pres, spp=1 if cfg.quick else 4, background=(0.55, 0.65, 0.8))
+        img = render_preview(btf, cam, sun, resolution=pres, spp=1 if cfg.quick else 2, background=(0.55, 0.65, 0.8))
         previews[method] = ctx.rel(save_image(out_dir / f"grazing_{method}.png", img))
     quality = _synthesis_quality(ctx, rep)
     return {"grid": grid, "scales": list(scales), "resolution": res, "view": list(view), "light": list(light),
