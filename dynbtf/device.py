@@ -15,9 +15,12 @@ def resolve_device(device: str | torch.device | None = None) -> torch.device:
     """
     if device is None or device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        return torch.device(device)
-    except (RuntimeError, TypeError) as e:
-        from .errors import InputError
+    from .errors import InputError
 
+    try:
+        resolved = torch.device(device)
+    except (RuntimeError, TypeError) as e:
         raise InputError(f"device: {device!r} is not a valid torch device ({e})") from None
+    if resolved.type == "cuda" and not torch.cuda.is_available():
+        raise InputError(f"device: {device!r} requested but CUDA is not available here; use 'cpu' or 'auto'")
+    return resolved
