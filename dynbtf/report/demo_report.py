@@ -109,7 +109,7 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
         for m in METHODS:
             row = syn["grid"].get(m, {})
             r.section(METHOD_TITLES[m], level=3)
-            r.images([(img(row[str(s)]), f"{s}x") for s in syn.get("scales", []) if str(s) in row], width=340)
+            r.images([(img(row[str(s)]), f"{s}x") for s in syn.get("scales", []) if str(s) in row], width=300)
         q = syn.get("quality", [])
         if q:
             r.table(q, caption="Synthesis quality (dynbtf.synthesis.quality): histogram distance of the "
@@ -117,7 +117,10 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
                     "(autocorrelation peak at the exemplar's period; tiling ~1)")
         t = syn.get("timings", {})
         if t:
-            r.table([{"image": k, "seconds": v} for k, v in t.items()], caption="Synthesized image timings")
+            scales = syn.get("scales", [])
+            r.table([{"method": m, **{f"{sc}x": t.get(f"{m}@{sc}x") for sc in scales}} for m in METHODS],
+                    columns=["method", *[f"{sc}x" for sc in scales]],
+                    caption=f"Seconds per {syn.get('resolution')} x {syn.get('resolution')} synthesized image")
 
     # ------------------------------------------------------------------ renders
     if ren:
