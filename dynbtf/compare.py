@@ -6,7 +6,8 @@ held-out (view, light) pairs and writes, into one output directory:
 
 * ``<kind>.dbtfm`` -- the model files (kept: running again reuses them, and an
   unfinished gradient fit -- stopped by ``max_minutes`` -- continues from its
-  checkpoint);
+  checkpoint), and ``source_fingerprint.json`` (:func:`source_fingerprint`: models
+  fitted to other content of a BTF of the same name are refused, not reused);
 * ``representations.csv`` / ``.json`` -- one row per kind: mean PSNR (linear),
   DSSIM and FLIP (clamped sRGB) over the held-out pairs, storage in bytes (all
   parameters and buffers; and the positional plane alone, the part a non-dynamic
@@ -54,7 +55,7 @@ from .training.fitters import get_fitter
 from .training.evaluate import evaluate_model, flip_colormap
 from .training.images import held_out_split
 
-__all__ = ["DEFAULT_KINDS", "RepresentationScore", "fit_or_load", "example_images", "CachedPairs", "compare_representations"]
+__all__ = ["DEFAULT_KINDS", "RepresentationScore", "fit_or_load", "example_images", "CachedPairs", "source_fingerprint", "compare_representations"]
 
 #: The paper's four representations, in the order of its figures.
 DEFAULT_KINDS = ("triple", "neumip", "pca", "sh")
@@ -116,6 +117,36 @@ def fit_or_load(kind: str, source: BTFSource, path, config: TrainConfig, *, prog
             return rep, meta
     result = get_fitter(kind)(source, path, config, progress=progress)
     return result.representation, result.metadata
+
+
+def source_fingerprint(source: BTFSource) -> str:
+    """SHA-256 of the BTF's name, shape and first and last images (pairs (0, 0) and the last, float32 bytes).
+
+    Model files record the BTF's name and shape, not its content; a BTF that
+    changed under the same name (a re-measured file, a revised simulator) is
+    caught by comparing this fingerprint with the one stored next to the models.
+    """
+    import hashlib
+
+    digest = hashlib.sha256(repr((source.name, source.shape)).encode())
+    for v, l in ((0, 0), (source.n_views - 1, source.n_lights - 1)):
+        digest.update(np.ascontiguousarray(source.image(int(v), int(l)), dtype=np.float32).tobytes())
+    return digest.hexdigest()
+
+
+def _check_fingerprint(output_dir: Path, source: BTFSource) -> None:
+    """Refuse to reuse models in ``output_dir`` fitted to different BTF content; record the fingerprint."""
+    path = output_dir / "source_fingerprint.json"
+    current = source_fingerprint(source)
+    if path.exists():
+        stored = json.loads(path.read_text()).get("sha256")
+        if stored != current:
+            raise InputError(f"{output_dir}: the models there were fitted to different content of {source.name!r} "
+                             f"(fingerprint {str(stored)[:12]}, now {current[:12]}): the BTF changed; remove the "
+                             "model files or choose another output directory")
+        return
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps({"source": source.name, "sha256": current}))
 
 
 # ---------------------------------------------------------------------- evaluation
@@ -260,6 +291,7 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
     if len(held_out) * source.height * source.width * 12 <= cache_mb * 1024 ** 2:
         ground_truth = CachedPairs(source, held_out)
     truths = {p: ground_truth.image(*map(int, held_out[p])) for p in shown}
+    _check_fingerprint(output_dir, source)
 
     scores, kept = [], {}
     for kind in kinds:

@@ -69,6 +69,9 @@ def test_compare_reuses_models_and_refuses_foreign_ones(btf, tmp_path):
     other = TrainConfig(epochs=2, held_out_fraction=0.1, seed=3, device="cpu", workers=1)
     with pytest.raises(InputError, match="held-out pairs differ"):
         compare_representations(btf, tmp_path, ["pca"], other, examples=1, progress=False)
+    changed = analytic_btf(12, 12, seed=9)  # same name and shape, other content
+    with pytest.raises(InputError, match="fitted to different content"):
+        compare_representations(changed, tmp_path, ["pca"], CONFIG, examples=1, progress=False)
     with pytest.raises(InputError, match="no fitter for 'nope'"):
         compare_representations(btf, tmp_path, ["nope"], CONFIG, progress=False)
 
