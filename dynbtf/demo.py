@@ -21,6 +21,10 @@ options skips finished stages, and the training stage resumes its checkpoint):
                     the grazing plane per synthesis method.
 7. ``report``    -- ``report.html`` with every image and table.
 
+Training gets the budget the other stages leave and stops with a checkpoint if
+it has not converged; to train on, delete ``<output>/stages/fit.json`` and rerun
+(training continues from ``model.dbtfm.ckpt``, the later stages are redone).
+
 ``quick=True`` shrinks every stage (a small decoder, ~10 s of training, tiny images, one small render)
 so that the whole demo runs in well under a minute: what the tests use.
 """
