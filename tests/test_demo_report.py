@@ -98,3 +98,14 @@ def test_demo_opens_a_users_btf_spec(tmp_path):
     d = results["data"]["describe"]
     assert (d["height"], d["width"]) == (16, 16) and "stone" in d["name"]
     assert all((tmp_path / x["path"]).is_file() for x in results["data"]["images"])
+
+
+def test_demo_command_line_resumes_the_same_run(quick_demo, capsys):
+    from dynbtf.cli.main import main
+
+    out, _, _ = quick_demo
+    assert main(["demo", "-o", str(out), "--size", "16", "--quick"]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("skipped") == len(STAGES) - 1 and "report.html" in printed
+    assert main(["demo", "-o", str(out), "--material", "velvet"]) == 2
+    assert "--material" in capsys.readouterr().err
