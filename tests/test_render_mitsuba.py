@@ -196,3 +196,19 @@ def test_small_render_of_a_plane_matches_direct_lighting_by_hand(variant, model_
     err = min(np.abs(img - ref).mean(), np.abs(img - ref[:, ::-1]).mean(), np.abs(img - ref[::-1]).mean(),
               np.abs(img - ref[::-1, ::-1]).mean())
     assert err < 0.03 * ref.mean(), err
+
+
+def test_plugin_scales_u_and_v_separately(variant, model_file):
+    """``scale_v`` (used on spheres) multiplies mesh v, ``scale`` mesh u."""
+    path, model = model_file
+    bsdf = mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "tile", "scale": 2.0, "scale_v": 5.0})
+    uv_mesh, wv, wl = _random_queries(500, seed=4, uv_range=4.0)
+    n = len(uv_mesh)
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.uv = mi.Point2f(mi.Float(uv_mesh[:, 0]), mi.Float(uv_mesh[:, 1]))
+    si.wi = mi.Vector3f(*(mi.Float(wv[:, k]) for k in range(3)))
+    got = np.array(bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*(mi.Float(wl[:, k]) for k in range(3)))))
+    got = got.reshape(n, 3) if got.shape == (n, 3) else got.T
+    uv = uv_mesh * np.array([2.0, 5.0], dtype=np.float32)
+    ref = _reference(model, "tile", 0, uv, wv, wl) / np.pi * wl[:, 2:3]
+    np.testing.assert_allclose(got, ref, rtol=0, atol=2e-4 * max(1.0, np.abs(ref).max()))
