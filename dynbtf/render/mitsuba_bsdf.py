@@ -76,6 +76,12 @@ Sampling is cosine-weighted over the upper hemisphere (pdf ``cos(theta) / pi``),
 as in the paper, so a sample's weight is the BTF value itself. A BTF is not
 reciprocal: use radiance-mode integrators (``path``, ``direct``), not light
 tracing.
+
+Precision: Mitsuba's mesh uv and the product ``scale * u`` are float32; from
+there on the lattice runs in float64 exactly as dynbtf does, so the plugin agrees
+with :class:`~dynbtf.synthesized.SynthesizedBTF` at the same float32 ``uv``. Repeat
+counts beyond ~1e4 per mesh make float32 uv coarser than a texel (a mesh
+limitation, not a synthesis one).
 """
 
 
