@@ -4,7 +4,8 @@ Usage::
 
     python docs/make_synthesis_images.py MODEL.dbtfm [--out docs/images] [--panel 256]
 
-Writes ``synthesis_scales.png`` (rows: tile, linear, hist, hex, quilt; columns: 1x, 8x,
+Writes ``synthesis_crops.png`` (3 x 3 repeats at one texel per pixel, at uv 0 and 1e6),
+``synthesis_scales.png`` (rows: tile, linear, hist, hex, quilt; columns: 1x, 8x,
 25x, 45x of the unit uv square and 45x of the unit square at uv = 1e6; supersampled to about
 one sample per texel, at most 8 x 8 per pixel), ``synthesis_quality.json`` (the
 quality report of every method) and prints the report table plus the decorrelation
@@ -29,15 +30,34 @@ SCALES = (1.0, 8.0, 25.0, 45.0)
 VIEW, LIGHT = (0.0, 0.0), (40.0, 30.0)
 
 
+def crops(rep, out: Path, cos_light: float) -> None:
+    """``synthesis_crops.png``: 3 x 3 exemplar repeats at one texel per pixel, around uv 0 and 1e6 (columns),
+    one row per method (tile, linear, hist, hex, quilt)."""
+    texels = rep.positional_plane().shape[1]
+    side = 3 * texels
+    rows = []
+    for method in ("tile", "linear", "hist", "hex", "quilt"):
+        btf = SynthesizedBTF(rep, method, scale=1.0, **({"repeats": 4.0} if method == "quilt" else {}))
+        panels = [btf.image(VIEW, LIGHT, (c, c, c + 3.0, c + 3.0), side) * cos_light for c in (0.0, 1e6)]
+        rows.append(np.concatenate([panels[0], np.ones((side, 4, 3), np.float32), panels[1]], axis=1))
+    gap = np.ones((4, rows[0].shape[1], 3), dtype=np.float32)
+    grid = np.concatenate([x for r in rows for x in (r, gap)][:-1], axis=0)
+    save_image(out / "synthesis_crops.png", grid, exposure=0.8 / float(np.percentile(rows[0], 99.5)))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("model")
     parser.add_argument("--out", default="docs/images")
     parser.add_argument("--panel", type=int, default=256)
+    parser.add_argument("--crops-only", action="store_true", help="only synthesis_crops.png")
     args = parser.parse_args()
     out = Path(args.out)
     rep, _ = load_model(args.model)
     cos_light = float(spherical_to_direction(np.array(LIGHT[0]), np.array(LIGHT[1]))[2])
+    crops(rep, out, cos_light)
+    if args.crops_only:
+        return
     rows = []
     synthesizers = {}
     for method in ("tile", "linear", "hist", "hex", "quilt"):

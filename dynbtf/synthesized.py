@@ -78,7 +78,7 @@ class SynthesizedBTF:
         Exemplar repeats per unit of the user's ``uv`` (positive).
     seed : int, default 0
         Synthesis seed.
-    chunk_size : int, default 32768
+    chunk_size : int, default 131072
         Queries per chunk (bounds memory).
     precision : {"fp32", "bf16"}, default "fp32"
         Dtype of decoder layers 2.. on the fast path.
@@ -97,7 +97,7 @@ class SynthesizedBTF:
     """
 
     def __init__(self, model, synthesizer: str | Synthesizer = "hist", scale: float = 1.0, seed: int = 0, *,
-                 chunk_size: int = 32768, precision: str = "fp32", **params) -> None:
+                 chunk_size: int = 131072, precision: str = "fp32", **params) -> None:
         if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
             from .representations.model_file import load_model
 

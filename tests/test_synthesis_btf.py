@@ -178,6 +178,11 @@ def test_image_matches_eval_at_pixel_centres(model):
     wl = spherical_to_direction(np.array(20.0), np.array(200.0))
     uv = np.array([[1e6 + (3 + 0.5) * 0.1 / 16, 1e6 + (5 + 0.5) * 0.05 / 8]])
     np.testing.assert_allclose(img[5, 3], btf.eval(uv, wv[None], wl[None])[0], atol=1e-6)
+    # supersampling: the mean of a regular 2 x 2 sub-pixel grid
+    img2 = btf.image(view=(30, 40), light=(20, 200), uv_rect=(0.0, 0.0, 0.1, 0.05), resolution=(8, 16), spp=2)
+    sub = np.array([[(3 + (sx + 0.5) / 2) * 0.1 / 16, (5 + (sy + 0.5) / 2) * 0.05 / 8] for sy in range(2) for sx in range(2)])
+    np.testing.assert_allclose(img2[5, 3], btf.eval(sub, np.repeat(wv[None], 4, 0), np.repeat(wl[None], 4, 0)).mean(0),
+                               atol=1e-6)
 
 
 class _ScaledPlane(Representation):
