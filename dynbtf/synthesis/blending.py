@@ -41,7 +41,8 @@ __all__ = ["LatticeBlending", "LinearBlending", "LatticePlane", "SEAM_THRESHOLD"
 
 #: ``tileable="auto"`` preprocesses exemplars whose wrap seams differ more than
 #: this factor from interior neighbour differences (see :func:`seam_discontinuity`).
-SEAM_THRESHOLD = 1.5
+#: Measured on 64^2 x 4 smooth noise: periodic planes score 0.6-1.3, 48^2 crops 7-12.
+SEAM_THRESHOLD = 2.0
 
 
 @dataclass

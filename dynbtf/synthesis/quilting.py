@@ -51,8 +51,8 @@ def min_error_cut(errors: np.ndarray) -> np.ndarray:
     row the path shifts by at most one column. Texels left of the cut keep the
     old content, the cut texel and those right of it take the new block.
 
-    >>> min_error_cut(np.array([[5, 0, 5], [5, 5, 0], [0, 5, 5]], dtype=float)).tolist()
-    [1, 2, 1]
+    >>> min_error_cut(np.array([[5, 0, 5], [5, 5, 0], [5, 5, 0]], dtype=float)).tolist()
+    [1, 2, 2]
     """
     rows, cols = errors.shape
     cost = errors.astype(np.float64).copy()
