@@ -134,7 +134,8 @@ def load_image(path) -> np.ndarray:
             return _check_image(rgb, str(path))
         import imageio.v3 as iio
 
-        img = iio.imread(path)
+        data = path.read_bytes()  # imageio leaks its file handle when decoding fails
+        img = iio.imread(data, extension=ext or None)
     except (OSError, ValueError, RuntimeError, KeyError) as e:
         raise FormatError(path, f"cannot read image ({e})") from None
     img = _check_image(img, str(path))

@@ -1,0 +1,62 @@
+"""Atomic writes and image files (dynbtf.io)."""
+
+import os
+import stat
+
+import numpy as np
+import pytest
+
+from dynbtf.errors import FormatError, InputError
+from dynbtf.io import atomic_path, linear_to_srgb, load_image, save_image, srgb_to_linear
+
+
+def test_atomic_path_leaves_old_content_and_no_temp_file_on_failure(tmp_path):
+    target = tmp_path / "out.txt"
+    target.write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_text("half-written")
+            raise RuntimeError("interrupted")
+    assert target.read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]
+
+
+def test_atomic_path_gives_umask_mode(tmp_path):
+    umask = os.umask(0o022)
+    try:
+        with atomic_path(tmp_path / "a.bin") as tmp:
+            tmp.write_bytes(b"x")
+    finally:
+        os.umask(umask)
+    assert stat.S_IMODE(os.stat(tmp_path / "a.bin").st_mode) == 0o644
+
+
+def test_srgb_transfer_matches_the_standard_and_inverts():
+    # IEC 61966-2-1 reference points: 0.0031308 -> 0.04045, 0.5 -> 0.735357, 1 -> 1
+    np.testing.assert_allclose(linear_to_srgb([0.0031308, 0.5, 1.0]), [0.04045, 0.735357, 1.0], atol=2e-6)
+    x = np.linspace(0, 1, 1001, dtype=np.float32)
+    np.testing.assert_allclose(srgb_to_linear(linear_to_srgb(x)), x, atol=1e-6)
+
+
+def test_exr_round_trip_is_exact_and_png_is_8_bit_srgb(tmp_path):
+    rng = np.random.default_rng(0)
+    img = (rng.random((7, 9, 3)) * 3).astype(np.float32)
+    save_image(tmp_path / "a.exr", img)
+    np.testing.assert_array_equal(load_image(tmp_path / "a.exr"), img)
+    save_image(tmp_path / "a.png", img)
+    back = load_image(tmp_path / "a.png")
+    clipped = np.clip(img, 0, 1)
+    # one 8-bit step of the sRGB encoding, expressed in linear units
+    assert np.all(np.abs(linear_to_srgb(back) - linear_to_srgb(clipped)) <= 0.5 / 255 + 1e-6)
+
+
+def test_image_errors_name_the_problem(tmp_path):
+    with pytest.raises(InputError, match="unsupported image extension"):
+        save_image(tmp_path / "a.bmp", np.zeros((2, 2, 3)))
+    with pytest.raises(InputError, match=r"\(H, W, 3\)"):
+        save_image(tmp_path / "a.png", np.zeros((2, 2, 2, 3)))
+    with pytest.raises(FormatError, match="file not found"):
+        load_image(tmp_path / "missing.png")
+    (tmp_path / "bad.png").write_bytes(b"not a png")
+    with pytest.raises(FormatError, match="bad.png"):
+        load_image(tmp_path / "bad.png")
