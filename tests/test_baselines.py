@@ -62,13 +62,7 @@ def pair_directions(btf, pairs):
             torch.tensor(btf.lights[pairs[:, 1]], dtype=torch.float32))
 
 
-@pytest.fixture(autouse=True, scope="module")
-def single_thread():
-    """Tiny tensors: torch's 2-thread OpenMP costs up to 50x on a loaded 2-core machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 @pytest.fixture(scope="module")

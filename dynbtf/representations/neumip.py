@@ -36,7 +36,6 @@ from torch import nn
 
 from ..errors import InputError
 from ..training.fitters import register_fitter
-from ..training.fused_mlp import split_mlp_l1_loss
 from .base import Representation, register
 from .triple_plane import Decoder
 
@@ -145,11 +144,8 @@ class NeuMIP(Representation):
         """
         plane = self.texture.reshape(-1, self.texture.shape[-1])
         features = plane if texels is None else plane.index_select(0, texels)
-        dtype = self.decoder.first.weight.dtype
-        positional_pre = self.decoder.first_layer_positional(features.to(dtype))
-        image_pre = self.decoder.first_layer_angular(self.direction_inputs(w_view, w_light).to(dtype))
-        return split_mlp_l1_loss(positional_pre, image_pre, self.decoder.rest, self.decoder.negative_slope,
-                                 target, chunk_texels=chunk_texels, workers=workers)
+        return self.decoder.texel_image_l1_loss(features, self.direction_inputs(w_view, w_light), target,
+                                                chunk_texels=chunk_texels, workers=workers)
 
 
 @register_fitter("neumip")

@@ -113,6 +113,21 @@ class Decoder(nn.Module):
                 x = F.leaky_relu(x, self.negative_slope)
         return x
 
+    def texel_image_l1_loss(self, positional: torch.Tensor, angular: torch.Tensor, target: torch.Tensor, *,
+                            chunk_texels: int = 256, workers: int = 1) -> torch.Tensor:
+        """Fused mean L1 loss of ``self(positional[None], angular[:, None])`` against ``target (B, N, 3)``.
+
+        ``positional (N, C_U)`` is shared by the ``B`` images, ``angular (B, C_A)`` is one
+        vector per image: layer 1's positional product is computed once per texel, its
+        angular part once per image, layers 2.. by
+        :func:`dynbtf.training.fused_mlp.split_mlp_l1_loss` in cache-sized chunks.
+        """
+        dtype = self.first.weight.dtype
+        positional_pre = self.first_layer_positional(positional.to(dtype))
+        image_pre = self.first_layer_angular(angular.to(dtype))
+        return split_mlp_l1_loss(positional_pre, image_pre, self.rest, self.negative_slope,
+                                 target, chunk_texels=chunk_texels, workers=workers)
+
     def forward(self, positional: torch.Tensor, angular: torch.Tensor) -> torch.Tensor:
         """RGB ``(..., 3)`` from broadcastable ``positional (..., C_U)`` and ``angular (..., C_A)``."""
         return self.from_first_layer(self.first_layer_positional(positional) + self.first_layer_angular(angular))
@@ -246,11 +261,8 @@ class TriplePlane(Representation):
         """
         plane = self.f_u.reshape(-1, self.f_u.shape[-1])
         features = plane if texels is None else plane.index_select(0, texels)
-        dtype = self.decoder.first.weight.dtype
-        positional_pre = self.decoder.first_layer_positional(features.to(dtype))
-        image_pre = self.decoder.first_layer_angular(self.angular_features(w_view, w_light).to(dtype))
-        return split_mlp_l1_loss(positional_pre, image_pre, self.decoder.rest, self.decoder.negative_slope,
-                                 target, chunk_texels=chunk_texels, workers=workers)
+        return self.decoder.texel_image_l1_loss(features, self.angular_features(w_view, w_light), target,
+                                                chunk_texels=chunk_texels, workers=workers)
 
     def param_groups(self) -> list[dict[str, Any]]:
         """Optimizer parameter groups, the paper's recipe: AdamW (PyTorch's default weight
