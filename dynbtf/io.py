@@ -19,6 +19,7 @@ from .errors import FormatError, InputError
 
 __all__ = [
     "atomic_path",
+    "require_file",
     "linear_to_srgb",
     "srgb_to_linear",
     "save_image",
@@ -57,6 +58,20 @@ def atomic_path(path, suffix: str | None = None):
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
         raise
+
+
+def require_file(path, expected: str) -> Path:
+    """``path`` as a :class:`~pathlib.Path` if it is an existing regular file, else :class:`FormatError`.
+
+    ``expected`` describes the file wanted (e.g. ``"a UBO2014 .btf file"``) and
+    appears in the error when ``path`` exists but is not a file.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FormatError(path, "file not found")
+    if not path.is_file():
+        raise FormatError(path, f"not a file (expected {expected})")
+    return path
 
 
 def linear_to_srgb(x):
@@ -117,9 +132,7 @@ def save_image(path, rgb, *, exposure: float = 1.0) -> Path:
 
 def load_image(path) -> np.ndarray:
     """Read an image as linear ``(H, W, 3)`` float32 (PNG/JPEG are sRGB-decoded)."""
-    path = Path(path)
-    if not path.exists():
-        raise FormatError(path, "file not found")
+    path = require_file(path, "an image file")
     ext = path.suffix.lower()
     try:
         if ext == ".exr":

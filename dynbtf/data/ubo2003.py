@@ -44,7 +44,7 @@ import numpy as np
 
 from ..conventions import direction_to_spherical, spherical_to_direction
 from ..errors import FormatError, InputError
-from ..io import atomic_path, srgb_to_linear, to_uint8_srgb
+from ..io import atomic_path, require_file, srgb_to_linear, to_uint8_srgb
 from .base import BTFSource
 
 __all__ = ["UBO2003BTF", "read_ubo2003", "write_ubo2003", "ubo2003_entry_name", "UBO2003_NAME"]
@@ -84,11 +84,7 @@ class UBO2003BTF(BTFSource):
 
     def __init__(self, path):
         super().__init__()
-        self.path = Path(path)
-        if not self.path.exists():
-            raise FormatError(self.path, "file not found")
-        if not self.path.is_file():
-            raise FormatError(self.path, "not a file (expected a UBO2003 .zip of images)")
+        self.path = require_file(path, "a UBO2003 .zip of images")
         try:
             self._zip = zipfile.ZipFile(self.path)
         except (zipfile.BadZipFile, OSError, NotImplementedError, ValueError, EOFError) as e:

@@ -76,7 +76,7 @@ import numpy as np
 
 from ..conventions import direction_to_spherical, spherical_to_direction
 from ..errors import DynBTFError, FormatError, InputError
-from ..io import atomic_path
+from ..io import atomic_path, require_file
 from .array import ArrayBTF
 from .base import BTFSource
 
@@ -339,11 +339,7 @@ class UBO2014BTF(BTFSource):
 
     def __init__(self, path, *, check_payload: bool = True, factor_cache_bytes: int = 1 << 30):
         super().__init__()
-        self.path = Path(path)
-        if not self.path.exists():
-            raise FormatError(self.path, "file not found")
-        if not self.path.is_file():
-            raise FormatError(self.path, "not a file (expected a UBO2014 .btf file)")
+        self.path = require_file(path, "a UBO2014 .btf file")
         size = self.path.stat().st_size
         if size == 0:
             raise FormatError(self.path, "empty file (expected a UBO2014 .btf file)")
