@@ -147,6 +147,49 @@ def test_texel_subsets_train_streamed_without_cache(tmp_path, btf, monkeypatch):
     assert np.isfinite(result.history[-1]["held_out_psnr"])
 
 
+def test_texel_groups_cover_every_pair_per_pass_and_resume(tmp_path, btf, monkeypatch):
+    """texel_groups=G: each step has G x B pairs on disjoint texel groups; an epoch visits every pair G times."""
+    calls = []
+    original = ImageStore.get
+
+    def spy(self, pairs, texels=None):
+        calls.append((np.asarray(pairs).copy(), None if texels is None else np.asarray(texels).copy()))
+        return original(self, pairs, texels)
+
+    monkeypatch.setattr(ImageStore, "get", spy)
+    config = small_config(epochs=2, texel_groups=4, images_per_step=8, monitor_pairs=0)
+    result = fit_triple_plane(btf, tmp_path / "g.dbtfm", config, progress=False)
+    train, _ = held_out_split(btf.n_views, btf.n_lights, 0.1, seed=7)
+    steps_per_epoch = int(np.ceil(len(train) / 8))
+    assert len(calls) == 2 * steps_per_epoch * 4  # one store read per group
+    for step in range(2 * steps_per_epoch):
+        group_calls = calls[4 * step:4 * step + 4]
+        texels = np.concatenate([t for _, t in group_calls])
+        assert np.array_equal(np.sort(texels), np.arange(64))  # disjoint groups covering the image
+        assert all(len(p) == 8 for p, _ in group_calls)
+    first_epoch = np.concatenate([p for p, _ in calls[:4 * steps_per_epoch]])
+    counts = {}
+    for pair in map(tuple, first_epoch):
+        counts[pair] = counts.get(pair, 0) + 1
+    assert set(counts) == set(map(tuple, train))
+    assert min(counts.values()) >= 4 and sum(counts.values()) == 4 * 8 * steps_per_epoch  # G passes (+ wrap-around)
+    # resuming a grouped run mid-epoch ends with the same parameters
+    monkeypatch.setattr(ImageStore, "get", original)
+
+    def stop(info):
+        if info["global_step"] == 7:
+            raise Interrupt
+
+    out = tmp_path / "resumed.dbtfm"
+    with pytest.raises(Interrupt):
+        fit(TriplePlane(8, 8, seed=7), btf, config, out, progress=False, callback=stop)
+    resumed = fit(TriplePlane(8, 8, seed=7), btf, config, out, progress=False).representation
+    for (name, a), b in zip(result.representation.state_dict().items(), resumed.state_dict().values()):
+        assert torch.equal(a, b), name
+    with pytest.raises(InputError, match="texel_groups"):
+        fit_triple_plane(btf, tmp_path / "x.dbtfm", small_config(texel_groups=40), progress=False)
+
+
 class PerTexelColour(Representation):
     """A minimal representation without fast paths: RGB plane, directions ignored."""
 

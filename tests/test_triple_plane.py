@@ -148,12 +148,41 @@ def test_fast_training_path_equals_naive_forward(workers, chunk, subset):
         torch.testing.assert_close(a, c, rtol=1e-4, atol=1e-7, msg=name)
 
 
+@pytest.mark.parametrize("workers,chunk", [(1, 256), (2, 3), (2, 9)])  # several groups per chunk; pieces
+def test_grouped_fused_loss_equals_per_group_naive_forward(workers, chunk):
+    """Texel groups, each under its own images: same loss and gradients as the plain forward per group."""
+    g = torch.Generator().manual_seed(8)
+    h, w, b = 6, 5, 2
+    model = TriplePlane(h, w, seed=8)
+    groups = [torch.tensor([3, 4, 11, 29]), torch.tensor([0, 7, 8, 9]), torch.tensor([1, 2, 12, 20])]
+    texels = torch.cat(groups)
+    wv, wl = random_directions((3 * b,), g), random_directions((3 * b,), g)
+    target = torch.rand(b, len(texels), 3, generator=g)
+    uv_all = torch.from_numpy(texel_centers_uv(h, w)).reshape(-1, 2)
+    total = 0.0
+    for k, tex in enumerate(groups):
+        uv = uv_all[tex]
+        n = len(tex)
+        pred = model(uv[None].expand(b, n, 2), wv[k * b:(k + 1) * b, None].expand(b, n, 3),
+                     wl[k * b:(k + 1) * b, None].expand(b, n, 3))
+        total = total + (pred - target[:, 4 * k:4 * k + 4]).abs().sum()
+    naive = total / target.numel()
+    naive_grads = torch.autograd.grad(naive, list(model.parameters()))
+    fast = model.texel_image_l1_loss(wv, wl, target, texels, chunk_texels=chunk, workers=workers, texel_groups=3)
+    fast_grads = torch.autograd.grad(fast, list(model.parameters()))
+    torch.testing.assert_close(fast, naive, rtol=1e-5, atol=1e-7)
+    for (name, _), a, c in zip(model.named_parameters(), fast_grads, naive_grads):
+        torch.testing.assert_close(a, c, rtol=1e-4, atol=1e-7, msg=name)
+
+
 def test_fused_loss_rejects_bad_shapes():
     layers = [torch.nn.Linear(4, 3)]
     with pytest.raises(InputError, match="target"):
         split_mlp_l1_loss(torch.zeros(5, 4), torch.zeros(2, 4), layers, 0.01, torch.zeros(2, 4, 3))
     with pytest.raises(InputError, match="image_pre"):
         split_mlp_l1_loss(torch.zeros(5, 4), torch.zeros(2, 3), layers, 0.01, torch.zeros(2, 5, 3))
+    with pytest.raises(InputError, match="texel groups"):
+        split_mlp_l1_loss(torch.zeros(5, 4), torch.zeros(2, 2, 4), layers, 0.01, torch.zeros(2, 5, 3))
 
 
 def test_query_shape_errors_name_the_argument():

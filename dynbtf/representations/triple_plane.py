@@ -114,17 +114,22 @@ class Decoder(nn.Module):
         return x
 
     def texel_image_l1_loss(self, positional: torch.Tensor, angular: torch.Tensor, target: torch.Tensor, *,
-                            chunk_texels: int = 256, workers: int = 1) -> torch.Tensor:
+                            chunk_texels: int = 256, workers: int = 1, texel_groups: int = 1) -> torch.Tensor:
         """Fused mean L1 loss of ``self(positional[None], angular[:, None])`` against ``target (B, N, 3)``.
 
         ``positional (N, C_U)`` is shared by the ``B`` images, ``angular (B, C_A)`` is one
         vector per image: layer 1's positional product is computed once per texel, its
         angular part once per image, layers 2.. by
         :func:`dynbtf.training.fused_mlp.split_mlp_l1_loss` in cache-sized chunks.
+        With ``texel_groups = G``, the texels form ``G`` equal consecutive groups, group
+        ``g`` seen under its own ``B`` images: ``angular`` is ``(G * B, C_A)`` (group-major).
         """
         dtype = self.first.weight.dtype
         positional_pre = self.first_layer_positional(positional.to(dtype))
         image_pre = self.first_layer_angular(angular.to(dtype))
+        if texel_groups < 1 or image_pre.shape[0] % texel_groups:
+            raise InputError(f"texel_groups={texel_groups} does not divide the {image_pre.shape[0]} images")
+        image_pre = image_pre.reshape(texel_groups, -1, image_pre.shape[-1])
         return split_mlp_l1_loss(positional_pre, image_pre, self.rest, self.negative_slope,
                                  target, chunk_texels=chunk_texels, workers=workers)
 
@@ -250,7 +255,7 @@ class TriplePlane(Representation):
 
     def texel_image_l1_loss(self, w_view: torch.Tensor, w_light: torch.Tensor, target: torch.Tensor,
                             texels: torch.Tensor | None = None, *, chunk_texels: int = 256,
-                            workers: int = 1) -> torch.Tensor:
+                            workers: int = 1, texel_groups: int = 1) -> torch.Tensor:
         """Mean L1 loss of :meth:`predict_texel_images` against ``target (B, N, 3)``, fused.
 
         Same value and gradients as ``(self.predict_texel_images(w_view, w_light, texels)
@@ -258,11 +263,15 @@ class TriplePlane(Representation):
         :func:`dynbtf.training.fused_mlp.split_mlp_l1_loss`: layer 1's positional
         product once per texel, its angular part once per image, layers 2.. in
         cache-sized chunks with a hand-written backward pass.
+
+        With ``texel_groups = G``, the texels form ``G`` equal consecutive groups,
+        ``w_view, w_light`` are ``(G * B, 3)``, group-major, and ``target[b, t]`` is
+        texel ``t`` under image ``b`` of its group (see :func:`dynbtf.training.fit.texel_image_loss`).
         """
         plane = self.f_u.reshape(-1, self.f_u.shape[-1])
         features = plane if texels is None else plane.index_select(0, texels)
         return self.decoder.texel_image_l1_loss(features, self.angular_features(w_view, w_light), target,
-                                                chunk_texels=chunk_texels, workers=workers)
+                                                chunk_texels=chunk_texels, workers=workers, texel_groups=texel_groups)
 
     def param_groups(self) -> list[dict[str, Any]]:
         """Optimizer parameter groups, the paper's recipe: AdamW (PyTorch's default weight

@@ -6,12 +6,21 @@ PyTorch's default weight decay 0.01); the learning rate is multiplied by 0.9
 after every epoch; each step uses 16 whole images, each under one (view, light)
 pair. An **epoch** is one pass over the training pairs in a random order.
 
+Option ``texel_groups = G > 1`` (not the paper's) splits each step's texels into
+``G`` random disjoint groups of equal size (``N mod G`` random texels sit the
+step out), each seen under its own 16 pairs: a step then
+covers ``16 G`` distinct (view, light) pairs for the cost of 16 whole images,
+and an epoch (still ``pairs x texels`` samples) visits every pair ``G`` times,
+on a different ``1/G`` of its texels each time. The angular planes and the
+decoder see many more directions per step, which makes each sample count more
+(``benchmarks/bench_training.py`` measures both).
+
 Any :class:`~dynbtf.representations.base.Representation` with parameters trains
 with :func:`fit`. The loop uses, when the representation provides them:
 
 * ``param_groups()`` -- optimizer groups (dicts with ``params``, ``lr``,
   ``weight_decay``, ``name``); default: all parameters, lr 1e-3, weight decay 0.01;
-* ``texel_image_l1_loss(w_view, w_light, target, texels, chunk_texels=, workers=)``
+* ``texel_image_l1_loss(w_view, w_light, target, texels, chunk_texels=, workers=, texel_groups=)``
   -- a fused whole-image loss (the Triple Plane's,
   :func:`dynbtf.training.fused_mlp.split_mlp_l1_loss`);
 * ``predict_texel_images(w_view, w_light, texels)`` -- whole images at texel centres;
@@ -23,8 +32,9 @@ used for training; they are stored in the checkpoint and in the model file.
 Determinism and resuming
 ------------------------
 All randomness is counter-based: the pair order of epoch ``e`` comes from
-``numpy.random.default_rng([seed, 1, e])`` and the texel subset of step ``s``
-(option ``texels_per_image``) from ``default_rng([seed, 2, e, s])``; the model is
+``numpy.random.default_rng([seed, 1, e])`` (pass ``k > 0`` of ``texel_groups``:
+``[seed, 1, e, k]``) and the texel subset and groups of step ``s``
+(options ``texels_per_image``, ``texel_groups``) from ``default_rng([seed, 2, e, s])``; the model is
 initialized from ``seed``. A checkpoint (``<output>.ckpt``, written atomically
 with ``torch.save`` and read back with ``weights_only=True``) holds the model,
 the optimizer state and the position (epoch, step); it is written every
@@ -38,6 +48,7 @@ uninterrupted run (same ``workers``, same machine).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import signal
 import threading
@@ -88,6 +99,9 @@ class TrainConfig:
     texels_per_image : int or None
         Train on a random subset of this many texels per step (shared by the
         step's images) instead of whole images: for very large BTFs.
+    texel_groups : int
+        Split each step's texels into this many random groups, each under its
+        own ``images_per_step`` pairs (1: whole images, the paper's recipe).
     max_minutes : float or None
         Stop (checkpointed, model written) after this much training time in this
         run; run again to continue.
@@ -112,6 +126,7 @@ class TrainConfig:
     held_out_fraction: float = 0.05
     seed: int = 0
     texels_per_image: int | None = None
+    texel_groups: int = 1
     max_minutes: float | None = None
     checkpoint_every: int = 100
     memory_budget_mb: float = 2048.0
@@ -125,6 +140,7 @@ class TrainConfig:
                   ("lr_decay", 0 < self.lr_decay <= 1), ("lr_scale", self.lr_scale > 0),
                   ("held_out_fraction", 0 <= self.held_out_fraction < 1),
                   ("texels_per_image", self.texels_per_image is None or self.texels_per_image >= 1),
+                  ("texel_groups", self.texel_groups >= 1),
                   ("max_minutes", self.max_minutes is None or self.max_minutes > 0),
                   ("checkpoint_every", self.checkpoint_every >= 1), ("chunk_texels", self.chunk_texels >= 1),
                   ("workers", self.workers is None or self.workers >= 1), ("monitor_pairs", self.monitor_pairs >= 0)]
@@ -134,7 +150,8 @@ class TrainConfig:
         return self
 
     # options that change the result: a checkpoint must agree on them to be resumed
-    RESULT_FIELDS = ("images_per_step", "lr_decay", "lr_scale", "held_out_fraction", "seed", "texels_per_image", "chunk_texels")
+    RESULT_FIELDS = ("images_per_step", "lr_decay", "lr_scale", "held_out_fraction", "seed", "texels_per_image",
+                     "texel_groups", "chunk_texels")
 
 
 @dataclass
@@ -178,11 +195,36 @@ def predict_images(rep: Representation, w_view: torch.Tensor, w_light: torch.Ten
 
 def texel_image_loss(rep: Representation, w_view: torch.Tensor, w_light: torch.Tensor, target: torch.Tensor,
                      size: tuple[int, int], texels: torch.Tensor | None = None, *, chunk_texels: int = 256,
-                     workers: int = 1) -> torch.Tensor:
-    """Mean L1 loss of a whole-image batch: the fused path when the representation has one."""
+                     workers: int = 1, texel_groups: int = 1) -> torch.Tensor:
+    """Mean L1 loss of a whole-image batch: the fused path when the representation has one.
+
+    Parameters
+    ----------
+    w_view, w_light : ``(G * B, 3)``
+        The ``B`` pairs of each of the ``G = texel_groups`` groups, group-major.
+    target : ``(B, N, 3)``
+        ``target[b, t]``: texel ``t`` under image ``b`` of its group.
+    size : (H, W)
+    texels : ``(N,)`` int64, optional
+        Flat texel indices ``row * W + col`` (default all, in order).
+    texel_groups : int
+        ``G``: the ``N`` texels form ``G`` equal consecutive groups (1: every image
+        covers all of them).
+    """
     if hasattr(rep, "texel_image_l1_loss"):
-        return rep.texel_image_l1_loss(w_view, w_light, target, texels, chunk_texels=chunk_texels, workers=workers)
-    return (predict_images(rep, w_view, w_light, size, texels) - target).abs().mean()
+        return rep.texel_image_l1_loss(w_view, w_light, target, texels, chunk_texels=chunk_texels, workers=workers,
+                                       **({"texel_groups": texel_groups} if texel_groups != 1 else {}))
+    if texel_groups == 1:
+        return (predict_images(rep, w_view, w_light, size, texels) - target).abs().mean()
+    if texels is None:
+        texels = torch.arange(size[0] * size[1], device=target.device)
+    b, n = target.shape[0], target.shape[1] // texel_groups
+    total = target.new_zeros((), dtype=torch.float64)
+    for g in range(texel_groups):
+        pred = predict_images(rep, w_view[g * b:(g + 1) * b], w_light[g * b:(g + 1) * b], size,
+                              texels[g * n:(g + 1) * n])
+        total = total + (pred - target[:, g * n:(g + 1) * n]).abs().sum(dtype=torch.float64)
+    return (total / target.numel()).to(target.dtype)
 
 
 def _param_groups(rep: Representation, lr_scale: float = 1.0) -> list[dict[str, Any]]:
@@ -327,6 +369,12 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     steps_per_epoch = math.ceil(len(train_pairs) / b)
     n_texels = source.height * source.width
     texels_per_image = min(config.texels_per_image or n_texels, n_texels)
+    n_groups = config.texel_groups
+    if n_groups > 1 and (b * n_groups > len(train_pairs) or n_groups > texels_per_image):
+        raise InputError(f"texel_groups={n_groups} x images_per_step={b} needs at least {b * n_groups} training "
+                         f"pairs and {n_groups} texels per step; the BTF has {len(train_pairs)} pairs and "
+                         f"{texels_per_image} texels per step")
+    texels_per_step = texels_per_image - texels_per_image % n_groups  # equal groups
     chunk_texels = config.chunk_texels if device.type == "cpu" else texels_per_image
     groups = _param_groups(rep, config.lr_scale)
     optimizer = torch.optim.AdamW(groups)
@@ -356,14 +404,31 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
             "model": rep.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch, "step": step,
             "elapsed_seconds": elapsed, "history": history, "held_out_pairs": torch.from_numpy(held_out)})
 
+    @functools.lru_cache(maxsize=2)
+    def epoch_order(e: int) -> np.ndarray:
+        """Pair order of epoch ``e`` with texel groups: ``G`` concatenated permutations."""
+        return np.concatenate([np.random.default_rng([config.seed, 1, e] + ([k] if k else [])).permutation(
+            len(train_pairs)) for k in range(n_groups)])
+
     def batch_for(e: int, s: int):
-        order = np.random.default_rng([config.seed, 1, e]).permutation(len(train_pairs))
-        pairs = train_pairs[order[s * b:(s + 1) * b]]
-        texels = None
-        if texels_per_image < n_texels:
-            texels = np.sort(np.random.default_rng([config.seed, 2, e, s]).choice(n_texels, texels_per_image,
-                                                                                   replace=False))
-        return pairs, texels, store.get(pairs, texels)
+        """Pairs ``(G * B', 2)`` (group-major), texels (group-major, sorted per group) or None, and
+        the target ``(B', N, 3)``."""
+        if n_groups == 1:
+            order = np.random.default_rng([config.seed, 1, e]).permutation(len(train_pairs))
+            pairs = train_pairs[order[s * b:(s + 1) * b]]
+            texels = None
+            if texels_per_image < n_texels:
+                texels = np.sort(np.random.default_rng([config.seed, 2, e, s]).choice(n_texels, texels_per_image,
+                                                                                       replace=False))
+            return pairs, texels, store.get(pairs, texels)
+        # G passes over the pairs per epoch, B pairs per group, wrapped to whole steps
+        order = epoch_order(e)
+        picks = np.arange(s * b * n_groups, (s + 1) * b * n_groups) % len(order)
+        pairs = train_pairs[order[picks]]
+        rng = np.random.default_rng([config.seed, 2, e, s])
+        groups = np.sort(rng.permutation(n_texels)[:texels_per_step].reshape(n_groups, -1), axis=1)
+        target = np.concatenate([store.get(pairs[g * b:(g + 1) * b], groups[g]) for g in range(n_groups)], axis=1)
+        return pairs, groups.reshape(-1), target
 
     total_steps = config.epochs * steps_per_epoch
     done_steps = min(epoch * steps_per_epoch + step, total_steps)
@@ -398,7 +463,7 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
                 wv, wl = views[pairs[:, 0]], lights[pairs[:, 1]]
                 texel_t = None if texels is None else torch.from_numpy(texels).to(device)
                 loss = texel_image_loss(rep, wv, wl, torch.from_numpy(target).to(device), (source.height, source.width),
-                                        texel_t, chunk_texels=chunk_texels, workers=workers)
+                                        texel_t, chunk_texels=chunk_texels, workers=workers, texel_groups=n_groups)
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
@@ -445,7 +510,7 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     provenance = training_provenance(
         source, held_out, seed=config.seed, training=dataclasses.asdict(config) | {"workers": workers},
         epochs_completed=completed_epochs, finished=finished, training_seconds=elapsed, history=history,
-        samples_per_epoch=len(train_pairs) * texels_per_image, size=size_info, **(extra_provenance or {}))
+        samples_per_epoch=len(train_pairs) * texels_per_step, size=size_info, **(extra_provenance or {}))
     if history:
         provenance["held_out_psnr_monitor"] = history[-1]["held_out_psnr"]
     save_model(output, rep, provenance)

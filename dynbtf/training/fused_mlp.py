@@ -8,7 +8,10 @@ part::
     z1[b, t] = W_U f_U[t] + (W_A a[b] + b_1) = P[t] + Q[b]
 
 so ``P`` ``(N, hidden)`` is computed once for all ``B`` images and ``Q``
-``(B, hidden)`` once per image. What remains per sample is layers 2.. and the
+``(B, hidden)`` once per image. The same holds per *texel group*: a batch may
+split its ``N`` texels into ``G`` equal groups, group ``g`` seen under its own ``B``
+pairs (``Q`` of shape ``(G, B, hidden)``), so one step covers ``G * B`` distinct
+(view, light) pairs at the cost of ``B`` whole images. What remains per sample is layers 2.. and the
 loss. Running those as ordinary autograd ops streams ``(B * N, hidden)``
 tensors through memory a dozen times per step; on a CPU that is bound by
 memory bandwidth, not arithmetic. :func:`split_mlp_l1_loss` instead walks the
@@ -61,25 +64,42 @@ def single_intra_op_thread(enabled: bool = True):
             torch.set_num_threads(previous)
 
 
-def _chunk_range(positional_pre, image_pre, weights, biases, slope, target, t_begin, t_end, chunk):
-    """Forward + L1 + backward over texels ``[t_begin, t_end)``; returns partial sums."""
-    b = image_pre.shape[0]
-    hidden = positional_pre.shape[1]
+def _chunks(groups: int, group_size: int, chunk: int) -> list[tuple[int, int, int, int]]:
+    """Work items ``(g0, g1, a, b)``: texels ``[a, b)`` of each of the groups ``[g0, g1)``, about ``chunk`` texels.
+
+    Groups smaller than a chunk are taken several at a time (whole); larger ones are cut into pieces.
+    """
+    if group_size >= chunk:
+        return [(g, g + 1, a, min(a + chunk, group_size)) for g in range(groups) for a in range(0, group_size, chunk)]
+    per = max(1, chunk // group_size)
+    return [(g, min(g + per, groups), 0, group_size) for g in range(0, groups, per)]
+
+
+def _chunk_range(positional_pre, image_pre, weights, biases, slope, target, items):
+    """Forward + L1 + backward over the work items ``(g0, g1, a, b)``; returns partial sums.
+
+    ``positional_pre`` is ``(G * n, hidden)`` (group-major), ``image_pre`` ``(G, B, hidden)``,
+    ``target`` ``(B, G * n, C)``.
+    """
+    groups, b, hidden = image_pre.shape
+    n = positional_pre.shape[0] // groups
     w_t = [w.t() for w in weights]
     g_weights = [torch.zeros_like(w) for w in weights]
     g_biases = [torch.zeros_like(x) for x in biases]
-    g_positional = torch.empty(t_end - t_begin, hidden, dtype=positional_pre.dtype, device=positional_pre.device)
+    g_positional = {}
     g_image = torch.zeros_like(image_pre)
     loss = torch.zeros((), dtype=torch.float64, device=positional_pre.device)
     last = len(weights) - 1
-    for t0 in range(t_begin, t_end, chunk):
-        t1 = min(t0 + chunk, t_end)
+    for g0, g1, t0, t1 in items:
+        gc, nc = g1 - g0, t1 - t0
+        r0, r1 = g0 * n + t0, (g1 - 1) * n + t1  # contiguous rows: whole groups, or a piece of one
         # forward: activations[k] is the input of layer k + 2 (layer 1's output after LeakyReLU)
-        activations = [F.leaky_relu(positional_pre[t0:t1][None] + image_pre[:, None], slope).reshape(-1, hidden)]
+        first = positional_pre[r0:r1].view(gc, 1, nc, hidden) + image_pre[g0:g1].view(gc, b, 1, hidden)
+        activations = [F.leaky_relu(first, slope).reshape(-1, hidden)]
         for k in range(last):
             activations.append(F.leaky_relu(torch.addmm(biases[k], activations[-1], w_t[k]), slope))
         out = torch.addmm(biases[last], activations[-1], w_t[last])
-        residual = out.view(b, t1 - t0, -1) - target[:, t0:t1]
+        residual = out.view(gc, b, nc, -1) - target[:, r0:r1].view(b, gc, nc, -1).transpose(0, 1)
         loss += residual.abs().sum(dtype=torch.float64)
         # backward of sum |residual|
         grad = torch.sign(residual).reshape(out.shape)
@@ -87,9 +107,9 @@ def _chunk_range(positional_pre, image_pre, weights, biases, slope, target, t_be
             g_weights[k].addmm_(grad.t(), activations[k])
             g_biases[k] += grad.sum(0)
             grad = torch.ops.aten.leaky_relu_backward(grad @ weights[k], activations[k], slope, True)
-        grad = grad.view(b, t1 - t0, hidden)
-        g_positional[t0 - t_begin:t1 - t_begin] = grad.sum(0)
-        g_image += grad.sum(1)
+        grad = grad.view(gc, b, nc, hidden)
+        g_positional[r0] = grad.sum(1).reshape(gc * nc, hidden)
+        g_image[g0:g1] += grad.sum(2)
     return loss, g_positional, g_image, g_weights, g_biases
 
 
@@ -98,21 +118,22 @@ class _SplitMLPL1(torch.autograd.Function):
     def forward(ctx, positional_pre, image_pre, target, slope, chunk, workers, *weights_and_biases):
         n_layers = len(weights_and_biases) // 2
         weights, biases = weights_and_biases[:n_layers], weights_and_biases[n_layers:]
-        n = positional_pre.shape[0]
-        workers = max(1, min(workers, (n + chunk - 1) // chunk))
-        bounds = [round(n * k / workers) for k in range(workers + 1)]
+        groups = image_pre.shape[0]
+        items = _chunks(groups, positional_pre.shape[0] // groups, chunk)
+        workers = max(1, min(workers, len(items)))
+        split = [round(len(items) * k / workers) for k in range(workers + 1)]
         args = (positional_pre.detach(), image_pre.detach(), [w.detach() for w in weights],
                 [x.detach() for x in biases], slope, target)
         if workers == 1:
-            parts = [_chunk_range(*args, 0, n, chunk)]
+            parts = [_chunk_range(*args, items)]
         else:
             with single_intra_op_thread():
-                futures = [_pool(workers).submit(_chunk_range, *args, bounds[k], bounds[k + 1], chunk)
+                futures = [_pool(workers).submit(_chunk_range, *args, items[split[k]:split[k + 1]])
                            for k in range(workers)]
                 parts = [f.result() for f in futures]
         count = float(target.numel())
         loss = sum(p[0] for p in parts) / count
-        g_positional = torch.cat([p[1] for p in parts]) / count
+        g_positional = torch.cat([p[1][r0] for p in parts for r0 in sorted(p[1])]) / count
         g_image = parts[0][2].clone()
         g_weights = [g.clone() for g in parts[0][3]]
         g_biases = [g.clone() for g in parts[0][4]]
@@ -136,23 +157,27 @@ def split_mlp_l1_loss(positional_pre: torch.Tensor, image_pre: torch.Tensor, lay
                       workers: int = 1) -> torch.Tensor:
     """Mean L1 loss of a LeakyReLU MLP whose first layer is split per texel / per image.
 
-    Computes ``mean |MLP(P[t] + Q[b]) - target[b, t]|`` where the MLP applies
-    LeakyReLU to its input, then ``layers`` (LeakyReLU after each but the last).
-    Equal (to float rounding) to the same expression written with ordinary
-    torch ops, with identical gradients, at a fraction of the memory traffic.
+    Computes ``mean |MLP(P[t] + Q[g(t), b]) - target[b, t]|`` where the ``N`` texels
+    form ``G`` equal consecutive groups (``g(t) = t // (N / G)``; one group: ``Q[b]``)
+    and the MLP applies LeakyReLU to its input, then ``layers`` (LeakyReLU after
+    each but the last). Equal (to float rounding) to the same expression written
+    with ordinary torch ops, with identical gradients, at a fraction of the memory
+    traffic.
 
     Parameters
     ----------
     positional_pre : ``(N, hidden)``
         Layer 1's per-texel part ``W_U f_U`` (requires grad for training).
-    image_pre : ``(B, hidden)``
-        Layer 1's per-image part ``W_A a + b_1``.
+    image_pre : ``(B, hidden)`` or ``(G, B, hidden)``
+        Layer 1's per-image part ``W_A a + b_1``; with ``G`` texel groups (``G``
+        divides ``N``), the ``B`` images of each group.
     layers : sequence of ``nn.Linear``
         Layers 2 .. L; the last outputs ``C`` channels without activation.
     negative_slope : float
         LeakyReLU slope.
     target : ``(B, N, C)``
-        Ground truth (no gradient).
+        Ground truth (no gradient): ``target[b, t]`` is texel ``t`` under image ``b``
+        of its group.
     chunk_texels : int
         Texels per chunk (the chunk holds ``B * chunk_texels`` samples); 256 keeps
         a 16-image chunk's activations in a CPU's L2 cache.
@@ -164,10 +189,14 @@ def split_mlp_l1_loss(positional_pre: torch.Tensor, image_pre: torch.Tensor, lay
     Scalar tensor: the mean absolute error over ``B * N * C`` values.
     """
     n, hidden = positional_pre.shape
-    if image_pre.ndim != 2 or image_pre.shape[1] != hidden:
-        raise InputError(f"image_pre: expected shape (B, {hidden}), got {tuple(image_pre.shape)}")
-    if target.shape[:2] != (image_pre.shape[0], n):
-        raise InputError(f"target: expected shape ({image_pre.shape[0]}, {n}, C), got {tuple(target.shape)}")
+    if image_pre.ndim == 2:
+        image_pre = image_pre[None]
+    if image_pre.ndim != 3 or image_pre.shape[2] != hidden:
+        raise InputError(f"image_pre: expected shape (B, {hidden}) or (G, B, {hidden}), got {tuple(image_pre.shape)}")
+    if n % image_pre.shape[0]:
+        raise InputError(f"image_pre: {image_pre.shape[0]} texel groups do not divide the {n} texels evenly")
+    if target.shape[:2] != (image_pre.shape[1], n):
+        raise InputError(f"target: expected shape ({image_pre.shape[1]}, {n}, C), got {tuple(target.shape)}")
     if chunk_texels < 1 or workers < 1:
         raise InputError(f"chunk_texels and workers must be >= 1, got {chunk_texels}, {workers}")
     weights = [layer.weight for layer in layers]

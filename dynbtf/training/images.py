@@ -121,6 +121,11 @@ class ImageStore:
         """Images of ``pairs`` (int ``(B, 2)``) as float32 ``(B, N, 3)``, optionally at flat ``texels`` only."""
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         n = self.n_texels if texels is None else len(texels)
+        if self.cached:
+            rows = pairs[:, 0] * self.source.n_lights + pairs[:, 1]
+            if self._filled[rows].all():  # one gather from the cache, converted after selecting the texels
+                return (self._cache[rows] if texels is None else self._cache[rows[:, None], texels[None, :]]).astype(
+                    np.float32)
         out = np.empty((len(pairs), n, 3), dtype=np.float32)
         for k, (v, l) in enumerate(pairs):
             img = self.image(int(v), int(l))
