@@ -164,9 +164,11 @@ def _stage_fit(ctx: _Context) -> dict[str, Any]:
 
     cfg = ctx.config
     src = ctx.source()
-    # a short budget: 3x the paper's learning rates (docs/triple_plane.md) so the positional
-    # plane picks up the material's structure within a few epochs
-    train = TrainConfig(seed=cfg.seed, max_minutes=_fit_minutes(cfg), device="cpu", lr_scale=3.0)
+    # a short budget: 3x the paper's learning rates and 64 texel groups per step (docs/triple_plane.md)
+    # so that the model converges within a few epochs
+    groups = max(1, min(64, int(0.9 * src.n_views * src.n_lights) // 16, src.height * src.width))
+    train = TrainConfig(seed=cfg.seed, max_minutes=_fit_minutes(cfg), device="cpu", lr_scale=3.0,
+                        texel_groups=groups)
     if cfg.quick:
         train.epochs = 1
         train.monitor_pairs = 2

@@ -263,7 +263,7 @@ def test_cli_fit_eval_inspect(tmp_path, btf, monkeypatch, capsys):
     monkeypatch.setattr(model_commands, "_open_source", lambda spec: btf)
     model = tmp_path / "m.dbtfm"
     assert main(["fit", "tiny", "-o", str(model), "--epochs", "1", "--quiet", "--workers", "1",
-                 "--device", "cpu"]) == 0
+                 "--device", "cpu", "--texel-groups", "2"]) == 0
     assert "wrote" in capsys.readouterr().out
     assert main(["eval", str(model), "tiny", "-o", str(tmp_path / "ev"), "--images", "1"]) == 0
     assert "PSNR" in capsys.readouterr().out and (tmp_path / "ev" / "metrics.csv").exists()
@@ -271,6 +271,7 @@ def test_cli_fit_eval_inspect(tmp_path, btf, monkeypatch, capsys):
     out = capsys.readouterr().out
     assert "triple" in out and "compression" in out and (tmp_path / "planes" / "positional_pca.png").exists()
     assert load_model(model)[1]["provenance"]["epochs_completed"] == 1
+    assert load_model(model)[1]["provenance"]["training"]["texel_groups"] == 2
     (tmp_path / "bad.dbtfm").write_bytes(b"\x00" * 20)
     assert main(["inspect", str(tmp_path / "bad.dbtfm")]) == 2
     assert "bad.dbtfm" in capsys.readouterr().err

@@ -36,6 +36,10 @@ def fit(
                                    "1e-3 for planes, 3e-4 for the decoder)."),
     texels_per_image: Optional[int] = typer.Option(None, "--texels-per-image", help="Train on a random subset of "
                                                    "this many texels per step (very large BTFs). Default: all."),
+    texel_groups: int = typer.Option(1, "--texel-groups", help="Split each step's texels into this many random "
+                                     "groups, each under its own --images-per-step pairs: more (view, light) pairs "
+                                     "per step at the same cost, faster convergence (64 measures well; 1: the "
+                                     "paper's whole images)."),
     memory_mb: float = typer.Option(2048.0, "--memory-mb", help="RAM (MB) for the decoded-image cache; larger "
                                     "BTFs are decoded per step (bounded memory)."),
     workers: Optional[int] = typer.Option(None, help="Threads of the fused training kernel (default: torch's)."),
@@ -47,7 +51,7 @@ def fit(
 
     config = TrainConfig(epochs=epochs, max_minutes=max_minutes, seed=seed, held_out_fraction=held_out_fraction,
                          images_per_step=images_per_step, lr_scale=lr_scale, texels_per_image=texels_per_image,
-                         memory_budget_mb=memory_mb, workers=workers, device=device)
+                         texel_groups=texel_groups, memory_budget_mb=memory_mb, workers=workers, device=device)
     fitter = get_fitter(repr)
     source = _open_source(btf)
     result = fitter(source, output, config, progress=not quiet)
