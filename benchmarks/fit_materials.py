@@ -1,6 +1,6 @@
 """Fit a Triple Plane to every simulated material and report held-out PSNR / DSSIM / FLIP.
 
-Run: ``python benchmarks/fit_materials.py [--size 128] [--minutes 8] [--lr-scale 3] [--out DIR]``.
+Run: ``python benchmarks/fit_materials.py [--size 128] [--minutes 8] [--lr-scale 3] [--texel-groups 64] [--out DIR]``.
 Each material is fitted with :func:`dynbtf.training.fit` (resumable: re-running
 with the same ``--out`` continues unfinished fits), evaluated on its held-out
 pairs with :func:`dynbtf.training.evaluate.evaluate_model` (tables and
@@ -27,6 +27,7 @@ def main() -> None:
     parser.add_argument("--minutes", type=float, default=8.0, help="training time budget per material")
     parser.add_argument("--epochs", type=int, default=12)
     parser.add_argument("--lr-scale", type=float, default=3.0)
+    parser.add_argument("--texel-groups", type=int, default=64, help="1: the paper's whole-image batches")
     parser.add_argument("--materials", default=",".join(MATERIALS))
     parser.add_argument("--out", default="materials_out")
     args = parser.parse_args()
@@ -36,7 +37,8 @@ def main() -> None:
         spec = f"sim:{material}?size={args.size}"
         source = open_btf(spec)
         model = out / f"{material}.dbtfm"
-        config = TrainConfig(epochs=args.epochs, max_minutes=args.minutes, lr_scale=args.lr_scale)
+        config = TrainConfig(epochs=args.epochs, max_minutes=args.minutes, lr_scale=args.lr_scale,
+                             texel_groups=args.texel_groups)
         get_fitter("triple")(source, model, config)
         rep, meta = load_model(model)
         ev = evaluate_model(rep, source, resolve_eval_pairs("held-out", source, meta), out_dir=out / f"{material}_eval",
