@@ -8,13 +8,14 @@ value) and a ``seed`` are mixed with the 32-bit "lowbias32" integer finalizer
 
     x ^= x >> 16; x *= 0x7feb352d; x ^= x >> 15; x *= 0x846ca68b; x ^= x >> 16   (mod 2**32)
 
-applied to ``seed`` (xor a salt), then folded with the low and high 32-bit words of ``vx`` and
-``vy`` in turn. The result is exact and identical across runs, processes,
+applied to ``seed`` (xor a salt, :func:`seed_state`), then folded with the low and high 32-bit words of ``vx`` and
+``vy`` in turn (:func:`fold_coordinate`). The result is exact and identical across runs, processes,
 machines and devices.
 
 The functions use only ``&``, ``^``, ``>>``, ``+`` and ``*`` on int64 values whose
 products stay below 2**63, so the *same* Python code runs on NumPy arrays,
-torch tensors and (compiled by numba) scalars in :mod:`dynbtf.synthesis.kernels`.
+torch tensors and (compiled by numba) scalars in :mod:`dynbtf.synthesis.kernels`
+(which swaps ``_mulmod32`` for a native unsigned 64-bit multiply: same values).
 
 Examples
 --------
@@ -28,7 +29,7 @@ Examples
 
 from __future__ import annotations
 
-__all__ = ["mix32", "hash_vertex", "vertex_offsets", "MASK32"]
+__all__ = ["mix32", "seed_state", "fold_coordinate", "hash_vertex", "vertex_offsets", "MASK32"]
 
 #: Low 32 bits.
 MASK32 = 0xFFFFFFFF
@@ -54,8 +55,27 @@ def mix32(x):
     return x ^ (x >> 16)
 
 
+def seed_state(seed):
+    """The hash state before any vertex word: ``mix32`` of the salted seed (constant per synthesizer).
+
+    Salted: vertex ``(0, 0)`` with seed 0 must not hash to 0.
+    """
+    return mix32((seed ^ _SEED_SALT) & MASK32)
+
+
+def fold_coordinate(h, k):
+    """Fold the low then the high 32-bit word of the int64 coordinate ``k`` into the hash state ``h``.
+
+    Vertices that share ``vx`` share ``fold_coordinate(seed_state(seed), vx)`` (the fused
+    kernel hashes a triangle's three vertices with five folds instead of six).
+    """
+    return mix32(mix32(h ^ (k & MASK32)) ^ ((k >> 32) & MASK32))
+
+
 def hash_vertex(vx, vy, seed):
     """32-bit hash of integer vertex coordinates and a seed, as int64 values in ``[0, 2**32)``.
+
+    ``fold_coordinate(fold_coordinate(seed_state(seed), vx), vy)``.
 
     Parameters
     ----------
@@ -64,11 +84,7 @@ def hash_vertex(vx, vy, seed):
     seed : int or int64 array/tensor broadcastable to ``vx``
         The synthesis seed (only its low 32 bits matter).
     """
-    h = mix32((seed ^ _SEED_SALT) & MASK32)  # salted: vertex (0, 0) with seed 0 must not hash to 0
-    h = mix32(h ^ (vx & MASK32))
-    h = mix32(h ^ ((vx >> 32) & MASK32))
-    h = mix32(h ^ (vy & MASK32))
-    return mix32(h ^ ((vy >> 32) & MASK32))
+    return fold_coordinate(fold_coordinate(seed_state(seed), vx), vy)
 
 
 def vertex_offsets(vx, vy, seed, width: int, height: int):

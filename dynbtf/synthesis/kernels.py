@@ -21,14 +21,22 @@ import types
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import cgutils
+from numba.extending import intrinsic
 
-from .hash import _SECOND_STREAM, _mulmod32, hash_vertex, mix32
+from .hash import _SECOND_STREAM, MASK32, fold_coordinate, hash_vertex, mix32, seed_state
 from .lattice import _C_HI, _C_LO, LATTICE_SCALE
 
 __all__ = ["lattice_blend", "tile_fetch", "MODE_LINEAR", "MODE_HIST", "MODE_HEX"]
 
 MODE_LINEAR, MODE_HIST, MODE_HEX = 0, 1, 2
 
+#: Queries per block: pass 1 computes a block's 12 texel addresses per query and prefetches
+#: them, pass 2 reads and blends them (the exemplar reads of a block overlap in memory).
+BLOCK = 64
+#: Bilinear taps per query: 3 samples x 2 x 2 texels.
+TAPS = 12
 
 
 def _jit_with(fn, **globals_):
@@ -36,9 +44,35 @@ def _jit_with(fn, **globals_):
     return numba.njit(inline="always")(types.FunctionType(fn.__code__, {**fn.__globals__, **globals_}, fn.__name__))
 
 
-_mulmod32_jit = numba.njit(inline="always")(_mulmod32)
-_mix32 = _jit_with(mix32, _mulmod32=_mulmod32_jit)
-_hash_vertex = _jit_with(hash_vertex, mix32=_mix32)
+@numba.njit(inline="always")
+def _mulmod32_native(x, c):
+    """``(x * c) mod 2**32`` for ``0 <= x, c < 2**32``: one unsigned 64-bit multiply (wraps, exact)."""
+    return np.int64((np.uint64(x) * np.uint64(c)) & np.uint64(MASK32))
+
+
+_mix32 = _jit_with(mix32, _mulmod32=_mulmod32_native)
+_seed_state = _jit_with(seed_state, mix32=_mix32)
+_fold_coordinate = _jit_with(fold_coordinate, mix32=_mix32)
+_hash_vertex = _jit_with(hash_vertex, fold_coordinate=_fold_coordinate, seed_state=_seed_state)
+
+
+@intrinsic
+def _prefetch(typingctx, array, index):
+    """Hint the CPU to load ``array[index]`` (1-D) into cache (``llvm.prefetch``, read, high locality)."""
+    sig = numba.types.void(array, index)
+
+    def codegen(context, builder, signature, args):
+        array_type = signature.args[0]
+        view = context.make_array(array_type)(context, builder, args[0])
+        pointer = cgutils.get_item_pointer(context, builder, array_type, view, [args[1]], wraparound=False)
+        i8p = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
+                                            "llvm.prefetch.p0")
+        builder.call(fn, [builder.bitcast(pointer, i8p), i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
 
 
 @numba.njit(inline="always")
@@ -82,114 +116,147 @@ def _gain(x, k):
     return 1.0 - 0.5 * (2.0 - 2.0 * x) ** k
 
 
+@numba.njit(fastmath={"contract"})
+def _blend_taps(flat, taps, weights, row):
+    """``row[c] = sum_k weights[k] flat[taps[k] + c]`` over the 12 taps (float32; FMA contraction only)."""
+    t0, t1, t2, t3, t4, t5 = taps[0], taps[1], taps[2], taps[3], taps[4], taps[5]
+    t6, t7, t8, t9, t10, t11 = taps[6], taps[7], taps[8], taps[9], taps[10], taps[11]
+    w0, w1, w2, w3, w4, w5 = weights[0], weights[1], weights[2], weights[3], weights[4], weights[5]
+    w6, w7, w8, w9, w10, w11 = weights[6], weights[7], weights[8], weights[9], weights[10], weights[11]
+    for c in range(row.shape[0]):
+        row[c] = (w0 * flat[t0 + c] + w1 * flat[t1 + c] + w2 * flat[t2 + c] + w3 * flat[t3 + c]
+                  + w4 * flat[t4 + c] + w5 * flat[t5 + c] + w6 * flat[t6 + c] + w7 * flat[t7 + c]
+                  + w8 * flat[t8 + c] + w9 * flat[t9 + c] + w10 * flat[t10 + c] + w11 * flat[t11 + c])
+
+
+@numba.njit(inline="always")
+def _inverse_lut(row, lut, g_min, inv_step):
+    """``row[c] = T_c^-1(row[c])`` by the tabulated inverse: linear interpolation, clamped at both ends."""
+    lut_size = lut.shape[1]
+    for c in range(row.shape[0]):
+        pos = (row[c] - g_min) * inv_step
+        if pos < 0.0:
+            pos = 0.0
+        elif pos > lut_size - 1.0:
+            pos = lut_size - 1.0
+        lo = min(np.int64(pos), lut_size - 2)
+        t = np.float32(pos - lo)
+        row[c] = lut[c, lo] + t * (lut[c, lo + 1] - lut[c, lo])
+
+
 @numba.njit(parallel=True, cache=True)
 def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_k, lut, g_min, inv_step, out):
     n_queries = uv.shape[0]
     ph, pw, nc = plane.shape
     flat = plane.reshape(ph * pw * nc)
-    lut_size = lut.shape[1]
-    for n in numba.prange(n_queries):
-        u = uv[n, 0]
-        v = uv[n, 1]
-        wu = math.floor(u)
-        wv = math.floor(v)
-        fu = u - wu
-        fv = v - wv
-        if fu >= 1.0:
-            fu -= 1.0
-            wu += 1.0
-        if fv >= 1.0:
-            fv -= 1.0
-            wv += 1.0
-        iu = np.int64(wu)
-        iv = np.int64(wv)
-        # ---- lattice (lattice.triangle_lattice)
-        iu_whole, iu_frac = _scaled_integer(iu)
-        kx = iu_frac + LATTICE_SCALE * fu - 2.0 * fv
-        ky = 4.0 * fv
-        bx = math.floor(kx)
-        by = math.floor(ky)
-        fx = kx - bx
-        fy = ky - by
-        base_x = np.int64(bx) + iu_whole - 2 * iv
-        base_y = np.int64(by) + 4 * iv
-        z = 1.0 - fx - fy
-        if z > 0:
-            v0x, v0y, b0 = base_x, base_y, z
-            v1x, v1y, b1 = base_x, base_y + 1, fy
-            v2x, v2y, b2 = base_x + 1, base_y, fx
-        else:
-            v0x, v0y, b0 = base_x + 1, base_y + 1, -z
-            v1x, v1y, b1 = base_x + 1, base_y, 1.0 - fy
-            v2x, v2y, b2 = base_x, base_y + 1, 1.0 - fx
-        # ---- texel addressing shared by the three samples (whole-texel offsets)
-        px = (iu * density_w) % pw + fu * density_w - 0.5
-        py = (iv * density_h) % ph + fv * density_h - 0.5
-        x0 = math.floor(px)
-        y0 = math.floor(py)
-        tx = np.float32(px - x0)
-        ty = np.float32(py - y0)
-        xi = np.int64(x0) % pw  # one division per axis; the samples then wrap by comparison
-        yi = np.int64(y0) % ph
-        ca0, cb0, ra0, rb0 = _sample_texels(_hash_vertex(v0x, v0y, seed), xi, yi, pw, ph)
-        ca1, cb1, ra1, rb1 = _sample_texels(_hash_vertex(v1x, v1y, seed), xi, yi, pw, ph)
-        ca2, cb2, ra2, rb2 = _sample_texels(_hash_vertex(v2x, v2y, seed), xi, yi, pw, ph)
-        w00 = (1 - tx) * (1 - ty)
-        w01 = tx * (1 - ty)
-        w10 = (1 - tx) * ty
-        w11 = tx * ty
-        # ---- weights
-        if mode == MODE_LINEAR:
-            s0, s1, s2 = b0, b1, b2
-            scale = 1.0
-        elif mode == MODE_HIST:
-            if gamma == 1.0:
+    state = _seed_state(seed)  # per-call constant part of every vertex hash
+    density_w_mod = density_w % pw
+    density_h_mod = density_h % ph
+    for block in numba.prange((n_queries + BLOCK - 1) // BLOCK):
+        first = block * BLOCK
+        last = min(first + BLOCK, n_queries)
+        taps = np.empty((BLOCK, TAPS), dtype=np.int64)  # flat index of each tap's texel
+        weights = np.empty((BLOCK, TAPS), dtype=np.float32)
+        # ---- pass 1: lattice, hashes, addresses and weights; prefetch the texels
+        for n in range(first, last):
+            u = uv[n, 0]
+            v = uv[n, 1]
+            wu = math.floor(u)
+            wv = math.floor(v)
+            fu = u - wu
+            fv = v - wv
+            if fu >= 1.0:
+                fu -= 1.0
+                wu += 1.0
+            if fv >= 1.0:
+                fv -= 1.0
+                wv += 1.0
+            iu = np.int64(wu)
+            iv = np.int64(wv)
+            # lattice (lattice.triangle_lattice)
+            iu_whole, iu_frac = _scaled_integer(iu)
+            kx = iu_frac + LATTICE_SCALE * fu - 2.0 * fv
+            ky = 4.0 * fv
+            bx = math.floor(kx)
+            by = math.floor(ky)
+            fx = kx - bx
+            fy = ky - by
+            base_x = np.int64(bx) + iu_whole - 2 * iv
+            base_y = np.int64(by) + 4 * iv
+            z = 1.0 - fx - fy
+            # vertex hashes (hash.hash_vertex): the two vertices with the same vx share its fold
+            h_a = _fold_coordinate(state, base_x)
+            h_b = _fold_coordinate(state, base_x + 1)
+            if z > 0:  # b, b + (0, 1), b + (1, 0)
+                h0, h1, h2 = (_fold_coordinate(h_a, base_y), _fold_coordinate(h_a, base_y + 1),
+                              _fold_coordinate(h_b, base_y))
+                b0, b1, b2 = z, fy, fx
+            else:  # b + (1, 1), b + (1, 0), b + (0, 1)
+                h0, h1, h2 = (_fold_coordinate(h_b, base_y + 1), _fold_coordinate(h_b, base_y),
+                              _fold_coordinate(h_a, base_y + 1))
+                b0, b1, b2 = -z, 1.0 - fy, 1.0 - fx
+            # texel addressing shared by the three samples (whole-texel offsets):
+            # (iu * density) mod period in int64 without overflow, plus the fraction's texels
+            px = fu * density_w - 0.5
+            py = fv * density_h - 0.5
+            x0 = math.floor(px)
+            y0 = math.floor(py)
+            tx = px - x0
+            ty = py - y0
+            xi = ((iu % pw) * density_w_mod + np.int64(x0)) % pw
+            yi = ((iv % ph) * density_h_mod + np.int64(y0)) % ph
+            ca0, cb0, ra0, rb0 = _sample_texels(h0, xi, yi, pw, ph)
+            ca1, cb1, ra1, rb1 = _sample_texels(h1, xi, yi, pw, ph)
+            ca2, cb2, ra2, rb2 = _sample_texels(h2, xi, yi, pw, ph)
+            w00 = (1.0 - tx) * (1.0 - ty)
+            w01 = tx * (1.0 - ty)
+            w10 = (1.0 - tx) * ty
+            w11 = tx * ty
+            # blend weights
+            if mode == MODE_LINEAR:
                 s0, s1, s2 = b0, b1, b2
-            else:
-                s0, s1, s2 = max(b0, 0.0) ** gamma, max(b1, 0.0) ** gamma, max(b2, 0.0) ** gamma
-            total = s0 + s1 + s2
-            s0, s1, s2 = s0 / total, s1 / total, s2 / total
-            scale = 1.0 / math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
-        else:
-            l0 = w00 * lum[ra0, ca0] + w01 * lum[ra0, cb0] + w10 * lum[rb0, ca0] + w11 * lum[rb0, cb0]
-            l1 = w00 * lum[ra1, ca1] + w01 * lum[ra1, cb1] + w10 * lum[rb1, ca1] + w11 * lum[rb1, cb1]
-            l2 = w00 * lum[ra2, ca2] + w01 * lum[ra2, cb2] + w10 * lum[rb2, ca2] + w11 * lum[rb2, cb2]
-            s0 = (1.0 - beta + beta * l0) * max(b0, 0.0) ** 7
-            s1 = (1.0 - beta + beta * l1) * max(b1, 0.0) ** 7
-            s2 = (1.0 - beta + beta * l2) * max(b2, 0.0) ** 7
-            total = s0 + s1 + s2
-            s0, s1, s2 = s0 / total, s1 / total, s2 / total
-            if gain_k != 1.0:
-                s0, s1, s2 = _gain(s0, gain_k), _gain(s1, gain_k), _gain(s2, gain_k)
+                scale = 1.0
+            elif mode == MODE_HIST:
+                if gamma == 1.0:
+                    s0, s1, s2 = b0, b1, b2
+                else:
+                    s0, s1, s2 = max(b0, 0.0) ** gamma, max(b1, 0.0) ** gamma, max(b2, 0.0) ** gamma
                 total = s0 + s1 + s2
                 s0, s1, s2 = s0 / total, s1 / total, s2 / total
-            scale = 1.0
-        ws0 = np.float32(s0 * scale)
-        ws1 = np.float32(s1 * scale)
-        ws2 = np.float32(s2 * scale)
-        # ---- three bilinear fetches, blended (flat plane: texel (r, c) starts at (r * pw + c) * nc)
-        o00, o01, o10, o11 = (ra0 * pw + ca0) * nc, (ra0 * pw + cb0) * nc, (rb0 * pw + ca0) * nc, (rb0 * pw + cb0) * nc
-        p00, p01, p10, p11 = (ra1 * pw + ca1) * nc, (ra1 * pw + cb1) * nc, (rb1 * pw + ca1) * nc, (rb1 * pw + cb1) * nc
-        q00, q01, q10, q11 = (ra2 * pw + ca2) * nc, (ra2 * pw + cb2) * nc, (rb2 * pw + ca2) * nc, (rb2 * pw + cb2) * nc
-        a00, a01, a10, a11 = ws0 * w00, ws0 * w01, ws0 * w10, ws0 * w11
-        b00, b01, b10, b11 = ws1 * w00, ws1 * w01, ws1 * w10, ws1 * w11
-        d00, d01, d10, d11 = ws2 * w00, ws2 * w01, ws2 * w10, ws2 * w11
-        row = out[n]
-        for c in range(nc):
-            row[c] = (a00 * flat[o00 + c] + a01 * flat[o01 + c] + a10 * flat[o10 + c] + a11 * flat[o11 + c]
-                      + b00 * flat[p00 + c] + b01 * flat[p01 + c] + b10 * flat[p10 + c] + b11 * flat[p11 + c]
-                      + d00 * flat[q00 + c] + d01 * flat[q01 + c] + d10 * flat[q10 + c] + d11 * flat[q11 + c])
-        if mode == MODE_HIST:
-            for c in range(nc):
-                acc = row[c]
-                pos = (acc - g_min) * inv_step
-                if pos < 0.0:
-                    pos = 0.0
-                elif pos > lut_size - 1.0:
-                    pos = lut_size - 1.0
-                lo = min(np.int64(pos), lut_size - 2)
-                t = np.float32(pos - lo)
-                row[c] = lut[c, lo] + t * (lut[c, lo + 1] - lut[c, lo])
+                scale = 1.0 / math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+            else:
+                l0 = w00 * lum[ra0, ca0] + w01 * lum[ra0, cb0] + w10 * lum[rb0, ca0] + w11 * lum[rb0, cb0]
+                l1 = w00 * lum[ra1, ca1] + w01 * lum[ra1, cb1] + w10 * lum[rb1, ca1] + w11 * lum[rb1, cb1]
+                l2 = w00 * lum[ra2, ca2] + w01 * lum[ra2, cb2] + w10 * lum[rb2, ca2] + w11 * lum[rb2, cb2]
+                s0 = (1.0 - beta + beta * l0) * max(b0, 0.0) ** 7
+                s1 = (1.0 - beta + beta * l1) * max(b1, 0.0) ** 7
+                s2 = (1.0 - beta + beta * l2) * max(b2, 0.0) ** 7
+                total = s0 + s1 + s2
+                s0, s1, s2 = s0 / total, s1 / total, s2 / total
+                if gain_k != 1.0:
+                    s0, s1, s2 = _gain(s0, gain_k), _gain(s1, gain_k), _gain(s2, gain_k)
+                    total = s0 + s1 + s2
+                    s0, s1, s2 = s0 / total, s1 / total, s2 / total
+                scale = 1.0
+            tap = taps[n - first]
+            weight = weights[n - first]
+            k = 0
+            for s, ca, cb, ra, rb in ((s0, ca0, cb0, ra0, rb0), (s1, ca1, cb1, ra1, rb1), (s2, ca2, cb2, ra2, rb2)):
+                ws = s * scale
+                tap[k], weight[k] = (ra * pw + ca) * nc, ws * w00
+                tap[k + 1], weight[k + 1] = (ra * pw + cb) * nc, ws * w01
+                tap[k + 2], weight[k + 2] = (rb * pw + ca) * nc, ws * w10
+                tap[k + 3], weight[k + 3] = (rb * pw + cb) * nc, ws * w11
+                for m in range(k, k + 4):
+                    _prefetch(flat, tap[m])
+                    _prefetch(flat, tap[m] + nc - 1)  # a texel may straddle two cache lines
+                k += 4
+        # ---- pass 2: the three bilinear fetches, blended (float32), then the inverse LUT
+        for n in range(first, last):
+            row = out[n]
+            _blend_taps(flat, taps[n - first], weights[n - first], row)
+            if mode == MODE_HIST:
+                _inverse_lut(row, lut, g_min, inv_step)
 
 
 def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], seed: int, mode: int, *,
