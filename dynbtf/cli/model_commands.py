@@ -39,7 +39,8 @@ def fit(
     texel_groups: int = typer.Option(1, "--texel-groups", help="Split each step's texels into this many random "
                                      "groups, each under its own --images-per-step pairs: more (view, light) pairs "
                                      "per step at the same cost, faster convergence (64 measures well; 1: the "
-                                     "paper's whole images)."),
+                                     "paper's whole images). Each step reads groups x images-per-step images: "
+                                     "keep 1 for BTFs too large for the image cache."),
     memory_mb: float = typer.Option(2048.0, "--memory-mb", help="RAM (MB) for the decoded-image cache; larger "
                                     "BTFs are decoded per step (bounded memory)."),
     workers: Optional[int] = typer.Option(None, help="Threads of the fused training kernel (default: torch's)."),

@@ -102,6 +102,9 @@ class TrainConfig:
     texel_groups : int
         Split each step's texels into this many random groups, each under its
         own ``images_per_step`` pairs (1: whole images, the paper's recipe).
+        A step reads ``texel_groups * images_per_step`` images: cheap from the
+        RAM cache, but a streamed BTF (too large for ``memory_budget_mb``)
+        decodes all of them every step.
     max_minutes : float or None
         Stop (checkpointed, model written) after this much training time in this
         run; run again to continue.
@@ -439,6 +442,9 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
         bar.write(f"{size_info['summary']}; {len(train_pairs)} training pairs, {len(held_out)} held out; "
                   f"{steps_per_epoch} steps/epoch x {config.epochs} epochs, {workers} worker thread(s)" +
                   (f" (resuming at epoch {epoch}, step {step})" if done_steps else ""))
+    if progress and n_groups > 1 and not store.cached:
+        bar.write(f"note: the BTF does not fit the image cache; with {n_groups} texel groups every step decodes "
+                  f"{n_groups * b} images (use --texel-groups 1 or a larger --memory-mb)")
     if epoch < config.epochs and store.cached:
         store.fill(np.concatenate([train_pairs, monitor]), progress=progress)
     run_start = time.perf_counter()
