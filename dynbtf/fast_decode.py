@@ -38,83 +38,156 @@ def fold_angular_planes(f_h: torch.Tensor, f_d: torch.Tensor, weight_angular: to
             np.ascontiguousarray(pd.cpu().numpy(), dtype=np.float32))
 
 
+def _fit_atan_polynomial(degree: int = 9) -> tuple[float, ...]:
+    """Coefficients ``c_0..c_degree`` of ``atan(r) / r ~ sum_i c_i r^(2i)`` for ``|r| <= tan(pi/8)``.
+
+    A Chebyshev least-squares fit in ``z = r^2`` (deterministic, done at import), converted to
+    monomials for Horner's rule: max error of ``r * poly(r^2)`` vs ``atan`` ~1e-15 rad.
+    """
+    z_max = math.tan(math.pi / 8) ** 2
+    z = z_max * (1.0 - np.cos(np.linspace(0.0, math.pi, 2001))) / 2.0
+    r = np.sqrt(z)
+    target = np.ones_like(z)
+    target[1:] = np.arctan(r[1:]) / r[1:]
+    fit = np.polynomial.Chebyshev.fit(z, target, degree, domain=[0.0, z_max])
+    return tuple(float(c) for c in fit.convert(kind=np.polynomial.Polynomial, domain=[0.0, z_max],
+                                               window=[0.0, z_max]).coef)
+
+
+#: Highest coefficient first (Horner).
+_ATAN_POLY = _fit_atan_polynomial()[::-1]
+_TAN_PI_8 = math.tan(math.pi / 8)
+
+
 @numba.njit(inline="always")
-def _plane_coords(x, y, z):
-    """(s, t) of a unit vector: theta / 90deg clamped to [0, 1], phi / 360deg in [0, 1)."""
-    zc = min(max(z, -1.0), 1.0)
-    s = math.acos(zc) * _RAD_TO_TURN_S
+def _atan2(y, x):
+    """``atan2(y, x)`` in radians, ``(-pi, pi]``, float64, branch-free (so loops over it vectorize).
+
+    Octant reduction to ``a = min(|x|, |y|) / max(|x|, |y|)`` in ``[0, 1]``, then
+    ``atan(a) = pi/4 + atan((a - 1) / (a + 1))`` above ``tan(pi/8)`` and the polynomial
+    :data:`_ATAN_POLY`; error ~1e-15 rad. ``atan2(0, 0) = 0``.
+    """
+    ax = abs(x)
+    ay = abs(y)
+    a = min(ax, ay) / max(max(ax, ay), 1e-300)
+    big = a > _TAN_PI_8
+    r = (a - 1.0) / (a + 1.0) if big else a
+    z = r * r
+    p = 0.0
+    for c in _ATAN_POLY:
+        p = p * z + c
+    angle = r * p + (0.25 * math.pi if big else 0.0)
+    angle = 0.5 * math.pi - angle if ay > ax else angle
+    angle = math.pi - angle if x < 0.0 else angle
+    return -angle if y < 0.0 else angle
+
+
+@numba.njit(inline="always")
+def _plane_taps(x, y, z, rs, rt, k):
+    """Bilinear taps of a ``(rs, rt, k)`` angular plane at the direction ``(x, y, z)`` (float64 unit vector).
+
+    ``s = theta / 90deg = atan2(|(x, y)|, z) / (pi / 2)`` clamped to [0, 1] (equal to ``acos(z)``
+    for a unit vector, and well conditioned at the pole); ``t = phi / 360deg = atan2(y, x) / 2 pi``
+    wrapped to [0, 1). Rows clamp, columns wrap. Returns the flat start index ``(row * rt + col) * k``
+    of the four texels and their weights (float64).
+    """
+    s = _atan2(math.sqrt(x * x + y * y), z) * _RAD_TO_TURN_S
     s = min(max(s, 0.0), 1.0)
-    t = math.atan2(y, x) * _RAD_TO_TURN_T
+    t = _atan2(y, x) * _RAD_TO_TURN_T
     t = t - math.floor(t)
-    if t >= 1.0:
-        t -= 1.0
-    return s, t
+    t = t - 1.0 if t >= 1.0 else t
+    row = min(max(s * rs - 0.5, 0.0), rs - 1.0)
+    row0 = min(math.floor(row), max(rs - 2.0, 0.0))
+    ty = row - row0
+    row1 = min(row0 + 1.0, rs - 1.0)
+    col = t * rt - 0.5
+    col0 = math.floor(col)
+    tx = col - col0
+    col0 = rt - 1.0 if col0 < 0.0 else col0
+    col1 = 0.0 if col0 + 1.0 >= rt else col0 + 1.0
+    i00 = np.int32((row0 * rt + col0) * k)
+    i01 = np.int32((row0 * rt + col1) * k)
+    i10 = np.int32((row1 * rt + col0) * k)
+    i11 = np.int32((row1 * rt + col1) * k)
+    return i00, i01, i10, i11, (1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty
 
 
 @numba.njit(inline="always")
-def _accumulate_fetch(plane, s, t, acc):
-    """acc += bilinear fetch of ``plane (R_s, R_t, K)`` at (s, t): rows clamp, columns wrap."""
-    rs, rt, k = plane.shape
-    y = min(max(s * rs - 0.5, 0.0), rs - 1.0)
-    x = t * rt - 0.5
-    y0 = min(int(math.floor(y)), rs - 2) if rs > 1 else 0
-    ty = y - y0 if rs > 1 else 0.0
-    x0f = math.floor(x)
-    tx = x - x0f
-    x0 = int(x0f) % rt
-    x1 = (x0 + 1) % rt
-    y1 = min(y0 + 1, rs - 1)
-    w00 = (1 - tx) * (1 - ty)
-    w01 = tx * (1 - ty)
-    w10 = (1 - tx) * ty
-    w11 = tx * ty
-    for j in range(k):
-        acc[j] += w00 * plane[y0, x0, j] + w01 * plane[y0, x1, j] + w10 * plane[y1, x0, j] + w11 * plane[y1, x1, j]
+def _add_taps_and_activate(row, flat_h, flat_d, taps, weights, q, slope):
+    """``row += sum`` of the 8 weighted plane rows of query ``q``, then ``max(v, 0) + slope min(v, 0)``.
+
+    Unsigned indices: numba then skips the negative-index wraparound and the loop vectorizes (~2x).
+    """
+    i0, i1, i2, i3 = np.uint64(taps[0, q]), np.uint64(taps[1, q]), np.uint64(taps[2, q]), np.uint64(taps[3, q])
+    i4, i5, i6, i7 = np.uint64(taps[4, q]), np.uint64(taps[5, q]), np.uint64(taps[6, q]), np.uint64(taps[7, q])
+    w0, w1, w2, w3 = weights[0, q], weights[1, q], weights[2, q], weights[3, q]
+    w4, w5, w6, w7 = weights[4, q], weights[5, q], weights[6, q], weights[7, q]
+    for j in range(np.uint64(row.shape[0])):
+        v = (row[j] + w0 * flat_h[i0 + j] + w1 * flat_h[i1 + j] + w2 * flat_h[i2 + j] + w3 * flat_h[i3 + j]
+             + w4 * flat_d[i4 + j] + w5 * flat_d[i5 + j] + w6 * flat_d[i6 + j] + w7 * flat_d[i7 + j])
+        row[j] = max(v, np.float32(0.0)) + slope * min(v, np.float32(0.0))
 
 
-@numba.njit(parallel=True, cache=True)
-def _kernel(latent, w_pos, bias, w_view, w_light, plane_h, plane_d, out):
-    n, c = latent.shape
-    hidden = w_pos.shape[1]
-    for q in numba.prange(n):
-        acc = out[q]
-        for j in range(hidden):
-            acc[j] = bias[j]
-        for i in range(c):
-            f = latent[q, i]
-            for j in range(hidden):
-                acc[j] += f * w_pos[i, j]
-        vx, vy, vz = np.float64(w_view[q, 0]), np.float64(w_view[q, 1]), np.float64(w_view[q, 2])
-        lx, ly, lz = np.float64(w_light[q, 0]), np.float64(w_light[q, 1]), np.float64(w_light[q, 2])
-        sx, sy, sz = vx + lx, vy + ly, vz + lz
-        n2 = sx * sx + sy * sy + sz * sz
-        if n2 < 1e-24:
-            sx, sy, sz = 0.0, 0.0, 1.0
-            n2 = 1.0
-        inv = 1.0 / max(math.sqrt(n2), 1e-30)
-        hx, hy, hz = sx * inv, sy * inv, sz * inv
-        cos_t = min(max(hz, -1.0), 1.0)
-        sin_t = math.sqrt(max(1.0 - cos_t * cos_t, 0.0))
-        rxy = math.sqrt(hx * hx + hy * hy)
-        if rxy < 1e-12:
-            cos_p, sin_p = 1.0, 0.0
-        else:
-            cos_p, sin_p = hx / rxy, hy / rxy
-        # d = R_y(-theta_h) R_z(-phi_h) w_light
-        ax = cos_p * lx + sin_p * ly
-        ay = -sin_p * lx + cos_p * ly
-        dx = cos_t * ax - sin_t * lz
-        dz = sin_t * ax + cos_t * lz
-        s, t = _plane_coords(hx, hy, hz)
-        _accumulate_fetch(plane_h, s, t, acc)
-        s, t = _plane_coords(dx, ay, dz)
-        _accumulate_fetch(plane_d, s, t, acc)
+#: Queries per block of the angular kernel (its per-query arithmetic runs as one loop over the block).
+_BLOCK = 256
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")  # numpy: no zero-division checks, so loops vectorize
+def _angular_kernel(w_view, w_light, plane_h, plane_d, slope, out):
+    """``out[q] += fetch(plane_h, h_q) + fetch(plane_d, d_q)``, then LeakyReLU with ``slope`` (1: none)."""
+    n, hidden = out.shape
+    rs_h, rt_h, k_h = plane_h.shape
+    rs_d, rt_d, k_d = plane_d.shape
+    flat_h = plane_h.reshape(rs_h * rt_h * k_h)
+    flat_d = plane_d.reshape(rs_d * rt_d * k_d)
+    for block in numba.prange((n + _BLOCK - 1) // _BLOCK):
+        first = block * _BLOCK
+        count = min(_BLOCK, n - first)
+        taps = np.empty((8, _BLOCK), dtype=np.int32)
+        weights = np.empty((8, _BLOCK), dtype=np.float32)
+        view = np.empty((3, _BLOCK), dtype=np.float64)  # structure of arrays: the loop below vectorizes
+        light = np.empty((3, _BLOCK), dtype=np.float64)
+        for c in range(3):
+            for i in range(count):
+                view[c, i] = w_view[first + i, c]
+                light[c, i] = w_light[first + i, c]
+        for i in range(count):  # straight-line float64 arithmetic: vectorizes across queries
+            vx, vy, vz = view[0, i], view[1, i], view[2, i]
+            lx, ly, lz = light[0, i], light[1, i], light[2, i]
+            sx, sy, sz = vx + lx, vy + ly, vz + lz
+            n2 = sx * sx + sy * sy + sz * sz
+            degenerate = n2 < 1e-24  # opposite directions: h is undefined, use the normal
+            sx = 0.0 if degenerate else sx
+            sy = 0.0 if degenerate else sy
+            sz = 1.0 if degenerate else sz
+            inv = 1.0 / math.sqrt(1.0 if degenerate else n2)
+            hx, hy, hz = sx * inv, sy * inv, sz * inv
+            cos_t = min(max(hz, -1.0), 1.0)
+            sin_t = math.sqrt(max(1.0 - cos_t * cos_t, 0.0))
+            rxy = math.sqrt(hx * hx + hy * hy)
+            pole = rxy < 1e-12
+            inv_rxy = 1.0 / (1.0 if pole else rxy)
+            cos_p = 1.0 if pole else hx * inv_rxy
+            sin_p = 0.0 if pole else hy * inv_rxy
+            # d = R_y(-theta_h) R_z(-phi_h) w_light
+            ax = cos_p * lx + sin_p * ly
+            ay = -sin_p * lx + cos_p * ly
+            dx = cos_t * ax - sin_t * lz
+            dz = sin_t * ax + cos_t * lz
+            t0, t1, t2, t3, a0, a1, a2, a3 = _plane_taps(hx, hy, hz, rs_h, rt_h, k_h)
+            t4, t5, t6, t7, a4, a5, a6, a7 = _plane_taps(dx, ay, dz, rs_d, rt_d, k_d)
+            taps[0, i], taps[1, i], taps[2, i], taps[3, i] = t0, t1, t2, t3
+            taps[4, i], taps[5, i], taps[6, i], taps[7, i] = t4, t5, t6, t7
+            weights[0, i], weights[1, i], weights[2, i], weights[3, i] = a0, a1, a2, a3
+            weights[4, i], weights[5, i], weights[6, i], weights[7, i] = a4, a5, a6, a7
+        for i in range(count):
+            _add_taps_and_activate(out[first + i], flat_h, flat_d, taps, weights, i, slope)
 
 
 def first_layer_preactivation(latent: np.ndarray, w_pos: np.ndarray, bias: np.ndarray, w_view: np.ndarray,
                               w_light: np.ndarray, plane_h: np.ndarray, plane_d: np.ndarray,
-                              out: np.ndarray | None = None) -> np.ndarray:
-    """Layer-1 pre-activation ``(N, hidden)`` float32 of a Triple Plane decoder.
+                              out: np.ndarray | None = None, negative_slope: float | None = None) -> np.ndarray:
+    """Layer-1 pre-activation ``(N, hidden)`` float32 of a Triple Plane decoder (or its LeakyReLU).
 
     Parameters
     ----------
@@ -128,11 +201,17 @@ def first_layer_preactivation(latent: np.ndarray, w_pos: np.ndarray, bias: np.nd
         Unit directions in the local frame.
     plane_h, plane_d : float32 ``(R, R, hidden)``
         Angular planes folded with their layer-1 weights (:func:`fold_angular_planes`).
+    out : float32 ``(N, hidden)``, optional
+        Output buffer.
+    negative_slope : float, optional
+        If given, return ``LeakyReLU(pre-activation)`` with this slope (fused: one pass less).
     """
     n = latent.shape[0]
     if out is None:
         out = np.empty((n, w_pos.shape[1]), dtype=np.float32)
-    _kernel(np.ascontiguousarray(latent, dtype=np.float32), np.ascontiguousarray(w_pos, dtype=np.float32),
-            np.ascontiguousarray(bias, dtype=np.float32), np.ascontiguousarray(w_view, dtype=np.float32),
-            np.ascontiguousarray(w_light, dtype=np.float32), plane_h, plane_d, out)
+    # the positional product is a small dense matmul: BLAS (via torch) beats a per-query loop ~5x
+    torch.addmm(torch.from_numpy(np.asarray(bias, dtype=np.float32)), torch.from_numpy(np.asarray(latent, dtype=np.float32)),
+                torch.from_numpy(np.asarray(w_pos, dtype=np.float32)), out=torch.from_numpy(out))
+    _angular_kernel(np.ascontiguousarray(w_view, dtype=np.float32), np.ascontiguousarray(w_light, dtype=np.float32),
+                    plane_h, plane_d, np.float32(1.0 if negative_slope is None else negative_slope), out)
     return out

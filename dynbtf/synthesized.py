@@ -204,16 +204,18 @@ class SynthesizedBTF:
             features = self.synthesizer(uv * self.scale)
             return self.model.decode(features, wv, wl).float()
         latent = self.synthesizer.latent(uv * self.scale).to(self.device)
-        if fold["planes"] is not None:  # fused CPU kernel: angular planes pre-multiplied by layer 1
+        if fold["planes"] is not None:  # fused CPU kernel: angular planes pre-multiplied by layer 1, LeakyReLU
             from .fast_decode import first_layer_preactivation
 
-            pre = torch.from_numpy(first_layer_preactivation(
-                latent.numpy(), *fold["numpy"], wv.float().numpy(), wl.float().numpy(), *fold["planes"]))
+            x = torch.from_numpy(first_layer_preactivation(
+                latent.numpy(), *fold["numpy"], wv.float().numpy(), wl.float().numpy(), *fold["planes"],
+                negative_slope=fold["slope"]))
         else:
             decoder = self.model.decoder
             pre = torch.addmm(fold["bias"], latent, fold["weight"])
             pre += decoder.first_layer_angular(self.model.angular_features(wv, wl).float())
-        x = F.leaky_relu(pre, fold["slope"]).to(fold["dtype"])
+            x = F.leaky_relu(pre, fold["slope"])
+        x = x.to(fold["dtype"])
         for k, (weight, bias) in enumerate(fold["rest"]):
             x = F.linear(x, weight, bias)
             if k < len(fold["rest"]) - 1:

@@ -116,14 +116,18 @@ def _gain(x, k):
     return 1.0 - 0.5 * (2.0 - 2.0 * x) ** k
 
 
-@numba.njit(fastmath={"contract"})
+@numba.njit(inline="always")
 def _blend_taps(flat, taps, weights, row):
-    """``row[c] = sum_k weights[k] flat[taps[k] + c]`` over the 12 taps (float32; FMA contraction only)."""
-    t0, t1, t2, t3, t4, t5 = taps[0], taps[1], taps[2], taps[3], taps[4], taps[5]
-    t6, t7, t8, t9, t10, t11 = taps[6], taps[7], taps[8], taps[9], taps[10], taps[11]
+    """``row[c] = sum_k weights[k] flat[taps[k] + c]`` over the 12 taps (float32).
+
+    Unsigned indices: numba then skips the negative-index wraparound and the loop vectorizes.
+    """
+    t0, t1, t2, t3 = np.uint64(taps[0]), np.uint64(taps[1]), np.uint64(taps[2]), np.uint64(taps[3])
+    t4, t5, t6, t7 = np.uint64(taps[4]), np.uint64(taps[5]), np.uint64(taps[6]), np.uint64(taps[7])
+    t8, t9, t10, t11 = np.uint64(taps[8]), np.uint64(taps[9]), np.uint64(taps[10]), np.uint64(taps[11])
     w0, w1, w2, w3, w4, w5 = weights[0], weights[1], weights[2], weights[3], weights[4], weights[5]
     w6, w7, w8, w9, w10, w11 = weights[6], weights[7], weights[8], weights[9], weights[10], weights[11]
-    for c in range(row.shape[0]):
+    for c in range(np.uint64(row.shape[0])):
         row[c] = (w0 * flat[t0 + c] + w1 * flat[t1 + c] + w2 * flat[t2 + c] + w3 * flat[t3 + c]
                   + w4 * flat[t4 + c] + w5 * flat[t5 + c] + w6 * flat[t6 + c] + w7 * flat[t7 + c]
                   + w8 * flat[t8 + c] + w9 * flat[t9 + c] + w10 * flat[t10 + c] + w11 * flat[t11 + c])
@@ -139,9 +143,9 @@ def _inverse_lut(row, lut, g_min, inv_step):
             pos = 0.0
         elif pos > lut_size - 1.0:
             pos = lut_size - 1.0
-        lo = min(np.int64(pos), lut_size - 2)
+        lo = np.uint64(min(np.int64(pos), lut_size - 2))  # unsigned: no negative-index wraparound
         t = np.float32(pos - lo)
-        row[c] = lut[c, lo] + t * (lut[c, lo + 1] - lut[c, lo])
+        row[c] = lut[c, lo] + t * (lut[c, lo + np.uint64(1)] - lut[c, lo])
 
 
 @numba.njit(parallel=True, cache=True)
