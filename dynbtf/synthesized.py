@@ -49,6 +49,9 @@ __all__ = ["SynthesizedBTF", "PRECISIONS"]
 
 #: Accepted ``precision`` values: dtype of decoder layers 2.. on the fast path.
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16}
+#: Rows per call of decoder layers 2..: torch's small (32-wide) linear layers ran ~3x faster per row
+#: at <= 16384 rows than at 32768+ (activations stay in cache; measured on a 2-core EPYC).
+_MLP_ROWS = 16384
 
 
 def _as_tensor(x, name: str, last: int) -> torch.Tensor:
@@ -192,11 +195,19 @@ class SynthesizedBTF:
         w = _as_tensor(w, name, 3)
         if tuple(w.shape[:-1]) != tuple(batch):
             raise InputError(f"{name}: batch shape {tuple(w.shape[:-1])} does not match uv's {tuple(batch)}")
-        try:
-            check_directions(w, name, allow_below_horizon=True)
-        except ValueError as e:
-            raise InputError(str(e)) from None
-        return w.reshape(-1, 3), (w[..., 2] >= 0).reshape(-1)
+        flat = w.reshape(-1, 3)
+        if flat.device.type == "cpu" and flat.dtype in (torch.float32, torch.float64):
+            from .fast_decode import all_unit_vectors
+
+            valid = all_unit_vectors(flat.numpy())  # one pass; check_directions below words the error
+        else:
+            valid = False
+        if not valid:
+            try:
+                check_directions(w, name, allow_below_horizon=True)
+            except ValueError as e:
+                raise InputError(str(e)) from None
+        return flat, flat[:, 2] >= 0
 
     def _decode_chunk(self, uv: torch.Tensor, wv: torch.Tensor, wl: torch.Tensor) -> torch.Tensor:
         fold = self._fold
@@ -216,6 +227,12 @@ class SynthesizedBTF:
             pre += decoder.first_layer_angular(self.model.angular_features(wv, wl).float())
             x = F.leaky_relu(pre, fold["slope"])
         x = x.to(fold["dtype"])
+        return torch.cat([self._decode_rest(block) for block in x.split(_MLP_ROWS)]) if len(x) > _MLP_ROWS \
+            else self._decode_rest(x)
+
+    def _decode_rest(self, x: torch.Tensor) -> torch.Tensor:
+        """Decoder layers 2.. on first-layer activations ``(N, hidden)`` -> RGB float32."""
+        fold = self._fold
         for k, (weight, bias) in enumerate(fold["rest"]):
             x = F.linear(x, weight, bias)
             if k < len(fold["rest"]) - 1:
