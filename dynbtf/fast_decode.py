@@ -134,7 +134,7 @@ def _add_taps_and_activate(row, flat_h, flat_d, taps, weights, q, slope):
 _BLOCK = 256
 
 
-@numba.njit(parallel=True, cache=True, error_model="numpy")  # numpy: no zero-division checks, so loops vectorize
+@numba.njit(parallel=True, cache=True, nogil=True, error_model="numpy")  # numpy: no zero-division checks, so loops vectorize
 def _angular_kernel(w_view, w_light, plane_h, plane_d, slope, out):
     """``out[q] += fetch(plane_h, h_q) + fetch(plane_d, d_q)``, then LeakyReLU with ``slope`` (1: none)."""
     n, hidden = out.shape

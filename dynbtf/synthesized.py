@@ -35,6 +35,7 @@ with their own ``decode``.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -49,6 +50,24 @@ __all__ = ["SynthesizedBTF", "PRECISIONS"]
 
 #: Accepted ``precision`` values: dtype of decoder layers 2.. on the fast path.
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16}
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+
+
+def _eval_pool(workers: int) -> ThreadPoolExecutor:
+    """The process-wide pool of ``workers`` evaluation threads."""
+    if workers not in _POOLS:
+        _POOLS[workers] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="dynbtf-eval")
+    return _POOLS[workers]
+
+
+def _single_numba_thread(fn, *args):
+    """``fn(*args)`` with numba kernels on one thread (numba's thread count is per calling thread)."""
+    import numba
+
+    numba.set_num_threads(1)
+    return fn(*args)
+
+
 #: Rows per call of decoder layers 2..: torch's small (32-wide) linear layers ran ~3x faster per row
 #: at <= 16384 rows than at 32768+ (activations stay in cache; measured on a 2-core EPYC).
 _MLP_ROWS = 16384
@@ -81,8 +100,11 @@ class SynthesizedBTF:
         Exemplar repeats per unit of the user's ``uv`` (positive).
     seed : int, default 0
         Synthesis seed.
-    chunk_size : int, default 131072
+    chunk_size : int, default 32768
         Queries per chunk (bounds memory).
+    workers : int, optional
+        Threads of the CPU fast path (default: torch's intra-op thread count). Chunks are spread
+        over a pool of this many Python threads, each running numba and torch single-threaded.
     precision : {"fp32", "bf16"}, default "fp32"
         Dtype of decoder layers 2.. on the fast path.
     **params
@@ -100,7 +122,7 @@ class SynthesizedBTF:
     """
 
     def __init__(self, model, synthesizer: str | Synthesizer = "hist", scale: float = 1.0, seed: int = 0, *,
-                 chunk_size: int = 131072, precision: str = "fp32", **params) -> None:
+                 chunk_size: int = 32768, precision: str = "fp32", workers: int | None = None, **params) -> None:
         if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
             from .representations.model_file import load_model
 
@@ -117,6 +139,9 @@ class SynthesizedBTF:
             raise InputError(f"precision: expected one of {sorted(PRECISIONS)}, got {precision!r}")
         if int(chunk_size) < 1:
             raise InputError(f"chunk_size: expected a positive number of queries, got {chunk_size}")
+        if workers is not None and int(workers) < 1:
+            raise InputError(f"workers: expected a positive number of threads, got {workers}")
+        self.workers = torch.get_num_threads() if workers is None else int(workers)
         self.model = model.eval()
         self.scale = scale
         self.chunk_size = int(chunk_size)
@@ -263,16 +288,30 @@ class SynthesizedBTF:
         n = flat.shape[0]
         out = torch.zeros(n, 3, dtype=torch.float32, device=self.device)
         visible = up_v & up_l
-        with torch.no_grad():
-            for start in range(0, n, self.chunk_size):
-                sl = slice(start, min(start + self.chunk_size, n))
-                vis = visible[sl]
-                if not bool(vis.any()):
-                    continue
-                dtype = self.model.positional_plane().dtype
+        dtype = self.model.positional_plane().dtype
+        chunks = [slice(start, min(start + self.chunk_size, n)) for start in range(0, n, self.chunk_size)]
+
+        def run(sl: slice) -> None:
+            vis = visible[sl]
+            if not bool(vis.any()):
+                return
+            with torch.no_grad():
                 rgb = self._decode_chunk(flat[sl].to(self.device), wv[sl].to(self.device, dtype),
                                          wl[sl].to(self.device, dtype))
-                out[sl] = torch.where(vis.to(self.device)[:, None], rgb, torch.zeros_like(rgb))
+            out[sl] = rgb if bool(vis.all()) else torch.where(vis.to(self.device)[:, None], rgb, torch.zeros_like(rgb))
+
+        workers = self.workers if self._fold is not None and self._fold["planes"] is not None else 1
+        if workers > 1 and len(chunks) > 1:
+            # one chunk per Python thread, each with single-threaded torch and numba: no OpenMP pools
+            # handing over between numba kernels and torch matmuls (on a loaded 2-core machine
+            # their spin-waiting made two-thread evaluation ~8x slower than one thread)
+            from .training.fused_mlp import single_intra_op_thread
+
+            with single_intra_op_thread():
+                list(_eval_pool(workers).map(lambda sl: _single_numba_thread(run, sl), chunks))
+        else:
+            for sl in chunks:
+                run(sl)
         out = out.reshape(*batch, 3)
         return out.cpu().numpy() if as_numpy else out
 

@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from dynbtf.conventions import angular_plane_coords, half_diff_from_view_light, spherical_to_direction
+from dynbtf.errors import InputError
 from dynbtf.fast_decode import _atan2, all_unit_vectors, first_layer_preactivation
 from dynbtf.texture import fetch_angular
 
@@ -91,3 +92,20 @@ def test_all_unit_vectors():
         v[2, 1] = bad
         assert not all_unit_vectors(v)
     assert not all_unit_vectors(w * 1.01) and all_unit_vectors(w * 1.0005)
+
+
+def test_threaded_evaluation_equals_serial():
+    from dynbtf.representations.triple_plane import TriplePlane
+    from dynbtf.synthesized import SynthesizedBTF
+
+    rng = np.random.default_rng(5)
+    model = TriplePlane(24, 24, seed=1)
+    uv = rng.random((5000, 2)) * 7 + 1e6
+    wv = spherical_to_direction(rng.random(5000) * 100, rng.random(5000) * 360)  # some below the horizon: 0
+    wl = spherical_to_direction(rng.random(5000) * 80, rng.random(5000) * 360)
+    serial = SynthesizedBTF(model, "hist", scale=3.0, chunk_size=700, workers=1).eval(uv, wv, wl)
+    threaded = SynthesizedBTF(model, "hist", scale=3.0, chunk_size=700, workers=3).eval(uv, wv, wl)
+    np.testing.assert_array_equal(threaded, serial)
+    assert (serial[wv[:, 2] < 0] == 0).all() and (serial[wv[:, 2] >= 0] != 0).any()
+    with pytest.raises(InputError, match="workers"):
+        SynthesizedBTF(model, "hist", workers=0)

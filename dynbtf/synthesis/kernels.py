@@ -148,7 +148,7 @@ def _inverse_lut(row, lut, g_min, inv_step):
         row[c] = lut[c, lo] + t * (lut[c, lo + np.uint64(1)] - lut[c, lo])
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_k, lut, g_min, inv_step, out):
     n_queries = uv.shape[0]
     ph, pw, nc = plane.shape
@@ -310,7 +310,7 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
     return out
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _tile_kernel(uv, plane, out):
     n_queries = uv.shape[0]
     ph, pw, nc = plane.shape
