@@ -13,12 +13,15 @@ directions are evaluated by
     the blend, the inverse-transform LUT and the PCA un-projection in torch,
     then ``model.decode`` on one big float32 batch;
 (b) **ours**: :meth:`dynbtf.synthesized.SynthesizedBTF.eval` (fused numba
-    synthesis kernel, folded first layer, chunked decoder in bf16 where the
-    CPU has native bf16 matmul -- i.e. where bf16 measures faster than fp32 --
-    else fp32).
+    synthesis kernel, first layer as a BLAS positional product plus a numba
+    angular kernel vectorized across queries with the LeakyReLU fused, decoder
+    layers 2.. in torch on 16k-row blocks -- bf16 where the CPU has native bf16
+    matmul, i.e. where bf16 measures faster than fp32, else fp32; chunks spread
+    over one Python thread per core, each running numba and torch single-threaded).
 
-It prints queries/s, the speed-up, a per-stage breakdown of our path, and our
-throughput as a fraction of the decoder-FLOP bound at the machine's matmul peak
+It prints queries/s, the speed-up, a per-stage breakdown of our path (on one
+thread, as each worker runs it), and our throughput as a fraction of the
+decoder-FLOP bound at the machine's matmul peak
 (a 4096^2 matmul measured in the same run, bf16 where native, else fp32). Timings on shared
 machines move 10-50% between runs: compare the ratios of one run.
 """
@@ -28,6 +31,7 @@ from __future__ import annotations
 import argparse
 import time
 
+import numba
 import numpy as np
 import torch
 
@@ -37,7 +41,7 @@ from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.synthesis.blending import LatticeBlending
 from dynbtf.synthesis.histogram import variance_preserving_blend, blend_weights
 from dynbtf.synthesis.histogram_blending import HistogramBlending
-from dynbtf.synthesized import SynthesizedBTF
+from dynbtf.synthesized import _MLP_ROWS, SynthesizedBTF
 from dynbtf.texture import fetch_wrap
 
 
@@ -128,11 +132,14 @@ def main() -> None:
              f"{'max |ours-naive|':>17}"
     print(header)
     print("-" * len(header))
+    ours_hist = None  # (queries/s, workers) of the hist row
     for method in args.methods.split(","):
         ours = SynthesizedBTF(model, method, scale=1.0, precision=precision)
         ours.eval(uv[:50000], w_view[:50000], w_light[:50000])  # warm-up (kernel load)
         t_naive = best_time(lambda: naive_eval(model, ours.synthesizer, uv, w_view, w_light), 1)
         t_ours = best_time(lambda: ours.eval(uv, w_view, w_light), args.repeats)
+        if method == "hist":
+            ours_hist = (n / t_ours, ours.workers)
         sub = slice(0, 200000)
         # error vs the naive path with float64 directions (float32 directions make phi_h ill-conditioned
         # near the pole of h, where the naive float32 path itself is off by up to ~0.1)
@@ -141,34 +148,43 @@ def main() -> None:
                                   w_light[sub].double())).abs().max())
         print(f"{method:<7} {n / t_naive:>11.3g} {n / t_ours:>11.3g} {t_naive / t_ours:>8.1f}x {bound / t_ours:>13.1%} "
               f"{err:>17.2g}", flush=True)
-    # where our time goes (hist): per-stage timings over the same chunks
-    btf = SynthesizedBTF(model, "hist", scale=1.0, precision=precision)
+    # where our time goes (hist): per-stage timings over the same chunks, on one thread as each worker runs them
+    btf = SynthesizedBTF(model, "hist", scale=1.0, precision=precision, workers=1)
     chunk = btf.chunk_size
-    stages = {"synthesis kernel": 0.0, "layer-1 kernel (angular+pos.)": 0.0, f"layers 2-4 ({precision})": 0.0}
+    rest = f"layers 2-4 ({precision}, torch)"
+    stages = {"synthesis kernel": 0.0, "layer 1 (BLAS + angular kernel)": 0.0, rest: 0.0}
     fold = btf._fold
-    with torch.no_grad():
-        for start in range(0, n, chunk):
-            sl = slice(start, start + chunk)
-            t0 = time.perf_counter()
-            latent = btf.synthesizer.latent(uv[sl])
-            t1 = time.perf_counter()
-            pre = torch.from_numpy(first_layer_preactivation(latent.numpy(), *fold["numpy"], w_view[sl].numpy(),
-                                                             w_light[sl].numpy(), *fold["planes"]))
-            t2 = time.perf_counter()
-            x = torch.nn.functional.leaky_relu(pre, fold["slope"]).to(fold["dtype"])
-            for k, (weight, bias) in enumerate(fold["rest"]):
-                x = torch.nn.functional.linear(x, weight, bias)
-                if k < len(fold["rest"]) - 1:
-                    x = torch.nn.functional.leaky_relu(x, fold["slope"])
-            t3 = time.perf_counter()
-            stages["synthesis kernel"] += t1 - t0
-            stages["layer-1 kernel (angular+pos.)"] += t2 - t1
-            stages[f"layers 2-4 ({precision})"] += t3 - t2
+    threads = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(1)
+    numba.set_num_threads(1)
+    try:
+        with torch.no_grad():
+            for start in range(0, n, chunk):
+                sl = slice(start, start + chunk)
+                t0 = time.perf_counter()
+                latent = btf.synthesizer.latent(uv[sl])
+                t1 = time.perf_counter()
+                x = torch.from_numpy(first_layer_preactivation(latent.numpy(), *fold["numpy"], w_view[sl].numpy(),
+                                                               w_light[sl].numpy(), *fold["planes"],
+                                                               negative_slope=fold["slope"])).to(fold["dtype"])
+                t2 = time.perf_counter()
+                for block in x.split(_MLP_ROWS):
+                    btf._decode_rest(block)
+                t3 = time.perf_counter()
+                stages["synthesis kernel"] += t1 - t0
+                stages["layer 1 (BLAS + angular kernel)"] += t2 - t1
+                stages[rest] += t3 - t2
+        t_one = best_time(lambda: btf.eval(uv, w_view, w_light), 1)
+    finally:
+        torch.set_num_threads(threads[0])
+        numba.set_num_threads(threads[1])
+    stages["eval's own work (validation, chunks)"] = max(t_one - sum(stages.values()), 0.0)
     total = sum(stages.values())
-    print(f"\nour hist path, per stage (one pass, {precision}):")
+    print(f"\nour hist path on ONE thread, per stage ({precision}; {n / t_one:.3g} q/s on one thread"
+          + (f", {ours_hist[0]:.3g} q/s with {ours_hist[1]} workers above" if ours_hist else "") + "):")
     for name, t in stages.items():
-        print(f"  {name:<28} {t * 1e3:8.1f} ms  {t / total:6.1%}")
-    print(f"  {'bound at ' + precision + ' peak':<28} {bound * 1e3:8.1f} ms")
+        print(f"  {name:<38} {t * 1e3:8.1f} ms  {t / total:6.1%}")
+    print(f"  {'bound at ' + precision + ' peak (all threads)':<38} {bound * 1e3:8.1f} ms")
 
 
 if __name__ == "__main__":
