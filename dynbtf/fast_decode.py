@@ -7,12 +7,17 @@ plane read gives layer 1's angular contribution directly (no 16 -> 32 product
 per query). The positional part arrives as synthesized (decorrelated) latent
 features with the synthesizer's output map already folded into ``W_U``.
 
-Per query the kernel computes the Rusinkiewicz half and difference vectors,
-their angular-plane coordinates and the two clamped/wrapped bilinear fetches
-exactly as :func:`dynbtf.conventions.half_diff_from_view_light`,
+:func:`first_layer_preactivation` applies the positional product and the bias
+as one BLAS matmul (a 16 -> 32 product per query is what BLAS does best), then
+the angular kernel adds, per query, the two clamped/wrapped bilinear fetches at
+the Rusinkiewicz half and difference vectors' angular-plane coordinates, as
+:func:`dynbtf.conventions.half_diff_from_view_light`,
 :func:`dynbtf.conventions.angular_plane_coords` and
-:func:`dynbtf.texture.fetch_angular` do (tested against them), adds the
-positional product and the bias, and writes the pre-activation ``(N, hidden)``.
+:func:`dynbtf.texture.fetch_angular` define them (tested against them in
+float64), and optionally the LeakyReLU. The kernel works on blocks of queries
+in structure-of-arrays form with branch-free float64 arithmetic and a
+polynomial ``atan2`` (:func:`_atan2`, error ~1e-15 rad) instead of libm's
+``acos``/``atan2`` calls, so the direction math vectorizes across queries.
 """
 
 from __future__ import annotations

@@ -22,15 +22,19 @@ Units and conventions
 Speed (fast path, CPU, Triple-Plane-like models)
 -------------------------------------------------
 Queries run in chunks of ``chunk_size`` (bounded memory for any number of
-queries). Per chunk: the fused numba kernel synthesizes the decorrelated
-latent features (lattice + hash + three fetches + blend + inverse LUT in one
-pass); the PCA un-projection is folded into the decoder's first-layer
-positional weights; the angular features and first-layer angular product are
-computed by a second fused kernel with the angular planes pre-multiplied by
-their layer-1 weights (:mod:`dynbtf.fast_decode`); layers 2.. run in ``precision`` (``"bf16"`` is ~2x
-faster on CPUs with bf16 matrix units, differing from float32 by < 0.01,
-bounded in the tests). Representations without a split first layer are decoded
-with their own ``decode``.
+queries), spread over ``workers`` Python threads that each run numba and torch
+single-threaded (no hand-over between two OpenMP pools). Per chunk: the fused
+numba kernel synthesizes the decorrelated latent features (lattice + hash +
+three fetches + blend + inverse LUT, blocks of queries whose texel reads are
+prefetched); the PCA un-projection is folded into the decoder's first-layer
+positional weights, applied by one BLAS matmul; the angular features and their
+first-layer product come from a second numba kernel, vectorized across queries,
+that reads angular planes pre-multiplied by their layer-1 weights and applies
+the LeakyReLU (:mod:`dynbtf.fast_decode`); layers 2.. run in torch on blocks of
+16384 rows in ``precision`` (``"bf16"`` is ~2x faster on CPUs with bf16 matrix
+units and emulated, i.e. much slower, elsewhere; it differs from float32 by
+< 0.01, bounded in the tests). Representations without a split first layer are
+decoded with their own ``decode``. Measured numbers: ``docs/synthesis.md``.
 """
 
 from __future__ import annotations
