@@ -139,7 +139,8 @@ def _add_taps_and_activate(row, flat_h, flat_d, taps, weights, q, slope):
 _BLOCK = 256
 
 
-@numba.njit(parallel=True, cache=True, nogil=True, error_model="numpy")  # numpy: no zero-division checks, so loops vectorize
+# error_model="numpy": no zero-division checks (branches that stop loops from vectorizing)
+@numba.njit(parallel=True, cache=True, nogil=True, error_model="numpy")
 def _angular_kernel(w_view, w_light, plane_h, plane_d, slope, out):
     """``out[q] += fetch(plane_h, h_q) + fetch(plane_d, d_q)``, then LeakyReLU with ``slope`` (1: none)."""
     n, hidden = out.shape
@@ -217,10 +218,12 @@ def first_layer_preactivation(latent: np.ndarray, w_pos: np.ndarray, bias: np.nd
     if out is None:
         out = np.empty((n, w_pos.shape[1]), dtype=np.float32)
     # the positional product is a small dense matmul: BLAS (via torch) beats a per-query loop ~5x
-    torch.addmm(torch.from_numpy(np.asarray(bias, dtype=np.float32)), torch.from_numpy(np.asarray(latent, dtype=np.float32)),
+    torch.addmm(torch.from_numpy(np.asarray(bias, dtype=np.float32)),
+                torch.from_numpy(np.asarray(latent, dtype=np.float32)),
                 torch.from_numpy(np.asarray(w_pos, dtype=np.float32)), out=torch.from_numpy(out))
     _angular_kernel(np.ascontiguousarray(w_view, dtype=np.float32), np.ascontiguousarray(w_light, dtype=np.float32),
-                    plane_h, plane_d, np.float32(1.0 if negative_slope is None else negative_slope), out)
+                    np.ascontiguousarray(plane_h, dtype=np.float32), np.ascontiguousarray(plane_d, dtype=np.float32),
+                    np.float32(1.0 if negative_slope is None else negative_slope), out)
     return out
 
 
