@@ -108,7 +108,8 @@ class SynthesizedBTF:
         Queries per chunk (bounds memory).
     workers : int, optional
         Threads of the CPU fast path (default: torch's intra-op thread count). Chunks are spread
-        over a pool of this many Python threads, each running numba and torch single-threaded.
+        over a pool of this many Python threads, each running numba and torch single-threaded
+        (torch's intra-op thread count is 1 while :meth:`eval` runs, restored afterwards).
     precision : {"fp32", "bf16"}, default "fp32"
         Dtype of decoder layers 2.. on the fast path.
     **params
