@@ -9,7 +9,7 @@ cd "$(dirname "$0")/.."
 with_test=0
 [ "${1:-}" = "--test" ] && with_test=1
 
-apt_packages=(libllvm19)
+apt_packages=(libllvm19 g++)  # g++: dynbtf compiles its native training kernel on first use
 [ "$with_test" = 1 ] && apt_packages+=(chromium)
 
 missing=()

@@ -55,6 +55,24 @@ def test_image_store_cache_and_streaming_agree(btf):
     np.testing.assert_allclose(cached.get(pairs, texels), exact[:, texels], rtol=1e-3)
 
 
+@pytest.mark.parametrize("budget", [2 ** 30, 0])
+def test_image_store_blocks_match_scattered_reads(btf, budget):
+    """get_blocks(pairs (G, B, 2), starts, n) == get(pairs[g], texels of block g) side by side, wrapping at the end."""
+    store = ImageStore(btf, memory_budget=budget)
+    pairs = np.array([[[0, 3], [14, 2]], [[5, 5], [1, 0]], [[2, 9], [2, 9]]])
+    store.fill(pairs.reshape(-1, 2))  # cached: both read the float16 cache
+    starts = np.array([0, 58, 20])  # the second block wraps: texels 58..63, 0..3
+    blocks = store.get_blocks(pairs, starts, 10)
+    assert blocks.shape == (2, 30, 3) and blocks.dtype == np.float32
+    for g in range(3):
+        texels = (starts[g] + np.arange(10)) % 64
+        np.testing.assert_array_equal(blocks[:, 10 * g:10 * (g + 1)], store.get(pairs[g], texels))
+    with pytest.raises(InputError, match="length"):
+        store.get_blocks(pairs, starts, 65)
+    with pytest.raises(InputError, match="pairs"):
+        store.get_blocks(pairs[0], starts, 4)
+
+
 def test_training_a_tiny_btf_reduces_held_out_error(tmp_path, btf):
     _, held = held_out_split(btf.n_views, btf.n_lights, 0.1, seed=7)
     initial = TriplePlane(8, 8, seed=7)
@@ -148,33 +166,34 @@ def test_texel_subsets_train_streamed_without_cache(tmp_path, btf, monkeypatch):
 
 
 def test_texel_groups_cover_every_pair_per_pass_and_resume(tmp_path, btf, monkeypatch):
-    """texel_groups=G: each step has G x B pairs on disjoint texel groups; an epoch visits every pair G times."""
+    """texel_groups=G: each step has G x B pairs on disjoint blocks of consecutive texels covering the image;
+    an epoch visits every pair G times."""
     calls = []
-    original = ImageStore.get
+    original = ImageStore.get_blocks
 
-    def spy(self, pairs, texels=None):
-        calls.append((np.asarray(pairs).copy(), None if texels is None else np.asarray(texels).copy()))
-        return original(self, pairs, texels)
+    def spy(self, pairs, starts, length):
+        calls.append((np.asarray(pairs).copy(), np.asarray(starts).copy(), length))
+        return original(self, pairs, starts, length)
 
-    monkeypatch.setattr(ImageStore, "get", spy)
+    monkeypatch.setattr(ImageStore, "get_blocks", spy)
     config = small_config(epochs=2, texel_groups=4, images_per_step=8, monitor_pairs=0)
     result = fit_triple_plane(btf, tmp_path / "g.dbtfm", config, progress=False)
     train, _ = held_out_split(btf.n_views, btf.n_lights, 0.1, seed=7)
     steps_per_epoch = int(np.ceil(len(train) / 8))
-    assert len(calls) == 2 * steps_per_epoch * 4  # one store read per group
-    for step in range(2 * steps_per_epoch):
-        group_calls = calls[4 * step:4 * step + 4]
-        texels = np.concatenate([t for _, t in group_calls])
-        assert np.array_equal(np.sort(texels), np.arange(64))  # disjoint groups covering the image
-        assert all(len(p) == 8 for p, _ in group_calls)
-    first_epoch = np.concatenate([p for p, _ in calls[:4 * steps_per_epoch]])
+    assert len(calls) == 2 * steps_per_epoch  # one store read per step
+    for pairs, starts, length in calls:
+        assert pairs.shape == (4, 8, 2) and length == 16
+        texels = (starts[:, None] + np.arange(16)[None]) % 64
+        assert np.array_equal(np.sort(texels.ravel()), np.arange(64))  # disjoint groups covering the image
+    assert len({int(starts[0]) for _, starts, _ in calls}) > 1  # the blocks move from step to step
+    first_epoch = np.concatenate([p.reshape(-1, 2) for p, _, _ in calls[:steps_per_epoch]])
     counts = {}
     for pair in map(tuple, first_epoch):
         counts[pair] = counts.get(pair, 0) + 1
     assert set(counts) == set(map(tuple, train))
     assert min(counts.values()) >= 4 and sum(counts.values()) == 4 * 8 * steps_per_epoch  # G passes (+ wrap-around)
     # resuming a grouped run mid-epoch ends with the same parameters
-    monkeypatch.setattr(ImageStore, "get", original)
+    monkeypatch.setattr(ImageStore, "get_blocks", original)
 
     def stop(info):
         if info["global_step"] == 7:

@@ -36,7 +36,7 @@ def fit(
                                    "1e-3 for planes, 3e-4 for the decoder)."),
     texels_per_image: Optional[int] = typer.Option(None, "--texels-per-image", help="Train on a random subset of "
                                                    "this many texels per step (very large BTFs). Default: all."),
-    texel_groups: int = typer.Option(1, "--texel-groups", help="Split each step's texels into this many random "
+    texel_groups: int = typer.Option(1, "--texel-groups", help="Split each step's texels into this many "
                                      "groups, each under its own --images-per-step pairs: more (view, light) pairs "
                                      "per step at the same cost, faster convergence (64 measures well; 1: the "
                                      "paper's whole images). Each step reads groups x images-per-step images: "
@@ -45,6 +45,9 @@ def fit(
                                     "BTFs are decoded per step (bounded memory)."),
     workers: Optional[int] = typer.Option(None, help="Threads of the fused training kernel (default: torch's)."),
     device: str = typer.Option("auto", help="auto (CUDA if available), cpu, cuda:0, ..."),
+    precision: str = typer.Option("auto", help="Arithmetic of the decoder's training kernel: fp32, bf16 "
+                                  "(bfloat16 products, float32 accumulation and parameters; CPUs with "
+                                  "AVX512-BF16), or auto (bf16 where available, else fp32)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
 ) -> None:
     """Fit a representation to a BTF with the paper's recipe (L1, AdamW, x0.9 lr per epoch, 16 images/step)."""
@@ -52,7 +55,8 @@ def fit(
 
     config = TrainConfig(epochs=epochs, max_minutes=max_minutes, seed=seed, held_out_fraction=held_out_fraction,
                          images_per_step=images_per_step, lr_scale=lr_scale, texels_per_image=texels_per_image,
-                         texel_groups=texel_groups, memory_budget_mb=memory_mb, workers=workers, device=device)
+                         texel_groups=texel_groups, memory_budget_mb=memory_mb, workers=workers, device=device,
+                         precision=precision)
     fitter = get_fitter(repr)
     source = _open_source(btf)
     result = fitter(source, output, config, progress=not quiet)

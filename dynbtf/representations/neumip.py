@@ -134,19 +134,20 @@ class NeuMIP(Representation):
 
     def texel_image_l1_loss(self, w_view: torch.Tensor, w_light: torch.Tensor, target: torch.Tensor,
                             texels: torch.Tensor | None = None, *, chunk_texels: int = 256,
-                            workers: int = 1, texel_groups: int = 1) -> torch.Tensor:
+                            workers: int = 1, texel_groups: int = 1, precision: str = "fp32") -> torch.Tensor:
         """Mean L1 loss of :meth:`predict_texel_images` against ``target (B, N, 3)``, fused.
 
         The same fast path as the Triple Plane's (same decoder structure): layer 1's
         texture product once per texel, its direction part once per image, layers 2..
         by :func:`dynbtf.training.fused_mlp.split_mlp_l1_loss`. Equal (to rounding)
         to ``(self.predict_texel_images(...) - target).abs().mean()``; ``texel_groups``
-        as in :meth:`dynbtf.representations.triple_plane.TriplePlane.texel_image_l1_loss`.
+        and ``precision`` as in :meth:`dynbtf.representations.triple_plane.TriplePlane.texel_image_l1_loss`.
         """
         plane = self.texture.reshape(-1, self.texture.shape[-1])
         features = plane if texels is None else plane.index_select(0, texels)
         return self.decoder.texel_image_l1_loss(features, self.direction_inputs(w_view, w_light), target,
-                                                chunk_texels=chunk_texels, workers=workers, texel_groups=texel_groups)
+                                                chunk_texels=chunk_texels, workers=workers, texel_groups=texel_groups,
+                                                precision=precision)
 
 
 @register_fitter("neumip")

@@ -114,7 +114,8 @@ class Decoder(nn.Module):
         return x
 
     def texel_image_l1_loss(self, positional: torch.Tensor, angular: torch.Tensor, target: torch.Tensor, *,
-                            chunk_texels: int = 256, workers: int = 1, texel_groups: int = 1) -> torch.Tensor:
+                            chunk_texels: int = 256, workers: int = 1, texel_groups: int = 1,
+                            precision: str = "fp32") -> torch.Tensor:
         """Fused mean L1 loss of ``self(positional[None], angular[:, None])`` against ``target (B, N, 3)``.
 
         ``positional (N, C_U)`` is shared by the ``B`` images, ``angular (B, C_A)`` is one
@@ -123,6 +124,7 @@ class Decoder(nn.Module):
         :func:`dynbtf.training.fused_mlp.split_mlp_l1_loss` in cache-sized chunks.
         With ``texel_groups = G``, the texels form ``G`` equal consecutive groups, group
         ``g`` seen under its own ``B`` images: ``angular`` is ``(G * B, C_A)`` (group-major).
+        ``precision``: arithmetic of layers 2.. (see :func:`~dynbtf.training.fused_mlp.split_mlp_l1_loss`).
         """
         dtype = self.first.weight.dtype
         positional_pre = self.first_layer_positional(positional.to(dtype))
@@ -131,7 +133,7 @@ class Decoder(nn.Module):
             raise InputError(f"texel_groups={texel_groups} does not divide the {image_pre.shape[0]} images")
         image_pre = image_pre.reshape(texel_groups, -1, image_pre.shape[-1])
         return split_mlp_l1_loss(positional_pre, image_pre, self.rest, self.negative_slope,
-                                 target, chunk_texels=chunk_texels, workers=workers)
+                                 target, chunk_texels=chunk_texels, workers=workers, precision=precision)
 
     def forward(self, positional: torch.Tensor, angular: torch.Tensor) -> torch.Tensor:
         """RGB ``(..., 3)`` from broadcastable ``positional (..., C_U)`` and ``angular (..., C_A)``."""
@@ -255,7 +257,7 @@ class TriplePlane(Representation):
 
     def texel_image_l1_loss(self, w_view: torch.Tensor, w_light: torch.Tensor, target: torch.Tensor,
                             texels: torch.Tensor | None = None, *, chunk_texels: int = 256,
-                            workers: int = 1, texel_groups: int = 1) -> torch.Tensor:
+                            workers: int = 1, texel_groups: int = 1, precision: str = "fp32") -> torch.Tensor:
         """Mean L1 loss of :meth:`predict_texel_images` against ``target (B, N, 3)``, fused.
 
         Same value and gradients as ``(self.predict_texel_images(w_view, w_light, texels)
@@ -271,7 +273,8 @@ class TriplePlane(Representation):
         plane = self.f_u.reshape(-1, self.f_u.shape[-1])
         features = plane if texels is None else plane.index_select(0, texels)
         return self.decoder.texel_image_l1_loss(features, self.angular_features(w_view, w_light), target,
-                                                chunk_texels=chunk_texels, workers=workers, texel_groups=texel_groups)
+                                                chunk_texels=chunk_texels, workers=workers, texel_groups=texel_groups,
+                                                precision=precision)
 
     def param_groups(self) -> list[dict[str, Any]]:
         """Optimizer parameter groups, the paper's recipe: AdamW (PyTorch's default weight

@@ -31,6 +31,7 @@ deterministic for a given ``workers`` and ``chunk_texels``.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 from concurrent.futures import ThreadPoolExecutor
 from typing import Sequence
 
@@ -38,9 +39,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .. import native
 from ..errors import InputError
 
-__all__ = ["split_mlp_l1_loss", "single_intra_op_thread"]
+__all__ = ["split_mlp_l1_loss", "single_intra_op_thread", "native_precisions", "resolve_precision"]
 
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 
@@ -113,27 +115,133 @@ def _chunk_range(positional_pre, image_pre, weights, biases, slope, target, item
     return loss, g_positional, g_image, g_weights, g_biases
 
 
+# ---------------------------------------------------------------------------- native kernel
+class _NativeArgs(ctypes.Structure):
+    """``FusedL1Args`` of ``dynbtf/native/fused_mlp.cpp`` (same field order)."""
+
+    _fields_ = [("hidden", ctypes.c_int32), ("out_channels", ctypes.c_int32), ("n_layers", ctypes.c_int32),
+                ("groups", ctypes.c_int32), ("images", ctypes.c_int32), ("texels_per_group", ctypes.c_int32),
+                ("slope", ctypes.c_float), ("n_items", ctypes.c_int32), ("items", ctypes.c_void_p),
+                ("positional_pre", ctypes.c_void_p), ("image_pre", ctypes.c_void_p), ("target", ctypes.c_void_p),
+                ("weights", ctypes.c_void_p), ("biases", ctypes.c_void_p), ("grad_positional", ctypes.c_void_p),
+                ("grad_image", ctypes.c_void_p), ("grad_weights", ctypes.c_void_p), ("grad_biases", ctypes.c_void_p),
+                ("loss", ctypes.c_double)]
+
+
+def _native_library():
+    library = native.load_library("fused_mlp")
+    if library is not None and not hasattr(library, "_dynbtf_ready"):
+        for fn in (library.dynbtf_fused_l1_fp32, library.dynbtf_fused_l1_bf16):
+            fn.argtypes = [ctypes.POINTER(_NativeArgs)]
+            fn.restype = ctypes.c_int
+        library.dynbtf_fused_l1_has_bf16.restype = ctypes.c_int
+        library._dynbtf_ready = True
+    return library
+
+
+def native_precisions() -> tuple[str, ...]:
+    """Precisions the native CPU kernel offers on this machine: ``("fp32", "bf16")``, ``("fp32",)`` or ``()``.
+
+    ``bf16`` needs a CPU with AVX512-BF16 (bfloat16 dot products); without a C++ compiler there is no
+    native kernel and training uses the PyTorch path (fp32). :func:`dynbtf.native.status` says why.
+    """
+    library = _native_library()
+    if library is None:
+        return ()
+    return ("fp32", "bf16") if library.dynbtf_fused_l1_has_bf16() else ("fp32",)
+
+
+def resolve_precision(precision: str, device: torch.device | str = "cpu") -> str:
+    """The arithmetic of the fused loss: ``"fp32"`` or ``"bf16"``.
+
+    ``"auto"`` picks ``"bf16"`` on a CPU whose native kernel has it (several times faster, see
+    ``benchmarks/bench_training.py``), else ``"fp32"``. ``"bf16"`` on a machine without it is an error.
+    """
+    device = torch.device(device)
+    if precision not in ("auto", "fp32", "bf16"):
+        raise InputError(f"precision: expected 'auto', 'fp32' or 'bf16', got {precision!r}")
+    available = native_precisions() if device.type == "cpu" else ()
+    if precision == "auto":
+        return "bf16" if "bf16" in available else "fp32"
+    if precision == "bf16" and "bf16" not in available:
+        where = "on the GPU" if device.type != "cpu" else f"on this CPU ({native.status('fused_mlp')})"
+        raise InputError(f"precision='bf16': the bfloat16 training kernel is not available {where}; "
+                         "use 'fp32' or 'auto'")
+    return precision
+
+
+def _pointer_array(tensors: Sequence[torch.Tensor]):
+    return (ctypes.c_void_p * len(tensors))(*[t.data_ptr() for t in tensors])
+
+
+def _native_range(precision, positional_pre, image_pre, weights, biases, slope, target, items, g_positional):
+    """The native kernel over ``items`` (int64 ``(k, 3)``: group, texel range); same partial sums as
+    :func:`_chunk_range` but ``g_positional`` rows are written in place."""
+    groups, b, hidden = image_pre.shape
+    g_weights = [torch.zeros_like(w) for w in weights]
+    g_biases = [torch.zeros_like(x) for x in biases]
+    g_image = torch.zeros_like(image_pre)
+    args = _NativeArgs(hidden=hidden, out_channels=weights[-1].shape[0], n_layers=len(weights), groups=groups,
+                       images=b, texels_per_group=positional_pre.shape[0] // groups, slope=slope,
+                       n_items=items.shape[0], items=items.data_ptr(), positional_pre=positional_pre.data_ptr(),
+                       image_pre=image_pre.data_ptr(), target=target.data_ptr(), loss=0.0)
+    keep = [_pointer_array(weights), _pointer_array(biases), _pointer_array(g_weights), _pointer_array(g_biases)]
+    args.weights, args.biases, args.grad_weights, args.grad_biases = [ctypes.addressof(k) for k in keep]
+    args.grad_positional, args.grad_image = g_positional.data_ptr(), g_image.data_ptr()
+    library = _native_library()
+    fn = library.dynbtf_fused_l1_bf16 if precision == "bf16" else library.dynbtf_fused_l1_fp32
+    code = fn(ctypes.byref(args))
+    if code != 0:
+        raise RuntimeError(f"native fused_mlp kernel refused its arguments (code {code})")
+    loss = torch.tensor(args.loss, dtype=torch.float64)
+    return loss, g_image, g_weights, g_biases
+
+
+def _native_supports(positional_pre, weights, precision) -> bool:
+    """Whether the native kernel handles this call (CPU float32, its layer shapes, the precision available)."""
+    hidden = positional_pre.shape[1]
+    return (positional_pre.device.type == "cpu" and positional_pre.dtype == torch.float32
+            and precision in native_precisions() and hidden % 16 == 0 and hidden // 16 in (1, 2, 3, 4, 8)
+            and 1 <= len(weights) <= 7 and 1 <= weights[-1].shape[0] <= 16
+            and all(tuple(w.shape) == (hidden, hidden) for w in weights[:-1]) and weights[-1].shape[1] == hidden)
+
+
 class _SplitMLPL1(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, positional_pre, image_pre, target, slope, chunk, workers, *weights_and_biases):
+    def forward(ctx, positional_pre, image_pre, target, slope, chunk, workers, precision, *weights_and_biases):
         n_layers = len(weights_and_biases) // 2
         weights, biases = weights_and_biases[:n_layers], weights_and_biases[n_layers:]
         groups = image_pre.shape[0]
-        items = _chunks(groups, positional_pre.shape[0] // groups, chunk)
+        n = positional_pre.shape[0] // groups
+        args = (positional_pre.detach().contiguous(), image_pre.detach().contiguous(),
+                [w.detach().contiguous() for w in weights], [x.detach().contiguous() for x in biases], slope,
+                target.contiguous())
+        native_kernel = _native_supports(positional_pre, weights, precision)
+        if native_kernel:
+            # work items: (group, texel range) in chunks, split evenly over the workers
+            items = torch.tensor([(g, a, min(a + chunk, n)) for g in range(groups) for a in range(0, n, chunk)],
+                                 dtype=torch.int64)
+            g_positional = torch.empty_like(args[0])
+            run = lambda part: _native_range(precision, *args, part, g_positional)  # noqa: E731
+        else:
+            if precision != "fp32":
+                raise InputError(f"precision={precision!r} needs the native CPU kernel; it is not available here")
+            items = _chunks(groups, n, chunk)
+            run = lambda part: _chunk_range(*args, part)  # noqa: E731
         workers = max(1, min(workers, len(items)))
         split = [round(len(items) * k / workers) for k in range(workers + 1)]
-        args = (positional_pre.detach(), image_pre.detach(), [w.detach() for w in weights],
-                [x.detach() for x in biases], slope, target)
         if workers == 1:
-            parts = [_chunk_range(*args, items)]
+            parts = [run(items)]
         else:
             with single_intra_op_thread():
-                futures = [_pool(workers).submit(_chunk_range, *args, items[split[k]:split[k + 1]])
-                           for k in range(workers)]
+                futures = [_pool(workers).submit(run, items[split[k]:split[k + 1]]) for k in range(workers)]
                 parts = [f.result() for f in futures]
         count = float(target.numel())
+        if native_kernel:
+            parts = [(p[0], None, *p[1:]) for p in parts]
+        else:
+            g_positional = torch.cat([p[1][r0] for p in parts for r0 in sorted(p[1])])
         loss = sum(p[0] for p in parts) / count
-        g_positional = torch.cat([p[1][r0] for p in parts for r0 in sorted(p[1])]) / count
         g_image = parts[0][2].clone()
         g_weights = [g.clone() for g in parts[0][3]]
         g_biases = [g.clone() for g in parts[0][4]]
@@ -141,20 +249,20 @@ class _SplitMLPL1(torch.autograd.Function):
             g_image += p[2]
             for acc, g in zip(g_weights + g_biases, p[3] + p[4]):
                 acc += g
-        ctx.save_for_backward(g_positional, g_image / count, *[g / count for g in g_weights + g_biases])
+        ctx.save_for_backward(g_positional / count, g_image / count, *[g / count for g in g_weights + g_biases])
         return loss.to(positional_pre.dtype)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_loss):
         g_positional, g_image, *g_params = ctx.saved_tensors
-        return (g_positional * grad_loss, g_image * grad_loss, None, None, None, None,
+        return (g_positional * grad_loss, g_image * grad_loss, None, None, None, None, None,
                 *[g * grad_loss for g in g_params])
 
 
 def split_mlp_l1_loss(positional_pre: torch.Tensor, image_pre: torch.Tensor, layers: Sequence[nn.Linear],
                       negative_slope: float, target: torch.Tensor, *, chunk_texels: int = 256,
-                      workers: int = 1) -> torch.Tensor:
+                      workers: int = 1, precision: str = "fp32") -> torch.Tensor:
     """Mean L1 loss of a LeakyReLU MLP whose first layer is split per texel / per image.
 
     Computes ``mean |MLP(P[t] + Q[g(t), b]) - target[b, t]|`` where the ``N`` texels
@@ -183,6 +291,10 @@ def split_mlp_l1_loss(positional_pre: torch.Tensor, image_pre: torch.Tensor, lay
         a 16-image chunk's activations in a CPU's L2 cache.
     workers : int
         Threads processing chunks in parallel.
+    precision : {"fp32", "bf16", "auto"}
+        Arithmetic of layers 2..: ``"fp32"`` (the native kernel where it builds, else PyTorch;
+        both float32), ``"bf16"`` (native kernel on CPUs with AVX512-BF16: bfloat16 products
+        accumulated in float32, float32 gradients), ``"auto"`` (see :func:`resolve_precision`).
 
     Returns
     -------
@@ -202,5 +314,6 @@ def split_mlp_l1_loss(positional_pre: torch.Tensor, image_pre: torch.Tensor, lay
     weights = [layer.weight for layer in layers]
     biases = [layer.bias for layer in layers]
     target = target.to(positional_pre.dtype)
+    precision = resolve_precision(precision, positional_pre.device)
     return _SplitMLPL1.apply(positional_pre, image_pre, target, float(negative_slope), int(chunk_texels),
-                             int(workers), *weights, *biases)
+                             int(workers), precision, *weights, *biases)

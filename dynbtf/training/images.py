@@ -117,6 +117,42 @@ class ImageStore:
                         dynamic_ncols=True, leave=False):
             self.image(int(row) // self.source.n_lights, int(row) % self.source.n_lights)
 
+    def get_blocks(self, pairs: np.ndarray, starts: np.ndarray, length: int) -> np.ndarray:
+        """Blocks of consecutive texels of different images, side by side: float32 ``(B, G * length, 3)``.
+
+        Block ``g`` holds the flat texels ``starts[g], starts[g] + 1, ..., starts[g] + length - 1``
+        (modulo ``H * W``) of the ``B`` images ``pairs[g]`` (int ``(G, B, 2)``): ``out[b, g * length + j]``
+        is texel ``(starts[g] + j) mod (H * W)`` of image ``pairs[g, b]``. Contiguous reads, unlike
+        :meth:`get` with scattered texels, so a whole step's batch costs one pass over its bytes.
+        """
+        pairs = np.asarray(pairs, dtype=np.int64)
+        starts = np.asarray(starts, dtype=np.int64)
+        if pairs.ndim != 3 or pairs.shape[2] != 2 or starts.shape != (pairs.shape[0],):
+            raise InputError(f"get_blocks: expected pairs (G, B, 2) and starts (G,), got {pairs.shape} and "
+                             f"{starts.shape}")
+        if not 1 <= length <= self.n_texels:
+            raise InputError(f"get_blocks: length {length} must be in [1, {self.n_texels}]")
+        groups, b = pairs.shape[:2]
+        out = np.empty((b, groups * length, 3), dtype=np.float32)
+        for g in range(groups):
+            a = int(starts[g]) % self.n_texels
+            pieces = [(a, min(a + length, self.n_texels))]
+            if a + length > self.n_texels:  # wraps around the end of the image
+                pieces.append((0, a + length - self.n_texels))
+            offset = g * length
+            for lo, hi in pieces:
+                out[:, offset:offset + hi - lo] = self._rows(pairs[g], lo, hi)
+                offset += hi - lo
+        return out
+
+    def _rows(self, pairs: np.ndarray, lo: int, hi: int) -> np.ndarray:
+        """Flat texels ``[lo, hi)`` of the images ``pairs (B, 2)``: ``(B, hi - lo, 3)`` (float16 from the cache)."""
+        if self.cached:
+            rows = pairs[:, 0] * self.source.n_lights + pairs[:, 1]
+            if self._filled[rows].all():
+                return self._cache[rows, lo:hi]
+        return np.stack([self.image(int(v), int(l))[lo:hi] for v, l in pairs])
+
     def get(self, pairs: np.ndarray, texels: np.ndarray | None = None) -> np.ndarray:
         """Images of ``pairs`` (int ``(B, 2)``) as float32 ``(B, N, 3)``, optionally at flat ``texels`` only."""
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)

@@ -1,0 +1,488 @@
+// Fused L1 training step of a LeakyReLU MLP over whole-image batches (native CPU kernel).
+//
+// The Python side (dynbtf/training/fused_mlp.py) documents the maths; this file computes, for
+// the work items handed to one thread, exactly what its torch fallback computes:
+//
+//   z1[b, t] = P[t] + Q[g(t), b]                    (layer 1, split per texel / per image)
+//   a1 = lrelu(z1);  a_k = lrelu(W_k a_{k-1} + c_k) (hidden layers 2 .. L-1, H x H)
+//   y  = W_L a_{L-1} + c_L                          (output layer, C x H, no activation)
+//   loss = sum |y - target|                         (summed; the caller divides by the count)
+//
+// and the gradients of that sum with respect to P (rows of the items, overwritten), Q, every
+// W_k and c_k (accumulated into the caller's buffers). d|r|/dr = sign(r), sign(0) = 0.
+//
+// Samples are processed in tiles of one image x up to TILE texels whose activations stay in the
+// L1 cache. Two precisions share one driver:
+//   * fp32: GCC vector extensions (16 floats), compiled for the build machine's vector unit;
+//   * bf16: AVX512-BF16 dot products (vdpbf16ps) on bfloat16 activations, weights and
+//     gradients, accumulated in fp32 (mixed precision: P, Q, biases, loss, residuals, masks and
+//     every gradient accumulator stay fp32). Only built when the compiler targets AVX512-BF16.
+//
+// Built on first use by dynbtf/native/__init__.py (g++ -O3 -march=native), called via ctypes.
+
+#include <cstdint>
+#include <cstring>
+#include <cmath>
+#include <algorithm>
+#if defined(__AVX512BF16__) && defined(__AVX512BW__)
+#include <immintrin.h>
+#define DYNBTF_HAVE_BF16 1
+#else
+#define DYNBTF_HAVE_BF16 0
+#endif
+
+extern "C" {
+
+// Mirrored by ctypes in dynbtf/native/__init__.py: keep the field order.
+struct FusedL1Args {
+    int32_t hidden;            // H (a multiple of 16, at most 128)
+    int32_t out_channels;      // C (1 .. 16)
+    int32_t n_layers;          // layers after the first: n_layers - 1 hidden (H x H) + the output layer (C x H)
+    int32_t groups;            // G
+    int32_t images;            // B
+    int32_t texels_per_group;  // n
+    float slope;               // LeakyReLU negative slope (> 0)
+    int32_t n_items;
+    const int64_t* items;      // (n_items, 3): group, first texel, end texel (within the group)
+    const float* positional_pre;   // (G * n, H)
+    const float* image_pre;        // (G, B, H)
+    const float* target;           // (B, G * n, C)
+    const float* const* weights;   // n_layers pointers, row-major (out, in)
+    const float* const* biases;    // n_layers pointers
+    float* grad_positional;        // (G * n, H): the items' rows are overwritten
+    float* grad_image;             // (G, B, H), accumulated
+    float* const* grad_weights;    // accumulated
+    float* const* grad_biases;     // accumulated
+    double loss;                   // out: sum of |residual| over the items' samples
+};
+
+int dynbtf_fused_l1_fp32(FusedL1Args* args);
+int dynbtf_fused_l1_bf16(FusedL1Args* args);
+int dynbtf_fused_l1_has_bf16(void);
+}
+
+namespace {
+
+constexpr int MAX_HIDDEN = 128;
+constexpr int MAX_LAYERS = 8;
+constexpr int MAX_OUT = 16;
+constexpr int TILE = 64;   // samples per tile (one image x up to TILE texels); a multiple of 8
+
+typedef float v16 __attribute__((vector_size(64)));
+
+inline v16 load16(const float* p) { v16 v; std::memcpy(&v, p, sizeof v); return v; }
+inline void store16(float* p, v16 v) { std::memcpy(p, &v, sizeof v); }
+inline v16 splat(float x) { return v16{} + x; }
+inline v16 lrelu16(v16 z, float slope) { return z > 0 ? z : z * slope; }
+inline float hsum16(v16 v) {
+    float s = 0.f;
+    for (int j = 0; j < 16; ++j) s += v[j];
+    return s;
+}
+
+// ------------------------------------------------------------------------------------------ fp32
+// Activations are fp32 rows of H floats; layer weights are used as given (row-major (out, in)) and
+// transposed (in, out) for the forward pass.
+struct Fp32 {
+    typedef float act_t;
+    int H, C;
+    // per layer: transposed weights (in, out_padded) for the forward pass and (out, in) as given
+    float wt[MAX_LAYERS][MAX_HIDDEN * MAX_HIDDEN];
+    const float* w[MAX_LAYERS];
+
+    void prepare(const FusedL1Args* a) {
+        H = a->hidden; C = a->out_channels;
+        for (int k = 0; k < a->n_layers; ++k) {
+            int out = (k == a->n_layers - 1) ? C : H, outp = (k == a->n_layers - 1) ? 16 : H;
+            w[k] = a->weights[k];
+            for (int i = 0; i < H; ++i)
+                for (int o = 0; o < outp; ++o) wt[k][i * outp + o] = o < out ? a->weights[k][o * H + i] : 0.f;
+        }
+    }
+    // row of fp32 values -> stored activation row (identity)
+    static void store_row(act_t* dst, const float* src, int H) { std::memcpy(dst, src, H * sizeof(float)); }
+
+    // Y[s] = lrelu(W X[s] + c) for S samples (S a multiple of 8); also the fp32 pre-activation sign mask
+    template <int NV>
+    void hidden_forward(int k, const act_t* X, const float* bias, float slope, int S, act_t* Y, uint8_t* mask) const {
+        const int H = 16 * NV;
+        constexpr int R = NV <= 2 ? 8 : 4;
+        for (int s = 0; s < S; s += R) {
+            v16 acc[R][NV];
+            for (int r = 0; r < R; ++r)
+                for (int v = 0; v < NV; ++v) acc[r][v] = load16(bias + 16 * v);
+            for (int i = 0; i < H; ++i) {
+                v16 wv[NV];
+                for (int v = 0; v < NV; ++v) wv[v] = load16(wt[k] + i * H + 16 * v);
+                for (int r = 0; r < R; ++r) {
+                    v16 x = splat(X[(s + r) * H + i]);
+                    for (int v = 0; v < NV; ++v) acc[r][v] += x * wv[v];
+                }
+            }
+            for (int r = 0; r < R; ++r)
+                for (int v = 0; v < NV; ++v) {
+                    store16(Y + (s + r) * H + 16 * v, lrelu16(acc[r][v], slope));
+                    for (int j = 0; j < 16; ++j) mask[(s + r) * H + 16 * v + j] = acc[r][v][j] > 0;
+                }
+        }
+    }
+    // out[s, 0:16] = W_L X[s] + c (lanes >= C are zero)
+    template <int NV>
+    void output_forward(int k, const act_t* X, const float* bias16, int S, float* out) const {
+        const int H = 16 * NV;
+        for (int s = 0; s < S; s += 8) {
+            v16 acc[8];
+            for (int r = 0; r < 8; ++r) acc[r] = load16(bias16);
+            for (int i = 0; i < H; ++i) {
+                v16 wv = load16(wt[k] + i * 16);
+                for (int r = 0; r < 8; ++r) acc[r] += splat(X[(s + r) * H + i]) * wv;
+            }
+            for (int r = 0; r < 8; ++r) store16(out + (s + r) * 16, acc[r]);
+        }
+    }
+    // dX[s] = (W^T dZ[s]) for S samples; dZ rows have `out` (16-padded for the output layer) fp32 entries
+    template <int NV>
+    void backward_input(int k, const float* dZ, int out, int ldz, int S, float* dX) const {
+        const int H = 16 * NV;
+        constexpr int R = NV <= 2 ? 8 : 4;
+        for (int s = 0; s < S; s += R) {
+            v16 acc[R][NV];
+            for (int r = 0; r < R; ++r)
+                for (int v = 0; v < NV; ++v) acc[r][v] = v16{};
+            for (int o = 0; o < out; ++o) {
+                v16 wv[NV];
+                for (int v = 0; v < NV; ++v) wv[v] = load16(w[k] + o * H + 16 * v);
+                for (int r = 0; r < R; ++r) {
+                    v16 g = splat(dZ[(s + r) * ldz + o]);
+                    for (int v = 0; v < NV; ++v) acc[r][v] += g * wv[v];
+                }
+            }
+            for (int r = 0; r < R; ++r)
+                for (int v = 0; v < NV; ++v) store16(dX + (s + r) * H + 16 * v, acc[r][v]);
+        }
+    }
+    // dW[o, :] += sum_s dZ[s, o] X[s, :] for o < out
+    template <int NV>
+    void backward_weights(const float* dZ, int out, int ldz, const act_t* X, int S, float* dW) const {
+        const int H = 16 * NV;
+        constexpr int R = NV <= 2 ? 8 : 4;
+        for (int o0 = 0; o0 < out; o0 += R) {
+            int rn = std::min(R, out - o0);
+            v16 acc[R][NV];
+            for (int r = 0; r < R; ++r)
+                for (int v = 0; v < NV; ++v) acc[r][v] = r < rn ? load16(dW + (o0 + r) * H + 16 * v) : v16{};
+            for (int s = 0; s < S; ++s) {
+                v16 xv[NV];
+                for (int v = 0; v < NV; ++v) xv[v] = load16(X + s * H + 16 * v);
+                for (int r = 0; r < R; ++r) {
+                    v16 g = splat(r < rn ? dZ[s * ldz + o0 + r] : 0.f);
+                    for (int v = 0; v < NV; ++v) acc[r][v] += g * xv[v];
+                }
+            }
+            for (int r = 0; r < rn; ++r)
+                for (int v = 0; v < NV; ++v) store16(dW + (o0 + r) * H + 16 * v, acc[r][v]);
+        }
+    }
+};
+
+#if DYNBTF_HAVE_BF16
+// ------------------------------------------------------------------------------------------ bf16
+// Activation rows are H bfloat16 values (round to nearest even). For vdpbf16ps the weights are
+// laid out as pairs: forward  wf[k][pair p][v] = 16 lanes j of (W[16v+j, 2p], W[16v+j, 2p+1]),
+//                    backward wb[k][pair m][v] = 16 lanes j of (W[2m, 16v+j], W[2m+1, 16v+j]).
+struct Bf16 {
+    typedef uint16_t act_t;
+    int H, C;
+    alignas(64) uint16_t wf[MAX_LAYERS][MAX_HIDDEN * MAX_HIDDEN];
+    alignas(64) uint16_t wb[MAX_LAYERS][MAX_HIDDEN * MAX_HIDDEN];
+
+    static uint16_t to_bf16(float x) {  // round to nearest even (inputs are finite)
+        uint32_t u;
+        std::memcpy(&u, &x, 4);
+        u += 0x7FFF + ((u >> 16) & 1);
+        return static_cast<uint16_t>(u >> 16);
+    }
+    void prepare(const FusedL1Args* a) {
+        H = a->hidden; C = a->out_channels;
+        int NV = H / 16;
+        for (int k = 0; k < a->n_layers; ++k) {
+            const float* W = a->weights[k];
+            bool last = k == a->n_layers - 1;
+            int out = last ? C : H, nvo = last ? 1 : NV;
+            for (int p = 0; p < H / 2; ++p)          // forward: pairs over inputs
+                for (int v = 0; v < nvo; ++v)
+                    for (int j = 0; j < 16; ++j)
+                        for (int e = 0; e < 2; ++e) {
+                            int o = 16 * v + j;
+                            wf[k][((p * nvo + v) * 16 + j) * 2 + e] = o < out ? to_bf16(W[o * H + 2 * p + e]) : 0;
+                        }
+            int pairs_out = (out + 1) / 2;             // backward: pairs over outputs
+            for (int m = 0; m < pairs_out; ++m)
+                for (int v = 0; v < NV; ++v)
+                    for (int j = 0; j < 16; ++j)
+                        for (int e = 0; e < 2; ++e) {
+                            int o = 2 * m + e;
+                            wb[k][((m * NV + v) * 16 + j) * 2 + e] = o < out ? to_bf16(W[o * H + 16 * v + j]) : 0;
+                        }
+        }
+    }
+    static void store_row(act_t* dst, const float* src, int H) {
+        for (int v = 0; v < H / 16; ++v)
+            _mm256_storeu_si256(reinterpret_cast<__m256i*>(dst + 16 * v),
+                                (__m256i)_mm512_cvtneps_pbh(_mm512_loadu_ps(src + 16 * v)));
+    }
+    static __m512i bcast_pair(const uint16_t* row, int p) {
+        int32_t x;
+        std::memcpy(&x, row + 2 * p, 4);
+        return _mm512_set1_epi32(x);
+    }
+
+    template <int NV>
+    void hidden_forward(int k, const act_t* X, const float* bias, float slope, int S, act_t* Y, uint8_t* mask) const {
+        const int H = 16 * NV;
+        constexpr int R = NV <= 2 ? 8 : 4;
+        const __m512 sl = _mm512_set1_ps(slope);
+        for (int s = 0; s < S; s += R) {
+            __m512 acc[R][NV];
+            for (int r = 0; r < R; ++r)
+                for (int v = 0; v < NV; ++v) acc[r][v] = _mm512_loadu_ps(bias + 16 * v);
+            for (int p = 0; p < H / 2; ++p) {
+                __m512i wv[NV];
+                for (int v = 0; v < NV; ++v)
+                    wv[v] = _mm512_load_si512(reinterpret_cast<const void*>(wf[k] + (p * NV + v) * 32));
+                for (int r = 0; r < R; ++r) {
+                    __m512i x = bcast_pair(X + (s + r) * H, p);
+                    for (int v = 0; v < NV; ++v)
+                        acc[r][v] = _mm512_dpbf16_ps(acc[r][v], (__m512bh)x, (__m512bh)wv[v]);
+                }
+            }
+            for (int r = 0; r < R; ++r)
+                for (int v = 0; v < NV; ++v) {
+                    __mmask16 pos = _mm512_cmp_ps_mask(acc[r][v], _mm512_setzero_ps(), _CMP_GT_OQ);
+                    __m512 y = _mm512_mask_blend_ps(pos, _mm512_mul_ps(acc[r][v], sl), acc[r][v]);
+                    _mm256_storeu_si256(reinterpret_cast<__m256i*>(Y + (s + r) * H + 16 * v),
+                                        (__m256i)_mm512_cvtneps_pbh(y));
+                    _mm_storeu_si128(reinterpret_cast<__m128i*>(mask + (s + r) * H + 16 * v),
+                                     _mm_maskz_set1_epi8(pos, 1));
+                }
+        }
+    }
+    template <int NV>
+    void output_forward(int k, const act_t* X, const float* bias16, int S, float* out) const {
+        const int H = 16 * NV;
+        for (int s = 0; s < S; s += 8) {
+            __m512 acc[8];
+            for (int r = 0; r < 8; ++r) acc[r] = _mm512_loadu_ps(bias16);
+            for (int p = 0; p < H / 2; ++p) {
+                __m512i wv = _mm512_load_si512(reinterpret_cast<const void*>(wf[k] + p * 32));
+                for (int r = 0; r < 8; ++r)
+                    acc[r] = _mm512_dpbf16_ps(acc[r], (__m512bh)bcast_pair(X + (s + r) * H, p), (__m512bh)wv);
+            }
+            for (int r = 0; r < 8; ++r) _mm512_storeu_ps(out + (s + r) * 16, acc[r]);
+        }
+    }
+    // dZ rows (fp32, leading dimension ldz) are rounded to bf16 pairs on the fly
+    template <int NV>
+    void backward_input(int k, const float* dZ, int out, int ldz, int S, float* dX) const {
+        const int H = 16 * NV;
+        constexpr int R = NV <= 2 ? 8 : 4;
+        const int pairs = (out + 1) / 2;
+        alignas(64) uint16_t zb[R][MAX_HIDDEN + 2];
+        for (int s = 0; s < S; s += R) {
+            for (int r = 0; r < R; ++r) {
+                for (int o = 0; o < out; ++o) zb[r][o] = to_bf16(dZ[(s + r) * ldz + o]);
+                zb[r][out] = 0;
+            }
+            __m512 acc[R][NV];
+            for (int r = 0; r < R; ++r)
+                for (int v = 0; v < NV; ++v) acc[r][v] = _mm512_setzero_ps();
+            for (int m = 0; m < pairs; ++m) {
+                __m512i wv[NV];
+                for (int v = 0; v < NV; ++v)
+                    wv[v] = _mm512_load_si512(reinterpret_cast<const void*>(wb[k] + (m * NV + v) * 32));
+                for (int r = 0; r < R; ++r) {
+                    __m512i g = bcast_pair(zb[r], m);
+                    for (int v = 0; v < NV; ++v)
+                        acc[r][v] = _mm512_dpbf16_ps(acc[r][v], (__m512bh)g, (__m512bh)wv[v]);
+                }
+            }
+            for (int r = 0; r < R; ++r)
+                for (int v = 0; v < NV; ++v) _mm512_storeu_ps(dX + (s + r) * H + 16 * v, acc[r][v]);
+        }
+    }
+    // dW[o, :] += sum_s dZ[s, o] X[s, :], summing sample pairs (s, s + 1) per vdpbf16ps
+    template <int NV>
+    void backward_weights(const float* dZ, int out, int ldz, const act_t* X, int S, float* dW) const {
+        const int H = 16 * NV;
+        constexpr int R = NV <= 2 ? 8 : 4;
+        // interleave sample pairs: xi[q][v] lane j = (X[2q, 16v+j], X[2q+1, 16v+j]); zi[q][o] = (dZ[2q, o], dZ[2q+1, o])
+        alignas(64) uint16_t xi[TILE / 2][MAX_HIDDEN * 2];
+        alignas(64) uint32_t zi[TILE / 2][MAX_HIDDEN];
+        alignas(64) static const uint16_t interleave[32] = {0, 32, 1, 33, 2, 34, 3, 35, 4, 36, 5, 37, 6, 38, 7, 39,
+                                                            8, 40, 9, 41, 10, 42, 11, 43, 12, 44, 13, 45, 14, 46, 15, 47};
+        const __m512i idx = _mm512_load_si512(reinterpret_cast<const void*>(interleave));
+        for (int q = 0; q < S / 2; ++q) {
+            for (int v = 0; v < NV; ++v) {
+                __m512i a = _mm512_maskz_loadu_epi16(0xFFFF, X + (2 * q) * H + 16 * v);  // 16 channels, upper half 0
+                __m512i b = _mm512_maskz_loadu_epi16(0xFFFF, X + (2 * q + 1) * H + 16 * v);
+                __m512i ab = _mm512_permutex2var_epi16(a, idx, b);
+                _mm512_store_si512(reinterpret_cast<void*>(xi[q] + 32 * v), ab);
+            }
+            for (int o = 0; o < out; ++o) {
+                uint32_t lo = to_bf16(dZ[(2 * q) * ldz + o]), hi = to_bf16(dZ[(2 * q + 1) * ldz + o]);
+                zi[q][o] = lo | (hi << 16);
+            }
+        }
+        for (int o0 = 0; o0 < out; o0 += R) {
+            int rn = std::min(R, out - o0);
+            __m512 acc[R][NV];
+            for (int r = 0; r < R; ++r)
+                for (int v = 0; v < NV; ++v)
+                    acc[r][v] = r < rn ? _mm512_loadu_ps(dW + (o0 + r) * H + 16 * v) : _mm512_setzero_ps();
+            for (int q = 0; q < S / 2; ++q) {
+                __m512i xv[NV];
+                for (int v = 0; v < NV; ++v) xv[v] = _mm512_load_si512(reinterpret_cast<const void*>(xi[q] + 32 * v));
+                for (int r = 0; r < R; ++r) {
+                    __m512i g = _mm512_set1_epi32(static_cast<int32_t>(r < rn ? zi[q][o0 + r] : 0u));
+                    for (int v = 0; v < NV; ++v)
+                        acc[r][v] = _mm512_dpbf16_ps(acc[r][v], (__m512bh)g, (__m512bh)xv[v]);
+                }
+            }
+            for (int r = 0; r < rn; ++r)
+                for (int v = 0; v < NV; ++v) _mm512_storeu_ps(dW + (o0 + r) * H + 16 * v, acc[r][v]);
+        }
+    }
+};
+#endif
+
+// ---------------------------------------------------------------------------------------- driver
+template <class Prec, int NV>
+int run(FusedL1Args* a) {
+    const int H = 16 * NV, C = a->out_channels, L = a->n_layers, B = a->images, n = a->texels_per_group;
+    const float slope = a->slope;
+    static thread_local Prec prec;  // weight layouts (~200 KB): per thread, reused between calls
+    prec.prepare(a);
+    typedef typename Prec::act_t act_t;
+    alignas(64) static thread_local act_t act[MAX_LAYERS][TILE * MAX_HIDDEN];   // act[0] = a1, ... act[L-1] = a_{L-1}
+    alignas(64) static thread_local uint8_t mask[MAX_LAYERS][TILE * MAX_HIDDEN];
+    alignas(64) static thread_local float z1[TILE * MAX_HIDDEN];
+    alignas(64) static thread_local float dz[2][TILE * MAX_HIDDEN];
+    alignas(64) static thread_local float out[TILE * 16];
+    alignas(64) static thread_local float dgrad_p[TILE * MAX_HIDDEN];
+    float bias_out[16] = {0};
+    for (int c = 0; c < C; ++c) bias_out[c] = a->biases[L - 1][c];
+    double loss = 0.0;
+
+    for (int it = 0; it < a->n_items; ++it) {
+        const int64_t g = a->items[3 * it], t_begin = a->items[3 * it + 1], t_end = a->items[3 * it + 2];
+        for (int64_t t0 = t_begin; t0 < t_end; t0 += TILE) {
+            const int T = static_cast<int>(std::min<int64_t>(TILE, t_end - t0));
+            const int S = (T + 7) & ~7;             // padded samples carry zero gradients
+            const int64_t row0 = g * n + t0;
+            const float* P = a->positional_pre + row0 * H;
+            std::fill(dgrad_p, dgrad_p + T * H, 0.f);
+            for (int b = 0; b < B; ++b) {
+                const float* Q = a->image_pre + (g * B + b) * H;
+                float* dQ = a->grad_image + (g * B + b) * H;
+                // layer 1: z1 = P[t] + Q[b]; a1 = lrelu(z1)
+                for (int s = 0; s < S; ++s) {
+                    float* zr = z1 + s * H;
+                    for (int v = 0; v < NV; ++v) {
+                        v16 z = s < T ? load16(P + s * H + 16 * v) + load16(Q + 16 * v) : v16{};
+                        store16(zr + 16 * v, z);
+                        v16 y = lrelu16(z, slope);
+                        store16(dz[0] + s * H + 16 * v, y);   // scratch: fp32 a1
+                    }
+                    Prec::store_row(act[0] + s * H, dz[0] + s * H, H);
+                }
+                // hidden layers 2 .. L-1, output layer L
+                for (int k = 0; k < L - 1; ++k)
+                    prec.template hidden_forward<NV>(k, act[k], a->biases[k], slope, S, act[k + 1], mask[k + 1]);
+                prec.template output_forward<NV>(L - 1, act[L - 1], bias_out, S, out);
+                // L1 loss and its gradient sign(r) (16-padded rows in dz[1])
+                float* dy = dz[1];
+                const float* tgt = a->target + (static_cast<int64_t>(b) * a->groups * n + row0) * C;
+                for (int s = 0; s < S; ++s)
+                    for (int c = 0; c < 16; ++c) {
+                        float d = 0.f;
+                        if (s < T && c < C) {
+                            float r = out[s * 16 + c] - tgt[s * C + c];
+                            loss += std::fabs(r);
+                            d = (r > 0) ? 1.f : (r < 0 ? -1.f : 0.f);
+                        }
+                        dy[s * 16 + c] = d;
+                    }
+                // output layer backward
+                float* gb = a->grad_biases[L - 1];
+                for (int s = 0; s < T; ++s)
+                    for (int c = 0; c < C; ++c) gb[c] += dy[s * 16 + c];
+                prec.template backward_weights<NV>(dy, C, 16, act[L - 1], S, a->grad_weights[L - 1]);
+                prec.template backward_input<NV>(L - 1, dy, C, 16, S, dz[0]);
+                int cur = 0;  // dz[cur] holds dL/da_k (fp32) of the current layer's input
+                for (int k = L - 2; k >= 0; --k) {
+                    // through the LeakyReLU of layer k + 1's output a_{k+1} (index k in act)
+                    float* d = dz[cur];
+                    const uint8_t* m = mask[k + 1];
+                    float* gbk = a->grad_biases[k];
+                    for (int s = 0; s < S; ++s)
+                        for (int i = 0; i < H; ++i) {
+                            float x = d[s * H + i];
+                            d[s * H + i] = m[s * H + i] ? x : x * slope;
+                        }
+                    for (int s = 0; s < T; ++s)
+                        for (int v = 0; v < NV; ++v) store16(gbk + 16 * v, load16(gbk + 16 * v) + load16(d + s * H + 16 * v));
+                    prec.template backward_weights<NV>(d, H, H, act[k], S, a->grad_weights[k]);
+                    prec.template backward_input<NV>(k, d, H, H, S, dz[1 - cur]);
+                    cur = 1 - cur;
+                }
+                // through layer 1's LeakyReLU: dL/dz1 -> P (per texel) and Q (per image)
+                float* d = dz[cur];
+                v16 q_acc[NV];
+                for (int v = 0; v < NV; ++v) q_acc[v] = load16(dQ + 16 * v);
+                for (int s = 0; s < T; ++s)
+                    for (int v = 0; v < NV; ++v) {
+                        v16 x = load16(d + s * H + 16 * v);
+                        v16 one = splat(1.f), sl = splat(slope);
+                        v16 zz = load16(z1 + s * H + 16 * v);
+                        x = x * (zz > 0 ? one : sl);
+                        q_acc[v] += x;
+                        store16(dgrad_p + s * H + 16 * v, load16(dgrad_p + s * H + 16 * v) + x);
+                    }
+                for (int v = 0; v < NV; ++v) store16(dQ + 16 * v, q_acc[v]);
+            }
+            std::memcpy(a->grad_positional + row0 * H, dgrad_p, sizeof(float) * T * H);
+        }
+    }
+    a->loss = loss;
+    return 0;
+}
+
+template <class Prec>
+int dispatch(FusedL1Args* a) {
+    if (a->hidden % 16 || a->hidden < 16 || a->hidden > MAX_HIDDEN || a->out_channels < 1 ||
+        a->out_channels > MAX_OUT || a->n_layers < 1 || a->n_layers > MAX_LAYERS - 1 || !(a->slope > 0))
+        return 1;
+    switch (a->hidden / 16) {
+        case 1: return run<Prec, 1>(a);
+        case 2: return run<Prec, 2>(a);
+        case 3: return run<Prec, 3>(a);
+        case 4: return run<Prec, 4>(a);
+        case 8: return run<Prec, 8>(a);
+        default: return 1;
+    }
+}
+
+}  // namespace
+
+extern "C" int dynbtf_fused_l1_fp32(FusedL1Args* args) { return dispatch<Fp32>(args); }
+
+extern "C" int dynbtf_fused_l1_bf16(FusedL1Args* args) {
+#if DYNBTF_HAVE_BF16
+    return dispatch<Bf16>(args);
+#else
+    (void)args;
+    return 2;
+#endif
+}
+
+extern "C" int dynbtf_fused_l1_has_bf16(void) { return DYNBTF_HAVE_BF16; }

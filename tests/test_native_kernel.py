@@ -1,0 +1,175 @@
+"""The native fused training kernel (dynbtf/native/fused_mlp.cpp) against the PyTorch path it replaces.
+
+References: the chunked PyTorch implementation of the same loss (itself tested against autograd and
+gradcheck in test_triple_plane.py) and plain autograd in float64. Targets are placed 0.3 away from the
+prediction so that no residual sits near zero, where sign(r) -- the L1 gradient -- would flip under
+rounding differences between two correct implementations.
+"""
+
+import shutil
+
+import pytest
+import torch
+from torch import nn
+
+from dynbtf import native
+from dynbtf.errors import InputError
+from dynbtf.training import fused_mlp
+from dynbtf.training.fused_mlp import native_precisions, resolve_precision, split_mlp_l1_loss
+
+needs_native = pytest.mark.skipif(not native_precisions(), reason="no native kernel on this machine")
+needs_bf16 = pytest.mark.skipif("bf16" not in native_precisions(), reason="CPU without AVX512-BF16")
+
+
+def problem(groups, images, texels, hidden=32, out=3, layers=3, seed=0):
+    """Random P, Q, layers and a target 0.3 away from the MLP's output (no residual near 0)."""
+    g = torch.Generator().manual_seed(seed)
+    p = torch.randn(groups * texels, hidden, generator=g).requires_grad_()
+    q = torch.randn(groups, images, hidden, generator=g).requires_grad_()
+    torch.manual_seed(seed)
+    mlp = [nn.Linear(hidden, hidden) for _ in range(layers - 1)] + [nn.Linear(hidden, out)]
+    with torch.no_grad():
+        pre = p.view(groups, 1, texels, hidden) + q.view(groups, images, 1, hidden)
+        x = nn.functional.leaky_relu(pre, 0.01)
+        for layer in mlp[:-1]:
+            x = nn.functional.leaky_relu(layer(x), 0.01)
+        y = mlp[-1](x).transpose(0, 1).reshape(images, groups * texels, out)
+        sign = torch.where(torch.rand(y.shape, generator=g) > 0.5, 1.0, -1.0)
+    return p, q, mlp, (y + 0.3 * sign).contiguous()
+
+
+def loss_and_grads(p, q, mlp, target, use_native, monkeypatch=None, **kw):
+    for t in [p, q, *[x for layer in mlp for x in layer.parameters()]]:
+        t.grad = None
+    if not use_native:
+        monkeypatch.setattr(fused_mlp, "_native_supports", lambda *a: False)
+    loss = split_mlp_l1_loss(p, q, mlp, 0.01, target, **kw)
+    loss.backward()
+    if not use_native:
+        monkeypatch.undo()
+    return [loss.detach(), p.grad, q.grad, *[x.grad for layer in mlp for x in layer.parameters()]]
+
+
+def test_a_compiler_means_a_native_kernel():
+    """Where a C++ compiler exists the kernel must build: a silent fallback would hide a broken build."""
+    if not any(shutil.which(c) for c in ("g++", "c++", "clang++")):
+        pytest.skip("no C++ compiler")
+    assert "fp32" in native_precisions(), native.status("fused_mlp")
+    assert native.status("fused_mlp").startswith("loaded ")
+
+
+@needs_native
+@pytest.mark.parametrize("groups,images,texels,hidden,out,layers,chunk,workers", [
+    (1, 16, 300, 32, 3, 3, 64, 2),   # the Triple Plane's decoder; tiles with a 44-texel tail
+    (4, 16, 37, 32, 3, 3, 16, 2),    # texel groups, chunks and tiles not multiples of 8
+    (2, 3, 100, 64, 5, 4, 1000, 1),  # wider, deeper, 5 outputs
+    (1, 4, 9, 16, 1, 2, 4, 3),       # narrow, one hidden layer, 1 output, more workers than needed
+])
+def test_native_fp32_equals_the_torch_path(monkeypatch, groups, images, texels, hidden, out, layers, chunk, workers):
+    p, q, mlp, target = problem(groups, images, texels, hidden, out, layers)
+    kw = dict(chunk_texels=chunk, workers=workers)
+    reference = loss_and_grads(p, q, mlp, target, False, monkeypatch, **kw)
+    result = loss_and_grads(p, q, mlp, target, True, **kw)
+    for name, a, b in zip(["loss", "P", "Q", *[f"param{k}" for k in range(2 * layers)]], result, reference):
+        torch.testing.assert_close(a, b, rtol=2e-5, atol=2e-6 * float(b.abs().max()), msg=name)
+
+
+@needs_native
+def test_native_kernel_matches_float64_autograd():
+    """An independent reference: the un-split MLP in float64 autograd on the concatenated batch."""
+    p, q, mlp, target = problem(3, 5, 24, layers=3, seed=3)
+    result = loss_and_grads(p, q, mlp, target, True, chunk_texels=8, workers=2)
+    p64, q64 = p.detach().double().requires_grad_(), q.detach().double().requires_grad_()
+    mlp64 = [nn.Linear(l.in_features, l.out_features).double() for l in mlp]
+    for a, b in zip(mlp64, mlp):
+        a.load_state_dict({k: v.double() for k, v in b.state_dict().items()})
+    x = nn.functional.leaky_relu(p64.view(3, 1, 24, 32) + q64.view(3, 5, 1, 32), 0.01)
+    for layer in mlp64[:-1]:
+        x = nn.functional.leaky_relu(layer(x), 0.01)
+    y = mlp64[-1](x).transpose(0, 1).reshape(5, 72, 3)
+    loss = (y - target.double()).abs().mean()
+    loss.backward()
+    expected = [loss.detach(), p64.grad, q64.grad, *[x.grad for layer in mlp64 for x in layer.parameters()]]
+    for a, b in zip(result, expected):
+        torch.testing.assert_close(a.double(), b, rtol=1e-4, atol=1e-6 * float(b.abs().max()))
+
+
+def emulated_bf16(p, q, mlp, target, slope=0.01):
+    """The bf16 kernel's arithmetic written out in float64: activations, layer weights and the
+    gradients entering each product rounded to bfloat16 exactly where the kernel rounds them."""
+    def bf(x):
+        return x.float().to(torch.bfloat16).double()
+
+    groups, images, hidden = q.shape
+    n = p.shape[0] // groups
+    weights = [bf(layer.weight.detach()) for layer in mlp]
+    biases = [layer.bias.detach().double() for layer in mlp]
+    pre = [(p.detach().view(groups, 1, n, hidden) + q.detach().view(groups, images, 1, hidden)).double()]
+    acts = [bf(torch.where(pre[0] > 0, pre[0], slope * pre[0]))]
+    for w, b in zip(weights[:-1], biases[:-1]):
+        pre.append(acts[-1] @ w.T + b)
+        acts.append(bf(torch.where(pre[-1] > 0, pre[-1], slope * pre[-1])))
+    residual = acts[-1] @ weights[-1].T + biases[-1] - target.double().view(images, groups, n, -1).transpose(0, 1)
+    count = target.numel()
+    grads, d = [], torch.sign(residual)
+    for k in range(len(weights) - 1, -1, -1):
+        flat = d.reshape(-1, d.shape[-1])
+        grads[:0] = [bf(flat).T @ acts[k].reshape(-1, hidden) / count, flat.sum(0) / count]
+        d = (bf(d) @ weights[k]) * torch.where(pre[k] > 0, 1.0, slope)
+    return [residual.abs().sum() / count, d.sum(1).reshape(-1, hidden) / count, d.sum(2) / count, *grads]
+
+
+@needs_bf16
+def test_bf16_kernel_equals_its_arithmetic_written_out():
+    """bfloat16 products accumulated in float32 == the same roundings emulated in float64; and it is a
+    different arithmetic from fp32 (loss within 1e-3, gradients within 10 %: bf16's 8-bit mantissa on
+    sums of +-1 L1 gradients that largely cancel)."""
+    p, q, mlp, target = problem(2, 16, 200, seed=5)
+    bf16 = loss_and_grads(p, q, mlp, target, True, chunk_texels=64, workers=2, precision="bf16")
+    for a, b in zip(bf16, emulated_bf16(p, q, mlp, target)):
+        assert float((a.double() - b).norm() / b.norm()) < 1e-4
+    fp32 = loss_and_grads(p, q, mlp, target, True, chunk_texels=64, workers=2)
+    assert abs(float(bf16[0] - fp32[0])) < 1e-3 * float(fp32[0])
+    errors = [float((a - b).norm() / b.norm()) for a, b in zip(bf16[1:], fp32[1:])]
+    assert max(errors) < 0.1 and max(errors) > 1e-4, errors
+
+
+def test_torch_fallback_without_native_kernel(monkeypatch):
+    """No compiler / DYNBTF_NATIVE=0: fp32 runs on the PyTorch path, bf16 is refused with a reason."""
+    monkeypatch.setattr(fused_mlp, "_native_library", lambda: None)
+    assert native_precisions() == ()
+    p, q, mlp, target = problem(1, 4, 20)
+    loss = split_mlp_l1_loss(p, q, mlp, 0.01, target, precision="auto")
+    loss.backward()
+    assert torch.isfinite(loss) and p.grad is not None
+    assert resolve_precision("auto") == "fp32"
+    with pytest.raises(InputError, match="bf16"):
+        resolve_precision("bf16")
+    with pytest.raises(InputError, match="precision"):
+        resolve_precision("fp16")
+
+
+def test_precision_on_a_gpu_tensor_is_fp32():
+    assert resolve_precision("auto", "cuda") == "fp32"
+    with pytest.raises(InputError, match="GPU"):
+        resolve_precision("bf16", "cuda")
+
+
+def test_native_loader_reports_build_failures(tmp_path, monkeypatch):
+    """A broken source or a disabled switch gives None and a status saying why, never an exception."""
+    monkeypatch.setattr(native, "_SOURCE_DIR", tmp_path)
+    monkeypatch.setenv("DYNBTF_NATIVE_CACHE", str(tmp_path / "cache"))
+    (tmp_path / "broken_kernel.cpp").write_text("this is not C++\n")
+    if native._compiler() is None:
+        pytest.skip("no C++ compiler")
+    assert native.load_library("broken_kernel") is None
+    assert "failed" in native.status("broken_kernel")
+    assert not list((tmp_path / "cache").glob("*.tmp"))  # nothing half-written left behind
+    (tmp_path / "tiny_kernel.cpp").write_text('extern "C" int answer(void) { return 42; }\n')
+    library = native.load_library("tiny_kernel")
+    assert library is not None and library.answer() == 42
+    assert len(list((tmp_path / "cache").glob("tiny_kernel-*.so"))) == 1
+    monkeypatch.setenv("DYNBTF_NATIVE", "0")
+    (tmp_path / "other_kernel.cpp").write_text('extern "C" int answer(void) { return 1; }\n')
+    assert native.load_library("other_kernel") is None
+    assert "DYNBTF_NATIVE=0" in native.status("other_kernel")
