@@ -101,10 +101,15 @@ struct Fp32 {
     }
     // row of fp32 values -> stored activation row (identity)
     static void store_row(act_t* dst, const float* src, int H) { std::memcpy(dst, src, H * sizeof(float)); }
+    // S rows of `width` fp32 gradients -> the rows the backward products read (fp32: the same rows)
+    static const act_t* lowp(const float* src, int S, int width, act_t* buf) {
+        (void)S; (void)width; (void)buf;
+        return src;
+    }
 
-    // Y[s] = lrelu(W X[s] + c) for S samples (S a multiple of 8); also the fp32 pre-activation sign mask
+    // Y[s] = lrelu(W X[s] + c) for S samples (S a multiple of 8); gain[s] = lrelu'(pre-activation) (1 or slope)
     template <int NV>
-    void hidden_forward(int k, const act_t* X, const float* bias, float slope, int S, act_t* Y, uint8_t* mask) const {
+    void hidden_forward(int k, const act_t* X, const float* bias, float slope, int S, act_t* Y, float* gain) const {
         const int H = 16 * NV;
         constexpr int R = NV <= 2 ? 8 : 4;
         for (int s = 0; s < S; s += R) {
@@ -122,7 +127,7 @@ struct Fp32 {
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) {
                     store16(Y + (s + r) * H + 16 * v, lrelu16(acc[r][v], slope));
-                    for (int j = 0; j < 16; ++j) mask[(s + r) * H + 16 * v + j] = acc[r][v][j] > 0;
+                    store16(gain + (s + r) * H + 16 * v, acc[r][v] > 0 ? splat(1.f) : splat(slope));
                 }
         }
     }
@@ -231,6 +236,11 @@ struct Bf16 {
             _mm256_storeu_si256(reinterpret_cast<__m256i*>(dst + 16 * v),
                                 (__m256i)_mm512_cvtneps_pbh(_mm512_loadu_ps(src + 16 * v)));
     }
+    static const act_t* lowp(const float* src, int S, int width, act_t* buf) {
+        for (int i = 0; i < S * width; i += 16)
+            _mm256_storeu_si256(reinterpret_cast<__m256i*>(buf + i), (__m256i)_mm512_cvtneps_pbh(_mm512_loadu_ps(src + i)));
+        return buf;
+    }
     static __m512i bcast_pair(const uint16_t* row, int p) {
         int32_t x;
         std::memcpy(&x, row + 2 * p, 4);
@@ -238,10 +248,10 @@ struct Bf16 {
     }
 
     template <int NV>
-    void hidden_forward(int k, const act_t* X, const float* bias, float slope, int S, act_t* Y, uint8_t* mask) const {
+    void hidden_forward(int k, const act_t* X, const float* bias, float slope, int S, act_t* Y, float* gain) const {
         const int H = 16 * NV;
         constexpr int R = NV <= 2 ? 8 : 4;
-        const __m512 sl = _mm512_set1_ps(slope);
+        const __m512 sl = _mm512_set1_ps(slope), one = _mm512_set1_ps(1.f);
         for (int s = 0; s < S; s += R) {
             __m512 acc[R][NV];
             for (int r = 0; r < R; ++r)
@@ -262,8 +272,7 @@ struct Bf16 {
                     __m512 y = _mm512_mask_blend_ps(pos, _mm512_mul_ps(acc[r][v], sl), acc[r][v]);
                     _mm256_storeu_si256(reinterpret_cast<__m256i*>(Y + (s + r) * H + 16 * v),
                                         (__m256i)_mm512_cvtneps_pbh(y));
-                    _mm_storeu_si128(reinterpret_cast<__m128i*>(mask + (s + r) * H + 16 * v),
-                                     _mm_maskz_set1_epi8(pos, 1));
+                    _mm512_storeu_ps(gain + (s + r) * H + 16 * v, _mm512_mask_blend_ps(pos, sl, one));
                 }
         }
     }
@@ -281,18 +290,13 @@ struct Bf16 {
             for (int r = 0; r < 8; ++r) _mm512_storeu_ps(out + (s + r) * 16, acc[r]);
         }
     }
-    // dZ rows (fp32, leading dimension ldz) are rounded to bf16 pairs on the fly
+    // dX[s] = W^T dZ[s] from bf16 gradient rows (leading dimension ldz, zero beyond `out`)
     template <int NV>
-    void backward_input(int k, const float* dZ, int out, int ldz, int S, float* dX) const {
+    void backward_input(int k, const act_t* dZ, int out, int ldz, int S, float* dX) const {
         const int H = 16 * NV;
         constexpr int R = NV <= 2 ? 8 : 4;
         const int pairs = (out + 1) / 2;
-        alignas(64) uint16_t zb[R][MAX_HIDDEN + 2];
         for (int s = 0; s < S; s += R) {
-            for (int r = 0; r < R; ++r) {
-                for (int o = 0; o < out; ++o) zb[r][o] = to_bf16(dZ[(s + r) * ldz + o]);
-                zb[r][out] = 0;
-            }
             __m512 acc[R][NV];
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) acc[r][v] = _mm512_setzero_ps();
@@ -301,7 +305,7 @@ struct Bf16 {
                 for (int v = 0; v < NV; ++v)
                     wv[v] = _mm512_load_si512(reinterpret_cast<const void*>(wb[k] + (m * NV + v) * 32));
                 for (int r = 0; r < R; ++r) {
-                    __m512i g = bcast_pair(zb[r], m);
+                    __m512i g = bcast_pair(dZ + (s + r) * ldz, m);
                     for (int v = 0; v < NV; ++v)
                         acc[r][v] = _mm512_dpbf16_ps(acc[r][v], (__m512bh)g, (__m512bh)wv[v]);
                 }
@@ -312,12 +316,12 @@ struct Bf16 {
     }
     // dW[o, :] += sum_s dZ[s, o] X[s, :], summing sample pairs (s, s + 1) per vdpbf16ps
     template <int NV>
-    void backward_weights(const float* dZ, int out, int ldz, const act_t* X, int S, float* dW) const {
+    void backward_weights(const act_t* dZ, int out, int ldz, const act_t* X, int S, float* dW) const {
         const int H = 16 * NV;
         constexpr int R = NV <= 2 ? 8 : 4;
         // interleave sample pairs: xi[q][v] lane j = (X[2q, 16v+j], X[2q+1, 16v+j]); zi[q][o] = (dZ[2q, o], dZ[2q+1, o])
         alignas(64) uint16_t xi[TILE / 2][MAX_HIDDEN * 2];
-        alignas(64) uint32_t zi[TILE / 2][MAX_HIDDEN];
+        alignas(64) uint32_t zi[TILE / 2][MAX_HIDDEN + 16];
         alignas(64) static const uint16_t interleave[32] = {0, 32, 1, 33, 2, 34, 3, 35, 4, 36, 5, 37, 6, 38, 7, 39,
                                                             8, 40, 9, 41, 10, 42, 11, 43, 12, 44, 13, 45, 14, 46, 15, 47};
         const __m512i idx = _mm512_load_si512(reinterpret_cast<const void*>(interleave));
@@ -328,9 +332,10 @@ struct Bf16 {
                 __m512i ab = _mm512_permutex2var_epi16(a, idx, b);
                 _mm512_store_si512(reinterpret_cast<void*>(xi[q] + 32 * v), ab);
             }
-            for (int o = 0; o < out; ++o) {
-                uint32_t lo = to_bf16(dZ[(2 * q) * ldz + o]), hi = to_bf16(dZ[(2 * q + 1) * ldz + o]);
-                zi[q][o] = lo | (hi << 16);
+            for (int v = 0; v < (out + 15) / 16; ++v) {
+                __m512i a = _mm512_maskz_loadu_epi16(0xFFFF, dZ + (2 * q) * ldz + 16 * v);
+                __m512i b = _mm512_maskz_loadu_epi16(0xFFFF, dZ + (2 * q + 1) * ldz + 16 * v);
+                _mm512_store_si512(reinterpret_cast<void*>(zi[q] + 16 * v), _mm512_permutex2var_epi16(a, idx, b));
             }
         }
         for (int o0 = 0; o0 < out; o0 += R) {
@@ -360,18 +365,22 @@ template <class Prec, int NV>
 int run(FusedL1Args* a) {
     const int H = 16 * NV, C = a->out_channels, L = a->n_layers, B = a->images, n = a->texels_per_group;
     const float slope = a->slope;
-    static thread_local Prec prec;  // weight layouts (~200 KB): per thread, reused between calls
+    static thread_local Prec prec;  // weight layouts: per thread, reused between calls
     prec.prepare(a);
     typedef typename Prec::act_t act_t;
-    alignas(64) static thread_local act_t act[MAX_LAYERS][TILE * MAX_HIDDEN];   // act[0] = a1, ... act[L-1] = a_{L-1}
-    alignas(64) static thread_local uint8_t mask[MAX_LAYERS][TILE * MAX_HIDDEN];
-    alignas(64) static thread_local float z1[TILE * MAX_HIDDEN];
+    // per tile: activations act[k] (the input of layer k + 2; act[0] = a1) as the products read them,
+    // gain[k] = lrelu'(pre-activation of act[k]) in fp32, gradients in fp32 and as the products read them
+    alignas(64) static thread_local act_t act[MAX_LAYERS][TILE * MAX_HIDDEN];
+    alignas(64) static thread_local float gain[MAX_LAYERS][TILE * MAX_HIDDEN];
+    alignas(64) static thread_local float a1[TILE * MAX_HIDDEN];
     alignas(64) static thread_local float dz[2][TILE * MAX_HIDDEN];
+    alignas(64) static thread_local act_t dz_low[TILE * MAX_HIDDEN];
     alignas(64) static thread_local float out[TILE * 16];
     alignas(64) static thread_local float dgrad_p[TILE * MAX_HIDDEN];
     float bias_out[16] = {0};
     for (int c = 0; c < C; ++c) bias_out[c] = a->biases[L - 1][c];
-    double loss = 0.0;
+    const v16 one = splat(1.f), zero = v16{}, sl = splat(slope);
+    double loss = 0.0;   // per-tile float partial sums, added in double
 
     for (int it = 0; it < a->n_items; ++it) {
         const int64_t g = a->items[3 * it], t_begin = a->items[3 * it + 1], t_end = a->items[3 * it + 2];
@@ -385,66 +394,63 @@ int run(FusedL1Args* a) {
                 const float* Q = a->image_pre + (g * B + b) * H;
                 float* dQ = a->grad_image + (g * B + b) * H;
                 // layer 1: z1 = P[t] + Q[b]; a1 = lrelu(z1)
-                for (int s = 0; s < S; ++s) {
-                    float* zr = z1 + s * H;
+                for (int s = 0; s < S; ++s)
                     for (int v = 0; v < NV; ++v) {
                         v16 z = s < T ? load16(P + s * H + 16 * v) + load16(Q + 16 * v) : v16{};
-                        store16(zr + 16 * v, z);
-                        v16 y = lrelu16(z, slope);
-                        store16(dz[0] + s * H + 16 * v, y);   // scratch: fp32 a1
+                        store16(a1 + s * H + 16 * v, lrelu16(z, slope));
+                        store16(gain[0] + s * H + 16 * v, z > 0 ? one : sl);
                     }
-                    Prec::store_row(act[0] + s * H, dz[0] + s * H, H);
-                }
+                for (int s = 0; s < S; ++s) Prec::store_row(act[0] + s * H, a1 + s * H, H);
                 // hidden layers 2 .. L-1, output layer L
                 for (int k = 0; k < L - 1; ++k)
-                    prec.template hidden_forward<NV>(k, act[k], a->biases[k], slope, S, act[k + 1], mask[k + 1]);
+                    prec.template hidden_forward<NV>(k, act[k], a->biases[k], slope, S, act[k + 1], gain[k + 1]);
                 prec.template output_forward<NV>(L - 1, act[L - 1], bias_out, S, out);
-                // L1 loss and its gradient sign(r) (16-padded rows in dz[1])
+                // L1 loss and its gradient sign(r), rows of 16 (lanes >= C and padded samples: 0)
                 float* dy = dz[1];
                 const float* tgt = a->target + (static_cast<int64_t>(b) * a->groups * n + row0) * C;
-                for (int s = 0; s < S; ++s)
-                    for (int c = 0; c < 16; ++c) {
-                        float d = 0.f;
-                        if (s < T && c < C) {
-                            float r = out[s * 16 + c] - tgt[s * C + c];
-                            loss += std::fabs(r);
-                            d = (r > 0) ? 1.f : (r < 0 ? -1.f : 0.f);
-                        }
-                        dy[s * 16 + c] = d;
-                    }
+                v16 loss_acc = v16{};
+                for (int s = 0; s < S; ++s) {
+                    v16 t = v16{};
+                    if (s < T) std::memcpy(&t, tgt + s * C, sizeof(float) * C);
+                    v16 r = s < T ? load16(out + s * 16) - t : v16{};
+                    loss_acc += r > 0 ? r : -r;
+                    store16(dy + s * 16, (r > 0 ? one : zero) - (r < 0 ? one : zero));
+                }
+                loss += hsum16(loss_acc);
                 // output layer backward
                 float* gb = a->grad_biases[L - 1];
-                for (int s = 0; s < T; ++s)
-                    for (int c = 0; c < C; ++c) gb[c] += dy[s * 16 + c];
-                prec.template backward_weights<NV>(dy, C, 16, act[L - 1], S, a->grad_weights[L - 1]);
-                prec.template backward_input<NV>(L - 1, dy, C, 16, S, dz[0]);
-                int cur = 0;  // dz[cur] holds dL/da_k (fp32) of the current layer's input
+                v16 gb_acc = v16{};
+                for (int s = 0; s < T; ++s) gb_acc += load16(dy + s * 16);
+                for (int c = 0; c < C; ++c) gb[c] += gb_acc[c];
+                const act_t* dy_low = Prec::lowp(dy, S, 16, dz_low);
+                prec.template backward_weights<NV>(dy_low, C, 16, act[L - 1], S, a->grad_weights[L - 1]);
+                prec.template backward_input<NV>(L - 1, dy_low, C, 16, S, dz[0]);
+                int cur = 0;  // dz[cur]: dL/d act[k + 1] (fp32)
                 for (int k = L - 2; k >= 0; --k) {
-                    // through the LeakyReLU of layer k + 1's output a_{k+1} (index k in act)
+                    // through the LeakyReLU that produced act[k + 1], then hidden layer k (weights[k])
                     float* d = dz[cur];
-                    const uint8_t* m = mask[k + 1];
-                    float* gbk = a->grad_biases[k];
+                    const float* gk = gain[k + 1];
+                    v16 gbk[NV];
+                    for (int v = 0; v < NV; ++v) gbk[v] = load16(a->grad_biases[k] + 16 * v);
                     for (int s = 0; s < S; ++s)
-                        for (int i = 0; i < H; ++i) {
-                            float x = d[s * H + i];
-                            d[s * H + i] = m[s * H + i] ? x : x * slope;
+                        for (int v = 0; v < NV; ++v) {
+                            v16 x = load16(d + s * H + 16 * v) * load16(gk + s * H + 16 * v);
+                            store16(d + s * H + 16 * v, x);
+                            gbk[v] += x;   // padded samples are zero
                         }
-                    for (int s = 0; s < T; ++s)
-                        for (int v = 0; v < NV; ++v) store16(gbk + 16 * v, load16(gbk + 16 * v) + load16(d + s * H + 16 * v));
-                    prec.template backward_weights<NV>(d, H, H, act[k], S, a->grad_weights[k]);
-                    prec.template backward_input<NV>(k, d, H, H, S, dz[1 - cur]);
+                    for (int v = 0; v < NV; ++v) store16(a->grad_biases[k] + 16 * v, gbk[v]);
+                    const act_t* d_low = Prec::lowp(d, S, H, dz_low);
+                    prec.template backward_weights<NV>(d_low, H, H, act[k], S, a->grad_weights[k]);
+                    prec.template backward_input<NV>(k, d_low, H, H, S, dz[1 - cur]);
                     cur = 1 - cur;
                 }
                 // through layer 1's LeakyReLU: dL/dz1 -> P (per texel) and Q (per image)
-                float* d = dz[cur];
+                const float* d = dz[cur];
                 v16 q_acc[NV];
                 for (int v = 0; v < NV; ++v) q_acc[v] = load16(dQ + 16 * v);
                 for (int s = 0; s < T; ++s)
                     for (int v = 0; v < NV; ++v) {
-                        v16 x = load16(d + s * H + 16 * v);
-                        v16 one = splat(1.f), sl = splat(slope);
-                        v16 zz = load16(z1 + s * H + 16 * v);
-                        x = x * (zz > 0 ? one : sl);
+                        v16 x = load16(d + s * H + 16 * v) * load16(gain[0] + s * H + 16 * v);
                         q_acc[v] += x;
                         store16(dgrad_p + s * H + 16 * v, load16(dgrad_p + s * H + 16 * v) + x);
                     }
