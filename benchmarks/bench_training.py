@@ -9,11 +9,15 @@ same AdamW groups and learning rates) on the same simulated BTF:
   thread count is the faster of 1 and all threads (measured first).
 * **ours (paper batches)** -- :func:`dynbtf.training.fit` with the paper's recipe
   (16 whole images per step, angular features once per image, layer 1's positional
-  product once per texel, the fused chunked loss of :mod:`dynbtf.training.fused_mlp`).
+  product once per texel, layers 2-4 with their loss and backward in the native fused
+  kernel of :mod:`dynbtf.training.fused_mlp`), at ``precision="auto"`` (bf16 products
+  with float32 accumulation on CPUs with AVX512-BF16, else fp32).
 * **ours (fast)** -- the same code with ``texel_groups`` (default 64: each step's
-  texels in 64 random groups, each under its own 16 pairs, so 1024 distinct pairs
+  texels in 64 blocks, each under its own 16 pairs, so 1024 distinct pairs
   per step for the cost of 16 images) and ``lr_scale`` (default 3). Both are
   departures from the paper's recipe; the naive path keeps the paper's rates.
+* **ours (fast, fp32)** -- the fast variant in float32 arithmetic, when ``auto`` chose
+  bf16: what the reduced precision buys, measured in the same run.
 
 Both decay the learning rate by 0.9 per epoch of ``pairs x texels`` samples. The
 held-out PSNR (linear, peak 1, pooled over a fixed subset of held-out pairs) is
@@ -24,7 +28,10 @@ the training time each needs to first reach it, and that ratio.
 Targets (issue 3): ours >= 10x naive samples/s; ours reaches naive's final
 PSNR in <= 1/10 of naive's time.
 
-Run: ``python benchmarks/bench_training.py`` (a few minutes; ``--help`` for options).
+The default BTF is the demo's scale, ``sim:leather?size=128`` (the naive path's rate does
+not depend on the size; ours amortizes its per-step overhead over 16 x 128^2 samples).
+
+Run: ``python benchmarks/bench_training.py`` (about 10 minutes; ``--help`` for options).
 """
 
 from __future__ import annotations
@@ -42,12 +49,13 @@ from dynbtf.conventions import texel_centers_uv
 from dynbtf.data.open import open_btf
 from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.training import ImageStore, TrainConfig, fit, held_out_split, predict_images
-from dynbtf.training.fused_mlp import single_intra_op_thread
+from dynbtf import native
+from dynbtf.training.fused_mlp import resolve_precision, single_intra_op_thread
 
 
-def fp32_matmul_peak(size: int = 2048, repeats: int = 3) -> float:
-    """FLOP/s of a ``size^2`` float32 matmul on all torch threads (best of ``repeats``)."""
-    a, b = torch.randn(size, size), torch.randn(size, size)
+def matmul_peak(dtype=torch.float32, size: int = 2048, repeats: int = 3) -> float:
+    """FLOP/s of a ``size^2`` matmul in ``dtype`` on all torch threads (best of ``repeats``)."""
+    a, b = torch.randn(size, size, dtype=dtype), torch.randn(size, size, dtype=dtype)
     a @ b
     best = float("inf")
     for _ in range(repeats):
@@ -162,7 +170,7 @@ def naive_training(source, store, train_pairs, eval_pairs, budget, batch, eval_e
 
 
 def our_training(source, store, eval_pairs, budget, stop_psnr, eval_every, seed, workdir, texel_groups=1,
-                 lr_scale=1.0):
+                 lr_scale=1.0, precision="auto"):
     rep = TriplePlane(source.height, source.width, seed=seed)
     curve = Curve(rep, source, store, eval_pairs, eval_every)
     curve.measure()
@@ -173,7 +181,7 @@ def our_training(source, store, eval_pairs, budget, stop_psnr, eval_every, seed,
             raise Stop
 
     config = TrainConfig(epochs=1000, seed=seed, held_out_fraction=0.05, monitor_pairs=0, checkpoint_every=10 ** 9,
-                         texel_groups=texel_groups, lr_scale=lr_scale)
+                         texel_groups=texel_groups, lr_scale=lr_scale, precision=precision)
     try:
         fit(rep, source, config, Path(workdir) / "ours.dbtfm", progress=False, callback=callback)
     except Stop:
@@ -184,7 +192,7 @@ def our_training(source, store, eval_pairs, budget, stop_psnr, eval_every, seed,
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--btf", default="sim:leather?size=64", help="BTF path or spec (default %(default)s)")
+    parser.add_argument("--btf", default="sim:leather?size=128", help="BTF path or spec (default %(default)s)")
     parser.add_argument("--naive-seconds", type=float, default=150.0, help="naive path's training time budget")
     parser.add_argument("--ours-seconds", type=float, default=None,
                         help="our path's budget (default: naive's; stops early once it reaches naive's final PSNR)")
@@ -204,6 +212,8 @@ def main() -> None:
     store.fill(progress=True)
     print(f"BTF {source!r}: decoded in {time.perf_counter() - t0:.1f} s; {len(train_pairs)} training pairs, "
           f"PSNR on {len(eval_pairs)} held-out pairs; torch threads {torch.get_num_threads()}")
+    precision = resolve_precision("auto")  # builds the native kernel now, outside the timed runs
+    print(f"native kernel: {native.status('fused_mlp')}; our precision: {precision}")
 
     naive, naive_threads, speeds = naive_training(source, store, train_pairs, eval_pairs, args.naive_seconds,
                                                   args.naive_batch, args.eval_every, args.seed)
@@ -212,9 +222,11 @@ def main() -> None:
     print(f"naive: {naive_rate / 1e6:.3f} M samples/s (threads {naive_threads}; warm-up "
           + ", ".join(f"{k} thread(s) {v / 1e6:.3f} M/s" for k, v in speeds.items())
           + f"), final held-out PSNR {target:.2f} dB after {naive.train_seconds:.1f} s")
-    variants = {"ours (paper batches)": dict(texel_groups=1, lr_scale=1.0),
-                f"ours (fast: {args.groups} groups, lr x{args.lr_scale:g})": dict(texel_groups=args.groups,
-                                                                               lr_scale=args.lr_scale)}
+    fast = dict(texel_groups=args.groups, lr_scale=args.lr_scale)
+    variants = {f"ours (paper batches, {precision})": dict(texel_groups=1, lr_scale=1.0),
+                f"ours (fast: {args.groups} groups, lr x{args.lr_scale:g}, {precision})": fast}
+    if precision != "fp32":
+        variants[f"ours (fast: {args.groups} groups, lr x{args.lr_scale:g}, fp32)"] = fast | dict(precision="fp32")
     runs = {}
     for name, options in variants.items():
         with tempfile.TemporaryDirectory() as workdir:
@@ -224,18 +236,19 @@ def main() -> None:
         print(f"{name}: {curve.samples / curve.train_seconds / 1e6:.3f} M samples/s, held-out PSNR "
               f"{curve.points[-1][1]:.2f} dB after {curve.train_seconds:.1f} s")
     t_naive = naive.time_to_reach(target)
-    peak = fp32_matmul_peak()
+    peaks = {"fp32": matmul_peak(torch.float32), "bf16": matmul_peak(torch.bfloat16)}
     flops = fused_flops_per_sample(TriplePlane(source.height, source.width))
-    print(f"\nfp32 matmul peak {peak / 1e9:.0f} GFLOP/s (2048^2, all threads); fused step {flops} FLOP/sample; "
-          f"10x naive = {10 * naive_rate / 1e6:.2f} M samples/s = {10 * naive_rate * flops / 1e9:.0f} GFLOP/s "
-          f"({100 * 10 * naive_rate * flops / peak:.0f} % of the peak)")
+    print(f"\nmatmul peaks (2048^2, all threads): fp32 {peaks['fp32'] / 1e9:.0f} GFLOP/s, bf16 "
+          f"{peaks['bf16'] / 1e9:.0f} GFLOP/s; fused step {flops} FLOP/sample; 10x naive = "
+          f"{10 * naive_rate / 1e6:.2f} M samples/s = {10 * naive_rate * flops / 1e9:.0f} GFLOP/s")
     print("\nRESULTS (targets: >= 10x samples/s; naive's final PSNR in <= 1/10 of its time)")
     for name, curve in runs.items():
         rate = curve.samples / curve.train_seconds
         t_ours = curve.time_to_reach(target)
+        arithmetic = "fp32" if name.endswith("fp32)") else precision
         print(f"  {name}")
         print(f"    samples/s ratio (ours / naive):   {rate / naive_rate:.1f}x   ({rate * flops / 1e9:.0f} GFLOP/s, "
-              f"{100 * rate * flops / peak:.0f} % of the fp32 peak)")
+              f"{100 * rate * flops / peaks[arithmetic]:.0f} % of the {arithmetic} matmul peak)")
         if t_ours is None:
             print(f"    did not reach naive's final PSNR ({target:.2f} dB) within its budget")
         else:
