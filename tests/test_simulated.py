@@ -383,3 +383,27 @@ def test_interrupted_write_of_a_simulated_btf_resumes(tmp_path):
     stored, fresh = read_stored(out), simulated_btf("leather", size=8, seed=1)
     for v, l in [(2, 3), (50, 60)]:
         np.testing.assert_array_equal(stored.image(v, l), fresh.image(v, l))
+
+
+def test_relief_scales_the_height_field_and_its_shadows():
+    """relief multiplies the height field: 0 is flat (no cast shadows: a grazing light darkens no texel
+    beyond the flat-surface shading), 1 is the default material byte for byte, and the spec form parses it."""
+    from dynbtf.data.open import open_btf
+
+    default = simulated_btf("stone", size=16)
+    same = open_btf("sim:stone?size=16&relief=1")
+    half = open_btf("sim:stone?size=16&relief=0.5")
+    flat = simulated_btf("stone", size=16, relief=0.0)
+    assert default.name == same.name == "sim:stone" and half.name == "sim:stone?relief=0.5"
+    np.testing.assert_array_equal(half.renderer.maps.height, 0.5 * default.renderer.maps.height)
+    assert not flat.renderer.maps.height.any() and half.metadata["relief"] == 0.5
+    np.testing.assert_array_equal(default.image(3, 40), same.image(3, 40))
+    # light at theta 75: with relief, shadowed texels fall far below the flat surface's values
+    grazing = int(np.argmax(np.arccos(np.clip(default.lights[:, 2], -1, 1))))
+    ratio_flat = flat.image(0, grazing).mean(-1) / flat.image(0, 0).mean(-1)
+    ratio_deep = default.image(0, grazing).mean(-1) / default.image(0, 0).mean(-1)
+    assert (ratio_deep < 0.5 * ratio_flat.min()).mean() > 0.1  # >10% of texels in cast shadow
+    with pytest.raises(InputError, match="relief"):
+        simulated_btf("stone", size=16, relief=-1)
+    with pytest.raises(InputError, match="relief"):
+        open_btf("sim:stone?relief=deep")

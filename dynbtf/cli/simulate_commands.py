@@ -21,6 +21,8 @@ def simulate(
     grid: str = typer.Option("ubo2003", help="Direction grid: ubo2003 (81 views x 81 lights, 6,561 images) or "
                              "ubo2014 (151 x 151, 22,801 images)."),
     seed: int = typer.Option(0, help="Seed of the material's random structure (same seed: identical values)."),
+    relief: float = typer.Option(1.0, help="Multiplier of the material's height field, in [0, 4] (0: flat, "
+                                 "1: the material as designed). Deeper relief: longer shadows, more parallax."),
     dtype: str = typer.Option("float16", help="Stored value type: float16 (half the size) or float32."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing output."),
     device: str = typer.Option("auto", help="Where to render: auto (CUDA if available), cpu, cuda:0, ..."),
@@ -47,7 +49,7 @@ def simulate(
         raise InputError("--output: give the stored BTF directory to write, e.g. -o stone.dbtf")
     from ..data.stored import write_stored
 
-    source = simulated_btf(material, size=size, grid=grid, seed=seed, device=device)
+    source = simulated_btf(material, size=size, grid=grid, seed=seed, relief=relief, device=device)
     start = time.perf_counter()
     write_stored(output, source, dtype=dtype, progress=not quiet, overwrite=overwrite)
     seconds = time.perf_counter() - start

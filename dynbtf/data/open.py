@@ -5,13 +5,13 @@
 * a UBO2014 DFMF ``.btf`` file (recognized by its magic bytes ``!DFMF08FC``),
 * a UBO2003 zip of angle-named images (recognized as a zip file),
 * a stored BTF directory (containing ``meta.json``) or its ``meta.json``,
-* a simulated BTF spec ``sim:<material>[?size=128&grid=ubo2003&seed=0]``
+* a simulated BTF spec ``sim:<material>[?size=128&grid=ubo2003&seed=0&relief=1]``
   (see :mod:`dynbtf.data.simulated`; e.g. ``sim:leather?size=64``).
 
 Examples
 --------
 >>> parse_sim_spec("sim:stone?size=64&seed=3")
-('stone', {'size': 64, 'grid': 'ubo2003', 'seed': 3})
+('stone', {'size': 64, 'grid': 'ubo2003', 'seed': 3, 'relief': 1.0})
 """
 
 from __future__ import annotations
@@ -28,11 +28,11 @@ __all__ = ["open_btf", "sniff_format", "parse_sim_spec", "SIM_PREFIX", "SIM_DEFA
 #: Prefix of simulated-BTF specs.
 SIM_PREFIX = "sim:"
 #: Defaults of a ``sim:`` spec's options.
-SIM_DEFAULTS = {"size": 128, "grid": "ubo2003", "seed": 0}
+SIM_DEFAULTS = {"size": 128, "grid": "ubo2003", "seed": 0, "relief": 1.0}
 
 
 def parse_sim_spec(spec: str) -> tuple[str, dict]:
-    """Split ``sim:<material>[?size=..&grid=..&seed=..]`` into ``(material, options)``."""
+    """Split ``sim:<material>[?size=..&grid=..&seed=..&relief=..]`` into ``(material, options)``."""
     body = spec[len(SIM_PREFIX):]
     material, _, query = body.partition("?")
     if not material:
@@ -46,6 +46,11 @@ def parse_sim_spec(spec: str) -> tuple[str, dict]:
                 options[key] = int(value)
             except ValueError:
                 raise InputError(f"{spec!r}: option {key!r} must be an integer, got {value!r}") from None
+        elif key == "relief":
+            try:
+                options[key] = float(value)
+            except ValueError:
+                raise InputError(f"{spec!r}: option 'relief' must be a number, got {value!r}") from None
         else:
             options[key] = value
     return material, options
@@ -94,7 +99,8 @@ def open_btf(path_or_spec, **options) -> BTFSource:
         material, sim = parse_sim_spec(spec)
         from . import simulated  # imported lazily: it needs torch and the simulator
 
-        return simulated.simulated_btf(material, size=sim["size"], grid=sim["grid"], seed=sim["seed"], **options)
+        return simulated.simulated_btf(material, size=sim["size"], grid=sim["grid"], seed=sim["seed"],
+                                       relief=sim["relief"], **options)
     kind = sniff_format(spec)
     if kind == "ubo2014":
         from .ubo2014 import UBO2014BTF

@@ -61,6 +61,11 @@ class SimulatedBTF(BTFSource):
         Direction grid, ``"ubo2003"`` or ``"ubo2014"`` (the same list for views and lights).
     seed : int
         Seed of every random choice of the material (same seed: identical images).
+    relief : float, default 1
+        Multiplier of the material's height field (its depth; 0: flat, no shadows nor
+        parallax; 0.5: half as deep). Deeper relief means longer cast shadows and more
+        parallax, which no per-texel representation without a parallax model (the
+        Triple Plane, PCA, SH) can reproduce; see docs/triple_plane.md.
     device : str or torch.device, optional
         Where to render (default: CUDA if available, else CPU).
 
@@ -73,14 +78,17 @@ class SimulatedBTF(BTFSource):
     material sampled more or less finely.
     """
 
-    def __init__(self, material: str, size: int = 128, grid: str = "ubo2003", seed: int = 0, *, device=None):
+    def __init__(self, material: str, size: int = 128, grid: str = "ubo2003", seed: int = 0, *,
+                 relief: float = 1.0, device=None):
         super().__init__()
         material, size, grid, seed = _check_arguments(material, size, grid, seed)
-        self.material, self.grid, self.seed = material, grid, seed
+        if not isinstance(relief, (int, float)) or not 0.0 <= float(relief) <= 4.0:
+            raise InputError(f"relief: expected a height-field multiplier in [0, 4], got {relief!r}")
+        self.material, self.grid, self.seed, self.relief = material, grid, seed, float(relief)
         self.height = self.width = size
         self.views = np.asarray(direction_set(grid), dtype=np.float64)
         self.lights = self.views.copy()
-        self.name = f"sim:{material}"
+        self.name = f"sim:{material}" + ("" if self.relief == 1.0 else f"?relief={self.relief:g}")
         self.device = resolve_device(device)
         self.tabulation = tabulation_size(size)
         self._renderer: HeightFieldRenderer | None = None
@@ -94,6 +102,7 @@ class SimulatedBTF(BTFSource):
             "material_description": MATERIALS[material],
             "grid": grid,
             "seed": seed,
+            "relief": self.relief,
             "simulator_version": SIMULATOR_VERSION,
             "tabulation": self.tabulation,
             "values": "linear RGB, pi * f_r, excluding cos(theta_light)",
@@ -104,6 +113,8 @@ class SimulatedBTF(BTFSource):
         """The (lazily built) renderer holding the material maps and caches."""
         if self._renderer is None:
             maps = build_material(self.material, self.tabulation, self.seed)
+            if self.relief != 1.0:
+                maps.height = maps.height * self.relief
             self._renderer = HeightFieldRenderer(maps, self.height, device=self.device)
         return self._renderer
 
@@ -164,10 +175,11 @@ def _check_arguments(material, size, grid, seed):
     return material, size_i, grid.lower(), seed_i
 
 
-def simulated_btf(material: str, size: int = 128, grid: str = "ubo2003", seed: int = 0, *, device=None) -> BTFSource:
-    """Open a simulated BTF (what ``open_btf("sim:MATERIAL?size=..&grid=..&seed=..")`` returns).
+def simulated_btf(material: str, size: int = 128, grid: str = "ubo2003", seed: int = 0, *, relief: float = 1.0,
+                  device=None) -> BTFSource:
+    """Open a simulated BTF (what ``open_btf("sim:MATERIAL?size=..&grid=..&seed=..&relief=..")`` returns).
 
     See :class:`SimulatedBTF` for the parameters; unknown materials or grids and
-    bad sizes or seeds raise :class:`dynbtf.errors.InputError` listing the choices.
+    bad sizes, seeds or reliefs raise :class:`dynbtf.errors.InputError` listing the choices.
     """
-    return SimulatedBTF(material, size=size, grid=grid, seed=seed, device=device)
+    return SimulatedBTF(material, size=size, grid=grid, seed=seed, relief=relief, device=device)
