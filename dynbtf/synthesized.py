@@ -9,9 +9,10 @@ renderer and the Mitsuba plugin's tests -- evaluates through this class.
 
 Units and conventions
 ---------------------
-* ``uv`` -- the user's surface coordinates, any real value (float64 recommended
-  beyond ~1e3); ``scale`` is the number of exemplar repeats per unit of ``uv``
-  (``scale = 45`` makes the unit square show 45 x 45 exemplar repeats, the
+* ``uv`` -- the user's surface coordinates, any finite value with ``|uv| * scale``
+  below ``2**52`` exemplar repeats (float64 recommended beyond ~1e3; larger values
+  raise :class:`~dynbtf.errors.InputError`, see :func:`dynbtf.synthesis.base.check_uv`);
+  ``scale`` is the number of exemplar repeats per unit of ``uv`` (``scale = 45`` makes the unit square show 45 x 45 exemplar repeats, the
   paper's "45x"). The synthesizer sees ``uv * scale`` in exemplar repeats.
 * ``w_view, w_light`` -- unit vectors ``(..., 3)`` in the local frame
   (:mod:`dynbtf.conventions`). Directions **below the horizon** (``z < 0``)
@@ -214,7 +215,7 @@ class SynthesizedBTF:
 
     def features(self, uv) -> torch.Tensor:
         """Synthesized positional features ``(..., C)`` float32 at the user's ``uv (..., 2)``."""
-        uv = check_uv(uv)
+        uv = check_uv(uv, scale=self.scale)
         flat = uv.reshape(-1, 2).to(torch.float64)
         out = [self.synthesizer(chunk.to(self.device) * self.scale) for chunk in flat.split(self.chunk_size)]
         c = self.synthesizer.channels
@@ -275,7 +276,7 @@ class SynthesizedBTF:
         Parameters
         ----------
         uv : ``(..., 2)`` float32/float64
-            User's surface coordinates, any finite real value.
+            User's surface coordinates, any finite value with ``|uv| * scale < 2**52``.
         w_view, w_light : ``(..., 3)``
             Unit directions in the local frame, same batch shape as ``uv``. Rows
             with either direction below the horizon (``z < 0``) return zero.
@@ -285,7 +286,7 @@ class SynthesizedBTF:
         ``(..., 3)`` float32: a NumPy array for NumPy ``uv``, else a tensor on the model's device.
         """
         as_numpy = not isinstance(uv, torch.Tensor)
-        uv = check_uv(uv)
+        uv = check_uv(uv, scale=self.scale)
         batch = uv.shape[:-1]
         wv, up_v = self._check_directions(w_view, "w_view", batch)
         wl, up_l = self._check_directions(w_light, "w_light", batch)
@@ -332,7 +333,8 @@ class SynthesizedBTF:
             Directions of the camera and of the light (the same for every pixel).
         uv_rect : (u0, v0, u1, v1)
             The user-uv rectangle shown; with ``scale = 45`` the default unit
-            square shows 45 x 45 exemplar repeats. May lie anywhere (e.g. around 1e6).
+            square shows 45 x 45 exemplar repeats. May lie anywhere (e.g. around 1e6) with
+            ``|u|, |v| * scale < 2**52``.
         resolution : int or (height, width)
             Pixels; pixel ``[i, j]`` shows ``uv = (u0 + (j + .5) (u1 - u0) / W, v0 + (i + .5) (v1 - v0) / H)``.
         spp : int, default 1
@@ -354,6 +356,7 @@ class SynthesizedBTF:
             u0, v0, u1, v1 = (float(x) for x in uv_rect)
         except (TypeError, ValueError):
             raise InputError(f"uv_rect: expected (u0, v0, u1, v1), got {uv_rect!r}") from None
+        check_uv(np.array([[u0, v0], [u1, v1]]), "uv_rect", scale=self.scale)
         directions = []
         for name, pair in (("view", view), ("light", light)):
             try:

@@ -76,7 +76,7 @@ def test_lattice_barycentrics_and_equilateral_triangles():
     assert TRIANGLE_EDGE == pytest.approx(0.2887, abs=1e-4)
 
 
-@pytest.mark.parametrize("offset", [0.0, 1e6, -3e7, 1e9])
+@pytest.mark.parametrize("offset", [0.0, 1e6, -3e7, 1e9, 2.0**40, -(2.0**51), 2.0**52 - 2])
 def test_lattice_exact_at_large_coordinates(offset):
     rng = np.random.default_rng(2)
     uv = rng.random((200, 2)) + offset
@@ -87,7 +87,24 @@ def test_lattice_exact_at_large_coordinates(offset):
         expected_b = [1 - fx - fy, fy, fx] if lower else [fx + fy - 1, 1 - fy, 1 - fx]
         first = [bx, by] if lower else [bx + 1, by + 1]
         assert vertices[n, 0].tolist() == first
-        np.testing.assert_allclose(bary[n].numpy(), expected_b, atol=1e-8 if abs(offset) < 1e8 else 1e-6)
+        # below 2**27 repeats the float64 constant 2 sqrt(3) (error ~2e-16 |u|); beyond, integer fixed point
+        np.testing.assert_allclose(bary[n].numpy(), expected_b, atol=1e-8 if abs(offset) < 2**27 else 1e-12)
+
+
+def test_large_scaled_integer_is_exact_up_to_the_uv_limit():
+    from fractions import Fraction
+
+    from dynbtf.synthesis.lattice import MAX_REPEATS, large_scaled_integer
+    from synthesis_reference import exact_lattice
+
+    rng = np.random.default_rng(4)
+    i = np.concatenate([[2**27, -(2**27), 2**52 - 1, -(2**52) + 1, 2**53, -(2**53)],
+                        rng.integers(-(2**52), 2**52, 500)])
+    whole, frac = large_scaled_integer(torch.from_numpy(i))
+    assert whole.dtype == torch.int64 and frac.dtype == torch.float64 and MAX_REPEATS == 2.0**52
+    for k, n in enumerate(i.tolist()):
+        (bx, _), (fx, _) = exact_lattice(float(n), 0.0)  # k_x = 2 sqrt(3) n
+        assert abs(Fraction(int(whole[k])) + Fraction(float(frac[k])) - (bx + Fraction(fx))) < 1e-14
 
 
 def test_lattice_whole_v_shift_is_an_exact_lattice_translation():

@@ -9,7 +9,8 @@ new synthesizer of the same method and exemplar (e.g. with another seed) skips
 it, like nvdiffrast's ``texture_construct_mip`` -> ``mip=``.
 
 Calling the synthesizer, ``synth(uv)``, maps ``uv (..., 2)`` -- float32 or
-float64, in units of one exemplar repeat, any real value -- to features
+float64, in units of one exemplar repeat, any real value with ``|uv| <``
+:data:`MAX_REPEATS` (``2**52``; :func:`check_uv`, which every entry point calls) -- to features
 ``(..., C)`` float32. Dynamic methods compute every query independently from
 ``uv`` alone (``dynamic = True``); quilting is not dynamic: it synthesizes a
 finite plane up front and wraps it.
@@ -31,6 +32,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from .lattice import MAX_REPEATS
 
 __all__ = [
     "Synthesizer",
@@ -41,6 +43,7 @@ __all__ = [
     "check_uv",
     "wrapped_texel_position",
     "MIN_EXEMPLAR_TEXELS",
+    "MAX_REPEATS",
 ]
 
 #: name -> class, filled by :func:`register_synthesizer`.
@@ -86,8 +89,15 @@ def make_synthesizer(name: str, exemplar, seed: int = 0, **params) -> "Synthesiz
     return cls(exemplar, seed=seed, **params)
 
 
-def check_uv(uv, name: str = "uv") -> torch.Tensor:
-    """Validate query positions: a float tensor/array ``(..., 2)`` of finite values -> tensor."""
+def check_uv(uv, name: str = "uv", scale: float = 1.0) -> torch.Tensor:
+    """Validate query positions: a float tensor/array ``(..., 2)`` -> tensor (float64 unless a float tensor).
+
+    The one place that decides which ``uv`` may reach the lattice and the numba kernels: every
+    value must be finite and ``|uv| * scale`` (exemplar repeats: what the synthesizer sees) below
+    :data:`MAX_REPEATS` = ``2**52``, where float64 stops resolving fractions of a repeat (beyond,
+    int64 conversions would overflow and the kernels read out of bounds). ``name`` is the
+    argument named in the :class:`InputError` (e.g. ``"uv"``, ``"uv_rect"``, ``"--center"``).
+    """
     if not isinstance(uv, torch.Tensor):
         try:
             uv = torch.from_numpy(np.array(uv, dtype=np.float64))  # a writable copy
@@ -97,19 +107,30 @@ def check_uv(uv, name: str = "uv") -> torch.Tensor:
         uv = uv.to(torch.float64)
     if uv.ndim == 0 or uv.shape[-1] != 2:
         raise InputError(f"{name}: expected shape (..., 2), got {tuple(uv.shape)}")
-    if uv.numel() and not bool(torch.isfinite(uv).all()):
+    if not uv.numel():
+        return uv
+    scale = float(scale)
+    largest = float(uv.abs().max())  # NaN if any value is NaN; exact (float32 widens exactly)
+    if largest * scale < MAX_REPEATS:  # the product rounds as uv * scale does (monotone): same decision
+        return uv
+    if not np.isfinite(largest):
         bad = int((~torch.isfinite(uv)).any(-1).sum())
         raise InputError(f"{name}: {bad} position(s) contain NaN or infinite values; expected finite uv")
-    return uv
+    bad = int((uv.abs().to(torch.float64) * scale >= MAX_REPEATS).any(-1).sum())
+    what, got = ("|uv|", f"{largest!r}") if scale == 1.0 else \
+        (f"|uv| * scale (scale = {scale!r})", f"|uv| = {largest!r}, i.e. {largest * scale!r} repeats")
+    raise InputError(f"{name}: {what} must be below 2**52 = {int(MAX_REPEATS)} exemplar repeats (float64 resolves "
+                     f"no fraction of a repeat beyond), got {got} ({bad} position(s) out of range)")
 
 
 def wrapped_texel_position(whole: torch.Tensor, frac: torch.Tensor, density: int, period: int) -> torch.Tensor:
     """Exact texel coordinate ``(whole + frac) * density`` modulo ``period``, float64 in ``[0, period)``.
 
     ``whole`` is int64, ``frac`` float64 in ``[0, 1)``: the integer part is reduced
-    in int64, so the result does not depend on the size of ``whole``.
+    in int64 (each factor first, so ``whole * density`` cannot overflow), so the result
+    does not depend on the size of ``whole``.
     """
-    p = torch.remainder(whole * density, period).to(torch.float64) + frac * density
+    p = torch.remainder(torch.remainder(whole, period) * (density % period), period).to(torch.float64) + frac * density
     return torch.remainder(p, float(period))
 
 

@@ -27,12 +27,14 @@ import types
 
 import numba
 import numpy as np
+import torch
 from llvmlite import ir
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from .base import check_uv
 from .hash import _SECOND_STREAM, MASK32, fold_coordinate, hash_vertex, mix32, seed_state
-from .lattice import _C_HI, _C_LO, LATTICE_SCALE
+from .lattice import _C_HI, _C_LO, LATTICE_SCALE, large_scaled_integer
 
 __all__ = ["lattice_blend", "tile_fetch", "MODE_LINEAR", "MODE_HIST", "MODE_HEX"]
 
@@ -60,6 +62,7 @@ _mix32 = _jit_with(mix32, _mulmod32=_mulmod32_native)
 _seed_state = _jit_with(seed_state, mix32=_mix32)
 _fold_coordinate = _jit_with(fold_coordinate, mix32=_mix32)
 _hash_vertex = _jit_with(hash_vertex, fold_coordinate=_fold_coordinate, seed_state=_seed_state)
+_large_scaled_integer = _jit_with(large_scaled_integer, _floor=math.floor, _to_float64=np.float64, _to_int64=np.int64)
 
 
 @intrinsic
@@ -84,13 +87,11 @@ def _prefetch(typingctx, array, index):
 @numba.njit(inline="always")
 def _scaled_integer(i):
     """2 sqrt(3) * i as (int64 floor, float64 fraction): scalar twin of lattice._scaled_integer."""
-    if abs(i) < (1 << 27):
-        p_hi = np.float64(i) * _C_HI
-        whole = math.floor(p_hi)
-        frac = (p_hi - whole) + np.float64(i) * _C_LO
-    else:
-        whole = 0.0
-        frac = np.float64(i) * LATTICE_SCALE
+    if abs(i) >= (1 << 27):  # beyond 1.3e8 repeats: integer fixed point (lattice.large_scaled_integer)
+        return _large_scaled_integer(i)
+    p_hi = np.float64(i) * _C_HI
+    whole = math.floor(p_hi)
+    frac = (p_hi - whole) + np.float64(i) * _C_LO
     carry = math.floor(frac)
     return np.int64(whole) + np.int64(carry), frac - carry
 
@@ -283,7 +284,8 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
     Parameters
     ----------
     uv : float64 ``(N, 2)``
-        Positions in exemplar repeats.
+        Positions in exemplar repeats, finite, ``|uv| < 2**52`` (checked with
+        :func:`~dynbtf.synthesis.base.check_uv`: beyond, the kernel's int64 arithmetic overflows).
     plane : float32 ``(H', W', C)``, C-contiguous
         The (preprocessed) exemplar: raw features (linear, hex) or their
         Gaussian transform (hist).
@@ -306,6 +308,8 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
     -------
     float32 ``(N, C)``.
     """
+    uv = np.ascontiguousarray(uv, dtype=np.float64)
+    check_uv(torch.from_numpy(uv))
     n = uv.shape[0]
     c = plane.shape[2]
     if out is None:
@@ -314,7 +318,7 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
         luminance = np.zeros((1, 1), dtype=np.float32)
     if lut is None:
         lut = np.zeros((c, 2), dtype=np.float32)
-    _kernel(np.ascontiguousarray(uv, dtype=np.float64), np.ascontiguousarray(plane, dtype=np.float32),
+    _kernel(uv, np.ascontiguousarray(plane, dtype=np.float32),
             np.ascontiguousarray(luminance, dtype=np.float32), int(density[0]), int(density[1]), int(seed) & 0xFFFFFFFF,
             int(mode), float(gamma), float(beta), float(gain_k), np.ascontiguousarray(lut, dtype=np.float32),
             float(g_min), 1.0 / float(step), out)
@@ -347,9 +351,11 @@ def tile_fetch(uv: np.ndarray, plane: np.ndarray, out: np.ndarray | None = None)
     """Bilinear periodic fetch of ``plane (H, W, C)`` float32 at ``uv (N, 2)`` float64 -> ``(N, C)`` float32.
 
     The fused twin of :func:`dynbtf.texture.fetch_wrap` (the fraction of ``uv`` is
-    taken in float64, so any ``uv`` is exact).
+    taken in float64, so any ``uv`` is exact); ``uv`` is checked like :func:`lattice_blend`'s.
     """
+    uv = np.ascontiguousarray(uv, dtype=np.float64)
+    check_uv(torch.from_numpy(uv))
     if out is None:
         out = np.empty((uv.shape[0], plane.shape[2]), dtype=np.float32)
-    _tile_kernel(np.ascontiguousarray(uv, dtype=np.float64), np.ascontiguousarray(plane, dtype=np.float32), out)
+    _tile_kernel(uv, np.ascontiguousarray(plane, dtype=np.float32), out)
     return out

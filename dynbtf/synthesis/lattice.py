@@ -18,9 +18,11 @@ Exactness for any uv
 ``uv`` is split in float64 into an integer repeat index ``I`` (int64) and a
 fraction ``F`` in ``[0, 1)``. Because ``M``'s second column is integer, ``I_v``
 moves the lattice by whole vertex steps ``(-2, 4)``; ``2 sqrt(3) I_u`` is split into
-an integer and a fraction with a two-term (hi + lo) product (exact up to
-``|u| < 2**27`` repeats; beyond, plain float64 with an error of
-``~1e-16 |u|`` repeats). So ``k``'s integer
+an integer and a fraction: for ``|I_u| < 2**27`` with a two-term (hi + lo) float64
+product, beyond in integer fixed point (``2 sqrt(3)`` as ``N1 / 2**24 + N2 / 2**50 + c3``
+from its exact digits; :func:`large_scaled_integer`), so the fraction is within ~1e-15
+lattice units of the true ``2 sqrt(3) I_u mod 1`` for every ``|I_u| <`` :data:`MAX_REPEATS`
+(= ``2**52``, the limit :func:`dynbtf.synthesis.base.check_uv` enforces). So ``k``'s integer
 part is exact int64 and its fraction is computed from numbers below ~4 in size:
 a query at ``uv = 1e6 + x`` sees exactly the lattice phase (barycentrics) it
 would see at a base point with the same phase, and any shift by whole repeats
@@ -33,7 +35,16 @@ import math
 
 import torch
 
-__all__ = ["split_uv", "triangle_lattice", "vertex_uv", "LATTICE_SCALE", "TRIANGLE_EDGE"]
+__all__ = ["split_uv", "triangle_lattice", "vertex_uv", "large_scaled_integer", "LATTICE_SCALE", "TRIANGLE_EDGE",
+           "MAX_REPEATS"]
+
+#: Largest ``|uv|`` (exemplar repeats, i.e. after a synthesized BTF's ``scale``) the lattice and
+#: every synthesizer accept (exclusive). Below it the lattice is exact (see the module docstring)
+#: and every int64 quantity derived from ``uv`` (repeat index, vertices up to ~3.5 * 2**52,
+#: texel addresses) fits; from it on float64 holds no fraction of a repeat at all (its spacing is
+#: >= 1 repeat), so a query can only land on whole repeats. Texel resolution ends earlier, where the
+#: float64 spacing ``2**(e - 52)`` exceeds ``1 / W`` repeats: ``|uv| >= 2**52 / W`` (~1e13 for W = 400).
+MAX_REPEATS = 2.0**52
 
 #: ``2 sqrt(3)``: lattice units per exemplar repeat along ``u``.
 LATTICE_SCALE = 2.0 * math.sqrt(3.0)
@@ -42,6 +53,12 @@ TRIANGLE_EDGE = 1.0 / LATTICE_SCALE
 # 2 sqrt(3) = _C_HI + _C_LO with _C_HI holding 26 significant bits: I * _C_HI is exact for |I| < 2**27.
 _C_HI = math.ldexp(math.floor(math.ldexp(LATTICE_SCALE, 24)), -24)
 _C_LO = LATTICE_SCALE - _C_HI
+# The exact 2 sqrt(3) = sqrt(12) in fixed point: _N1 / 2**24 + _N2 / 2**50 + _C3, with _N1 < 2**26 and
+# _N2 < 2**26 integers and 0 <= _C3 < 2**-50 (all from integer square roots, no rounded constant).
+_N1 = math.isqrt(12 << 48)
+_N2 = math.isqrt(12 << 100) - (_N1 << 26)
+_C3 = (math.isqrt(12 << 228) - (math.isqrt(12 << 100) << 64)) / 2.0**114
+_MASK24, _MASK50 = (1 << 24) - 1, (1 << 50) - 1
 
 
 def split_uv(uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -57,15 +74,49 @@ def split_uv(uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return (whole + carry).to(torch.int64), torch.where(carry, frac - 1.0, frac)
 
 
+def _to_float64(x: torch.Tensor) -> torch.Tensor:
+    return x.to(torch.float64)
+
+
+def _to_int64(x: torch.Tensor) -> torch.Tensor:
+    return x.to(torch.int64)
+
+
+_floor = torch.floor
+
+
+def large_scaled_integer(i):
+    """``2 sqrt(3) * i`` for int64 ``|i| <= 2**53`` as (int64 floor, float64 fraction in ``[0, 1)``).
+
+    Integer fixed point: with ``i = a 2**26 + b`` (``0 <= b < 2**26``) every product of ``a`` or ``b``
+    with ``_N1`` or ``_N2`` is an exact int64 (< 2**54) whose bits below the binary point give an
+    exact fraction; only ``i * _C3`` (< 8) is rounded, so the fraction is within ~1e-15 of
+    ``2 sqrt(3) i mod 1``. Written once for int64 tensors and, compiled with ``_floor``,
+    ``_to_float64`` and ``_to_int64`` replaced by scalar twins, for the numba kernel.
+    """
+    a = i >> 26
+    b = i & ((1 << 26) - 1)
+    p_b1, p_a2, p_b2 = b * _N1, a * _N2, b * _N2
+    whole = 4 * a * _N1 + (p_b1 >> 24) + (p_a2 >> 24) + (p_b2 >> 50)  # a 2**26 _N1 / 2**24 = 4 a _N1
+    frac = (_to_float64((p_b1 & _MASK24) + (p_a2 & _MASK24)) * 2.0**-24 + _to_float64(p_b2 & _MASK50) * 2.0**-50
+            + _to_float64(i) * _C3)
+    carry = _floor(frac)
+    return whole + _to_int64(carry), frac - carry
+
+
 def _scaled_integer(i: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``2 sqrt(3) * i`` for int64 ``i`` as (int64 floor, float64 fraction)."""
-    i_hi = torch.where(i.abs() < (1 << 27), torch.zeros_like(i), i)  # beyond 1.3e8 repeats: plain float64
-    i_lo = (i - i_hi).to(torch.float64)
+    """``2 sqrt(3) * i`` for int64 ``|i| <= 2**53`` as (int64 floor, float64 fraction)."""
+    i_lo = torch.where(i.abs() < (1 << 27), i, torch.zeros_like(i)).to(torch.float64)
     p_hi = i_lo * _C_HI  # exact: |i_lo| < 2**27, _C_HI has 26 bits
     whole = torch.floor(p_hi)
-    frac = (p_hi - whole) + i_lo * _C_LO + i_hi.to(torch.float64) * LATTICE_SCALE
+    frac = (p_hi - whole) + i_lo * _C_LO
     carry = torch.floor(frac)
-    return whole.to(torch.int64) + carry.to(torch.int64), frac - carry
+    small_whole, small_frac = whole.to(torch.int64) + carry.to(torch.int64), frac - carry
+    large = i.abs() >= (1 << 27)  # beyond 1.3e8 repeats: integer fixed point
+    if not bool(large.any()):
+        return small_whole, small_frac
+    big_whole, big_frac = large_scaled_integer(i)
+    return torch.where(large, big_whole, small_whole), torch.where(large, big_frac, small_frac)
 
 
 def triangle_lattice(uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
