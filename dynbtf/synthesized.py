@@ -12,8 +12,9 @@ Units and conventions
 * ``uv`` -- the user's surface coordinates, any finite value with ``|uv| * scale``
   below ``2**52`` exemplar repeats (float64 recommended beyond ~1e3; larger values
   raise :class:`~dynbtf.errors.InputError`, see :func:`dynbtf.synthesis.base.check_uv`);
-  ``scale`` is the number of exemplar repeats per unit of ``uv`` (``scale = 45`` makes the unit square show 45 x 45 exemplar repeats, the
-  paper's "45x"). The synthesizer sees ``uv * scale`` in exemplar repeats.
+  ``scale`` is the number of exemplar repeats per unit of ``uv`` (``scale = 45``
+  makes the unit square show 45 x 45 exemplar repeats, the paper's "45x"). The
+  synthesizer sees ``uv * scale`` in exemplar repeats.
 * ``w_view, w_light`` -- unit vectors ``(..., 3)`` in the local frame
   (:mod:`dynbtf.conventions`). Directions **below the horizon** (``z < 0``)
   evaluate to **zero** (no reflection from under the surface), not an error.

@@ -8,6 +8,8 @@ linear blending is not; hist repetition <= 1/5 of plain tiling's).
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -17,6 +19,7 @@ from dynbtf.errors import InputError
 from dynbtf.representations.base import Representation
 from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.synthesis import make_synthesizer
+from dynbtf.synthesis.base import MAX_REPEATS
 from dynbtf.synthesis.quality import format_report, quality_report, save_report
 from dynbtf.synthesized import SynthesizedBTF
 from synthesis_reference import brute_force_lattice_blend, smooth_lognormal
@@ -40,7 +43,7 @@ def random_directions(n, rng, max_theta=80.0):
 
 # ---------------------------------------------------------------- synthesizers
 @pytest.mark.parametrize("method", DYNAMIC_BLENDS)
-@pytest.mark.parametrize("offset", [0.0, 1e6, -2.5e7])
+@pytest.mark.parametrize("offset", [0.0, 1e6, -2.5e7, 2.0**52 - 4, -(2.0**52) + 4])  # up to just below the uv limit
 def test_features_match_brute_force_at_any_coordinate(exemplar, method, offset):
     synth = make_synthesizer(method, exemplar, seed=11)
     assert synth.prepared.tileable  # the non-periodic exemplar was made tileable
@@ -83,6 +86,58 @@ def test_tile_and_quilt_are_exact_at_large_coordinates(exemplar):
     assert torch.equal(tile(uv + 1e6), tile(uv))
     quilt = make_synthesizer("quilt", exemplar[:32, :32], seed=1, repeats=2, block=12)
     assert torch.equal(quilt(uv + 2e6), quilt(uv))
+
+
+def test_tile_and_quilt_are_exact_just_below_the_uv_limit(exemplar):
+    frac = torch.from_numpy(np.random.default_rng(1).integers(0, 2, (100, 2)) / 2)  # float64 near 2**52: halves
+    whole = torch.from_numpy(np.random.default_rng(2).integers(1, 2**10, (100, 2)).astype(np.float64) * 2)
+    for big in (2.0**52 - whole + frac, -(2.0**52) + whole + frac):  # even whole repeats: the quilt's period 2
+        assert float(big.abs().max()) < MAX_REPEATS
+        tile = make_synthesizer("tile", exemplar)
+        assert torch.equal(tile(big), tile(frac))
+        quilt = make_synthesizer("quilt", exemplar[:32, :32], seed=1, repeats=2, block=12)
+        assert torch.equal(quilt(big), quilt(frac))
+
+
+@pytest.mark.parametrize("method", ["tile", "linear", "hist", "hex", "quilt"])
+def test_uv_beyond_the_limit_is_rejected_everywhere(exemplar, model, method):
+    params = {"repeats": 2, "block": 12} if method == "quilt" else {}
+    synth = make_synthesizer(method, exemplar[:32, :32], **params)
+    below = np.nextafter(MAX_REPEATS, 0.0)  # 2**52 - 0.5
+    assert torch.isfinite(synth(torch.tensor([[below, 0.25], [-below, below]], dtype=torch.float64))).all()
+    for bad in (MAX_REPEATS, np.nextafter(MAX_REPEATS, np.inf), -MAX_REPEATS, 3e18, 1e19, 1e300):
+        with pytest.raises(InputError, match=r"uv: \|uv\| must be below 2\*\*52 = 4503599627370496 exemplar "
+                                             rf"repeats.*got {re.escape(repr(float(abs(bad))))} \(1 position"):
+            synth(torch.tensor([[0.25, 0.5], [0.5, bad]], dtype=torch.float64))
+    # the synthesized BTF checks |uv| * scale (what the synthesizer sees) in eval, features and image
+    btf = SynthesizedBTF(model, method, scale=8.0, **params)
+    w = torch.tensor([[0.0, 0.0, 1.0]] * 2)
+    ok = torch.tensor([[below / 8, 0.1], [0.2, -below / 8]], dtype=torch.float64)
+    rgb = btf.eval(ok, w, w)
+    assert torch.isfinite(rgb).all()
+    with torch.no_grad():
+        torch.testing.assert_close(rgb, model.decode(btf.features(ok), w, w), rtol=0, atol=2e-5)
+    over = torch.tensor([[MAX_REPEATS / 8, 0.1], [0.2, 0.3]], dtype=torch.float64)
+    message = (r"uv: \|uv\| \* scale \(scale = 8\.0\) must be below 2\*\*52.*"
+               r"got \|uv\| = 562949953421312\.0, i\.e\. 4503599627370496\.0 repeats")
+    with pytest.raises(InputError, match=message):
+        btf.eval(over, w, w)
+    with pytest.raises(InputError, match=message):
+        btf.features(over.numpy())
+    with pytest.raises(InputError, match=r"uv_rect: \|uv\| \* scale"):
+        btf.image(uv_rect=(1e300, 0.0, 1e300 + 1.0, 1.0), resolution=4)
+
+
+def test_kernels_never_see_uv_beyond_the_limit(exemplar):
+    from dynbtf.synthesis.kernels import MODE_LINEAR, lattice_blend, tile_fetch
+
+    plane = exemplar.numpy()
+    for bad in (np.nextafter(MAX_REPEATS, np.inf), 3e18, -1e300):
+        uv = np.array([[0.5, 0.5], [bad, 0.0]])
+        with pytest.raises(InputError, match="2\\*\\*52"):
+            lattice_blend(uv, plane, (48, 40), 0, MODE_LINEAR)
+        with pytest.raises(InputError, match="2\\*\\*52"):
+            tile_fetch(uv, plane)
 
 
 def test_decorrelation_and_tileable_options(exemplar):
@@ -265,5 +320,98 @@ def test_synth_command_writes_image_and_report(model, tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "hist" in printed and "repetition" in printed and (tmp_path / "q.json").exists()
     assert main(["synth", str(path), "--view", "30", "-o", str(out)]) == 2
-    assert "--view: expected two comma-separated numbers" in capsys.readouterr().err
+    assert "--view: expected THETA,PHI in degrees (e.g. 30,90), got '30'" in capsys.readouterr().err
     assert main(["synth", str(path)]) == 2
+
+
+@pytest.fixture(scope="module")
+def model_file(model, tmp_path_factory):
+    from dynbtf.representations.model_file import save_model
+
+    return save_model(tmp_path_factory.mktemp("synth") / "m.dbtfm", model)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--view", "120,0"], "--view: theta must be 0..90 degrees, got 120"),
+    (["--light", "100,0"], "--light: theta must be 0..90 degrees, got 100"),
+    (["--light", "-5,0"], "--light: theta must be 0..90 degrees, got -5"),
+    (["--exposure", "-1"], "--exposure: expected a positive number, got -1.0"),
+    (["--exposure", "0"], "--exposure: expected a positive number, got 0.0"),
+])
+def test_synth_rejects_what_show_rejects(model_file, tmp_path, capsys, args, message):
+    from dynbtf.cli.arguments import check_exposure, parse_theta_phi
+    from dynbtf.cli.main import main
+
+    out = tmp_path / "x.png"
+    assert main(["synth", str(model_file), "--resolution", "8", "-o", str(out), *args]) == 2
+    assert capsys.readouterr().err == f"dynbtf: error: {message}\n" and not out.exists()
+    # the same function (and so the same words) as `dynbtf show`
+    with pytest.raises(InputError) as e:
+        check_exposure(float(args[1])) if args[0] == "--exposure" else parse_theta_phi(args[1], args[0][2:])
+    assert str(e.value) == message
+
+
+def test_synth_center_beyond_the_uv_limit_is_a_one_line_error(model_file, tmp_path):
+    import subprocess
+    import sys
+
+    # in a subprocess: a crash (the segfault this guards against) fails the test instead of killing pytest
+    for center, scale in (("1e300,0", "8"), ("0,6e14", "8")):
+        run = subprocess.run([sys.executable, "-m", "dynbtf.cli.main", "synth", str(model_file), "--center", center,
+                              "--scale", scale, "--resolution", "8", "-o", str(tmp_path / "y.png")],
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 2, run.stderr
+        assert run.stdout == "" and run.stderr.count("\n") == 1
+        assert run.stderr.startswith("dynbtf: error: --center: |uv| * scale (scale = 8.0) must be below 2**52 = "
+                                     "4503599627370496 exemplar repeats")
+        assert not (tmp_path / "y.png").exists()
+    assert "got |uv| = 1e+300" in subprocess.run(
+        [sys.executable, "-m", "dynbtf.cli.main", "synth", str(model_file), "--center", "1e300,0", "-o",
+         str(tmp_path / "y.png")], capture_output=True, text=True, timeout=300).stderr
+    # just inside: 0.5 * 8 repeats around a centre at 5.6e14 * 8 = 4.5e15 - 4e3 repeats
+    run = subprocess.run([sys.executable, "-m", "dynbtf.cli.main", "synth", str(model_file), "--method", "hex",
+                          "--center", f"{2.0**52 / 8 - 1000},0", "--scale", "8", "--resolution", "8", "-o",
+                          str(tmp_path / "z.png")], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+
+
+def test_synth_report_states_the_measured_area(model_file, tmp_path, capsys):
+    from dynbtf.cli.main import main
+
+    assert main(["synth", str(model_file), "--report", "--report-methods", "tile", "--repeats", "40",
+                 "--report-json", str(tmp_path / "q.json")]) == 0
+    printed = capsys.readouterr().out
+    assert ("measured area: 32 x 32 exemplar repeats = 1024 x 1024 texels (requested 40; reduced to fit 1024 "
+            "texels per side)") in printed
+    import typer
+
+    from dynbtf.cli.main import app
+
+    options = {p.name: p for p in typer.main.get_command(app).commands["synth"].params}
+    assert "fit 1024 texels per side" in options["repeats"].help
+
+
+def test_synth_quilt_size_option_and_storage(model_file, tmp_path, capsys):
+    from dynbtf.cli.main import main
+    from dynbtf.io import load_image
+
+    out = tmp_path / "q.png"
+    # default: ceil(--scale) repeats, so the image (one uv unit = --scale repeats) does not wrap
+    assert main(["synth", str(model_file), "--method", "quilt", "--scale", "2.5", "--resolution", "16",
+                 "-o", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "quilt: 3 x 3 exemplar repeats = 96 x 96 texels, storage" in printed
+    assert "+ 0.59 MB (quilted plane, float32)" in printed  # 96 * 96 * 16 * 4 bytes
+    assert load_image(out).shape == (16, 16, 3)
+    assert main(["synth", str(model_file), "--method", "quilt", "--quilt-repeats", "2", "--resolution", "8",
+                 "-o", str(out)]) == 0
+    assert "quilt: 2 x 2 exemplar repeats = 64 x 64 texels" in capsys.readouterr().out
+    # the memory limit: a clear error before any quilting, naming the option and the largest allowed value
+    assert main(["synth", str(model_file), "--method", "quilt", "--quilt-repeats", "1000", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert ("--quilt-repeats: a 1000 x 1000-repeat quilt of the 32x32x16 plane needs 6.554e+04 MB (float32; ~9x "
+            "that while quilting), above the limit of 536.9 MB; expected --quilt-repeats 90 or less") in err
+    assert main(["synth", str(model_file), "--method", "quilt", "--scale", "200", "-o", str(out)]) == 2
+    assert "--quilt-repeats (default ceil(--scale) = 200): a 200 x 200-repeat quilt" in capsys.readouterr().err
+    assert main(["synth", str(model_file), "--method", "quilt", "--quilt-repeats", "0", "-o", str(out)]) == 2
+    assert "--quilt-repeats: expected a positive number of exemplar repeats, got 0" in capsys.readouterr().err

@@ -162,26 +162,21 @@ def parse_direction(text: str, directions: np.ndarray, what: str) -> int:
     """``"INDEX"`` or ``"THETA,PHI"`` (degrees) -> index of the nearest of ``directions`` ``(N, 3)``."""
     from ..conventions import spherical_to_direction
     from ..errors import InputError
+    from .arguments import THETA_PHI, parse_theta_phi
 
-    parts = [p.strip() for p in str(text).split(",")]
-    numbers = []
-    for p in parts:
-        try:
-            numbers.append(float(p))
-        except ValueError:
-            break
-    if len(parts) == 1 and len(numbers) == 1 and numbers[0].is_integer():
-        index = int(numbers[0])
+    text = str(text).strip()
+    try:
+        number = float(text)
+    except ValueError:
+        number = None
+    if number is not None and number.is_integer():
+        index = int(number)
         if not 0 <= index < len(directions):
             raise InputError(f"--{what}: index {index} out of range 0..{len(directions) - 1}")
         return index
-    if len(parts) == 2 and len(numbers) == 2 and all(np.isfinite(numbers)):
-        theta, phi = numbers
-        if not 0.0 <= theta <= 90.0:
-            raise InputError(f"--{what}: theta must be 0..90 degrees, got {parts[0]}")
-        w = spherical_to_direction(np.array(theta), np.array(phi))
-        return int(np.argmax(directions @ w))
-    raise InputError(f"--{what}: expected an index (e.g. 12) or THETA,PHI in degrees (e.g. 30,90), got {text!r}")
+    theta, phi = parse_theta_phi(text, what, expected=f"an index (e.g. 12) or {THETA_PHI}")
+    w = spherical_to_direction(np.array(theta), np.array(phi))
+    return int(np.argmax(directions @ w))
 
 
 @app.command()
@@ -203,11 +198,10 @@ def show(
     """
     from ..conventions import direction_to_spherical
     from ..data.open import open_btf
-    from ..errors import InputError
     from ..io import save_image
+    from .arguments import check_exposure
 
-    if not np.isfinite(exposure) or exposure <= 0:
-        raise InputError(f"--exposure: expected a positive number, got {exposure}")
+    check_exposure(exposure)
     with open_btf(btf) as source:
         v = parse_direction(view, source.views, "view")
         l = parse_direction(light, source.lights, "light")

@@ -1,4 +1,12 @@
-"""``dynbtf synth``: a flat sample of the synthesized BTF (Figs. 5-6 style) and the synthesis quality report."""
+"""``dynbtf synth``: a flat sample of the synthesized BTF (Figs. 5-6 style) and the synthesis quality report.
+
+Quilting is not dynamic: its plane is generated and held in memory before the
+first query. Its size (``--quilt-repeats``, default ``ceil(--scale)`` so that the
+image shows no wrap-around) is bounded by :data:`QUILT_MAX_BYTES` of stored
+float32 plane; generating it takes ~9x that memory at its peak (float64 work
+arrays) and ~10 ms per block on one core for a 128^2 x 16 exemplar (~4 s for 4 x 4
+repeats, growing with the square of the repeats).
+"""
 
 from __future__ import annotations
 
@@ -11,6 +19,10 @@ import typer
 from ..errors import InputError
 from .app import app
 
+#: Largest quilted plane ``dynbtf synth`` generates, bytes of stored float32 (512 MiB: 22 x 22
+#: repeats of a 128^2 x 16 plane, 7 x 7 of a 400^2 x 16 one; peak memory while quilting ~9x that).
+QUILT_MAX_BYTES = 512 * 2**20
+
 
 def _pair(text: str, name: str) -> tuple[float, float]:
     try:
@@ -22,6 +34,25 @@ def _pair(text: str, name: str) -> tuple[float, float]:
     return a, b
 
 
+def _quilt_repeats(quilt_repeats: int | None, scale: float, plane_shape) -> int:
+    """The quilt's size in exemplar repeats per axis: ``quilt_repeats`` or ``ceil(scale)``, within the memory limit."""
+    from ..synthesis.quilting import quilted_storage_bytes
+
+    h, w, c = (int(x) for x in plane_shape)
+    repeats = math.ceil(scale) if quilt_repeats is None else int(quilt_repeats)
+    if repeats < 1:
+        raise InputError(f"--quilt-repeats: expected a positive number of exemplar repeats, got {repeats}")
+    needed = quilted_storage_bytes(h, w, c, repeats)
+    if needed > QUILT_MAX_BYTES:
+        largest = math.isqrt(QUILT_MAX_BYTES // (h * w * c * 4))
+        source = "--quilt-repeats" if quilt_repeats is not None else f"--quilt-repeats (default ceil(--scale) = {repeats})"
+        raise InputError(f"{source}: a {repeats} x {repeats}-repeat quilt of the {h}x{w}x{c} plane needs "
+                         f"{needed / 1e6:.4g} MB (float32; ~9x that while quilting), above the limit of "
+                         f"{QUILT_MAX_BYTES / 1e6:.4g} MB; expected --quilt-repeats {largest} or less (the image then "
+                         f"repeats with the quilt's period)")
+    return repeats
+
+
 @app.command()
 def synth(
     model: Path = typer.Argument(..., help="dynbtf model file (a fitted representation with a positional plane)."),
@@ -29,21 +60,30 @@ def synth(
                                           help="Output image: .png (sRGB) or .exr (linear HDR)."),
     method: str = typer.Option("hist", help="Synthesis method: tile, linear, hist, hex or quilt."),
     scale: float = typer.Option(8.0, help="Exemplar repeats across the image (the paper's 8x, 25x, 45x)."),
-    view: str = typer.Option("0,0", help="View direction THETA,PHI in degrees."),
-    light: str = typer.Option("30,0", help="Light direction THETA,PHI in degrees."),
+    view: str = typer.Option("0,0", help="View direction THETA,PHI in degrees (theta 0..90)."),
+    light: str = typer.Option("30,0", help="Light direction THETA,PHI in degrees (theta 0..90)."),
     resolution: int = typer.Option(1024, help="Image width and height in pixels."),
     seed: int = typer.Option(0, help="Synthesis seed."),
     spp: int = typer.Option(1, help="Supersampling: spp x spp samples per pixel (box filter) against aliasing "
                                     "when a pixel covers many texels."),
     center: str = typer.Option("0.5,0.5", help="uv of the image centre (the image spans one uv unit), "
-                                               "e.g. 1e6,1e6 to look far from the origin."),
-    exposure: float = typer.Option(1.0, help="Multiplier applied before sRGB encoding (PNG only)."),
+                                               "e.g. 1e6,1e6 to look far from the origin; |uv| * scale must stay "
+                                               "below 2**52 (~4.5e15) exemplar repeats."),
+    exposure: float = typer.Option(1.0, help="Multiplier (positive) applied before sRGB encoding (PNG only)."),
+    quilt_repeats: Optional[int] = typer.Option(None, "--quilt-repeats",
+                                                help="Size of the quilted plane (--method quilt, or quilt in "
+                                                     "--report-methods), exemplar repeats per axis; default "
+                                                     "ceil(--scale), so the image does not wrap. The plane is "
+                                                     f"generated up front and limited to {QUILT_MAX_BYTES // 2**20} "
+                                                     "MiB (float32); its storage is printed."),
     report: bool = typer.Option(False, "--report", help="Also measure synthesis quality (W1/std of features and "
                                                         "RGB, repetition, verbatim copies) and print a table."),
     report_methods: str = typer.Option("tile,linear,hist,hex", help="Methods compared by --report."),
     report_json: Optional[Path] = typer.Option(None, help="Where --report saves its JSON "
                                                           "(default: next to -o, or synthesis-quality.json)."),
-    repeats: int = typer.Option(8, help="Side of the area measured by --report, in exemplar repeats."),
+    repeats: int = typer.Option(8, help="Side of the area measured by --report, in exemplar repeats; reduced to "
+                                        "fit 1024 texels per side (8 repeats of a 128-texel exemplar; the report "
+                                        "prints the measured area)."),
 ) -> None:
     """Synthesize a flat sample of the BTF at any scale and position; optionally report quality.
 
@@ -54,17 +94,38 @@ def synth(
     from ..conventions import spherical_to_direction
     from ..io import save_image
     from ..representations.model_file import load_model
+    from ..synthesis.base import check_uv
     from ..synthesized import SynthesizedBTF
+    from .arguments import check_exposure, parse_theta_phi
 
     if output is None and not report:
         raise InputError("nothing to do: give -o/--output for an image and/or --report")
     if resolution < 1:
         raise InputError(f"--resolution: expected a positive number of pixels, got {resolution}")
-    view_dir, light_dir = _pair(view, "view"), _pair(light, "light")
+    if not (math.isfinite(scale) and scale > 0):
+        raise InputError(f"--scale: expected a positive number of exemplar repeats, got {scale}")
+    view_dir, light_dir = parse_theta_phi(view, "view"), parse_theta_phi(light, "light")
+    check_exposure(exposure)
     cu, cv = _pair(center, "center")
+    check_uv([[cu - 0.5, cv - 0.5], [cu + 0.5, cv + 0.5]], "--center", scale=scale)  # before any work
     rep, _ = load_model(model)
+    plane_shape = tuple(rep.positional_plane().shape)
+    methods = [m.strip() for m in report_methods.split(",") if m.strip()] if report else []
+    quilt_size = _quilt_repeats(quilt_repeats, scale, plane_shape) \
+        if (output is not None and method == "quilt") or "quilt" in methods else None
+
+    def build(name: str) -> SynthesizedBTF:
+        params = {"repeats": float(quilt_size), "progress": True} if name == "quilt" else {}
+        btf = SynthesizedBTF(rep, name, scale=scale, seed=seed, **params)
+        if name == "quilt":
+            size = btf.synthesizer.size
+            typer.echo(f"quilt: {quilt_size} x {quilt_size} exemplar repeats = {size[0]} x {size[1]} texels, "
+                       f"storage {rep.storage_bytes() / 1e6:.3g} MB (model) + "
+                       f"{btf.synthesizer.storage_bytes() / 1e6:.3g} MB (quilted plane, float32)")
+        return btf
+
     if output is not None:
-        btf = SynthesizedBTF(rep, method, scale=scale, seed=seed)
+        btf = build(method)
         img = btf.image(view=view_dir, light=light_dir, uv_rect=(cu - 0.5, cv - 0.5, cu + 0.5, cv + 0.5),
                         resolution=resolution, spp=spp)
         cos_light = max(float(spherical_to_direction(light_dir[0], light_dir[1])[2]), 0.0)
@@ -73,9 +134,7 @@ def synth(
     if report:
         from ..synthesis.quality import format_report, quality_report, save_report
 
-        reports = []
-        for name in [m.strip() for m in report_methods.split(",") if m.strip()]:
-            reports.append(quality_report(SynthesizedBTF(rep, name, scale=scale, seed=seed), repeats=repeats))
+        reports = [quality_report(build(name), repeats=repeats) for name in methods]
         typer.echo(format_report(reports))
         path = report_json or (output.with_suffix(".quality.json") if output is not None
                                else Path("synthesis-quality.json"))

@@ -21,8 +21,10 @@ synthesized area with the exemplar statistically:
   tiling and quilting copy (~1), blending methods create new values except
   near lattice vertices.
 
-The area is sampled at texel centres, ``repeats x repeats`` exemplar repeats
-(capped at ``max_side`` texels per side).
+The area is sampled at texel centres, ``repeats x repeats`` exemplar repeats,
+**reduced** so that it fits ``max_side`` texels per side (default 1024: 8 repeats
+of a 128-texel exemplar, 2 of a 400-texel one); the report records the requested
+and the measured size and :func:`format_report` prints both.
 """
 
 from __future__ import annotations
@@ -115,9 +117,11 @@ def quality_report(btf, *, repeats: int = 8, max_side: int = 1024, pairs=DEFAULT
     ----------
     btf : SynthesizedBTF
     repeats : int, default 8
-        Side of the synthesized area in exemplar repeats (reduced to fit ``max_side``).
+        Side of the synthesized area in exemplar repeats, reduced to
+        ``max(2, max_side // max(H, W))`` when it does not fit ``max_side``.
     max_side : int, default 1024
-        Largest area side in texels.
+        Largest area side in texels (the area's features are held in float64:
+        ``(side^2 C 8)`` bytes, 134 MB at 1024^2 x 16).
     pairs : sequence of ((theta, phi), (theta, phi))
         (view, light) pairs in degrees for the RGB statistics.
     rgb_side : int, default 512
@@ -134,7 +138,8 @@ def quality_report(btf, *, repeats: int = 8, max_side: int = 1024, pairs=DEFAULT
     synth = btf.synthesizer
     exemplar = synth.exemplar.detach().cpu().numpy().astype(np.float64)
     h, w, c = exemplar.shape
-    repeats = max(2, min(int(repeats), max_side // max(h, w)))
+    requested = int(repeats)
+    repeats = max(2, min(requested, max_side // max(h, w)))
     side_h, side_w = repeats * h, repeats * w
     v = (np.arange(side_h) + 0.5) / h
     u = (np.arange(side_w) + 0.5) / w
@@ -147,6 +152,8 @@ def quality_report(btf, *, repeats: int = 8, max_side: int = 1024, pairs=DEFAULT
         **btf.describe(),
         "exemplar_shape": [h, w, c],
         "area_repeats": repeats,
+        "area_repeats_requested": requested,
+        "max_side": int(max_side),
         "area_texels": [side_h, side_w],
         "feature_w1_over_std": w1.tolist(),
         "feature_w1_over_std_mean": float(w1.mean()),
@@ -199,6 +206,13 @@ def format_report(reports: list[dict[str, Any]]) -> str:
                     f"{min(r['feature_std_ratio']):>15.3f} {r['rgb_w1_over_std_max']:>16.4f} "
                     f"{r['repetition']['score']:>10.3f} {r['verbatim_fraction']:>8.3f} "
                     f"{r['synthesizer_storage_bytes'] / 1e6:>8.2f}MB")
+    for area in dict.fromkeys((r["area_repeats"], tuple(r["area_texels"]), r.get("area_repeats_requested"),
+                               r.get("max_side")) for r in reports):
+        repeats, (side_h, side_w), requested, max_side = area
+        line = f"measured area: {repeats} x {repeats} exemplar repeats = {side_h} x {side_w} texels"
+        if requested is not None and requested != repeats:
+            line += f" (requested {requested}; reduced to fit {max_side} texels per side)"
+        rows.append(line)
     return "\n".join(rows)
 
 
