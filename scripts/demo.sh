@@ -4,4 +4,6 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/install.sh
-exec dynbtf demo "$@"
+. scripts/python_env.sh  # the interpreter install.sh installed into (the repository's .venv on a PEP 668 system)
+# `dynbtf demo` with that interpreter (its help and messages say "dynbtf", as from the installed command)
+exec "$PY" -c 'import sys; from dynbtf.cli.main import main; sys.argv[0] = "dynbtf"; sys.exit(main())' demo "$@"

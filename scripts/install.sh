@@ -2,15 +2,27 @@
 # Install dynbtf and everything it needs on a fresh Debian/Ubuntu machine.
 #   bash scripts/install.sh          # the library, its CLI and Mitsuba's LLVM back end
 #   bash scripts/install.sh --test   # also the test tools and headless Chromium
-# Uses the active Python (a venv if one is active). Safe to run again.
+# Uses the active Python (a venv if one is active; PYTHON=/path/to/python to choose another).
+# A system Python that is "externally managed" (PEP 668: stock Debian 12, Ubuntu 23.04+) refuses
+# `pip install` outside a venv: then dynbtf goes into the repository's .venv, created here
+# (see scripts/python_env.sh; demo.sh and test.sh run with the same interpreter). Safe to run again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+. scripts/python_env.sh  # -> PY, DYNBTF_BASE_PYTHON, DYNBTF_VENV
 
 with_test=0
 [ "${1:-}" = "--test" ] && with_test=1
 
+venv_ready() {  # the repository's venv exists and has a working pip
+  [ -x "$PY" ] && "$PY" -m pip --version >/dev/null 2>&1
+}
+
 apt_packages=(libllvm19 g++)  # g++: dynbtf compiles its native training kernel on first use
 [ "$with_test" = 1 ] && apt_packages+=(chromium)
+if [ -n "$DYNBTF_VENV" ] && ! venv_ready && ! "$DYNBTF_BASE_PYTHON" -c "import ensurepip, venv" 2>/dev/null; then
+  # Debian/Ubuntu ship venv's ensurepip separately: python3.X-venv for the interpreter's version
+  apt_packages+=("python$("$DYNBTF_BASE_PYTHON" -c 'import sys; print("%d.%d" % sys.version_info[:2])')-venv")
+fi
 
 missing=()
 for p in "${apt_packages[@]}"; do
@@ -24,9 +36,19 @@ if [ "${#missing[@]}" -gt 0 ]; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null
 fi
 
-PY="${PYTHON:-python3}"
+if [ -n "$DYNBTF_VENV" ] && ! venv_ready; then
+  echo "== $DYNBTF_BASE_PYTHON is externally managed (PEP 668): creating the virtual environment $DYNBTF_VENV"
+  "$DYNBTF_BASE_PYTHON" -m venv --clear "$DYNBTF_VENV"
+fi
+
 extra=""
 [ "$with_test" = 1 ] && extra="[test]"
-echo "== installing dynbtf$extra (torch 2.13.0 CPU build pinned)"
-"$PY" -m pip install -q --disable-pip-version-check -e ".$extra" 2>&1 | grep -v "Running pip as the 'root' user" || true
+echo "== installing dynbtf$extra into $PY (torch 2.13.0 CPU build pinned)"
+pip_status=0
+"$PY" -m pip install -q --disable-pip-version-check -e ".$extra" 2>&1 \
+  | { grep -v "Running pip as the 'root' user" || true; } || pip_status=$?
+if [ "$pip_status" != 0 ]; then
+  echo "dynbtf: 'pip install -e .$extra' failed (exit status $pip_status) with $PY" >&2
+  exit "$pip_status"
+fi
 "$PY" -c "import dynbtf, torch, mitsuba; print('dynbtf', dynbtf.__version__, '| torch', torch.__version__, '| mitsuba', mitsuba.__version__)"

@@ -5,5 +5,5 @@ cd "$(dirname "$0")/.."
 bash scripts/install.sh --test
 # third-party cross-check of our UBO2014 reader (tests skip if this build fails)
 bash scripts/install_btf_extractor.sh || echo "btf-extractor could not be installed: its cross-check tests will skip"
-PY="${PYTHON:-python3}"
+. scripts/python_env.sh  # the interpreter install.sh installed into (the repository's .venv on a PEP 668 system)
 exec "$PY" -m pytest -q "$@"
