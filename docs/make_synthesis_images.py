@@ -2,14 +2,18 @@
 
 Usage::
 
-    python docs/make_synthesis_images.py MODEL.dbtfm [--out docs/images] [--panel 256]
+    python docs/make_synthesis_images.py MODEL.dbtfm [--out docs/images] [--panel 192]
 
 Writes ``synthesis_crops.png`` (3 x 3 repeats at one texel per pixel, at uv 0 and 1e6),
 ``synthesis_scales.png`` (rows: tile, linear, hist, hex, quilt; columns: 1x, 8x,
-25x, 45x of the unit uv square and 45x of the unit square at uv = 1e6; supersampled to about
-one sample per texel, at most 8 x 8 per pixel), ``synthesis_quality.json`` (the
-quality report of every method) and prints the report table plus the decorrelation
-and tileable ablations (feature W1/std with and without).
+25x, 45x of the unit uv square and 45x of the unit square at uv = 1e6; each full view
+supersampled to about one sample per texel, at most 8 x 8 per pixel; where a full-view
+pixel averages more than :data:`MAX_TEXELS_PER_PIXEL` texels -- 8x, 25x and 45x of a 128-texel
+exemplar in 192 px; 25x and 45x box-filter a stochastic material to flat grey -- a detail panel
+follows: the centre :data:`DETAIL_REPEATS` x :data:`DETAIL_REPEATS` repeats of the same
+view at :data:`DETAIL_TEXELS_PER_PIXEL` texels per pixel, outlined in the full view),
+``synthesis_quality.json`` (the quality report of every method) and prints the report
+table plus the decorrelation and tileable ablations (feature W1/std with and without).
 """
 
 from __future__ import annotations
@@ -28,6 +32,12 @@ from dynbtf.synthesized import SynthesizedBTF
 
 SCALES = (1.0, 8.0, 25.0, 45.0)
 VIEW, LIGHT = (0.0, 0.0), (40.0, 30.0)
+#: Full views whose pixels average more texels than this get a detail panel.
+MAX_TEXELS_PER_PIXEL = 4.0
+#: Side of the detail panel's area, exemplar repeats (tiling shows 3 x 3 copies).
+DETAIL_REPEATS = 3.0
+#: Texels per pixel of the detail panel (2: the structure at full size, a 2 x 2 box filter).
+DETAIL_TEXELS_PER_PIXEL = 2
 
 
 def crops(rep, out: Path, cos_light: float) -> None:
@@ -45,11 +55,39 @@ def crops(rep, out: Path, cos_light: float) -> None:
     save_image(out / "synthesis_crops.png", grid, exposure=0.8 / float(np.percentile(rows[0], 99.5)))
 
 
+def outline(image: np.ndarray, box: tuple[int, int, int, int], value: float) -> np.ndarray:
+    """``image (H, W, 3)`` with a one-pixel frame of ``value`` around rows ``y0:y1``, columns ``x0:x1``."""
+    y0, x0, y1, x1 = box
+    framed = image.copy()
+    framed[y0:y1, [x0, x1 - 1]] = value
+    framed[[y0, y1 - 1], x0:x1] = value
+    return framed
+
+
+def scale_panels(btf: SynthesizedBTF, corner: float, panel: int, texels: int, bright: float) -> list[np.ndarray]:
+    """The unit uv square at ``corner`` seen through ``btf`` (its scale), ``panel`` px per side, and,
+    when a pixel would average more than :data:`MAX_TEXELS_PER_PIXEL` texels, a detail panel of its
+    centre (``DETAIL_REPEATS`` repeats at ``DETAIL_TEXELS_PER_PIXEL`` texels per pixel), outlined in
+    the full view with ``bright``. Values are BTF values (multiply by cos(theta_light) to show)."""
+    texels_per_pixel = btf.scale * texels / panel
+    full = btf.image(VIEW, LIGHT, (corner, corner, corner + 1.0, corner + 1.0), panel,
+                     spp=max(1, min(8, round(texels_per_pixel))))
+    if texels_per_pixel <= MAX_TEXELS_PER_PIXEL:
+        return [full]
+    half = DETAIL_REPEATS / btf.scale / 2  # user uv
+    centre = corner + 0.5
+    side = round(DETAIL_REPEATS * texels / DETAIL_TEXELS_PER_PIXEL)
+    detail = btf.image(VIEW, LIGHT, (centre - half, centre - half, centre + half, centre + half), side,
+                       spp=DETAIL_TEXELS_PER_PIXEL)
+    lo, hi = round((0.5 - half) * panel), round((0.5 + half) * panel)
+    return [outline(full, (lo, lo, hi, hi), bright), detail]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("model")
     parser.add_argument("--out", default="docs/images")
-    parser.add_argument("--panel", type=int, default=256)
+    parser.add_argument("--panel", type=int, default=192, help="side of the full-view panels, pixels")
     parser.add_argument("--crops-only", action="store_true", help="only synthesis_crops.png")
     args = parser.parse_args()
     out = Path(args.out)
@@ -60,25 +98,26 @@ def main() -> None:
         return
     rows = []
     synthesizers = {}
+    bright = 1e3  # the outline: clamps to white after any exposure
     for method in ("tile", "linear", "hist", "hex", "quilt"):
         synth = SynthesizedBTF(rep, method, **({"repeats": 4.0} if method == "quilt" else {})).synthesizer
         synthesizers[method] = synth
         texels = synth.exemplar.shape[1]
-
-        def spp(scale):  # about one sample per texel (at most 8 x 8)
-            return max(1, min(8, round(scale * texels / args.panel)))
-
-        panels = [SynthesizedBTF(rep, synth, scale=scale).image(VIEW, LIGHT, (0.0, 0.0, 1.0, 1.0), args.panel,
-                                                                spp=spp(scale))
+        groups = [scale_panels(SynthesizedBTF(rep, synth, scale=scale), 0.0, args.panel, texels, bright)
                   for scale in SCALES]
-        panels.append(SynthesizedBTF(rep, synth, scale=45.0).image(VIEW, LIGHT, (1e6, 1e6, 1e6 + 1.0, 1e6 + 1.0),
-                                                                    args.panel, spp=spp(45.0)))
-        gap = np.ones((args.panel, 4, 3), dtype=np.float32)
-        rows.append(np.concatenate([x for p in panels for x in (p * cos_light, gap)][:-1], axis=1))
+        groups.append(scale_panels(SynthesizedBTF(rep, synth, scale=45.0), 1e6, args.panel, texels, bright))
+        height = max(p.shape[0] for g in groups for p in g)
+        pieces = []
+        for group in groups:  # 4 px between a full view and its detail, 12 px between scales
+            for k, p in enumerate(group):
+                p = np.pad(p * cos_light, ((0, height - p.shape[0]), (0, 0), (0, 0)), constant_values=1.0)
+                pieces += [np.ones((height, 4 if k else 12, 3), np.float32), p]
+        rows.append(np.concatenate(pieces[1:], axis=1))
         print(f"{method}: done", flush=True)
+        if method == "tile":  # exposure from the exemplar itself (tiling at 1x)
+            exposure = 0.8 / float(np.percentile(groups[0][0] * cos_light, 99.5))
     gap = np.ones((4, rows[0].shape[1], 3), dtype=np.float32)
     grid = np.concatenate([x for r in rows for x in (r, gap)][:-1], axis=0)
-    exposure = 0.8 / float(np.percentile(rows[0], 99.5))
     save_image(out / "synthesis_scales.png", grid, exposure=exposure)
     reports = [quality_report(SynthesizedBTF(rep, synthesizers[m], scale=8.0))
                for m in ("tile", "linear", "hist", "hex", "quilt")]
