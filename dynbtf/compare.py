@@ -6,8 +6,8 @@ held-out (view, light) pairs and writes, into one output directory:
 
 * ``<kind>.dbtfm`` -- the model files (kept: running again reuses them, and an
   unfinished gradient fit -- stopped by ``max_minutes`` -- continues from its
-  checkpoint), and ``source_fingerprint.json`` (:func:`source_fingerprint`: models
-  fitted to other content of a BTF of the same name are refused, not reused);
+  checkpoint), and ``source_fingerprint.json`` (:func:`dynbtf.provenance.source_fingerprint`:
+  models fitted to other content of a BTF of the same name are refused, not reused);
 * ``representations.csv`` / ``.json`` -- one row per kind: mean PSNR (linear),
   DSSIM and FLIP (clamped sRGB) over the held-out pairs, storage in bytes (all
   parameters and buffers; and the positional plane alone, the part a non-dynamic
@@ -47,6 +47,7 @@ from .data.base import BTFSource
 from .errors import InputError
 from .io import atomic_path, save_image, to_uint8_srgb
 from .metrics import flip_map
+from .provenance import source_fingerprint
 from .report.html import HtmlReport
 from .representations.base import Representation
 from .representations.model_file import load_model, read_model_metadata
@@ -117,21 +118,6 @@ def fit_or_load(kind: str, source: BTFSource, path, config: TrainConfig, *, prog
             return rep, meta
     result = get_fitter(kind)(source, path, config, progress=progress)
     return result.representation, result.metadata
-
-
-def source_fingerprint(source: BTFSource) -> str:
-    """SHA-256 of the BTF's name, shape and first and last images (pairs (0, 0) and the last, float32 bytes).
-
-    Model files record the BTF's name and shape, not its content; a BTF that
-    changed under the same name (a re-measured file, a revised simulator) is
-    caught by comparing this fingerprint with the one stored next to the models.
-    """
-    import hashlib
-
-    digest = hashlib.sha256(repr((source.name, source.shape)).encode())
-    for v, l in ((0, 0), (source.n_views - 1, source.n_lights - 1)):
-        digest.update(np.ascontiguousarray(source.image(int(v), int(l)), dtype=np.float32).tobytes())
-    return digest.hexdigest()
 
 
 def _check_fingerprint(output_dir: Path, source: BTFSource) -> None:

@@ -75,13 +75,25 @@ def eval_command(
                               "of 'view_index,light_index' lines."),
     images: int = typer.Option(8, help="Number of side-by-side PNGs."),
     device: str = typer.Option("auto", help="auto, cpu, cuda:0, ..."),
+    force: bool = typer.Option(False, "--force", help="Skip the check that the BTF is the one the model was fitted "
+                               "to (size, directions, name and content, as recorded in the model file)."),
 ) -> None:
-    """Evaluate a model against its BTF: PSNR (linear), DSSIM and FLIP (clamped sRGB), per pair and mean."""
+    """Evaluate a model against its BTF: PSNR (linear), DSSIM and FLIP (clamped sRGB), per pair and mean.
+
+    The BTF is checked against the one recorded in the model file: another size or other
+    directions is an error; another name with the same size and directions (e.g. a converted
+    copy), or other content under the same name (the BTF changed since the fit, or a lossy
+    copy), is a warning. --force skips the check.
+    """
+    from ..provenance import check_model_source
     from ..representations.model_file import load_model
     from ..training.evaluate import evaluate_model, resolve_eval_pairs
 
     rep, meta = load_model(model, device=device)
     source = _open_source(btf)
+    if not force:
+        for warning in check_model_source(meta, source, model=str(model)):
+            typer.echo(f"dynbtf: warning: {warning}", err=True)
     chosen = resolve_eval_pairs(pairs, source, meta)
     result = evaluate_model(rep, source, chosen, out_dir=output, images=images)
     typer.echo(f"{model.name} on {source.name}: {result.summary()}; wrote {output}")

@@ -20,7 +20,8 @@ A model file is a `safetensors <https://github.com/huggingface/safetensors>`_ fi
                        (:data:`CONVENTIONS`)
   ``tensor_sha256``    SHA-256 of the tensors in sorted-name order (name, dtype,
                        shape, bytes): detects damaged data
-  ``provenance``       free-form JSON: source name and shape, seed, epochs,
+  ``provenance``       free-form JSON: source name, shape, directions and content
+                       fingerprint (checked by ``dynbtf eval``), seed, epochs,
                        training time, held-out (view, light) pairs, metrics, ...
 
 Loading a file that is missing, truncated, corrupt, of another format, of a

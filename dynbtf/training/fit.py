@@ -268,12 +268,19 @@ def _param_groups(rep: Representation, lr_scale: float = 1.0) -> list[dict[str, 
 
 # ---------------------------------------------------------------------------- provenance
 def training_provenance(source: BTFSource, held_out: np.ndarray, **extra) -> dict[str, Any]:
-    """The provenance block every fitter stores in a model file (source, held-out pairs, extras)."""
+    """The provenance block every fitter stores in a model file (source, held-out pairs, extras).
+
+    ``source`` records the BTF's name, size, directions and content fingerprint
+    (:func:`dynbtf.provenance.source_fingerprint`), which ``dynbtf eval`` checks
+    (:func:`dynbtf.provenance.check_model_source`).
+    """
+    from ..provenance import source_fingerprint
+
     return {
         "source": {"name": source.name, "height": source.height, "width": source.width,
                    "n_views": source.n_views, "n_lights": source.n_lights,
                    "views": np.asarray(source.views).tolist(), "lights": np.asarray(source.lights).tolist(),
-                   "raw_float32_bytes": source.nbytes_float32},
+                   "raw_float32_bytes": source.nbytes_float32, "fingerprint": source_fingerprint(source)},
         "held_out_pairs": np.asarray(held_out, dtype=np.int64).tolist(),
         **extra,
     }
