@@ -77,6 +77,11 @@ class DemoConfig:
         Mitsuba image side in pixels.
     spp : int
         Mitsuba samples per pixel.
+    device : str
+        Where the model is fitted, evaluated and synthesized: ``"auto"`` (CUDA when present),
+        ``"cpu"``, ``"cuda:0"``, ... (:func:`dynbtf.device.resolve_device`). Mitsuba renders with
+        its own variant (``llvm_ad_rgb``). Not part of :meth:`result_key`: finished stages are
+        reused on another device.
     """
 
     output: str = "dynbtf-demo"
@@ -88,12 +93,14 @@ class DemoConfig:
     quick: bool = False
     render_size: int = 360
     spp: int = 16
+    device: str = "auto"
 
     def result_key(self) -> dict[str, Any]:
         """Options that change results (a finished stage is reused only if they agree)."""
         d = asdict(self)
         d.pop("output")
         d.pop("minutes")
+        d.pop("device")
         return d
 
 
@@ -129,7 +136,7 @@ class _Context:
         if self._model is None:
             from .representations.model_file import load_model
 
-            self._model, self._metadata = load_model(self.out / "model.dbtfm", device="cpu")
+            self._model, self._metadata = load_model(self.out / "model.dbtfm", device=self.config.device)
         return self._model
 
     def metadata(self):
@@ -167,7 +174,7 @@ def _stage_fit(ctx: _Context) -> dict[str, Any]:
     # a short budget: 3x the paper's learning rates and 64 texel groups per step (docs/triple_plane.md)
     # so that the model converges within a few epochs
     groups = max(1, min(64, int(0.9 * src.n_views * src.n_lights) // 16, src.height * src.width))
-    train = TrainConfig(seed=cfg.seed, max_minutes=_fit_minutes(cfg), device="cpu", lr_scale=3.0,
+    train = TrainConfig(seed=cfg.seed, max_minutes=_fit_minutes(cfg), device=cfg.device, lr_scale=3.0,
                         texel_groups=groups)
     if cfg.quick:
         train.epochs = 1
@@ -372,6 +379,9 @@ def run_demo(config: DemoConfig | None = None, *, progress: bool = True, log: Ca
 
 def _check_config(cfg: DemoConfig) -> None:
     from .data.simulated import MATERIALS
+    from .device import resolve_device
+
+    resolve_device(cfg.device)  # CUDA requested but absent: an InputError before any stage
 
     if cfg.btf is None and cfg.material not in MATERIALS:
         raise InputError(f"--material: expected one of {sorted(MATERIALS)}, got {cfg.material!r}")

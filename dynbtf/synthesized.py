@@ -37,6 +37,12 @@ the LeakyReLU (:mod:`dynbtf.fast_decode`); layers 2.. run in torch on blocks of
 units and emulated, i.e. much slower, elsewhere; it differs from float32 by
 < 0.01, bounded in the tests). Representations without a split first layer are
 decoded with their own ``decode``. Measured numbers: ``docs/synthesis.md``.
+
+Devices
+-------
+Everything runs where the model is (``device=`` moves it: ``"auto"`` picks CUDA when
+present, :func:`dynbtf.device.resolve_device`). The numba kernels above are the CPU's;
+on CUDA the synthesizers use their torch paths and the decoder its torch layers.
 """
 
 from __future__ import annotations
@@ -79,6 +85,11 @@ def _single_numba_thread(fn, *args):
 _MLP_ROWS = 16384
 
 
+def _same_device(a: torch.device, b: torch.device) -> bool:
+    """Whether two devices are the same (``cuda`` without an index matches any ``cuda:N``)."""
+    return a.type == b.type and (a.index is None or b.index is None or a.index == b.index)
+
+
 def _as_tensor(x, name: str, last: int) -> torch.Tensor:
     if not isinstance(x, torch.Tensor):
         try:
@@ -114,6 +125,12 @@ class SynthesizedBTF:
         (torch's intra-op thread count is 1 while :meth:`eval` runs, restored afterwards).
     precision : {"fp32", "bf16"}, default "fp32"
         Dtype of decoder layers 2.. on the fast path.
+    device : str or torch.device, optional
+        Where the model, the synthesizer and the outputs live: ``"auto"`` (CUDA when present),
+        ``"cpu"``, ``"cuda:0"``, ... (:func:`dynbtf.device.resolve_device`; CUDA requested
+        but absent raises :class:`InputError`). Default: where ``model`` is (a model file:
+        the CPU). A representation on another device is copied there; the caller's stays
+        where it is. The numba fast paths run on the CPU only: elsewhere all is torch.
     **params
         Method parameters (see each synthesizer). For ``hex`` the default
         luminance is the model's decoded brightness at normal view and light.
@@ -129,13 +146,22 @@ class SynthesizedBTF:
     """
 
     def __init__(self, model, synthesizer: str | Synthesizer = "hist", scale: float = 1.0, seed: int = 0, *,
-                 chunk_size: int = 32768, precision: str = "fp32", workers: int | None = None, **params) -> None:
+                 chunk_size: int = 32768, precision: str = "fp32", workers: int | None = None,
+                 device: str | torch.device | None = None, **params) -> None:
+        if device is not None:
+            from .device import resolve_device
+
+            device = resolve_device(device)
         if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
             from .representations.model_file import load_model
 
-            model, _ = load_model(model)
+            model, _ = load_model(model, device=device)
         if not hasattr(model, "positional_plane") or not hasattr(model, "decode"):
             raise InputError(f"model: expected a Representation with a positional plane, got {type(model).__name__}")
+        if device is not None and not _same_device(model.positional_plane().device, device):
+            import copy
+
+            model = copy.deepcopy(model).to(device)  # the caller's model stays on its device
         try:
             scale = float(scale)
         except (TypeError, ValueError):
@@ -159,6 +185,9 @@ class SynthesizedBTF:
                 if params:
                     raise InputError(f"parameters {sorted(params)} given with a ready synthesizer; "
                                      "pass them to the synthesizer instead")
+                if not _same_device(synthesizer.device, plane.device):
+                    raise InputError(f"synthesizer: its exemplar is on {synthesizer.device}, the model on "
+                                     f"{plane.device}; build it on the model's device")
                 self.synthesizer = synthesizer
             elif isinstance(synthesizer, str):
                 if synthesizer == "hex" and "luminance" not in params:

@@ -46,9 +46,11 @@ def demo(
     render_size: int = typer.Option(360, help="Mitsuba render side in pixels."),
     spp: int = typer.Option(16, help="Mitsuba samples per pixel."),
     quick: bool = typer.Option(False, "--quick", help="Tiny sizes everywhere (a smoke test in about a minute)."),
+    device: str = typer.Option("auto", help="auto (CUDA if available), cpu, cuda:0, ...: where the model is "
+                                            "fitted, evaluated and synthesized (Mitsuba renders with llvm_ad_rgb)."),
 ) -> None:
     """Simulate, fit, evaluate, synthesize (tile/hist/hex at 1x-45x), render, and write report.html."""
     from ..demo import DemoConfig, run_demo
 
     run_demo(DemoConfig(output=str(output), material=material, size=size, btf=btf, minutes=minutes, seed=seed,
-                        quick=quick, render_size=render_size, spp=spp))
+                        quick=quick, render_size=render_size, spp=spp, device=device))

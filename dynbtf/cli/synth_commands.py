@@ -64,6 +64,8 @@ def synth(
     light: str = typer.Option("30,0", help="Light direction THETA,PHI in degrees (theta 0..90)."),
     resolution: int = typer.Option(1024, help="Image width and height in pixels."),
     seed: int = typer.Option(0, help="Synthesis seed."),
+    device: str = typer.Option("auto", help="auto (CUDA if available), cpu, cuda:0, ...: where the model is "
+                                            "decoded and synthesized (the numba fast paths are the CPU's)."),
     spp: int = typer.Option(1, help="Supersampling: spp x spp samples per pixel (box filter) against aliasing "
                                     "when a pixel covers many texels."),
     center: str = typer.Option("0.5,0.5", help="uv of the image centre (the image spans one uv unit), "
@@ -92,6 +94,7 @@ def synth(
     cos(theta_light) (unit irradiance at normal incidence), linear RGB.
     """
     from ..conventions import spherical_to_direction
+    from ..device import resolve_device
     from ..io import save_image
     from ..representations.model_file import load_model
     from ..synthesis.base import check_uv
@@ -100,6 +103,7 @@ def synth(
 
     if output is None and not report:
         raise InputError("nothing to do: give -o/--output for an image and/or --report")
+    where = resolve_device(device)
     if resolution < 1:
         raise InputError(f"--resolution: expected a positive number of pixels, got {resolution}")
     if not (math.isfinite(scale) and scale > 0):
@@ -108,7 +112,7 @@ def synth(
     check_exposure(exposure)
     cu, cv = _pair(center, "center")
     check_uv([[cu - 0.5, cv - 0.5], [cu + 0.5, cv + 0.5]], "--center", scale=scale)  # before any work
-    rep, _ = load_model(model)
+    rep, _ = load_model(model, device=where)
     plane_shape = tuple(rep.positional_plane().shape)
     methods = [m.strip() for m in report_methods.split(",") if m.strip()] if report else []
     quilt_size = _quilt_repeats(quilt_repeats, scale, plane_shape) \
