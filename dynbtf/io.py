@@ -22,6 +22,8 @@ __all__ = [
     "require_file",
     "linear_to_srgb",
     "srgb_to_linear",
+    "IMAGE_EXTENSIONS",
+    "check_image_path",
     "save_image",
     "load_image",
     "to_uint8_srgb",
@@ -102,6 +104,25 @@ def _check_image(rgb, name="image"):
     return rgb[..., :3].astype(np.float32)
 
 
+#: Extensions :func:`save_image` writes (lower case).
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".exr")
+
+
+def check_image_path(path) -> str:
+    """The lower-case extension of an image path :func:`save_image` can write, else :class:`InputError`.
+
+    Call it before long work whose result goes to ``path`` (a render, a
+    synthesis), so that a wrong extension fails at once, not after the work.
+
+    >>> check_image_path("render.EXR")
+    '.exr'
+    """
+    ext = Path(path).suffix.lower()
+    if ext not in IMAGE_EXTENSIONS:
+        raise InputError(f"{path}: unsupported image extension {ext!r}; expected .png, .jpg or .exr")
+    return ext
+
+
 def save_image(path, rgb, *, exposure: float = 1.0) -> Path:
     """Write a linear ``(H, W, 3)`` image atomically; format from the extension.
 
@@ -110,8 +131,8 @@ def save_image(path, rgb, *, exposure: float = 1.0) -> Path:
     Returns the path written.
     """
     path = Path(path)
+    ext = check_image_path(path)
     rgb = _check_image(rgb)
-    ext = path.suffix.lower()
     if ext == ".exr":
         import OpenEXR
 
@@ -120,13 +141,11 @@ def save_image(path, rgb, *, exposure: float = 1.0) -> Path:
             channels = {"RGB": np.ascontiguousarray(rgb, dtype=np.float32)}
             with OpenEXR.File(header, channels) as f:
                 f.write(str(tmp))
-    elif ext in (".png", ".jpg", ".jpeg"):
+    else:
         import imageio.v3 as iio
 
         with atomic_path(path) as tmp:
             iio.imwrite(tmp, to_uint8_srgb(rgb, exposure), extension=ext)
-    else:
-        raise InputError(f"{path}: unsupported image extension {ext!r}; expected .png, .jpg or .exr")
     return path
 
 

@@ -60,3 +60,15 @@ def test_image_errors_name_the_problem(tmp_path):
     (tmp_path / "bad.png").write_bytes(b"not a png")
     with pytest.raises(FormatError, match="bad.png"):
         load_image(tmp_path / "bad.png")
+
+
+def test_check_image_path_is_the_rule_save_image_applies(tmp_path):
+    from dynbtf.io import IMAGE_EXTENSIONS, check_image_path
+
+    for ext in IMAGE_EXTENSIONS:
+        assert check_image_path(tmp_path / f"a{ext.upper()}") == ext
+        save_image(tmp_path / f"a{ext}", np.full((2, 2, 3), 0.5))  # every accepted extension is written
+    for bad in ("a.tiff", "a", "a.png.txt"):
+        with pytest.raises(InputError, match=r"unsupported image extension .*expected \.png, \.jpg or \.exr"):
+            check_image_path(tmp_path / bad)
+    assert not (tmp_path / "a.tiff").exists()
