@@ -11,7 +11,9 @@ Dr.Jit (this module)                        torch / NumPy reference
 :func:`angular_coords`                      :func:`dynbtf.conventions.angular_plane_coords`
 :func:`fetch_angular`                       :func:`dynbtf.texture.fetch_angular`
 :func:`fetch_wrap`                          :func:`dynbtf.texture.fetch_wrap`
+:class:`DrDecoder`                          :class:`dynbtf.representations.triple_plane.Decoder`
 :class:`DrTriplePlane`                      :class:`dynbtf.representations.triple_plane.TriplePlane`
+:class:`DrNeuMIP`                           :class:`dynbtf.representations.neumip.NeuMIP`
 ==========================================  ============================================
 
 Conventions
@@ -43,7 +45,12 @@ __all__ = [
     "fetch_angular",
     "fetch_wrap",
     "wrap01",
+    "DrDecoder",
     "DrTriplePlane",
+    "DrNeuMIP",
+    "DR_REPRESENTATIONS",
+    "check_renderable",
+    "dr_representation",
 ]
 
 
@@ -173,72 +180,45 @@ def _flat(mi, array) -> "object":
     return mi.Float(np.ascontiguousarray(np.asarray(array, dtype=np.float32)).ravel())
 
 
-class DrTriplePlane:
-    """A :class:`~dynbtf.representations.triple_plane.TriplePlane` evaluated with Dr.Jit.
+class DrDecoder:
+    """The representations' MLP (:class:`dynbtf.representations.triple_plane.Decoder`) in Dr.Jit.
 
-    Holds the angular planes as flat ``mi.Float`` buffers and the decoder's weights
-    as NumPy float32 arrays that are baked into the traced kernel as literals.
+    Unrolled into scalar fused multiply-adds with the weights as float32 kernel
+    literals (NumPy arrays here).
 
     Parameters
     ----------
-    model : TriplePlane
-        A fitted model (any device; its tensors are copied to the host once).
-    output_map : (matrix ``(C, C)``, offset ``(C,)``), optional
+    decoder : Decoder
+        A fitted decoder: layer 1 on ``concat(positional (C_U), angular (C_A))``,
+        LeakyReLU after every layer but the last, 3 outputs (RGB).
+    output_map : (matrix ``(C_U, C_U)``, offset ``(C_U,)``), optional
         A linear map applied to the positional features before the decoder
         (a synthesizer's PCA un-projection), folded into the first layer:
-        ``W_U (latent @ M + o) = (W_U M^T) latent + W_U o``. Then :meth:`decode`
+        ``W_U (latent @ M + o) = (W_U M^T) latent + W_U o``. Then :meth:`__call__`
         takes the synthesizer's latent values.
-
-    Examples
-    --------
-    ``DrTriplePlane(model).decode(features, wv, wl)`` with ``features`` a list of
-    ``C_U`` ``mi.Float`` and ``wv, wl`` ``mi.Vector3f`` gives an ``mi.Color3f``
-    equal (to float32 rounding) to ``model.decode(features, w_view, w_light)``.
     """
 
-    def __init__(self, model, output_map=(None, None)) -> None:
-        from ..errors import InputError
-
-        if getattr(model, "kind", None) != "triple" or not hasattr(model, "decoder"):
-            raise InputError(f"the Mitsuba plugin evaluates Triple Plane models (kind 'triple'), "
-                             f"got a model of kind {getattr(model, 'kind', type(model).__name__)!r}")
-        mi = mi_module()
-        half = model.f_h.detach().float().cpu().numpy()
-        diff = model.f_d.detach().float().cpu().numpy()
-        self.angular_resolution = tuple(half.shape[:2])
-        self.angular_channels = int(half.shape[2])
-        self.positional_channels = int(model.positional_plane().shape[-1])
-        self.half = _flat(mi, half)
-        self.diff = _flat(mi, diff)
-        dec = model.decoder
-        self.negative_slope = float(dec.negative_slope)
-        self.layers = [(layer.weight.detach().double().cpu().numpy(), layer.bias.detach().double().cpu().numpy())
-                       for layer in [dec.first, *dec.rest]]
+    def __init__(self, decoder, output_map=(None, None)) -> None:
+        self.positional_channels = int(decoder.positional_channels)
+        self.negative_slope = float(decoder.negative_slope)
+        layers = [(layer.weight.detach().double().cpu().numpy(), layer.bias.detach().double().cpu().numpy())
+                  for layer in [decoder.first, *decoder.rest]]
         matrix, offset = output_map
         if matrix is not None:
             c = self.positional_channels
-            w_first, b_first = self.layers[0]
+            w_first, b_first = layers[0]
             w_pos = w_first[:, :c]
             folded = np.concatenate([w_pos @ np.asarray(matrix, dtype=np.float64).T, w_first[:, c:]], axis=1)
             bias = b_first + w_pos @ np.asarray(offset, dtype=np.float64)
-            self.layers[0] = (folded, bias)
-        self.layers = [(w.astype(np.float32), b.astype(np.float32)) for w, b in self.layers]
-
-    def angular_features(self, wv, wl, active=True):
-        """``concat(f_H(h), f_D(d))`` as a list of ``2 C_A`` mi.Float."""
-        h, d = half_diff(wv, wl)
-        sh, th = angular_coords(h)
-        sd, td = angular_coords(d)
-        c = self.angular_channels
-        return (fetch_angular(self.half, self.angular_resolution, c, sh, th, active)
-                + fetch_angular(self.diff, self.angular_resolution, c, sd, td, active))
+            layers[0] = (folded, bias)
+        self.layers = [(w.astype(np.float32), b.astype(np.float32)) for w, b in layers]
 
     def _leaky(self, x):
         dr = _dr()
         return dr.select(x >= 0.0, x, x * self.negative_slope)
 
-    def decode_with_angular(self, features, angular):
-        """Decoder on positional ``features`` (list of C_U) and ``angular`` (list of 2 C_A) -> mi.Color3f."""
+    def __call__(self, features, angular):
+        """RGB (``mi.Color3f``) from positional ``features`` (list of C_U mi.Float) and ``angular`` (list of C_A)."""
         mi, dr = mi_module(), _dr()
         x = list(features) + list(angular)
         for k, (weight, bias) in enumerate(self.layers):
@@ -251,6 +231,103 @@ class DrTriplePlane:
             x = out if k == len(self.layers) - 1 else [self._leaky(a) for a in out]
         return mi.Color3f(x[0], x[1], x[2])
 
+
+class DrTriplePlane:
+    """A :class:`~dynbtf.representations.triple_plane.TriplePlane` evaluated with Dr.Jit.
+
+    Holds the angular planes as flat ``mi.Float`` buffers and the decoder as a
+    :class:`DrDecoder`.
+
+    Parameters
+    ----------
+    model : TriplePlane
+        A fitted model (any device; its tensors are copied to the host once).
+    output_map : (matrix, offset), optional
+        Folded into the decoder's first layer (see :class:`DrDecoder`); then
+        :meth:`decode` takes the synthesizer's latent values.
+
+    Examples
+    --------
+    ``DrTriplePlane(model).decode(features, wv, wl)`` with ``features`` a list of
+    ``C_U`` ``mi.Float`` and ``wv, wl`` ``mi.Vector3f`` gives an ``mi.Color3f``
+    equal (to float32 rounding) to ``model.decode(features, w_view, w_light)``.
+    """
+
+    def __init__(self, model, output_map=(None, None)) -> None:
+        mi = mi_module()
+        half = model.f_h.detach().float().cpu().numpy()
+        diff = model.f_d.detach().float().cpu().numpy()
+        self.angular_resolution = tuple(half.shape[:2])
+        self.angular_channels = int(half.shape[2])
+        self.positional_channels = int(model.positional_plane().shape[-1])
+        self.half = _flat(mi, half)
+        self.diff = _flat(mi, diff)
+        self.decoder = DrDecoder(model.decoder, output_map)
+
+    def angular_features(self, wv, wl, active=True):
+        """``concat(f_H(h), f_D(d))`` as a list of ``2 C_A`` mi.Float."""
+        h, d = half_diff(wv, wl)
+        sh, th = angular_coords(h)
+        sd, td = angular_coords(d)
+        c = self.angular_channels
+        return (fetch_angular(self.half, self.angular_resolution, c, sh, th, active)
+                + fetch_angular(self.diff, self.angular_resolution, c, sd, td, active))
+
     def decode(self, features, wv, wl, active=True):
         """RGB (``mi.Color3f``, values exclude cos(theta_light)) from positional features and directions."""
-        return self.decode_with_angular(features, self.angular_features(wv, wl, active))
+        return self.decoder(features, self.angular_features(wv, wl, active))
+
+
+class DrNeuMIP:
+    """The paper's modified :class:`~dynbtf.representations.neumip.NeuMIP` evaluated with Dr.Jit.
+
+    Its decoder input is ``concat(T(uv), light_xy, view_xy)``: the neural texture's
+    features (synthesized like the Triple Plane's ``f_U``) and the ``(x, y)``
+    components of the local directions, as
+    :meth:`~dynbtf.representations.neumip.NeuMIP.direction_inputs`.
+
+    Parameters
+    ----------
+    model : NeuMIP
+        A fitted model.
+    output_map : (matrix, offset), optional
+        Folded into the decoder's first layer (see :class:`DrDecoder`).
+    """
+
+    def __init__(self, model, output_map=(None, None)) -> None:
+        self.positional_channels = int(model.positional_plane().shape[-1])
+        self.decoder = DrDecoder(model.decoder, output_map)
+
+    @staticmethod
+    def angular_features(wv, wl, active=True):
+        """``[light_x, light_y, view_x, view_y]`` as a list of 4 mi.Float."""
+        return [wl.x, wl.y, wv.x, wv.y]
+
+    def decode(self, features, wv, wl, active=True):
+        """RGB (``mi.Color3f``, values exclude cos(theta_light)) from texture features and directions."""
+        return self.decoder(features, self.angular_features(wv, wl, active))
+
+
+#: Representation kind (model files' ``kind``) -> its Dr.Jit evaluator; what the Mitsuba plugin renders.
+DR_REPRESENTATIONS = {"triple": DrTriplePlane, "neumip": DrNeuMIP}
+
+
+def check_renderable(model, what="model") -> None:
+    """:class:`~dynbtf.errors.InputError` unless ``model`` is of a kind in :data:`DR_REPRESENTATIONS`.
+
+    ``what`` names the model in the message (e.g. its file). PCA and SH models
+    have no decoder to trace into a kernel (their value is a sum over measured
+    directions), so they cannot be rendered by the plugin.
+    """
+    from ..errors import InputError
+
+    kind = getattr(model, "kind", type(model).__name__)
+    if kind not in DR_REPRESENTATIONS:
+        raise InputError(f"{what}: the Mitsuba plugin renders Triple Plane (kind 'triple', `dynbtf fit`) and "
+                         f"NeuMIP (kind 'neumip', `dynbtf fit --repr neumip`) models, got a model of kind {kind!r}")
+
+
+def dr_representation(model, output_map=(None, None)):
+    """The Dr.Jit evaluator of ``model`` (:data:`DR_REPRESENTATIONS`): ``.decode(features, wv, wl, active)``."""
+    check_renderable(model)
+    return DR_REPRESENTATIONS[model.kind](model, output_map)

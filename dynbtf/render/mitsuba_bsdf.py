@@ -15,20 +15,21 @@ plugin's reference page.
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 from ..errors import InputError
 from . import drjit_ops
 
-__all__ = ["register_plugin", "PLUGIN_DOC", "METHODS", "configure_jit"]
+__all__ = ["register_plugin", "plugin_variants", "load_plugin_model", "PLUGIN_DOC", "METHODS", "configure_jit",
+           "DynBTFEvaluator"]
 
 #: Synthesis methods the plugin evaluates in Dr.Jit.
 METHODS = ("tile", "hist", "hex")
 
 PLUGIN_DOC = """Synthesized BTF material (``dynbtf``)
 
-Evaluates an infinite, non-repeating BTF -- a fitted Triple Plane model whose
-positional feature plane is synthesized on the fly -- at every shading point.
+Evaluates an infinite, non-repeating BTF -- a fitted Triple Plane (or NeuMIP)
+model whose positional feature plane is synthesized on the fly -- at every
+shading point.
 The whole chain (lattice, integer hash, histogram-preserving blend, inverse
 transform, decoder MLP) is traced into the rendering kernel; nothing is
 pre-generated, so any ``scale`` costs the same.
@@ -42,7 +43,9 @@ pre-generated, so any ``scale`` costs the same.
      - Default
    * - ``filename``
      - string
-     - Path of a dynbtf model file (``dynbtf fit``), a Triple Plane.
+     - Path of a dynbtf model file: a Triple Plane (``dynbtf fit``) or a
+       NeuMIP (``dynbtf fit --repr neumip``); PCA and SH models have no
+       decoder to run in a kernel and are refused.
      - (required)
    * - ``method``
      - string
@@ -67,7 +70,12 @@ pre-generated, so any ``scale`` costs the same.
 
 Conventions: ``si.wi`` (towards the camera / previous path vertex) is the BTF's
 ``w_view``, ``wo`` (towards the light / next vertex) its ``w_light``, both in the
-local shading frame (``x`` along ``dp/du``, so it follows increasing ``u``).
+local shading frame with ``x`` along ``dp/du`` and ``y`` along ``dp/dv`` (the
+BTF's frame: x along +u, y along +v). Mitsuba's frame has ``y = n x dp/du``;
+where that points along ``-dp/dv`` (a left-handed parametrization, e.g. Mitsuba's
+``sphere``) the plugin mirrors the ``y`` of both directions, so shading agrees
+with the texture's orientation on every mesh (on the ``rectangle`` and on
+meshes whose uv runs like their x, y no mirroring happens).
 ``eval`` returns ``value / pi * cos(theta_light)`` where ``value`` is what
 :meth:`dynbtf.synthesized.SynthesizedBTF.eval` returns at
 ``uv = (scale * u, scale_v * v)``; directions below either horizon give 0
@@ -76,6 +84,18 @@ Sampling is cosine-weighted over the upper hemisphere (pdf ``cos(theta) / pi``),
 as in the paper, so a sample's weight is the BTF value itself. A BTF is not
 reciprocal: use radiance-mode integrators (``path``, ``direct``), not light
 tracing.
+
+Dr.Jit flags: :func:`register_plugin` turns Dr.Jit's ``SymbolicLoops`` and
+``SymbolicCalls`` off (:func:`configure_jit`). Dr.Jit keeps these flags per
+thread, so the change holds for the rest of the calling thread's life and for
+everything Dr.Jit runs in it, not only this BSDF: every later loop (e.g. any
+integrator's path loop) and virtual call is evaluated in wavefront mode. Why:
+in wavefront mode the unrolled decoder (thousands of fused multiply-adds) is
+fused into straight-line kernels, ~15x faster on the CPU than tracing it once as
+a symbolic callee of the integrator's symbolic loop. Renders are the same
+either way; code that needs symbolic mode afterwards (e.g. to keep memory low
+on huge wavefronts) sets the flags back with ``drjit.set_flag``; another thread
+that renders with the plugin calls :func:`configure_jit` itself.
 
 Precision: Mitsuba's mesh uv and the product ``scale * u`` are float32; from
 there on the lattice runs in float64 exactly as dynbtf does, so the plugin agrees
@@ -91,6 +111,9 @@ def configure_jit() -> None:
     Symbolic loops and calls trace the integrator's loop body once and dispatch
     BSDF calls indirectly; with them off (wavefront mode), the plugin's code is
     fused into straight-line kernels -- ~15x faster on the CPU for this BSDF.
+
+    The flags are Dr.Jit's per-thread state: this changes them for everything
+    the calling thread runs afterwards (see "Dr.Jit flags" in :data:`PLUGIN_DOC`).
     """
     import drjit as dr
 
@@ -100,8 +123,6 @@ def configure_jit() -> None:
 
 def _build_class(mi):
     import drjit as dr
-
-    from ..representations.model_file import load_model
 
     class DynBTFBSDF(mi.BSDF):
         __doc__ = PLUGIN_DOC
@@ -122,9 +143,7 @@ def _build_class(mi):
                 if not (math.isfinite(value) and value > 0):
                     raise InputError(f"dynbtf BSDF: parameter '{name}' must be a positive number of repeats, "
                                      f"got {value}")
-            if not Path(self.filename).exists():
-                raise InputError(f"dynbtf BSDF: parameter 'filename': model file {self.filename!r} not found")
-            model, _ = load_model(self.filename, device="cpu")
+            model = load_plugin_model(self.filename)
             self.evaluator = DynBTFEvaluator(model, self.method, self.seed)
             self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
             self.m_components = [self.m_flags]
@@ -135,7 +154,12 @@ def _build_class(mi):
             # only in scale share one compiled kernel
             u = si.uv.x * dr.opaque(mi.Float, self.scale)
             v = si.uv.y * dr.opaque(mi.Float, self.scale_v)
-            return self.evaluator.eval(u, v, si.wi, wo, active)
+            # the BTF's y runs along +v; Mitsuba's frame t = n x s runs along -dp/dv where the
+            # parametrization is left-handed (its sphere): mirror y of both directions there
+            y = dr.select(dr.dot(si.sh_frame.t, si.dp_dv) < 0.0, -1.0, 1.0)
+            w_view = mi.Vector3f(si.wi.x, si.wi.y * y, si.wi.z)
+            w_light = mi.Vector3f(wo.x, wo.y * y, wo.z)
+            return self.evaluator.eval(u, v, w_view, w_light, active)
 
         def _valid(self, si, wo, active):
             return active & (mi.Frame3f.cos_theta(si.wi) > 0.0) & (mi.Frame3f.cos_theta(wo) > 0.0)
@@ -183,8 +207,8 @@ class DynBTFEvaluator:
 
     Parameters
     ----------
-    model : TriplePlane
-        The fitted representation.
+    model : TriplePlane or NeuMIP
+        The fitted representation (a kind of :data:`dynbtf.render.drjit_ops.DR_REPRESENTATIONS`).
     method : {"tile", "hist", "hex"}
         Synthesis method (the same synthesizer :class:`~dynbtf.synthesized.SynthesizedBTF` builds).
     seed : int
@@ -204,7 +228,7 @@ class DynBTFEvaluator:
         # fold the synthesizer's output map (PCA un-projection) into the decoder's first layer,
         # as SynthesizedBTF's fast path does: 16 x 16 fewer multiply-adds per shading point
         matrix, offset = getattr(self.synthesizer, "matrix", None), getattr(self.synthesizer, "offset", None)
-        self.model = drjit_ops.DrTriplePlane(model, output_map=(matrix, offset))
+        self.model = drjit_ops.dr_representation(model, output_map=(matrix, offset))
         self._latent = matrix is not None
 
     def features(self, u, v, active=True):
@@ -218,30 +242,97 @@ class DynBTFEvaluator:
         return self.model.decode(self.features(u, v, active), w_view, w_light, active)
 
 
+def load_plugin_model(filename):
+    """The representation in model file ``filename``, checked for the plugin.
+
+    What the plugin's constructor loads; :func:`dynbtf.render.mitsuba_render.render_scene`
+    calls it before Mitsuba loads a scene, so that a mistake is a clear error and
+    not one wrapped by Mitsuba.
+
+    Raises
+    ------
+    FormatError
+        The file is missing, damaged or not a dynbtf model file.
+    InputError
+        The model's kind is not one the plugin evaluates (PCA, SH).
+    """
+    from ..representations.model_file import load_model
+
+    model, _ = load_model(filename, device="cpu")
+    drjit_ops.check_renderable(model, str(filename))
+    return model
+
+
+def plugin_variants() -> list[str]:
+    """Mitsuba variants the plugin runs on here, best first (e.g. ``["llvm_ad_rgb"]`` on a CPU).
+
+    The plugin needs an RGB variant (it returns RGB colours) of a JIT back end (its
+    tables are Dr.Jit buffers): ``llvm_*_rgb`` when Dr.Jit finds the LLVM library,
+    ``cuda_*_rgb`` when it finds a CUDA device. Only variants built into the
+    installed Mitsuba count.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    backends = {"llvm": dr.JitBackend.LLVM, "cuda": dr.JitBackend.CUDA}
+    usable = {name: bool(dr.has_backend(b)) for name, b in backends.items()}
+    ok = [v for v in mi.variants() if v.endswith("_rgb") and usable.get(v.split("_")[0], False)]
+    return sorted(ok, key=lambda v: (v != "llvm_ad_rgb", v))
+
+
+def _check_variant(variant: str, available: list[str]) -> None:
+    """:class:`InputError` saying why ``variant`` cannot run the plugin, unless it is in ``available``."""
+    import mitsuba as mi
+
+    if variant in available:
+        return
+    backend = variant.split("_")[0]
+    if variant not in mi.variants():
+        why = f"not built into the installed Mitsuba {mi.__version__}"
+    elif backend not in ("llvm", "cuda") or not variant.endswith("_rgb"):
+        why = "the dynbtf plugin needs an RGB variant of the LLVM or CUDA back end (llvm_*_rgb, cuda_*_rgb)"
+    elif backend == "cuda":
+        why = "no CUDA device or driver found on this machine"
+    else:
+        why = "Dr.Jit found no LLVM library on this machine (install it, e.g. apt-get install libllvm19)"
+    listed = ", ".join(available) if available else "none"
+    raise InputError(f"--variant: Mitsuba variant {variant!r} is not available: {why}; "
+                     f"available for the dynbtf plugin here: {listed}")
+
+
 _REGISTERED: set[str] = set()
 
 
 def register_plugin(variant: str | None = None) -> str:
     """Register the ``dynbtf`` BSDF with Mitsuba (idempotent per variant).
 
+    Also calls :func:`configure_jit`, which changes Dr.Jit's flags for the
+    calling thread (see "Dr.Jit flags" in :data:`PLUGIN_DOC`).
+
     Parameters
     ----------
     variant : str, optional
-        Mitsuba variant to activate first (e.g. ``"llvm_ad_rgb"``, ``"cuda_ad_rgb"``).
-        ``None`` keeps the active one, or picks ``llvm_ad_rgb`` when none is set.
-        Scalar variants work but evaluate per sample (~100x slower).
+        Mitsuba variant to activate first (one of :func:`plugin_variants`, e.g.
+        ``"llvm_ad_rgb"``, ``"cuda_ad_rgb"``). ``None`` keeps the active one, or
+        picks ``llvm_ad_rgb`` when none is set.
 
     Returns
     -------
     str: the active variant.
+
+    Raises
+    ------
+    InputError
+        The variant is not built, not usable on this machine (no CUDA device, no
+        LLVM library) or not one the plugin runs on (scalar, mono, spectral); the
+        message lists the variants that are available.
     """
     import mitsuba as mi
 
-    if variant is not None:
-        if variant not in mi.variants():
-            raise InputError(f"Mitsuba variant {variant!r} is not available; expected one of {mi.variants()}")
-        mi.set_variant(variant)
-    mi = drjit_ops.mi_module()
+    wanted = variant if variant is not None else (mi.variant() or "llvm_ad_rgb")
+    _check_variant(wanted, plugin_variants())
+    if mi.variant() != wanted:
+        mi.set_variant(wanted)
     configure_jit()
     active = mi.variant()
     if active not in _REGISTERED:
