@@ -7,12 +7,14 @@ from typing import Optional
 
 import typer
 
+from ..errors import InputError
 from .app import app
 
 
 @app.command()
 def render(
-    model: Path = typer.Argument(..., help="dynbtf model file (a Triple Plane from `dynbtf fit`)."),
+    model: Path = typer.Argument(..., help="dynbtf model file: a Triple Plane (`dynbtf fit`) or a NeuMIP "
+                                           "(`dynbtf fit --repr neumip`)."),
     output: Path = typer.Option(..., "-o", "--output", help="Output image: .png (sRGB, exposure applied) or .exr (linear HDR)."),
     scene: str = typer.Option("plane", help="Scene: plane (grazing ground plane), sphere or cloth."),
     lighting: str = typer.Option("sky", help="Lighting: sky (procedural environment map) or point (point light + dim ambient)."),
@@ -22,17 +24,26 @@ def render(
     spp: int = typer.Option(16, help="Samples per pixel."),
     size: int = typer.Option(512, help="Image width and height in pixels."),
     exposure: float = typer.Option(1.0, help="Multiplier applied before sRGB encoding (PNG only)."),
-    variant: Optional[str] = typer.Option(None, help="Mitsuba variant (default llvm_ad_rgb; cuda_ad_rgb on a GPU)."),
+    variant: Optional[str] = typer.Option(None, help="Mitsuba variant (default llvm_ad_rgb; cuda_ad_rgb on a GPU); "
+                                                     "an unavailable one is refused with the list of available ones."),
 ) -> None:
-    """Path-trace a scene covered by the synthesized BTF with Mitsuba 3 (decoder inside the kernel)."""
-    from ..io import save_image
+    """Path-trace a scene covered by the synthesized BTF with Mitsuba 3 (decoder inside the kernel).
+
+    The first pass compiles the rendering kernel (15-60 s the first time a model, method and
+    shape are rendered; Dr.Jit caches it): a status line says so, then a bar counts samples.
+    """
+    from ..io import check_image_path, save_image
     from ..render.mitsuba_render import render_scene
 
+    check_image_path(output)  # before the render, not after it
+    if size < 1:
+        raise InputError(f"--size: expected a positive number of pixels, got {size}")
     result = render_scene(model, scene=scene, method=method, scale=scale, seed=seed, lighting=lighting,
                           resolution=(size, size), spp=spp, variant=variant, progress=True)
     save_image(output, result.image, exposure=exposure)
-    typer.echo(f"wrote {output} ({size}x{size}, {spp} spp, {result.variant}, {result.seconds:.1f} s "
-               f"incl. {result.compile_seconds:.1f} s kernel compilation)")
+    timing = (f"incl. {result.compile_seconds:.1f} s kernel compilation" if result.passes > 1
+              else "one pass, kernel compilation included")
+    typer.echo(f"wrote {output} ({size}x{size}, {spp} spp, {result.variant}, {result.seconds:.1f} s {timing})")
 
 
 @app.command()

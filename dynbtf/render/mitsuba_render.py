@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import math
+import sys
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
-from .mitsuba_bsdf import METHODS, register_plugin
+from .mitsuba_bsdf import METHODS, load_plugin_model, register_plugin
 from .scenes import LIGHTINGS, SCENES, bsdf_dict, scene_dict
 
 __all__ = ["render_scene", "RenderResult"]
@@ -18,12 +18,26 @@ __all__ = ["render_scene", "RenderResult"]
 
 @dataclass
 class RenderResult:
-    """A rendered image ``(H, W, 3)`` linear RGB float32 (radiance) and how long it took."""
+    """A rendered image ``(H, W, 3)`` linear RGB float32 (radiance) and how long it took.
+
+    ``seconds``: total wall time. ``first_pass_seconds``: the first ``mi.render``
+    pass, which includes tracing and compiling the kernel (or loading it from
+    Dr.Jit's cache). ``compile_seconds``: the first pass's extra time over the
+    mean of the later passes, 0 when there is only one pass (nothing to compare).
+    """
 
     image: np.ndarray
     seconds: float
     compile_seconds: float
     variant: str
+    first_pass_seconds: float = 0.0
+    passes: int = 1
+
+
+def _status(progress: bool, text: str) -> None:
+    """One status line on standard error (where the progress bar goes), if ``progress``."""
+    if progress:
+        print(text, file=sys.stderr, flush=True)
 
 
 def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scale: float = 25.0, seed: int = 0,
@@ -31,34 +45,42 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
                  variant: str | None = None, progress: bool = True) -> RenderResult:
     """Path-trace ``scene`` covered by the synthesized BTF of ``model_path``.
 
+    Every argument is checked before Mitsuba loads anything, so a mistake raises
+    :class:`~dynbtf.errors.InputError` or :class:`~dynbtf.errors.FormatError`
+    naming it (not a ``RuntimeError`` from inside Mitsuba).
+
     Parameters
     ----------
     model_path : path
-        A dynbtf Triple Plane model file.
+        A dynbtf model file: a Triple Plane or a NeuMIP
+        (:func:`dynbtf.render.mitsuba_bsdf.load_plugin_model`).
     scene : {"plane", "sphere", "cloth"}
         See :mod:`dynbtf.render.scenes`.
     method : {"tile", "hist", "hex"}
         Synthesis method of the plugin.
     scale : float
-        Exemplar repeats across the mesh's uv range.
+        Exemplar repeats across the mesh's uv range (positive).
     seed : int
         Synthesis seed (the sampler uses the pass index).
     lighting : {"point", "sky"}
     resolution : (height, width)
+        Image size in pixels, both positive.
     spp : int
-        Samples per pixel in total.
+        Samples per pixel in total (positive).
     spp_per_pass : int
-        Samples per ``mi.render`` call; the passes are averaged and drive the progress bar.
+        Samples per ``mi.render`` call (positive); the passes are averaged.
     variant : str, optional
-        Mitsuba variant (default: the active one, or ``llvm_ad_rgb``).
+        Mitsuba variant (default: the active one, or ``llvm_ad_rgb``); one of
+        :func:`dynbtf.render.mitsuba_bsdf.plugin_variants`.
     progress : bool
-        Show a tqdm bar over the passes.
+        Report on standard error: a status line before the first pass (which
+        traces and compiles the kernel: 15-60 s the first time a model, method and
+        shape are rendered, during which no sample completes), its time after it,
+        then a tqdm bar over the remaining passes' samples.
 
     Returns
     -------
     RenderResult
-        ``seconds`` is the total wall time, ``compile_seconds`` the first pass's
-        extra time (kernel tracing and compilation, cached across runs by Dr.Jit).
     """
     if scene not in SCENES:
         raise InputError(f"--scene: expected one of {list(SCENES)}, got {scene!r}")
@@ -66,12 +88,16 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
         raise InputError(f"--lighting: expected one of {list(LIGHTINGS)}, got {lighting!r}")
     if method not in METHODS:
         raise InputError(f"--method: expected one of {list(METHODS)}, got {method!r}")
-    if not Path(model_path).is_file():
-        raise InputError(f"{model_path}: model file not found")
-    if int(spp) < 1 or int(spp_per_pass) < 1:
+    if len(resolution) != 2 or not all(int(x) == x and x >= 1 for x in resolution):
+        raise InputError(f"resolution: expected (height, width) in pixels, both positive integers, "
+                         f"got {tuple(resolution)}")
+    if int(spp) != spp or spp < 1:
         raise InputError(f"--spp: expected a positive number of samples per pixel, got {spp}")
+    if int(spp_per_pass) != spp_per_pass or spp_per_pass < 1:
+        raise InputError(f"spp_per_pass: expected a positive number of samples per pixel, got {spp_per_pass}")
     if not (math.isfinite(scale) and scale > 0):
         raise InputError(f"--scale: expected a positive number of repeats, got {scale}")
+    load_plugin_model(model_path)  # a missing/damaged file or an unsupported kind fails here, not inside Mitsuba
     active = register_plugin(variant)
     from .drjit_ops import mi_module
 
@@ -80,27 +106,40 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
     from tqdm.auto import tqdm
 
     t0 = time.perf_counter()
+    spp, spp_per_pass = int(spp), int(spp_per_pass)
+    label = f"render {scene}/{lighting}/{method}"
     material = bsdf_dict(model_path, method=method, scale=scale, seed=seed)
     scene_obj = mi.load_dict(scene_dict(scene, material, lighting=lighting, resolution=resolution,
-                                        spp=min(int(spp), int(spp_per_pass))))
-    n_passes = int(math.ceil(int(spp) / int(spp_per_pass)))
+                                        spp=min(spp, spp_per_pass)))
+    n_passes = int(math.ceil(spp / spp_per_pass))
     acc = None
     total = 0
-    first = None
-    with tqdm(total=int(spp), desc=f"render {scene}/{lighting}/{method}", unit="spp", disable=not progress) as bar:
-        for k in range(n_passes):
-            n = min(int(spp_per_pass), int(spp) - total)
-            tp = time.perf_counter()
-            img = mi.render(scene_obj, spp=n, seed=k)
-            dr.eval(img)
-            img = np.asarray(img, dtype=np.float64)
-            if first is None:
-                first = time.perf_counter() - tp
-            acc = img * n if acc is None else acc + img * n
-            total += n
+    first = later = 0.0  # seconds of the first pass, of all later passes
+    bar = None
+    for k in range(n_passes):
+        n = min(spp_per_pass, spp - total)
+        if k == 0:
+            _status(progress, f"{label}: compiling the rendering kernel and running the first pass ({n} spp; "
+                              f"15-60 s the first time this model, method and shape are rendered, then cached)...")
+        tp = time.perf_counter()
+        img = mi.render(scene_obj, spp=n, seed=k)
+        dr.eval(img)
+        img = np.asarray(img, dtype=np.float64)
+        acc = img * n if acc is None else acc + img * n
+        total += n
+        if k == 0:
+            first = time.perf_counter() - tp
+            _status(progress, f"{label}: kernel ready, first pass done in {first:.1f} s ({total}/{spp} spp)")
+            if n_passes > 1:
+                bar = tqdm(total=spp, initial=total, desc=label, unit="spp", disable=not progress)
+        else:
+            later += time.perf_counter() - tp
             bar.update(n)
+    if bar is not None:
+        bar.close()
     seconds = time.perf_counter() - t0
-    per_pass = (seconds - first) / max(n_passes - 1, 1) if n_passes > 1 else 0.0
+    per_pass = later / (n_passes - 1) if n_passes > 1 else 0.0
     compile_seconds = max(first - per_pass, 0.0) if n_passes > 1 else 0.0
     return RenderResult(image=(acc / total).astype(np.float32), seconds=seconds,
-                        compile_seconds=compile_seconds, variant=active)
+                        compile_seconds=compile_seconds, variant=active, first_pass_seconds=first,
+                        passes=n_passes)
