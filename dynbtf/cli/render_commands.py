@@ -29,7 +29,7 @@ def render(
 ) -> None:
     """Path-trace a scene covered by the synthesized BTF with Mitsuba 3 (decoder inside the kernel).
 
-    The first pass compiles the rendering kernel (15-60 s the first time a model, method and
+    The first pass compiles the rendering kernel (up to a minute the first time a model, method and
     shape are rendered; Dr.Jit caches it): a status line says so, then a bar counts samples.
     """
     from ..io import check_image_path, save_image

@@ -74,7 +74,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
         :func:`dynbtf.render.mitsuba_bsdf.plugin_variants`.
     progress : bool
         Report on standard error: a status line before the first pass (which
-        traces and compiles the kernel: 15-60 s the first time a model, method and
+        traces and compiles the kernel: up to a minute the first time a model, method and
         shape are rendered, during which no sample completes), its time after it,
         then a tqdm bar over the remaining passes' samples.
 
@@ -119,8 +119,8 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
     for k in range(n_passes):
         n = min(spp_per_pass, spp - total)
         if k == 0:
-            _status(progress, f"{label}: compiling the rendering kernel and running the first pass ({n} spp; "
-                              f"15-60 s the first time this model, method and shape are rendered, then cached)...")
+            _status(progress, f"{label}: compiling the rendering kernel and running the first pass ({n} spp; up to "
+                              f"a minute the first time this model, method and shape are rendered, then cached)...")
         tp = time.perf_counter()
         img = mi.render(scene_obj, spp=n, seed=k)
         dr.eval(img)
