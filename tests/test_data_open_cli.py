@@ -58,9 +58,9 @@ def test_open_btf_errors(tmp_path):
 
 
 def test_parse_sim_spec():
-    assert parse_sim_spec("sim:leather") == ("leather", {"size": 128, "grid": "ubo2003", "seed": 0})
-    assert parse_sim_spec("sim:stone?size=32&grid=ubo2014&seed=7") == ("stone", {"size": 32, "grid": "ubo2014",
-                                                                                 "seed": 7})
+    assert parse_sim_spec("sim:leather") == ("leather", {"size": 128, "grid": "ubo2003", "seed": 0, "relief": 1.0})
+    assert parse_sim_spec("sim:stone?size=32&grid=ubo2014&seed=7&relief=0.5") == (
+        "stone", {"size": 32, "grid": "ubo2014", "seed": 7, "relief": 0.5})
     with pytest.raises(InputError, match="unknown option 'colour'"):
         parse_sim_spec("sim:stone?colour=red")
     with pytest.raises(InputError, match="'size' must be an integer"):
@@ -171,3 +171,13 @@ def test_help(capsys, command):
     if command == ["show"]:
         text = " ".join(out.replace("\u2502", " ").split())  # undo rich's wrapping and box borders
         assert "THETA,PHI in degrees" in text and ".exr" in text and "[default: 1.0]" in text
+
+
+@pytest.mark.parametrize("argv,message", [(["demo", "--bogus"], "No such option: --bogus"),
+                                          (["info"], "Missing argument"),
+                                          (["fit", "x.dbtf", "--epochs", "many"], "Invalid value")])
+def test_usage_errors_are_messages_not_tracebacks(capsys, argv, message):
+    """A mistyped command line (typer bundles its own click) ends with click's usage message, exit status 2."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and "Usage: dynbtf" in err

@@ -25,7 +25,7 @@ __all__ = ["app", "main"]
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
     try:
-        app(args=argv, standalone_mode=False)
+        app(args=argv, prog_name="dynbtf", standalone_mode=False)
     except DynBTFError as e:
         print(f"dynbtf: error: {e}", file=sys.stderr)
         return 2
@@ -34,13 +34,11 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except SystemExit as e:  # typer/click usage errors already printed
         return int(e.code or 0)
-    except Exception as e:  # click exceptions in non-standalone mode
-        import click
-
-        if isinstance(e, click.exceptions.Abort):
+    except Exception as e:  # usage errors in non-standalone mode (typer's bundled click, or click)
+        if type(e).__name__ == "Abort":
             return 130
-        if isinstance(e, click.ClickException):
-            e.show()
+        if callable(getattr(e, "show", None)) and isinstance(getattr(e, "exit_code", None), int):
+            e.show()  # "Usage: ... Error: No such option: --bogus"
             return e.exit_code
         raise
     return 0

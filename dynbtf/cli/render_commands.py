@@ -35,7 +35,10 @@ def render(
     from ..io import check_image_path, save_image
     from ..render.mitsuba_render import render_scene
 
+    from .arguments import check_exposure
+
     check_image_path(output)  # before the render, not after it
+    check_exposure(exposure)
     if size < 1:
         raise InputError(f"--size: expected a positive number of pixels, got {size}")
     result = render_scene(model, scene=scene, method=method, scale=scale, seed=seed, lighting=lighting,
