@@ -70,6 +70,7 @@ from ..data.base import BTFSource
 from ..device import resolve_device
 from ..errors import FormatError, InputError
 from ..io import atomic_path
+from ..metrics import psnr
 from ..representations.base import Representation
 from ..representations.model_file import model_size_report, save_model
 from .fused_mlp import resolve_precision, single_intra_op_thread
@@ -287,10 +288,14 @@ def training_provenance(source: BTFSource, held_out: np.ndarray, **extra) -> dic
 
 
 def _psnr_of_pairs(rep, store: ImageStore, source: BTFSource, pairs: np.ndarray, device) -> float:
-    """PSNR (linear, peak 1) pooled over the given pairs, using the fast image path."""
+    """Mean over the given pairs of each image's PSNR (linear, peak 1), as ``dynbtf eval`` averages it.
+
+    (A PSNR of the pooled error would be dominated by the few pairs with bright highlights --
+    a glossy material's mirror configuration reaches values of 50 -- and read as negative dB.)
+    """
     if len(pairs) == 0:
         return float("nan")
-    se, count = 0.0, 0
+    values = []
     size = (source.height, source.width)
     with torch.no_grad():
         for k in range(0, len(pairs), 8):
@@ -299,10 +304,9 @@ def _psnr_of_pairs(rep, store: ImageStore, source: BTFSource, pairs: np.ndarray,
             wv = torch.as_tensor(source.views[chunk[:, 0]], dtype=torch.float32, device=device)
             wl = torch.as_tensor(source.lights[chunk[:, 1]], dtype=torch.float32, device=device)
             pred = predict_images(rep, wv, wl, size).float()
-            se += float(((pred - target) ** 2).sum(dtype=torch.float64))
-            count += target.numel()
-    mse = se / count
-    return float("inf") if mse == 0 else float(-10.0 * math.log10(mse))
+            values += [psnr(t.reshape(*size, -1).cpu().numpy(), p.reshape(*size, -1).cpu().numpy())
+                       for t, p in zip(target, pred)]
+    return float(np.mean(values))
 
 
 # ---------------------------------------------------------------------------- checkpoints
@@ -522,8 +526,8 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
                         "global_step": done_steps, "loss": loss_value, "step_seconds": dt,
                         "samples": target.size // 3}
                 if step == 0:  # an epoch ended
-                    psnr = _psnr_of_pairs(rep, store, source, monitor, device)
-                    history.append({"epoch": epoch, "loss": loss_value, "held_out_psnr": psnr,
+                    monitor_psnr = _psnr_of_pairs(rep, store, source, monitor, device)
+                    history.append({"epoch": epoch, "loss": loss_value, "held_out_psnr": monitor_psnr,
                                     "elapsed_seconds": elapsed})
                     finished = epoch >= config.epochs
                 if step == 0 or done_steps - last_checkpoint_step >= config.checkpoint_every:
