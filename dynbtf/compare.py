@@ -96,13 +96,34 @@ def _provenance_matches(meta: dict[str, Any], source: BTFSource, held_out: np.nd
     return None
 
 
+#: Training options a finished gradient fit must share with the comparison's config to be reused.
+REUSED_TRAINING_FIELDS = ("epochs", "images_per_step", "lr_decay", "lr_scale", "texels_per_image", "texel_groups",
+                          "precision")
+
+
+def _training_matches(meta: dict[str, Any], config: TrainConfig) -> str | None:
+    """Why a finished gradient fit was trained with other options than ``config`` (``None`` if it was not).
+
+    Closed-form fits (no ``epochs`` in their training record) have no such options; an option
+    the record lacks (a file older than the option) is not compared.
+    """
+    training = meta.get("provenance", {}).get("training", {})
+    if "epochs" not in training:
+        return None
+    differ = [f"{name}={training.get(name)!r} (this comparison: {getattr(config, name)!r})"
+              for name in REUSED_TRAINING_FIELDS if name in training and training[name] != getattr(config, name)]
+    return ("it was trained with other options: " + ", ".join(differ)) if differ else None
+
+
 def fit_or_load(kind: str, source: BTFSource, path, config: TrainConfig, *, progress: bool = True
                 ) -> tuple[Representation, dict[str, Any]]:
     """The model of ``kind`` at ``path``: loaded if it is a finished fit of this source and split, else fitted.
 
     An unfinished gradient fit (its checkpoint exists) continues. A model file
-    that belongs to another BTF or split raises :class:`InputError` (nothing is
-    overwritten).
+    that belongs to another BTF or split, or a finished gradient fit trained
+    with other options (:data:`REUSED_TRAINING_FIELDS`: e.g. fewer epochs or
+    another learning-rate scale), raises :class:`InputError` (nothing is
+    overwritten): a table must not silently mix models of other settings.
     """
     path = Path(path)
     _, held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction, config.seed)
@@ -114,6 +135,10 @@ def fit_or_load(kind: str, source: BTFSource, path, config: TrainConfig, *, prog
             raise InputError(f"{path}: cannot reuse this model file: {problem}; remove it or choose another "
                              "output directory")
         if meta["provenance"].get("finished", True) or not checkpoint_path(path).exists():
+            problem = _training_matches(meta, config)
+            if problem:
+                raise InputError(f"{path}: cannot reuse this model file: {problem}; remove it (and its .ckpt) or "
+                                 "choose another output directory")
             rep, meta = load_model(path)
             return rep, meta
     result = get_fitter(kind)(source, path, config, progress=progress)

@@ -92,6 +92,37 @@ def test_compare_command_line(btf, tmp_path, capsys):
     assert "FLIP" in capsys.readouterr().out and (tmp_path / "eval" / "metrics.csv").exists()
 
 
+def test_compare_passes_training_options_and_refuses_models_trained_otherwise(btf, tmp_path, capsys):
+    from dynbtf.cli.main import main
+    from dynbtf.data.stored import write_stored
+    from dynbtf.representations.model_file import read_model_metadata
+
+    path = tmp_path / "small.dbtf"
+    write_stored(path, btf, dtype="float32", progress=False)
+    out = tmp_path / "out"
+
+    def args(epochs=1, lr_scale="3"):
+        return ["compare", str(path), "-o", str(out), "--repr", "neumip", "--examples", "1", "--held-out-fraction",
+                "0.1", "--epochs", str(epochs), "--workers", "1", "--device", "cpu", "--quiet", "--lr-scale", lr_scale,
+                "--texel-groups", "2", "--images-per-step", "4", "--precision", "fp32"]
+
+    assert main(args()) == 0
+    training = read_model_metadata(out / "neumip.dbtfm")["provenance"]["training"]
+    assert (training["lr_scale"], training["texel_groups"], training["images_per_step"], training["precision"],
+            training["epochs"]) == (3.0, 2, 4, "fp32", 1)
+    before = (out / "neumip.dbtfm").stat().st_mtime_ns
+    capsys.readouterr()
+    assert main(args()) == 0  # same options: loaded, not refitted
+    assert (out / "neumip.dbtfm").stat().st_mtime_ns == before
+    capsys.readouterr()
+    # other options (the paper's learning rates; more epochs): refused, not silently reused or overwritten
+    assert main(args(lr_scale="1")) == 2
+    assert "lr_scale=3.0 (this comparison: 1.0)" in capsys.readouterr().err
+    assert main(args(epochs=2)) == 2
+    assert "epochs=1 (this comparison: 2)" in capsys.readouterr().err
+    assert (out / "neumip.dbtfm").stat().st_mtime_ns == before
+
+
 def test_compare_synthesis_reports_quality_and_quilting_storage(btf, tmp_path):
     from dynbtf.compare import compare_synthesis
     from dynbtf.representations.pca import fit_pca

@@ -25,6 +25,15 @@ def compare(
     seed: int = typer.Option(0, help="Seed of the shared held-out split, batch order and initializations."),
     held_out_fraction: float = typer.Option(0.05, "--held-out-fraction", help="Fraction of (view, light) pairs "
                                             "held out of every fit and used for the comparison."),
+    images_per_step: int = typer.Option(16, "--images-per-step", help="Whole images per optimizer step of the "
+                                        "gradient-trained fits (as in `dynbtf fit`)."),
+    lr_scale: float = typer.Option(1.0, "--lr-scale", help="Multiplier of the gradient-trained fits' learning "
+                                   "rates (as in `dynbtf fit`; 1: the paper's)."),
+    texel_groups: int = typer.Option(1, "--texel-groups", help="Texel groups per step of the gradient-trained fits "
+                                     "(as in `dynbtf fit`; 64 with --lr-scale 3 is the fast recipe; 1: the "
+                                     "paper's whole images)."),
+    precision: str = typer.Option("auto", help="Arithmetic of the gradient-trained fits' training kernel: fp32, "
+                                  "bf16 or auto (as in `dynbtf fit`)."),
     examples: int = typer.Option(3, help="Held-out pairs shown in the figure (rows)."),
     synthesis: Optional[str] = typer.Option(None, "--synthesis", help="Also compare synthesis methods on the "
                                             "fitted model of this kind (e.g. triple): quality numbers, storage "
@@ -53,7 +62,8 @@ def compare(
     if synthesis is not None and synthesis not in kinds:
         raise InputError(f"--synthesis {synthesis!r}: expected one of the compared kinds {kinds}")
     config = TrainConfig(epochs=epochs, max_minutes=budget_minutes, seed=seed, held_out_fraction=held_out_fraction,
-                         workers=workers, device=device)
+                         images_per_step=images_per_step, lr_scale=lr_scale, texel_groups=texel_groups,
+                         workers=workers, device=device, precision=precision)
     source = open_btf(btf)
     report = HtmlReport(f"dynbtf compare: {source.name}",
                         f"{source.height} x {source.width} texels, {source.n_views} views x {source.n_lights} lights")
