@@ -15,7 +15,8 @@ float32), except that histogram blending inverts the Gaussian transform with an
 (error reported by the tests and the benchmark).
 
 Blend modes: ``MODE_LINEAR`` (weights ``b``), ``MODE_HIST`` (weights
-``b^gamma`` normalized, variance-preserving, then the LUT), ``MODE_HEX``
+``b^gamma`` normalized -- integral ``gamma`` up to 64 by repeated multiplication, as fast as
+``gamma = 1``; other values by ``pow`` -- variance-preserving, then the LUT), ``MODE_HEX``
 (weights ``delta_i b_i^7`` with ``delta_i = 1 - beta + beta lum_i``, then the contrast
 gain with exponent ``k``).
 """
@@ -117,6 +118,19 @@ def _sample_texels(h, xi, yi, pw, ph):
 
 
 @numba.njit(inline="always")
+def _int_power(x, n):
+    """``max(x, 0) ** n`` for an integer ``n >= 1`` by repeated squaring (no ``pow`` call)."""
+    base = max(x, 0.0)
+    result = 1.0
+    while n > 0:
+        if n & 1:
+            result *= base
+        base *= base
+        n >>= 1
+    return result
+
+
+@numba.njit(inline="always")
 def _gain(x, k):
     if x < 0.5:
         return 0.5 * (2.0 * x) ** k
@@ -166,6 +180,7 @@ def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_
     ph, pw, nc = plane.shape
     flat = plane.reshape(ph * pw * nc)
     state = _seed_state(seed)  # per-call constant part of every vertex hash
+    gamma_int = np.int64(gamma) if (gamma == math.floor(gamma) and 1.0 < gamma <= 64.0) else np.int64(0)
     density_w_mod = density_w % pw
     density_h_mod = density_h % ph
     for block in numba.prange((n_queries + BLOCK - 1) // BLOCK):
@@ -235,6 +250,8 @@ def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_
             elif mode == MODE_HIST:
                 if gamma == 1.0:
                     s0, s1, s2 = b0, b1, b2
+                elif gamma_int > 0:  # integral exponent (default 7): repeated squaring (pow: ~25% of the kernel)
+                    s0, s1, s2 = _int_power(b0, gamma_int), _int_power(b1, gamma_int), _int_power(b2, gamma_int)
                 else:
                     s0, s1, s2 = max(b0, 0.0) ** gamma, max(b1, 0.0) ** gamma, max(b2, 0.0) ** gamma
                 total = s0 + s1 + s2
