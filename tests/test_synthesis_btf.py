@@ -466,3 +466,19 @@ def test_synth_quilt_size_option_and_storage(model_file, tmp_path, capsys):
     assert "--quilt-repeats (default ceil(--scale) = 200): a 200 x 200-repeat quilt" in capsys.readouterr().err
     assert main(["synth", str(model_file), "--method", "quilt", "--quilt-repeats", "0", "-o", str(out)]) == 2
     assert "--quilt-repeats: expected a positive number of exemplar repeats, got 0" in capsys.readouterr().err
+
+
+def test_synth_gamma_option(model_file, tmp_path, capsys):
+    import json
+
+    from dynbtf.cli.main import main
+
+    for args, expected in (([], 7.0), (["--gamma", "1"], 1.0)):
+        path = tmp_path / f"q{expected:g}.json"
+        assert main(["synth", str(model_file), "--report", "--report-methods", "hist,hex", "--repeats", "2", *args,
+                     "--report-json", str(path)]) == 0
+        hist, hex_ = json.loads(path.read_text())["reports"]
+        assert hist["parameters"]["gamma"] == expected and "gamma" not in hex_["parameters"]
+    capsys.readouterr()
+    assert main(["synth", str(model_file), "--gamma", "-1", "--resolution", "8", "-o", str(tmp_path / "x.png")]) == 2
+    assert "gamma: expected a positive, finite exponent, got -1.0" in capsys.readouterr().err

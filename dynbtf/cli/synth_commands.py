@@ -78,6 +78,10 @@ def synth(
                                                      "ceil(--scale), so the image does not wrap. The plane is "
                                                      f"generated up front and limited to {QUILT_MAX_BYTES // 2**20} "
                                                      "MiB (float32); its storage is printed."),
+    gamma: Optional[float] = typer.Option(None, "--gamma", help="Blending exponent of hist (weights b^gamma; default "
+                                                                 "7; 1 = Heitz & Neyret's smooth blending, whose decoded "
+                                                                 "colours are over-contrasted on fitted models; see "
+                                                                 "docs/synthesis.md). Applies to hist only."),
     report: bool = typer.Option(False, "--report", help="Also measure synthesis quality (W1/std of features and "
                                                         "RGB, repetition, verbatim copies) and print a table."),
     report_methods: str = typer.Option("tile,linear,hist,hex", help="Methods compared by --report."),
@@ -120,6 +124,8 @@ def synth(
 
     def build(name: str) -> SynthesizedBTF:
         params = {"repeats": float(quilt_size), "progress": True} if name == "quilt" else {}
+        if name == "hist" and gamma is not None:
+            params["gamma"] = gamma
         btf = SynthesizedBTF(rep, name, scale=scale, seed=seed, **params)
         if name == "quilt":
             size = btf.synthesizer.size
