@@ -13,7 +13,7 @@ exemplar in 192 px; 25x and 45x box-filter a stochastic material to flat grey --
 follows: the centre :data:`DETAIL_REPEATS` x :data:`DETAIL_REPEATS` repeats of the same
 view at :data:`DETAIL_TEXELS_PER_PIXEL` texels per pixel, outlined in the full view),
 ``synthesis_quality.json`` (the quality report of every method) and prints the report
-table plus the decorrelation and tileable ablations (feature W1/std with and without).
+table plus the blending-exponent, decorrelation and tileable ablations (feature and RGB W1/std).
 """
 
 from __future__ import annotations
@@ -124,7 +124,10 @@ def main() -> None:
     print(format_report(reports))
     save_report(reports, out / "synthesis_quality.json")
     ablation = {}
-    for name, params in (("hist", {}), ("hist, no decorrelation", {"decorrelate": False}),
+    for name, params in (("hist", {}), ("hist, gamma=1 (Heitz-Neyret)", {"gamma": 1.0}),
+                         ("hist, gamma=3 (Burley)", {"gamma": 3.0}), ("hist, gamma=10", {"gamma": 10.0}),
+                         ("hist, no decorrelation", {"decorrelate": False}),
+                         ("hist, gamma=1, no decorrelation", {"gamma": 1.0, "decorrelate": False}),
                          ("hist, tileable off", {"tileable": False}), ("hist, tileable on", {"tileable": True}),
                          ("hex, tileable off", {"tileable": False}), ("hex, tileable on", {"tileable": True})):
         method = name.split(",")[0]
@@ -132,7 +135,7 @@ def main() -> None:
         ablation[name] = {k: r[k] for k in ("feature_w1_over_std_mean", "feature_w1_over_std_max",
                                             "feature_sliced_w1_over_std", "rgb_w1_over_std_max")} \
             | {"seam": r["parameters"].get("seam_after")}
-        print(f"{name:<24} W1/std feat mean {ablation[name]['feature_w1_over_std_mean']:.4f} "
+        print(f"{name:<32} W1/std feat mean {ablation[name]['feature_w1_over_std_mean']:.4f} "
               f"max {ablation[name]['feature_w1_over_std_max']:.4f} "
               f"sliced {ablation[name]['feature_sliced_w1_over_std']:.4f}  RGB max {ablation[name]['rgb_w1_over_std_max']:.4f}"
               f"  seam {ablation[name]['seam']}")
