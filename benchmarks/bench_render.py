@@ -3,7 +3,9 @@
 Evaluates the same 1920 x 1080 random queries (uv within 25 repeats, upper-hemisphere
 view and light) through
 
-(a) ``SynthesizedBTF.eval`` (dynbtf's CPU fast path: numba synthesis kernel + torch decoder), and
+(a) ``SynthesizedBTF.eval`` (dynbtf's CPU fast path: numba synthesis kernel + torch decoder), in
+    float32 (its default) and in bfloat16 (``precision="bf16"``), each after a warm-up call and the
+    fastest of the same number of calls as (b), and
 (b) ``DynBTFEvaluator.eval`` (what the ``dynbtf`` BSDF runs per shading point: the whole chain
     traced by Dr.Jit into one kernel), the fastest of several calls on fresh inputs (the first
     ones compile),
@@ -27,7 +29,7 @@ def main() -> None:
     parser.add_argument("model", nargs="?", default=None)
     parser.add_argument("--method", default="hist", choices=["tile", "hist", "hex"])
     parser.add_argument("--queries", type=int, default=1920 * 1080)
-    parser.add_argument("--repeats", type=int, default=5, help="timed plugin calls (fresh inputs each)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed calls of each path (plugin: fresh inputs each)")
     args = parser.parse_args()
 
     from dynbtf.render.drjit_ops import mi_module
@@ -55,10 +57,18 @@ def main() -> None:
         return (w / np.linalg.norm(w, axis=1, keepdims=True)).astype(np.float32)
 
     wv, wl = hemisphere(), hemisphere()
-    btf = SynthesizedBTF(model, args.method)
-    t0 = time.perf_counter()
-    ref = btf.eval(uv.astype(np.float64), wv, wl)
-    t_torch = time.perf_counter() - t0
+    uv64 = uv.astype(np.float64)
+    t_eval = {}
+    for precision in ("fp32", "bf16"):
+        synth = SynthesizedBTF(model, args.method, precision=precision)
+        synth.eval(uv64[:50_000], wv[:50_000], wl[:50_000])  # warm-up (numba, torch allocators)
+        best = float("inf")
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            synth.eval(uv64, wv, wl)
+            best = min(best, time.perf_counter() - t0)
+        t_eval[precision] = best
+    btf = SynthesizedBTF(model, args.method)  # float32: the reference for the difference
 
     ev = DynBTFEvaluator(model, args.method, 0)
     WV = mi.Vector3f(*(mi.Float(wv[:, k]) for k in range(3)))
@@ -80,11 +90,14 @@ def main() -> None:
     shifted[:, 0] += args.repeats - 1
     ref = btf.eval(shifted, wv, wl)
     print(f"{n} queries, method {args.method}, model {tuple(model.positional_plane().shape)}")
-    print(f"(a) SynthesizedBTF.eval   : {n / t_torch / 1e6:7.2f} M queries/s ({t_torch:.3f} s)")
-    print(f"(b) plugin Dr.Jit kernel  : {n / t_drjit / 1e6:7.2f} M queries/s ({t_drjit:.3f} s; "
+    for precision, t in t_eval.items():
+        print(f"{'(a) SynthesizedBTF.eval ' + precision:<28}: {n / t / 1e6:7.2f} M queries/s ({t:.3f} s; fastest of "
+              f"{args.repeats} after a warm-up)")
+    print(f"(b) plugin Dr.Jit kernel    : {n / t_drjit / 1e6:7.2f} M queries/s ({t_drjit:.3f} s; "
           f"fastest of {len(times)}; first call incl. compile {t_first:.1f} s)")
-    print(f"ratio (b)/(a)             : {t_torch / t_drjit:7.2f}x")
-    print(f"max |difference|          : {np.abs(got - ref).max():.2e} (values up to {np.abs(ref).max():.2f})")
+    for precision, t in t_eval.items():
+        print(f"{'ratio (b)/(a ' + precision + ')':<28}: {t / t_drjit:7.2f}x")
+    print(f"max |difference|            : {np.abs(got - ref).max():.2e} (values up to {np.abs(ref).max():.2f})")
 
 
 if __name__ == "__main__":
