@@ -246,6 +246,21 @@ struct Bf16 {
         std::memcpy(&x, row + 2 * p, 4);
         return _mm512_set1_epi32(x);
     }
+    // acc[r][v] += sum over pairs p < npairs of (rows[r * ld + 2p], rows[r * ld + 2p + 1]) . weight
+    // pair p of lane block v (w laid out as wf / wb above), one vdpbf16ps per (p, r, v)
+    template <int NV, int R>
+    static void accumulate_pairs(const uint16_t* rows, int ld, const uint16_t* w, int npairs, __m512 (&acc)[R][NV]) {
+        for (int p = 0; p < npairs; ++p) {
+            __m512i wv[NV];
+            for (int v = 0; v < NV; ++v)
+                wv[v] = _mm512_load_si512(reinterpret_cast<const void*>(w + (p * NV + v) * 32));
+            for (int r = 0; r < R; ++r) {
+                __m512i x = bcast_pair(rows + r * ld, p);
+                for (int v = 0; v < NV; ++v)
+                    acc[r][v] = _mm512_dpbf16_ps(acc[r][v], (__m512bh)x, (__m512bh)wv[v]);
+            }
+        }
+    }
 
     template <int NV>
     void hidden_forward(int k, const act_t* X, const float* bias, float slope, int S, act_t* Y, float* gain) const {
@@ -256,16 +271,7 @@ struct Bf16 {
             __m512 acc[R][NV];
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) acc[r][v] = _mm512_loadu_ps(bias + 16 * v);
-            for (int p = 0; p < H / 2; ++p) {
-                __m512i wv[NV];
-                for (int v = 0; v < NV; ++v)
-                    wv[v] = _mm512_load_si512(reinterpret_cast<const void*>(wf[k] + (p * NV + v) * 32));
-                for (int r = 0; r < R; ++r) {
-                    __m512i x = bcast_pair(X + (s + r) * H, p);
-                    for (int v = 0; v < NV; ++v)
-                        acc[r][v] = _mm512_dpbf16_ps(acc[r][v], (__m512bh)x, (__m512bh)wv[v]);
-                }
-            }
+            accumulate_pairs<NV, R>(X + s * H, H, wf[k], H / 2, acc);
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) {
                     __mmask16 pos = _mm512_cmp_ps_mask(acc[r][v], _mm512_setzero_ps(), _CMP_GT_OQ);
@@ -280,14 +286,10 @@ struct Bf16 {
     void output_forward(int k, const act_t* X, const float* bias16, int S, float* out) const {
         const int H = 16 * NV;
         for (int s = 0; s < S; s += 8) {
-            __m512 acc[8];
-            for (int r = 0; r < 8; ++r) acc[r] = _mm512_loadu_ps(bias16);
-            for (int p = 0; p < H / 2; ++p) {
-                __m512i wv = _mm512_load_si512(reinterpret_cast<const void*>(wf[k] + p * 32));
-                for (int r = 0; r < 8; ++r)
-                    acc[r] = _mm512_dpbf16_ps(acc[r], (__m512bh)bcast_pair(X + (s + r) * H, p), (__m512bh)wv);
-            }
-            for (int r = 0; r < 8; ++r) _mm512_storeu_ps(out + (s + r) * 16, acc[r]);
+            __m512 acc[8][1];
+            for (int r = 0; r < 8; ++r) acc[r][0] = _mm512_loadu_ps(bias16);
+            accumulate_pairs<1, 8>(X + s * H, H, wf[k], H / 2, acc);
+            for (int r = 0; r < 8; ++r) _mm512_storeu_ps(out + (s + r) * 16, acc[r][0]);
         }
     }
     // dX[s] = W^T dZ[s] from bf16 gradient rows (leading dimension ldz, zero beyond `out`)
@@ -300,16 +302,7 @@ struct Bf16 {
             __m512 acc[R][NV];
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) acc[r][v] = _mm512_setzero_ps();
-            for (int m = 0; m < pairs; ++m) {
-                __m512i wv[NV];
-                for (int v = 0; v < NV; ++v)
-                    wv[v] = _mm512_load_si512(reinterpret_cast<const void*>(wb[k] + (m * NV + v) * 32));
-                for (int r = 0; r < R; ++r) {
-                    __m512i g = bcast_pair(dZ + (s + r) * ldz, m);
-                    for (int v = 0; v < NV; ++v)
-                        acc[r][v] = _mm512_dpbf16_ps(acc[r][v], (__m512bh)g, (__m512bh)wv[v]);
-                }
-            }
+            accumulate_pairs<NV, R>(dZ + s * ldz, ldz, wb[k], pairs, acc);
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) _mm512_storeu_ps(dX + (s + r) * H + 16 * v, acc[r][v]);
         }
