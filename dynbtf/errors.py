@@ -7,7 +7,9 @@ expected. The command line prints these messages without a traceback.
 
 from __future__ import annotations
 
-__all__ = ["DynBTFError", "FormatError", "InputError"]
+import math
+
+__all__ = ["DynBTFError", "FormatError", "InputError", "require_positive_ints", "positive_number"]
 
 
 class DynBTFError(ValueError):
@@ -28,3 +30,37 @@ class FormatError(DynBTFError):
 
 class InputError(DynBTFError):
     """An argument has the wrong shape, type or value; the message names it."""
+
+
+def require_positive_ints(owner: str, **values) -> None:
+    """Check that every keyword value is an ``int`` >= 1.
+
+    Raises :class:`InputError` ``"{owner} {name}: expected a positive integer, got {value!r}"`` for
+    the first one that is not.
+
+    >>> require_positive_ints("TriplePlane", height=128, width=0)
+    Traceback (most recent call last):
+    ...
+    dynbtf.errors.InputError: TriplePlane width: expected a positive integer, got 0
+    """
+    for name, value in values.items():
+        if not isinstance(value, int) or value < 1:
+            raise InputError(f"{owner} {name}: expected a positive integer, got {value!r}")
+
+
+def positive_number(name: str, value, meaning: str = "number") -> float:
+    """``float(value)`` if it is a finite number > 0.
+
+    Otherwise raises :class:`InputError` ``"{name}: expected a positive, finite {meaning}, got ..."``
+    (``meaning`` says what the number is, e.g. ``"exponent"``).
+
+    >>> positive_number("gamma", "7", "exponent")
+    7.0
+    """
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected a positive, finite {meaning}, got {value!r}") from None
+    if not (math.isfinite(number) and number > 0):
+        raise InputError(f"{name}: expected a positive, finite {meaning}, got {value!r}")
+    return number

@@ -37,11 +37,12 @@ def atomic_path(path, suffix: str | None = None):
     Nothing half-written is ever left at ``path``: on an exception the temporary
     file is removed and ``path`` keeps its previous content (if any).
 
-    >>> import tempfile, os
-    >>> d = tempfile.mkdtemp()
-    >>> with atomic_path(os.path.join(d, "x.txt")) as tmp:
-    ...     _ = open(tmp, "w").write("hello")
-    >>> open(os.path.join(d, "x.txt")).read()
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> target = Path(tempfile.mkdtemp()) / "x.txt"
+    >>> with atomic_path(target) as tmp:
+    ...     _ = Path(tmp).write_text("hello")
+    >>> target.read_text()
     'hello'
     """
     path = Path(path)

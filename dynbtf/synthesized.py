@@ -55,7 +55,7 @@ import torch
 import torch.nn.functional as F
 
 from .conventions import check_directions, spherical_to_direction
-from .errors import InputError
+from .errors import InputError, positive_number
 from .synthesis.base import Synthesizer, check_uv, make_synthesizer
 
 __all__ = ["SynthesizedBTF", "PRECISIONS"]
@@ -162,12 +162,7 @@ class SynthesizedBTF:
             import copy
 
             model = copy.deepcopy(model).to(device)  # the caller's model stays on its device
-        try:
-            scale = float(scale)
-        except (TypeError, ValueError):
-            raise InputError(f"scale: expected a positive number of exemplar repeats per uv unit, got {scale!r}") from None
-        if not (np.isfinite(scale) and scale > 0):
-            raise InputError(f"scale: expected a positive, finite number of exemplar repeats per uv unit, got {scale}")
+        scale = positive_number("scale", scale, "number of exemplar repeats per uv unit")
         if precision not in PRECISIONS:
             raise InputError(f"precision: expected one of {sorted(PRECISIONS)}, got {precision!r}")
         if int(chunk_size) < 1:

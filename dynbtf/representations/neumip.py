@@ -34,7 +34,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..errors import InputError
+from ..errors import InputError, require_positive_ints
 from ..training.fitters import register_fitter
 from .base import Representation, register
 from .triple_plane import Decoder
@@ -73,9 +73,7 @@ class NeuMIP(Representation):
     def __init__(self, height: int, width: int, channels: int = 8, hidden: int = 32, layers: int = 4,
                  negative_slope: float = 0.01, seed: int = 0) -> None:
         super().__init__()
-        for name, value in (("height", height), ("width", width), ("channels", channels), ("hidden", hidden)):
-            if not isinstance(value, int) or value < 1:
-                raise InputError(f"NeuMIP {name}: expected a positive integer, got {value!r}")
+        require_positive_ints("NeuMIP", height=height, width=width, channels=channels, hidden=hidden)
         self._config = dict(height=height, width=width, channels=channels, hidden=hidden, layers=layers,
                             negative_slope=negative_slope, seed=seed)
         generator = torch.Generator().manual_seed(int(seed))

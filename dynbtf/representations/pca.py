@@ -46,7 +46,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from ..data.base import BTFSource
-from ..errors import InputError
+from ..errors import InputError, require_positive_ints
 from .base import Representation, register
 from ..training.fitters import register_fitter
 from .measured_directions import check_pairs, nearest_direction_weights
@@ -80,10 +80,8 @@ class PCA(Representation):
     def __init__(self, height: int, width: int, n_views: int, n_lights: int, components: int = 5,
                  centered: bool = True, neighbours: int = 3) -> None:
         super().__init__()
-        for name, value in (("height", height), ("width", width), ("n_views", n_views), ("n_lights", n_lights),
-                            ("components", components), ("neighbours", neighbours)):
-            if not isinstance(value, int) or value < 1:
-                raise InputError(f"PCA {name}: expected a positive integer, got {value!r}")
+        require_positive_ints("PCA", height=height, width=width, n_views=n_views, n_lights=n_lights,
+                              components=components, neighbours=neighbours)
         self._config = dict(height=height, width=width, n_views=n_views, n_lights=n_lights,
                             components=components, centered=bool(centered), neighbours=neighbours)
         frozen = dict(requires_grad=False)

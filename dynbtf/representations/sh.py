@@ -38,7 +38,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from ..data.base import BTFSource
-from ..errors import InputError
+from ..errors import InputError, require_positive_ints
 from .base import Representation, register
 from ..training.fitters import register_fitter
 from .measured_directions import check_pairs, nearest_direction_weights
@@ -108,9 +108,7 @@ class SphericalHarmonics(Representation):
 
     def __init__(self, height: int, width: int, n_views: int, bands: int = 3, neighbours: int = 3) -> None:
         super().__init__()
-        for name, value in (("height", height), ("width", width), ("n_views", n_views), ("neighbours", neighbours)):
-            if not isinstance(value, int) or value < 1:
-                raise InputError(f"SphericalHarmonics {name}: expected a positive integer, got {value!r}")
+        require_positive_ints("SphericalHarmonics", height=height, width=width, n_views=n_views, neighbours=neighbours)
         if bands not in (1, 2, 3):
             raise InputError(f"SphericalHarmonics bands: expected 1, 2 or 3, got {bands!r}")
         self._config = dict(height=height, width=width, n_views=n_views, bands=bands, neighbours=neighbours)

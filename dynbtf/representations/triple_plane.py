@@ -43,7 +43,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..conventions import angular_plane_coords, half_diff_from_view_light
-from ..errors import InputError
+from ..errors import InputError, require_positive_ints
 from ..texture import fetch_angular
 from ..training.fused_mlp import split_mlp_l1_loss
 from .base import Representation, register
@@ -179,11 +179,9 @@ class TriplePlane(Representation):
                  angular_channels: int = 8, hidden: int = 32, layers: int = 4, negative_slope: float = 0.01,
                  seed: int = 0) -> None:
         super().__init__()
-        for name, value in (("height", height), ("width", width), ("positional_channels", positional_channels),
-                            ("angular_resolution", angular_resolution), ("angular_channels", angular_channels),
-                            ("hidden", hidden)):
-            if not isinstance(value, int) or value < 1:
-                raise InputError(f"TriplePlane {name}: expected a positive integer, got {value!r}")
+        require_positive_ints("TriplePlane", height=height, width=width, positional_channels=positional_channels,
+                              angular_resolution=angular_resolution, angular_channels=angular_channels,
+                              hidden=hidden)
         self._config = dict(height=height, width=width, positional_channels=positional_channels,
                             angular_resolution=angular_resolution, angular_channels=angular_channels,
                             hidden=hidden, layers=layers, negative_slope=negative_slope, seed=seed)

@@ -36,12 +36,11 @@ drift: the blending exponent").
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import torch
 
-from ..errors import InputError
+from ..errors import InputError, positive_number
 from .blending import LatticeBlending, LatticePlane
 from .base import register_synthesizer
 from .histogram import Decorrelation, GaussianTransform, blend_weights, variance_preserving_blend
@@ -93,12 +92,7 @@ class HistogramBlending(LatticeBlending):
     def __init__(self, exemplar, seed: int = 0, *, gamma: float = DEFAULT_GAMMA, decorrelate: bool = True,
                  lut_size: int = 4096, tileable="auto", band: int | None = None, fast: bool | None = None,
                  prepared: LatticePlane | None = None) -> None:
-        try:
-            gamma = float(gamma)
-        except (TypeError, ValueError):
-            raise InputError(f"gamma: expected a positive exponent, got {gamma!r}") from None
-        if not (math.isfinite(gamma) and gamma > 0):
-            raise InputError(f"gamma: expected a positive, finite exponent, got {gamma!r}")
+        gamma = positive_number("gamma", gamma, "exponent")
         if int(lut_size) < 2:
             raise InputError(f"lut_size: expected at least 2 entries, got {lut_size!r}")
         self.gamma = float(gamma)
