@@ -249,7 +249,7 @@ struct Bf16 {
     // acc[r][v] += sum over pairs p < npairs of (rows[r * ld + 2p], rows[r * ld + 2p + 1]) . weight
     // pair p of lane block v (w laid out as wf / wb above), one vdpbf16ps per (p, r, v)
     template <int NV, int R>
-    static void accumulate_pairs(const uint16_t* rows, int ld, const uint16_t* w, int npairs, __m512 (&acc)[R][NV]) {
+    __attribute__((always_inline)) static inline void accumulate_pairs(const uint16_t* rows, int ld, const uint16_t* w, int npairs, __m512 (&acc)[R][NV]) {
         for (int p = 0; p < npairs; ++p) {
             __m512i wv[NV];
             for (int v = 0; v < NV; ++v)
