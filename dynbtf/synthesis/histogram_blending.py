@@ -95,7 +95,7 @@ class HistogramBlending(LatticeBlending):
         gamma = positive_number("gamma", gamma, "exponent")
         if int(lut_size) < 2:
             raise InputError(f"lut_size: expected at least 2 entries, got {lut_size!r}")
-        self.gamma = float(gamma)
+        self.gamma = gamma
         self.decorrelate = bool(decorrelate)
         self.lut_size = int(lut_size)
         super().__init__(exemplar, seed, tileable=tileable, band=band, fast=fast, prepared=prepared)
