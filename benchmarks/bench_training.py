@@ -201,7 +201,7 @@ def main() -> None:
     parser.add_argument("--eval-every", type=float, default=5.0, help="seconds of training between PSNR measurements")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--groups", type=int, default=64, help="texel groups of the fast variant")
-    parser.add_argument("--lr-scale", type=float, default=3.0, help="learning-rate multiplier of the fast variant")
+    parser.add_argument("--lr-scale", type=float, default=6.0, help="learning-rate multiplier of the fast variant")
     args = parser.parse_args()
 
     source = open_btf(args.btf)

@@ -9,7 +9,7 @@ Two measurements behind docs/triple_plane.md ("Stone: what limits it"):
     nearest lights. If the oracle reaches a PSNR, the BTF's angular sampling supports it.
 
 ``python docs/measure_stone_limits.py views SPEC MAX_THETA OUTPUT``
-    Fits a Triple Plane (fast recipe: lr x3, up to 64 texel groups, as many optimizer steps as a
+    Fits a Triple Plane (lr x3 as in the relief fits of docs/triple_plane.md, up to 64 texel groups, as many optimizer steps as a
     30-epoch fit of the whole BTF, the same total learning-rate decay) to the sub-BTF of the views
     with theta <= MAX_THETA degrees (all lights), and scores it on its held-out pairs (10%) and on
     64 training pairs. Training PSNR against the range of views shows how much of the model's

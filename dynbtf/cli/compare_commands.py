@@ -30,7 +30,7 @@ def compare(
     lr_scale: float = typer.Option(1.0, "--lr-scale", help="Multiplier of the gradient-trained fits' learning "
                                    "rates (as in `dynbtf fit`; 1: the paper's)."),
     texel_groups: int = typer.Option(1, "--texel-groups", help="Texel groups per step of the gradient-trained fits "
-                                     "(as in `dynbtf fit`; 64 with --lr-scale 3 is the fast recipe; 1: the "
+                                     "(as in `dynbtf fit`; 64 with --lr-scale 6 is the fast Triple Plane recipe; docs/baselines.md used 3; 1: the "
                                      "paper's whole images)."),
     precision: str = typer.Option("auto", help="Arithmetic of the gradient-trained fits' training kernel: fp32, "
                                   "bf16 or auto (as in `dynbtf fit`)."),
