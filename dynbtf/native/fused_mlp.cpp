@@ -107,6 +107,20 @@ struct Fp32 {
         return src;
     }
 
+    // acc[r][v] += sum over i < n of rows[r * ld + i] * w[i * 16 NV + 16 v .. + 16] (w row-major, 16 NV wide)
+    template <int NV, int R>
+    __attribute__((always_inline)) static inline void accumulate_rows(const float* rows, int ld, const float* w, int n,
+                                                                      v16 (&acc)[R][NV]) {
+        for (int i = 0; i < n; ++i) {
+            v16 wv[NV];
+            for (int v = 0; v < NV; ++v) wv[v] = load16(w + i * 16 * NV + 16 * v);
+            for (int r = 0; r < R; ++r) {
+                v16 x = splat(rows[r * ld + i]);
+                for (int v = 0; v < NV; ++v) acc[r][v] += x * wv[v];
+            }
+        }
+    }
+
     // Y[s] = lrelu(W X[s] + c) for S samples (S a multiple of 8); gain[s] = lrelu'(pre-activation) (1 or slope)
     template <int NV>
     void hidden_forward(int k, const act_t* X, const float* bias, float slope, int S, act_t* Y, float* gain) const {
@@ -116,14 +130,7 @@ struct Fp32 {
             v16 acc[R][NV];
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) acc[r][v] = load16(bias + 16 * v);
-            for (int i = 0; i < H; ++i) {
-                v16 wv[NV];
-                for (int v = 0; v < NV; ++v) wv[v] = load16(wt[k] + i * H + 16 * v);
-                for (int r = 0; r < R; ++r) {
-                    v16 x = splat(X[(s + r) * H + i]);
-                    for (int v = 0; v < NV; ++v) acc[r][v] += x * wv[v];
-                }
-            }
+            accumulate_rows<NV, R>(X + s * H, H, wt[k], H, acc);
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) {
                     store16(Y + (s + r) * H + 16 * v, lrelu16(acc[r][v], slope));
@@ -136,13 +143,10 @@ struct Fp32 {
     void output_forward(int k, const act_t* X, const float* bias16, int S, float* out) const {
         const int H = 16 * NV;
         for (int s = 0; s < S; s += 8) {
-            v16 acc[8];
-            for (int r = 0; r < 8; ++r) acc[r] = load16(bias16);
-            for (int i = 0; i < H; ++i) {
-                v16 wv = load16(wt[k] + i * 16);
-                for (int r = 0; r < 8; ++r) acc[r] += splat(X[(s + r) * H + i]) * wv;
-            }
-            for (int r = 0; r < 8; ++r) store16(out + (s + r) * 16, acc[r]);
+            v16 acc[8][1];
+            for (int r = 0; r < 8; ++r) acc[r][0] = load16(bias16);
+            accumulate_rows<1, 8>(X + s * H, H, wt[k], H, acc);
+            for (int r = 0; r < 8; ++r) store16(out + (s + r) * 16, acc[r][0]);
         }
     }
     // dX[s] = (W^T dZ[s]) for S samples; dZ rows have `out` (16-padded for the output layer) fp32 entries
@@ -154,14 +158,7 @@ struct Fp32 {
             v16 acc[R][NV];
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) acc[r][v] = v16{};
-            for (int o = 0; o < out; ++o) {
-                v16 wv[NV];
-                for (int v = 0; v < NV; ++v) wv[v] = load16(w[k] + o * H + 16 * v);
-                for (int r = 0; r < R; ++r) {
-                    v16 g = splat(dZ[(s + r) * ldz + o]);
-                    for (int v = 0; v < NV; ++v) acc[r][v] += g * wv[v];
-                }
-            }
+            accumulate_rows<NV, R>(dZ + s * ldz, ldz, w[k], out, acc);
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) store16(dX + (s + r) * H + 16 * v, acc[r][v]);
         }
