@@ -119,17 +119,25 @@ def spherical_to_direction(theta_deg, phi_deg):
     return _stack([st * xp.cos(p), st * xp.sin(p), xp.cos(t)], theta_deg)
 
 
+#: ``|(x, y)|`` of a unit vector below which it is taken to be at a pole (phi = 0): 1e-5 (~6e-4 degrees)
+#: is well above float32 rounding noise of a rotated vector.
+POLE_RADIUS = 1e-5
+
+
 def direction_to_spherical(w):
     """``(theta, phi)`` in degrees of unit vector(s) ``w`` of shape ``(..., 3)``.
 
-    ``theta = acos(z)`` in ``[0, 180]``; ``phi = atan2(y, x) mod 360`` in ``[0, 360)``
-    (``phi = 0`` at the poles).
+    ``theta = acos(z)`` in ``[0, 180]``; ``phi = atan2(y, x) mod 360`` in ``[0, 360)``,
+    and ``phi = 0`` within :data:`POLE_RADIUS` of the poles (where ``x, y`` are rounding
+    noise, e.g. the Rusinkiewicz difference vector of a view equal to the light:
+    every implementation then agrees on phi).
     """
     w = _asarray(w)
     xp = _xp(w)
     z = xp.clip(w[..., 2], -1.0, 1.0)
     theta = xp.arccos(z) * (180.0 / math.pi)
-    phi = xp.arctan2(w[..., 1], w[..., 0]) * (180.0 / math.pi)
+    pole = w[..., 0] * w[..., 0] + w[..., 1] * w[..., 1] < POLE_RADIUS ** 2
+    phi = xp.where(pole, 0.0 * w[..., 0], xp.arctan2(w[..., 1], w[..., 0]) * (180.0 / math.pi))
     phi = xp.remainder(phi, 360.0)
     # remainder can return exactly 360 for tiny negative inputs in float32
     phi = xp.where(phi >= 360.0, phi - 360.0, phi)

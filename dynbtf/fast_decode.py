@@ -28,6 +28,8 @@ import numba
 import numpy as np
 import torch
 
+from .conventions import POLE_RADIUS
+
 __all__ = ["fold_angular_planes", "first_layer_preactivation", "all_unit_vectors"]
 
 _RAD_TO_TURN_S = 180.0 / math.pi / 90.0  # radians -> theta / 90deg
@@ -98,9 +100,10 @@ def _plane_taps(x, y, z, rs, rt, k):
     wrapped to [0, 1). Rows clamp, columns wrap. Returns the flat start index ``(row * rt + col) * k``
     of the four texels and their weights (float64).
     """
-    s = _atan2(math.sqrt(x * x + y * y), z) * _RAD_TO_TURN_S
+    r = math.sqrt(x * x + y * y)
+    s = _atan2(r, z) * _RAD_TO_TURN_S
     s = min(max(s, 0.0), 1.0)
-    t = _atan2(y, x) * _RAD_TO_TURN_T
+    t = 0.0 if r < POLE_RADIUS else _atan2(y, x) * _RAD_TO_TURN_T  # as direction_to_spherical
     t = t - math.floor(t)
     t = t - 1.0 if t >= 1.0 else t
     row = min(max(s * rs - 0.5, 0.0), rs - 1.0)

@@ -18,6 +18,12 @@ Units and conventions
 * ``w_view, w_light`` -- unit vectors ``(..., 3)`` in the local frame
   (:mod:`dynbtf.conventions`). Directions **below the horizon** (``z < 0``)
   evaluate to **zero** (no reflection from under the surface), not an error.
+* Relief -- a representation with a height field (kind ``triple-parallax``) is
+  answered at the surface point visible through ``uv``: the camera ray is marched
+  through the **synthesized** height channel
+  (:meth:`~dynbtf.representations.base.Representation.visible_uv`), which costs
+  up to ``relief depth x tan(theta_view) / step`` extra synthesized fetches per query
+  (none at normal view).
 * Output -- linear RGB ``(..., 3)`` float32, excluding ``cos(theta_light)``
   (``pi f_r``); NumPy in, NumPy out; torch in, torch out.
 
@@ -195,6 +201,10 @@ class SynthesizedBTF:
                              f"plane has {plane.shape[-1]}")
         self.seed = self.synthesizer.seed
         self._fold = self._fold_first_layer()
+        from .representations.base import Representation
+
+        # representations with relief answer at the visible point, marched through the synthesized height
+        self._relief = type(model).visible_uv is not Representation.visible_uv
 
     # ------------------------------------------------------------ set-up
     def _decoded_luminance(self, plane: torch.Tensor) -> torch.Tensor:
@@ -267,10 +277,13 @@ class SynthesizedBTF:
 
     def _decode_chunk(self, uv: torch.Tensor, wv: torch.Tensor, wl: torch.Tensor) -> torch.Tensor:
         fold = self._fold
+        points = uv * self.scale  # exemplar repeats
+        if self._relief:  # fetch at the visible point of the synthesized height field
+            points = self.model.visible_uv(points, wv, self.synthesizer)
         if fold is None:
-            features = self.synthesizer(uv * self.scale)
+            features = self.synthesizer(points)
             return self.model.decode(features, wv, wl).float()
-        latent = self.synthesizer.latent(uv * self.scale).to(self.device)
+        latent = self.synthesizer.latent(points).to(self.device)
         if fold["planes"] is not None:  # fused CPU kernel: angular planes pre-multiplied by layer 1, LeakyReLU
             from .fast_decode import first_layer_preactivation
 

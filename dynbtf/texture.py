@@ -22,7 +22,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["fetch_wrap", "fetch_angular", "wrap_uv"]
+__all__ = ["fetch_wrap", "fetch_wrap_stack", "fetch_angular", "wrap_uv"]
 
 
 def wrap_uv(uv: torch.Tensor) -> torch.Tensor:
@@ -54,14 +54,32 @@ def fetch_wrap(plane: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
             [0.5000],
             [2.0000]])
     """
-    h, w, c = plane.shape
     batch = uv.shape[:-1]
-    frac = wrap_uv(uv.reshape(-1, 2))
-    x = (frac[:, 0] * w + 0.5).to(plane.dtype)  # padded coordinate: texel j centre at j + 1
-    y = (frac[:, 1] * h + 0.5).to(plane.dtype)
-    chw = plane.permute(2, 0, 1)
-    padded = F.pad(chw[None], (1, 1, 1, 1), mode="circular")[0]
-    return _grid_sample_hwc(padded, x, y).reshape(*batch, c)
+    return fetch_wrap_stack(plane[None], uv.reshape(1, -1, 2))[0].reshape(*batch, plane.shape[-1])
+
+
+def fetch_wrap_stack(planes: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """:func:`fetch_wrap` of ``B`` planes ``(B, H, W, C)`` at their own points ``uv (B, N, 2)`` -> ``(B, N, C)``.
+
+    One ``grid_sample`` call for the whole stack (e.g. all views' images of a BTF).
+
+    Examples
+    --------
+    >>> import torch
+    >>> planes = torch.arange(8.0).view(2, 2, 2, 1)       # [[0, 1], [2, 3]] and [[4, 5], [6, 7]]
+    >>> fetch_wrap_stack(planes, torch.tensor([[[0.5, 0.25]], [[0.25, 0.5]]]))
+    tensor([[[0.5000]],
+    <BLANKLINE>
+            [[5.0000]]])
+    """
+    b, h, w, c = planes.shape
+    frac = wrap_uv(uv)
+    x = (frac[..., 0] * w + 0.5).to(planes.dtype)  # padded coordinate: texel j centre at j + 1
+    y = (frac[..., 1] * h + 0.5).to(planes.dtype)
+    padded = F.pad(planes.permute(0, 3, 1, 2), (1, 1, 1, 1), mode="circular")  # (B, C, H + 2, W + 2)
+    grid = torch.stack([x * (2.0 / (w + 1)) - 1.0, y * (2.0 / (h + 1)) - 1.0], dim=-1)[:, None]  # (B, 1, N, 2)
+    out = F.grid_sample(padded, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return out[:, :, 0, :].transpose(1, 2)  # (B, N, C)
 
 
 def fetch_angular(plane: torch.Tensor, st: torch.Tensor) -> torch.Tensor:

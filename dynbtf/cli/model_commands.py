@@ -24,7 +24,9 @@ def fit(
     output: Path = typer.Option(..., "-o", "--output", help="Model file to write (.dbtfm). Its checkpoint "
                                 "<output>.ckpt makes a re-run continue where an interrupted one stopped."),
     repr: str = typer.Option("triple", "--repr", help="Representation kind: triple (the paper's Triple Plane), "
-                             "or another registered kind (neumip, pca, sh)."),
+                             "triple-parallax (Triple Plane fetched at the visible point of a height field "
+                             "estimated by stereo: materials with relief), or another registered kind "
+                             "(neumip, pca, sh)."),
     epochs: int = typer.Option(12, help="Passes over the training (view, light) pairs (the paper: 50)."),
     max_minutes: Optional[float] = typer.Option(None, "--max-minutes", help="Stop after this many minutes of "
                                                 "training (checkpointed; run again to continue). Default: no limit."),

@@ -107,7 +107,11 @@ def angular_coords(w):
     """``(s, t)`` angular-plane coordinates of unit vectors ``w``: ``theta/90deg`` clamped, ``phi/360deg`` wrapped."""
     dr = _dr()
     theta = dr.acos(dr.clip(w.z, -1.0, 1.0)) * (180.0 / math.pi)
-    phi = dr.atan2(w.y, w.x) * (180.0 / math.pi)
+    from ..conventions import POLE_RADIUS
+
+    # phi = 0 at the poles, as dynbtf.conventions.direction_to_spherical
+    pole = w.x * w.x + w.y * w.y < POLE_RADIUS ** 2
+    phi = dr.select(pole, 0.0, dr.atan2(w.y, w.x) * (180.0 / math.pi))
     phi = dr.select(phi < 0.0, phi + 360.0, phi)
     phi = dr.select(phi >= 360.0, phi - 360.0, phi)
     return dr.clip(theta / 90.0, 0.0, 1.0), phi / 360.0

@@ -1,3 +1,3 @@
 """Import the built-in representation kinds so that they register themselves."""
 
-from . import neumip, pca, sh, triple_plane  # noqa: F401
+from . import neumip, parallax, pca, sh, triple_plane  # noqa: F401

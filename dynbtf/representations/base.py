@@ -59,6 +59,10 @@ class Representation(nn.Module, abc.ABC):
 
     kind: ClassVar[str] = "abstract"
 
+    #: True when the training loop must give every texel group images of one view
+    #: (representations whose positional fetch depends on the view, e.g. parallax).
+    view_coherent_batches: ClassVar[bool] = False
+
     # ------------------------------------------------------------ to implement
     @abc.abstractmethod
     def positional_plane(self) -> torch.Tensor:
@@ -85,10 +89,20 @@ class Representation(nn.Module, abc.ABC):
         """Bilinear periodic fetch of the positional plane at ``uv (..., 2)`` -> ``(..., C)``."""
         return fetch_wrap(self.positional_plane(), uv)
 
+    def visible_uv(self, uv: torch.Tensor, w_view: torch.Tensor, fetch=None) -> torch.Tensor:
+        """Where the positional plane is fetched for a query at ``uv (..., 2)`` seen from ``w_view (..., 3)``.
+
+        The identity here: the paper's representations fetch at ``uv`` whatever the
+        view. A representation with relief (:class:`~dynbtf.representations.parallax.ParallaxTriplePlane`)
+        returns the visible surface point, found through ``fetch(points (M, 2)) -> (M, C)``
+        (default: its own plane; a synthesized BTF passes the synthesized fetch).
+        """
+        return uv
+
     def forward(self, uv: torch.Tensor, w_view: torch.Tensor, w_light: torch.Tensor) -> torch.Tensor:
         """BTF value ``(..., 3)`` at ``uv (..., 2)`` for directions ``(..., 3)``."""
         check_query_shapes(uv, w_view, w_light)
-        return self.decode(self.positional_features(uv), w_view, w_light)
+        return self.decode(self.positional_features(self.visible_uv(uv, w_view)), w_view, w_light)
 
     def n_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())

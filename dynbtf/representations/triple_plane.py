@@ -175,6 +175,9 @@ class TriplePlane(Representation):
     (torch.Size([8, 8, 16]), 42764)
     """
 
+    #: Positional-plane channels beyond ``f_U`` that the decoder also reads (subclasses: e.g. a height).
+    extra_positional_channels: int = 0
+
     def __init__(self, height: int, width: int, positional_channels: int = 16, angular_resolution: int = 20,
                  angular_channels: int = 8, hidden: int = 32, layers: int = 4, negative_slope: float = 0.01,
                  seed: int = 0) -> None:
@@ -193,7 +196,8 @@ class TriplePlane(Representation):
         self.f_u = he_plane(height, width, positional_channels)
         self.f_h = he_plane(angular_resolution, angular_resolution, angular_channels)
         self.f_d = he_plane(angular_resolution, angular_resolution, angular_channels)
-        self.decoder = Decoder(positional_channels, 2 * angular_channels, hidden, layers, negative_slope)
+        self.decoder = Decoder(positional_channels + self.extra_positional_channels, 2 * angular_channels, hidden,
+                               layers, negative_slope)
         self.decoder.reset_parameters(generator)
 
     # ------------------------------------------------------------ Representation API

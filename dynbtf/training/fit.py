@@ -443,6 +443,24 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
             "model": rep.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch, "step": step,
             "elapsed_seconds": elapsed, "history": history, "held_out_pairs": torch.from_numpy(held_out)})
 
+    view_coherent = bool(getattr(rep, "view_coherent_batches", False))
+    if view_coherent:
+        # every group's B pairs share one view: per epoch (and pass k), each view's training pairs in a
+        # random order, cut into blocks of B (the last one wrapped round to B), blocks in a random order
+        views_of_pairs = [np.flatnonzero(train_pairs[:, 0] == v) for v in np.unique(train_pairs[:, 0])]
+        steps_per_epoch = sum(math.ceil(len(p) / b) for p in views_of_pairs)
+
+    @functools.lru_cache(maxsize=2)
+    def view_blocks(e: int) -> np.ndarray:
+        """Pair indices ``(G * blocks, B)``: ``G`` concatenated block orders of epoch ``e``, one view per block."""
+        passes = []
+        for k in range(n_groups):
+            rng = np.random.default_rng([config.seed, 1, e] + ([k] if k else []))
+            blocks = np.concatenate([np.resize(p[rng.permutation(len(p))], (math.ceil(len(p) / b), b))
+                                     for p in views_of_pairs])
+            passes.append(blocks[rng.permutation(len(blocks))])
+        return np.concatenate(passes)
+
     @functools.lru_cache(maxsize=2)
     def epoch_order(e: int) -> np.ndarray:
         """Pair order of epoch ``e`` with texel groups: ``G`` concatenated permutations."""
@@ -453,8 +471,11 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
         """Pairs ``(G * B', 2)`` (group-major), texels (group-major, sorted per group) or None, and
         the target ``(B', N, 3)``."""
         if n_groups == 1:
-            order = np.random.default_rng([config.seed, 1, e]).permutation(len(train_pairs))
-            pairs = train_pairs[order[s * b:(s + 1) * b]]
+            if view_coherent:
+                pairs = train_pairs[view_blocks(e)[s]]
+            else:
+                order = np.random.default_rng([config.seed, 1, e]).permutation(len(train_pairs))
+                pairs = train_pairs[order[s * b:(s + 1) * b]]
             texels = None
             if texels_per_image < n_texels:
                 texels = np.sort(np.random.default_rng([config.seed, 2, e, s]).choice(n_texels, texels_per_image,
@@ -462,9 +483,12 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
             return pairs, texels, store.get(pairs, texels)
         # G passes over the pairs per epoch, B pairs per group, wrapped to whole steps; group g takes the
         # g-th block of consecutive texels after a random start (contiguous reads: cheap to gather)
-        order = epoch_order(e)
-        picks = np.arange(s * b * n_groups, (s + 1) * b * n_groups) % len(order)
-        pairs = train_pairs[order[picks]]
+        if view_coherent:
+            pairs = train_pairs[view_blocks(e)[s * n_groups:(s + 1) * n_groups].reshape(-1)]
+        else:
+            order = epoch_order(e)
+            picks = np.arange(s * b * n_groups, (s + 1) * b * n_groups) % len(order)
+            pairs = train_pairs[order[picks]]
         n = texels_per_step // n_groups
         starts = (int(np.random.default_rng([config.seed, 2, e, s]).integers(n_texels))
                   + n * np.arange(n_groups)) % n_texels

@@ -20,7 +20,7 @@ from ..data.base import BTFSource
 from ..errors import InputError
 from .fit import FitResult, TrainConfig, fit
 
-__all__ = ["FITTERS", "register_fitter", "get_fitter", "fit_triple_plane"]
+__all__ = ["FITTERS", "register_fitter", "get_fitter", "fit_triple_plane", "fit_parallax_triple_plane"]
 
 #: kind -> fitter
 FITTERS: dict[str, Callable[..., FitResult]] = {}
@@ -60,3 +60,28 @@ def fit_triple_plane(source: BTFSource, output, config: TrainConfig | None = Non
     config = config or TrainConfig()
     rep = TriplePlane(source.height, source.width, seed=config.seed, **options)
     return fit(rep, source, config, output, progress=progress)
+
+
+@register_fitter("triple-parallax")
+def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | None = None, *,
+                              progress: bool = True, **options: Any) -> FitResult:
+    """Fit the Triple Plane with parallax: estimate the height field by stereo, then train as the paper.
+
+    ``options`` are :class:`~dynbtf.representations.parallax.ParallaxTriplePlane`
+    constructor arguments, plus ``stereo`` (a dict of
+    :func:`~dynbtf.training.stereo_height.stereo_height` options). The height is
+    estimated from the BTF's images before training and kept fixed; a resumed run
+    takes it from its checkpoint.
+    """
+    from ..representations.parallax import ParallaxTriplePlane
+    from .fit import checkpoint_path
+    from .stereo_height import stereo_height
+
+    config = config or TrainConfig()
+    stereo_options = dict(options.pop("stereo", None) or {})
+    rep = ParallaxTriplePlane(source.height, source.width, seed=config.seed, **options)
+    if not checkpoint_path(output).exists():  # a resumed run reads the height from the checkpoint
+        rep.set_height(stereo_height(source, progress=progress, **stereo_options))
+    provenance = {"height_field": {"method": "plane-sweep stereo (dynbtf.training.stereo_height)",
+                                   "options": stereo_options}}
+    return fit(rep, source, config, output, progress=progress, extra_provenance=provenance)

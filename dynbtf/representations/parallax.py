@@ -1,0 +1,301 @@
+"""Parallax: answering a query at the surface point the viewer actually sees.
+
+A measured BTF is rectified to a **reference plane** ``z = 0``: the pixel at ``uv``
+of the image seen from ``w_view`` shows whatever surface point the camera ray
+through ``(uv, 0)`` meets first. On a material with relief that point is *not*
+above ``uv``: the ray through ``uv`` meets height ``z`` at
+
+    uv + z * (w_x, w_y) / w_z                      (uv units, z in uv units)
+
+so a bump seen at grazing angles slides towards the viewer and hides what lies
+behind it (parallax and masking). A positional plane fetched at ``uv`` for every
+view cannot represent that: each texel would have to learn every view's
+displacement (the paper's Triple Plane loses ~10 dB on a rough stone for this
+reason, measured in ``docs/triple_plane.md``).
+
+:class:`ParallaxTriplePlane` (kind ``"triple-parallax"``) adds a **height field** to
+the Triple Plane, stored as one more channel of the positional plane (so
+synthesis synthesizes it with the features), and fetches the features at the
+visible point found by :func:`march_visible_uv`. Given the height, everything
+else is the paper's Triple Plane; the height is estimated from the BTF's own
+images before training (:func:`dynbtf.training.stereo_height.stereo_height`) and
+kept fixed.
+
+Conventions: heights are in uv units (one exemplar repeat = 1), positive
+towards the viewer side (``+z``); the reference plane is ``z = 0``. ``uv`` may be
+float64 and any real value (the height is periodic).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable
+
+import torch
+
+from ..errors import InputError
+from ..texture import fetch_wrap
+from .base import register
+from .triple_plane import TriplePlane
+
+__all__ = ["march_visible_uv", "ParallaxTriplePlane"]
+
+#: Default horizontal distance between two samples of a march, in texels of the height field.
+MARCH_STEP_TEXELS = 0.5
+
+
+def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor, height_at: Callable[[torch.Tensor], torch.Tensor], *,
+                     h_min: float, h_max: float, step: float, aspect: float = 1.0) -> torch.Tensor:
+    """Where the camera rays through the reference-plane points ``uv`` first meet a height field.
+
+    Parameters
+    ----------
+    uv : ``(N, 2)`` float64
+        Reference-plane points, uv units (any real values).
+    w_view : ``(N, 3)``
+        Unit directions towards the viewer, ``z > 0``.
+    height_at : callable
+        ``height_at(points (M, 2) float64) -> (M,)`` the height field (uv units) at
+        any points; called about ``reach / step`` times on shrinking subsets.
+    h_min, h_max : float
+        Bounds of the field (a point where the field exceeds ``h_max`` is hit at ``h_max``).
+    step : float
+        Largest horizontal distance (uv units) between two samples of a ray.
+    aspect : float
+        ``W / H`` of the plane: heights are in u units, so a v displacement is
+        scaled by it (1 for square planes).
+
+    Returns
+    -------
+    ``(N, 2)`` float64: the visible points (not wrapped).
+
+    Notes
+    -----
+    Each ray ``uv + z s`` (``s = (w_x, w_y) / w_z``) is sampled from ``z = h_max``
+    down to ``h_min`` in ``ceil(reach / step)`` equal steps (``reach`` = the
+    ray's horizontal length over ``[h_min, h_max]``); the first sample at or below
+    the surface and the one before it bracket the intersection, placed by linear
+    interpolation of ``height - z``. A vertical ray therefore lands exactly on
+    ``height(uv)``. Features narrower than ``step`` can be missed, as in any
+    height-field ray march.
+
+    Examples
+    --------
+    A flat field at height 0.1 seen at 45 degrees along +x: the visible point is 0.1 further along x.
+
+    >>> import torch
+    >>> w = torch.tensor([[math.sqrt(0.5), 0.0, math.sqrt(0.5)]], dtype=torch.float64)
+    >>> march_visible_uv(torch.tensor([[0.2, 0.3]], dtype=torch.float64), w,
+    ...                  lambda p: torch.full(p.shape[:1], 0.1, dtype=torch.float64), h_min=0.0, h_max=0.2, step=0.01)
+    tensor([[0.3000, 0.3000]], dtype=torch.float64)
+    """
+    uv = uv.to(torch.float64)
+    w = w_view.to(device=uv.device, dtype=torch.float64)
+    if uv.ndim != 2 or uv.shape[-1] != 2 or w.shape != (uv.shape[0], 3):
+        raise InputError(f"march_visible_uv: expected uv (N, 2) and w_view (N, 3), got {tuple(uv.shape)} and "
+                         f"{tuple(w_view.shape)}")
+    if not h_max >= h_min or not step > 0:
+        raise InputError(f"march_visible_uv: expected h_min <= h_max and step > 0, got {h_min}, {h_max}, {step}")
+    slope = w[:, :2] / w[:, 2:3].clamp_min(1e-6)
+    slope[:, 1] *= aspect
+    depth = float(h_max - h_min)
+    n_steps = (depth * slope.norm(dim=-1) / step).ceil().clamp_min(1).to(torch.int64)
+    dz = depth / n_steps.to(torch.float64)
+    z_hit = torch.full((uv.shape[0],), float(h_min), dtype=torch.float64, device=uv.device)
+    if uv.shape[0] == 0:
+        return uv.clone()
+    f_prev = height_at(uv + h_max * slope).to(torch.float64) - h_max  # height - z at the previous sample
+    above = f_prev >= 0  # the field reaches h_max here: hit at once
+    z_hit[above] = h_max
+    active = torch.nonzero(~above).reshape(-1)
+    k = 0
+    while active.numel():
+        k += 1
+        last = n_steps[active] <= k
+        z_above = h_max - (k - 1) * dz[active]
+        z = torch.where(last, torch.full_like(z_above, h_min), h_max - k * dz[active])
+        f = height_at(uv[active] + z[:, None] * slope[active]).to(torch.float64) - z
+        hit = (f >= 0) | last
+        if bool(hit.any()):
+            before = f_prev[active]
+            t = (f / (f - before)).clamp(0.0, 1.0).nan_to_num(0.0)  # fraction of the step back up
+            z_hit[active[hit]] = (z + t * (z_above - z))[hit]
+        f_prev[active] = f
+        active = active[~hit]
+    return uv + z_hit[:, None] * slope
+
+
+@register("triple-parallax")
+class ParallaxTriplePlane(TriplePlane):
+    """The Triple Plane with a height field: features are fetched at the visible surface point.
+
+    Parameters
+    ----------
+    height, width, positional_channels, angular_resolution, angular_channels, hidden, layers, negative_slope, seed
+        As :class:`~dynbtf.representations.triple_plane.TriplePlane`.
+    height_scale : float, default 0.02
+        uv units per unit of the stored height channel: the positional plane's last
+        channel is ``height / height_scale`` (of the order of the learned features,
+        which matters to synthesis and to the decoder, which reads it too).
+    march_step_texels : float, default 0.5
+        Largest horizontal step of the ray march, in texels of the plane.
+
+    The height field is a buffer (saved with the model, not trained): set it with
+    :meth:`set_height` before fitting (``dynbtf fit --repr triple-parallax``
+    estimates it by plane-sweep stereo). A zero height field makes the model the
+    Triple Plane with one constant extra decoder input.
+
+    Examples
+    --------
+    >>> import torch
+    >>> model = ParallaxTriplePlane(8, 8)
+    >>> model.set_height(0.01 * torch.rand(8, 8))
+    >>> w = torch.nn.functional.normalize(torch.rand(5, 3) + torch.tensor([0, 0, 1.0]), dim=-1)
+    >>> model(torch.rand(5, 2), w, w).shape, model.positional_plane().shape
+    (torch.Size([5, 3]), torch.Size([8, 8, 17]))
+    """
+
+    extra_positional_channels = 1
+
+    def __init__(self, height: int, width: int, positional_channels: int = 16, angular_resolution: int = 20,
+                 angular_channels: int = 8, hidden: int = 32, layers: int = 4, negative_slope: float = 0.01,
+                 seed: int = 0, height_scale: float = 0.02, march_step_texels: float = MARCH_STEP_TEXELS) -> None:
+        super().__init__(height, width, positional_channels, angular_resolution, angular_channels, hidden, layers,
+                         negative_slope, seed)
+        if not (isinstance(height_scale, (int, float)) and math.isfinite(height_scale) and height_scale > 0):
+            raise InputError(f"ParallaxTriplePlane: height_scale must be a positive number of uv units, "
+                             f"got {height_scale!r}")
+        if not (isinstance(march_step_texels, (int, float)) and 0 < march_step_texels <= 4):
+            raise InputError(f"ParallaxTriplePlane: march_step_texels must be in (0, 4] texels, "
+                             f"got {march_step_texels!r}")
+        self._config.update(height_scale=float(height_scale), march_step_texels=float(march_step_texels))
+        self.register_buffer("height_channel", torch.zeros(height, width))
+        self._visible_cache: dict[bytes, torch.Tensor] = {}
+
+    # ------------------------------------------------------------ the height field
+    @property
+    def height_scale(self) -> float:
+        return self._config["height_scale"]
+
+    def height_field(self) -> torch.Tensor:
+        """The height field ``(H, W)`` in uv units at the texel centres."""
+        return self.height_channel * self.height_scale
+
+    def set_height(self, height: torch.Tensor) -> None:
+        """Set the height field from ``height (H, W)`` in uv units (e.g. :func:`~dynbtf.training.stereo_height.stereo_height`)."""
+        height = torch.as_tensor(height)
+        if tuple(height.shape) != tuple(self.height_channel.shape) or not bool(torch.isfinite(height).all()):
+            raise InputError(f"height: expected finite values of shape {tuple(self.height_channel.shape)}, "
+                             f"got shape {tuple(height.shape)}")
+        with torch.no_grad():
+            self.height_channel.copy_(height.to(self.height_channel) / self.height_scale)
+        self._visible_cache.clear()
+
+    def _load_from_state_dict(self, *args, **kwargs):
+        self._visible_cache.clear()
+        return super()._load_from_state_dict(*args, **kwargs)
+
+    def height_range(self) -> tuple[float, float]:
+        """``(min, max)`` of the height field, uv units."""
+        height = self.height_field()
+        return float(height.min()), float(height.max())
+
+    # ------------------------------------------------------------ Representation API
+    def positional_plane(self) -> torch.Tensor:
+        """``concat(f_U, height / height_scale)``, ``(H, W, C_U + 1)``: the texture synthesis consumes."""
+        return torch.cat([self.f_u, self.height_channel[..., None].to(self.f_u.dtype)], dim=-1)
+
+    def visible_uv(self, uv: torch.Tensor, w_view: torch.Tensor,
+                   fetch: Callable[[torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
+        """The surface point seen through reference-plane point ``uv (..., 2)`` from ``w_view (..., 3)``.
+
+        ``fetch(points (M, 2)) -> (M, C_U + 1)`` is the positional fetch whose last
+        channel is the height (default: this model's plane; a synthesized BTF passes
+        its synthesizer, so the march follows the synthesized relief). Directions
+        with ``z <= 0`` are treated as vertical (they evaluate to zero anyway).
+        Returns float64 ``(..., 2)``.
+        """
+        batch = uv.shape[:-1]
+        flat = uv.reshape(-1, 2).to(torch.float64)
+        w = w_view.reshape(-1, 3).to(device=flat.device, dtype=torch.float64)
+        w = torch.where(w[:, 2:3] > 0, w, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64, device=w.device))
+        # the exemplar's range: a synthesized field (blends of the exemplar's) may leave it a little, where
+        # the march lands on its bounds (a ray meeting heights above h_max is stopped at h_max)
+        h_min, h_max = self.height_range()
+        if fetch is None:
+            height = self.height_field().detach()
+
+            def height_at(points):
+                return fetch_wrap(height[..., None], points)[:, 0]
+        else:
+            def height_at(points):
+                return fetch(points)[..., -1].to(torch.float64) * self.height_scale
+        rows, cols = self.height_channel.shape
+        step = self._config["march_step_texels"] / max(rows, cols)
+        return march_visible_uv(flat, w, height_at, h_min=h_min, h_max=h_max, step=step,
+                                aspect=cols / rows).reshape(*batch, 2)
+
+    # ------------------------------------------------------------ training fast path
+    def _visible_texel_uv(self, w_view: torch.Tensor) -> torch.Tensor:
+        """Visible points ``(H * W, 2)`` (float32, wrapped) of every texel centre under one view (cached)."""
+        key = w_view.detach().to("cpu", torch.float64).numpy().tobytes()
+        table = self._visible_cache.get(key)
+        if table is None:
+            h, w = self.height_channel.shape
+            rows, cols = torch.meshgrid((torch.arange(h, dtype=torch.float64) + 0.5) / h,
+                                        (torch.arange(w, dtype=torch.float64) + 0.5) / w, indexing="ij")
+            centres = torch.stack([cols.reshape(-1), rows.reshape(-1)], dim=-1).to(self.height_channel.device)
+            with torch.no_grad():
+                hit = self.visible_uv(centres, w_view.reshape(1, 3).expand(len(centres), 3))
+            table = (hit - hit.floor()).to(torch.float32)
+            if len(self._visible_cache) >= 512:
+                self._visible_cache.clear()
+            self._visible_cache[key] = table
+        return table
+
+    def _visible_features(self, w_view: torch.Tensor, texels: torch.Tensor | None) -> torch.Tensor:
+        """Positional features ``(N, C_U + 1)`` at the visible points of ``texels`` (default all) under one view."""
+        table = self._visible_texel_uv(w_view)
+        points = table if texels is None else table.index_select(0, texels)
+        return fetch_wrap(self.positional_plane(), points)
+
+    def predict_texel_images(self, w_view: torch.Tensor, w_light: torch.Tensor,
+                             texels: torch.Tensor | None = None) -> torch.Tensor:
+        """Whole images ``(B, N, 3)``: every texel centre's visible point, one (view, light) pair per image."""
+        features = torch.stack([self._visible_features(v, texels) for v in w_view])
+        angular = self.angular_features(w_view, w_light)
+        return self.decode_with_angular(features, angular[:, None])
+
+    def texel_image_l1_loss(self, w_view: torch.Tensor, w_light: torch.Tensor, target: torch.Tensor,
+                            texels: torch.Tensor | None = None, *, chunk_texels: int = 256,
+                            workers: int = 1, texel_groups: int = 1, precision: str = "fp32") -> torch.Tensor:
+        """Fused mean L1 loss, as :meth:`TriplePlane.texel_image_l1_loss`, fetching at the visible points.
+
+        Every texel group's images must share **one view** (the fit loop's
+        view-coherent batches, :attr:`view_coherent_batches`): the group's
+        positional features are then fetched once, at that view's visible points.
+        """
+        n_images = w_view.shape[0]
+        if texel_groups < 1 or n_images % texel_groups:
+            raise InputError(f"texel_groups={texel_groups} does not divide the {n_images} images")
+        per_group = n_images // texel_groups
+        group_views = w_view.reshape(texel_groups, per_group, 3)
+        if not bool((group_views == group_views[:, :1]).all()):
+            raise InputError("triple-parallax: every texel group's images must share one view "
+                             "(view-coherent batches; see dynbtf.training.fit)")
+        n_texels = self.height_channel.numel() if texels is None else texels.shape[0]
+        n = n_texels // texel_groups
+        features = torch.cat([
+            self._visible_features(group_views[g, 0], None if texels is None and texel_groups == 1 else
+                                   (texels if texels is not None else torch.arange(n_texels, device=w_view.device))
+                                   [g * n:(g + 1) * n])
+            for g in range(texel_groups)])
+        return self.decoder.texel_image_l1_loss(features, self.angular_features(w_view, w_light), target,
+                                                chunk_texels=chunk_texels, workers=workers,
+                                                texel_groups=texel_groups, precision=precision)
+
+    #: The fit loop gives every texel group images of one view (see :mod:`dynbtf.training.fit`).
+    view_coherent_batches = True
+
+    def config(self) -> dict[str, Any]:
+        return dict(self._config)

@@ -1,0 +1,114 @@
+"""A BTF's height field from its own images: multi-view plane-sweep stereo.
+
+A BTF is a stack of photographs of one surface, rectified to a reference plane
+``z = 0``, from many views. A surface point ``x`` at height ``z`` (uv units, see
+:mod:`dynbtf.representations.parallax`) appears in the image of view ``w`` at
+the reference-plane position
+
+    x - z * (w_x, w_y) / w_z
+
+(v component times ``W / H`` for non-square planes). For each candidate height of
+a sweep every view's image is sampled there: at the true height all views see
+the same point and (under the same light, away from strong view dependence)
+agree. The photo-consistency cost of a height is the L1 spread of the views'
+samples around their median -- the median keeps views in which the point is
+hidden or glossy from dominating -- summed over the colour channels, over
+near-vertical lights (little cast shadow, so the images are comparable across
+views) and over a small window of texels. Each texel takes the height of least
+cost, refined by a parabola through the neighbouring candidates.
+
+Measured on the simulated stone (128 x 128, UBO2003 grid, ~10 texels of relief):
+RMSE 0.66 texels against the simulator's true height, correlation 0.89, 35 s on
+two cores (``docs/triple_plane.md``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..conventions import texel_centers_uv
+from ..data.base import BTFSource
+from ..errors import InputError
+from ..texture import fetch_wrap_stack
+
+__all__ = ["stereo_height", "reference_offsets"]
+
+
+def reference_offsets(views: np.ndarray, height: int, width: int) -> torch.Tensor:
+    """Per unit of height, where each view sees a point: ``(V, 2)`` float64 uv displacement.
+
+    ``views (V, 3)`` unit directions (``z > 0``); the displacement of a point at
+    height ``z`` is ``z * reference_offsets(...)`` (u and v axes, v scaled by ``W / H``).
+    """
+    views = np.asarray(views, dtype=np.float64)
+    slopes = views[:, :2] / np.maximum(views[:, 2:3], 1e-6)
+    slopes[:, 1] *= width / height
+    return torch.from_numpy(slopes)
+
+
+def stereo_height(source: BTFSource, *, max_light_theta: float = 15.0, levels: int = 65, max_height: float = 0.08,
+                  window: int = 3, progress: bool = False) -> torch.Tensor:
+    """Height field ``(H, W)`` float64, uv units, of ``source`` by plane-sweep stereo.
+
+    Parameters
+    ----------
+    source : BTFSource
+        The BTF (every view's images under the selected lights are read once).
+    max_light_theta : float
+        Lights with ``theta <= max_light_theta`` degrees are used (at least the one
+        nearest the normal).
+    levels : int
+        Candidate heights, evenly spaced in ``[-max_height, max_height]`` (>= 3).
+    max_height : float
+        Largest height searched, uv units (0.08: +-10 texels at 128 texels).
+    window : int
+        Odd side of the square window the cost is summed over.
+    progress : bool
+        Show a progress bar.
+
+    Returns
+    -------
+    float64 ``(H, W)``: height of each texel centre relative to the reference plane.
+    """
+    from tqdm.auto import tqdm
+
+    if int(levels) < 3:
+        raise InputError(f"stereo levels: expected at least 3 candidate heights, got {levels}")
+    if not max_height > 0:
+        raise InputError(f"stereo max_height: expected a positive height in uv units, got {max_height}")
+    if int(window) < 1 or int(window) % 2 == 0:
+        raise InputError(f"stereo window: expected an odd number of texels, got {window}")
+    if source.n_views < 2:
+        raise InputError(f"{source.name}: stereo needs at least two views, the BTF has {source.n_views}")
+    h, w = source.height, source.width
+    lights = np.asarray(source.lights, dtype=np.float64)
+    light_set = np.nonzero(lights[:, 2] >= math.cos(math.radians(max_light_theta)) - 1e-9)[0]
+    if len(light_set) == 0:
+        light_set = np.array([int(np.argmax(lights[:, 2]))])
+    offsets = reference_offsets(source.views, h, w)  # (V, 2)
+    centres = torch.from_numpy(texel_centers_uv(h, w).reshape(-1, 2))  # (N, 2) float64
+    heights = torch.linspace(-max_height, max_height, int(levels), dtype=torch.float64)
+    cost = torch.zeros(int(levels), h * w, dtype=torch.float64)
+    bar = tqdm(total=len(light_set) * int(levels), unit="level", disable=not progress, desc="stereo height")
+    try:
+        for light in light_set:
+            images = torch.from_numpy(np.stack([source.image(v, int(light)) for v in range(source.n_views)]))
+            for k, z in enumerate(heights):
+                points = centres[None] - float(z) * offsets[:, None]  # (V, N, 2)
+                seen = fetch_wrap_stack(images, points)  # (V, N, 3)
+                cost[k] += (seen - seen.median(0).values).abs().sum((0, 2)).double()
+                bar.update(1)
+    finally:
+        bar.close()
+    if window > 1:
+        pad = int(window) // 2
+        padded = F.pad(cost.view(int(levels), 1, h, w), (pad, pad, pad, pad), mode="circular")
+        cost = F.avg_pool2d(padded, int(window), stride=1).view(int(levels), h * w)
+    k = cost.argmin(0).clamp(1, int(levels) - 2)
+    below, at, above = (cost.gather(0, (k + d)[None])[0] for d in (-1, 0, 1))
+    shift = (0.5 * (below - above) / (below - 2 * at + above).clamp_min(1e-12)).clamp(-0.5, 0.5)
+    return (heights[k] + shift * (heights[1] - heights[0])).view(h, w)
