@@ -1,7 +1,8 @@
-"""Fit a Triple Plane to every simulated material and report held-out PSNR / DSSIM / FLIP.
+"""Fit a Triple Plane (or another kind) to every simulated material and report held-out PSNR / DSSIM / FLIP.
 
-Run: ``python benchmarks/fit_materials.py [--size 128] [--epochs 30] [--lr-scale 6] [--texel-groups 64] [--out DIR]``
-(about 3-4 minutes per material on 2 cores with the native bf16 kernel), or on any BTFs:
+Run: ``python benchmarks/fit_materials.py [--repr triple] [--size 128] [--epochs 30] [--lr-scale 6]
+[--texel-groups 64] [--out DIR]`` (about 3-4 minutes per material on 2 cores with the native bf16
+kernel; ~7 with ``--repr triple-parallax``), or on any BTFs:
 ``--specs 'sim:stone?relief=0.25,sim:stone?relief=0.5'``.
 Each material is fitted with :func:`dynbtf.training.fit` (resumable: re-running
 with the same ``--out`` continues unfinished fits), evaluated on its held-out
@@ -25,6 +26,7 @@ from dynbtf.training.evaluate import evaluate_model, resolve_eval_pairs
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--repr", default="triple", help="representation kind (triple, triple-parallax, neumip, ...)")
     parser.add_argument("--size", type=int, default=128)
     parser.add_argument("--minutes", type=float, default=None, help="training time budget per material")
     parser.add_argument("--epochs", type=int, default=30)
@@ -43,7 +45,7 @@ def main() -> None:
         model = out / f"{material}.dbtfm"
         config = TrainConfig(epochs=args.epochs, max_minutes=args.minutes, lr_scale=args.lr_scale,
                              texel_groups=args.texel_groups)
-        get_fitter("triple")(source, model, config)
+        get_fitter(args.repr)(source, model, config)
         rep, meta = load_model(model)
         ev = evaluate_model(rep, source, resolve_eval_pairs("held-out", source, meta), out_dir=out / f"{material}_eval",
                             images=4)
@@ -51,7 +53,7 @@ def main() -> None:
         rows.append({"material": material, **ev.mean, "epochs": prov["epochs_completed"],
                      "minutes": prov["training_seconds"] / 60, "model_bytes": prov["size"]["model_bytes"]})
         print(json.dumps(rows[-1]))
-    print("\n| material | held-out PSNR (dB) | DSSIM | FLIP | epochs | training min |")
+    print(f"\n{args.repr}:\n| material | held-out PSNR (dB) | DSSIM | FLIP | epochs | training min |")
     print("|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['material']} | {r['psnr']:.2f} | {r['dssim']:.4f} | {r['flip']:.4f} | {r['epochs']:.2f} | "

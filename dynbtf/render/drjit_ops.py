@@ -326,6 +326,10 @@ def check_renderable(model, what="model") -> None:
     from ..errors import InputError
 
     kind = getattr(model, "kind", type(model).__name__)
+    if kind == "triple-parallax":
+        raise InputError(f"{what}: the Mitsuba plugin cannot render kind 'triple-parallax' yet (its ray march "
+                         "through the synthesized height is not in the Dr.Jit kernel); preview it with "
+                         "dynbtf.render.preview.render_preview or query it with dynbtf.SynthesizedBTF")
     if kind not in DR_REPRESENTATIONS:
         raise InputError(f"{what}: the Mitsuba plugin renders Triple Plane (kind 'triple', `dynbtf fit`) and "
                          f"NeuMIP (kind 'neumip', `dynbtf fit --repr neumip`) models, got a model of kind {kind!r}")

@@ -17,9 +17,11 @@ reason, measured in ``docs/triple_plane.md``).
 the Triple Plane, stored as one more channel of the positional plane (so
 synthesis synthesizes it with the features), and fetches the features at the
 visible point found by :func:`march_visible_uv`. Given the height, everything
-else is the paper's Triple Plane; the height is estimated from the BTF's own
+else is the paper's Triple Plane. The height is estimated from the BTF's own
 images before training (:func:`dynbtf.training.stereo_height.stereo_height`) and
-kept fixed.
+then refined with the other parameters by the same L1 loss (gradients reach it
+through the visible point, by the implicit-function rule, and through the
+decoder, which reads it as a 17th positional channel).
 
 Conventions: heights are in uv units (one exemplar repeat = 1), positive
 towards the viewer side (``+z``); the reference plane is ``z = 0``. ``uv`` may be
@@ -32,6 +34,7 @@ import math
 from typing import Any, Callable
 
 import torch
+from torch import nn
 
 from ..errors import InputError
 from ..texture import fetch_wrap
@@ -139,11 +142,15 @@ class ParallaxTriplePlane(TriplePlane):
         which matters to synthesis and to the decoder, which reads it too).
     march_step_texels : float, default 0.5
         Largest horizontal step of the ray march, in texels of the plane.
+    learn_height : bool, default True
+        Train the height with the other parameters (a parameter) or keep it as set (a buffer).
+    height_refresh_texels : float, default 0.05
+        Training caches every view's visible points; they are marched again once the
+        learned height has moved by this much on average (or by a texel anywhere).
 
-    The height field is a buffer (saved with the model, not trained): set it with
-    :meth:`set_height` before fitting (``dynbtf fit --repr triple-parallax``
-    estimates it by plane-sweep stereo). A zero height field makes the model the
-    Triple Plane with one constant extra decoder input.
+    Set the height with :meth:`set_height` before fitting (``dynbtf fit --repr
+    triple-parallax`` estimates it by plane-sweep stereo). A zero height field makes
+    the model the Triple Plane with one constant extra decoder input.
 
     Examples
     --------
@@ -159,7 +166,8 @@ class ParallaxTriplePlane(TriplePlane):
 
     def __init__(self, height: int, width: int, positional_channels: int = 16, angular_resolution: int = 20,
                  angular_channels: int = 8, hidden: int = 32, layers: int = 4, negative_slope: float = 0.01,
-                 seed: int = 0, height_scale: float = 0.02, march_step_texels: float = MARCH_STEP_TEXELS) -> None:
+                 seed: int = 0, height_scale: float = 0.02, march_step_texels: float = MARCH_STEP_TEXELS,
+                 learn_height: bool = True, height_refresh_texels: float = 0.05) -> None:
         super().__init__(height, width, positional_channels, angular_resolution, angular_channels, hidden, layers,
                          negative_slope, seed)
         if not (isinstance(height_scale, (int, float)) and math.isfinite(height_scale) and height_scale > 0):
@@ -168,9 +176,20 @@ class ParallaxTriplePlane(TriplePlane):
         if not (isinstance(march_step_texels, (int, float)) and 0 < march_step_texels <= 4):
             raise InputError(f"ParallaxTriplePlane: march_step_texels must be in (0, 4] texels, "
                              f"got {march_step_texels!r}")
-        self._config.update(height_scale=float(height_scale), march_step_texels=float(march_step_texels))
-        self.register_buffer("height_channel", torch.zeros(height, width))
-        self._visible_cache: dict[bytes, torch.Tensor] = {}
+        if not (isinstance(height_refresh_texels, (int, float)) and height_refresh_texels > 0):
+            raise InputError(f"ParallaxTriplePlane: height_refresh_texels must be a positive number of texels, "
+                             f"got {height_refresh_texels!r}")
+        self._config.update(height_scale=float(height_scale), march_step_texels=float(march_step_texels),
+                            learn_height=bool(learn_height),
+                            height_refresh_texels=float(height_refresh_texels))
+        if learn_height:
+            self.height_channel = nn.Parameter(torch.zeros(height, width))
+        else:
+            self.register_buffer("height_channel", torch.zeros(height, width))
+        # the height (channel units) training's visible-point tables are marched through: a buffer, so that a
+        # resumed run marches through the same field as an uninterrupted one (see _check_visible_cache)
+        self.register_buffer("marched_height_channel", torch.zeros(height, width))
+        self._visible_cache: dict[bytes, tuple[torch.Tensor, torch.Tensor]] = {}
 
     # ------------------------------------------------------------ the height field
     @property
@@ -189,6 +208,7 @@ class ParallaxTriplePlane(TriplePlane):
                              f"got shape {tuple(height.shape)}")
         with torch.no_grad():
             self.height_channel.copy_(height.to(self.height_channel) / self.height_scale)
+            self.marched_height_channel.copy_(self.height_channel)
         self._visible_cache.clear()
 
     def _load_from_state_dict(self, *args, **kwargs):
@@ -197,7 +217,7 @@ class ParallaxTriplePlane(TriplePlane):
 
     def height_range(self) -> tuple[float, float]:
         """``(min, max)`` of the height field, uv units."""
-        height = self.height_field()
+        height = self.height_field().detach()
         return float(height.min()), float(height.max())
 
     # ------------------------------------------------------------ Representation API
@@ -211,7 +231,8 @@ class ParallaxTriplePlane(TriplePlane):
 
         ``fetch(points (M, 2)) -> (M, C_U + 1)`` is the positional fetch whose last
         channel is the height (default: this model's plane; a synthesized BTF passes
-        its synthesizer, so the march follows the synthesized relief). Directions
+        its synthesizer, so the march follows the synthesized relief), or a height
+        plane ``(H, W, 1)`` in channel units. Directions
         with ``z <= 0`` are treated as vertical (they evaluate to zero anyway).
         Returns float64 ``(..., 2)``.
         """
@@ -223,10 +244,13 @@ class ParallaxTriplePlane(TriplePlane):
         # the march lands on its bounds (a ray meeting heights above h_max is stopped at h_max)
         h_min, h_max = self.height_range()
         if fetch is None:
-            height = self.height_field().detach()
+            fetch = self.positional_plane().detach()[..., -1:]
+        if isinstance(fetch, torch.Tensor):  # a height plane (H, W, 1), channel units
+            plane = fetch.to(torch.float64) * self.height_scale
+            h_min, h_max = float(plane.min()), float(plane.max())
 
             def height_at(points):
-                return fetch_wrap(height[..., None], points)[:, 0]
+                return fetch_wrap(plane, points)[:, 0]
         else:
             def height_at(points):
                 return fetch(points)[..., -1].to(torch.float64) * self.height_scale
@@ -236,35 +260,75 @@ class ParallaxTriplePlane(TriplePlane):
                                 aspect=cols / rows).reshape(*batch, 2)
 
     # ------------------------------------------------------------ training fast path
-    def _visible_texel_uv(self, w_view: torch.Tensor) -> torch.Tensor:
-        """Visible points ``(H * W, 2)`` (float32, wrapped) of every texel centre under one view (cached)."""
+    def _visible_texel_table(self, w_view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Visible points ``(H * W, 2)`` (float32, wrapped) of every texel centre under one view and
+        their heights ``(H * W,)``, uv units; cached (see :meth:`_check_visible_cache`)."""
         key = w_view.detach().to("cpu", torch.float64).numpy().tobytes()
-        table = self._visible_cache.get(key)
-        if table is None:
+        entry = self._visible_cache.get(key)
+        if entry is None:
             h, w = self.height_channel.shape
             rows, cols = torch.meshgrid((torch.arange(h, dtype=torch.float64) + 0.5) / h,
                                         (torch.arange(w, dtype=torch.float64) + 0.5) / w, indexing="ij")
             centres = torch.stack([cols.reshape(-1), rows.reshape(-1)], dim=-1).to(self.height_channel.device)
+            marched = self.marched_height_channel[..., None]
             with torch.no_grad():
-                hit = self.visible_uv(centres, w_view.reshape(1, 3).expand(len(centres), 3))
-            table = (hit - hit.floor()).to(torch.float32)
+                hit = self.visible_uv(centres, w_view.reshape(1, 3).expand(len(centres), 3), marched)
+                height = fetch_wrap(marched.double() * self.height_scale, hit)[:, 0]
             if len(self._visible_cache) >= 512:
                 self._visible_cache.clear()
-            self._visible_cache[key] = table
-        return table
+            entry = ((hit - hit.floor()).to(torch.float32), height.to(torch.float32))
+            self._visible_cache[key] = entry
+        return entry
 
-    def _visible_features(self, w_view: torch.Tensor, texels: torch.Tensor | None) -> torch.Tensor:
-        """Positional features ``(N, C_U + 1)`` at the visible points of ``texels`` (default all) under one view."""
-        table = self._visible_texel_uv(w_view)
-        points = table if texels is None else table.index_select(0, texels)
+    def _check_visible_cache(self) -> None:
+        """Empty the visible-point cache once the height has moved since it was filled by
+        ``height_refresh_texels`` on average or by a texel anywhere (a learned height changes every
+        optimizer step; between two marches :meth:`_visible_features` follows it by a Newton step)."""
+        current = self.height_channel.detach()
+        moved = (current - self.marched_height_channel).abs() * (self.height_scale * max(current.shape))  # texels
+        if float(moved.mean()) < self._config["height_refresh_texels"] and float(moved.max()) < 1.0:
+            return
+        self._visible_cache.clear()
+        with torch.no_grad():
+            self.marched_height_channel.copy_(current)
+
+    def _visible_features(self, w_views: torch.Tensor, texels: torch.Tensor) -> torch.Tensor:
+        """Positional features ``(G * n, C_U + 1)`` at the visible points of ``texels (G, n)``, row ``g``
+        under view ``w_views[g]`` (one fetch of the plane for all of them).
+
+        With a learned height the visible point is differentiable in it: from the
+        cached hit ``p`` at height ``z`` (where ``height(p) = z`` when it was
+        marched), one Newton step of ``height(p + dz s) = z + dz`` gives
+        ``dz = (height(p) - z) / (1 - grad height . s)``; its value follows the height
+        between two marches and its gradient is the implicit-function one.
+        """
+        tables = [self._visible_texel_table(w) for w in w_views]
+        points = torch.stack([t[0] for t in tables]).gather(1, texels[..., None].expand(-1, -1, 2)).reshape(-1, 2)
+        if self.height_channel.requires_grad and torch.is_grad_enabled():
+            z = torch.stack([t[1] for t in tables]).gather(1, texels).reshape(-1)
+            rows, cols = self.height_channel.shape
+            slope = w_views[:, :2] / w_views[:, 2:3].clamp_min(1e-6) * \
+                torch.tensor([1.0, cols / rows], dtype=w_views.dtype, device=w_views.device)
+            slope = slope.to(points.dtype).repeat_interleave(texels.shape[1], 0)  # (G * n, 2)
+            height = self.height_field()[..., None]
+            eps = 0.5 / max(rows, cols)
+            with torch.no_grad():
+                along = fetch_wrap(height, torch.cat([points + eps * slope, points - eps * slope]))[:, 0]
+                along = along[: len(points)] - along[len(points):]
+                denominator = (1.0 - along / (2 * eps)).clamp_min(0.25)
+            dz = (fetch_wrap(height, points)[:, 0] - z) / denominator
+            points = points + dz[:, None] * slope
         return fetch_wrap(self.positional_plane(), points)
 
     def predict_texel_images(self, w_view: torch.Tensor, w_light: torch.Tensor,
                              texels: torch.Tensor | None = None) -> torch.Tensor:
         """Whole images ``(B, N, 3)``: every texel centre's visible point, one (view, light) pair per image."""
-        features = torch.stack([self._visible_features(v, texels) for v in w_view])
+        self._check_visible_cache()
+        if texels is None:
+            texels = torch.arange(self.height_channel.numel(), device=w_view.device)
+        features = self._visible_features(w_view, texels.expand(w_view.shape[0], -1))
         angular = self.angular_features(w_view, w_light)
-        return self.decode_with_angular(features, angular[:, None])
+        return self.decode_with_angular(features.reshape(w_view.shape[0], texels.shape[0], -1), angular[:, None])
 
     def texel_image_l1_loss(self, w_view: torch.Tensor, w_light: torch.Tensor, target: torch.Tensor,
                             texels: torch.Tensor | None = None, *, chunk_texels: int = 256,
@@ -283,16 +347,22 @@ class ParallaxTriplePlane(TriplePlane):
         if not bool((group_views == group_views[:, :1]).all()):
             raise InputError("triple-parallax: every texel group's images must share one view "
                              "(view-coherent batches; see dynbtf.training.fit)")
-        n_texels = self.height_channel.numel() if texels is None else texels.shape[0]
-        n = n_texels // texel_groups
-        features = torch.cat([
-            self._visible_features(group_views[g, 0], None if texels is None and texel_groups == 1 else
-                                   (texels if texels is not None else torch.arange(n_texels, device=w_view.device))
-                                   [g * n:(g + 1) * n])
-            for g in range(texel_groups)])
+        self._check_visible_cache()
+        if texels is None:
+            texels = torch.arange(self.height_channel.numel(), device=w_view.device)
+        n = texels.shape[0] // texel_groups
+        features = self._visible_features(group_views[:, 0], texels[: n * texel_groups].reshape(texel_groups, n))
         return self.decoder.texel_image_l1_loss(features, self.angular_features(w_view, w_light), target,
                                                 chunk_texels=chunk_texels, workers=workers,
                                                 texel_groups=texel_groups, precision=precision)
+
+    def param_groups(self) -> list[dict[str, Any]]:
+        """The Triple Plane's groups, plus the learned height (lr 1e-3 in channel units, no weight
+        decay: decay would pull the relief towards the reference plane)."""
+        groups = super().param_groups()
+        if isinstance(self.height_channel, nn.Parameter):
+            groups.append({"params": [self.height_channel], "lr": 1e-3, "weight_decay": 0.0, "name": "height"})
+        return groups
 
     #: The fit loop gives every texel group images of one view (see :mod:`dynbtf.training.fit`).
     view_coherent_batches = True

@@ -5,7 +5,9 @@
 * each angular plane ``(R, R, C)`` (representations that expose
   ``angular_planes()``, e.g. the Triple Plane's ``f_H`` and ``f_D``) -> its first three
   principal components as RGB and a grid of its ``C`` channels in grey, rows =
-  theta (0 at the top), columns = phi.
+  theta (0 at the top), columns = phi;
+* a height field (representations with relief, ``height_field()``, e.g. kind
+  ``triple-parallax``) -> grey, lowest black, highest white.
 
 Images are display values in ``[0, 1]`` (not linear radiance).
 """
@@ -76,6 +78,10 @@ def feature_plane_images(rep: Representation, angular_scale: int = 8) -> dict[st
             pcs = principal_components_rgb(plane)
             images[f"{name}_pca"] = np.kron(pcs, np.ones((angular_scale, angular_scale, 1))).astype(np.float32)
             images[f"{name}_channels"] = channel_grid(plane, scale=angular_scale)
+    if hasattr(rep, "height_field"):
+        height = rep.height_field().detach().float().cpu().numpy()
+        grey = (height - height.min()) / max(float(height.max() - height.min()), 1e-12)
+        images["height"] = np.repeat(grey[..., None], 3, axis=-1).astype(np.float32)
     return images
 
 
