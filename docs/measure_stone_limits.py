@@ -22,7 +22,9 @@ Two measurements behind docs/triple_plane.md ("Stone: what limits it"):
     pairs. ``none``: the texel centre, as the paper (the control: it must match ``dynbtf fit``).
     ``oracle``: the visible surface point the simulator traced (simulated BTFs only): what a perfect
     parallax and masking model would fetch. ``stereo``: the visible point traced through a height
-    field estimated from the BTF alone by plane-sweep stereo (:func:`stereo_height`). ~6 minutes each.
+    field estimated from the BTF alone by plane-sweep stereo
+    (:func:`dynbtf.training.stereo_height.stereo_height`), kept fixed (``dynbtf fit --repr
+    triple-parallax`` refines it). ~6 minutes each.
 
 Seeds are fixed; the numbers are reproducible on one machine.
 """
@@ -30,19 +32,19 @@ Seeds are fixed; the numbers are reproducible on one machine.
 from __future__ import annotations
 
 import argparse
-
-import math
 import time
 
 import numpy as np
 import torch
 
+from dynbtf.conventions import texel_centers_uv
 from dynbtf.data.array import ArrayBTF
 from dynbtf.data.open import open_btf
 from dynbtf.data.simulator.geometry import trace_view
 from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.texture import fetch_wrap
 from dynbtf.training.images import held_out_split
+from dynbtf.training.stereo_height import stereo_height
 from dynbtf.metrics.image_metrics import psnr
 from dynbtf.representations.model_file import load_model
 from dynbtf.training import TrainConfig, get_fitter
@@ -102,48 +104,12 @@ def views(spec: str, max_theta: float, output: str) -> None:
     print(f"  64 training pairs : {evaluate_model(rep, sub, _training_sample(sub, held)).summary()}")
 
 
-def _texel_centres(size: int) -> torch.Tensor:
-    c = (torch.arange(size, dtype=torch.float64) + 0.5) / size
-    rows, cols = torch.meshgrid(c, c, indexing="ij")
-    return torch.stack([cols.reshape(-1), rows.reshape(-1)], dim=-1)  # (N, 2) uv, row-major
-
-
-def stereo_height(btf, max_light_theta: float = 15.0, levels: int = 65, max_height: float = 0.08) -> torch.Tensor:
-    """Height field ``(H, W)`` in uv units from the BTF's images alone, by plane-sweep stereo.
-
-    A surface point ``x`` at height ``h`` appears under view ``v`` at ``x - h (v_x, v_y) / v_z``
-    (the reference plane is ``z = 0``). For each candidate ``h`` of ``levels`` in
-    ``[-max_height, max_height]`` every view's image under the same light is sampled there; the
-    cost is the L1 spread of those samples around their median over the views, summed over the
-    lights with ``theta <= max_light_theta`` (little cast shadow) and over a 3 x 3 window. The
-    minimum per texel, refined by a parabola through its neighbours, is the height.
-    """
-    size, n = btf.height, btf.height * btf.width
-    centres = _texel_centres(size)
-    views, lights = np.asarray(btf.views), np.asarray(btf.lights)
-    slopes = torch.from_numpy(views[:, :2] / views[:, 2:3])
-    light_set = np.nonzero(lights[:, 2] >= math.cos(math.radians(max_light_theta)) - 1e-9)[0]
-    images = [torch.from_numpy(np.asarray(btf.view_images(v, light_set))).float() for v in range(btf.n_views)]
-    heights = np.linspace(-max_height, max_height, levels)
-    cost = torch.zeros(levels, n, dtype=torch.float64)
-    for li in range(len(light_set)):
-        for k, h in enumerate(heights):
-            seen = torch.stack([fetch_wrap(images[v][li], centres - h * slopes[v]) for v in range(btf.n_views)])
-            cost[k] += (seen - seen.median(0).values).abs().sum((0, 2)).double()
-    window = torch.nn.functional.pad(cost.view(levels, 1, size, size), (1, 1, 1, 1), mode="circular")
-    cost = torch.nn.functional.avg_pool2d(window, 3, stride=1).view(levels, n)
-    k = cost.argmin(0).clamp(1, levels - 2)
-    below, at, above = (cost.gather(0, (k + d)[None])[0] for d in (-1, 0, 1))
-    shift = (0.5 * (below - above) / (below - 2 * at + above).clamp_min(1e-12)).clamp(-0.5, 0.5)
-    return (torch.from_numpy(heights)[k] + shift * (heights[1] - heights[0])).view(size, size)
-
-
 def parallax(spec: str, mode: str, epochs: int = 30) -> None:
     btf = open_btf(spec)
     size, n_texels, n_views, n_lights = btf.height, btf.height * btf.width, btf.n_views, btf.n_lights
     start = time.time()
     if mode == "none":
-        fetch_uv = _texel_centres(size).expand(n_views, -1, -1)
+        fetch_uv = torch.from_numpy(texel_centers_uv(size, size).reshape(-1, 2)).expand(n_views, -1, -1)
     elif mode == "oracle":
         fetch_uv = torch.stack([torch.as_tensor(btf.renderer.view_trace(btf.views[v])["uv"]) for v in range(n_views)])
     else:

@@ -240,3 +240,20 @@ def test_synthesized_btf_marches_through_the_synthesized_height():
     expected = model.decode(btf.synthesizer(visible), wv, wl)
     torch.testing.assert_close(btf.eval(uv, wv, wl), expected.detach().float(), atol=1e-4, rtol=0)
     assert float((visible - points).abs().max()) > 1e-3  # the fetch did move
+
+
+def test_cli_fits_a_parallax_model_and_rejects_stereo_options_for_other_kinds(tmp_path, capsys):
+    from dynbtf.cli.main import main
+
+    out = tmp_path / "p.dbtfm"
+    assert main(["fit", "sim:stone?size=16", "-o", str(out), "--repr", "triple-parallax", "--epochs", "1",
+                 "--stereo-max-height", "0.1", "--quiet", "--workers", "1"]) == 0
+    rep, meta = load_model(out)
+    assert rep.kind == "triple-parallax" and meta["provenance"]["height_field"]["options"] == {"max_height": 0.1}
+    assert float(rep.height_field().detach().abs().max()) > 0
+    assert main(["inspect", str(out), "-o", str(tmp_path / "planes")]) == 0
+    assert (tmp_path / "planes" / "height.png").exists()
+    capsys.readouterr()
+    assert main(["fit", "sim:stone?size=16", "-o", str(tmp_path / "t.dbtfm"), "--stereo-max-height", "0.1"]) == 2
+    assert "--stereo-max-height applies to --repr triple-parallax, not 'triple'" in capsys.readouterr().err
+    assert not (tmp_path / "t.dbtfm").exists()

@@ -8,6 +8,7 @@ from typing import Optional
 
 import typer
 
+from ..errors import InputError
 from .app import app
 
 
@@ -51,6 +52,9 @@ def fit(
     precision: str = typer.Option("auto", help="Arithmetic of the decoder's training kernel: fp32, bf16 "
                                   "(bfloat16 products, float32 accumulation and parameters; CPUs with "
                                   "AVX512-BF16), or auto (bf16 where available, else fp32)."),
+    stereo_max_height: Optional[float] = typer.Option(None, "--stereo-max-height", help="triple-parallax only: "
+                                                      "largest relief height the stereo estimate searches, in uv "
+                                                      "units (default 0.08: +-10 texels at 128 texels)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
 ) -> None:
     """Fit a representation to a BTF with the paper's recipe (L1, AdamW, x0.9 lr per epoch, 16 images/step)."""
@@ -61,8 +65,13 @@ def fit(
                          texel_groups=texel_groups, memory_budget_mb=memory_mb, workers=workers, device=device,
                          precision=precision)
     fitter = get_fitter(repr)
+    options = {}
+    if stereo_max_height is not None:
+        if repr != "triple-parallax":
+            raise InputError(f"--stereo-max-height applies to --repr triple-parallax, not {repr!r}")
+        options["stereo"] = {"max_height": stereo_max_height}
     source = _open_source(btf)
-    result = fitter(source, output, config, progress=not quiet)
+    result = fitter(source, output, config, progress=not quiet, **options)
     if quiet:
         size = result.metadata.get("provenance", {}).get("size", {})
         typer.echo(f"wrote {result.model_path}" + (f" ({size['summary']})" if "summary" in size else ""))

@@ -356,6 +356,10 @@ class ParallaxTriplePlane(TriplePlane):
                                                 chunk_texels=chunk_texels, workers=workers,
                                                 texel_groups=texel_groups, precision=precision)
 
+    def storage_bytes(self) -> int:
+        """Bytes of what evaluation needs (the training-only ``marched_height_channel`` excluded)."""
+        return super().storage_bytes() - self.marched_height_channel.numel() * self.marched_height_channel.element_size()
+
     def param_groups(self) -> list[dict[str, Any]]:
         """The Triple Plane's groups, plus the learned height (lr 1e-3 in channel units, no weight
         decay: decay would pull the relief towards the reference plane)."""
