@@ -257,3 +257,30 @@ def test_cli_fits_a_parallax_model_and_rejects_stereo_options_for_other_kinds(tm
     assert main(["fit", "sim:stone?size=16", "-o", str(tmp_path / "t.dbtfm"), "--stereo-max-height", "0.1"]) == 2
     assert "--stereo-max-height applies to --repr triple-parallax, not 'triple'" in capsys.readouterr().err
     assert not (tmp_path / "t.dbtfm").exists()
+
+
+def test_view_coherent_epochs_visit_every_training_pair(tmp_path, monkeypatch):
+    """texel_groups = 1: each step's images share a view, and an epoch covers every training pair (and no
+    held-out one); the last block of a view is wrapped round, so a pair may come twice."""
+    from synthetic_btf import synthetic_btf
+
+    from dynbtf.training import ImageStore
+
+    btf = synthetic_btf(8, thetas=(0.0, 30.0, 60.0), counts=(1, 6, 8))
+    requested = []
+    original = ImageStore.get
+
+    def spy(self, pairs, texels=None):
+        requested.append(np.asarray(pairs).copy())
+        return original(self, pairs, texels)
+
+    monkeypatch.setattr(ImageStore, "get", spy)
+    config = TrainConfig(epochs=1, images_per_step=4, held_out_fraction=0.1, seed=3, workers=1, monitor_pairs=0,
+                         device="cpu", precision="fp32")
+    fit(ParallaxTriplePlane(8, 8, seed=3), btf, config, tmp_path / "m.dbtfm", progress=False)
+    train, held = held_out_split(btf.n_views, btf.n_lights, 0.1, 3)
+    assert all(len(p) == 4 and len(set(p[:, 0])) == 1 for p in requested)
+    seen = {tuple(p) for batch in requested for p in batch}
+    assert seen == set(map(tuple, train))
+    per_view = np.bincount(train[:, 0], minlength=btf.n_views)
+    assert len(requested) == int(np.ceil(per_view / 4).sum())

@@ -19,6 +19,13 @@ per step (measured: held-out PSNR equal to 0.01 dB over 800 steps) but cost
 decoder see many more directions per step, which makes each sample count more
 (``benchmarks/bench_training.py`` measures both).
 
+**View-coherent batches.** A representation whose positional fetch depends on the
+view (``view_coherent_batches = True``, e.g. the parallax Triple Plane) gets every
+group's ``B`` pairs from **one view**: per epoch (and per pass ``k`` of the groups),
+each view's training pairs in a random order are cut into blocks of ``B`` (the last
+block wrapped round to ``B``), and the blocks are visited in a random order; an
+epoch then has ``sum over views of ceil(pairs of the view / B)`` steps.
+
 Any :class:`~dynbtf.representations.base.Representation` with parameters trains
 with :func:`fit`. The loop uses, when the representation provides them:
 
