@@ -318,6 +318,8 @@ class ParallaxTriplePlane(TriplePlane):
                 denominator = (1.0 - along / (2 * eps)).clamp_min(0.25)
             dz = (fetch_wrap(height, points)[:, 0] - z) / denominator
             points = points + dz[:, None] * slope
+        # the height learns both as geometry (the visible point) and as a decoder input; learning it as
+        # geometry alone (detached here) measured worse on the stone: 30.14 vs 30.23 dB, height RMSE 0.25 vs 0.16
         return fetch_wrap(self.positional_plane(), points)
 
     def predict_texel_images(self, w_view: torch.Tensor, w_light: torch.Tensor,
