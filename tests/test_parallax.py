@@ -98,6 +98,14 @@ def test_stereo_recovers_the_simulated_height(stone):
     assert correlation > 0.75 and rmse < 0.6 * spread, (correlation, rmse, spread)
     with pytest.raises(InputError, match="levels"):
         stereo_height(stone, levels=2)
+    with pytest.raises(InputError, match="min_contrast"):
+        stereo_height(stone, min_contrast=1.0)
+
+
+def test_stereo_finds_no_relief_on_a_flat_btf():
+    """relief=0: the views agree best on the reference plane; no texel may be given relief."""
+    flat = open_btf("sim:stone?size=32&relief=0")
+    assert float(stereo_height(flat).abs().max()) * 32 < 0.05
     with pytest.raises(InputError, match="window"):
         stereo_height(stone, window=2)
 
