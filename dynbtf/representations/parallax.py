@@ -36,6 +36,7 @@ from typing import Any, Callable
 import torch
 from torch import nn
 
+from ..conventions import texel_centers_uv
 from ..errors import InputError
 from ..texture import fetch_wrap
 from .base import register
@@ -267,9 +268,7 @@ class ParallaxTriplePlane(TriplePlane):
         entry = self._visible_cache.get(key)
         if entry is None:
             h, w = self.height_channel.shape
-            rows, cols = torch.meshgrid((torch.arange(h, dtype=torch.float64) + 0.5) / h,
-                                        (torch.arange(w, dtype=torch.float64) + 0.5) / w, indexing="ij")
-            centres = torch.stack([cols.reshape(-1), rows.reshape(-1)], dim=-1).to(self.height_channel.device)
+            centres = torch.from_numpy(texel_centers_uv(h, w).reshape(-1, 2)).to(self.height_channel.device)
             marched = self.marched_height_channel[..., None]
             with torch.no_grad():
                 hit = self.visible_uv(centres, w_view.reshape(1, 3).expand(len(centres), 3), marched)
