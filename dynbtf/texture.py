@@ -32,14 +32,12 @@ def wrap_uv(uv: torch.Tensor) -> torch.Tensor:
     return torch.where(frac >= 1.0, frac - 1.0, frac)
 
 
-def _grid_sample_hwc(padded_chw: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """Sample a padded ``(C, Hp, Wp)`` plane at padded-texel coordinates ``x, y`` (N,)."""
-    c, hp, wp = padded_chw.shape
-    gx = x * (2.0 / (wp - 1)) - 1.0
-    gy = y * (2.0 / (hp - 1)) - 1.0
-    grid = torch.stack([gx, gy], dim=-1).to(padded_chw.dtype).view(1, 1, -1, 2)
-    out = F.grid_sample(padded_chw[None], grid, mode="bilinear", padding_mode="border", align_corners=True)
-    return out[0, :, 0, :].transpose(0, 1)  # (N, C)
+def _grid_sample_hwc(padded: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Sample ``B`` padded planes ``(B, C, Hp, Wp)`` at padded-texel coordinates ``x, y (B, N)`` -> ``(B, N, C)``."""
+    hp, wp = padded.shape[-2:]
+    grid = torch.stack([x * (2.0 / (wp - 1)) - 1.0, y * (2.0 / (hp - 1)) - 1.0], dim=-1).to(padded.dtype)[:, None]
+    out = F.grid_sample(padded, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return out[:, :, 0, :].transpose(1, 2)
 
 
 def fetch_wrap(plane: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -77,9 +75,7 @@ def fetch_wrap_stack(planes: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     x = (frac[..., 0] * w + 0.5).to(planes.dtype)  # padded coordinate: texel j centre at j + 1
     y = (frac[..., 1] * h + 0.5).to(planes.dtype)
     padded = F.pad(planes.permute(0, 3, 1, 2), (1, 1, 1, 1), mode="circular")  # (B, C, H + 2, W + 2)
-    grid = torch.stack([x * (2.0 / (w + 1)) - 1.0, y * (2.0 / (h + 1)) - 1.0], dim=-1)[:, None]  # (B, 1, N, 2)
-    out = F.grid_sample(padded, grid, mode="bilinear", padding_mode="border", align_corners=True)
-    return out[:, :, 0, :].transpose(1, 2)  # (B, N, C)
+    return _grid_sample_hwc(padded, x, y)
 
 
 def fetch_angular(plane: torch.Tensor, st: torch.Tensor) -> torch.Tensor:
@@ -97,4 +93,4 @@ def fetch_angular(plane: torch.Tensor, st: torch.Tensor) -> torch.Tensor:
     chw = plane.permute(2, 0, 1)[None]
     padded = F.pad(chw, (1, 1, 0, 0), mode="circular")
     padded = F.pad(padded, (0, 0, 1, 1), mode="replicate")[0]
-    return _grid_sample_hwc(padded, x, y).reshape(*batch, c)
+    return _grid_sample_hwc(padded[None], x[None], y[None])[0].reshape(*batch, c)

@@ -42,10 +42,21 @@ from ..texture import fetch_wrap
 from .base import register
 from .triple_plane import TriplePlane
 
-__all__ = ["march_visible_uv", "ParallaxTriplePlane"]
+__all__ = ["view_offsets", "march_visible_uv", "ParallaxTriplePlane"]
 
 #: Default horizontal distance between two samples of a march, in texels of the height field.
 MARCH_STEP_TEXELS = 0.5
+
+
+def view_offsets(w_view: torch.Tensor, aspect: float = 1.0) -> torch.Tensor:
+    """Where a view sees a point, per unit of its height: ``(..., 2)`` uv displacement ``(w_x, w_y) / w_z``.
+
+    ``w_view (..., 3)`` unit directions (``z > 0``; ``z`` is clamped at 1e-6); heights are in u
+    units, so the v component is multiplied by ``aspect = W / H``. A point at height ``z`` is
+    seen through the reference-plane point ``x - z * view_offsets(w)``.
+    """
+    offsets = w_view[..., :2] / w_view[..., 2:3].clamp_min(1e-6)
+    return offsets * torch.tensor([1.0, aspect], dtype=offsets.dtype, device=offsets.device)
 
 
 def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor, height_at: Callable[[torch.Tensor], torch.Tensor], *,
@@ -100,8 +111,7 @@ def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor, height_at: Callable
                          f"{tuple(w_view.shape)}")
     if not h_max >= h_min or not step > 0:
         raise InputError(f"march_visible_uv: expected h_min <= h_max and step > 0, got {h_min}, {h_max}, {step}")
-    slope = w[:, :2] / w[:, 2:3].clamp_min(1e-6)
-    slope[:, 1] *= aspect
+    slope = view_offsets(w, aspect)
     depth = float(h_max - h_min)
     n_steps = (depth * slope.norm(dim=-1) / step).ceil().clamp_min(1).to(torch.int64)
     dz = depth / n_steps.to(torch.float64)
@@ -164,6 +174,8 @@ class ParallaxTriplePlane(TriplePlane):
     """
 
     extra_positional_channels = 1
+    #: The fit loop gives every texel group images of one view (see :mod:`dynbtf.training.fit`).
+    view_coherent_batches = True
 
     def __init__(self, height: int, width: int, positional_channels: int = 16, angular_resolution: int = 20,
                  angular_channels: int = 8, hidden: int = 32, layers: int = 4, negative_slope: float = 0.01,
@@ -243,9 +255,8 @@ class ParallaxTriplePlane(TriplePlane):
         w = torch.where(w[:, 2:3] > 0, w, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64, device=w.device))
         # the exemplar's range: a synthesized field (blends of the exemplar's) may leave it a little, where
         # the march lands on its bounds (a ray meeting heights above h_max is stopped at h_max)
-        h_min, h_max = self.height_range()
         if fetch is None:
-            fetch = self.positional_plane().detach()[..., -1:]
+            fetch = self.height_channel.detach()[..., None]
         if isinstance(fetch, torch.Tensor):  # a height plane (H, W, 1), channel units
             plane = fetch.to(torch.float64) * self.height_scale
             h_min, h_max = float(plane.min()), float(plane.max())
@@ -253,6 +264,8 @@ class ParallaxTriplePlane(TriplePlane):
             def height_at(points):
                 return fetch_wrap(plane, points)[:, 0]
         else:
+            h_min, h_max = self.height_range()
+
             def height_at(points):
                 return fetch(points)[..., -1].to(torch.float64) * self.height_scale
         rows, cols = self.height_channel.shape
@@ -306,9 +319,7 @@ class ParallaxTriplePlane(TriplePlane):
         if self.height_channel.requires_grad and torch.is_grad_enabled():
             z = torch.stack([t[1] for t in tables]).gather(1, texels).reshape(-1)
             rows, cols = self.height_channel.shape
-            slope = w_views[:, :2] / w_views[:, 2:3].clamp_min(1e-6) * \
-                torch.tensor([1.0, cols / rows], dtype=w_views.dtype, device=w_views.device)
-            slope = slope.to(points.dtype).repeat_interleave(texels.shape[1], 0)  # (G * n, 2)
+            slope = view_offsets(w_views, cols / rows).to(points.dtype).repeat_interleave(texels.shape[1], 0)
             height = self.height_field()[..., None]
             eps = 0.5 / max(rows, cols)
             with torch.no_grad():
@@ -369,8 +380,3 @@ class ParallaxTriplePlane(TriplePlane):
             groups.append({"params": [self.height_channel], "lr": 1e-3, "weight_decay": 0.0, "name": "height"})
         return groups
 
-    #: The fit loop gives every texel group images of one view (see :mod:`dynbtf.training.fit`).
-    view_coherent_batches = True
-
-    def config(self) -> dict[str, Any]:
-        return dict(self._config)

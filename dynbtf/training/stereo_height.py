@@ -35,21 +35,10 @@ import torch.nn.functional as F
 from ..conventions import texel_centers_uv
 from ..data.base import BTFSource
 from ..errors import InputError
+from ..representations.parallax import view_offsets
 from ..texture import fetch_wrap_stack
 
-__all__ = ["stereo_height", "reference_offsets"]
-
-
-def reference_offsets(views: np.ndarray, height: int, width: int) -> torch.Tensor:
-    """Per unit of height, where each view sees a point: ``(V, 2)`` float64 uv displacement.
-
-    ``views (V, 3)`` unit directions (``z > 0``); the displacement of a point at
-    height ``z`` is ``z * reference_offsets(...)`` (u and v axes, v scaled by ``W / H``).
-    """
-    views = np.asarray(views, dtype=np.float64)
-    slopes = views[:, :2] / np.maximum(views[:, 2:3], 1e-6)
-    slopes[:, 1] *= width / height
-    return torch.from_numpy(slopes)
+__all__ = ["stereo_height"]
 
 
 def stereo_height(source: BTFSource, *, max_light_theta: float = 15.0, levels: int = 65, max_height: float = 0.08,
@@ -103,7 +92,7 @@ def stereo_height(source: BTFSource, *, max_light_theta: float = 15.0, levels: i
     light_set = np.nonzero(lights[:, 2] >= math.cos(math.radians(max_light_theta)) - 1e-9)[0]
     if len(light_set) == 0:
         light_set = np.array([int(np.argmax(lights[:, 2]))])
-    offsets = reference_offsets(source.views, h, w)  # (V, 2)
+    offsets = view_offsets(torch.as_tensor(np.asarray(source.views), dtype=torch.float64), w / h)  # (V, 2)
     centres = torch.from_numpy(texel_centers_uv(h, w).reshape(-1, 2))  # (N, 2) float64
     heights = torch.linspace(-max_height, max_height, int(levels), dtype=torch.float64)
     cost = torch.zeros(int(levels), h * w, dtype=torch.float64)
