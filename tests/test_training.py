@@ -93,9 +93,9 @@ def test_held_out_pairs_are_never_trained_on(tmp_path, btf, monkeypatch):
     requested = []
     original = ImageStore.get
 
-    def spy(self, pairs, texels=None):
+    def spy(self, pairs, texels=None, **options):
         requested.extend(map(tuple, np.asarray(pairs)))
-        return original(self, pairs, texels)
+        return original(self, pairs, texels, **options)
 
     monkeypatch.setattr(ImageStore, "get", spy)
     fit_triple_plane(btf, tmp_path / "m.dbtfm", small_config(epochs=2, monitor_pairs=0), progress=False)
@@ -160,7 +160,7 @@ def test_texel_subsets_train_streamed_without_cache(tmp_path, btf, monkeypatch):
     """The large-BTF path: no image cache (every step decodes), random texel subsets."""
     monkeypatch.setattr(ImageStore, "fill", lambda *a, **k: pytest.fail("a streamed run must not pre-decode"))
     result = fit_triple_plane(btf, tmp_path / "m.dbtfm", small_config(epochs=3, texels_per_image=20,
-                                                                      memory_budget_mb=0), progress=False)
+                                                                      memory_budget_mb=0.01), progress=False)
     assert result.metadata["provenance"]["samples_per_epoch"] == 20 * 203
     assert np.isfinite(result.history[-1]["held_out_psnr"])
 
@@ -171,9 +171,9 @@ def test_texel_groups_cover_every_pair_per_pass_and_resume(tmp_path, btf, monkey
     calls = []
     original = ImageStore.get_blocks
 
-    def spy(self, pairs, starts, length):
+    def spy(self, pairs, starts, length, **options):
         calls.append((np.asarray(pairs).copy(), np.asarray(starts).copy(), length))
-        return original(self, pairs, starts, length)
+        return original(self, pairs, starts, length, **options)
 
     monkeypatch.setattr(ImageStore, "get_blocks", spy)
     config = small_config(epochs=2, texel_groups=4, images_per_step=8, monitor_pairs=0)

@@ -13,7 +13,7 @@ whose values exclude ``cos(theta_light)``.
 from __future__ import annotations
 
 import abc
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Iterator
 
 import numpy as np
@@ -117,6 +117,103 @@ class BTFSource(abc.ABC):
         v, l = self._check_pair(view_index, light_index)
         img = self._read_image(v, l)
         return img
+
+    def read_texels(self, pairs, texels, *, device=None):
+        """Some texels of some images, decoding no more than the format needs.
+
+        Parameters
+        ----------
+        pairs : int ``(B, 2)`` or ``(G, B, 2)``
+            (view index, light index) of each image; with a leading group axis,
+            group ``g``'s ``B`` images are read at group ``g``'s texels.
+        texels : int ``(N,)`` or ``(G, N)``
+            Flat texel indices ``row * width + col`` (row 0 at the top, as
+            :meth:`image`), per group when ``pairs`` has a group axis.
+        device : torch device or str, optional
+            Return a ``torch.Tensor`` on this device (sources that decode with a
+            matrix product, such as DFMF files, compute it there); by default a
+            NumPy array.
+
+        Returns
+        -------
+        float32 ``(B, N, 3)`` or ``(G, B, N, 3)``: ``out[g, b, j]`` is texel
+        ``texels[g, j]`` of image ``pairs[g, b]``, equal to
+        ``image(*pairs[g, b]).reshape(-1, 3)[texels[g, j]]``.
+
+        Formats that can answer without decoding whole images (DFMF factors,
+        stored memory maps, the simulator) override :meth:`_read_texels`; the
+        default decodes each distinct image once per call.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from dynbtf.data.array import ArrayBTF
+        >>> btf = ArrayBTF(np.arange(2 * 1 * 2 * 3 * 3, dtype=np.float32).reshape(2, 1, 2, 3, 3),
+        ...                [[0, 0, 1.0], [0.6, 0, 0.8]], [[0, 0, 1.0]])
+        >>> btf.read_texels([[1, 0]], [0, 5])[0, :, 0]
+        array([18., 33.], dtype=float32)
+        """
+        pairs, texels, grouped = self._check_texel_request(pairs, texels)
+        out = self._read_texels(pairs, texels, device)
+        if device is not None:
+            import torch
+
+            out = (out if isinstance(out, torch.Tensor) else torch.from_numpy(out)).to(device)
+        elif not isinstance(out, np.ndarray):
+            out = out.cpu().numpy()
+        return out if grouped else out[0]
+
+    def _check_texel_request(self, pairs, texels) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Validated ``pairs (G, B, 2)``, ``texels (G, N)`` int64 and whether a group axis was given."""
+        try:
+            pairs = np.asarray(pairs)
+            texels = np.asarray(texels)
+        except (TypeError, ValueError):
+            raise InputError("read_texels: pairs and texels must be integer arrays") from None
+        for what, a in (("pairs", pairs), ("texels", texels)):
+            if a.size and not np.issubdtype(a.dtype, np.integer):
+                raise InputError(f"read_texels: {what} must hold integers, got dtype {a.dtype}")
+        grouped = pairs.ndim == 3
+        if pairs.ndim not in (2, 3) or pairs.shape[-1] != 2:
+            raise InputError(f"read_texels: pairs must be (B, 2) or (G, B, 2) (view, light) indices, got shape "
+                             f"{pairs.shape}")
+        if texels.ndim != (2 if grouped else 1) or (grouped and texels.shape[0] != pairs.shape[0]):
+            raise InputError("read_texels: texels must be " + (f"({pairs.shape[0]}, N) to match pairs {pairs.shape}"
+                             if grouped else "(N,) flat indices") + f", got shape {texels.shape}")
+        pairs = pairs.astype(np.int64).reshape(-1, pairs.shape[-2], 2)
+        texels = texels.astype(np.int64).reshape(pairs.shape[0], -1)
+        n_texels = self.height * self.width
+        if texels.size and (texels.min() < 0 or texels.max() >= n_texels):
+            raise InputError(f"read_texels: texel indices must lie in [0, {n_texels}) for {self.name} "
+                             f"({self.height} x {self.width}), got {texels.min()}..{texels.max()}")
+        if pairs.size:
+            for axis, what, n in ((0, "view", self.n_views), (1, "light", self.n_lights)):
+                col = pairs[..., axis]
+                if col.min() < 0 or col.max() >= n:
+                    raise InputError(f"read_texels: {what} indices must lie in [0, {n}) for {self.name}, got "
+                                     f"{col.min()}..{col.max()}")
+        return pairs, texels, grouped
+
+    def _read_texels(self, pairs: np.ndarray, texels: np.ndarray, device=None):
+        """Answer a validated request: ``pairs (G, B, 2)``, ``texels (G, N)`` -> ``(G, B, N, 3)`` float32.
+
+        Default: decode each distinct image once and gather its texels (memory: one
+        image at a time). May return a NumPy array or a torch tensor (on ``device``,
+        where the source computes; the caller moves it there otherwise).
+        """
+        out = np.empty(pairs.shape[:2] + (texels.shape[1], 3), dtype=np.float32)
+        rows = pairs[..., 0] * self.n_lights + pairs[..., 1]
+        order = np.argsort(rows, axis=None, kind="stable")  # view-major: sources decoding per view stay warm
+        flat_rows = rows.reshape(-1)[order]
+        starts = np.flatnonzero(np.r_[True, flat_rows[1:] != flat_rows[:-1]])
+        for a, z in zip(starts, np.r_[starts[1:], len(order)]):
+            row = int(flat_rows[a])
+            image = np.asarray(self._read_image(row // self.n_lights, row % self.n_lights),
+                               dtype=np.float32).reshape(-1, 3)
+            for k in order[a:z]:
+                g, b = divmod(int(k), pairs.shape[1])
+                out[g, b] = image[texels[g]]
+        return out
 
     def pairs(self) -> Iterator[tuple[int, int]]:
         """All (view index, light index) pairs, view-major (row = view * n_lights + light)."""

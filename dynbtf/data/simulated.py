@@ -127,6 +127,16 @@ class SimulatedBTF(BTFSource):
         out = self.renderer.render(self.views[v], self.lights[lights.reshape(-1)])
         return out.cpu().numpy()
 
+    def _read_texels(self, pairs: np.ndarray, texels: np.ndarray, device=None) -> np.ndarray:
+        """Shades only the requested texels: per group and view, one render of its lights at the group's texels."""
+        out = np.empty(pairs.shape[:2] + (texels.shape[1], 3), dtype=np.float32)
+        for g in range(pairs.shape[0]):
+            for v in np.unique(pairs[g, :, 0]):
+                which = np.flatnonzero(pairs[g, :, 0] == v)
+                values = self.renderer.render(self.views[v], self.lights[pairs[g, which, 1]], texels[g])
+                out[g, which] = values.cpu().numpy()
+        return out
+
     def _read_image(self, view_index: int, light_index: int) -> np.ndarray:
         chunk_start = (light_index // self.chunk) * self.chunk
         key = (view_index, chunk_start)

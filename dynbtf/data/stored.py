@@ -361,6 +361,23 @@ class StoredBTF(BTFSource):
             raise FormatError(self.path, f"image (view {v}, light {bad}) contains NaN or infinite values")
         return images
 
+    def _read_texels(self, pairs: np.ndarray, texels: np.ndarray, device=None) -> np.ndarray:
+        """Only the requested texels are read from the memory map (contiguous runs: sequential reads)."""
+        if self._values is None:
+            raise InputError(f"{self.path}: the stored BTF was closed")
+        flat = self._values.reshape(self.n_views, self.n_lights, self.height * self.width, 3)
+        out = np.empty(pairs.shape[:2] + (texels.shape[1], 3), dtype=np.float32)
+        for g in range(pairs.shape[0]):
+            lo, hi = int(texels[g].min(initial=0)), int(texels[g].max(initial=-1)) + 1
+            dense = hi - lo <= 2 * texels.shape[1]  # a block (or nearly): read the span, then select
+            for b, (v, l) in enumerate(pairs[g]):
+                out[g, b] = flat[v, l, lo:hi][texels[g] - lo] if dense else flat[v, l][texels[g]]
+        if not np.isfinite(out).all():
+            g, b = np.argwhere(~np.isfinite(out).reshape(*out.shape[:2], -1).all(axis=2))[0]
+            raise FormatError(self.path, f"image (view {pairs[g, b, 0]}, light {pairs[g, b, 1]}) contains NaN or "
+                                         f"infinite values")
+        return out
+
     def close(self) -> None:
         self._values = None
 

@@ -366,6 +366,7 @@ class UBO2014BTF(BTFSource):
         cache_bytes = sum(m.size * np.dtype(t).itemsize for m, t in zip(self._sxv, self._compute))
         self._cache_sxv = cache_bytes <= factor_cache_bytes
         self._sxv_cached: list[np.ndarray] | None = None
+        self._texel_factor_cache: dict = {}
         self.metadata = {
             "format": "ubo2014-dfmf",
             "path": str(self.path),
@@ -393,7 +394,7 @@ class UBO2014BTF(BTFSource):
                                                      f"values (rows {a}..{min(a + step, len(m)) - 1})")
 
     def close(self) -> None:
-        self._u, self._sxv, self._sxv_cached = [], [], None
+        self._u, self._sxv, self._sxv_cached, self._texel_factor_cache = [], [], None, {}
 
     def _sxv_blocks(self, c: int):
         """``(start, block)`` pieces of channel ``c``'s SxV in the compute dtype."""
@@ -432,6 +433,84 @@ class UBO2014BTF(BTFSource):
     def _read_image(self, view_index: int, light_index: int) -> np.ndarray:
         return self._decode_rows(np.array([view_index * self.n_lights + light_index]))[0]
 
+    def _texel_factors(self, device):
+        """Per channel, ``SxV`` with rows in dynbtf's texel order (row 0 at the top) as torch tensors on
+        ``device`` in the compute dtype, when the cache is enabled (else None). Built once per device."""
+        if not self._cache_sxv:
+            return None
+        import torch
+
+        key = str(device)
+        if key not in self._texel_factor_cache:
+            h, w = self.height, self.width
+            ours = []
+            for m, t in zip(self._sxv, self._compute):
+                flipped = np.asarray(m, dtype=t).reshape(h, w, -1)[::-1].reshape(h * w, -1)
+                ours.append(torch.from_numpy(np.ascontiguousarray(flipped)).to(device))
+            self._texel_factor_cache[key] = ours
+        return self._texel_factor_cache[key]
+
+    def _file_texels(self, texels: np.ndarray) -> np.ndarray:
+        """dynbtf flat texel indices -> the file's (rows stored bottom-up)."""
+        row, col = np.divmod(texels, self.width)
+        return (self.height - 1 - row) * self.width + col
+
+    def _read_texels(self, pairs: np.ndarray, texels: np.ndarray, device=None):
+        """Texels of images from the factors: per channel ``U[pair rows] @ SxV[texels].T`` (no whole images).
+
+        Runs in torch on ``device`` (default CPU): the matrix product is the whole cost, so on CUDA it runs
+        there. Texel runs that are contiguous (blocks) are read as slices of the factor cache.
+        """
+        import torch
+
+        if not self._u:
+            raise InputError(f"{self.path}: the file was closed")
+        device = torch.device("cpu") if device is None else torch.device(device)
+        groups, b = pairs.shape[:2]
+        n = texels.shape[1]
+        rows = (pairs[..., 0] * self.n_lights + pairs[..., 1]).reshape(-1)
+        factors = self._texel_factors(device)
+        channels = []
+        for c, u in enumerate(self._u):
+            coeff = torch.from_numpy(np.asarray(u[rows], dtype=self._compute[c])).to(device)
+            coeff = coeff.reshape(groups, b, -1)
+            values = torch.empty((groups, b, n), dtype=coeff.dtype, device=device)
+            for g in range(groups):
+                for lo, hi, block in self._factor_pieces(c, factors, texels[g], device):
+                    torch.matmul(coeff[g], block.T, out=values[g, :, lo:hi])
+            channels.append(values)
+        out = torch.stack(channels, dim=-1)
+        if self.header.colour_model == 11:
+            out = _log_yuv_to_rgb(out)
+        if self.header.cosine_flag:
+            cos_l = np.maximum(self.lights[pairs[..., 1], 2], _MIN_COS_LIGHT)
+            out = out / torch.as_tensor(cos_l, dtype=out.dtype, device=device)[..., None, None]
+        out = out.to(torch.float32)
+        if not bool(torch.isfinite(out).all()):
+            raise FormatError(self.path, "decoded values are not finite (overflow in the stored factors)")
+        return out
+
+    def _factor_pieces(self, c: int, factors, texels: np.ndarray, device):
+        """``(lo, hi, SxV rows)`` pieces covering ``texels`` (positions ``lo:hi`` of the request): slices of the
+        cache for contiguous runs, else gathered rows; bounded chunks from the file when nothing is cached."""
+        import torch
+
+        n = len(texels)
+        if factors is not None:
+            sxv = factors[c]
+            cuts = np.flatnonzero(np.diff(texels) != 1) + 1
+            if len(cuts) <= 2:  # one block, or one wrapping round the end of the image: slices, no copy
+                for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, n]):
+                    yield int(lo), int(hi), sxv[int(texels[lo]):int(texels[lo]) + int(hi - lo)]
+                return
+            yield 0, n, sxv.index_select(0, torch.from_numpy(texels).to(device))
+            return
+        step = max(1, _CHUNK_BYTES // max(1, self._sxv[c].shape[1] * 4))
+        for lo in range(0, n, step):
+            file_rows = self._file_texels(texels[lo:lo + step])
+            block = np.asarray(self._sxv[c][file_rows], dtype=self._compute[c])
+            yield lo, lo + len(file_rows), torch.from_numpy(block).to(device)
+
     def view_images(self, view_index: int, light_indices=None) -> np.ndarray:
         """Images of one view for several lights, ``(L, H, W, 3)`` float32 (default all lights).
 
@@ -445,8 +524,19 @@ class UBO2014BTF(BTFSource):
         return self._decode_rows(v * self.n_lights + lights)
 
 
-def _log_yuv_to_rgb(c: np.ndarray) -> np.ndarray:
-    """Colour model 11: log-YUV channel values ``(..., 3)`` -> RGB clamped to ``[0, 1]``."""
+def _log_yuv_to_rgb(c):
+    """Colour model 11: log-YUV channel values ``(..., 3)`` -> RGB clamped to ``[0, 1]``.
+
+    ``c`` is a NumPy array (returns float32) or a torch tensor (returns its dtype, on its device).
+    """
+    if not isinstance(c, np.ndarray):
+        import torch
+
+        y = torch.exp(c[..., 0]) - _DRR_EPS
+        u = c[..., 1] * y + _DRR_EPS
+        v = c[..., 2] * y + _DRR_EPS
+        rgb = torch.stack([y + 1.13983 * v, y - 0.39465 * u - 0.5806 * v, y + 2.03211 * u], dim=-1)
+        return rgb.clamp(0.0, 1.0)  # NaN stays NaN, caught by the caller's finite check
     with np.errstate(over="ignore", invalid="ignore"):
         y = np.exp(c[..., 0]) - _DRR_EPS
         u = c[..., 1] * y + _DRR_EPS

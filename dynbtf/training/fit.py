@@ -59,7 +59,6 @@ uninterrupted run (same ``workers``, same machine).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import signal
 import threading
@@ -75,19 +74,17 @@ import torch
 from ..conventions import texel_centers_uv
 from ..data.base import BTFSource
 from ..device import resolve_device
-from ..errors import FormatError, InputError
-from ..io import atomic_path
-from ..metrics import psnr
+from ..errors import InputError
 from ..representations.base import Representation
 from ..representations.model_file import model_size_report, save_model
 from .fused_mlp import resolve_precision, single_intra_op_thread
+from .batches import BatchSampler
+from .checkpoint import Checkpointer, checkpoint_path
 from .images import ImageStore, held_out_split
+from .monitor import HeldOutMonitor
 
 __all__ = ["TrainConfig", "FitResult", "fit", "checkpoint_path", "texel_image_loss", "predict_images",
            "training_provenance"]
-
-CHECKPOINT_VERSION = 1
-
 
 @dataclass
 class TrainConfig:
@@ -190,12 +187,6 @@ class FitResult:
     finished: bool = True
 
 
-def checkpoint_path(model_path) -> Path:
-    """The checkpoint written next to a model file: ``<model_path>.ckpt``."""
-    model_path = Path(model_path)
-    return model_path.with_name(model_path.name + ".ckpt")
-
-
 # ---------------------------------------------------------------------------- predictions and loss
 def _texel_uv(size: tuple[int, int], texels: torch.Tensor | None, device, dtype) -> torch.Tensor:
     """Texel-centre uv ``(N, 2)`` of an ``(H, W)`` image, optionally at flat ``texels`` only."""
@@ -294,46 +285,6 @@ def training_provenance(source: BTFSource, held_out: np.ndarray, **extra) -> dic
     }
 
 
-def _psnr_of_pairs(rep, store: ImageStore, source: BTFSource, pairs: np.ndarray, device) -> float:
-    """Mean over the given pairs of each image's PSNR (linear, peak 1), as ``dynbtf eval`` averages it.
-
-    (A PSNR of the pooled error would be dominated by the few pairs with bright highlights --
-    a glossy material's mirror configuration reaches values of 50 -- and read as negative dB.)
-    """
-    if len(pairs) == 0:
-        return float("nan")
-    values = []
-    size = (source.height, source.width)
-    with torch.no_grad():
-        for k in range(0, len(pairs), 8):
-            chunk = pairs[k:k + 8]
-            target = torch.from_numpy(store.get(chunk)).to(device)
-            wv = torch.as_tensor(source.views[chunk[:, 0]], dtype=torch.float32, device=device)
-            wl = torch.as_tensor(source.lights[chunk[:, 1]], dtype=torch.float32, device=device)
-            pred = predict_images(rep, wv, wl, size).float()
-            values += [psnr(t.reshape(*size, -1).cpu().numpy(), p.reshape(*size, -1).cpu().numpy())
-                       for t, p in zip(target, pred)]
-    return float(np.mean(values))
-
-
-# ---------------------------------------------------------------------------- checkpoints
-def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
-
-
-def _load_checkpoint(path: Path) -> dict[str, Any]:
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # truncated zip, unpickling refused, ...
-        raise FormatError(path, f"damaged checkpoint ({e}); delete it to start over") from None
-    if not isinstance(state, dict) or state.get("format") != "dynbtf-checkpoint":
-        raise FormatError(path, "not a dynbtf checkpoint; delete it to start over")
-    if state.get("version", 0) > CHECKPOINT_VERSION:
-        raise FormatError(path, f"checkpoint version {state.get('version')} is newer than this dynbtf supports")
-    return state
-
-
 def _fingerprint(rep: Representation, source: BTFSource, config: TrainConfig) -> dict[str, Any]:
     return {"kind": rep.kind, "config": rep.config(), "source": [source.name, *source.shape],
             **{name: getattr(config, name) for name in TrainConfig.RESULT_FIELDS}}
@@ -361,11 +312,27 @@ class _InterruptFlag:
             signal.signal(signal.SIGINT, self._previous)
 
 
+def _check_memory(config: TrainConfig, sampler: BatchSampler, store: ImageStore) -> None:
+    """A streamed BTF needs two steps' targets (the one trained on and the one prefetched) in the budget."""
+    if store.cached:
+        return
+    step_bytes = 2 * sampler.b * sampler.texels_per_step * 3 * 4
+    if step_bytes > config.memory_budget_mb * 1024 ** 2:
+        raise InputError(f"--memory-mb {config.memory_budget_mb:g} is too small for one training step of this BTF: "
+                         f"{sampler.b} images x {sampler.texels_per_step} texels need at least "
+                         f"{math.ceil(step_bytes / 1024 ** 2)} MB (or use --texels-per-image)")
+
+
 # ---------------------------------------------------------------------------- the loop
 def fit(representation: Representation, source: BTFSource, config: TrainConfig | None = None,
         output=None, *, progress: bool = True, callback: Callable[[dict[str, Any]], None] | None = None,
         extra_provenance: dict[str, Any] | None = None) -> FitResult:
     """Train ``representation`` on ``source``; write the model file ``output`` (and its checkpoint).
+
+    The loop composes a :class:`~dynbtf.training.batches.BatchSampler` (which pairs and
+    texels each step sees, prefetched on a background thread), a
+    :class:`~dynbtf.training.checkpoint.Checkpointer` and a
+    :class:`~dynbtf.training.monitor.HeldOutMonitor`.
 
     Parameters
     ----------
@@ -373,7 +340,8 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
         A freshly constructed model of the BTF's size (its initial values are
         replaced by the checkpoint's when resuming).
     source : BTFSource
-        The BTF (images are decoded per step, cached in RAM within the budget).
+        The BTF. Cached in RAM as float16 when it fits ``memory_budget_mb``; otherwise every step's
+        texels are read straight from the source (:meth:`~dynbtf.data.base.BTFSource.read_texels`).
     config : TrainConfig
         Options; see :class:`TrainConfig`.
     output : str or Path
@@ -408,99 +376,34 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     # CPU: cache-sized chunks over worker threads; GPU: one chunk, one launch sequence
     workers = int(config.workers or torch.get_num_threads()) if device.type == "cpu" else 1
     train_pairs, held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction, config.seed)
-    b = config.images_per_step
-    steps_per_epoch = math.ceil(len(train_pairs) / b)
-    n_texels = source.height * source.width
-    texels_per_image = min(config.texels_per_image or n_texels, n_texels)
-    n_groups = config.texel_groups
-    if n_groups > 1 and (b * n_groups > len(train_pairs) or n_groups > texels_per_image):
-        raise InputError(f"texel_groups={n_groups} x images_per_step={b} needs at least {b * n_groups} training "
-                         f"pairs and {n_groups} texels per step; the BTF has {len(train_pairs)} pairs and "
-                         f"{texels_per_image} texels per step")
-    texels_per_step = texels_per_image - texels_per_image % n_groups  # equal groups
-    chunk_texels = config.chunk_texels if device.type == "cpu" else texels_per_image
+    store = ImageStore(source, int(config.memory_budget_mb * 1024 ** 2))
+    sampler = BatchSampler(store, train_pairs, images_per_step=config.images_per_step,
+                           texel_groups=config.texel_groups, texels_per_image=config.texels_per_image,
+                           seed=config.seed, view_coherent=bool(getattr(rep, "view_coherent_batches", False)),
+                           device=device)
+    _check_memory(config, sampler, store)
+    steps_per_epoch, n_groups = sampler.steps_per_epoch, sampler.n_groups
+    chunk_texels = config.chunk_texels if device.type == "cpu" else sampler.texels_per_image
     precision = resolve_precision(config.precision if hasattr(rep, "texel_image_l1_loss") or config.precision == "bf16"
                                   else "fp32", device)
     groups = _param_groups(rep, config.lr_scale)
     # fused: one kernel per step for all parameters (same update; ~0.2 ms less per step on the CPU)
     optimizer = torch.optim.AdamW(groups, fused=True)
-    store = ImageStore(source, int(config.memory_budget_mb * 1024 ** 2))
-    views = torch.as_tensor(source.views, dtype=torch.float32, device=device)
-    lights = torch.as_tensor(source.lights, dtype=torch.float32, device=device)
-    monitor = held_out[np.linspace(0, len(held_out) - 1, min(config.monitor_pairs, len(held_out))).astype(int)] \
-        if len(held_out) else held_out
+    monitor = HeldOutMonitor(store, held_out, config.monitor_pairs, config.seed, device)
 
-    ckpt_path = checkpoint_path(output)
-    fingerprint = _fingerprint(rep, source, config)
+    checkpointer = Checkpointer(checkpoint_path(output), _fingerprint(rep, source, config))
     epoch, step, elapsed, history = 0, 0, 0.0, []
-    if ckpt_path.exists():
-        state = _load_checkpoint(ckpt_path)
-        if state["fingerprint"] != fingerprint:
-            diff = [k for k in fingerprint if state["fingerprint"].get(k) != fingerprint[k]]
-            raise InputError(f"{ckpt_path}: checkpoint belongs to a different training run (differs in {diff}); "
-                             "delete it or choose another output to start over")
+    if checkpointer.exists():
+        state = checkpointer.load()
         rep.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         epoch, step, elapsed = int(state["epoch"]), int(state["step"]), float(state["elapsed_seconds"])
         history = list(state["history"])
 
     def checkpoint() -> None:
-        _save_checkpoint(ckpt_path, {
-            "format": "dynbtf-checkpoint", "version": CHECKPOINT_VERSION, "fingerprint": fingerprint,
-            "model": rep.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch, "step": step,
-            "elapsed_seconds": elapsed, "history": history, "held_out_pairs": torch.from_numpy(held_out)})
-
-    view_coherent = bool(getattr(rep, "view_coherent_batches", False))
-    if view_coherent:
-        # every group's B pairs share one view: per epoch (and pass k), each view's training pairs in a
-        # random order, cut into blocks of B (the last one wrapped round to B), blocks in a random order
-        views_of_pairs = [np.flatnonzero(train_pairs[:, 0] == v) for v in np.unique(train_pairs[:, 0])]
-        steps_per_epoch = sum(math.ceil(len(p) / b) for p in views_of_pairs)
-
-    @functools.lru_cache(maxsize=2)
-    def view_blocks(e: int) -> np.ndarray:
-        """Pair indices ``(G * blocks, B)``: ``G`` concatenated block orders of epoch ``e``, one view per block."""
-        passes = []
-        for k in range(n_groups):
-            rng = np.random.default_rng([config.seed, 1, e] + ([k] if k else []))
-            blocks = np.concatenate([np.resize(p[rng.permutation(len(p))], (math.ceil(len(p) / b), b))
-                                     for p in views_of_pairs])
-            passes.append(blocks[rng.permutation(len(blocks))])
-        return np.concatenate(passes)
-
-    @functools.lru_cache(maxsize=2)
-    def epoch_order(e: int) -> np.ndarray:
-        """Pair order of epoch ``e`` with texel groups: ``G`` concatenated permutations."""
-        return np.concatenate([np.random.default_rng([config.seed, 1, e] + ([k] if k else [])).permutation(
-            len(train_pairs)) for k in range(n_groups)])
-
-    def batch_for(e: int, s: int):
-        """Pairs ``(G * B', 2)`` (group-major), texels (group-major, sorted per group) or None, and
-        the target ``(B', N, 3)``."""
-        if n_groups == 1:
-            if view_coherent:
-                pairs = train_pairs[view_blocks(e)[s]]
-            else:
-                order = np.random.default_rng([config.seed, 1, e]).permutation(len(train_pairs))
-                pairs = train_pairs[order[s * b:(s + 1) * b]]
-            texels = None
-            if texels_per_image < n_texels:
-                texels = np.sort(np.random.default_rng([config.seed, 2, e, s]).choice(n_texels, texels_per_image,
-                                                                                       replace=False))
-            return pairs, texels, store.get(pairs, texels)
-        # G passes over the pairs per epoch, B pairs per group, wrapped to whole steps; group g takes the
-        # g-th block of consecutive texels after a random start (contiguous reads: cheap to gather)
-        if view_coherent:
-            pairs = train_pairs[view_blocks(e)[s * n_groups:(s + 1) * n_groups].reshape(-1)]
-        else:
-            order = epoch_order(e)
-            picks = np.arange(s * b * n_groups, (s + 1) * b * n_groups) % len(order)
-            pairs = train_pairs[order[picks]]
-        n = texels_per_step // n_groups
-        starts = (int(np.random.default_rng([config.seed, 2, e, s]).integers(n_texels))
-                  + n * np.arange(n_groups)) % n_texels
-        texels = ((starts[:, None] + np.arange(n)[None, :]) % n_texels).reshape(-1)
-        return pairs, texels, store.get_blocks(pairs.reshape(n_groups, b, 2), starts, n)
+        checkpointer.save({"model": rep.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch,
+                           "step": step, "elapsed_seconds": elapsed, "history": history,
+                           "held_out_pairs": torch.from_numpy(held_out)})
 
     total_steps = config.epochs * steps_per_epoch
     done_steps = min(epoch * steps_per_epoch + step, total_steps)
@@ -511,12 +414,10 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
         bar.write(f"{size_info['summary']}; {len(train_pairs)} training pairs, {len(held_out)} held out; "
                   f"{steps_per_epoch} steps/epoch x {config.epochs} epochs, {workers} worker thread(s), "
                   f"{precision} arithmetic" +
+                  ("" if store.cached else "; texels read straight from the BTF (larger than the image cache)") +
                   (f" (resuming at epoch {epoch}, step {step})" if done_steps else ""))
-    if progress and n_groups > 1 and not store.cached:
-        bar.write(f"note: the BTF does not fit the image cache; with {n_groups} texel groups every step decodes "
-                  f"{n_groups * b} images (use --texel-groups 1 or a larger --memory-mb)")
     if epoch < config.epochs and store.cached:
-        store.fill(np.concatenate([train_pairs, monitor]), progress=progress)
+        store.fill(np.concatenate([train_pairs, monitor.pairs]), progress=progress)
     run_start = time.perf_counter()
     budget = None if config.max_minutes is None else config.max_minutes * 60.0
     finished = epoch >= config.epochs
@@ -527,19 +428,20 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     # ``workers`` Python threads instead: OpenMP barriers stall badly on a shared, oversubscribed machine.
     try:
         with _InterruptFlag() as interrupt, single_intra_op_thread(device.type == "cpu"):
-            pending = prefetch.submit(batch_for, epoch, step) if not finished else None
+            pending = prefetch.submit(sampler.batch, epoch, step) if not finished else None
             while not finished:
                 for g in optimizer.param_groups:
                     g["lr"] = g["initial_lr"] * config.lr_decay ** epoch
                 t0 = time.perf_counter()
-                pairs, texels, target = pending.result()
+                batch = pending.result()
                 nxt = (epoch, step + 1) if step + 1 < steps_per_epoch else (epoch + 1, 0)
-                pending = prefetch.submit(batch_for, *nxt) if nxt[0] < config.epochs else None
+                pending = prefetch.submit(sampler.batch, *nxt) if nxt[0] < config.epochs else None
                 consistent = False
-                wv, wl = views[pairs[:, 0]], lights[pairs[:, 1]]
-                texel_t = None if texels is None else torch.from_numpy(texels).to(device)
-                loss = texel_image_loss(rep, wv, wl, torch.from_numpy(target).to(device), (source.height, source.width),
-                                        texel_t, chunk_texels=chunk_texels, workers=workers, texel_groups=n_groups,
+                wv = torch.as_tensor(source.views[batch.pairs[:, 0]], dtype=torch.float32, device=device)
+                wl = torch.as_tensor(source.lights[batch.pairs[:, 1]], dtype=torch.float32, device=device)
+                texel_t = None if batch.texels is None else torch.from_numpy(batch.texels).to(device)
+                loss = texel_image_loss(rep, wv, wl, batch.target, (source.height, source.width), texel_t,
+                                        chunk_texels=chunk_texels, workers=workers, texel_groups=n_groups,
                                         precision=precision)
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
@@ -551,15 +453,14 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
                 loss_value = float(loss.detach())
                 done_steps += 1
                 bar.update(1)
-                bar.set_postfix(loss=f"{loss_value:.4f}", samples_s=f"{target.size // 3 / dt:.3g}",
+                bar.set_postfix(loss=f"{loss_value:.4f}", samples_s=f"{batch.samples / dt:.3g}",
                                 **({"heldout_psnr": f"{history[-1]['held_out_psnr']:.2f}"} if history else {}))
                 info = {"epoch": epoch if step else epoch - 1, "step": step or steps_per_epoch,
                         "global_step": done_steps, "loss": loss_value, "step_seconds": dt,
-                        "samples": target.size // 3}
+                        "samples": batch.samples}
                 if step == 0:  # an epoch ended
-                    monitor_psnr = _psnr_of_pairs(rep, store, source, monitor, device)
-                    history.append({"epoch": epoch, "loss": loss_value, "held_out_psnr": monitor_psnr,
-                                    "elapsed_seconds": elapsed})
+                    history.append({"epoch": epoch, "loss": loss_value,
+                                    "held_out_psnr": monitor.score(rep, predict_images), "elapsed_seconds": elapsed})
                     finished = epoch >= config.epochs
                 if step == 0 or done_steps - last_checkpoint_step >= config.checkpoint_every:
                     checkpoint()
@@ -588,7 +489,7 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
         source, held_out, seed=config.seed,
         training=dataclasses.asdict(config) | {"workers": workers, "precision_used": precision},
         epochs_completed=completed_epochs, finished=finished, training_seconds=elapsed, history=history,
-        samples_per_epoch=len(train_pairs) * texels_per_step, size=size_info, **(extra_provenance or {}))
+        samples_per_epoch=sampler.samples_per_epoch, size=size_info, **(extra_provenance or {}))
     if history:
         provenance["held_out_psnr_monitor"] = history[-1]["held_out_psnr"]
     save_model(output, rep, provenance)

@@ -117,13 +117,14 @@ class ImageStore:
                         dynamic_ncols=True, leave=False):
             self.image(int(row) // self.source.n_lights, int(row) % self.source.n_lights)
 
-    def get_blocks(self, pairs: np.ndarray, starts: np.ndarray, length: int) -> np.ndarray:
+    def get_blocks(self, pairs: np.ndarray, starts: np.ndarray, length: int, *, device=None):
         """Blocks of consecutive texels of different images, side by side: float32 ``(B, G * length, 3)``.
 
         Block ``g`` holds the flat texels ``starts[g], starts[g] + 1, ..., starts[g] + length - 1``
         (modulo ``H * W``) of the ``B`` images ``pairs[g]`` (int ``(G, B, 2)``): ``out[b, g * length + j]``
-        is texel ``(starts[g] + j) mod (H * W)`` of image ``pairs[g, b]``. Contiguous reads, unlike
-        :meth:`get` with scattered texels, so a whole step's batch costs one pass over its bytes.
+        is texel ``(starts[g] + j) mod (H * W)`` of image ``pairs[g, b]``. Contiguous reads from the
+        cache; an uncached BTF answers with :meth:`~dynbtf.data.base.BTFSource.read_texels` (a DFMF file
+        computes just these texels from its factors). A NumPy array, or a tensor on ``device`` if given.
         """
         pairs = np.asarray(pairs, dtype=np.int64)
         starts = np.asarray(starts, dtype=np.int64)
@@ -133,37 +134,56 @@ class ImageStore:
         if not 1 <= length <= self.n_texels:
             raise InputError(f"get_blocks: length {length} must be in [1, {self.n_texels}]")
         groups, b = pairs.shape[:2]
+        if not self._all_cached(pairs):
+            texels = (starts[:, None] + np.arange(length)[None, :]) % self.n_texels
+            out = self.source.read_texels(pairs, texels, device=device)  # (G, B, n, 3)
+            return out.transpose(0, 1).reshape(b, groups * length, 3) if device is not None else \
+                np.ascontiguousarray(out.transpose(1, 0, 2, 3)).reshape(b, groups * length, 3)
         out = np.empty((b, groups * length, 3), dtype=np.float32)
         for g in range(groups):
+            rows = pairs[g, :, 0] * self.source.n_lights + pairs[g, :, 1]
             a = int(starts[g]) % self.n_texels
             pieces = [(a, min(a + length, self.n_texels))]
             if a + length > self.n_texels:  # wraps around the end of the image
                 pieces.append((0, a + length - self.n_texels))
             offset = g * length
             for lo, hi in pieces:
-                out[:, offset:offset + hi - lo] = self._rows(pairs[g], lo, hi)
+                out[:, offset:offset + hi - lo] = self._cache[rows, lo:hi]
                 offset += hi - lo
-        return out
+        return _on(out, device)
 
-    def _rows(self, pairs: np.ndarray, lo: int, hi: int) -> np.ndarray:
-        """Flat texels ``[lo, hi)`` of the images ``pairs (B, 2)``: ``(B, hi - lo, 3)`` (float16 from the cache)."""
-        if self.cached:
-            rows = pairs[:, 0] * self.source.n_lights + pairs[:, 1]
-            if self._filled[rows].all():
-                return self._cache[rows, lo:hi]
-        return np.stack([self.image(int(v), int(l))[lo:hi] for v, l in pairs])
+    def _all_cached(self, pairs: np.ndarray) -> bool:
+        if not self.cached:
+            return False
+        rows = (pairs[..., 0] * self.source.n_lights + pairs[..., 1]).reshape(-1)
+        if not self._filled[rows].all():
+            self.fill(pairs.reshape(-1, 2))
+        return True
 
-    def get(self, pairs: np.ndarray, texels: np.ndarray | None = None) -> np.ndarray:
-        """Images of ``pairs`` (int ``(B, 2)``) as float32 ``(B, N, 3)``, optionally at flat ``texels`` only."""
+    def get(self, pairs: np.ndarray, texels: np.ndarray | None = None, *, device=None):
+        """Images of ``pairs`` (int ``(B, 2)``) as float32 ``(B, N, 3)``, optionally at flat ``texels`` only.
+
+        A NumPy array, or a tensor on ``device`` if given. Uncached BTFs answer with
+        :meth:`~dynbtf.data.base.BTFSource.read_texels` (whole images when ``texels`` is None).
+        """
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-        n = self.n_texels if texels is None else len(texels)
-        if self.cached:
+        if self._all_cached(pairs):
             rows = pairs[:, 0] * self.source.n_lights + pairs[:, 1]
-            if self._filled[rows].all():  # one gather from the cache, converted after selecting the texels
-                return (self._cache[rows] if texels is None else self._cache[rows[:, None], texels[None, :]]).astype(
-                    np.float32)
-        out = np.empty((len(pairs), n, 3), dtype=np.float32)
-        for k, (v, l) in enumerate(pairs):
-            img = self.image(int(v), int(l))
-            out[k] = img if texels is None else img[texels]
-        return out
+            # one gather from the cache, converted after selecting the texels
+            out = (self._cache[rows] if texels is None else self._cache[rows[:, None], texels[None, :]]).astype(
+                np.float32)
+            return _on(out, device)
+        if texels is None:
+            out = np.stack([self._decode(int(v), int(l)) for v, l in pairs]) if len(pairs) else \
+                np.empty((0, self.n_texels, 3), np.float32)
+            return _on(out, device)
+        return self.source.read_texels(pairs, np.asarray(texels, dtype=np.int64), device=device)
+
+
+def _on(array: np.ndarray, device):
+    """``array`` itself, or as a tensor on ``device``."""
+    if device is None:
+        return array
+    import torch
+
+    return torch.from_numpy(array).to(device)

@@ -200,7 +200,7 @@ class HeightFieldRenderer:
 
     # ----------------------------------------------------------- rendering
     @_cpu_bookkeeping
-    def render(self, w_view, w_lights) -> torch.Tensor:
+    def render(self, w_view, w_lights, texels=None) -> torch.Tensor:
         """Images for one view and several lights: ``(L, S, S, 3)`` float32 values ``pi f_r``.
 
         Parameters
@@ -209,9 +209,16 @@ class HeightFieldRenderer:
             View direction, unit, ``z > 0``.
         w_lights : array ``(L, 3)``
             Light directions, unit, ``z > 0``.
+        texels : int array ``(N,)``, optional
+            Shade only these flat texels (``row * S + col``) and return ``(L, N, 3)``: the view's
+            trace is shared (cached), the shading cost is proportional to ``N``.
         """
         w_lights = np.asarray(w_lights, dtype=np.float64).reshape(-1, 3)
         t = self.view_trace(w_view)
+        if texels is not None:
+            index = torch.as_tensor(np.asarray(texels, dtype=np.int64), device=self.device)
+            t = {k: (v.index_select(0, index) if isinstance(v, torch.Tensor) else v[index.cpu().numpy()])
+                 for k, v in t.items()}
         vis_maps, e_mean = self._light_stack(w_lights)
         fill = t["albedo"] * self.albedo_mean * (1.0 - t["sky"])[:, None]                 # (N, 3)
         if self.backend == "numba":
@@ -225,7 +232,7 @@ class HeightFieldRenderer:
             vis_at_hit = interpolate_taps(vis_maps, t["taps"], t["weights"])  # (L, N)
             value = self._shade_torch(t, w_view, w_lights, vis_at_hit, e_mean, fill)
         s = self.out_size
-        return value.reshape(len(w_lights), s, s, 3)
+        return value if texels is not None else value.reshape(len(w_lights), s, s, 3)
 
     def _shade_torch(self, t: dict, w_view, w_lights: np.ndarray, vis_at_hit: torch.Tensor, e_mean,
                      fill: torch.Tensor) -> torch.Tensor:

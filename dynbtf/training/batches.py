@@ -1,0 +1,159 @@
+"""Training batches: which (view, light) pairs and which texels each optimizer step sees.
+
+A step's batch is ``G = texel_groups`` groups of ``B = images_per_step`` pairs; group
+``g`` is read at its own texels (all texels when ``G = 1`` and no subset is asked for).
+All randomness is counter-based, so any step's batch can be rebuilt from
+``(seed, epoch, step)`` alone (what makes an interrupted fit resume exactly):
+
+* the pair order of epoch ``e`` comes from ``numpy.random.default_rng([seed, 1, e])``
+  (pass ``k > 0`` of the texel groups: ``[seed, 1, e, k]``);
+* the texel subset, or the groups' start, of step ``s`` from ``default_rng([seed, 2, e, s])``.
+
+Texel group ``g`` is the ``g``-th block of ``n = N // G`` consecutive flat texels
+(row-major, wrapping) after a random start, so a batch is read with contiguous
+reads from the image cache or straight from the BTF source
+(:meth:`dynbtf.data.base.BTFSource.read_texels`).
+
+**View-coherent batches** (representations whose positional fetch depends on the view,
+e.g. the parallax Triple Plane): each group's ``B`` pairs share one view. Per epoch
+(and pass ``k``), each view's training pairs in a random order are cut into blocks of
+``B`` (the last block wrapped round to ``B``) and the blocks visited in a random order.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from .images import ImageStore
+
+__all__ = ["Batch", "BatchSampler"]
+
+
+@dataclass
+class Batch:
+    """One optimizer step's data.
+
+    Attributes
+    ----------
+    pairs : int64 ``(G * B, 2)``
+        (view, light) indices, group-major.
+    texels : int64 ``(G * n,)`` or None
+        Flat texel indices, group-major (``None``: every texel, in order).
+    target : float32 tensor ``(B, G * n, 3)``
+        ``target[b, g * n + j]``: texel ``texels[g * n + j]`` under pair ``pairs[g * B + b]``.
+    """
+
+    pairs: np.ndarray
+    texels: np.ndarray | None
+    target: torch.Tensor
+
+    @property
+    def samples(self) -> int:
+        return int(self.target.shape[0] * self.target.shape[1])
+
+
+class BatchSampler:
+    """The batches of a training run (see the module docstring).
+
+    Parameters
+    ----------
+    store : ImageStore
+        Serves the targets (from its cache, or straight from the source).
+    train_pairs : int64 ``(P, 2)``
+        The training (view, light) pairs.
+    images_per_step : int
+        ``B``.
+    texel_groups : int
+        ``G``.
+    texels_per_image : int or None
+        Texels per step (default all); with ``G > 1`` rounded down to a multiple of ``G``.
+    seed : int
+    view_coherent : bool
+        Every group's pairs share one view.
+    device : torch.device
+        Where targets are delivered.
+    """
+
+    def __init__(self, store: ImageStore, train_pairs: np.ndarray, *, images_per_step: int, texel_groups: int = 1,
+                 texels_per_image: int | None = None, seed: int = 0, view_coherent: bool = False,
+                 device=None) -> None:
+        self.store, self.train_pairs = store, np.asarray(train_pairs, dtype=np.int64)
+        self.b, self.n_groups, self.seed = int(images_per_step), int(texel_groups), int(seed)
+        self.device = torch.device("cpu") if device is None else torch.device(device)
+        self.n_texels = store.n_texels
+        self.texels_per_image = min(texels_per_image or self.n_texels, self.n_texels)
+        b, g = self.b, self.n_groups
+        if g > 1 and (b * g > len(self.train_pairs) or g > self.texels_per_image):
+            raise InputError(f"texel_groups={g} x images_per_step={b} needs at least {b * g} training "
+                             f"pairs and {g} texels per step; the BTF has {len(self.train_pairs)} pairs and "
+                             f"{self.texels_per_image} texels per step")
+        self.texels_per_step = self.texels_per_image - self.texels_per_image % g  # equal groups
+        self.view_coherent = bool(view_coherent)
+        if self.view_coherent:
+            self._views_of_pairs = [np.flatnonzero(self.train_pairs[:, 0] == v)
+                                    for v in np.unique(self.train_pairs[:, 0])]
+            self.steps_per_epoch = sum(math.ceil(len(p) / b) for p in self._views_of_pairs)
+        else:
+            self.steps_per_epoch = math.ceil(len(self.train_pairs) / b)
+
+    @property
+    def samples_per_epoch(self) -> int:
+        """``pairs x texels per step``: what one epoch visits (its definition)."""
+        return len(self.train_pairs) * self.texels_per_step
+
+    # ------------------------------------------------------------------ orders
+    @functools.lru_cache(maxsize=2)
+    def _view_blocks(self, epoch: int) -> np.ndarray:
+        """Pair indices ``(G * blocks, B)``: ``G`` concatenated block orders of ``epoch``, one view per block."""
+        passes = []
+        for k in range(self.n_groups):
+            rng = np.random.default_rng([self.seed, 1, epoch] + ([k] if k else []))
+            blocks = np.concatenate([np.resize(p[rng.permutation(len(p))], (math.ceil(len(p) / self.b), self.b))
+                                     for p in self._views_of_pairs])
+            passes.append(blocks[rng.permutation(len(blocks))])
+        return np.concatenate(passes)
+
+    @functools.lru_cache(maxsize=2)
+    def _epoch_order(self, epoch: int) -> np.ndarray:
+        """Pair order of ``epoch``: ``G`` concatenated permutations of the training pairs."""
+        return np.concatenate([np.random.default_rng([self.seed, 1, epoch] + ([k] if k else [])).permutation(
+            len(self.train_pairs)) for k in range(self.n_groups)])
+
+    def pairs(self, epoch: int, step: int) -> np.ndarray:
+        """The (view, light) pairs of a step, ``(G * B', 2)`` group-major (``B' <= B`` at an epoch's end, G = 1)."""
+        b, g = self.b, self.n_groups
+        if self.view_coherent:
+            return self.train_pairs[self._view_blocks(epoch)[step * g:(step + 1) * g].reshape(-1)]
+        if g == 1:
+            order = self._epoch_order(epoch)
+            return self.train_pairs[order[step * b:(step + 1) * b]]
+        order = self._epoch_order(epoch)
+        return self.train_pairs[order[np.arange(step * b * g, (step + 1) * b * g) % len(order)]]
+
+    def texels(self, epoch: int, step: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """``(texels, starts)``: a step's flat texels (None: all) and, with groups, each group's first texel."""
+        rng = np.random.default_rng([self.seed, 2, epoch, step])
+        if self.n_groups == 1:
+            if self.texels_per_image < self.n_texels:
+                return np.sort(rng.choice(self.n_texels, self.texels_per_image, replace=False)), None
+            return None, None
+        n = self.texels_per_step // self.n_groups
+        starts = (int(rng.integers(self.n_texels)) + n * np.arange(self.n_groups)) % self.n_texels
+        return ((starts[:, None] + np.arange(n)[None, :]) % self.n_texels).reshape(-1), starts
+
+    def batch(self, epoch: int, step: int) -> Batch:
+        """The batch of step ``step`` of epoch ``epoch`` (thread-safe: called from a prefetch thread)."""
+        pairs = self.pairs(epoch, step)
+        texels, starts = self.texels(epoch, step)
+        if self.n_groups == 1:
+            target = self.store.get(pairs, texels, device=self.device)
+        else:
+            n = self.texels_per_step // self.n_groups
+            target = self.store.get_blocks(pairs.reshape(self.n_groups, self.b, 2), starts, n, device=self.device)
+        return Batch(pairs, texels, target)
