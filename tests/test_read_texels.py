@@ -91,7 +91,7 @@ def test_default_fallback_decodes_each_image_once(array_btf, monkeypatch):
 
 
 @pytest.mark.parametrize("pairs, texels, message", [
-    (np.zeros((2, 3)), np.zeros(2), "pairs must be"),
+    (np.zeros((2, 3), int), np.zeros(2, int), "pairs must be"),
     (np.zeros((2, 2), int), np.zeros((2, 2), int), r"texels must be \(N,\)"),
     (np.zeros((1, 2, 2), int), np.zeros(3, int), r"texels must be \(1, N\)"),
     (np.zeros((2, 2), int), np.array([0, 35]), r"texel indices must lie in \[0, 35\)"),
