@@ -171,22 +171,34 @@ def _stage_fit(ctx: _Context) -> dict[str, Any]:
 
     cfg = ctx.config
     src = ctx.source()
-    # the fast recipe (docs/triple_plane.md): 6x the paper's learning rates and 64 texel groups per step;
-    # 30 epochs converge (~0.1 dB over the last 10), ~3 minutes at 128^2 with the native bf16 kernel, and the
-    # time budget stops slower machines with a checkpoint
-    groups = max(1, min(64, int(0.9 * src.n_views * src.n_lights) // 16, src.height * src.width))
-    train = TrainConfig(epochs=30, seed=cfg.seed, max_minutes=_fit_minutes(cfg), device=cfg.device, lr_scale=6.0,
-                        texel_groups=groups)
-    if cfg.quick:
-        train.epochs = 1
-        train.monitor_pairs = 2
+    # the auto recipe (docs/triple_plane.md): the fast recipe (64 texel groups, 6x the paper's learning rates) with
+    # the schedule that converges at 128^2 (30 epochs on the UBO2003 grid), shortened when a few timed steps show
+    # that it would not fit the time budget on this machine; a rerun continues with the options it started with
+    from .training import checkpoint_path
+    from .training.checkpoint import Checkpointer
+    from .training.recipe import auto_recipe
+
     if cfg.quick:  # a small decoder: quick to fit and to compile into the render kernel
         rep = TriplePlane(src.height, src.width, positional_channels=8, angular_channels=4, hidden=16, seed=cfg.seed)
     else:
         rep = TriplePlane(src.height, src.width, seed=cfg.seed)
-    result = fit(rep, src, train, ctx.out / "model.dbtfm", progress=ctx.progress)
+    model_path = ctx.out / "model.dbtfm"
+    saved = Checkpointer.saved_config(checkpoint_path(model_path))
+    if saved is not None:
+        train = TrainConfig(**{**saved, "device": cfg.device, "max_minutes": _fit_minutes(cfg)})
+        summary = f"continuing the unfinished fit ({train.epochs} epochs)"
+    elif cfg.quick:
+        train = TrainConfig(epochs=1, monitor_pairs=2, seed=cfg.seed, max_minutes=_fit_minutes(cfg),
+                            device=cfg.device, lr_scale=6.0,
+                            texel_groups=max(1, min(64, int(0.9 * src.n_pairs) // 16, src.height * src.width)))
+        summary = "quick: one epoch"
+    else:
+        chosen = auto_recipe(src, minutes=_fit_minutes(cfg), representation=rep, seed=cfg.seed, device=cfg.device)
+        train, summary = chosen.config, chosen.summary
+    ctx.log(summary)
+    result = fit(rep, src, train, model_path, progress=ctx.progress)
     history = [{k: float(v) for k, v in h.items() if isinstance(v, (int, float))} for h in result.history]
-    return {"finished": bool(result.finished), "epochs_configured": train.epochs,
+    return {"finished": bool(result.finished), "epochs_configured": train.epochs, "recipe": summary,
             "max_minutes": train.max_minutes, "history_tail": history[-5:]}
 
 
@@ -357,7 +369,8 @@ def run_demo(config: DemoConfig | None = None, *, progress: bool = True, log: Ca
                 saved = json.loads(record.read_text())
             except json.JSONDecodeError:
                 saved = {}
-            if saved.get("key") == key and name != "report":
+            # an unfinished fit (time budget reached) is not done: running again continues it
+            if saved.get("key") == key and name != "report" and saved.get("finished", True):
                 ctx.results[name] = saved
                 say(f"stage {i + 1}/{len(stages)} {name}: done earlier ({saved.get('seconds', 0):.1f} s), skipped")
                 continue

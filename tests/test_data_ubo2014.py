@@ -145,8 +145,30 @@ def test_writer_argument_errors(tmp_path):
     with pytest.raises(InputError, match="views= and lights="):
         write_ubo2014(tmp_path / "x.btf", np.zeros((1, 1, 2, 2, 3)))
     with pytest.raises(InputError, match="max_bytes"):
-        write_ubo2014(tmp_path / "x.btf", src, max_bytes=100)
+        write_ubo2014(tmp_path / "x.btf", src, max_bytes=100, method="exact")
+    with pytest.raises(InputError, match="method"):
+        write_ubo2014(tmp_path / "x.btf", src, method="lanczos")
     assert not list(tmp_path.iterdir())  # nothing half-written
+
+
+def test_randomized_writer_recovers_a_low_rank_btf_exactly(tmp_path):
+    """A BTF of exact rank 3 per channel (sums of angular x spatial products): the streamed randomized SVD
+    (two passes, oversampled) recovers it to float precision, like the exact SVD."""
+    rng = np.random.default_rng(4)
+    views, lights = ubo2003_directions()[0][:5], ubo2003_directions()[0][10:16]
+    angular = rng.random((3, 5 * 6, 3))     # (component, pair, channel)
+    spatial = rng.random((3, 6 * 7, 3))     # (component, texel, channel)
+    values = np.einsum("kpc,ktc->ptc", angular, spatial).reshape(5, 6, 6, 7, 3)
+    src = ArrayBTF(values, views, lights)
+    path = write_ubo2014(tmp_path / "r.btf", src, components=3, scalar="double", method="randomized")
+    with UBO2014BTF(path) as btf:
+        assert btf.metadata["components"] == [3, 3, 3]
+        for v, l in [(0, 0), (4, 5), (2, 3)]:
+            np.testing.assert_allclose(btf.image(v, l), values[v, l], atol=1e-6)
+    # more components than the rank: still exact; a bad rank request is clipped to the matrix
+    path = write_ubo2014(tmp_path / "r8.btf", src, components=50, scalar="double", method="randomized", seed=3)
+    with UBO2014BTF(path) as btf:
+        np.testing.assert_allclose(btf.image(3, 1), values[3, 1], atol=1e-6)
 
 
 def test_writer_accepts_arrays_and_is_atomic(tmp_path):
@@ -341,6 +363,38 @@ def test_against_btf_extractor(tmp_path, scalar, colour_model):
             ours = btf.image(v, l)
             np.testing.assert_allclose(image[..., ::-1], ours, atol=2e-6, rtol=1e-5)
             np.testing.assert_allclose(angles, np.round(btf_extractor_angles(btf, v, l), 1), atol=0.051)
+
+
+@pytest.mark.skipif(_btf_extractor_python() is None, reason="btf-extractor not installed")
+def test_simulated_full_grid_dfmf_file_against_btf_extractor(tmp_path):
+    """`dynbtf simulate --grid ubo2014 -o x.btf` (the full-size benchmark file's writer, here at 8 x 8 texels):
+    a true DFMF file that btf-extractor reads as we do, and close to the simulated BTF it compresses."""
+    from typer.testing import CliRunner
+
+    from dynbtf.cli.main import app
+
+    path = tmp_path / "sim.btf"
+    result = CliRunner().invoke(app, ["simulate", "leather", "--grid", "ubo2014", "--size", "8", "--components",
+                                      "24", "-o", str(path), "--quiet"])
+    assert result.exit_code == 0, result.output
+    out = tmp_path / "btfx.npz"
+    subprocess.run([_btf_extractor_python(), "-c", _BTFX_SCRIPT, str(path), str(out)], check=True, timeout=300,
+                   capture_output=True)
+    ref = np.load(out)
+    sim = open_btf("sim:leather?size=8&grid=ubo2014")
+    with UBO2014BTF(path) as btf:
+        assert (btf.n_views, btf.n_lights, btf.height, btf.width) == (151, 151, 8, 8)
+        assert len(ref["images"]) == 151 * 151
+        rng = np.random.default_rng(0)
+        for k in rng.choice(len(ref["images"]), 40, replace=False):
+            l, v = ref["index"][k]
+            ours = btf.image(v, l)
+            np.testing.assert_allclose(ref["images"][k][..., ::-1], ours, atol=2e-3, rtol=2e-3)  # half factors
+        # rank 24 of a 22,801 x 64 matrix: a close approximation of the simulated material
+        pairs = np.stack([rng.integers(0, 151, 64), rng.integers(0, 151, 64)], 1)
+        approx = btf.read_texels(pairs, np.arange(64))
+        exact = np.stack([sim.image(v, l).reshape(-1, 3) for v, l in pairs])
+        assert np.abs(approx - exact).mean() < 0.05 * np.abs(exact).mean()
 
 
 def test_streamed_factors_equal_cached_factors(tmp_path, monkeypatch):

@@ -28,25 +28,33 @@ def fit(
                              "triple-parallax (Triple Plane fetched at the visible point of a height field "
                              "estimated by stereo: materials with relief), or another registered kind "
                              "(neumip, pca, sh)."),
-    epochs: int = typer.Option(12, help="Passes over the training (view, light) pairs (the paper: 50)."),
+    recipe: str = typer.Option("auto", help="auto: options chosen from the BTF's size (and --minutes), stated in "
+                               "one line (docs/triple_plane.md); paper: the paper's batches and learning rates "
+                               "(16 whole images per step, x0.9 per epoch). Options below override either."),
+    minutes: Optional[float] = typer.Option(None, "--minutes", help="Time budget in minutes: the auto recipe "
+                                            "times a few steps and shortens its schedule to fit, and training stops "
+                                            "(checkpointed) if it still overruns."),
+    epochs: Optional[int] = typer.Option(None, help="Passes over the training (view, light) pairs (auto: from the "
+                                         "BTF's size; paper: 12, which converges at 128 x 128; the paper used 50)."),
     max_minutes: Optional[float] = typer.Option(None, "--max-minutes", help="Stop after this many minutes of "
                                                 "training (checkpointed; run again to continue). Default: no limit."),
     seed: int = typer.Option(0, help="Seed of the held-out split, batch order and initialization."),
     held_out_fraction: float = typer.Option(0.05, "--held-out-fraction", help="Fraction of (view, light) pairs "
                                             "never trained on, for evaluation."),
     images_per_step: int = typer.Option(16, "--images-per-step", help="Whole images per optimizer step."),
-    lr_scale: float = typer.Option(1.0, "--lr-scale", help="Multiplier of the learning rates (1: the paper's "
-                                   "1e-3 for planes, 3e-4 for the decoder; 6 with --texel-groups 64 is the fast "
-                                   "recipe)."),
+    lr_scale: Optional[float] = typer.Option(None, "--lr-scale", help="Multiplier of the learning rates (paper: 1, "
+                                             "i.e. 1e-3 for planes, 3e-4 for the decoder; auto: 6)."),
+    lr_decay: Optional[float] = typer.Option(None, "--lr-decay", help="Learning-rate factor per epoch (paper: 0.9; "
+                                             "auto: the reference's total decay 0.9^30 spread over its epochs)."),
     texels_per_image: Optional[int] = typer.Option(None, "--texels-per-image", help="Train on a random subset of "
-                                                   "this many texels per step (very large BTFs). Default: all."),
-    texel_groups: int = typer.Option(1, "--texel-groups", help="Split each step's texels into this many "
-                                     "groups, each under its own --images-per-step pairs: more (view, light) pairs "
-                                     "per step at the same cost, faster convergence (64 measures well; 1: the "
-                                     "paper's whole images). Each step reads groups x images-per-step images: "
-                                     "keep 1 for BTFs too large for the image cache."),
-    memory_mb: float = typer.Option(2048.0, "--memory-mb", help="RAM (MB) for the decoded-image cache; larger "
-                                    "BTFs are decoded per step (bounded memory)."),
+                                                   "this many texels per step (auto: all up to 262,144)."),
+    texel_groups: Optional[int] = typer.Option(None, "--texel-groups", help="Split each step's texels into this "
+                                               "many groups, each under its own --images-per-step pairs: more "
+                                               "(view, light) pairs per step at the same cost (paper: 1, whole "
+                                               "images; auto: 64)."),
+    memory_mb: Optional[float] = typer.Option(None, "--memory-mb", help="RAM (MB) for the float16 image cache; "
+                                              "larger BTFs are read texel block by texel block from the source "
+                                              "(paper: 2048; auto: 40% of RAM, at most 8 GiB)."),
     workers: Optional[int] = typer.Option(None, help="Threads of the fused training kernel (default: torch's)."),
     device: str = typer.Option("auto", help="auto (CUDA if available), cpu, cuda:0, ..."),
     precision: str = typer.Option("auto", help="Arithmetic of the decoder's training kernel: fp32, bf16 "
@@ -57,20 +65,46 @@ def fit(
                                                       "units (default 0.08: +-10 texels at 128 texels)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
 ) -> None:
-    """Fit a representation to a BTF with the paper's recipe (L1, AdamW, x0.9 lr per epoch, 16 images/step)."""
-    from ..training import TrainConfig, get_fitter
+    """Fit a representation to a BTF (L1, AdamW; the recipe chosen from its size, or the paper's).
 
-    config = TrainConfig(epochs=epochs, max_minutes=max_minutes, seed=seed, held_out_fraction=held_out_fraction,
-                         images_per_step=images_per_step, lr_scale=lr_scale, texels_per_image=texels_per_image,
-                         texel_groups=texel_groups, memory_budget_mb=memory_mb, workers=workers, device=device,
-                         precision=precision)
+    Example: dynbtf fit leather.btf -o leather.dbtfm --minutes 60
+    """
+    from ..training import TrainConfig, get_fitter
+    from ..training.recipe import auto_recipe
+
+    if recipe not in ("auto", "paper"):
+        raise InputError(f"--recipe {recipe!r}: expected 'auto' or 'paper'")
+    given = {name: value for name, value in (
+        ("epochs", epochs), ("max_minutes", max_minutes), ("lr_scale", lr_scale), ("lr_decay", lr_decay),
+        ("texels_per_image", texels_per_image), ("texel_groups", texel_groups), ("memory_budget_mb", memory_mb),
+        ("workers", workers)) if value is not None}
+    common = dict(seed=seed, held_out_fraction=held_out_fraction, images_per_step=images_per_step, device=device,
+                  precision=precision)
     fitter = get_fitter(repr)
+    source = _open_source(btf)
+    if recipe == "auto":
+        from ..training import checkpoint_path
+        from ..training.checkpoint import Checkpointer
+
+        resumed = Checkpointer.saved_config(checkpoint_path(output))
+        if resumed is not None:  # continue with the options the run started with
+            config = TrainConfig(**{**resumed, **given, **common}).validate()
+            if not quiet:
+                typer.echo(f"continuing {checkpoint_path(output)} with its recipe ({config.epochs} epochs)")
+        else:
+            chosen = auto_recipe(source, minutes=minutes, **common, **given)
+            config = chosen.config
+            if not quiet:
+                typer.echo(chosen.summary)
+    else:
+        if minutes is not None and max_minutes is None:
+            given["max_minutes"] = minutes
+        config = TrainConfig(**common, **given)
     options = {}
     if stereo_max_height is not None:
         if repr != "triple-parallax":
             raise InputError(f"--stereo-max-height applies to --repr triple-parallax, not {repr!r}")
         options["stereo"] = {"max_height": stereo_max_height}
-    source = _open_source(btf)
     result = fitter(source, output, config, progress=not quiet, **options)
     if quiet:
         size = result.metadata.get("provenance", {}).get("size", {})

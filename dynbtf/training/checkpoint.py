@@ -69,6 +69,19 @@ class Checkpointer:
                              "delete it or choose another output to start over")
         return state
 
+    @staticmethod
+    def saved_config(path) -> dict[str, Any] | None:
+        """The training options a checkpoint was started with (``None``: no checkpoint, or one without them)."""
+        path = Path(path)
+        if not path.exists():
+            return None
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as e:
+            raise FormatError(path, f"damaged checkpoint ({e}); delete it to start over") from None
+        config = state.get("config") if isinstance(state, dict) else None
+        return dict(config) if isinstance(config, dict) else None
+
     def remove(self) -> None:
         """Delete the checkpoint (after a finished run wrote its model file)."""
         self.path.unlink(missing_ok=True)

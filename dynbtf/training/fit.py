@@ -312,6 +312,11 @@ class _InterruptFlag:
             signal.signal(signal.SIGINT, self._previous)
 
 
+def _saved_options(config: TrainConfig) -> dict[str, Any]:
+    """The options a checkpoint records so that a resumed run (``dynbtf fit`` with a recipe) uses the same ones."""
+    return {k: v for k, v in dataclasses.asdict(config).items() if k not in ("device", "workers")}
+
+
 def _check_memory(config: TrainConfig, sampler: BatchSampler, store: ImageStore) -> None:
     """A streamed BTF needs two steps' targets (the one trained on and the one prefetched) in the budget."""
     if store.cached:
@@ -401,7 +406,8 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
         history = list(state["history"])
 
     def checkpoint() -> None:
-        checkpointer.save({"model": rep.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch,
+        checkpointer.save({"config": _saved_options(config), "model": rep.state_dict(),
+                           "optimizer": optimizer.state_dict(), "epoch": epoch,
                            "step": step, "elapsed_seconds": elapsed, "history": history,
                            "held_out_pairs": torch.from_numpy(held_out)})
 

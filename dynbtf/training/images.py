@@ -173,11 +173,8 @@ class ImageStore:
             out = (self._cache[rows] if texels is None else self._cache[rows[:, None], texels[None, :]]).astype(
                 np.float32)
             return _on(out, device)
-        if texels is None:
-            out = np.stack([self._decode(int(v), int(l)) for v, l in pairs]) if len(pairs) else \
-                np.empty((0, self.n_texels, 3), np.float32)
-            return _on(out, device)
-        return self.source.read_texels(pairs, np.asarray(texels, dtype=np.int64), device=device)
+        texels = np.arange(self.n_texels) if texels is None else np.asarray(texels, dtype=np.int64)
+        return self.source.read_texels(pairs, texels, device=device)
 
 
 def _on(array: np.ndarray, device):

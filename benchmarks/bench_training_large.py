@@ -1,0 +1,118 @@
+"""Training at full size: samples/s on a 400 x 400, 151 x 151 DFMF file vs a cached 128 x 128 BTF, and peak RSS.
+
+The data our users own are UBO2014 files (400 x 400 texels, 151 x 151 directions:
+22,801 images, 41 GiB as float32); a 128 x 128 BTF of the UBO2003 grid fits the
+float16 image cache (0.65 GB) and trains at the fused kernel's speed. This
+benchmark runs :func:`dynbtf.training.fit` on both, in one run, for two recipes:
+
+* **paper batches** -- 16 whole images per step (``texel_groups=1``);
+* **fast** -- 64 texel groups per step (1,024 pairs; what ``dynbtf fit`` chooses).
+
+On the full-size file every step's texels come straight from the DFMF factors
+(:meth:`dynbtf.data.base.BTFSource.read_texels`, prefetched on a background thread
+while the kernel runs). Each measurement runs in its own process (so peak RSS is
+that run's), for ``--steps`` optimizer steps after ``--warmup`` steps; samples/s is
+samples over the steps' wall time, data waits included. Printed: both rates,
+their ratio (target: at least 0.8), and the full-size runs' peak RSS (target: at
+most 4 GB).
+
+The full-size file is written once by ``dynbtf simulate leather --grid ubo2014
+--size 400 -o FILE`` (``--components``, default 96: 105 MB; about 4 minutes on 2
+cores) unless ``--btf`` names one.
+
+Run: ``python benchmarks/bench_training_large.py`` (about 10 minutes with the file present).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+RECIPES = {"paper batches": dict(texel_groups=1, lr_scale=1.0), "fast": dict(texel_groups=64, lr_scale=6.0)}
+
+
+def worker(spec: str, recipe: str, steps: int, warmup: int, memory_mb: float) -> dict:
+    """One measurement in this process: rate over ``steps`` steps after ``warmup``, and peak RSS."""
+    import numpy as np
+
+    from dynbtf.data.open import open_btf
+    from dynbtf.representations.triple_plane import TriplePlane
+    from dynbtf.training import TrainConfig, fit
+
+    source = open_btf(spec)
+    times, samples = [], []
+
+    class Enough(Exception):
+        pass
+
+    def callback(info):
+        if info["global_step"] > warmup:
+            times.append(info["step_seconds"])
+            samples.append(info["samples"])
+        if len(times) >= steps:
+            raise Enough
+
+    config = TrainConfig(epochs=1, monitor_pairs=0, memory_budget_mb=memory_mb, **RECIPES[recipe])
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            fit(TriplePlane(source.height, source.width), source, config, Path(tmp) / "m.dbtfm", progress=False,
+                callback=callback)
+        except Enough:
+            pass
+    return {"samples_per_second": float(np.sum(samples) / np.sum(times)), "steps": len(times),
+            "step_seconds": float(np.median(times)),
+            "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9}
+
+
+def measure(spec: str, recipe: str, args) -> dict:
+    cmd = [sys.executable, __file__, "--worker", spec, "--recipe", recipe, "--steps", str(args.steps),
+           "--warmup", str(args.warmup), "--memory-mb", str(args.memory_mb)]
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--btf", default=None, help="a 400 x 400, 151 x 151 .btf file (default: simulate one)")
+    parser.add_argument("--cache-dir", default=os.path.join(tempfile.gettempdir(), "dynbtf-bench"),
+                        help="where the simulated file is kept (default %(default)s)")
+    parser.add_argument("--components", type=int, default=96, help="SVD components of the simulated file")
+    parser.add_argument("--reference", default="sim:leather?size=128", help="the cached BTF (default %(default)s)")
+    parser.add_argument("--steps", type=int, default=40, help="timed steps per measurement")
+    parser.add_argument("--warmup", type=int, default=5, help="untimed steps first")
+    parser.add_argument("--memory-mb", type=float, default=2048.0, help="image cache budget (as dynbtf fit)")
+    parser.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--recipe", default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        print(json.dumps(worker(args.worker, args.recipe, args.steps, args.warmup, args.memory_mb)))
+        return
+    big = args.btf
+    if big is None:
+        big = str(Path(args.cache_dir) / f"leather400_c{args.components}.btf")
+        if not Path(big).exists():
+            Path(args.cache_dir).mkdir(parents=True, exist_ok=True)
+            print(f"writing {big} (once) ...", flush=True)
+            subprocess.run([sys.executable, "-m", "dynbtf", "simulate", "leather", "--grid", "ubo2014", "--size",
+                            "400", "--components", str(args.components), "-o", big, "--quiet"], check=True)
+    print(f"full size: {big} ({Path(big).stat().st_size / 1e6:.0f} MB); cached reference: {args.reference}")
+    print(f"{'recipe':<14} {'cached 128^2 (M samples/s)':>27} {'400^2 DFMF (M samples/s)':>25} {'ratio':>6} "
+          f"{'RSS 400^2 (GB)':>15}")
+    for recipe in RECIPES:
+        small = measure(args.reference, recipe, args)
+        large = measure(big, recipe, args)
+        ratio = large["samples_per_second"] / small["samples_per_second"]
+        print(f"{recipe:<14} {small['samples_per_second'] / 1e6:>27.2f} {large['samples_per_second'] / 1e6:>25.2f} "
+              f"{ratio:>6.2f} {large['peak_rss_gb']:>15.2f}", flush=True)
+    print("targets: ratio >= 0.8, RSS <= 4 GB")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,181 @@
+"""A training recipe chosen from the BTF's size (and a time budget): ``dynbtf fit`` with no options.
+
+The paper trains 50 epochs of 16 whole images per step (2 hours on an RTX 4090 at
+400 x 400 texels, 151 x 151 directions). dynbtf's *fast recipe* (64 texel groups,
+6x the paper's learning rates; docs/triple_plane.md) converges on a 128 x 128 BTF of
+the UBO2003 grid (6,233 training pairs) in 30 epochs: about 11,700 optimizer steps,
+in each of which every texel is trained under 16 pairs. :func:`auto_recipe` keeps
+that per-texel schedule for any BTF:
+
+* **texel groups**: 64 (fewer when the BTF has too few pairs for 64 x 16 per step);
+* **texel subsets**: none up to :data:`MAX_TEXELS_PER_STEP` texels per step; larger
+  BTFs train on that many texels per step (so a step stays a fraction of a second and
+  progress, checkpoints and interrupts stay fine-grained);
+* **epochs**: the reference step count, ``30 x 6,233 / 16 = 11,700`` steps, converted
+  to this BTF's epochs (a 151 x 151 grid has 3.5x more pairs per epoch: 9 epochs), and
+  the learning-rate decay per epoch set so the whole run decays as the reference
+  (``0.9 ** 30`` in all);
+* **memory**: the float16 image cache when the BTF fits in 40 % of the machine's RAM
+  (at most 8 GiB), else texels read straight from the source each step;
+* **a time budget** (``minutes``): a few steps are timed on this machine (on random
+  targets of the step's shape, plus one real read of a batch when the BTF is streamed),
+  and the epochs are reduced, with the decay steepened to match, when the full
+  schedule would not fit in 90 % of the budget. Explicit options override any choice.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..data.base import BTFSource
+from ..device import resolve_device
+from ..errors import InputError
+from ..representations.base import Representation
+from .batches import BatchSampler
+from .fit import TrainConfig, texel_image_loss
+from .fused_mlp import resolve_precision, single_intra_op_thread
+from .images import ImageStore, held_out_split
+
+__all__ = ["Recipe", "auto_recipe", "REFERENCE_STEPS", "MAX_TEXELS_PER_STEP"]
+
+#: Optimizer steps of the reference schedule (30 epochs of 6,233 pairs in steps of 16 pairs per group).
+REFERENCE_STEPS = 30 * 6233 / 16
+#: Texels per step above which the recipe trains on random texel subsets.
+MAX_TEXELS_PER_STEP = 1 << 18
+_REFERENCE_EPOCHS = 30
+_LR_DECAY = 0.9
+
+
+@dataclass
+class Recipe:
+    """What :func:`auto_recipe` chose: the options and one line saying why."""
+
+    config: TrainConfig
+    summary: str
+    full_epochs: int
+    step_seconds: float | None = None
+
+
+def _memory_for_cache_mb() -> float:
+    """40 % of physical RAM, at most 8 GiB (the float16 image cache's share)."""
+    try:
+        ram = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        ram = 8 << 30
+    return min(0.4 * ram, 8 << 30) / 1024 ** 2
+
+
+def auto_recipe(source: BTFSource, *, minutes: float | None = None, representation: Representation | None = None,
+                seed: int = 0, device: str = "auto", **overrides) -> Recipe:
+    """Choose training options for ``source`` (see the module docstring).
+
+    Parameters
+    ----------
+    source : BTFSource
+    minutes : float, optional
+        Time budget of the whole fit; the schedule is shortened to fit it and
+        ``max_minutes`` is set to it (the run stops, checkpointed, if it still overruns).
+    representation : Representation, optional
+        The model to time (default: a Triple Plane of the BTF's size); only used with ``minutes``.
+    seed, device :
+        As :class:`TrainConfig`.
+    **overrides
+        :class:`TrainConfig` fields given explicitly (they win over the recipe's choices).
+
+    Returns
+    -------
+    Recipe
+        ``recipe.config`` to pass to :func:`~dynbtf.training.fit.fit`; ``recipe.summary`` states the choice.
+    """
+    if minutes is not None and not (math.isfinite(minutes) and minutes > 0):
+        raise InputError(f"--minutes: expected a positive time budget, got {minutes}")
+    unknown = set(overrides) - {f.name for f in dataclasses.fields(TrainConfig)}
+    if unknown:
+        raise InputError(f"auto_recipe: unknown training options {sorted(unknown)}")
+    base = TrainConfig(seed=seed, device=device, **overrides)
+    train_pairs, _ = held_out_split(source.n_views, source.n_lights, base.held_out_fraction, seed)
+    b = base.images_per_step
+    groups = overrides.get("texel_groups", max(1, min(64, len(train_pairs) // b)))
+    n_texels = source.height * source.width
+    texels = overrides.get("texels_per_image", None if n_texels <= MAX_TEXELS_PER_STEP else MAX_TEXELS_PER_STEP)
+    steps_per_epoch = math.ceil(len(train_pairs) / b)
+    full_epochs = max(1, round(REFERENCE_STEPS / steps_per_epoch))
+    memory_mb = overrides.get("memory_budget_mb", max(base.memory_budget_mb, _memory_for_cache_mb()))
+    config = dataclasses.replace(base, texel_groups=groups, texels_per_image=texels, memory_budget_mb=memory_mb,
+                                 lr_scale=overrides.get("lr_scale", 6.0), epochs=overrides.get("epochs", full_epochs))
+    epochs = config.epochs
+    step_seconds = None
+    budget_note = ""
+    if minutes is not None:
+        config.max_minutes = overrides.get("max_minutes", float(minutes))
+        step_seconds = measure_step_seconds(source, config, representation)
+        affordable = int(0.9 * minutes * 60 / (step_seconds * steps_per_epoch))
+        if "epochs" not in overrides and affordable < epochs:
+            epochs = max(1, affordable)
+        budget_note = (f"; {step_seconds:.2f} s/step measured, {epochs * steps_per_epoch * step_seconds / 60:.1f} "
+                       f"of {minutes:g} min" + ("" if epochs >= full_epochs else
+                                                f" (the budget allows {epochs} of {full_epochs} epochs)"))
+    config.epochs = epochs
+    if "lr_decay" not in overrides:
+        config.lr_decay = _LR_DECAY ** (_REFERENCE_EPOCHS / epochs)  # the reference's total decay, 0.9 ** 30
+    config.validate()
+    cached = source.n_pairs * n_texels * 3 * 2 <= config.memory_budget_mb * 1024 ** 2
+    summary = (f"recipe for {source.height} x {source.width} texels, {source.n_views} x {source.n_lights} "
+               f"directions: {config.epochs} epochs x {steps_per_epoch} steps, {config.texel_groups} texel groups, "
+               + ("all texels" if config.texels_per_image is None else f"{config.texels_per_image} texels")
+               + f" per step, lr x{config.lr_scale:g} decaying x{config.lr_decay:.3f} per epoch, "
+               + ("images cached in RAM" if cached else "texels read from the BTF each step") + budget_note)
+    return Recipe(config, summary, full_epochs, step_seconds)
+
+
+def measure_step_seconds(source: BTFSource, config: TrainConfig, representation: Representation | None = None,
+                         steps: int = 5) -> float:
+    """Seconds per optimizer step of ``config`` on this machine (kernel on random targets + a real batch read).
+
+    The kernel is timed on a copy of ``representation`` (default: a Triple Plane) for ``steps`` steps after two
+    warm-ups; when the BTF is too large for the image cache one real batch is read too and its time added
+    (the prefetch thread shares the cores).
+    """
+    from ..representations.triple_plane import TriplePlane
+
+    device = resolve_device(config.device)
+    rep = copy.deepcopy(representation) if representation is not None else \
+        TriplePlane(source.height, source.width, seed=config.seed)
+    rep = rep.to(device).train()
+    train_pairs, _ = held_out_split(source.n_views, source.n_lights, config.held_out_fraction, config.seed)
+    store = ImageStore(source, int(config.memory_budget_mb * 1024 ** 2))
+    sampler = BatchSampler(store, train_pairs, images_per_step=config.images_per_step,
+                           texel_groups=config.texel_groups, texels_per_image=config.texels_per_image,
+                           seed=config.seed, device=device)
+    pairs = sampler.pairs(0, 0)
+    texels, _ = sampler.texels(0, 0)
+    n = sampler.texels_per_step if texels is not None or sampler.n_groups > 1 else sampler.n_texels
+    texel_t = None if texels is None else torch.from_numpy(texels).to(device)
+    target = torch.rand((config.images_per_step, n, 3), generator=torch.Generator().manual_seed(0)).to(device)
+    wv = torch.as_tensor(source.views[pairs[:, 0]], dtype=torch.float32, device=device)
+    wl = torch.as_tensor(source.lights[pairs[:, 1]], dtype=torch.float32, device=device)
+    workers = int(config.workers or torch.get_num_threads()) if device.type == "cpu" else 1
+    precision = resolve_precision(config.precision, device)
+    chunk = config.chunk_texels if device.type == "cpu" else n
+    times = []
+    with single_intra_op_thread(device.type == "cpu"):
+        for _ in range(steps + 2):
+            t0 = time.perf_counter()
+            loss = texel_image_loss(rep, wv, wl, target, (source.height, source.width), texel_t, chunk_texels=chunk,
+                                    workers=workers, texel_groups=sampler.n_groups, precision=precision)
+            loss.backward()
+            times.append(time.perf_counter() - t0)
+    seconds = float(np.median(times[2:]))  # after two warm-up steps
+    if not store.cached:
+        t0 = time.perf_counter()
+        sampler.batch(0, 0)
+        seconds += time.perf_counter() - t0
+    return seconds * 1.05  # optimizer update and the per-epoch monitor
