@@ -109,3 +109,21 @@ def test_demo_command_line_resumes_the_same_run(quick_demo, capsys):
     assert printed.count("skipped") == len(STAGES) - 1 and "report.html" in printed
     assert main(["demo", "-o", str(out), "--material", "velvet"]) == 2
     assert "--material" in capsys.readouterr().err
+
+
+def test_an_unfinished_fit_is_continued_by_the_next_run(tmp_path):
+    """The time budget stopped the fit: the next run does not skip the stage, it continues the checkpoint."""
+    logs: list[str] = []
+    tiny = DemoConfig(output=str(tmp_path), size=16, quick=True, minutes=1e-5)  # stops after the first step
+    first = run_demo(tiny, progress=False, log=logs.append, stages=("data", "fit"))
+    assert first["fit"]["finished"] is False
+    logs.clear()
+    second = run_demo(DemoConfig(output=str(tmp_path), size=16, quick=True), progress=False, log=logs.append,
+                      stages=("data", "fit"))
+    assert any("continuing the unfinished fit" in line for line in logs)
+    assert not any("fit: done earlier" in line for line in logs)
+    assert second["fit"]["finished"] is True
+    logs.clear()
+    run_demo(DemoConfig(output=str(tmp_path), size=16, quick=True), progress=False, log=logs.append,
+             stages=("data", "fit"))
+    assert any("fit: done earlier" in line for line in logs)  # finished now: skipped

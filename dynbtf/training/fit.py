@@ -314,7 +314,8 @@ class _InterruptFlag:
 
 def _saved_options(config: TrainConfig) -> dict[str, Any]:
     """The options a checkpoint records so that a resumed run (``dynbtf fit`` with a recipe) uses the same ones."""
-    return {k: v for k, v in dataclasses.asdict(config).items() if k not in ("device", "workers")}
+    # where and how long this run computes is the run's own business, not the recipe's
+    return {k: v for k, v in dataclasses.asdict(config).items() if k not in ("device", "workers", "max_minutes")}
 
 
 def _check_memory(config: TrainConfig, sampler: BatchSampler, store: ImageStore) -> None:

@@ -1,0 +1,120 @@
+"""Held-out PSNR vs training time of `dynbtf fit` (the auto recipe) at 128 x 128 and at full size (400 x 400).
+
+Each run fits a Triple Plane with :func:`dynbtf.training.recipe.auto_recipe` (no time budget:
+the full schedule) and scores the held-out monitor (16 held-out pairs, at most 65,536 texels
+each; :class:`dynbtf.training.monitor.HeldOutMonitor`) every ``--eval-every`` seconds of
+training time (scoring is not counted). It writes ``docs/images/fit_curve_<name>.json`` and
+redraws ``docs/images/fit_curves.png`` from every such file present; it prints the final
+PSNR and the training time after which the curve stays within 0.5 dB of it.
+
+Run::
+
+    python docs/measure_fit_curves.py --btf 'sim:leather?size=128' --name leather128
+    python docs/measure_fit_curves.py --btf /tmp/dynbtf-bench/leather400_c96.btf --name leather400
+
+(the 400 x 400 file: ``dynbtf simulate leather --grid ubo2014 --size 400 -o FILE``, ~4 min;
+the fit is about an hour on 2 cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+IMAGES = Path(__file__).resolve().parent / "images"
+
+
+def run(spec: str, name: str, eval_every: float, seed: int) -> dict:
+    from dynbtf.data.open import open_btf
+    from dynbtf.representations.triple_plane import TriplePlane
+    from dynbtf.training import ImageStore, held_out_split, predict_images
+    from dynbtf.training.fit import fit
+    from dynbtf.training.monitor import HeldOutMonitor
+    from dynbtf.training.recipe import auto_recipe
+
+    source = open_btf(spec)
+    recipe = auto_recipe(source, seed=seed)
+    print(recipe.summary, flush=True)
+    config = recipe.config
+    rep = TriplePlane(source.height, source.width, seed=seed)
+    _, held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction, seed)
+    monitor = HeldOutMonitor(ImageStore(source, int(config.memory_budget_mb * 1024 ** 2)), held_out, 16, seed)
+    curve = [{"seconds": 0.0, "psnr": monitor.score(rep, predict_images), "step": 0}]
+    state = {"train_seconds": 0.0, "next": eval_every, "wall": time.perf_counter()}
+
+    def callback(info):
+        state["train_seconds"] += info["step_seconds"]
+        if state["train_seconds"] >= state["next"]:
+            rep.eval()
+            curve.append({"seconds": state["train_seconds"], "psnr": monitor.score(rep, predict_images),
+                          "step": info["global_step"]})
+            rep.train()
+            state["next"] += eval_every
+            print(f"{state['train_seconds'] / 60:6.1f} min  step {info['global_step']:6d}  "
+                  f"held-out PSNR {curve[-1]['psnr']:.2f} dB", flush=True)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        result = fit(rep, source, config, Path(tmp) / "m.dbtfm", progress=False, callback=callback)
+    rep.eval()
+    curve.append({"seconds": state["train_seconds"], "psnr": monitor.score(rep, predict_images),
+                  "step": curve[-1]["step"]})
+    final = curve[-1]["psnr"]
+    within = next(p["seconds"] for p in curve if all(q["psnr"] >= final - 0.5 for q in curve[curve.index(p):]))
+    out = {"name": name, "btf": spec, "size": [source.height, source.width],
+           "directions": [source.n_views, source.n_lights], "recipe": recipe.summary, "curve": curve,
+           "final_psnr": final, "seconds_to_within_0_5_db": within, "training_seconds": state["train_seconds"],
+           "wall_seconds": time.perf_counter() - state["wall"]}
+    (IMAGES / f"fit_curve_{name}.json").write_text(json.dumps(out, indent=1))
+    print(f"{name}: final held-out PSNR {final:.2f} dB after {state['train_seconds'] / 60:.1f} min of training; "
+          f"within 0.5 dB of it from {within / 60:.1f} min", flush=True)
+    return out
+
+
+def plot() -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = [json.loads(p.read_text()) for p in sorted(IMAGES.glob("fit_curve_*.json"))]
+    fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
+    for r in runs:
+        t = np.array([p["seconds"] for p in r["curve"]]) / 60
+        y = np.array([p["psnr"] for p in r["curve"]])
+        label = (f"{r['size'][0]} x {r['size'][1]} texels, {r['directions'][0]} x {r['directions'][1]} directions "
+                 f"(final {r['final_psnr']:.1f} dB)")
+        line, = ax.plot(t, y, marker="o", ms=3, label=label)
+        ax.axvline(r["seconds_to_within_0_5_db"] / 60, color=line.get_color(), ls=":", lw=1)
+    ax.set_xlabel("training time (minutes, 2 CPU cores)")
+    ax.set_ylabel("held-out PSNR (dB)")
+    ax.set_title("dynbtf fit (auto recipe): held-out PSNR vs time; dotted: within 0.5 dB of final")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    out = IMAGES / "fit_curves.png"
+    fig.savefig(out)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--btf", help="BTF path or spec")
+    parser.add_argument("--name", help="name of the curve (file fit_curve_<name>.json)")
+    parser.add_argument("--eval-every", type=float, default=120.0, help="seconds of training between scores")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--plot-only", action="store_true", help="only redraw the figure")
+    args = parser.parse_args()
+    if not args.plot_only:
+        if not args.btf or not args.name:
+            parser.error("--btf and --name are required (or --plot-only)")
+        run(args.btf, args.name, args.eval_every, args.seed)
+    print(f"wrote {plot()}")
+
+
+if __name__ == "__main__":
+    main()

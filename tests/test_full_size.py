@@ -1,0 +1,150 @@
+"""Full-size BTFs: training streamed from a DFMF file, the auto recipe, resuming, memory errors, the demo's fit.
+
+The full-size data path is exercised on small files that are forced out of the image cache
+(``memory_budget_mb`` below the BTF's float16 size): the same code runs at 400 x 400.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from dynbtf.cli.main import app
+from dynbtf.data import UBO2014BTF, write_ubo2014
+from dynbtf.data.directions import ubo2003_directions
+from dynbtf.errors import InputError
+from dynbtf.representations.model_file import load_model
+from dynbtf.representations.triple_plane import TriplePlane
+from dynbtf.training import ImageStore, TrainConfig, checkpoint_path, fit
+from dynbtf.training import recipe as recipe_module
+from dynbtf.training.checkpoint import Checkpointer
+from dynbtf.training.recipe import auto_recipe
+from synthetic_btf import synthetic_btf
+
+
+@pytest.fixture(scope="module")
+def dfmf(tmp_path_factory):
+    """A 12 x 12 texel, 15 x 15 direction DFMF file (half factors, 12 components)."""
+    src = synthetic_btf(12, thetas=(0.0, 30.0, 60.0), counts=(1, 6, 8))
+    return write_ubo2014(tmp_path_factory.mktemp("dfmf") / "m.btf", src, components=12, scalar="half")
+
+
+def streamed(**kw):
+    """Options whose cache budget is below the BTF (225 pairs x 144 texels x 6 bytes = 0.19 MB): streamed."""
+    base = dict(epochs=2, images_per_step=8, held_out_fraction=0.1, seed=5, workers=1, monitor_pairs=4,
+                device="cpu", memory_budget_mb=0.1, texel_groups=4, lr_scale=3.0, checkpoint_every=3)
+    return TrainConfig(**{**base, **kw})
+
+
+class Stop(Exception):
+    pass
+
+
+def test_streamed_fit_reads_texels_from_the_factors_and_matches_the_cached_fit(tmp_path, dfmf, monkeypatch):
+    with UBO2014BTF(dfmf) as btf:
+        assert not ImageStore(btf, int(0.1 * 1024 ** 2)).cached
+        reads = []
+        original = UBO2014BTF._read_texels
+        monkeypatch.setattr(UBO2014BTF, "_read_texels", lambda self, *a: reads.append(a[1].shape) or original(self, *a))
+        images = []
+        decode = UBO2014BTF._read_image
+        monkeypatch.setattr(UBO2014BTF, "_read_image", lambda self, v, l: images.append((v, l)) or decode(self, v, l))
+        losses = {"streamed": [], "cached": []}
+        fit(TriplePlane(12, 12, seed=5), btf, streamed(monitor_pairs=0), tmp_path / "s.dbtfm", progress=False,
+            callback=lambda info: losses["streamed"].append(info["loss"]))
+        assert reads and all(shape == (4, 36) for shape in reads)  # 4 groups of 144 / 4 texels per step
+        assert images == [(0, 0), (14, 14)]  # whole images: only the model file's content fingerprint
+        monkeypatch.undo()
+        fit(TriplePlane(12, 12, seed=5), btf, streamed(monitor_pairs=0, memory_budget_mb=64), tmp_path / "c.dbtfm",
+            progress=False, callback=lambda info: losses["cached"].append(info["loss"]))
+    # the same batches, targets equal up to the cache's float16: the first steps' losses agree
+    np.testing.assert_allclose(losses["streamed"][:3], losses["cached"][:3], rtol=1e-3)
+
+
+@pytest.mark.parametrize("stop_after", [4, 11])
+def test_interrupted_streamed_fit_resumes_to_the_same_model(tmp_path, dfmf, stop_after):
+    with UBO2014BTF(dfmf) as btf:
+        reference = fit(TriplePlane(12, 12, seed=5), btf, streamed(), tmp_path / "ref.dbtfm", progress=False)
+
+        def stop(info):
+            if info["global_step"] == stop_after:
+                raise Stop
+
+        out = tmp_path / "run.dbtfm"
+        with pytest.raises(Stop):
+            fit(TriplePlane(12, 12, seed=5), btf, streamed(), out, progress=False, callback=stop)
+        assert checkpoint_path(out).exists() and not out.exists()
+        resumed = fit(TriplePlane(12, 12, seed=5), btf, streamed(), out, progress=False)
+    for (name, a), b in zip(reference.representation.state_dict().items(), resumed.representation.state_dict().values()):
+        assert torch.equal(a, b), name
+
+
+def test_memory_budget_too_small_for_one_step_names_the_minimum(tmp_path, dfmf):
+    with UBO2014BTF(dfmf) as btf:
+        with pytest.raises(InputError, match=r"--memory-mb 0\.001 is too small .* at least 1 MB"):
+            fit(TriplePlane(12, 12), btf, streamed(memory_budget_mb=0.001), tmp_path / "m.dbtfm", progress=False)
+    assert not (tmp_path / "m.dbtfm").exists() and not checkpoint_path(tmp_path / "m.dbtfm").exists()
+
+
+def test_recipe_keeps_the_reference_schedule_per_texel():
+    """30 epochs on the UBO2003 grid (81 x 81), 9 on UBO2014's (151 x 151): the same ~11,700 steps; total decay 0.9^30."""
+    class Grid:  # only the sizes matter to the recipe without a time budget
+        def __init__(self, n, size):
+            self.n_views = self.n_lights = n
+            self.height = self.width = size
+            self.n_pairs = n * n
+
+    small = auto_recipe(Grid(81, 128))
+    big = auto_recipe(Grid(151, 400))
+    assert (small.config.epochs, big.config.epochs) == (30, 9)
+    for r in (small, big):
+        assert r.config.texel_groups == 64 and r.config.lr_scale == 6.0 and r.config.texels_per_image is None
+        assert r.config.lr_decay ** r.config.epochs == pytest.approx(0.9 ** 30)
+    assert "9 epochs x 1354 steps" in big.summary and "texels read from the BTF" in big.summary
+    huge = auto_recipe(Grid(151, 1024))
+    assert huge.config.texels_per_image == 1 << 18 and "262144 texels per step" in huge.summary
+    few = auto_recipe(Grid(5, 16))  # 24 training pairs: one group of 16
+    assert few.config.texel_groups == 1
+    assert auto_recipe(Grid(151, 400), epochs=3, texel_groups=8).config.texel_groups == 8  # overrides win
+    with pytest.raises(InputError, match="--minutes"):
+        auto_recipe(Grid(81, 128), minutes=0)
+
+
+def test_recipe_shortens_the_schedule_to_fit_a_time_budget(monkeypatch):
+    class Grid:
+        n_views = n_lights = 81
+        height = width = 128
+        n_pairs = 81 * 81
+
+    monkeypatch.setattr(recipe_module, "measure_step_seconds", lambda *a, **k: 0.1)  # 390 steps/epoch: 39 s each
+    r = auto_recipe(Grid(), minutes=6)  # 0.9 * 360 s / 39 s = 8 epochs
+    assert r.config.epochs == 8 and r.config.max_minutes == 6
+    assert r.config.lr_decay ** 8 == pytest.approx(0.9 ** 30)
+    assert "the budget allows 8 of 30 epochs" in r.summary
+    assert auto_recipe(Grid(), minutes=600).config.epochs == 30  # never more than the full schedule
+
+
+def test_measured_step_time_is_positive_and_real():
+    src = synthetic_btf(8, thetas=(0.0, 30.0, 60.0), counts=(1, 6, 8))
+    config = TrainConfig(texel_groups=2, workers=1, device="cpu")
+    assert 0 < recipe_module.measure_step_seconds(src, config, steps=2) < 5
+
+
+def test_cli_fit_states_the_recipe_and_a_rerun_continues_with_it(tmp_path, dfmf):
+    out = tmp_path / "m.dbtfm"
+    runner = CliRunner()
+    first = runner.invoke(app, ["fit", str(dfmf), "-o", str(out), "--max-minutes", "0.001", "--epochs", "2",
+                                "--device", "cpu", "--workers", "1"])
+    assert first.exit_code == 0, first.output
+    assert "recipe for 12 x 12 texels, 15 x 15 directions: 2 epochs" in first.output
+    saved = Checkpointer.saved_config(checkpoint_path(out))
+    assert saved["epochs"] == 2 and saved["texel_groups"] == 13  # 213 training pairs // 16
+    second = runner.invoke(app, ["fit", str(dfmf), "-o", str(out), "--device", "cpu", "--workers", "1"])
+    assert second.exit_code == 0, second.output
+    assert "continuing" in second.output and "(2 epochs)" in second.output
+    meta = load_model(out)[1]["provenance"]
+    assert meta["finished"] and meta["epochs_completed"] == 2
+    bad = runner.invoke(app, ["fit", str(dfmf), "-o", str(tmp_path / "x.dbtfm"), "--recipe", "fast"])
+    assert isinstance(bad.exception, InputError) and "--recipe 'fast'" in str(bad.exception)
