@@ -111,17 +111,16 @@ class TrainConfig:
     texel_groups : int
         Split each step's texels into this many groups (blocks of consecutive
         texels after a random start), each under its own ``images_per_step``
-        pairs (1: whole images, the paper's recipe).
-        A step reads ``texel_groups * images_per_step`` images: cheap from the
-        RAM cache, but a streamed BTF (too large for ``memory_budget_mb``)
-        decodes all of them every step.
+        pairs (1: whole images, the paper's recipe). A BTF too large for the
+        cache is read block by block from the source (the texels of the step only).
     max_minutes : float or None
         Stop (checkpointed, model written) after this much training time in this
         run; run again to continue.
     checkpoint_every : int
         Steps between checkpoints (also at every epoch end).
     memory_budget_mb : float
-        RAM the float16 image cache may use; larger BTFs are decoded per step.
+        RAM the float16 image cache may use; larger BTFs are read per step,
+        only the step's texels (:meth:`dynbtf.data.base.BTFSource.read_texels`).
     workers : int or None
         Threads of the fused loss (default: torch's thread count).
     chunk_texels : int
