@@ -53,7 +53,7 @@ from .representations.base import Representation
 from .representations.model_file import load_model, read_model_metadata
 from .training.fit import TrainConfig, checkpoint_path, predict_images
 from .training.fitters import get_fitter
-from .training.evaluate import evaluate_model, flip_colormap
+from .training.evaluate import METRIC_DESCRIPTIONS, evaluate_model, flip_colormap
 from .training.images import held_out_split
 
 __all__ = ["DEFAULT_KINDS", "RepresentationScore", "fit_or_load", "example_images", "CachedPairs", "source_fingerprint", "compare_representations"]
@@ -66,7 +66,10 @@ class RepresentationScore:
     """One row of the representation table (means over the held-out pairs)."""
 
     kind: str
-    psnr: float
+    psnr: float  # per-image peak (dynbtf.metrics.psnr)
+    psnr_fixed1: float  # fixed peak 1 (the older form)
+    psnr_grazing: float  # per-image peak, pairs with view or light beyond 60 degrees
+    psnr_others: float  # per-image peak, the other pairs
     dssim: float
     flip: float
     storage_bytes: int
@@ -315,20 +318,27 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
         kept[kind] = example_images(rep, ground_truth, held_out[shown])
         plane = rep.positional_plane()
         score = RepresentationScore(
-            kind=kind, psnr=evaluation.mean["psnr"], dssim=evaluation.mean["dssim"], flip=evaluation.mean["flip"],
+            kind=kind, psnr=evaluation.mean["psnr"], psnr_fixed1=evaluation.mean["psnr_fixed1"],
+            psnr_grazing=evaluation.by_angle["grazing"].get("psnr", float("nan")),
+            psnr_others=evaluation.by_angle["others"].get("psnr", float("nan")),
+            dssim=evaluation.mean["dssim"], flip=evaluation.mean["flip"],
             storage_bytes=int(rep.storage_bytes()), positional_bytes=int(plane.numel() * plane.element_size()),
             fit_seconds=float(prov.get("training_seconds", wall)), finished=bool(prov.get("finished", True)),
             model_path=str(output_dir / f"{kind}.dbtfm"), per_pair=evaluation.rows)
         scores.append(score)
         if progress:
-            print(f"{kind}: PSNR {score.psnr:.2f} dB, DSSIM {score.dssim:.4f}, FLIP {score.flip:.4f}, "
+            print(f"{kind}: PSNR (per-image peak) {score.psnr:.2f} dB (grazing {score.psnr_grazing:.2f}, others "
+                  f"{score.psnr_others:.2f}), PSNR (fixed peak 1) {score.psnr_fixed1:.2f} dB, "
+                  f"DSSIM {score.dssim:.4f}, FLIP {score.flip:.4f}, "
                   f"{score.storage_bytes / 1e6:.3g} MB, fit {score.fit_seconds:.0f} s")
 
     table = [s.row() for s in scores]
     _write_table(output_dir, "representations", table, {
         "source": source.describe(), "held_out_pairs": held_out.tolist(),
         "per_pair": {s.kind: s.per_pair for s in scores},
-        "metrics": "PSNR on linear values (peak 1); DSSIM = (1 - SSIM)/2 and FLIP (LDR) on clamped sRGB"})
+        "metrics": METRIC_DESCRIPTIONS | {
+            "psnr_grazing": "psnr over the pairs with view or light beyond 60 degrees",
+            "psnr_others": "psnr over the other pairs"}})
 
     # the figure: GT | reps | FLIP maps, one row per example
     cells, row_labels, figure_items = [], [], []
@@ -361,9 +371,12 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
                                   f"{source.height} x {source.width} texels, {source.n_views} views x "
                                   f"{source.n_lights} lights; {len(held_out)} held-out pairs")
     report.section("Representations", "Means over the same held-out (view, light) pairs, never used in any fit. "
-                   "PSNR on linear values; DSSIM and FLIP on clamped sRGB. Storage: all parameters and buffers; "
+                   "PSNR on linear values against each reference image's peak (psnr; split into grazing pairs, "
+                   "view or light beyond 60 degrees, and the others) and against a fixed peak of 1 (psnr_fixed1, the "
+                   "older form); DSSIM and FLIP on clamped sRGB. Storage: all parameters and buffers; "
                    "positional: the positional plane alone.")
-    report.table(table, columns=["kind", "psnr", "dssim", "flip", "storage_bytes", "positional_bytes",
+    report.table(table, columns=["kind", "psnr", "psnr_grazing", "psnr_others", "psnr_fixed1", "dssim", "flip",
+                                 "storage_bytes", "positional_bytes",
                                  "fit_seconds", "finished"], caption="Held-out error, storage and fit time")
     report.images([(output_dir / "representations.png", "GT | representations | FLIP error maps (magma)")],
                   width=min(1400, 160 * len(labels)))

@@ -218,7 +218,8 @@ def _stage_evaluate(ctx: _Context) -> dict[str, Any]:
         row = next((r for r in ev.rows if f"v{r['view_index']:03d}_l{r['light_index']:03d}" in Path(p).name), None)
         images.append({"path": ctx.rel(p), "row": row})
     size = model_size_report(rep, src.nbytes_float32)
-    return {"mean": ev.mean, "n_pairs": len(ev.rows), "images": images, "rows": ev.rows, "size": _jsonable(size)}
+    return {"mean": ev.mean, "by_angle": ev.by_angle, "n_pairs": len(ev.rows), "images": images, "rows": ev.rows,
+            "size": _jsonable(size)}
 
 
 def _stage_features(ctx: _Context) -> dict[str, Any]:

@@ -8,20 +8,57 @@ from scipy.ndimage import uniform_filter
 
 from dynbtf.errors import InputError
 from dynbtf.io import linear_to_srgb
-from dynbtf.metrics import dssim, flip, flip_map, psnr
+from dynbtf.metrics import dssim, flip, flip_map, psnr, psnr_fixed_range
 
 
-def test_psnr_closed_form():
+def by_hand_mse(a, b):
+    total, count = 0.0, 0
+    for x, y in zip(np.asarray(a, np.float64).ravel().tolist(), np.asarray(b, np.float64).ravel().tolist()):
+        total += (x - y) ** 2
+        count += 1
+    return total / count
+
+
+def test_psnr_fixed_range_closed_form_and_by_hand():
     rng = np.random.default_rng(0)
     a = rng.random((16, 12, 3)).astype(np.float32)
     # constant error c everywhere: MSE = c^2 -> PSNR = -20 log10(c)
-    assert psnr(a, a + 0.05) == pytest.approx(-20 * math.log10(0.05), abs=1e-4)
+    assert psnr_fixed_range(a, a + 0.05) == pytest.approx(-20 * math.log10(0.05), abs=1e-4)
     # half the values off by 0.2: MSE = 0.02
     b = a.copy()
     b[:8] += 0.2
-    assert psnr(a, b) == pytest.approx(10 * math.log10(1 / 0.02), abs=1e-4)
-    assert psnr(a, a + 0.1, data_range=2.0) == pytest.approx(20 * math.log10(2 / 0.1), abs=1e-4)
-    assert psnr(a, a) == math.inf
+    assert psnr_fixed_range(a, b) == pytest.approx(10 * math.log10(1 / 0.02), abs=1e-4)
+    assert psnr_fixed_range(a, a + 0.1, data_range=2.0) == pytest.approx(20 * math.log10(2 / 0.1), abs=1e-4)
+    assert psnr_fixed_range(a, a) == math.inf
+    c = a + rng.normal(0, 0.03, a.shape).astype(np.float32)
+    assert psnr_fixed_range(a, c) == pytest.approx(10 * math.log10(1.0 / by_hand_mse(a, c)), abs=1e-6)
+    with pytest.raises(InputError, match="data_range"):
+        psnr_fixed_range(a, c, data_range=0)
+
+
+def test_psnr_per_image_peak_by_hand():
+    """Peak = the reference's maximum over texels and channels (not the test image's, not 1)."""
+    rng = np.random.default_rng(1)
+    ref = (0.2 * rng.random((9, 7, 3))).astype(np.float32)  # a dark material: max ~0.2
+    ref[4, 3, 1] = 0.31
+    test = ref + rng.normal(0, 0.01, ref.shape).astype(np.float32)
+    test[0, 0, 0] = 0.9  # the test's own peak does not matter
+    expected = 10 * math.log10(0.31 ** 2 / by_hand_mse(ref, test))
+    assert psnr(ref, test) == pytest.approx(expected, abs=1e-5)
+    # the fixed form reads ~10 dB higher on this dark image: 20 log10(1 / 0.31)
+    assert psnr_fixed_range(ref, test) - psnr(ref, test) == pytest.approx(-20 * math.log10(0.31), abs=1e-5)
+    assert psnr(ref, ref) == math.inf
+    assert math.isnan(psnr(np.zeros((2, 2, 3)), np.full((2, 2, 3), 0.1)))  # an all-black reference has no peak
+
+
+@pytest.mark.parametrize("k", [0.01, 0.25, 7.0, 40.0])
+def test_psnr_is_unchanged_when_a_pair_is_scaled(k):
+    rng = np.random.default_rng(2)
+    ref = rng.random((8, 8, 3)).astype(np.float64)
+    test = ref + rng.normal(0, 0.05, ref.shape)
+    assert psnr(k * ref, k * test) == pytest.approx(psnr(ref, test), abs=1e-4)  # float32 inputs
+    assert psnr_fixed_range(k * ref, k * test) == pytest.approx(psnr_fixed_range(ref, test) - 20 * math.log10(k),
+                                                                abs=1e-4)
 
 
 def independent_ssim(x, y):

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from dynbtf.errors import FormatError, InputError
-from dynbtf.metrics import dssim, flip, psnr
+from dynbtf.metrics import dssim, flip, psnr, psnr_fixed_range
 from dynbtf.representations.base import Representation
 from dynbtf.representations.model_file import load_model
 from dynbtf.representations.triple_plane import TriplePlane
@@ -252,11 +252,38 @@ def test_evaluation_matches_metrics_and_writes_outputs(tmp_path, btf):
         assert row["psnr"] == pytest.approx(psnr(gt, img), abs=1e-3)
         assert row["dssim"] == pytest.approx(dssim(gt, img), abs=1e-4)
         assert row["flip"] == pytest.approx(flip(gt, img), abs=1e-4)
+        assert row["psnr_fixed1"] == pytest.approx(psnr_fixed_range(gt, img), abs=1e-3)
+        theta_view, theta_light = np.degrees(np.arccos(btf.views[v][2])), np.degrees(np.arccos(btf.lights[l][2]))
+        assert row["grazing"] == (max(theta_view, theta_light) > 60 + 1e-6)
     table = json.loads((tmp_path / "ev" / "metrics.json").read_text())
     assert table["n_pairs"] == 3 and table["mean"]["psnr"] == pytest.approx(np.mean([r["psnr"] for r in ev.rows]))
+    assert "per-image peak" in table["metrics"]["psnr"] and "fixed peak 1" in table["metrics"]["psnr_fixed1"]
+    for name in ("grazing", "others"):
+        group = [r for r in ev.rows if r["grazing"] == (name == "grazing")]
+        assert table["by_angle"][name]["n"] == len(group)
+        if group:
+            assert table["by_angle"][name]["psnr"] == pytest.approx(np.mean([r["psnr"] for r in group]))
     csv_lines = (tmp_path / "ev" / "metrics.csv").read_text().splitlines()
-    assert len(csv_lines) == 5 and csv_lines[-1].startswith("mean")
+    n_groups = sum(1 for g in table["by_angle"].values() if g["n"])
+    assert len(csv_lines) == 5 + n_groups and csv_lines[4].startswith("mean")
+    assert "per-image peak" in ev.summary() and "fixed peak 1" in ev.summary()
     assert sorted(p.name for p in (tmp_path / "ev").glob("*.png")) == ["pair_v000_l001.png", "pair_v014_l014.png"]
+
+
+def test_evaluation_splits_grazing_pairs_from_the_others():
+    """Grazing: view or light beyond 60 degrees (the ring at exactly 60 is not); means per group by hand."""
+    btf = synthetic_btf(8, thetas=(0.0, 60.0, 75.0), counts=(1, 4, 4))  # 9 directions
+    rep = TriplePlane(8, 8, seed=2)
+    pairs = np.array([[0, 0], [1, 2], [5, 0], [0, 6], [8, 8], [2, 3]])
+    ev = evaluate_model(rep, btf, pairs, progress=False)
+    theta = lambda w: np.degrees(np.arccos(np.clip(w[2], -1, 1)))  # noqa: E731
+    expected = [max(theta(btf.views[v]), theta(btf.lights[l])) > 60.001 for v, l in pairs]
+    assert [r["grazing"] for r in ev.rows] == expected == [False, False, True, True, True, False]
+    for name, flag in (("grazing", True), ("others", False)):
+        group = [r for r, e in zip(ev.rows, expected) if e == flag]
+        assert ev.by_angle[name]["n"] == 3
+        for metric in ("psnr", "psnr_fixed1", "dssim", "flip"):
+            assert ev.by_angle[name][metric] == pytest.approx(np.mean([r[metric] for r in group]))
 
 
 def test_eval_pair_lists(tmp_path, btf):

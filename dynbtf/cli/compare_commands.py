@@ -77,7 +77,9 @@ def compare(
                           report=report, progress=not quiet)
     report.write(Path(output) / "index.html")
     width = max(len(s.kind) for s in scores)
-    lines = [f"{'kind':<{width}}  PSNR dB   DSSIM    FLIP    storage B   fit s"]
-    lines += [f"{s.kind:<{width}}  {s.psnr:7.2f}  {s.dssim:6.4f}  {s.flip:6.4f}  {s.storage_bytes:10d}  "
+    lines = [f"{'kind':<{width}}  PSNR dB  grazing   others  fixed-1   DSSIM    FLIP    storage B   fit s"]
+    lines += [f"{s.kind:<{width}}  {s.psnr:7.2f}  {s.psnr_grazing:7.2f}  {s.psnr_others:7.2f}  {s.psnr_fixed1:7.2f}  "
+              f"{s.dssim:6.4f}  {s.flip:6.4f}  {s.storage_bytes:10d}  "
               f"{s.fit_seconds:6.0f}" + ("" if s.finished else "  (unfinished)") for s in scores]
+    lines.append("PSNR: per-image peak (grazing: view or light beyond 60 deg); fixed-1: against a fixed peak of 1")
     typer.echo("\n".join(lines) + f"\nwrote {Path(output) / 'index.html'}")

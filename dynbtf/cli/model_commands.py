@@ -173,7 +173,8 @@ def inspect(
                          f"min, seed {prov.get('seed')}, finished={prov.get('finished')}")
         if "held_out_pairs" in prov:
             lines.append(f"  held-out pairs: {len(prov['held_out_pairs'])}"
-                         + (f" (monitor PSNR {prov['held_out_psnr_monitor']:.2f} dB)"
+                         + (f" (monitor PSNR {prov['held_out_psnr_monitor']:.2f} dB, "
+                            f"{prov.get('held_out_psnr_monitor_metric', 'fixed peak 1')})"
                             if "held_out_psnr_monitor" in prov else ""))
         typer.echo("\n".join(lines))
     if output is not None:

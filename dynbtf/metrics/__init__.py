@@ -1,8 +1,10 @@
-"""Image-quality metrics: PSNR (linear), DSSIM and FLIP (clamped sRGB).
+"""Image-quality metrics: PSNR (linear; per-image peak, or a fixed peak), DSSIM and FLIP (clamped sRGB).
 
 See :mod:`dynbtf.metrics.image_metrics`.
 """
 
-from .image_metrics import check_image_pair, dssim, flip, flip_map, psnr
+from .image_metrics import (PSNR_FIXED_LABEL, PSNR_LABEL, check_image_pair, dssim, flip, flip_map, psnr,
+                            psnr_fixed_range)
 
-__all__ = ["psnr", "dssim", "flip", "flip_map", "check_image_pair"]
+__all__ = ["psnr", "psnr_fixed_range", "PSNR_LABEL", "PSNR_FIXED_LABEL", "dssim", "flip", "flip_map",
+           "check_image_pair"]

@@ -2,8 +2,13 @@
 
 Conventions (as in the BTF compression literature and the paper):
 
-* :func:`psnr` -- on **linear** values, peak ``data_range`` (default 1.0: a white
-  Lambertian surface; highlights above 1 count as ordinary errors).
+* :func:`psnr` -- on **linear** values, against the **reference image's own peak** (its
+  maximum over texels and channels): "PSNR (per-image peak)". BTF values are reflectance
+  factors whose range depends on the material (about 0-0.25 on a matte gravel, up to ~11 on
+  glossy lacquer), so a fixed peak adds decibels to dark materials and takes them from glossy
+  ones; the per-image peak makes numbers comparable across materials, and scaling a pair of
+  images by a constant leaves it unchanged. :func:`psnr_fixed_range` is the older form with a
+  fixed peak (``data_range``, 1.0: a white Lambertian surface), "PSNR (fixed peak 1)".
 * :func:`dssim` ``= (1 - SSIM) / 2`` and :func:`flip` -- on **clamped,
   sRGB-encoded** images (what a viewer sees), computed from linear inputs here.
 
@@ -19,7 +24,12 @@ import numpy as np
 from ..errors import InputError
 from ..io import linear_to_srgb
 
-__all__ = ["psnr", "dssim", "flip", "flip_map", "check_image_pair"]
+__all__ = ["psnr", "psnr_fixed_range", "PSNR_LABEL", "PSNR_FIXED_LABEL", "dssim", "flip", "flip_map",
+           "check_image_pair"]
+
+#: How outputs name the two PSNR forms.
+PSNR_LABEL = "PSNR (dB, per-image peak)"
+PSNR_FIXED_LABEL = "PSNR (dB, fixed peak 1)"
 
 
 def check_image_pair(reference, test) -> tuple[np.ndarray, np.ndarray]:
@@ -41,15 +51,41 @@ def check_image_pair(reference, test) -> tuple[np.ndarray, np.ndarray]:
     return out[0], out[1]
 
 
-def psnr(reference, test, *, data_range: float = 1.0) -> float:
-    """Peak signal-to-noise ratio in dB on linear values: ``10 log10(data_range^2 / MSE)``.
+def psnr(reference, test) -> float:
+    """PSNR in dB on linear values against the reference's peak: ``10 log10(max(reference)^2 / MSE)``.
 
-    Identical images give ``inf``.
+    The peak is the reference image's maximum over all texels and channels, so the value is
+    unchanged when both images are scaled by the same constant. Identical images give ``inf``;
+    an all-black (or negative) reference has no peak and gives ``nan``.
 
     >>> import numpy as np
-    >>> round(psnr(np.zeros((2, 2, 3)), np.full((2, 2, 3), 0.1)), 6)
+    >>> ref = np.full((2, 2, 3), 0.5)
+    >>> round(psnr(ref, ref + 0.05), 6)  # 10 log10(0.5^2 / 0.05^2)
+    20.0
+    >>> round(psnr(4 * ref, 4 * (ref + 0.05)), 6)
     20.0
     """
+    ref, tst = check_image_pair(reference, test)
+    peak = float(ref.max())
+    mse = float(np.mean((ref.astype(np.float64) - tst.astype(np.float64)) ** 2))
+    if mse == 0.0:
+        return float("inf")
+    if peak <= 0.0:
+        return float("nan")
+    return float(10.0 * np.log10(peak ** 2 / mse))
+
+
+def psnr_fixed_range(reference, test, *, data_range: float = 1.0) -> float:
+    """PSNR in dB on linear values with a fixed peak: ``10 log10(data_range^2 / MSE)`` ("fixed peak 1").
+
+    The form dynbtf reported before per-image peaks; it depends on the material's brightness.
+
+    >>> import numpy as np
+    >>> round(psnr_fixed_range(np.zeros((2, 2, 3)), np.full((2, 2, 3), 0.1)), 6)
+    20.0
+    """
+    if not (np.isfinite(data_range) and data_range > 0):
+        raise InputError(f"data_range: expected a positive peak value, got {data_range!r}")
     ref, tst = check_image_pair(reference, test)
     mse = float(np.mean((ref.astype(np.float64) - tst.astype(np.float64)) ** 2))
     if mse == 0.0:

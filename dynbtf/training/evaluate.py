@@ -1,9 +1,13 @@
 """Evaluating a representation against the measured BTF (``dynbtf eval``).
 
 For each requested (view, light) pair the model's image at the texel centres is
-compared with the BTF's: PSNR on linear values, DSSIM and FLIP on clamped
-sRGB-encoded images (:mod:`dynbtf.metrics`). Results: one row per pair plus the
-means, written as ``metrics.csv`` and ``metrics.json``, and side-by-side PNGs
+compared with the BTF's: PSNR on linear values against the reference image's peak
+(``psnr``) and against a fixed peak of 1 (``psnr_fixed1``, the older form), DSSIM and
+FLIP on clamped sRGB-encoded images (:mod:`dynbtf.metrics`). The means are given over
+all pairs and split by angle: **grazing** pairs (view or light more than
+:data:`GRAZING_THETA_DEG` from the normal), where relief materials concentrate their
+error, and the **others**. Results: one row per pair plus the means, written as
+``metrics.csv`` and ``metrics.json``, and side-by-side PNGs
 ``ground truth | model | FLIP error map`` (magma colour map, as in the paper's
 figures) for a few evenly spaced pairs.
 """
@@ -24,27 +28,70 @@ from ..conventions import direction_to_spherical
 from ..data.base import BTFSource
 from ..errors import FormatError, InputError
 from ..io import atomic_path, linear_to_srgb, save_image, srgb_to_linear
-from ..metrics import dssim, flip_map, psnr
+from ..metrics import PSNR_FIXED_LABEL, PSNR_LABEL, dssim, flip_map, psnr, psnr_fixed_range
 from ..representations.base import Representation
 from .fit import predict_images
 from .fused_mlp import single_intra_op_thread
 
-__all__ = ["Evaluation", "evaluate_model", "resolve_eval_pairs", "flip_colormap", "side_by_side", "write_evaluation"]
+__all__ = ["Evaluation", "evaluate_model", "resolve_eval_pairs", "flip_colormap", "side_by_side", "write_evaluation",
+           "GRAZING_THETA_DEG", "METRIC_DESCRIPTIONS"]
 
-METRICS = ("psnr", "dssim", "flip")
+METRICS = ("psnr", "psnr_fixed1", "dssim", "flip")
+#: A pair is grazing when its view or its light is further than this from the normal (degrees).
+GRAZING_THETA_DEG = 60.0
+#: What each metric column is (written into metrics.json).
+METRIC_DESCRIPTIONS = {
+    "psnr": f"{PSNR_LABEL}: 10 log10(max(reference)^2 / MSE) on linear values, per pair, then averaged",
+    "psnr_fixed1": f"{PSNR_FIXED_LABEL}: 10 log10(1 / MSE) on linear values (depends on the material's brightness)",
+    "dssim": "(1 - SSIM)/2 on clamped sRGB",
+    "flip": "mean NVIDIA FLIP (LDR) on clamped sRGB",
+}
 
 
 @dataclass
 class Evaluation:
-    """Per-pair metrics (``rows``: dicts with view/light indices and angles, psnr, dssim, flip) and their means."""
+    """Per-pair metrics and their means.
+
+    Attributes
+    ----------
+    rows : list of dict
+        One per pair: view/light indices and angles (degrees), ``grazing``, ``psnr`` (per-image peak),
+        ``psnr_fixed1``, ``dssim``, ``flip``.
+    mean : dict
+        Means over all pairs (``nan`` entries, e.g. the PSNR of an all-black reference, are skipped).
+    images : list of Path
+    by_angle : dict
+        ``{"grazing": {...}, "others": {...}}``: the count ``n`` and the means of the grazing pairs (view or
+        light beyond :data:`GRAZING_THETA_DEG`) and of the rest (empty groups have ``n = 0`` and no means).
+    """
 
     rows: list[dict[str, Any]]
     mean: dict[str, float]
     images: list[Path]
+    by_angle: dict[str, dict[str, float]] | None = None
 
     def summary(self) -> str:
-        return (f"{len(self.rows)} pairs: PSNR {self.mean['psnr']:.2f} dB, DSSIM {self.mean['dssim']:.4f}, "
-                f"FLIP {self.mean['flip']:.4f}")
+        text = (f"{len(self.rows)} pairs: {PSNR_LABEL.replace('(dB, ', '(')} {self.mean['psnr']:.2f} dB")
+        parts = [f"{name} {g['psnr']:.2f} dB over {g['n']}" for name, g in (self.by_angle or {}).items()
+                 if g.get("n")]
+        if parts:
+            text += f" ({'; '.join(parts)}; grazing: view or light > {GRAZING_THETA_DEG:g} deg)"
+        return (text + f"; {PSNR_FIXED_LABEL.replace('(dB, ', '(')} {self.mean['psnr_fixed1']:.2f} dB; "
+                f"DSSIM {self.mean['dssim']:.4f}, FLIP {self.mean['flip']:.4f}")
+
+
+def _means(rows: list[dict[str, Any]]) -> dict[str, float]:
+    with np.errstate(all="ignore"):
+        return {m: float(np.nanmean([r[m] for r in rows])) if rows else float("nan") for m in METRICS}
+
+
+def angle_groups(rows: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
+    """Counts and means of the grazing pairs and of the others (see :class:`Evaluation`)."""
+    out = {}
+    for name, want in (("grazing", True), ("others", False)):
+        group = [r for r in rows if bool(r["grazing"]) == want]
+        out[name] = {"n": len(group), **(_means(group) if group else {})}
+    return out
 
 
 def resolve_eval_pairs(spec: str, source: BTFSource, metadata: dict[str, Any] | None = None) -> np.ndarray:
@@ -154,13 +201,13 @@ def evaluate_model(rep: Representation, source: BTFSource, pairs, *, out_dir=Non
                 tl, pl = direction_to_spherical(source.lights[l])
                 rows.append({"view_index": int(v), "light_index": int(l), "theta_view": round(float(tv), 4),
                              "phi_view": round(float(pv), 4), "theta_light": round(float(tl), 4),
-                             "phi_light": round(float(pl), 4), "psnr": psnr(gt, img), "dssim": dssim(gt, img),
-                             "flip": fmean})
+                             "phi_light": round(float(pl), 4),
+                             "grazing": bool(max(tv, tl) > GRAZING_THETA_DEG + 1e-6), "psnr": psnr(gt, img),
+                             "psnr_fixed1": psnr_fixed_range(gt, img), "dssim": dssim(gt, img), "flip": fmean})
                 if k0 + j in show:
                     shown.append((int(v), int(l), side_by_side(gt, img, fmap)))
     rep.train(was_training)
-    mean = {m: float(np.mean([r[m] for r in rows])) for m in METRICS}
-    evaluation = Evaluation(rows, mean, [])
+    evaluation = Evaluation(rows, _means(rows), [], angle_groups(rows))
     if out_dir is not None:
         write_evaluation(evaluation, out_dir, shown)
     return evaluation
@@ -176,11 +223,14 @@ def write_evaluation(evaluation: Evaluation, out_dir, side_by_sides=(), extra: d
         writer.writeheader()
         writer.writerows(evaluation.rows)
         writer.writerow({fields[0]: "mean", **evaluation.mean})
+        for name, group in (evaluation.by_angle or {}).items():
+            if group.get("n"):
+                writer.writerow({fields[0]: f"mean ({name}, {group['n']} pairs)",
+                                 **{m: group[m] for m in METRICS}})
     for v, l, img in side_by_sides:
         evaluation.images.append(save_image(out_dir / f"pair_v{v:03d}_l{l:03d}.png", srgb_to_linear(img)))
-    payload = {"mean": evaluation.mean, "n_pairs": len(evaluation.rows), "pairs": evaluation.rows,
-               "images": [p.name for p in evaluation.images],
-               "metrics": {"psnr": "dB on linear values, peak 1", "dssim": "(1 - SSIM)/2 on clamped sRGB",
-                           "flip": "mean NVIDIA FLIP (LDR) on clamped sRGB"}, **(extra or {})}
+    payload = {"mean": evaluation.mean, "by_angle": evaluation.by_angle, "n_pairs": len(evaluation.rows),
+               "grazing_theta_deg": GRAZING_THETA_DEG, "pairs": evaluation.rows,
+               "images": [p.name for p in evaluation.images], "metrics": METRIC_DESCRIPTIONS, **(extra or {})}
     with atomic_path(out_dir / "metrics.json") as tmp:
         tmp.write_text(json.dumps(payload, indent=1, allow_nan=True))

@@ -498,10 +498,12 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
         samples_per_epoch=sampler.samples_per_epoch, size=size_info, **(extra_provenance or {}))
     if history:
         provenance["held_out_psnr_monitor"] = history[-1]["held_out_psnr"]
+        provenance["held_out_psnr_monitor_metric"] = "per-image peak"
     save_model(output, rep, provenance)
     if progress:
         print(f"wrote {output} ({size_info['summary']}; {completed_epochs:.2f} epochs in {elapsed / 60:.1f} min"
-              + (f", held-out PSNR {history[-1]['held_out_psnr']:.2f} dB" if history else "") + ")")
+              + (f", held-out PSNR {history[-1]['held_out_psnr']:.2f} dB (per-image peak, {len(monitor.pairs)} "
+                 "pairs)" if history else "") + ")")
     from ..representations.model_file import read_model_metadata
 
     return FitResult(output, rep, read_model_metadata(output), history, finished)
