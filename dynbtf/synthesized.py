@@ -218,10 +218,10 @@ class SynthesizedBTF:
 
     def _fold_first_layer(self) -> dict[str, Any] | None:
         """Layer-1 positional weights with the synthesizer's output map folded in (fast path), or None."""
-        decoder = getattr(self.model, "decoder", None)
-        needed = ("first_layer_positional", "first_layer_angular", "from_first_layer", "first")
-        if decoder is None or not all(hasattr(decoder, n) for n in needed) or not hasattr(self.model, "angular_features"):
+        fast = self.model.fast_decoder()
+        if fast is None:
             return None
+        decoder = fast.decoder
         with torch.no_grad():
             w_pos = decoder.first.weight[:, : decoder.positional_channels].detach().float()  # (hidden, C)
             matrix, offset = self.synthesizer.output_map()
@@ -231,13 +231,11 @@ class SynthesizedBTF:
             dtype = PRECISIONS[self.precision]
             rest = [(layer.weight.detach().to(dtype), layer.bias.detach().to(dtype)) for layer in decoder.rest]
             fold = {"weight": (matrix @ w_pos.T).contiguous(), "bias": offset @ w_pos.T, "rest": rest,
-                    "slope": float(decoder.negative_slope), "dtype": dtype, "planes": None}
-            from .representations.triple_plane import TriplePlane
-
-            if isinstance(self.model, TriplePlane) and self.device.type == "cpu":
+                    "slope": float(decoder.negative_slope), "dtype": dtype, "planes": None, "fast": fast}
+            if fast.angular_planes is not None and self.device.type == "cpu":
                 from .fast_decode import fold_angular_planes
 
-                fold["planes"] = fold_angular_planes(self.model.f_h, self.model.f_d,
+                fold["planes"] = fold_angular_planes(*fast.angular_planes,
                                                      decoder.first.weight[:, decoder.positional_channels:])
                 fold["numpy"] = (np.ascontiguousarray(fold["weight"].cpu().numpy()),
                                  np.ascontiguousarray((fold["bias"] + decoder.first.bias.detach().float()).cpu().numpy()))
@@ -291,9 +289,9 @@ class SynthesizedBTF:
                 latent.numpy(), *fold["numpy"], wv.float().numpy(), wl.float().numpy(), *fold["planes"],
                 negative_slope=fold["slope"]))
         else:
-            decoder = self.model.decoder
+            fast = fold["fast"]
             pre = torch.addmm(fold["bias"], latent, fold["weight"])
-            pre += decoder.first_layer_angular(self.model.angular_features(wv, wl).float())
+            pre += fast.decoder.first_layer_angular(fast.angular_features(wv, wl).float())
             x = F.leaky_relu(pre, fold["slope"])
         x = x.to(fold["dtype"])
         return torch.cat([self._decode_rest(block) for block in x.split(_MLP_ROWS)]) if len(x) > _MLP_ROWS \
@@ -349,7 +347,7 @@ class SynthesizedBTF:
             # one chunk per Python thread, each with single-threaded torch and numba: no OpenMP pools
             # handing over between numba kernels and torch matmuls (on a loaded 2-core machine
             # their spin-waiting made two-thread evaluation ~8x slower than one thread)
-            from .training.fused_mlp import single_intra_op_thread
+            from .fused_mlp import single_intra_op_thread
 
             with single_intra_op_thread():
                 list(_eval_pool(workers).map(lambda sl: _single_numba_thread(run, sl), chunks))

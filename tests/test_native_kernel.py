@@ -14,8 +14,8 @@ from torch import nn
 
 from dynbtf import native
 from dynbtf.errors import InputError
-from dynbtf.training import fused_mlp
-from dynbtf.training.fused_mlp import native_precisions, resolve_precision, split_mlp_l1_loss
+from dynbtf import fused_mlp
+from dynbtf.fused_mlp import native_precisions, resolve_precision, split_mlp_l1_loss
 
 needs_native = pytest.mark.skipif(not native_precisions(), reason="no native kernel on this machine")
 needs_bf16 = pytest.mark.skipif("bf16" not in native_precisions(), reason="CPU without AVX512-BF16")

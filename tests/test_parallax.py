@@ -278,9 +278,9 @@ def test_view_coherent_epochs_visit_every_training_pair(tmp_path, monkeypatch):
     requested = []
     original = ImageStore.get
 
-    def spy(self, pairs, texels=None):
+    def spy(self, pairs, texels=None, **options):
         requested.append(np.asarray(pairs).copy())
-        return original(self, pairs, texels)
+        return original(self, pairs, texels, **options)
 
     monkeypatch.setattr(ImageStore, "get", spy)
     config = TrainConfig(epochs=1, images_per_step=4, held_out_fraction=0.1, seed=3, workers=1, monitor_pairs=0,

@@ -15,7 +15,7 @@ the system C++ compiler (``$CXX`` or ``g++``/``c++``/``clang++``) for the machin
 
 The kernels themselves are plain C ABI functions taking pointers to contiguous float32 CPU
 buffers (see each source's header comment); their Python wrappers live next to the code that
-uses them (:mod:`dynbtf.training.fused_mlp`).
+uses them (:mod:`dynbtf.fused_mlp`).
 """
 
 from __future__ import annotations

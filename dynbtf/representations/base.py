@@ -19,7 +19,8 @@ New kinds register with :func:`register` so that model files can name them.
 from __future__ import annotations
 
 import abc
-from typing import Any, ClassVar
+from dataclasses import dataclass
+from typing import Any, Callable, ClassVar
 
 import torch
 from torch import nn
@@ -52,6 +53,29 @@ def get_representation_class(kind: str) -> type["Representation"]:
         return REPRESENTATIONS[kind]
     except KeyError:
         raise InputError(f"unknown representation {kind!r}; expected one of {sorted(REPRESENTATIONS)}") from None
+
+
+@dataclass
+class FoldableDecoder:
+    """What the fast synthesis path needs from a representation (:meth:`Representation.fast_decoder`).
+
+    Attributes
+    ----------
+    decoder : torch.nn.Module
+        An MLP like :class:`dynbtf.representations.triple_plane.Decoder`: ``first`` (a Linear layer over
+        ``concat(positional, angular)``), ``positional_channels``, ``rest`` (the later Linear layers),
+        ``negative_slope`` (LeakyReLU) and ``first_layer_angular(angular) -> (..., hidden)``.
+    angular_features : callable
+        ``(w_view (N, 3), w_light (N, 3)) -> (N, A)``: the decoder's angular input.
+    angular_planes : tuple of two tensors, optional
+        ``(f_H, f_D)``, Rusinkiewicz feature planes ``(R, R, C)``, when the angular input is their bilinear
+        fetch (the Triple Plane): the CPU kernel then folds them into layer 1
+        (:func:`dynbtf.fast_decode.fold_angular_planes`).
+    """
+
+    decoder: nn.Module
+    angular_features: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+    angular_planes: tuple[torch.Tensor, torch.Tensor] | None = None
 
 
 class Representation(nn.Module, abc.ABC):
@@ -106,6 +130,76 @@ class Representation(nn.Module, abc.ABC):
 
     def n_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())
+
+    # ------------------------------------------------------------ optional abilities (defaults here)
+    #: True when :meth:`texel_image_l1_loss` is a fused kernel that can run in bf16 arithmetic
+    #: (:func:`dynbtf.fused_mlp.split_mlp_l1_loss`); the default loss is generic and fp32 only.
+    has_fused_loss: ClassVar[bool] = False
+
+    def param_groups(self) -> list[dict[str, Any]]:
+        """Optimizer groups (dicts with ``params``, ``lr``, ``weight_decay``, ``name``).
+
+        Default: every trainable parameter, lr 1e-3, weight decay 0.01 (an empty list of
+        parameters means the kind has a closed-form fitter only).
+        """
+        return [{"params": [p for p in self.parameters() if p.requires_grad], "lr": 1e-3, "weight_decay": 0.01,
+                 "name": "all"}]
+
+    def predict_texel_images(self, w_view: torch.Tensor, w_light: torch.Tensor,
+                             texels: torch.Tensor | None = None) -> torch.Tensor:
+        """Images at texel centres, ``(B, N, 3)``, for ``w_view, w_light (B, 3)`` at flat ``texels (N,)``
+        (default: all, row-major).
+
+        Default: the model queried at the texel centres' uv (:func:`dynbtf.conventions.texel_centers_uv`);
+        representations override it with a faster path (e.g. reading the plane directly).
+        """
+        from ..conventions import texel_centers_uv
+
+        h, w = self.positional_plane().shape[:2]
+        uv = torch.from_numpy(texel_centers_uv(h, w)).reshape(-1, 2).to(device=w_view.device, dtype=torch.float64)
+        if texels is not None:
+            uv = uv.index_select(0, texels)
+        b, n = w_view.shape[0], uv.shape[0]
+        return self(uv[None].expand(b, n, 2), w_view[:, None].expand(b, n, 3), w_light[:, None].expand(b, n, 3))
+
+    def texel_image_l1_loss(self, w_view: torch.Tensor, w_light: torch.Tensor, target: torch.Tensor,
+                            texels: torch.Tensor | None = None, *, chunk_texels: int = 256, workers: int = 1,
+                            texel_groups: int = 1, precision: str = "fp32") -> torch.Tensor:
+        """Mean L1 loss of a whole-image batch (the training loss).
+
+        Parameters
+        ----------
+        w_view, w_light : ``(G * B, 3)``
+            The ``B`` pairs of each of the ``G = texel_groups`` groups, group-major.
+        target : ``(B, N, 3)``
+            ``target[b, t]``: texel ``t`` under image ``b`` of its group.
+        texels : int64 ``(N,)``, optional
+            Flat texel indices (default all, in order); the ``N`` texels form ``G`` equal consecutive groups.
+        chunk_texels, workers : int
+            Chunking and threads of a fused implementation (unused by this default).
+        precision : ``"fp32"`` or ``"bf16"``
+            Only fused losses (:attr:`has_fused_loss`) accept ``"bf16"``.
+
+        Default: :meth:`predict_texel_images` per group, then the mean absolute error (float64 sum).
+        """
+        if precision != "fp32":
+            raise InputError(f"precision={precision!r}: representation {self.kind!r} has no fused loss; use 'fp32'")
+        if texel_groups == 1:
+            return (self.predict_texel_images(w_view, w_light, texels) - target).abs().mean()
+        if texels is None:
+            texels = torch.arange(target.shape[1], device=target.device)
+        b, n = target.shape[0], target.shape[1] // texel_groups
+        total = target.new_zeros((), dtype=torch.float64)
+        for g in range(texel_groups):
+            pred = self.predict_texel_images(w_view[g * b:(g + 1) * b], w_light[g * b:(g + 1) * b],
+                                             texels[g * n:(g + 1) * n])
+            total = total + (pred - target[:, g * n:(g + 1) * n]).abs().sum(dtype=torch.float64)
+        return (total / target.numel()).to(target.dtype)
+
+    def fast_decoder(self) -> FoldableDecoder | None:
+        """A :class:`FoldableDecoder` when synthesis may fold layer 1 with the synthesizer's output map and
+        decode in fused chunks (decoders like the Triple Plane's), else None (plain :meth:`decode`)."""
+        return None
 
     def storage_bytes(self) -> int:
         """Bytes needed to store the representation's parameters and buffers."""

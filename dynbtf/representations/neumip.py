@@ -34,12 +34,11 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..errors import InputError, require_positive_ints
-from ..training.fitters import register_fitter
-from .base import Representation, register
+from ..errors import require_positive_ints
+from .base import FoldableDecoder, Representation, register
 from .triple_plane import Decoder
 
-__all__ = ["NeuMIP", "fit_neumip"]
+__all__ = ["NeuMIP"]
 
 
 @register("neumip")
@@ -113,6 +112,12 @@ class NeuMIP(Representation):
         return self.decoder(features.to(dtype), self.direction_inputs(w_view, w_light).to(dtype))
 
     # ------------------------------------------------------------ training
+    has_fused_loss = True
+
+    def fast_decoder(self) -> FoldableDecoder:
+        """The Triple Plane's decoder on NeuMIP's direction inputs, for fast synthesis."""
+        return FoldableDecoder(self.decoder, self.angular_features)
+
     def param_groups(self) -> list[dict[str, Any]]:
         """Optimizer parameter groups: NeuMIP trains everything with Adam, lr 1e-3, no weight decay."""
         return [{"params": [self.texture], "lr": 1e-3, "weight_decay": 0.0, "name": "texture"},
@@ -137,7 +142,7 @@ class NeuMIP(Representation):
 
         The same fast path as the Triple Plane's (same decoder structure): layer 1's
         texture product once per texel, its direction part once per image, layers 2..
-        by :func:`dynbtf.training.fused_mlp.split_mlp_l1_loss`. Equal (to rounding)
+        by :func:`dynbtf.fused_mlp.split_mlp_l1_loss`. Equal (to rounding)
         to ``(self.predict_texel_images(...) - target).abs().mean()``; ``texel_groups``
         and ``precision`` as in :meth:`dynbtf.representations.triple_plane.TriplePlane.texel_image_l1_loss`.
         """
@@ -146,18 +151,3 @@ class NeuMIP(Representation):
         return self.decoder.texel_image_l1_loss(features, self.direction_inputs(w_view, w_light), target,
                                                 chunk_texels=chunk_texels, workers=workers, texel_groups=texel_groups,
                                                 precision=precision)
-
-
-@register_fitter("neumip")
-def fit_neumip(source, output, config=None, *, progress: bool = True, **options: Any):
-    """``dynbtf fit --repr neumip``: the shared gradient trainer (:func:`dynbtf.training.fit.fit`).
-
-    ``options`` are :class:`NeuMIP` constructor arguments (``channels``, ``hidden``, ...);
-    the initialization seed is ``config.seed``. The optimizer groups come from
-    :meth:`NeuMIP.param_groups` (Adam, lr 1e-3).
-    """
-    from ..training.fit import TrainConfig, fit
-
-    config = config or TrainConfig()
-    rep = NeuMIP(source.height, source.width, seed=config.seed, **options)
-    return fit(rep, source, config, output, progress=progress)

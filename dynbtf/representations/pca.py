@@ -48,10 +48,9 @@ from tqdm.auto import tqdm
 from ..data.base import BTFSource
 from ..errors import InputError, require_positive_ints
 from .base import Representation, register
-from ..training.fitters import register_fitter
 from .measured_directions import check_pairs, nearest_direction_weights
 
-__all__ = ["PCA", "fit_pca", "streamed_randomized_svd", "fit_pca_model"]
+__all__ = ["PCA", "fit_pca", "streamed_randomized_svd"]
 
 
 @register("pca")
@@ -305,18 +304,3 @@ def fit_pca(btf: BTFSource, *, pairs=None, components: int = 5, centered: bool =
         model.lights.copy_(torch.from_numpy(btf.lights))
         model.singular_values.copy_(torch.from_numpy(s))
     return model
-
-
-@register_fitter("pca")
-def fit_pca_model(source: BTFSource, output, config=None, *, progress: bool = True, **options: Any):
-    """``dynbtf fit --repr pca``: :func:`fit_pca` on the training pairs, written as a model file.
-
-    ``options`` are :func:`fit_pca` keywords (``components``, ``centered``, ...);
-    the randomized SVD's seed is ``config.seed``. Returns a
-    :class:`dynbtf.training.fit.FitResult`.
-    """
-    from ..training.closed_form import fit_closed_form
-    from ..training.fit import TrainConfig
-
-    config = config or TrainConfig()
-    return fit_closed_form(fit_pca, source, output, config, progress=progress, **({"seed": config.seed} | options))

@@ -40,10 +40,9 @@ from tqdm.auto import tqdm
 from ..data.base import BTFSource
 from ..errors import InputError, require_positive_ints
 from .base import Representation, register
-from ..training.fitters import register_fitter
 from .measured_directions import check_pairs, nearest_direction_weights
 
-__all__ = ["SphericalHarmonics", "fit_sh", "real_sh_basis", "SH_NORMALIZATION", "fit_sh_model"]
+__all__ = ["SphericalHarmonics", "fit_sh", "real_sh_basis", "SH_NORMALIZATION"]
 
 #: Normalization constants of the real SH up to band 2 (orthonormal on the unit sphere).
 SH_NORMALIZATION = {
@@ -202,15 +201,3 @@ def fit_sh(btf: BTFSource, *, pairs=None, bands: int = 3, neighbours: int = 3, p
         model.coefficients.copy_(torch.from_numpy(coef.reshape(btf.height, btf.width, -1)))
         model.views.copy_(torch.from_numpy(btf.views))
     return model
-
-
-@register_fitter("sh")
-def fit_sh_model(source: BTFSource, output, config=None, *, progress: bool = True, **options: Any):
-    """``dynbtf fit --repr sh``: :func:`fit_sh` on the training pairs, written as a model file.
-
-    ``options`` are :func:`fit_sh` keywords (``bands``, ``neighbours``). Returns a
-    :class:`dynbtf.training.fit.FitResult`.
-    """
-    from ..training.closed_form import fit_closed_form
-
-    return fit_closed_form(fit_sh, source, output, config, progress=progress, **options)

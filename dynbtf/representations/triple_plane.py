@@ -45,8 +45,8 @@ from torch import nn
 from ..conventions import angular_plane_coords, half_diff_from_view_light
 from ..errors import InputError, require_positive_ints
 from ..texture import fetch_angular
-from ..training.fused_mlp import split_mlp_l1_loss
-from .base import Representation, register
+from ..fused_mlp import split_mlp_l1_loss
+from .base import FoldableDecoder, Representation, register
 
 __all__ = ["TriplePlane", "Decoder"]
 
@@ -121,10 +121,10 @@ class Decoder(nn.Module):
         ``positional (N, C_U)`` is shared by the ``B`` images, ``angular (B, C_A)`` is one
         vector per image: layer 1's positional product is computed once per texel, its
         angular part once per image, layers 2.. by
-        :func:`dynbtf.training.fused_mlp.split_mlp_l1_loss` in cache-sized chunks.
+        :func:`dynbtf.fused_mlp.split_mlp_l1_loss` in cache-sized chunks.
         With ``texel_groups = G``, the texels form ``G`` equal consecutive groups, group
         ``g`` seen under its own ``B`` images: ``angular`` is ``(G * B, C_A)`` (group-major).
-        ``precision``: arithmetic of layers 2.. (see :func:`~dynbtf.training.fused_mlp.split_mlp_l1_loss`).
+        ``precision``: arithmetic of layers 2.. (see :func:`~dynbtf.fused_mlp.split_mlp_l1_loss`).
         """
         dtype = self.first.weight.dtype
         positional_pre = self.first_layer_positional(positional.to(dtype))
@@ -264,7 +264,7 @@ class TriplePlane(Representation):
 
         Same value and gradients as ``(self.predict_texel_images(w_view, w_light, texels)
         - target).abs().mean()`` (to float rounding), computed by
-        :func:`dynbtf.training.fused_mlp.split_mlp_l1_loss`: layer 1's positional
+        :func:`dynbtf.fused_mlp.split_mlp_l1_loss`: layer 1's positional
         product once per texel, its angular part once per image, layers 2.. in
         cache-sized chunks with a hand-written backward pass.
 
@@ -283,6 +283,12 @@ class TriplePlane(Representation):
         decay 0.01, "AdamW with the default setting"), lr 1e-3 for the planes, 3e-4 for the decoder."""
         return [{"params": [self.f_u, self.f_h, self.f_d], "lr": 1e-3, "weight_decay": 0.01, "name": "planes"},
                 {"params": list(self.decoder.parameters()), "lr": 3e-4, "weight_decay": 0.01, "name": "decoder"}]
+
+    has_fused_loss = True
+
+    def fast_decoder(self) -> FoldableDecoder:
+        """The decoder, the angular fetch and the ``(f_H, f_D)`` planes, for fast synthesis."""
+        return FoldableDecoder(self.decoder, self.angular_features, (self.f_h, self.f_d))
 
     def angular_planes(self) -> dict[str, torch.Tensor]:
         """The angular feature planes by name (``f_H``, ``f_D``), for visualization."""

@@ -27,15 +27,11 @@ block wrapped round to ``B``), and the blocks are visited in a random order; an
 epoch then has ``sum over views of ceil(pairs of the view / B)`` steps.
 
 Any :class:`~dynbtf.representations.base.Representation` with parameters trains
-with :func:`fit`. The loop uses, when the representation provides them:
-
-* ``param_groups()`` -- optimizer groups (dicts with ``params``, ``lr``,
-  ``weight_decay``, ``name``); default: all parameters, lr 1e-3, weight decay 0.01;
-* ``texel_image_l1_loss(w_view, w_light, target, texels, chunk_texels=, workers=, texel_groups=)``
-  -- a fused whole-image loss (the Triple Plane's,
-  :func:`dynbtf.training.fused_mlp.split_mlp_l1_loss`);
-* ``predict_texel_images(w_view, w_light, texels)`` -- whole images at texel centres;
-  otherwise the model is queried at the texel centres (``model(uv, w_view, w_light)``).
+with :func:`fit` through the abilities the base class declares with defaults:
+``param_groups()`` (optimizer groups), ``texel_image_l1_loss(...)`` (the batch's loss;
+fused for the Triple Plane and NeuMIP, :func:`dynbtf.fused_mlp.split_mlp_l1_loss`,
+``has_fused_loss``), ``predict_texel_images(...)`` (images at texel centres) and
+``view_coherent_batches``.
 
 Held-out pairs (``held_out_fraction`` of all pairs, drawn from ``seed``) are never
 used for training; they are stored in the checkpoint and in the model file.
@@ -71,13 +67,12 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from ..conventions import texel_centers_uv
 from ..data.base import BTFSource
 from ..device import resolve_device
 from ..errors import InputError
 from ..representations.base import Representation
 from ..representations.model_file import model_size_report, save_model
-from .fused_mlp import resolve_precision, single_intra_op_thread
+from ..fused_mlp import resolve_precision, single_intra_op_thread
 from .batches import BatchSampler
 from .checkpoint import Checkpointer, checkpoint_path
 from .images import ImageStore, held_out_split
@@ -134,7 +129,7 @@ class TrainConfig:
         ``"bf16"`` (bfloat16 products accumulated in float32, parameters, optimizer and
         gradients in float32: mixed precision; needs a CPU with AVX512-BF16); ``"auto"``
         (default: ``"bf16"`` where available, else ``"fp32"``; see
-        :func:`dynbtf.training.fused_mlp.resolve_precision`). The precision used is recorded in
+        :func:`dynbtf.fused_mlp.resolve_precision`). The precision used is recorded in
         the model file.
     """
 
@@ -187,75 +182,26 @@ class FitResult:
 
 
 # ---------------------------------------------------------------------------- predictions and loss
-def _texel_uv(size: tuple[int, int], texels: torch.Tensor | None, device, dtype) -> torch.Tensor:
-    """Texel-centre uv ``(N, 2)`` of an ``(H, W)`` image, optionally at flat ``texels`` only."""
-    h, w = size
-    uv = torch.from_numpy(texel_centers_uv(h, w)).reshape(-1, 2).to(device=device, dtype=dtype)
-    return uv if texels is None else uv.index_select(0, texels)
-
-
-def predict_images(rep: Representation, w_view: torch.Tensor, w_light: torch.Tensor, size: tuple[int, int],
+def predict_images(rep: Representation, w_view: torch.Tensor, w_light: torch.Tensor, size: tuple[int, int] = None,
                    texels: torch.Tensor | None = None) -> torch.Tensor:
-    """Model images at texel centres, ``(B, N, 3)``, for ``w_view, w_light (B, 3)``.
-
-    Uses ``rep.predict_texel_images`` when available, else queries ``rep`` at the
-    texel-centre ``uv`` of an image of ``size = (H, W)``.
-    """
-    if hasattr(rep, "predict_texel_images"):
-        return rep.predict_texel_images(w_view, w_light, texels)
-    uv = _texel_uv(size, texels, w_view.device, torch.float64)
-    b, n = w_view.shape[0], uv.shape[0]
-    return rep(uv[None].expand(b, n, 2), w_view[:, None].expand(b, n, 3), w_light[:, None].expand(b, n, 3))
+    """Model images at texel centres, ``(B, N, 3)``, for ``w_view, w_light (B, 3)``:
+    :meth:`Representation.predict_texel_images <dynbtf.representations.base.Representation.predict_texel_images>`
+    (``size``, the image's ``(H, W)``, is the representation's own and kept for callers that pass it)."""
+    return rep.predict_texel_images(w_view, w_light, texels)
 
 
 def texel_image_loss(rep: Representation, w_view: torch.Tensor, w_light: torch.Tensor, target: torch.Tensor,
-                     size: tuple[int, int], texels: torch.Tensor | None = None, *, chunk_texels: int = 256,
+                     size: tuple[int, int] = None, texels: torch.Tensor | None = None, *, chunk_texels: int = 256,
                      workers: int = 1, texel_groups: int = 1, precision: str = "fp32") -> torch.Tensor:
-    """Mean L1 loss of a whole-image batch: the fused path when the representation has one.
-
-    Parameters
-    ----------
-    w_view, w_light : ``(G * B, 3)``
-        The ``B`` pairs of each of the ``G = texel_groups`` groups, group-major.
-    target : ``(B, N, 3)``
-        ``target[b, t]``: texel ``t`` under image ``b`` of its group.
-    size : (H, W)
-    texels : ``(N,)`` int64, optional
-        Flat texel indices ``row * W + col`` (default all, in order).
-    texel_groups : int
-        ``G``: the ``N`` texels form ``G`` equal consecutive groups (1: every image
-        covers all of them).
-    precision : {"fp32", "bf16"}
-        Arithmetic of the fused loss (:func:`dynbtf.training.fused_mlp.resolve_precision`);
-        representations without a fused loss compute in their own dtype and accept only ``"fp32"``.
-    """
-    if hasattr(rep, "texel_image_l1_loss"):
-        options = {"texel_groups": texel_groups} if texel_groups != 1 else {}
-        if precision != "fp32":
-            options["precision"] = precision
-        return rep.texel_image_l1_loss(w_view, w_light, target, texels, chunk_texels=chunk_texels, workers=workers,
-                                       **options)
-    if precision != "fp32":
-        raise InputError(f"precision={precision!r}: representation {rep.kind!r} has no fused loss; use 'fp32'")
-    if texel_groups == 1:
-        return (predict_images(rep, w_view, w_light, size, texels) - target).abs().mean()
-    if texels is None:
-        texels = torch.arange(size[0] * size[1], device=target.device)
-    b, n = target.shape[0], target.shape[1] // texel_groups
-    total = target.new_zeros((), dtype=torch.float64)
-    for g in range(texel_groups):
-        pred = predict_images(rep, w_view[g * b:(g + 1) * b], w_light[g * b:(g + 1) * b], size,
-                              texels[g * n:(g + 1) * n])
-        total = total + (pred - target[:, g * n:(g + 1) * n]).abs().sum(dtype=torch.float64)
-    return (total / target.numel()).to(target.dtype)
+    """Mean L1 loss of a whole-image batch:
+    :meth:`Representation.texel_image_l1_loss <dynbtf.representations.base.Representation.texel_image_l1_loss>`
+    (fused for the Triple Plane and NeuMIP; shapes and ``texel_groups`` there)."""
+    return rep.texel_image_l1_loss(w_view, w_light, target, texels, chunk_texels=chunk_texels, workers=workers,
+                                   texel_groups=texel_groups, precision=precision)
 
 
 def _param_groups(rep: Representation, lr_scale: float = 1.0) -> list[dict[str, Any]]:
-    if hasattr(rep, "param_groups"):
-        groups = [dict(g) for g in rep.param_groups()]
-    else:
-        groups = [{"params": [p for p in rep.parameters() if p.requires_grad], "lr": 1e-3, "weight_decay": 0.01,
-                   "name": "all"}]
+    groups = [dict(g) for g in rep.param_groups()]
     for g in groups:
         g["lr"] = g["initial_lr"] = g["lr"] * lr_scale
     if not any(len(g["params"]) for g in groups):
@@ -384,13 +330,13 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     store = ImageStore(source, int(config.memory_budget_mb * 1024 ** 2))
     sampler = BatchSampler(store, train_pairs, images_per_step=config.images_per_step,
                            texel_groups=config.texel_groups, texels_per_image=config.texels_per_image,
-                           seed=config.seed, view_coherent=bool(getattr(rep, "view_coherent_batches", False)),
+                           seed=config.seed, view_coherent=rep.view_coherent_batches,
                            device=device)
     _check_memory(config, sampler, store)
     steps_per_epoch, n_groups = sampler.steps_per_epoch, sampler.n_groups
     chunk_texels = config.chunk_texels if device.type == "cpu" else sampler.texels_per_image
-    precision = resolve_precision(config.precision if hasattr(rep, "texel_image_l1_loss") or config.precision == "bf16"
-                                  else "fp32", device)
+    precision = resolve_precision(config.precision if rep.has_fused_loss or config.precision == "bf16" else "fp32",
+                                  device)
     groups = _param_groups(rep, config.lr_scale)
     # fused: one kernel per step for all parameters (same update; ~0.2 ms less per step on the CPU)
     optimizer = torch.optim.AdamW(groups, fused=True)

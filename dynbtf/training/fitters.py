@@ -5,9 +5,8 @@ representation of the BTF's size and call :func:`dynbtf.training.fit.fit`;
 closed-form kinds (PCA, SH) compute theirs directly from the training pairs of
 :func:`dynbtf.training.images.held_out_split` and write it with
 :func:`dynbtf.representations.model_file.save_model` and
-:func:`dynbtf.training.fit.training_provenance`. Fitters register with
-:func:`register_fitter`; modules that define them are imported by
-:func:`get_fitter` (the same built-in list as the representation registry).
+:func:`dynbtf.training.fit.training_provenance`. The built-in fitters are all
+here; a new kind registers its own with :func:`register_fitter`.
 
 Signature: ``fitter(source, output, config: TrainConfig, *, progress=True, **options) -> FitResult``.
 """
@@ -20,7 +19,8 @@ from ..data.base import BTFSource
 from ..errors import InputError
 from .fit import FitResult, TrainConfig, fit
 
-__all__ = ["FITTERS", "register_fitter", "get_fitter", "fit_triple_plane", "fit_parallax_triple_plane"]
+__all__ = ["FITTERS", "register_fitter", "get_fitter", "fit_triple_plane", "fit_parallax_triple_plane", "fit_neumip",
+           "fit_pca_model", "fit_sh_model"]
 
 #: kind -> fitter
 FITTERS: dict[str, Callable[..., FitResult]] = {}
@@ -38,8 +38,6 @@ def register_fitter(kind: str):
 
 def get_fitter(kind: str) -> Callable[..., FitResult]:
     """The fitter registered for ``kind``; a clear error lists the known kinds."""
-    from ..representations import _load_builtin  # noqa: F401  (kinds may register fitters at import)
-
     try:
         return FITTERS[kind]
     except KeyError:
@@ -85,3 +83,47 @@ def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | N
     provenance = {"height_field": {"method": "plane-sweep stereo (dynbtf.training.stereo_height)",
                                    "options": stereo_options}}
     return fit(rep, source, config, output, progress=progress, extra_provenance=provenance)
+
+
+@register_fitter("neumip")
+def fit_neumip(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
+               **options: Any) -> FitResult:
+    """``dynbtf fit --repr neumip``: the shared gradient trainer (:func:`dynbtf.training.fit.fit`).
+
+    ``options`` are :class:`~dynbtf.representations.neumip.NeuMIP` constructor arguments (``channels``,
+    ``hidden``, ...); the initialization seed is ``config.seed``. The optimizer groups come from
+    :meth:`NeuMIP.param_groups` (Adam, lr 1e-3).
+    """
+    from ..representations.neumip import NeuMIP
+
+    config = config or TrainConfig()
+    rep = NeuMIP(source.height, source.width, seed=config.seed, **options)
+    return fit(rep, source, config, output, progress=progress)
+
+
+@register_fitter("pca")
+def fit_pca_model(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
+                  **options: Any) -> FitResult:
+    """``dynbtf fit --repr pca``: :func:`~dynbtf.representations.pca.fit_pca` on the training pairs, as a model file.
+
+    ``options`` are :func:`~dynbtf.representations.pca.fit_pca` keywords (``components``, ``centered``, ...);
+    the randomized SVD's seed is ``config.seed``.
+    """
+    from ..representations.pca import fit_pca
+    from .closed_form import fit_closed_form
+
+    config = config or TrainConfig()
+    return fit_closed_form(fit_pca, source, output, config, progress=progress, **({"seed": config.seed} | options))
+
+
+@register_fitter("sh")
+def fit_sh_model(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
+                 **options: Any) -> FitResult:
+    """``dynbtf fit --repr sh``: :func:`~dynbtf.representations.sh.fit_sh` on the training pairs, as a model file.
+
+    ``options`` are :func:`~dynbtf.representations.sh.fit_sh` keywords (``bands``, ``neighbours``).
+    """
+    from ..representations.sh import fit_sh
+    from .closed_form import fit_closed_form
+
+    return fit_closed_form(fit_sh, source, output, config, progress=progress, **options)

@@ -53,8 +53,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .. import native
-from ..errors import InputError
+from . import native
+from .errors import InputError
 
 __all__ = ["split_mlp_l1_loss", "single_intra_op_thread", "native_precisions", "resolve_precision"]
 
