@@ -76,7 +76,10 @@ def main() -> None:
     _save(_grid([corners]), out / "rendering_demo_synthesis_8x_tile_hist_hex.png")
 
     if not args.no_screenshot:
-        from dynbtf.report.browser import check_in_browser, find_chromium
+        import sys
+
+        sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the tests' headless browser
+        from browser import check_in_browser, find_chromium
 
         if find_chromium() is None:
             print("no Chromium found: report screenshot skipped")

@@ -10,6 +10,72 @@ The pipeline has three stages, each in its own subpackage:
    reflectance at any uv; :mod:`dynbtf.render` renders it.
 
 Conventions are defined once, in :mod:`dynbtf.conventions`.
+
+The names a user needs are here, imported on first use (``import dynbtf`` itself loads
+neither PyTorch nor Mitsuba nor numba):
+
+>>> import dynbtf
+>>> btf = dynbtf.open_btf("sim:leather?size=16")
+>>> btf.shape  # views, lights, height, width (RGB images)
+(81, 81, 16, 16)
+>>> w = dynbtf.spherical_to_direction(0.0, 0.0)  # (theta, phi) in degrees -> unit vector, z = normal
+>>> [round(float(x), 6) for x in w]
+[0.0, 0.0, 1.0]
+
+Fit, save and synthesize::
+
+    result = dynbtf.fit(dynbtf.TriplePlane(btf.height, btf.width), btf, dynbtf.TrainConfig(epochs=30), "m.dbtfm")
+    synth = dynbtf.SynthesizedBTF("m.dbtfm", "hist", scale=25, seed=0)
+    rgb = synth.eval(uv, w_view, w_light)    # (..., 3) linear RGB at any real uv
+
+Mitsuba 3 (optional, ``pip install dynbtf[render]``): ``dynbtf.register_plugin()`` after
+``mitsuba.set_variant(...)`` makes the ``dynbtf`` BSDF available.
 """
 
-__version__ = "0.1.0"
+from __future__ import annotations
+
+import importlib
+
+from ._version import __version__
+
+#: The front door: public name -> module that defines it (imported when the name is first used).
+_FRONT_DOOR = {
+    # data
+    "open_btf": "dynbtf.data.open",
+    "simulated_btf": "dynbtf.data.simulated",
+    "BTFSource": "dynbtf.data.base",
+    "spherical_to_direction": "dynbtf.conventions",
+    "direction_to_spherical": "dynbtf.conventions",
+    # representations and training
+    "TriplePlane": "dynbtf.representations.triple_plane",
+    "fit": "dynbtf.training.fit",
+    "TrainConfig": "dynbtf.training.fit",
+    "auto_recipe": "dynbtf.training.recipe",
+    "save_model": "dynbtf.representations.model_file",
+    "load_model": "dynbtf.representations.model_file",
+    "evaluate_model": "dynbtf.training.evaluate",
+    # synthesis and recovery
+    "SynthesizedBTF": "dynbtf.synthesized",
+    "make_synthesizer": "dynbtf.synthesis.base",
+    # rendering (Mitsuba 3, optional)
+    "register_plugin": "dynbtf.render.mitsuba_bsdf",
+    # errors
+    "DynBTFError": "dynbtf.errors",
+    "InputError": "dynbtf.errors",
+    "FormatError": "dynbtf.errors",
+}
+
+__all__ = ["__version__", *_FRONT_DOOR]
+
+
+def __getattr__(name: str):
+    module = _FRONT_DOOR.get(name)
+    if module is None:
+        raise AttributeError(f"module 'dynbtf' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # later lookups skip __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_FRONT_DOOR))

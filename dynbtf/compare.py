@@ -46,14 +46,14 @@ import torch
 from .data.base import BTFSource
 from .errors import InputError
 from .io import atomic_path, save_image, to_uint8_srgb
-from .metrics import flip_map
+from .metrics import flip, flip_magma
 from .provenance import source_fingerprint
 from .report.html import HtmlReport
 from .representations.base import Representation
 from .representations.model_file import load_model, read_model_metadata
 from .training.fit import TrainConfig, checkpoint_path, predict_images
 from .training.fitters import get_fitter
-from .training.evaluate import METRIC_DESCRIPTIONS, evaluate_model, flip_colormap
+from .training.evaluate import METRIC_DESCRIPTIONS, evaluate_model
 from .training.images import held_out_split
 
 __all__ = ["DEFAULT_KINDS", "RepresentationScore", "fit_or_load", "example_images", "CachedPairs", "source_fingerprint", "compare_representations"]
@@ -191,7 +191,8 @@ class CachedPairs(BTFSource):
 
 def example_images(rep: Representation, source: BTFSource, pairs: np.ndarray
                    ) -> list[tuple[np.ndarray, np.ndarray, float]]:
-    """Model image ``(H, W, 3)``, FLIP map ``(H, W)`` and mean FLIP at each (view, light) pair (for figures)."""
+    """Model image ``(H, W, 3)``, FLIP display map ``(H, W, 3)`` (:func:`dynbtf.metrics.flip_magma`) and mean FLIP
+    at each (view, light) pair (for figures)."""
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     if len(pairs) == 0:
         return []
@@ -203,8 +204,8 @@ def example_images(rep: Representation, source: BTFSource, pairs: np.ndarray
     out = []
     for j, (v, l) in enumerate(pairs):
         image = pred[j].reshape(source.height, source.width, 3)
-        error, mean = flip_map(source.image(int(v), int(l)), image)
-        out.append((image, error, mean))
+        truth = source.image(int(v), int(l))
+        out.append((image, flip_magma(truth, image), flip(truth, image)))
     return out
 
 
@@ -350,13 +351,13 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
         items = [(gt_path, f"GT (view {v}, light {l})")]
         maps = []
         for s in scores:
-            image, error, pair_flip = kept[s.kind][row_index]
+            image, flip_display, pair_flip = kept[s.kind][row_index]
             img_path = output_dir / "images" / f"v{v:03d}_l{l:03d}_{s.kind}.png"
             map_path = output_dir / "images" / f"v{v:03d}_l{l:03d}_{s.kind}_flip.png"
             save_image(img_path, image)
-            _write_png(map_path, np.round(flip_colormap(error) * 255).astype(np.uint8))
+            _write_png(map_path, np.round(flip_display * 255).astype(np.uint8))
             row.append(to_uint8_srgb(image) / 255.0)
-            maps.append(flip_colormap(error))
+            maps.append(flip_display)
             items.append((img_path, f"{s.kind}"))
             items.append((map_path, f"{s.kind} FLIP {pair_flip:.3f}"))
         cells.append(row + maps)

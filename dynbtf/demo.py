@@ -50,7 +50,6 @@ STAGES = ("data", "fit", "evaluate", "features", "synthesis", "render", "report"
 SCALES = (1, 8, 25, 45)
 #: Synthesis methods compared.
 METHODS = ("tile", "hist", "hex")
-METHOD_TITLES = {"tile": "tiling (repetition)", "hist": "histogram-preserving blending", "hex": "hex-tiling"}
 
 
 @dataclass

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["DynBTFError", "FormatError", "InputError", "require_positive_ints", "positive_number"]
+__all__ = ["DynBTFError", "FormatError", "InputError", "MissingDependencyError", "optional_module",
+           "require_positive_ints", "positive_number"]
 
 
 class DynBTFError(ValueError):
@@ -30,6 +31,31 @@ class FormatError(DynBTFError):
 
 class InputError(DynBTFError):
     """An argument has the wrong shape, type or value; the message names it."""
+
+
+class MissingDependencyError(DynBTFError, ImportError):
+    """An optional dependency (an extra such as ``dynbtf[render]``) is not installed; the message says
+    which package and how to install it."""
+
+
+def optional_module(name: str, extra: str, purpose: str):
+    """Import module ``name`` of the optional extra ``dynbtf[extra]``, or raise :class:`MissingDependencyError`.
+
+    >>> optional_module("math", "render", "rendering").sqrt(4.0)
+    2.0
+    >>> optional_module("no_such_module_xyz", "render", "rendering")
+    Traceback (most recent call last):
+    ...
+    dynbtf.errors.MissingDependencyError: rendering needs the Python package 'no_such_module_xyz', which is not installed: pip install 'dynbtf[render]' (or run bash scripts/install.sh)
+    """
+    import importlib
+
+    try:
+        return importlib.import_module(name)
+    except ImportError as e:
+        raise MissingDependencyError(
+            f"{purpose} needs the Python package {name!r}, which is not installed: pip install 'dynbtf[{extra}]' "
+            "(or run bash scripts/install.sh)") from e
 
 
 def require_positive_ints(owner: str, **values) -> None:

@@ -149,6 +149,13 @@ def _native_library():
             fn.argtypes = [ctypes.POINTER(_NativeArgs)]
             fn.restype = ctypes.c_int
         library.dynbtf_fused_l1_has_bf16.restype = ctypes.c_int
+        library.dynbtf_fused_l1_args_size.restype = ctypes.c_int
+        library.dynbtf_fused_l1_supports.restype = ctypes.c_int
+        library.dynbtf_fused_l1_supports.argtypes = [ctypes.c_int32] * 3
+        native_size, mirror_size = library.dynbtf_fused_l1_args_size(), ctypes.sizeof(_NativeArgs)
+        if native_size != mirror_size:  # a field added on one side only: never call with a wrong layout
+            raise RuntimeError(f"dynbtf/native/fused_mlp.cpp: FusedL1Args is {native_size} bytes but its ctypes "
+                               f"mirror in {__name__} is {mirror_size}; update both field lists together")
         library._dynbtf_ready = True
     return library
 
@@ -212,12 +219,14 @@ def _native_range(precision, positional_pre, image_pre, weights, biases, slope, 
 
 
 def _native_supports(positional_pre, weights, precision) -> bool:
-    """Whether the native kernel handles this call (CPU float32, its layer shapes, the precision available)."""
+    """Whether the native kernel handles this call: CPU float32, the precision available, square hidden
+    layers, and a layer shape the kernel reports it has a path for (``dynbtf_fused_l1_supports``)."""
     hidden = positional_pre.shape[1]
-    return (positional_pre.device.type == "cpu" and positional_pre.dtype == torch.float32
-            and precision in native_precisions() and hidden % 16 == 0 and hidden // 16 in (1, 2, 3, 4, 8)
-            and 1 <= len(weights) <= 7 and 1 <= weights[-1].shape[0] <= 16
-            and all(tuple(w.shape) == (hidden, hidden) for w in weights[:-1]) and weights[-1].shape[1] == hidden)
+    if not (positional_pre.device.type == "cpu" and positional_pre.dtype == torch.float32
+            and precision in native_precisions()
+            and all(tuple(w.shape) == (hidden, hidden) for w in weights[:-1]) and weights[-1].shape[1] == hidden):
+        return False
+    return bool(_native_library().dynbtf_fused_l1_supports(hidden, weights[-1].shape[0], len(weights)))
 
 
 class _SplitMLPL1(torch.autograd.Function):

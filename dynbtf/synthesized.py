@@ -416,6 +416,13 @@ class SynthesizedBTF:
                 total += self.eval(np.stack([uu, vv], axis=-1), wv, wl)
         return (total / (spp * spp)).astype(np.float32)
 
+    def tiled(self) -> "SynthesizedBTF":
+        """The same model and precision with plain tiling at scale 1: the exemplar itself, repeated.
+
+        What synthesis is measured against (:func:`dynbtf.synthesis.quality.quality_report`).
+        """
+        return SynthesizedBTF(self.model, "tile", scale=1.0, precision=self.precision)
+
     def describe(self) -> dict[str, Any]:
         """Method, seed, scale and parameters (JSON-serializable)."""
         return {"method": self.synthesizer.name, "seed": self.seed, "scale": self.scale, "precision": self.precision,

@@ -41,11 +41,11 @@ if [ -n "$DYNBTF_VENV" ] && ! venv_ready; then
   "$DYNBTF_BASE_PYTHON" -m venv --clear "$DYNBTF_VENV"
 fi
 
-extra=""
-[ "$with_test" = 1 ] && extra="[test]"
-echo "== installing dynbtf$extra into $PY (torch 2.13.0 CPU build pinned)"
+extra="[render]"  # Mitsuba 3: the demo renders with it
+[ "$with_test" = 1 ] && extra="[render,test]"
+echo "== installing dynbtf$extra into $PY (versions pinned by scripts/constraints.txt: torch 2.13.0 CPU build)"
 pip_status=0
-"$PY" -m pip install -q --disable-pip-version-check -e ".$extra" 2>&1 \
+"$PY" -m pip install -q --disable-pip-version-check -c scripts/constraints.txt -e ".$extra" 2>&1 \
   | { grep -v "Running pip as the 'root' user" || true; } || pip_status=$?
 if [ "$pip_status" != 0 ]; then
   echo "dynbtf: 'pip install -e .$extra' failed (exit status $pip_status) with $PY" >&2

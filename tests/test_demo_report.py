@@ -9,7 +9,7 @@ import pytest
 
 from dynbtf.demo import STAGES, DemoConfig, run_demo
 from dynbtf.errors import InputError
-from dynbtf.report.browser import check_in_browser, find_chromium
+from browser import check_in_browser, find_chromium
 from dynbtf.report.html import HtmlReport
 
 

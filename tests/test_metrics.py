@@ -114,3 +114,23 @@ def test_metrics_reject_bad_input(metric):
     bad[0, 0, 0] = np.nan
     with pytest.raises(InputError, match="NaN"):
         metric(bad, a)
+
+
+def test_flip_magma_is_flips_colour_map_of_its_error():
+    """FLIP's display: no error is magma's black end, a larger error a brighter colour, pixel by pixel."""
+    from dynbtf.metrics import flip_magma
+
+    rng = np.random.default_rng(4)
+    ref = rng.random((16, 16, 3)).astype(np.float32) * 0.8
+    test = ref.copy()
+    test[:, :8] = np.clip(ref[:, :8] + 0.4, 0, 1)  # error in the left half only
+    display = flip_magma(ref, test)
+    error_map, _ = flip_map(ref, test)
+    assert display.shape == (16, 16, 3) and display.dtype == np.float32
+    assert 0.0 <= display.min() and display.max() <= 1.0
+    same = flip_magma(ref, ref).reshape(-1, 3)
+    assert np.allclose(same, same[0]) and same[0].sum() < 0.1  # no error anywhere: magma's black end
+    brightness = display.sum(-1)
+    order = np.argsort(error_map.ravel())
+    assert np.all(np.diff(brightness.ravel()[order]) >= -1e-6)  # brighter with the error, as magma is
+    assert brightness[:, :8].mean() > brightness[:, 8:].mean() + 0.5

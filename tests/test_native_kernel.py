@@ -59,6 +59,31 @@ def test_a_compiler_means_a_native_kernel():
 
 
 @needs_native
+def test_the_kernel_reports_its_argument_layout_and_shapes():
+    """The C++ struct and its ctypes mirror have one size; the shape rule is the kernel's own answer."""
+    import ctypes
+
+    library = fused_mlp._native_library()
+    assert library.dynbtf_fused_l1_args_size() == ctypes.sizeof(fused_mlp._NativeArgs)
+    supported = {(h, c, n) for h in range(16, 145, 16) for c in (1, 3, 16, 17) for n in (1, 3, 7, 8)
+                 if library.dynbtf_fused_l1_supports(h, c, n)}
+    # the kernel's template instances: 16, 32, 48, 64 and 128 hidden units, 1..16 outputs, 1..7 layers
+    assert supported == {(h, c, n) for h in (16, 32, 48, 64, 128) for c in (1, 3, 16) for n in (1, 3, 7)}
+    assert not library.dynbtf_fused_l1_supports(24, 3, 3)
+
+
+@needs_native
+def test_shapes_without_a_native_path_train_through_pytorch(monkeypatch):
+    """80 hidden units has no template instance: the loss still comes out, equal to the PyTorch path's."""
+    p, q, mlp, target = problem(2, 3, 16, hidden=80)
+    assert not fused_mlp._native_supports(p, [layer.weight for layer in mlp], "fp32")
+    got = loss_and_grads(p, q, mlp, target, True, chunk_texels=8)
+    want = loss_and_grads(p, q, mlp, target, False, monkeypatch, chunk_texels=8)
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b)
+
+
+@needs_native
 @pytest.mark.parametrize("groups,images,texels,hidden,out,layers,chunk,workers", [
     (1, 16, 300, 32, 3, 3, 64, 2),   # the Triple Plane's decoder; tiles with a 44-texel tail
     (4, 16, 37, 32, 3, 3, 16, 2),    # texel groups, chunks and tiles not multiples of 8

@@ -82,7 +82,7 @@ def _meta_for(source: BTFSource, dtype: str) -> dict[str, Any]:
         theta, phi = direction_to_spherical(w)
         return np.stack([theta, phi], axis=1).round(9).tolist()
 
-    from .. import __version__
+    from .._version import __version__
 
     return {
         "format": STORED_FORMAT,

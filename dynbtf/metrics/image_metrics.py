@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import InputError
 from ..io import linear_to_srgb
 
-__all__ = ["psnr", "psnr_fixed_range", "PSNR_LABEL", "PSNR_FIXED_LABEL", "dssim", "flip", "flip_map",
+__all__ = ["psnr", "psnr_fixed_range", "PSNR_LABEL", "PSNR_FIXED_LABEL", "dssim", "flip", "flip_map", "flip_magma",
            "check_image_pair"]
 
 #: How outputs name the two PSNR forms.
@@ -115,8 +115,7 @@ def dssim(reference, test) -> float:
 def flip_map(reference, test) -> tuple[np.ndarray, float]:
     """NVIDIA FLIP (LDR) of the clamped sRGB-encoded images: ``(error map (H, W) in [0, 1], mean)``.
 
-    The map is the raw per-pixel error (no colour map applied; see
-    :func:`dynbtf.training.evaluate.flip_colormap`). Uses the ``flip-evaluator`` package, which silently misreads uint8 or
+    The map is the raw per-pixel error (no colour map applied; :func:`flip_magma` gives FLIP's display). Uses the ``flip-evaluator`` package, which silently misreads uint8 or
     channels-first input; this function always passes it contiguous float32
     ``(H, W, 3)`` sRGB values in ``[0, 1]``.
     """
@@ -130,6 +129,18 @@ def flip_map(reference, test) -> tuple[np.ndarray, float]:
     if error_map.ndim == 3:
         error_map = error_map[..., 0]
     return error_map, float(mean)
+
+
+def flip_magma(reference, test) -> np.ndarray:
+    """FLIP's display of the error map: its magma colour map, ``(H, W, 3)`` sRGB values in ``[0, 1]``
+    (black: no error; light yellow: error 1), as ``flip-evaluator`` draws it."""
+    import flip_evaluator
+
+    ref, tst = check_image_pair(reference, test)
+    ref_srgb = np.ascontiguousarray(linear_to_srgb(ref), dtype=np.float32)
+    tst_srgb = np.ascontiguousarray(linear_to_srgb(tst), dtype=np.float32)
+    display, _, _ = flip_evaluator.evaluate(ref_srgb, tst_srgb, "LDR", inputsRGB=True, applyMagma=True)
+    return np.clip(np.asarray(display, dtype=np.float32), 0.0, 1.0)
 
 
 def flip(reference, test) -> float:

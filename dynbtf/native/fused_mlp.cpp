@@ -59,6 +59,8 @@ struct FusedL1Args {
 int dynbtf_fused_l1_fp32(FusedL1Args* args);
 int dynbtf_fused_l1_bf16(FusedL1Args* args);
 int dynbtf_fused_l1_has_bf16(void);
+int dynbtf_fused_l1_args_size(void);  // sizeof(FusedL1Args): the ctypes mirror checks it on load
+int dynbtf_fused_l1_supports(int32_t hidden, int32_t out_channels, int32_t n_layers);  // 1 if a path exists
 }
 
 namespace {
@@ -453,11 +455,17 @@ int run(FusedL1Args* a) {
     return 0;
 }
 
+// The one rule for which shapes the kernel runs (Python asks dynbtf_fused_l1_supports).
+bool supported(int hidden, int out_channels, int n_layers) {
+    const int blocks = hidden / 16;
+    return hidden % 16 == 0 && (blocks == 1 || blocks == 2 || blocks == 3 || blocks == 4 || blocks == 8) &&
+           hidden <= MAX_HIDDEN && out_channels >= 1 && out_channels <= MAX_OUT && n_layers >= 1 &&
+           n_layers <= MAX_LAYERS - 1;
+}
+
 template <class Prec>
 int dispatch(FusedL1Args* a) {
-    if (a->hidden % 16 || a->hidden < 16 || a->hidden > MAX_HIDDEN || a->out_channels < 1 ||
-        a->out_channels > MAX_OUT || a->n_layers < 1 || a->n_layers > MAX_LAYERS - 1 || !(a->slope > 0))
-        return 1;
+    if (!supported(a->hidden, a->out_channels, a->n_layers) || !(a->slope > 0)) return 1;
     switch (a->hidden / 16) {
         case 1: return run<Prec, 1>(a);
         case 2: return run<Prec, 2>(a);
@@ -482,3 +490,9 @@ extern "C" int dynbtf_fused_l1_bf16(FusedL1Args* args) {
 }
 
 extern "C" int dynbtf_fused_l1_has_bf16(void) { return DYNBTF_HAVE_BF16; }
+
+extern "C" int dynbtf_fused_l1_args_size(void) { return static_cast<int>(sizeof(FusedL1Args)); }
+
+extern "C" int dynbtf_fused_l1_supports(int32_t hidden, int32_t out_channels, int32_t n_layers) {
+    return supported(hidden, out_channels, n_layers) ? 1 : 0;
+}

@@ -36,8 +36,13 @@ import math
 
 import numpy as np
 
+from ..errors import optional_module
+
 __all__ = [
     "mi_module",
+    "mitsuba_module",
+    "drjit_module",
+    "flat_array",
     "half_diff",
     "angular_coords",
     "bilinear_taps",
@@ -54,24 +59,28 @@ __all__ = [
 ]
 
 
+def mitsuba_module():
+    """The ``mitsuba`` module, imported on first use (Mitsuba is the optional extra ``dynbtf[render]``;
+    :class:`dynbtf.errors.MissingDependencyError` says how to install it)."""
+    return optional_module("mitsuba", "render", "rendering with Mitsuba 3")
+
+
 def mi_module():
     """The ``mitsuba`` module with a variant set (``llvm_ad_rgb`` if none was chosen)."""
-    import mitsuba as mi
-
+    mi = mitsuba_module()
     if mi.variant() is None:
         mi.set_variant("llvm_ad_rgb")
     return mi
 
 
-def _dr():
-    import drjit as dr
-
-    return dr
+def drjit_module():
+    """The ``drjit`` module (installed with Mitsuba), imported on first use."""
+    return optional_module("drjit", "render", "rendering with Mitsuba 3")
 
 
 def wrap01(x):
     """``x - floor(x)`` in ``[0, 1)`` (the exact 1.0 of tiny negative inputs maps to 0)."""
-    dr = _dr()
+    dr = drjit_module()
     f = x - dr.floor(x)
     return dr.select(f >= 1.0, f - 1.0, f)
 
@@ -83,7 +92,7 @@ def half_diff(wv, wl):
     including the fall-back to the normal for exactly opposite directions and the
     pole handling of ``phi_h``.
     """
-    mi, dr = mi_module(), _dr()
+    mi, dr = mi_module(), drjit_module()
     s = wv + wl
     n2 = dr.squared_norm(s)
     s = dr.select(n2 < 1e-24, mi.Vector3f(0.0, 0.0, 1.0), s)
@@ -105,7 +114,7 @@ def half_diff(wv, wl):
 
 def angular_coords(w):
     """``(s, t)`` angular-plane coordinates of unit vectors ``w``: ``theta/90deg`` clamped, ``phi/360deg`` wrapped."""
-    dr = _dr()
+    dr = drjit_module()
     theta = dr.acos(dr.clip(w.z, -1.0, 1.0)) * (180.0 / math.pi)
     from ..conventions import POLE_RADIUS
 
@@ -134,7 +143,7 @@ def bilinear_taps(x, y, width: int, height: int, *, wrap_x: bool, wrap_y: bool):
     -------
     list of 4 ``(flat_index: mi.UInt32, weight: mi.Float)``
     """
-    mi, dr = mi_module(), _dr()
+    mi, dr = mi_module(), drjit_module()
     x0f, y0f = dr.floor(x), dr.floor(y)
     fx, fy = x - x0f, y - y0f
     x0, y0 = mi.Int32(x0f), mi.Int32(y0f)
@@ -154,7 +163,7 @@ def bilinear_taps(x, y, width: int, height: int, *, wrap_x: bool, wrap_y: bool):
 
 def gather_channels(buffer, channels: int, taps, active=True):
     """Bilinear combination of ``channels`` values per tap from a flat channels-last buffer -> list of mi.Float."""
-    mi, dr = mi_module(), _dr()
+    mi, dr = mi_module(), drjit_module()
     out = [mi.Float(0.0) for _ in range(channels)]
     for index, weight in taps:
         base = index * channels
@@ -166,7 +175,7 @@ def gather_channels(buffer, channels: int, taps, active=True):
 def fetch_angular(buffer, resolution: tuple[int, int], channels: int, s, t, active=True):
     """Bilinear fetch of an angular plane ``(R_s, R_t, C)`` at ``(s, t)``: rows clamp, columns wrap."""
     rs, rt = resolution
-    dr = _dr()
+    dr = drjit_module()
     s = dr.clip(s, 0.0, 1.0)
     t = wrap01(t)
     taps = bilinear_taps(t * rt - 0.5, s * rs - 0.5, rt, rs, wrap_x=True, wrap_y=False)
@@ -180,7 +189,8 @@ def fetch_wrap(buffer, size: tuple[int, int], channels: int, u, v, active=True):
     return gather_channels(buffer, channels, taps, active)
 
 
-def _flat(mi, array) -> "object":
+def flat_array(mi, array) -> "object":
+    """A numpy array of any shape as a flat ``mi.Float`` (float32, row-major)."""
     return mi.Float(np.ascontiguousarray(np.asarray(array, dtype=np.float32)).ravel())
 
 
@@ -218,12 +228,12 @@ class DrDecoder:
         self.layers = [(w.astype(np.float32), b.astype(np.float32)) for w, b in layers]
 
     def _leaky(self, x):
-        dr = _dr()
+        dr = drjit_module()
         return dr.select(x >= 0.0, x, x * self.negative_slope)
 
     def __call__(self, features, angular):
         """RGB (``mi.Color3f``) from positional ``features`` (list of C_U mi.Float) and ``angular`` (list of C_A)."""
-        mi, dr = mi_module(), _dr()
+        mi, dr = mi_module(), drjit_module()
         x = list(features) + list(angular)
         for k, (weight, bias) in enumerate(self.layers):
             out = []
@@ -264,8 +274,8 @@ class DrTriplePlane:
         self.angular_resolution = tuple(half.shape[:2])
         self.angular_channels = int(half.shape[2])
         self.positional_channels = int(model.positional_plane().shape[-1])
-        self.half = _flat(mi, half)
-        self.diff = _flat(mi, diff)
+        self.half = flat_array(mi, half)
+        self.diff = flat_array(mi, diff)
         self.decoder = DrDecoder(model.decoder, output_map)
 
     def angular_features(self, wv, wl, active=True):

@@ -14,9 +14,9 @@ from __future__ import annotations
 import math
 
 from ..errors import InputError
-from ..synthesis import hash as _hash
-from ..synthesis import lattice as _lattice
-from .drjit_ops import _dr, _flat, fetch_wrap, gather_channels, mi_module
+from ..synthesis import hash as synthesis_hash
+from ..synthesis import lattice as synthesis_lattice
+from .drjit_ops import drjit_module, flat_array, fetch_wrap, gather_channels, mi_module
 
 __all__ = ["mix32", "hash_vertex", "vertex_offsets", "triangle_lattice", "lut_lookup", "DrTiling",
            "DrLatticeBlending", "make_dr_synthesizer"]
@@ -26,22 +26,22 @@ __all__ = ["mix32", "hash_vertex", "vertex_offsets", "triangle_lattice", "lut_lo
 def mix32(x):
     """lowbias32 finalizer on ``mi.UInt32`` (arithmetic is modulo 2**32 natively)."""
     x = x ^ (x >> 16)
-    x = x * _hash._M1
+    x = x * synthesis_hash.MIX_MULTIPLIER_1
     x = x ^ (x >> 15)
-    x = x * _hash._M2
+    x = x * synthesis_hash.MIX_MULTIPLIER_2
     return x ^ (x >> 16)
 
 
 def _words(k):
     """Low and high 32-bit words of an ``mi.Int32`` sign-extended to 64 bits, as ``mi.UInt32``."""
-    mi, dr = mi_module(), _dr()
+    mi, dr = mi_module(), drjit_module()
     return mi.UInt32(k), dr.select(k < 0, mi.UInt32(0xFFFFFFFF), mi.UInt32(0))
 
 
 def hash_vertex(vx, vy, seed: int):
     """:func:`dynbtf.synthesis.hash.hash_vertex` for ``mi.Int32`` vertices: identical 32-bit values."""
     mi = mi_module()
-    h = mi.UInt32(int(_hash.mix32((int(seed) ^ _hash._SEED_SALT) & _hash.MASK32)))
+    h = mi.UInt32(int(synthesis_hash.mix32((int(seed) ^ synthesis_hash.SEED_SALT) & synthesis_hash.MASK32)))
     lo, hi = _words(vx)
     h = mix32(mix32(h ^ lo) ^ hi)
     lo, hi = _words(vy)
@@ -51,7 +51,7 @@ def hash_vertex(vx, vy, seed: int):
 def vertex_offsets(vx, vy, seed: int, width: int, height: int):
     """Whole-texel offsets ``(ox, oy)`` (``mi.UInt32``) of lattice vertices, as :func:`dynbtf.synthesis.hash.vertex_offsets`."""
     h = hash_vertex(vx, vy, seed)
-    return h % width, mix32(h ^ _hash._SECOND_STREAM) % height
+    return h % width, mix32(h ^ synthesis_hash.SECOND_STREAM) % height
 
 
 # ---------------------------------------------------------------- triangle lattice (dynbtf.synthesis.lattice)
@@ -64,7 +64,7 @@ def triangle_lattice(u, v):
 
     Returns ``([(vx, vy)] * 3 as mi.Int32, [b0, b1, b2] as mi.Float64)``.
     """
-    mi, dr = mi_module(), _dr()
+    mi, dr = mi_module(), drjit_module()
     u, v = mi.Float64(u), mi.Float64(v)
     wu, wv = dr.floor(u), dr.floor(v)
     fu, fv = u - wu, v - wv
@@ -72,12 +72,12 @@ def triangle_lattice(u, v):
     wu, fu = dr.select(cu, wu + 1.0, wu), dr.select(cu, fu - 1.0, fu)
     wv, fv = dr.select(cv, wv + 1.0, wv), dr.select(cv, fv - 1.0, fv)
     # 2 sqrt(3) * whole_u as integer + fraction (hi/lo split of the constant, as in torch)
-    p_hi = wu * _lattice._C_HI
+    p_hi = wu * synthesis_lattice.LATTICE_SCALE_HI
     p_whole = dr.floor(p_hi)
-    p_frac = (p_hi - p_whole) + wu * _lattice._C_LO
+    p_frac = (p_hi - p_whole) + wu * synthesis_lattice.LATTICE_SCALE_LO
     carry = dr.floor(p_frac)
     iu_whole, iu_frac = p_whole + carry, p_frac - carry
-    kx = iu_frac + _lattice.LATTICE_SCALE * fu - 2.0 * fv
+    kx = iu_frac + synthesis_lattice.LATTICE_SCALE * fu - 2.0 * fv
     ky = 4.0 * fv
     bx, by = dr.floor(kx), dr.floor(ky)
     fx, fy = kx - bx, ky - by
@@ -97,7 +97,7 @@ def vertex_uv(vx, vy):
     """Position (``mi.Float64`` pair, exemplar repeats) of lattice vertices: hex-tile centres."""
     mi = mi_module()
     x, y = mi.Float64(vx), mi.Float64(vy)
-    return (x + 0.5 * y) / _lattice.LATTICE_SCALE, y / 4.0
+    return (x + 0.5 * y) / synthesis_lattice.LATTICE_SCALE, y / 4.0
 
 
 # ---------------------------------------------------------------- inverse transform LUT (dynbtf.synthesis.histogram)
@@ -106,7 +106,7 @@ def lut_lookup(table, size: int, channel: int, g_min: float, step: float, g):
 
     ``table`` is the flat ``(C, size)`` float32 table as ``mi.Float``; ``g`` an ``mi.Float``.
     """
-    mi, dr = mi_module(), _dr()
+    mi, dr = mi_module(), drjit_module()
     pos = dr.clip((g - g_min) / step, 0.0, size - 1.0)
     lo = dr.minimum(mi.UInt32(dr.floor(pos)), size - 2)
     t = pos - mi.Float(lo)
@@ -118,7 +118,7 @@ def lut_lookup(table, size: int, channel: int, g_min: float, step: float, g):
 
 def _mod(k, n: int):
     """Non-negative ``k mod n`` for ``mi.Int32`` ``k`` (Python semantics, as numba's and torch's)."""
-    dr = _dr()
+    dr = drjit_module()
     r = k % n
     return dr.select(r < 0, r + n, r)
 
@@ -164,12 +164,12 @@ class DrLatticeBlending:
             raise InputError(f"lattice blending mode: expected linear, hist or hex, got {mode!r}")
         plane = np.asarray(plane, dtype=np.float32)
         self.ph, self.pw, self.channels = (int(x) for x in plane.shape)
-        self.plane = _flat(mi, plane)
+        self.plane = flat_array(mi, plane)
         self.density = (int(density[0]), int(density[1]))
         self.seed = int(seed) & 0xFFFFFFFF
         self.mode = mode
         self.gamma, self.beta, self.gain_k = float(gamma), float(beta), float(gain_k)
-        self.luminance = _flat(mi, luminance) if luminance is not None else None
+        self.luminance = flat_array(mi, luminance) if luminance is not None else None
         if mode == "hex" and luminance is None:
             raise InputError("hex blending needs the luminance plane")
         if mode == "hist":
@@ -177,20 +177,20 @@ class DrLatticeBlending:
                 raise InputError("hist blending needs the inverse-transform LUT")
             lut = np.asarray(lut, dtype=np.float32)
             self.lut_size = int(lut.shape[1])
-            self.lut = _flat(mi, lut)
+            self.lut = flat_array(mi, lut)
             self.g_min, self.step = float(g_min), float(step)
         self.matrix = None if matrix is None else np.asarray(matrix, dtype=np.float32)
         self.offset = None if offset is None else np.asarray(offset, dtype=np.float32)
 
     def _gain(self, x):
-        dr = _dr()
+        dr = drjit_module()
         k = self.gain_k
         lo = 0.5 * dr.power(2.0 * x, k)
         hi = 1.0 - 0.5 * dr.power(dr.maximum(2.0 - 2.0 * x, 0.0), k)
         return dr.select(x < 0.5, lo, hi)
 
     def _weights(self, bary, taps_of_sample):
-        mi, dr = mi_module(), _dr()
+        mi, dr = mi_module(), drjit_module()
         if self.mode == "linear":
             return [mi.Float(b) for b in bary]
         if self.mode == "hist":
@@ -211,7 +211,7 @@ class DrLatticeBlending:
 
     def latent(self, u, v, active=True):
         """Blended values before the output map: list of ``C`` mi.Float."""
-        mi, dr = mi_module(), _dr()
+        mi, dr = mi_module(), drjit_module()
         u, v = mi.Float64(u), mi.Float64(v)
         verts, bary = triangle_lattice(u, v)
         wu, wv = dr.floor(u), dr.floor(v)
@@ -234,7 +234,7 @@ class DrLatticeBlending:
         for vx, vy in verts:
             h = hash_vertex(vx, vy, self.seed)
             ox = mi.Int32(h % pw)
-            oy = mi.Int32(mix32(h ^ _hash._SECOND_STREAM) % ph)
+            oy = mi.Int32(mix32(h ^ synthesis_hash.SECOND_STREAM) % ph)
             ca, cb = _mod(xi + ox, pw), _mod(xi + ox + 1, pw)
             ra, rb = _mod(yi + oy, ph), _mod(yi + oy + 1, ph)
             idx = (mi.UInt32(ra * pw + ca), mi.UInt32(ra * pw + cb), mi.UInt32(rb * pw + ca), mi.UInt32(rb * pw + cb))
@@ -252,7 +252,7 @@ class DrLatticeBlending:
 
     def features(self, u, v, active=True):
         """Synthesized positional features at ``(u, v)``: list of ``C`` mi.Float."""
-        dr = _dr()
+        dr = drjit_module()
         latent = self.latent(u, v, active)
         if self.matrix is None:
             return latent
@@ -278,7 +278,7 @@ class DrTiling:
         plane = plane.detach().float().cpu().numpy() if hasattr(plane, "detach") else plane
         self.size = (int(plane.shape[0]), int(plane.shape[1]))
         self.channels = int(plane.shape[2])
-        self.plane = _flat(mi, plane)
+        self.plane = flat_array(mi, plane)
 
     def features(self, u, v, active=True):
         return fetch_wrap(self.plane, self.size, self.channels, u, v, active)

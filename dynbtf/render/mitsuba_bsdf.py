@@ -115,14 +115,14 @@ def configure_jit() -> None:
     The flags are Dr.Jit's per-thread state: this changes them for everything
     the calling thread runs afterwards (see "Dr.Jit flags" in :data:`PLUGIN_DOC`).
     """
-    import drjit as dr
+    dr = drjit_ops.drjit_module()
 
     dr.set_flag(dr.JitFlag.SymbolicLoops, False)
     dr.set_flag(dr.JitFlag.SymbolicCalls, False)
 
 
 def _build_class(mi):
-    import drjit as dr
+    dr = drjit_ops.drjit_module()
 
     class DynBTFBSDF(mi.BSDF):
         __doc__ = PLUGIN_DOC
@@ -271,8 +271,8 @@ def plugin_variants() -> list[str]:
     ``cuda_*_rgb`` when it finds a CUDA device. Only variants built into the
     installed Mitsuba count.
     """
-    import drjit as dr
-    import mitsuba as mi
+    dr = drjit_ops.drjit_module()
+    mi = drjit_ops.mitsuba_module()
 
     backends = {"llvm": dr.JitBackend.LLVM, "cuda": dr.JitBackend.CUDA}
     usable = {name: bool(dr.has_backend(b)) for name, b in backends.items()}
@@ -282,7 +282,7 @@ def plugin_variants() -> list[str]:
 
 def _check_variant(variant: str, available: list[str]) -> None:
     """:class:`InputError` saying why ``variant`` cannot run the plugin, unless it is in ``available``."""
-    import mitsuba as mi
+    mi = drjit_ops.mitsuba_module()
 
     if variant in available:
         return
@@ -327,7 +327,7 @@ def register_plugin(variant: str | None = None) -> str:
         LLVM library) or not one the plugin runs on (scalar, mono, spectral); the
         message lists the variants that are available.
     """
-    import mitsuba as mi
+    mi = drjit_ops.mitsuba_module()
 
     wanted = variant if variant is not None else (mi.variant() or "llvm_ad_rgb")
     _check_variant(wanted, plugin_variants())

@@ -99,10 +99,10 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
         raise InputError(f"--scale: expected a positive number of repeats, got {scale}")
     load_plugin_model(model_path)  # a missing/damaged file or an unsupported kind fails here, not inside Mitsuba
     active = register_plugin(variant)
-    from .drjit_ops import mi_module
+    from .drjit_ops import drjit_module, mi_module
 
     mi = mi_module()
-    import drjit as dr
+    dr = drjit_module()
     from tqdm.auto import tqdm
 
     t0 = time.perf_counter()

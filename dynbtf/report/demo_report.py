@@ -20,10 +20,13 @@ def _human_bytes(n: float | None) -> str:
     return str(n)
 
 
+#: Captions of the synthesis methods the demo shows (the demo's results list which ones ran, in order).
+METHOD_TITLES = {"tile": "tiling (repetition)", "hist": "histogram-preserving blending", "hex": "hex-tiling",
+                 "quilt": "image quilting (off-line)"}
+
+
 def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
     """Write ``<out>/report.html`` from the stage results of the demo; return its path."""
-    from ..demo import METHOD_TITLES, METHODS
-
     out = Path(out)
     name = config.btf or f"simulated '{config.material}' ({config.size} x {config.size} texels, UBO2003 81 x 81 directions)"
     r = HtmlReport("dynbtf: an infinite BTF from a small exemplar",
@@ -34,6 +37,7 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
         return out / rel
 
     syn = results.get("synthesis", {})
+    methods = list(syn.get("grid") or syn.get("previews") or {})  # in the order the demo ran them
     ren = results.get("render", {}).get("renders", [])
 
     # ------------------------------------------------------------------ at a glance
@@ -41,7 +45,7 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
               "the exemplar (a visible grid towards the horizon); histogram-preserving blending and hex-tiling "
               "synthesize a non-repeating material on the fly.")
     if syn.get("previews"):
-        r.images([(img(syn["previews"][m]), METHOD_TITLES[m]) for m in METHODS if m in syn["previews"]], width=420)
+        r.images([(img(syn["previews"][m]), METHOD_TITLES.get(m, m)) for m in syn["previews"]], width=420)
     teaser = [x for x in ren if x["method"] == "hist"]
     if teaser:
         r.paragraph("Path-traced in Mitsuba 3 with the dynbtf BSDF plugin (decoder inside the rendering kernel), "
@@ -113,9 +117,9 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
                   "(at 25x and 45x several texels fall in a pixel: fine detail averages out, large-scale "
                   "repetition -- or its absence -- remains). "
                   "Every texel is computed on demand from its uv: nothing is pre-generated.")
-        for m in METHODS:
+        for m in methods:
             row = syn["grid"].get(m, {})
-            r.section(METHOD_TITLES[m], level=3)
+            r.section(METHOD_TITLES.get(m, m), level=3)
             r.images([(img(row[str(s)]), f"{s}x") for s in syn.get("scales", []) if str(s) in row], width=300)
         q = syn.get("quality", [])
         if q:
@@ -125,7 +129,7 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
         t = syn.get("timings", {})
         if t:
             scales = syn.get("scales", [])
-            r.table([{"method": m, **{f"{sc}x": t.get(f"{m}@{sc}x") for sc in scales}} for m in METHODS],
+            r.table([{"method": m, **{f"{sc}x": t.get(f"{m}@{sc}x") for sc in scales}} for m in methods],
                     columns=["method", *[f"{sc}x" for sc in scales]],
                     caption=f"Seconds per {syn.get('resolution')} x {syn.get('resolution')} synthesized image")
 

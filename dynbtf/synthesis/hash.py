@@ -29,16 +29,18 @@ Examples
 
 from __future__ import annotations
 
-__all__ = ["mix32", "seed_state", "fold_coordinate", "hash_vertex", "vertex_offsets", "MASK32"]
+__all__ = ["mix32", "seed_state", "fold_coordinate", "hash_vertex", "vertex_offsets", "MASK32", "MIX_MULTIPLIER_1",
+           "MIX_MULTIPLIER_2", "SECOND_STREAM", "SEED_SALT"]
 
 #: Low 32 bits.
 MASK32 = 0xFFFFFFFF
-_M1 = 0x7FEB352D
-_M2 = 0x846CA68B
+#: The two odd multipliers of :func:`mix32` (every backend's copy of the hash uses these).
+MIX_MULTIPLIER_1 = 0x7FEB352D
+MIX_MULTIPLIER_2 = 0x846CA68B
 #: Golden-ratio constant that separates the second offset coordinate's stream.
-_SECOND_STREAM = 0x9E3779B9
+SECOND_STREAM = 0x9E3779B9
 #: Salt xor-ed into the seed (mix32(0) == 0).
-_SEED_SALT = 0x85EBCA6B
+SEED_SALT = 0x85EBCA6B
 
 
 def _mulmod32(x, c: int):
@@ -49,9 +51,9 @@ def _mulmod32(x, c: int):
 def mix32(x):
     """The lowbias32 finalizer on values in ``[0, 2**32)`` (int64 arrays, tensors or scalars)."""
     x = x ^ (x >> 16)
-    x = _mulmod32(x, _M1)
+    x = _mulmod32(x, MIX_MULTIPLIER_1)
     x = x ^ (x >> 15)
-    x = _mulmod32(x, _M2)
+    x = _mulmod32(x, MIX_MULTIPLIER_2)
     return x ^ (x >> 16)
 
 
@@ -60,7 +62,7 @@ def seed_state(seed):
 
     Salted: vertex ``(0, 0)`` with seed 0 must not hash to 0.
     """
-    return mix32((seed ^ _SEED_SALT) & MASK32)
+    return mix32((seed ^ SEED_SALT) & MASK32)
 
 
 def fold_coordinate(h, k):
@@ -95,4 +97,4 @@ def vertex_offsets(vx, vy, seed, width: int, height: int):
     and all samples of one query share the same sub-texel position.
     """
     h = hash_vertex(vx, vy, seed)
-    return h % width, mix32(h ^ _SECOND_STREAM) % height
+    return h % width, mix32(h ^ SECOND_STREAM) % height

@@ -34,8 +34,8 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from .base import check_uv
-from .hash import _SECOND_STREAM, MASK32, fold_coordinate, hash_vertex, mix32, seed_state
-from .lattice import _C_HI, _C_LO, LATTICE_SCALE, large_scaled_integer
+from .hash import SECOND_STREAM, MASK32, fold_coordinate, hash_vertex, mix32, seed_state
+from .lattice import LATTICE_SCALE_HI, LATTICE_SCALE_LO, LATTICE_SCALE, large_scaled_integer
 
 __all__ = ["lattice_blend", "tile_fetch", "MODE_LINEAR", "MODE_HIST", "MODE_HEX"]
 
@@ -90,9 +90,9 @@ def _scaled_integer(i):
     """2 sqrt(3) * i as (int64 floor, float64 fraction): scalar twin of lattice._scaled_integer."""
     if abs(i) >= (1 << 27):  # beyond 1.3e8 repeats: integer fixed point (lattice.large_scaled_integer)
         return _large_scaled_integer(i)
-    p_hi = np.float64(i) * _C_HI
+    p_hi = np.float64(i) * LATTICE_SCALE_HI
     whole = math.floor(p_hi)
-    frac = (p_hi - whole) + np.float64(i) * _C_LO
+    frac = (p_hi - whole) + np.float64(i) * LATTICE_SCALE_LO
     carry = math.floor(frac)
     return np.int64(whole) + np.int64(carry), frac - carry
 
@@ -111,7 +111,7 @@ def _wrap(i, period):
 def _sample_texels(h, xi, yi, pw, ph):
     """Columns/rows of the 2x2 bilinear footprint of a sample offset by hash ``h`` (wrapped)."""
     ox = h % pw
-    oy = _mix32(h ^ _SECOND_STREAM) % ph
+    oy = _mix32(h ^ SECOND_STREAM) % ph
     c0 = _wrap(xi + ox, pw)
     r0 = _wrap(yi + oy, ph)
     return c0, _wrap(c0 + 1, pw), r0, _wrap(r0 + 1, ph)

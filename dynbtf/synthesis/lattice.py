@@ -36,7 +36,7 @@ import math
 import torch
 
 __all__ = ["split_uv", "triangle_lattice", "vertex_uv", "large_scaled_integer", "LATTICE_SCALE", "TRIANGLE_EDGE",
-           "MAX_REPEATS"]
+           "MAX_REPEATS", "LATTICE_SCALE_HI", "LATTICE_SCALE_LO"]
 
 #: Largest ``|uv|`` (exemplar repeats, i.e. after a synthesized BTF's ``scale``) the lattice and
 #: every synthesizer accept (exclusive). Below it the lattice is exact (see the module docstring)
@@ -50,9 +50,10 @@ MAX_REPEATS = 2.0**52
 LATTICE_SCALE = 2.0 * math.sqrt(3.0)
 #: Edge length of a lattice triangle, in exemplar repeats.
 TRIANGLE_EDGE = 1.0 / LATTICE_SCALE
-# 2 sqrt(3) = _C_HI + _C_LO with _C_HI holding 26 significant bits: I * _C_HI is exact for |I| < 2**27.
-_C_HI = math.ldexp(math.floor(math.ldexp(LATTICE_SCALE, 24)), -24)
-_C_LO = LATTICE_SCALE - _C_HI
+#: ``2 sqrt(3) = LATTICE_SCALE_HI + LATTICE_SCALE_LO``; the high part holds 26 significant bits, so
+#: ``I * LATTICE_SCALE_HI`` is exact for ``|I| < 2**27`` (the split every backend uses for large uv).
+LATTICE_SCALE_HI = math.ldexp(math.floor(math.ldexp(LATTICE_SCALE, 24)), -24)
+LATTICE_SCALE_LO = LATTICE_SCALE - LATTICE_SCALE_HI
 # The exact 2 sqrt(3) = sqrt(12) in fixed point: _N1 / 2**24 + _N2 / 2**50 + _C3, with _N1 < 2**26 and
 # _N2 < 2**26 integers and 0 <= _C3 < 2**-50 (all from integer square roots, no rounded constant).
 _N1 = math.isqrt(12 << 48)
@@ -107,9 +108,9 @@ def large_scaled_integer(i):
 def _scaled_integer(i: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``2 sqrt(3) * i`` for int64 ``|i| <= 2**53`` as (int64 floor, float64 fraction)."""
     i_lo = torch.where(i.abs() < (1 << 27), i, torch.zeros_like(i)).to(torch.float64)
-    p_hi = i_lo * _C_HI  # exact: |i_lo| < 2**27, _C_HI has 26 bits
+    p_hi = i_lo * LATTICE_SCALE_HI  # exact: |i_lo| < 2**27, LATTICE_SCALE_HI has 26 bits
     whole = torch.floor(p_hi)
-    frac = (p_hi - whole) + i_lo * _C_LO
+    frac = (p_hi - whole) + i_lo * LATTICE_SCALE_LO
     carry = torch.floor(frac)
     small_whole, small_frac = whole.to(torch.int64) + carry.to(torch.int64), frac - carry
     large = i.abs() >= (1 << 27)  # beyond 1.3e8 repeats: integer fixed point

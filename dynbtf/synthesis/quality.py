@@ -167,32 +167,21 @@ def quality_report(btf, *, repeats: int = 8, max_side: int = 1024, pairs=DEFAULT
     stride = max(1, max(side_h, side_w) // rgb_side)
     sub_uv = uv[::stride, ::stride].reshape(-1, 2).numpy() / btf.scale
     ex_uv = np.stack(np.meshgrid((np.arange(w) + 0.5) / w, (np.arange(h) + 0.5) / h), -1).reshape(-1, 2)
-    tile = _exemplar_decoder(btf)
+    tiled = btf.tiled()  # the exemplar decoded through the same evaluation path
     rgb_rows = []
     for view, light in pairs:
         wv = spherical_to_direction(np.array(view[0]), np.array(view[1]))
         wl = spherical_to_direction(np.array(light[0]), np.array(light[1]))
         syn_rgb = btf.eval(sub_uv, np.broadcast_to(wv, sub_uv.shape[:-1] + (3,)),
                            np.broadcast_to(wl, sub_uv.shape[:-1] + (3,)))
-        ex_rgb = tile(ex_uv, wv, wl)
+        ex_rgb = tiled.eval(ex_uv, np.broadcast_to(wv, ex_uv.shape[:-1] + (3,)),
+                            np.broadcast_to(wl, ex_uv.shape[:-1] + (3,)))
         d = w1_over_std(syn_rgb.astype(np.float64), ex_rgb.astype(np.float64), seed=seed)
         rgb_rows.append({"view": list(view), "light": list(light), "w1_over_std": d.tolist(),
                          "std_ratio": (syn_rgb.std(0) / np.maximum(ex_rgb.std(0), 1e-12)).tolist()})
     report["rgb"] = rgb_rows
     report["rgb_w1_over_std_max"] = float(max(max(r["w1_over_std"]) for r in rgb_rows))
     return report
-
-
-def _exemplar_decoder(btf):
-    """Decode the exemplar itself (plain tiling through the same evaluation path)."""
-    from ..synthesized import SynthesizedBTF
-
-    tiled = SynthesizedBTF(btf.model, "tile", scale=1.0, precision=btf.precision)
-
-    def decode(uv, wv, wl):
-        return tiled.eval(uv, np.broadcast_to(wv, uv.shape[:-1] + (3,)), np.broadcast_to(wl, uv.shape[:-1] + (3,)))
-
-    return decode
 
 
 def format_report(reports: list[dict[str, Any]]) -> str:

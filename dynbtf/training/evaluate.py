@@ -28,12 +28,12 @@ from ..conventions import direction_to_spherical
 from ..data.base import BTFSource
 from ..errors import FormatError, InputError
 from ..io import atomic_path, linear_to_srgb, save_image, srgb_to_linear
-from ..metrics import PSNR_FIXED_LABEL, PSNR_LABEL, dssim, flip_map, psnr, psnr_fixed_range
+from ..metrics import PSNR_FIXED_LABEL, PSNR_LABEL, dssim, flip, flip_magma, psnr, psnr_fixed_range
 from ..representations.base import Representation
 from .fit import predict_images
 from ..fused_mlp import single_intra_op_thread
 
-__all__ = ["Evaluation", "evaluate_model", "resolve_eval_pairs", "flip_colormap", "side_by_side", "write_evaluation",
+__all__ = ["Evaluation", "evaluate_model", "resolve_eval_pairs", "side_by_side", "write_evaluation",
            "GRAZING_THETA_DEG", "METRIC_DESCRIPTIONS"]
 
 METRICS = ("psnr", "psnr_fixed1", "dssim", "flip")
@@ -135,18 +135,10 @@ def resolve_eval_pairs(spec: str, source: BTFSource, metadata: dict[str, Any] | 
     return pairs
 
 
-def flip_colormap(error_map: np.ndarray) -> np.ndarray:
-    """FLIP error map ``(H, W)`` in ``[0, 1]`` -> display RGB ``(H, W, 3)`` with matplotlib's magma."""
-    from matplotlib import colormaps
-
-    return colormaps["magma"](np.clip(error_map, 0.0, 1.0))[..., :3].astype(np.float32)
-
-
-def side_by_side(reference: np.ndarray, test: np.ndarray, error_map: np.ndarray, *, min_height: int = 256,
-                 gap: int = 4) -> np.ndarray:
+def side_by_side(reference: np.ndarray, test: np.ndarray, *, min_height: int = 256, gap: int = 4) -> np.ndarray:
     """Display image ``ground truth | model | FLIP map`` (sRGB values in ``[0, 1]``), upscaled (nearest)
     to at least ``min_height`` rows, white gaps of ``gap`` pixels."""
-    panels = [linear_to_srgb(reference), linear_to_srgb(test), flip_colormap(error_map)]
+    panels = [linear_to_srgb(reference), linear_to_srgb(test), flip_magma(reference, test)]
     k = max(1, math.ceil(min_height / reference.shape[0]))
     panels = [np.kron(p, np.ones((k, k, 1), dtype=np.float32)) for p in panels]
     h = panels[0].shape[0]
@@ -196,7 +188,7 @@ def evaluate_model(rep: Representation, source: BTFSource, pairs, *, out_dir=Non
             for j, (v, l) in enumerate(chunk):
                 gt = np.asarray(source.image(int(v), int(l)), dtype=np.float32)
                 img = pred[j].reshape(gt.shape)
-                fmap, fmean = flip_map(gt, img)
+                fmean = flip(gt, img)
                 tv, pv = direction_to_spherical(source.views[v])
                 tl, pl = direction_to_spherical(source.lights[l])
                 rows.append({"view_index": int(v), "light_index": int(l), "theta_view": round(float(tv), 4),
@@ -205,7 +197,7 @@ def evaluate_model(rep: Representation, source: BTFSource, pairs, *, out_dir=Non
                              "grazing": bool(max(tv, tl) > GRAZING_THETA_DEG + 1e-6), "psnr": psnr(gt, img),
                              "psnr_fixed1": psnr_fixed_range(gt, img), "dssim": dssim(gt, img), "flip": fmean})
                 if k0 + j in show:
-                    shown.append((int(v), int(l), side_by_side(gt, img, fmap)))
+                    shown.append((int(v), int(l), side_by_side(gt, img)))
     rep.train(was_training)
     evaluation = Evaluation(rows, _means(rows), [], angle_groups(rows))
     if out_dir is not None:

@@ -19,7 +19,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import InputError
+from dynbtf.errors import InputError
 
 __all__ = ["find_chromium", "check_in_browser", "BrowserCheck", "CHROMIUM_FLAGS"]
 
