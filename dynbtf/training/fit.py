@@ -275,6 +275,155 @@ def _check_memory(config: TrainConfig, sampler: BatchSampler, store: ImageStore)
 
 
 # ---------------------------------------------------------------------------- the loop
+class _TrainingRun:
+    """One run of :func:`fit`: its parts (sampler, optimizer, monitor, checkpointer) and its position.
+
+    ``epoch, step`` is the next step to train; :meth:`train_steps` advances it, :meth:`checkpoint`
+    records it, and a new run on the same output starts where the checkpoint left off.
+    """
+
+    def __init__(self, representation: Representation, source: BTFSource, config: TrainConfig, output: Path):
+        if (representation.positional_plane().shape[0], representation.positional_plane().shape[1]) != \
+                (source.height, source.width):
+            raise InputError(f"representation's positional plane is "
+                             f"{tuple(representation.positional_plane().shape[:2])} but the BTF {source.name!r} is "
+                             f"{source.height} x {source.width} texels")
+        self.source, self.config, self.output = source, config, output
+        self.device = device = resolve_device(config.device)
+        self.rep = rep = representation.to(device)
+        rep.train()
+        # CPU: cache-sized chunks over worker threads; GPU: one chunk, one launch sequence
+        self.workers = int(config.workers or torch.get_num_threads()) if device.type == "cpu" else 1
+        self.train_pairs, self.held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction,
+                                                         config.seed)
+        self.store = ImageStore(source, int(config.memory_budget_mb * 1024 ** 2))
+        self.sampler = BatchSampler(self.store, self.train_pairs, images_per_step=config.images_per_step,
+                                    texel_groups=config.texel_groups, texels_per_image=config.texels_per_image,
+                                    seed=config.seed, view_coherent=rep.view_coherent_batches, device=device)
+        _check_memory(config, self.sampler, self.store)
+        self.chunk_texels = config.chunk_texels if device.type == "cpu" else self.sampler.texels_per_image
+        self.precision = resolve_precision(
+            config.precision if rep.has_fused_loss or config.precision == "bf16" else "fp32", device)
+        # fused: one kernel per step for all parameters (same update; ~0.2 ms less per step on the CPU)
+        self.optimizer = torch.optim.AdamW(_param_groups(rep, config.lr_scale), fused=True)
+        self.monitor = HeldOutMonitor(self.store, self.held_out, config.monitor_pairs, config.seed, device)
+        self.checkpointer = Checkpointer(checkpoint_path(output), _fingerprint(rep, source, config))
+        self.epoch, self.step, self.elapsed, self.history = 0, 0, 0.0, []
+        if self.checkpointer.exists():
+            state = self.checkpointer.load()
+            rep.load_state_dict(state["model"])
+            self.optimizer.load_state_dict(state["optimizer"])
+            self.epoch, self.step = int(state["epoch"]), int(state["step"])
+            self.elapsed, self.history = float(state["elapsed_seconds"]), list(state["history"])
+        self.total_steps = config.epochs * self.sampler.steps_per_epoch
+        self.done_steps = min(self.epoch * self.sampler.steps_per_epoch + self.step, self.total_steps)
+        self.last_checkpoint_step = self.done_steps
+        self.finished = self.epoch >= config.epochs
+        self.size_info = model_size_report(rep, source.nbytes_float32)
+
+    # ------------------------------------------------------------------ parts of a step
+    def checkpoint(self) -> None:
+        self.checkpointer.save({"config": _saved_options(self.config), "model": self.rep.state_dict(),
+                                "optimizer": self.optimizer.state_dict(), "epoch": self.epoch, "step": self.step,
+                                "elapsed_seconds": self.elapsed, "history": self.history,
+                                "held_out_pairs": torch.from_numpy(self.held_out)})
+        self.last_checkpoint_step = self.done_steps
+
+    def _next_position(self) -> tuple[int, int]:
+        return (self.epoch, self.step + 1) if self.step + 1 < self.sampler.steps_per_epoch else (self.epoch + 1, 0)
+
+    def _optimizer_step(self, batch) -> float:
+        """One step of the optimizer on ``batch``; returns the loss."""
+        for g in self.optimizer.param_groups:
+            g["lr"] = g["initial_lr"] * self.config.lr_decay ** self.epoch
+        source, device = self.source, self.device
+        wv = torch.as_tensor(source.views[batch.pairs[:, 0]], dtype=torch.float32, device=device)
+        wl = torch.as_tensor(source.lights[batch.pairs[:, 1]], dtype=torch.float32, device=device)
+        texels = None if batch.texels is None else torch.from_numpy(batch.texels).to(device)
+        loss = texel_image_loss(self.rep, wv, wl, batch.target, (source.height, source.width), texels,
+                                chunk_texels=self.chunk_texels, workers=self.workers,
+                                texel_groups=self.sampler.n_groups, precision=self.precision)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        return float(loss.detach())
+
+    # ------------------------------------------------------------------ the loop
+    def train_steps(self, bar, callback) -> None:
+        """Train until the schedule ends, the time budget runs out, or an interrupt (checkpointed either way).
+
+        A background thread prepares the next step's batch while this one trains.
+        """
+        config, steps_per_epoch = self.config, self.sampler.steps_per_epoch
+        run_start = time.perf_counter()
+        budget = None if config.max_minutes is None else config.max_minutes * 60.0
+        consistent = True  # model/optimizer state matches (epoch, step)
+        prefetch = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dynbtf-prefetch")
+        # On the CPU the loop runs torch kernels on one intra-op thread and parallelizes the fused loss over
+        # ``workers`` Python threads instead: OpenMP barriers stall badly on a shared, oversubscribed machine.
+        try:
+            with _InterruptFlag() as interrupt, single_intra_op_thread(self.device.type == "cpu"):
+                pending = prefetch.submit(self.sampler.batch, self.epoch, self.step) if not self.finished else None
+                while not self.finished:
+                    t0 = time.perf_counter()
+                    batch = pending.result()
+                    nxt = self._next_position()
+                    pending = prefetch.submit(self.sampler.batch, *nxt) if nxt[0] < config.epochs else None
+                    consistent = False
+                    loss = self._optimizer_step(batch)
+                    self.epoch, self.step = nxt
+                    consistent = True
+                    dt = time.perf_counter() - t0
+                    self.elapsed += dt
+                    self.done_steps += 1
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{loss:.4f}", samples_s=f"{batch.samples / dt:.3g}",
+                                    **({"heldout_psnr": f"{self.history[-1]['held_out_psnr']:.2f}"}
+                                       if self.history else {}))
+                    if self.step == 0:  # an epoch ended
+                        self.history.append({"epoch": self.epoch, "loss": loss,
+                                             "held_out_psnr": self.monitor.score(self.rep, predict_images),
+                                             "elapsed_seconds": self.elapsed})
+                        self.finished = self.epoch >= config.epochs
+                    if self.step == 0 or self.done_steps - self.last_checkpoint_step >= config.checkpoint_every:
+                        self.checkpoint()
+                    if callback is not None:
+                        callback({"epoch": self.epoch if self.step else self.epoch - 1,
+                                  "step": self.step or steps_per_epoch, "global_step": self.done_steps,
+                                  "loss": loss, "step_seconds": dt, "samples": batch.samples})
+                    if interrupt.raised:
+                        raise KeyboardInterrupt
+                    if budget is not None and time.perf_counter() - run_start >= budget and not self.finished:
+                        bar.write(f"time budget of {config.max_minutes} min reached at epoch {self.epoch}, "
+                                  f"step {self.step}; run again to continue")
+                        break
+        except BaseException:
+            if consistent and self.done_steps > self.last_checkpoint_step:
+                self.checkpoint()
+            raise
+        finally:
+            prefetch.shutdown(wait=True, cancel_futures=True)
+        if self.done_steps > self.last_checkpoint_step:
+            self.checkpoint()
+
+    def write_model(self, extra_provenance: dict[str, Any] | None) -> float:
+        """Write the model file with its provenance; returns the epochs completed."""
+        config, rep = self.config, self.rep
+        rep.eval()
+        completed_epochs = self.epoch + self.step / self.sampler.steps_per_epoch
+        provenance = training_provenance(
+            self.source, self.held_out, seed=config.seed,
+            training=dataclasses.asdict(config) | {"workers": self.workers, "precision_used": self.precision},
+            epochs_completed=completed_epochs, finished=self.finished, training_seconds=self.elapsed,
+            history=self.history, samples_per_epoch=self.sampler.samples_per_epoch, size=self.size_info,
+            **(extra_provenance or {}))
+        if self.history:
+            provenance["held_out_psnr_monitor"] = self.history[-1]["held_out_psnr"]
+            provenance["held_out_psnr_monitor_metric"] = "per-image peak"
+        save_model(self.output, rep, provenance)
+        return completed_epochs
+
+
 def fit(representation: Representation, source: BTFSource, config: TrainConfig | None = None,
         output=None, *, progress: bool = True, callback: Callable[[dict[str, Any]], None] | None = None,
         extra_provenance: dict[str, Any] | None = None) -> FitResult:
@@ -313,143 +462,32 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     """
     from tqdm.auto import tqdm
 
+    from ..representations.model_file import read_model_metadata
+
     config = (config or TrainConfig()).validate()
     if output is None:
         raise InputError("output: a model file path is required")
     output = Path(output)
-    if (representation.positional_plane().shape[0], representation.positional_plane().shape[1]) != \
-            (source.height, source.width):
-        raise InputError(f"representation's positional plane is {tuple(representation.positional_plane().shape[:2])} "
-                         f"but the BTF {source.name!r} is {source.height} x {source.width} texels")
-    device = resolve_device(config.device)
-    rep = representation.to(device)
-    rep.train()
-    # CPU: cache-sized chunks over worker threads; GPU: one chunk, one launch sequence
-    workers = int(config.workers or torch.get_num_threads()) if device.type == "cpu" else 1
-    train_pairs, held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction, config.seed)
-    store = ImageStore(source, int(config.memory_budget_mb * 1024 ** 2))
-    sampler = BatchSampler(store, train_pairs, images_per_step=config.images_per_step,
-                           texel_groups=config.texel_groups, texels_per_image=config.texels_per_image,
-                           seed=config.seed, view_coherent=rep.view_coherent_batches,
-                           device=device)
-    _check_memory(config, sampler, store)
-    steps_per_epoch, n_groups = sampler.steps_per_epoch, sampler.n_groups
-    chunk_texels = config.chunk_texels if device.type == "cpu" else sampler.texels_per_image
-    precision = resolve_precision(config.precision if rep.has_fused_loss or config.precision == "bf16" else "fp32",
-                                  device)
-    groups = _param_groups(rep, config.lr_scale)
-    # fused: one kernel per step for all parameters (same update; ~0.2 ms less per step on the CPU)
-    optimizer = torch.optim.AdamW(groups, fused=True)
-    monitor = HeldOutMonitor(store, held_out, config.monitor_pairs, config.seed, device)
-
-    checkpointer = Checkpointer(checkpoint_path(output), _fingerprint(rep, source, config))
-    epoch, step, elapsed, history = 0, 0, 0.0, []
-    if checkpointer.exists():
-        state = checkpointer.load()
-        rep.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        epoch, step, elapsed = int(state["epoch"]), int(state["step"]), float(state["elapsed_seconds"])
-        history = list(state["history"])
-
-    def checkpoint() -> None:
-        checkpointer.save({"config": _saved_options(config), "model": rep.state_dict(),
-                           "optimizer": optimizer.state_dict(), "epoch": epoch,
-                           "step": step, "elapsed_seconds": elapsed, "history": history,
-                           "held_out_pairs": torch.from_numpy(held_out)})
-
-    total_steps = config.epochs * steps_per_epoch
-    done_steps = min(epoch * steps_per_epoch + step, total_steps)
-    size_info = model_size_report(rep, source.nbytes_float32)
-    bar = tqdm(total=total_steps, initial=done_steps, unit="step", disable=not progress, dynamic_ncols=True,
-               desc=f"fit {rep.kind} on {source.name}")
+    run = _TrainingRun(representation, source, config, output)
+    sampler, store = run.sampler, run.store
+    bar = tqdm(total=run.total_steps, initial=run.done_steps, unit="step", disable=not progress, dynamic_ncols=True,
+               desc=f"fit {run.rep.kind} on {source.name}")
     if progress:
-        bar.write(f"{size_info['summary']}; {len(train_pairs)} training pairs, {len(held_out)} held out; "
-                  f"{steps_per_epoch} steps/epoch x {config.epochs} epochs, {workers} worker thread(s), "
-                  f"{precision} arithmetic" +
+        bar.write(f"{run.size_info['summary']}; {len(run.train_pairs)} training pairs, {len(run.held_out)} held out; "
+                  f"{sampler.steps_per_epoch} steps/epoch x {config.epochs} epochs, {run.workers} worker thread(s), "
+                  f"{run.precision} arithmetic" +
                   ("" if store.cached else "; texels read straight from the BTF (larger than the image cache)") +
-                  (f" (resuming at epoch {epoch}, step {step})" if done_steps else ""))
-    if epoch < config.epochs and store.cached:
-        store.fill(np.concatenate([train_pairs, monitor.pairs]), progress=progress)
-    run_start = time.perf_counter()
-    budget = None if config.max_minutes is None else config.max_minutes * 60.0
-    finished = epoch >= config.epochs
-    consistent = True  # model/optimizer state matches (epoch, step)
-    prefetch = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dynbtf-prefetch")
-    last_checkpoint_step = done_steps
-    # On the CPU the loop runs torch kernels on one intra-op thread and parallelizes the fused loss over
-    # ``workers`` Python threads instead: OpenMP barriers stall badly on a shared, oversubscribed machine.
+                  (f" (resuming at epoch {run.epoch}, step {run.step})" if run.done_steps else ""))
+    if not run.finished and store.cached:
+        store.fill(np.concatenate([run.train_pairs, run.monitor.pairs]), progress=progress)
     try:
-        with _InterruptFlag() as interrupt, single_intra_op_thread(device.type == "cpu"):
-            pending = prefetch.submit(sampler.batch, epoch, step) if not finished else None
-            while not finished:
-                for g in optimizer.param_groups:
-                    g["lr"] = g["initial_lr"] * config.lr_decay ** epoch
-                t0 = time.perf_counter()
-                batch = pending.result()
-                nxt = (epoch, step + 1) if step + 1 < steps_per_epoch else (epoch + 1, 0)
-                pending = prefetch.submit(sampler.batch, *nxt) if nxt[0] < config.epochs else None
-                consistent = False
-                wv = torch.as_tensor(source.views[batch.pairs[:, 0]], dtype=torch.float32, device=device)
-                wl = torch.as_tensor(source.lights[batch.pairs[:, 1]], dtype=torch.float32, device=device)
-                texel_t = None if batch.texels is None else torch.from_numpy(batch.texels).to(device)
-                loss = texel_image_loss(rep, wv, wl, batch.target, (source.height, source.width), texel_t,
-                                        chunk_texels=chunk_texels, workers=workers, texel_groups=n_groups,
-                                        precision=precision)
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                optimizer.step()
-                epoch, step = nxt
-                consistent = True
-                dt = time.perf_counter() - t0
-                elapsed += dt
-                loss_value = float(loss.detach())
-                done_steps += 1
-                bar.update(1)
-                bar.set_postfix(loss=f"{loss_value:.4f}", samples_s=f"{batch.samples / dt:.3g}",
-                                **({"heldout_psnr": f"{history[-1]['held_out_psnr']:.2f}"} if history else {}))
-                info = {"epoch": epoch if step else epoch - 1, "step": step or steps_per_epoch,
-                        "global_step": done_steps, "loss": loss_value, "step_seconds": dt,
-                        "samples": batch.samples}
-                if step == 0:  # an epoch ended
-                    history.append({"epoch": epoch, "loss": loss_value,
-                                    "held_out_psnr": monitor.score(rep, predict_images), "elapsed_seconds": elapsed})
-                    finished = epoch >= config.epochs
-                if step == 0 or done_steps - last_checkpoint_step >= config.checkpoint_every:
-                    checkpoint()
-                    last_checkpoint_step = done_steps
-                if callback is not None:
-                    callback(info)
-                if interrupt.raised:
-                    raise KeyboardInterrupt
-                if budget is not None and time.perf_counter() - run_start >= budget and not finished:
-                    bar.write(f"time budget of {config.max_minutes} min reached at epoch {epoch}, step {step}; "
-                              "run again to continue")
-                    break
-    except BaseException:
-        if consistent and done_steps > last_checkpoint_step:
-            checkpoint()
-        raise
+        run.train_steps(bar, callback)
     finally:
-        prefetch.shutdown(wait=True, cancel_futures=True)
         bar.close()
-    if done_steps > last_checkpoint_step:
-        checkpoint()
-
-    rep.eval()
-    completed_epochs = epoch + step / steps_per_epoch
-    provenance = training_provenance(
-        source, held_out, seed=config.seed,
-        training=dataclasses.asdict(config) | {"workers": workers, "precision_used": precision},
-        epochs_completed=completed_epochs, finished=finished, training_seconds=elapsed, history=history,
-        samples_per_epoch=sampler.samples_per_epoch, size=size_info, **(extra_provenance or {}))
-    if history:
-        provenance["held_out_psnr_monitor"] = history[-1]["held_out_psnr"]
-        provenance["held_out_psnr_monitor_metric"] = "per-image peak"
-    save_model(output, rep, provenance)
+    completed_epochs = run.write_model(extra_provenance)
     if progress:
-        print(f"wrote {output} ({size_info['summary']}; {completed_epochs:.2f} epochs in {elapsed / 60:.1f} min"
-              + (f", held-out PSNR {history[-1]['held_out_psnr']:.2f} dB (per-image peak, {len(monitor.pairs)} "
-                 "pairs)" if history else "") + ")")
-    from ..representations.model_file import read_model_metadata
-
-    return FitResult(output, rep, read_model_metadata(output), history, finished)
+        history = run.history
+        print(f"wrote {output} ({run.size_info['summary']}; {completed_epochs:.2f} epochs in {run.elapsed / 60:.1f} "
+              "min" + (f", held-out PSNR {history[-1]['held_out_psnr']:.2f} dB (per-image peak, "
+                       f"{len(run.monitor.pairs)} pairs)" if history else "") + ")")
+    return FitResult(output, run.rep, read_model_metadata(output), run.history, run.finished)
