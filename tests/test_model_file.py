@@ -109,3 +109,19 @@ def test_size_report_counts_parameters():
     assert report["model_bytes"] == 4 * expected_params  # ~10 MB, the paper's "10 MB"
     assert report["compression_ratio"] == pytest.approx(400 * 400 * 151 * 151 * 12 / (4 * expected_params))
     assert "10.3 MB" in report["summary"] and "43.8 GB" in report["summary"]
+
+
+@pytest.mark.parametrize("kind", ["triple", "neumip", "pca", "sh"])
+def test_model_files_of_an_earlier_version_load_and_give_their_values(kind):
+    """Files written by dynbtf before the architecture rework (commit 3d18bab, tests/data/round1_models)
+    load unchanged and evaluate to the values that version recorded."""
+    from pathlib import Path
+
+    data = Path(__file__).parent / "data" / "round1_models"
+    record = json.loads((data / "values.json").read_text())
+    rep, meta = load_model(data / f"{kind}.dbtfm")
+    assert rep.kind == kind
+    with torch.no_grad():
+        values = rep(torch.tensor(record["uv"], dtype=torch.float64), torch.tensor(record["w_view"]).float(),
+                     torch.tensor(record["w_light"]).float())
+    np.testing.assert_allclose(values.double().numpy(), np.array(record["values"][kind]), rtol=1e-6, atol=1e-7)
