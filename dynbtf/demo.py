@@ -233,8 +233,7 @@ def _synth_resolution(cfg: DemoConfig) -> int:
 
 
 def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
-    from tqdm.auto import tqdm
-
+    from .progress import progress_bar
     from .render.preview import DirectionalLight, grazing_camera, render_preview
     from .synthesized import SynthesizedBTF
 
@@ -247,7 +246,7 @@ def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
     grid: dict[str, dict[str, Any]] = {}
     timings = {}
     jobs = [(m, s) for m in METHODS for s in scales]
-    for method, scale in tqdm(jobs, desc="synthesis", unit="image", disable=not ctx.progress):
+    for method, scale in progress_bar(jobs, desc="synthesis", unit="image", disable=not ctx.progress):
         btf = SynthesizedBTF(rep, method, scale=1.0, seed=cfg.seed)
         t0 = time.perf_counter()  # one query per pixel, like the paper's figures
         img = btf.image(view, light, (0.0, 0.0, float(scale), float(scale)), (res, res))
@@ -259,7 +258,7 @@ def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
     cam = grazing_camera(distance=4.0, height=1.6, fov=55.0, center=(0.5, 2.5))
     sun = DirectionalLight((-0.55, -0.35, 0.76), irradiance=1.0)  # from behind the camera: no mirror highlight
     pres = (72, 128) if cfg.quick else (288, 512)
-    for method in tqdm(METHODS, desc="grazing previews", unit="image", disable=not ctx.progress):
+    for method in progress_bar(METHODS, desc="grazing previews", unit="image", disable=not ctx.progress):
         btf = SynthesizedBTF(rep, method, scale=1.0, seed=cfg.seed)
         img = render_preview(btf, cam, sun, resolution=pres, spp=1 if cfg.quick else 2, background=(0.55, 0.65, 0.8))
         previews[method] = ctx.rel(save_image(out_dir / f"grazing_{method}.png", img))

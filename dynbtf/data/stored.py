@@ -202,11 +202,10 @@ def write_stored(path, source: BTFSource, *, dtype: str = "float16", progress: b
     values = np.memmap(partial / DATA_FILE, dtype=np.dtype(dtype).newbyteorder("<"), mode="r+",
                        shape=(source.n_views, n_lights) + image_shape)
     view_images = getattr(source, "view_images", None)
-    from tqdm.auto import tqdm
-
+    from ..progress import progress_bar
     limit = np.finfo(np.float16).max if dtype == "float16" else np.inf
-    with tqdm(total=n_images, initial=done, unit="img", desc=f"writing {path.name}", disable=not progress,
-              dynamic_ncols=True) as bar:
+    with progress_bar(total=n_images, initial=done, unit="img", desc=f"writing {path.name}",
+                      disable=not progress) as bar:
         while done < n_images:
             v, l0 = divmod(done, n_lights)
             lights = np.arange(l0, min(n_lights, l0 + lights_per_batch))

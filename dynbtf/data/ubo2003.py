@@ -234,10 +234,9 @@ def write_ubo2003(path, source: BTFSource, *, image_format: str = "jpg", quality
     lights = _integer_degrees(source.lights, "light")
     path = Path(path)
     compression = zipfile.ZIP_STORED if image_format == "jpg" else zipfile.ZIP_DEFLATED
-    from tqdm.auto import tqdm
-
+    from ..progress import progress_bar
     with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w", compression=compression) as zf, \
-            tqdm(total=source.n_pairs, unit="img", desc=f"writing {path.name}", disable=not progress) as bar:
+            progress_bar(total=source.n_pairs, unit="img", desc=f"writing {path.name}", disable=not progress) as bar:
         for v, (tv, pv) in enumerate(views):
             for l, (tl, pl) in enumerate(lights):
                 buf = io.BytesIO()

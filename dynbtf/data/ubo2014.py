@@ -696,9 +696,8 @@ def write_ubo2014(path, source_or_arrays, *, components: int = 16, scalar: str =
     # one matrix per channel, rows view-major, columns = file texels (rows bottom-up)
     matrix = np.empty((rows, source.height, source.width, 3), dtype=np.float64)
     view_images = getattr(source, "view_images", None)  # all lights of a view at once, when offered
-    from tqdm.auto import tqdm
-
-    for v in tqdm(range(source.n_views), unit="view", desc=f"reading {source.name}", disable=not progress):
+    from ..progress import progress_bar
+    for v in progress_bar(range(source.n_views), unit="view", desc=f"reading {source.name}", disable=not progress):
         images = view_images(v) if view_images is not None else [source.image(v, l) for l in range(source.n_lights)]
         matrix[v * source.n_lights:(v + 1) * source.n_lights] = np.asarray(images)[:, ::-1]
     if colour_model == 11:
@@ -717,8 +716,7 @@ def write_ubo2014(path, source_or_arrays, *, components: int = 16, scalar: str =
 def _write_ubo2014_randomized(path, source: BTFSource, components: int, *, scalar: str, colour_model: int,
                               version: int, oversample: int, seed: int, progress: bool) -> Path:
     """Streamed randomized SVD of the three channel matrices (see :func:`write_ubo2014`)."""
-    from tqdm.auto import tqdm
-
+    from ..progress import progress_bar
     rows, cols = source.n_pairs, source.height * source.width
     k = min(components, rows, cols)
     width = min(k + max(int(oversample), 0), rows, cols)
@@ -728,7 +726,7 @@ def _write_ubo2014_randomized(path, source: BTFSource, components: int, *, scala
 
     def views_in_file_order(desc: str):
         """Per view: its ``(L, cols, 3)`` float64 channel values, texels in file order (rows bottom-up)."""
-        for v in tqdm(range(source.n_views), unit="view", desc=desc, disable=not progress, dynamic_ncols=True):
+        for v in progress_bar(range(source.n_views), unit="view", desc=desc, disable=not progress):
             images = view_images(v) if view_images is not None else \
                 np.stack([source.image(v, l) for l in range(source.n_lights)])
             values = np.asarray(images, dtype=np.float32)[:, ::-1].reshape(source.n_lights, cols, 3)

@@ -103,8 +103,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
 
     mi = mi_module()
     dr = drjit_module()
-    from tqdm.auto import tqdm
-
+    from ..progress import progress_bar
     t0 = time.perf_counter()
     spp, spp_per_pass = int(spp), int(spp_per_pass)
     label = f"render {scene}/{lighting}/{method}"
@@ -131,7 +130,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
             first = time.perf_counter() - tp
             _status(progress, f"{label}: kernel ready, first pass done in {first:.1f} s ({total}/{spp} spp)")
             if n_passes > 1:
-                bar = tqdm(total=spp, initial=total, desc=label, unit="spp", disable=not progress)
+                bar = progress_bar(total=spp, initial=total, desc=label, unit="spp", disable=not progress)
         else:
             later += time.perf_counter() - tp
             bar.update(n)

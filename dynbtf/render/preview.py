@@ -169,9 +169,8 @@ def render_preview(btf, camera: PinholeCamera, light, *, resolution=(256, 256), 
         raise InputError(f"camera origin: must be above the plane (z > 0), got {list(camera.origin)}")
     background = np.asarray(background, dtype=np.float32).reshape(3)
     acc = np.zeros((height, width, 3), dtype=np.float64)
-    from tqdm.auto import tqdm
-
-    for jitter in tqdm(_stratified_jitter(int(spp)), desc="preview", unit="pass", disable=not progress):
+    from ..progress import progress_bar
+    for jitter in progress_bar(_stratified_jitter(int(spp)), desc="preview", unit="pass", disable=not progress):
         o, d = camera.rays(height, width, jitter)
         hit = d[..., 2] < -1e-12
         t = np.where(hit, -o[2] / np.where(hit, d[..., 2], -1.0), 0.0)

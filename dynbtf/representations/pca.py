@@ -43,8 +43,7 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
-from tqdm.auto import tqdm
-
+from ..progress import progress_bar
 from ..data.base import BTFSource
 from ..errors import InputError, require_positive_ints
 from .base import Representation, register
@@ -211,7 +210,7 @@ def streamed_randomized_svd(btf: BTFSource, pairs, rank: int, *, centered: bool 
     width = min(rank + max(int(oversampling), 0), t, p)
     rng = np.random.default_rng(seed)
     omega = rng.standard_normal((3, p, width))
-    bar = tqdm(total=(2 + power_iterations) * p, desc="PCA: randomized SVD", unit="img", disable=not progress)
+    bar = progress_bar(total=(2 + power_iterations) * p, desc="PCA: randomized SVD", unit="img", disable=not progress)
     means = np.zeros((p, 3))
     cache = np.empty((p, t, 3), dtype=np.float32) if p * t * 3 * 4 <= cache_mb * 1024 ** 2 else None
     try:

@@ -35,8 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
-from tqdm.auto import tqdm
-
+from ..progress import progress_bar
 from ..data.base import BTFSource
 from ..errors import InputError, require_positive_ints
 from .base import Representation, register
@@ -180,7 +179,7 @@ def fit_sh(btf: BTFSource, *, pairs=None, bands: int = 3, neighbours: int = 3, p
     t = btf.height * btf.width
     coef = np.zeros((t, btf.n_views, 3, n), dtype=np.float64)
     fitted = np.zeros(btf.n_views, dtype=bool)
-    with tqdm(total=len(pairs), desc="SH: least squares per view", unit="img", disable=not progress) as bar:
+    with progress_bar(total=len(pairs), desc="SH: least squares per view", unit="img", disable=not progress) as bar:
         for v in range(btf.n_views):
             lights = pairs[pairs[:, 0] == v, 1]
             if len(lights) == 0:

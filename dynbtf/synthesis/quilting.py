@@ -24,8 +24,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
-
+from ..progress import progress_bar
 from ..errors import InputError
 from ..texture import fetch_wrap
 from .base import Synthesizer, register_synthesizer, wrapped_texel_position
@@ -114,7 +113,7 @@ def quilt(exemplar: np.ndarray, out_height: int, out_width: int, block: int, ove
     cols = max(1, math.ceil((out_width - overlap) / step))
     out = np.zeros((rows * step + overlap, cols * step + overlap, c))
     spectra = _exemplar_spectra(exemplar)
-    bar = tqdm(total=rows * cols, desc="quilting", unit="block", disable=not progress)
+    bar = progress_bar(total=rows * cols, desc="quilting", unit="block", disable=not progress)
     for i in range(rows):
         for j in range(cols):
             y, x = i * step, j * step

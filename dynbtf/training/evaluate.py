@@ -164,8 +164,7 @@ def evaluate_model(rep: Representation, source: BTFSource, pairs, *, out_dir=Non
     batch : int
         Images predicted per model call.
     """
-    from tqdm.auto import tqdm
-
+    from ..progress import progress_bar
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     if len(pairs) == 0:
         raise InputError("pairs: nothing to evaluate")
@@ -179,8 +178,8 @@ def evaluate_model(rep: Representation, source: BTFSource, pairs, *, out_dir=Non
     was_training = rep.training
     rep.eval()
     with torch.no_grad(), single_intra_op_thread(device.type == "cpu"):
-        for k0 in tqdm(range(0, len(pairs), batch), disable=not progress, desc="evaluating", unit="batch",
-                       dynamic_ncols=True):
+        for k0 in progress_bar(range(0, len(pairs), batch), disable=not progress, desc="evaluating",
+                                 unit="batch"):
             chunk = pairs[k0:k0 + batch]
             wv = torch.as_tensor(source.views[chunk[:, 0]], dtype=torch.float32, device=device)
             wl = torch.as_tensor(source.lights[chunk[:, 1]], dtype=torch.float32, device=device)

@@ -460,8 +460,7 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     FitResult
         ``finished`` is False when the time budget stopped training early.
     """
-    from tqdm.auto import tqdm
-
+    from ..progress import progress_bar
     from ..representations.model_file import read_model_metadata
 
     config = (config or TrainConfig()).validate()
@@ -470,7 +469,7 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     output = Path(output)
     run = _TrainingRun(representation, source, config, output)
     sampler, store = run.sampler, run.store
-    bar = tqdm(total=run.total_steps, initial=run.done_steps, unit="step", disable=not progress, dynamic_ncols=True,
+    bar = progress_bar(total=run.total_steps, initial=run.done_steps, unit="step", disable=not progress,
                desc=f"fit {run.rep.kind} on {source.name}")
     if progress:
         bar.write(f"{run.size_info['summary']}; {len(run.train_pairs)} training pairs, {len(run.held_out)} held out; "

@@ -105,16 +105,15 @@ class ImageStore:
         """
         if not self.cached:
             return
-        from tqdm.auto import tqdm
-
+        from ..progress import progress_bar
         if pairs is None:
             rows = np.arange(self.source.n_pairs)
         else:
             pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
             rows = np.sort(pairs[:, 0] * self.source.n_lights + pairs[:, 1])
         rows = rows[~self._filled[rows]]
-        for row in tqdm(rows, disable=not progress or len(rows) == 0, unit="image", desc="decoding BTF",
-                        dynamic_ncols=True, leave=False):
+        for row in progress_bar(rows, disable=not progress or len(rows) == 0, unit="image", desc="decoding BTF",
+                        leave=False):
             self.image(int(row) // self.source.n_lights, int(row) % self.source.n_lights)
 
     def get_blocks(self, pairs: np.ndarray, starts: np.ndarray, length: int, *, device=None):

@@ -74,8 +74,7 @@ def stereo_height(source: BTFSource, *, max_light_theta: float = 15.0, levels: i
     -------
     float64 ``(H, W)``: height of each texel centre relative to the reference plane.
     """
-    from tqdm.auto import tqdm
-
+    from ..progress import progress_bar
     if int(levels) < 3:
         raise InputError(f"stereo levels: expected at least 3 candidate heights, got {levels}")
     if not max_height > 0:
@@ -96,7 +95,7 @@ def stereo_height(source: BTFSource, *, max_light_theta: float = 15.0, levels: i
     centres = torch.from_numpy(texel_centers_uv(h, w).reshape(-1, 2))  # (N, 2) float64
     heights = torch.linspace(-max_height, max_height, int(levels), dtype=torch.float64)
     cost = torch.zeros(int(levels), h * w, dtype=torch.float64)
-    bar = tqdm(total=len(light_set) * int(levels), unit="level", disable=not progress, desc="stereo height")
+    bar = progress_bar(total=len(light_set) * int(levels), unit="level", disable=not progress, desc="stereo height")
     try:
         for light in light_set:
             images = torch.from_numpy(np.stack([source.image(v, int(light)) for v in range(source.n_views)]))

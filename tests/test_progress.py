@@ -1,0 +1,45 @@
+"""Progress output: a live bar on a terminal, a few whole lines in a log."""
+
+import io
+
+from dynbtf.progress import LOG_INTERVAL_SECONDS, progress_bar
+
+
+class Terminal(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def test_a_log_gets_whole_lines_not_carriage_returns():
+    log = io.StringIO()
+    for _ in progress_bar(range(5), desc="fit", unit="step", file=log, mininterval=0):
+        pass
+    text = log.getvalue()
+    assert "\r" not in text and text.endswith("\n")
+    lines = text.splitlines()
+    assert 6 <= len(lines) <= 7 and lines[-1].startswith("fit: 100%") and "5/5" in lines[-1]  # + the close line
+    assert all("step" in line for line in lines[1:])  # rate in steps
+
+
+def test_a_fast_loop_in_a_log_writes_a_line_every_few_seconds_at_most():
+    assert LOG_INTERVAL_SECONDS >= 2
+    log = io.StringIO()
+    for _ in progress_bar(range(20000), desc="decoding", file=log):
+        pass
+    assert len(log.getvalue().splitlines()) <= 3
+
+
+def test_a_terminal_gets_the_live_bar():
+    screen = Terminal()
+    for _ in progress_bar(range(3), desc="fit", file=screen, mininterval=0):
+        pass
+    assert "\r" in screen.getvalue()
+
+
+def test_messages_written_through_the_bar_are_lines(capsys):
+    log = io.StringIO()
+    bar = progress_bar(total=2, desc="fit", file=log)
+    bar.write("time budget reached", file=log)
+    bar.update(2)
+    bar.close()
+    assert "time budget reached\n" in log.getvalue()
