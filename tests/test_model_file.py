@@ -86,19 +86,48 @@ def test_newer_version_and_foreign_files_fail_clearly(tmp_path, model):
         load_model(tmp_path / "missing.dbtfm")
 
 
-def test_tensors_not_matching_config_fail(tmp_path, model):
-    path = save_model(tmp_path / "m.dbtfm", model)
-    meta = read_model_metadata(path)
+def _rewrite(tmp_path, path, change_meta=None, change_tensors=None):
+    """A copy of a model file with its metadata and tensors edited and the checksum recomputed
+    (what a hand-edited file or a buggy writer produces)."""
     from safetensors.torch import load_file
 
-    tensors = load_file(str(path))
-    meta["config"]["positional_channels"] = 8  # lies about the architecture
     from dynbtf.representations.model_file import _tensor_digest
 
+    meta = read_model_metadata(path)
+    tensors = load_file(str(path))
+    if change_meta:
+        change_meta(meta)
+    if change_tensors:
+        change_tensors(tensors)
     meta["tensor_sha256"] = _tensor_digest(tensors)
-    save_file(tensors, str(tmp_path / "lie.dbtfm"), metadata={"dynbtf": json.dumps(meta)})
-    with pytest.raises(FormatError, match="do not fit"):
-        load_model(tmp_path / "lie.dbtfm")
+    out = tmp_path / "edited.dbtfm"
+    save_file(tensors, str(out), metadata={"dynbtf": json.dumps(meta)})
+    return out
+
+
+def test_tensors_not_matching_config_fail_naming_the_tensor(tmp_path, model):
+    path = save_model(tmp_path / "m.dbtfm", model)
+    lie = _rewrite(tmp_path, path, change_meta=lambda m: m["config"].update(positional_channels=8))
+    with pytest.raises(FormatError, match=r"tensor 'f_u' has shape \(6, 5, 16\); the model's config needs "
+                                          r"\(6, 5, 8\)"):
+        load_model(lie)
+
+
+def test_missing_extra_and_non_finite_tensors_are_named(tmp_path, model):
+    path = save_model(tmp_path / "m.dbtfm", model)
+    with pytest.raises(FormatError, match="tensor 'f_h' of the 'triple' model is missing"):
+        load_model(_rewrite(tmp_path, path, change_tensors=lambda t: t.pop("f_h")))
+    with pytest.raises(FormatError, match="tensor 'bonus' is not part of a 'triple' model"):
+        load_model(_rewrite(tmp_path, path, change_tensors=lambda t: t.update(bonus=torch.zeros(2))))
+
+    def poison(t):
+        t["f_u"] = t["f_u"].clone()
+        t["f_u"][0, 0, 0] = float("inf")
+
+    with pytest.raises(FormatError, match=r"tensor 'f_u' holds 1 non-finite value\(s\)"):
+        load_model(_rewrite(tmp_path, path, change_tensors=poison))
+    with pytest.raises(FormatError, match="does not describe a 'triple' model"):
+        load_model(_rewrite(tmp_path, path, change_meta=lambda m: m["config"].update(no_such_option=1)))
 
 
 def test_size_report_counts_parameters():
@@ -125,3 +154,19 @@ def test_model_files_of_an_earlier_version_load_and_give_their_values(kind):
         values = rep(torch.tensor(record["uv"], dtype=torch.float64), torch.tensor(record["w_view"]).float(),
                      torch.tensor(record["w_light"]).float())
     np.testing.assert_allclose(values.double().numpy(), np.array(record["values"][kind]), rtol=1e-6, atol=1e-7)
+
+
+def test_a_btf_given_as_a_model_says_so(tmp_path):
+    from dynbtf.data import ArrayBTF, write_stored
+    from dynbtf.data.directions import ubo2003_directions
+
+    dirs = ubo2003_directions()[0][:2]
+    btf = ArrayBTF(np.full((2, 2, 4, 4, 3), 0.5, np.float32), dirs, dirs)
+    stored = write_stored(tmp_path / "leather.dbtf", btf, progress=False)
+    with pytest.raises(FormatError, match=r"leather\.dbtf: is a BTF \(stored\), not a model file"):
+        load_model(stored)
+    (tmp_path / "notes.dbtfm").write_text("hello")
+    with pytest.raises(FormatError, match="not a readable dynbtf model file"):
+        load_model(tmp_path / "notes.dbtfm")
+    with pytest.raises(FormatError, match="model file not found"):
+        load_model(tmp_path / "absent.dbtfm")

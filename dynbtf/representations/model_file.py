@@ -94,13 +94,29 @@ def save_model(path, representation: Representation, provenance: dict[str, Any] 
     return path
 
 
+def _btf_format(path: Path) -> str | None:
+    """The BTF format of ``path`` if it is a BTF (stored, UBO2014, UBO2003), else None."""
+    from ..data.open import sniff_format
+
+    try:
+        return sniff_format(path)
+    except FormatError:
+        return None
+
+
 def read_model_metadata(path) -> dict[str, Any]:
     """The JSON metadata of a model file, validated (format name, version), without loading tensors."""
     from safetensors import safe_open
 
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise FormatError(path, "model file not found")
+    btf_format = _btf_format(path)
+    if btf_format is not None:
+        raise FormatError(path, f"is a BTF ({btf_format}), not a model file (.dbtfm); fit a model to it first: "
+                                f"dynbtf fit {path} -o model.dbtfm")
+    if path.is_dir():
+        raise FormatError(path, "is a directory, not a model file (.dbtfm)")
     try:
         with safe_open(str(path), framework="pt") as f:
             raw = (f.metadata() or {}).get("dynbtf")
@@ -125,6 +141,26 @@ def read_model_metadata(path) -> dict[str, Any]:
         if field not in meta:
             raise FormatError(path, f"metadata lacks the field {field!r}")
     return meta
+
+
+def _check_tensors(path: Path, kind: str, expected: dict[str, torch.Tensor], found: dict[str, torch.Tensor]) -> None:
+    """:class:`FormatError` naming the first tensor that is missing, extra, of the wrong shape or not finite."""
+    missing = [name for name in expected if name not in found]
+    if missing:
+        raise FormatError(path, f"tensor {missing[0]!r} of the {kind!r} model is missing"
+                                + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+    extra = [name for name in found if name not in expected]
+    if extra:
+        raise FormatError(path, f"tensor {extra[0]!r} is not part of a {kind!r} model")
+    for name, want in expected.items():
+        got = found[name]
+        if tuple(got.shape) != tuple(want.shape):
+            raise FormatError(path, f"tensor {name!r} has shape {tuple(got.shape)}; the model's config needs "
+                                    f"{tuple(want.shape)}")
+        if got.is_floating_point() and not bool(torch.isfinite(got).all()):
+            bad = int((~torch.isfinite(got)).sum())
+            raise FormatError(path, f"tensor {name!r} holds {bad} non-finite value(s) (NaN or Inf): the model is "
+                                    "damaged; refit it")
 
 
 def load_model(path, device=None) -> tuple[Representation, dict[str, Any]]:
@@ -161,9 +197,11 @@ def load_model(path, device=None) -> tuple[Representation, dict[str, Any]]:
         raise FormatError(path, "tensor data does not match its checksum: the file is damaged")
     try:
         rep = cls(**meta["config"])
-        rep.load_state_dict(tensors, strict=True)
-    except (TypeError, RuntimeError, InputError) as e:
-        raise FormatError(path, f"tensors do not fit a {meta['kind']!r} model with config {meta['config']} ({e})") from None
+    except (TypeError, InputError) as e:
+        raise FormatError(path, f"metadata 'config' {meta['config']} does not describe a {meta['kind']!r} model ({e})") \
+            from None
+    _check_tensors(path, meta["kind"], rep.state_dict(), tensors)
+    rep.load_state_dict(tensors, strict=True)
     rep.eval()
     if device is not None:
         rep.to(resolve_device(device))
