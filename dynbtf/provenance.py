@@ -24,7 +24,7 @@ __all__ = ["source_fingerprint", "check_model_source", "DIRECTION_TOLERANCE"]
 DIRECTION_TOLERANCE = 1e-4
 
 
-def source_fingerprint(source: BTFSource) -> str:
+def source_fingerprint(source: BTFSource, name: str | None = None) -> str:
     """SHA-256 of the BTF's name, shape and first and last images (pairs (0, 0) and the last, float32 bytes).
 
     Model files record the BTF's name and shape, not its content; a BTF that
@@ -32,7 +32,7 @@ def source_fingerprint(source: BTFSource) -> str:
     simulation seed) is caught by comparing this fingerprint with the recorded one.
     Reads two images.
     """
-    digest = hashlib.sha256(repr((source.name, source.shape)).encode())
+    digest = hashlib.sha256(repr((source.name if name is None else name, source.shape)).encode())
     for v, l in ((0, 0), (source.n_views - 1, source.n_lights - 1)):
         digest.update(np.ascontiguousarray(source.image(int(v), int(l)), dtype=np.float32).tobytes())
     return digest.hexdigest()
@@ -60,14 +60,15 @@ def check_model_source(metadata: dict[str, Any], source: BTFSource, model: str =
     ------
     InputError
         The BTF differs in size (texels, numbers of views or lights) or in its
-        view or light directions; the message names both BTFs.
+        view or light directions, or it has another name and other values (another material);
+        the message names both BTFs.
 
     Returns
     -------
     list of str
-        Warnings, for the caller to print: the BTF has another name but the same
-        size and directions (e.g. a converted copy of the BTF the model was fitted
-        to); or it has the recorded name but other content (the recorded
+        Notes, for the caller to print: the BTF has another name but the same
+        size, directions and values (a converted copy of the BTF the model was fitted
+        to: another name with other values is an error); or it has the recorded name but other content (the recorded
         :func:`source_fingerprint` differs: the BTF changed since the fit, or it is a
         lossy copy such as a float16 ``.dbtf``, which keeps the name); or the model
         file records no source.
@@ -88,8 +89,15 @@ def check_model_source(metadata: dict[str, Any], source: BTFSource, model: str =
         raise InputError(f"{model} was fitted to {fitted}, not to the BTF {given}: the {' and '.join(moved)} "
                          "directions differ; evaluate it on the BTF it was fitted to (--force to skip this check)")
     if record.get("name") != source.name:
-        return [f"{model} was fitted to {record.get('name')!r}, evaluated on {source.name!r} (same size and "
-                "directions; fine if it is a converted copy of that BTF)"]
+        stored = record.get("fingerprint")
+        if stored is not None and stored != source_fingerprint(source, name=record.get("name")):
+            raise InputError(f"{model} was fitted to {fitted}, not to the BTF {given}: same size and directions "
+                             "but other values (another material, or a lossy copy); evaluate it on the BTF it was "
+                             "fitted to (--force to evaluate anyway)")
+        return [f"{model} was fitted to {record.get('name')!r}, evaluated on {source.name!r} (same size, directions "
+                "and values: a copy of that BTF)"] if stored is not None else \
+            [f"{model} was fitted to {record.get('name')!r}, evaluated on {source.name!r} (same size and "
+             "directions; the model file records no content fingerprint to compare)"]
     stored = record.get("fingerprint")
     if stored is not None:
         current = source_fingerprint(source)

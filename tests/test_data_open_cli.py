@@ -148,6 +148,10 @@ def test_convert_to_the_exchange_formats(files, tmp_path, capsys):
     (["convert", "{btf}", "-o", "{tmp}/n.dbtf", "--dtype", "int8"], "dtype"),
     (["convert", "{btf}", "-o", "{tmp}/n.btf", "--scalar", "quad"], "scalar"),
     (["info", "sim:stone?size=abc"], "'size' must be an integer"),
+    (["fit", "{btf}", "-o", "{tmp}/m.dbtfm", "--lr-scale", "-1"], "--lr-scale (TrainConfig.lr_scale): expected a "
+                                                                  "number > 0, got -1.0"),
+    (["synth", "{dbtf}", "-o", "{tmp}/s.png"], "is a BTF (stored), not a model file"),
+    (["synth", "{btf}", "-o", "{tmp}/s.png"], "is a BTF (ubo2014), not a model file"),
 ])
 def test_user_errors_are_one_line_with_status_2(files, tmp_path, capsys, argv, message):
     argv = [a.format(tmp=tmp_path, btf=files["btf"], dbtf=files["dbtf"]) for a in argv]
@@ -164,10 +168,13 @@ def test_corrupt_file_through_the_command_line(files, tmp_path, capsys):
     assert code == 2 and err.startswith(f"dynbtf: error: {bad}: truncated") and len(err.strip().splitlines()) == 1
 
 
-@pytest.mark.parametrize("command", [[], ["info"], ["convert"], ["show"]])
+@pytest.mark.parametrize("command", [[], ["info"], ["convert"], ["show"], ["fit"], ["synth"]])
 def test_help(capsys, command):
     code, out, _ = run(capsys, *command, "--help")
     assert code == 0 and "Usage" in out
+    assert "<bool>" not in out and "{" not in out.split("Usage:")[1].splitlines()[0]  # flags; BTF, not {btf}
+    if command in (["show"], ["fit"]):
+        assert f"Usage: dynbtf {command[0]} [OPTIONS] BTF" in out
     if command == ["show"]:
         text = " ".join(out.replace("\u2502", " ").split())  # undo rich's wrapping and box borders
         assert "THETA,PHI in degrees" in text and ".exr" in text and "[default: 1.0]" in text

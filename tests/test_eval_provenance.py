@@ -91,7 +91,7 @@ def test_eval_refuses_a_btf_of_another_size_or_directions(files, capsys, which, 
 
 
 @pytest.mark.parametrize("which, words", [
-    ("copy", ["fitted to 'synthetic', evaluated on 'copy of synthetic'", "converted copy"]),
+    ("copy", ["fitted to 'synthetic', evaluated on 'copy of synthetic'", "a copy of that BTF"]),
     ("changed", ["other content of 'synthetic'", "changed since the fit"]),
     ("float16", ["other content of 'synthetic'", "lossy copy"]),
 ])
@@ -128,9 +128,10 @@ def test_check_model_source_on_simulated_materials_and_older_records():
     leather = open_btf("sim:leather?size=8")
     meta = {"provenance": training_provenance(leather, np.zeros((0, 2), dtype=np.int64))}
     assert check_model_source(meta, leather) == []
-    # the audit's example: same grid and size, another material -> a warning naming both
-    (warning,) = check_model_source(meta, open_btf("sim:stone?size=8"), model="m.dbtfm")
-    assert "m.dbtfm was fitted to 'sim:leather', evaluated on 'sim:stone'" in warning
+    # same grid and size, another material: an error naming both (--force on the command line skips it)
+    with pytest.raises(InputError, match=r"m\.dbtfm was fitted to 'sim:leather' .* not to the BTF 'sim:stone' .*"
+                                         r"same size and directions but other values"):
+        check_model_source(meta, open_btf("sim:stone?size=8"), model="m.dbtfm")
     # another simulation seed: same name, other content
     (warning,) = check_model_source(meta, open_btf("sim:leather?size=8&seed=5"))
     assert "other content of 'sim:leather'" in warning

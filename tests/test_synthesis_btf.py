@@ -482,3 +482,25 @@ def test_synth_gamma_option(model_file, tmp_path, capsys):
     capsys.readouterr()
     assert main(["synth", str(model_file), "--gamma", "-1", "--resolution", "8", "-o", str(tmp_path / "x.png")]) == 2
     assert "gamma: expected a positive, finite exponent, got -1.0" in capsys.readouterr().err
+
+
+def test_cli_synth_writes_btf_values_and_cosine_only_when_asked(tmp_path):
+    """`dynbtf synth` writes the BTF values (no cosine, like `show` and the library); --cosine shades them."""
+    from dynbtf.cli.main import main
+    from dynbtf.io import load_image
+    from dynbtf.representations.model_file import save_model
+    from dynbtf.representations.triple_plane import TriplePlane
+    from dynbtf.synthesized import SynthesizedBTF
+
+    model = TriplePlane(16, 16, positional_channels=4, angular_channels=4, hidden=16, seed=2)
+    with torch.no_grad():
+        model.decoder.rest[-1].bias.add_(0.5)
+    path = save_model(tmp_path / "m.dbtfm", model)
+    plain, shaded = tmp_path / "plain.exr", tmp_path / "shaded.exr"
+    common = ["synth", str(path), "--method", "tile", "--scale", "2", "--light", "60,90", "--resolution", "12"]
+    assert main(common + ["-o", str(plain)]) == 0
+    assert main(common + ["--cosine", "-o", str(shaded)]) == 0
+    want = SynthesizedBTF(model, "tile", scale=2.0).image(view=(0.0, 0.0), light=(60.0, 90.0),
+                                                          uv_rect=(0.0, 0.0, 1.0, 1.0), resolution=12)
+    np.testing.assert_allclose(load_image(plain), want, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(load_image(shaded), want * 0.5, rtol=1e-5, atol=1e-6)  # cos 60 deg

@@ -72,6 +72,9 @@ def synth(
                                                "e.g. 1e6,1e6 to look far from the origin; |uv| * scale must stay "
                                                "below 2**52 (~4.5e15) exemplar repeats."),
     exposure: float = typer.Option(1.0, help="Multiplier (positive) applied before sRGB encoding (PNG only)."),
+    cosine: bool = typer.Option(False, "--cosine", help="Multiply by cos(theta_light): the radiance under a "
+                                                        "directional light of unit irradiance at normal incidence "
+                                                        "(default: the BTF value itself, which excludes it)."),
     quilt_repeats: Optional[int] = typer.Option(None, "--quilt-repeats",
                                                 help="Size of the quilted plane (--method quilt, or quilt in "
                                                      "--report-methods), exemplar repeats per axis; default "
@@ -94,8 +97,8 @@ def synth(
     """Synthesize a flat sample of the BTF at any scale and position; optionally report quality.
 
     The image shows the uv square of side 1 centred at --center under one view
-    and one directional light; pixel values are the BTF value times
-    cos(theta_light) (unit irradiance at normal incidence), linear RGB.
+    and one directional light; pixel values are BTF values (linear RGB, excluding
+    cos(theta_light), as everywhere in dynbtf; --cosine multiplies it in).
     """
     from ..conventions import spherical_to_direction
     from ..device import resolve_device
@@ -138,8 +141,9 @@ def synth(
         btf = build(method)
         img = btf.image(view=view_dir, light=light_dir, uv_rect=(cu - 0.5, cv - 0.5, cu + 0.5, cv + 0.5),
                         resolution=resolution, spp=spp)
-        cos_light = max(float(spherical_to_direction(light_dir[0], light_dir[1])[2]), 0.0)
-        save_image(output, img * cos_light, exposure=exposure)
+        if cosine:
+            img = img * max(float(spherical_to_direction(light_dir[0], light_dir[1])[2]), 0.0)
+        save_image(output, img, exposure=exposure)
         typer.echo(f"wrote {output} ({resolution}x{resolution}, {method}, {scale:g}x, centre {cu:g},{cv:g})")
     if report:
         from ..synthesis.quality import format_report, quality_report, save_report

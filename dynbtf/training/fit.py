@@ -151,18 +151,27 @@ class TrainConfig:
     precision: str = "auto"
 
     def validate(self) -> "TrainConfig":
-        checks = [("epochs", self.epochs >= 1), ("images_per_step", self.images_per_step >= 1),
-                  ("lr_decay", 0 < self.lr_decay <= 1), ("lr_scale", self.lr_scale > 0),
-                  ("held_out_fraction", 0 <= self.held_out_fraction < 1),
-                  ("texels_per_image", self.texels_per_image is None or self.texels_per_image >= 1),
-                  ("texel_groups", self.texel_groups >= 1),
-                  ("max_minutes", self.max_minutes is None or self.max_minutes > 0),
-                  ("checkpoint_every", self.checkpoint_every >= 1), ("chunk_texels", self.chunk_texels >= 1),
-                  ("workers", self.workers is None or self.workers >= 1), ("monitor_pairs", self.monitor_pairs >= 0),
-                  ("precision", self.precision in ("auto", "fp32", "bf16"))]
-        for name, ok in checks:
+        """Check every option; :class:`InputError` names the option (and its command-line flag) and the
+        valid range."""
+        checks = [("epochs", self.epochs >= 1, "an integer >= 1"),
+                  ("images_per_step", self.images_per_step >= 1, "an integer >= 1"),
+                  ("lr_decay", 0 < self.lr_decay <= 1, "a factor in (0, 1]"),
+                  ("lr_scale", self.lr_scale > 0, "a number > 0"),
+                  ("held_out_fraction", 0 <= self.held_out_fraction < 1, "a fraction in [0, 1)"),
+                  ("texels_per_image", self.texels_per_image is None or self.texels_per_image >= 1,
+                   "an integer >= 1"),
+                  ("texel_groups", self.texel_groups >= 1, "an integer >= 1"),
+                  ("max_minutes", self.max_minutes is None or self.max_minutes > 0, "a number of minutes > 0"),
+                  ("checkpoint_every", self.checkpoint_every >= 1, "an integer >= 1"),
+                  ("chunk_texels", self.chunk_texels >= 1, "an integer >= 1"),
+                  ("workers", self.workers is None or self.workers >= 1, "an integer >= 1"),
+                  ("monitor_pairs", self.monitor_pairs >= 0, "an integer >= 0"),
+                  ("memory_budget_mb", self.memory_budget_mb > 0, "a number of MB > 0"),
+                  ("precision", self.precision in ("auto", "fp32", "bf16"), "'auto', 'fp32' or 'bf16'")]
+        for name, ok, valid in checks:
             if not ok:
-                raise InputError(f"training option {name}={getattr(self, name)!r} is out of range")
+                flag = "--" + name.replace("_", "-").replace("memory-budget-mb", "memory-mb")
+                raise InputError(f"{flag} (TrainConfig.{name}): expected {valid}, got {getattr(self, name)!r}")
         return self
 
     # options that change the result: a checkpoint must agree on them to be resumed
