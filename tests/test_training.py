@@ -321,3 +321,16 @@ def test_cli_fit_eval_inspect(tmp_path, btf, monkeypatch, capsys):
     (tmp_path / "bad.dbtfm").write_bytes(b"\x00" * 20)
     assert main(["inspect", str(tmp_path / "bad.dbtfm")]) == 2
     assert "bad.dbtfm" in capsys.readouterr().err
+
+
+def test_a_finished_fit_leaves_no_checkpoint_and_is_not_overwritten_by_another_run(tmp_path, btf, capsys):
+    out = tmp_path / "m.dbtfm"
+    fit(TriplePlane(8, 8, seed=7), btf, small_config(epochs=1), out, progress=False)
+    assert out.exists() and not checkpoint_path(out).exists()
+    before = out.read_bytes()
+    again = fit(TriplePlane(8, 8, seed=7), btf, small_config(epochs=1), out, progress=True)
+    assert "already a finished fit with these options" in capsys.readouterr().out
+    assert again.finished and out.read_bytes() == before
+    with pytest.raises(InputError, match=r"holds a fit of a different training run \(differs in \['lr_scale'\]\)"):
+        fit(TriplePlane(8, 8, seed=7), btf, small_config(epochs=1, lr_scale=2.0), out, progress=False)
+    assert out.read_bytes() == before

@@ -55,6 +55,7 @@ uninterrupted run (same ``workers``, same machine).
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import signal
 import threading
@@ -71,7 +72,7 @@ from ..data.base import BTFSource
 from ..device import resolve_device
 from ..errors import InputError
 from ..representations.base import Representation
-from ..representations.model_file import model_size_report, save_model
+from ..representations.model_file import load_model, model_size_report, save_model
 from ..fused_mlp import resolve_precision, single_intra_op_thread
 from .batches import BatchSampler
 from .checkpoint import Checkpointer, checkpoint_path
@@ -242,6 +243,36 @@ def training_provenance(source: BTFSource, held_out: np.ndarray, **extra) -> dic
 def _fingerprint(rep: Representation, source: BTFSource, config: TrainConfig) -> dict[str, Any]:
     return {"kind": rep.kind, "config": rep.config(), "source": [source.name, *source.shape],
             **{name: getattr(config, name) for name in TrainConfig.RESULT_FIELDS}}
+
+
+def _jsonable(value: Any) -> Any:
+    """``value`` as it reads back from a model file's JSON metadata (tuples become lists)."""
+    return json.loads(json.dumps(value))
+
+
+def _already_fitted(output: Path, rep: Representation, source: BTFSource, config: TrainConfig):
+    """The metadata of ``output`` if it is a finished fit of this very run (same representation, BTF and
+    result-changing options), else None: a rerun of a finished fit then returns at once. A model file of
+    another run is refused (:class:`InputError` naming the differing options), as its checkpoint would be."""
+    from ..errors import DynBTFError
+    from ..representations.model_file import read_model_metadata
+
+    if not output.is_file() or checkpoint_path(output).exists():
+        return None
+    try:
+        meta = read_model_metadata(output)
+    except DynBTFError:
+        return None
+    provenance = meta.get("provenance") or {}
+    recorded = provenance.get("run")
+    if not isinstance(recorded, dict):  # written before runs were recorded: overwritten as before
+        return None
+    current = _jsonable(_fingerprint(rep, source, config) | {"epochs": config.epochs})
+    if recorded != current:
+        differ = [k for k in current if recorded.get(k) != current[k]]
+        raise InputError(f"{output}: holds a fit of a different training run (differs in {differ}); delete it or "
+                         "choose another output to start over")
+    return meta if provenance.get("finished") else None
 
 
 class _InterruptFlag:
@@ -425,6 +456,7 @@ class _TrainingRun:
             training=dataclasses.asdict(config) | {"workers": self.workers, "precision_used": self.precision},
             epochs_completed=completed_epochs, finished=self.finished, training_seconds=self.elapsed,
             history=self.history, samples_per_epoch=self.sampler.samples_per_epoch, size=self.size_info,
+            run=_jsonable(_fingerprint(rep, self.source, config) | {"epochs": config.epochs}),
             **(extra_provenance or {}))
         if self.history:
             provenance["held_out_psnr_monitor"] = self.history[-1]["held_out_psnr"]
@@ -476,6 +508,12 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     if output is None:
         raise InputError("output: a model file path is required")
     output = Path(output)
+    if _already_fitted(output, representation, source, config) is not None:
+        rep, meta = load_model(output, device=resolve_device(config.device))
+        if progress:
+            print(f"{output} is already a finished fit with these options: nothing to do (delete it to fit again)")
+        provenance = meta["provenance"]
+        return FitResult(output, rep, meta, list(provenance.get("history", [])), True)
     run = _TrainingRun(representation, source, config, output)
     sampler, store = run.sampler, run.store
     bar = progress_bar(total=run.total_steps, initial=run.done_steps, unit="step", disable=not progress,
@@ -493,6 +531,8 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     finally:
         bar.close()
     completed_epochs = run.write_model(extra_provenance)
+    if run.finished:  # the model file has everything; a rerun with the same options returns at once
+        run.checkpointer.remove()
     if progress:
         history = run.history
         print(f"wrote {output} ({run.size_info['summary']}; {completed_epochs:.2f} epochs in {run.elapsed / 60:.1f} "
