@@ -41,9 +41,16 @@ if [ -n "$DYNBTF_VENV" ] && ! venv_ready; then
   "$DYNBTF_BASE_PYTHON" -m venv --clear "$DYNBTF_VENV"
 fi
 
+if [ -n "${TORCH_INDEX_URL:-}" ]; then
+  # e.g. TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu: PyTorch's CPU-only build (plain PyPI
+  # resolves torch to the CUDA build, several GB of NVIDIA libraries a CPU-only machine does not use)
+  echo "== installing torch from $TORCH_INDEX_URL"
+  "$PY" -m pip install -q --disable-pip-version-check --index-url "$TORCH_INDEX_URL" \
+    "$(grep '^torch==' scripts/constraints.txt)"
+fi
 extra="[render]"  # Mitsuba 3: the demo renders with it
 [ "$with_test" = 1 ] && extra="[render,test]"
-echo "== installing dynbtf$extra into $PY (versions pinned by scripts/constraints.txt: torch 2.13.0 CPU build)"
+echo "== installing dynbtf$extra into $PY (versions pinned by scripts/constraints.txt)"
 pip_status=0
 "$PY" -m pip install -q --disable-pip-version-check -c scripts/constraints.txt -e ".$extra" 2>&1 \
   | { grep -v "Running pip as the 'root' user" || true; } || pip_status=$?
@@ -51,4 +58,7 @@ if [ "$pip_status" != 0 ]; then
   echo "dynbtf: 'pip install -e .$extra' failed (exit status $pip_status) with $PY" >&2
   exit "$pip_status"
 fi
-"$PY" -c "import dynbtf, torch, mitsuba; print('dynbtf', dynbtf.__version__, '| torch', torch.__version__, '| mitsuba', mitsuba.__version__)"
+"$PY" -c "
+import dynbtf, torch, mitsuba
+build = 'CPU-only build' if torch.version.cuda is None else f'CUDA {torch.version.cuda} build'
+print('dynbtf', dynbtf.__version__, '| torch', torch.__version__, f'({build})', '| mitsuba', mitsuba.__version__)"

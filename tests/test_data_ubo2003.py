@@ -173,3 +173,18 @@ def test_fuzz_damaged_zips_raise_only_format_error(tmp_path):
         except Exception as e:  # pragma: no cover - the failure this test exists to catch
             pytest.fail(f"mutant {k} raised {type(e).__name__}: {e}")
     assert outcomes["format_error"] > 100 and outcomes["ok"] > 0
+
+
+def test_an_entry_declaring_far_more_than_an_image_is_refused_before_reading(tmp_path):
+    """A small zip can declare a huge entry (2 MiB of zeros deflate to ~2 KB): refused from the declared
+    size, instead of read whole into memory."""
+    buf = io.BytesIO()
+    Image.fromarray(np.full((4, 4, 3), 90, np.uint8)).save(buf, format="PNG")
+    path = tmp_path / "bomb.zip"
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as z:
+        z.writestr("tl000 pl000 tv000 pv000.png", buf.getvalue())
+        z.writestr("tl015 pl000 tv000 pv000.png", buf.getvalue() + bytes(2 ** 21))  # valid header, huge tail
+    assert path.stat().st_size < 20_000
+    with pytest.raises(FormatError, match=r"entry 'tl015 pl000 tv000 pv000.png' declares 2,097,\d+ bytes, far "
+                                          r"more than an image of 4x4 pixels needs"):
+        UBO2003BTF(path)

@@ -163,6 +163,17 @@ class UBO2003BTF(BTFSource):
                     raise FormatError(self.path, f"entry {name!r} is {size[1]}x{size[0]} pixels but "
                                                  f"{first[1]!r} is {first[0][1]}x{first[0][0]}: all images must "
                                                  f"have the same size")
+        # an image file of H x W pixels is at most about its raw size (uncompressed RGBA, plus headers);
+        # an entry declaring far more would be read whole into memory before decoding fails
+        height, width = first[0]
+        limit = 2 * height * width * 4 + 2 ** 20
+        for row in self._names:
+            for name in row:
+                declared = self._zip.getinfo(name).file_size
+                if declared > limit:
+                    raise FormatError(self.path, f"entry {name!r} declares {declared:,} bytes, far more than an image "
+                                                 f"of {width}x{height} pixels needs (at most {limit:,}): refused "
+                                                 "(damaged or not a UBO2003 zip)")
         return first[0]
 
     def entry_names(self) -> list[str]:
