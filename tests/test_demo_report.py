@@ -37,6 +37,18 @@ def test_quick_demo_writes_every_stage_and_the_report(quick_demo):
     for src in re.findall(r"src='([^']+)'", html):
         assert (out / src).is_file(), src
     assert any("stage 7/7 report" in line for line in logs)
+    # words a reader understands: no raw keys, units, what finished, a command that works as typed
+    import html as html_module
+    import shlex
+    import sys
+
+    text = html_module.unescape(html)
+    for raw in ("model_bytes", "compression_ratio", "f H pca", "training finished"):
+        assert raw not in text, raw
+    assert "finished (1 epochs)" in text and "principal components as RGB" in text
+    assert "first call (compiles kernels)" in text and "size (px)" in text and " deg" in text
+    reproduce = re.search(r"Reproduce \(reruns skip finished stages\): ([^<]+)", text).group(1)
+    assert shlex.split(reproduce)[:4] == [sys.executable, "-m", "dynbtf", "demo"]
 
 
 def test_rerun_resumes_by_skipping_finished_stages(quick_demo):
@@ -117,6 +129,10 @@ def test_an_unfinished_fit_is_continued_by_the_next_run(tmp_path):
     tiny = DemoConfig(output=str(tmp_path), size=16, quick=True, minutes=1e-5)  # stops after the first step
     first = run_demo(tiny, progress=False, log=logs.append, stages=("data", "fit"))
     assert first["fit"]["finished"] is False
+    from dynbtf.report.demo_report import _training_state
+
+    state = _training_state(first["fit"], tiny)
+    assert state.startswith("not finished: the time budget stopped it after") and "run the same demo" in state
     logs.clear()
     second = run_demo(DemoConfig(output=str(tmp_path), size=16, quick=True), progress=False, log=logs.append,
                       stages=("data", "fit"))

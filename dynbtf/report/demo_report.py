@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shlex
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +20,39 @@ def _human_bytes(n: float | None) -> str:
             return f"{n:.3g} {unit}"
         n /= 1000.0
     return str(n)
+
+
+def _angles(pair) -> str:
+    """``(theta, phi)`` in degrees as text."""
+    try:
+        theta, phi = pair
+        return f"(theta {float(theta):g}, phi {float(phi):g}) deg"
+    except (TypeError, ValueError):
+        return str(pair)
+
+
+def _feature_caption(stem: str) -> str:
+    """Caption of a feature-plane picture from its file name (dynbtf.representations.visualize)."""
+    if stem == "height":
+        return "height field (light = high)"
+    name, _, what = stem.rpartition("_")
+    plane = {"positional": "f_U (positional)", "f_h": "f_H (half vector)", "f_d": "f_D (difference vector)"}.get(
+        name.lower(), name)
+    if what == "pca":
+        return f"{plane}: first three principal components as RGB"
+    if what == "channels":
+        return f"{plane}: each channel (rows theta 0-90 deg, columns phi 0-360 deg)"
+    return stem.replace("_", " ")
+
+
+def _training_state(fit: dict[str, Any], config) -> str:
+    """Whether the fit finished, and if not, what stopped it and how to finish it."""
+    if fit.get("finished", True):
+        return f"finished ({fit.get('epochs_configured', '?')} epochs)"
+    done = fit.get("epochs_completed")
+    done = f"{done:.1f}" if isinstance(done, (int, float)) else "some"
+    return (f"not finished: the time budget stopped it after {done} of {fit.get('epochs_configured', '?')} epochs; "
+            f"run the same demo command again to continue the fit from its checkpoint")
 
 
 #: Captions of the synthesis methods the demo shows (the demo's results list which ones ran, in order).
@@ -58,8 +93,8 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
     if data:
         r.section("The measured BTF", "Images of the exemplar for a few (view, light) pairs (values exclude "
                   "cos(theta_light)).")
-        r.images([(img(x["path"]), f"view {x['view']}, light {x['light']}") for x in data.get("images", [])],
-                 width=256, pixelated=True)
+        r.images([(img(x["path"]), f"view {_angles(x['view'])}, light {_angles(x['light'])}")
+                  for x in data.get("images", [])], width=256, pixelated=True)
         d = data.get("describe", {})
         r.table([{"name": d.get("name", ""), "texels": f"{d.get('height')} x {d.get('width')}",
                   "views x lights": f"{d.get('n_views')} x {d.get('n_lights')}",
@@ -81,8 +116,12 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
                                  ("others", groups.get("others", {}))] if g.get("n")],
                 caption="Held-out metrics (means). PSNR per-image peak: against each reference image's maximum, "
                         "comparable across materials; fixed peak 1: the older form, higher on dark materials")
-        r.table([{"training finished": fit.get("finished"), "training time (s)": fit.get("seconds"),
-                  "recipe": fit.get("recipe", "")}], caption="Training")
+        r.table([{"training": _training_state(fit, config),
+                  "training time (s)": fit.get("seconds_training", fit.get("seconds")),
+                  "recipe": fit.get("recipe", "")}],
+                caption=f"Training. The fit's own progress line shows the held-out PSNR on "
+                        f"{fit.get('monitor_pairs', 16)} of the held-out pairs (a quick monitor); the tables above "
+                        f"score {ev.get('n_pairs')} held-out pairs, so the two numbers differ slightly.")
         caps = []
         for x in ev.get("images", []):
             row = x.get("row") or {}
@@ -98,7 +137,10 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
                     caption=f"Per pair (first {min(12, len(rows))} of {len(rows)})")
         size = ev.get("size", {})
         if size:
-            r.table([{k: v for k, v in size.items() if not isinstance(v, (dict, list))}],
+            r.table([{"model": _human_bytes(size.get("model_bytes")),
+                      "parameters": f"{size.get('n_parameters', 0):,}",
+                      "raw BTF (float32 RGB)": _human_bytes(size.get("raw_btf_bytes")),
+                      "compression": f"{size['compression_ratio']:.3g} : 1" if "compression_ratio" in size else ""}],
                     caption="Model size vs raw BTF size")
 
     # ------------------------------------------------------------------ features
@@ -106,7 +148,7 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
     if feats:
         r.section("Feature planes", "Positional plane f_U (first three principal components as RGB), and the "
                   "half-vector / difference-vector planes f_H, f_D (rows: theta from 0 at the top; columns: phi).")
-        r.images([(img(p), Path(p).stem.replace("_", " ")) for p in feats], width=256, pixelated=True)
+        r.images([(img(p), _feature_caption(Path(p).stem)) for p in feats], width=256, pixelated=True)
 
     # ------------------------------------------------------------------ synthesis
     if syn.get("grid"):
@@ -114,8 +156,9 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
                   f"BTF values (excluding cos(theta_light)), top view, light at theta {syn['light'][0]:g} deg, "
                   f"phi {syn['light'][1]:g} deg; "
                   f"each image spans N x N exemplar repeats at {syn.get('resolution')} x {syn.get('resolution')} pixels, one query per pixel "
-                  "(at 25x and 45x several texels fall in a pixel: fine detail averages out, large-scale "
-                  "repetition -- or its absence -- remains). "
+                  "(at 25x and 45x several texels fall in a pixel and the one query shows one of them: the "
+                  "fine noise there is aliasing of point samples, not the material's look from afar; large-scale "
+                  "repetition -- or its absence -- is what these panels show). "
                   "Every texel is computed on demand from its uv: nothing is pre-generated.")
         for m in methods:
             row = syn["grid"].get(m, {})
@@ -123,15 +166,23 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
             r.images([(img(row[str(s)]), f"{s}x") for s in syn.get("scales", []) if str(s) in row], width=300)
         q = syn.get("quality", [])
         if q:
-            r.table(q, caption="Synthesis quality (dynbtf.synthesis.quality): histogram distance of the "
-                    "synthesized features to the exemplar (W1/std; lower is better) and repetition score "
-                    "(autocorrelation peak at the exemplar's period; tiling ~1)")
+            r.table(q, caption="Synthesis quality (dynbtf.synthesis.quality), measured on an area of N x N "
+                    "exemplar repeats: W1/std, the Wasserstein distance between the synthesized and the exemplar's "
+                    "histograms over the exemplar's spread (lower is better); std ratio, synthesized over exemplar "
+                    "spread (1: contrast kept); repetition score, the autocorrelation peak at the exemplar's period "
+                    "(tiling ~1); verbatim fraction, the share of synthesized texels within 1% of the channel spread "
+                    "of some exemplar texel (copies: tiling ~1; blending creates new values except near lattice "
+                    "vertices)")
         t = syn.get("timings", {})
         if t:
             scales = syn.get("scales", [])
-            r.table([{"method": m, **{f"{sc}x": t.get(f"{m}@{sc}x") for sc in scales}} for m in methods],
-                    columns=["method", *[f"{sc}x" for sc in scales]],
-                    caption=f"Seconds per {syn.get('resolution')} x {syn.get('resolution')} synthesized image")
+            compiled = syn.get("compile_seconds", {})
+            r.table([{"method": m, **{f"{sc}x": t.get(f"{m}@{sc}x") for sc in scales},
+                      "first call (compiles kernels)": compiled.get(m)} for m in methods],
+                    columns=["method", *[f"{sc}x" for sc in scales], "first call (compiles kernels)"],
+                    caption=f"Seconds per {syn.get('resolution')} x {syn.get('resolution')} px synthesized image "
+                            "(kernels already compiled), and the first call of each method, which compiles its "
+                            "kernels once per machine (cached on disk)")
 
     # ------------------------------------------------------------------ renders
     if ren:
@@ -139,13 +190,17 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
                   "Every shading point evaluates lattice, hash, blending, inverse transform and decoder MLP in "
                   "the Dr.Jit kernel. Compile time is paid once per kernel and cached by Dr.Jit.")
         r.images([(img(x["path"]), f"{x['scene']} / {x['lighting']} / {x['method']}") for x in ren], width=300)
-        r.table([{k: x[k] for k in ("scene", "lighting", "method", "scale", "size", "spp", "seconds",
-                                    "compile_seconds", "variant")} for x in ren], caption="Render settings and timings")
+        r.table([{"scene": x["scene"], "lighting": x["lighting"], "method": x["method"],
+                  "scale (repeats)": x["scale"], "size (px)": x["size"], "spp": x["spp"], "seconds": x["seconds"],
+                  "compile seconds": x["compile_seconds"], "variant": x["variant"]} for x in ren],
+                caption="Render settings and timings")
 
     # ------------------------------------------------------------------ timings
     r.section("Timings")
     r.table([{"stage": k, "seconds": v.get("seconds")} for k, v in results.items()],
             caption="Wall time per stage (of the run that computed it)")
-    r.paragraph(f"Reproduce: dynbtf demo -o {out.name} --material {config.material} --size {config.size}"
-                + (f" --btf {config.btf}" if config.btf else "") + (" --quick" if config.quick else ""), note=True)
+    command = [sys.executable, "-m", "dynbtf", "demo", "-o", str(out)]  # works wherever dynbtf is installed
+    command += ["--btf", str(config.btf)] if config.btf else ["--material", config.material, "--size", str(config.size)]
+    command += ["--quick"] if config.quick else []
+    r.paragraph(f"Reproduce (reruns skip finished stages): {shlex.join(command)}", note=True)
     return r.write(out / "report.html")
