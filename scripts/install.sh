@@ -49,7 +49,7 @@ if [ -n "${TORCH_INDEX_URL:-}" ]; then
     "$(grep '^torch==' scripts/constraints.txt)"
 fi
 extra="[render]"  # Mitsuba 3: the demo renders with it
-[ "$with_test" = 1 ] && extra="[render,test]"
+[ "$with_test" = 1 ] && extra="[render,cluster,test]"  # the tests also run fit-many on Ray
 echo "== installing dynbtf$extra into $PY (versions pinned by scripts/constraints.txt)"
 pip_status=0
 "$PY" -m pip install -q --disable-pip-version-check -c scripts/constraints.txt -e ".$extra" 2>&1 \

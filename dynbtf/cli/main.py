@@ -18,6 +18,7 @@ from . import model_commands  # noqa: F401,E402
 from . import simulate_commands  # noqa: F401,E402
 from . import compare_commands  # noqa: F401,E402
 from . import synth_commands  # noqa: F401,E402
+from . import fit_many_commands  # noqa: F401,E402
 
 __all__ = ["app", "main"]
 
@@ -25,7 +26,9 @@ __all__ = ["app", "main"]
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
     try:
-        app(args=argv, prog_name="dynbtf", standalone_mode=False)
+        status = app(args=argv, prog_name="dynbtf", standalone_mode=False)  # a command's typer.Exit code
+        if isinstance(status, int) and status != 0:
+            return status
     except DynBTFError as e:
         print(f"dynbtf: error: {e}", file=sys.stderr)
         return 2

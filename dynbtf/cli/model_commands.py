@@ -69,11 +69,9 @@ def fit(
 
     Example: dynbtf fit leather.btf -o leather.dbtfm --minutes 60
     """
-    from ..training import TrainConfig, get_fitter
-    from ..training.recipe import auto_recipe
+    from ..training import get_fitter
+    from ..training.recipe import choose_config
 
-    if recipe not in ("auto", "paper"):
-        raise InputError(f"--recipe {recipe!r}: expected 'auto' or 'paper'")
     given = {name: value for name, value in (
         ("epochs", epochs), ("max_minutes", max_minutes), ("lr_scale", lr_scale), ("lr_decay", lr_decay),
         ("texels_per_image", texels_per_image), ("texel_groups", texel_groups), ("memory_budget_mb", memory_mb),
@@ -82,24 +80,9 @@ def fit(
                   precision=precision)
     fitter = get_fitter(repr)
     source = _open_source(btf)
-    if recipe == "auto":
-        from ..training import checkpoint_path
-        from ..training.checkpoint import Checkpointer
-
-        resumed = Checkpointer.saved_config(checkpoint_path(output))
-        if resumed is not None:  # continue with the options the run started with
-            config = TrainConfig(**{**resumed, **given, **common}).validate()
-            if not quiet:
-                typer.echo(f"continuing {checkpoint_path(output)} with its recipe ({config.epochs} epochs)")
-        else:
-            chosen = auto_recipe(source, minutes=minutes, **common, **given)
-            config = chosen.config
-            if not quiet:
-                typer.echo(chosen.summary)
-    else:
-        if minutes is not None and max_minutes is None:
-            given["max_minutes"] = minutes
-        config = TrainConfig(**common, **given)
+    config, summary = choose_config(source, output, recipe=recipe, minutes=minutes, **common, **given)
+    if not quiet:
+        typer.echo(summary)
     options = {}
     if stereo_max_height is not None:
         if repr != "triple-parallax":

@@ -8,7 +8,9 @@ closed-form kinds (PCA, SH) compute theirs directly from the training pairs of
 :func:`dynbtf.training.fit.training_provenance`. The built-in fitters are all
 here; a new kind registers its own with :func:`register_fitter`.
 
-Signature: ``fitter(source, output, config: TrainConfig, *, progress=True, **options) -> FitResult``.
+Signature: ``fitter(source, output, config: TrainConfig, *, progress=True, callback=None, **options) ->
+FitResult``; ``callback`` is :func:`~dynbtf.training.fit.fit`'s per-step callback (closed-form
+fitters take no optimizer steps and never call it).
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ def get_fitter(kind: str) -> Callable[..., FitResult]:
 
 @register_fitter("triple")
 def fit_triple_plane(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
-                     **options: Any) -> FitResult:
+                     callback=None, **options: Any) -> FitResult:
     """Fit the paper's Triple Plane to ``source``.
 
     ``options`` are :class:`~dynbtf.representations.triple_plane.TriplePlane`
@@ -57,12 +59,12 @@ def fit_triple_plane(source: BTFSource, output, config: TrainConfig | None = Non
 
     config = config or TrainConfig()
     rep = TriplePlane(source.height, source.width, seed=config.seed, **options)
-    return fit(rep, source, config, output, progress=progress)
+    return fit(rep, source, config, output, progress=progress, callback=callback)
 
 
 @register_fitter("triple-parallax")
 def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | None = None, *,
-                              progress: bool = True, **options: Any) -> FitResult:
+                              progress: bool = True, callback=None, **options: Any) -> FitResult:
     """Fit the Triple Plane with parallax: estimate the height field by stereo, then train as the paper.
 
     ``options`` are :class:`~dynbtf.representations.parallax.ParallaxTriplePlane`
@@ -82,12 +84,12 @@ def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | N
         rep.set_height(stereo_height(source, progress=progress, **stereo_options))
     provenance = {"height_field": {"method": "plane-sweep stereo (dynbtf.training.stereo_height)",
                                    "options": stereo_options}}
-    return fit(rep, source, config, output, progress=progress, extra_provenance=provenance)
+    return fit(rep, source, config, output, progress=progress, callback=callback, extra_provenance=provenance)
 
 
 @register_fitter("neumip")
 def fit_neumip(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
-               **options: Any) -> FitResult:
+               callback=None, **options: Any) -> FitResult:
     """``dynbtf fit --repr neumip``: the shared gradient trainer (:func:`dynbtf.training.fit.fit`).
 
     ``options`` are :class:`~dynbtf.representations.neumip.NeuMIP` constructor arguments (``channels``,
@@ -98,12 +100,12 @@ def fit_neumip(source: BTFSource, output, config: TrainConfig | None = None, *, 
 
     config = config or TrainConfig()
     rep = NeuMIP(source.height, source.width, seed=config.seed, **options)
-    return fit(rep, source, config, output, progress=progress)
+    return fit(rep, source, config, output, progress=progress, callback=callback)
 
 
 @register_fitter("pca")
 def fit_pca_model(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
-                  **options: Any) -> FitResult:
+                  callback=None, **options: Any) -> FitResult:
     """``dynbtf fit --repr pca``: :func:`~dynbtf.representations.pca.fit_pca` on the training pairs, as a model file.
 
     ``options`` are :func:`~dynbtf.representations.pca.fit_pca` keywords (``components``, ``centered``, ...);
@@ -118,7 +120,7 @@ def fit_pca_model(source: BTFSource, output, config: TrainConfig | None = None, 
 
 @register_fitter("sh")
 def fit_sh_model(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
-                 **options: Any) -> FitResult:
+                 callback=None, **options: Any) -> FitResult:
     """``dynbtf fit --repr sh``: :func:`~dynbtf.representations.sh.fit_sh` on the training pairs, as a model file.
 
     ``options`` are :func:`~dynbtf.representations.sh.fit_sh` keywords (``bands``, ``neighbours``).

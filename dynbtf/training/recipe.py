@@ -44,7 +44,10 @@ from .fit import TrainConfig, texel_image_loss
 from ..fused_mlp import resolve_precision, single_intra_op_thread
 from .images import ImageStore, held_out_split
 
-__all__ = ["Recipe", "auto_recipe", "REFERENCE_STEPS", "MAX_TEXELS_PER_STEP"]
+__all__ = ["Recipe", "auto_recipe", "choose_config", "RECIPES", "REFERENCE_STEPS", "MAX_TEXELS_PER_STEP"]
+
+#: The recipes of ``dynbtf fit --recipe``.
+RECIPES = ("auto", "paper")
 
 #: Optimizer steps of the reference schedule (30 epochs of 6,233 pairs in steps of 16 pairs per group).
 REFERENCE_STEPS = 30 * 6233 / 16
@@ -134,6 +137,35 @@ def auto_recipe(source: BTFSource, *, minutes: float | None = None, representati
                + f" per step, lr x{config.lr_scale:g} decaying x{config.lr_decay:.3f} per epoch, "
                + ("images cached in RAM" if cached else "texels read from the BTF each step") + budget_note)
     return Recipe(config, summary, full_epochs, step_seconds)
+
+
+def choose_config(source: BTFSource, output, *, recipe: str = "auto", minutes: float | None = None,
+                  **options) -> tuple[TrainConfig, str]:
+    """The training options ``dynbtf fit`` uses for ``source`` written to ``output``, and a line saying why.
+
+    ``recipe="auto"``: :func:`auto_recipe` (with the time budget ``minutes``), unless ``output`` has
+    an unfinished checkpoint, whose options are continued; ``"paper"``: :class:`TrainConfig`'s
+    defaults (the paper's batches and learning rates), ``minutes`` as ``max_minutes``. ``options``
+    are :class:`TrainConfig` fields given explicitly; they win over either recipe.
+    """
+    from .checkpoint import Checkpointer, checkpoint_path
+
+    if recipe not in RECIPES:
+        raise InputError(f"--recipe {recipe!r}: expected one of {list(RECIPES)}")
+    unknown = set(options) - {f.name for f in dataclasses.fields(TrainConfig)}
+    if unknown:
+        raise InputError(f"unknown training options {sorted(unknown)}; expected TrainConfig fields")
+    if recipe == "paper":
+        if minutes is not None and "max_minutes" not in options:
+            options = {**options, "max_minutes": minutes}
+        config = TrainConfig(**options).validate()
+        return config, f"the paper's recipe: {config.epochs} epochs, {config.images_per_step} whole images per step"
+    resumed = Checkpointer.saved_config(checkpoint_path(output))
+    if resumed is not None:  # continue with the options the run started with
+        config = TrainConfig(**{**resumed, **options}).validate()
+        return config, f"continuing {checkpoint_path(output)} with its recipe ({config.epochs} epochs)"
+    chosen = auto_recipe(source, minutes=minutes, **options)
+    return chosen.config, chosen.summary
 
 
 def measure_step_seconds(source: BTFSource, config: TrainConfig, representation: Representation | None = None,
