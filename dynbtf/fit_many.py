@@ -360,7 +360,8 @@ def fit_many(manifest, output_dir, *, address: str | None = None, cpus: int | No
                 rows[index] = row
                 failed += row["status"] != "done"
                 bar.update(1)
-            bar.set_postfix(running=len(pending), failed=failed)
+            bar.set_postfix(running=len(pending), failed=failed, refresh=False)
+            bar.refresh()  # at most every 5 s (ray.wait's timeout), whatever the bar's interval
         bar.close()
     finally:
         if started_here:

@@ -43,3 +43,20 @@ def test_messages_written_through_the_bar_are_lines(capsys):
     bar.update(2)
     bar.close()
     assert "time budget reached\n" in log.getvalue()
+
+
+def test_a_fit_logged_to_a_file_writes_a_few_lines_not_one_per_step(tmp_path):
+    """A 390-step fit with stderr redirected to a file logs a handful of lines, not one per step."""
+    import subprocess
+    import sys
+
+    log = tmp_path / "fit.log"
+    with open(log, "w") as handle:
+        done = subprocess.run([sys.executable, "-m", "dynbtf", "fit", "sim:leather?size=8", "-o",
+                               str(tmp_path / "m.dbtfm"), "--epochs", "1", "--texel-groups", "4"],
+                              stdout=handle, stderr=subprocess.STDOUT, timeout=600)
+    assert done.returncode == 0
+    lines = log.read_text().splitlines()
+    assert "\r" not in log.read_text()
+    assert 2 <= len(lines) <= 20, lines  # the recipe, progress every few seconds, the result
+    assert any("390/390" in line for line in lines) and lines[-1].startswith("wrote ")

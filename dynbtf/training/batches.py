@@ -14,6 +14,11 @@ Texel group ``g`` is the ``g``-th block of ``n = N // G`` consecutive flat texel
 reads from the image cache or straight from the BTF source
 (:meth:`dynbtf.data.base.BTFSource.read_texels`).
 
+**Data-parallel runs** (``part=(rank, world)``, :mod:`dynbtf.training.distributed`): every process
+rebuilds the same full batch and keeps its share -- groups ``rank * G / world ...`` when ``G > 1``
+(``G`` must be a multiple of ``world``), or a contiguous range of the ``B`` pairs when ``G = 1`` --
+and reads only those targets. ``Batch.fraction`` is its share of the step's samples.
+
 **View-coherent batches** (representations whose positional fetch depends on the view,
 e.g. the parallax Triple Plane): each group's ``B`` pairs share one view. Per epoch
 (and pass ``k``), each view's training pairs in a random order are cut into blocks of
@@ -47,11 +52,17 @@ class Batch:
         Flat texel indices, group-major (``None``: every texel, in order).
     target : float32 tensor ``(B, G * n, 3)``
         ``target[b, g * n + j]``: texel ``texels[g * n + j]`` under pair ``pairs[g * B + b]``.
+    groups : int
+        ``G`` of this batch (a process's share of the step's groups in a data-parallel run).
+    fraction : float
+        This batch's share of the step's samples (1 unless data-parallel).
     """
 
     pairs: np.ndarray
     texels: np.ndarray | None
     target: torch.Tensor
+    groups: int = 1
+    fraction: float = 1.0
 
     @property
     def samples(self) -> int:
@@ -78,11 +89,13 @@ class BatchSampler:
         Every group's pairs share one view.
     device : torch.device
         Where targets are delivered.
+    part : (rank, world)
+        This process's share of every step in a data-parallel run (default ``(0, 1)``: all of it).
     """
 
     def __init__(self, store: ImageStore, train_pairs: np.ndarray, *, images_per_step: int, texel_groups: int = 1,
                  texels_per_image: int | None = None, seed: int = 0, view_coherent: bool = False,
-                 device=None) -> None:
+                 device=None, part: tuple[int, int] = (0, 1)) -> None:
         self.store, self.train_pairs = store, np.asarray(train_pairs, dtype=np.int64)
         self.b, self.n_groups, self.seed = int(images_per_step), int(texel_groups), int(seed)
         self.device = torch.device("cpu") if device is None else torch.device(device)
@@ -94,6 +107,13 @@ class BatchSampler:
                              f"pairs and {g} texels per step; the BTF has {len(self.train_pairs)} pairs and "
                              f"{self.texels_per_image} texels per step")
         self.texels_per_step = self.texels_per_image - self.texels_per_image % g  # equal groups
+        self.rank, self.world = int(part[0]), int(part[1])
+        if self.world > 1 and g > 1 and g % self.world:
+            raise InputError(f"--texel-groups {g}: a data-parallel run on {self.world} processes needs a multiple "
+                             f"of {self.world} (each process trains its share of the groups)")
+        if self.world > 1 and g == 1 and b < self.world:
+            raise InputError(f"--images-per-step {b}: a data-parallel run on {self.world} processes needs at "
+                             f"least {self.world} images per step")
         self.view_coherent = bool(view_coherent)
         if self.view_coherent:
             self._views_of_pairs = [np.flatnonzero(self.train_pairs[:, 0] == v)
@@ -148,12 +168,22 @@ class BatchSampler:
         return ((starts[:, None] + np.arange(n)[None, :]) % self.n_texels).reshape(-1), starts
 
     def batch(self, epoch: int, step: int) -> Batch:
-        """The batch of step ``step`` of epoch ``epoch`` (thread-safe: called from a prefetch thread)."""
+        """The batch of step ``step`` of epoch ``epoch`` (thread-safe: called from a prefetch thread);
+        this process's share of it in a data-parallel run."""
         pairs = self.pairs(epoch, step)
         texels, starts = self.texels(epoch, step)
         if self.n_groups == 1:
+            total = len(pairs)
+            if self.world > 1:
+                pairs = np.array_split(pairs, self.world)[self.rank]
             target = self.store.get(pairs, texels, device=self.device)
-        else:
-            n = self.texels_per_step // self.n_groups
-            target = self.store.get_blocks(pairs.reshape(self.n_groups, self.b, 2), starts, n, device=self.device)
-        return Batch(pairs, texels, target)
+            return Batch(pairs, texels, target, 1, len(pairs) / total)
+        n = self.texels_per_step // self.n_groups
+        mine = slice(None)
+        if self.world > 1:
+            share = self.n_groups // self.world
+            mine = slice(self.rank * share, (self.rank + 1) * share)
+        grouped = pairs.reshape(self.n_groups, self.b, 2)[mine]
+        target = self.store.get_blocks(grouped, starts[mine], n, device=self.device)
+        local_texels = texels.reshape(self.n_groups, n)[mine].reshape(-1)
+        return Batch(grouped.reshape(-1, 2), local_texels, target, len(grouped), len(grouped) / self.n_groups)

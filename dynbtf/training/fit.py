@@ -76,6 +76,7 @@ from ..representations.model_file import load_model, model_size_report, save_mod
 from ..fused_mlp import resolve_precision, single_intra_op_thread
 from .batches import BatchSampler
 from .checkpoint import Checkpointer, checkpoint_path
+from .distributed import from_environment
 from .images import ImageStore, held_out_split
 from .monitor import HeldOutMonitor
 
@@ -329,7 +330,8 @@ class _TrainingRun:
                              f"{tuple(representation.positional_plane().shape[:2])} but the BTF {source.name!r} is "
                              f"{source.height} x {source.width} texels")
         self.source, self.config, self.output = source, config, output
-        self.device = device = resolve_device(config.device)
+        self.parallel, device = from_environment(resolve_device(config.device))
+        self.device = device
         self.rep = rep = representation.to(device)
         rep.train()
         # CPU: cache-sized chunks over worker threads; GPU: one chunk, one launch sequence
@@ -339,7 +341,8 @@ class _TrainingRun:
         self.store = ImageStore(source, int(config.memory_budget_mb * 1024 ** 2))
         self.sampler = BatchSampler(self.store, self.train_pairs, images_per_step=config.images_per_step,
                                     texel_groups=config.texel_groups, texels_per_image=config.texels_per_image,
-                                    seed=config.seed, view_coherent=rep.view_coherent_batches, device=device)
+                                    seed=config.seed, view_coherent=rep.view_coherent_batches, device=device,
+                                    part=(self.parallel.rank, self.parallel.world))
         _check_memory(config, self.sampler, self.store)
         self.chunk_texels = config.chunk_texels if device.type == "cpu" else self.sampler.texels_per_image
         self.precision = resolve_precision(
@@ -363,6 +366,9 @@ class _TrainingRun:
 
     # ------------------------------------------------------------------ parts of a step
     def checkpoint(self) -> None:
+        if not self.parallel.is_main:  # one writer; every process has the same state
+            self.last_checkpoint_step = self.done_steps
+            return
         self.checkpointer.save({"config": _saved_options(self.config), "model": self.rep.state_dict(),
                                 "optimizer": self.optimizer.state_dict(), "epoch": self.epoch, "step": self.step,
                                 "elapsed_seconds": self.elapsed, "history": self.history,
@@ -380,13 +386,21 @@ class _TrainingRun:
         wv = torch.as_tensor(source.views[batch.pairs[:, 0]], dtype=torch.float32, device=device)
         wl = torch.as_tensor(source.lights[batch.pairs[:, 1]], dtype=torch.float32, device=device)
         texels = None if batch.texels is None else torch.from_numpy(batch.texels).to(device)
-        loss = texel_image_loss(self.rep, wv, wl, batch.target, (source.height, source.width), texels,
-                                chunk_texels=self.chunk_texels, workers=self.workers,
-                                texel_groups=self.sampler.n_groups, precision=self.precision)
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        parallel = self.parallel
+        if len(batch.pairs) == 0:  # a data-parallel share of an epoch's short last step can be empty
+            loss_value = 0.0
+        else:
+            loss = texel_image_loss(self.rep, wv, wl, batch.target, (source.height, source.width), texels,
+                                    chunk_texels=self.chunk_texels, workers=self.workers,
+                                    texel_groups=batch.groups, precision=self.precision)
+            if parallel.world > 1:  # weighted by the share: the mean over processes is the whole step's loss
+                loss = loss * (batch.fraction * parallel.world)
+            loss.backward()
+            loss_value = float(loss.detach())
+        parallel.average_gradients(self.rep.parameters())
         self.optimizer.step()
-        return float(loss.detach())
+        return parallel.mean(loss_value)
 
     # ------------------------------------------------------------------ the loop
     def train_steps(self, bar, callback) -> None:
@@ -419,10 +433,11 @@ class _TrainingRun:
                     bar.update(1)
                     bar.set_postfix(loss=f"{loss:.4f}", samples_s=f"{batch.samples / dt:.3g}",
                                     **({"heldout_psnr": f"{self.history[-1]['held_out_psnr']:.2f}"}
-                                       if self.history else {}))
+                                       if self.history else {}), refresh=False)  # shown at the bar's own pace
                     if self.step == 0:  # an epoch ended
-                        self.history.append({"epoch": self.epoch, "loss": loss,
-                                             "held_out_psnr": self.monitor.score(self.rep, predict_images),
+                        score = self.monitor.score(self.rep, predict_images) if self.parallel.is_main else \
+                            float("nan")
+                        self.history.append({"epoch": self.epoch, "loss": loss, "held_out_psnr": score,
                                              "elapsed_seconds": self.elapsed})
                         self.finished = self.epoch >= config.epochs
                     if self.step == 0 or self.done_steps - self.last_checkpoint_step >= config.checkpoint_every:
@@ -431,9 +446,15 @@ class _TrainingRun:
                         callback({"epoch": self.epoch if self.step else self.epoch - 1,
                                   "step": self.step or steps_per_epoch, "global_step": self.done_steps,
                                   "loss": loss, "step_seconds": dt, "samples": batch.samples})
-                    if interrupt.raised:
+                    over_budget = budget is not None and time.perf_counter() - run_start >= budget
+                    if self.parallel.world > 1:  # every process stops at the same step
+                        stop = self.parallel.any(interrupt.raised or over_budget)
+                        interrupted, over_budget = stop and interrupt.raised, stop and not interrupt.raised
+                    else:
+                        interrupted = interrupt.raised
+                    if interrupted:
                         raise KeyboardInterrupt
-                    if budget is not None and time.perf_counter() - run_start >= budget and not self.finished:
+                    if over_budget and not self.finished:
                         bar.write(f"time budget of {config.max_minutes} min reached at epoch {self.epoch}, "
                                   f"step {self.step}; run again to continue")
                         break
@@ -447,10 +468,13 @@ class _TrainingRun:
             self.checkpoint()
 
     def write_model(self, extra_provenance: dict[str, Any] | None) -> float:
-        """Write the model file with its provenance; returns the epochs completed."""
+        """Write the model file with its provenance (process 0); returns the epochs completed."""
         config, rep = self.config, self.rep
         rep.eval()
         completed_epochs = self.epoch + self.step / self.sampler.steps_per_epoch
+        if not self.parallel.is_main:
+            self.parallel.barrier()  # until process 0 has written it
+            return completed_epochs
         provenance = training_provenance(
             self.source, self.held_out, seed=config.seed,
             training=dataclasses.asdict(config) | {"workers": self.workers, "precision_used": self.precision},
@@ -461,7 +485,10 @@ class _TrainingRun:
         if self.history:
             provenance["held_out_psnr_monitor"] = self.history[-1]["held_out_psnr"]
             provenance["held_out_psnr_monitor_metric"] = "per-image peak"
+        if self.parallel.world > 1:
+            provenance["data_parallel_processes"] = self.parallel.world
         save_model(self.output, rep, provenance)
+        self.parallel.barrier()
         return completed_epochs
 
 
@@ -516,6 +543,7 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
         return FitResult(output, rep, meta, list(provenance.get("history", [])), True)
     run = _TrainingRun(representation, source, config, output)
     sampler, store = run.sampler, run.store
+    progress = progress and run.parallel.is_main  # one progress display for a data-parallel run
     bar = progress_bar(total=run.total_steps, initial=run.done_steps, unit="step", disable=not progress,
                desc=f"fit {run.rep.kind} on {source.name}")
     if progress:
@@ -531,7 +559,7 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     finally:
         bar.close()
     completed_epochs = run.write_model(extra_provenance)
-    if run.finished:  # the model file has everything; a rerun with the same options returns at once
+    if run.finished and run.parallel.is_main:  # the model file has everything; a rerun returns at once
         run.checkpointer.remove()
     if progress:
         history = run.history
