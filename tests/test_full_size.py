@@ -148,3 +148,21 @@ def test_cli_fit_states_the_recipe_and_a_rerun_continues_with_it(tmp_path, dfmf)
     assert meta["finished"] and meta["epochs_completed"] == 2
     bad = runner.invoke(app, ["fit", str(dfmf), "-o", str(tmp_path / "x.dbtfm"), "--recipe", "fast"])
     assert isinstance(bad.exception, InputError) and "--recipe 'fast'" in str(bad.exception)
+
+
+def test_rerunning_a_finished_auto_fit_keeps_its_options_whatever_the_machine_measures(tmp_path, dfmf, capsys,
+                                                                                      monkeypatch):
+    """`dynbtf fit --minutes M` times steps to choose its schedule; a rerun of the finished fit must not
+    re-time and refuse its own model file as "another run"."""
+    from dynbtf.cli.main import main
+    from dynbtf.training import recipe
+
+    out = tmp_path / "m.dbtfm"
+    monkeypatch.setattr(recipe, "measure_step_seconds", lambda *a, **k: 1.0)  # the budget allows one epoch
+    assert main(["fit", str(dfmf), "-o", str(out), "--minutes", "0.5", "--quiet"]) == 0
+    before = out.read_bytes()
+    monkeypatch.setattr(recipe, "measure_step_seconds", lambda *a, **k: 1e-4)  # now it would allow all epochs
+    assert main(["fit", str(dfmf), "-o", str(out), "--minutes", "0.5"]) == 0
+    printed = capsys.readouterr().out
+    assert "is a finished fit" in printed and "already a finished fit with these options" in printed
+    assert out.read_bytes() == before

@@ -164,8 +164,32 @@ def choose_config(source: BTFSource, output, *, recipe: str = "auto", minutes: f
     if resumed is not None:  # continue with the options the run started with
         config = TrainConfig(**{**resumed, **options}).validate()
         return config, f"continuing {checkpoint_path(output)} with its recipe ({config.epochs} epochs)"
+    finished = _finished_run_options(output)
+    if finished is not None:  # the same run again: its recorded options (a re-timed budget may differ)
+        config = TrainConfig(**{**finished, **options}).validate()
+        return config, f"{output} is a finished fit ({config.epochs} epochs); its options are kept"
     chosen = auto_recipe(source, minutes=minutes, **options)
     return chosen.config, chosen.summary
+
+
+def _finished_run_options(output) -> dict | None:
+    """The training options recorded in ``output`` when it is a finished fit's model file, else None."""
+    from pathlib import Path
+
+    from ..errors import DynBTFError
+    from ..representations.model_file import read_model_metadata
+
+    if not Path(output).is_file():
+        return None
+    try:
+        provenance = read_model_metadata(output).get("provenance") or {}
+    except DynBTFError:
+        return None
+    training = provenance.get("training")
+    if not provenance.get("finished") or not isinstance(training, dict) or "run" not in provenance:
+        return None
+    fields = {f.name for f in dataclasses.fields(TrainConfig)} - {"device", "workers", "max_minutes"}
+    return {k: v for k, v in training.items() if k in fields}
 
 
 def measure_step_seconds(source: BTFSource, config: TrainConfig, representation: Representation | None = None,
