@@ -25,7 +25,7 @@ measured every ``--eval-every`` seconds of training time (evaluation excluded fr
 the clock). Printed: samples/s of each and their ratio, naive's final PSNR, and
 the training time each needs to first reach it, and that ratio.
 
-Targets (issue 3): ours >= 10x naive samples/s; ours reaches naive's final
+Targets: ours >= 10x naive samples/s; ours reaches naive's final
 PSNR in <= 1/10 of naive's time.
 
 The default BTF is the demo's scale, ``sim:leather?size=128`` (the naive path's rate does
