@@ -166,3 +166,16 @@ def test_rerunning_a_finished_auto_fit_keeps_its_options_whatever_the_machine_me
     printed = capsys.readouterr().out
     assert "is a finished fit" in printed and "already a finished fit with these options" in printed
     assert out.read_bytes() == before
+
+
+def test_the_paper_recipe_is_the_papers():
+    """--recipe paper: 16 whole images per step, the paper's learning rates and decay, 50 epochs."""
+    from dynbtf.data.open import open_btf
+    from dynbtf.training.recipe import choose_config
+
+    config, summary = choose_config(open_btf("sim:leather?size=8"), "unused.dbtfm", recipe="paper")
+    assert (config.epochs, config.images_per_step, config.texel_groups, config.lr_scale, config.lr_decay) == \
+        (50, 16, 1, 1.0, 0.9)
+    assert summary.startswith("the paper's recipe: 50 epochs")
+    config, _ = choose_config(open_btf("sim:leather?size=8"), "unused.dbtfm", recipe="paper", epochs=3, minutes=2.0)
+    assert config.epochs == 3 and config.max_minutes == 2.0

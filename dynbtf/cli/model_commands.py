@@ -35,7 +35,7 @@ def fit(
                                             "times a few steps and shortens its schedule to fit, and training stops "
                                             "(checkpointed) if it still overruns."),
     epochs: Optional[int] = typer.Option(None, help="Passes over the training (view, light) pairs (auto: from the "
-                                         "BTF's size; paper: 12, which converges at 128 x 128; the paper used 50)."),
+                                         "BTF's size; paper: 50, the paper's)."),
     max_minutes: Optional[float] = typer.Option(None, "--max-minutes", help="Stop after this many minutes of "
                                                 "training (checkpointed; run again to continue). Default: no limit."),
     seed: int = typer.Option(0, help="Seed of the held-out split, batch order and initialization."),

@@ -48,6 +48,8 @@ __all__ = ["Recipe", "auto_recipe", "choose_config", "RECIPES", "REFERENCE_STEPS
 
 #: The recipes of ``dynbtf fit --recipe``.
 RECIPES = ("auto", "paper")
+#: Epochs of the paper's recipe (``--recipe paper``; its supplementary: 50 at 400^2 x 151^2).
+PAPER_EPOCHS = 50
 
 #: Optimizer steps of the reference schedule (30 epochs of 6,233 pairs in steps of 16 pairs per group).
 REFERENCE_STEPS = 30 * 6233 / 16
@@ -156,10 +158,12 @@ def choose_config(source: BTFSource, output, *, recipe: str = "auto", minutes: f
     if unknown:
         raise InputError(f"unknown training options {sorted(unknown)}; expected TrainConfig fields")
     if recipe == "paper":
+        options = {"epochs": PAPER_EPOCHS, **options}
         if minutes is not None and "max_minutes" not in options:
-            options = {**options, "max_minutes": minutes}
+            options["max_minutes"] = minutes
         config = TrainConfig(**options).validate()
-        return config, f"the paper's recipe: {config.epochs} epochs, {config.images_per_step} whole images per step"
+        return config, (f"the paper's recipe: {config.epochs} epochs, {config.images_per_step} whole images per "
+                        f"step, lr x{config.lr_decay:g} per epoch")
     resumed = Checkpointer.saved_config(checkpoint_path(output))
     if resumed is not None:  # continue with the options the run started with
         config = TrainConfig(**{**resumed, **options}).validate()
