@@ -132,11 +132,21 @@ def test_measured_step_time_is_positive_and_real():
     assert 0 < recipe_module.measure_step_seconds(src, config, steps=2) < 5
 
 
-def test_cli_fit_states_the_recipe_and_a_rerun_continues_with_it(tmp_path, dfmf):
+def test_cli_fit_states_the_recipe_and_a_rerun_continues_with_it(tmp_path, dfmf, monkeypatch):
+    import importlib
+    import itertools
+    import types
+
+    fit_module = importlib.import_module("dynbtf.training.fit")  # the module (dynbtf.training.fit is also a function)
+
     out = tmp_path / "m.dbtfm"
     runner = CliRunner()
+    # the fit's clock advances 10 s per reading: the 0.06 s budget runs out after the first step, on any machine
+    clock = itertools.count(0.0, 10.0)
+    monkeypatch.setattr(fit_module, "time", types.SimpleNamespace(perf_counter=lambda: next(clock)))
     first = runner.invoke(app, ["fit", str(dfmf), "-o", str(out), "--max-minutes", "0.001", "--epochs", "2",
                                 "--device", "cpu", "--workers", "1"])
+    monkeypatch.undo()
     assert first.exit_code == 0, first.output
     assert "recipe for 12 x 12 texels, 15 x 15 directions: 2 epochs" in first.output
     saved = Checkpointer.saved_config(checkpoint_path(out))

@@ -153,7 +153,7 @@ def test_model_files_of_an_earlier_version_load_and_give_their_values(kind):
     with torch.no_grad():
         values = rep(torch.tensor(record["uv"], dtype=torch.float64), torch.tensor(record["w_view"]).float(),
                      torch.tensor(record["w_light"]).float())
-    np.testing.assert_allclose(values.double().numpy(), np.array(record["values"][kind]), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(values.double().numpy(), np.array(record["values"][kind]), rtol=1e-5, atol=1e-6)  # float32: the sums' order depends on the CPU's kernels
 
 
 def test_a_btf_given_as_a_model_says_so(tmp_path):
