@@ -125,7 +125,7 @@ def auto_recipe(source: BTFSource, *, minutes: float | None = None, representati
         affordable = int(0.9 * minutes * 60 / (step_seconds * steps_per_epoch))
         if "epochs" not in overrides and affordable < epochs:
             epochs = max(1, affordable)
-        budget_note = (f"; {step_seconds:.2f} s/step measured, {epochs * steps_per_epoch * step_seconds / 60:.1f} "
+        budget_note = (f"; {step_seconds * 1e3:.3g} ms/step measured, {epochs * steps_per_epoch * step_seconds / 60:.1f} "
                        f"of {minutes:g} min" + ("" if epochs >= full_epochs else
                                                 f" (the budget allows {epochs} of {full_epochs} epochs)"))
     config.epochs = epochs
