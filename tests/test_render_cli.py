@@ -128,7 +128,8 @@ def test_render_command_model_file_errors(tmp_path, capsys, no_mitsuba_scene, sm
 
     pca = save_model(tmp_path / "pca.dbtfm", PCA(8, 8, 4, 4, components=2))
     assert main(["render", str(pca), "-o", out]) == 2
-    _one_error_line(capsys, "pca.dbtfm: the Mitsuba plugin renders Triple Plane (kind 'triple', `dynbtf fit`) and "
+    _one_error_line(capsys, "pca.dbtfm: the Mitsuba plugin renders Triple Plane (kind 'triple', `dynbtf fit`; 'triple-parallax', "
+                            "`dynbtf fit --repr triple-parallax`) and "
                             "NeuMIP (kind 'neumip', `dynbtf fit --repr neumip`) models, got a model of kind 'pca'")
 
 

@@ -43,9 +43,11 @@ pre-generated, so any ``scale`` costs the same.
      - Default
    * - ``filename``
      - string
-     - Path of a dynbtf model file: a Triple Plane (``dynbtf fit``) or a
-       NeuMIP (``dynbtf fit --repr neumip``); PCA and SH models have no
-       decoder to run in a kernel and are refused.
+     - Path of a dynbtf model file: a Triple Plane (``dynbtf fit``), one
+       with relief (``--repr triple-parallax``: the kernel marches the view
+       ray through the synthesized height first) or a NeuMIP (``dynbtf fit
+       --repr neumip``); PCA and SH models have no decoder to run in a kernel
+       and are refused.
      - (required)
    * - ``method``
      - string
@@ -230,6 +232,10 @@ class DynBTFEvaluator:
         matrix, offset = getattr(self.synthesizer, "matrix", None), getattr(self.synthesizer, "offset", None)
         self.model = drjit_ops.dr_representation(model, output_map=(matrix, offset))
         self._latent = matrix is not None
+        # representations with relief answer at the visible point, marched through the synthesized height
+        # (the positional plane's last channel), as SynthesizedBTF.eval does
+        self.relief = hasattr(self.model, "visible_uv")
+        self._height_index = int(model.positional_plane().shape[-1]) - 1
 
     def features(self, u, v, active=True):
         """Synthesized positional features at ``(u, v)``: list of ``C_U`` mi.Float."""
@@ -237,6 +243,13 @@ class DynBTFEvaluator:
 
     def eval(self, u, v, w_view, w_light, active=True):
         """RGB value (``mi.Color3f``) of the synthesized BTF, excluding cos(theta_light)."""
+        if self.relief:
+            index = self._height_index
+
+            def height_channel(pu, pv, mask):
+                return self.synthesizer.channel(pu, pv, index, mask)
+
+            u, v = self.model.visible_uv(u, v, w_view, height_channel, active)
         if self._latent:  # the output map is folded into the decoder
             return self.model.decode(self.synthesizer.latent(u, v, active), w_view, w_light, active)
         return self.model.decode(self.features(u, v, active), w_view, w_light, active)
