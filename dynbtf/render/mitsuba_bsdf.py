@@ -227,7 +227,9 @@ def _build_class(mi):
             if self.sampler is not None:
                 y = self._mirror(si)
                 from_table = active & (sample1 < self.table_weight)
-                drawn = self.sampler.sample(mi.Vector3f(si.wi.x, si.wi.y * y, si.wi.z), sample2, from_table)
+                # sample1 < a chose the table; sample1 / a is uniform again and picks the view node
+                drawn = self.sampler.sample(mi.Vector3f(si.wi.x, si.wi.y * y, si.wi.z),
+                                            sample1 * (1.0 / self.table_weight), sample2, from_table)
                 wo = dr.select(from_table, mi.Vector3f(drawn.x, drawn.y * y, drawn.z), wo)
             bs.wo = wo
             bs.eta = 1.0
