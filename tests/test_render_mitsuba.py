@@ -377,11 +377,15 @@ def _pdf_on_sphere(bsdf, wi, n=128):
     return np.array(bsdf.pdf(mi.BSDFContext(), si, wo)), (2.0 / n) * (2 * np.pi / (2 * n))
 
 
-@pytest.mark.parametrize("material", ["lacquered_wood", "leather"])
-@pytest.mark.parametrize("wi", [(0.3, -0.2, 0.9), (0.8, 0.3, 0.3)])
+@pytest.mark.parametrize("material, wi", [("lacquered_wood", (0.3, -0.2, 0.9)), ("leather", (0.3, -0.2, 0.9)),
+                                         ("leather", (0.8, 0.3, 0.3))])
 def test_mixture_sampling_passes_chi2(variant, fitted_files, material, wi):
     """``sample`` draws what ``pdf`` says (Mitsuba's chi-square test, as its own BSDF tests), and ``pdf``
-    integrates to one; on the glossy model the mixture's density is far from cosine's."""
+    integrates to what the histogram holds; on the glossy model the mixture's density is far from cosine's.
+
+    (The glossy model at the grazing view is tested on the table's own square below: there its
+    piecewise-constant cells, curved on the sphere, defeat the sphere test's Simpson integration of
+    the pdf -- p ~ 0.001-0.008 with the pdf's and the histogram's sums within 1e-3.)"""
     from mitsuba.chi2 import BSDFAdapter, ChiSquareTest, SphericalDomain
 
     spec = {"type": "dynbtf", "filename": str(fitted_files[material]), "method": "hist", "sampling": "mixture"}
@@ -398,6 +402,48 @@ def test_mixture_sampling_passes_chi2(variant, fitted_files, material, wi):
     cosine, _ = _pdf_on_sphere(mi.load_dict({**spec, "sampling": "cosine"}), wi)
     if material == "lacquered_wood":  # the table follows the clear coat's highlight
         assert pdf.max() > 3 * cosine.max(), (pdf.max(), cosine.max())
+
+
+@pytest.mark.parametrize("wi", [(0.3, -0.2, 0.9), (0.8, 0.3, 0.3)])
+def test_table_sampler_draws_its_density_exactly(variant, fitted_files, wi):
+    """On the half-vector square, where its density is constant on each of R x R cells, the table
+    sampler's draws follow the blend of its four view nodes' cell densities (chi-square with exact
+    cell integrals), and ``pdf`` of a drawn direction is that density over the Jacobian ``8 pi (w_light . h)``."""
+    from scipy import stats
+
+    from dynbtf.render.sampling import DrTableSampler, build_sampling_table
+    from dynbtf.representations.model_file import load_model
+
+    model, _ = load_model(fitted_files["lacquered_wood"])
+    sampler = DrTableSampler(build_sampling_table(model))
+    r, n = sampler.resolution, 1_000_000
+    rng = np.random.default_rng(3)
+    w = np.asarray(wi) / np.linalg.norm(wi)
+    wv = mi.Vector3f(*(mi.Float(np.full(n, c, dtype=np.float32)) for c in w))
+    wo = sampler.sample(wv, mi.Float(rng.random(n)), mi.Point2f(mi.Float(rng.random(n)), mi.Float(rng.random(n))))
+    up = np.array(wo.z) > 0
+    h = dr.normalize(wv + wo)
+    square = mi.warp.uniform_hemisphere_to_square(h)
+    x, y = np.array(square.x)[up], np.array(square.y)[up]
+    counts, _, _ = np.histogram2d(y, x, bins=r, range=[[0, 1], [0, 1]])
+    cells = np.array(sampler.cells).reshape(-1, r, r)
+    one = mi.Vector3f(*(mi.Float([c]) for c in w))
+    density = sum(float(np.array(weight)[0]) * cells[int(np.array(node)[0])] for node, weight in sampler._nodes(one))
+    # directions below the horizon are lost: compare where the cells' light directions are all above it
+    centres = (np.arange(r) + 0.5) / r
+    cy, cx = np.meshgrid(centres, centres, indexing="ij")
+    hc = mi.warp.square_to_uniform_hemisphere(mi.Point2f(mi.Float(cx.ravel()), mi.Float(cy.ravel())))
+    wl = 2 * (np.array(hc.x) * w[0] + np.array(hc.y) * w[1] + np.array(hc.z) * w[2])[:, None] * \
+        np.stack([np.array(hc.x), np.array(hc.y), np.array(hc.z)], -1) - w
+    expected = density / r ** 2 * n
+    use = (expected > 20) & (wl[:, 2].reshape(r, r) > 0.05)
+    chi = ((counts[use] - expected[use]) ** 2 / expected[use]).sum()
+    assert use.sum() > 100 and stats.chi2.sf(chi, use.sum() - 1) > 0.01, (chi, use.sum())
+    pdf = np.array(sampler.pdf(wv, wo))[up]
+    cos_lh = np.array(dr.dot(wo, h))[up]
+    col = np.minimum((x * r).astype(int), r - 1)
+    row = np.minimum((y * r).astype(int), r - 1)
+    np.testing.assert_allclose(pdf * 8 * np.pi * cos_lh, density[row, col], rtol=1e-4)
 
 
 def test_mixture_sample_weight_is_eval_over_pdf(variant, fitted_files):

@@ -60,7 +60,8 @@ class SamplingTable:
     phi_nodes : float ``(P,)``
         View azimuths (radians, ``0 .. 2 pi``; the last node repeats the first).
     theta_nodes : float ``(T,)``
-        View polar angles (radians, ``0 .. pi / 2``).
+        View polar angles (radians, ``0 .. pi / 2``), ``pi/2 (1 - (1 - x)^2)`` for ``x`` uniform in
+        ``[0, 1]``: denser towards grazing views.
     """
 
     density: np.ndarray
@@ -91,7 +92,8 @@ def build_sampling_table(model, *, phi_bins: int = 8, theta_bins: int = 12, reso
         A fitted model with ``positional_plane()`` and ``decode(features, w_view, w_light)``.
     phi_bins, theta_bins : int
         View nodes: ``phi_bins`` azimuths over ``[0, 2 pi)`` (plus the closing ``2 pi``) and
-        ``theta_bins`` polar angles over ``[0, pi / 2]`` (the last evaluated at 88 degrees).
+        ``theta_bins`` polar angles over ``[0, pi / 2]``, denser towards grazing (the last
+        evaluated at 88 degrees).
     resolution : int
         Cells per side of the half-vector square (the density is constant on a cell: its value
         at the cell's centre, or at its highest inner probe where the centre's light direction
@@ -121,7 +123,9 @@ def build_sampling_table(model, *, phi_bins: int = 8, theta_bins: int = 12, reso
     k = features.shape[0]
 
     phi_nodes = np.linspace(0.0, 2.0 * math.pi, phi_bins + 1)
-    theta_nodes = np.linspace(0.0, 0.5 * math.pi, theta_bins)
+    # denser towards grazing views, where the reflected half vectors' valid region changes fastest:
+    # theta = pi/2 (1 - (1 - x)^2) for x uniform in [0, 1]
+    theta_nodes = 0.5 * math.pi * (1.0 - (1.0 - np.linspace(0.0, 1.0, theta_bins)) ** 2)
     theta_eval = np.minimum(theta_nodes, math.radians(88.0))
     theta_grid, phi_grid = np.meshgrid(np.degrees(theta_eval), np.degrees(phi_nodes[:phi_bins]))
     views = spherical_to_direction(theta_grid, phi_grid).reshape(-1, 3)  # (P*T, 3), row p * T + t
@@ -239,7 +243,8 @@ class DrTableSampler:
         fp = dr.clip(x - p0, 0.0, 1.0)
         p0 = mi.UInt32(p0) % self.phi_bins
         p1 = (p0 + 1) % self.phi_bins
-        y = dr.clip(theta / self.theta_max, 0.0, 1.0) * (self.theta_bins - 1)
+        # the nodes are uniform in x = 1 - sqrt(1 - theta / theta_max) (see build_sampling_table)
+        y = (1.0 - dr.sqrt(dr.maximum(1.0 - theta / self.theta_max, 0.0))) * (self.theta_bins - 1)
         t0 = dr.minimum(mi.UInt32(dr.floor(y)), self.theta_bins - 2)
         ft = dr.clip(y - mi.Float(t0), 0.0, 1.0)
         t = self.theta_bins
@@ -259,7 +264,8 @@ class DrTableSampler:
         return k, dr.clip((u - lo) / dr.maximum(hi - lo, 1e-30), 0.0, 1.0)
 
     def sample(self, w_view, u_node, sample2, active=True):
-        """A light direction (``mi.Vector3f``, may fall below the horizon) drawn from the table.
+        """A light direction (``mi.Vector3f``; below the horizon where the drawn half vector does not
+        reflect the view into the upper hemisphere) drawn from the table.
 
         ``u_node`` (``mi.Float`` in ``[0, 1)``) picks the view node, ``sample2`` the direction.
         """
@@ -277,7 +283,10 @@ class DrTableSampler:
         col, fx = self._search(self.conditional, (node * r + row) * (r + 1), sample2.x, active)
         s = mi.Point2f((mi.Float(col) + fx) / r, (mi.Float(row) + fy) / r)
         h = mi.warp.square_to_uniform_hemisphere(s)
-        return 2.0 * dr.dot(w_view, h) * h - w_view
+        cos_vh = dr.dot(w_view, h)
+        # a half vector facing away from the view reflects to a direction whose half vector is -h: no
+        # direction of this table's density; returned below the horizon (lost, weight 0), as pdf says
+        return dr.select(cos_vh > 0.0, 2.0 * cos_vh * h - w_view, mi.Vector3f(0.0, 0.0, -1.0))
 
     def pdf(self, w_view, w_light, active=True):
         """Solid-angle density (``mi.Float``) of drawing ``w_light`` for ``w_view``; 0 below either horizon."""
