@@ -4,7 +4,7 @@ For each model (e.g. fitted lacquered wood, leather, stone) and each lighting of
 :func:`dynbtf.render.scenes.scene_dict` (``point``: a point light plus a dim constant
 environment; ``sky``: an importance-sampled HDR sky), the ``sphere`` scene (a sphere
 covered by the synthesized BTF on a grey floor; Mitsuba's ``path`` integrator,
-max depth 3, which combines BSDF and emitter sampling by MIS) is rendered with
+max depth 3 (``--max-depth``), which combines BSDF and emitter sampling by MIS) is rendered with
 
 * ``sampling="cosine"`` (the paper's cosine-weighted directions) and
 * ``sampling="mixture"`` (the plugin's sampling table mixed with cosine, weight ``--mix``),
@@ -70,6 +70,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="timed renders per sampling (median)")
     parser.add_argument("--mix", type=float, default=0.75, help="sampling_weight of the mixture")
     parser.add_argument("--scale", type=float, default=6.0, help="exemplar repeats around the sphere")
+    parser.add_argument("--max-depth", type=int, default=3, help="path length (2: direct light only, 3: one bounce)")
     args = parser.parse_args()
 
     from dynbtf.render.drjit_ops import mi_module
@@ -87,7 +88,8 @@ def main() -> None:
                 if sampling == "mixture":
                     material["sampling_weight"] = args.mix
                 scenes[sampling] = mi.load_dict(scene_dict("sphere", material, lighting=lighting,
-                                                           resolution=(args.size, args.size), spp=args.spp))
+                                                           resolution=(args.size, args.size), spp=args.spp,
+                                                           max_depth=args.max_depth))
             mask = sphere_mask(mi, scenes["cosine"], args.size)
             chunk = 256
             ref = np.zeros((args.size, args.size, 3))
@@ -110,7 +112,7 @@ def main() -> None:
             print(f"{r[0]:<16} {r[1]:<6} MSE cosine {r[2]:.3e} mixture {r[3]:.3e} | equal spp {r[2] / r[3]:5.2f}x | "
                   f"s/render {r[4]:.3f} vs {r[5]:.3f} | equal time {r[2] * r[4] / (r[3] * r[5]):5.2f}x", flush=True)
 
-    print(f"\n{args.size} x {args.size} px, sphere scene, {args.spp} spp x {args.seeds} seeds vs {args.ref_spp} spp "
+    print(f"\n{args.size} x {args.size} px, sphere scene (max depth {args.max_depth}), {args.spp} spp x {args.seeds} seeds vs {args.ref_spp} spp "
           f"reference, mixture weight {args.mix}; MSE over the sphere's {int(mask.sum())} pixels")
     print("| model | lighting | MSE cosine | MSE mixture | equal spp: cosine / mixture | s per render cosine / mixture "
           "| equal time: cosine / mixture |")
