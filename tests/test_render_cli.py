@@ -31,7 +31,7 @@ def test_render_command_writes_png_and_exr(small_model, tmp_path, capsys):
     assert main(["render", str(small_model), "--scene", "plane", "--method", "hist", "--scale", "4",
                  "--size", "32", "--spp", "2", "-o", str(png)]) == 0
     assert main(["render", str(small_model), "--scene", "sphere", "--lighting", "point", "--method", "tile",
-                 "--size", "32", "--spp", "2", "-o", str(exr)]) == 0
+                 "--size", "32", "--spp", "2", "--sampling", "cosine", "-o", str(exr)]) == 0
     a, b = load_image(png), load_image(exr)
     assert a.shape == b.shape == (32, 32, 3)
     assert np.isfinite(b).all() and b.max() > 0.0 and a.std() > 0.0
@@ -71,6 +71,7 @@ def _one_error_line(capsys, message):
     (["--variant", "llvm_ad_spectral"], "the dynbtf plugin needs an RGB variant of the LLVM or CUDA back end"),
     (["--variant", "no_such_variant"], "not built into the installed Mitsuba"),
     (["--exposure", "-1"], "--exposure: expected a positive number, got -1.0"),
+    (["--sampling", "ggx"], "--sampling: expected one of ['cosine', 'mixture'], got 'ggx'"),
 ])
 def test_render_command_bad_options(small_model, tmp_path, capsys, no_mitsuba_scene, args, message):
     from dynbtf.cli.main import main
@@ -128,7 +129,8 @@ def test_render_command_model_file_errors(tmp_path, capsys, no_mitsuba_scene, sm
 
     pca = save_model(tmp_path / "pca.dbtfm", PCA(8, 8, 4, 4, components=2))
     assert main(["render", str(pca), "-o", out]) == 2
-    _one_error_line(capsys, "pca.dbtfm: the Mitsuba plugin renders Triple Plane (kind 'triple', `dynbtf fit`) and "
+    _one_error_line(capsys, "pca.dbtfm: the Mitsuba plugin renders Triple Plane (kind 'triple', `dynbtf fit`; 'triple-parallax', "
+                            "`dynbtf fit --repr triple-parallax`) and "
                             "NeuMIP (kind 'neumip', `dynbtf fit --repr neumip`) models, got a model of kind 'pca'")
 
 

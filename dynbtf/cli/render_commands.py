@@ -13,8 +13,8 @@ from .app import app
 
 @app.command()
 def render(
-    model: Path = typer.Argument(..., help="dynbtf model file: a Triple Plane (`dynbtf fit`) or a NeuMIP "
-                                           "(`dynbtf fit --repr neumip`)."),
+    model: Path = typer.Argument(..., help="dynbtf model file: a Triple Plane (`dynbtf fit`, also with "
+                                           "`--repr triple-parallax`) or a NeuMIP (`dynbtf fit --repr neumip`)."),
     output: Path = typer.Option(..., "-o", "--output", help="Output image: .png (sRGB, exposure applied) or .exr (linear HDR)."),
     scene: str = typer.Option("plane", help="Scene: plane (grazing ground plane), sphere or cloth."),
     lighting: str = typer.Option("sky", help="Lighting: sky (procedural environment map) or point (point light + dim ambient)."),
@@ -22,6 +22,9 @@ def render(
     scale: float = typer.Option(25.0, help="Exemplar repeats across the mesh's uv range."),
     seed: int = typer.Option(0, help="Synthesis seed."),
     spp: int = typer.Option(16, help="Samples per pixel."),
+    sampling: str = typer.Option("mixture", help="Direction sampling: mixture (the model's importance-sampling "
+                                                 "table mixed with cosine sampling; converges faster on glossy "
+                                                 "materials) or cosine (the paper's)."),
     size: int = typer.Option(512, help="Image width and height in pixels."),
     exposure: float = typer.Option(1.0, help="Multiplier applied before sRGB encoding (PNG only)."),
     variant: Optional[str] = typer.Option(None, help="Mitsuba variant (default llvm_ad_rgb; cuda_ad_rgb on a GPU); "
@@ -42,7 +45,7 @@ def render(
     if size < 1:
         raise InputError(f"--size: expected a positive number of pixels, got {size}")
     result = render_scene(model, scene=scene, method=method, scale=scale, seed=seed, lighting=lighting,
-                          resolution=(size, size), spp=spp, variant=variant, progress=True)
+                          resolution=(size, size), spp=spp, variant=variant, progress=True, sampling=sampling)
     save_image(output, result.image, exposure=exposure)
     timing = (f"incl. {result.compile_seconds:.1f} s kernel compilation" if result.passes > 1
               else "one pass, kernel compilation included")

@@ -14,6 +14,8 @@ Dr.Jit (this module)                        torch / NumPy reference
 :class:`DrDecoder`                          :class:`dynbtf.representations.triple_plane.Decoder`
 :class:`DrTriplePlane`                      :class:`dynbtf.representations.triple_plane.TriplePlane`
 :class:`DrNeuMIP`                           :class:`dynbtf.representations.neumip.NeuMIP`
+:func:`march_visible_uv`                    :func:`dynbtf.representations.parallax.march_visible_uv`
+:class:`DrParallaxTriplePlane`              :class:`dynbtf.representations.parallax.ParallaxTriplePlane`
 ==========================================  ============================================
 
 Conventions
@@ -53,6 +55,8 @@ __all__ = [
     "DrDecoder",
     "DrTriplePlane",
     "DrNeuMIP",
+    "march_visible_uv",
+    "DrParallaxTriplePlane",
     "DR_REPRESENTATIONS",
     "check_renderable",
     "dr_representation",
@@ -161,14 +165,18 @@ def bilinear_taps(x, y, width: int, height: int, *, wrap_x: bool, wrap_y: bool):
     return [(mi.UInt32(ys[b] * width + xs[a]), wy[b] * wx[a]) for b in (0, 1) for a in (0, 1)]
 
 
-def gather_channels(buffer, channels: int, taps, active=True):
-    """Bilinear combination of ``channels`` values per tap from a flat channels-last buffer -> list of mi.Float."""
+def gather_channels(buffer, channels: int, taps, active=True, which=None):
+    """Bilinear combination of ``channels`` values per tap from a flat channels-last buffer -> list of mi.Float.
+
+    ``which`` (a sequence of channel indices) fetches only those channels, in that order.
+    """
     mi, dr = mi_module(), drjit_module()
-    out = [mi.Float(0.0) for _ in range(channels)]
+    which = range(channels) if which is None else list(which)
+    out = [mi.Float(0.0) for _ in which]
     for index, weight in taps:
         base = index * channels
-        for c in range(channels):
-            out[c] = dr.fma(dr.gather(mi.Float, buffer, base + c, active), weight, out[c])
+        for k, c in enumerate(which):
+            out[k] = dr.fma(dr.gather(mi.Float, buffer, base + c, active), weight, out[k])
     return out
 
 
@@ -182,11 +190,18 @@ def fetch_angular(buffer, resolution: tuple[int, int], channels: int, s, t, acti
     return gather_channels(buffer, channels, taps, active)
 
 
-def fetch_wrap(buffer, size: tuple[int, int], channels: int, u, v, active=True):
-    """Bilinear periodic fetch of a positional plane ``(H, W, C)`` at ``(u, v)`` (units of one repeat)."""
+def fetch_wrap(buffer, size: tuple[int, int], channels: int, u, v, active=True, which=None):
+    """Bilinear periodic fetch of a positional plane ``(H, W, C)`` at ``(u, v)`` (units of one repeat).
+
+    ``u, v`` are ``mi.Float``, or ``mi.Float64`` whose whole repeats are removed in float64
+    before the float32 interpolation (as :func:`dynbtf.texture.fetch_wrap`). ``which``: as
+    :func:`gather_channels`.
+    """
+    mi = mi_module()
     h, w = size
+    u, v = mi.Float(wrap01(u)), mi.Float(wrap01(v))
     taps = bilinear_taps(wrap01(u) * w - 0.5, wrap01(v) * h - 0.5, w, h, wrap_x=True, wrap_y=True)
-    return gather_channels(buffer, channels, taps, active)
+    return gather_channels(buffer, channels, taps, active, which)
 
 
 def flat_array(mi, array) -> "object":
@@ -322,8 +337,113 @@ class DrNeuMIP:
         return self.decoder(features, self.angular_features(wv, wl, active))
 
 
+def march_visible_uv(u, v, w_view, height_at, *, h_min: float, h_max: float, step: float, aspect: float = 1.0,
+                     active=True):
+    """:func:`dynbtf.representations.parallax.march_visible_uv` in Dr.Jit: where the camera rays through
+    the reference-plane points ``(u, v)`` first meet a height field.
+
+    The same march, step for step, in float64: ``ceil(reach / step)`` equal steps from
+    ``z = h_max`` down to ``h_min``, the first sample at or below the surface and the one
+    before it bracketing the hit, placed by linear interpolation of ``height - z``.
+
+    Parameters
+    ----------
+    u, v : mi.Float or mi.Float64
+        Reference-plane points (exemplar repeats).
+    w_view : mi.Vector3f
+        Unit directions towards the viewer; ``z <= 0`` is treated as vertical.
+    height_at : callable
+        ``height_at(u, v, active) -> mi.Float`` (uv units) at ``mi.Float64`` points.
+    h_min, h_max, step, aspect : float
+        As the torch function.
+    active : mi.Bool
+        Lanes to march (the others return ``(u, v)`` unchanged).
+
+    Returns
+    -------
+    ``(u, v)`` as ``mi.Float64``: the visible points (not wrapped).
+
+    Notes
+    -----
+    One symbolic loop per lane inside the kernel (whatever Dr.Jit's ``SymbolicLoops`` flag):
+    a lane runs as many steps as its own ray needs, so the cost per query is that of the
+    steep views' marches; lanes of one SIMD vector wait for the longest march among them
+    (coherent camera rays, which see similar elevations, wait least).
+    """
+    mi, dr = mi_module(), drjit_module()
+    F64 = mi.Float64
+    u, v = F64(u), F64(v)
+    wx, wy, wz = F64(w_view.x), F64(w_view.y), F64(w_view.z)
+    up = wz > 0.0
+    wx, wy, wz = dr.select(up, wx, 0.0), dr.select(up, wy, 0.0), dr.select(up, wz, 1.0)
+    inv = 1.0 / dr.maximum(wz, 1e-6)
+    sx, sy = wx * inv, wy * inv * float(aspect)
+    depth = float(h_max - h_min)
+    n_steps = dr.maximum(dr.ceil(depth * dr.sqrt(sx * sx + sy * sy) / float(step)), 1.0)
+    dz = depth / n_steps
+    active = mi.Bool(active)
+    f_prev = F64(height_at(u + h_max * sx, v + h_max * sy, active)) - h_max
+    above = f_prev >= 0.0
+    z_hit = dr.select(above, F64(h_max), F64(h_min))
+    k = F64(0.0)
+    marching = active & ~above
+
+    def cond(k, f_prev, z_hit, marching):
+        return marching
+
+    def body(k, f_prev, z_hit, marching):
+        k = k + 1.0
+        last = n_steps <= k
+        z_above = h_max - (k - 1.0) * dz
+        z = dr.select(last, F64(h_min), h_max - k * dz)
+        f = F64(height_at(u + z * sx, v + z * sy, marching)) - z
+        hit = (f >= 0.0) | last
+        denominator = f - f_prev
+        t = dr.select(denominator != 0.0, f / denominator, 0.0)
+        t = dr.clip(dr.select(dr.isnan(t), 0.0, t), 0.0, 1.0)
+        z_hit = dr.select(marching & hit, z + t * (z_above - z), z_hit)
+        return k, f, z_hit, marching & ~hit
+
+    k, f_prev, z_hit, marching = dr.while_loop(state=(k, f_prev, z_hit, marching), cond=cond, body=body,
+                                               labels=("k", "f_prev", "z_hit", "marching"),
+                                               label="dynbtf_parallax_march", mode="symbolic")
+    return u + z_hit * sx, v + z_hit * sy
+
+
+class DrParallaxTriplePlane(DrTriplePlane):
+    """A :class:`~dynbtf.representations.parallax.ParallaxTriplePlane` evaluated with Dr.Jit.
+
+    The Triple Plane's decode (the height is the decoder's last positional input)
+    plus :meth:`visible_uv`, the march through the synthesized height field that
+    :meth:`dynbtf.synthesized.SynthesizedBTF.eval` runs before fetching features.
+    """
+
+    def __init__(self, model, output_map=(None, None)) -> None:
+        super().__init__(model, output_map)
+        config = model.config()
+        rows, cols = (int(x) for x in model.height_channel.shape)
+        self.height_scale = float(config["height_scale"])
+        self.h_min, self.h_max = model.height_range()
+        self.step = float(config["march_step_texels"]) / max(rows, cols)
+        self.aspect = cols / rows
+
+    def visible_uv(self, u, v, w_view, height_channel, active=True):
+        """The surface point (``mi.Float64`` pair) seen through ``(u, v)`` from ``w_view``.
+
+        ``height_channel(u, v, active) -> mi.Float`` is the synthesized positional
+        plane's last channel (the height in channel units) at ``mi.Float64`` points.
+        """
+        scale = self.height_scale
+
+        def height_at(pu, pv, mask):
+            return mi_module().Float64(height_channel(pu, pv, mask)) * scale
+
+        return march_visible_uv(u, v, w_view, height_at, h_min=self.h_min, h_max=self.h_max, step=self.step,
+                                aspect=self.aspect, active=active)
+
+
 #: Representation kind (model files' ``kind``) -> its Dr.Jit evaluator; what the Mitsuba plugin renders.
-DR_REPRESENTATIONS = {"triple": DrTriplePlane, "neumip": DrNeuMIP}
+DR_REPRESENTATIONS = {"triple": DrTriplePlane, "triple-parallax": DrParallaxTriplePlane, "neumip": DrNeuMIP}
 
 
 def check_renderable(model, what="model") -> None:
@@ -336,13 +456,10 @@ def check_renderable(model, what="model") -> None:
     from ..errors import InputError
 
     kind = getattr(model, "kind", type(model).__name__)
-    if kind == "triple-parallax":
-        raise InputError(f"{what}: the Mitsuba plugin cannot render kind 'triple-parallax' yet (its ray march "
-                         "through the synthesized height is not in the Dr.Jit kernel); preview it with "
-                         "dynbtf.render.preview.render_preview or query it with dynbtf.SynthesizedBTF")
     if kind not in DR_REPRESENTATIONS:
-        raise InputError(f"{what}: the Mitsuba plugin renders Triple Plane (kind 'triple', `dynbtf fit`) and "
-                         f"NeuMIP (kind 'neumip', `dynbtf fit --repr neumip`) models, got a model of kind {kind!r}")
+        raise InputError(f"{what}: the Mitsuba plugin renders Triple Plane (kind 'triple', `dynbtf fit`; "
+                         f"'triple-parallax', `dynbtf fit --repr triple-parallax`) and NeuMIP (kind 'neumip', "
+                         f"`dynbtf fit --repr neumip`) models, got a model of kind {kind!r}")
 
 
 def dr_representation(model, output_map=(None, None)):

@@ -209,8 +209,8 @@ class DrLatticeBlending:
             s = [x / total for x in s]
         return [mi.Float(x) for x in s]
 
-    def latent(self, u, v, active=True):
-        """Blended values before the output map: list of ``C`` mi.Float."""
+    def latent(self, u, v, active=True, which=None):
+        """Blended values before the output map: list of ``C`` mi.Float (only channels ``which``, if given)."""
         mi, dr = mi_module(), drjit_module()
         u, v = mi.Float64(u), mi.Float64(v)
         verts, bary = triangle_lattice(u, v)
@@ -240,11 +240,11 @@ class DrLatticeBlending:
             idx = (mi.UInt32(ra * pw + ca), mi.UInt32(ra * pw + cb), mi.UInt32(rb * pw + ca), mi.UInt32(rb * pw + cb))
             taps_of_sample.append(list(zip(idx, wts)))
         weights = self._weights(bary, taps_of_sample)
-        c_count = self.channels
+        which = list(range(self.channels)) if which is None else list(which)
         out = []
-        fetched = [gather_channels(self.plane, c_count, taps, active) for taps in taps_of_sample]
-        for c in range(c_count):
-            acc = weights[0] * fetched[0][c] + weights[1] * fetched[1][c] + weights[2] * fetched[2][c]
+        fetched = [gather_channels(self.plane, self.channels, taps, active, which) for taps in taps_of_sample]
+        for k, c in enumerate(which):
+            acc = weights[0] * fetched[0][k] + weights[1] * fetched[1][k] + weights[2] * fetched[2][k]
             if self.mode == "hist":
                 acc = lut_lookup(self.lut, self.lut_size, c, self.g_min, self.step, acc)
             out.append(acc)
@@ -265,6 +265,22 @@ class DrLatticeBlending:
         return out
 
 
+    def channel(self, u, v, index: int, active=True):
+        """One synthesized feature channel (``mi.Float``) at ``(u, v)``: e.g. a parallax model's height.
+
+        Without an output map only that channel is blended; with one, every latent
+        channel contributes to it.
+        """
+        dr = drjit_module()
+        if self.matrix is None:
+            return self.latent(u, v, active, which=[index])[0]
+        latent = self.latent(u, v, active)
+        acc = latent[0] * float(self.matrix[0, index]) + float(self.offset[index])
+        for i in range(1, self.matrix.shape[0]):
+            acc = dr.fma(latent[i], float(self.matrix[i, index]), acc)
+        return acc
+
+
 def gather_one(buffer, taps):
     """Bilinear combination of a one-channel buffer over ``taps`` (as :func:`~dynbtf.render.drjit_ops.gather_channels`)."""
     return gather_channels(buffer, 1, taps)[0]
@@ -281,7 +297,12 @@ class DrTiling:
         self.plane = flat_array(mi, plane)
 
     def features(self, u, v, active=True):
+        """The plane's features at ``(u, v)`` (``mi.Float`` or ``mi.Float64``): list of ``C`` mi.Float."""
         return fetch_wrap(self.plane, self.size, self.channels, u, v, active)
+
+    def channel(self, u, v, index: int, active=True):
+        """One feature channel (``mi.Float``) at ``(u, v)``."""
+        return fetch_wrap(self.plane, self.size, self.channels, u, v, active, which=[index])[0]
 
 
 def make_dr_synthesizer(synthesizer):

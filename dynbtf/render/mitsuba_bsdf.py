@@ -18,9 +18,10 @@ import math
 
 from ..errors import InputError
 from . import drjit_ops
+from .sampling import DEFAULT_TABLE_WEIGHT, SAMPLING_MODES
 
-__all__ = ["register_plugin", "plugin_variants", "load_plugin_model", "PLUGIN_DOC", "METHODS", "configure_jit",
-           "DynBTFEvaluator"]
+__all__ = ["register_plugin", "plugin_variants", "load_plugin_model", "plugin_sampler", "PLUGIN_DOC", "METHODS",
+           "configure_jit", "DynBTFEvaluator"]
 
 #: Synthesis methods the plugin evaluates in Dr.Jit.
 METHODS = ("tile", "hist", "hex")
@@ -43,9 +44,11 @@ pre-generated, so any ``scale`` costs the same.
      - Default
    * - ``filename``
      - string
-     - Path of a dynbtf model file: a Triple Plane (``dynbtf fit``) or a
-       NeuMIP (``dynbtf fit --repr neumip``); PCA and SH models have no
-       decoder to run in a kernel and are refused.
+     - Path of a dynbtf model file: a Triple Plane (``dynbtf fit``), one
+       with relief (``--repr triple-parallax``: the kernel marches the view
+       ray through the synthesized height first) or a NeuMIP (``dynbtf fit
+       --repr neumip``); PCA and SH models have no decoder to run in a kernel
+       and are refused.
      - (required)
    * - ``method``
      - string
@@ -67,6 +70,20 @@ pre-generated, so any ``scale`` costs the same.
      - integer
      - Seed of the synthesis' integer hash (another seed, another material instance).
      - 0
+   * - ``sampling``
+     - string
+     - How ``sample`` draws directions: ``mixture`` (importance sampling: the
+       model's sampling table, built once when the plugin loads the model --
+       a half-vector density per view direction from the decoder, averaged over
+       positional features -- mixed with cosine sampling by one-sample multiple
+       importance sampling) or ``cosine`` (cosine-weighted only, the paper's).
+       Any other value is an error naming the allowed ones.
+     - ``mixture``
+   * - ``sampling_weight``
+     - float
+     - In ``mixture`` mode, the probability of drawing from the table (the
+       rest draws cosine-weighted directions), in ``(0, 1]``.
+     - 0.75
 
 Conventions: ``si.wi`` (towards the camera / previous path vertex) is the BTF's
 ``w_view``, ``wo`` (towards the light / next vertex) its ``w_light``, both in the
@@ -80,10 +97,19 @@ meshes whose uv runs like their x, y no mirroring happens).
 :meth:`dynbtf.synthesized.SynthesizedBTF.eval` returns at
 ``uv = (scale * u, scale_v * v)``; directions below either horizon give 0
 (one-sided reflection: wrap it in Mitsuba's ``twosided`` for cloth).
-Sampling is cosine-weighted over the upper hemisphere (pdf ``cos(theta) / pi``),
-as in the paper, so a sample's weight is the BTF value itself. A BTF is not
-reciprocal: use radiance-mode integrators (``path``, ``direct``), not light
-tracing.
+Sampling: with ``sampling = "cosine"``, cosine-weighted over the upper hemisphere
+(pdf ``cos(theta) / pi``), as in the paper, so a sample's weight is the BTF value
+itself. With ``"mixture"`` (the default), a direction comes from the sampling
+table with probability ``sampling_weight`` and from the cosine distribution
+otherwise; ``pdf`` returns the mixture's density
+``a pdf_table + (1 - a) cos(theta) / pi`` whichever way the direction was drawn,
+and ``sample``'s weight is ``eval / pdf`` (see :mod:`dynbtf.render.sampling`).
+The table costs a few seconds when a model is first loaded (cached for the
+process). If it cannot be built (the decoder returns NaN or inf, or a view has
+no density), the plugin falls back to cosine sampling and says so once per
+model file with a warning (``UserWarning``).
+A BTF is not reciprocal: use radiance-mode integrators (``path``, ``direct``), not
+light tracing.
 
 Dr.Jit flags: :func:`register_plugin` turns Dr.Jit's ``SymbolicLoops`` and
 ``SymbolicCalls`` off (:func:`configure_jit`). Dr.Jit keeps these flags per
@@ -143,20 +169,39 @@ def _build_class(mi):
                 if not (math.isfinite(value) and value > 0):
                     raise InputError(f"dynbtf BSDF: parameter '{name}' must be a positive number of repeats, "
                                      f"got {value}")
+            self.sampling = str(props["sampling"]) if props.has_property("sampling") else "mixture"
+            if self.sampling not in SAMPLING_MODES:
+                raise InputError(f"dynbtf BSDF: parameter 'sampling' must be one of {list(SAMPLING_MODES)}, "
+                                 f"got {self.sampling!r}")
+            self.table_weight = (float(props["sampling_weight"]) if props.has_property("sampling_weight")
+                                 else DEFAULT_TABLE_WEIGHT)
+            if not (math.isfinite(self.table_weight) and 0.0 < self.table_weight <= 1.0):
+                raise InputError(f"dynbtf BSDF: parameter 'sampling_weight' must be a probability in (0, 1], "
+                                 f"got {self.table_weight}")
             model = load_plugin_model(self.filename)
             self.evaluator = DynBTFEvaluator(model, self.method, self.seed)
+            self.sampler = None
+            if self.sampling == "mixture":
+                self.sampler = plugin_sampler(self.filename, model)
+                if self.sampler is None:
+                    self.sampling = "cosine"  # the fall-back, announced once by plugin_sampler
             self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
             self.m_components = [self.m_flags]
 
         # ------------------------------------------------------------ BTF value
+        @staticmethod
+        def _mirror(si):
+            """+1, or -1 where the BTF's y (+v) is the frame's -t (a left-handed parametrization)."""
+            # Mitsuba's frame t = n x s runs along -dp/dv where the parametrization is left-handed
+            # (its sphere): the BTF sees both directions mirrored in y there
+            return dr.select(dr.dot(si.sh_frame.t, si.dp_dv) < 0.0, -1.0, 1.0)
+
         def _value(self, si, wo, active):
             # opaque: the scale is a kernel parameter, not a literal, so scenes that differ
             # only in scale share one compiled kernel
             u = si.uv.x * dr.opaque(mi.Float, self.scale)
             v = si.uv.y * dr.opaque(mi.Float, self.scale_v)
-            # the BTF's y runs along +v; Mitsuba's frame t = n x s runs along -dp/dv where the
-            # parametrization is left-handed (its sphere): mirror y of both directions there
-            y = dr.select(dr.dot(si.sh_frame.t, si.dp_dv) < 0.0, -1.0, 1.0)
+            y = self._mirror(si)
             w_view = mi.Vector3f(si.wi.x, si.wi.y * y, si.wi.z)
             w_light = mi.Vector3f(wo.x, wo.y * y, wo.z)
             return self.evaluator.eval(u, v, w_view, w_light, active)
@@ -164,18 +209,41 @@ def _build_class(mi):
         def _valid(self, si, wo, active):
             return active & (mi.Frame3f.cos_theta(si.wi) > 0.0) & (mi.Frame3f.cos_theta(wo) > 0.0)
 
+        def _pdf(self, si, wo, active):
+            """The density ``sample`` draws ``wo`` with (solid angle), for valid ``wo``."""
+            cosine = mi.warp.square_to_cosine_hemisphere_pdf(wo)
+            if self.sampler is None:
+                return cosine
+            y = self._mirror(si)
+            table = self.sampler.pdf(mi.Vector3f(si.wi.x, si.wi.y * y, si.wi.z),
+                                     mi.Vector3f(wo.x, wo.y * y, wo.z), active)
+            a = self.table_weight
+            return a * table + (1.0 - a) * cosine
+
         # ------------------------------------------------------------ BSDF API
         def sample(self, ctx, si, sample1, sample2, active=True):
             bs = dr.zeros(mi.BSDFSample3f)
-            bs.wo = mi.warp.square_to_cosine_hemisphere(sample2)
-            bs.pdf = mi.warp.square_to_cosine_hemisphere_pdf(bs.wo)
+            wo = mi.warp.square_to_cosine_hemisphere(sample2)
+            if self.sampler is not None:
+                y = self._mirror(si)
+                from_table = active & (sample1 < self.table_weight)
+                # sample1 < a chose the table; sample1 / a is uniform again and picks the view node
+                drawn = self.sampler.sample(mi.Vector3f(si.wi.x, si.wi.y * y, si.wi.z),
+                                            sample1 * (1.0 / self.table_weight), sample2, from_table)
+                wo = dr.select(from_table, mi.Vector3f(drawn.x, drawn.y * y, drawn.z), wo)
+            bs.wo = wo
             bs.eta = 1.0
             bs.sampled_type = mi.UInt32(+mi.BSDFFlags.DiffuseReflection)
             bs.sampled_component = mi.UInt32(0)
-            ok = self._valid(si, bs.wo, active) & (bs.pdf > 0.0)
-            bs.pdf = dr.select(ok, bs.pdf, 0.0)
-            # weight = eval / pdf = (value / pi * cos) / (cos / pi) = value
-            return bs, dr.select(ok, self._value(si, bs.wo, ok), 0.0)
+            ok = self._valid(si, bs.wo, active)
+            bs.pdf = dr.select(ok, self._pdf(si, bs.wo, ok), 0.0)
+            ok &= bs.pdf > 0.0
+            value = self._value(si, bs.wo, ok)
+            if self.sampler is None:
+                # weight = eval / pdf = (value / pi * cos) / (cos / pi) = value
+                return bs, dr.select(ok, value, 0.0)
+            weight = value * (dr.inv_pi * mi.Frame3f.cos_theta(bs.wo) / dr.select(ok, bs.pdf, 1.0))
+            return bs, dr.select(ok, weight, 0.0)
 
         def eval(self, ctx, si, wo, active=True):
             ok = self._valid(si, wo, active)
@@ -184,20 +252,19 @@ def _build_class(mi):
 
         def pdf(self, ctx, si, wo, active=True):
             ok = self._valid(si, wo, active)
-            return dr.select(ok, mi.warp.square_to_cosine_hemisphere_pdf(wo), 0.0)
+            return dr.select(ok, self._pdf(si, wo, ok), 0.0)
 
         def eval_pdf(self, ctx, si, wo, active=True):
             ok = self._valid(si, wo, active)
             value = self._value(si, wo, ok) * (dr.inv_pi * mi.Frame3f.cos_theta(wo))
-            return (dr.select(ok, value, 0.0),
-                    dr.select(ok, mi.warp.square_to_cosine_hemisphere_pdf(wo), 0.0))
+            return dr.select(ok, value, 0.0), dr.select(ok, self._pdf(si, wo, ok), 0.0)
 
         def traverse(self, callback):
             pass  # nothing differentiable is exposed
 
         def to_string(self):
             return (f"DynBTFBSDF[filename={self.filename!r}, method={self.method!r}, "
-                    f"scale={self.scale}, scale_v={self.scale_v}, seed={self.seed}]")
+                    f"scale={self.scale}, scale_v={self.scale_v}, seed={self.seed}, sampling={self.sampling!r}]")
 
     return DynBTFBSDF
 
@@ -230,6 +297,10 @@ class DynBTFEvaluator:
         matrix, offset = getattr(self.synthesizer, "matrix", None), getattr(self.synthesizer, "offset", None)
         self.model = drjit_ops.dr_representation(model, output_map=(matrix, offset))
         self._latent = matrix is not None
+        # representations with relief answer at the visible point, marched through the synthesized height
+        # (the positional plane's last channel), as SynthesizedBTF.eval does
+        self.relief = hasattr(self.model, "visible_uv")
+        self._height_index = int(model.positional_plane().shape[-1]) - 1
 
     def features(self, u, v, active=True):
         """Synthesized positional features at ``(u, v)``: list of ``C_U`` mi.Float."""
@@ -237,9 +308,48 @@ class DynBTFEvaluator:
 
     def eval(self, u, v, w_view, w_light, active=True):
         """RGB value (``mi.Color3f``) of the synthesized BTF, excluding cos(theta_light)."""
+        if self.relief:
+            index = self._height_index
+
+            def height_channel(pu, pv, mask):
+                return self.synthesizer.channel(pu, pv, index, mask)
+
+            u, v = self.model.visible_uv(u, v, w_view, height_channel, active)
         if self._latent:  # the output map is folded into the decoder
             return self.model.decode(self.synthesizer.latent(u, v, active), w_view, w_light, active)
         return self.model.decode(self.features(u, v, active), w_view, w_light, active)
+
+
+_SAMPLERS: dict = {}
+_ANNOUNCED: set = set()
+
+
+def plugin_sampler(filename, model, *, build=None):
+    """The :class:`~dynbtf.render.sampling.DrTableSampler` of model file ``filename``, or ``None``.
+
+    Built once per file version (path, size, modification time) and process, by
+    ``build(model)`` (default :func:`~dynbtf.render.sampling.build_sampling_table`).
+    A table that cannot be sampled (:func:`~dynbtf.render.sampling.table_problem`)
+    gives ``None`` -- the plugin then samples cosine-weighted -- and a
+    ``UserWarning`` naming the file and the problem, once per file.
+    """
+    import os
+    import warnings
+
+    from .sampling import DrTableSampler, build_sampling_table, table_problem
+
+    mi = drjit_ops.mitsuba_module()
+    stat = os.stat(filename)
+    key = (os.path.abspath(str(filename)), stat.st_size, stat.st_mtime_ns, mi.variant(), build)
+    if key not in _SAMPLERS:
+        table = (build or build_sampling_table)(model)
+        problem = table_problem(table)
+        _SAMPLERS[key] = None if problem else DrTableSampler(table)
+        if problem and key[0] not in _ANNOUNCED:
+            _ANNOUNCED.add(key[0])
+            warnings.warn(f"{filename}: {problem}; the dynbtf plugin samples this model cosine-weighted "
+                          f"(sampling='cosine')", UserWarning, stacklevel=2)
+    return _SAMPLERS[key]
 
 
 def load_plugin_model(filename):

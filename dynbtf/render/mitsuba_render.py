@@ -11,6 +11,7 @@ import numpy as np
 
 from ..errors import InputError
 from .mitsuba_bsdf import METHODS, load_plugin_model, register_plugin
+from .sampling import SAMPLING_MODES
 from .scenes import LIGHTINGS, SCENES, bsdf_dict, scene_dict
 
 __all__ = ["render_scene", "RenderResult"]
@@ -42,7 +43,7 @@ def _status(progress: bool, text: str) -> None:
 
 def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scale: float = 25.0, seed: int = 0,
                  lighting: str = "sky", resolution=(512, 512), spp: int = 16, spp_per_pass: int = 4,
-                 variant: str | None = None, progress: bool = True) -> RenderResult:
+                 variant: str | None = None, progress: bool = True, sampling: str = "mixture") -> RenderResult:
     """Path-trace ``scene`` covered by the synthesized BTF of ``model_path``.
 
     Every argument is checked before Mitsuba loads anything, so a mistake raises
@@ -72,6 +73,9 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
     variant : str, optional
         Mitsuba variant (default: the active one, or ``llvm_ad_rgb``); one of
         :func:`dynbtf.render.mitsuba_bsdf.plugin_variants`.
+    sampling : {"mixture", "cosine"}
+        The plugin's direction sampling: its importance-sampling table mixed with
+        cosine sampling, or cosine only (see :data:`dynbtf.render.mitsuba_bsdf.PLUGIN_DOC`).
     progress : bool
         Report on standard error: a status line before the first pass (which
         traces and compiles the kernel: up to a minute the first time a model, method and
@@ -97,6 +101,8 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
         raise InputError(f"spp_per_pass: expected a positive number of samples per pixel, got {spp_per_pass}")
     if not (math.isfinite(scale) and scale > 0):
         raise InputError(f"--scale: expected a positive number of repeats, got {scale}")
+    if sampling not in SAMPLING_MODES:
+        raise InputError(f"--sampling: expected one of {list(SAMPLING_MODES)}, got {sampling!r}")
     load_plugin_model(model_path)  # a missing/damaged file or an unsupported kind fails here, not inside Mitsuba
     active = register_plugin(variant)
     from .drjit_ops import drjit_module, mi_module
@@ -107,7 +113,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
     t0 = time.perf_counter()
     spp, spp_per_pass = int(spp), int(spp_per_pass)
     label = f"render {scene}/{lighting}/{method}"
-    material = bsdf_dict(model_path, method=method, scale=scale, seed=seed)
+    material = bsdf_dict(model_path, method=method, scale=scale, seed=seed, sampling=sampling)
     scene_obj = mi.load_dict(scene_dict(scene, material, lighting=lighting, resolution=resolution,
                                         spp=min(spp, spp_per_pass)))
     n_passes = int(math.ceil(spp / spp_per_pass))

@@ -36,12 +36,17 @@ LIGHTINGS = ("point", "sky")
 
 
 def bsdf_dict(model_path, *, method: str = "hist", scale: float = 1.0, seed: int = 0,
-              scale_v: float | None = None) -> dict:
-    """The ``dynbtf`` BSDF as a Mitsuba dict (see :data:`dynbtf.render.mitsuba_bsdf.PLUGIN_DOC`)."""
+              scale_v: float | None = None, sampling: str | None = None) -> dict:
+    """The ``dynbtf`` BSDF as a Mitsuba dict (see :data:`dynbtf.render.mitsuba_bsdf.PLUGIN_DOC`).
+
+    ``sampling`` (``"mixture"`` or ``"cosine"``) is left to the plugin's default when ``None``.
+    """
     d = {"type": "dynbtf", "filename": str(model_path), "method": str(method), "scale": float(scale),
          "seed": int(seed)}
     if scale_v is not None:
         d["scale_v"] = float(scale_v)
+    if sampling is not None:
+        d["sampling"] = str(sampling)
     return d
 
 
