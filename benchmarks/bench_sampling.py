@@ -9,7 +9,8 @@ max depth 3 (``--max-depth``), which combines BSDF and emitter sampling by MIS) 
 * ``sampling="cosine"`` (the paper's cosine-weighted directions) and
 * ``sampling="mixture"`` (the plugin's sampling table mixed with cosine, weight ``--mix``),
 
-at ``--spp`` samples per pixel with ``--seeds`` different sampler seeds, and compared with a
+and it prints what the plugin's default, ``sampling="auto"``, picks for each model (the last
+column of the table), at ``--spp`` samples per pixel with ``--seeds`` different sampler seeds, and compared with a
 reference of ``--ref-spp`` samples per pixel (mixture sampling, its own seeds). The MSE is
 the mean over the pixels that show the sphere (found by casting the camera's pixel-centre
 rays) and over RGB; the reference's own noise (its MSE is ~``spp / ref_spp`` of a
@@ -74,13 +75,22 @@ def main() -> None:
     args = parser.parse_args()
 
     from dynbtf.render.drjit_ops import mi_module
-    from dynbtf.render.mitsuba_bsdf import register_plugin
+    from dynbtf.render.mitsuba_bsdf import load_plugin_model, register_plugin
+    from dynbtf.render.sampling import AUTO_MIN_COSINE_VARIANCE, build_sampling_table, cosine_relative_variance
     from dynbtf.render.scenes import bsdf_dict, scene_dict
 
     register_plugin("llvm_ad_rgb")
     mi = mi_module()
     rows = []
+    auto = {}
     for model in args.models:
+        # what the plugin's default, sampling="auto", picks for this model, and why
+        bsdf = mi.load_dict(bsdf_dict(model, method="hist", scale=args.scale, seed=0))
+        variance = (bsdf.sampler.cosine_relative_variance if bsdf.sampler is not None else
+                    cosine_relative_variance(build_sampling_table(load_plugin_model(model))))
+        auto[Path(model).stem] = bsdf.sampling
+        print(f"{Path(model).stem}: sampling='auto' picks {bsdf.sampling!r} (cosine relative variance of its "
+              f"table {variance:.3g}; threshold {AUTO_MIN_COSINE_VARIANCE:g})", flush=True)
         for lighting in args.lightings:
             scenes = {}
             for sampling in ("cosine", "mixture"):
@@ -115,11 +125,11 @@ def main() -> None:
     print(f"\n{args.size} x {args.size} px, sphere scene (max depth {args.max_depth}), {args.spp} spp x {args.seeds} seeds vs {args.ref_spp} spp "
           f"reference, mixture weight {args.mix}; MSE over the sphere's {int(mask.sum())} pixels")
     print("| model | lighting | MSE cosine | MSE mixture | equal spp: cosine / mixture | s per render cosine / mixture "
-          "| equal time: cosine / mixture |")
-    print("|---|---|---|---|---|---|---|")
+          "| equal time: cosine / mixture | auto picks |")
+    print("|---|---|---|---|---|---|---|---|")
     for name, lighting, m_c, m_m, t_c, t_m in rows:
         print(f"| {name} | {lighting} | {m_c:.3e} | {m_m:.3e} | **{m_c / m_m:.2f}x** | {t_c:.3f} / {t_m:.3f} | "
-              f"**{m_c * t_c / (m_m * t_m):.2f}x** |")
+              f"**{m_c * t_c / (m_m * t_m):.2f}x** | {auto[name]} |")
 
 
 if __name__ == "__main__":

@@ -468,9 +468,49 @@ def test_mixture_sample_weight_is_eval_over_pdf(variant, fitted_files):
     np.testing.assert_allclose(w[ok], ev[ok] / pd[ok][:, None], rtol=1e-4, atol=1e-6)
 
 
+def test_cosine_relative_variance_matches_monte_carlo_over_the_decoder(variant, fitted_files):
+    """The table's quadrature of Var/mean^2 of f under cosine sampling vs the decoder at random cosine directions."""
+    import torch
+
+    from dynbtf.conventions import spherical_to_direction
+    from dynbtf.render.sampling import SamplingTable, build_sampling_table, cosine_relative_variance
+    from dynbtf.representations.model_file import load_model
+
+    model, _ = load_model(fitted_files["leather"])
+    plane = model.positional_plane().detach().float()
+    features = plane.reshape(-1, plane.shape[-1])  # every texel: the table's average over all of them
+    table = build_sampling_table(model, phi_bins=1, theta_bins=3, resolution=32, positions=len(features))
+    node = SamplingTable(table.density[:, 1:2], table.phi_nodes, table.theta_nodes[1:2])  # theta 67.5 deg
+    rng = np.random.default_rng(1)
+    n = 4000
+    u1, u2 = rng.random(n), rng.random(n)
+    w_light = np.stack([np.sqrt(u1) * np.cos(2 * np.pi * u2), np.sqrt(u1) * np.sin(2 * np.pi * u2), np.sqrt(1 - u1)], -1)
+    w_view = np.broadcast_to(spherical_to_direction(np.degrees(table.theta_nodes[1]), 0.0), w_light.shape)
+    k = len(features)
+    with torch.no_grad():
+        rgb = model.decode(features.repeat(n, 1), torch.from_numpy(np.repeat(w_view, k, 0)).float(),
+                           torch.from_numpy(np.repeat(w_light, k, 0)).float()).reshape(n, k, 3).double().mean(1)
+    f = np.maximum(rgb.numpy() @ np.array([0.2126, 0.7152, 0.0722]), 0.0)
+    monte_carlo = f.var() / f.mean() ** 2
+    assert monte_carlo > 0.05  # a material with some lobe: the comparison means something
+    assert cosine_relative_variance(node) == pytest.approx(monte_carlo, rel=0.15)
+
+
+def test_auto_sampling_uses_the_table_for_glossy_and_cosine_for_rough(variant, fitted_files):
+    """The default, sampling='auto': the glossy wood gets the table, the rough leather cosine sampling."""
+    from dynbtf.render.sampling import AUTO_MIN_COSINE_VARIANCE
+
+    wood = mi.load_dict({"type": "dynbtf", "filename": str(fitted_files["lacquered_wood"])})
+    leather = mi.load_dict({"type": "dynbtf", "filename": str(fitted_files["leather"])})
+    assert wood.sampling == "mixture" and wood.sampler.cosine_relative_variance > AUTO_MIN_COSINE_VARIANCE
+    assert leather.sampling == "cosine" and leather.sampler is None
+    forced = mi.load_dict({"type": "dynbtf", "filename": str(fitted_files["leather"]), "sampling": "mixture"})
+    assert forced.sampling == "mixture" and forced.sampler.cosine_relative_variance < AUTO_MIN_COSINE_VARIANCE
+
+
 def test_sampling_parameters_are_checked(variant, model_file):
     path, _ = model_file
-    with pytest.raises(Exception, match=r"'sampling' must be one of \['cosine', 'mixture'\], got 'ggx'"):
+    with pytest.raises(Exception, match=r"'sampling' must be one of \['auto', 'mixture', 'cosine'\], got 'ggx'"):
         mi.load_dict({"type": "dynbtf", "filename": str(path), "sampling": "ggx"})
     with pytest.raises(Exception, match=r"'sampling_weight' must be a probability in \(0, 1\]"):
         mi.load_dict({"type": "dynbtf", "filename": str(path), "sampling_weight": 1.5})

@@ -22,9 +22,10 @@ def render(
     scale: float = typer.Option(25.0, help="Exemplar repeats across the mesh's uv range."),
     seed: int = typer.Option(0, help="Synthesis seed."),
     spp: int = typer.Option(16, help="Samples per pixel."),
-    sampling: str = typer.Option("mixture", help="Direction sampling: mixture (the model's importance-sampling "
-                                                 "table mixed with cosine sampling; converges faster on glossy "
-                                                 "materials) or cosine (the paper's)."),
+    sampling: str = typer.Option("auto", help="Direction sampling: mixture (the model's importance-sampling "
+                                              "table mixed with cosine sampling; converges faster on glossy "
+                                              "materials), cosine (the paper's), or auto (mixture for glossy "
+                                              "models, cosine for rough ones)."),
     size: int = typer.Option(512, help="Image width and height in pixels."),
     exposure: float = typer.Option(1.0, help="Multiplier applied before sRGB encoding (PNG only)."),
     variant: Optional[str] = typer.Option(None, help="Mitsuba variant (default llvm_ad_rgb; cuda_ad_rgb on a GPU); "

@@ -18,7 +18,7 @@ import math
 
 from ..errors import InputError
 from . import drjit_ops
-from .sampling import DEFAULT_TABLE_WEIGHT, SAMPLING_MODES
+from .sampling import AUTO_MIN_COSINE_VARIANCE, DEFAULT_TABLE_WEIGHT, SAMPLING_MODES
 
 __all__ = ["register_plugin", "plugin_variants", "load_plugin_model", "plugin_sampler", "PLUGIN_DOC", "METHODS",
            "configure_jit", "DynBTFEvaluator"]
@@ -76,9 +76,13 @@ pre-generated, so any ``scale`` costs the same.
        model's sampling table, built once when the plugin loads the model --
        a half-vector density per view direction from the decoder, averaged over
        positional features -- mixed with cosine sampling by one-sample multiple
-       importance sampling) or ``cosine`` (cosine-weighted only, the paper's).
+       importance sampling), ``cosine`` (cosine-weighted only, the paper's), or
+       ``auto``: ``mixture`` where the table's lobe is one cosine sampling misses
+       (:func:`~dynbtf.render.sampling.cosine_relative_variance` of the table at
+       least 4: glossy materials), else ``cosine`` (rough materials, where the
+       table gains nothing per sample and costs ~10% per sample).
        Any other value is an error naming the allowed ones.
-     - ``mixture``
+     - ``auto``
    * - ``sampling_weight``
      - float
      - In ``mixture`` mode, the probability of drawing from the table (the
@@ -99,8 +103,8 @@ meshes whose uv runs like their x, y no mirroring happens).
 (one-sided reflection: wrap it in Mitsuba's ``twosided`` for cloth).
 Sampling: with ``sampling = "cosine"``, cosine-weighted over the upper hemisphere
 (pdf ``cos(theta) / pi``), as in the paper, so a sample's weight is the BTF value
-itself. With ``"mixture"`` (the default), a direction comes from the sampling
-table with probability ``sampling_weight`` and from the cosine distribution
+itself. With ``"mixture"`` (what ``"auto"``, the default, picks for glossy models),
+a direction comes from the sampling table with probability ``sampling_weight`` and from the cosine distribution
 otherwise; ``pdf`` returns the mixture's density
 ``a pdf_table + (1 - a) cos(theta) / pi`` whichever way the direction was drawn,
 and ``sample``'s weight is ``eval / pdf`` (see :mod:`dynbtf.render.sampling`).
@@ -169,7 +173,7 @@ def _build_class(mi):
                 if not (math.isfinite(value) and value > 0):
                     raise InputError(f"dynbtf BSDF: parameter '{name}' must be a positive number of repeats, "
                                      f"got {value}")
-            self.sampling = str(props["sampling"]) if props.has_property("sampling") else "mixture"
+            self.sampling = str(props["sampling"]) if props.has_property("sampling") else "auto"
             if self.sampling not in SAMPLING_MODES:
                 raise InputError(f"dynbtf BSDF: parameter 'sampling' must be one of {list(SAMPLING_MODES)}, "
                                  f"got {self.sampling!r}")
@@ -181,10 +185,15 @@ def _build_class(mi):
             model = load_plugin_model(self.filename)
             self.evaluator = DynBTFEvaluator(model, self.method, self.seed)
             self.sampler = None
-            if self.sampling == "mixture":
+            if self.sampling in ("auto", "mixture"):
                 self.sampler = plugin_sampler(self.filename, model)
                 if self.sampler is None:
                     self.sampling = "cosine"  # the fall-back, announced once by plugin_sampler
+                elif self.sampling == "auto":
+                    # the table where cosine sampling misses the model's lobe (glossy), else cosine
+                    glossy = self.sampler.cosine_relative_variance >= AUTO_MIN_COSINE_VARIANCE
+                    self.sampling = "mixture" if glossy else "cosine"
+                    self.sampler = self.sampler if glossy else None
             self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
             self.m_components = [self.m_flags]
 

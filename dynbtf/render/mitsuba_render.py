@@ -43,7 +43,7 @@ def _status(progress: bool, text: str) -> None:
 
 def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scale: float = 25.0, seed: int = 0,
                  lighting: str = "sky", resolution=(512, 512), spp: int = 16, spp_per_pass: int = 4,
-                 variant: str | None = None, progress: bool = True, sampling: str = "mixture") -> RenderResult:
+                 variant: str | None = None, progress: bool = True, sampling: str = "auto") -> RenderResult:
     """Path-trace ``scene`` covered by the synthesized BTF of ``model_path``.
 
     Every argument is checked before Mitsuba loads anything, so a mistake raises
@@ -73,9 +73,10 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
     variant : str, optional
         Mitsuba variant (default: the active one, or ``llvm_ad_rgb``); one of
         :func:`dynbtf.render.mitsuba_bsdf.plugin_variants`.
-    sampling : {"mixture", "cosine"}
+    sampling : {"auto", "mixture", "cosine"}
         The plugin's direction sampling: its importance-sampling table mixed with
-        cosine sampling, or cosine only (see :data:`dynbtf.render.mitsuba_bsdf.PLUGIN_DOC`).
+        cosine sampling, cosine only, or the table for glossy models and cosine for
+        rough ones (see :data:`dynbtf.render.mitsuba_bsdf.PLUGIN_DOC`).
     progress : bool
         Report on standard error: a status line before the first pass (which
         traces and compiles the kernel: up to a minute the first time a model, method and

@@ -39,7 +39,7 @@ def bsdf_dict(model_path, *, method: str = "hist", scale: float = 1.0, seed: int
               scale_v: float | None = None, sampling: str | None = None) -> dict:
     """The ``dynbtf`` BSDF as a Mitsuba dict (see :data:`dynbtf.render.mitsuba_bsdf.PLUGIN_DOC`).
 
-    ``sampling`` (``"mixture"`` or ``"cosine"``) is left to the plugin's default when ``None``.
+    ``sampling`` (``"auto"``, ``"mixture"`` or ``"cosine"``) is left to the plugin's default when ``None``.
     """
     d = {"type": "dynbtf", "filename": str(model_path), "method": str(method), "scale": float(scale),
          "seed": int(seed)}
