@@ -71,7 +71,7 @@ def _one_error_line(capsys, message):
     (["--variant", "llvm_ad_spectral"], "the dynbtf plugin needs an RGB variant of the LLVM or CUDA back end"),
     (["--variant", "no_such_variant"], "not built into the installed Mitsuba"),
     (["--exposure", "-1"], "--exposure: expected a positive number, got -1.0"),
-    (["--sampling", "ggx"], "--sampling: expected one of ['cosine', 'mixture'], got 'ggx'"),
+    (["--sampling", "ggx"], "--sampling: expected one of ['auto', 'mixture', 'cosine'], got 'ggx'"),
 ])
 def test_render_command_bad_options(small_model, tmp_path, capsys, no_mitsuba_scene, args, message):
     from dynbtf.cli.main import main
