@@ -194,3 +194,34 @@ def test_bad_arguments_are_clear_errors(model, tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(InputError, match="exists and is not a directory"):
         export_web(model, tmp_path / "file")
+
+
+def _cli(*args):
+    from typer.testing import CliRunner
+
+    from dynbtf.cli.main import app
+
+    result = CliRunner().invoke(app, [str(a) for a in args])
+    result.text = result.output + ("" if result.exception is None else str(result.exception))
+    return result
+
+
+def test_cli_export_writes_the_viewer_and_refuses_bad_input(model, tmp_path):
+    from pathlib import Path
+
+    from dynbtf.representations.model_file import save_model
+
+    path = save_model(tmp_path / "m.dbtfm", model)
+    result = _cli("export", path, "-o", tmp_path / "out", "--precision", "u8", "--method", "hist", "--method", "tile")
+    assert result.exit_code == 0, result.output
+    assert "the hist method alone needs" in result.output and "index.html" in result.output
+    manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    assert list(manifest["methods"]) == ["hist", "tile"] and manifest["precision"] == "u8"
+    data = Path(__file__).parent / "data" / "round1_models"
+    refused = _cli("export", data / "pca.dbtfm", "-o", tmp_path / "pca")
+    assert refused.exit_code != 0 and "kind 'pca' is not supported" in refused.text
+    assert "supported kinds: triple" in refused.text and not (tmp_path / "pca").exists()
+    missing = _cli("export", tmp_path / "nothere.dbtfm", "-o", tmp_path / "x")
+    assert missing.exit_code != 0 and "nothere.dbtfm: model file not found" in missing.text
+    other = _cli("export", path, "-o", tmp_path / "x", "--format", "gltf")
+    assert other.exit_code != 0 and "--format: expected one of ['web']" in other.text
