@@ -225,3 +225,75 @@ def test_cli_export_writes_the_viewer_and_refuses_bad_input(model, tmp_path):
     assert missing.exit_code != 0 and "nothere.dbtfm: model file not found" in missing.text
     other = _cli("export", path, "-o", tmp_path / "x", "--format", "gltf")
     assert other.exit_code != 0 and "--format: expected one of ['web']" in other.text
+
+
+_PROBE = """<script>
+(function () {
+  var seen = [];
+  function note(kind, args) {
+    seen.push(kind + ': ' + Array.prototype.map.call(args, String).join(' '));
+    var p = document.getElementById('probe-console');
+    if (!p && document.body) { p = document.createElement('pre'); p.id = 'probe-console'; document.body.appendChild(p); }
+    if (p) p.textContent = JSON.stringify(seen);
+  }
+  ['error', 'warn'].forEach(function (k) { var f = console[k]; console[k] = function () { note(k, arguments); f.apply(console, arguments); }; });
+  window.addEventListener('error', function (e) { note('exception', [e.message]); });
+  window.addEventListener('unhandledrejection', function (e) { note('rejection', [e.reason]); });
+})();
+</script>"""
+
+
+def _probe_viewer(directory, tmp_name="probe.html", **kwargs):
+    """Load a copy of the viewer page with console/exception hooks; return the PageRun."""
+    from dynbtf.render.web_browser import run_page
+
+    page = directory / tmp_name
+    page.write_text((directory / "index.html").read_text().replace("<head>", "<head>" + _PROBE, 1))
+    try:
+        return run_page(page, **kwargs)
+    finally:
+        page.unlink()
+
+
+def _page_console(run):
+    """The page's console lines, without Chromium's GL driver performance notes (SwiftShader's ReadPixels stalls)."""
+    return [line for line in run.console if "GL Driver Message (OpenGL, Performance" not in line]
+
+
+@browser
+@pytest.mark.browser
+def test_viewer_page_draws_without_console_errors(exports, tmp_path):
+    from dynbtf.io import load_image
+
+    directory = exports["fp16"].directory
+    run = _probe_viewer(directory, screenshot=tmp_path / "viewer.png", window=(720, 480), budget_ms=4000)
+    assert 'data-state="running"' in run.dom, run.dom[-2000:]
+    assert not (run.element("dynbtf-error") or "").strip()
+    assert run.element("probe-console") is None and _page_console(run) == []
+    assert "ms per frame" in run.dom  # the fps counter ran
+    shot = load_image(run.screenshot)
+    canvas = shot[:, : shot.shape[1] - 320]  # the panel is 300 px + padding on the right
+    background = np.array([0.08, 0.08, 0.09]) ** 2.2
+    drawn = np.abs(canvas - background).max(-1) > 0.05
+    assert drawn.mean() > 0.2  # the plane covers a good part of the view
+    assert canvas[drawn].std(0).max() > 0.01  # and shows texture, not a flat colour
+
+
+@browser
+@pytest.mark.browser
+def test_viewer_reports_missing_or_unreadable_files_in_the_page(exports, tmp_path):
+    import shutil
+
+    directory = tmp_path / "copy"
+    shutil.copytree(exports["u8"].directory, directory)
+    (directory / "plane_hist.bin.js").unlink()
+    run = _probe_viewer(directory, budget_ms=3000)
+    assert "plane_hist.bin.js: missing or unreadable" in (run.element("dynbtf-error") or "")
+    assert 'data-state="error"' in run.dom
+    shutil.copy(exports["u8"].directory / "plane_hist.bin.js", directory)
+    (directory / "f_H.bin.js").write_text('DynBTF.file("f_H.bin", 12, "not base64 at all!");\n')
+    run = _probe_viewer(directory, budget_ms=3000)
+    assert "f_H.bin.js: unreadable" in (run.element("dynbtf-error") or "")
+    (directory / "manifest.js").unlink()
+    run = _probe_viewer(directory, budget_ms=3000)
+    assert "manifest.js: missing or unreadable" in (run.element("dynbtf-error") or "")

@@ -352,7 +352,7 @@
   DynBTF.showError = showError;
 
   function startViewer(canvas) {
-    var gl = canvas.getContext('webgl2', {antialias: false, preserveDrawingBuffer: true});
+    var gl = canvas.getContext('webgl2', {antialias: false});
     if (!gl) { showError('This browser has no WebGL2: the viewer needs it.'); return; }
     DynBTF.load('').then(function (data) {
       var renderer = new DynBTF.Renderer(gl, data), m = data.manifest;
