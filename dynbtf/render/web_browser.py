@@ -29,7 +29,7 @@ import numpy as np
 from ..errors import InputError
 
 __all__ = ["find_chromium", "CHROMIUM_FLAGS", "PageRun", "run_page", "eval_in_browser", "lattice_in_browser",
-           "BrowserResult"]
+           "BrowserResult", "time_frames", "FrameTimes"]
 
 #: Flags for a quiet, offline, sandbox-free headless run (each run also gets a fresh profile dir).
 CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-quic", "--no-first-run",
@@ -72,11 +72,13 @@ class PageRun:
 
 
 def run_page(page, *, screenshot=None, window=(1280, 720), timeout: float = 300.0, gl: str = "swiftshader",
-             budget_ms: int = 60000, chromium: str | None = None) -> PageRun:
+             budget_ms: int | None = 60000, chromium: str | None = None) -> PageRun:
     """Load ``page`` (an HTML file) in headless Chromium; return its DOM and console messages.
 
     ``budget_ms`` is Chromium's virtual-time budget: how long (in page time) scripts and
-    animation frames may run before the DOM is dumped.
+    animation frames may run before the DOM is dumped. ``None``: real time, and the DOM is
+    dumped when the page has loaded (what timing pages need: virtual time also virtualizes
+    ``performance.now()``).
     """
     exe = chromium or find_chromium()
     if exe is None:
@@ -86,8 +88,9 @@ def run_page(page, *, screenshot=None, window=(1280, 720), timeout: float = 300.
     page = Path(page).resolve()
     with tempfile.TemporaryDirectory(prefix="dynbtf-chromium-") as profile:
         flags = [exe, *CHROMIUM_FLAGS, *_GL_FLAGS[gl], f"--user-data-dir={profile}",
-                 f"--window-size={window[0]},{window[1]}", "--enable-logging=stderr", "--v=0",
-                 f"--virtual-time-budget={int(budget_ms)}"]
+                 f"--window-size={window[0]},{window[1]}", "--enable-logging=stderr", "--v=0"]
+        if budget_ms is not None:
+            flags.append(f"--virtual-time-budget={int(budget_ms)}")
         done = subprocess.run([*flags, "--dump-dom", page.as_uri()], capture_output=True, text=True, timeout=timeout)
         console = [line for line in done.stderr.splitlines() if ":CONSOLE" in line]
         shot = None
@@ -290,3 +293,118 @@ def lattice_in_browser(export_dir, method: str, points, *, local_shift=None, gl:
     up = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (n, 1))
     return _run_queries(export_dir, method, points, up, up, local_shift=local_shift, lattice=True, gl=gl,
                         timeout=timeout)
+
+
+_FRAME_PAGE = """<!DOCTYPE html>
+<html><head><meta charset="utf-8"><title>dynbtf frame time</title></head><body>
+<pre id="dynbtf-result"></pre><pre id="dynbtf-error"></pre>
+<script src="viewer.js"></script>
+__SCRIPTS__
+<script>
+(function () {
+  var job = __JOB__;
+  try {
+    var data = DynBTF.collect(), m = data.manifest;
+    var canvas = document.createElement('canvas');
+    canvas.width = job.width; canvas.height = job.height;
+    var gl = canvas.getContext('webgl2', {antialias: false});
+    if (!gl) throw new Error('no WebGL2');
+    var dbg = gl.getExtension('WEBGL_debug_renderer_info');
+    var out = {renderer: dbg ? gl.getParameter(dbg.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER),
+               width: job.width, height: job.height, methods: {}};
+    var r = new DynBTF.Renderer(gl, data);
+    // a camera looking down at the plane: uv across the frame, view directions of a 60 deg field of view
+    var t0 = performance.now();
+    var program = r.program(
+      'uniform uvec4 u_lattice; uniform float u_phase; uniform ivec2 u_texel; uniform vec2 u_fraction;\\n' +
+      'uniform vec2 u_size; uniform float u_scale; uniform vec3 u_light; out vec4 color;\\n' +
+      'void main() { vec2 s = gl_FragCoord.xy / u_size; DynbtfOrigin o; o.lattice = u_lattice; o.phase = u_phase;\\n' +
+      '  o.texel = u_texel; vec2 local = u_fraction + vec2(s.x * u_size.x / u_size.y, s.y) * u_scale;\\n' +
+      '  vec3 wv = normalize(vec3((s - 0.5) * vec2(u_size.x / u_size.y, 1.0) * 1.15, 1.0));\\n' +
+      '  vec3 v = dynbtf_eval(o, local, wv, u_light) * u_light.z;\\n' +
+      '  color = vec4(pow(clamp(v, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0); }\\n');
+    out.compile_ms = performance.now() - t0;
+    var pixel = new Uint8Array(4);
+    job.methods.forEach(function (name) {
+      r.use(program, name);
+      var o = DynBTF.origin(m, name, job.origin, job.origin);
+      function u(n) { return gl.getUniformLocation(program, n); }
+      gl.uniform4ui(u('u_lattice'), o.lattice[0], o.lattice[1], o.lattice[2], o.lattice[3]);
+      gl.uniform1f(u('u_phase'), o.phase);
+      gl.uniform2i(u('u_texel'), o.texel[0], o.texel[1]);
+      gl.uniform2f(u('u_fraction'), o.fraction[0], o.fraction[1]);
+      gl.uniform2f(u('u_size'), job.width, job.height);
+      gl.uniform1f(u('u_scale'), job.scale);
+      gl.uniform3f(u('u_light'), 0.45, 0.2, Math.sqrt(1 - 0.45 * 0.45 - 0.2 * 0.2));
+      gl.viewport(0, 0, job.width, job.height);
+      var times = [];
+      for (var f = 0; f < job.frames + 1; ++f) {  // the first frame (warm-up: shader variants, uploads) is not counted
+        var start = performance.now();
+        gl.drawArrays(gl.TRIANGLES, 0, 3);
+        gl.readPixels(job.width >> 1, job.height >> 1, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel);  // waits for the frame
+        if (f > 0) times.push(performance.now() - start);
+      }
+      out.methods[name] = {frame_ms: times, center_pixel: Array.prototype.slice.call(pixel)};
+    });
+    if (gl.getError() !== gl.NO_ERROR) throw new Error('WebGL error');
+    document.getElementById('dynbtf-result').textContent = JSON.stringify(out);
+  } catch (e) {
+    document.getElementById('dynbtf-error').textContent = String(e && e.message || e);
+  }
+})();
+</script></body></html>
+"""
+
+
+@dataclass
+class FrameTimes:
+    """Frame times (ms) per method at ``width x height``, the GL ``renderer`` string and the program's compile time."""
+
+    renderer: str
+    width: int
+    height: int
+    frame_ms: dict[str, list[float]]
+    compile_ms: float
+
+    @property
+    def software(self) -> bool:
+        """Whether the browser rendered with a software GL (SwiftShader / llvmpipe)."""
+        return any(s in self.renderer for s in ("SwiftShader", "llvmpipe", "Software"))
+
+
+def time_frames(export_dir, methods=None, *, width: int = 1280, height: int = 720, frames: int = 3,
+                scale: float = 8.0, origin: float = 0.0, gl: str = "gpu", timeout: float = 1800.0) -> FrameTimes:
+    """Time full frames of the exported shader in headless Chromium (every pixel one ``dynbtf_eval``).
+
+    Each frame draws one full-screen pass into a ``width x height`` canvas and waits for it
+    (a one-pixel ``readPixels``); the first frame of each method is a warm-up and not counted.
+    ``gl="gpu"`` uses the machine's GPU when Chromium finds one (else SwiftShader), ``"swiftshader"``
+    forces software GL.
+    """
+    export_dir = Path(export_dir)
+    manifest_path = export_dir / "manifest.json"
+    if not (export_dir / "manifest.js").is_file() or not manifest_path.is_file():
+        raise InputError(f"{export_dir}: not a web export with its viewer files (manifest.js missing)")
+    manifest = json.loads(manifest_path.read_text())
+    methods = list(methods or manifest["methods"])
+    scripts = "\n".join(f'<script src="{name}"></script>' for name in
+                        ["manifest.js", *(f"{f}.js" for f in manifest["files"])])
+    job = {"width": int(width), "height": int(height), "frames": int(frames), "methods": methods,
+           "scale": float(scale), "origin": float(origin)}
+    fd, page = tempfile.mkstemp(prefix=".dynbtf-frames-", suffix=".html", dir=export_dir)
+    os.close(fd)
+    page = Path(page)
+    try:
+        page.write_text(_FRAME_PAGE.replace("__SCRIPTS__", scripts).replace("__JOB__", json.dumps(job)),
+                        encoding="utf-8")
+        run = run_page(page, gl=gl, timeout=timeout, budget_ms=None, window=(width, height))
+    finally:
+        page.unlink(missing_ok=True)
+    error = run.element("dynbtf-error")
+    if error:
+        raise RuntimeError(f"the frame-time page failed in Chromium: {error}")
+    res = json.loads(run.element("dynbtf-result") or "null") or {}
+    if not res:
+        raise RuntimeError(f"the frame-time page left no result (console: {run.console[-5:]})")
+    return FrameTimes(res["renderer"], res["width"], res["height"],
+                      {k: v["frame_ms"] for k, v in res["methods"].items()}, res["compile_ms"])

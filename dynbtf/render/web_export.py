@@ -58,7 +58,7 @@ from ..synthesized import SynthesizedBTF
 
 __all__ = ["export_web", "WebExport", "RepeatOrigin", "repeat_origin", "quantize", "dequantize",
            "quantized_model", "glsl_source", "SUPPORTED_KINDS", "WEB_METHODS", "WEB_PRECISIONS",
-           "LOCAL_REPEATS", "FORMAT_VERSION"]
+           "LOCAL_REPEATS", "FORMAT_VERSION", "shader_cost"]
 
 #: Model kinds the shader evaluates.
 SUPPORTED_KINDS = ("triple",)
@@ -479,6 +479,34 @@ vec3 dynbtf_eval(DynbtfOrigin o, vec2 local, vec3 w_view, vec3 w_light) {{
     return y{layers}[0].rgb;
 }}
 """
+
+
+def shader_cost(method: str, *, channels: int = 16, angular_channels: int = 8, hidden: int = 32, layers: int = 4
+                ) -> dict[str, int]:
+    """Work per pixel of ``dynbtf_eval`` as ``dynbtf.glsl`` does it: texel fetches and multiply-adds.
+
+    Fetches are ``texelFetch`` calls of RGBA (or single-channel) texels: the three samples of a
+    blend read a 2 x 2 bilinear footprint of ``ceil(C / 4)`` RGBA layers each (tile: one sample),
+    ``hist`` reads two table entries per channel, ``hex`` a 2 x 2 luminance footprint per sample, and
+    each angular plane a 2 x 2 footprint of ``ceil(C_A / 4)`` layers. Multiply-adds count the
+    bilinear and blend weights applied to every channel, the per-channel dequantization and table
+    interpolation, and the decoder's layers as the shader runs them (``mat4 x vec4`` blocks: widths
+    padded to multiples of 4), not the integer hash or the lattice's few scalar operations.
+    """
+    if method not in WEB_METHODS:
+        raise InputError(f"method: expected one of {list(WEB_METHODS)}, got {method!r}")
+    g, ag, hg = (channels + 3) // 4, (angular_channels + 3) // 4, (hidden + 3) // 4
+    samples = 1 if method == "tile" else 3
+    fetches = samples * 4 * g + 2 * 4 * ag
+    macs = samples * 4 * 4 * g + 4 * g + 2 * (4 * 4 * ag + 4 * ag)  # bilinear+blend weights, dequantization
+    if method == "hist":
+        fetches += 2 * 4 * g
+        macs += 2 * 4 * g  # interpolation and dequantization of the table values
+    if method == "hex":
+        fetches += samples * 4
+        macs += samples * 4
+    decoder = 16 * hg * (g + 2 * ag) + 16 * hg * hg * (layers - 2) + 16 * hg
+    return {"texel_fetches": fetches, "macs": macs + decoder, "decoder_macs": decoder}
 
 
 # ---------------------------------------------------------------- packing

@@ -32,6 +32,20 @@
     return out.buffer;
   }
 
+  // The export whose scripts have run: {manifest, shader, files: {name: ArrayBuffer}} (throws naming a bad file).
+  DynBTF.collect = function () {
+    var m = pending.manifest;
+    if (!m || m.format !== 'dynbtf-web') throw new Error('manifest.js: unreadable (it defines no dynbtf web export)');
+    if (m.version !== 1) throw new Error('manifest.js: export format version ' + m.version + ' is not supported (expected 1)');
+    var files = {};
+    Object.keys(m.files).forEach(function (n) {
+      var entry = pending.files[n];
+      if (!entry) throw new Error(n + '.js: missing or unreadable (it defines no data for ' + n + ')');
+      files[n] = decodeBase64(n + '.js', entry, m.files[n].bytes);
+    });
+    return {manifest: m, shader: pending.shader, files: files};
+  };
+
   // Load manifest.js and every file's .js twin from `base` (a directory URL ending in '/', or '').
   DynBTF.load = function (base) {
     base = base || '';
@@ -39,18 +53,8 @@
     return loadScript(base + 'manifest.js').then(function () {
       var m = pending.manifest;
       if (!m || m.format !== 'dynbtf-web') throw new Error('manifest.js: unreadable (it defines no dynbtf web export)');
-      if (m.version !== 1) throw new Error('manifest.js: export format version ' + m.version + ' is not supported (expected 1)');
-      var names = Object.keys(m.files);
-      return Promise.all(names.map(function (n) { return loadScript(base + n + '.js'); })).then(function () {
-        var files = {};
-        names.forEach(function (n) {
-          var entry = pending.files[n];
-          if (!entry) throw new Error(n + '.js: unreadable (it defines no data for ' + n + ')');
-          files[n] = decodeBase64(n + '.js', entry, m.files[n].bytes);
-        });
-        return {manifest: m, shader: pending.shader, files: files};
-      });
-    });
+      return Promise.all(Object.keys(m.files).map(function (n) { return loadScript(base + n + '.js'); }));
+    }).then(function () { return DynBTF.collect(); });
   };
 
   // ------------------------------------------------------------------ the repeat origin (float64 on the CPU)
