@@ -364,7 +364,7 @@
       var meshes = {plane: mesh(gl, program, plane()), sphere: mesh(gl, program, sphere(96, 192))};
       var ui = {};
       ['shape', 'method', 'scale', 'origin', 'view-theta', 'view-phi', 'distance', 'light-theta', 'light-phi',
-       'intensity'].forEach(function (id) { ui[id] = document.getElementById(id); });
+       'intensity', 'resolution'].forEach(function (id) { ui[id] = document.getElementById(id); });
       Object.keys(m.methods).forEach(function (name) {
         var o = document.createElement('option');
         o.value = o.textContent = name;
@@ -372,9 +372,14 @@
       });
       ui.method.value = m.default_method;
       ui.scale.value = m.scale;
+      var debug = gl.getExtension('WEBGL_debug_renderer_info');
+      var glName = debug ? gl.getParameter(debug.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER);
+      var software = /SwiftShader|llvmpipe|Software/.test(glName);
+      if (software) ui.resolution.value = '0.25';  // software GL: a few frames per second at most
       document.getElementById('info').textContent = m.kind + ' model' + (m.source ? ' ' + m.source : '') + ', ' +
         m.precision + ' textures, ' + Object.keys(m.methods).length + ' method(s); ' +
-        m.channels + ' positional channels, decoder ' + m.layers + ' x ' + m.hidden;
+        m.channels + ' positional channels, decoder ' + m.layers + ' x ' + m.hidden + '. GL: ' + glName +
+        (software ? ' (software: drawn at 1/4 resolution)' : '');
       function value(id) {
         var v = parseFloat(ui[id].value);
         var out = document.getElementById(id + '-value');
@@ -402,7 +407,8 @@
           var method = ui.method.value, scale = value('scale'), origin = parseFloat(ui.origin.value) || 0;
           var o = DynBTF.origin(m, method, origin * scale, origin * scale);
           renderer.use(program, method);
-          var w = canvas.clientWidth, h = canvas.clientHeight;
+          var factor = parseFloat(ui.resolution.value) || 1;
+          var w = Math.max(1, Math.round(canvas.clientWidth * factor)), h = Math.max(1, Math.round(canvas.clientHeight * factor));
           if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
           gl.viewport(0, 0, canvas.width, canvas.height);
           gl.clearColor(0.08, 0.08, 0.09, 1);
@@ -430,8 +436,9 @@
           return;
         }
         frames += 1;
-        if (now - last >= 1000) {
-          fps.textContent = (frames * 1000 / (now - last)).toFixed(1) + ' fps, ' + ((now - last) / frames).toFixed(1) +
+        if (now - last >= 1000 || (frames === 1 && fps.textContent === '-')) {  // every second, and at once
+          var span = Math.max(now - last, 0.1);
+          fps.textContent = (frames * 1000 / span).toFixed(1) + ' fps, ' + (span / frames).toFixed(1) +
             ' ms per frame at ' + canvas.width + 'x' + canvas.height;
           frames = 0;
           last = now;
