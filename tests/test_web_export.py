@@ -297,3 +297,21 @@ def test_viewer_reports_missing_or_unreadable_files_in_the_page(exports, tmp_pat
     (directory / "manifest.js").unlink()
     run = _probe_viewer(directory, budget_ms=3000)
     assert "manifest.js: missing or unreadable" in (run.element("dynbtf-error") or "")
+
+
+def test_shader_cost_counts_the_decoder_as_the_exported_weights_hold_it(exports, model):
+    """The decoder's multiply-adds equal the float count of its exported mat4 blocks (padded widths)."""
+    from dynbtf.render.web_export import shader_cost
+
+    manifest = exports["fp32"].manifest
+    cfg = model.config()
+    cost = {m: shader_cost(m, channels=cfg["positional_channels"], angular_channels=cfg["angular_channels"],
+                           hidden=cfg["hidden"], layers=cfg["layers"]) for m in METHODS}
+    hg = (cfg["hidden"] + 3) // 4
+    weights = manifest["methods"]["hist"]["layer1"]["floats"] - 4 * hg  # mat4 floats = multiply-adds
+    weights += sum(layer["floats"] for layer in manifest["decoder"]["layers"]) - 4 * (hg * (cfg["layers"] - 2) + 1)
+    assert all(c["decoder_macs"] == weights for c in cost.values())
+    # hist reads three 2 x 2 footprints of 2 RGBA layers, two table entries per (padded) channel and
+    # 2 x 2 footprints of one RGBA layer in each angular plane
+    assert cost["hist"]["texel_fetches"] == 3 * 4 * 2 + 2 * 8 + 2 * 4 * 1
+    assert cost["tile"]["texel_fetches"] < cost["hex"]["texel_fetches"] < cost["hist"]["texel_fetches"]
