@@ -123,7 +123,7 @@ def main() -> None:
         print(f"  fp32  {base:.3f} dB")
         for p in ("fp16", "u8"):
             q = evaluate_model(quantized_model(model, p), source, pairs, images=0, progress=False).mean["psnr"]
-            print(f"  {p:<5} {q:.3f} dB (loss {base - q:.3f} dB)")
+            print(f"  {p:<5} {q:.3f} dB (loss {max(base - q, 0.0):.3f} dB)")
 
 
 if __name__ == "__main__":
