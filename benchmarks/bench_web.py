@@ -123,7 +123,8 @@ def main() -> None:
         print(f"  fp32  {base:.3f} dB")
         for p in ("fp16", "u8"):
             q = evaluate_model(quantized_model(model, p), source, pairs, images=0, progress=False).mean["psnr"]
-            print(f"  {p:<5} {q:.3f} dB (loss {max(base - q, 0.0):.3f} dB)")
+            loss = base - q
+            print(f"  {p:<5} {q:.3f} dB (loss {'< 0.001' if abs(loss) < 5e-4 else f'{loss:.3f}'} dB)")
 
 
 if __name__ == "__main__":
