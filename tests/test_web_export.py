@@ -262,11 +262,13 @@ def _page_console(run):
 
 @browser
 @pytest.mark.browser
-def test_viewer_page_draws_without_console_errors(exports, tmp_path):
+@pytest.mark.parametrize("query", ["", "shape=sphere&method=hex&origin=1e6&light-theta=60"])
+def test_viewer_page_draws_without_console_errors(exports, tmp_path, query):
+    """The plane with the defaults, and the sphere with hex-tiling a million uv units from the origin."""
     from dynbtf.io import load_image
 
     directory = exports["fp16"].directory
-    run = _probe_viewer(directory, screenshot=tmp_path / "viewer.png", window=(720, 480), budget_ms=4000)
+    run = _probe_viewer(directory, screenshot=tmp_path / "viewer.png", window=(720, 480), budget_ms=4000, query=query)
     assert 'data-state="running"' in run.dom, run.dom[-2000:]
     assert not (run.element("dynbtf-error") or "").strip()
     assert run.element("probe-console") is None and _page_console(run) == []
@@ -297,6 +299,15 @@ def test_viewer_reports_missing_or_unreadable_files_in_the_page(exports, tmp_pat
     (directory / "manifest.js").unlink()
     run = _probe_viewer(directory, budget_ms=3000)
     assert "manifest.js: missing or unreadable" in (run.element("dynbtf-error") or "")
+
+
+@browser
+@pytest.mark.browser
+def test_viewer_reports_bad_page_parameters_in_the_page(exports):
+    run = _probe_viewer(exports["fp16"].directory, budget_ms=3000, query="shape=cube")
+    assert "page parameter shape=cube is not one of its choices" in (run.element("dynbtf-error") or "")
+    run = _probe_viewer(exports["fp16"].directory, budget_ms=3000, query="colour=red")
+    assert "unknown page parameter colour" in (run.element("dynbtf-error") or "")
 
 
 def test_shader_cost_counts_the_decoder_as_the_exported_weights_hold_it(exports, model):

@@ -72,13 +72,13 @@ class PageRun:
 
 
 def run_page(page, *, screenshot=None, window=(1280, 720), timeout: float = 300.0, gl: str = "swiftshader",
-             budget_ms: int | None = 60000, chromium: str | None = None) -> PageRun:
+             budget_ms: int | None = 60000, chromium: str | None = None, query: str = "") -> PageRun:
     """Load ``page`` (an HTML file) in headless Chromium; return its DOM and console messages.
 
     ``budget_ms`` is Chromium's virtual-time budget: how long (in page time) scripts and
     animation frames may run before the DOM is dumped. ``None``: real time, and the DOM is
     dumped when the page has loaded (what timing pages need: virtual time also virtualizes
-    ``performance.now()``).
+    ``performance.now()``). ``query`` is appended to the page's address after ``?``.
     """
     exe = chromium or find_chromium()
     if exe is None:
@@ -86,18 +86,19 @@ def run_page(page, *, screenshot=None, window=(1280, 720), timeout: float = 300.
     if gl not in _GL_FLAGS:
         raise InputError(f"gl: expected one of {sorted(_GL_FLAGS)}, got {gl!r}")
     page = Path(page).resolve()
+    url = page.as_uri() + (f"?{query}" if query else "")
     with tempfile.TemporaryDirectory(prefix="dynbtf-chromium-") as profile:
         flags = [exe, *CHROMIUM_FLAGS, *_GL_FLAGS[gl], f"--user-data-dir={profile}",
                  f"--window-size={window[0]},{window[1]}", "--enable-logging=stderr", "--v=0"]
         if budget_ms is not None:
             flags.append(f"--virtual-time-budget={int(budget_ms)}")
-        done = subprocess.run([*flags, "--dump-dom", page.as_uri()], capture_output=True, text=True, timeout=timeout)
+        done = subprocess.run([*flags, "--dump-dom", url], capture_output=True, text=True, timeout=timeout)
         console = [line for line in done.stderr.splitlines() if ":CONSOLE" in line]
         shot = None
         if screenshot is not None:
             shot = Path(screenshot).resolve()
             shot.parent.mkdir(parents=True, exist_ok=True)
-            subprocess.run([*flags, f"--screenshot={shot}", page.as_uri()], capture_output=True, text=True,
+            subprocess.run([*flags, f"--screenshot={shot}", url], capture_output=True, text=True,
                            timeout=timeout)
             if not shot.exists():
                 raise RuntimeError(f"Chromium wrote no screenshot to {shot}")

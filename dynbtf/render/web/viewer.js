@@ -372,14 +372,22 @@
       });
       ui.method.value = m.default_method;
       ui.scale.value = m.scale;
+      // initial settings from the address: index.html?shape=sphere&method=hex&origin=1e6&light-theta=60 ...
+      new URLSearchParams(window.location.search).forEach(function (v, k) {
+        if (!ui[k]) throw new Error('unknown page parameter ' + k + ' (expected one of ' + Object.keys(ui).join(', ') + ')');
+        ui[k].value = v;
+        if (ui[k].value !== v && ui[k].tagName === 'SELECT') throw new Error('page parameter ' + k + '=' + v + ' is not one of its choices');
+      });
       var debug = gl.getExtension('WEBGL_debug_renderer_info');
       var glName = debug ? gl.getParameter(debug.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER);
       var software = /SwiftShader|llvmpipe|Software/.test(glName);
-      if (software) ui.resolution.value = '0.25';  // software GL: a few frames per second at most
+      if (software && !new URLSearchParams(window.location.search).has('resolution')) {
+        ui.resolution.value = '0.25';  // software GL: a few frames per second at most
+      }
       document.getElementById('info').textContent = m.kind + ' model' + (m.source ? ' ' + m.source : '') + ', ' +
         m.precision + ' textures, ' + Object.keys(m.methods).length + ' method(s); ' +
         m.channels + ' positional channels, decoder ' + m.layers + ' x ' + m.hidden + '. GL: ' + glName +
-        (software ? ' (software: drawn at 1/4 resolution)' : '');
+        (software ? ' (software GL: drawn at reduced resolution)' : '');
       function value(id) {
         var v = parseFloat(ui[id].value);
         var out = document.getElementById(id + '-value');
@@ -401,7 +409,7 @@
         e.preventDefault();
         ui.distance.value = Math.min(12, Math.max(1.5, value('distance') * (e.deltaY > 0 ? 1.1 : 0.9)));
       }, {passive: false});
-      var frames = 0, last = performance.now(), fps = document.getElementById('fps');
+      var frames = -1, last = 0, fps = document.getElementById('fps');  // counted from the first frame's start
       function frame(now) {
         try {
           var method = ui.method.value, scale = value('scale'), origin = parseFloat(ui.origin.value) || 0;
@@ -436,7 +444,9 @@
           return;
         }
         frames += 1;
-        if (now - last >= 1000 || (frames === 1 && fps.textContent === '-')) {  // every second, and at once
+        if (frames === 0) {
+          last = now;
+        } else if (now - last >= 1000 || (frames === 1 && fps.textContent === '-')) {  // after 2 frames, then every second
           var span = Math.max(now - last, 0.1);
           fps.textContent = (frames * 1000 / span).toFixed(1) + ' fps, ' + (span / frames).toFixed(1) +
             ' ms per frame at ' + canvas.width + 'x' + canvas.height;
