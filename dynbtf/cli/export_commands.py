@@ -16,7 +16,7 @@ FORMATS = ("web",)
 
 @app.command("export")
 def export_command(
-    model: Path = typer.Argument(..., help="dynbtf model file of kind triple (`dynbtf fit`)."),
+    model: Path = typer.Argument(..., help="dynbtf model file of kind triple or triple-parallax (`dynbtf fit`)."),
     output: Path = typer.Option(..., "-o", "--output", help="Directory to write (created; an earlier export's "
                                                               "files are replaced)."),
     export_format: str = typer.Option("web", "--format", help="web: textures, decoder weights, a GLSL ES 3.00 "

@@ -61,11 +61,9 @@ __all__ = ["export_web", "WebExport", "RepeatOrigin", "repeat_origin", "quantize
            "LOCAL_REPEATS", "FORMAT_VERSION", "shader_cost"]
 
 #: Model kinds the shader evaluates.
-SUPPORTED_KINDS = ("triple",)
+SUPPORTED_KINDS = ("triple", "triple-parallax")
 #: Kinds refused, and why.
 _REFUSED = {
-    "triple-parallax": "its height-field march (up to relief x tan(theta) / step extra synthesized fetches per "
-                       "pixel) has no shader form yet",
     "pca": "it has no positional feature plane to synthesize (a per-texel PCA basis)",
     "sh": "it has no positional feature plane to synthesize (per-texel spherical-harmonics coefficients)",
     "neumip": "its neural offset texture and per-texel MLP inputs have no shader form",
@@ -80,6 +78,8 @@ LOCAL_REPEATS = 2 ** 12
 FORMAT_VERSION = 1
 #: Largest uniform block WebGL2 guarantees (bytes).
 _MAX_UNIFORM_BLOCK = 16384
+#: Most steps of the relief ray march per pixel (views closer to grazing than ~89 deg march coarser than the library).
+MAX_MARCH_STEPS = 1024
 #: Width of the texture rows that hold the inverse tables (WebGL2 guarantees 2048).
 _LUT_ROW = 1024
 _VIEWER_FILES = ("index.html", "viewer.js")
@@ -119,7 +119,7 @@ def _round_trip(values: torch.Tensor, precision: str) -> torch.Tensor:
 
 
 def quantized_model(model, precision: str):
-    """A copy of a Triple Plane whose feature planes hold what an export of ``precision`` stores.
+    """A copy of a Triple Plane (or its relief variant) whose feature planes hold what an export of ``precision`` stores.
 
     The decoder is unchanged (exported as float32). Evaluating it (e.g. on held-out pairs)
     measures what the quantization of the planes costs.
@@ -131,6 +131,8 @@ def quantized_model(model, precision: str):
     with torch.no_grad():
         for name in ("f_u", "f_h", "f_d"):
             getattr(out, name).copy_(_round_trip(getattr(out, name), precision))
+        if hasattr(out, "height_channel"):  # the plane's last channel (relief models), quantized on its own
+            out.height_channel.copy_(_round_trip(out.height_channel[..., None], precision)[..., 0])
     return out
 
 
@@ -196,11 +198,14 @@ def _float(x: float) -> str:
 
 
 def glsl_source(*, channels: int, angular_channels: int, hidden: int, layers: int, negative_slope: float,
-                angular_resolution: int) -> str:
+                angular_resolution: int, relief: dict[str, float] | None = None) -> str:
     """The shader functions of ``dynbtf.glsl`` for a decoder of these sizes (GLSL ES 3.00, no ``#version``).
 
     Sizes are compile-time constants; every other quantity (method, tables, weights) is a
     uniform, a uniform block or a texture, so one program serves every exported method.
+    ``relief`` (models with a height field: ``h_min``, ``h_max``, ``step``, ``aspect``,
+    ``height_scale``) adds the ray march of
+    :func:`dynbtf.representations.parallax.march_visible_uv` through the synthesized height.
     """
     g = (channels + 3) // 4
     ag = (angular_channels + 3) // 4
@@ -225,6 +230,46 @@ def glsl_source(*, channels: int, angular_channels: int, hidden: int, layers: in
             terms = [f"dynbtf_b{k}[{q}]"] + [f"dynbtf_w{k}[{q * hg + i}] * y{k - 1}_{i}" for i in range(hg)]
             value = " + ".join(terms)
             decoder_code.append(f"    vec4 y{k}_{q} = {value if k == layers else f'dynbtf_leaky({value})'};")
+    relief_code = ""
+    if relief:
+        relief_code = f"""
+// ---- relief (dynbtf.representations.parallax): features are read where the camera ray meets the
+// synthesized height field, marched from h_max down to h_min in steps of at most {_float(relief["step"])} repeats
+uniform vec4 dynbtf_height_map[DYNBTF_G];   // height channel = latent . map + offset (the method's output map)
+uniform float dynbtf_height_offset;
+#define DYNBTF_MAX_MARCH {MAX_MARCH_STEPS}
+float dynbtf_height(DynbtfOrigin o, vec2 p) {{
+    vec4 x[DYNBTF_G];
+    dynbtf_latent(o, p, x);
+    float h = dynbtf_height_offset;
+    for (int g = 0; g < DYNBTF_G; ++g) h += dot(x[g], dynbtf_height_map[g]);
+    return h * {_float(relief["height_scale"])};
+}}
+vec2 dynbtf_visible(DynbtfOrigin o, vec2 local, vec3 w) {{
+    const float h_min = {_float(relief["h_min"])}, h_max = {_float(relief["h_max"])};
+    if (w.z <= 0.0) w = vec3(0.0, 0.0, 1.0);
+    vec2 slope = w.xy / max(w.z, 1e-6) * vec2(1.0, {_float(relief["aspect"])});
+    float depth = h_max - h_min;
+    int n = min(max(int(ceil(depth * length(slope) / {_float(relief["step"])})), 1), DYNBTF_MAX_MARCH);
+    float dz = depth / float(n);
+    float f_prev = dynbtf_height(o, local + h_max * slope) - h_max;
+    if (f_prev >= 0.0) return local + h_max * slope;
+    float z_hit = h_min;
+    for (int k = 1; k <= DYNBTF_MAX_MARCH; ++k) {{
+        bool last = k >= n;
+        float z_above = h_max - float(k - 1) * dz;
+        float z = last ? h_min : h_max - float(k) * dz;
+        float f = dynbtf_height(o, local + z * slope) - z;
+        if (f >= 0.0 || last) {{
+            float t = f - f_prev != 0.0 ? clamp(f / (f - f_prev), 0.0, 1.0) : 0.0;
+            z_hit = z + t * (z_above - z);
+            break;
+        }}
+        f_prev = f;
+    }}
+    return local + z_hit * slope;
+}}
+"""
     return f"""// dynbtf real-time shader functions (GLSL ES 3.00), generated by dynbtf.render.web_export.
 // Evaluates dynbtf.synthesized.SynthesizedBTF: synthesized positional features (tile, linear,
 // hist, hex), Rusinkiewicz angular features and the decoder. Conventions (dynbtf README):
@@ -461,11 +506,12 @@ void dynbtf_angular_fetch(highp sampler2DArray plane, vec3 w, vec4 scale[DYNBTF_
 
 vec4 dynbtf_leaky(vec4 x) {{ return max(x, 0.0) + {_float(negative_slope)} * min(x, 0.0); }}
 
+{relief_code}
 // ---- the BTF value: linear RGB, excluding cos(theta_light); zero below either horizon
 vec3 dynbtf_eval(DynbtfOrigin o, vec2 local, vec3 w_view, vec3 w_light) {{
     if (w_view.z < 0.0 || w_light.z < 0.0) return vec3(0.0);
     vec4 x[DYNBTF_G];
-    dynbtf_latent(o, local, x);
+    dynbtf_latent(o, {"dynbtf_visible(o, local, w_view)" if relief else "local"}, x);
     vec3 sum = w_view + w_light;
     vec3 h = dot(sum, sum) < 1e-24 ? vec3(0.0, 0.0, 1.0) : normalize(sum);
     vec4 fh[DYNBTF_AG], fd[DYNBTF_AG];
@@ -538,10 +584,12 @@ def _vec4s(bias: np.ndarray) -> np.ndarray:
 
 
 def _check_kind(model) -> str:
+    """The model's kind if the shader evaluates it, else an :class:`InputError` saying why not."""
+    from ..representations.parallax import ParallaxTriplePlane
     from ..representations.triple_plane import TriplePlane
 
     kind = getattr(model, "kind", None) or type(model).__name__
-    if type(model) is not TriplePlane:
+    if type(model) not in (TriplePlane, ParallaxTriplePlane):
         why = _REFUSED.get(kind, "the shader implements only the Triple Plane's decoder")
         raise InputError(f"export: model kind {kind!r} is not supported by the web export ({why}); "
                          f"supported kinds: {', '.join(SUPPORTED_KINDS)}")
@@ -637,7 +685,8 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
     Parameters
     ----------
     model : Representation, str or Path
-        A fitted Triple Plane (kind ``triple``) or its model file. Other kinds raise
+        A fitted Triple Plane (kind ``triple``, or ``triple-parallax``: the shader then marches
+        the synthesized height field) or its model file. Other kinds raise
         :class:`~dynbtf.errors.InputError` naming the supported ones.
     out_dir : path
         Directory to write (created; files of an earlier export are replaced).
@@ -686,7 +735,14 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
     cfg = model.config()
     decoder = model.decoder
     hidden, layers = int(cfg["hidden"]), int(cfg["layers"])
-    c_u, c_a, res = int(cfg["positional_channels"]), int(cfg["angular_channels"]), int(cfg["angular_resolution"])
+    # positional channels as the decoder reads them (a relief model's plane adds its height channel)
+    c_u, c_a, res = int(decoder.positional_channels), int(cfg["angular_channels"]), int(cfg["angular_resolution"])
+    relief = None
+    if kind == "triple-parallax":
+        h_min, h_max = model.height_range()
+        rows, cols = model.height_channel.shape
+        relief = {"h_min": h_min, "h_max": h_max, "step": cfg["march_step_texels"] / max(rows, cols),
+                  "aspect": cols / rows, "height_scale": model.height_scale}
     g, ag, hg = (c_u + 3) // 4, (c_a + 3) // 4, (hidden + 3) // 4
     first_w = decoder.first.weight.detach().double().numpy()
     first_b = decoder.first.bias.detach().double().numpy()
@@ -748,18 +804,20 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
         b_fold = w_pos @ m_off + first_b
         block = np.concatenate([_mat4_blocks(w_fold), angular_blocks, _vec4s(b_fold)])
         entry["layer1"] = {"file": writer.add(f"layer1_{m}.bin", block), "floats": int(block.size)}
+        if relief is not None:  # the height channel (the plane's last) in terms of the latent
+            entry["height"] = {"map": _pad4(m_mat[:, -1], 0.0), "offset": float(m_off[-1])}
         files.append(entry["layer1"]["file"])
         entry["files"] = files
         method_entries[m] = entry
 
     shader = glsl_source(channels=c_u, angular_channels=c_a, hidden=hidden, layers=layers,
-                         negative_slope=float(decoder.negative_slope), angular_resolution=res)
+                         negative_slope=float(decoder.negative_slope), angular_resolution=res, relief=relief)
     with atomic_path(out_dir / "dynbtf.glsl") as tmp:
         tmp.write_text(shader, encoding="utf-8")
     manifest = {
         "format": "dynbtf-web", "version": FORMAT_VERSION, "kind": kind, "config": cfg,
         "source": None if source is None else source.name, "precision": precision,
-        "channels": c_u, "angular_channels": c_a, "angular_resolution": res, "hidden": hidden, "layers": layers,
+        "channels": c_u, "relief": relief, "angular_channels": c_a, "angular_resolution": res, "hidden": hidden, "layers": layers,
         "negative_slope": float(decoder.negative_slope), "scale": float(scale), "default_method": methods[0],
         "lattice": {"scale_hi": float(math.ldexp(math.floor(math.ldexp(LATTICE_SCALE, 24)), -24)),
                     "scale_lo": float(LATTICE_SCALE - math.ldexp(math.floor(math.ldexp(LATTICE_SCALE, 24)), -24)),

@@ -230,6 +230,10 @@
     gl.uniform4fv(u('dynbtf_fh_bias'), a.f_H.bias);
     gl.uniform4fv(u('dynbtf_fd_scale'), a.f_D.scale);
     gl.uniform4fv(u('dynbtf_fd_bias'), a.f_D.bias);
+    if (e.height) {  // relief models: the height channel in terms of the latent features
+      gl.uniform4fv(u('dynbtf_height_map'), e.height.map);
+      gl.uniform1f(u('dynbtf_height_offset'), e.height.offset);
+    }
     gl.bindBufferBase(gl.UNIFORM_BUFFER, 0, r.layer1);
     this.layers.forEach(function (l, k) { gl.bindBufferBase(gl.UNIFORM_BUFFER, k + 1, l.buffer); });
   };
@@ -409,7 +413,7 @@
         e.preventDefault();
         ui.distance.value = Math.min(12, Math.max(1.5, value('distance') * (e.deltaY > 0 ? 1.1 : 0.9)));
       }, {passive: false});
-      var frames = -1, last = 0, fps = document.getElementById('fps');  // counted from the first frame's start
+      var frames = -1, last = 0, drawn = 0, fps = document.getElementById('fps');  // counted from the first frame's start
       function frame(now) {
         try {
           var method = ui.method.value, scale = value('scale'), origin = parseFloat(ui.origin.value) || 0;
@@ -453,7 +457,9 @@
           frames = 0;
           last = now;
         }
+        drawn += 1;
         document.body.setAttribute('data-state', 'running');
+        document.body.setAttribute('data-frames', String(drawn));
         window.requestAnimationFrame(frame);
       }
       window.requestAnimationFrame(frame);
