@@ -59,7 +59,8 @@ def main() -> None:
     args = parser.parse_args()
 
     from dynbtf.render.web_browser import eval_in_browser, time_frames
-    from dynbtf.render.web_export import export_web, quantized_model, shader_cost
+    from dynbtf.render.web_export import export_web, quantized_model
+    from dynbtf.render.web_shader import shader_cost
     from dynbtf.representations.model_file import load_model, save_model
     from dynbtf.representations.triple_plane import TriplePlane
     from dynbtf.synthesized import SynthesizedBTF

@@ -17,7 +17,8 @@ import torch
 
 from dynbtf.errors import InputError
 from dynbtf.render.web_browser import eval_in_browser, find_chromium, lattice_in_browser
-from dynbtf.render.web_export import dequantize, export_web, quantize, repeat_origin
+from dynbtf.render.web_export import dequantize, export_web, quantize
+from dynbtf.render.web_shader import repeat_origin
 from dynbtf.synthesis.hash import vertex_offsets
 from dynbtf.synthesis.lattice import triangle_lattice
 from dynbtf.synthesized import SynthesizedBTF
@@ -312,7 +313,7 @@ def test_viewer_reports_bad_page_parameters_in_the_page(exports):
 
 def test_shader_cost_counts_the_decoder_as_the_exported_weights_hold_it(exports, model):
     """The decoder's multiply-adds equal the float count of its exported mat4 blocks (padded widths)."""
-    from dynbtf.render.web_export import shader_cost
+    from dynbtf.render.web_shader import shader_cost
 
     manifest = exports["fp32"].manifest
     cfg = model.config()
