@@ -309,6 +309,10 @@ def test_viewer_reports_bad_page_parameters_in_the_page(exports):
     assert "page parameter shape=cube is not one of its choices" in (run.element("dynbtf-error") or "")
     run = _probe_viewer(exports["fp16"].directory, budget_ms=3000, query="colour=red")
     assert "unknown page parameter colour" in (run.element("dynbtf-error") or "")
+    run = _probe_viewer(exports["fp16"].directory, budget_ms=3000, query="origin=1e20")
+    assert "must be below 2^52 exemplar repeats" in (run.element("dynbtf-error") or "")
+    run = _probe_viewer(exports["fp16"].directory, budget_ms=3000, query="origin=far")
+    assert "uv origin: expected a number such as 0 or 1e6, got far" in (run.element("dynbtf-error") or "")
 
 
 def test_shader_cost_counts_the_decoder_as_the_exported_weights_hold_it(exports, model):

@@ -413,10 +413,11 @@
         e.preventDefault();
         ui.distance.value = Math.min(12, Math.max(1.5, value('distance') * (e.deltaY > 0 ? 1.1 : 0.9)));
       }, {passive: false});
-      var frames = -1, last = 0, drawn = 0, fps = document.getElementById('fps');  // counted from the first frame's start
+      var frames = -1, last = 0, drawn = 0, frameError = false, fps = document.getElementById('fps');  // counted from the first frame's start
       function frame(now) {
         try {
-          var method = ui.method.value, scale = value('scale'), origin = parseFloat(ui.origin.value) || 0;
+          var method = ui.method.value, scale = value('scale'), origin = Number(ui.origin.value.trim() || '0');
+          if (!isFinite(origin)) throw new Error('uv origin: expected a number such as 0 or 1e6, got ' + ui.origin.value);
           var o = DynBTF.origin(m, method, origin * scale, origin * scale);
           renderer.use(program, method);
           var factor = parseFloat(ui.resolution.value) || 1;
@@ -443,9 +444,15 @@
           gl.bindVertexArray(shape.vao);
           gl.drawElements(gl.TRIANGLES, shape.count, gl.UNSIGNED_INT, 0);
           gl.bindVertexArray(null);
-        } catch (err) {
+        } catch (err) {  // e.g. a uv origin beyond 2^52 repeats: say so, and draw again once it is fixed
           showError(String(err.message || err));
+          frameError = true;
+          window.requestAnimationFrame(frame);
           return;
+        }
+        if (frameError) {
+          document.getElementById('dynbtf-error').hidden = true;
+          frameError = false;
         }
         frames += 1;
         if (frames === 0) {
