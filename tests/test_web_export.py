@@ -156,6 +156,8 @@ def test_quantize_round_trip_and_bounds():
     assert quantize(x, "u8")[0].dtype == np.uint8 and quantize(x, "fp16")[0].dtype == np.float16
     with pytest.raises(InputError, match="precision"):
         quantize(x, "int4")
+    with pytest.raises(InputError, match="values up to 1e\\+05 do not fit half floats"):
+        quantize(np.full((2, 2, 1), 1e5, np.float32), "fp16")
 
 
 def test_export_writes_manifest_files_and_shader(exports):

@@ -13,8 +13,9 @@ viewer page (``index.html``, no build step, no network):
   the angular planes ``f_H``, ``f_D`` (RGBA layers, rows = theta, columns = phi); and the
   decoder's weights (float32, already in std140 uniform-block order).
 * ``dynbtf.glsl`` -- the shader functions (GLSL ES 3.00): the triangle lattice, the integer
-  vertex hash (bit for bit :func:`dynbtf.synthesis.hash.hash_vertex`), the three blends, the
-  inverse tables, the Rusinkiewicz angular fetches and the decoder. A renderer calls
+  vertex hash (bit for bit :func:`dynbtf.synthesis.hash.hash_vertex`), the blends, the inverse
+  tables, the Rusinkiewicz angular fetches, the relief march of ``triple-parallax`` models and
+  the decoder (:mod:`dynbtf.render.web_shader`). A renderer calls
   ``dynbtf_eval(origin, local_uv, w_view, w_light)``.
 * ``index.html``, ``viewer.js`` and ``*.js`` copies of the binary files (browsers do not let a
   page opened from disk read binary files; a ``<script>`` can be read).
@@ -93,6 +94,10 @@ def quantize(values: np.ndarray, precision: str) -> tuple[np.ndarray, np.ndarray
     if precision == "fp32":
         return values.copy(), np.ones(c, np.float32), np.zeros(c, np.float32)
     if precision == "fp16":
+        largest = float(np.abs(values).max()) if values.size else 0.0
+        if not largest <= float(np.finfo(np.float16).max):
+            raise InputError(f"precision fp16: values up to {largest:.4g} do not fit half floats (max 65504); "
+                             "use --precision u8 or fp32")
         return values.astype(np.float16), np.ones(c, np.float32), np.zeros(c, np.float32)
     flat = values.reshape(-1, c).astype(np.float64)
     lo, hi = flat.min(0), flat.max(0)
