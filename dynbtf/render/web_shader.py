@@ -233,7 +233,7 @@ uint dynbtf_mix32(uint x) {{
 uint dynbtf_fold(uint h, uvec2 k) {{ return dynbtf_mix32(dynbtf_mix32(h ^ k.x) ^ k.y); }}
 // 64-bit two's complement (low, high) + a small signed int
 uvec2 dynbtf_add(uvec2 a, int d) {{
-    uint lo = a.x + uint(d);
+    uint lo = a.x + (d < 0 ? ~uint(-1 - d) : uint(d));   // two's complement of d without converting a negative int
     return uvec2(lo, a.y + (d < 0 ? 0xFFFFFFFFu : 0u) + (lo < a.x ? 1u : 0u));
 }}
 int dynbtf_mod(int a, int n) {{ return a >= 0 ? a % n : (n - 1) - ((-a - 1) % n); }}
