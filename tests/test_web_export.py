@@ -224,6 +224,10 @@ def test_cli_export_writes_the_viewer_and_refuses_bad_input(model, tmp_path):
     assert missing.exit_code != 0 and "nothere.dbtfm: model file not found" in missing.text
     other = _cli("export", path, "-o", tmp_path / "x", "--format", "gltf")
     assert other.exit_code != 0 and "--format: expected one of ['web']" in other.text
+    other = _cli("export", path, "-o", tmp_path / "x", "--precision", "fp8")
+    assert other.exit_code != 0 and "--precision: expected one of ['fp16', 'fp32', 'u8'], got 'fp8'" in other.text
+    other = _cli("export", path, "-o", tmp_path / "x", "--method", "quilt")
+    assert other.exit_code != 0 and "'quilt' has no shader form" in other.text
 
 
 _PROBE = """<script>

@@ -23,18 +23,23 @@ def export_command(
                                                                 "shader and a WebGL2 viewer page (index.html)."),
     precision: str = typer.Option("fp16", help="Texture storage: fp16 (half floats), u8 (8 bits per channel with a "
                                                "per-channel scale and bias) or fp32 (exact)."),
-    method: Optional[List[str]] = typer.Option(None, "--method", help="Synthesis method(s) to export: tile, linear, "
+    method: Optional[List[str]] = typer.Option(None, "--method", metavar="METHOD", help="Synthesis method(s) to export: tile, linear, "
                                                                       "hist, hex (repeat the option; default: hist, "
                                                                       "hex, tile; the first is the viewer's default)."),
     seed: int = typer.Option(0, help="Synthesis seed (the choices of SynthesizedBTF with this seed)."),
     scale: float = typer.Option(8.0, help="The viewer's initial exemplar repeats per unit of the surface's uv."),
 ) -> None:
-    """Export a synthesized BTF for real-time rendering: GPU textures, decoder weights and a shader (docs/realtime.md)."""
-    from ..render.web_export import export_web
+    """Export a synthesized BTF for real-time rendering: GPU textures, decoder weights and a shader (docs/realtime.md).
+
+    Example: dynbtf export leather.dbtfm -o leather-web --precision u8, then open leather-web/index.html
+    """
+    from ..render.web_export import WEB_PRECISIONS, export_web
     from ..representations.model_file import read_model_metadata
 
     if export_format not in FORMATS:
         raise InputError(f"--format: expected one of {list(FORMATS)}, got {export_format!r}")
+    if precision not in WEB_PRECISIONS:
+        raise InputError(f"--precision: expected one of {sorted(WEB_PRECISIONS)}, got {precision!r}")
     read_model_metadata(model)  # a missing or damaged file is named before anything is written
     result = export_web(model, output, precision=precision, methods=tuple(method or ("hist", "hex", "tile")),
                         seed=seed, scale=scale)
