@@ -160,7 +160,7 @@ def test_quantize_round_trip_and_bounds():
         quantize(np.full((2, 2, 1), 1e5, np.float32), "fp16")
 
 
-def test_export_writes_manifest_files_and_shader(exports):
+def test_export_writes_manifest_files_and_shader(exports, model, tmp_path):
     ex = exports["u8"]
     manifest = json.loads((ex.directory / "manifest.json").read_text())
     assert manifest["format"] == "dynbtf-web" and manifest["precision"] == "u8"
@@ -174,6 +174,10 @@ def test_export_writes_manifest_files_and_shader(exports):
     # u8 stores one byte per value: the hist plane is 2 RGBA layers of 24 x 20 texels
     assert manifest["files"][manifest["methods"]["hist"]["plane"]["file"]]["bytes"] == 2 * 24 * 20 * 4
     assert ex.method_bytes("hist") < ex.total_bytes()
+    # without the viewer: the engine's files only
+    bare = export_web(model, tmp_path / "bare", precision="u8", methods=("tile",), viewer=False)
+    names = {p.name for p in bare.directory.iterdir()}
+    assert names == {"manifest.json", "dynbtf.glsl", *bare.manifest["files"]}, names
 
 
 def test_unsupported_kinds_are_refused_naming_the_supported_ones(tmp_path):

@@ -209,10 +209,11 @@ class WebExport:
 
 
 class _Writer:
-    """Collects binary files (deduplicated by content) and writes them with their ``.js`` twins."""
+    """Collects binary files (deduplicated by content) and writes them (with their ``.js`` twins for the viewer)."""
 
-    def __init__(self, directory: Path) -> None:
+    def __init__(self, directory: Path, scripts: bool) -> None:
         self.directory = directory
+        self.scripts = scripts
         self.files: dict[str, dict[str, Any]] = {}
         self._by_digest: dict[str, str] = {}
 
@@ -225,6 +226,8 @@ class _Writer:
         self.files[name] = {"bytes": len(raw), "sha256": digest}
         with atomic_path(self.directory / name) as tmp:
             tmp.write_bytes(raw)
+        if not self.scripts:
+            return name
         payload = base64.b64encode(raw).decode("ascii")
         with atomic_path(self.directory / f"{name}.js") as tmp:
             tmp.write_text(f"DynBTF.file({json.dumps(name)}, {len(raw)}, \"{payload}\");\n", encoding="ascii")
@@ -314,7 +317,7 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"-o/--output: {out_dir} exists and is not a directory")
     out_dir.mkdir(parents=True, exist_ok=True)
-    writer = _Writer(out_dir)
+    writer = _Writer(out_dir, scripts=viewer)
     cfg = model.config()
     decoder = model.decoder
     hidden, layers = int(cfg["hidden"]), int(cfg["layers"])
