@@ -28,6 +28,8 @@ def export_command(
                                                                       "hex, tile; the first is the viewer's default)."),
     seed: int = typer.Option(0, help="Synthesis seed (the choices of SynthesizedBTF with this seed)."),
     scale: float = typer.Option(8.0, help="The viewer's initial exemplar repeats per unit of the surface's uv."),
+    viewer: bool = typer.Option(True, "--viewer/--no-viewer", help="Also write the viewer page (index.html, viewer.js "
+                                                                   "and .js copies of the binary files)."),
 ) -> None:
     """Export a synthesized BTF for real-time rendering: GPU textures, decoder weights and a shader (docs/realtime.md).
 
@@ -42,10 +44,10 @@ def export_command(
         raise InputError(f"--precision: expected one of {sorted(WEB_PRECISIONS)}, got {precision!r}")
     read_model_metadata(model)  # a missing or damaged file is named before anything is written
     result = export_web(model, output, precision=precision, methods=tuple(method or ("hist", "hex", "tile")),
-                        seed=seed, scale=scale)
+                        seed=seed, scale=scale, viewer=viewer)
     m = result.manifest
     first = m["default_method"]
     typer.echo(f"wrote {output}: {len(m['files'])} binary files ({result.total_bytes() / 1e6:.2f} MB, {precision}; "
                f"the {first} method alone needs {result.method_bytes(first) / 1e6:.2f} MB vs the model file's "
-               f"{model.stat().st_size / 1e6:.2f} MB), the shader dynbtf.glsl and the viewer {result.index} "
-               "(open it in a browser with WebGL2)")
+               f"{model.stat().st_size / 1e6:.2f} MB), the shader dynbtf.glsl"
+               + (f" and the viewer {result.index} (open it in a browser with WebGL2)" if viewer else ""))
