@@ -6,7 +6,8 @@ viewer page (``index.html``, no build step, no network):
 
 * ``manifest.json`` -- what every file holds (formats, sizes, per-channel scale and bias, the
   synthesis parameters of every exported method, the decoder's layout, conventions).
-* ``*.bin`` -- textures and weights, little-endian, tightly packed:
+* ``*.bin`` -- textures and weights, little-endian, tightly packed (the shared decoder weights are
+  also constants in the shader; each method's layer 1 is a uniform block):
   the positional plane each method reads (the exemplar for ``tile``, the tileable exemplar for
   ``linear``/``hex``, its Gaussianized PCA coefficients for ``hist``) as ``ceil(C / 4)`` RGBA
   layers; the per-channel inverse transform tables of ``hist``; the luminance plane of ``hex``;
@@ -342,21 +343,22 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
     with torch.no_grad():
         angular = {"f_H": _texture(writer, "f_H.bin", model.f_h.detach().numpy(), precision, layered=True),
                    "f_D": _texture(writer, "f_D.bin", model.f_d.detach().numpy(), precision, layered=True)}
-    # decoder layers 2..: one float32 file in std140 block order
-    rest_blocks, rest_entries, offset = [], [], 0
-    for k, layer in enumerate(decoder.rest, start=2):
-        block = np.concatenate([_mat4_blocks(layer.weight.detach().double().numpy()),
-                                _vec4s(layer.bias.detach().double().numpy())])
-        rest_entries.append({"block": f"DynbtfLayer{k}", "offset": offset, "floats": int(block.size)})
-        rest_blocks.append(block)
-        offset += int(block.size)
-    decoder_file = writer.add("decoder.bin", np.concatenate(rest_blocks) if rest_blocks else np.zeros(0, np.float32))
-    layer1_floats = 16 * (hg * g + hg * 2 * ag) + 4 * hg
-    for entry in [{"block": "DynbtfLayer1", "floats": layer1_floats}, *rest_entries]:
-        if entry["floats"] * 4 > _MAX_UNIFORM_BLOCK:
-            raise InputError(f"export: decoder block {entry['block']} needs {entry['floats'] * 4} bytes, more than "
-                             f"the {_MAX_UNIFORM_BLOCK} bytes WebGL2 guarantees per uniform block "
-                             f"(hidden = {hidden}); export a model with a smaller decoder")
+    # the weights every method shares (layer 1's angular part, layers 2..): constants in the shader, and one
+    # float32 file in std140 order for engines that prefer uniforms
+    rest_weights = [(_mat4_blocks(layer.weight.detach().double().numpy()), _vec4s(layer.bias.detach().double().numpy()))
+                    for layer in decoder.rest]
+    parts = [("angular", angular_blocks)] + [(f"w{k}", w) for k, (w, _) in enumerate(rest_weights, start=2)]
+    parts += [(f"b{k}", b) for k, (_, b) in enumerate(rest_weights, start=2)]
+    decoder_entries, offset = {}, 0
+    for name, values in parts:
+        decoder_entries[name] = {"offset": offset, "floats": int(values.size)}
+        offset += int(values.size)
+    decoder_file = writer.add("decoder.bin", np.concatenate([v for _, v in parts]))
+    layer1_floats = 16 * hg * g + 4 * hg
+    if layer1_floats * 4 > _MAX_UNIFORM_BLOCK:
+        raise InputError(f"export: decoder block DynbtfLayer1 needs {layer1_floats * 4} bytes, more than the "
+                         f"{_MAX_UNIFORM_BLOCK} bytes WebGL2 guarantees per uniform block (hidden = {hidden}, "
+                         f"{c_u} positional channels); export a model with a smaller decoder")
 
     method_entries: dict[str, Any] = {}
     for m in methods:
@@ -388,7 +390,7 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
         m_off = np.zeros(c_u) if out_offset is None else out_offset.double().cpu().numpy()
         w_fold = w_pos @ m_mat.T                                                   # (hidden, C)
         b_fold = w_pos @ m_off + first_b
-        block = np.concatenate([_mat4_blocks(w_fold), angular_blocks, _vec4s(b_fold)])
+        block = np.concatenate([_mat4_blocks(w_fold), _vec4s(b_fold)])
         entry["layer1"] = {"file": writer.add(f"layer1_{m}.bin", block), "floats": int(block.size)}
         if relief is not None:  # the height channel (the plane's last) in terms of the latent
             entry["height"] = {"map": _pad4(m_mat[:, -1], 0.0), "offset": float(m_off[-1])}
@@ -397,7 +399,8 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
         method_entries[m] = entry
 
     shader = glsl_source(channels=c_u, angular_channels=c_a, hidden=hidden, layers=layers,
-                         negative_slope=float(decoder.negative_slope), angular_resolution=res, relief=relief)
+                         negative_slope=float(decoder.negative_slope), angular_resolution=res,
+                         angular_weights=angular_blocks, rest_weights=rest_weights, relief=relief)
     with atomic_path(out_dir / "dynbtf.glsl") as tmp:
         tmp.write_text(shader, encoding="utf-8")
     manifest = {
@@ -406,7 +409,10 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
         "channels": c_u, "relief": relief, "angular_channels": c_a, "angular_resolution": res, "hidden": hidden, "layers": layers,
         "negative_slope": float(decoder.negative_slope), "scale": float(scale), "default_method": methods[0],
         "lattice": lattice_constants(),
-        "angular": angular, "decoder": {"file": decoder_file, "layers": rest_entries},
+        "angular": angular, "decoder": {"file": decoder_file, "parts": decoder_entries,
+                                                   "note": "layer 1's angular part (mat4 blocks) and layers 2.. "
+                                                           "(mat4 blocks, then each layer's vec4 biases), also "
+                                                           "constants in dynbtf.glsl"},
         "methods": method_entries, "shared_files": sorted({angular["f_H"]["file"], angular["f_D"]["file"],
                                                            decoder_file}),
         "files": writer.files, "shader": "dynbtf.glsl",

@@ -156,8 +156,6 @@
     this.shader = data.shader;
     this.angular = {fh: texture(gl, m.angular.f_H, data.files[m.angular.f_H.file]),
                     fd: texture(gl, m.angular.f_D, data.files[m.angular.f_D.file])};
-    var dec = data.files[m.decoder.file];
-    this.layers = m.decoder.layers.map(function (l) { return {block: l.block, buffer: ubo(gl, dec, l.offset, l.floats)}; });
     this.methods = {};
     Object.keys(m.methods).forEach(function (name) {
       var e = m.methods[name], r = {entry: e};
@@ -183,11 +181,8 @@
                                'the fragment shader (dynbtf.glsl)'));
     gl.linkProgram(p);
     if (!gl.getProgramParameter(p, gl.LINK_STATUS)) throw new Error('the shader does not link: ' + gl.getProgramInfoLog(p));
-    var blocks = ['DynbtfLayer1'].concat(this.layers.map(function (l) { return l.block; }));
-    blocks.forEach(function (b, k) {
-      var index = gl.getUniformBlockIndex(p, b);
-      if (index !== gl.INVALID_INDEX) gl.uniformBlockBinding(p, index, k);
-    });
+    var index = gl.getUniformBlockIndex(p, 'DynbtfLayer1');  // the method's layer 1 (the rest are constants)
+    if (index !== gl.INVALID_INDEX) gl.uniformBlockBinding(p, index, 0);
     return p;
   };
 
@@ -235,7 +230,6 @@
       gl.uniform1f(u('dynbtf_height_offset'), e.height.offset);
     }
     gl.bindBufferBase(gl.UNIFORM_BUFFER, 0, r.layer1);
-    this.layers.forEach(function (l, k) { gl.bindBufferBase(gl.UNIFORM_BUFFER, k + 1, l.buffer); });
   };
 
   // ------------------------------------------------------------------ the viewer page
