@@ -35,7 +35,9 @@ __all__ = ["find_chromium", "CHROMIUM_FLAGS", "PageRun", "run_page", "eval_in_br
 CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-quic", "--no-first-run",
                   "--disable-background-networking", "--disable-component-update", "--disable-sync",
                   "--hide-scrollbars", "--allow-file-access-from-files")
-_GL_FLAGS = {"swiftshader": ("--disable-gpu", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"),
+# (no --disable-gpu: with it Chromium composites in software and reads every WebGL frame back, which it
+# reports on the page's console as "GPU stall due to ReadPixels")
+_GL_FLAGS = {"swiftshader": ("--use-angle=swiftshader", "--enable-unsafe-swiftshader"),
              "gpu": ("--enable-gpu", "--ignore-gpu-blocklist", "--enable-unsafe-swiftshader")}
 
 
