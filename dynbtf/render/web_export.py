@@ -43,7 +43,6 @@ from __future__ import annotations
 import base64
 import hashlib
 import json
-import math
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -374,16 +373,16 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
         entry["plane"] = _texture(writer, f"plane_{m}.bin", plane, precision, layered=True)
         files.append(entry["plane"]["file"])
         matrix, out_offset = synth.output_map()
+        kernel = synth.kernel_arguments() if m != "tile" else {}  # what the fused CPU kernel is given
         if m == "hist":
-            lut = synth.prepared.extras["lut"]
-            entry["lut"] = _lut_texture(writer, f"lut_{m}.bin", synth.prepared.extras["lut_table"].cpu().numpy(),
-                                        precision)
-            entry.update(gamma=float(synth.gamma), g_min=float(lut.g_min), inv_step=float(1.0 / lut.step))
+            entry["lut"] = _lut_texture(writer, f"lut_{m}.bin", kernel["lut"].cpu().numpy(), precision)
+            entry.update(gamma=float(kernel["gamma"]), g_min=float(kernel["g_min"]),
+                         inv_step=float(1.0 / kernel["step"]))
             files.append(entry["lut"]["file"])
         if m == "hex":
-            entry["luminance"] = _texture(writer, f"luminance_{m}.bin",
-                                          synth.prepared.extras["luminance"].cpu().numpy(), precision, layered=False)
-            entry.update(beta=float(synth.beta), gain_k=float(math.log(1.0 - synth.contrast) / math.log(0.5)))
+            entry["luminance"] = _texture(writer, f"luminance_{m}.bin", kernel["luminance"].cpu().numpy(), precision,
+                                          layered=False)
+            entry.update(beta=float(kernel["beta"]), gain_k=float(kernel["gain_k"]))
             files.append(entry["luminance"]["file"])
         # layer 1 with the method's output map folded in: W_U (M x + o) + b = (W_U M) x + (W_U o + b)
         m_mat = np.eye(c_u) if matrix is None else matrix.double().cpu().numpy()   # features = latent @ M + o
@@ -406,13 +405,12 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
     manifest = {
         "format": "dynbtf-web", "version": FORMAT_VERSION, "kind": kind, "config": cfg,
         "source": None if source is None else source.name, "precision": precision,
-        "channels": c_u, "relief": relief, "angular_channels": c_a, "angular_resolution": res, "hidden": hidden, "layers": layers,
-        "negative_slope": float(decoder.negative_slope), "scale": float(scale), "default_method": methods[0],
-        "lattice": lattice_constants(),
-        "angular": angular, "decoder": {"file": decoder_file, "parts": decoder_entries,
-                                                   "note": "layer 1's angular part (mat4 blocks) and layers 2.. "
-                                                           "(mat4 blocks, then each layer's vec4 biases), also "
-                                                           "constants in dynbtf.glsl"},
+        "channels": c_u, "relief": relief, "angular_channels": c_a, "angular_resolution": res, "hidden": hidden,
+        "layers": layers, "negative_slope": float(decoder.negative_slope), "scale": float(scale),
+        "default_method": methods[0], "lattice": lattice_constants(), "angular": angular,
+        "decoder": {"file": decoder_file, "parts": decoder_entries,
+                    "note": "layer 1's angular part (mat4 blocks) and layers 2.. (mat4 blocks, then each layer's "
+                            "vec4 biases), also constants in dynbtf.glsl"},
         "methods": method_entries, "shared_files": sorted({angular["f_H"]["file"], angular["f_D"]["file"],
                                                            decoder_file}),
         "files": writer.files, "shader": "dynbtf.glsl",
