@@ -56,6 +56,9 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=3, help="timed frames per method (after one warm-up frame)")
     parser.add_argument("--gl", default="gpu", choices=["gpu", "swiftshader"])
     parser.add_argument("--queries", type=int, default=4096, help="queries of the agreement check")
+    parser.add_argument("--chromium-flag", action="append", default=[],
+                        help="extra Chromium flag for the frame-time run (repeatable), e.g. --use-angle=vulkan "
+                             "when the GL renderer printed is still SwiftShader on a machine with a GPU")
     args = parser.parse_args()
 
     from dynbtf.render.web_browser import eval_in_browser, time_frames
@@ -78,7 +81,7 @@ def main() -> None:
     # 1 + 2: frame time and per-pixel cost
     t0 = time.perf_counter()
     frames = time_frames(exports["fp16"].directory, args.methods, width=args.width, height=args.height,
-                         frames=args.frames, gl=args.gl)
+                         frames=args.frames, gl=args.gl, extra_flags=tuple(args.chromium_flag))
     print(f"\nframe time at {frames.width} x {frames.height} in headless Chromium ({time.perf_counter() - t0:.0f} s)")
     print(f"GL renderer: {frames.renderer}  ->  {'software GL (no GPU used)' if frames.software else 'GPU'}")
     print(f"shader program compile + link: {frames.compile_ms:.0f} ms")

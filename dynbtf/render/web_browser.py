@@ -74,13 +74,15 @@ class PageRun:
 
 
 def run_page(page, *, screenshot=None, window=(1280, 720), timeout: float = 300.0, gl: str = "swiftshader",
-             budget_ms: int | None = 60000, chromium: str | None = None, query: str = "") -> PageRun:
+             budget_ms: int | None = 60000, chromium: str | None = None, query: str = "",
+             extra_flags: tuple[str, ...] = ()) -> PageRun:
     """Load ``page`` (an HTML file) in headless Chromium; return its DOM and console messages.
 
     ``budget_ms`` is Chromium's virtual-time budget: how long (in page time) scripts and
     animation frames may run before the DOM is dumped. ``None``: real time, and the DOM is
     dumped when the page has loaded (what timing pages need: virtual time also virtualizes
-    ``performance.now()``). ``query`` is appended to the page's address after ``?``.
+    ``performance.now()``). ``query`` is appended to the page's address after ``?``; ``extra_flags``
+    go to Chromium's command line (e.g. ``--use-angle=vulkan`` to pick a GPU back end).
     """
     exe = chromium or find_chromium()
     if exe is None:
@@ -90,7 +92,7 @@ def run_page(page, *, screenshot=None, window=(1280, 720), timeout: float = 300.
     page = Path(page).resolve()
     url = page.as_uri() + (f"?{query}" if query else "")
     with tempfile.TemporaryDirectory(prefix="dynbtf-chromium-") as profile:
-        flags = [exe, *CHROMIUM_FLAGS, *_GL_FLAGS[gl], f"--user-data-dir={profile}",
+        flags = [exe, *CHROMIUM_FLAGS, *_GL_FLAGS[gl], *extra_flags, f"--user-data-dir={profile}",
                  f"--window-size={window[0]},{window[1]}", "--enable-logging=stderr", "--v=0"]
         if budget_ms is not None:
             flags.append(f"--virtual-time-budget={int(budget_ms)}")
@@ -376,13 +378,14 @@ class FrameTimes:
 
 
 def time_frames(export_dir, methods=None, *, width: int = 1280, height: int = 720, frames: int = 3,
-                scale: float = 8.0, origin: float = 0.0, gl: str = "gpu", timeout: float = 1800.0) -> FrameTimes:
+                scale: float = 8.0, origin: float = 0.0, gl: str = "gpu", timeout: float = 1800.0,
+                extra_flags: tuple[str, ...] = ()) -> FrameTimes:
     """Time full frames of the exported shader in headless Chromium (every pixel one ``dynbtf_eval``).
 
     Each frame draws one full-screen pass into a ``width x height`` canvas and waits for it
     (a one-pixel ``readPixels``); the first frame of each method is a warm-up and not counted.
     ``gl="gpu"`` uses the machine's GPU when Chromium finds one (else SwiftShader), ``"swiftshader"``
-    forces software GL.
+    forces software GL; ``extra_flags`` are passed to Chromium (:func:`run_page`).
     """
     export_dir = Path(export_dir)
     manifest_path = export_dir / "manifest.json"
@@ -400,7 +403,7 @@ def time_frames(export_dir, methods=None, *, width: int = 1280, height: int = 72
     try:
         page.write_text(_FRAME_PAGE.replace("__SCRIPTS__", scripts).replace("__JOB__", json.dumps(job)),
                         encoding="utf-8")
-        run = run_page(page, gl=gl, timeout=timeout, budget_ms=None, window=(width, height))
+        run = run_page(page, gl=gl, timeout=timeout, budget_ms=None, window=(width, height), extra_flags=extra_flags)
     finally:
         page.unlink(missing_ok=True)
     error = run.element("dynbtf-error")
