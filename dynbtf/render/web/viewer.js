@@ -385,7 +385,7 @@
       document.getElementById('info').textContent = m.kind + ' model' + (m.source ? ' ' + m.source : '') + ', ' +
         m.precision + ' textures, ' + Object.keys(m.methods).length + ' method(s); ' +
         m.channels + ' positional channels, decoder ' + m.layers + ' x ' + m.hidden + '. GL: ' + glName +
-        (software ? ' (software GL: drawn at reduced resolution)' : '');
+        (software ? ' (software GL: a few frames per second at most)' : '');
       function value(id) {
         var v = parseFloat(ui[id].value);
         var out = document.getElementById(id + '-value');
