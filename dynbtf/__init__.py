@@ -29,7 +29,8 @@ Fit, save and synthesize::
     rgb = synth.eval(uv, w_view, w_light)    # (..., 3) linear RGB at any real uv
 
 Mitsuba 3 (optional, ``pip install dynbtf[render]``): ``dynbtf.register_plugin()`` after
-``mitsuba.set_variant(...)`` makes the ``dynbtf`` BSDF available.
+``mitsuba.set_variant(...)`` makes the ``dynbtf`` BSDF available. ``dynbtf.export_web(model,
+out_dir)`` writes a GLSL ES 3.00 shader, its textures and a WebGL2 viewer page.
 """
 
 from __future__ import annotations
@@ -57,8 +58,9 @@ _FRONT_DOOR = {
     # synthesis and recovery
     "SynthesizedBTF": "dynbtf.synthesized",
     "make_synthesizer": "dynbtf.synthesis.base",
-    # rendering (Mitsuba 3, optional)
+    # rendering (Mitsuba 3, optional) and real time (GLSL shader + WebGL2 viewer)
     "register_plugin": "dynbtf.render.mitsuba_bsdf",
+    "export_web": "dynbtf.render.web_export",
     # errors
     "DynBTFError": "dynbtf.errors",
     "InputError": "dynbtf.errors",

@@ -19,7 +19,10 @@ options skips finished stages, and the training stage resumes its checkpoint):
 6. ``render``    -- Mitsuba 3 renders with the ``dynbtf`` plugin: plane, sphere and
                     cloth under two lighting conditions (the paper's teaser), and
                     the grazing plane per synthesis method.
-7. ``report``    -- ``report.html`` with every image and table.
+7. ``viewer``    -- the real-time export (:func:`dynbtf.render.web_export.export_web`, fp16):
+                    ``viewer/index.html``, a WebGL2 page that synthesizes and decodes the
+                    material per pixel in the browser.
+8. ``report``    -- ``report.html`` with every image and table, linking the viewer.
 
 Training gets the budget the other stages leave and stops with a checkpoint if
 it has not converged; to train on, delete ``<output>/stages/fit.json`` and rerun
@@ -45,7 +48,7 @@ from .io import atomic_path, save_image
 
 __all__ = ["DemoConfig", "run_demo", "STAGES", "SCALES", "METHODS"]
 
-STAGES = ("data", "fit", "evaluate", "features", "synthesis", "render", "report")
+STAGES = ("data", "fit", "evaluate", "features", "synthesis", "render", "viewer", "report")
 #: Synthesized areas shown, in multiples of the exemplar's side (the paper's Figs. 5-6 use 8x, 25x, 45x).
 SCALES = (1, 8, 25, 45)
 #: Synthesis methods compared.
@@ -326,6 +329,15 @@ def _stage_render(ctx: _Context) -> dict[str, Any]:
     return {"renders": rows}
 
 
+def _stage_viewer(ctx: _Context) -> dict[str, Any]:
+    from .render.web_export import export_web
+
+    result = export_web(ctx.out / "model.dbtfm", ctx.out / "viewer", precision="fp16", methods=("hist", "hex", "tile"),
+                        seed=ctx.config.seed, scale=8.0)
+    return {"index": ctx.rel(result.index), "precision": "fp16", "hist_bytes": result.method_bytes("hist"),
+            "total_bytes": result.total_bytes(), "model_bytes": (ctx.out / "model.dbtfm").stat().st_size}
+
+
 def _stage_report(ctx: _Context) -> dict[str, Any]:
     from .report.demo_report import write_demo_report
 
@@ -334,7 +346,8 @@ def _stage_report(ctx: _Context) -> dict[str, Any]:
 
 
 _STAGE_FUNCS = {"data": _stage_data, "fit": _stage_fit, "evaluate": _stage_evaluate, "features": _stage_features,
-                "synthesis": _stage_synthesis, "render": _stage_render, "report": _stage_report}
+                "synthesis": _stage_synthesis, "render": _stage_render, "viewer": _stage_viewer,
+                "report": _stage_report}
 
 
 def _jsonable(x):

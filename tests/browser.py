@@ -13,20 +13,19 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
 import subprocess
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 from dynbtf.errors import InputError
+from dynbtf.render.web_browser import CHROMIUM_FLAGS as _LIBRARY_FLAGS
+from dynbtf.render.web_browser import find_chromium
 
 __all__ = ["find_chromium", "check_in_browser", "BrowserCheck", "CHROMIUM_FLAGS"]
 
-#: Flags for a quiet, offline, sandbox-free headless run (each run also gets a fresh profile dir).
-CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--hide-scrollbars", "--allow-file-access-from-files")
+#: Flags for a quiet, offline, sandbox-free headless run without GPU (each run also gets a fresh profile dir).
+CHROMIUM_FLAGS = (*_LIBRARY_FLAGS, "--disable-gpu")
 
 _PROBE = """
 <script>
@@ -61,18 +60,6 @@ class BrowserCheck:
     def broken_images(self) -> list[str]:
         """``src`` of every image that did not load (``naturalWidth == 0``)."""
         return [i["src"] for i in self.images if not i.get("naturalWidth")]
-
-
-def find_chromium() -> str | None:
-    """Path of a Chromium/Chrome executable (``$DYNBTF_CHROMIUM`` first), or ``None``."""
-    env = os.environ.get("DYNBTF_CHROMIUM")
-    if env and Path(env).exists():
-        return env
-    for name in ("chromium", "chromium-browser", "google-chrome", "chrome"):
-        found = shutil.which(name)
-        if found:
-            return found
-    return None
 
 
 def _run(cmd: list[str], timeout: float) -> subprocess.CompletedProcess:

@@ -36,7 +36,11 @@ def test_quick_demo_writes_every_stage_and_the_report(quick_demo):
     html = (out / "report.html").read_text()
     for src in re.findall(r"src='([^']+)'", html):
         assert (out / src).is_file(), src
-    assert any("stage 7/7 report" in line for line in logs)
+    assert any(f"stage {len(STAGES)}/{len(STAGES)} report" in line for line in logs)
+    # the real-time viewer is written next to the report and linked from it
+    assert "viewer/index.html" in re.findall(r"href='([^']+)'", html)
+    assert (out / "viewer" / "index.html").is_file() and (out / "viewer" / "manifest.js").is_file()
+    assert json.loads((out / "viewer" / "manifest.json").read_text())["methods"].keys() == {"hist", "hex", "tile"}
     # words a reader understands: no raw keys, units, what finished, a command that works as typed
     import html as html_module
     import shlex

@@ -19,6 +19,7 @@ from . import simulate_commands  # noqa: F401,E402
 from . import compare_commands  # noqa: F401,E402
 from . import synth_commands  # noqa: F401,E402
 from . import fit_many_commands  # noqa: F401,E402
+from . import export_commands  # noqa: F401,E402
 
 __all__ = ["app", "main"]
 

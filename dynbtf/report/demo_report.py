@@ -195,6 +195,17 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
                   "compile seconds": x["compile_seconds"], "variant": x["variant"]} for x in ren],
                 caption="Render settings and timings")
 
+    # ------------------------------------------------------------------ real-time viewer
+    viewer = results.get("viewer")
+    if viewer:
+        r.section("Real-time viewer (WebGL2)")
+        r.link("The same synthesized material, evaluated per pixel on the GPU in your browser (no server, no "
+               "download): ", out / viewer["index"], "open the viewer",
+               f". Plane or sphere, orbit camera, light direction and intensity, synthesis method and scale. "
+               f"Its {viewer['precision']} textures, tables and decoder weights for histogram-preserving blending take "
+               f"{_human_bytes(viewer['hist_bytes'])} (the model file: {_human_bytes(viewer['model_bytes'])}); "
+               "`dynbtf export` writes the same for your own engine (docs/realtime.md).")
+
     # ------------------------------------------------------------------ timings
     r.section("Timings")
     r.table([{"stage": k, "seconds": v.get("seconds")} for k, v in results.items()],

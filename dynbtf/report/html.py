@@ -91,6 +91,10 @@ class HtmlReport:
         """A paragraph of plain text (escaped); ``note=True`` renders it small and grey."""
         self._blocks.append(("paragraph", (text, note)))
 
+    def link(self, before: str, target: str | os.PathLike, label: str, after: str = "") -> None:
+        """A paragraph ``before <a href=target>label</a> after`` (``target`` made relative like image paths)."""
+        self._blocks.append(("link", (before, Path(target), label, after)))
+
     def images(self, items: Sequence[tuple[str | os.PathLike, str]], *, width: int = 256,
                pixelated: bool = False) -> None:
         """A row of images with captions: ``items`` = ``[(path, caption), ...]``.
@@ -124,6 +128,10 @@ class HtmlReport:
             elif kind == "paragraph":
                 text, note = payload
                 out.append(f"<p class='note'>{e(text)}</p>" if note else f"<p>{e(text)}</p>")
+            elif kind == "link":
+                before, target, label, after = payload
+                href = Path(os.path.relpath(target.resolve(), base_dir.resolve())).as_posix()
+                out.append(f"<p>{e(before)}<a href='{e(href)}'>{e(label)}</a>{e(after)}</p>")
             elif kind == "images":
                 items, width, pixelated = payload
                 out.append(f"<div class='row' style='--w: {width}px'>")

@@ -1,0 +1,137 @@
+"""The web export in a browser: frame time, per-pixel cost, agreement with the library, quantization.
+
+One command, four measurements of ``dynbtf export --format web`` (docs/realtime.md):
+
+1. **Frame time** at 1280 x 720 in headless Chromium: every pixel runs ``dynbtf_eval`` once
+   (a full-screen pass, synchronized by a one-pixel read-back), the median of ``--frames``
+   frames per method after a warm-up frame, with the GL renderer string Chromium reports.
+   ``--gl gpu`` (default) uses the machine's GPU when Chromium finds one and falls back to
+   its software GL (SwiftShader) otherwise; ``--gl swiftshader`` forces software GL.
+2. **Per-pixel cost**: texel fetches and multiply-adds of the shader (:func:`shader_cost`), next
+   to the paper's 2.0 ms per 1920 x 1080 frame (RTX 4090, Falcor).
+3. **Agreement**: the shader's values on random queries (uv within 40 repeats and near 1e6,
+   random view and light) vs ``SynthesizedBTF.eval``: PSNR per method and precision.
+4. **Quantization** (with ``--btf``, the BTF the model was fitted to): held-out PSNR of the model
+   with fp16 and u8 planes vs the float32 model, and the export's size vs the model file.
+
+Run: ``python benchmarks/bench_web.py MODEL [--btf BTF]`` (default model: a random Triple Plane
+of the paper's size, 128 x 128 texels; frame time and cost do not depend on the weights).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+PAPER_MS_1080P = 2.0  # the paper's Table: 1920 x 1080, 1 spp, RTX 4090 (texture fetches + MLP)
+
+
+def _queries(n, seed=0):
+    rng = np.random.default_rng(seed)
+    points = (rng.random((n, 2)) - 0.5) * 80.0
+    points[n // 2:] += 1e6
+    w = rng.normal(size=(2, n, 3))
+    w[..., 2] = np.abs(w[..., 2]) + 0.05
+    w /= np.linalg.norm(w, axis=-1, keepdims=True)
+    return points, w[0].astype(np.float32), w[1].astype(np.float32)
+
+
+def _psnr(got, ref):
+    return 10.0 * np.log10(np.abs(ref).max() ** 2 / np.mean((got - ref) ** 2))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("model", nargs="?", default=None, help="model file (default: a random 128 x 128 Triple Plane)")
+    parser.add_argument("--btf", default=None, help="the BTF the model was fitted to: adds the held-out quantization loss")
+    parser.add_argument("--methods", nargs="+", default=["hist", "hex", "tile"])
+    parser.add_argument("--width", type=int, default=1280)
+    parser.add_argument("--height", type=int, default=720)
+    parser.add_argument("--frames", type=int, default=3, help="timed frames per method (after one warm-up frame)")
+    parser.add_argument("--gl", default="gpu", choices=["gpu", "swiftshader"])
+    parser.add_argument("--queries", type=int, default=4096, help="queries of the agreement check")
+    parser.add_argument("--chromium-flag", action="append", default=[],
+                        help="extra Chromium flag for the frame-time run (repeatable), e.g. --use-angle=vulkan "
+                             "when the GL renderer printed is still SwiftShader on a machine with a GPU")
+    args = parser.parse_args()
+
+    from dynbtf.render.web_browser import eval_in_browser, time_frames
+    from dynbtf.render.web_export import export_web, quantized_model
+    from dynbtf.render.web_shader import shader_cost
+    from dynbtf.representations.model_file import load_model, save_model
+    from dynbtf.representations.triple_plane import TriplePlane
+    from dynbtf.synthesized import SynthesizedBTF
+
+    work = Path(tempfile.mkdtemp(prefix="dynbtf-bench-web-"))
+    if args.model:
+        model_path = Path(args.model)
+        model, meta = load_model(model_path)
+    else:
+        model, meta = TriplePlane(128, 128, seed=0), {}
+        model_path = save_model(work / "random.dbtfm", model)
+    print(f"model: {model_path.name} ({model.kind}, {model_path.stat().st_size / 1e6:.2f} MB)")
+    exports = {p: export_web(model, work / p, precision=p, methods=args.methods) for p in ("fp16", "u8")}
+
+    # 1 + 2: frame time and per-pixel cost
+    t0 = time.perf_counter()
+    frames = time_frames(exports["fp16"].directory, args.methods, width=args.width, height=args.height,
+                         frames=args.frames, gl=args.gl, extra_flags=tuple(args.chromium_flag))
+    print(f"\nframe time at {frames.width} x {frames.height} in headless Chromium ({time.perf_counter() - t0:.0f} s)")
+    print(f"GL renderer: {frames.renderer}  ->  {'software GL (no GPU used)' if frames.software else 'GPU'}")
+    print(f"shader program compile + link: {frames.compile_ms:.0f} ms")
+    pixels = frames.width * frames.height
+    cfg = model.config()
+    paper_ns = PAPER_MS_1080P * 1e6 / (1920 * 1080)
+    print(f"{'method':<8}{'ms/frame':>12}{'Mpixel/s':>10}{'ns/pixel':>10}{'x paper':>10}{'fetches':>9}{'MACs':>7}")
+    for m, ms in frames.frame_ms.items():
+        med = statistics.median(ms)
+        cost = shader_cost(m, channels=cfg["positional_channels"] + getattr(model, "extra_positional_channels", 0),
+                           angular_channels=cfg["angular_channels"], hidden=cfg["hidden"], layers=cfg["layers"])
+        ns = med * 1e6 / pixels
+        print(f"{m:<8}{med:>12.1f}{pixels / med / 1e3:>10.2f}{ns:>10.1f}{ns / paper_ns:>10.0f}"
+              f"{cost['texel_fetches']:>9}{cost['macs']:>7}")
+    paper = shader_cost("hist")
+    print(f"{'paper':<8}{PAPER_MS_1080P * pixels / (1920 * 1080):>12.2f}{1920 * 1080 / PAPER_MS_1080P / 1e3:>10.0f}"
+          f"{paper_ns:>10.2f}{1:>10}{'-':>9}{paper['decoder_macs']:>7}"
+          "   (RTX 4090, 2.0 ms per 1920x1080 frame scaled to this size; decoder MACs of its 32-32-32-3 MLP)")
+
+    # 3: agreement with the library
+    points, wv, wl = _queries(args.queries)
+    print(f"\nshader vs SynthesizedBTF.eval on {args.queries} random queries (half near 1e6 repeats): PSNR dB")
+    print(f"{'method':<8}" + "".join(f"{p:>10}" for p in exports))
+    for m in args.methods:
+        ref = SynthesizedBTF(model, m, seed=0).eval(points, wv.astype(np.float64), wl.astype(np.float64))
+        row = [_psnr(eval_in_browser(ex.directory, m, points, wv, wl, gl=args.gl).rgb, ref) for ex in exports.values()]
+        print(f"{m:<8}" + "".join(f"{x:>10.1f}" for x in row))
+
+    # 4: sizes and quantization loss
+    size = model_path.stat().st_size
+    print(f"\nexport size (binary files; the hist method's plane, tables, angular planes and decoder) vs the model "
+          f"file ({size / 1e6:.2f} MB, float32)")
+    for p, ex in exports.items():
+        print(f"  {p:<5} hist {ex.method_bytes('hist') / 1e6:.2f} MB ({ex.method_bytes('hist') / size:.2f}x the model "
+              f"file), all methods {ex.total_bytes() / 1e6:.2f} MB")
+    if args.btf:
+        from dynbtf.data.open import open_btf
+        from dynbtf.training.evaluate import evaluate_model, resolve_eval_pairs
+
+        source = open_btf(args.btf)
+        pairs = resolve_eval_pairs("held-out", source, meta)
+        torch.set_num_threads(max(1, torch.get_num_threads()))
+        print(f"\nheld-out PSNR ({len(pairs)} pairs, per-image peak) of the model with quantized planes")
+        base = evaluate_model(model, source, pairs, images=0, progress=False).mean["psnr"]
+        print(f"  fp32  {base:.3f} dB")
+        for p in ("fp16", "u8"):
+            q = evaluate_model(quantized_model(model, p), source, pairs, images=0, progress=False).mean["psnr"]
+            loss = base - q
+            print(f"  {p:<5} {q:.3f} dB (loss {'< 0.001' if abs(loss) < 5e-4 else f'{loss:.3f}'} dB)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,53 @@
+"""``dynbtf export``: a fitted model for real-time renderers (``--format web``: GLSL ES 3.00 + a WebGL2 viewer)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from ..errors import InputError
+from .app import app
+
+#: Export formats (``web`` is the only one so far).
+FORMATS = ("web",)
+
+
+@app.command("export")
+def export_command(
+    model: Path = typer.Argument(..., help="dynbtf model file of kind triple or triple-parallax (`dynbtf fit`)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Directory to write (created; an earlier export's "
+                                                              "files are replaced)."),
+    export_format: str = typer.Option("web", "--format", help="web: textures, decoder weights, a GLSL ES 3.00 "
+                                                                "shader and a WebGL2 viewer page (index.html)."),
+    precision: str = typer.Option("fp16", help="Texture storage: fp16 (half floats), u8 (8 bits per channel with a "
+                                               "per-channel scale and bias) or fp32 (exact)."),
+    method: Optional[List[str]] = typer.Option(None, "--method", metavar="METHOD", help="Synthesis method(s) to export: tile, linear, "
+                                                                      "hist, hex (repeat the option; default: hist, "
+                                                                      "hex, tile; the first is the viewer's default)."),
+    seed: int = typer.Option(0, help="Synthesis seed (the choices of SynthesizedBTF with this seed)."),
+    scale: float = typer.Option(8.0, help="The viewer's initial exemplar repeats per unit of the surface's uv."),
+    viewer: bool = typer.Option(True, "--viewer/--no-viewer", help="Also write the viewer page (index.html, viewer.js "
+                                                                   "and .js copies of the binary files)."),
+) -> None:
+    """Export a synthesized BTF for real-time rendering: GPU textures, decoder weights and a shader (docs/realtime.md).
+
+    Example: dynbtf export leather.dbtfm -o leather-web --precision u8, then open leather-web/index.html
+    """
+    from ..render.web_export import WEB_PRECISIONS, export_web
+    from ..representations.model_file import read_model_metadata
+
+    if export_format not in FORMATS:
+        raise InputError(f"--format: expected one of {list(FORMATS)}, got {export_format!r}")
+    if precision not in WEB_PRECISIONS:
+        raise InputError(f"--precision: expected one of {sorted(WEB_PRECISIONS)}, got {precision!r}")
+    read_model_metadata(model)  # a missing or damaged file is named before anything is written
+    result = export_web(model, output, precision=precision, methods=tuple(method or ("hist", "hex", "tile")),
+                        seed=seed, scale=scale, viewer=viewer)
+    m = result.manifest
+    first = m["default_method"]
+    typer.echo(f"wrote {output}: {len(m['files'])} binary files ({result.total_bytes() / 1e6:.2f} MB, {precision}; "
+               f"the {first} method alone needs {result.method_bytes(first) / 1e6:.2f} MB vs the model file's "
+               f"{model.stat().st_size / 1e6:.2f} MB), the shader dynbtf.glsl"
+               + (f" and the viewer {result.index} (open it in a browser with WebGL2)" if viewer else ""))

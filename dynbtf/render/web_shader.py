@@ -1,0 +1,473 @@
+"""The shader side of the web export: ``dynbtf.glsl`` (GLSL ES 3.00) and what the CPU passes it.
+
+:func:`glsl_source` generates the shader functions that evaluate
+:class:`dynbtf.synthesized.SynthesizedBTF` per pixel: the triangle lattice
+(:mod:`dynbtf.synthesis.lattice`), the integer vertex hash (:mod:`dynbtf.synthesis.hash`, bit for
+bit, in ``uint`` arithmetic), the blends of ``tile``, ``linear``, ``hist`` and ``hex``, the inverse
+histogram tables, the Rusinkiewicz angular fetches (:mod:`dynbtf.conventions`), the relief march of
+``triple-parallax`` models and the decoder. :func:`repeat_origin` is the CPU half of its large-uv
+contract (``viewer.js``'s ``DynBTF.origin`` is the same function in JavaScript), and
+:func:`shader_cost` counts what a pixel costs. The files and formats the shader reads are
+:mod:`dynbtf.render.web_export`'s.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from ..synthesis.hash import MASK32, MIX_MULTIPLIER_1, MIX_MULTIPLIER_2, SECOND_STREAM
+from ..synthesis.lattice import (_C3, _N1, _N2, LATTICE_SCALE, LATTICE_SCALE_HI, LATTICE_SCALE_LO, MAX_REPEATS,
+                                 _scaled_integer, split_uv)
+
+__all__ = ["glsl_source", "shader_cost", "repeat_origin", "RepeatOrigin", "lattice_constants", "WEB_METHODS",
+           "LOCAL_REPEATS", "MAX_MARCH_STEPS"]
+
+#: Synthesis methods the shader implements, with their mode numbers in ``dynbtf.glsl``.
+WEB_METHODS = {"tile": 0, "linear": 1, "hist": 2, "hex": 3}
+#: Repeats the shader's float32 local uv may span (beyond: the caller moves the origin).
+LOCAL_REPEATS = 2 ** 12
+#: Most steps of the relief ray march per pixel (views closer to grazing than ~89 deg march coarser than the library).
+MAX_MARCH_STEPS = 1024
+
+
+def lattice_constants() -> dict[str, Any]:
+    """What ``DynBTF.origin`` (viewer.js) needs to split uv as :func:`repeat_origin` does (JSON-serializable)."""
+    return {"scale_hi": LATTICE_SCALE_HI, "scale_lo": LATTICE_SCALE_LO, "n1": _N1, "n2": _N2, "c3": _C3,
+            "local_repeats": LOCAL_REPEATS, "max_repeats": MAX_REPEATS}
+
+
+# ---------------------------------------------------------------- the repeat origin (CPU side of large uv)
+@dataclass
+class RepeatOrigin:
+    """The integer part of a position, as the shader takes it (see the module docstring).
+
+    Attributes (arrays of the positions' batch shape)
+    ----------
+    lattice_x, lattice_y : int64
+        The lattice vertex the repeat ``I`` maps to: ``floor(2 sqrt(3) I_u) - 2 I_v`` and ``4 I_v``.
+    phase : float64
+        ``2 sqrt(3) I_u - floor(2 sqrt(3) I_u)`` in ``[0, 1)``.
+    texel_x, texel_y : int64
+        ``(I_u W) mod W'`` and ``(I_v H) mod H'``: where the repeat starts on the read plane
+        (``W, H`` the exemplar's size, ``W', H'`` the plane's; they differ after tileable
+        preprocessing).
+    fraction : float64 ``(..., 2)``
+        ``uv - I`` in ``[0, 1)``.
+    """
+
+    lattice_x: np.ndarray
+    lattice_y: np.ndarray
+    phase: np.ndarray
+    texel_x: np.ndarray
+    texel_y: np.ndarray
+    fraction: np.ndarray
+
+    def words(self) -> np.ndarray:
+        """``(..., 4)`` uint32: low and high words of ``lattice_x`` and ``lattice_y`` (two's complement)."""
+        x = self.lattice_x.astype(np.int64).view(np.uint64)
+        y = self.lattice_y.astype(np.int64).view(np.uint64)
+        return np.stack([x & MASK32, x >> np.uint64(32), y & MASK32, y >> np.uint64(32)], -1).astype(np.uint32)
+
+
+def repeat_origin(points, plane_size: tuple[int, int], density: tuple[int, int]) -> RepeatOrigin:
+    """Split positions ``points (..., 2)`` (exemplar repeats, float64) for the shader.
+
+    ``plane_size = (W', H')`` of the plane read, ``density = (W, H)`` texels per repeat. The
+    arithmetic is :func:`dynbtf.synthesis.lattice.triangle_lattice`'s (same float64 and int64
+    operations), so the shader's vertices are the library's. ``|points| < 2**52`` is required.
+    """
+    points = torch.as_tensor(np.asarray(points, dtype=np.float64))
+    if points.numel() and float(points.abs().max()) >= MAX_REPEATS:
+        raise InputError(f"uv: |uv * scale| must be below 2**52 = {int(MAX_REPEATS)} exemplar repeats")
+    whole, frac = split_uv(points)
+    iu_whole, iu_frac = _scaled_integer(whole[..., 0])
+    pw, ph = plane_size
+    dw, dh = density
+    return RepeatOrigin(
+        lattice_x=(iu_whole - 2 * whole[..., 1]).numpy(), lattice_y=(4 * whole[..., 1]).numpy(),
+        phase=iu_frac.numpy(),
+        texel_x=torch.remainder(torch.remainder(whole[..., 0], pw) * (dw % pw), pw).numpy(),
+        texel_y=torch.remainder(torch.remainder(whole[..., 1], ph) * (dh % ph), ph).numpy(),
+        fraction=frac.numpy())
+
+
+# ---------------------------------------------------------------- the shader
+def _float(x: float) -> str:
+    """A GLSL float literal that rounds to the float32 nearest ``x``."""
+    return repr(float(np.float32(x))) if math.isfinite(x) else "0.0"
+
+
+def _constant_array(name: str, kind: str, values: np.ndarray) -> str:
+    """``const mat4/vec4 name[n] = ...;`` from a flat float32 array of column-major mat4s or vec4s."""
+    size = 16 if kind == "mat4" else 4
+    rows = np.asarray(values, dtype=np.float32).reshape(-1, size)
+    items = ",\n    ".join(f"{kind}(" + ", ".join(repr(float(v)) for v in row) + ")" for row in rows)
+    return f"const {kind} {name}[{len(rows)}] = {kind}[{len(rows)}](\n    {items});"
+
+
+def glsl_source(*, channels: int, angular_channels: int, hidden: int, layers: int, negative_slope: float,
+                angular_resolution: int, angular_weights: np.ndarray, rest_weights: list[tuple[np.ndarray, np.ndarray]],
+                relief: dict[str, float] | None = None) -> str:
+    """The shader functions of ``dynbtf.glsl`` for a decoder of these sizes (GLSL ES 3.00, no ``#version``).
+
+    Sizes are compile-time constants, and so are the decoder weights every method shares:
+    ``angular_weights`` (layer 1's angular part) and ``rest_weights`` (layers 2.., each
+    ``(mat4 blocks, vec4 biases)``), all flat float32 arrays in the order of
+    :func:`dynbtf.render.web_export` 's ``decoder.bin`` (literals that parse to the same float32
+    values; as constants they run 2-4x faster in software GL than read from uniform blocks).
+    The method's quantities (tables, parameters, layer 1's positional part with its output map
+    folded in) are uniforms, a uniform block and textures, so one program serves every method.
+    ``relief`` (models with a height field: ``h_min``, ``h_max``, ``step``, ``aspect``,
+    ``height_scale``) adds the ray march of
+    :func:`dynbtf.representations.parallax.march_visible_uv` through the synthesized height.
+    """
+    g = (channels + 3) // 4
+    ag = (angular_channels + 3) // 4
+    hg = (hidden + 3) // 4
+    hi_scale = math.ldexp(math.floor(math.ldexp(LATTICE_SCALE, 10)), -10)  # 12 significant bits
+    lo_scale = LATTICE_SCALE - hi_scale
+    if len(rest_weights) != layers - 1:
+        raise InputError(f"glsl_source: expected weights of {layers - 1} layers after the first, got {len(rest_weights)}")
+    rest = [_constant_array("dynbtf_w1a", "mat4", angular_weights)]
+    for k, (weights, biases) in enumerate(rest_weights, start=2):
+        rest += [_constant_array(f"dynbtf_w{k}", "mat4", weights), _constant_array(f"dynbtf_b{k}", "vec4", biases)]
+    # the decoder unrolled into mat4 x vec4 statements on named vec4 variables (no local arrays: software
+    # GL keeps them in registers; GPU compilers unroll constant loops anyway)
+    decoder_code = []
+    for q in range(hg):
+        terms = [f"dynbtf_b1[{q}]"] + [f"dynbtf_w1p[{q * g + i}] * x[{i}]" for i in range(g)]
+        terms += [f"dynbtf_w1a[{q * 2 * ag + i}] * fh[{i}]" for i in range(ag)]
+        terms += [f"dynbtf_w1a[{q * 2 * ag + ag + i}] * fd[{i}]" for i in range(ag)]
+        decoder_code.append(f"    vec4 y1_{q} = dynbtf_leaky({' + '.join(terms)});")
+    for k in range(2, layers + 1):
+        og = 1 if k == layers else hg
+        for q in range(og):
+            terms = [f"dynbtf_b{k}[{q}]"] + [f"dynbtf_w{k}[{q * hg + i}] * y{k - 1}_{i}" for i in range(hg)]
+            value = " + ".join(terms)
+            decoder_code.append(f"    vec4 y{k}_{q} = {value if k == layers else f'dynbtf_leaky({value})'};")
+    relief_code = ""
+    if relief:
+        relief_code = f"""
+// ---- relief (dynbtf.representations.parallax): features are read where the camera ray meets the
+// synthesized height field, marched from h_max down to h_min in steps of at most {_float(relief["step"])} repeats
+uniform vec4 dynbtf_height_map[DYNBTF_G];   // height channel = latent . map + offset (the method's output map)
+uniform float dynbtf_height_offset;
+#define DYNBTF_MAX_MARCH {MAX_MARCH_STEPS}
+float dynbtf_height(DynbtfOrigin o, vec2 p) {{
+    vec4 x[DYNBTF_G];
+    dynbtf_latent(o, p, x);
+    float h = dynbtf_height_offset;
+    for (int g = 0; g < DYNBTF_G; ++g) h += dot(x[g], dynbtf_height_map[g]);
+    return h * {_float(relief["height_scale"])};
+}}
+vec2 dynbtf_visible(DynbtfOrigin o, vec2 local, vec3 w) {{
+    const float h_min = {_float(relief["h_min"])}, h_max = {_float(relief["h_max"])};
+    if (w.z <= 0.0) w = vec3(0.0, 0.0, 1.0);
+    vec2 slope = w.xy / max(w.z, 1e-6) * vec2(1.0, {_float(relief["aspect"])});
+    float depth = h_max - h_min;
+    int n = min(max(int(ceil(depth * length(slope) / {_float(relief["step"])})), 1), DYNBTF_MAX_MARCH);
+    float dz = depth / float(n);
+    float f_prev = dynbtf_height(o, local + h_max * slope) - h_max;
+    if (f_prev >= 0.0) return local + h_max * slope;
+    float z_hit = h_min;
+    for (int k = 1; k <= DYNBTF_MAX_MARCH; ++k) {{
+        bool last = k >= n;
+        float z_above = h_max - float(k - 1) * dz;
+        float z = last ? h_min : h_max - float(k) * dz;
+        float f = dynbtf_height(o, local + z * slope) - z;
+        if (f >= 0.0 || last) {{
+            float t = f - f_prev != 0.0 ? clamp(f / (f - f_prev), 0.0, 1.0) : 0.0;
+            z_hit = z + t * (z_above - z);
+            break;
+        }}
+        f_prev = f;
+    }}
+    return local + z_hit * slope;
+}}
+"""
+    return f"""// dynbtf real-time shader functions (GLSL ES 3.00), generated by dynbtf.render.web_shader.
+// Evaluates dynbtf.synthesized.SynthesizedBTF: synthesized positional features (tile, linear,
+// hist, hex), Rusinkiewicz angular features and the decoder. Conventions (dynbtf README):
+// directions are unit vectors in the local frame (x along +u, y along +v, z = normal), both
+// pointing away from the surface; the value excludes cos(theta_light) (pi f_r), linear RGB.
+// Sizes: {channels} positional channels ({g} RGBA layers), {angular_channels} angular channels per plane
+// ({angular_resolution}x{angular_resolution}), decoder {layers} layers of {hidden} hidden units.
+
+#define DYNBTF_G {g}
+#define DYNBTF_AG {ag}
+#define DYNBTF_HG {hg}
+
+// ---- per-method state (set by the host for the method in use)
+uniform highp sampler2DArray dynbtf_plane;   // the plane the method reads, RGBA layers
+uniform highp sampler2D dynbtf_lut;          // hist: inverse tables, channel c entry k at (k % row, c * rows + k / row)
+uniform highp sampler2D dynbtf_lum;          // hex: luminance in [0, 1]
+uniform highp sampler2DArray dynbtf_fh;      // angular planes: x = phi column, y = theta row
+uniform highp sampler2DArray dynbtf_fd;
+uniform int dynbtf_mode;                     // 0 tile, 1 linear, 2 hist, 3 hex
+uniform ivec2 dynbtf_plane_size;             // (W', H') of the plane read
+uniform ivec2 dynbtf_density;                // (W, H): texels per repeat
+uniform uint dynbtf_seed_state;              // mix32((seed ^ 0x85EBCA6B)) (dynbtf.synthesis.hash.seed_state)
+uniform float dynbtf_gamma;                  // hist: barycentric exponent
+uniform float dynbtf_beta;                   // hex: luminance fall-off
+uniform float dynbtf_gain_k;                 // hex: contrast-gain exponent (1: none)
+uniform float dynbtf_g_min;                  // hist: Gaussian value of table entry 0
+uniform float dynbtf_inv_step;               // hist: table entries per Gaussian unit
+uniform int dynbtf_lut_size;                 // hist: entries per channel
+uniform int dynbtf_lut_row;                  // hist: entries per texture row
+uniform vec4 dynbtf_plane_scale[DYNBTF_G];   // value = stored * scale + bias, per channel
+uniform vec4 dynbtf_plane_bias[DYNBTF_G];
+uniform vec4 dynbtf_lut_scale[DYNBTF_G];
+uniform vec4 dynbtf_lut_bias[DYNBTF_G];
+uniform vec4 dynbtf_lum_scale_bias;          // (scale, bias, 0, 0)
+uniform vec4 dynbtf_fh_scale[DYNBTF_AG];
+uniform vec4 dynbtf_fh_bias[DYNBTF_AG];
+uniform vec4 dynbtf_fd_scale[DYNBTF_AG];
+uniform vec4 dynbtf_fd_bias[DYNBTF_AG];
+
+// decoder: layer 1 = positional part (the method's output map folded in) + bias, per method ...
+layout(std140) uniform DynbtfLayer1 {{ mat4 dynbtf_w1p[{hg * g}]; vec4 dynbtf_b1[{hg}]; }};
+// ... + angular part, and layers 2.. (the same for every method): constants
+{chr(10).join(rest)}
+
+// ---- the integer part of a position (computed on the CPU in float64: dynbtf.render.web_shader.repeat_origin)
+struct DynbtfOrigin {{
+    uvec4 lattice;   // (low, high) words of the int64 lattice x, then of lattice y
+    float phase;     // 2 sqrt(3) I_u mod 1
+    ivec2 texel;     // (I_u W mod W', I_v H mod H')
+}};
+
+// ---- integer hash (dynbtf.synthesis.hash): lowbias32, uint arithmetic wraps modulo 2^32
+uint dynbtf_mix32(uint x) {{
+    x ^= x >> 16u; x *= {MIX_MULTIPLIER_1:#010x}u; x ^= x >> 15u; x *= {MIX_MULTIPLIER_2:#010x}u; return x ^ (x >> 16u);
+}}
+uint dynbtf_fold(uint h, uvec2 k) {{ return dynbtf_mix32(dynbtf_mix32(h ^ k.x) ^ k.y); }}
+// 64-bit two's complement (low, high) + a small signed int
+uvec2 dynbtf_add(uvec2 a, int d) {{
+    uint lo = a.x + (d < 0 ? ~uint(-1 - d) : uint(d));   // two's complement of d without converting a negative int
+    return uvec2(lo, a.y + (d < 0 ? 0xFFFFFFFFu : 0u) + (lo < a.x ? 1u : 0u));
+}}
+int dynbtf_mod(int a, int n) {{ return a >= 0 ? a % n : (n - 1) - ((-a - 1) % n); }}
+
+// ---- the triangle lattice (dynbtf.synthesis.lattice) and the vertices' hashed whole-texel offsets
+struct DynbtfTriangle {{
+    uvec2 vx[3]; uvec2 vy[3];  // int64 vertex coordinates as (low, high) words
+    float b[3];                // barycentrics
+    ivec2 offset[3];           // (ox, oy) of each vertex
+    ivec2 texel;               // texel of the bilinear footprint's corner (before offsets), on the read plane
+    vec2 t;                    // bilinear weights inside the footprint
+}};
+
+DynbtfTriangle dynbtf_triangle(DynbtfOrigin o, vec2 local) {{
+    DynbtfTriangle tri;
+    vec2 wf = floor(local);
+    vec2 f = local - wf;
+    if (f.x >= 1.0) {{ f.x -= 1.0; wf.x += 1.0; }}
+    if (f.y >= 1.0) {{ f.y -= 1.0; wf.y += 1.0; }}
+    ivec2 w = ivec2(wf);
+    // 2 sqrt(3) w_u as an integer plus a fraction (the high part has 12 bits: exact for |w_u| < 2^12)
+    float p_hi = wf.x * {_float(hi_scale)};
+    float p_whole = floor(p_hi);
+    float frac = (p_hi - p_whole) + wf.x * {_float(lo_scale)} + o.phase;
+    float carry = floor(frac);
+    frac -= carry;
+    float kx = frac + {_float(LATTICE_SCALE)} * f.x - 2.0 * f.y;
+    float ky = 4.0 * f.y;
+    float bx = floor(kx), by = floor(ky);
+    float fx = kx - bx, fy = ky - by;
+    int dx = int(bx) + int(p_whole) + int(carry) - 2 * w.y;
+    int dy = int(by) + 4 * w.y;
+    uvec2 base_x = dynbtf_add(o.lattice.xy, dx);
+    uvec2 base_y = dynbtf_add(o.lattice.zw, dy);
+    uvec2 base_x1 = dynbtf_add(base_x, 1), base_y1 = dynbtf_add(base_y, 1);
+    float z = 1.0 - fx - fy;
+    if (z > 0.0) {{   // b, b + (0, 1), b + (1, 0)
+        tri.vx[0] = base_x;  tri.vy[0] = base_y;  tri.b[0] = z;
+        tri.vx[1] = base_x;  tri.vy[1] = base_y1; tri.b[1] = fy;
+        tri.vx[2] = base_x1; tri.vy[2] = base_y;  tri.b[2] = fx;
+    }} else {{         // b + (1, 1), b + (1, 0), b + (0, 1)
+        tri.vx[0] = base_x1; tri.vy[0] = base_y1; tri.b[0] = -z;
+        tri.vx[1] = base_x1; tri.vy[1] = base_y;  tri.b[1] = 1.0 - fy;
+        tri.vx[2] = base_x;  tri.vy[2] = base_y1; tri.b[2] = 1.0 - fx;
+    }}
+    uint pw = uint(dynbtf_plane_size.x), ph = uint(dynbtf_plane_size.y);
+    for (int i = 0; i < 3; ++i) {{
+        uint h = dynbtf_fold(dynbtf_fold(dynbtf_seed_state, tri.vx[i]), tri.vy[i]);
+        tri.offset[i] = ivec2(int(h % pw), int(dynbtf_mix32(h ^ {SECOND_STREAM:#010x}u) % ph));
+    }}
+    // texel addressing shared by the three samples: (I W) mod W' + the fraction's texel
+    vec2 p = f * vec2(dynbtf_density) - 0.5;
+    vec2 p0 = floor(p);
+    tri.t = p - p0;
+    ivec2 size = dynbtf_plane_size;
+    tri.texel = ivec2(
+        dynbtf_mod(o.texel.x + dynbtf_mod(w.x, size.x) * (dynbtf_density.x % size.x) + int(p0.x), size.x),
+        dynbtf_mod(o.texel.y + dynbtf_mod(w.y, size.y) * (dynbtf_density.y % size.y) + int(p0.y), size.y));
+    return tri;
+}}
+
+// ---- fetches
+void dynbtf_bilinear(ivec2 c, vec2 t, float weight, inout vec4 acc[DYNBTF_G]) {{
+    ivec2 size = dynbtf_plane_size;
+    int c1 = c.x + 1 == size.x ? 0 : c.x + 1;
+    int r1 = c.y + 1 == size.y ? 0 : c.y + 1;
+    float w00 = weight * (1.0 - t.x) * (1.0 - t.y), w01 = weight * t.x * (1.0 - t.y);
+    float w10 = weight * (1.0 - t.x) * t.y, w11 = weight * t.x * t.y;
+    for (int g = 0; g < DYNBTF_G; ++g) {{
+        acc[g] += w00 * texelFetch(dynbtf_plane, ivec3(c.x, c.y, g), 0) + w01 * texelFetch(dynbtf_plane, ivec3(c1, c.y, g), 0)
+                + w10 * texelFetch(dynbtf_plane, ivec3(c.x, r1, g), 0) + w11 * texelFetch(dynbtf_plane, ivec3(c1, r1, g), 0);
+    }}
+}}
+
+float dynbtf_luminance(ivec2 c, vec2 t) {{
+    ivec2 size = dynbtf_plane_size;
+    int c1 = c.x + 1 == size.x ? 0 : c.x + 1;
+    int r1 = c.y + 1 == size.y ? 0 : c.y + 1;
+    float v = (1.0 - t.x) * (1.0 - t.y) * texelFetch(dynbtf_lum, c, 0).r + t.x * (1.0 - t.y) * texelFetch(dynbtf_lum, ivec2(c1, c.y), 0).r
+            + (1.0 - t.x) * t.y * texelFetch(dynbtf_lum, ivec2(c.x, r1), 0).r + t.x * t.y * texelFetch(dynbtf_lum, ivec2(c1, r1), 0).r;
+    return v * dynbtf_lum_scale_bias.x + dynbtf_lum_scale_bias.y;
+}}
+
+float dynbtf_inverse_table(int c, float g) {{
+    float top = float(dynbtf_lut_size - 1);
+    float pos = clamp((g - dynbtf_g_min) * dynbtf_inv_step, 0.0, top);
+    int lo = min(int(pos), dynbtf_lut_size - 2);
+    float t = pos - float(lo);
+    int rows = (dynbtf_lut_size + dynbtf_lut_row - 1) / dynbtf_lut_row;
+    int hi = lo + 1;
+    float x0 = texelFetch(dynbtf_lut, ivec2(lo % dynbtf_lut_row, c * rows + lo / dynbtf_lut_row), 0).r;
+    float x1 = texelFetch(dynbtf_lut, ivec2(hi % dynbtf_lut_row, c * rows + hi / dynbtf_lut_row), 0).r;
+    return x0 + t * (x1 - x0);
+}}
+
+float dynbtf_gain(float x) {{
+    return x < 0.5 ? 0.5 * pow(2.0 * x, dynbtf_gain_k) : 1.0 - 0.5 * pow(max(2.0 - 2.0 * x, 0.0), dynbtf_gain_k);
+}}
+
+// ---- synthesized positional features before the output map (the "latent", DYNBTF_G vec4)
+void dynbtf_latent(DynbtfOrigin o, vec2 local, out vec4 latent[DYNBTF_G]) {{
+    vec4 acc[DYNBTF_G];
+    for (int g = 0; g < DYNBTF_G; ++g) acc[g] = vec4(0.0);
+    float total = 1.0;
+    DynbtfTriangle tri = dynbtf_triangle(o, local);
+    if (dynbtf_mode == 0) {{
+        dynbtf_bilinear(tri.texel, tri.t, 1.0, acc);
+    }} else {{
+        vec3 s = vec3(tri.b[0], tri.b[1], tri.b[2]);
+        ivec2 size = dynbtf_plane_size;
+        ivec2 c[3];
+        for (int i = 0; i < 3; ++i) c[i] = ivec2((tri.texel.x + tri.offset[i].x) % size.x, (tri.texel.y + tri.offset[i].y) % size.y);
+        if (dynbtf_mode == 2) {{
+            s = dynbtf_gamma == 1.0 ? s : pow(max(s, 0.0), vec3(dynbtf_gamma));
+            s /= s.x + s.y + s.z;
+            s *= inversesqrt(dot(s, s));
+        }} else if (dynbtf_mode == 3) {{
+            vec3 lum = vec3(dynbtf_luminance(c[0], tri.t), dynbtf_luminance(c[1], tri.t), dynbtf_luminance(c[2], tri.t));
+            vec3 b = max(s, 0.0), b2 = b * b, b4 = b2 * b2;
+            s = (1.0 - dynbtf_beta + dynbtf_beta * lum) * (b4 * b2 * b);
+            s /= s.x + s.y + s.z;
+            if (dynbtf_gain_k != 1.0) {{
+                s = vec3(dynbtf_gain(s.x), dynbtf_gain(s.y), dynbtf_gain(s.z));
+                s /= s.x + s.y + s.z;
+            }}
+        }}
+        for (int i = 0; i < 3; ++i) dynbtf_bilinear(c[i], tri.t, s[i], acc);
+        total = s.x + s.y + s.z;
+    }}
+    for (int g = 0; g < DYNBTF_G; ++g) acc[g] = acc[g] * dynbtf_plane_scale[g] + total * dynbtf_plane_bias[g];
+    if (dynbtf_mode == 2) {{
+        for (int g = 0; g < DYNBTF_G; ++g) {{
+            vec4 v;
+            for (int k = 0; k < 4; ++k) v[k] = dynbtf_inverse_table(4 * g + k, acc[g][k]);
+            acc[g] = v * dynbtf_lut_scale[g] + dynbtf_lut_bias[g];
+        }}
+    }}
+    for (int g = 0; g < DYNBTF_G; ++g) latent[g] = acc[g];
+}}
+
+// ---- angular features (dynbtf.conventions: Rusinkiewicz h and d, plane coords (theta/90, phi/360))
+vec3 dynbtf_difference(vec3 h, vec3 wl) {{
+    float cos_t = clamp(h.z, -1.0, 1.0);
+    float sin_t = sqrt(max(1.0 - cos_t * cos_t, 0.0));
+    float rxy = length(h.xy);
+    float cos_p = rxy < 1e-12 ? 1.0 : h.x / rxy;
+    float sin_p = rxy < 1e-12 ? 0.0 : h.y / rxy;
+    vec3 d = vec3(cos_p * wl.x + sin_p * wl.y, -sin_p * wl.x + cos_p * wl.y, wl.z);   // R_z(-phi_h)
+    return vec3(cos_t * d.x - sin_t * d.z, d.y, sin_t * d.x + cos_t * d.z);           // R_y(-theta_h)
+}}
+
+void dynbtf_angular_fetch(highp sampler2DArray plane, vec3 w, vec4 scale[DYNBTF_AG], vec4 bias[DYNBTF_AG],
+                          out vec4 result[DYNBTF_AG]) {{
+    const float R = {float(angular_resolution)};
+    float r = length(w.xy);
+    float s = clamp(atan(r, w.z) * {_float(2.0 / math.pi)}, 0.0, 1.0);
+    float t = r < 1e-5 ? 0.0 : atan(w.y, w.x) * {_float(0.5 / math.pi)};
+    t -= floor(t);
+    if (t >= 1.0) t -= 1.0;
+    float row = clamp(s * R - 0.5, 0.0, R - 1.0);
+    float row0 = min(floor(row), max(R - 2.0, 0.0));
+    float ty = row - row0;
+    float row1 = min(row0 + 1.0, R - 1.0);
+    float col = t * R - 0.5;
+    float col0 = floor(col);
+    float tx = col - col0;
+    col0 = col0 < 0.0 ? R - 1.0 : col0;
+    float col1 = col0 + 1.0 >= R ? 0.0 : col0 + 1.0;
+    ivec2 a = ivec2(int(col0), int(row0)), b = ivec2(int(col1), int(row1));
+    for (int g = 0; g < DYNBTF_AG; ++g) {{
+        vec4 v = (1.0 - tx) * (1.0 - ty) * texelFetch(plane, ivec3(a.x, a.y, g), 0) + tx * (1.0 - ty) * texelFetch(plane, ivec3(b.x, a.y, g), 0)
+               + (1.0 - tx) * ty * texelFetch(plane, ivec3(a.x, b.y, g), 0) + tx * ty * texelFetch(plane, ivec3(b.x, b.y, g), 0);
+        result[g] = v * scale[g] + bias[g];
+    }}
+}}
+
+vec4 dynbtf_leaky(vec4 x) {{ return max(x, 0.0) + {_float(negative_slope)} * min(x, 0.0); }}
+
+{relief_code}
+// ---- the BTF value: linear RGB, excluding cos(theta_light); zero below either horizon
+vec3 dynbtf_eval(DynbtfOrigin o, vec2 local, vec3 w_view, vec3 w_light) {{
+    if (w_view.z < 0.0 || w_light.z < 0.0) return vec3(0.0);
+    vec4 x[DYNBTF_G];
+    dynbtf_latent(o, {"dynbtf_visible(o, local, w_view)" if relief else "local"}, x);
+    vec3 sum = w_view + w_light;
+    vec3 h = dot(sum, sum) < 1e-24 ? vec3(0.0, 0.0, 1.0) : normalize(sum);
+    vec4 fh[DYNBTF_AG], fd[DYNBTF_AG];
+    dynbtf_angular_fetch(dynbtf_fh, h, dynbtf_fh_scale, dynbtf_fh_bias, fh);
+    dynbtf_angular_fetch(dynbtf_fd, dynbtf_difference(h, w_light), dynbtf_fd_scale, dynbtf_fd_bias, fd);
+{chr(10).join(decoder_code)}
+    return y{layers}_0.rgb;
+}}
+"""
+
+
+def shader_cost(method: str, *, channels: int = 16, angular_channels: int = 8, hidden: int = 32, layers: int = 4
+                ) -> dict[str, int]:
+    """Work per pixel of ``dynbtf_eval`` as ``dynbtf.glsl`` does it: texel fetches and multiply-adds.
+
+    Fetches are ``texelFetch`` calls of RGBA (or single-channel) texels: the three samples of a
+    blend read a 2 x 2 bilinear footprint of ``ceil(C / 4)`` RGBA layers each (tile: one sample),
+    ``hist`` reads two table entries per channel, ``hex`` a 2 x 2 luminance footprint per sample, and
+    each angular plane a 2 x 2 footprint of ``ceil(C_A / 4)`` layers. Multiply-adds count the
+    bilinear and blend weights applied to every channel, the per-channel dequantization and table
+    interpolation, and the decoder's layers as the shader runs them (``mat4 x vec4`` blocks: widths
+    padded to multiples of 4), not the integer hash or the lattice's few scalar operations.
+    """
+    if method not in WEB_METHODS:
+        raise InputError(f"method: expected one of {list(WEB_METHODS)}, got {method!r}")
+    g, ag, hg = (channels + 3) // 4, (angular_channels + 3) // 4, (hidden + 3) // 4
+    samples = 1 if method == "tile" else 3
+    fetches = samples * 4 * g + 2 * 4 * ag
+    macs = samples * 4 * 4 * g + 4 * g + 2 * (4 * 4 * ag + 4 * ag)  # bilinear+blend weights, dequantization
+    if method == "hist":
+        fetches += 2 * 4 * g
+        macs += 2 * 4 * g  # interpolation and dequantization of the table values
+    if method == "hex":
+        fetches += samples * 4
+        macs += samples * 4
+    decoder = 16 * hg * (g + 2 * ag) + 16 * hg * hg * (layers - 2) + 16 * hg
+    return {"texel_fetches": fetches, "macs": macs + decoder, "decoder_macs": decoder}

@@ -1,0 +1,377 @@
+"""The web export's shader, run in headless Chromium's WebGL2, against the library.
+
+Queries are rendered into a float32 target and read back (:mod:`dynbtf.render.web_browser`);
+the reference is :meth:`dynbtf.synthesized.SynthesizedBTF.eval` on the same queries. The
+lattice check compares the shader's triangle vertices and hashed texel offsets with
+:func:`dynbtf.synthesis.lattice.triangle_lattice` and :func:`dynbtf.synthesis.hash.vertex_offsets`
+bit for bit, up to ~2**45 repeats from the origin.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from dynbtf.errors import InputError
+from dynbtf.render.web_browser import eval_in_browser, find_chromium, lattice_in_browser
+from dynbtf.render.web_export import dequantize, export_web, quantize
+from dynbtf.render.web_shader import repeat_origin
+from dynbtf.synthesis.hash import vertex_offsets
+from dynbtf.synthesis.lattice import triangle_lattice
+from dynbtf.synthesized import SynthesizedBTF
+
+browser = pytest.mark.skipif(find_chromium() is None, reason="needs headless Chromium (scripts/test.sh installs it)")
+METHODS = ("hist", "hex", "tile", "linear")
+
+
+@pytest.fixture(scope="module")
+def model():
+    """A small random Triple Plane (not fitted: every weight matters) with odd channel counts (padding)."""
+    from dynbtf.representations.triple_plane import TriplePlane
+
+    m = TriplePlane(24, 20, positional_channels=6, angular_channels=3, hidden=12, seed=5)
+    with torch.no_grad():
+        m.decoder.rest[-1].bias.add_(0.6)  # mostly positive values, like a material
+    return m
+
+
+@pytest.fixture(scope="module")
+def exports(model, tmp_path_factory):
+    root = tmp_path_factory.mktemp("web")
+    return {p: export_web(model, root / p, precision=p, methods=METHODS) for p in ("fp32", "fp16", "u8")}
+
+
+def _queries(n, seed=0):
+    """Positions (repeats) around the origin, near 1e6 and far out, and directions incl. the pole and grazing."""
+    rng = np.random.default_rng(seed)
+    points = (rng.random((n, 2)) - 0.5) * 80.0
+    points[n // 4: n // 2] += 1e6
+    points[n // 2: n // 2 + n // 8] += np.array([-3.0e11, 7.0e12])
+    shift = np.zeros(n, np.int32)
+    shift[n // 8: n // 4] = rng.integers(-300, 300, n // 4 - n // 8)
+
+    def hemisphere(k):
+        w = rng.normal(size=(k, 3))
+        w[:, 2] = np.abs(w[:, 2]) + 0.02
+        return w / np.linalg.norm(w, axis=1, keepdims=True)
+
+    wv, wl = hemisphere(n), hemisphere(n)
+    wv[:4] = wl[:4] = [0.0, 0.0, 1.0]  # the Rusinkiewicz pole
+    wv[4:8] = wl[4:8] = [0.6, 0.0, 0.8]  # view = light: d at its pole
+    return points, shift, wv.astype(np.float32), wl.astype(np.float32)
+
+
+def _psnr(got, ref):
+    return 10.0 * np.log10(np.abs(ref).max() ** 2 / np.mean((got - ref) ** 2))
+
+
+@browser
+@pytest.mark.browser
+@pytest.mark.parametrize("method", METHODS)
+def test_shader_matches_synthesized_btf(exports, model, method):
+    """fp32 textures: equal to float32 rounding; fp16: PSNR >= 40 dB (the issue's bar); u8: >= 30 dB."""
+    points, shift, wv, wl = _queries(1024)
+    ref = SynthesizedBTF(model, method, seed=0).eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    assert np.abs(ref).max() > 0.5 and ref.std() > 0.05  # the comparison is not between constants
+    got = {p: eval_in_browser(exports[p].directory, method, points, wv, wl, local_shift=shift) for p in exports}
+    peak = np.abs(ref).max()
+    exact = shift == 0  # positions passed as origin + fraction: float32 rounding only
+    np.testing.assert_allclose(got["fp32"].rgb[exact], ref[exact], rtol=0, atol=2e-4 * peak)
+    # up to 300 repeats in the float32 local uv: positions within ~2e-5 repeats (4e-4 texels here)
+    np.testing.assert_allclose(got["fp32"].rgb[~exact], ref[~exact], rtol=0, atol=5e-3 * peak)
+    assert _psnr(got["fp16"].rgb, ref) >= 40.0
+    assert _psnr(got["u8"].rgb, ref) >= 30.0
+    # the export is not the identity of something trivial: another seed's synthesis differs
+    if method != "tile":
+        other = SynthesizedBTF(model, method, seed=1).eval(points, wv.astype(np.float64), wl.astype(np.float64))
+        assert _psnr(got["fp32"].rgb, other) < 30.0
+
+
+@browser
+@pytest.mark.browser
+def test_lattice_vertices_and_texel_offsets_agree_bit_for_bit(exports, model):
+    """Every query's three lattice vertices and hashed whole-texel offsets equal the library's, up to 2**45 repeats."""
+    rng = np.random.default_rng(7)
+    n = 4096
+    whole = rng.integers(-60, 60, (n, 2)).astype(np.float64)
+    whole[1024:2048] += 1e6
+    whole[2048:2560] += np.array([-(2.0 ** 33) - 5, 2.0 ** 31 + 3])  # beyond int32 lattice coordinates
+    whole[2560:3072] += np.array([2.0 ** 45, -(2.0 ** 44)])           # the large fixed-point branch (>= 2**27)
+    # fractions exact in the shader's float32 and, added to the repeat index, in float64
+    bits = np.full((n, 1), 24.0)
+    bits[2048:2560], bits[2560:3072] = 18.0, 6.0
+    frac = np.floor(rng.random((n, 2)) * 2.0 ** bits) / 2.0 ** bits
+    points = whole + frac
+    assert np.array_equal(points - whole, frac)  # the points hold their fractions exactly
+    shift = np.zeros(n, np.int32)
+    shift[:512] = rng.integers(-2000, 2000, 512)  # these go through the shader's own lattice arithmetic
+    vertices, bary = triangle_lattice(torch.from_numpy(points))
+    # queries within 1e-5 of a triangle edge may fall on either side in float32: not a disagreement
+    clear = (bary.min(-1).values > 1e-5).numpy()
+    assert clear.mean() > 0.99
+    hist = SynthesizedBTF(model, "hist", seed=0).synthesizer
+    ph, pw = hist.prepared.plane.shape[:2]
+    ox, oy = vertex_offsets(vertices[..., 0], vertices[..., 1], 0, pw, ph)
+    got = lattice_in_browser(exports["fp16"].directory, "hist", points, local_shift=shift)
+    np.testing.assert_array_equal(got.vertices[clear], vertices.numpy()[clear])
+    np.testing.assert_array_equal(got.offsets[clear], torch.stack([ox, oy], -1).numpy()[clear])
+    # texel addressing: (I W) mod W' + floor(f W - 0.5), as the fused kernel computes it
+    origin = repeat_origin(points, (pw, ph), hist.density)
+    corner = np.floor(origin.fraction * np.array(hist.density) - 0.5).astype(np.int64)
+    expected = np.stack([(origin.texel_x + corner[:, 0]) % pw, (origin.texel_y + corner[:, 1]) % ph], -1)
+    near_texel_edge = np.abs(origin.fraction * np.array(hist.density) - 0.5 - np.rint(
+        origin.fraction * np.array(hist.density) - 0.5)).min(-1) < 1e-4
+    np.testing.assert_array_equal(got.texel[~near_texel_edge], expected[~near_texel_edge])
+
+
+def test_repeat_origin_reassembles_the_lattice(model):
+    """The CPU split plus the shader's local arithmetic, redone in float64, gives triangle_lattice's vertices."""
+    rng = np.random.default_rng(3)
+    points = (rng.random((2000, 2)) - 0.5) * 1e3 + np.array([2.0 ** 40, -1e9])
+    o = repeat_origin(points, (20, 24), (20, 24))
+    kx = o.phase + 2 * np.sqrt(3.0) * o.fraction[:, 0] - 2.0 * o.fraction[:, 1]
+    ky = 4.0 * o.fraction[:, 1]
+    base = np.stack([o.lattice_x + np.floor(kx).astype(np.int64), o.lattice_y + np.floor(ky).astype(np.int64)], -1)
+    vertices, _ = triangle_lattice(torch.from_numpy(points))
+    lower = (1.0 - (kx - np.floor(kx)) - (ky - np.floor(ky))) > 0
+    np.testing.assert_array_equal(base[lower], vertices[lower.tolist(), 0].numpy())
+    words = o.words()
+    np.testing.assert_array_equal(words[:, 0].astype(np.uint64) | (words[:, 1].astype(np.uint64) << np.uint64(32)),
+                                  o.lattice_x.view(np.uint64))
+
+
+def test_quantize_round_trip_and_bounds():
+    rng = np.random.default_rng(0)
+    x = (rng.normal(size=(30, 20, 5)) * np.array([1, 10, 0.01, 100, 0])).astype(np.float32)
+    for precision, tolerance in (("fp32", 0.0), ("fp16", 1e-3), ("u8", 0.5 / 255)):
+        stored, scale, bias = quantize(x, precision)
+        back = dequantize(stored, scale, bias)
+        span = np.maximum(x.reshape(-1, 5).max(0) - x.reshape(-1, 5).min(0), 1e-30)
+        rel = np.abs(back - x).reshape(-1, 5).max(0) / (span if precision == "u8" else np.abs(x).reshape(-1, 5).max(0)
+                                                      + 1e-30)
+        assert (rel <= tolerance * 1.0001 + 1e-7).all(), (precision, rel)
+    assert quantize(x, "u8")[0].dtype == np.uint8 and quantize(x, "fp16")[0].dtype == np.float16
+    with pytest.raises(InputError, match="precision"):
+        quantize(x, "int4")
+    with pytest.raises(InputError, match="values up to 1e\\+05 do not fit half floats"):
+        quantize(np.full((2, 2, 1), 1e5, np.float32), "fp16")
+
+
+def test_export_writes_manifest_files_and_shader(exports, model, tmp_path):
+    ex = exports["u8"]
+    manifest = json.loads((ex.directory / "manifest.json").read_text())
+    assert manifest["format"] == "dynbtf-web" and manifest["precision"] == "u8"
+    for name, entry in manifest["files"].items():
+        assert (ex.directory / name).stat().st_size == entry["bytes"]
+        assert (ex.directory / f"{name}.js").is_file()
+    for name in ("index.html", "viewer.js", "manifest.js", "dynbtf.glsl"):
+        assert (ex.directory / name).is_file()
+    shader = (ex.directory / "dynbtf.glsl").read_text()
+    assert "0x7feb352du" in shader and "dynbtf_eval" in shader
+    # u8 stores one byte per value: the hist plane is 2 RGBA layers of 24 x 20 texels
+    assert manifest["files"][manifest["methods"]["hist"]["plane"]["file"]]["bytes"] == 2 * 24 * 20 * 4
+    assert ex.method_bytes("hist") < ex.total_bytes()
+    # without the viewer: the engine's files only
+    bare = export_web(model, tmp_path / "bare", precision="u8", methods=("tile",), viewer=False)
+    names = {p.name for p in bare.directory.iterdir()}
+    assert names == {"manifest.json", "dynbtf.glsl", *bare.manifest["files"]}, names
+
+
+def test_unsupported_kinds_are_refused_naming_the_supported_ones(tmp_path):
+    from pathlib import Path
+
+    data = Path(__file__).parent / "data" / "round1_models"
+    for kind in ("pca", "sh", "neumip"):
+        with pytest.raises(InputError, match=rf"kind '{kind}' is not supported.*supported kinds: triple, triple-parallax"):
+            export_web(data / f"{kind}.dbtfm", tmp_path / kind)
+
+
+def test_bad_arguments_are_clear_errors(model, tmp_path):
+    with pytest.raises(InputError, match="precision: expected one of"):
+        export_web(model, tmp_path / "a", precision="fp8")
+    with pytest.raises(InputError, match="'quilt' has no shader form"):
+        export_web(model, tmp_path / "b", methods=("quilt",))
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(InputError, match="exists and is not a directory"):
+        export_web(model, tmp_path / "file")
+
+
+def _cli(*args):
+    from typer.testing import CliRunner
+
+    from dynbtf.cli.main import app
+
+    result = CliRunner().invoke(app, [str(a) for a in args])
+    result.text = result.output + ("" if result.exception is None else str(result.exception))
+    return result
+
+
+def test_cli_export_writes_the_viewer_and_refuses_bad_input(model, tmp_path):
+    from pathlib import Path
+
+    from dynbtf.representations.model_file import save_model
+
+    path = save_model(tmp_path / "m.dbtfm", model)
+    result = _cli("export", path, "-o", tmp_path / "out", "--precision", "u8", "--method", "hist", "--method", "tile")
+    assert result.exit_code == 0, result.output
+    assert "the hist method alone needs" in result.output and "index.html" in result.output
+    manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    assert list(manifest["methods"]) == ["hist", "tile"] and manifest["precision"] == "u8"
+    data = Path(__file__).parent / "data" / "round1_models"
+    refused = _cli("export", data / "pca.dbtfm", "-o", tmp_path / "pca")
+    assert refused.exit_code != 0 and "kind 'pca' is not supported" in refused.text
+    assert "supported kinds: triple" in refused.text and not (tmp_path / "pca").exists()
+    missing = _cli("export", tmp_path / "nothere.dbtfm", "-o", tmp_path / "x")
+    assert missing.exit_code != 0 and "nothere.dbtfm: model file not found" in missing.text
+    other = _cli("export", path, "-o", tmp_path / "x", "--format", "gltf")
+    assert other.exit_code != 0 and "--format: expected one of ['web']" in other.text
+    other = _cli("export", path, "-o", tmp_path / "x", "--precision", "fp8")
+    assert other.exit_code != 0 and "--precision: expected one of ['fp16', 'fp32', 'u8'], got 'fp8'" in other.text
+    other = _cli("export", path, "-o", tmp_path / "x", "--method", "quilt")
+    assert other.exit_code != 0 and "'quilt' has no shader form" in other.text
+
+
+_PROBE = """<script>
+(function () {
+  var seen = [];
+  function note(kind, args) {
+    seen.push(kind + ': ' + Array.prototype.map.call(args, String).join(' '));
+    var p = document.getElementById('probe-console');
+    if (!p && document.body) { p = document.createElement('pre'); p.id = 'probe-console'; document.body.appendChild(p); }
+    if (p) p.textContent = JSON.stringify(seen);
+  }
+  ['error', 'warn'].forEach(function (k) { var f = console[k]; console[k] = function () { note(k, arguments); f.apply(console, arguments); }; });
+  window.addEventListener('error', function (e) { note('exception', [e.message]); });
+  window.addEventListener('unhandledrejection', function (e) { note('rejection', [e.reason]); });
+})();
+</script>"""
+
+
+def _probe_viewer(directory, tmp_name="probe.html", **kwargs):
+    """Load a copy of the viewer page with console/exception hooks; return the PageRun."""
+    from dynbtf.render.web_browser import run_page
+
+    page = directory / tmp_name
+    page.write_text((directory / "index.html").read_text().replace("<head>", "<head>" + _PROBE, 1))
+    try:
+        return run_page(page, **kwargs)
+    finally:
+        page.unlink()
+
+
+@browser
+@pytest.mark.browser
+@pytest.mark.parametrize("query", ["", "shape=sphere&method=hex&origin=1e6&light-theta=60"])
+def test_viewer_page_draws_without_console_errors(exports, tmp_path, query):
+    """The plane with the defaults, and the sphere with hex-tiling a million uv units from the origin."""
+    from dynbtf.io import load_image
+
+    directory = exports["fp16"].directory
+    run = _probe_viewer(directory, screenshot=tmp_path / "viewer.png", window=(720, 480), budget_ms=4000, query=query)
+    assert 'data-state="running"' in run.dom, run.dom[-2000:]
+    assert not (run.element("dynbtf-error") or "").strip()
+    assert run.element("probe-console") is None and run.console == []  # nothing at all on the console
+    import re
+
+    drawn = int(re.search(r'data-frames="(\d+)"', run.dom).group(1))
+    fps = re.search(r'<div id="fps">(.*?)</div>', run.dom).group(1)
+    assert drawn >= 1 and ("ms per frame" in fps if drawn >= 3 else True), (drawn, fps)  # the fps counter runs
+    shot = load_image(run.screenshot)
+    canvas = shot[:, : shot.shape[1] - 320]  # the panel is 300 px + padding on the right
+    background = np.array([0.08, 0.08, 0.09]) ** 2.2
+    drawn = np.abs(canvas - background).max(-1) > 0.05
+    assert drawn.mean() > 0.2  # the plane covers a good part of the view
+    assert canvas[drawn].std(0).max() > 0.01  # and shows texture, not a flat colour
+
+
+@browser
+@pytest.mark.browser
+def test_viewer_reports_missing_or_unreadable_files_in_the_page(exports, tmp_path):
+    import shutil
+
+    directory = tmp_path / "copy"
+    shutil.copytree(exports["u8"].directory, directory)
+    (directory / "plane_hist.bin.js").unlink()
+    run = _probe_viewer(directory, budget_ms=3000)
+    assert "plane_hist.bin.js: missing or unreadable" in (run.element("dynbtf-error") or "")
+    assert 'data-state="error"' in run.dom
+    shutil.copy(exports["u8"].directory / "plane_hist.bin.js", directory)
+    (directory / "f_H.bin.js").write_text('DynBTF.file("f_H.bin", 12, "not base64 at all!");\n')
+    run = _probe_viewer(directory, budget_ms=3000)
+    assert "f_H.bin.js: unreadable" in (run.element("dynbtf-error") or "")
+    (directory / "manifest.js").unlink()
+    run = _probe_viewer(directory, budget_ms=3000)
+    assert "manifest.js: missing or unreadable" in (run.element("dynbtf-error") or "")
+
+
+@browser
+@pytest.mark.browser
+def test_viewer_reports_bad_page_parameters_in_the_page(exports):
+    run = _probe_viewer(exports["fp16"].directory, budget_ms=3000, query="shape=cube")
+    assert "page parameter shape=cube is not one of its choices" in (run.element("dynbtf-error") or "")
+    run = _probe_viewer(exports["fp16"].directory, budget_ms=3000, query="colour=red")
+    assert "unknown page parameter colour" in (run.element("dynbtf-error") or "")
+    run = _probe_viewer(exports["fp16"].directory, budget_ms=3000, query="origin=1e20")
+    assert "must be below 2^52 exemplar repeats" in (run.element("dynbtf-error") or "")
+    run = _probe_viewer(exports["fp16"].directory, budget_ms=3000, query="origin=far")
+    assert "uv origin: expected a number such as 0 or 1e6, got far" in (run.element("dynbtf-error") or "")
+
+
+def test_shader_cost_counts_the_decoder_as_the_exported_weights_hold_it(exports, model):
+    """The decoder's multiply-adds equal the float count of its exported mat4 blocks (padded widths)."""
+    from dynbtf.render.web_shader import shader_cost
+
+    manifest = exports["fp32"].manifest
+    cfg = model.config()
+    cost = {m: shader_cost(m, channels=cfg["positional_channels"], angular_channels=cfg["angular_channels"],
+                           hidden=cfg["hidden"], layers=cfg["layers"]) for m in METHODS}
+    hg = (cfg["hidden"] + 3) // 4
+    weights = manifest["methods"]["hist"]["layer1"]["floats"] - 4 * hg  # mat4 floats = multiply-adds
+    weights += sum(part["floats"] for name, part in manifest["decoder"]["parts"].items() if not name.startswith("b"))
+    assert all(c["decoder_macs"] == weights for c in cost.values())
+    # hist reads three 2 x 2 footprints of 2 RGBA layers, two table entries per (padded) channel and
+    # 2 x 2 footprints of one RGBA layer in each angular plane
+    assert cost["hist"]["texel_fetches"] == 3 * 4 * 2 + 2 * 8 + 2 * 4 * 1
+    assert cost["tile"]["texel_fetches"] < cost["hex"]["texel_fetches"] < cost["hist"]["texel_fetches"]
+
+
+@pytest.fixture(scope="module")
+def relief_model():
+    """A random Triple Plane with parallax and a smooth random height field up to 0.03 repeats."""
+    from dynbtf.representations.parallax import ParallaxTriplePlane
+
+    m = ParallaxTriplePlane(24, 20, positional_channels=6, angular_channels=3, hidden=12, seed=5)
+    g = torch.Generator().manual_seed(1)
+    h = torch.nn.functional.avg_pool2d(torch.rand(1, 1, 24, 20, generator=g), 3, 1, 1, count_include_pad=False)
+    m.set_height(0.03 * h[0, 0])
+    with torch.no_grad():
+        m.decoder.rest[-1].bias.add_(0.6)
+    return m
+
+
+@browser
+@pytest.mark.browser
+@pytest.mark.parametrize("method", ["hist", "hex"])
+def test_relief_model_marches_the_synthesized_height_like_the_library(relief_model, tmp_path, method):
+    """triple-parallax: the shader's ray march through the synthesized height agrees with SynthesizedBTF."""
+    import copy
+
+    points, shift, wv, wl = _queries(768, seed=2)
+    # near 7e12 repeats float64 holds uv to 1e-3 repeats: the library's own march (uv + z slope in float64)
+    # rounds there, the shader's (in the local uv) does not; compare where float64 is exact to ~1e-10
+    keep = np.abs(points).max(-1) < 1e7
+    points, wv, wl = points[keep], wv[keep], wl[keep]
+    wv[8:40] = [0.9, 0.1, np.sqrt(1 - 0.82)]  # ~64 deg: long marches
+    got = {p: eval_in_browser(export_web(relief_model, tmp_path / p, precision=p, methods=(method,)).directory, method,
+                              points, wv, wl) for p in ("fp32", "fp16")}
+    ref = SynthesizedBTF(relief_model, method, seed=0).eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    assert _psnr(got["fp32"].rgb, ref) > 90.0
+    assert _psnr(got["fp16"].rgb, ref) >= 40.0
+    # the march matters: the same model without its relief (visible point = uv) gives other values
+    flat = copy.deepcopy(relief_model)
+    flat.set_height(torch.full((24, 20), float(relief_model.height_field().detach().mean())))
+    flat_values = SynthesizedBTF(flat, method, seed=0).eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    assert _psnr(got["fp32"].rgb, flat_values) < 40.0
