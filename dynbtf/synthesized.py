@@ -62,13 +62,26 @@ import torch.nn.functional as F
 
 from .conventions import check_directions, spherical_to_direction
 from .errors import InputError, positive_number
-from .synthesis.base import Synthesizer, check_uv, make_synthesizer
+from .synthesis.base import Synthesizer, check_footprint, check_uv, make_synthesizer
 
-__all__ = ["SynthesizedBTF", "PRECISIONS"]
+__all__ = ["SynthesizedBTF", "PRECISIONS", "footprint_width"]
 
 #: Accepted ``precision`` values: dtype of decoder layers 2.. on the fast path.
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16}
 _POOLS: dict[int, ThreadPoolExecutor] = {}
+
+
+def footprint_width(duv_dx, duv_dy):
+    """Isotropic footprint (side of a square, uv units) of a pixel from its uv derivatives ``(..., 2)`` each.
+
+    The longer of the two screen-space derivative vectors (OpenGL's isotropic level of detail): no
+    texel the pixel covers is left out, at the price of blurring along the shorter axis at grazing
+    views. Returns ``(...)`` float64 NumPy or torch, as the input.
+    """
+    if isinstance(duv_dx, torch.Tensor):
+        return torch.maximum(torch.linalg.vector_norm(duv_dx, dim=-1), torch.linalg.vector_norm(duv_dy, dim=-1))
+    return np.maximum(np.linalg.norm(np.asarray(duv_dx, dtype=np.float64), axis=-1),
+                      np.linalg.norm(np.asarray(duv_dy, dtype=np.float64), axis=-1))
 
 
 def _eval_pool(workers: int) -> ThreadPoolExecutor:
@@ -273,15 +286,24 @@ class SynthesizedBTF:
                 raise InputError(str(e)) from None
         return flat, flat[:, 2] >= 0
 
-    def _decode_chunk(self, uv: torch.Tensor, wv: torch.Tensor, wl: torch.Tensor) -> torch.Tensor:
+    def texels_per_uv(self) -> float:
+        """Texels of the exemplar per unit of the user's ``uv`` (``scale`` x the exemplar's side;
+        the geometric mean of both sides for a non-square exemplar): converts a footprint to texels."""
+        h, w = self.synthesizer.exemplar.shape[:2]
+        return self.scale * float(np.sqrt(h * w))
+
+    def _decode_chunk(self, uv: torch.Tensor, wv: torch.Tensor, wl: torch.Tensor,
+                      footprint: torch.Tensor | None = None) -> torch.Tensor:
         fold = self._fold
         points = uv * self.scale  # exemplar repeats
         if self._relief:  # fetch at the visible point of the synthesized height field
             points = self.model.visible_uv(points, wv, self.synthesizer)
+        texels = None if footprint is None else footprint * self.texels_per_uv()
         if fold is None:
-            features = self.synthesizer(points)
+            features = self.synthesizer(points, texels)
             return self.model.decode(features, wv, wl).float()
-        latent = self.synthesizer.latent(points).to(self.device)
+        latent = (self.synthesizer.latent(points) if texels is None
+                  else self.synthesizer.filtered_latent(points, texels)).to(self.device)
         if fold["planes"] is not None:  # fused CPU kernel: angular planes pre-multiplied by layer 1, LeakyReLU
             from .fast_decode import first_layer_preactivation
 
@@ -306,7 +328,7 @@ class SynthesizedBTF:
                 x = F.leaky_relu(x, fold["slope"])
         return x.float()
 
-    def eval(self, uv, w_view, w_light):
+    def eval(self, uv, w_view, w_light, footprint=None):
         """BTF value (linear RGB ``(..., 3)`` float32, excluding cos(theta_light)).
 
         Parameters
@@ -316,6 +338,14 @@ class SynthesizedBTF:
         w_view, w_light : ``(..., 3)``
             Unit directions in the local frame, same batch shape as ``uv``. Rows
             with either direction below the horizon (``z < 0``) return zero.
+        footprint : float or ``(...)`` array, optional
+            The surface area each query stands for, as the side of a square in the user's ``uv``
+            units (a pixel's footprint; from uv derivatives with :func:`footprint_width`). The
+            answer approximates the BTF averaged over that square (the supersampled value):
+            every synthesized sample is read from the mip level of the footprint (trilinear),
+            see :mod:`dynbtf.synthesis.mip`. Finite and non-negative, any size (beyond the
+            exemplar: the material's mean appearance). Up to one texel (``1 / texels_per_uv()``)
+            it is the point query to float rounding. ``None`` (default): the point query.
 
         Returns
         -------
@@ -327,6 +357,7 @@ class SynthesizedBTF:
         wv, up_v = self._check_directions(w_view, "w_view", batch)
         wl, up_l = self._check_directions(w_light, "w_light", batch)
         flat = uv.reshape(-1, 2).to(torch.float64)
+        fp = None if footprint is None else check_footprint(footprint, batch).reshape(-1)
         n = flat.shape[0]
         out = torch.zeros(n, 3, dtype=torch.float32, device=self.device)
         visible = up_v & up_l
@@ -339,7 +370,7 @@ class SynthesizedBTF:
                 return
             with torch.no_grad():
                 rgb = self._decode_chunk(flat[sl].to(self.device), wv[sl].to(self.device, dtype),
-                                         wl[sl].to(self.device, dtype))
+                                         wl[sl].to(self.device, dtype), None if fp is None else fp[sl])
             out[sl] = rgb if bool(vis.all()) else torch.where(vis.to(self.device)[:, None], rgb, torch.zeros_like(rgb))
 
         workers = self.workers if self._fold is not None and self._fold["planes"] is not None else 1
@@ -360,7 +391,7 @@ class SynthesizedBTF:
     __call__ = eval
 
     def image(self, view=(0.0, 0.0), light=(0.0, 0.0), uv_rect=(0.0, 0.0, 1.0, 1.0), resolution=512,
-              spp: int = 1) -> np.ndarray:
+              spp: int = 1, filtered: bool = False) -> np.ndarray:
         """A flat sample under one directional (view, light) pair, like the paper's Figs. 5-6.
 
         Parameters
@@ -376,6 +407,10 @@ class SynthesizedBTF:
         spp : int, default 1
             Supersampling: the mean of ``spp x spp`` samples on a regular sub-pixel grid
             (a box filter; use it when a pixel covers many texels, e.g. 45x at 512 px).
+        filtered : bool, default False
+            Footprint queries: each sample answers for its share of the pixel
+            (``footprint`` = the larger side of a pixel / ``spp``, :meth:`eval`): one sample
+            per pixel then shows the filtered appearance instead of aliased texels.
 
         Returns
         -------
@@ -408,12 +443,13 @@ class SynthesizedBTF:
         wv = np.broadcast_to(directions[0], (height, width, 3))
         wl = np.broadcast_to(directions[1], (height, width, 3))
         total = np.zeros((height, width, 3), dtype=np.float64)
+        footprint = max(abs(u1 - u0) / width, abs(v1 - v0) / height) / spp if filtered else None
         for sy in range(spp):
             for sx in range(spp):
                 u = u0 + (np.arange(width, dtype=np.float64) + (sx + 0.5) / spp) * ((u1 - u0) / width)
                 v = v0 + (np.arange(height, dtype=np.float64) + (sy + 0.5) / spp) * ((v1 - v0) / height)
                 uu, vv = np.meshgrid(u, v)
-                total += self.eval(np.stack([uu, vv], axis=-1), wv, wl)
+                total += self.eval(np.stack([uu, vv], axis=-1), wv, wl, footprint=footprint)
         return (total / (spp * spp)).astype(np.float32)
 
     def tiled(self) -> "SynthesizedBTF":
