@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["PinholeCamera", "DirectionalLight", "PointLight", "render_preview", "grazing_camera", "top_camera"]
+__all__ = ["PinholeCamera", "DirectionalLight", "PointLight", "render_preview", "plane_footprint", "grazing_camera", "top_camera"]
 
 
 def _unit(v, name):
@@ -93,6 +93,17 @@ class PinholeCamera:
         d = forward + xs[None, :, None] * right + ys[:, None, None] * true_up
         return o, d / np.linalg.norm(d, axis=-1, keepdims=True)
 
+    def pixel_steps(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+        """How the (unnormalized) ray direction ``forward + x right + y up`` of :meth:`rays` changes
+        per pixel along the image's columns and rows: two 3-vectors (ray differentials)."""
+        o = np.asarray(self.origin, dtype=np.float64).reshape(3)
+        forward = _unit(np.asarray(self.target, dtype=np.float64) - o, "camera target - origin")
+        right = np.cross(forward, _unit(self.up, "camera up"))
+        right /= np.linalg.norm(right)
+        true_up = np.cross(right, forward)
+        half_h = math.tan(math.radians(self.fov) / 2.0)
+        return right * (2.0 * half_h * width / height / width), -true_up * (2.0 * half_h / height)
+
 
 @dataclass(frozen=True)
 class DirectionalLight:
@@ -130,8 +141,34 @@ def _stratified_jitter(spp: int) -> np.ndarray:
     return np.asarray(g[:spp], dtype=np.float64)
 
 
+def plane_footprint(camera: PinholeCamera, directions: np.ndarray, height: int, width: int, spp: int = 1
+                    ) -> np.ndarray:
+    """Footprint (uv units, :func:`dynbtf.synthesized.footprint_width`) of pixel samples on the plane ``z = 0``.
+
+    ``directions (..., 3)`` are unit rays of :meth:`PinholeCamera.rays` that hit the plane. The
+    hit point ``p = o - o_z d / d_z`` moves per pixel by ``t (dD - d dD_z / d_z)`` (ray differentials
+    transferred to the plane, ``t`` the hit distance, ``dD`` the per-pixel change of the ray direction
+    over its length); with ``spp`` samples per pixel each covers ``1 / sqrt(spp)`` of the pixel's side.
+    """
+    from ..synthesized import footprint_width
+
+    o_z = float(np.asarray(camera.origin, dtype=np.float64).reshape(3)[2])
+    step_x, step_y = camera.pixel_steps(height, width)
+    # |D| of the unnormalized direction: D = d |D| and D . forward = 1
+    forward = _unit(np.asarray(camera.target, dtype=np.float64) - np.asarray(camera.origin, dtype=np.float64),
+                    "camera target - origin")
+    length = 1.0 / (directions @ forward)
+    t = -o_z / directions[..., 2]
+    derivatives = []
+    for step in (step_x, step_y):
+        dd = step[None, :] / length[..., None]
+        dp = t[..., None] * (dd - directions * (dd[..., 2:3] / directions[..., 2:3]))
+        derivatives.append(dp[..., :2])
+    return footprint_width(*derivatives) / math.sqrt(spp)
+
+
 def render_preview(btf, camera: PinholeCamera, light, *, resolution=(256, 256), spp: int = 1,
-                   background=(0.0, 0.0, 0.0), progress: bool = False) -> np.ndarray:
+                   background=(0.0, 0.0, 0.0), progress: bool = False, filtered: bool = False) -> np.ndarray:
     """Render the infinite plane ``z = 0`` covered by ``btf``.
 
     Parameters
@@ -150,6 +187,10 @@ def render_preview(btf, camera: PinholeCamera, light, *, resolution=(256, 256), 
         Colour of pixels whose ray misses the plane.
     progress : bool
         Show a tqdm bar over the ``spp`` passes.
+    filtered : bool, default False
+        Footprint queries: each sample passes ``footprint=`` (its share of the pixel on the
+        plane, :func:`plane_footprint`) to ``btf.eval``, so that one sample per pixel shows the
+        filtered appearance instead of aliased texels (far away and at grazing angles).
 
     Returns
     -------
@@ -182,7 +223,8 @@ def render_preview(btf, camera: PinholeCamera, light, *, resolution=(256, 256), 
         rgb = np.zeros((int(hit.sum()), 3), dtype=np.float64)
         if lit.any():
             uv = points[lit][:, :2]
-            value = _eval(btf, uv, w_view[lit], w_light[lit])
+            footprint = plane_footprint(camera, d[hit][lit], height, width, int(spp)) if filtered else None
+            value = _eval(btf, uv, w_view[lit], w_light[lit], footprint)
             rgb[lit] = value * (cos_l[lit] * irradiance[lit])[:, None]
         img = np.empty((height, width, 3), dtype=np.float64)
         img[:] = background
@@ -191,14 +233,20 @@ def render_preview(btf, camera: PinholeCamera, light, *, resolution=(256, 256), 
     return (acc / int(spp)).astype(np.float32)
 
 
-def _eval(btf, uv, w_view, w_light) -> np.ndarray:
-    """Call ``btf.eval`` with NumPy or (on TypeError/AttributeError) torch inputs; return float64 ``(N, 3)``."""
+def _eval(btf, uv, w_view, w_light, footprint=None) -> np.ndarray:
+    """Call ``btf.eval`` with NumPy or (on TypeError/AttributeError) torch inputs; return float64 ``(N, 3)``.
+
+    ``footprint`` (N,) is passed only when given (BTFs without footprint queries work unfiltered).
+    """
+    extra = {} if footprint is None else {"footprint": footprint}
     try:
-        out = btf.eval(uv, w_view, w_light)
+        out = btf.eval(uv, w_view, w_light, **extra)
     except (TypeError, AttributeError):
         import torch
 
-        out = btf.eval(torch.from_numpy(uv), torch.from_numpy(w_view).float(), torch.from_numpy(w_light).float())
+        extra = {k: torch.from_numpy(v) for k, v in extra.items()}
+        out = btf.eval(torch.from_numpy(uv), torch.from_numpy(w_view).float(), torch.from_numpy(w_light).float(),
+                       **extra)
     if hasattr(out, "detach"):
         out = out.detach().cpu().numpy()
     return np.asarray(out, dtype=np.float64).reshape(-1, 3)
