@@ -99,9 +99,26 @@ def _single_numba_thread(fn, *args):
     return fn(*args)
 
 
+#: The per-level decoders' fit (:meth:`SynthesizedBTF.level_first_layers`): positions and (view, light)
+#: pairs per level, jittered point queries averaged per footprint, Adam steps and rate, seed.
+LEVEL_FIT_QUERIES = 4096
+LEVEL_FIT_GRID = 4
+LEVEL_FIT_STEPS = 300
+LEVEL_FIT_LR = 3e-3
+LEVEL_FIT_SEED = 0
+
 #: Rows per call of decoder layers 2..: torch's small (32-wide) linear layers ran ~3x faster per row
 #: at <= 16384 rows than at 32768+ (activations stay in cache; measured on a 2-core EPYC).
 _MLP_ROWS = 16384
+
+
+def _mlp(x: torch.Tensor, layers, slope: float) -> torch.Tensor:
+    """Linear layers ``[(weight, bias), ...]`` with LeakyReLU between them on ``x (N, in)`` -> float32."""
+    for k, (weight, bias) in enumerate(layers):
+        x = F.linear(x, weight, bias)
+        if k < len(layers) - 1:
+            x = F.leaky_relu(x, slope)
+    return x.float()
 
 
 def _same_device(a: torch.device, b: torch.device) -> bool:
@@ -150,6 +167,13 @@ class SynthesizedBTF:
         but absent raises :class:`InputError`). Default: where ``model`` is (a model file:
         the CPU). A representation on another device is copied there; the caller's stays
         where it is. The numba fast paths run on the CPU only: elsewhere all is torch.
+    level_decoders : bool, default True
+        Footprint queries decode each pyramid level with its own decoder (layers 2.. and layer 1's
+        positional weights),
+        fitted on first use so that decoding a level's filtered features matches the mean of
+        the point queries over its footprint (:meth:`level_decoder_parameters`; the decoder is
+        nonlinear: the plain decoder on filtered features is biased). Models without a
+        foldable decoder decode every level with their own decoder.
     **params
         Method parameters (see each synthesizer). For ``hex`` the default
         luminance is the model's decoded brightness at normal view and light.
@@ -166,7 +190,7 @@ class SynthesizedBTF:
 
     def __init__(self, model, synthesizer: str | Synthesizer = "hist", scale: float = 1.0, seed: int = 0, *,
                  chunk_size: int = 32768, precision: str = "fp32", workers: int | None = None,
-                 device: str | torch.device | None = None, **params) -> None:
+                 device: str | torch.device | None = None, level_decoders: bool = True, **params) -> None:
         if device is not None:
             from .device import resolve_device
 
@@ -218,6 +242,8 @@ class SynthesizedBTF:
 
         # representations with relief answer at the visible point, marched through the synthesized height
         self._relief = type(model).visible_uv is not Representation.visible_uv
+        self._level_layers: list[dict[str, Any]] | None = None
+        self.level_decoders = bool(level_decoders) and self._fold is not None
 
     # ------------------------------------------------------------ set-up
     def _decoded_luminance(self, plane: torch.Tensor) -> torch.Tensor:
@@ -244,6 +270,7 @@ class SynthesizedBTF:
             dtype = PRECISIONS[self.precision]
             rest = [(layer.weight.detach().to(dtype), layer.bias.detach().to(dtype)) for layer in decoder.rest]
             fold = {"weight": (matrix @ w_pos.T).contiguous(), "bias": offset @ w_pos.T, "rest": rest,
+                    "first_bias": decoder.first.bias.detach().float(),
                     "slope": float(decoder.negative_slope), "dtype": dtype, "planes": None, "fast": fast}
             if fast.angular_planes is not None and self.device.type == "cpu":
                 from .fast_decode import fold_angular_planes
@@ -304,29 +331,128 @@ class SynthesizedBTF:
             return self.model.decode(features, wv, wl).float()
         latent = (self.synthesizer.latent(points) if texels is None
                   else self.synthesizer.filtered_latent(points, texels)).to(self.device)
+        positional = levels = None
+        if texels is not None and self.level_decoders:
+            levels = self.nearest_level(texels)
+            positional = self._level_positional(latent, levels)
         if fold["planes"] is not None:  # fused CPU kernel: angular planes pre-multiplied by layer 1, LeakyReLU
             from .fast_decode import first_layer_preactivation
 
             x = torch.from_numpy(first_layer_preactivation(
                 latent.numpy(), *fold["numpy"], wv.float().numpy(), wl.float().numpy(), *fold["planes"],
-                negative_slope=fold["slope"]))
+                negative_slope=fold["slope"],
+                positional=None if positional is None else (positional + fold["first_bias"]).numpy()))
         else:
             fast = fold["fast"]
-            pre = torch.addmm(fold["bias"], latent, fold["weight"])
+            pre = torch.addmm(fold["bias"], latent, fold["weight"]) if positional is None else positional
             pre += fast.decoder.first_layer_angular(fast.angular_features(wv, wl).float())
             x = F.leaky_relu(pre, fold["slope"])
         x = x.to(fold["dtype"])
+        if levels is not None:
+            return self._level_rest(x, levels)
         return torch.cat([self._decode_rest(block) for block in x.split(_MLP_ROWS)]) if len(x) > _MLP_ROWS \
             else self._decode_rest(x)
 
+    # ------------------------------------------------------------ footprint queries: per-level decoders
+    def level_decoder_parameters(self) -> list[dict[str, Any]]:
+        """Per-level decoder parameters (fitted once, on the first footprint query), level 0 the decoder's own.
+
+        Entry ``l``: ``weight (C, hidden)`` and ``bias (hidden,)`` of layer 1's positional part (with
+        the synthesizer's output map folded in, without the decoder's layer-1 bias) and ``rest``,
+        the ``(weight, bias)`` of layers 2.. (float32). Level ``l >= 1`` decodes the footprints whose
+        nearest pyramid level is ``l`` (:meth:`nearest_level`) and is fine-tuned from the decoder
+        (mean squared error, Adam, seeded; layer 1's angular part kept) so that, on the filtered
+        latent of such footprints, it matches the mean of ``LEVEL_FIT_GRID**2`` jittered point
+        queries over each footprint, at ``LEVEL_FIT_QUERIES`` random positions and (view, light)
+        pairs. Why: the decoder is nonlinear -- decoding mean features is not the mean decoded
+        colour (on a fitted leather ~6% darker, and the error varies with the directions;
+        ``docs/synthesis.md``).
+        """
+        if self._level_layers is None:
+            self._level_layers = self._fit_level_decoders()
+        return self._level_layers
+
+    def nearest_level(self, texels: torch.Tensor) -> np.ndarray:
+        """Pyramid level ``(N,)`` int whose texel width is nearest (in log scale) to each footprint (texels)."""
+        lower, upper = self.synthesizer.level_of_detail()(texels.cpu().numpy())
+        return (lower + (upper >= 0.5)).astype(np.int64)
+
+    def _level_positional(self, latent: torch.Tensor, levels: np.ndarray) -> torch.Tensor:
+        """Layer-1 positional pre-activation ``(N, hidden)`` (without the decoder's bias), per query's level."""
+        params = self.level_decoder_parameters()
+        out = torch.empty(latent.shape[0], params[0]["weight"].shape[-1], dtype=torch.float32, device=latent.device)
+        for level in np.unique(levels):
+            rows = torch.from_numpy(np.nonzero(levels == level)[0]).to(latent.device)
+            out.index_copy_(0, rows, torch.addmm(params[level]["bias"], latent.index_select(0, rows),
+                                                 params[level]["weight"]))
+        return out
+
+    def _level_rest(self, x: torch.Tensor, levels: np.ndarray) -> torch.Tensor:
+        """Layers 2.. of each query's level decoder on first-layer activations ``(N, hidden)`` -> RGB float32."""
+        params = self.level_decoder_parameters()
+        out = torch.empty(x.shape[0], 3, dtype=torch.float32, device=x.device)
+        for level in np.unique(levels):
+            rows = torch.from_numpy(np.nonzero(levels == level)[0]).to(x.device)
+            out.index_copy_(0, rows, _mlp(x.index_select(0, rows), params[level]["rest"], self._fold["slope"]))
+        return out
+
+    def _fit_level_decoders(self) -> list[dict[str, Any]]:
+        fold = self._fold
+        widths = self.synthesizer.level_of_detail().widths
+        fast = fold["fast"]
+        decoder = fast.decoder
+        dtype = fold["dtype"]
+        rng = np.random.default_rng(LEVEL_FIT_SEED)
+        n, grid = LEVEL_FIT_QUERIES, LEVEL_FIT_GRID
+        density = self.texels_per_uv() / self.scale  # texels per repeat
+        rest0 = [(layer.weight.detach().float(), layer.bias.detach().float()) for layer in decoder.rest]
+        params = [{"weight": fold["weight"].float(), "bias": fold["bias"].float(),
+                   "rest": [(w.to(dtype), b.to(dtype)) for w, b in rest0]}]
+        from .progress import progress_bar
+
+        for level in progress_bar(range(1, len(widths)), desc="per-level decoders", unit="level",
+                                  disable=len(widths) < 6):
+            with torch.no_grad():
+                # footprints whose nearest level is this one (the top level: up to 4x its width)
+                hi = 4.0 * widths[level] if level == len(widths) - 1 else np.sqrt(widths[level] * widths[level + 1])
+                texels = np.exp(rng.uniform(np.log(np.sqrt(widths[level - 1] * widths[level])), np.log(hi), n))
+                centres = rng.random((n, 2)) * 64.0
+                cos_t = rng.uniform(0.01, 1.0, (2, n))  # grazing views included: where filtering matters most
+                phi = rng.uniform(0.0, 2 * np.pi, (2, n))
+                sin_t = np.sqrt(1.0 - cos_t ** 2)
+                w = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)  # (2, n, 3)
+                wv = torch.from_numpy(w[0]).to(self.device, torch.float32)
+                wl = torch.from_numpy(w[1]).to(self.device, torch.float32)
+                target = torch.zeros(n, 3, dtype=torch.float32, device=self.device)
+                side = (texels / density)[:, None]  # repeats
+                for i in range(grid):  # the footprint's mean: one jittered point query per cell of a grid x grid
+                    for j in range(grid):
+                        jitter = (np.array([j, i]) + rng.random((n, 2))) / grid - 0.5
+                        points = torch.from_numpy((centres + side * jitter) / self.scale).to(self.device)
+                        target += self._decode_chunk(points, wv, wl)
+                target /= grid * grid
+                latent = self.synthesizer.filtered_latent(torch.from_numpy(centres).to(self.device),
+                                                          torch.from_numpy(texels)).to(self.device)
+                angular = decoder.first_layer_angular(fast.angular_features(wv, wl).float())
+            weight = fold["weight"].float().clone().requires_grad_()
+            bias = fold["bias"].float().clone().requires_grad_()
+            rest = [(w_.clone().requires_grad_(), b_.clone().requires_grad_()) for w_, b_ in rest0]
+            optimizer = torch.optim.Adam([weight, bias, *[p for pair in rest for p in pair]], lr=LEVEL_FIT_LR)
+            schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, LEVEL_FIT_STEPS)
+            for _ in range(LEVEL_FIT_STEPS):
+                x = F.leaky_relu(torch.addmm(bias, latent, weight) + angular, decoder.negative_slope)
+                loss = ((_mlp(x, rest, decoder.negative_slope) - target) ** 2).mean()
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+                schedule.step()
+            params.append({"weight": weight.detach(), "bias": bias.detach(),
+                           "rest": [(w_.detach().to(dtype), b_.detach().to(dtype)) for w_, b_ in rest]})
+        return params
+
     def _decode_rest(self, x: torch.Tensor) -> torch.Tensor:
         """Decoder layers 2.. on first-layer activations ``(N, hidden)`` -> RGB float32."""
-        fold = self._fold
-        for k, (weight, bias) in enumerate(fold["rest"]):
-            x = F.linear(x, weight, bias)
-            if k < len(fold["rest"]) - 1:
-                x = F.leaky_relu(x, fold["slope"])
-        return x.float()
+        return _mlp(x, self._fold["rest"], self._fold["slope"])
 
     def eval(self, uv, w_view, w_light, footprint=None):
         """BTF value (linear RGB ``(..., 3)`` float32, excluding cos(theta_light)).

@@ -244,6 +244,10 @@ class Synthesizer(abc.ABC):
         """
         raise InputError(f"synthesis method {self.name!r} has no footprint query")
 
+    def level_of_detail(self):
+        """The :class:`~dynbtf.synthesis.mip.LevelOfDetail` of the footprint query's pyramid, or None."""
+        return None
+
     def output_map(self) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         """``(matrix (C, C), offset (C,))`` with ``features = latent @ matrix + offset``, or ``(None, None)``.
 

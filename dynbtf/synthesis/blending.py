@@ -202,6 +202,9 @@ class LatticeBlending(Synthesizer):
             self.prepared.extras["pyramid"] = cached
         return cached
 
+    def level_of_detail(self) -> LevelOfDetail:
+        return self.pyramid()["lod"]
+
     def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
         """Latent values ``(N, C)`` float32 averaged over a footprint of ``footprint (N,)`` texels per query.
 

@@ -222,10 +222,14 @@ class Quilting(Synthesizer):
     def latent(self, uv: torch.Tensor) -> torch.Tensor:
         return fetch_wrap(self.prepared, self._positions(uv))
 
-    def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
+    def level_of_detail(self) -> LevelOfDetail:
         if self._pyramid is None:
             levels = area_pyramid(self.prepared)
             self._pyramid = (levels, LevelOfDetail.of(levels))
+        return self._pyramid[1]
+
+    def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
+        self.level_of_detail()
         return trilinear_fetch(*self._pyramid, self._positions(uv), footprint)
 
     def storage_bytes(self) -> int:

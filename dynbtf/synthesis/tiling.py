@@ -42,10 +42,14 @@ class Tiling(Synthesizer):
             return torch.from_numpy(tile_fetch(uv.detach().cpu().numpy(), self._plane_numpy))
         return fetch_wrap(self.exemplar, uv)
 
-    def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
+    def level_of_detail(self) -> LevelOfDetail:
         if self._pyramid is None:
             levels = area_pyramid(self.exemplar)
             self._pyramid = (levels, LevelOfDetail.of(levels))
+        return self._pyramid[1]
+
+    def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
+        self.level_of_detail()
         if not bool((footprint > 1.0).any()):
             return self.latent(uv)
         return trilinear_fetch(*self._pyramid, uv, footprint)
