@@ -53,6 +53,7 @@ on CUDA the synthesizers use their torch paths and the decoder its torch layers.
 
 from __future__ import annotations
 
+import weakref
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -99,13 +100,17 @@ def _single_numba_thread(fn, *args):
     return fn(*args)
 
 
-#: The per-level decoders' fit (:meth:`SynthesizedBTF.level_first_layers`): positions and (view, light)
+#: The per-level decoders' fit (:meth:`SynthesizedBTF.level_decoder_parameters`): positions and (view, light)
 #: pairs per level, jittered point queries averaged per footprint, Adam steps and rate, seed.
 LEVEL_FIT_QUERIES = 4096
 LEVEL_FIT_GRID = 4
 LEVEL_FIT_STEPS = 300
 LEVEL_FIT_LR = 3e-3
 LEVEL_FIT_SEED = 0
+
+#: Fitted per-level decoders by (model, method, parameters, precision, device): SynthesizedBTFs of one model
+#: and method (e.g. other seeds or scales: the fit is in exemplar repeats) fit once per process.
+_LEVEL_DECODERS: dict[tuple, tuple[Any, list[dict[str, Any]]]] = {}
 
 #: Rows per call of decoder layers 2..: torch's small (32-wide) linear layers ran ~3x faster per row
 #: at <= 16384 rows than at 32768+ (activations stay in cache; measured on a 2-core EPYC).
@@ -369,7 +374,15 @@ class SynthesizedBTF:
         ``docs/synthesis.md``).
         """
         if self._level_layers is None:
-            self._level_layers = self._fit_level_decoders()
+            import json
+
+            key = (id(self.model), self.synthesizer.name, json.dumps(self.synthesizer.parameters(), sort_keys=True,
+                                                                      default=str), self.precision, str(self.device))
+            cached = _LEVEL_DECODERS.get(key)
+            if cached is None or cached[0]() is not self.model:
+                cached = (weakref.ref(self.model), self._fit_level_decoders())
+                _LEVEL_DECODERS[key] = cached
+            self._level_layers = cached[1]
         return self._level_layers
 
     def nearest_level(self, texels: torch.Tensor) -> np.ndarray:
@@ -484,6 +497,8 @@ class SynthesizedBTF:
         wl, up_l = self._check_directions(w_light, "w_light", batch)
         flat = uv.reshape(-1, 2).to(torch.float64)
         fp = None if footprint is None else check_footprint(footprint, batch).reshape(-1)
+        if fp is not None and self.level_decoders:
+            self.level_decoder_parameters()  # fitted once, before the worker threads need it
         n = flat.shape[0]
         out = torch.zeros(n, 3, dtype=torch.float32, device=self.device)
         visible = up_v & up_l
