@@ -331,15 +331,29 @@ class SynthesizedBTF:
         if self._relief:  # fetch at the visible point of the synthesized height field
             points = self.model.visible_uv(points, wv, self.synthesizer)
         texels = None if footprint is None else footprint * self.texels_per_uv()
+        if texels is not None and fold is not None and self.level_decoders:
+            # queries sorted by their level decoder: every per-level step below works on contiguous runs
+            levels = self.nearest_level(texels)
+            order = np.argsort(levels, kind="stable")
+            runs = np.flatnonzero(np.diff(levels[order])) + 1
+            bounds = [(int(a), int(b), int(levels[order[a]])) for a, b in
+                      zip(np.concatenate([[0], runs]), np.concatenate([runs, [len(levels)]]))]
+            perm = torch.from_numpy(order).to(points.device)
+            rgb = self._decode_sorted(points[perm], wv[perm.to(wv.device)], wl[perm.to(wl.device)],
+                                      texels[torch.from_numpy(order)], bounds)
+            return torch.empty_like(rgb).index_copy_(0, perm.to(rgb.device), rgb)
         if fold is None:
             features = self.synthesizer(points, texels)
             return self.model.decode(features, wv, wl).float()
         latent = (self.synthesizer.latent(points) if texels is None
                   else self.synthesizer.filtered_latent(points, texels)).to(self.device)
-        positional = levels = None
-        if texels is not None and self.level_decoders:
-            levels = self.nearest_level(texels)
-            positional = self._level_positional(latent, levels)
+        return self._decode_latent(latent, wv, wl)
+
+    def _decode_latent(self, latent: torch.Tensor, wv: torch.Tensor, wl: torch.Tensor,
+                       positional: torch.Tensor | None = None, bounds=None) -> torch.Tensor:
+        """Decode latents ``(N, C)``: the decoder's layers, or with ``bounds`` (runs ``(start, stop, level)``
+        of queries sorted by level) and their layer-1 ``positional`` pre-activation, each run's level decoder."""
+        fold = self._fold
         if fold["planes"] is not None:  # fused CPU kernel: angular planes pre-multiplied by layer 1, LeakyReLU
             from .fast_decode import first_layer_preactivation
 
@@ -353,8 +367,9 @@ class SynthesizedBTF:
             pre += fast.decoder.first_layer_angular(fast.angular_features(wv, wl).float())
             x = F.leaky_relu(pre, fold["slope"])
         x = x.to(fold["dtype"])
-        if levels is not None:
-            return self._level_rest(x, levels)
+        if bounds is not None:
+            params = self.level_decoder_parameters()
+            return torch.cat([_mlp(x[a:b], params[level]["rest"], fold["slope"]) for a, b, level in bounds])
         return torch.cat([self._decode_rest(block) for block in x.split(_MLP_ROWS)]) if len(x) > _MLP_ROWS \
             else self._decode_rest(x)
 
@@ -390,24 +405,14 @@ class SynthesizedBTF:
         lower, upper = self.synthesizer.level_of_detail()(texels.cpu().numpy())
         return (lower + (upper >= 0.5)).astype(np.int64)
 
-    def _level_positional(self, latent: torch.Tensor, levels: np.ndarray) -> torch.Tensor:
-        """Layer-1 positional pre-activation ``(N, hidden)`` (without the decoder's bias), per query's level."""
+    def _decode_sorted(self, points: torch.Tensor, wv: torch.Tensor, wl: torch.Tensor, texels: torch.Tensor,
+                       bounds) -> torch.Tensor:
+        """Footprint queries sorted by level decoder (runs ``bounds``): filtered latent, each run's decoder."""
         params = self.level_decoder_parameters()
-        out = torch.empty(latent.shape[0], params[0]["weight"].shape[-1], dtype=torch.float32, device=latent.device)
-        for level in np.unique(levels):
-            rows = torch.from_numpy(np.nonzero(levels == level)[0]).to(latent.device)
-            out.index_copy_(0, rows, torch.addmm(params[level]["bias"], latent.index_select(0, rows),
-                                                 params[level]["weight"]))
-        return out
-
-    def _level_rest(self, x: torch.Tensor, levels: np.ndarray) -> torch.Tensor:
-        """Layers 2.. of each query's level decoder on first-layer activations ``(N, hidden)`` -> RGB float32."""
-        params = self.level_decoder_parameters()
-        out = torch.empty(x.shape[0], 3, dtype=torch.float32, device=x.device)
-        for level in np.unique(levels):
-            rows = torch.from_numpy(np.nonzero(levels == level)[0]).to(x.device)
-            out.index_copy_(0, rows, _mlp(x.index_select(0, rows), params[level]["rest"], self._fold["slope"]))
-        return out
+        latent = self.synthesizer.filtered_latent(points, texels).to(self.device)
+        positional = torch.cat([torch.addmm(params[level]["bias"], latent[a:b], params[level]["weight"])
+                                for a, b, level in bounds])
+        return self._decode_latent(latent, wv, wl, positional, bounds)
 
     def _fit_level_decoders(self) -> list[dict[str, Any]]:
         fold = self._fold
@@ -450,17 +455,27 @@ class SynthesizedBTF:
             weight = fold["weight"].float().clone().requires_grad_()
             bias = fold["bias"].float().clone().requires_grad_()
             rest = [(w_.clone().requires_grad_(), b_.clone().requires_grad_()) for w_, b_ in rest0]
-            optimizer = torch.optim.Adam([weight, bias, *[p for pair in rest for p in pair]], lr=LEVEL_FIT_LR)
+            # eps well above float noise: where the plain decoder is already exact (e.g. a constant plane) the
+            # gradients are rounding noise, which Adam's normalization would otherwise turn into full-size steps
+            optimizer = torch.optim.Adam([weight, bias, *[p for pair in rest for p in pair]], lr=LEVEL_FIT_LR,
+                                         eps=1e-6)
             schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, LEVEL_FIT_STEPS)
-            for _ in range(LEVEL_FIT_STEPS):
+            losses = []
+            for _ in range(LEVEL_FIT_STEPS + 1):
                 x = F.leaky_relu(torch.addmm(bias, latent, weight) + angular, decoder.negative_slope)
                 loss = ((_mlp(x, rest, decoder.negative_slope) - target) ** 2).mean()
+                losses.append(float(loss.detach()))
+                if len(losses) > LEVEL_FIT_STEPS:
+                    break
                 optimizer.zero_grad()
                 loss.backward()
                 optimizer.step()
                 schedule.step()
-            params.append({"weight": weight.detach(), "bias": bias.detach(),
-                           "rest": [(w_.detach().to(dtype), b_.detach().to(dtype)) for w_, b_ in rest]})
+            if losses[-1] < losses[0]:
+                params.append({"weight": weight.detach(), "bias": bias.detach(),
+                               "rest": [(w_.detach().to(dtype), b_.detach().to(dtype)) for w_, b_ in rest]})
+            else:  # the plain decoder is as good (e.g. a constant plane): keep it
+                params.append(params[0])
         return params
 
     def _decode_rest(self, x: torch.Tensor) -> torch.Tensor:

@@ -22,6 +22,15 @@ from synthesis_reference import smooth_lognormal
 METHODS = ("tile", "linear", "hist", "hex")
 
 
+@pytest.fixture(autouse=True)
+def small_level_fit(monkeypatch):
+    """Smaller per-level decoder fits than the library's (seconds, not a minute, per model)."""
+    import dynbtf.synthesized as synthesized
+
+    monkeypatch.setattr(synthesized, "LEVEL_FIT_QUERIES", 2048)
+    monkeypatch.setattr(synthesized, "LEVEL_FIT_STEPS", 150)
+
+
 @pytest.fixture(scope="module")
 def exemplar():
     return smooth_lognormal(40, 48, 4, seed=7)
@@ -137,11 +146,12 @@ def test_constant_model_filters_to_itself():
     model = TriplePlane(16, 16, seed=0)
     with torch.no_grad():
         model.f_u[:] = torch.linspace(-1, 1, model.f_u.shape[-1])
-    btf = SynthesizedBTF(model, "hist", scale=3.0)
     uv = np.random.default_rng(6).random((400, 2)) * 3
     wv, wl = directions(400, 7)
-    point = btf.eval(uv, wv, wl)
-    np.testing.assert_allclose(btf.eval(uv, wv, wl, footprint=np.full(400, 2.5)), point, atol=1e-5, rtol=1e-4)
+    for level_decoders in (False, True):  # the plain decoder on filtered features, and the fitted level decoders
+        btf = SynthesizedBTF(model, "hist", scale=3.0, level_decoders=level_decoders)
+        point = btf.eval(uv, wv, wl)
+        np.testing.assert_allclose(btf.eval(uv, wv, wl, footprint=np.full(400, 2.5)), point, atol=1e-5, rtol=1e-4)
 
 
 def test_filtered_btf_converges_to_the_supersampled_mean(btf):

@@ -378,7 +378,32 @@ def _level_tap(x, y, ratio_w, ratio_h, mw, mh):
         c1 = 0
     if r1 == mh:
         r1 = 0
-    return c0, c1, r0, r1, px - fx, py - fy
+    return c0, c1, r0, r1, np.float32(px - fx), np.float32(py - fy)
+
+
+@numba.njit(inline="always")
+def _level_lum(lums, start, mw, mh, x, y, ratio_w, ratio_h):
+    """Bilinear luminance of a level (``lums[start:]``, ``mh x mw``) at level-0 texel position ``(x, y)``."""
+    c0, c1, r0, r1, tx, ty = _level_tap(x, y, ratio_w, ratio_h, mw, mh)
+    a = np.uint64(start)
+    return ((1 - tx) * (1 - ty) * lums[a + np.uint64(r0 * mw + c0)] + tx * (1 - ty) * lums[a + np.uint64(r0 * mw + c1)]
+            + (1 - tx) * ty * lums[a + np.uint64(r1 * mw + c0)] + tx * ty * lums[a + np.uint64(r1 * mw + c1)])
+
+
+@numba.njit(inline="always")
+def _add_level_sample(flat, start, mw, mh, x, y, ratio_w, ratio_h, weight, row):
+    """``row += weight * bilinear(level)`` at level-0 texel position ``(x, y)`` (level at ``flat[start:]``)."""
+    nc = row.shape[0]
+    c0, c1, r0, r1, tx, ty = _level_tap(x, y, ratio_w, ratio_h, mw, mh)
+    w = np.float32(weight)
+    w00, w01 = w * (1 - tx) * (1 - ty), w * tx * (1 - ty)
+    w10, w11 = w * (1 - tx) * ty, w * tx * ty
+    t00 = np.uint64(start + (r0 * mw + c0) * nc)
+    t01 = np.uint64(start + (r0 * mw + c1) * nc)
+    t10 = np.uint64(start + (r1 * mw + c0) * nc)
+    t11 = np.uint64(start + (r1 * mw + c1) * nc)
+    for c in range(np.uint64(nc)):
+        row[c] += w00 * flat[t00 + c] + w01 * flat[t01 + c] + w10 * flat[t10 + c] + w11 * flat[t11 + c]
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
@@ -393,59 +418,44 @@ def _filtered_kernel(uv, level, upper_weight, levels, starts, heights, widths, l
     n_levels = starts.shape[0]
     for block in numba.prange((n_queries + BLOCK - 1) // BLOCK):
         row = np.empty(nc, dtype=np.float32)
-        taps = np.empty((3, 4), dtype=np.int64)
-        tw = np.empty((3, 4), dtype=np.float32)
-        lum_s = np.zeros(3)
         for n in range(block * BLOCK, min(block * BLOCK + BLOCK, n_queries)):
             iu, iv, fu, fv, h0, h1, h2, b0, b1, b2 = _lattice_hashes(uv[n, 0], uv[n, 1], state)
-            # level-0 texel position of the query in the read plane, whole part reduced exactly
+            # level-0 texel positions of the three samples in the read plane (whole parts reduced exactly)
             xi = ((iu % pw) * density_w_mod) % pw
             yi = ((iv % ph) * density_h_mod) % ph
             fx = fu * density_w
             fy = fv * density_h
+            x0 = ((xi + h0 % pw) % pw) + fx
+            y0 = ((yi + _mix32(h0 ^ SECOND_STREAM) % ph) % ph) + fy
+            x1 = ((xi + h1 % pw) % pw) + fx
+            y1 = ((yi + _mix32(h1 ^ SECOND_STREAM) % ph) % ph) + fy
+            x2 = ((xi + h2 % pw) % pw) + fx
+            y2 = ((yi + _mix32(h2 ^ SECOND_STREAM) % ph) % ph) + fy
             for c in range(nc):
                 out[n, c] = 0.0
             t_up = upper_weight[n]
             for step in range(2):
                 lv = level[n] + step
-                share = np.float32(1.0) - t_up if step == 0 else t_up
                 if step == 1 and (t_up == 0.0 or lv >= n_levels):
                     break
+                share = np.float32(1.0) - t_up if step == 0 else t_up
                 mh = heights[lv]
                 mw = widths[lv]
                 ratio_w = mw / pw
                 ratio_h = mh / ph
                 start = starts[lv]
-                lum_s[:] = 0.0
-                for k in range(3):
-                    h = h0 if k == 0 else (h1 if k == 1 else h2)
-                    ox = h % pw
-                    oy = _mix32(h ^ SECOND_STREAM) % ph
-                    c0, c1, r0, r1, tx, ty = _level_tap(((xi + ox) % pw) + fx, ((yi + oy) % ph) + fy,
-                                                        ratio_w, ratio_h, mw, mh)
-                    taps[k, 0] = start + (r0 * mw + c0) * nc
-                    taps[k, 1] = start + (r0 * mw + c1) * nc
-                    taps[k, 2] = start + (r1 * mw + c0) * nc
-                    taps[k, 3] = start + (r1 * mw + c1) * nc
-                    tw[k, 0] = (1.0 - tx) * (1.0 - ty)
-                    tw[k, 1] = tx * (1.0 - ty)
-                    tw[k, 2] = (1.0 - tx) * ty
-                    tw[k, 3] = tx * ty
-                    if mode == MODE_HEX:
-                        ls = lum_starts[lv]
-                        for m in range(4):
-                            lum_s[k] += tw[k, m] * lums[ls + (taps[k, m] - start) // nc]
-                s0, s1, s2, scale = _sample_weights(mode, b0, b1, b2, lum_s[0], lum_s[1], lum_s[2], gamma,
-                                                    gamma_int, beta, gain_k)
+                l0 = l1 = l2 = 0.0
+                if mode == MODE_HEX:
+                    ls = lum_starts[lv]
+                    l0 = _level_lum(lums, ls, mw, mh, x0, y0, ratio_w, ratio_h)
+                    l1 = _level_lum(lums, ls, mw, mh, x1, y1, ratio_w, ratio_h)
+                    l2 = _level_lum(lums, ls, mw, mh, x2, y2, ratio_w, ratio_h)
+                s0, s1, s2, scale = _sample_weights(mode, b0, b1, b2, l0, l1, l2, gamma, gamma_int, beta, gain_k)
                 for c in range(nc):
                     row[c] = 0.0
-                for k in range(3):
-                    ws = np.float32((s0 if k == 0 else (s1 if k == 1 else s2)) * scale)
-                    for m in range(4):
-                        wt = ws * tw[k, m]
-                        base = taps[k, m]
-                        for c in range(nc):
-                            row[c] += wt * levels[base + c]
+                _add_level_sample(levels, start, mw, mh, x0, y0, ratio_w, ratio_h, s0 * scale, row)
+                _add_level_sample(levels, start, mw, mh, x1, y1, ratio_w, ratio_h, s1 * scale, row)
+                _add_level_sample(levels, start, mw, mh, x2, y2, ratio_w, ratio_h, s2 * scale, row)
                 if mode == MODE_HIST:
                     _inverse_lut(row, luts[lv], g_min, inv_step)
                 for c in range(nc):
