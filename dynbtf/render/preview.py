@@ -74,7 +74,8 @@ class PinholeCamera:
     def rays(self, height: int, width: int, jitter: np.ndarray | None = None):
         """Ray origins ``(3,)`` and unit directions ``(height, width, 3)`` through pixel centres (+ jitter).
 
-        ``jitter`` ``(2,)`` in pixels, in ``[-0.5, 0.5)``, shifts every ray (for supersampling).
+        ``jitter`` ``(2,)`` in pixels, in ``[-0.5, 0.5)``, shifts every ray (for supersampling); ``(height,
+        width, 2)`` shifts each pixel's ray on its own.
         """
         if not 0.0 < float(self.fov) < 180.0:
             raise InputError(f"camera fov: expected degrees in (0, 180), got {self.fov}")
@@ -87,10 +88,12 @@ class PinholeCamera:
         true_up = np.cross(right, forward)
         half_h = math.tan(math.radians(self.fov) / 2.0)
         half_w = half_h * width / height
-        jx, jy = (0.0, 0.0) if jitter is None else (float(jitter[0]), float(jitter[1]))
-        xs = ((np.arange(width) + 0.5 + jx) / width * 2.0 - 1.0) * half_w
-        ys = (1.0 - (np.arange(height) + 0.5 + jy) / height * 2.0) * half_h
-        d = forward + xs[None, :, None] * right + ys[:, None, None] * true_up
+        jitter = np.zeros(2) if jitter is None else np.asarray(jitter, dtype=np.float64)
+        jx, jy = (jitter[0], jitter[1]) if jitter.ndim == 1 else (jitter[..., 0], jitter[..., 1])
+        xs = ((np.arange(width)[None, :] + 0.5 + jx) / width * 2.0 - 1.0) * half_w
+        ys = (1.0 - (np.arange(height)[:, None] + 0.5 + jy) / height * 2.0) * half_h
+        xs, ys = np.broadcast_to(xs, (height, width)), np.broadcast_to(ys, (height, width))
+        d = forward + xs[..., None] * right + ys[..., None] * true_up
         return o, d / np.linalg.norm(d, axis=-1, keepdims=True)
 
     def pixel_steps(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -168,7 +171,8 @@ def plane_footprint(camera: PinholeCamera, directions: np.ndarray, height: int, 
 
 
 def render_preview(btf, camera: PinholeCamera, light, *, resolution=(256, 256), spp: int = 1,
-                   background=(0.0, 0.0, 0.0), progress: bool = False, filtered: bool = False) -> np.ndarray:
+                   background=(0.0, 0.0, 0.0), progress: bool = False, filtered: bool = False,
+                   jitter_seed: int | None = None) -> np.ndarray:
     """Render the infinite plane ``z = 0`` covered by ``btf``.
 
     Parameters
@@ -191,6 +195,9 @@ def render_preview(btf, camera: PinholeCamera, light, *, resolution=(256, 256), 
         Footprint queries: each sample passes ``footprint=`` (its share of the pixel on the
         plane, :func:`plane_footprint`) to ``btf.eval``, so that one sample per pixel shows the
         filtered appearance instead of aliased texels (far away and at grazing angles).
+    jitter_seed : int, optional
+        Each pixel's samples at independent random positions in the pixel (seeded) instead of
+        the stratified grid shared by all pixels: a stochastic box filter.
 
     Returns
     -------
@@ -211,8 +218,12 @@ def render_preview(btf, camera: PinholeCamera, light, *, resolution=(256, 256), 
     background = np.asarray(background, dtype=np.float32).reshape(3)
     acc = np.zeros((height, width, 3), dtype=np.float64)
     from ..progress import progress_bar
+    rng = None if jitter_seed is None else np.random.default_rng(jitter_seed)
     for jitter in progress_bar(_stratified_jitter(int(spp)), desc="preview", unit="pass", disable=not progress):
-        o, d = camera.rays(height, width, jitter)
+        if rng is None:
+            o, d = camera.rays(height, width, jitter)
+        else:
+            o, d = camera.rays(height, width, rng.random((height, width, 2)) - 0.5)
         hit = d[..., 2] < -1e-12
         t = np.where(hit, -o[2] / np.where(hit, d[..., 2], -1.0), 0.0)
         points = (o + t[..., None] * d)[hit]
