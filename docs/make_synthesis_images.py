@@ -105,10 +105,14 @@ def main() -> None:
     parser.add_argument("--out", default="docs/images")
     parser.add_argument("--panel", type=int, default=192, help="side of the full-view panels, pixels")
     parser.add_argument("--crops-only", action="store_true", help="only synthesis_crops.png")
+    parser.add_argument("--filtering-only", action="store_true", help="only synthesis_filtering.png")
     args = parser.parse_args()
     out = Path(args.out)
     rep, _ = load_model(args.model)
     cos_light = float(spherical_to_direction(np.array(LIGHT[0]), np.array(LIGHT[1]))[2])
+    if args.filtering_only:
+        filtering(rep, out, cos_light, args.panel)
+        return
     crops(rep, out, cos_light)
     if args.crops_only:
         return
