@@ -101,10 +101,12 @@ def _single_numba_thread(fn, *args):
 
 
 #: The per-level decoders' fit (:meth:`SynthesizedBTF.level_decoder_parameters`): positions and (view, light)
-#: pairs per level, jittered point queries averaged per footprint, Adam steps and rate, seed.
+#: pairs per level, jittered point queries averaged per footprint (a grid x grid), Adam steps, minibatch
+#: rows and rate, seed.
 LEVEL_FIT_QUERIES = 4096
 LEVEL_FIT_GRID = 4
 LEVEL_FIT_STEPS = 300
+LEVEL_FIT_BATCH = 1024
 LEVEL_FIT_LR = 3e-3
 LEVEL_FIT_SEED = 0
 
@@ -426,6 +428,7 @@ class SynthesizedBTF:
         rest0 = [(layer.weight.detach().float(), layer.bias.detach().float()) for layer in decoder.rest]
         params = [{"weight": fold["weight"].float(), "bias": fold["bias"].float(),
                    "rest": [(w.to(dtype), b.to(dtype)) for w, b in rest0]}]
+        from .fused_mlp import single_intra_op_thread
         from .progress import progress_bar
 
         for level in progress_bar(range(1, len(widths)), desc="per-level decoders", unit="level",
@@ -460,18 +463,27 @@ class SynthesizedBTF:
             optimizer = torch.optim.Adam([weight, bias, *[p for pair in rest for p in pair]], lr=LEVEL_FIT_LR,
                                          eps=1e-6)
             schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, LEVEL_FIT_STEPS)
-            losses = []
-            for _ in range(LEVEL_FIT_STEPS + 1):
-                x = F.leaky_relu(torch.addmm(bias, latent, weight) + angular, decoder.negative_slope)
-                loss = ((_mlp(x, rest, decoder.negative_slope) - target) ** 2).mean()
-                losses.append(float(loss.detach()))
-                if len(losses) > LEVEL_FIT_STEPS:
-                    break
-                optimizer.zero_grad()
-                loss.backward()
-                optimizer.step()
-                schedule.step()
-            if losses[-1] < losses[0]:
+
+            def loss_of(rows):
+                x = F.leaky_relu(torch.addmm(bias, latent[rows], weight) + angular[rows], decoder.negative_slope)
+                return ((_mlp(x, rest, decoder.negative_slope) - target[rows]) ** 2).mean()
+
+            every = slice(None)
+            with torch.no_grad():
+                plain_loss = float(loss_of(every))
+            batches = torch.from_numpy(rng.integers(0, n, (LEVEL_FIT_STEPS, min(n, LEVEL_FIT_BATCH))))
+            # one torch thread: the small layers' backward passes ran ~10x slower on two threads of a loaded
+            # 2-core machine (OpenMP spin-waiting), as the evaluation does (fused_mlp.single_intra_op_thread)
+            with single_intra_op_thread():
+                for rows in batches:
+                    loss = loss_of(rows)
+                    optimizer.zero_grad()
+                    loss.backward()
+                    optimizer.step()
+                    schedule.step()
+            with torch.no_grad():
+                fitted_loss = float(loss_of(every))
+            if fitted_loss < plain_loss:
                 params.append({"weight": weight.detach(), "bias": bias.detach(),
                                "rest": [(w_.detach().to(dtype), b_.detach().to(dtype)) for w_, b_ in rest]})
             else:  # the plain decoder is as good (e.g. a constant plane): keep it
