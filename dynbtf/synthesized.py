@@ -354,7 +354,8 @@ class SynthesizedBTF:
     def _decode_latent(self, latent: torch.Tensor, wv: torch.Tensor, wl: torch.Tensor,
                        positional: torch.Tensor | None = None, bounds=None) -> torch.Tensor:
         """Decode latents ``(N, C)``: the decoder's layers, or with ``bounds`` (runs ``(start, stop, level)``
-        of queries sorted by level) and their layer-1 ``positional`` pre-activation, each run's level decoder."""
+        of queries sorted by level) and their layer-1 ``positional`` pre-activation (with layer 1's bias on the fused
+        CPU path, without it on the torch path), each run's level decoder."""
         fold = self._fold
         if fold["planes"] is not None:  # fused CPU kernel: angular planes pre-multiplied by layer 1, LeakyReLU
             from .fast_decode import first_layer_preactivation
@@ -362,7 +363,7 @@ class SynthesizedBTF:
             x = torch.from_numpy(first_layer_preactivation(
                 latent.numpy(), *fold["numpy"], wv.float().numpy(), wl.float().numpy(), *fold["planes"],
                 negative_slope=fold["slope"],
-                positional=None if positional is None else (positional + fold["first_bias"]).numpy()))
+                positional=None if positional is None else positional.numpy()))
         else:
             fast = fold["fast"]
             pre = torch.addmm(fold["bias"], latent, fold["weight"]) if positional is None else positional
@@ -399,7 +400,7 @@ class SynthesizedBTF:
             if cached is None or cached[0]() is not self.model:
                 cached = (weakref.ref(self.model), self._fit_level_decoders())
                 _LEVEL_DECODERS[key] = cached
-            self._level_layers = cached[1]
+            self._level_layers = [{**p, "bias_total": p["bias"] + self._fold["first_bias"]} for p in cached[1]]
         return self._level_layers
 
     def nearest_level(self, texels: torch.Tensor) -> np.ndarray:
@@ -412,7 +413,8 @@ class SynthesizedBTF:
         """Footprint queries sorted by level decoder (runs ``bounds``): filtered latent, each run's decoder."""
         params = self.level_decoder_parameters()
         latent = self.synthesizer.filtered_latent(points, texels).to(self.device)
-        positional = torch.cat([torch.addmm(params[level]["bias"], latent[a:b], params[level]["weight"])
+        key = "bias" if self._fold["planes"] is None else "bias_total"  # the fused kernel: with layer 1's bias
+        positional = torch.cat([torch.addmm(params[level][key], latent[a:b], params[level]["weight"])
                                 for a, b, level in bounds])
         return self._decode_latent(latent, wv, wl, positional, bounds)
 

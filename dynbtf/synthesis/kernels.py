@@ -370,8 +370,16 @@ def _level_tap(x, y, ratio_w, ratio_h, mw, mh):
     py = y * ratio_h - 0.5
     fx = math.floor(px)
     fy = math.floor(py)
-    c0 = np.int64(fx) % mw
-    r0 = np.int64(fy) % mh
+    c0 = np.int64(fx)  # in [-1, 3 mw): wrapped without a division
+    r0 = np.int64(fy)
+    while c0 >= mw:
+        c0 -= mw
+    while r0 >= mh:
+        r0 -= mh
+    if c0 < 0:
+        c0 += mw
+    if r0 < 0:
+        r0 += mh
     c1 = c0 + 1
     r1 = r0 + 1
     if c1 == mw:
@@ -425,12 +433,12 @@ def _filtered_kernel(uv, level, upper_weight, levels, starts, heights, widths, l
             yi = ((iv % ph) * density_h_mod) % ph
             fx = fu * density_w
             fy = fv * density_h
-            x0 = ((xi + h0 % pw) % pw) + fx
-            y0 = ((yi + _mix32(h0 ^ SECOND_STREAM) % ph) % ph) + fy
-            x1 = ((xi + h1 % pw) % pw) + fx
-            y1 = ((yi + _mix32(h1 ^ SECOND_STREAM) % ph) % ph) + fy
-            x2 = ((xi + h2 % pw) % pw) + fx
-            y2 = ((yi + _mix32(h2 ^ SECOND_STREAM) % ph) % ph) + fy
+            x0 = _wrap(xi + h0 % pw, pw) + fx
+            y0 = _wrap(yi + _mix32(h0 ^ SECOND_STREAM) % ph, ph) + fy
+            x1 = _wrap(xi + h1 % pw, pw) + fx
+            y1 = _wrap(yi + _mix32(h1 ^ SECOND_STREAM) % ph, ph) + fy
+            x2 = _wrap(xi + h2 % pw, pw) + fx
+            y2 = _wrap(yi + _mix32(h2 ^ SECOND_STREAM) % ph, ph) + fy
             for c in range(nc):
                 out[n, c] = 0.0
             t_up = upper_weight[n]
