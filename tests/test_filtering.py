@@ -225,3 +225,20 @@ def test_filtered_preview_is_close_to_the_supersampled_one():
     err_point = float(np.abs(point - reference).mean())
     err_filtered = float(np.abs(filtered - reference).mean())
     assert err_filtered < 0.5 * err_point, (err_filtered, err_point)
+
+
+def test_synth_cli_filtered_matches_the_library(tmp_path):
+    """``dynbtf synth --filtered`` writes what ``SynthesizedBTF.image(..., filtered=True)`` computes."""
+    from dynbtf.cli.main import main
+    from dynbtf.representations.model_file import save_model
+
+    model = TriplePlane(16, 16, seed=4)
+    path = save_model(tmp_path / "m.dbtfm", model)
+    out = tmp_path / "f.exr"
+    assert main(["synth", str(path), "--scale", "30", "--resolution", "12", "--filtered", "-o", str(out)]) == 0
+    import OpenEXR  # noqa: F401  (written as linear float32)
+    from dynbtf.io import load_image
+
+    expected = SynthesizedBTF(path, "hist", scale=30.0).image((0, 0), (30, 0), (0.0, 0.0, 1.0, 1.0), 12,
+                                                               filtered=True)
+    np.testing.assert_allclose(load_image(out), expected, rtol=1e-4, atol=1e-5)
