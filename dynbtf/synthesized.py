@@ -376,7 +376,12 @@ class SynthesizedBTF:
         x = x.to(fold["dtype"])
         if bounds is not None:
             params = self.level_decoder_parameters()
-            return torch.cat([_mlp(x[a:b], params[level]["rest"], fold["slope"]) for a, b, level in bounds])
+            out = torch.empty(x.shape[0], 3, dtype=torch.float32, device=x.device)
+            for a, b, level in bounds:
+                for start in range(a, b, _MLP_ROWS):
+                    stop = min(b, start + _MLP_ROWS)
+                    out[start:stop] = _mlp(x[start:stop], params[level]["rest"], fold["slope"])
+            return out
         return torch.cat([self._decode_rest(block) for block in x.split(_MLP_ROWS)]) if len(x) > _MLP_ROWS \
             else self._decode_rest(x)
 
@@ -418,8 +423,10 @@ class SynthesizedBTF:
         params = self.level_decoder_parameters()
         latent = self.synthesizer.filtered_latent(points, texels).to(self.device)
         key = "bias" if self._fold["planes"] is None else "bias_total"  # the fused kernel: with layer 1's bias
-        positional = torch.cat([torch.addmm(params[level][key], latent[a:b], params[level]["weight"])
-                                for a, b, level in bounds])
+        positional = torch.empty(latent.shape[0], params[0]["weight"].shape[1], dtype=torch.float32,
+                                 device=latent.device)
+        for a, b, level in bounds:
+            torch.addmm(params[level][key], latent[a:b], params[level]["weight"], out=positional[a:b])
         return self._decode_latent(latent, wv, wl, positional, bounds)
 
     def _fit_level_decoders(self) -> list[dict[str, Any]]:

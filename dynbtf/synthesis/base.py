@@ -138,8 +138,8 @@ def check_footprint(footprint, batch, name: str = "footprint") -> torch.Tensor:
     if value.ndim and tuple(value.shape) != tuple(batch):
         raise InputError(f"{name}: expected a scalar or shape {tuple(batch)} (one width per query), "
                          f"got shape {tuple(value.shape)}")
-    bad = ~torch.isfinite(value) | (value < 0)
-    if bool(bad.any()):
+    if value.numel() and (not float(value.min()) >= 0.0 or not np.isfinite(float(value.max()))):  # NaN fails too
+        bad = ~torch.isfinite(value) | (value < 0)
         first = float(value.reshape(-1)[bad.reshape(-1)][0])
         raise InputError(f"{name}: {int(bad.sum())} value(s) negative, NaN or infinite (e.g. {first!r}); "
                          "expected finite widths >= 0")
