@@ -61,10 +61,14 @@ def test_area_pyramid_levels_are_block_means_and_end_in_the_mean():
 
 
 def test_level_of_detail_brackets_the_footprint():
-    lod = LevelOfDetail.of(area_pyramid(torch.zeros(64, 64, 1)))
+    lod = LevelOfDetail.of(area_pyramid(torch.zeros(64, 64, 1)), blend_band=1.0)  # trilinear
     level, upper = lod(np.array([0.0, 0.5, 1.0, 2.0, 3.0, 4.0, 64.0, 1e9]))
     assert level.tolist() == [0, 0, 0, 1, 1, 2, 6, 6]
     np.testing.assert_allclose(upper, [0, 0, 0, 0, np.log2(1.5), 0, 0, 0], atol=1e-6)
+    lod.blend_band = 0.5  # mixed only within a quarter octave of the midpoint between two levels
+    level, upper = lod(2.0 ** np.array([1.1, 1.3, 1.5, 1.7, 1.9]))
+    assert level.tolist() == [1, 1, 1, 1, 2]
+    np.testing.assert_allclose(upper, [0, 0.1, 0.5, 0.9, 0], atol=1e-6)
 
 
 # ---------------------------------------------------------------- synthesizers
