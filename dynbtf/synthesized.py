@@ -24,6 +24,10 @@ Units and conventions
   (:meth:`~dynbtf.representations.base.Representation.visible_uv`), which costs
   up to ``relief depth x tan(theta_view) / step`` extra synthesized fetches per query
   (none at normal view).
+* ``footprint`` (optional) -- the side of the square of surface a query stands for, in ``uv``
+  units (a pixel's footprint): the answer approximates the BTF averaged over it (mip pyramid of
+  the synthesized plane, per-level inverse tables and per-level decoders fitted on first use;
+  :mod:`dynbtf.synthesis.mip`, "Footprint queries" in ``docs/synthesis.md``). ``None``: the point query.
 * Output -- linear RGB ``(..., 3)`` float32, excluding ``cos(theta_light)``
   (``pi f_r``); NumPy in, NumPy out; torch in, torch out.
 
