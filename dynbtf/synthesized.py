@@ -112,7 +112,7 @@ def _single_numba_thread(fn, *args):
 #: pairs per level, jittered point queries averaged per footprint (a grid x grid), Adam steps, minibatch
 #: rows and rate, seed.
 LEVEL_FIT_QUERIES = 4096
-LEVEL_FIT_GRID = 4
+LEVEL_FIT_GRID = 8
 LEVEL_FIT_STEPS = 300
 LEVEL_FIT_BATCH = 1024
 LEVEL_FIT_LR = 3e-3
