@@ -45,6 +45,7 @@ def main() -> None:
 
     from dynbtf.metrics import flip
     from dynbtf.render.preview import DirectionalLight, grazing_camera, plane_footprint, render_preview
+    from dynbtf.synthesis.mip import pyramid_storage_bytes
     from dynbtf.synthesized import SynthesizedBTF
 
     btf = SynthesizedBTF(args.model, args.method, scale=args.scale, seed=args.seed)
@@ -98,8 +99,7 @@ def main() -> None:
     pyramid = btf.synthesizer.pyramid() if hasattr(btf.synthesizer, "pyramid") else None
     memory = 0
     if pyramid is not None:
-        memory = sum(t.numel() * t.element_size() for t in pyramid["levels"][1:])
-        memory += sum(t.numel() * t.element_size() for t in pyramid.get("luminances", [])[1:])
+        memory = pyramid_storage_bytes(pyramid["levels"]) + pyramid_storage_bytes(pyramid.get("luminances", []))
         if "luts" in pyramid:
             memory += pyramid["luts"][1:].numel() * pyramid["luts"].element_size()
 

@@ -81,7 +81,7 @@ def area_pyramid(plane: torch.Tensor) -> list[torch.Tensor]:
 
 
 def pyramid_storage_bytes(levels: list[torch.Tensor]) -> int:
-    """Bytes of the levels above level 0 (what filtering adds to the read plane)."""
+    """Bytes of the levels above level 0 (what filtering adds to the read plane; 0 for no levels)."""
     return sum(t.numel() * t.element_size() for t in levels[1:])
 
 
