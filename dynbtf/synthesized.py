@@ -79,17 +79,16 @@ _POOLS: dict[int, ThreadPoolExecutor] = {}
 def footprint_width(duv_dx, duv_dy):
     """Isotropic footprint (side of a square, uv units) of a pixel from its uv derivatives ``(..., 2)`` each.
 
-    The **shorter** of the two screen-space derivative vectors: the level of detail of the pixel's
-    minor axis, as anisotropic texture filtering picks it, with one probe instead of several
-    along the major axis. On the grazing plane of ``benchmarks/bench_filtering.py`` (anisotropy up to
-    ~50) this came closest to the supersampled reference: FLIP 0.035 with the shorter axis vs 0.038
-    with the geometric mean and 0.042 with the longer one (OpenGL's isotropic choice, which blurs
-    across the view); 0.7x the shorter axis gave 0.037. Returns ``(...)`` float64 NumPy or torch,
-    as the input.
+    The **longer** of the two screen-space derivative vectors (OpenGL's isotropic level of detail):
+    no texel the pixel covers is left out, at the price of some blur across the view at grazing
+    angles. On the grazing plane of ``benchmarks/bench_filtering.py`` (anisotropy up to ~50) FLIP
+    against the 256-spp reference was 0.030 with the longer axis, 0.032 with the geometric mean of
+    both, 0.037 with the shorter one; 1.25-1.8x the geometric mean gave 0.030 too. Returns ``(...)``
+    float64 NumPy or torch, as the input.
     """
     if isinstance(duv_dx, torch.Tensor):
-        return torch.minimum(torch.linalg.vector_norm(duv_dx, dim=-1), torch.linalg.vector_norm(duv_dy, dim=-1))
-    return np.minimum(np.linalg.norm(np.asarray(duv_dx, dtype=np.float64), axis=-1),
+        return torch.maximum(torch.linalg.vector_norm(duv_dx, dim=-1), torch.linalg.vector_norm(duv_dy, dim=-1))
+    return np.maximum(np.linalg.norm(np.asarray(duv_dx, dtype=np.float64), axis=-1),
                       np.linalg.norm(np.asarray(duv_dy, dtype=np.float64), axis=-1))
 
 
@@ -594,7 +593,7 @@ class SynthesizedBTF:
             (a box filter; use it when a pixel covers many texels, e.g. 45x at 512 px).
         filtered : bool, default False
             Footprint queries: each sample answers for its share of the pixel
-            (``footprint`` = the shorter side of a pixel / ``spp``, :meth:`eval`): one sample
+            (``footprint`` = the longer side of a pixel / ``spp``, :meth:`eval`): one sample
             per pixel then shows the filtered appearance instead of aliased texels.
 
         Returns
@@ -628,7 +627,7 @@ class SynthesizedBTF:
         wv = np.broadcast_to(directions[0], (height, width, 3))
         wl = np.broadcast_to(directions[1], (height, width, 3))
         total = np.zeros((height, width, 3), dtype=np.float64)
-        footprint = min(abs(u1 - u0) / width, abs(v1 - v0) / height) / spp if filtered else None
+        footprint = max(abs(u1 - u0) / width, abs(v1 - v0) / height) / spp if filtered else None
         for sy in range(spp):
             for sx in range(spp):
                 u = u0 + (np.arange(width, dtype=np.float64) + (sx + 0.5) / spp) * ((u1 - u0) / width)

@@ -146,7 +146,7 @@ def _stratified_jitter(spp: int) -> np.ndarray:
 
 def plane_footprint(camera: PinholeCamera, directions: np.ndarray, height: int, width: int, spp: int = 1
                     ) -> np.ndarray:
-    """Footprint (uv units, :func:`dynbtf.synthesized.footprint_width`: the shorter pixel axis) of pixel
+    """Footprint (uv units, :func:`dynbtf.synthesized.footprint_width`: the longer pixel axis) of pixel
     samples on the plane ``z = 0``.
 
     ``directions (..., 3)`` are unit rays of :meth:`PinholeCamera.rays` that hit the plane. The
