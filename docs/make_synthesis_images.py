@@ -12,7 +12,8 @@ pixel averages more than :data:`MAX_TEXELS_PER_PIXEL` texels -- 8x, 25x and 45x 
 exemplar in 192 px; 25x and 45x box-filter a stochastic material to flat grey -- a detail panel
 follows: the centre :data:`DETAIL_REPEATS` x :data:`DETAIL_REPEATS` repeats of the same
 view at :data:`DETAIL_TEXELS_PER_PIXEL` texels per pixel, outlined in the full view),
-``synthesis_quality.json`` (the quality report of every method) and prints the report
+``synthesis_filtering.png`` (hist at 25x and 45x: point query | footprint query | 8 x 8
+supersampled, one query per pixel for the first two), ``synthesis_quality.json`` (the quality report of every method) and prints the report
 table plus the blending-exponent, decorrelation and tileable ablations (feature and RGB W1/std).
 """
 
@@ -83,19 +84,39 @@ def scale_panels(btf: SynthesizedBTF, corner: float, panel: int, texels: int, br
     return [outline(full, (lo, lo, hi, hi), bright), detail]
 
 
+def filtering(rep, out: Path, cos_light: float, panel: int) -> None:
+    """``synthesis_filtering.png``: hist at 25x and 45x of the unit square (rows), one point query per
+    pixel | one footprint query per pixel (``filtered=True``) | 8 x 8 point queries per pixel (the
+    supersampled reference), ``panel`` px per side."""
+    rows = []
+    for scale in (25.0, 45.0):
+        btf = SynthesizedBTF(rep, "hist", scale=scale)
+        panels = [btf.image(VIEW, LIGHT, (0.0, 0.0, 1.0, 1.0), panel, **kw) * cos_light
+                  for kw in ({}, {"filtered": True}, {"spp": 8})]
+        gap = np.ones((panel, 4, 3), dtype=np.float32)
+        rows.append(np.concatenate([panels[0], gap, panels[1], gap, panels[2]], axis=1))
+    grid = np.concatenate([rows[0], np.ones((4, rows[0].shape[1], 3), np.float32), rows[1]], axis=0)
+    save_image(out / "synthesis_filtering.png", grid, exposure=0.8 / float(np.percentile(rows[1], 99.5)))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("model")
     parser.add_argument("--out", default="docs/images")
     parser.add_argument("--panel", type=int, default=192, help="side of the full-view panels, pixels")
     parser.add_argument("--crops-only", action="store_true", help="only synthesis_crops.png")
+    parser.add_argument("--filtering-only", action="store_true", help="only synthesis_filtering.png")
     args = parser.parse_args()
     out = Path(args.out)
     rep, _ = load_model(args.model)
     cos_light = float(spherical_to_direction(np.array(LIGHT[0]), np.array(LIGHT[1]))[2])
+    if args.filtering_only:
+        filtering(rep, out, cos_light, args.panel)
+        return
     crops(rep, out, cos_light)
     if args.crops_only:
         return
+    filtering(rep, out, cos_light, args.panel)
     rows = []
     synthesizers = {}
     bright = 1e3  # the outline: clamps to white after any exposure

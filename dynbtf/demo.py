@@ -251,6 +251,7 @@ def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
     scales = SCALES[:2] if cfg.quick else SCALES
     out_dir = ctx.out / "synthesis"
     grid: dict[str, dict[str, Any]] = {}
+    filtered: dict[str, dict[str, Any]] = {}
     timings = {}
     jobs = [(m, s) for m in METHODS for s in scales]
     compile_seconds = {}
@@ -265,6 +266,12 @@ def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
         timings[f"{method}@{scale}x"] = time.perf_counter() - t0
         p = save_image(out_dir / f"{method}_{scale:02d}x.png", img)  # BTF values, like the measured images
         grid.setdefault(method, {})[str(scale)] = ctx.rel(p)
+        if scale >= 25:  # many texels per pixel: the footprint query shows the filtered appearance
+            t0 = time.perf_counter()
+            img = btf.image(view, light, (0.0, 0.0, float(scale), float(scale)), (res, res), filtered=True)
+            timings[f"{method}@{scale}x filtered"] = time.perf_counter() - t0  # includes the one-off level fit
+            p = save_image(out_dir / f"{method}_{scale:02d}x_filtered.png", img)
+            filtered.setdefault(method, {})[str(scale)] = ctx.rel(p)
     # an infinite plane at a grazing angle, per method: repetition shows as a grid towards the horizon
     previews = {}
     cam = grazing_camera(distance=4.0, height=1.6, fov=55.0, center=(0.5, 2.5))
@@ -275,7 +282,7 @@ def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
         img = render_preview(btf, cam, sun, resolution=pres, spp=1 if cfg.quick else 2, background=(0.55, 0.65, 0.8))
         previews[method] = ctx.rel(save_image(out_dir / f"grazing_{method}.png", img))
     quality = _synthesis_quality(ctx, rep)
-    return {"grid": grid, "scales": list(scales), "resolution": res, "view": list(view), "light": list(light),
+    return {"grid": grid, "filtered": filtered, "scales": list(scales), "resolution": res, "view": list(view), "light": list(light),
             "timings": timings, "compile_seconds": compile_seconds, "previews": previews, "quality": quality}
 
 

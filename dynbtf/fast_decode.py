@@ -197,7 +197,8 @@ def _angular_kernel(w_view, w_light, plane_h, plane_d, slope, out):
 
 def first_layer_preactivation(latent: np.ndarray, w_pos: np.ndarray, bias: np.ndarray, w_view: np.ndarray,
                               w_light: np.ndarray, plane_h: np.ndarray, plane_d: np.ndarray,
-                              out: np.ndarray | None = None, negative_slope: float | None = None) -> np.ndarray:
+                              out: np.ndarray | None = None, negative_slope: float | None = None,
+                              positional: np.ndarray | None = None) -> np.ndarray:
     """Layer-1 pre-activation ``(N, hidden)`` float32 of a Triple Plane decoder (or its LeakyReLU).
 
     Parameters
@@ -216,7 +217,17 @@ def first_layer_preactivation(latent: np.ndarray, w_pos: np.ndarray, bias: np.nd
         Output buffer.
     negative_slope : float, optional
         If given, return ``LeakyReLU(pre-activation)`` with this slope (fused: one pass less).
+    positional : float32 ``(N, hidden)``, optional
+        The positional part and bias already computed (e.g. with per-query weights): used
+        instead of ``latent @ w_pos + bias`` (then ``latent``, ``w_pos`` and ``bias`` are unused).
     """
+    if positional is not None:
+        out = np.ascontiguousarray(positional, dtype=np.float32)
+        _angular_kernel(np.ascontiguousarray(w_view, dtype=np.float32),
+                        np.ascontiguousarray(w_light, dtype=np.float32),
+                        np.ascontiguousarray(plane_h, dtype=np.float32), np.ascontiguousarray(plane_d, dtype=np.float32),
+                        np.float32(1.0 if negative_slope is None else negative_slope), out)
+        return out
     n = latent.shape[0]
     if out is None:
         out = np.empty((n, w_pos.shape[1]), dtype=np.float32)

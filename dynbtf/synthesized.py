@@ -24,6 +24,10 @@ Units and conventions
   (:meth:`~dynbtf.representations.base.Representation.visible_uv`), which costs
   up to ``relief depth x tan(theta_view) / step`` extra synthesized fetches per query
   (none at normal view).
+* ``footprint`` (optional) -- the side of the square of surface a query stands for, in ``uv``
+  units (a pixel's footprint): the answer approximates the BTF averaged over it (mip pyramid of
+  the synthesized plane, per-level inverse tables and per-level decoders fitted on first use;
+  :mod:`dynbtf.synthesis.mip`, "Footprint queries" in ``docs/synthesis.md``). ``None``: the point query.
 * Output -- linear RGB ``(..., 3)`` float32, excluding ``cos(theta_light)``
   (``pi f_r``); NumPy in, NumPy out; torch in, torch out.
 
@@ -53,6 +57,7 @@ on CUDA the synthesizers use their torch paths and the decoder its torch layers.
 
 from __future__ import annotations
 
+import weakref
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -62,13 +67,29 @@ import torch.nn.functional as F
 
 from .conventions import check_directions, spherical_to_direction
 from .errors import InputError, positive_number
-from .synthesis.base import Synthesizer, check_uv, make_synthesizer
+from .synthesis.base import Synthesizer, check_footprint, check_uv, make_synthesizer
 
-__all__ = ["SynthesizedBTF", "PRECISIONS"]
+__all__ = ["SynthesizedBTF", "PRECISIONS", "footprint_width"]
 
 #: Accepted ``precision`` values: dtype of decoder layers 2.. on the fast path.
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16}
 _POOLS: dict[int, ThreadPoolExecutor] = {}
+
+
+def footprint_width(duv_dx, duv_dy):
+    """Isotropic footprint (side of a square, uv units) of a pixel from its uv derivatives ``(..., 2)`` each.
+
+    The **longer** of the two screen-space derivative vectors (OpenGL's isotropic level of detail):
+    no texel the pixel covers is left out, at the price of some blur across the view at grazing
+    angles. On the grazing plane of ``benchmarks/bench_filtering.py`` (anisotropy up to ~50) FLIP
+    against the 256-spp reference was 0.030 with the longer axis, 0.032 with the geometric mean of
+    both, 0.037 with the shorter one; 1.25-1.8x the geometric mean gave 0.030 too. Returns ``(...)``
+    float64 NumPy or torch, as the input.
+    """
+    if isinstance(duv_dx, torch.Tensor):
+        return torch.maximum(torch.linalg.vector_norm(duv_dx, dim=-1), torch.linalg.vector_norm(duv_dy, dim=-1))
+    return np.maximum(np.linalg.norm(np.asarray(duv_dx, dtype=np.float64), axis=-1),
+                      np.linalg.norm(np.asarray(duv_dy, dtype=np.float64), axis=-1))
 
 
 def _eval_pool(workers: int) -> ThreadPoolExecutor:
@@ -86,9 +107,32 @@ def _single_numba_thread(fn, *args):
     return fn(*args)
 
 
+#: The per-level decoders' fit (:meth:`SynthesizedBTF.level_decoder_parameters`): positions and (view, light)
+#: pairs per level, jittered point queries averaged per footprint (a grid x grid), Adam steps, minibatch
+#: rows and rate, seed.
+LEVEL_FIT_QUERIES = 4096
+LEVEL_FIT_GRID = 8
+LEVEL_FIT_STEPS = 300
+LEVEL_FIT_BATCH = 1024
+LEVEL_FIT_LR = 3e-3
+LEVEL_FIT_SEED = 0
+
+#: Fitted per-level decoders by (model, method, parameters, precision, device): SynthesizedBTFs of one model
+#: and method (e.g. other seeds or scales: the fit is in exemplar repeats) fit once per process.
+_LEVEL_DECODERS: dict[tuple, tuple[Any, list[dict[str, Any]]]] = {}
+
 #: Rows per call of decoder layers 2..: torch's small (32-wide) linear layers ran ~3x faster per row
 #: at <= 16384 rows than at 32768+ (activations stay in cache; measured on a 2-core EPYC).
 _MLP_ROWS = 16384
+
+
+def _mlp(x: torch.Tensor, layers, slope: float) -> torch.Tensor:
+    """Linear layers ``[(weight, bias), ...]`` with LeakyReLU between them on ``x (N, in)`` -> float32."""
+    for k, (weight, bias) in enumerate(layers):
+        x = F.linear(x, weight, bias)
+        if k < len(layers) - 1:
+            x = F.leaky_relu(x, slope)
+    return x.float()
 
 
 def _same_device(a: torch.device, b: torch.device) -> bool:
@@ -137,6 +181,13 @@ class SynthesizedBTF:
         but absent raises :class:`InputError`). Default: where ``model`` is (a model file:
         the CPU). A representation on another device is copied there; the caller's stays
         where it is. The numba fast paths run on the CPU only: elsewhere all is torch.
+    level_decoders : bool, default True
+        Footprint queries decode each pyramid level with its own decoder (layers 2.. and layer 1's
+        positional weights),
+        fitted on first use so that decoding a level's filtered features matches the mean of
+        the point queries over its footprint (:meth:`level_decoder_parameters`; the decoder is
+        nonlinear: the plain decoder on filtered features is biased). Models without a
+        foldable decoder decode every level with their own decoder.
     **params
         Method parameters (see each synthesizer). For ``hex`` the default
         luminance is the model's decoded brightness at normal view and light.
@@ -153,7 +204,7 @@ class SynthesizedBTF:
 
     def __init__(self, model, synthesizer: str | Synthesizer = "hist", scale: float = 1.0, seed: int = 0, *,
                  chunk_size: int = 32768, precision: str = "fp32", workers: int | None = None,
-                 device: str | torch.device | None = None, **params) -> None:
+                 device: str | torch.device | None = None, level_decoders: bool = True, **params) -> None:
         if device is not None:
             from .device import resolve_device
 
@@ -205,6 +256,8 @@ class SynthesizedBTF:
 
         # representations with relief answer at the visible point, marched through the synthesized height
         self._relief = type(model).visible_uv is not Representation.visible_uv
+        self._level_layers: list[dict[str, Any]] | None = None
+        self.level_decoders = bool(level_decoders) and self._fold is not None
 
     # ------------------------------------------------------------ set-up
     def _decoded_luminance(self, plane: torch.Tensor) -> torch.Tensor:
@@ -231,6 +284,7 @@ class SynthesizedBTF:
             dtype = PRECISIONS[self.precision]
             rest = [(layer.weight.detach().to(dtype), layer.bias.detach().to(dtype)) for layer in decoder.rest]
             fold = {"weight": (matrix @ w_pos.T).contiguous(), "bias": offset @ w_pos.T, "rest": rest,
+                    "first_bias": decoder.first.bias.detach().float(),
                     "slope": float(decoder.negative_slope), "dtype": dtype, "planes": None, "fast": fast}
             if fast.angular_planes is not None and self.device.type == "cpu":
                 from .fast_decode import fold_angular_planes
@@ -273,40 +327,190 @@ class SynthesizedBTF:
                 raise InputError(str(e)) from None
         return flat, flat[:, 2] >= 0
 
-    def _decode_chunk(self, uv: torch.Tensor, wv: torch.Tensor, wl: torch.Tensor) -> torch.Tensor:
+    def texels_per_uv(self) -> float:
+        """Texels of the exemplar per unit of the user's ``uv`` (``scale`` x the exemplar's side;
+        the geometric mean of both sides for a non-square exemplar): converts a footprint to texels."""
+        h, w = self.synthesizer.exemplar.shape[:2]
+        return self.scale * float(np.sqrt(h * w))
+
+    def _decode_chunk(self, uv: torch.Tensor, wv: torch.Tensor, wl: torch.Tensor,
+                      footprint: torch.Tensor | None = None) -> torch.Tensor:
         fold = self._fold
         points = uv * self.scale  # exemplar repeats
         if self._relief:  # fetch at the visible point of the synthesized height field
             points = self.model.visible_uv(points, wv, self.synthesizer)
+        texels = None if footprint is None else footprint * self.texels_per_uv()
+        if texels is not None and fold is not None and self.level_decoders:
+            # queries sorted by their level decoder: every per-level step below works on contiguous runs
+            levels = self.nearest_level(texels)
+            order = np.argsort(levels, kind="stable")
+            runs = np.flatnonzero(np.diff(levels[order])) + 1
+            bounds = [(int(a), int(b), int(levels[order[a]])) for a, b in
+                      zip(np.concatenate([[0], runs]), np.concatenate([runs, [len(levels)]]))]
+            perm = torch.from_numpy(order).to(points.device)
+            rgb = self._decode_sorted(points[perm], wv[perm.to(wv.device)], wl[perm.to(wl.device)],
+                                      texels[torch.from_numpy(order)], bounds)
+            return torch.empty_like(rgb).index_copy_(0, perm.to(rgb.device), rgb)
         if fold is None:
-            features = self.synthesizer(points)
+            features = self.synthesizer(points, texels)
             return self.model.decode(features, wv, wl).float()
-        latent = self.synthesizer.latent(points).to(self.device)
+        latent = (self.synthesizer.latent(points) if texels is None
+                  else self.synthesizer.filtered_latent(points, texels)).to(self.device)
+        return self._decode_latent(latent, wv, wl)
+
+    def _decode_latent(self, latent: torch.Tensor, wv: torch.Tensor, wl: torch.Tensor,
+                       positional: torch.Tensor | None = None, bounds=None) -> torch.Tensor:
+        """Decode latents ``(N, C)``: the decoder's layers, or with ``bounds`` (runs ``(start, stop, level)``
+        of queries sorted by level) and their layer-1 ``positional`` pre-activation (with layer 1's bias on the fused
+        CPU path, without it on the torch path), each run's level decoder."""
+        fold = self._fold
         if fold["planes"] is not None:  # fused CPU kernel: angular planes pre-multiplied by layer 1, LeakyReLU
             from .fast_decode import first_layer_preactivation
 
             x = torch.from_numpy(first_layer_preactivation(
                 latent.numpy(), *fold["numpy"], wv.float().numpy(), wl.float().numpy(), *fold["planes"],
-                negative_slope=fold["slope"]))
+                negative_slope=fold["slope"],
+                positional=None if positional is None else positional.numpy()))
         else:
             fast = fold["fast"]
-            pre = torch.addmm(fold["bias"], latent, fold["weight"])
+            pre = torch.addmm(fold["bias"], latent, fold["weight"]) if positional is None else positional
             pre += fast.decoder.first_layer_angular(fast.angular_features(wv, wl).float())
             x = F.leaky_relu(pre, fold["slope"])
         x = x.to(fold["dtype"])
+        if bounds is not None:
+            params = self.level_decoder_parameters()
+            out = torch.empty(x.shape[0], 3, dtype=torch.float32, device=x.device)
+            for a, b, level in bounds:
+                for start in range(a, b, _MLP_ROWS):
+                    stop = min(b, start + _MLP_ROWS)
+                    out[start:stop] = _mlp(x[start:stop], params[level]["rest"], fold["slope"])
+            return out
         return torch.cat([self._decode_rest(block) for block in x.split(_MLP_ROWS)]) if len(x) > _MLP_ROWS \
             else self._decode_rest(x)
 
+    # ------------------------------------------------------------ footprint queries: per-level decoders
+    def level_decoder_parameters(self) -> list[dict[str, Any]]:
+        """Per-level decoder parameters (fitted once, on the first footprint query), level 0 the decoder's own.
+
+        Entry ``l``: ``weight (C, hidden)`` and ``bias (hidden,)`` of layer 1's positional part (with
+        the synthesizer's output map folded in, without the decoder's layer-1 bias) and ``rest``,
+        the ``(weight, bias)`` of layers 2.. (float32). Level ``l >= 1`` decodes the footprints whose
+        nearest pyramid level is ``l`` (:meth:`nearest_level`) and is fine-tuned from the decoder
+        (mean squared error, Adam, seeded; layer 1's angular part kept) so that, on the filtered
+        latent of such footprints, it matches the mean of ``LEVEL_FIT_GRID**2`` jittered point
+        queries over each footprint, at ``LEVEL_FIT_QUERIES`` random positions and (view, light)
+        pairs. Why: the decoder is nonlinear -- decoding mean features is not the mean decoded
+        colour (on a fitted leather ~6% darker, and the error varies with the directions;
+        ``docs/synthesis.md``).
+        """
+        if self._level_layers is None:
+            import json
+
+            key = (id(self.model), self.synthesizer.name, json.dumps(self.synthesizer.parameters(), sort_keys=True,
+                                                                      default=str), self.precision, str(self.device))
+            cached = _LEVEL_DECODERS.get(key)
+            if cached is None or cached[0]() is not self.model:
+                cached = (weakref.ref(self.model), self._fit_level_decoders())
+                _LEVEL_DECODERS[key] = cached
+            self._level_layers = [{**p, "bias_total": p["bias"] + self._fold["first_bias"]} for p in cached[1]]
+        return self._level_layers
+
+    def nearest_level(self, texels: torch.Tensor) -> np.ndarray:
+        """Pyramid level ``(N,)`` int whose texel width is nearest (in log scale) to each footprint (texels)."""
+        lower, upper = self.synthesizer.level_of_detail()(texels.cpu().numpy())
+        return (lower + (upper >= 0.5)).astype(np.int64)
+
+    def _decode_sorted(self, points: torch.Tensor, wv: torch.Tensor, wl: torch.Tensor, texels: torch.Tensor,
+                       bounds) -> torch.Tensor:
+        """Footprint queries sorted by level decoder (runs ``bounds``): filtered latent, each run's decoder."""
+        params = self.level_decoder_parameters()
+        latent = self.synthesizer.filtered_latent(points, texels).to(self.device)
+        key = "bias" if self._fold["planes"] is None else "bias_total"  # the fused kernel: with layer 1's bias
+        positional = torch.empty(latent.shape[0], params[0]["weight"].shape[1], dtype=torch.float32,
+                                 device=latent.device)
+        for a, b, level in bounds:
+            torch.addmm(params[level][key], latent[a:b], params[level]["weight"], out=positional[a:b])
+        return self._decode_latent(latent, wv, wl, positional, bounds)
+
+    def _fit_level_decoders(self) -> list[dict[str, Any]]:
+        fold = self._fold
+        widths = self.synthesizer.level_of_detail().widths
+        fast = fold["fast"]
+        decoder = fast.decoder
+        dtype = fold["dtype"]
+        rng = np.random.default_rng(LEVEL_FIT_SEED)
+        n, grid = LEVEL_FIT_QUERIES, LEVEL_FIT_GRID
+        density = self.texels_per_uv() / self.scale  # texels per repeat
+        rest0 = [(layer.weight.detach().float(), layer.bias.detach().float()) for layer in decoder.rest]
+        params = [{"weight": fold["weight"].float(), "bias": fold["bias"].float(),
+                   "rest": [(w.to(dtype), b.to(dtype)) for w, b in rest0]}]
+        from .fused_mlp import single_intra_op_thread
+        from .progress import progress_bar
+
+        for level in progress_bar(range(1, len(widths)), desc="per-level decoders", unit="level",
+                                  disable=len(widths) < 6):
+            with torch.no_grad():
+                # footprints whose nearest level is this one (the top level: up to 4x its width)
+                hi = 4.0 * widths[level] if level == len(widths) - 1 else np.sqrt(widths[level] * widths[level + 1])
+                texels = np.exp(rng.uniform(np.log(np.sqrt(widths[level - 1] * widths[level])), np.log(hi), n))
+                centres = rng.random((n, 2)) * 64.0
+                cos_t = rng.uniform(0.01, 1.0, (2, n))  # grazing views included: where filtering matters most
+                phi = rng.uniform(0.0, 2 * np.pi, (2, n))
+                sin_t = np.sqrt(1.0 - cos_t ** 2)
+                w = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)  # (2, n, 3)
+                wv = torch.from_numpy(w[0]).to(self.device, torch.float32)
+                wl = torch.from_numpy(w[1]).to(self.device, torch.float32)
+                target = torch.zeros(n, 3, dtype=torch.float32, device=self.device)
+                side = (texels / density)[:, None]  # repeats
+                for i in range(grid):  # the footprint's mean: one jittered point query per cell of a grid x grid
+                    for j in range(grid):
+                        jitter = (np.array([j, i]) + rng.random((n, 2))) / grid - 0.5
+                        points = torch.from_numpy((centres + side * jitter) / self.scale).to(self.device)
+                        target += self._decode_chunk(points, wv, wl)
+                target /= grid * grid
+                latent = self.synthesizer.filtered_latent(torch.from_numpy(centres).to(self.device),
+                                                          torch.from_numpy(texels)).to(self.device)
+                angular = decoder.first_layer_angular(fast.angular_features(wv, wl).float())
+            weight = fold["weight"].float().clone().requires_grad_()
+            bias = fold["bias"].float().clone().requires_grad_()
+            rest = [(w_.clone().requires_grad_(), b_.clone().requires_grad_()) for w_, b_ in rest0]
+            # eps well above float noise: where the plain decoder is already exact (e.g. a constant plane) the
+            # gradients are rounding noise, which Adam's normalization would otherwise turn into full-size steps
+            optimizer = torch.optim.Adam([weight, bias, *[p for pair in rest for p in pair]], lr=LEVEL_FIT_LR,
+                                         eps=1e-6)
+            schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, LEVEL_FIT_STEPS)
+
+            def loss_of(rows):
+                x = F.leaky_relu(torch.addmm(bias, latent[rows], weight) + angular[rows], decoder.negative_slope)
+                return ((_mlp(x, rest, decoder.negative_slope) - target[rows]) ** 2).mean()
+
+            every = slice(None)
+            with torch.no_grad():
+                plain_loss = float(loss_of(every))
+            batches = torch.from_numpy(rng.integers(0, n, (LEVEL_FIT_STEPS, min(n, LEVEL_FIT_BATCH))))
+            # one torch thread: the small layers' backward passes ran ~10x slower on two threads of a loaded
+            # 2-core machine (OpenMP spin-waiting), as the evaluation does (fused_mlp.single_intra_op_thread)
+            with single_intra_op_thread():
+                for rows in batches:
+                    loss = loss_of(rows)
+                    optimizer.zero_grad()
+                    loss.backward()
+                    optimizer.step()
+                    schedule.step()
+            with torch.no_grad():
+                fitted_loss = float(loss_of(every))
+            if fitted_loss < plain_loss:
+                params.append({"weight": weight.detach(), "bias": bias.detach(),
+                               "rest": [(w_.detach().to(dtype), b_.detach().to(dtype)) for w_, b_ in rest]})
+            else:  # the plain decoder is as good (e.g. a constant plane): keep it
+                params.append(params[0])
+        return params
+
     def _decode_rest(self, x: torch.Tensor) -> torch.Tensor:
         """Decoder layers 2.. on first-layer activations ``(N, hidden)`` -> RGB float32."""
-        fold = self._fold
-        for k, (weight, bias) in enumerate(fold["rest"]):
-            x = F.linear(x, weight, bias)
-            if k < len(fold["rest"]) - 1:
-                x = F.leaky_relu(x, fold["slope"])
-        return x.float()
+        return _mlp(x, self._fold["rest"], self._fold["slope"])
 
-    def eval(self, uv, w_view, w_light):
+    def eval(self, uv, w_view, w_light, footprint=None):
         """BTF value (linear RGB ``(..., 3)`` float32, excluding cos(theta_light)).
 
         Parameters
@@ -316,6 +520,14 @@ class SynthesizedBTF:
         w_view, w_light : ``(..., 3)``
             Unit directions in the local frame, same batch shape as ``uv``. Rows
             with either direction below the horizon (``z < 0``) return zero.
+        footprint : float or ``(...)`` array, optional
+            The surface area each query stands for, as the side of a square in the user's ``uv``
+            units (a pixel's footprint; from uv derivatives with :func:`footprint_width`). The
+            answer approximates the BTF averaged over that square (the supersampled value):
+            every synthesized sample is read from the mip level of the footprint (trilinear),
+            see :mod:`dynbtf.synthesis.mip`. Finite and non-negative, any size (beyond the
+            exemplar: the material's mean appearance). Up to one texel (``1 / texels_per_uv()``)
+            it is the point query to float rounding. ``None`` (default): the point query.
 
         Returns
         -------
@@ -327,6 +539,9 @@ class SynthesizedBTF:
         wv, up_v = self._check_directions(w_view, "w_view", batch)
         wl, up_l = self._check_directions(w_light, "w_light", batch)
         flat = uv.reshape(-1, 2).to(torch.float64)
+        fp = None if footprint is None else check_footprint(footprint, batch).reshape(-1)
+        if fp is not None and self.level_decoders:
+            self.level_decoder_parameters()  # fitted once, before the worker threads need it
         n = flat.shape[0]
         out = torch.zeros(n, 3, dtype=torch.float32, device=self.device)
         visible = up_v & up_l
@@ -339,7 +554,7 @@ class SynthesizedBTF:
                 return
             with torch.no_grad():
                 rgb = self._decode_chunk(flat[sl].to(self.device), wv[sl].to(self.device, dtype),
-                                         wl[sl].to(self.device, dtype))
+                                         wl[sl].to(self.device, dtype), None if fp is None else fp[sl])
             out[sl] = rgb if bool(vis.all()) else torch.where(vis.to(self.device)[:, None], rgb, torch.zeros_like(rgb))
 
         workers = self.workers if self._fold is not None and self._fold["planes"] is not None else 1
@@ -360,7 +575,7 @@ class SynthesizedBTF:
     __call__ = eval
 
     def image(self, view=(0.0, 0.0), light=(0.0, 0.0), uv_rect=(0.0, 0.0, 1.0, 1.0), resolution=512,
-              spp: int = 1) -> np.ndarray:
+              spp: int = 1, filtered: bool = False) -> np.ndarray:
         """A flat sample under one directional (view, light) pair, like the paper's Figs. 5-6.
 
         Parameters
@@ -376,6 +591,10 @@ class SynthesizedBTF:
         spp : int, default 1
             Supersampling: the mean of ``spp x spp`` samples on a regular sub-pixel grid
             (a box filter; use it when a pixel covers many texels, e.g. 45x at 512 px).
+        filtered : bool, default False
+            Footprint queries: each sample answers for its share of the pixel
+            (``footprint`` = the longer side of a pixel / ``spp``, :meth:`eval`): one sample
+            per pixel then shows the filtered appearance instead of aliased texels.
 
         Returns
         -------
@@ -408,12 +627,13 @@ class SynthesizedBTF:
         wv = np.broadcast_to(directions[0], (height, width, 3))
         wl = np.broadcast_to(directions[1], (height, width, 3))
         total = np.zeros((height, width, 3), dtype=np.float64)
+        footprint = max(abs(u1 - u0) / width, abs(v1 - v0) / height) / spp if filtered else None
         for sy in range(spp):
             for sx in range(spp):
                 u = u0 + (np.arange(width, dtype=np.float64) + (sx + 0.5) / spp) * ((u1 - u0) / width)
                 v = v0 + (np.arange(height, dtype=np.float64) + (sy + 0.5) / spp) * ((v1 - v0) / height)
                 uu, vv = np.meshgrid(u, v)
-                total += self.eval(np.stack([uu, vv], axis=-1), wv, wl)
+                total += self.eval(np.stack([uu, vv], axis=-1), wv, wl, footprint=footprint)
         return (total / (spp * spp)).astype(np.float32)
 
     def tiled(self) -> "SynthesizedBTF":

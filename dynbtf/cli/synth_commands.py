@@ -68,6 +68,9 @@ def synth(
                                             "decoded and synthesized (the numba fast paths are the CPU's)."),
     spp: int = typer.Option(1, help="Supersampling: spp x spp samples per pixel (box filter) against aliasing "
                                     "when a pixel covers many texels."),
+    filtered: bool = typer.Option(False, "--filtered", help="Footprint queries: each sample answers for its share "
+                                                            "of the pixel (the material's filtered look from afar "
+                                                            "at one sample per pixel, instead of aliased texels)."),
     center: str = typer.Option("0.5,0.5", help="uv of the image centre (the image spans one uv unit), "
                                                "e.g. 1e6,1e6 to look far from the origin; |uv| * scale must stay "
                                                "below 2**52 (~4.5e15) exemplar repeats."),
@@ -140,7 +143,7 @@ def synth(
     if output is not None:
         btf = build(method)
         img = btf.image(view=view_dir, light=light_dir, uv_rect=(cu - 0.5, cv - 0.5, cu + 0.5, cv + 0.5),
-                        resolution=resolution, spp=spp)
+                        resolution=resolution, spp=spp, filtered=filtered)
         if cosine:
             img = img * max(float(spherical_to_direction(light_dir[0], light_dir[1])[2]), 0.0)
         save_image(output, img, exposure=exposure)

@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["PinholeCamera", "DirectionalLight", "PointLight", "render_preview", "grazing_camera", "top_camera"]
+__all__ = ["PinholeCamera", "DirectionalLight", "PointLight", "render_preview", "plane_footprint", "grazing_camera", "top_camera"]
 
 
 def _unit(v, name):
@@ -74,7 +74,8 @@ class PinholeCamera:
     def rays(self, height: int, width: int, jitter: np.ndarray | None = None):
         """Ray origins ``(3,)`` and unit directions ``(height, width, 3)`` through pixel centres (+ jitter).
 
-        ``jitter`` ``(2,)`` in pixels, in ``[-0.5, 0.5)``, shifts every ray (for supersampling).
+        ``jitter`` ``(2,)`` in pixels, in ``[-0.5, 0.5)``, shifts every ray (for supersampling); ``(height,
+        width, 2)`` shifts each pixel's ray on its own.
         """
         if not 0.0 < float(self.fov) < 180.0:
             raise InputError(f"camera fov: expected degrees in (0, 180), got {self.fov}")
@@ -87,11 +88,24 @@ class PinholeCamera:
         true_up = np.cross(right, forward)
         half_h = math.tan(math.radians(self.fov) / 2.0)
         half_w = half_h * width / height
-        jx, jy = (0.0, 0.0) if jitter is None else (float(jitter[0]), float(jitter[1]))
-        xs = ((np.arange(width) + 0.5 + jx) / width * 2.0 - 1.0) * half_w
-        ys = (1.0 - (np.arange(height) + 0.5 + jy) / height * 2.0) * half_h
-        d = forward + xs[None, :, None] * right + ys[:, None, None] * true_up
+        jitter = np.zeros(2) if jitter is None else np.asarray(jitter, dtype=np.float64)
+        jx, jy = (jitter[0], jitter[1]) if jitter.ndim == 1 else (jitter[..., 0], jitter[..., 1])
+        xs = ((np.arange(width)[None, :] + 0.5 + jx) / width * 2.0 - 1.0) * half_w
+        ys = (1.0 - (np.arange(height)[:, None] + 0.5 + jy) / height * 2.0) * half_h
+        xs, ys = np.broadcast_to(xs, (height, width)), np.broadcast_to(ys, (height, width))
+        d = forward + xs[..., None] * right + ys[..., None] * true_up
         return o, d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+    def pixel_steps(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+        """How the (unnormalized) ray direction ``forward + x right + y up`` of :meth:`rays` changes
+        per pixel along the image's columns and rows: two 3-vectors (ray differentials)."""
+        o = np.asarray(self.origin, dtype=np.float64).reshape(3)
+        forward = _unit(np.asarray(self.target, dtype=np.float64) - o, "camera target - origin")
+        right = np.cross(forward, _unit(self.up, "camera up"))
+        right /= np.linalg.norm(right)
+        true_up = np.cross(right, forward)
+        half_h = math.tan(math.radians(self.fov) / 2.0)
+        return right * (2.0 * half_h * width / height / width), -true_up * (2.0 * half_h / height)
 
 
 @dataclass(frozen=True)
@@ -130,8 +144,36 @@ def _stratified_jitter(spp: int) -> np.ndarray:
     return np.asarray(g[:spp], dtype=np.float64)
 
 
+def plane_footprint(camera: PinholeCamera, directions: np.ndarray, height: int, width: int, spp: int = 1
+                    ) -> np.ndarray:
+    """Footprint (uv units, :func:`dynbtf.synthesized.footprint_width`: the longer pixel axis) of pixel
+    samples on the plane ``z = 0``.
+
+    ``directions (..., 3)`` are unit rays of :meth:`PinholeCamera.rays` that hit the plane. The
+    hit point ``p = o - o_z d / d_z`` moves per pixel by ``t (dD - d dD_z / d_z)`` (ray differentials
+    transferred to the plane, ``t`` the hit distance, ``dD`` the per-pixel change of the ray direction
+    over its length); with ``spp`` samples per pixel each covers ``1 / sqrt(spp)`` of the pixel's side.
+    """
+    from ..synthesized import footprint_width
+
+    o_z = float(np.asarray(camera.origin, dtype=np.float64).reshape(3)[2])
+    step_x, step_y = camera.pixel_steps(height, width)
+    # |D| of the unnormalized direction: D = d |D| and D . forward = 1
+    forward = _unit(np.asarray(camera.target, dtype=np.float64) - np.asarray(camera.origin, dtype=np.float64),
+                    "camera target - origin")
+    length = 1.0 / (directions @ forward)
+    t = -o_z / directions[..., 2]
+    derivatives = []
+    for step in (step_x, step_y):
+        dd = step[None, :] / length[..., None]
+        dp = t[..., None] * (dd - directions * (dd[..., 2:3] / directions[..., 2:3]))
+        derivatives.append(dp[..., :2])
+    return footprint_width(*derivatives) / math.sqrt(spp)
+
+
 def render_preview(btf, camera: PinholeCamera, light, *, resolution=(256, 256), spp: int = 1,
-                   background=(0.0, 0.0, 0.0), progress: bool = False) -> np.ndarray:
+                   background=(0.0, 0.0, 0.0), progress: bool = False, filtered: bool = False,
+                   jitter_seed: int | None = None) -> np.ndarray:
     """Render the infinite plane ``z = 0`` covered by ``btf``.
 
     Parameters
@@ -150,6 +192,13 @@ def render_preview(btf, camera: PinholeCamera, light, *, resolution=(256, 256), 
         Colour of pixels whose ray misses the plane.
     progress : bool
         Show a tqdm bar over the ``spp`` passes.
+    filtered : bool, default False
+        Footprint queries: each sample passes ``footprint=`` (its share of the pixel on the
+        plane, :func:`plane_footprint`) to ``btf.eval``, so that one sample per pixel shows the
+        filtered appearance instead of aliased texels (far away and at grazing angles).
+    jitter_seed : int, optional
+        Each pixel's samples at independent random positions in the pixel (seeded) instead of
+        the stratified grid shared by all pixels: a stochastic box filter.
 
     Returns
     -------
@@ -170,8 +219,12 @@ def render_preview(btf, camera: PinholeCamera, light, *, resolution=(256, 256), 
     background = np.asarray(background, dtype=np.float32).reshape(3)
     acc = np.zeros((height, width, 3), dtype=np.float64)
     from ..progress import progress_bar
+    rng = None if jitter_seed is None else np.random.default_rng(jitter_seed)
     for jitter in progress_bar(_stratified_jitter(int(spp)), desc="preview", unit="pass", disable=not progress):
-        o, d = camera.rays(height, width, jitter)
+        if rng is None:
+            o, d = camera.rays(height, width, jitter)
+        else:
+            o, d = camera.rays(height, width, rng.random((height, width, 2)) - 0.5)
         hit = d[..., 2] < -1e-12
         t = np.where(hit, -o[2] / np.where(hit, d[..., 2], -1.0), 0.0)
         points = (o + t[..., None] * d)[hit]
@@ -182,7 +235,8 @@ def render_preview(btf, camera: PinholeCamera, light, *, resolution=(256, 256), 
         rgb = np.zeros((int(hit.sum()), 3), dtype=np.float64)
         if lit.any():
             uv = points[lit][:, :2]
-            value = _eval(btf, uv, w_view[lit], w_light[lit])
+            footprint = plane_footprint(camera, d[hit][lit], height, width, int(spp)) if filtered else None
+            value = _eval(btf, uv, w_view[lit], w_light[lit], footprint)
             rgb[lit] = value * (cos_l[lit] * irradiance[lit])[:, None]
         img = np.empty((height, width, 3), dtype=np.float64)
         img[:] = background
@@ -191,14 +245,20 @@ def render_preview(btf, camera: PinholeCamera, light, *, resolution=(256, 256), 
     return (acc / int(spp)).astype(np.float32)
 
 
-def _eval(btf, uv, w_view, w_light) -> np.ndarray:
-    """Call ``btf.eval`` with NumPy or (on TypeError/AttributeError) torch inputs; return float64 ``(N, 3)``."""
+def _eval(btf, uv, w_view, w_light, footprint=None) -> np.ndarray:
+    """Call ``btf.eval`` with NumPy or (on TypeError/AttributeError) torch inputs; return float64 ``(N, 3)``.
+
+    ``footprint`` (N,) is passed only when given (BTFs without footprint queries work unfiltered).
+    """
+    extra = {} if footprint is None else {"footprint": footprint}
     try:
-        out = btf.eval(uv, w_view, w_light)
+        out = btf.eval(uv, w_view, w_light, **extra)
     except (TypeError, AttributeError):
         import torch
 
-        out = btf.eval(torch.from_numpy(uv), torch.from_numpy(w_view).float(), torch.from_numpy(w_light).float())
+        extra = {k: torch.from_numpy(v) for k, v in extra.items()}
+        out = btf.eval(torch.from_numpy(uv), torch.from_numpy(w_view).float(), torch.from_numpy(w_light).float(),
+                       **extra)
     if hasattr(out, "detach"):
         out = out.detach().cpu().numpy()
     return np.asarray(out, dtype=np.float64).reshape(-1, 3)

@@ -158,12 +158,20 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
                   f"each image spans N x N exemplar repeats at {syn.get('resolution')} x {syn.get('resolution')} pixels, one query per pixel "
                   "(at 25x and 45x several texels fall in a pixel and the one query shows one of them: the "
                   "fine noise there is aliasing of point samples, not the material's look from afar; large-scale "
-                  "repetition -- or its absence -- is what these panels show). "
+                  "repetition -- or its absence -- is what these panels show). At 25x and 45x the same views follow "
+                  "as footprint queries (SynthesizedBTF.eval(..., footprint=pixel size)), unfiltered | filtered: the "
+                  "filtered panel shows the material's appearance from afar at the same one query per pixel. "
                   "Every texel is computed on demand from its uv: nothing is pre-generated.")
         for m in methods:
             row = syn["grid"].get(m, {})
             r.section(METHOD_TITLES.get(m, m), level=3)
             r.images([(img(row[str(s)]), f"{s}x") for s in syn.get("scales", []) if str(s) in row], width=300)
+            filtered = syn.get("filtered", {}).get(m, {})
+            if filtered:
+                pairs = [(img(p), f"{s}x, {kind}") for s in syn.get("scales", []) if str(s) in filtered
+                         for p, kind in ((row[str(s)], "unfiltered (point query)"),
+                                         (filtered[str(s)], "filtered (footprint query)"))]
+                r.images(pairs, width=300)
         q = syn.get("quality", [])
         if q:
             r.table(q, caption="Synthesis quality (dynbtf.synthesis.quality), measured on an area of N x N "

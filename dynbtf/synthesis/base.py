@@ -41,6 +41,7 @@ __all__ = [
     "make_synthesizer",
     "synthesizer_class",
     "check_uv",
+    "check_footprint",
     "wrapped_texel_position",
     "MIN_EXEMPLAR_TEXELS",
     "MAX_REPEATS",
@@ -123,6 +124,28 @@ def check_uv(uv, name: str = "uv", scale: float = 1.0) -> torch.Tensor:
                      f"no fraction of a repeat beyond), got {got} ({bad} position(s) out of range)")
 
 
+def check_footprint(footprint, batch, name: str = "footprint") -> torch.Tensor:
+    """Validate per-query footprints: a scalar or an array of shape ``batch`` -> float64 tensor of shape ``batch``.
+
+    Values must be finite and non-negative (any size: beyond the exemplar is its mean appearance);
+    anything else raises :class:`InputError` naming ``name``.
+    """
+    try:
+        value = footprint if isinstance(footprint, torch.Tensor) else torch.from_numpy(np.array(footprint, dtype=np.float64))
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{name}: expected a non-negative float or an array of shape {tuple(batch)} ({e})") from None
+    value = value.detach().to(torch.float64)
+    if value.ndim and tuple(value.shape) != tuple(batch):
+        raise InputError(f"{name}: expected a scalar or shape {tuple(batch)} (one width per query), "
+                         f"got shape {tuple(value.shape)}")
+    if value.numel() and (not float(value.min()) >= 0.0 or not np.isfinite(float(value.max()))):  # NaN fails too
+        bad = ~torch.isfinite(value) | (value < 0)
+        first = float(value.reshape(-1)[bad.reshape(-1)][0])
+        raise InputError(f"{name}: {int(bad.sum())} value(s) negative, NaN or infinite (e.g. {first!r}); "
+                         "expected finite widths >= 0")
+    return value.expand(tuple(batch)).cpu()
+
+
 def wrapped_texel_position(whole: torch.Tensor, frac: torch.Tensor, density: int, period: int) -> torch.Tensor:
     """Exact texel coordinate ``(whole + frac) * density`` modulo ``period``, float64 in ``[0, period)``.
 
@@ -190,12 +213,20 @@ class Synthesizer(abc.ABC):
     def device(self) -> torch.device:
         return self.exemplar.device
 
-    def __call__(self, uv) -> torch.Tensor:
-        """Synthesized features ``(..., C)`` float32 at ``uv (..., 2)`` (exemplar repeats, any real value)."""
+    def __call__(self, uv, footprint=None) -> torch.Tensor:
+        """Synthesized features ``(..., C)`` float32 at ``uv (..., 2)`` (exemplar repeats, any real value).
+
+        ``footprint`` (optional, ``(...)``: texels of the original exemplar per query, finite and
+        non-negative) answers the average over a square of that side instead of the point
+        (:meth:`filtered_latent`).
+        """
         uv = check_uv(uv).to(self.device)
         batch = uv.shape[:-1]
         flat = uv.reshape(-1, 2).to(torch.float64)
-        latent = self.latent(flat)
+        if footprint is None:
+            latent = self.latent(flat)
+        else:
+            latent = self.filtered_latent(flat, check_footprint(footprint, batch).reshape(-1))
         matrix, offset = self.output_map()
         out = latent if matrix is None else latent @ matrix.to(latent.dtype) + offset.to(latent.dtype)
         return out.reshape(*batch, self.channels)
@@ -204,6 +235,18 @@ class Synthesizer(abc.ABC):
     @abc.abstractmethod
     def latent(self, uv: torch.Tensor) -> torch.Tensor:
         """Synthesized values before the output map: ``uv (N, 2)`` float64 -> ``(N, C)`` float32."""
+
+    def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
+        """:meth:`latent` averaged over a square footprint of ``footprint (N,)`` texels (of the original
+        exemplar) per query: ``uv (N, 2)`` float64 -> ``(N, C)`` float32 (:mod:`dynbtf.synthesis.mip`).
+
+        Footprints of at most one texel give :meth:`latent` (to float rounding).
+        """
+        raise InputError(f"synthesis method {self.name!r} has no footprint query")
+
+    def level_of_detail(self):
+        """The :class:`~dynbtf.synthesis.mip.LevelOfDetail` of the footprint query's pyramid, or None."""
+        return None
 
     def output_map(self) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         """``(matrix (C, C), offset (C,))`` with ``features = latent @ matrix + offset``, or ``(None, None)``.

@@ -35,6 +35,7 @@ from ..texture import fetch_wrap
 from .base import Synthesizer, register_synthesizer, wrapped_texel_position
 from .hash import vertex_offsets
 from .lattice import split_uv, triangle_lattice
+from .mip import LevelOfDetail, area_pyramid
 from .tileable import make_tileable, seam_discontinuity
 
 __all__ = ["LatticeBlending", "LinearBlending", "LatticePlane", "SEAM_THRESHOLD"]
@@ -127,15 +128,21 @@ class LatticeBlending(Synthesizer):
     def plane_channels(self) -> int:
         return self.channels
 
-    def blend(self, samples: torch.Tensor, barycentrics: torch.Tensor, uv_samples: torch.Tensor) -> torch.Tensor:
+    def blend(self, samples: torch.Tensor, barycentrics: torch.Tensor, uv_samples: torch.Tensor,
+              level: int = 0) -> torch.Tensor:
         """Reference blend of ``samples (N, 3, C')`` with ``barycentrics (N, 3)`` float64 -> ``(N, C)`` float32.
 
-        ``uv_samples (N, 3, 2)`` are the wrapped read positions (for extra fetches).
+        ``uv_samples (N, 3, 2)`` are the wrapped read positions (for extra fetches); ``level`` is
+        the pyramid level the samples were read from (0: the point query; see :meth:`filtered_latent`).
         """
         return (barycentrics.to(samples.dtype)[..., None] * samples).sum(-2)
 
     def kernel_arguments(self) -> dict[str, Any]:
         """Keyword arguments of :func:`dynbtf.synthesis.kernels.lattice_blend` besides uv/plane/density/seed."""
+        return {}
+
+    def filter_tables(self, levels: list[torch.Tensor]) -> dict[str, Any]:
+        """Method-specific per-level tables of the footprint query, built once from the read plane's pyramid."""
         return {}
 
     # ------------------------------------------------------------ evaluation
@@ -181,6 +188,60 @@ class LatticeBlending(Synthesizer):
         result = lattice_blend(uv.detach().cpu().numpy(), self._numpy("plane", self.prepared.plane), self.density,
                                self.seed, self.mode, out=out, **kwargs)
         return torch.from_numpy(result)
+
+    # ------------------------------------------------------------ footprint queries
+    def pyramid(self) -> dict[str, Any]:
+        """The read plane's pyramid, its level of detail and the method's per-level tables (built once).
+
+        Cached in ``prepared.extras["pyramid"]`` (shared by synthesizers built with the same ``prepared``).
+        """
+        cached = self.prepared.extras.get("pyramid")
+        if cached is None:
+            levels = area_pyramid(self.prepared.plane)
+            cached = {"levels": levels, "lod": LevelOfDetail.of(levels), **self.filter_tables(levels)}
+            self.prepared.extras["pyramid"] = cached
+        return cached
+
+    def level_of_detail(self) -> LevelOfDetail:
+        return self.pyramid()["lod"]
+
+    def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
+        """Latent values ``(N, C)`` float32 averaged over a footprint of ``footprint (N,)`` texels per query.
+
+        Every sample of the point query is read from the pyramid level of that footprint
+        (trilinear; :mod:`dynbtf.synthesis.mip`); footprints of at most one texel give the point
+        query (to float rounding). Fused kernel when ``fast``.
+        """
+        pyr = self.pyramid()
+        level, upper = pyr["lod"](footprint.detach().cpu().numpy())
+        if not self.fast:
+            return self._reference_filtered_latent(uv, pyr, level, upper)
+        from .kernels import PackedPyramid, filtered_lattice_blend
+
+        if "packed" not in pyr:
+            lums = pyr.get("luminances")
+            pyr["packed"] = PackedPyramid.pack([t.cpu().numpy() for t in pyr["levels"]],
+                                               None if lums is None else [t.cpu().numpy() for t in lums])
+        kwargs = {k: v for k, v in self.kernel_arguments().items() if k not in ("lut", "luminance")}
+        if "luts" in pyr:
+            kwargs["luts"] = pyr["luts_numpy"]
+        result = filtered_lattice_blend(uv.detach().cpu().numpy(), level, upper, pyr["packed"], self.density,
+                                        self.seed, self.mode, **kwargs)
+        return torch.from_numpy(result)
+
+    def _reference_filtered_latent(self, uv, pyr, level, upper) -> torch.Tensor:
+        uv_samples, bary = self.sample_positions(uv)
+        level = torch.from_numpy(level.astype(np.int64)).to(uv.device)
+        upper = torch.from_numpy(upper).to(uv.device)
+        out = torch.zeros(uv.shape[0], self.plane_channels(), dtype=torch.float32, device=uv.device)
+        for lv in range(len(pyr["levels"])):
+            for step, share in ((0, 1.0 - upper), (1, upper)):
+                mask = (level + step == lv) & (share > 0)
+                if not bool(mask.any()):
+                    continue
+                samples = fetch_wrap(pyr["levels"][lv], uv_samples[mask])
+                out[mask] += share[mask, None] * self.blend(samples, bary[mask], uv_samples[mask], lv).float()
+        return out
 
     def parameters(self) -> dict[str, Any]:
         return {"tileable": self.prepared.tileable, "band": self.band, "fast": self.fast,

@@ -33,6 +33,7 @@ from .base import register_synthesizer
 from .blending import LatticeBlending, LatticePlane
 from .histogram import Decorrelation
 from .kernels import MODE_HEX
+from .mip import area_pyramid
 from .tileable import make_tileable
 
 __all__ = ["HexTiling", "contrast_gain"]
@@ -106,11 +107,16 @@ class HexTiling(LatticeBlending):
         lum = _normalized(lum.to(torch.float32)).contiguous()
         return LatticePlane(source.contiguous(), False, 0.0, 0.0, {"luminance": lum})
 
-    def blend(self, samples, barycentrics, uv_samples):
-        lum = fetch_wrap(self.prepared.extras["luminance"][..., None], uv_samples)[..., 0].to(torch.float64)
+    def blend(self, samples, barycentrics, uv_samples, level: int = 0):
+        lum_plane = self.prepared.extras["luminance"] if level == 0 else self.pyramid()["luminances"][level]
+        lum = fetch_wrap(lum_plane[..., None], uv_samples)[..., 0].to(torch.float64)
         w = (1.0 - self.beta + self.beta * lum) * barycentrics.clamp_min(0.0) ** 7
         w = contrast_gain(w / w.sum(-1, keepdim=True), self.contrast)
         return (w.to(samples.dtype)[..., None] * samples).sum(-2).to(torch.float32)
+
+    def filter_tables(self, levels):
+        """The luminance's pyramid (the weights of a level's samples come from its luminance)."""
+        return {"luminances": [t[..., 0] for t in area_pyramid(self.prepared.extras["luminance"][..., None])]}
 
     def kernel_arguments(self) -> dict[str, Any]:
         return {"luminance": self.prepared.extras["luminance"], "beta": self.beta,

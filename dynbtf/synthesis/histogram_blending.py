@@ -43,7 +43,8 @@ import torch
 from ..errors import InputError, positive_number
 from .blending import LatticeBlending, LatticePlane
 from .base import register_synthesizer
-from .histogram import Decorrelation, GaussianTransform, blend_weights, variance_preserving_blend
+from .histogram import Decorrelation, GaussianTransform, InverseLUT, blend_weights, variance_preserving_blend
+from .mip import prefiltered_inverse_tables
 from .kernels import MODE_HIST
 
 __all__ = ["HistogramBlending", "DEFAULT_GAMMA"]
@@ -112,9 +113,21 @@ class HistogramBlending(LatticeBlending):
             "transform": transform, "decorrelation": decorrelation, "lut": lut,
             "lut_table": lut.table.to(torch.float32)})
 
-    def blend(self, samples, barycentrics, uv_samples):
+    def blend(self, samples, barycentrics, uv_samples, level: int = 0):
         g = variance_preserving_blend(samples.to(torch.float64), blend_weights(barycentrics, self.gamma))
-        return self.prepared.extras["transform"].inverse(g).to(torch.float32)
+        if level == 0:
+            return self.prepared.extras["transform"].inverse(g).to(torch.float32)
+        lut = self.prepared.extras["lut"]
+        table = self.pyramid()["luts"][level].to(torch.float64)
+        return InverseLUT(table, lut.g_min, lut.step)(g).to(torch.float32)
+
+    def filter_tables(self, levels):
+        """Per-level inverse tables (:func:`~dynbtf.synthesis.mip.prefiltered_inverse_tables`), level 0 the point table."""
+        lut = self.prepared.extras["lut"]
+        luts = prefiltered_inverse_tables(self.prepared.extras["transform"], levels, lut.g_min, lut.step,
+                                          self.lut_size)
+        luts[0] = self.prepared.extras["lut_table"]
+        return {"luts": luts, "luts_numpy": luts.cpu().numpy()}
 
     def kernel_arguments(self) -> dict[str, Any]:
         lut = self.prepared.extras["lut"]

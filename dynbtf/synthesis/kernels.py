@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import types
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -37,7 +38,7 @@ from .base import check_uv
 from .hash import SECOND_STREAM, MASK32, fold_coordinate, hash_vertex, mix32, seed_state
 from .lattice import LATTICE_SCALE_HI, LATTICE_SCALE_LO, LATTICE_SCALE, large_scaled_integer
 
-__all__ = ["lattice_blend", "tile_fetch", "MODE_LINEAR", "MODE_HIST", "MODE_HEX"]
+__all__ = ["lattice_blend", "filtered_lattice_blend", "PackedPyramid", "tile_fetch", "MODE_LINEAR", "MODE_HIST", "MODE_HEX"]
 
 MODE_LINEAR, MODE_HIST, MODE_HEX = 0, 1, 2
 
@@ -138,6 +139,79 @@ def _gain(x, k):
 
 
 @numba.njit(inline="always")
+def _lattice_hashes(u, v, state):
+    """Lattice triangle of a query (:func:`dynbtf.synthesis.lattice.triangle_lattice`) and its vertex hashes.
+
+    Returns the repeat index ``iu, iv`` (int64), the fraction ``fu, fv`` in ``[0, 1)``, the three
+    vertices' hashes ``h0, h1, h2`` and their barycentrics ``b0, b1, b2``.
+    """
+    wu = math.floor(u)
+    wv = math.floor(v)
+    fu = u - wu
+    fv = v - wv
+    if fu >= 1.0:
+        fu -= 1.0
+        wu += 1.0
+    if fv >= 1.0:
+        fv -= 1.0
+        wv += 1.0
+    iu = np.int64(wu)
+    iv = np.int64(wv)
+    # lattice (lattice.triangle_lattice)
+    iu_whole, iu_frac = _scaled_integer(iu)
+    kx = iu_frac + LATTICE_SCALE * fu - 2.0 * fv
+    ky = 4.0 * fv
+    bx = math.floor(kx)
+    by = math.floor(ky)
+    fx = kx - bx
+    fy = ky - by
+    base_x = np.int64(bx) + iu_whole - 2 * iv
+    base_y = np.int64(by) + 4 * iv
+    z = 1.0 - fx - fy
+    # vertex hashes (hash.hash_vertex): the two vertices with the same vx share its fold
+    h_a = _fold_coordinate(state, base_x)
+    h_b = _fold_coordinate(state, base_x + 1)
+    if z > 0:  # b, b + (0, 1), b + (1, 0)
+        h0, h1, h2 = (_fold_coordinate(h_a, base_y), _fold_coordinate(h_a, base_y + 1),
+                      _fold_coordinate(h_b, base_y))
+        b0, b1, b2 = z, fy, fx
+    else:  # b + (1, 1), b + (1, 0), b + (0, 1)
+        h0, h1, h2 = (_fold_coordinate(h_b, base_y + 1), _fold_coordinate(h_b, base_y),
+                      _fold_coordinate(h_a, base_y + 1))
+        b0, b1, b2 = -z, 1.0 - fy, 1.0 - fx
+    return iu, iv, fu, fv, h0, h1, h2, b0, b1, b2
+
+
+@numba.njit(inline="always")
+def _sample_weights(mode, b0, b1, b2, l0, l1, l2, gamma, gamma_int, beta, gain_k):
+    """Blend weights ``s0, s1, s2`` of the three samples and the blend's ``scale`` (variance correction).
+
+    ``l0, l1, l2`` are the samples' luminances (hex-tiling only).
+    """
+    if mode == MODE_LINEAR:
+        return b0, b1, b2, 1.0
+    if mode == MODE_HIST:
+        if gamma == 1.0:
+            s0, s1, s2 = b0, b1, b2
+        elif gamma_int > 0:  # integral exponent (default 7): repeated squaring (pow: ~25% of the kernel)
+            s0, s1, s2 = _int_power(b0, gamma_int), _int_power(b1, gamma_int), _int_power(b2, gamma_int)
+        else:
+            s0, s1, s2 = max(b0, 0.0) ** gamma, max(b1, 0.0) ** gamma, max(b2, 0.0) ** gamma
+        total = s0 + s1 + s2
+        s0, s1, s2 = s0 / total, s1 / total, s2 / total
+        return s0, s1, s2, 1.0 / math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+    s0 = (1.0 - beta + beta * l0) * max(b0, 0.0) ** 7
+    s1 = (1.0 - beta + beta * l1) * max(b1, 0.0) ** 7
+    s2 = (1.0 - beta + beta * l2) * max(b2, 0.0) ** 7
+    total = s0 + s1 + s2
+    s0, s1, s2 = s0 / total, s1 / total, s2 / total
+    if gain_k != 1.0:
+        s0, s1, s2 = _gain(s0, gain_k), _gain(s1, gain_k), _gain(s2, gain_k)
+        total = s0 + s1 + s2
+        s0, s1, s2 = s0 / total, s1 / total, s2 / total
+    return s0, s1, s2, 1.0
+
+@numba.njit(inline="always")
 def _blend_taps(flat, taps, weights, row):
     """``row[c] = sum_k weights[k] flat[taps[k] + c]`` over the 12 taps (float32).
 
@@ -190,42 +264,7 @@ def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_
         weights = np.empty((BLOCK, TAPS), dtype=np.float32)
         # ---- pass 1: lattice, hashes, addresses and weights; prefetch the texels
         for n in range(first, last):
-            u = uv[n, 0]
-            v = uv[n, 1]
-            wu = math.floor(u)
-            wv = math.floor(v)
-            fu = u - wu
-            fv = v - wv
-            if fu >= 1.0:
-                fu -= 1.0
-                wu += 1.0
-            if fv >= 1.0:
-                fv -= 1.0
-                wv += 1.0
-            iu = np.int64(wu)
-            iv = np.int64(wv)
-            # lattice (lattice.triangle_lattice)
-            iu_whole, iu_frac = _scaled_integer(iu)
-            kx = iu_frac + LATTICE_SCALE * fu - 2.0 * fv
-            ky = 4.0 * fv
-            bx = math.floor(kx)
-            by = math.floor(ky)
-            fx = kx - bx
-            fy = ky - by
-            base_x = np.int64(bx) + iu_whole - 2 * iv
-            base_y = np.int64(by) + 4 * iv
-            z = 1.0 - fx - fy
-            # vertex hashes (hash.hash_vertex): the two vertices with the same vx share its fold
-            h_a = _fold_coordinate(state, base_x)
-            h_b = _fold_coordinate(state, base_x + 1)
-            if z > 0:  # b, b + (0, 1), b + (1, 0)
-                h0, h1, h2 = (_fold_coordinate(h_a, base_y), _fold_coordinate(h_a, base_y + 1),
-                              _fold_coordinate(h_b, base_y))
-                b0, b1, b2 = z, fy, fx
-            else:  # b + (1, 1), b + (1, 0), b + (0, 1)
-                h0, h1, h2 = (_fold_coordinate(h_b, base_y + 1), _fold_coordinate(h_b, base_y),
-                              _fold_coordinate(h_a, base_y + 1))
-                b0, b1, b2 = -z, 1.0 - fy, 1.0 - fx
+            iu, iv, fu, fv, h0, h1, h2, b0, b1, b2 = _lattice_hashes(uv[n, 0], uv[n, 1], state)
             # texel addressing shared by the three samples (whole-texel offsets):
             # (iu * density) mod period in int64 without overflow, plus the fraction's texels
             px = fu * density_w - 0.5
@@ -244,33 +283,12 @@ def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_
             w10 = (1.0 - tx) * ty
             w11 = tx * ty
             # blend weights
-            if mode == MODE_LINEAR:
-                s0, s1, s2 = b0, b1, b2
-                scale = 1.0
-            elif mode == MODE_HIST:
-                if gamma == 1.0:
-                    s0, s1, s2 = b0, b1, b2
-                elif gamma_int > 0:  # integral exponent (default 7): repeated squaring (pow: ~25% of the kernel)
-                    s0, s1, s2 = _int_power(b0, gamma_int), _int_power(b1, gamma_int), _int_power(b2, gamma_int)
-                else:
-                    s0, s1, s2 = max(b0, 0.0) ** gamma, max(b1, 0.0) ** gamma, max(b2, 0.0) ** gamma
-                total = s0 + s1 + s2
-                s0, s1, s2 = s0 / total, s1 / total, s2 / total
-                scale = 1.0 / math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
-            else:
+            l0 = l1 = l2 = 0.0
+            if mode == MODE_HEX:
                 l0 = w00 * lum[ra0, ca0] + w01 * lum[ra0, cb0] + w10 * lum[rb0, ca0] + w11 * lum[rb0, cb0]
                 l1 = w00 * lum[ra1, ca1] + w01 * lum[ra1, cb1] + w10 * lum[rb1, ca1] + w11 * lum[rb1, cb1]
                 l2 = w00 * lum[ra2, ca2] + w01 * lum[ra2, cb2] + w10 * lum[rb2, ca2] + w11 * lum[rb2, cb2]
-                s0 = (1.0 - beta + beta * l0) * max(b0, 0.0) ** 7
-                s1 = (1.0 - beta + beta * l1) * max(b1, 0.0) ** 7
-                s2 = (1.0 - beta + beta * l2) * max(b2, 0.0) ** 7
-                total = s0 + s1 + s2
-                s0, s1, s2 = s0 / total, s1 / total, s2 / total
-                if gain_k != 1.0:
-                    s0, s1, s2 = _gain(s0, gain_k), _gain(s1, gain_k), _gain(s2, gain_k)
-                    total = s0 + s1 + s2
-                    s0, s1, s2 = s0 / total, s1 / total, s2 / total
-                scale = 1.0
+            s0, s1, s2, scale = _sample_weights(mode, b0, b1, b2, l0, l1, l2, gamma, gamma_int, beta, gain_k)
             tap = taps[n - first]
             weight = weights[n - first]
             k = 0
@@ -341,6 +359,187 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
             float(g_min), 1.0 / float(step), out)
     return out
 
+
+@numba.njit(inline="always")
+def _level_tap(x, y, ratio_w, ratio_h, mw, mh):
+    """Bilinear texels and weights at level-0 texel position ``(x, y)`` in a level of ``mh x mw`` texels.
+
+    ``ratio_w = mw / W0``; returns ``c0, c1, r0, r1, tx, ty`` (wrapped columns/rows, fractions).
+    """
+    px = x * ratio_w - 0.5
+    py = y * ratio_h - 0.5
+    fx = math.floor(px)
+    fy = math.floor(py)
+    c0 = np.int64(fx)  # in [-1, 3 mw): wrapped without a division
+    r0 = np.int64(fy)
+    while c0 >= mw:
+        c0 -= mw
+    while r0 >= mh:
+        r0 -= mh
+    if c0 < 0:
+        c0 += mw
+    if r0 < 0:
+        r0 += mh
+    c1 = c0 + 1
+    r1 = r0 + 1
+    if c1 == mw:
+        c1 = 0
+    if r1 == mh:
+        r1 = 0
+    return c0, c1, r0, r1, np.float32(px - fx), np.float32(py - fy)
+
+
+@numba.njit(inline="always")
+def _level_lum(lums, start, mw, mh, x, y, ratio_w, ratio_h):
+    """Bilinear luminance of a level (``lums[start:]``, ``mh x mw``) at level-0 texel position ``(x, y)``."""
+    c0, c1, r0, r1, tx, ty = _level_tap(x, y, ratio_w, ratio_h, mw, mh)
+    a = np.uint64(start)
+    return ((1 - tx) * (1 - ty) * lums[a + np.uint64(r0 * mw + c0)] + tx * (1 - ty) * lums[a + np.uint64(r0 * mw + c1)]
+            + (1 - tx) * ty * lums[a + np.uint64(r1 * mw + c0)] + tx * ty * lums[a + np.uint64(r1 * mw + c1)])
+
+
+@numba.njit(inline="always")
+def _add_level_sample(flat, start, mw, mh, x, y, ratio_w, ratio_h, weight, row):
+    """``row += weight * bilinear(level)`` at level-0 texel position ``(x, y)`` (level at ``flat[start:]``)."""
+    nc = row.shape[0]
+    c0, c1, r0, r1, tx, ty = _level_tap(x, y, ratio_w, ratio_h, mw, mh)
+    w = np.float32(weight)
+    w00, w01 = w * (1 - tx) * (1 - ty), w * tx * (1 - ty)
+    w10, w11 = w * (1 - tx) * ty, w * tx * ty
+    t00 = np.uint64(start + (r0 * mw + c0) * nc)
+    t01 = np.uint64(start + (r0 * mw + c1) * nc)
+    t10 = np.uint64(start + (r1 * mw + c0) * nc)
+    t11 = np.uint64(start + (r1 * mw + c1) * nc)
+    for c in range(np.uint64(nc)):
+        row[c] += w00 * flat[t00 + c] + w01 * flat[t01 + c] + w10 * flat[t10 + c] + w11 * flat[t11 + c]
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _filtered_kernel(uv, level, upper_weight, levels, starts, heights, widths, lums, lum_starts, pw, ph,
+                     density_w, density_h, seed, mode, gamma, beta, gain_k, luts, g_min, inv_step, out):
+    n_queries = uv.shape[0]
+    nc = out.shape[1]
+    state = _seed_state(seed)
+    gamma_int = np.int64(gamma) if (gamma == math.floor(gamma) and 1.0 < gamma <= 64.0) else np.int64(0)
+    density_w_mod = density_w % pw
+    density_h_mod = density_h % ph
+    n_levels = starts.shape[0]
+    for block in numba.prange((n_queries + BLOCK - 1) // BLOCK):
+        row = np.empty(nc, dtype=np.float32)
+        for n in range(block * BLOCK, min(block * BLOCK + BLOCK, n_queries)):
+            iu, iv, fu, fv, h0, h1, h2, b0, b1, b2 = _lattice_hashes(uv[n, 0], uv[n, 1], state)
+            # level-0 texel positions of the three samples in the read plane (whole parts reduced exactly)
+            xi = ((iu % pw) * density_w_mod) % pw
+            yi = ((iv % ph) * density_h_mod) % ph
+            fx = fu * density_w
+            fy = fv * density_h
+            x0 = _wrap(xi + h0 % pw, pw) + fx
+            y0 = _wrap(yi + _mix32(h0 ^ SECOND_STREAM) % ph, ph) + fy
+            x1 = _wrap(xi + h1 % pw, pw) + fx
+            y1 = _wrap(yi + _mix32(h1 ^ SECOND_STREAM) % ph, ph) + fy
+            x2 = _wrap(xi + h2 % pw, pw) + fx
+            y2 = _wrap(yi + _mix32(h2 ^ SECOND_STREAM) % ph, ph) + fy
+            for c in range(nc):
+                out[n, c] = 0.0
+            t_up = upper_weight[n]
+            for step in range(2):
+                lv = level[n] + step
+                if step == 1 and (t_up == 0.0 or lv >= n_levels):
+                    break
+                share = np.float32(1.0) - t_up if step == 0 else t_up
+                mh = heights[lv]
+                mw = widths[lv]
+                ratio_w = mw / pw
+                ratio_h = mh / ph
+                start = starts[lv]
+                l0 = l1 = l2 = 0.0
+                if mode == MODE_HEX:
+                    ls = lum_starts[lv]
+                    l0 = _level_lum(lums, ls, mw, mh, x0, y0, ratio_w, ratio_h)
+                    l1 = _level_lum(lums, ls, mw, mh, x1, y1, ratio_w, ratio_h)
+                    l2 = _level_lum(lums, ls, mw, mh, x2, y2, ratio_w, ratio_h)
+                s0, s1, s2, scale = _sample_weights(mode, b0, b1, b2, l0, l1, l2, gamma, gamma_int, beta, gain_k)
+                for c in range(nc):
+                    row[c] = 0.0
+                _add_level_sample(levels, start, mw, mh, x0, y0, ratio_w, ratio_h, s0 * scale, row)
+                _add_level_sample(levels, start, mw, mh, x1, y1, ratio_w, ratio_h, s1 * scale, row)
+                _add_level_sample(levels, start, mw, mh, x2, y2, ratio_w, ratio_h, s2 * scale, row)
+                if mode == MODE_HIST:
+                    _inverse_lut(row, luts[lv], g_min, inv_step)
+                for c in range(nc):
+                    out[n, c] += share * row[c]
+
+
+@dataclass
+class PackedPyramid:
+    """A pyramid (:func:`dynbtf.synthesis.mip.area_pyramid`) packed for :func:`filtered_lattice_blend`.
+
+    Attributes: ``flat`` float32 (all levels' texels, level after level), ``starts`` int64 (offset of
+    each level in ``flat``), ``heights, widths`` int64, ``shape`` ``(H0, W0, C)``, and the luminance
+    pyramid ``lums`` float32 with ``lum_starts`` (hex; zeros otherwise).
+    """
+
+    flat: np.ndarray
+    starts: np.ndarray
+    heights: np.ndarray
+    widths: np.ndarray
+    shape: tuple[int, int, int]
+    lums: np.ndarray
+    lum_starts: np.ndarray
+
+    @classmethod
+    def pack(cls, levels: list, luminances: list | None = None) -> "PackedPyramid":
+        levels = [np.ascontiguousarray(np.asarray(t), dtype=np.float32) for t in levels]
+        c = levels[0].shape[2]
+        sizes = np.array([t.size for t in levels], dtype=np.int64)
+        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        if luminances is None:
+            lums, lum_starts = np.zeros(1, dtype=np.float32), np.zeros(len(levels), dtype=np.int64)
+        else:
+            lums = np.concatenate([np.asarray(t, dtype=np.float32).reshape(-1) for t in luminances])
+            lum_starts = starts // c
+        return cls(np.concatenate([t.reshape(-1) for t in levels]), starts,
+                   np.array([t.shape[0] for t in levels], dtype=np.int64),
+                   np.array([t.shape[1] for t in levels], dtype=np.int64), tuple(levels[0].shape), lums, lum_starts)
+
+
+def filtered_lattice_blend(uv: np.ndarray, level: np.ndarray, upper_weight: np.ndarray, pyramid: PackedPyramid,
+                           density: tuple[int, int], seed: int, mode: int, *, gamma: float = 1.0, beta: float = 0.0,
+                           gain_k: float = 1.0, luts: np.ndarray | None = None, g_min: float = 0.0,
+                           step: float = 1.0) -> np.ndarray:
+    """:func:`lattice_blend` with every sample read from a pyramid (trilinear): the footprint query.
+
+    Parameters
+    ----------
+    uv : float64 ``(N, 2)``
+        Positions in exemplar repeats (checked like :func:`lattice_blend`'s).
+    level, upper_weight : int32 ``(N,)``, float32 ``(N,)``
+        Lower pyramid level of each query and the weight of the level above
+        (:class:`dynbtf.synthesis.mip.LevelOfDetail`).
+    pyramid : PackedPyramid
+        The read plane's pyramid (level 0 is the plane) and, for hex, its luminance's.
+    luts : float32 ``(L, C, S)``
+        Per-level inverse tables on the grid ``g_min + k step`` (hist;
+        :func:`dynbtf.synthesis.mip.prefiltered_inverse_tables`).
+
+    Each of the three samples sits where the point query reads it (same lattice, hashes and
+    whole-texel offsets); at level ``l`` it is a bilinear fetch of level ``l`` at that position.
+    Each level is blended (and, for hist, inverted with its table) on its own; the two levels'
+    results are mixed with ``upper_weight``. Returns float32 ``(N, C)``.
+    """
+    uv = np.ascontiguousarray(uv, dtype=np.float64)
+    check_uv(torch.from_numpy(uv))
+    n_levels = len(pyramid.starts)
+    ph, pw, c = pyramid.shape
+    out = np.empty((uv.shape[0], c), dtype=np.float32)
+    if luts is None:
+        luts = np.zeros((n_levels, c, 2), dtype=np.float32)
+    level = np.ascontiguousarray(np.clip(level, 0, n_levels - 1), dtype=np.int32)
+    _filtered_kernel(uv, level, np.ascontiguousarray(upper_weight, dtype=np.float32), pyramid.flat, pyramid.starts,
+                     pyramid.heights, pyramid.widths, pyramid.lums, pyramid.lum_starts, pw, ph, int(density[0]),
+                     int(density[1]), int(seed) & 0xFFFFFFFF, int(mode), float(gamma), float(beta), float(gain_k),
+                     np.ascontiguousarray(luts, dtype=np.float32), float(g_min), 1.0 / float(step), out)
+    return out
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _tile_kernel(uv, plane, out):

@@ -30,6 +30,7 @@ from ..texture import fetch_wrap
 from .base import Synthesizer, register_synthesizer, wrapped_texel_position
 from .histogram import Decorrelation
 from .lattice import split_uv
+from .mip import LevelOfDetail, area_pyramid, trilinear_fetch
 
 __all__ = ["Quilting", "min_error_cut", "quilt", "overlap_errors", "quilted_storage_bytes"]
 
@@ -196,6 +197,7 @@ class Quilting(Synthesizer):
         elif tuple(prepared.shape) != (*self.size, c):
             raise InputError(f"prepared: expected a quilted plane of shape {(*self.size, c)}, got {tuple(prepared.shape)}")
         self.prepared = prepared
+        self._pyramid = None
 
     def _generate(self, progress: bool) -> torch.Tensor:
         h, w, c = self.exemplar.shape
@@ -208,13 +210,27 @@ class Quilting(Synthesizer):
         restored = pca.unproject(torch.from_numpy(plane) / scale)
         return restored.to(torch.float32).to(self.device).contiguous()
 
-    def latent(self, uv: torch.Tensor) -> torch.Tensor:
+    def _positions(self, uv: torch.Tensor) -> torch.Tensor:
+        """Read positions ``(N, 2)`` in fractions of the quilted plane (exact for any ``uv``)."""
         qh, qw = self.size
         whole, frac = split_uv(uv)
         h, w = self.exemplar.shape[:2]
         x = wrapped_texel_position(whole[:, 0], frac[:, 0], w, qw) / qw
         y = wrapped_texel_position(whole[:, 1], frac[:, 1], h, qh) / qh
-        return fetch_wrap(self.prepared, torch.stack([x, y], dim=-1))
+        return torch.stack([x, y], dim=-1)
+
+    def latent(self, uv: torch.Tensor) -> torch.Tensor:
+        return fetch_wrap(self.prepared, self._positions(uv))
+
+    def level_of_detail(self) -> LevelOfDetail:
+        if self._pyramid is None:
+            levels = area_pyramid(self.prepared)
+            self._pyramid = (levels, LevelOfDetail.of(levels))
+        return self._pyramid[1]
+
+    def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
+        self.level_of_detail()
+        return trilinear_fetch(*self._pyramid, self._positions(uv), footprint)
 
     def storage_bytes(self) -> int:
         return self.prepared.numel() * self.prepared.element_size()

@@ -11,6 +11,7 @@ import torch
 
 from ..texture import fetch_wrap
 from .base import Synthesizer, register_synthesizer
+from .mip import LevelOfDetail, area_pyramid, trilinear_fetch
 
 __all__ = ["Tiling"]
 
@@ -32,6 +33,7 @@ class Tiling(Synthesizer):
         self.prepared = None
         self.fast = self.device.type == "cpu" if fast is None else bool(fast) and self.device.type == "cpu"
         self._plane_numpy = self.exemplar.cpu().numpy() if self.fast else None
+        self._pyramid = None
 
     def latent(self, uv: torch.Tensor) -> torch.Tensor:
         if self.fast:  # the fused numba twin of fetch_wrap
@@ -39,3 +41,15 @@ class Tiling(Synthesizer):
 
             return torch.from_numpy(tile_fetch(uv.detach().cpu().numpy(), self._plane_numpy))
         return fetch_wrap(self.exemplar, uv)
+
+    def level_of_detail(self) -> LevelOfDetail:
+        if self._pyramid is None:
+            levels = area_pyramid(self.exemplar)
+            self._pyramid = (levels, LevelOfDetail.of(levels))
+        return self._pyramid[1]
+
+    def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
+        self.level_of_detail()
+        if not bool((footprint > 1.0).any()):
+            return self.latent(uv)
+        return trilinear_fetch(*self._pyramid, uv, footprint)

@@ -1,0 +1,140 @@
+"""Footprint-filtered queries vs point queries on an endless plane at a grazing view (issue: filtering).
+
+One run renders the same plane (preview renderer, :func:`dynbtf.render.preview.render_preview`;
+synthesis ``--method`` at ``--scale`` repeats per uv unit, one seed) three times:
+
+* **reference** -- ``--ref-spp`` (256) point samples per pixel on a stratified grid (the supersampled
+  synthesized BTF: what a filtered query must approach);
+* **unfiltered** -- 1 point sample per pixel (today's query);
+* **filtered** -- 1 footprint query per pixel (``footprint`` from the camera's ray differentials),
+  with the per-level decoders (default) and with the plain decoder (``level_decoders=False``);
+* **stochastic** -- 1 point query at a random position in each pixel (stochastic texture
+  filtering's one sample of the pixel's box filter, the baseline),
+
+and prints FLIP (LDR, sRGB) of each 1-spp image against the reference, the relative error of the far
+field's mean colour (the plane's rows nearest the horizon, ``--far`` of the plane's rows), the cost
+per query of ``SynthesizedBTF.eval`` filtered / point on the same queries (best of ``--repeats``
+calls each, interleaved), and what the filtering adds to memory and to the model file. With
+``--images DIR`` it writes ``plane_filtering.png`` (reference | unfiltered | filtered).
+
+Run: ``python benchmarks/bench_filtering.py MODEL.dbtfm [--method hist --scale 45 --size 256]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("model")
+    parser.add_argument("--method", default="hist", choices=["tile", "linear", "hist", "hex"])
+    parser.add_argument("--scale", type=float, default=45.0, help="exemplar repeats per uv unit")
+    parser.add_argument("--size", type=int, default=256, help="image side, pixels")
+    parser.add_argument("--ref-spp", type=int, default=256)
+    parser.add_argument("--far", type=float, default=0.25, help="share of the plane's rows (from the horizon) "
+                                                                "that make the far field")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--images", default=None, help="directory for plane_filtering.png")
+    args = parser.parse_args()
+
+    from dynbtf.metrics import flip
+    from dynbtf.render.preview import DirectionalLight, grazing_camera, plane_footprint, render_preview
+    from dynbtf.synthesis.mip import pyramid_storage_bytes
+    from dynbtf.synthesized import SynthesizedBTF
+
+    btf = SynthesizedBTF(args.model, args.method, scale=args.scale, seed=args.seed)
+    t0 = time.perf_counter()
+    if btf.level_decoders:
+        btf.level_decoder_parameters()
+    t_fit = time.perf_counter() - t0
+    camera = grazing_camera(distance=6.0, height=0.6, fov=40.0)
+    light = DirectionalLight((0.3, 0.5, 0.8), 1.0)
+    res = (args.size, args.size)
+    t0 = time.perf_counter()
+    reference = render_preview(btf, camera, light, resolution=res, spp=args.ref_spp, progress=True)
+    t_ref = time.perf_counter() - t0
+    unfiltered = render_preview(btf, camera, light, resolution=res, spp=1)
+    filtered = render_preview(btf, camera, light, resolution=res, spp=1, filtered=True)
+    plain = SynthesizedBTF(args.model, args.method, scale=args.scale, seed=args.seed, level_decoders=False)
+    images = {"unfiltered (point query)": unfiltered,
+              "stochastic (1 random point in the pixel)": render_preview(
+                  btf, camera, light, resolution=res, spp=1, filtered=False, jitter_seed=args.seed),
+              "filtered, plain decoder": render_preview(plain, camera, light, resolution=res, spp=1, filtered=True),
+              "filtered (default)": filtered}
+
+    o, d = camera.rays(*res)
+    _, d_top = camera.rays(*res, np.array([0.0, -0.5]))  # rows whose pixels lie wholly on the plane
+    hit_rows = np.nonzero((d_top[..., 2] < -1e-12).all(axis=1))[0]
+    far_rows = hit_rows[: max(1, int(round(args.far * len(hit_rows))))]
+    exposure = 0.8 / float(np.percentile(reference[hit_rows], 99.0))
+    scores = {name: flip(reference * exposure, img * exposure) for name, img in images.items()}
+    ref_far = reference[far_rows].reshape(-1, 3).mean(0)
+    far_error = {name: float(np.abs(img[far_rows].reshape(-1, 3).mean(0) / ref_far - 1.0).max())
+                 for name, img in images.items()}
+
+    # cost per query: the 1-spp frame's queries, filtered vs point, interleaved calls
+    hit = d[..., 2] < -1e-12
+    t_hit = -o[2] / d[hit][:, 2]
+    uv = (o + t_hit[:, None] * d[hit])[:, :2]
+    w_view = -d[hit]
+    w_light = np.broadcast_to(np.asarray(light.direction) / np.linalg.norm(light.direction), w_view.shape)
+    footprint = plane_footprint(camera, d[hit], *res)
+    n = len(uv)
+    reps = max(1, 1_000_000 // n)  # time ~1e6 queries per call
+    uv_t, wv_t, wl_t, fp_t = (np.concatenate([x] * reps) for x in (uv, w_view, w_light, footprint))
+    btf.eval(uv_t[:4096], wv_t[:4096], wl_t[:4096])
+    btf.eval(uv_t[:4096], wv_t[:4096], wl_t[:4096], footprint=fp_t[:4096])
+    best = {"point": float("inf"), "filtered": float("inf")}
+    for _ in range(args.repeats):
+        for name, extra in (("point", {}), ("filtered", {"footprint": fp_t})):
+            t0 = time.perf_counter()
+            btf.eval(uv_t, wv_t, wl_t, **extra)
+            best[name] = min(best[name], time.perf_counter() - t0)
+    pyramid = btf.synthesizer.pyramid() if hasattr(btf.synthesizer, "pyramid") else None
+    memory = 0
+    if pyramid is not None:
+        memory = pyramid_storage_bytes(pyramid["levels"]) + pyramid_storage_bytes(pyramid.get("luminances", []))
+        if "luts" in pyramid:
+            memory += pyramid["luts"][1:].numel() * pyramid["luts"].element_size()
+
+    print(f"plane: {args.method}, scale {args.scale:g}x, {args.size} x {args.size} px, seed {args.seed}; "
+          f"reference {args.ref_spp} spp ({t_ref:.0f} s); per-level decoders fitted in {t_fit:.0f} s")
+    print(f"| {'1 sample per pixel':42s} | FLIP vs reference | far-field mean colour error |")
+    print(f"|{'-' * 44}|------------------:|----------------------------:|")
+    for name in images:
+        print(f"| {name:42s} | {scores[name]:17.4f} | {100 * far_error[name]:26.2f}% |")
+    ratio = scores["filtered (default)"] / scores["unfiltered (point query)"]
+    print(f"FLIP filtered / unfiltered = {ratio:.3f} (target <= 0.5; filtered target <= 0.05; far field: the "
+          f"{len(far_rows)} plane rows nearest the horizon, worst channel, target 2%)")
+    per_query = {k: v / len(uv_t) * 1e9 for k, v in best.items()}
+    print(f"eval cost per query ({len(uv_t)} queries, best of {args.repeats}): point {per_query['point']:.0f} ns, "
+          f"filtered {per_query['filtered']:.0f} ns, ratio {best['filtered'] / best['point']:.2f}x (target <= 1.5x)")
+    size = os.path.getsize(args.model)
+    print(f"storage: model file {size} bytes, added to the file 0 bytes (pyramid and tables are derived at load); "
+          f"in memory {memory} bytes ({100 * memory / size:.0f}% of the file)")
+    if args.images:
+        from pathlib import Path
+
+        from dynbtf.io import save_image
+
+        gap = np.ones((args.size, 4, 3), dtype=np.float32)
+        out = Path(args.images)
+        out.mkdir(parents=True, exist_ok=True)
+        save_image(out / "plane_filtering.png", np.concatenate([reference, gap, unfiltered, gap, filtered], axis=1),
+                   exposure=exposure)
+        crop = slice(hit_rows[0], hit_rows[0] + max(8, len(hit_rows) // 3))  # the far field, enlarged 2x
+        zoom = [np.repeat(np.repeat(img[crop], 2, 0), 2, 1) for img in (reference, unfiltered, filtered)]
+        gap2 = np.ones((zoom[0].shape[0], 4, 3), dtype=np.float32)
+        save_image(out / "plane_filtering_far.png", np.concatenate([zoom[0], gap2, zoom[1], gap2, zoom[2]], axis=1),
+                   exposure=exposure)
+        print(f"wrote {out / 'plane_filtering.png'}")
+
+
+if __name__ == "__main__":
+    main()
