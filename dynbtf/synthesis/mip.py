@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["trilinear_fetch", "area_pyramid", "area_matrix", "LevelOfDetail", "prefiltered_inverse_tables", "pyramid_storage_bytes", "BLEND_BAND"]
+__all__ = ["trilinear_fetch", "PlanePyramid", "area_pyramid", "area_matrix", "LevelOfDetail", "prefiltered_inverse_tables", "pyramid_storage_bytes", "BLEND_BAND"]
 
 #: Default :attr:`LevelOfDetail.blend_band`: two levels are mixed in the middle 30% of each octave only.
 #: On the grazing plane of ``benchmarks/bench_filtering.py`` FLIP against the 256-spp reference was the same
@@ -178,3 +178,29 @@ def trilinear_fetch(levels: list[torch.Tensor], lod: LevelOfDetail, uv: torch.Te
             if bool(mask.any()):
                 out[mask] += share[mask, None] * fetch_wrap(levels[lv], uv[mask]).float()
     return out
+
+
+class PlanePyramid:
+    """The area pyramid of one plane ``(H, W, C)`` and its :class:`LevelOfDetail`, built on first use.
+
+    For synthesizers that read a single plane at periodic positions (tiling, quilting): their
+    footprint query is :meth:`fetch` at the positions their point query reads.
+    """
+
+    def __init__(self, plane: torch.Tensor) -> None:
+        self.plane = plane
+        self._built: tuple[list[torch.Tensor], LevelOfDetail] | None = None
+
+    def _levels(self) -> tuple[list[torch.Tensor], LevelOfDetail]:
+        if self._built is None:
+            levels = area_pyramid(self.plane)
+            self._built = (levels, LevelOfDetail.of(levels))
+        return self._built
+
+    @property
+    def level_of_detail(self) -> LevelOfDetail:
+        return self._levels()[1]
+
+    def fetch(self, positions: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
+        """:func:`trilinear_fetch` of the pyramid at ``positions (N, 2)`` (repeats of the plane) -> ``(N, C)``."""
+        return trilinear_fetch(*self._levels(), positions, footprint)

@@ -30,7 +30,7 @@ from ..texture import fetch_wrap
 from .base import Synthesizer, register_synthesizer, wrapped_texel_position
 from .histogram import Decorrelation
 from .lattice import split_uv
-from .mip import LevelOfDetail, area_pyramid, trilinear_fetch
+from .mip import LevelOfDetail, PlanePyramid
 
 __all__ = ["Quilting", "min_error_cut", "quilt", "overlap_errors", "quilted_storage_bytes"]
 
@@ -197,7 +197,7 @@ class Quilting(Synthesizer):
         elif tuple(prepared.shape) != (*self.size, c):
             raise InputError(f"prepared: expected a quilted plane of shape {(*self.size, c)}, got {tuple(prepared.shape)}")
         self.prepared = prepared
-        self._pyramid = None
+        self._pyramid = PlanePyramid(prepared)
 
     def _generate(self, progress: bool) -> torch.Tensor:
         h, w, c = self.exemplar.shape
@@ -223,14 +223,10 @@ class Quilting(Synthesizer):
         return fetch_wrap(self.prepared, self._positions(uv))
 
     def level_of_detail(self) -> LevelOfDetail:
-        if self._pyramid is None:
-            levels = area_pyramid(self.prepared)
-            self._pyramid = (levels, LevelOfDetail.of(levels))
-        return self._pyramid[1]
+        return self._pyramid.level_of_detail
 
     def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
-        self.level_of_detail()
-        return trilinear_fetch(*self._pyramid, self._positions(uv), footprint)
+        return self._pyramid.fetch(self._positions(uv), footprint)
 
     def storage_bytes(self) -> int:
         return self.prepared.numel() * self.prepared.element_size()

@@ -11,7 +11,7 @@ import torch
 
 from ..texture import fetch_wrap
 from .base import Synthesizer, register_synthesizer
-from .mip import LevelOfDetail, area_pyramid, trilinear_fetch
+from .mip import LevelOfDetail, PlanePyramid
 
 __all__ = ["Tiling"]
 
@@ -33,7 +33,7 @@ class Tiling(Synthesizer):
         self.prepared = None
         self.fast = self.device.type == "cpu" if fast is None else bool(fast) and self.device.type == "cpu"
         self._plane_numpy = self.exemplar.cpu().numpy() if self.fast else None
-        self._pyramid = None
+        self._pyramid = PlanePyramid(self.exemplar)
 
     def latent(self, uv: torch.Tensor) -> torch.Tensor:
         if self.fast:  # the fused numba twin of fetch_wrap
@@ -43,13 +43,9 @@ class Tiling(Synthesizer):
         return fetch_wrap(self.exemplar, uv)
 
     def level_of_detail(self) -> LevelOfDetail:
-        if self._pyramid is None:
-            levels = area_pyramid(self.exemplar)
-            self._pyramid = (levels, LevelOfDetail.of(levels))
-        return self._pyramid[1]
+        return self._pyramid.level_of_detail
 
     def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
-        self.level_of_detail()
         if not bool((footprint > 1.0).any()):
             return self.latent(uv)
-        return trilinear_fetch(*self._pyramid, uv, footprint)
+        return self._pyramid.fetch(uv, footprint)
