@@ -71,12 +71,9 @@ class PinholeCamera:
     up: tuple = (0.0, 0.0, 1.0)
     fov: float = 40.0
 
-    def rays(self, height: int, width: int, jitter: np.ndarray | None = None):
-        """Ray origins ``(3,)`` and unit directions ``(height, width, 3)`` through pixel centres (+ jitter).
-
-        ``jitter`` ``(2,)`` in pixels, in ``[-0.5, 0.5)``, shifts every ray (for supersampling); ``(height,
-        width, 2)`` shifts each pixel's ray on its own.
-        """
+    def frame(self):
+        """The camera's origin ``(3,)``, unit ``forward``, ``right`` and ``up`` 3-vectors, and
+        ``tan(fov / 2)``: a ray's unnormalized direction is ``forward + x right + y up``."""
         if not 0.0 < float(self.fov) < 180.0:
             raise InputError(f"camera fov: expected degrees in (0, 180), got {self.fov}")
         o = np.asarray(self.origin, dtype=np.float64).reshape(3)
@@ -85,8 +82,15 @@ class PinholeCamera:
         if np.linalg.norm(right) < 1e-9:
             raise InputError("camera up: must not be parallel to the viewing direction")
         right /= np.linalg.norm(right)
-        true_up = np.cross(right, forward)
-        half_h = math.tan(math.radians(self.fov) / 2.0)
+        return o, forward, right, np.cross(right, forward), math.tan(math.radians(self.fov) / 2.0)
+
+    def rays(self, height: int, width: int, jitter: np.ndarray | None = None):
+        """Ray origins ``(3,)`` and unit directions ``(height, width, 3)`` through pixel centres (+ jitter).
+
+        ``jitter`` ``(2,)`` in pixels, in ``[-0.5, 0.5)``, shifts every ray (for supersampling); ``(height,
+        width, 2)`` shifts each pixel's ray on its own.
+        """
+        o, forward, right, true_up, half_h = self.frame()
         half_w = half_h * width / height
         jitter = np.zeros(2) if jitter is None else np.asarray(jitter, dtype=np.float64)
         jx, jy = (jitter[0], jitter[1]) if jitter.ndim == 1 else (jitter[..., 0], jitter[..., 1])
@@ -99,13 +103,8 @@ class PinholeCamera:
     def pixel_steps(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
         """How the (unnormalized) ray direction ``forward + x right + y up`` of :meth:`rays` changes
         per pixel along the image's columns and rows: two 3-vectors (ray differentials)."""
-        o = np.asarray(self.origin, dtype=np.float64).reshape(3)
-        forward = _unit(np.asarray(self.target, dtype=np.float64) - o, "camera target - origin")
-        right = np.cross(forward, _unit(self.up, "camera up"))
-        right /= np.linalg.norm(right)
-        true_up = np.cross(right, forward)
-        half_h = math.tan(math.radians(self.fov) / 2.0)
-        return right * (2.0 * half_h * width / height / width), -true_up * (2.0 * half_h / height)
+        _, _, right, true_up, half_h = self.frame()
+        return right * (2.0 * half_h / height), -true_up * (2.0 * half_h / height)
 
 
 @dataclass(frozen=True)
@@ -156,11 +155,10 @@ def plane_footprint(camera: PinholeCamera, directions: np.ndarray, height: int, 
     """
     from ..synthesized import footprint_width
 
-    o_z = float(np.asarray(camera.origin, dtype=np.float64).reshape(3)[2])
+    origin, forward, _, _, _ = camera.frame()
+    o_z = float(origin[2])
     step_x, step_y = camera.pixel_steps(height, width)
     # |D| of the unnormalized direction: D = d |D| and D . forward = 1
-    forward = _unit(np.asarray(camera.target, dtype=np.float64) - np.asarray(camera.origin, dtype=np.float64),
-                    "camera target - origin")
     length = 1.0 / (directions @ forward)
     t = -o_z / directions[..., 2]
     derivatives = []
