@@ -205,15 +205,18 @@ def _build_class(mi):
             # (its sphere): the BTF sees both directions mirrored in y there
             return dr.select(dr.dot(si.sh_frame.t, si.dp_dv) < 0.0, -1.0, 1.0)
 
+        @staticmethod
+        def _flip_y(w, y):
+            """``w`` with its y multiplied by ``y`` (:meth:`_mirror`): the frame's and the BTF's directions."""
+            return mi.Vector3f(w.x, w.y * y, w.z)
+
         def _value(self, si, wo, active):
             # opaque: the scale is a kernel parameter, not a literal, so scenes that differ
             # only in scale share one compiled kernel
             u = si.uv.x * dr.opaque(mi.Float, self.scale)
             v = si.uv.y * dr.opaque(mi.Float, self.scale_v)
             y = self._mirror(si)
-            w_view = mi.Vector3f(si.wi.x, si.wi.y * y, si.wi.z)
-            w_light = mi.Vector3f(wo.x, wo.y * y, wo.z)
-            return self.evaluator.eval(u, v, w_view, w_light, active)
+            return self.evaluator.eval(u, v, self._flip_y(si.wi, y), self._flip_y(wo, y), active)
 
         def _valid(self, si, wo, active):
             return active & (mi.Frame3f.cos_theta(si.wi) > 0.0) & (mi.Frame3f.cos_theta(wo) > 0.0)
@@ -224,8 +227,7 @@ def _build_class(mi):
             if self.sampler is None:
                 return cosine
             y = self._mirror(si)
-            table = self.sampler.pdf(mi.Vector3f(si.wi.x, si.wi.y * y, si.wi.z),
-                                     mi.Vector3f(wo.x, wo.y * y, wo.z), active)
+            table = self.sampler.pdf(self._flip_y(si.wi, y), self._flip_y(wo, y), active)
             a = self.table_weight
             return a * table + (1.0 - a) * cosine
 
@@ -237,9 +239,9 @@ def _build_class(mi):
                 y = self._mirror(si)
                 from_table = active & (sample1 < self.table_weight)
                 # sample1 < a chose the table; sample1 / a is uniform again and picks the view node
-                drawn = self.sampler.sample(mi.Vector3f(si.wi.x, si.wi.y * y, si.wi.z),
+                drawn = self.sampler.sample(self._flip_y(si.wi, y),
                                             sample1 * (1.0 / self.table_weight), sample2, from_table)
-                wo = dr.select(from_table, mi.Vector3f(drawn.x, drawn.y * y, drawn.z), wo)
+                wo = dr.select(from_table, self._flip_y(drawn, y), wo)
             bs.wo = wo
             bs.eta = 1.0
             bs.sampled_type = mi.UInt32(+mi.BSDFFlags.DiffuseReflection)
