@@ -87,6 +87,28 @@ def _mi():
     return mi_module()
 
 
+def _node_views(phi_nodes: np.ndarray, theta_nodes: np.ndarray, phi_count: int) -> np.ndarray:
+    """Unit view directions ``(phi_count * T, 3)`` of the table's nodes (row ``p * T + t``); the
+    polar angle is evaluated at most at 88 degrees (a view at the horizon reflects nothing)."""
+    theta = np.degrees(np.minimum(np.asarray(theta_nodes, dtype=np.float64), math.radians(88.0)))
+    theta_grid, phi_grid = np.meshgrid(theta, np.degrees(np.asarray(phi_nodes[:phi_count], dtype=np.float64)))
+    return spherical_to_direction(theta_grid, phi_grid).reshape(-1, 3)
+
+
+def _cell_centres(resolution: int) -> np.ndarray:
+    """Centres ``(R * R, 2)`` (x, y) of the half-vector square's cells, row-major in y (the table's layout)."""
+    grid = (np.arange(resolution) + 0.5) / resolution
+    sy, sx = np.meshgrid(grid, grid, indexing="ij")
+    return np.stack([sx.ravel(), sy.ravel()], axis=-1)
+
+
+def _reflect(w_view: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``w_light`` = ``w_view`` reflected about ``half`` (broadcast ``(..., 3)``), unit, and ``w_view . half``."""
+    cos_vh = (w_view * half).sum(-1, keepdims=True)
+    w_light = 2.0 * cos_vh * half - w_view
+    return w_light / np.linalg.norm(w_light, axis=-1, keepdims=True), cos_vh[..., 0]
+
+
 def build_sampling_table(model, *, phi_bins: int = 8, theta_bins: int = 12, resolution: int = 48,
                          positions: int = 12, seed: int = 0, chunk: int = 262_144) -> SamplingTable:
     """Tabulate a model's half-vector sampling density (see the module docstring).
@@ -131,24 +153,18 @@ def build_sampling_table(model, *, phi_bins: int = 8, theta_bins: int = 12, reso
     # denser towards grazing views, where the reflected half vectors' valid region changes fastest:
     # theta = pi/2 (1 - (1 - x)^2) for x uniform in [0, 1]
     theta_nodes = 0.5 * math.pi * (1.0 - (1.0 - np.linspace(0.0, 1.0, theta_bins)) ** 2)
-    theta_eval = np.minimum(theta_nodes, math.radians(88.0))
-    theta_grid, phi_grid = np.meshgrid(np.degrees(theta_eval), np.degrees(phi_nodes[:phi_bins]))
-    views = spherical_to_direction(theta_grid, phi_grid).reshape(-1, 3)  # (P*T, 3), row p * T + t
+    views = _node_views(phi_nodes, theta_nodes, phi_bins)  # (P*T, 3), row p * T + t
 
     # each cell is probed at its centre and at 4 inner points; the density is evaluated at the centre or,
     # where the centre's light direction is below the horizon, at the highest valid probe (so that cells
     # straddling the horizon keep a density), times the fraction of valid probes
-    grid = (np.arange(resolution) + 0.5) / resolution
-    sy, sx = np.meshgrid(grid, grid, indexing="ij")
     offsets = np.array([[0.0, 0.0], [-0.25, -0.25], [0.25, -0.25], [-0.25, 0.25], [0.25, 0.25]]) / resolution
-    probes = np.stack([sx.ravel(), sy.ravel()], axis=-1)[:, None, :] + offsets[None]  # (R*R, 5, 2)
+    probes = _cell_centres(resolution)[:, None, :] + offsets[None]  # (R*R, 5, 2)
     half = _square_to_hemisphere(probes.reshape(-1, 2)).reshape(-1, 5, 3)
     wv = np.repeat(views, len(half), axis=0)[:, None, :]  # (P*T*R*R, 1, 3)
     hh = np.tile(half, (len(views), 1, 1))  # (P*T*R*R, 5, 3)
-    cos_vh = (wv * hh).sum(-1, keepdims=True)
-    wl = 2.0 * cos_vh * hh - wv
-    wl /= np.linalg.norm(wl, axis=-1, keepdims=True)
-    ok = (wl[..., 2] > 1e-4) & (cos_vh[..., 0] > 0)  # (N, 5)
+    wl, cos_vh = _reflect(wv, hh)
+    ok = (wl[..., 2] > 1e-4) & (cos_vh > 0)  # (N, 5)
     fraction = ok.mean(axis=1)
     pick = np.where(ok[:, 0], 0, np.argmax(np.where(ok, wl[..., 2], -np.inf), axis=1))
     rows_all = np.arange(len(wl))
@@ -225,15 +241,9 @@ def cosine_relative_variance(table: SamplingTable) -> float:
     """
     density = np.asarray(table.density, dtype=np.float64)[:-1]
     p, t, r, _ = density.shape
-    grid = (np.arange(r) + 0.5) / r
-    sy, sx = np.meshgrid(grid, grid, indexing="ij")
-    half = _square_to_hemisphere(np.stack([sx.ravel(), sy.ravel()], axis=-1))  # (R*R, 3), rows = square y
-    theta = np.degrees(np.minimum(np.asarray(table.theta_nodes, dtype=np.float64), math.radians(88.0)))
-    theta_grid, phi_grid = np.meshgrid(theta, np.degrees(np.asarray(table.phi_nodes[:p], dtype=np.float64)))
-    views = spherical_to_direction(theta_grid, phi_grid).reshape(p * t, 3)
-    cos_vh = views @ half.T  # (P*T, R*R)
-    w_light = 2.0 * cos_vh[..., None] * half[None] - views[:, None]
-    w_light /= np.linalg.norm(w_light, axis=-1, keepdims=True)
+    half = _square_to_hemisphere(_cell_centres(r))  # (R*R, 3)
+    views = _node_views(table.phi_nodes, table.theta_nodes, p)  # (P*T, 3)
+    w_light, cos_vh = _reflect(views[:, None], half[None])  # (P*T, R*R, 3), (P*T, R*R)
     cos_light = w_light[..., 2]
     ok = (cos_light > 1e-4) & (cos_vh > 0)
     p_cos = np.where(ok, 8.0 * cos_light * np.einsum("nkc,kc->nk", w_light, half), 1.0)
