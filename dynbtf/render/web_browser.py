@@ -223,6 +223,29 @@ class BrowserResult:
     texel: np.ndarray | None = None
 
 
+def _page_result(export_dir, kind: str, what: str, html: str, **run) -> str:
+    """Run ``html`` as a temporary page in ``export_dir`` (its scripts' relative links resolve there) with
+    :func:`run_page` options ``run``; return the text of its ``dynbtf-result`` element.
+
+    An error the page shows in ``dynbtf-error``, or no result, raises ``RuntimeError`` naming the page.
+    """
+    fd, page = tempfile.mkstemp(prefix=f".dynbtf-{kind}-", suffix=".html", dir=export_dir)
+    os.close(fd)
+    page = Path(page)
+    try:
+        page.write_text(html, encoding="utf-8")
+        result = run_page(page, **run)
+    finally:
+        page.unlink(missing_ok=True)
+    error = result.element("dynbtf-error")
+    if error:
+        raise RuntimeError(f"the {what} page failed in Chromium: {error}")
+    text = result.element("dynbtf-result")
+    if not text:
+        raise RuntimeError(f"the {what} page left no result (console: {result.console[-5:]})")
+    return text
+
+
 def _run_queries(export_dir, method: str, points, w_view, w_light, *, local_shift=None, lattice: bool = False,
                  gl: str = "swiftshader", timeout: float = 600.0) -> BrowserResult:
     export_dir = Path(export_dir)
@@ -236,20 +259,8 @@ def _run_queries(export_dir, method: str, points, w_view, w_light, *, local_shif
     width = min(max(n, 1), 256)
     job = {"n": n, "width": width, "method": method, "lattice": bool(lattice), "points": _b64(points),
            "shift": _b64(shift), "view": _b64(wv), "light": _b64(wl)}
-    fd, page = tempfile.mkstemp(prefix=".dynbtf-queries-", suffix=".html", dir=export_dir)
-    os.close(fd)
-    page = Path(page)
-    try:
-        page.write_text(_QUERY_PAGE.replace("__JOB__", json.dumps(job)), encoding="utf-8")
-        run = run_page(page, gl=gl, timeout=timeout, budget_ms=600000)
-    finally:
-        page.unlink(missing_ok=True)
-    error = run.element("dynbtf-error")
-    if error:
-        raise RuntimeError(f"the query page failed in Chromium: {error}")
-    text = run.element("dynbtf-result")
-    if not text:
-        raise RuntimeError(f"the query page left no result (console: {run.console[-5:]})")
+    text = _page_result(export_dir, "queries", "query", _QUERY_PAGE.replace("__JOB__", json.dumps(job)),
+                        gl=gl, timeout=timeout, budget_ms=600000)
     res = json.loads(text)
     rgb = np.frombuffer(base64.b64decode(res["rgb"]), dtype=np.float32).reshape(-1, 4)[:n, :3].copy()
     out = BrowserResult(rgb, res["renderer"])
@@ -397,20 +408,11 @@ def time_frames(export_dir, methods=None, *, width: int = 1280, height: int = 72
                         ["manifest.js", *(f"{f}.js" for f in manifest["files"])])
     job = {"width": int(width), "height": int(height), "frames": int(frames), "methods": methods,
            "scale": float(scale), "origin": float(origin)}
-    fd, page = tempfile.mkstemp(prefix=".dynbtf-frames-", suffix=".html", dir=export_dir)
-    os.close(fd)
-    page = Path(page)
-    try:
-        page.write_text(_FRAME_PAGE.replace("__SCRIPTS__", scripts).replace("__JOB__", json.dumps(job)),
-                        encoding="utf-8")
-        run = run_page(page, gl=gl, timeout=timeout, budget_ms=None, window=(width, height), extra_flags=extra_flags)
-    finally:
-        page.unlink(missing_ok=True)
-    error = run.element("dynbtf-error")
-    if error:
-        raise RuntimeError(f"the frame-time page failed in Chromium: {error}")
-    res = json.loads(run.element("dynbtf-result") or "null") or {}
+    res = json.loads(_page_result(export_dir, "frames", "frame-time",
+                                  _FRAME_PAGE.replace("__SCRIPTS__", scripts).replace("__JOB__", json.dumps(job)),
+                                  gl=gl, timeout=timeout, budget_ms=None, window=(width, height),
+                                  extra_flags=extra_flags)) or {}
     if not res:
-        raise RuntimeError(f"the frame-time page left no result (console: {run.console[-5:]})")
+        raise RuntimeError("the frame-time page left an empty result")
     return FrameTimes(res["renderer"], res["width"], res["height"],
                       {k: v["frame_ms"] for k, v in res["methods"].items()}, res["compile_ms"])
