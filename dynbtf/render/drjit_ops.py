@@ -242,6 +242,18 @@ class DrDecoder:
             layers[0] = (folded, bias)
         self.layers = [(w.astype(np.float32), b.astype(np.float32)) for w, b in layers]
 
+    @classmethod
+    def from_layers(cls, layers, positional_channels: int, negative_slope: float) -> "DrDecoder":
+        """A decoder from its layers ``[(weight (out, in), bias (out,)), ...]`` (NumPy or torch; layer 1's inputs:
+        ``positional_channels`` positional values, then the angular ones), e.g. a pyramid level's decoder."""
+        decoder = cls.__new__(cls)
+        decoder.positional_channels = int(positional_channels)
+        decoder.negative_slope = float(negative_slope)
+        host = [(w.detach().float().cpu().numpy() if hasattr(w, "detach") else w,
+                 b.detach().float().cpu().numpy() if hasattr(b, "detach") else b) for w, b in layers]
+        decoder.layers = [(np.asarray(w, dtype=np.float32), np.asarray(b, dtype=np.float32)) for w, b in host]
+        return decoder
+
     def _leaky(self, x):
         dr = drjit_module()
         return dr.select(x >= 0.0, x, x * self.negative_slope)

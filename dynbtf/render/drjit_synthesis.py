@@ -16,10 +16,10 @@ import math
 from ..errors import InputError
 from ..synthesis import hash as synthesis_hash
 from ..synthesis import lattice as synthesis_lattice
-from .drjit_ops import drjit_module, flat_array, fetch_wrap, gather_channels, mi_module
+from .drjit_ops import drjit_module, fetch_wrap, flat_array, gather_channels, mi_module, wrap01
 
 __all__ = ["mix32", "hash_vertex", "vertex_offsets", "triangle_lattice", "lut_lookup", "DrTiling",
-           "DrLatticeBlending", "make_dr_synthesizer"]
+           "DrLatticeBlending", "DrLevelOfDetail", "DrPyramid", "make_dr_synthesizer"]
 
 
 # ---------------------------------------------------------------- integer hash (dynbtf.synthesis.hash)
@@ -101,16 +101,17 @@ def vertex_uv(vx, vy):
 
 
 # ---------------------------------------------------------------- inverse transform LUT (dynbtf.synthesis.histogram)
-def lut_lookup(table, size: int, channel: int, g_min: float, step: float, g):
+def lut_lookup(table, size: int, channel: int, g_min: float, step: float, g, base=0):
     """:class:`dynbtf.synthesis.histogram.InverseLUT` lookup of one channel: linear interpolation, clamped.
 
-    ``table`` is the flat ``(C, size)`` float32 table as ``mi.Float``; ``g`` an ``mi.Float``.
+    ``table`` is the flat ``(C, size)`` float32 table as ``mi.Float`` (or several such tables one after
+    another, ``base`` (int or per-lane ``mi.UInt32``) the offset of the one to read); ``g`` an ``mi.Float``.
     """
     mi, dr = mi_module(), drjit_module()
     pos = dr.clip((g - g_min) / step, 0.0, size - 1.0)
     lo = dr.minimum(mi.UInt32(dr.floor(pos)), size - 2)
     t = pos - mi.Float(lo)
-    base = channel * size
+    base = base + channel * size
     x0 = dr.gather(mi.Float, table, base + lo)
     x1 = dr.gather(mi.Float, table, base + lo + 1)
     return x0 + t * (x1 - x0)
@@ -121,6 +122,108 @@ def _mod(k, n: int):
     dr = drjit_module()
     r = k % n
     return dr.select(r < 0, r + n, r)
+
+
+# ---------------------------------------------------------------- footprint queries (dynbtf.synthesis.mip)
+class DrLevelOfDetail:
+    """:class:`dynbtf.synthesis.mip.LevelOfDetail` per lane: footprint (texels) -> lower level, next level's weight.
+
+    Parameters
+    ----------
+    lod : LevelOfDetail
+        The synthesizer's level of detail (level widths and blend band).
+    """
+
+    def __init__(self, lod) -> None:
+        import numpy as np
+
+        self.log_widths = [float(x) for x in np.log2(np.asarray(lod.widths, dtype=np.float64))]
+        self.blend_band = float(lod.blend_band)
+        self.top = len(self.log_widths) - 1
+
+    def __call__(self, texels):
+        """``texels`` (``mi.Float``/``mi.Float64``, level-0 texels) -> lower level (``mi.UInt32``), weight of the next (``mi.Float``)."""
+        mi, dr = mi_module(), drjit_module()
+        log_w, top = self.log_widths, self.top
+        log_f = dr.log2(dr.maximum(mi.Float64(texels), 1.0))
+        lower = mi.UInt32(0)
+        lw_lower, lw_upper = mi.Float64(log_w[0]), mi.Float64(log_w[min(1, top)])
+        for k in range(1, top + 1):  # the widths grow with the level: the last level at or below the footprint
+            above = log_f >= log_w[k]
+            lower = dr.select(above, k, lower)
+            lw_lower = dr.select(above, log_w[k], lw_lower)
+            lw_upper = dr.select(above, log_w[min(k + 1, top)], lw_upper)
+        span = lw_upper - lw_lower
+        t = dr.select(span > 0.0, (log_f - lw_lower) / dr.select(span > 0.0, span, 1.0), 0.0)
+        if self.blend_band < 1.0:  # the two levels are mixed only in a band around the octave's middle
+            t = (t - 0.5) / self.blend_band + 0.5
+            up = t >= 1.0
+            lower = dr.select(up, dr.minimum(lower + 1, top), lower)
+            t = dr.select(up, 0.0, t)
+        return lower, mi.Float(dr.clip(t, 0.0, 1.0))
+
+    def nearest(self, lower, weight):
+        """The level nearest the footprint (``mi.UInt32``): :meth:`dynbtf.synthesized.SynthesizedBTF.nearest_level`."""
+        dr = drjit_module()
+        return lower + dr.select(weight >= 0.5, 1, 0)
+
+
+def _wrap_small(k, n):
+    """``k mod n`` (``mi.UInt32``) for ``mi.Int32`` ``k`` in ``[-n, 3 n)`` and per-lane ``n``, without a division.
+
+    (An integer division by a per-lane ``n`` traps on lanes that hold no data, e.g. a SIMD packet's tail.)
+    """
+    mi, dr = mi_module(), drjit_module()
+    for _ in range(2):
+        k = dr.select(k >= n, k - n, k)
+    return mi.UInt32(dr.select(k < 0, k + n, k))
+
+
+class DrPyramid:
+    """An area pyramid (:func:`dynbtf.synthesis.mip.area_pyramid`) in one flat buffer, read at a level per lane.
+
+    Parameters
+    ----------
+    levels : list of float32 ``(H_l, W_l, C)``
+        Level 0 (the read plane) first.
+    luminances : list of float32 ``(H_l, W_l)``, optional
+        A one-channel pyramid of the same sizes (hex's luminance).
+    """
+
+    def __init__(self, levels, luminances=None) -> None:
+        import numpy as np
+
+        mi = mi_module()
+        arrays = [np.asarray(t, dtype=np.float32) for t in levels]
+        self.height, self.width, self.channels = (int(x) for x in arrays[0].shape)
+        texels = [t.shape[0] * t.shape[1] for t in arrays]
+        self.flat = flat_array(mi, np.concatenate([t.reshape(-1) for t in arrays]))
+        self.starts = mi.UInt32(np.concatenate([[0], np.cumsum(texels)[:-1]]).astype(np.uint32))
+        self.heights = mi.UInt32(np.array([t.shape[0] for t in arrays], dtype=np.uint32))
+        self.widths = mi.UInt32(np.array([t.shape[1] for t in arrays], dtype=np.uint32))
+        self.luminances = None if luminances is None else flat_array(
+            mi, np.concatenate([np.asarray(t, dtype=np.float32).reshape(-1) for t in luminances]))
+
+    def taps(self, level, x, y):
+        """Bilinear taps of ``level`` (``mi.UInt32``) at level-0 texel positions ``x, y`` (``mi.Float64``).
+
+        Level-0 texel ``[i, j]`` covers ``[j, j + 1) x [i, i + 1)``; positions in ``[0, 3 W)``; the
+        level wraps. Returns 4 ``(texel index into the flat buffer, weight)`` as
+        :func:`~dynbtf.render.drjit_ops.bilinear_taps` (the numba kernel's ``_level_tap``).
+        """
+        mi, dr = mi_module(), drjit_module()
+        start = dr.gather(mi.UInt32, self.starts, level)
+        mw = dr.gather(mi.UInt32, self.widths, level)
+        mh = dr.gather(mi.UInt32, self.heights, level)
+        px = x * (mi.Float64(mw) / self.width) - 0.5
+        py = y * (mi.Float64(mh) / self.height) - 0.5
+        fx, fy = dr.floor(px), dr.floor(py)
+        tx, ty = mi.Float(px - fx), mi.Float(py - fy)
+        c0, r0 = _wrap_small(mi.Int32(fx), mi.Int32(mw)), _wrap_small(mi.Int32(fy), mi.Int32(mh))
+        c1 = dr.select(c0 + 1 == mw, 0, c0 + 1)
+        r1 = dr.select(r0 + 1 == mh, 0, r0 + 1)
+        return [(start + r0 * mw + c0, (1.0 - tx) * (1.0 - ty)), (start + r0 * mw + c1, tx * (1.0 - ty)),
+                (start + r1 * mw + c0, (1.0 - tx) * ty), (start + r1 * mw + c1, tx * ty)]
 
 
 class DrLatticeBlending:
@@ -152,14 +255,20 @@ class DrLatticeBlending:
     luminance : float32 ``(H', W')``, for hex
     lut : float32 ``(C, L)``, ``g_min``, ``step``: for hist
     matrix : ``(C, C)``, ``offset`` ``(C,)``, optional: the output map
+    pyramid_source : callable, optional
+        Returns the synthesizer's pyramid (:meth:`dynbtf.synthesis.blending.LatticeBlending.pyramid`:
+        ``levels``, ``lod``, and ``luts_numpy`` for hist, ``luminances`` for hex); called on the first
+        footprint query (:meth:`filtered_latent`).
     """
 
     def __init__(self, plane, density, seed: int, mode: str, *, gamma: float = 1.0, beta: float = 0.0,
                  gain_k: float = 1.0, luminance=None, lut=None, g_min: float = 0.0, step: float = 1.0,
-                 matrix=None, offset=None) -> None:
+                 matrix=None, offset=None, pyramid_source=None) -> None:
         import numpy as np
 
         mi = mi_module()
+        self.pyramid_source = pyramid_source
+        self._filtering = None
         if mode not in ("linear", "hist", "hex"):
             raise InputError(f"lattice blending mode: expected linear, hist or hex, got {mode!r}")
         plane = np.asarray(plane, dtype=np.float32)
@@ -189,7 +298,8 @@ class DrLatticeBlending:
         hi = 1.0 - 0.5 * dr.power(dr.maximum(2.0 - 2.0 * x, 0.0), k)
         return dr.select(x < 0.5, lo, hi)
 
-    def _weights(self, bary, taps_of_sample):
+    def _weights(self, bary, lum=None):
+        """The three samples' blend weights (``mi.Float``) from barycentrics and, for hex, their luminances ``lum``."""
         mi, dr = mi_module(), drjit_module()
         if self.mode == "linear":
             return [mi.Float(b) for b in bary]
@@ -199,7 +309,6 @@ class DrLatticeBlending:
             s = [x / total for x in s]
             scale = 1.0 / dr.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2])
             return [mi.Float(x * scale) for x in s]
-        lum = [mi.Float64(gather_one(self.luminance, taps)) for taps in taps_of_sample]
         s = [(1.0 - self.beta + self.beta * l) * dr.power(dr.maximum(b, 0.0), 7) for l, b in zip(lum, bary)]
         total = s[0] + s[1] + s[2]
         s = [x / total for x in s]
@@ -209,8 +318,13 @@ class DrLatticeBlending:
             s = [x / total for x in s]
         return [mi.Float(x) for x in s]
 
-    def latent(self, u, v, active=True, which=None):
-        """Blended values before the output map: list of ``C`` mi.Float (only channels ``which``, if given)."""
+    def _lattice(self, u, v):
+        """The three samples of each query: barycentrics, their whole-texel offsets and the query's texel position.
+
+        Returns ``bary`` (3 ``mi.Float64``), ``offsets`` (3 pairs ``(ox, oy)`` of ``mi.Int32``) and the
+        position in the read plane before the offsets: whole texels ``(mu, mv)`` (``mi.Int32``,
+        ``(repeat x density) mod plane size``) plus ``(fu x W, fv x H)`` (``mi.Float64``).
+        """
         mi, dr = mi_module(), drjit_module()
         u, v = mi.Float64(u), mi.Float64(v)
         verts, bary = triangle_lattice(u, v)
@@ -224,22 +338,32 @@ class DrLatticeBlending:
         # (iu * density) mod plane size, reduced before multiplying so nothing overflows
         mu = _mod(_mod(mi.Int32(wu), pw) * (dw % pw), pw)
         mv = _mod(_mod(mi.Int32(wv), ph) * (dh % ph), ph)
-        px = mi.Float64(mu) + fu * dw - 0.5
-        py = mi.Float64(mv) + fv * dh - 0.5
+        offsets = []
+        for vx, vy in verts:
+            h = hash_vertex(vx, vy, self.seed)
+            offsets.append((mi.Int32(h % pw), mi.Int32(mix32(h ^ synthesis_hash.SECOND_STREAM) % ph)))
+        return bary, offsets, (mu, mv), (fu * dw, fv * dh)
+
+    def latent(self, u, v, active=True, which=None):
+        """Blended values before the output map: list of ``C`` mi.Float (only channels ``which``, if given)."""
+        mi, dr = mi_module(), drjit_module()
+        bary, offsets, (mu, mv), (fx, fy) = self._lattice(u, v)
+        pw, ph = self.pw, self.ph
+        px = mi.Float64(mu) + fx - 0.5
+        py = mi.Float64(mv) + fy - 0.5
         x0, y0 = dr.floor(px), dr.floor(py)
         tx, ty = mi.Float(px - x0), mi.Float(py - y0)
         xi, yi = mi.Int32(x0), mi.Int32(y0)
         wts = ((1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty)
         taps_of_sample = []
-        for vx, vy in verts:
-            h = hash_vertex(vx, vy, self.seed)
-            ox = mi.Int32(h % pw)
-            oy = mi.Int32(mix32(h ^ synthesis_hash.SECOND_STREAM) % ph)
+        for ox, oy in offsets:
             ca, cb = _mod(xi + ox, pw), _mod(xi + ox + 1, pw)
             ra, rb = _mod(yi + oy, ph), _mod(yi + oy + 1, ph)
             idx = (mi.UInt32(ra * pw + ca), mi.UInt32(ra * pw + cb), mi.UInt32(rb * pw + ca), mi.UInt32(rb * pw + cb))
             taps_of_sample.append(list(zip(idx, wts)))
-        weights = self._weights(bary, taps_of_sample)
+        lum = ([mi.Float64(gather_one(self.luminance, taps)) for taps in taps_of_sample] if self.mode == "hex"
+               else None)
+        weights = self._weights(bary, lum)
         which = list(range(self.channels)) if which is None else list(which)
         out = []
         fetched = [gather_channels(self.plane, self.channels, taps, active, which) for taps in taps_of_sample]
@@ -249,6 +373,53 @@ class DrLatticeBlending:
                 acc = lut_lookup(self.lut, self.lut_size, c, self.g_min, self.step, acc)
             out.append(acc)
         return out
+
+    def level_of_detail(self) -> DrLevelOfDetail:
+        """The pyramid's :class:`DrLevelOfDetail` (builds the pyramid on first use)."""
+        return self._pyramid()[1]
+
+    def filtered_latent(self, u, v, lower, t, active=True):
+        """:meth:`latent` over a footprint: list of ``C`` mi.Float.
+
+        ``lower, t``: the footprint's lower pyramid level and the next level's weight
+        (:meth:`level_of_detail` of the footprint in level-0 texels). As
+        :meth:`dynbtf.synthesis.blending.LatticeBlending.filtered_latent` (the numba kernel
+        ``filtered_lattice_blend``): every sample read from the footprint's two pyramid levels,
+        blended per level (hex: the level's luminance; hist: the level's inverse table) and mixed.
+        """
+        mi, dr = mi_module(), drjit_module()
+        pyramid, lod, luts = self._pyramid()
+        upper = dr.minimum(lower + 1, lod.top)
+        bary, offsets, (mu, mv), (fx, fy) = self._lattice(u, v)
+        pw, ph, c = self.pw, self.ph, self.channels
+        positions = [(mi.Float64(_mod(mu + ox, pw)) + fx, mi.Float64(_mod(mv + oy, ph)) + fy) for ox, oy in offsets]
+        out = None
+        for level, share, mask in ((lower, 1.0 - t, active), (upper, t, active & (t > 0.0))):
+            taps_of_sample = [pyramid.taps(level, x, y) for x, y in positions]
+            lum = ([mi.Float64(gather_one(pyramid.luminances, taps, mask)) for taps in taps_of_sample]
+                   if self.mode == "hex" else None)
+            weights = self._weights(bary, lum)
+            fetched = [gather_channels(pyramid.flat, c, taps, mask) for taps in taps_of_sample]
+            row = [weights[0] * fetched[0][k] + weights[1] * fetched[1][k] + weights[2] * fetched[2][k]
+                   for k in range(c)]
+            if self.mode == "hist":
+                base = level * (c * self.lut_size)
+                row = [lut_lookup(luts, self.lut_size, k, self.g_min, self.step, row[k], base) for k in range(c)]
+            out = [share * x for x in row] if out is None else [o + share * x for o, x in zip(out, row)]
+        return out
+
+    def _pyramid(self):
+        """``(DrPyramid, DrLevelOfDetail, per-level inverse tables or None)``, built on first use from ``pyramid_source``."""
+        if self._filtering is None:
+            if self.pyramid_source is None:
+                raise InputError("footprint queries need the synthesizer's pyramid (pyramid_source)")
+            pyr = self.pyramid_source()
+            luts = flat_array(mi_module(), pyr["luts_numpy"]) if self.mode == "hist" else None
+            levels = [t.detach().cpu().numpy() for t in pyr["levels"]]
+            luminances = [t.detach().cpu().numpy() for t in pyr["luminances"]] if self.mode == "hex" else None
+            self._filtering = (DrPyramid(levels, luminances),
+                               DrLevelOfDetail(pyr["lod"]), luts)
+        return self._filtering
 
     def features(self, u, v, active=True):
         """Synthesized positional features at ``(u, v)``: list of ``C`` mi.Float."""
@@ -281,16 +452,22 @@ class DrLatticeBlending:
         return acc
 
 
-def gather_one(buffer, taps):
+def gather_one(buffer, taps, active=True):
     """Bilinear combination of a one-channel buffer over ``taps`` (as :func:`~dynbtf.render.drjit_ops.gather_channels`)."""
-    return gather_channels(buffer, 1, taps)[0]
+    return gather_channels(buffer, 1, taps, active)[0]
 
 
 class DrTiling:
-    """Plain periodic tiling: a bilinear, wrapped fetch of the exemplar plane ``(H, W, C)``."""
+    """Plain periodic tiling: a bilinear, wrapped fetch of the exemplar plane ``(H, W, C)``.
 
-    def __init__(self, plane) -> None:
+    ``pyramid_source`` (optional) returns the plane's pyramid (``levels``, ``lod``) for
+    :meth:`filtered_latent`, on its first call.
+    """
+
+    def __init__(self, plane, pyramid_source=None) -> None:
         mi = mi_module()
+        self.pyramid_source = pyramid_source
+        self._filtering = None
         plane = plane.detach().float().cpu().numpy() if hasattr(plane, "detach") else plane
         self.size = (int(plane.shape[0]), int(plane.shape[1]))
         self.channels = int(plane.shape[2])
@@ -303,6 +480,32 @@ class DrTiling:
     def channel(self, u, v, index: int, active=True):
         """One feature channel (``mi.Float``) at ``(u, v)``."""
         return fetch_wrap(self.plane, self.size, self.channels, u, v, active, which=[index])[0]
+
+    def _pyramid(self):
+        if self._filtering is None:
+            pyr = self.pyramid_source()
+            self._filtering = (DrPyramid([t.detach().cpu().numpy() for t in pyr["levels"]]), DrLevelOfDetail(pyr["lod"]))
+        return self._filtering
+
+    def level_of_detail(self) -> DrLevelOfDetail:
+        """The exemplar pyramid's :class:`DrLevelOfDetail` (builds the pyramid on first use)."""
+        return self._pyramid()[1]
+
+    def filtered_latent(self, u, v, lower, t, active=True):
+        """The plane averaged over a footprint (``lower`` level, next level's weight ``t``: :meth:`level_of_detail`).
+
+        :func:`dynbtf.synthesis.mip.trilinear_fetch` at ``(u, v)``: list of ``C`` mi.Float.
+        """
+        mi, dr = mi_module(), drjit_module()
+        pyramid, lod = self._pyramid()
+        upper = dr.minimum(lower + 1, lod.top)
+        x = mi.Float64(wrap01(mi.Float64(u))) * pyramid.width
+        y = mi.Float64(wrap01(mi.Float64(v))) * pyramid.height
+        out = None
+        for level, share, mask in ((lower, 1.0 - t, active), (upper, t, active & (t > 0.0))):
+            row = gather_channels(pyramid.flat, pyramid.channels, pyramid.taps(level, x, y), mask)
+            out = [share * r for r in row] if out is None else [o + share * r for o, r in zip(out, row)]
+        return out
 
 
 def make_dr_synthesizer(synthesizer):
@@ -323,9 +526,10 @@ def make_dr_synthesizer(synthesizer):
         matrix, offset = synthesizer.output_map()
         return DrLatticeBlending(host(synthesizer.prepared.plane), synthesizer.density, synthesizer.seed, mode,
                                  matrix=None if matrix is None else host(matrix),
-                                 offset=None if offset is None else host(offset), **kwargs)
+                                 offset=None if offset is None else host(offset),
+                                 pyramid_source=synthesizer.pyramid, **kwargs)
     if getattr(synthesizer, "name", None) == "tile":
-        return DrTiling(tiling_plane(synthesizer))
+        return DrTiling(tiling_plane(synthesizer), pyramid_source=synthesizer.pyramid)
     raise InputError(f"synthesis method {getattr(synthesizer, 'name', synthesizer)!r} has no Dr.Jit form; "
                      f"expected one of ['tile', 'linear', 'hist', 'hex']")
 

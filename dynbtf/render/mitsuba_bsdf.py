@@ -21,7 +21,28 @@ from . import drjit_ops
 from .sampling import AUTO_MIN_COSINE_VARIANCE, DEFAULT_TABLE_WEIGHT, SAMPLING_MODES
 
 __all__ = ["register_plugin", "plugin_variants", "load_plugin_model", "plugin_sampler", "PLUGIN_DOC", "METHODS",
-           "configure_jit", "DynBTFEvaluator"]
+           "configure_jit", "DynBTFEvaluator", "ray_cone_angle"]
+
+#: Mitsuba's ``BSDFFlags::NeedsDifferentials`` (not exported to Python): with it, integrators that trace ray
+#: differentials compute ``si.duv_dx`` / ``si.duv_dy`` before calling the BSDF.
+NEEDS_DIFFERENTIALS = 0x20000
+
+
+def ray_cone_angle(fov: float, width: int, spp: int = 1) -> float:
+    """The plugin's ``ray_cone_angle`` for a perspective camera: radians per pixel at the image centre / sqrt(spp).
+
+    ``fov`` in degrees along the image's ``width`` pixels; ``spp`` samples per pixel (each sample
+    stands for ``1 / spp`` of the pixel, as Mitsuba scales ray differentials by ``1 / sqrt(spp)``).
+
+    >>> round(ray_cone_angle(90.0, 512, 4), 6)
+    0.001953
+    """
+    for name, value in (("fov", fov), ("width", width), ("spp", spp)):
+        if not (math.isfinite(float(value)) and float(value) > 0):
+            raise InputError(f"ray_cone_angle: {name} must be positive, got {value}")
+    if not float(fov) < 180.0:
+        raise InputError(f"ray_cone_angle: fov must be below 180 degrees, got {fov}")
+    return 2.0 * math.tan(math.radians(float(fov)) / 2.0) / float(width) / math.sqrt(float(spp))
 
 #: Synthesis methods the plugin evaluates in Dr.Jit.
 METHODS = ("tile", "hist", "hex")
@@ -88,6 +109,29 @@ pre-generated, so any ``scale`` costs the same.
      - In ``mixture`` mode, the probability of drawing from the table (the
        rest draws cosine-weighted directions), in ``(0, 1]``.
      - 0.75
+   * - ``filtered``
+     - boolean
+     - Footprint queries: a shading point that stands for a footprint
+       (below) answers the synthesized BTF averaged over it, as
+       :meth:`~dynbtf.synthesized.SynthesizedBTF.eval` with ``footprint``
+       does (pyramid levels of the synthesized samples, a decoder per level),
+       so distant surfaces do not alias. Where no footprint is known it is
+       the point query. ``false``: always the point query.
+     - ``true``
+   * - ``ray_cone_angle``
+     - float
+     - Spread (radians) of one camera sample's ray cone: the angle one pixel
+       subtends divided by ``sqrt(spp)``
+       (:func:`~dynbtf.render.mitsuba_bsdf.ray_cone_angle`;
+       :func:`dynbtf.render.scenes.scene_dict` sets it from its camera).
+       Mitsuba's own integrators do not pass ray differentials to BSDFs, so
+       the footprint is estimated from the cone: the side
+       ``t ray_cone_angle / cos(theta_view)`` at hit distance ``t``, in uv
+       through ``|dp/du|`` and ``|dp/dv|`` (the longer side). Where the
+       integrator computed uv partials (``si.duv_dx``, ``si.duv_dy``, e.g. a
+       custom integrator calling ``si.compute_uv_partials(ray)``), those are
+       used instead (:func:`~dynbtf.synthesized.footprint_width`). 0: partials only.
+     - 0
 
 Conventions: ``si.wi`` (towards the camera / previous path vertex) is the BTF's
 ``w_view``, ``wo`` (towards the light / next vertex) its ``w_light``, both in the
@@ -109,7 +153,8 @@ otherwise; ``pdf`` returns the mixture's density
 ``a pdf_table + (1 - a) cos(theta) / pi`` whichever way the direction was drawn,
 and ``sample``'s weight is ``eval / pdf`` (see :mod:`dynbtf.render.sampling`).
 The table costs a few seconds when a model is first loaded (cached for the
-process). If it cannot be built (the decoder returns NaN or inf, or a view has
+process); so do the per-level decoders of ``filtered`` (fitted at load, cached
+for the process and shared with :class:`~dynbtf.synthesized.SynthesizedBTF`). If it cannot be built (the decoder returns NaN or inf, or a view has
 no density), the plugin falls back to cosine sampling and says so once per
 model file with a warning (``UserWarning``).
 A BTF is not reciprocal: use radiance-mode integrators (``path``, ``direct``), not
@@ -182,8 +227,15 @@ def _build_class(mi):
             if not (math.isfinite(self.table_weight) and 0.0 < self.table_weight <= 1.0):
                 raise InputError(f"dynbtf BSDF: parameter 'sampling_weight' must be a probability in (0, 1], "
                                  f"got {self.table_weight}")
+            self.filtered = bool(props["filtered"]) if props.has_property("filtered") else True
+            self.cone = float(props["ray_cone_angle"]) if props.has_property("ray_cone_angle") else 0.0
+            if not (math.isfinite(self.cone) and self.cone >= 0.0):
+                raise InputError(f"dynbtf BSDF: parameter 'ray_cone_angle' must be a non-negative angle in radians, "
+                                 f"got {self.cone}")
             model = load_plugin_model(self.filename)
             self.evaluator = DynBTFEvaluator(model, self.method, self.seed)
+            if self.filtered:  # the pyramid and per-level decoders, before any kernel is traced
+                self.evaluator.prepare_footprints()
             self.sampler = None
             if self.sampling in ("auto", "mixture"):
                 self.sampler = plugin_sampler(self.filename, model)
@@ -196,6 +248,8 @@ def _build_class(mi):
                     self.sampler = self.sampler if glossy else None
             self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
             self.m_components = [self.m_flags]
+            if self.filtered:
+                self.m_flags = int(self.m_flags) | NEEDS_DIFFERENTIALS
 
         # ------------------------------------------------------------ BTF value
         @staticmethod
@@ -213,10 +267,27 @@ def _build_class(mi):
         def _value(self, si, wo, active):
             # opaque: the scale is a kernel parameter, not a literal, so scenes that differ
             # only in scale share one compiled kernel
-            u = si.uv.x * dr.opaque(mi.Float, self.scale)
-            v = si.uv.y * dr.opaque(mi.Float, self.scale_v)
+            scale_u, scale_v = dr.opaque(mi.Float, self.scale), dr.opaque(mi.Float, self.scale_v)
+            u = si.uv.x * scale_u
+            v = si.uv.y * scale_v
             y = self._mirror(si)
-            return self.evaluator.eval(u, v, self._flip_y(si.wi, y), self._flip_y(wo, y), active)
+            return self.evaluator.eval(u, v, self._flip_y(si.wi, y), self._flip_y(wo, y), active,
+                                       footprint=self._footprint(si, scale_u, scale_v))
+
+        def _footprint(self, si, scale_u, scale_v):
+            """Each lane's footprint (side of a square, exemplar repeats) or None: the point query everywhere."""
+            if not self.filtered:
+                return None
+            partials = (si.duv_dx.x != 0.0) | (si.duv_dx.y != 0.0) | (si.duv_dy.x != 0.0) | (si.duv_dy.y != 0.0)
+            if self.cone == 0.0 and not dr.flag(dr.JitFlag.SymbolicScope) and not dr.any(partials):
+                return None  # nothing has a footprint: the point query, bit for bit
+            width = dr.maximum(dr.norm(mi.Vector2f(si.duv_dx.x * scale_u, si.duv_dx.y * scale_v)),
+                               dr.norm(mi.Vector2f(si.duv_dy.x * scale_u, si.duv_dy.y * scale_v)))
+            if self.cone > 0.0:  # the camera ray's cone at the hit, stretched along the view, in uv
+                side = si.t * self.cone / dr.maximum(dr.abs(mi.Frame3f.cos_theta(si.wi)), 1e-6)
+                cone = side * dr.maximum(scale_u / dr.norm(si.dp_du), scale_v / dr.norm(si.dp_dv))
+                width = dr.select(partials, width, dr.select(dr.isfinite(cone), cone, 0.0))
+            return width
 
         def _valid(self, si, wo, active):
             return active & (mi.Frame3f.cos_theta(si.wi) > 0.0) & (mi.Frame3f.cos_theta(wo) > 0.0)
@@ -275,7 +346,8 @@ def _build_class(mi):
 
         def to_string(self):
             return (f"DynBTFBSDF[filename={self.filename!r}, method={self.method!r}, "
-                    f"scale={self.scale}, scale_v={self.scale_v}, seed={self.seed}, sampling={self.sampling!r}]")
+                    f"scale={self.scale}, scale_v={self.scale_v}, seed={self.seed}, sampling={self.sampling!r}, "
+                    f"filtered={self.filtered}, ray_cone_angle={self.cone}]")
 
     return DynBTFBSDF
 
@@ -312,13 +384,48 @@ class DynBTFEvaluator:
         # (the positional plane's last channel), as SynthesizedBTF.eval does
         self.relief = hasattr(self.model, "visible_uv")
         self._height_index = int(model.positional_plane().shape[-1]) - 1
+        self._level_decoders = None
+
+    def prepare_footprints(self) -> None:
+        """Build what footprint queries read (the synthesizer's pyramid, the per-level decoders) now, not mid-trace."""
+        self.synthesizer.level_of_detail()
+        self.level_decoders()
+
+    def level_decoders(self) -> list:
+        """One :class:`~dynbtf.render.drjit_ops.DrDecoder` per pyramid level for footprint queries, or ``[]``.
+
+        The decoders of :meth:`dynbtf.synthesized.SynthesizedBTF.level_decoder_parameters` (fitted on
+        first use, shared with the library's evaluation in this process; level 0 is the model's
+        decoder), with the synthesizer's output map folded into layer 1 like the point query's.
+        ``[]`` where the library decodes every level with the model's decoder (e.g. NeuMIP).
+        """
+        if self._level_decoders is None:
+            self._level_decoders = []
+            if self.btf.level_decoders:
+                import numpy as np
+
+                decoder = self.btf.model.decoder
+                c = int(decoder.positional_channels)
+                angular = decoder.first.weight[:, c:].detach().float().cpu().numpy()
+                for params in self.btf.level_decoder_parameters():
+                    first = (np.concatenate([params["weight"].detach().float().cpu().numpy().T, angular], axis=1),
+                             params["bias_total"])
+                    self._level_decoders.append(drjit_ops.DrDecoder.from_layers(
+                        [first, *params["rest"]], c, decoder.negative_slope))
+        return self._level_decoders
 
     def features(self, u, v, active=True):
         """Synthesized positional features at ``(u, v)``: list of ``C_U`` mi.Float."""
         return self.synthesizer.features(u, v, active)
 
-    def eval(self, u, v, w_view, w_light, active=True):
-        """RGB value (``mi.Color3f``) of the synthesized BTF, excluding cos(theta_light)."""
+    def eval(self, u, v, w_view, w_light, active=True, footprint=None):
+        """RGB value (``mi.Color3f``) of the synthesized BTF, excluding cos(theta_light).
+
+        ``footprint`` (optional, ``mi.Float``): the side of the square each query stands for, in
+        exemplar repeats, as :meth:`dynbtf.synthesized.SynthesizedBTF.eval`'s ``footprint`` (at
+        ``scale`` 1): the synthesized samples are read from the footprint's pyramid levels and
+        decoded with the nearest level's decoder (:meth:`level_decoders`). ``None``: the point query.
+        """
         if self.relief:
             index = self._height_index
 
@@ -326,9 +433,26 @@ class DynBTFEvaluator:
                 return self.synthesizer.channel(pu, pv, index, mask)
 
             u, v = self.model.visible_uv(u, v, w_view, height_channel, active)
+        if footprint is not None:
+            return self._filtered(u, v, w_view, w_light, footprint, active)
         if self._latent:  # the output map is folded into the decoder
             return self.model.decode(self.synthesizer.latent(u, v, active), w_view, w_light, active)
         return self.model.decode(self.features(u, v, active), w_view, w_light, active)
+
+    def _filtered(self, u, v, w_view, w_light, footprint, active):
+        dr = drjit_ops.drjit_module()
+        lod = self.synthesizer.level_of_detail()
+        lower, t = lod(footprint * self.btf.texels_per_uv())
+        # the latent (decoders with the output map folded in) or, without an output map, the features
+        latent = self.synthesizer.filtered_latent(u, v, lower, t, active)
+        decoders = self.level_decoders()
+        if not decoders:
+            return self.model.decode(latent, w_view, w_light, active)
+        angular = self.model.angular_features(w_view, w_light, active)
+        # each lane's level decoder: one kernel per level over the lanes that need it (an evaluated call in
+        # wavefront mode; the decoders' weights stay literals)
+        return dr.switch(lod.nearest(lower, t), [lambda f, a, mask, d=d: d(f, a) for d in decoders], latent, angular,
+                         active)
 
 
 _SAMPLERS: dict = {}

@@ -198,6 +198,11 @@ class PlanePyramid:
         return self._built
 
     @property
+    def levels(self) -> list[torch.Tensor]:
+        """The pyramid's levels ``[plane, ..., 1 x 1 mean]`` (:func:`area_pyramid`)."""
+        return self._levels()[0]
+
+    @property
     def level_of_detail(self) -> LevelOfDetail:
         return self._levels()[1]
 

@@ -45,6 +45,10 @@ class Tiling(Synthesizer):
     def level_of_detail(self) -> LevelOfDetail:
         return self._pyramid.level_of_detail
 
+    def pyramid(self) -> dict:
+        """The exemplar's pyramid: ``levels`` (:func:`~dynbtf.synthesis.mip.area_pyramid`) and ``lod``, built once."""
+        return {"levels": self._pyramid.levels, "lod": self._pyramid.level_of_detail}
+
     def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
         if not bool((footprint > 1.0).any()):
             return self.latent(uv)
