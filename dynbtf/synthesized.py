@@ -117,8 +117,10 @@ LEVEL_FIT_BATCH = 1024
 LEVEL_FIT_LR = 3e-3
 LEVEL_FIT_SEED = 0
 
-#: Fitted per-level decoders by (model, method, parameters, precision, device): SynthesizedBTFs of one model
-#: and method (e.g. other seeds or scales: the fit is in exemplar repeats) fit once per process.
+#: Fitted per-level decoders by (model, method, seed, parameters, precision, device): SynthesizedBTFs of one model,
+#: method and seed fit once per process (other scales share it: the fit is in exemplar repeats; the seed is
+#: part of the key because the fit's targets are that seed's synthesized BTF, so results never depend on
+#: which seed was evaluated first).
 _LEVEL_DECODERS: dict[tuple, tuple[Any, list[dict[str, Any]]]] = {}
 
 #: Rows per call of decoder layers 2..: torch's small (32-wide) linear layers ran ~3x faster per row
@@ -406,8 +408,8 @@ class SynthesizedBTF:
         if self._level_layers is None:
             import json
 
-            key = (id(self.model), self.synthesizer.name, json.dumps(self.synthesizer.parameters(), sort_keys=True,
-                                                                      default=str), self.precision, str(self.device))
+            key = (id(self.model), self.synthesizer.name, self.seed,
+                   json.dumps(self.synthesizer.parameters(), sort_keys=True, default=str), self.precision, str(self.device))
             cached = _LEVEL_DECODERS.get(key)
             if cached is None or cached[0]() is not self.model:
                 cached = (weakref.ref(self.model), self._fit_level_decoders())

@@ -55,20 +55,27 @@ def _random_queries(n, seed, uv_range=40.0):
     return uv, wv, wl
 
 
-def _plugin_eval(bsdf, uv, wv, wl, scale, dp_dv=(0.0, 1.0, 0.0)):
+def _plugin_eval(bsdf, uv, wv, wl, scale, dp_dv=(0.0, 1.0, 0.0), duv_dx=None, duv_dy=None, t=None,
+                 dp_du=(1.0, 0.0, 0.0)):
     """``bsdf.eval`` ``(n, 3)`` at mesh uv ``uv / scale``, local directions ``wv, wl (n, 3)``.
 
-    The shading frame is the identity (s = x, t = y, n = z) with ``dp/du = x`` and
+    The shading frame is the identity (s = x, t = y, n = z) with ``dp/du = dp_du`` (x) and
     ``dp/dv = dp_dv``: ``+y`` a right-handed parametrization (Mitsuba's rectangle),
-    ``-y`` a left-handed one (Mitsuba's sphere).
+    ``-y`` a left-handed one (Mitsuba's sphere). ``duv_dx, duv_dy`` ``(n, 2)`` (mesh uv per
+    pixel) and the hit distance ``t`` ``(n,)`` are set when given (zero otherwise).
     """
     n = len(uv)
     si = dr.zeros(mi.SurfaceInteraction3f, n)
     si.uv = mi.Point2f(mi.Float(uv[:, 0] / scale), mi.Float(uv[:, 1] / scale))
     si.wi = mi.Vector3f(*(mi.Float(wv[:, k]) for k in range(3)))
     si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
-    si.dp_du = mi.Vector3f(1.0, 0.0, 0.0)
+    si.dp_du = mi.Vector3f(*dp_du)
     si.dp_dv = mi.Vector3f(*dp_dv)
+    if duv_dx is not None:
+        si.duv_dx = mi.Vector2f(mi.Float(duv_dx[:, 0]), mi.Float(duv_dx[:, 1]))
+        si.duv_dy = mi.Vector2f(mi.Float(duv_dy[:, 0]), mi.Float(duv_dy[:, 1]))
+    if t is not None:
+        si.t = mi.Float(t)
     wo = mi.Vector3f(*(mi.Float(wl[:, k]) for k in range(3)))
     out = np.array(bsdf.eval(mi.BSDFContext(), si, wo), dtype=np.float64)
     return out.reshape(n, 3) if out.shape == (n, 3) else out.T
@@ -267,6 +274,8 @@ def test_bad_parameters_are_clear_errors(variant, model_file, tmp_path):
         mi.load_dict({"type": "dynbtf", "filename": str(path), "scale": -2.0})
     with pytest.raises(Exception, match="not found"):
         mi.load_dict({"type": "dynbtf", "filename": str(tmp_path / "missing.dbtfm")})
+    with pytest.raises(Exception, match="ray_cone_angle"):
+        mi.load_dict({"type": "dynbtf", "filename": str(path), "ray_cone_angle": -0.01})
 
 
 def test_small_render_of_a_plane_matches_direct_lighting_by_hand(variant, model_file):
@@ -530,3 +539,101 @@ def test_damaged_sampling_table_falls_back_to_cosine_once(variant, model_file, t
         assert mitsuba_bsdf.plugin_sampler(copy, model, build=damaged) is None
     messages = [str(w.message) for w in caught]
     assert len(messages) == 1 and "non-finite" in messages[0] and "cosine" in messages[0], messages
+
+
+# ---------------------------------------------------------------- footprints (filtered queries)
+def _footprint_reference(model, method, seed, uv, wv, wl, footprint):
+    from dynbtf.synthesized import SynthesizedBTF
+
+    btf = SynthesizedBTF(model, method, scale=1.0, seed=seed)
+    return np.asarray(btf.eval(uv.astype(np.float64), wv, wl, footprint=footprint), dtype=np.float64)
+
+
+@pytest.mark.parametrize("method", ["tile", "hist", "hex"])
+def test_plugin_footprint_from_uv_partials_matches_synthesized_btf(variant, model_file, method):
+    """With ``si.duv_dx/dy`` set (an integer that traces ray differentials), the plugin answers
+    ``SynthesizedBTF.eval(footprint=footprint_width(duv_dx, duv_dy))`` -- pyramid levels and per-level decoders."""
+    from dynbtf.synthesized import footprint_width
+
+    path, model = model_file
+    scale, seed, n = 7.0, 3, 3000
+    bsdf = mi.load_dict({"type": "dynbtf", "filename": str(path), "method": method, "scale": scale, "seed": seed})
+    uv, wv, wl = _random_queries(n, seed=11)
+    uv = (uv / np.float32(scale)) * np.float32(scale)
+    rng = np.random.default_rng(12)
+    # footprints from 1/400 of a repeat (inside a texel: the point query) to several repeats (the mean)
+    duv_dx, duv_dy = ((rng.normal(size=(n, 2)) * np.exp(rng.uniform(-6.0, 1.0, (n, 1))) / scale).astype(np.float32)
+                      for _ in range(2))
+    got = _plugin_eval(bsdf, uv, wv, wl, scale, duv_dx=duv_dx, duv_dy=duv_dy)
+    footprint = footprint_width(duv_dx.astype(np.float64) * np.float32(scale), duv_dy.astype(np.float64) * np.float32(scale))
+    ref = _footprint_reference(model, method, seed, uv, wv, wl, footprint) / np.pi * wl[:, 2:3]
+    point = _reference(model, method, seed, uv, wv, wl) / np.pi * wl[:, 2:3]
+    assert np.abs(point - ref).max() > 0.1 * np.abs(ref).max()  # the footprint changes the answer
+    np.testing.assert_allclose(got, ref, rtol=0, atol=2e-4 * max(1.0, np.abs(ref).max()))
+
+
+def test_plugin_footprint_from_ray_cone(variant, model_file):
+    """Without uv partials, ``ray_cone_angle`` gives the footprint ``t angle / cos(theta_view)`` in uv through
+    ``|dp/du|`` and ``|dp/dv|`` (the longer side) -- checked against eval with that closed form."""
+    path, model = model_file
+    scale, seed, n, angle = 5.0, 2, 2000, 0.004
+    bsdf = mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "hist", "scale": scale, "seed": seed,
+                         "ray_cone_angle": angle})
+    uv, wv, wl = _random_queries(n, seed=21)
+    uv = (uv / np.float32(scale)) * np.float32(scale)
+    t = np.random.default_rng(22).uniform(1.0, 400.0, n).astype(np.float32)
+    dp_du, dp_dv = (2.0, 0.0, 0.0), (0.0, 0.5, 0.0)  # uv per world unit: 1/2 along u, 2 along v
+    got = _plugin_eval(bsdf, uv, wv, wl, scale, t=t, dp_du=dp_du, dp_dv=dp_dv)
+    side = t.astype(np.float64) * angle / np.abs(wv[:, 2].astype(np.float64))
+    footprint = side * max(scale / 2.0, scale / 0.5)
+    ref = _footprint_reference(model, "hist", seed, uv, wv, wl, footprint) / np.pi * wl[:, 2:3]
+    point = _reference(model, "hist", seed, uv, wv, wl) / np.pi * wl[:, 2:3]
+    assert np.abs(point - ref).max() > 0.1 * np.abs(ref).max()
+    # a lane whose footprint straddles a level boundary (float32 vs float64 of the same closed form) may pick
+    # the other level's decoder: all but a handful of lanes agree to float rounding
+    close = np.abs(got - ref).max(1) <= 2e-4 * max(1.0, np.abs(ref).max())
+    assert close.mean() > 0.995, close.mean()
+
+
+def test_plugin_without_a_footprint_is_the_point_query_bit_for_bit(variant, model_file):
+    """No partials and no ray cone: exactly the unfiltered plugin's values (``filtered: false``)."""
+    path, _ = model_file
+    uv, wv, wl = _random_queries(1000, seed=31)
+    common = {"type": "dynbtf", "filename": str(path), "method": "hist", "scale": 4.0}
+    on = _plugin_eval(mi.load_dict({**common}), uv, wv, wl, 4.0)
+    off = _plugin_eval(mi.load_dict({**common, "filtered": False}), uv, wv, wl, 4.0)
+    assert np.array_equal(on, off)
+    # a ray cone, but the hit at distance 0 (a footprint of 0 texels): the point query to float rounding
+    cone = _plugin_eval(mi.load_dict({**common, "ray_cone_angle": 0.01}), uv, wv, wl, 4.0, t=np.zeros(len(uv)))
+    np.testing.assert_allclose(cone, off, rtol=0, atol=1e-5 * np.abs(off).max())
+
+
+def test_ray_cone_angle_of_a_camera():
+    from dynbtf.errors import InputError
+    from dynbtf.render.mitsuba_bsdf import ray_cone_angle
+
+    # 90 degrees over 512 px: the image plane at distance 1 is 2 wide, a pixel 2 / 512; 4 spp: half of it
+    assert ray_cone_angle(90.0, 512, 4) == pytest.approx(2.0 / 512 / 2.0, rel=1e-12)
+    with pytest.raises(InputError, match="fov"):
+        ray_cone_angle(200.0, 512)
+    with pytest.raises(InputError, match="spp"):
+        ray_cone_angle(45.0, 512, 0)
+
+
+def test_rendered_distant_plane_filters_with_the_scene_camera_cone(variant, model_file):
+    """A grazing plane (``scene_dict``'s plane, which sets ``ray_cone_angle`` from its camera) at 1 spp is
+    closer to a 64-spp render with footprints than without: the footprints reach the plugin in a real render."""
+    from dynbtf.render.scenes import bsdf_dict, scene_dict
+
+    path, _ = model_file
+    res = (24, 32)
+
+    def render(filtered, spp, seed):
+        material = {**bsdf_dict(path, method="hist", scale=40.0), "filtered": filtered}
+        d = scene_dict("plane", material, lighting="point", resolution=res, spp=spp, max_depth=2)
+        del d["ambient"]  # the point light alone: no light-sampling noise, only the texture's
+        return np.array(mi.render(mi.load_dict(d), spp=spp, seed=seed), dtype=np.float64)
+
+    reference = render(False, 64, 100)
+    errors = {f: np.mean([((render(f, 1, s) - reference) ** 2).mean() for s in range(3)]) for f in (False, True)}
+    assert errors[True] < 0.5 * errors[False], errors

@@ -137,7 +137,10 @@ def scene_dict(scene: str, material: dict, *, lighting: str = "sky", resolution=
     scene : {"plane", "sphere", "cloth"}
     material : dict
         A BSDF dict, normally :func:`bsdf_dict` (for the sphere, ``scale_v`` is
-        set to half of ``scale`` unless given, so texels are square at the equator).
+        set to half of ``scale`` unless given, so texels are square at the equator;
+        a ``dynbtf`` material gets the camera's ``ray_cone_angle`` for its footprints
+        unless given: :func:`dynbtf.render.mitsuba_bsdf.ray_cone_angle` of the
+        scene's field of view, width and ``spp``).
     lighting : {"point", "sky"}
     resolution : (height, width)
     spp : int
@@ -153,13 +156,18 @@ def scene_dict(scene: str, material: dict, *, lighting: str = "sky", resolution=
     if lighting not in LIGHTINGS:
         raise InputError(f"lighting: expected one of {list(LIGHTINGS)}, got {lighting!r}")
     height, width = int(resolution[0]), int(resolution[1])
+    fov = {"plane": 45.0, "sphere": 32.0, "cloth": 38.0}[scene]  # degrees along the image's width
+    if material.get("type") == "dynbtf" and "ray_cone_angle" not in material:
+        from .mitsuba_bsdf import ray_cone_angle
+
+        material = {**material, "ray_cone_angle": ray_cone_angle(fov, width, spp)}
     film = {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
             "pixel_format": "rgb"}
     sampler = {"type": "independent", "sample_count": int(spp), "seed": int(seed)}
     floor_bsdf = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.35, 0.35, 0.35]}}
     d: dict = {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth), "hide_emitters": False}}
     if scene == "plane":
-        d["sensor"] = {"type": "perspective", "fov": 45.0, "fov_axis": "x",
+        d["sensor"] = {"type": "perspective", "fov": fov, "fov_axis": "x",
                        "to_world": _look_at(mi, (0.0, -19.0, 1.4), (0.0, 4.0, -1.2)), "film": film, "sampler": sampler}
         d["surface"] = {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale([20.0, 20.0, 1.0]),
                         "bsdf": dict(material)}
@@ -168,7 +176,7 @@ def scene_dict(scene: str, material: dict, *, lighting: str = "sky", resolution=
         mat = dict(material)
         if mat.get("type") == "dynbtf" and "scale_v" not in mat:
             mat["scale_v"] = 0.5 * float(mat.get("scale", 1.0))
-        d["sensor"] = {"type": "perspective", "fov": 32.0, "fov_axis": "x",
+        d["sensor"] = {"type": "perspective", "fov": fov, "fov_axis": "x",
                        "to_world": _look_at(mi, (0.0, -5.2, 2.6), (0.0, 0.0, 0.85)), "film": film, "sampler": sampler}
         d["surface"] = {"type": "sphere", "center": [0.0, 0.0, 1.0], "radius": 1.0, "bsdf": mat}
         d["floor"] = {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale([8.0, 8.0, 1.0]),
@@ -176,7 +184,7 @@ def scene_dict(scene: str, material: dict, *, lighting: str = "sky", resolution=
         light_pos, light_power = (3.0, -3.0, 5.0), 60.0
     else:
         bsdf = mi.load_dict(dict(material))
-        d["sensor"] = {"type": "perspective", "fov": 38.0, "fov_axis": "x",
+        d["sensor"] = {"type": "perspective", "fov": fov, "fov_axis": "x",
                        "to_world": _look_at(mi, (0.0, -4.2, 3.0), (0.0, 0.0, 0.3)), "film": film, "sampler": sampler}
         d["surface"] = cloth_mesh(bsdf)
         d["floor"] = {"type": "rectangle",
