@@ -51,7 +51,7 @@ __all__ = ["SAMPLING_MODES", "DEFAULT_TABLE_WEIGHT", "AUTO_MIN_COSINE_VARIANCE",
 SAMPLING_MODES = ("auto", "mixture", "cosine")
 #: ``auto`` samples the table (``mixture``) when :func:`cosine_relative_variance` of the model's table is
 #: above this, else cosine-weighted. Measured (docs/rendering.md): the glossy lacquered wood scores ~32
-#: and renders 5x faster to equal error with the table; leather (~1.1) and stone (~0.05) gain nothing
+#: and renders 13-18x faster to equal error with the table; leather (~1.2) and stone (~0.05) gain nothing
 #: per sample and lose the table's ~10% cost per sample.
 AUTO_MIN_COSINE_VARIANCE = 4.0
 #: Probability of drawing from the table in ``mixture`` mode (the rest: cosine).
@@ -302,7 +302,8 @@ class DrTableSampler:
     cells). :meth:`sample` draws one of the four nodes with its blend weight (using a
     uniform number ``u_node``), a row of its table from the marginal CDF and a column
     from the row's conditional CDF (binary searches), and a uniform point inside the
-    cell, so that it draws exactly the density :meth:`pdf` returns: ~12 gathers per
+    cell, whose half vector ``h_view`` it rotates to the view's azimuth, so that it draws
+    exactly the density :meth:`pdf` returns: ~12 gathers per
     sample and 4 per density, about a quarter of a bilinearly interpolated warp's
     work (Mitsuba's ``MarginalContinuous2D2``).
 
