@@ -7,17 +7,24 @@ the BTF's luminance times ``cos(theta_light)`` times the Jacobian of ``h -> w_li
 averaged over the exemplar's positional features. Parametrized by the half vector,
 a glossy lobe sits near the normal for every view, so tables of neighbouring views
 are alike and interpolating between them keeps the lobe sharp (as microfacet
-sampling does).
+sampling does). The half vector is taken in the **view's azimuthal frame**
+(``h_view = R_z(-phi_view) h``): what depends on where the light is relative to the
+view -- at grazing views the region of half vectors that reflect the view above the
+horizon (a crescent towards the view), and any lobe off the normal -- then sits at the
+same place in the tables of views of different azimuths, so blending the tables of
+the nodes around a view (45 degrees apart in azimuth) keeps it. (In the absolute frame
+the tables of two azimuth nodes of a grazing view hardly overlap, and their blend
+misses the actual view's lobe.)
 
 Sampling follows Mitsuba's own ``measured`` BSDF (Dupuy and Jakob's luminance
 warps: a 2-D density on ``[0, 1]^2`` per view, sampled by its marginal and
 conditional CDFs, blended between view nodes ``(phi_view, theta_view)``; see
-:class:`DrTableSampler`); the square maps to the half-vector hemisphere by Mitsuba's
+:class:`DrTableSampler`); the square maps to the hemisphere of ``h_view`` by Mitsuba's
 area-preserving concentric map (``mi.warp.square_to_uniform_hemisphere``, Jacobian
-``2 pi``), and ``w_light`` is ``w_view`` reflected about ``h`` (Jacobian
-``4 (w_light . h)``):
+``2 pi``), ``h = R_z(phi_view) h_view`` (a rotation: Jacobian 1), and ``w_light`` is
+``w_view`` reflected about ``h`` (Jacobian ``4 (w_light . h)``):
 
-    pdf(w_light) = p_square(s(h)) / (2 pi * 4 (w_light . h))
+    pdf(w_light) = p_square(s(h_view)) / (2 pi * 4 (w_light . h))
 
 The plugin mixes it with cosine sampling (one-sample multiple importance sampling
 with the balance heuristic, i.e. a mixture: ``pdf = a pdf_table + (1 - a)
@@ -44,7 +51,7 @@ __all__ = ["SAMPLING_MODES", "DEFAULT_TABLE_WEIGHT", "AUTO_MIN_COSINE_VARIANCE",
 SAMPLING_MODES = ("auto", "mixture", "cosine")
 #: ``auto`` samples the table (``mixture``) when :func:`cosine_relative_variance` of the model's table is
 #: above this, else cosine-weighted. Measured (docs/rendering.md): the glossy lacquered wood scores ~32
-#: and renders 5x faster to equal error with the table; leather (~1.1) and stone (~0.05) gain nothing
+#: and renders 13-18x faster to equal error with the table; leather (~1.2) and stone (~0.05) gain nothing
 #: per sample and lose the table's ~10% cost per sample.
 AUTO_MIN_COSINE_VARIANCE = 4.0
 #: Probability of drawing from the table in ``mixture`` mode (the rest: cosine).
@@ -60,8 +67,9 @@ class SamplingTable:
     Attributes
     ----------
     density : float32 ``(P, T, R, R)``
-        Density of each cell of an ``R x R`` grid on the unit square (row = square y; constant
-        on a cell), for view azimuth node ``p`` and view elevation node ``t``.
+        Density of each cell of an ``R x R`` grid on the unit square of ``h_view`` (the half vector in
+        the view's azimuthal frame; row = square y; constant on a cell), for view azimuth node ``p``
+        and view elevation node ``t``.
     phi_nodes : float ``(P,)``
         View azimuths (radians, ``0 .. 2 pi``; the last node repeats the first).
     theta_nodes : float ``(T,)``
@@ -100,6 +108,32 @@ def _cell_centres(resolution: int) -> np.ndarray:
     grid = (np.arange(resolution) + 0.5) / resolution
     sy, sx = np.meshgrid(grid, grid, indexing="ij")
     return np.stack([sx.ravel(), sy.ravel()], axis=-1)
+
+
+def _view_azimuth(w_view):
+    """``(cos phi_view, sin phi_view)`` of views ``(..., 3)`` (NumPy) or an ``mi.Vector3f`` (Dr.Jit); ``(1, 0)``
+    at the pole, where ``atan2(0, 0) = 0``."""
+    if isinstance(w_view, np.ndarray):
+        r = np.hypot(w_view[..., 0], w_view[..., 1])
+        pole = r < 1e-12
+        safe = np.where(pole, 1.0, r)
+        return np.where(pole, 1.0, w_view[..., 0] / safe), np.where(pole, 0.0, w_view[..., 1] / safe)
+    import drjit as dr
+
+    r = dr.sqrt(w_view.x * w_view.x + w_view.y * w_view.y)
+    pole = r < 1e-12
+    inv = 1.0 / dr.select(pole, 1.0, r)
+    return dr.select(pole, 1.0, w_view.x * inv), dr.select(pole, 0.0, w_view.y * inv)
+
+
+def _rotate_z(w, cos_phi, sin_phi):
+    """``R_z(phi) w`` for ``(..., 3)`` NumPy arrays (``cos_phi, sin_phi`` broadcast against ``w[..., 0]``) or an
+    ``mi.Vector3f``; ``R_z(-phi)`` is ``_rotate_z(w, cos_phi, -sin_phi)``."""
+    x = cos_phi * w[..., 0] - sin_phi * w[..., 1] if isinstance(w, np.ndarray) else cos_phi * w.x - sin_phi * w.y
+    y = sin_phi * w[..., 0] + cos_phi * w[..., 1] if isinstance(w, np.ndarray) else sin_phi * w.x + cos_phi * w.y
+    if isinstance(w, np.ndarray):
+        return np.stack([x, y, w[..., 2]], axis=-1)
+    return type(w)(x, y, w.z)
 
 
 def _reflect(w_view: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -160,9 +194,11 @@ def build_sampling_table(model, *, phi_bins: int = 8, theta_bins: int = 12, reso
     # straddling the horizon keep a density), times the fraction of valid probes
     offsets = np.array([[0.0, 0.0], [-0.25, -0.25], [0.25, -0.25], [-0.25, 0.25], [0.25, 0.25]]) / resolution
     probes = _cell_centres(resolution)[:, None, :] + offsets[None]  # (R*R, 5, 2)
-    half = _square_to_hemisphere(probes.reshape(-1, 2)).reshape(-1, 5, 3)
+    half = _square_to_hemisphere(probes.reshape(-1, 2)).reshape(-1, 5, 3)  # h_view of the cells' probes
     wv = np.repeat(views, len(half), axis=0)[:, None, :]  # (P*T*R*R, 1, 3)
-    hh = np.tile(half, (len(views), 1, 1))  # (P*T*R*R, 5, 3)
+    # h = R_z(phi_view) h_view: each node's cells in its view's azimuthal frame
+    cos_phi, sin_phi = _view_azimuth(wv)  # (P*T*R*R, 1)
+    hh = _rotate_z(np.tile(half, (len(views), 1, 1)), cos_phi, sin_phi)  # (P*T*R*R, 5, 3)
     wl, cos_vh = _reflect(wv, hh)
     ok = (wl[..., 2] > 1e-4) & (cos_vh > 0)  # (N, 5)
     fraction = ok.mean(axis=1)
@@ -241,8 +277,9 @@ def cosine_relative_variance(table: SamplingTable) -> float:
     """
     density = np.asarray(table.density, dtype=np.float64)[:-1]
     p, t, r, _ = density.shape
-    half = _square_to_hemisphere(_cell_centres(r))  # (R*R, 3)
-    views = _node_views(table.phi_nodes, table.theta_nodes, p)  # (P*T, 3)
+    half = _square_to_hemisphere(_cell_centres(r))  # (R*R, 3): h_view
+    # the cosines below do not change under a rotation about z: every view at azimuth 0, where h = h_view
+    views = _node_views(np.zeros_like(table.phi_nodes), table.theta_nodes, p)  # (P*T, 3)
     w_light, cos_vh = _reflect(views[:, None], half[None])  # (P*T, R*R, 3), (P*T, R*R)
     cos_light = w_light[..., 2]
     ok = (cos_light > 1e-4) & (cos_vh > 0)
@@ -265,7 +302,8 @@ class DrTableSampler:
     cells). :meth:`sample` draws one of the four nodes with its blend weight (using a
     uniform number ``u_node``), a row of its table from the marginal CDF and a column
     from the row's conditional CDF (binary searches), and a uniform point inside the
-    cell, so that it draws exactly the density :meth:`pdf` returns: ~12 gathers per
+    cell, whose half vector ``h_view`` it rotates to the view's azimuth, so that it draws
+    exactly the density :meth:`pdf` returns: ~12 gathers per
     sample and 4 per density, about a quarter of a bilinearly interpolated warp's
     work (Mitsuba's ``MarginalContinuous2D2``).
 
@@ -345,7 +383,8 @@ class DrTableSampler:
         row, fy = self._search(self.marginal, node * (r + 1), sample2.y, active)
         col, fx = self._search(self.conditional, (node * r + row) * (r + 1), sample2.x, active)
         s = mi.Point2f((mi.Float(col) + fx) / r, (mi.Float(row) + fy) / r)
-        h = mi.warp.square_to_uniform_hemisphere(s)
+        cos_phi, sin_phi = _view_azimuth(w_view)
+        h = _rotate_z(mi.warp.square_to_uniform_hemisphere(s), cos_phi, sin_phi)
         cos_vh = dr.dot(w_view, h)
         # a half vector facing away from the view reflects to a direction whose half vector is -h: no
         # direction of this table's density; returned below the horizon (lost, weight 0), as pdf says
@@ -361,7 +400,8 @@ class DrTableSampler:
         h = s / dr.sqrt(dr.maximum(n2, 1e-30))
         cos_lh = dr.dot(w_light, h)
         ok = mi.Bool(active) & (n2 > 1e-12) & (h.z > 0.0) & (cos_lh > 1e-7) & (w_light.z > 0.0) & (w_view.z > 0.0)
-        square = mi.warp.uniform_hemisphere_to_square(h)
+        cos_phi, sin_phi = _view_azimuth(w_view)
+        square = mi.warp.uniform_hemisphere_to_square(_rotate_z(h, cos_phi, -sin_phi))  # of h_view
         r = self.resolution
         col = dr.clip(mi.UInt32(dr.clip(square.x, 0.0, 1.0) * r), 0, r - 1)
         row = dr.clip(mi.UInt32(dr.clip(square.y, 0.0, 1.0) * r), 0, r - 1)
