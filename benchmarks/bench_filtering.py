@@ -17,6 +17,15 @@ per query of ``SynthesizedBTF.eval`` filtered / point on the same queries (best 
 calls each, interleaved), and what the filtering adds to memory and to the model file. With
 ``--images DIR`` it writes ``plane_filtering.png`` (reference | unfiltered | filtered).
 
+Then the Mitsuba plugin (unless ``--no-mitsuba``): its cost per query filtered / point on the same
+queries (the evaluator the BSDF runs, fastest of ``--repeats`` interleaved calls after compiling),
+the largest difference to ``SynthesizedBTF.eval`` with the same footprints, and a render of
+:func:`dynbtf.render.scenes.scene_dict`'s ``plane`` scene (a 40 x 40 plane seen at a grazing
+angle; the point light alone, direct light; ``--mitsuba-size`` px, the material at ``--scale``
+repeats per mesh uv unit): 1 spp with footprints from the camera's ray cone, 1 spp without, and a
+``--ref-spp`` reference without, FLIP of each against the reference (``plane_filtering_mitsuba.png``
+with ``--images``).
+
 Run: ``python benchmarks/bench_filtering.py MODEL.dbtfm [--method hist --scale 45 --size 256]``.
 """
 
@@ -41,6 +50,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--images", default=None, help="directory for plane_filtering.png")
+    parser.add_argument("--no-mitsuba", action="store_true", help="skip the plugin's cost and render")
+    parser.add_argument("--mitsuba-size", type=int, default=192, help="width of the Mitsuba render, pixels")
     args = parser.parse_args()
 
     from dynbtf.metrics import flip
@@ -134,6 +145,79 @@ def main() -> None:
         save_image(out / "plane_filtering_far.png", np.concatenate([zoom[0], gap2, zoom[1], gap2, zoom[2]], axis=1),
                    exposure=exposure)
         print(f"wrote {out / 'plane_filtering.png'}")
+    if not args.no_mitsuba:
+        bench_plugin(args, btf, uv_t, wv_t, wl_t, fp_t)
+
+
+def bench_plugin(args, btf, uv, w_view, w_light, footprint) -> None:
+    """The plugin's footprint queries: cost and agreement on the frame's queries, and a Mitsuba render."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from bench_render import plugin_seconds
+
+    from dynbtf.metrics import flip
+    from dynbtf.render.drjit_ops import mi_module
+    from dynbtf.render.mitsuba_bsdf import DynBTFEvaluator, register_plugin
+    from dynbtf.render.scenes import bsdf_dict, scene_dict
+
+    register_plugin("llvm_ad_rgb")
+    mi = mi_module()
+    evaluator = DynBTFEvaluator(btf.model, args.method, args.seed)
+    evaluator.prepare_footprints()
+    # the evaluator works in exemplar repeats: uv and footprints times the scale
+    uv32 = (uv * args.scale).astype(np.float32)
+    fp32 = (footprint * args.scale).astype(np.float32)
+    wv32, wl32 = w_view.astype(np.float32), w_light.astype(np.float32)
+    plugin_seconds(evaluator, uv32, wv32, wl32, 2)  # compile both kernels
+    plugin_seconds(evaluator, uv32, wv32, wl32, 2, fp32)
+    best = {"point": float("inf"), "filtered": float("inf")}
+    got = None
+    for _ in range(args.repeats):
+        best["point"] = min(best["point"], min(plugin_seconds(evaluator, uv32, wv32, wl32, 1)[0]))
+        times, got = plugin_seconds(evaluator, uv32, wv32, wl32, 1, fp32)
+        best["filtered"] = min(best["filtered"], min(times))
+    sub = slice(0, 200_000)
+    from dynbtf.synthesized import SynthesizedBTF
+
+    library = SynthesizedBTF(btf.model, args.method, scale=1.0, seed=args.seed)
+    ref = library.eval(uv32[sub].astype(np.float64), wv32[sub], wl32[sub], footprint=fp32[sub].astype(np.float64))
+    per_query = {k: v / len(uv32) * 1e9 for k, v in best.items()}
+    print(f"plugin cost per query ({len(uv32)} queries, best of {args.repeats}): point {per_query['point']:.0f} ns, "
+          f"filtered {per_query['filtered']:.0f} ns, ratio {best['filtered'] / best['point']:.2f}x (target <= 1.5x); "
+          f"largest difference to SynthesizedBTF.eval {np.abs(got[sub] - ref).max():.1e} "
+          f"(values up to {np.abs(ref).max():.2f})")
+
+    width = args.mitsuba_size
+    res = (width * 3 // 4, width)
+
+    def render(filtered: bool, spp: int, seed: int) -> np.ndarray:
+        material = {**bsdf_dict(args.model, method=args.method, scale=args.scale, seed=args.seed),
+                    "filtered": filtered}
+        scene = scene_dict("plane", material, lighting="point", resolution=res, spp=spp, max_depth=2)
+        del scene["ambient"]  # the point light alone: the texture is the only source of noise
+        return np.asarray(mi.render(mi.load_dict(scene), spp=spp, seed=seed), dtype=np.float64)
+
+    t0 = time.perf_counter()
+    reference = sum(render(False, 64, 1000 + k) for k in range(args.ref_spp // 64)) / (args.ref_spp // 64)
+    t_ref = time.perf_counter() - t0
+    images = {"unfiltered (point query)": render(False, 1, 1), "filtered (ray cone)": render(True, 1, 1)}
+    exposure = 0.8 / float(np.percentile(reference, 99.0))
+    print(f"Mitsuba plane scene, {res[1]} x {res[0]} px, point light, direct; reference {args.ref_spp} spp "
+          f"({t_ref:.0f} s)")
+    scores = {name: flip(reference * exposure, img * exposure) for name, img in images.items()}
+    for name, score in scores.items():
+        print(f"| {name:42s} | {score:17.4f} |")
+    print(f"Mitsuba FLIP filtered / unfiltered = {scores['filtered (ray cone)'] / scores['unfiltered (point query)']:.3f}")
+    if args.images:
+        from dynbtf.io import save_image
+
+        gap = np.ones((res[0], 4, 3), dtype=np.float32)
+        out = Path(args.images) / "plane_filtering_mitsuba.png"
+        save_image(out, np.concatenate([reference, gap, images["unfiltered (point query)"], gap,
+                                        images["filtered (ray cone)"]], axis=1), exposure=exposure)
+        print(f"wrote {out}")
 
 
 if __name__ == "__main__":

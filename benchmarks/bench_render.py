@@ -82,7 +82,7 @@ def main() -> None:
     ev = DynBTFEvaluator(model, args.method, 0)
     # Dr.Jit may compile more than once before its kernel cache settles (observed: up to 3 times);
     # time several calls on fresh inputs and report the first and the fastest
-    times, got = _plugin_seconds(ev, uv, wv, wl, args.repeats)
+    times, got = plugin_seconds(ev, uv, wv, wl, args.repeats)
     t_first, t_drjit = times[0], min(times)
     shifted = uv.astype(np.float64)
     shifted[:, 0] += args.repeats - 1
@@ -99,8 +99,11 @@ def main() -> None:
     bench_relief(model, args, uv, wv, wl)
 
 
-def _plugin_seconds(evaluator, uv, wv, wl, repeats):
-    """Seconds of ``repeats`` plugin evaluations on fresh inputs (uv shifted by whole repeats) and the last output."""
+def plugin_seconds(evaluator, uv, wv, wl, repeats, footprint=None):
+    """Seconds of ``repeats`` plugin evaluations on fresh inputs (uv shifted by whole repeats) and the last output.
+
+    ``footprint`` (optional, ``(N,)`` repeats): the evaluator's footprint queries.
+    """
     import drjit as dr
     from dynbtf.render.drjit_ops import mi_module
 
@@ -110,9 +113,10 @@ def _plugin_seconds(evaluator, uv, wv, wl, repeats):
     times = []
     for k in range(repeats):
         U, V = mi.Float(uv[:, 0] + np.float32(k)), mi.Float(uv[:, 1])
-        dr.eval(U, V, WV, WL)
+        extra = {} if footprint is None else {"footprint": mi.Float(footprint)}
+        dr.eval(U, V, WV, WL, *extra.values())
         t0 = time.perf_counter()
-        out = evaluator.eval(U, V, WV, WL)
+        out = evaluator.eval(U, V, WV, WL, **extra)
         dr.eval(out)
         dr.sync_thread()
         times.append(time.perf_counter() - t0)
@@ -149,7 +153,7 @@ def bench_relief(model, args, uv, wv, wl) -> None:
     for name, idx in (("random order", np.arange(n)), ("sorted by view elevation", order)):
         for march in (False, True):
             ev.relief = march
-            results[name, march] = _plugin_seconds(ev, uv[idx], wv[idx], wl[idx], args.repeats)
+            results[name, march] = plugin_seconds(ev, uv[idx], wv[idx], wl[idx], args.repeats)
     ev.relief = True
     print(f"\nrelief: triple-parallax {tuple(relief.positional_plane().shape)}, height range {texels:.1f} texels, "
           f"method {args.method}, {n} queries")

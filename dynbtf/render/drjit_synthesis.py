@@ -168,6 +168,23 @@ class DrLevelOfDetail:
         return lower + dr.select(weight >= 0.5, 1, 0)
 
 
+def _level_shares(lower, t, top: int, active):
+    """``(level, share, mask)`` of each pyramid level a footprint reads: ``lower`` alone (``t=None``), or
+    ``lower`` with ``1 - t`` and the next level with ``t`` (its reads masked where ``t`` is 0)."""
+    dr = drjit_module()
+    if t is None:
+        return [(lower, None, active)]
+    upper = min(lower + 1, top) if isinstance(lower, int) else dr.minimum(lower + 1, top)
+    return [(lower, 1.0 - t, active), (upper, t, active & (t > 0.0))]
+
+
+def _accumulate(out, row, share):
+    """``out + share * row`` per channel (``out=None``: nothing yet; ``share=None``: 1)."""
+    if share is not None:
+        row = [share * x for x in row]
+    return row if out is None else [o + x for o, x in zip(out, row)]
+
+
 def _wrap_small(k, n):
     """``k mod n`` (``mi.UInt32``) for ``mi.Int32`` ``k`` in ``[-n, 3 n)`` and per-lane ``n``, without a division.
 
@@ -197,6 +214,9 @@ class DrPyramid:
         arrays = [np.asarray(t, dtype=np.float32) for t in levels]
         self.height, self.width, self.channels = (int(x) for x in arrays[0].shape)
         texels = [t.shape[0] * t.shape[1] for t in arrays]
+        #: (first texel, width, height) of each level
+        self.level_sizes = [(int(a), int(t.shape[1]), int(t.shape[0]))
+                            for a, t in zip(np.concatenate([[0], np.cumsum(texels)[:-1]]), arrays)]
         self.flat = flat_array(mi, np.concatenate([t.reshape(-1) for t in arrays]))
         self.starts = mi.UInt32(np.concatenate([[0], np.cumsum(texels)[:-1]]).astype(np.uint32))
         self.heights = mi.UInt32(np.array([t.shape[0] for t in arrays], dtype=np.uint32))
@@ -205,21 +225,27 @@ class DrPyramid:
             mi, np.concatenate([np.asarray(t, dtype=np.float32).reshape(-1) for t in luminances]))
 
     def taps(self, level, x, y):
-        """Bilinear taps of ``level`` (``mi.UInt32``) at level-0 texel positions ``x, y`` (``mi.Float64``).
+        """Bilinear taps of ``level`` (``mi.UInt32``, or an ``int``) at level-0 texel positions ``x, y`` (``mi.Float64``).
 
         Level-0 texel ``[i, j]`` covers ``[j, j + 1) x [i, i + 1)``; positions in ``[0, 3 W)``; the
         level wraps. Returns 4 ``(texel index into the flat buffer, weight)`` as
         :func:`~dynbtf.render.drjit_ops.bilinear_taps` (the numba kernel's ``_level_tap``).
         """
         mi, dr = mi_module(), drjit_module()
-        start = dr.gather(mi.UInt32, self.starts, level)
-        mw = dr.gather(mi.UInt32, self.widths, level)
-        mh = dr.gather(mi.UInt32, self.heights, level)
-        px = x * (mi.Float64(mw) / self.width) - 0.5
-        py = y * (mi.Float64(mh) / self.height) - 0.5
+        if isinstance(level, int):  # one level for all lanes: its sizes are literals
+            start, mw, mh = self.level_sizes[level]
+            px = x * (mw / self.width) - 0.5
+            py = y * (mh / self.height) - 0.5
+        else:
+            start = dr.gather(mi.UInt32, self.starts, level)
+            mw = dr.gather(mi.UInt32, self.widths, level)
+            mh = dr.gather(mi.UInt32, self.heights, level)
+            px = x * (mi.Float64(mw) / self.width) - 0.5
+            py = y * (mi.Float64(mh) / self.height) - 0.5
         fx, fy = dr.floor(px), dr.floor(py)
         tx, ty = mi.Float(px - fx), mi.Float(py - fy)
-        c0, r0 = _wrap_small(mi.Int32(fx), mi.Int32(mw)), _wrap_small(mi.Int32(fy), mi.Int32(mh))
+        c0, r0 = _wrap_small(mi.Int32(fx), mw if isinstance(mw, int) else mi.Int32(mw)), \
+            _wrap_small(mi.Int32(fy), mh if isinstance(mh, int) else mi.Int32(mh))
         c1 = dr.select(c0 + 1 == mw, 0, c0 + 1)
         r1 = dr.select(r0 + 1 == mh, 0, r0 + 1)
         return [(start + r0 * mw + c0, (1.0 - tx) * (1.0 - ty)), (start + r0 * mw + c1, tx * (1.0 - ty)),
@@ -378,23 +404,23 @@ class DrLatticeBlending:
         """The pyramid's :class:`DrLevelOfDetail` (builds the pyramid on first use)."""
         return self._pyramid()[1]
 
-    def filtered_latent(self, u, v, lower, t, active=True):
+    def filtered_latent(self, u, v, lower, t=None, active=True):
         """:meth:`latent` over a footprint: list of ``C`` mi.Float.
 
-        ``lower, t``: the footprint's lower pyramid level and the next level's weight
-        (:meth:`level_of_detail` of the footprint in level-0 texels). As
+        ``lower, t``: the footprint's lower pyramid level (``mi.UInt32``, or an ``int`` for all lanes)
+        and the next level's weight (:meth:`level_of_detail` of the footprint in level-0 texels);
+        ``t=None``: level ``lower`` alone (lanes whose weight is 0). As
         :meth:`dynbtf.synthesis.blending.LatticeBlending.filtered_latent` (the numba kernel
         ``filtered_lattice_blend``): every sample read from the footprint's two pyramid levels,
         blended per level (hex: the level's luminance; hist: the level's inverse table) and mixed.
         """
         mi, dr = mi_module(), drjit_module()
         pyramid, lod, luts = self._pyramid()
-        upper = dr.minimum(lower + 1, lod.top)
         bary, offsets, (mu, mv), (fx, fy) = self._lattice(u, v)
         pw, ph, c = self.pw, self.ph, self.channels
         positions = [(mi.Float64(_mod(mu + ox, pw)) + fx, mi.Float64(_mod(mv + oy, ph)) + fy) for ox, oy in offsets]
         out = None
-        for level, share, mask in ((lower, 1.0 - t, active), (upper, t, active & (t > 0.0))):
+        for level, share, mask in _level_shares(lower, t, lod.top, active):
             taps_of_sample = [pyramid.taps(level, x, y) for x, y in positions]
             lum = ([mi.Float64(gather_one(pyramid.luminances, taps, mask)) for taps in taps_of_sample]
                    if self.mode == "hex" else None)
@@ -405,7 +431,7 @@ class DrLatticeBlending:
             if self.mode == "hist":
                 base = level * (c * self.lut_size)
                 row = [lut_lookup(luts, self.lut_size, k, self.g_min, self.step, row[k], base) for k in range(c)]
-            out = [share * x for x in row] if out is None else [o + share * x for o, x in zip(out, row)]
+            out = _accumulate(out, row, share)
         return out
 
     def _pyramid(self):
@@ -491,20 +517,20 @@ class DrTiling:
         """The exemplar pyramid's :class:`DrLevelOfDetail` (builds the pyramid on first use)."""
         return self._pyramid()[1]
 
-    def filtered_latent(self, u, v, lower, t, active=True):
-        """The plane averaged over a footprint (``lower`` level, next level's weight ``t``: :meth:`level_of_detail`).
+    def filtered_latent(self, u, v, lower, t=None, active=True):
+        """The plane averaged over a footprint (``lower`` level, next level's weight ``t``: :meth:`level_of_detail`;
+        as :meth:`DrLatticeBlending.filtered_latent`).
 
         :func:`dynbtf.synthesis.mip.trilinear_fetch` at ``(u, v)``: list of ``C`` mi.Float.
         """
-        mi, dr = mi_module(), drjit_module()
+        mi = mi_module()
         pyramid, lod = self._pyramid()
-        upper = dr.minimum(lower + 1, lod.top)
         x = mi.Float64(wrap01(mi.Float64(u))) * pyramid.width
         y = mi.Float64(wrap01(mi.Float64(v))) * pyramid.height
         out = None
-        for level, share, mask in ((lower, 1.0 - t, active), (upper, t, active & (t > 0.0))):
-            row = gather_channels(pyramid.flat, pyramid.channels, pyramid.taps(level, x, y), mask)
-            out = [share * r for r in row] if out is None else [o + share * r for o, r in zip(out, row)]
+        for level, share, mask in _level_shares(lower, t, lod.top, active):
+            out = _accumulate(out, gather_channels(pyramid.flat, pyramid.channels, pyramid.taps(level, x, y), mask),
+                              share)
         return out
 
 

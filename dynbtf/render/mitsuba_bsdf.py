@@ -440,19 +440,32 @@ class DynBTFEvaluator:
         return self.model.decode(self.features(u, v, active), w_view, w_light, active)
 
     def _filtered(self, u, v, w_view, w_light, footprint, active):
-        dr = drjit_ops.drjit_module()
+        mi, dr = drjit_ops.mi_module(), drjit_ops.drjit_module()
         lod = self.synthesizer.level_of_detail()
         lower, t = lod(footprint * self.btf.texels_per_uv())
-        # the latent (decoders with the output map folded in) or, without an output map, the features
-        latent = self.synthesizer.filtered_latent(u, v, lower, t, active)
         decoders = self.level_decoders()
-        if not decoders:
-            return self.model.decode(latent, w_view, w_light, active)
-        angular = self.model.angular_features(w_view, w_light, active)
-        # each lane's level decoder: one kernel per level over the lanes that need it (an evaluated call in
-        # wavefront mode; the decoders' weights stay literals)
-        return dr.switch(lod.nearest(lower, t), [lambda f, a, mask, d=d: d(f, a) for d in decoders], latent, angular,
-                         active)
+        # one target per (nearest level, two levels mixed or not): the lanes whose footprint reads one level (most
+        # of them: levels mix only in a band of each octave) skip the second level's reads, and each level's
+        # decoder keeps its weights as literals. An evaluated call in wavefront mode: one kernel per target
+        # over the lanes that need it.
+        targets = []
+        for level in range(lod.top + 1):
+            for mixed in (False, True):
+                targets.append(self._filtered_target(level, mixed, decoders[level] if decoders else None))
+        index = lod.nearest(lower, t) * 2 + dr.select(t > 0.0, 1, 0)
+        return dr.switch(mi.UInt32(index), targets, u, v, w_view, w_light, lower, t, active)
+
+    def _filtered_target(self, level: int, mixed: bool, decoder):
+        """The value of lanes whose nearest level is ``level`` and that mix two levels (``mixed``) or read one."""
+        def target(u, v, w_view, w_light, lower, t, active):
+            # lanes reading one level read their nearest level (their next level's weight is 0)
+            latent = (self.synthesizer.filtered_latent(u, v, lower, t, active) if mixed
+                      else self.synthesizer.filtered_latent(u, v, level, None, active))
+            if decoder is None:  # the latent (the output map is folded into the decoder) or the features
+                return self.model.decode(latent, w_view, w_light, active)
+            return decoder(latent, self.model.angular_features(w_view, w_light, active))
+
+        return target
 
 
 _SAMPLERS: dict = {}
