@@ -26,6 +26,8 @@ def render(
                                               "table mixed with cosine sampling; converges faster on glossy "
                                               "materials), cosine (the paper's), or auto (mixture for glossy "
                                               "models, cosine for rough ones)."),
+    filtered: bool = typer.Option(True, "--filtered/--point", help="Footprint queries (the default): distant "
+                                  "surfaces show their filtered appearance; --point: one point query per sample."),
     size: int = typer.Option(512, help="Image width and height in pixels."),
     exposure: float = typer.Option(1.0, help="Multiplier applied before sRGB encoding (PNG only)."),
     variant: Optional[str] = typer.Option(None, help="Mitsuba variant (default llvm_ad_rgb; cuda_ad_rgb on a GPU); "
@@ -46,7 +48,8 @@ def render(
     if size < 1:
         raise InputError(f"--size: expected a positive number of pixels, got {size}")
     result = render_scene(model, scene=scene, method=method, scale=scale, seed=seed, lighting=lighting,
-                          resolution=(size, size), spp=spp, variant=variant, progress=True, sampling=sampling)
+                          resolution=(size, size), spp=spp, variant=variant, progress=True, sampling=sampling,
+                          filtered=filtered)
     save_image(output, result.image, exposure=exposure)
     timing = (f"incl. {result.compile_seconds:.1f} s kernel compilation" if result.passes > 1
               else "one pass, kernel compilation included")

@@ -43,7 +43,8 @@ def _status(progress: bool, text: str) -> None:
 
 def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scale: float = 25.0, seed: int = 0,
                  lighting: str = "sky", resolution=(512, 512), spp: int = 16, spp_per_pass: int = 4,
-                 variant: str | None = None, progress: bool = True, sampling: str = "auto") -> RenderResult:
+                 variant: str | None = None, progress: bool = True, sampling: str = "auto",
+                 filtered: bool = True) -> RenderResult:
     """Path-trace ``scene`` covered by the synthesized BTF of ``model_path``.
 
     Every argument is checked before Mitsuba loads anything, so a mistake raises
@@ -77,6 +78,9 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
         The plugin's direction sampling: its importance-sampling table mixed with
         cosine sampling, cosine only, or the table for glossy models and cosine for
         rough ones (see :data:`dynbtf.render.mitsuba_bsdf.PLUGIN_DOC`).
+    filtered : bool
+        The plugin's footprint queries (its ``filtered``), with footprints from the camera's ray
+        cone for ``spp`` samples per pixel: distant surfaces show their filtered appearance.
     progress : bool
         Report on standard error: a status line before the first pass (which
         traces and compiles the kernel: up to a minute the first time a model, method and
@@ -114,9 +118,10 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
     t0 = time.perf_counter()
     spp, spp_per_pass = int(spp), int(spp_per_pass)
     label = f"render {scene}/{lighting}/{method}"
-    material = bsdf_dict(model_path, method=method, scale=scale, seed=seed, sampling=sampling)
+    material = {**bsdf_dict(model_path, method=method, scale=scale, seed=seed, sampling=sampling),
+                "filtered": bool(filtered)}
     scene_obj = mi.load_dict(scene_dict(scene, material, lighting=lighting, resolution=resolution,
-                                        spp=min(spp, spp_per_pass)))
+                                        spp=min(spp, spp_per_pass), footprint_spp=spp))
     n_passes = int(math.ceil(spp / spp_per_pass))
     acc = None
     total = 0

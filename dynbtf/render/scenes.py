@@ -129,7 +129,7 @@ def _look_at(mi, origin, target, up=(0.0, 0.0, 1.0)):
 
 
 def scene_dict(scene: str, material: dict, *, lighting: str = "sky", resolution=(512, 512), spp: int = 16,
-               max_depth: int = 3, seed: int = 0) -> dict:
+               max_depth: int = 3, seed: int = 0, footprint_spp: int | None = None) -> dict:
     """A Mitsuba scene dict: ``scene`` geometry covered by ``material`` under ``lighting``.
 
     Parameters
@@ -140,7 +140,7 @@ def scene_dict(scene: str, material: dict, *, lighting: str = "sky", resolution=
         set to half of ``scale`` unless given, so texels are square at the equator;
         a ``dynbtf`` material gets the camera's ``ray_cone_angle`` for its footprints
         unless given: :func:`dynbtf.render.mitsuba_bsdf.ray_cone_angle` of the
-        scene's field of view, width and ``spp``).
+        scene's field of view, width and ``footprint_spp``).
     lighting : {"point", "sky"}
     resolution : (height, width)
     spp : int
@@ -149,6 +149,9 @@ def scene_dict(scene: str, material: dict, *, lighting: str = "sky", resolution=
         Path length (3 = direct light plus one bounce).
     seed : int
         Sampler seed.
+    footprint_spp : int, optional
+        Samples per pixel that the material's footprints stand for (default ``spp``; the total of
+        all passes when several renders are averaged).
     """
     mi = mi_module()
     if scene not in SCENES:
@@ -160,7 +163,8 @@ def scene_dict(scene: str, material: dict, *, lighting: str = "sky", resolution=
     if material.get("type") == "dynbtf" and "ray_cone_angle" not in material:
         from .mitsuba_bsdf import ray_cone_angle
 
-        material = {**material, "ray_cone_angle": ray_cone_angle(fov, width, spp)}
+        material = {**material, "ray_cone_angle": ray_cone_angle(fov, width, spp if footprint_spp is None
+                                                                  else footprint_spp)}
     film = {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
             "pixel_format": "rgb"}
     sampler = {"type": "independent", "sample_count": int(spp), "seed": int(seed)}
