@@ -82,7 +82,7 @@ def footprint_width(duv_dx, duv_dy):
     The **longer** of the two screen-space derivative vectors (OpenGL's isotropic level of detail):
     no texel the pixel covers is left out, at the price of some blur across the view at grazing
     angles. On the grazing plane of ``benchmarks/bench_filtering.py`` (anisotropy up to ~50) FLIP
-    against the 256-spp reference was 0.030 with the longer axis, 0.032 with the geometric mean of
+    against the 256-spp reference (per-level decoders of a smaller fit) was 0.030 with the longer axis, 0.032 with the geometric mean of
     both, 0.037 with the shorter one; 1.25-1.8x the geometric mean gave 0.030 too. Returns ``(...)``
     float64 NumPy or torch, as the input.
     """
@@ -110,10 +110,10 @@ def _single_numba_thread(fn, *args):
 #: The per-level decoders' fit (:meth:`SynthesizedBTF.level_decoder_parameters`): positions and (view, light)
 #: pairs per level, jittered point queries averaged per footprint (a grid x grid), Adam steps, minibatch
 #: rows and rate, seed.
-LEVEL_FIT_QUERIES = 4096
+LEVEL_FIT_QUERIES = 65536
 LEVEL_FIT_GRID = 8
-LEVEL_FIT_STEPS = 300
-LEVEL_FIT_BATCH = 1024
+LEVEL_FIT_STEPS = 1000
+LEVEL_FIT_BATCH = 2048
 LEVEL_FIT_LR = 3e-3
 LEVEL_FIT_SEED = 0
 

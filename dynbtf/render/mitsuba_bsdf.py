@@ -154,7 +154,8 @@ otherwise; ``pdf`` returns the mixture's density
 and ``sample``'s weight is ``eval / pdf`` (see :mod:`dynbtf.render.sampling`).
 The table costs a few seconds when a model is first loaded (cached for the
 process); so do the per-level decoders of ``filtered`` (fitted at load, cached
-for the process and shared with :class:`~dynbtf.synthesized.SynthesizedBTF`). If it cannot be built (the decoder returns NaN or inf, or a view has
+for the process and shared with :class:`~dynbtf.synthesized.SynthesizedBTF`).
+If the table cannot be built (the decoder returns NaN or inf, or a view has
 no density), the plugin falls back to cosine sampling and says so once per
 model file with a warning (``UserWarning``).
 A BTF is not reciprocal: use radiance-mode integrators (``path``, ``direct``), not
