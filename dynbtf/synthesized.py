@@ -57,7 +57,6 @@ on CUDA the synthesizers use their torch paths and the decoder its torch layers.
 
 from __future__ import annotations
 
-import weakref
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -117,11 +116,23 @@ LEVEL_FIT_BATCH = 2048
 LEVEL_FIT_LR = 3e-3
 LEVEL_FIT_SEED = 0
 
-#: Fitted per-level decoders by (model, method, seed, parameters, precision, device): SynthesizedBTFs of one model,
-#: method and seed fit once per process (other scales share it: the fit is in exemplar repeats; the seed is
+#: Fitted per-level decoders by (model contents, method, seed, parameters, precision, device): SynthesizedBTFs of
+#: one model (the same parameters, e.g. loaded twice from one file), method and seed fit once per process (other scales share it: the fit is in exemplar repeats; the seed is
 #: part of the key because the fit's targets are that seed's synthesized BTF, so results never depend on
 #: which seed was evaluated first).
-_LEVEL_DECODERS: dict[tuple, tuple[Any, list[dict[str, Any]]]] = {}
+_LEVEL_DECODERS: dict[tuple, list[dict[str, Any]]] = {}
+
+
+def _fingerprint(model) -> str:
+    """SHA-1 of a model's parameters and buffers (names, shapes, dtypes, bytes): equal for equal models."""
+    import hashlib
+
+    digest = hashlib.sha1()
+    for name, tensor in sorted(model.state_dict().items()):
+        data = tensor.detach().cpu().contiguous()
+        digest.update(f"{name}:{tuple(data.shape)}:{data.dtype}".encode())
+        digest.update(data.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
 
 #: Rows per call of decoder layers 2..: torch's small (32-wide) linear layers ran ~3x faster per row
 #: at <= 16384 rows than at 32768+ (activations stay in cache; measured on a 2-core EPYC).
@@ -408,13 +419,11 @@ class SynthesizedBTF:
         if self._level_layers is None:
             import json
 
-            key = (id(self.model), self.synthesizer.name, self.seed,
+            key = (_fingerprint(self.model), self.synthesizer.name, self.seed,
                    json.dumps(self.synthesizer.parameters(), sort_keys=True, default=str), self.precision, str(self.device))
-            cached = _LEVEL_DECODERS.get(key)
-            if cached is None or cached[0]() is not self.model:
-                cached = (weakref.ref(self.model), self._fit_level_decoders())
-                _LEVEL_DECODERS[key] = cached
-            self._level_layers = [{**p, "bias_total": p["bias"] + self._fold["first_bias"]} for p in cached[1]]
+            if key not in _LEVEL_DECODERS:
+                _LEVEL_DECODERS[key] = self._fit_level_decoders()
+            self._level_layers = [{**p, "bias_total": p["bias"] + self._fold["first_bias"]} for p in _LEVEL_DECODERS[key]]
         return self._level_layers
 
     def nearest_level(self, texels: torch.Tensor) -> np.ndarray:

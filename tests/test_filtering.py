@@ -243,3 +243,31 @@ def test_synth_cli_filtered_matches_the_library(tmp_path):
     expected = SynthesizedBTF(path, "hist", scale=30.0).image((0, 0), (30, 0), (0.0, 0.0, 1.0, 1.0), 12,
                                                                filtered=True)
     np.testing.assert_allclose(load_image(out), expected, rtol=1e-4, atol=1e-5)
+
+
+def test_level_decoders_are_fitted_once_per_model_contents_and_seed(btf, tmp_path, monkeypatch):
+    """A model loaded again from its file shares the fit (the same parameters); another seed fits its own
+    (its targets are that seed's synthesized BTF), so a seed's answers never depend on what ran before."""
+    import copy
+
+    import dynbtf.synthesized as synthesized
+    from dynbtf.synthesized import SynthesizedBTF
+
+    fits = []
+    real = SynthesizedBTF._fit_level_decoders
+    monkeypatch.setattr(SynthesizedBTF, "_fit_level_decoders", lambda self: fits.append(self.seed) or real(self))
+    monkeypatch.setattr(synthesized, "_LEVEL_DECODERS", {})
+    uv = np.array([[0.3, 0.7]])
+    w = np.array([[0.0, 0.0, 1.0]])
+    first = SynthesizedBTF(btf.model, "hist", scale=2.0, seed=5)
+    a = first.eval(uv, w, w, footprint=0.3)
+    twin = SynthesizedBTF(copy.deepcopy(btf.model), "hist", scale=2.0, seed=5)  # equal parameters, another object
+    np.testing.assert_array_equal(twin.eval(uv, w, w, footprint=0.3), a)
+    assert fits == [5]
+    SynthesizedBTF(btf.model, "hist", scale=2.0, seed=6).eval(uv, w, w, footprint=0.3)
+    assert fits == [5, 6]
+    changed = copy.deepcopy(btf.model)
+    with torch.no_grad():
+        changed.decoder.rest[-1].bias.add_(0.1)
+    SynthesizedBTF(changed, "hist", scale=2.0, seed=5).eval(uv, w, w, footprint=0.3)
+    assert fits == [5, 6, 5]  # other parameters: its own fit
