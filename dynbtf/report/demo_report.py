@@ -196,7 +196,10 @@ def write_demo_report(out: Path, config, results: dict[str, Any]) -> Path:
     if ren:
         r.section("Renders (Mitsuba 3, dynbtf BSDF plugin)",
                   "Every shading point evaluates lattice, hash, blending, inverse transform and decoder MLP in "
-                  "the Dr.Jit kernel. Compile time is paid once per kernel and cached by Dr.Jit.")
+                  "the Dr.Jit kernel. Compile time is paid once per kernel and cached by Dr.Jit. Each camera "
+                  "sample answers for its footprint on the surface (the camera's ray cone; the plugin's "
+                  "'filtered' parameter): distant ground shows the material's filtered look, not sparkling "
+                  "point samples.")
         r.images([(img(x["path"]), f"{x['scene']} / {x['lighting']} / {x['method']}") for x in ren], width=300)
         r.table([{"scene": x["scene"], "lighting": x["lighting"], "method": x["method"],
                   "scale (repeats)": x["scale"], "size (px)": x["size"], "spp": x["spp"], "seconds": x["seconds"],
