@@ -30,3 +30,21 @@ def single_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def small_level_decoder_fit():
+    """The per-level decoders' fit at a sixteenth of its default size in tests (4,096 footprints, 300 steps).
+
+    The tests hold the footprint path to references computed with the same fit (the plugin against
+    ``SynthesizedBTF.eval``, convergence to brute-force means with tolerances that the small fit meets);
+    the default's size buys robustness of the benchmark's FLIP, not correctness, and would double the
+    suite's time (a fit per model, method and seed). Subprocesses (CLI tests) use the defaults.
+    """
+    import dynbtf.synthesized as synthesized
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(synthesized, "LEVEL_FIT_QUERIES", 4096)
+        patch.setattr(synthesized, "LEVEL_FIT_STEPS", 300)
+        patch.setattr(synthesized, "LEVEL_FIT_BATCH", 1024)
+        yield
