@@ -81,9 +81,9 @@ def footprint_width(duv_dx, duv_dy):
     The **longer** of the two screen-space derivative vectors (OpenGL's isotropic level of detail):
     no texel the pixel covers is left out, at the price of some blur across the view at grazing
     angles. On the grazing plane of ``benchmarks/bench_filtering.py`` (anisotropy up to ~50) FLIP
-    against the 256-spp reference (per-level decoders of a smaller fit) was 0.030 with the longer axis, 0.032 with the geometric mean of
-    both, 0.037 with the shorter one; 1.25-1.8x the geometric mean gave 0.030 too. Returns ``(...)``
-    float64 NumPy or torch, as the input.
+    against the 256-spp reference (per-level decoders of a smaller fit) was 0.030 with the longer
+    axis, 0.032 with the geometric mean of both, 0.037 with the shorter one; 1.25-1.8x the geometric
+    mean gave 0.030 too. Returns ``(...)`` float64 NumPy or torch, as the input.
     """
     if isinstance(duv_dx, torch.Tensor):
         return torch.maximum(torch.linalg.vector_norm(duv_dx, dim=-1), torch.linalg.vector_norm(duv_dy, dim=-1))
@@ -116,10 +116,10 @@ LEVEL_FIT_BATCH = 2048
 LEVEL_FIT_LR = 3e-3
 LEVEL_FIT_SEED = 0
 
-#: Fitted per-level decoders by (model contents, method, seed, parameters, precision, device): SynthesizedBTFs of
-#: one model (the same parameters, e.g. loaded twice from one file), method and seed fit once per process (other scales share it: the fit is in exemplar repeats; the seed is
-#: part of the key because the fit's targets are that seed's synthesized BTF, so results never depend on
-#: which seed was evaluated first).
+#: Fitted per-level decoders by (model contents, method, seed, parameters, precision, device): SynthesizedBTFs
+#: of one model (the same parameters, e.g. loaded twice from one file), method and seed fit once per process.
+#: Other scales share the fit (it is in exemplar repeats); the seed is part of the key because the fit's
+#: targets are that seed's synthesized BTF, so results never depend on which seed was evaluated first.
 _LEVEL_DECODERS: dict[tuple, list[dict[str, Any]]] = {}
 
 
@@ -420,10 +420,12 @@ class SynthesizedBTF:
             import json
 
             key = (_fingerprint(self.model), self.synthesizer.name, self.seed,
-                   json.dumps(self.synthesizer.parameters(), sort_keys=True, default=str), self.precision, str(self.device))
+                   json.dumps(self.synthesizer.parameters(), sort_keys=True, default=str), self.precision,
+                   str(self.device))
             if key not in _LEVEL_DECODERS:
                 _LEVEL_DECODERS[key] = self._fit_level_decoders()
-            self._level_layers = [{**p, "bias_total": p["bias"] + self._fold["first_bias"]} for p in _LEVEL_DECODERS[key]]
+            self._level_layers = [{**p, "bias_total": p["bias"] + self._fold["first_bias"]}
+                                  for p in _LEVEL_DECODERS[key]]
         return self._level_layers
 
     def nearest_level(self, texels: torch.Tensor) -> np.ndarray:

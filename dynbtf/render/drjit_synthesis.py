@@ -213,14 +213,15 @@ class DrPyramid:
         mi = mi_module()
         arrays = [np.asarray(t, dtype=np.float32) for t in levels]
         self.height, self.width, self.channels = (int(x) for x in arrays[0].shape)
-        texels = [t.shape[0] * t.shape[1] for t in arrays]
-        #: (first texel, width, height) of each level
-        self.level_sizes = [(int(a), int(t.shape[1]), int(t.shape[0]))
-                            for a, t in zip(np.concatenate([[0], np.cumsum(texels)[:-1]]), arrays)]
+        #: (first texel, width, height) of each level, as Python ints (literals) and as per-lane gather sources
+        self.level_sizes = []
+        start = 0
+        for t in arrays:
+            self.level_sizes.append((start, int(t.shape[1]), int(t.shape[0])))
+            start += int(t.shape[0] * t.shape[1])
+        starts, widths, heights = (np.array(column, dtype=np.uint32) for column in zip(*self.level_sizes))
         self.flat = flat_array(mi, np.concatenate([t.reshape(-1) for t in arrays]))
-        self.starts = mi.UInt32(np.concatenate([[0], np.cumsum(texels)[:-1]]).astype(np.uint32))
-        self.heights = mi.UInt32(np.array([t.shape[0] for t in arrays], dtype=np.uint32))
-        self.widths = mi.UInt32(np.array([t.shape[1] for t in arrays], dtype=np.uint32))
+        self.starts, self.widths, self.heights = mi.UInt32(starts), mi.UInt32(widths), mi.UInt32(heights)
         self.luminances = None if luminances is None else flat_array(
             mi, np.concatenate([np.asarray(t, dtype=np.float32).reshape(-1) for t in luminances]))
 
@@ -234,22 +235,41 @@ class DrPyramid:
         mi, dr = mi_module(), drjit_module()
         if isinstance(level, int):  # one level for all lanes: its sizes are literals
             start, mw, mh = self.level_sizes[level]
+            cols, rows = mw, mh
             px = x * (mw / self.width) - 0.5
             py = y * (mh / self.height) - 0.5
         else:
             start = dr.gather(mi.UInt32, self.starts, level)
             mw = dr.gather(mi.UInt32, self.widths, level)
             mh = dr.gather(mi.UInt32, self.heights, level)
+            cols, rows = mi.Int32(mw), mi.Int32(mh)
             px = x * (mi.Float64(mw) / self.width) - 0.5
             py = y * (mi.Float64(mh) / self.height) - 0.5
         fx, fy = dr.floor(px), dr.floor(py)
         tx, ty = mi.Float(px - fx), mi.Float(py - fy)
-        c0, r0 = _wrap_small(mi.Int32(fx), mw if isinstance(mw, int) else mi.Int32(mw)), \
-            _wrap_small(mi.Int32(fy), mh if isinstance(mh, int) else mi.Int32(mh))
+        c0, r0 = _wrap_small(mi.Int32(fx), cols), _wrap_small(mi.Int32(fy), rows)
         c1 = dr.select(c0 + 1 == mw, 0, c0 + 1)
         r1 = dr.select(r0 + 1 == mh, 0, r0 + 1)
         return [(start + r0 * mw + c0, (1.0 - tx) * (1.0 - ty)), (start + r0 * mw + c1, tx * (1.0 - ty)),
                 (start + r1 * mw + c0, (1.0 - tx) * ty), (start + r1 * mw + c1, tx * ty)]
+
+
+def _filtering_tables(pyramid_source, *, luminances: bool = False, inverse_tables: bool = False):
+    """What a Dr.Jit synthesizer's footprint queries read, from its torch twin's ``pyramid()`` (``pyramid_source``).
+
+    Returns ``(DrPyramid, DrLevelOfDetail, the per-level inverse tables as one flat mi.Float or None)``;
+    ``luminances``: with the luminance pyramid (hex); ``inverse_tables``: with the tables (hist).
+    """
+    if pyramid_source is None:
+        raise InputError("footprint queries need the synthesizer's pyramid (pyramid_source)")
+    pyr = pyramid_source()
+
+    def host(tensors):
+        return [t.detach().cpu().numpy() for t in tensors]
+
+    pyramid = DrPyramid(host(pyr["levels"]), host(pyr["luminances"]) if luminances else None)
+    tables = flat_array(mi_module(), pyr["luts_numpy"]) if inverse_tables else None
+    return pyramid, DrLevelOfDetail(pyr["lod"]), tables
 
 
 class DrLatticeBlending:
@@ -437,14 +457,8 @@ class DrLatticeBlending:
     def _pyramid(self):
         """``(DrPyramid, DrLevelOfDetail, per-level inverse tables or None)``, built on first use from ``pyramid_source``."""
         if self._filtering is None:
-            if self.pyramid_source is None:
-                raise InputError("footprint queries need the synthesizer's pyramid (pyramid_source)")
-            pyr = self.pyramid_source()
-            luts = flat_array(mi_module(), pyr["luts_numpy"]) if self.mode == "hist" else None
-            levels = [t.detach().cpu().numpy() for t in pyr["levels"]]
-            luminances = [t.detach().cpu().numpy() for t in pyr["luminances"]] if self.mode == "hex" else None
-            self._filtering = (DrPyramid(levels, luminances),
-                               DrLevelOfDetail(pyr["lod"]), luts)
+            self._filtering = _filtering_tables(self.pyramid_source, luminances=self.mode == "hex",
+                                                inverse_tables=self.mode == "hist")
         return self._filtering
 
     def features(self, u, v, active=True):
@@ -508,9 +522,9 @@ class DrTiling:
         return fetch_wrap(self.plane, self.size, self.channels, u, v, active, which=[index])[0]
 
     def _pyramid(self):
+        """``(DrPyramid, DrLevelOfDetail, None)``, built on first use from ``pyramid_source``."""
         if self._filtering is None:
-            pyr = self.pyramid_source()
-            self._filtering = (DrPyramid([t.detach().cpu().numpy() for t in pyr["levels"]]), DrLevelOfDetail(pyr["lod"]))
+            self._filtering = _filtering_tables(self.pyramid_source)
         return self._filtering
 
     def level_of_detail(self) -> DrLevelOfDetail:
@@ -524,7 +538,7 @@ class DrTiling:
         :func:`dynbtf.synthesis.mip.trilinear_fetch` at ``(u, v)``: list of ``C`` mi.Float.
         """
         mi = mi_module()
-        pyramid, lod = self._pyramid()
+        pyramid, lod, _ = self._pyramid()
         x = mi.Float64(wrap01(mi.Float64(u))) * pyramid.width
         y = mi.Float64(wrap01(mi.Float64(v))) * pyramid.height
         out = None

@@ -129,11 +129,10 @@ def _view_azimuth(w_view):
 def _rotate_z(w, cos_phi, sin_phi):
     """``R_z(phi) w`` for ``(..., 3)`` NumPy arrays (``cos_phi, sin_phi`` broadcast against ``w[..., 0]``) or an
     ``mi.Vector3f``; ``R_z(-phi)`` is ``_rotate_z(w, cos_phi, -sin_phi)``."""
-    x = cos_phi * w[..., 0] - sin_phi * w[..., 1] if isinstance(w, np.ndarray) else cos_phi * w.x - sin_phi * w.y
-    y = sin_phi * w[..., 0] + cos_phi * w[..., 1] if isinstance(w, np.ndarray) else sin_phi * w.x + cos_phi * w.y
-    if isinstance(w, np.ndarray):
-        return np.stack([x, y, w[..., 2]], axis=-1)
-    return type(w)(x, y, w.z)
+    numpy = isinstance(w, np.ndarray)
+    x, y, z = (w[..., 0], w[..., 1], w[..., 2]) if numpy else (w.x, w.y, w.z)
+    rotated = (cos_phi * x - sin_phi * y, sin_phi * x + cos_phi * y, z)
+    return np.stack(rotated, axis=-1) if numpy else type(w)(*rotated)
 
 
 def _reflect(w_view: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
