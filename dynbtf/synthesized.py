@@ -116,6 +116,13 @@ LEVEL_FIT_BATCH = 2048
 LEVEL_FIT_LR = 3e-3
 LEVEL_FIT_SEED = 0
 
+#: The mean appearance of footprints that read only the pyramid's 1 x 1 top level
+#: (:meth:`SynthesizedBTF.level_decoder_parameters`): quadrature nodes, synthesized positions whose mean is
+#: the fit's target (the same positions for every (view, light) pair), Adam steps.
+MEAN_NODES = 2
+MEAN_FIT_POSITIONS = 512
+MEAN_FIT_STEPS = 2000
+
 #: Fitted per-level decoders by (model contents, method, seed, parameters, precision, device): SynthesizedBTFs
 #: of one model (the same parameters, e.g. loaded twice from one file), method and seed fit once per process.
 #: Other scales share the fit (it is in exemplar repeats); the seed is part of the key because the fit's
@@ -355,14 +362,26 @@ class SynthesizedBTF:
         texels = None if footprint is None else footprint * self.texels_per_uv()
         if texels is not None and fold is not None and self.level_decoders:
             # queries sorted by their level decoder: every per-level step below works on contiguous runs
-            levels = self.nearest_level(texels)
+            params = self.level_decoder_parameters()
+            lower, upper = self.synthesizer.level_of_detail()(texels.cpu().numpy())
+            levels = lower + (upper >= 0.5)
+            top = len(params) - 1
+            if params[top].get("mean") is not None:  # reading the top level alone: the mean appearance (last run)
+                levels = np.where((lower == top) & (upper == 0.0), top + 1, levels)
             order = np.argsort(levels.astype(np.int8), kind="stable")  # int8: numpy radix-sorts it (~5x faster)
             runs = np.flatnonzero(np.diff(levels[order])) + 1
             bounds = [(int(a), int(b), int(levels[order[a]])) for a, b in
                       zip(np.concatenate([[0], runs]), np.concatenate([runs, [len(levels)]]))]
             perm = torch.from_numpy(order).to(points.device)
-            rgb = self._decode_sorted(points[perm], wv[perm.to(wv.device)], wl[perm.to(wl.device)],
-                                      texels[torch.from_numpy(order)], bounds)
+            wv_sorted, wl_sorted = wv[perm.to(wv.device)], wl[perm.to(wl.device)]
+            rgb = torch.empty(len(levels), 3, dtype=torch.float32, device=self.device)
+            split = bounds[-1][0] if bounds[-1][2] == top + 1 else len(levels)
+            if split > 0:
+                rgb[:split] = self._decode_sorted(points[perm[:split]], wv_sorted[:split], wl_sorted[:split],
+                                                  texels[torch.from_numpy(order[:split])],
+                                                  [b for b in bounds if b[2] <= top])
+            if split < len(levels):
+                rgb[split:] = self.mean_appearance(wv_sorted[split:], wl_sorted[split:])
             return torch.empty_like(rgb).index_copy_(0, perm.to(rgb.device), rgb)
         if fold is None:
             features = self.synthesizer(points, texels)
@@ -415,6 +434,14 @@ class SynthesizedBTF:
         pairs. Why: the decoder is nonlinear -- decoding mean features is not the mean decoded
         colour (on a fitted leather ~6% darker, and the error varies with the directions;
         ``docs/synthesis.md``).
+
+        Footprints that read only the top level (``1 x 1``: the same latent at every position) answer
+        the material's mean appearance, a function of the directions alone. The top entry's ``mean``
+        holds it as a quadrature of ``MEAN_NODES`` decodes, :meth:`mean_appearance`: ``nodes
+        (MEAN_NODES, hidden)`` (layer 1's positional pre-activation, without layer 1's bias;
+        ``nodes_total`` with it), ``weights (MEAN_NODES,)`` (summing to one) and ``rest``, fitted
+        (relative squared error) to the mean of the decoder over ``MEAN_FIT_POSITIONS`` synthesized
+        positions. ``None`` where the top level is not constant (e.g. a one-level pyramid).
         """
         if self._level_layers is None:
             import json
@@ -424,8 +451,11 @@ class SynthesizedBTF:
                    str(self.device))
             if key not in _LEVEL_DECODERS:
                 _LEVEL_DECODERS[key] = self._fit_level_decoders()
-            self._level_layers = [{**p, "bias_total": p["bias"] + self._fold["first_bias"]}
-                                  for p in _LEVEL_DECODERS[key]]
+            first_bias = self._fold["first_bias"]
+            self._level_layers = [{**p, "bias_total": p["bias"] + first_bias} for p in _LEVEL_DECODERS[key]]
+            mean = self._level_layers[-1].get("mean")
+            if mean is not None:
+                self._level_layers[-1]["mean"] = {**mean, "nodes_total": mean["nodes"] + first_bias}
         return self._level_layers
 
     def nearest_level(self, texels: torch.Tensor) -> np.ndarray:
@@ -517,7 +547,101 @@ class SynthesizedBTF:
                                "rest": [(w_.detach().to(dtype), b_.detach().to(dtype)) for w_, b_ in rest]})
             else:  # the plain decoder is as good (e.g. a constant plane): keep it
                 params.append(params[0])
+        if len(params) > 1:
+            params[-1] = {**params[-1], "mean": self._fit_mean_appearance(rng)}
         return params
+
+    def _fit_mean_appearance(self, rng: np.random.Generator) -> dict[str, Any] | None:
+        """The top level's quadrature (:meth:`level_decoder_parameters`), or None if that level is not constant."""
+        fold = self._fold
+        fast = fold["fast"]
+        decoder = fast.decoder
+        slope = decoder.negative_slope
+        top = len(self.synthesizer.level_of_detail().widths) - 1
+        texel = float(self.synthesizer.level_of_detail().widths[top]) * 4.0
+        with torch.no_grad():
+            probe = torch.from_numpy(rng.random((16, 2)) * 64.0).to(self.device)
+            latent = self.synthesizer.filtered_latent(probe, torch.full((16,), texel, dtype=torch.float64)).float()
+            if float((latent - latent[:1]).abs().max()) > 1e-6:
+                return None
+            positions = torch.from_numpy(rng.random((MEAN_FIT_POSITIONS, 2)) * 64.0).to(self.device)
+            # layer 1's positional pre-activation (without its bias) at each position
+            points = torch.addmm(fold["bias"].float(), self.synthesizer.latent(positions).to(self.device).float(),
+                                 fold["weight"].float())
+            n = LEVEL_FIT_QUERIES
+            cos_t = rng.uniform(0.01, 1.0, (2, n))
+            phi = rng.uniform(0.0, 2 * np.pi, (2, n))
+            sin_t = np.sqrt(1.0 - cos_t ** 2)
+            w = torch.from_numpy(np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)).float()
+            angular = decoder.first_layer_angular(fast.angular_features(w[0].to(self.device), w[1].to(self.device))
+                                                  .float())  # with layer 1's bias
+            rest0 = [(layer.weight.detach().float(), layer.bias.detach().float()) for layer in decoder.rest]
+            target = torch.zeros(n, 3, dtype=torch.float32, device=self.device)
+            for start in range(0, n, 256):  # the mean over the positions, 256 (view, light) pairs at a time
+                pre = points[None] + angular[start:start + 256, None]
+                target[start:start + 256] = _mlp(F.leaky_relu(pre, slope), rest0, slope).mean(1)
+        nodes = points[torch.from_numpy(rng.choice(len(points), MEAN_NODES, replace=False)).to(self.device)]
+        nodes = nodes.clone().requires_grad_()
+        logits = torch.zeros(MEAN_NODES, device=self.device, requires_grad=True)
+        rest = [(w_.clone().requires_grad_(), b_.clone().requires_grad_()) for w_, b_ in rest0]
+        optimizer = torch.optim.Adam([nodes, logits, *[p for pair in rest for p in pair]], lr=LEVEL_FIT_LR, eps=1e-6)
+        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, MEAN_FIT_STEPS)
+        from .fused_mlp import single_intra_op_thread
+
+        def loss_of(rows):
+            x = F.leaky_relu(nodes[None] + angular[rows, None], slope)
+            value = (_mlp(x, rest, slope) * torch.softmax(logits, 0)[None, :, None]).sum(1)
+            # relative error: the mean appearance spans orders of magnitude over the directions
+            return (((value - target[rows]) / (target[rows].abs() + 0.02)) ** 2).mean()
+
+        def snapshot():
+            return {"nodes": nodes.detach().clone(), "weights": torch.softmax(logits.detach(), 0),
+                    "rest": [(w_.detach().clone().to(fold["dtype"]), b_.detach().clone().to(fold["dtype"]))
+                             for w_, b_ in rest]}
+
+        every = slice(None)
+        with torch.no_grad():
+            start_loss, start = float(loss_of(every)), snapshot()
+        with single_intra_op_thread():
+            for rows in torch.from_numpy(rng.integers(0, n, (MEAN_FIT_STEPS, min(n, LEVEL_FIT_BATCH)))):
+                loss = loss_of(rows)
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+                schedule.step()
+        with torch.no_grad():
+            fitted_loss = float(loss_of(every))
+        # the starting point (the decoder at MEAN_NODES of the positions) is kept where it is as good, e.g. a
+        # constant plane, whose mean appearance it is exactly
+        return snapshot() if fitted_loss < start_loss else start
+
+    def mean_appearance(self, w_view: torch.Tensor, w_light: torch.Tensor) -> torch.Tensor:
+        """The material's mean appearance ``(N, 3)`` float32 at unit directions ``(N, 3)`` (model device/dtype).
+
+        What a footprint that reads only the top pyramid level answers: ``sum_k weights[k] decode(nodes[k],
+        w_view, w_light)`` with the top level's quadrature (:meth:`level_decoder_parameters`; requires it).
+        """
+        fold = self._fold
+        mean = self.level_decoder_parameters()[-1]["mean"]
+        if fold["planes"] is not None:  # the fused kernel's angular plane fetches (no bias), no activation
+            from .fast_decode import first_layer_preactivation
+
+            hidden = fold["planes"][0].shape[-1]
+            angular = torch.from_numpy(first_layer_preactivation(
+                None, None, None, w_view.float().numpy(), w_light.float().numpy(), *fold["planes"],
+                positional=np.zeros((len(w_view), hidden), dtype=np.float32)))
+            nodes = mean["nodes_total"]
+        else:  # layer 1's angular part with its bias
+            fast = fold["fast"]
+            angular = fast.decoder.first_layer_angular(fast.angular_features(w_view, w_light).float())
+            nodes = mean["nodes"]
+        out = torch.zeros(len(w_view), 3, dtype=torch.float32, device=angular.device)
+        for k in range(len(nodes)):
+            x = F.leaky_relu(angular + nodes[k], fold["slope"]).to(fold["dtype"])
+            for start in range(0, len(x), _MLP_ROWS):
+                out[start:start + _MLP_ROWS] += mean["weights"][k] * _mlp(x[start:start + _MLP_ROWS], mean["rest"],
+                                                                          fold["slope"])
+        return out
 
     def _decode_rest(self, x: torch.Tensor) -> torch.Tensor:
         """Decoder layers 2.. on first-layer activations ``(N, hidden)`` -> RGB float32."""

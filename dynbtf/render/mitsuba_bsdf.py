@@ -386,6 +386,7 @@ class DynBTFEvaluator:
         self.relief = hasattr(self.model, "visible_uv")
         self._height_index = int(model.positional_plane().shape[-1]) - 1
         self._level_decoders = None
+        self._mean_appearance = None
 
     def prepare_footprints(self) -> None:
         """Build what footprint queries read (the synthesizer's pyramid, the per-level decoders) now, not mid-trace."""
@@ -413,6 +414,12 @@ class DynBTFEvaluator:
                              params["bias_total"])
                     self._level_decoders.append(drjit_ops.DrDecoder.from_layers(
                         [first, *params["rest"]], c, decoder.negative_slope))
+                mean = self.btf.level_decoder_parameters()[-1].get("mean")
+                if mean is not None:  # the top level's quadrature: one decoder (angular inputs only) per node
+                    self._mean_appearance = [
+                        (float(weight), drjit_ops.DrDecoder.from_layers([(angular, node), *mean["rest"]], 0,
+                                                                         decoder.negative_slope))
+                        for weight, node in zip(mean["weights"].tolist(), mean["nodes_total"])]
         return self._level_decoders
 
     def features(self, u, v, active=True):
@@ -453,8 +460,19 @@ class DynBTFEvaluator:
         for level in range(lod.top + 1):
             for mixed in (False, True):
                 targets.append(self._filtered_target(level, mixed, decoders[level] if decoders else None))
+        if self._mean_appearance is not None:  # lanes reading the top level alone: the mean appearance
+            targets[2 * lod.top] = self._mean_target
         index = lod.nearest(lower, t) * 2 + dr.select(t > 0.0, 1, 0)
         return dr.switch(mi.UInt32(index), targets, u, v, w_view, w_light, lower, t, active)
+
+    def _mean_target(self, u, v, w_view, w_light, lower, t, active):
+        """The material's mean appearance (:meth:`dynbtf.synthesized.SynthesizedBTF.mean_appearance`): no synthesis."""
+        angular = self.model.angular_features(w_view, w_light, active)
+        value = None
+        for weight, decoder in self._mean_appearance:
+            term = decoder([], angular) * weight
+            value = term if value is None else value + term
+        return value
 
     def _filtered_target(self, level: int, mixed: bool, decoder):
         """The value of lanes whose nearest level is ``level`` and that mix two levels (``mixed``) or read one."""
