@@ -117,10 +117,11 @@ LEVEL_FIT_LR = 3e-3
 LEVEL_FIT_SEED = 0
 
 #: The mean appearance of footprints that read only the pyramid's 1 x 1 top level
-#: (:meth:`SynthesizedBTF.level_decoder_parameters`): quadrature nodes, synthesized positions whose mean is
-#: the fit's target (the same positions for every (view, light) pair), Adam steps.
-MEAN_NODES = 2
+#: (:meth:`SynthesizedBTF.level_decoder_parameters`): quadrature nodes, random synthesized positions per
+#: (view, light) pair whose mean is the fit's target, Adam steps.
+MEAN_NODES = 3
 MEAN_FIT_POSITIONS = 512
+MEAN_FIT_PAIRS = 65536
 MEAN_FIT_STEPS = 2000
 
 #: Fitted per-level decoders by (model contents, method, seed, parameters, precision, device): SynthesizedBTFs
@@ -153,6 +154,13 @@ def _mlp(x: torch.Tensor, layers, slope: float) -> torch.Tensor:
         if k < len(layers) - 1:
             x = F.leaky_relu(x, slope)
     return x.float()
+
+
+def _hidden(x: torch.Tensor, layers, slope: float) -> torch.Tensor:
+    """Linear layers ``[(weight, bias), ...]`` each followed by LeakyReLU on ``x (N, in)`` (none: ``x``)."""
+    for weight, bias in layers:
+        x = F.leaky_relu(F.linear(x, weight, bias), slope)
+    return x
 
 
 def _same_device(a: torch.device, b: torch.device) -> bool:
@@ -564,11 +572,7 @@ class SynthesizedBTF:
             latent = self.synthesizer.filtered_latent(probe, torch.full((16,), texel, dtype=torch.float64)).float()
             if float((latent - latent[:1]).abs().max()) > 1e-6:
                 return None
-            positions = torch.from_numpy(rng.random((MEAN_FIT_POSITIONS, 2)) * 64.0).to(self.device)
-            # layer 1's positional pre-activation (without its bias) at each position
-            points = torch.addmm(fold["bias"].float(), self.synthesizer.latent(positions).to(self.device).float(),
-                                 fold["weight"].float())
-            n = LEVEL_FIT_QUERIES
+            n = MEAN_FIT_PAIRS
             cos_t = rng.uniform(0.01, 1.0, (2, n))
             phi = rng.uniform(0.0, 2 * np.pi, (2, n))
             sin_t = np.sqrt(1.0 - cos_t ** 2)
@@ -576,10 +580,18 @@ class SynthesizedBTF:
             angular = decoder.first_layer_angular(fast.angular_features(w[0].to(self.device), w[1].to(self.device))
                                                   .float())  # with layer 1's bias
             rest0 = [(layer.weight.detach().float(), layer.bias.detach().float()) for layer in decoder.rest]
+
+            # layer 1's positional pre-activation (without its bias) at random synthesized positions
+            where = torch.from_numpy(rng.random((MEAN_FIT_POSITIONS, 2)) * 64.0).to(self.device)
+            points = torch.addmm(fold["bias"].float(), self.synthesizer.latent(where).to(self.device).float(),
+                                 fold["weight"].float())
+            # the same positions for every (view, light) pair: the targets are a smooth function of the directions
+            # (independent positions per pair gave noisy targets whose fit, though closer on average, left
+            # larger blotches on the benchmark's plane)
             target = torch.zeros(n, 3, dtype=torch.float32, device=self.device)
-            for start in range(0, n, 256):  # the mean over the positions, 256 (view, light) pairs at a time
-                pre = points[None] + angular[start:start + 256, None]
-                target[start:start + 256] = _mlp(F.leaky_relu(pre, slope), rest0, slope).mean(1)
+            for start in range(0, n, 64):
+                pre = points[None] + angular[start:start + 64, None]
+                target[start:start + 64] = _mlp(F.leaky_relu(pre, slope), rest0, slope).mean(1)
         nodes = points[torch.from_numpy(rng.choice(len(points), MEAN_NODES, replace=False)).to(self.device)]
         nodes = nodes.clone().requires_grad_()
         logits = torch.zeros(MEAN_NODES, device=self.device, requires_grad=True)
@@ -588,9 +600,14 @@ class SynthesizedBTF:
         schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, MEAN_FIT_STEPS)
         from .fused_mlp import single_intra_op_thread
 
+        # the nodes' weighted mean is taken before the last (linear) layer: the same as the mean of the decoded
+        # values, with one last-layer product instead of MEAN_NODES
+        split = len(rest) - 1
+
         def loss_of(rows):
             x = F.leaky_relu(nodes[None] + angular[rows, None], slope)
-            value = (_mlp(x, rest, slope) * torch.softmax(logits, 0)[None, :, None]).sum(1)
+            value = _mlp((_hidden(x, rest[:split], slope) * torch.softmax(logits, 0)[None, :, None]).sum(1),
+                         rest[split:], slope)
             # relative error: the mean appearance spans orders of magnitude over the directions
             return (((value - target[rows]) / (target[rows].abs() + 0.02)) ** 2).mean()
 
@@ -635,12 +652,15 @@ class SynthesizedBTF:
             fast = fold["fast"]
             angular = fast.decoder.first_layer_angular(fast.angular_features(w_view, w_light).float())
             nodes = mean["nodes"]
-        out = torch.zeros(len(w_view), 3, dtype=torch.float32, device=angular.device)
-        for k in range(len(nodes)):
-            x = F.leaky_relu(angular + nodes[k], fold["slope"]).to(fold["dtype"])
-            for start in range(0, len(x), _MLP_ROWS):
-                out[start:start + _MLP_ROWS] += mean["weights"][k] * _mlp(x[start:start + _MLP_ROWS], mean["rest"],
-                                                                          fold["slope"])
+        out = torch.empty(len(w_view), 3, dtype=torch.float32, device=angular.device)
+        split, slope, weights = len(mean["rest"]) - 1, fold["slope"], mean["weights"].to(fold["dtype"])
+        rows = max(1, _MLP_ROWS // len(nodes))
+        for start in range(0, len(angular), rows):
+            block = angular[start:start + rows]
+            # every node's activations as one batch of rows, their weighted mean, then the remaining layers
+            x = F.leaky_relu(block[None] + nodes[:, None], slope).to(fold["dtype"]).reshape(-1, block.shape[1])
+            x = _hidden(x, mean["rest"][:split], slope).reshape(len(nodes), len(block), -1)
+            out[start:start + rows] = _mlp(torch.tensordot(weights, x, dims=1), mean["rest"][split:], slope)
         return out
 
     def _decode_rest(self, x: torch.Tensor) -> torch.Tensor:
