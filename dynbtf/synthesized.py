@@ -156,6 +156,30 @@ def _mlp(x: torch.Tensor, layers, slope: float) -> torch.Tensor:
     return x.float()
 
 
+def _random_direction_pairs(rng: np.random.Generator, n: int) -> np.ndarray:
+    """``(2, n, 3)`` float64 (view, light) unit directions of the per-level fits: cosines uniform in [0.01, 1]
+    (grazing views included: where filtering matters most), azimuths uniform."""
+    cos_t = rng.uniform(0.01, 1.0, (2, n))
+    phi = rng.uniform(0.0, 2 * np.pi, (2, n))
+    sin_t = np.sqrt(1.0 - cos_t ** 2)
+    return np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)
+
+
+def _adam_steps(loss_of, optimizer, schedule, batches) -> None:
+    """One optimizer and schedule step of ``loss_of(rows)`` per row-index batch, on one torch thread: the small
+    layers' backward passes ran ~10x slower on two threads of a loaded 2-core machine (OpenMP spin-waiting), as
+    the evaluation does (:func:`dynbtf.fused_mlp.single_intra_op_thread`)."""
+    from .fused_mlp import single_intra_op_thread
+
+    with single_intra_op_thread():
+        for rows in batches:
+            loss = loss_of(rows)
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            schedule.step()
+
+
 def _hidden(x: torch.Tensor, layers, slope: float) -> torch.Tensor:
     """Linear layers ``[(weight, bias), ...]`` each followed by LeakyReLU on ``x (N, in)`` (none: ``x``)."""
     for weight, bias in layers:
@@ -495,7 +519,6 @@ class SynthesizedBTF:
         rest0 = [(layer.weight.detach().float(), layer.bias.detach().float()) for layer in decoder.rest]
         params = [{"weight": fold["weight"].float(), "bias": fold["bias"].float(),
                    "rest": [(w.to(dtype), b.to(dtype)) for w, b in rest0]}]
-        from .fused_mlp import single_intra_op_thread
         from .progress import progress_bar
 
         for level in progress_bar(range(1, len(widths)), desc="per-level decoders", unit="level",
@@ -505,10 +528,7 @@ class SynthesizedBTF:
                 hi = 4.0 * widths[level] if level == len(widths) - 1 else np.sqrt(widths[level] * widths[level + 1])
                 texels = np.exp(rng.uniform(np.log(np.sqrt(widths[level - 1] * widths[level])), np.log(hi), n))
                 centres = rng.random((n, 2)) * 64.0
-                cos_t = rng.uniform(0.01, 1.0, (2, n))  # grazing views included: where filtering matters most
-                phi = rng.uniform(0.0, 2 * np.pi, (2, n))
-                sin_t = np.sqrt(1.0 - cos_t ** 2)
-                w = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)  # (2, n, 3)
+                w = _random_direction_pairs(rng, n)
                 wv = torch.from_numpy(w[0]).to(self.device, torch.float32)
                 wl = torch.from_numpy(w[1]).to(self.device, torch.float32)
                 target = torch.zeros(n, 3, dtype=torch.float32, device=self.device)
@@ -538,16 +558,8 @@ class SynthesizedBTF:
             every = slice(None)
             with torch.no_grad():
                 plain_loss = float(loss_of(every))
-            batches = torch.from_numpy(rng.integers(0, n, (LEVEL_FIT_STEPS, min(n, LEVEL_FIT_BATCH))))
-            # one torch thread: the small layers' backward passes ran ~10x slower on two threads of a loaded
-            # 2-core machine (OpenMP spin-waiting), as the evaluation does (fused_mlp.single_intra_op_thread)
-            with single_intra_op_thread():
-                for rows in batches:
-                    loss = loss_of(rows)
-                    optimizer.zero_grad()
-                    loss.backward()
-                    optimizer.step()
-                    schedule.step()
+            _adam_steps(loss_of, optimizer, schedule,
+                        torch.from_numpy(rng.integers(0, n, (LEVEL_FIT_STEPS, min(n, LEVEL_FIT_BATCH)))))
             with torch.no_grad():
                 fitted_loss = float(loss_of(every))
             if fitted_loss < plain_loss:
@@ -573,10 +585,7 @@ class SynthesizedBTF:
             if float((latent - latent[:1]).abs().max()) > 1e-6:
                 return None
             n = MEAN_FIT_PAIRS
-            cos_t = rng.uniform(0.01, 1.0, (2, n))
-            phi = rng.uniform(0.0, 2 * np.pi, (2, n))
-            sin_t = np.sqrt(1.0 - cos_t ** 2)
-            w = torch.from_numpy(np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)).float()
+            w = torch.from_numpy(_random_direction_pairs(rng, n)).float()
             angular = decoder.first_layer_angular(fast.angular_features(w[0].to(self.device), w[1].to(self.device))
                                                   .float())  # with layer 1's bias
             rest0 = [(layer.weight.detach().float(), layer.bias.detach().float()) for layer in decoder.rest]
@@ -598,7 +607,6 @@ class SynthesizedBTF:
         rest = [(w_.clone().requires_grad_(), b_.clone().requires_grad_()) for w_, b_ in rest0]
         optimizer = torch.optim.Adam([nodes, logits, *[p for pair in rest for p in pair]], lr=LEVEL_FIT_LR, eps=1e-6)
         schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, MEAN_FIT_STEPS)
-        from .fused_mlp import single_intra_op_thread
 
         # the nodes' weighted mean is taken before the last (linear) layer: the same as the mean of the decoded
         # values, with one last-layer product instead of MEAN_NODES
@@ -619,13 +627,8 @@ class SynthesizedBTF:
         every = slice(None)
         with torch.no_grad():
             start_loss, start = float(loss_of(every)), snapshot()
-        with single_intra_op_thread():
-            for rows in torch.from_numpy(rng.integers(0, n, (MEAN_FIT_STEPS, min(n, LEVEL_FIT_BATCH)))):
-                loss = loss_of(rows)
-                optimizer.zero_grad()
-                loss.backward()
-                optimizer.step()
-                schedule.step()
+        _adam_steps(loss_of, optimizer, schedule,
+                    torch.from_numpy(rng.integers(0, n, (MEAN_FIT_STEPS, min(n, LEVEL_FIT_BATCH)))))
         with torch.no_grad():
             fitted_loss = float(loss_of(every))
         # the starting point (the decoder at MEAN_NODES of the positions) is kept where it is as good, e.g. a
