@@ -117,8 +117,8 @@ LEVEL_FIT_LR = 3e-3
 LEVEL_FIT_SEED = 0
 
 #: The mean appearance of footprints that read only the pyramid's 1 x 1 top level
-#: (:meth:`SynthesizedBTF.level_decoder_parameters`): quadrature nodes, random synthesized positions per
-#: (view, light) pair whose mean is the fit's target, Adam steps.
+#: (:meth:`SynthesizedBTF.level_decoder_parameters`): quadrature nodes, random synthesized positions whose
+#: mean is the fit's target (the same positions for every pair), (view, light) pairs, Adam steps.
 MEAN_NODES = 3
 MEAN_FIT_POSITIONS = 512
 MEAN_FIT_PAIRS = 65536
@@ -142,18 +142,23 @@ def _fingerprint(model) -> str:
         digest.update(data.reshape(-1).view(torch.uint8).numpy().tobytes())
     return digest.hexdigest()
 
+
 #: Rows per call of decoder layers 2..: torch's small (32-wide) linear layers ran ~3x faster per row
 #: at <= 16384 rows than at 32768+ (activations stay in cache; measured on a 2-core EPYC).
 _MLP_ROWS = 16384
 
 
+def _hidden(x: torch.Tensor, layers, slope: float) -> torch.Tensor:
+    """Linear layers ``[(weight, bias), ...]`` each followed by LeakyReLU on ``x (N, in)`` (none: ``x``)."""
+    for weight, bias in layers:
+        x = F.leaky_relu(F.linear(x, weight, bias), slope)
+    return x
+
+
 def _mlp(x: torch.Tensor, layers, slope: float) -> torch.Tensor:
     """Linear layers ``[(weight, bias), ...]`` with LeakyReLU between them on ``x (N, in)`` -> float32."""
-    for k, (weight, bias) in enumerate(layers):
-        x = F.linear(x, weight, bias)
-        if k < len(layers) - 1:
-            x = F.leaky_relu(x, slope)
-    return x.float()
+    weight, bias = layers[-1]
+    return F.linear(_hidden(x, layers[:-1], slope), weight, bias).float()
 
 
 def _random_direction_pairs(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -178,13 +183,6 @@ def _adam_steps(loss_of, optimizer, schedule, batches) -> None:
             loss.backward()
             optimizer.step()
             schedule.step()
-
-
-def _hidden(x: torch.Tensor, layers, slope: float) -> torch.Tensor:
-    """Linear layers ``[(weight, bias), ...]`` each followed by LeakyReLU on ``x (N, in)`` (none: ``x``)."""
-    for weight, bias in layers:
-        x = F.leaky_relu(F.linear(x, weight, bias), slope)
-    return x
 
 
 def _same_device(a: torch.device, b: torch.device) -> bool:

@@ -409,12 +409,13 @@ class DynBTFEvaluator:
                 decoder = self.btf.model.decoder
                 c = int(decoder.positional_channels)
                 angular = decoder.first.weight[:, c:].detach().float().cpu().numpy()
-                for params in self.btf.level_decoder_parameters():
+                levels = self.btf.level_decoder_parameters()
+                for params in levels:
                     first = (np.concatenate([params["weight"].detach().float().cpu().numpy().T, angular], axis=1),
                              params["bias_total"])
                     self._level_decoders.append(drjit_ops.DrDecoder.from_layers(
                         [first, *params["rest"]], c, decoder.negative_slope))
-                mean = self.btf.level_decoder_parameters()[-1].get("mean")
+                mean = levels[-1].get("mean")
                 if mean is not None:  # the top level's quadrature: one decoder (angular inputs only) per node
                     self._mean_appearance = [
                         (float(weight), drjit_ops.DrDecoder.from_layers([(angular, node), *mean["rest"]], 0,
