@@ -12,7 +12,11 @@ linear    plain linear blending on the triangle lattice (comparison)  yes
 hist      histogram-preserving blending (Heitz & Neyret 2018)         yes
 hex       hex-tiling (Mikkelsen 2022), rotation off                   yes
 quilt     image quilting (Efros & Freeman 2001), pre-generated        no
+struct    lattice-aligned cell quilting (structured materials)        yes
 ========  ==========================================================  =======
+
+``auto`` (:func:`~.auto.choose_method`) is not a method of its own: it measures how structured
+the exemplar is (:mod:`.structure`) and builds ``struct`` or ``hist``.
 
 Building blocks: :mod:`.lattice` (triangle grid, exact at any coordinate),
 :mod:`.hash` (integer vertex hash), :mod:`.histogram` (Gaussian transforms,
@@ -21,6 +25,7 @@ PCA, variance-preserving blend), :mod:`.tileable` ("Avoiding Cuts"),
 """
 
 from .base import SYNTHESIZERS, Synthesizer, make_synthesizer, register_synthesizer, synthesizer_class
+from .cell_quilting import CellQuilting
 from .blending import LatticeBlending, LinearBlending
 from .hex_tiling import HexTiling
 from .histogram_blending import HistogramBlending
@@ -28,4 +33,4 @@ from .quilting import Quilting
 from .tiling import Tiling
 
 __all__ = ["Synthesizer", "SYNTHESIZERS", "make_synthesizer", "register_synthesizer", "synthesizer_class",
-           "Tiling", "LatticeBlending", "LinearBlending", "HistogramBlending", "HexTiling", "Quilting"]
+           "Tiling", "CellQuilting", "LatticeBlending", "LinearBlending", "HistogramBlending", "HexTiling", "Quilting"]

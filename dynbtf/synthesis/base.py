@@ -19,7 +19,8 @@ Texel density is that of the original exemplar: one unit of ``uv`` spans ``W``
 texels along ``u`` and ``H`` along ``v`` even when preprocessing crops the plane.
 
 Methods register by name (:func:`register_synthesizer`) and are built with
-:func:`make_synthesizer`: ``tile``, ``linear``, ``hist``, ``hex``, ``quilt``.
+:func:`make_synthesizer`: ``tile``, ``linear``, ``hist``, ``hex``, ``quilt``, ``struct``, and
+``auto`` (``struct`` or ``hist``, chosen from the exemplar's structure).
 """
 
 from __future__ import annotations
@@ -74,20 +75,32 @@ def synthesizer_class(name: str) -> type["Synthesizer"]:
     try:
         return SYNTHESIZERS[name]
     except KeyError:
-        raise InputError(f"synthesis method {name!r} is unknown; expected one of {sorted(SYNTHESIZERS)}") from None
+        raise InputError(f"synthesis method {name!r} is unknown; expected one of {sorted(SYNTHESIZERS) + ['auto']}") from None
 
 
 def make_synthesizer(name: str, exemplar, seed: int = 0, **params) -> "Synthesizer":
     """Build the synthesizer ``name`` on ``exemplar (H, W, C)`` with ``seed`` and method ``params``.
 
-    Unknown parameter names raise :class:`InputError` listing the accepted ones.
+    ``name = "auto"`` chooses ``struct`` or ``hist`` from the exemplar's structure
+    (:func:`dynbtf.synthesis.auto.choose_method`); the built synthesizer's ``choice`` attribute
+    then holds the :class:`~dynbtf.synthesis.auto.MethodChoice` (else None). Unknown parameter
+    names raise :class:`InputError` listing the accepted ones.
     """
+    choice = None
+    if name == "auto":
+        from .auto import choose_method
+
+        choice = choose_method(Synthesizer.check_exemplar(exemplar))
+        name = choice.method
     cls = synthesizer_class(name)
     accepted = [p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "exemplar", "seed")]
     unknown = sorted(set(params) - set(accepted))
     if unknown:
-        raise InputError(f"synthesis method {name!r}: unknown parameter(s) {unknown}; accepted: {accepted}")
-    return cls(exemplar, seed=seed, **params)
+        chosen = f" (chosen by 'auto': {choice.line})" if choice is not None else ""
+        raise InputError(f"synthesis method {name!r}{chosen}: unknown parameter(s) {unknown}; accepted: {accepted}")
+    synth = cls(exemplar, seed=seed, **params)
+    synth.choice = choice
+    return synth
 
 
 def check_uv(uv, name: str = "uv", scale: float = 1.0) -> torch.Tensor:
@@ -180,6 +193,8 @@ class Synthesizer(abc.ABC):
 
     name: ClassVar[str] = "abstract"
     dynamic: ClassVar[bool] = True
+    #: The :class:`~dynbtf.synthesis.auto.MethodChoice` when built by ``make_synthesizer("auto", ...)``.
+    choice = None
 
     def __init__(self, exemplar, seed: int = 0) -> None:
         self.exemplar = self.check_exemplar(exemplar)

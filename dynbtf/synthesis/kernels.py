@@ -575,3 +575,90 @@ def tile_fetch(uv: np.ndarray, plane: np.ndarray, out: np.ndarray | None = None)
         out = np.empty((uv.shape[0], plane.shape[2]), dtype=np.float32)
     _tile_kernel(uv, np.ascontiguousarray(plane, dtype=np.float32), out)
     return out
+
+
+# ---------------------------------------------------------------- cell quilting (dynbtf.synthesis.cell_quilting)
+@numba.njit(inline="always")
+def _cell_choice(cell_x, cell_y, state, count):
+    """Offset index of a cell: ``hash_vertex(cell_x, cell_y, seed) mod K`` (``state = seed_state(seed)``)."""
+    return _fold_coordinate(_fold_coordinate(state, cell_x), cell_y) % count
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _cell_quilt_kernel(uv, plane, offsets, vertical, horizontal, nx, ny, mx, my, state, out):
+    n_queries = uv.shape[0]
+    ph, pw, nc = plane.shape
+    count = offsets.shape[0]
+    tx = pw // nx
+    ty = ph // ny
+    for n in numba.prange(n_queries):
+        u = uv[n, 0]
+        v = uv[n, 1]
+        wu = math.floor(u)
+        wv = math.floor(v)
+        fu = u - wu
+        fv = v - wv
+        if fu >= 1.0:
+            fu -= 1.0
+            wu += 1.0
+        if fv >= 1.0:
+            fv -= 1.0
+            wv += 1.0
+        pos_x = fu * pw
+        pos_y = fv * ph
+        texel_x = min(np.int64(math.floor(pos_x)), pw - 1)
+        texel_y = min(np.int64(math.floor(pos_y)), ph - 1)
+        col = texel_x // tx
+        row = texel_y // ty
+        local_x = texel_x - col * tx
+        local_y = texel_y - row * ty
+        cell_x = np.int64(wu) * nx + col
+        cell_y = np.int64(wv) * ny + row
+        own = _cell_choice(cell_x, cell_y, state, count)
+        side_x = 0
+        if local_x < mx:
+            if local_x < vertical[col, row, _cell_choice(cell_x - 1, cell_y, state, count), own, local_y]:
+                side_x = -1
+        elif local_x >= tx - mx:
+            if local_x - tx >= vertical[(col + 1) % nx, row, own, _cell_choice(cell_x + 1, cell_y, state, count), local_y]:
+                side_x = 1
+        side_y = 0
+        if local_y < my:
+            if local_y < horizontal[col, row, _cell_choice(cell_x, cell_y - 1, state, count), own, local_x]:
+                side_y = -1
+        elif local_y >= ty - my:
+            if local_y - ty >= horizontal[col, (row + 1) % ny, own, _cell_choice(cell_x, cell_y + 1, state, count), local_x]:
+                side_y = 1
+        chosen = own if side_x == 0 and side_y == 0 else _cell_choice(cell_x + side_x, cell_y + side_y, state, count)
+        # bilinear periodic fetch at the shifted position (texel centres at whole + 0.5)
+        px = pos_x + offsets[chosen, 0] - 0.5
+        py = pos_y + offsets[chosen, 1] - 0.5
+        x0 = math.floor(px)
+        y0 = math.floor(py)
+        tx_ = np.float32(px - x0)
+        ty_ = np.float32(py - y0)
+        c0 = np.int64(x0) % pw
+        c1 = (c0 + 1) % pw
+        r0 = np.int64(y0) % ph
+        r1 = (r0 + 1) % ph
+        for c in range(nc):
+            out[n, c] = ((1 - tx_) * (1 - ty_) * plane[r0, c0, c] + tx_ * (1 - ty_) * plane[r0, c1, c]
+                         + (1 - tx_) * ty_ * plane[r1, c0, c] + tx_ * ty_ * plane[r1, c1, c])
+
+
+def cell_quilt(uv: np.ndarray, plane: np.ndarray, offsets: np.ndarray, vertical: np.ndarray, horizontal: np.ndarray,
+               cells: tuple[int, int], margin: tuple[int, int], seed: int, out: np.ndarray | None = None) -> np.ndarray:
+    """Fused cell quilting (:class:`dynbtf.synthesis.cell_quilting.CellQuilting`): ``uv (N, 2)`` float64 -> ``(N, C)`` float32.
+
+    ``plane (H, W, C)`` float32, ``offsets (K, 2)`` int64, the cut tables int16 as in
+    :class:`~dynbtf.synthesis.cell_quilting.CellTables`; same cells, hashes and read positions as the
+    torch reference path, the bilinear fetch as :func:`tile_fetch`'s.
+    """
+    uv = np.ascontiguousarray(uv, dtype=np.float64)
+    check_uv(torch.from_numpy(uv))
+    if out is None:
+        out = np.empty((uv.shape[0], plane.shape[2]), dtype=np.float32)
+    _cell_quilt_kernel(uv, np.ascontiguousarray(plane, dtype=np.float32), offsets, vertical, horizontal,
+                       int(cells[0]), int(cells[1]), int(margin[0]), int(margin[1]),
+                       np.int64(seed_state(np.int64(int(seed) & MASK32))), out)
+    return out

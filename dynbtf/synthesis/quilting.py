@@ -45,28 +45,32 @@ def quilted_storage_bytes(height: int, width: int, channels: int, repeats: float
 
 
 def min_error_cut(errors: np.ndarray) -> np.ndarray:
-    """Minimum-error vertical path through ``errors (rows, cols)`` by dynamic programming.
+    """Minimum-error vertical path through ``errors (..., rows, cols)`` by dynamic programming.
 
-    Returns ``cut (rows,)``: the column of the path in each row; moving down one
+    Returns ``cut (..., rows)`` int64: the column of the path in each row; moving down one
     row the path shifts by at most one column. Texels left of the cut keep the
-    old content, the cut texel and those right of it take the new block.
+    old content, the cut texel and those right of it take the new block. Leading axes are
+    independent problems solved at once (ties go to the leftmost column).
 
     >>> min_error_cut(np.array([[5, 0, 5], [5, 5, 0], [5, 5, 0]], dtype=float)).tolist()
     [1, 2, 2]
     """
-    rows, cols = errors.shape
-    cost = errors.astype(np.float64).copy()
+    errors = np.asarray(errors, dtype=np.float64)
+    rows, cols = errors.shape[-2:]
+    cost = errors.copy()
+    pad = np.full(errors.shape[:-2] + (1,), np.inf)
     for i in range(1, rows):
-        prev = cost[i - 1]
-        left = np.concatenate([[np.inf], prev[:-1]])
-        right = np.concatenate([prev[1:], [np.inf]])
-        cost[i] += np.minimum(np.minimum(left, prev), right)
-    cut = np.empty(rows, dtype=np.int64)
-    cut[-1] = int(np.argmin(cost[-1]))
+        prev = cost[..., i - 1, :]
+        left = np.concatenate([pad, prev[..., :-1]], -1)
+        right = np.concatenate([prev[..., 1:], pad], -1)
+        cost[..., i, :] += np.minimum(np.minimum(left, prev), right)
+    cut = np.empty(errors.shape[:-1], dtype=np.int64)
+    cut[..., -1] = np.argmin(cost[..., -1, :], -1)
+    padded = np.concatenate([pad[..., None, :].repeat(rows, -2), cost, pad[..., None, :].repeat(rows, -2)], -1)
     for i in range(rows - 2, -1, -1):
-        j = cut[i + 1]
-        lo, hi = max(j - 1, 0), min(j + 2, cols)
-        cut[i] = lo + int(np.argmin(cost[i, lo:hi]))
+        j = cut[..., i + 1]  # candidates j-1, j, j+1 are padded columns j, j+1, j+2
+        window = np.stack([np.take_along_axis(padded[..., i, :], (j + k)[..., None], -1)[..., 0] for k in range(3)], -1)
+        cut[..., i] = j - 1 + np.argmin(window, -1)
     return cut
 
 

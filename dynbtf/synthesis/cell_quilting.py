@@ -1,0 +1,336 @@
+"""Lattice-aligned cell quilting: dynamic synthesis that keeps weaves, tiles and bricks intact.
+
+Blending methods (``hist``, ``hex``) mix three copies of the exemplar at unrelated offsets,
+so a structured exemplar's yarns and joints ghost into each other. This method never blends.
+The plane is cut into a grid of **cells**, ``cells = (nx, ny)`` per exemplar repeat (so a
+cell is ``T_x = W / nx`` by ``T_y = H / ny`` texels and the grid is fixed to the repeats);
+every cell shows the exemplar shifted by one of ``K`` **lattice offsets**, chosen per cell
+by the integer hash of the cell's index and the seed (:mod:`.hash`)::
+
+    features(p) = E(p + o[k(cell(p))])        (texels, E read with wrap addressing)
+
+The offsets are the exemplar's own translational lattice: ``o[0] = (0, 0)`` and the
+strongest peaks of its autocorrelation (:mod:`.structure`). A copy shifted by a lattice
+vector puts every yarn, joint and tile edge where the unshifted copy has one, so neighbouring
+cells continue each other's structure and differ only in the elements' own variation
+(each tile's tint, each brick's colour, each thread's twist).
+
+Where two cells meet, the border is a **minimum-error cut** (Efros & Freeman 2001; the
+cut code of :mod:`.quilting`) through a band of ``margin`` texels on either side of the
+straight cell edge, found off-line for every pair of offsets and every position of the edge
+within the repeat, so the seam runs where the two copies agree (along a grout line,
+between yarns). A query needs its own cell's hash, and near an edge the neighbour's hash and
+one table entry; it reads one bilinear sample. Where the two cuts of a corner both claim
+a point, it takes the diagonal cell.
+
+Tables (built once per exemplar and parameters, ``prepared``): the offsets ``(K, 2)``,
+the vertical edges' cuts ``(nx, ny, K, K, T_y)`` and the horizontal edges' ``(nx, ny, K, K, T_x)``
+(int16, texels relative to the straight edge). Texel density is the exemplar's; any
+``uv`` below ``2**52`` repeats is exact (the cell index is an int64 computed from the repeat
+index and the fraction, as the lattice methods do).
+
+Footprint queries read the exemplar's area pyramid at the point query's read position
+(:class:`~dynbtf.synthesis.mip.PlanePyramid`), like tiling.
+
+Examples
+--------
+>>> import torch
+>>> element = torch.rand(8, 8, 3)
+>>> weave = element.repeat(4, 4, 1) + 0.05 * torch.rand(32, 32, 3)
+>>> synth = CellQuilting(weave, seed=1)
+>>> synth.prepared.offsets.shape[1], synth(torch.tensor([[0.3, 0.6], [1e9 + 0.3, 0.6]], dtype=torch.float64)).shape
+(2, torch.Size([2, 3]))
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from ..texture import fetch_wrap
+from .base import Synthesizer, register_synthesizer
+from .hash import hash_vertex
+from .lattice import split_uv
+from .mip import LevelOfDetail, PlanePyramid
+from .quilting import min_error_cut
+from .structure import StructureAnalysis, analyze_structure
+
+__all__ = ["CellQuilting", "CellTables", "build_cell_tables", "DEFAULT_OFFSETS", "MIN_CELL_TEXELS"]
+
+#: Default number of lattice offsets a cell chooses from (``K``).
+DEFAULT_OFFSETS = 16
+#: Smallest cell side in texels: the cut bands (a quarter of the cell on each side of an edge) need room.
+MIN_CELL_TEXELS = 8
+#: Peaks at least this share of the strongest one are lattice offsets (the rest are the variation's).
+PEAK_SHARE = 0.5
+
+
+@dataclass
+class CellTables:
+    """What a cell-quilting query reads besides the exemplar (see the module docstring).
+
+    Attributes
+    ----------
+    offsets : int64 ``(K, 2)``
+        ``(dx, dy)`` texel offsets of the copies, ``offsets[0] = (0, 0)``; ``dx in [0, W)``, ``dy in [0, H)``.
+    cells : (nx, ny)
+        Cells per exemplar repeat along ``u`` and ``v``.
+    margin : (mx, my)
+        Half-width in texels of the cut bands of vertical and horizontal edges.
+    vertical_cuts : int16 ``(nx, ny, K, K, T_y)``
+        ``[i, j, a, b, r]``: on the edge at the start of cell column ``i`` (between a cell with offset
+        ``a`` on its left and ``b`` on its right) in cell row ``j``, texel row ``r`` of the cell, the first
+        texel that belongs to the right cell, relative to the straight edge (``-mx <= c < mx``).
+    horizontal_cuts : int16 ``(nx, ny, K, K, T_x)``
+        ``[i, j, a, b, s]``: the same for the edge at the start of cell row ``j`` (lower cell ``a``,
+        upper ``b``) in cell column ``i``, texel column ``s``.
+    strength : float
+        The exemplar's structure strength (:func:`~dynbtf.synthesis.structure.analyze_structure`).
+    peak_values : float64 ``(K,)``
+        The autocorrelation at each offset (1 for ``(0, 0)``).
+    build_seconds : float
+        Wall time of the construction.
+    """
+
+    offsets: torch.Tensor
+    cells: tuple[int, int]
+    margin: tuple[int, int]
+    vertical_cuts: torch.Tensor
+    horizontal_cuts: torch.Tensor
+    strength: float
+    peak_values: np.ndarray
+    build_seconds: float = 0.0
+
+    @property
+    def count(self) -> int:
+        """``K``, the number of offsets."""
+        return int(self.offsets.shape[0])
+
+    def storage_bytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in (self.offsets, self.vertical_cuts, self.horizontal_cuts))
+
+
+def _cells_per_repeat(side: int, cells, axis: str) -> int:
+    """Validate/choose the cells per repeat along one axis (``side`` texels)."""
+    if cells == "auto":
+        for n in (2, 1):  # two cells per repeat where the side allows it: more variety, cuts far apart
+            if side % n == 0 and side // n >= max(MIN_CELL_TEXELS, 16 if n > 1 else 0):
+                return n
+        return 1
+    if isinstance(cells, bool) or not isinstance(cells, (int, np.integer)) or int(cells) < 1:
+        raise InputError(f"cells: expected a positive integer or 'auto', got {cells!r}")
+    n = int(cells)
+    if side % n:
+        raise InputError(f"cells: {n} cells per repeat do not divide the exemplar's {side} texels along {axis}; "
+                         f"expected a divisor of {side}")
+    if side // n < MIN_CELL_TEXELS:
+        raise InputError(f"cells: {n} cells per repeat make {side // n}-texel cells along {axis}; cells need at least "
+                         f"{MIN_CELL_TEXELS} texels (an exemplar of at least {MIN_CELL_TEXELS * n} texels, or fewer cells)")
+    return n
+
+
+def lattice_offsets(analysis: StructureAnalysis, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(K, 2)`` int64 offsets ``(dx, dy)``: ``(0, 0)`` and up to ``count - 1`` strongest peaks, and their values.
+
+    Only peaks of at least :data:`PEAK_SHARE` times the strongest are lattice vectors; an exemplar
+    with none (or a constant one) has the single offset ``(0, 0)`` (the method then tiles).
+    """
+    chosen = [(0, 0)]
+    values = [1.0]
+    for dx, dy, value in analysis.peaks:
+        if len(chosen) >= count or value < PEAK_SHARE * analysis.strength or value <= 0.0:
+            break
+        chosen.append((dx, dy))
+        values.append(value)
+    return np.array(chosen, dtype=np.int64), np.array(values)
+
+
+def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS, cells="auto",
+                      margin: float = 0.25) -> CellTables:
+    """The offsets and cut tables of cell quilting for ``exemplar (H, W, C)`` (see the module docstring).
+
+    ``offsets``: most copies ``K`` (2..64); ``cells``: cells per repeat, an int or ``(nx, ny)`` or
+    ``"auto"`` (2 per axis where the side is even and at least 32 texels, else 1); ``margin``: half-width
+    of the cut bands as a fraction of the cell side (0 < margin <= 0.5).
+    """
+    start = time.perf_counter()
+    if isinstance(offsets, bool) or not isinstance(offsets, (int, np.integer)) or not 1 <= int(offsets) <= 64:
+        raise InputError(f"offsets: expected an integer number of lattice offsets in [1, 64], got {offsets!r}")
+    try:
+        margin = float(margin)
+    except (TypeError, ValueError):
+        raise InputError(f"margin: expected a fraction of the cell side in (0, 0.5], got {margin!r}") from None
+    if not 0.0 < margin <= 0.5:
+        raise InputError(f"margin: expected a fraction of the cell side in (0, 0.5], got {margin!r}")
+    h, w, _ = exemplar.shape
+    cx, cy = cells if isinstance(cells, (tuple, list)) else (cells, cells)
+    nx, ny = _cells_per_repeat(w, cx, "u"), _cells_per_repeat(h, cy, "v")
+    tx, ty = w // nx, h // ny
+    mx, my = max(1, int(margin * tx)), max(1, int(margin * ty))
+    analysis = analyze_structure(exemplar)
+    chosen, values = lattice_offsets(analysis, int(offsets))
+    k = chosen.shape[0]
+    x = exemplar.detach().cpu().numpy().astype(np.float64)
+    z = (x - x.mean((0, 1))) / np.maximum(x.std((0, 1)), 1e-12)
+
+    def band_errors(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Squared differences ``(K, K, len(rows), len(cols))`` between every two copies over a band."""
+        copies = np.stack([z[(rows[:, None] + dy) % h, (cols[None, :] + dx) % w] for dx, dy in chosen])
+        norms = (copies * copies).sum(-1)
+        cross = np.einsum("arsc,brsc->abrs", copies, copies, optimize=True)
+        return np.maximum(norms[:, None] + norms[None, :] - 2.0 * cross, 0.0)
+
+    vertical = np.zeros((nx, ny, k, k, ty), dtype=np.int16)
+    horizontal = np.zeros((nx, ny, k, k, tx), dtype=np.int16)
+    for i in range(nx):
+        for j in range(ny):
+            # vertical edge at x = i T_x, rows of cell row j; band columns i T_x - mx ... i T_x + mx - 1
+            err = band_errors(np.arange(j * ty, (j + 1) * ty), np.arange(i * tx - mx, i * tx + mx))
+            vertical[i, j] = min_error_cut(err) - mx
+            # horizontal edge at y = j T_y, columns of cell column i: the transposed problem
+            err = band_errors(np.arange(j * ty - my, j * ty + my), np.arange(i * tx, (i + 1) * tx))
+            horizontal[i, j] = min_error_cut(np.swapaxes(err, -1, -2)) - my
+    return CellTables(offsets=torch.from_numpy(chosen), cells=(nx, ny), margin=(mx, my),
+                      vertical_cuts=torch.from_numpy(vertical), horizontal_cuts=torch.from_numpy(horizontal),
+                      strength=analysis.strength, peak_values=values, build_seconds=time.perf_counter() - start)
+
+
+def cell_choice(cell_x, cell_y, seed: int, count: int):
+    """Offset index ``hash(cell_x, cell_y, seed) mod K`` of int64 cells (numpy, torch or numba scalars)."""
+    return hash_vertex(cell_x, cell_y, seed) % count
+
+
+@register_synthesizer("struct")
+class CellQuilting(Synthesizer):
+    """Lattice-aligned cell quilting of an exemplar plane (see the module docstring).
+
+    Parameters
+    ----------
+    exemplar : ``(H, W, C)``
+    seed : int, default 0
+    offsets : int, default 16
+        Most lattice offsets a cell chooses from (fewer when the exemplar has fewer strong peaks).
+    cells : int, (int, int) or "auto", default "auto"
+        Cells per exemplar repeat along u and v (must divide the exemplar's sides); "auto": 2 where
+        the side is even and at least 32 texels, else 1.
+    margin : float, default 0.25
+        Half-width of the cut bands, as a fraction of the cell side.
+    fast : bool, optional
+        Use the fused numba kernel (default: when the exemplar is on the CPU).
+    prepared : CellTables, optional
+        The ``prepared`` attribute of an earlier synthesizer of the same exemplar and parameters.
+    """
+
+    def __init__(self, exemplar, seed: int = 0, *, offsets: int = DEFAULT_OFFSETS, cells="auto", margin: float = 0.25,
+                 fast: bool | None = None, prepared: CellTables | None = None) -> None:
+        super().__init__(exemplar, seed)
+        self.fast = self.device.type == "cpu" if fast is None else bool(fast)
+        if self.fast and self.device.type != "cpu":
+            raise InputError(f"fast: the fused kernel runs on the CPU; the exemplar is on {self.device}")
+        if prepared is None:
+            prepared = build_cell_tables(self.exemplar, offsets=offsets, cells=cells, margin=margin)
+        elif not isinstance(prepared, CellTables):
+            raise InputError(f"prepared: expected the CellTables of a 'struct' synthesizer, got {type(prepared).__name__}")
+        h, w, _ = self.exemplar.shape
+        nx, ny = prepared.cells
+        if w % nx or h % ny or prepared.vertical_cuts.shape[-1] != h // ny or prepared.horizontal_cuts.shape[-1] != w // nx:
+            raise InputError(f"prepared: its cut tables do not fit this {h}x{w} exemplar")
+        self.prepared = prepared
+        self._pyramid = PlanePyramid(self.exemplar)
+        self._numpy: tuple | None = None
+
+    # ------------------------------------------------------------ evaluation
+    @property
+    def density(self) -> tuple[int, int]:
+        """Texels per repeat ``(W, H)``."""
+        return int(self.exemplar.shape[1]), int(self.exemplar.shape[0])
+
+    def read_positions(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Where each query reads: ``(x, y)`` texels on the exemplar, float64 ``(N, 2)`` in ``[0, W) x [0, H)``,
+        and the chosen offset index ``(N,)`` int64 (the torch reference path, any device)."""
+        t = self.prepared
+        w, h = self.density
+        nx, ny = t.cells
+        tx, ty = w // nx, h // ny
+        mx, my = t.margin
+        k = t.count
+        whole, frac = split_uv(uv)
+        pos_x, pos_y = frac[:, 0] * w, frac[:, 1] * h
+        texel_x = torch.clamp(torch.floor(pos_x).to(torch.int64), max=w - 1)
+        texel_y = torch.clamp(torch.floor(pos_y).to(torch.int64), max=h - 1)
+        col, row = texel_x // tx, texel_y // ty
+        local_x, local_y = texel_x - col * tx, texel_y - row * ty
+        cell_x, cell_y = whole[:, 0] * nx + col, whole[:, 1] * ny + row
+        own = cell_choice(cell_x, cell_y, self.seed, k)
+        vertical = t.vertical_cuts.to(uv.device).to(torch.int64)
+        horizontal = t.horizontal_cuts.to(uv.device).to(torch.int64)
+        # vertical edges: the left one (point in the right cell) and the right one (point in the left cell)
+        left = cell_choice(cell_x - 1, cell_y, self.seed, k)
+        right = cell_choice(cell_x + 1, cell_y, self.seed, k)
+        cut_left = vertical[col, row, left, own, local_y]
+        cut_right = vertical[(col + 1) % nx, row, own, right, local_y]
+        side_x = torch.where((local_x < mx) & (local_x < cut_left), -1,
+                             torch.where((local_x >= tx - mx) & (local_x - tx >= cut_right), 1, 0))
+        lower = cell_choice(cell_x, cell_y - 1, self.seed, k)
+        upper = cell_choice(cell_x, cell_y + 1, self.seed, k)
+        cut_lower = horizontal[col, row, lower, own, local_x]
+        cut_upper = horizontal[col, (row + 1) % ny, own, upper, local_x]
+        side_y = torch.where((local_y < my) & (local_y < cut_lower), -1,
+                             torch.where((local_y >= ty - my) & (local_y - ty >= cut_upper), 1, 0))
+        chosen = cell_choice(cell_x + side_x, cell_y + side_y, self.seed, k)
+        offsets = t.offsets.to(uv.device)
+        read_x = torch.remainder(pos_x + offsets[chosen, 0].to(torch.float64), float(w))
+        read_y = torch.remainder(pos_y + offsets[chosen, 1].to(torch.float64), float(h))
+        return torch.stack([read_x, read_y], -1), chosen
+
+    def reference_latent(self, uv: torch.Tensor) -> torch.Tensor:
+        """The torch reference path of :meth:`latent` (any device)."""
+        positions, _ = self.read_positions(uv)
+        w, h = self.density
+        return fetch_wrap(self.exemplar, positions / positions.new_tensor([w, h]))
+
+    def _tables_numpy(self) -> tuple:
+        if self._numpy is None:
+            t = self.prepared
+            self._numpy = (self.exemplar.cpu().numpy(), np.ascontiguousarray(t.offsets.numpy(), dtype=np.int64),
+                           np.ascontiguousarray(t.vertical_cuts.numpy()), np.ascontiguousarray(t.horizontal_cuts.numpy()))
+        return self._numpy
+
+    def latent(self, uv: torch.Tensor) -> torch.Tensor:
+        if not self.fast:
+            return self.reference_latent(uv)
+        from .kernels import cell_quilt
+
+        plane, offsets, vertical, horizontal = self._tables_numpy()
+        return torch.from_numpy(cell_quilt(uv.detach().cpu().numpy(), plane, offsets, vertical, horizontal,
+                                           self.prepared.cells, self.prepared.margin, self.seed))
+
+    # ------------------------------------------------------------ footprint queries
+    def level_of_detail(self) -> LevelOfDetail:
+        return self._pyramid.level_of_detail
+
+    def pyramid(self) -> dict:
+        """The exemplar's pyramid: ``levels`` and ``lod``, built once."""
+        return {"levels": self._pyramid.levels, "lod": self._pyramid.level_of_detail}
+
+    def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
+        """The exemplar's pyramid read at the point query's read position (trilinear; see :mod:`.mip`)."""
+        if not bool((footprint > 1.0).any()):
+            return self.latent(uv)
+        positions, _ = self.read_positions(uv)
+        w, h = self.density
+        return self._pyramid.fetch(positions / positions.new_tensor([w, h]), footprint)
+
+    # ------------------------------------------------------------ reports
+    def parameters(self) -> dict[str, Any]:
+        t = self.prepared
+        return {"offsets": t.count, "cells": list(t.cells), "margin": list(t.margin), "fast": self.fast,
+                "structure_strength": round(t.strength, 4), "build_seconds": round(t.build_seconds, 3)}
+
+    def storage_bytes(self) -> int:
+        return self.prepared.storage_bytes()
