@@ -247,6 +247,77 @@ def test_material_is_resolution_independent(name):
     np.testing.assert_allclose(coarse.albedo, fine.albedo[1::3, 1::3], atol=1e-9)
 
 
+# ----------------------------------------------------------------------------- structured: lattice + variation
+#: Element lattice of the structured materials: two basis vectors (du, dv) in uv. Tiles: 4 x 4 per repeat;
+#: bricks: 1/4 x 1/8 repeat in running bond, odd courses shifted half a brick, so (1/8, 1/8) is a lattice
+#: vector and (0, 1/8) -- one course straight up -- is not.
+LATTICES = {
+    "ceramic_tiles": ((0.25, 0.0), (0.0, 0.25)),
+    "brick_wall": ((0.25, 0.0), (0.125, 0.125)),
+}
+
+
+def _autocorrelation(x):
+    """Circular autocorrelation of a (G, G) field, normalized to 1 at lag 0; [dy, dx] = lag (rows = v)."""
+    x = x - x.mean()
+    f = np.fft.fft2(x)
+    return np.real(np.fft.ifft2(f * np.conj(f))) / (x.var() * x.size)
+
+
+@pytest.mark.parametrize("grid", [64, 128])
+@pytest.mark.parametrize("name", list(LATTICES))
+def test_structured_material_has_its_element_lattice_with_per_element_variation(name, grid):
+    """The albedo's and height's strongest autocorrelation peaks (local maxima off the origin) lie on the
+    element lattice, and its basis vectors correlate clearly better than any off-lattice peak and than
+    half a basis vector; yet the maps are not periodic at the element period (every element differs)."""
+    maps = build_material(name, grid, seed=1)
+    basis = [(round(du * grid), round(dv * grid)) for du, dv in LATTICES[name]]   # (dx, dy) texels
+    assert all(abs(du * grid - dx) < 1e-9 and abs(dv * grid - dy) < 1e-9
+               for (du, dv), (dx, dy) in zip(LATTICES[name], basis))             # whole texels at this grid
+    lattice = {((i * basis[0][0] + j * basis[1][0]) % grid, (i * basis[0][1] + j * basis[1][1]) % grid)
+               for i in range(grid) for j in range(grid)}
+    assert len(lattice) == (16 if name == "ceramic_tiles" else 32)                # elements per repeat
+    luminance = maps.albedo.mean(-1)
+    for field in (luminance, maps.height):
+        c = _autocorrelation(field)
+        neighbours = [np.roll(c, (a, b), (0, 1)) for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b]
+        peak = np.all([c > n for n in neighbours], axis=0)
+        peak[0, 0] = False
+        iy, ix = np.nonzero(peak)
+        on = np.array([(x, y) in lattice for x, y in zip(ix, iy)])
+        strongest = int(np.argmax(c[iy, ix]))
+        assert on[strongest], (ix[strongest], iy[strongest])
+        at_basis = min(c[dy % grid, dx % grid] for dx, dy in basis)
+        assert all(peak[dy % grid, dx % grid] for dx, dy in basis)                # peaks at the basis vectors
+        off = c[iy[~on], ix[~on]].max() if (~on).any() else -1.0
+        assert at_basis > off + 0.05
+        half = max(c[(dy // 2) % grid, (dx // 2) % grid] for dx, dy in basis)
+        assert at_basis > half + 0.15
+        # per-element variation: shifting by one element changes the maps (only the full repeat is a period)
+        assert at_basis < 0.995
+        for dx, dy in basis:
+            moved = np.roll(field, (-dy, -dx), (0, 1))
+            assert np.abs(field - moved).mean() > 0.1 * np.abs(field - field.mean()).mean()
+    # element by element: the colour around each element's centre varies (moderately: one material)
+    box = sum(np.roll(luminance, (a, b), (0, 1)) for a in range(-2, 3) for b in range(-2, 3)) / 25.0
+    x0, y0 = grid // 8, (grid // 8 if name == "ceramic_tiles" else grid // 16)    # centre of element (0, 0)
+    centres = np.array([box[(y0 + y) % grid, (x0 + x) % grid] for x, y in lattice])
+    spread = centres.std() / centres.mean()
+    assert 0.04 < spread < 0.25, spread
+
+
+@pytest.mark.parametrize("name", list(LATTICES))
+def test_structured_material_is_deterministic_per_seed(name):
+    a, b, c = build_material(name, 64, seed=3), build_material(name, 64, seed=3), build_material(name, 64, seed=4)
+    for field in ("height", "albedo", "alpha", "f0", "coat"):
+        assert np.array_equal(getattr(a, field), getattr(b, field))
+    assert (a.coat_alpha, a.coat_f0) == (b.coat_alpha, b.coat_f0)
+    assert not np.array_equal(a.albedo, c.albedo) and not np.array_equal(a.height, c.height)
+    # another seed varies the elements, not the lattice: the joints stay where they are
+    joints = lambda m: m.height < m.height.min() + 0.5 * np.ptp(m.height)      # noqa: E731
+    assert (joints(a) == joints(c)).mean() > 0.97
+
+
 def test_noise_is_periodic_and_normalized():
     n = fourier_noise(64, derive_rng(0, "t"), k_max=8)
     assert abs(n.mean()) < 1e-9 and abs(n.std() - 1.0) < 1e-9
@@ -282,7 +353,8 @@ def test_images_show_view_dependent_structure():
 
 
 @pytest.mark.parametrize("kwargs, words", [
-    (dict(material="velvet"), ["velvet", "stone", "leather", "lacquered_wood", "woven_fabric"]),
+    (dict(material="velvet"), ["velvet", "stone", "leather", "lacquered_wood", "woven_fabric", "ceramic_tiles",
+                               "brick_wall"]),
     (dict(material="stone", grid="ubo1999"), ["ubo1999", "ubo2003", "ubo2014"]),
     (dict(material="stone", size=0), ["size", "0"]),
     (dict(material="stone", size=2.5), ["size"]),

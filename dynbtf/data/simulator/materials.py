@@ -16,6 +16,10 @@ name                kind        what it looks like
                                 V-grooves, a glossy clear coat with sharp highlights
 ``woven_fabric``    structured  plain weave of twisted yarns (navy warp, cream
                                 weft) that pass over and under each other
+``ceramic_tiles``   structured  4 x 4 square glazed tiles (each with its own tint and
+                                tilt) between recessed grey grout joints; glossy glaze
+``brick_wall``      structured  running-bond bricks, 4 per course x 8 courses (each
+                                its own red-brown colour) in recessed mortar; rough
 ==================  ==========  ===================================================
 """
 
@@ -208,11 +212,98 @@ def woven_fabric(grid: int, seed: int) -> MaterialMaps:
     return _finish(height, albedo, alpha, 0.04)
 
 
+# --------------------------------------------------------------------------- ceramic tiles
+def ceramic_tiles(grid: int, seed: int) -> MaterialMaps:
+    """Square glazed ceramic tiles, 4 x 4 per repeat, in recessed grout joints (structured).
+
+    The lattice is exact (tile period 1/4 repeat in u and v); every tile has its own tint,
+    mottling, lippage and tilt, so the exemplar repeats only at the full repeat.
+    """
+    u, v = grid_uv(grid)
+    n, period = 4, 0.25                                          # tiles per repeat, tile period (uv)
+    a, b = u * n, v * n                                          # tile coordinates
+    k, m = np.floor(a).astype(int) % n, np.floor(b).astype(int) % n   # tile column (along u), row (along v)
+    fa, fb = a - np.floor(a), b - np.floor(b)                    # 0..1 across the tile
+    d = period * np.minimum(np.minimum(fa, 1.0 - fa), np.minimum(fb, 1.0 - fb))  # uv distance to the tile's border
+    joint_half, bevel, depth = 0.5 * 0.07 * period, 0.007, 0.012  # 7 % joints, rounded edge width, joint depth
+    e = d - joint_half                                           # < 0 in the joint, > 0 on the tile
+    top = smoothstep(-0.25 * bevel, bevel, e)                    # 0: grout floor, 1: flat glaze (rounded edge between)
+    prm = derive_rng(seed, "tiles/tiles").random((n, n, 7))[m, k]  # per-tile randoms
+    # per tile: lippage (height offset) and a slight tilt, so highlights differ from tile to tile
+    lippage = 0.0008 * (prm[..., 0] - 0.5) + 0.004 * period * ((prm[..., 1] - 0.5) * (fa - 0.5)
+                                                                + (prm[..., 2] - 0.5) * (fb - 0.5))
+    peel = fourier_noise(grid, derive_rng(seed, "tiles/orange-peel"), k_min=6, k_max=24, slope=1.0)
+    sand = fourier_noise(grid, derive_rng(seed, "tiles/grout-sand"), k_min=16, k_max=64, slope=0.5)
+    height = -depth * (1.0 - top) + top * (lippage + 0.00025 * peel) + 0.0008 * sand * (1.0 - top)
+    # glaze: one colour, each tile tinted (+-12 % brightness, a small warm/cool shift), mottled
+    glaze = np.array([0.34, 0.47, 0.46])                         # celadon-like blue-green
+    bright = 1.0 + 0.24 * (prm[..., 3] - 0.5)
+    shift = 0.10 * (prm[..., 4] - 0.5)                           # + warmer, - cooler
+    tint = np.stack([1.0 + shift, np.ones_like(shift), 1.0 - shift], axis=-1) * bright[..., None]
+    mottle = fourier_noise(grid, derive_rng(seed, "tiles/mottle"), k_min=8, k_max=40, slope=0.8)
+    speck = fourier_noise(grid, derive_rng(seed, "tiles/speck"), k_min=40, k_max=64, slope=0.0)
+    tile_c = glaze * tint * (1.0 + 0.05 * np.tanh(mottle) + 0.03 * (prm[..., 5] - 0.5))[..., None]
+    tile_c = _lerp(tile_c, tile_c * 0.6, 0.6 * smoothstep(1.8, 2.6, speck))   # a few dark iron specks
+    rim = smoothstep(0.0, 0.6 * bevel, e) * (1.0 - smoothstep(0.6 * bevel, 1.6 * bevel, e))
+    tile_c = _lerp(tile_c, np.minimum(tile_c * 1.35 + 0.04, 0.9), 0.5 * rim)  # glaze thins (lighter) over the edge
+    grout_c = np.array([0.27, 0.265, 0.25]) * (1.0 + 0.25 * np.tanh(sand))[..., None]
+    albedo = _lerp(grout_c, tile_c, top)
+    alpha = 0.9 - top * (0.55 + 0.1 * prm[..., 6])               # grout rough, glazed body smoother
+    coat = top                                                   # the glaze: a glossy clear coat
+    return _finish(height, albedo, alpha, 0.04, coat, coat_alpha=0.05, coat_f0=0.04)
+
+
+# --------------------------------------------------------------------------- brick wall
+def brick_wall(grid: int, seed: int) -> MaterialMaps:
+    """Running-bond brick wall: 4 bricks per course, 8 courses per repeat, recessed mortar (structured).
+
+    Bricks are 1/4 x 1/8 repeat; odd courses are offset by half a brick, so the lattice is
+    spanned by (1/4, 0) and (1/8, 1/8) in uv. Every brick has its own colour, grain and
+    wear, so the exemplar repeats only at the full repeat.
+    """
+    u, v = grid_uv(grid)
+    n_u, n_v = 4, 8                                              # bricks per course, courses per repeat
+    w_b, h_b = 1.0 / n_u, 1.0 / n_v                              # brick period (uv)
+    b = v * n_v
+    row = np.floor(b).astype(int) % n_v                          # course (along v)
+    a = u * n_u + 0.5 * (row % 2)                                # running bond: odd courses shifted half a brick
+    col = np.floor(a).astype(int) % n_u                          # brick within the course (along u)
+    fa, fb = a - np.floor(a), b - np.floor(b)
+    chip = fourier_noise(grid, derive_rng(seed, "bricks/chipped-edges"), k_min=12, k_max=48, slope=0.5)
+    d = np.minimum(w_b * np.minimum(fa, 1.0 - fa), h_b * np.minimum(fb, 1.0 - fb))  # uv distance to the border
+    joint_half, arris, depth = 0.5 * 0.018, 0.006, 0.014         # mortar joint 0.018 uv, worn edge width, depth
+    e = d - joint_half + 0.0012 * chip                           # slightly irregular (chipped) brick edges
+    face = smoothstep(-0.2 * arris, arris, e)                    # 0: mortar, 1: brick face
+    prm = derive_rng(seed, "bricks/bricks").random((n_v, n_u, 6))[row, col]   # per-brick randoms
+    grain = fourier_noise(grid, derive_rng(seed, "bricks/grain"), k_min=20, k_max=64, slope=0.3)
+    bumps = fourier_noise(grid, derive_rng(seed, "bricks/bumps"), k_min=6, k_max=20, slope=1.0)
+    sand = fourier_noise(grid, derive_rng(seed, "bricks/mortar-sand"), k_min=28, k_max=64, slope=0.0)
+    pits = fourier_noise(grid, derive_rng(seed, "bricks/pits"), k_min=30, k_max=64, slope=0.0)
+    pit = smoothstep(1.9, 2.6, pits)
+    height = (-depth * (1.0 - face)
+              + face * (0.0015 * (prm[..., 0] - 0.5) + 0.0007 * bumps + 0.0004 * grain - 0.0012 * pit)
+              + (1.0 - face) * 0.0009 * sand)
+    # colour: each brick between an orange-red and a darker brown, +-12 % brightness
+    red, brown = np.array([0.42, 0.15, 0.085]), np.array([0.30, 0.12, 0.08])
+    brick_c = _lerp(red, brown, prm[..., 1]) * (0.88 + 0.24 * prm[..., 2])[..., None]
+    burnt = prm[..., 3] > 0.9                                    # an occasional darker, over-fired brick
+    brick_c = np.where(burnt[..., None], brick_c * 0.75, brick_c)
+    cloud = fourier_noise(grid, derive_rng(seed, "bricks/cloud"), k_min=3, k_max=14, slope=1.0)
+    brick_c = brick_c * (1.0 + 0.1 * np.tanh(cloud) + 0.1 * np.tanh(grain))[..., None]
+    brick_c = _lerp(brick_c, brick_c * 0.55, pit)                # dark pores
+    mortar_c = np.array([0.48, 0.45, 0.40]) * (1.0 + 0.2 * np.tanh(sand))[..., None]
+    albedo = _lerp(mortar_c, brick_c, face)
+    alpha = 0.95 - 0.15 * face * (0.5 + 0.5 * prm[..., 4])      # rough, diffuse
+    return _finish(height, albedo, alpha, 0.04)
+
+
 MATERIAL_BUILDERS: dict[str, Callable[[int, int], MaterialMaps]] = {
     "stone": stone,
     "leather": leather,
     "lacquered_wood": lacquered_wood,
     "woven_fabric": woven_fabric,
+    "ceramic_tiles": ceramic_tiles,
+    "brick_wall": brick_wall,
 }
 
 #: Material name -> one-line description (``dynbtf simulate --list``).
@@ -221,6 +312,8 @@ MATERIALS: dict[str, str] = {
     "leather": "stochastic: brown grained leather with polygonal grain, dark creases, pores and a soft sheen",
     "lacquered_wood": "glossy: parquet planks with wood grain and V-grooves under a clear coat (sharp highlights)",
     "woven_fabric": "structured: plain weave of twisted yarns, navy warp over/under cream weft",
+    "ceramic_tiles": "structured: 4 x 4 glazed ceramic tiles per repeat, each tinted, in recessed grey grout; glossy",
+    "brick_wall": "structured: running-bond brick wall, 4 x 8 bricks per repeat, each coloured, recessed mortar; rough",
 }
 
 
