@@ -58,7 +58,8 @@ def synth(
     model: Path = typer.Argument(..., help="dynbtf model file (a fitted representation with a positional plane)."),
     output: Optional[Path] = typer.Option(None, "-o", "--output",
                                           help="Output image: .png (sRGB) or .exr (linear HDR)."),
-    method: str = typer.Option("hist", help="Synthesis method: tile, linear, hist, hex or quilt."),
+    method: str = typer.Option("auto", help="Synthesis method: tile, linear, hist, hex, quilt, struct, or auto (struct "
+                                            "for structured exemplars, hist otherwise; the choice is printed)."),
     scale: float = typer.Option(8.0, help="Exemplar repeats across the image (the paper's 8x, 25x, 45x)."),
     view: str = typer.Option("0,0", help="View direction THETA,PHI in degrees (theta 0..90)."),
     light: str = typer.Option("30,0", help="Light direction THETA,PHI in degrees (theta 0..90)."),
@@ -89,8 +90,9 @@ def synth(
                                                                  "colours are over-contrasted on fitted models; see "
                                                                  "docs/synthesis.md). Applies to hist only."),
     report: bool = typer.Option(False, "--report", help="Also measure synthesis quality (W1/std of features and "
-                                                        "RGB, repetition, verbatim copies) and print a table."),
-    report_methods: str = typer.Option("tile,linear,hist,hex", help="Methods compared by --report."),
+                                                        "RGB, repetition, verbatim copies, patch coherence and "
+                                                        "identity with tiling) and print a table."),
+    report_methods: str = typer.Option("tile,hist,hex,struct", help="Methods compared by --report."),
     report_json: Optional[Path] = typer.Option(None, help="Where --report saves its JSON "
                                                           "(default: next to -o, or synthesis-quality.json)."),
     repeats: int = typer.Option(8, help="Side of the area measured by --report, in exemplar repeats; reduced to "
@@ -107,6 +109,7 @@ def synth(
     from ..device import resolve_device
     from ..io import save_image
     from ..representations.model_file import load_model
+    from ..synthesis.auto import choose_method
     from ..synthesis.base import check_uv
     from ..synthesized import SynthesizedBTF
     from .arguments import check_exposure, parse_theta_phi
@@ -129,6 +132,10 @@ def synth(
         if (output is not None and method == "quilt") or "quilt" in methods else None
 
     def build(name: str) -> SynthesizedBTF:
+        if name == "auto":
+            choice = choose_method(rep.positional_plane().detach())
+            typer.echo(choice.line)
+            name = choice.method
         params = {"repeats": float(quilt_size), "progress": True} if name == "quilt" else {}
         if name == "hist" and gamma is not None:
             params["gamma"] = gamma
@@ -147,7 +154,7 @@ def synth(
         if cosine:
             img = img * max(float(spherical_to_direction(light_dir[0], light_dir[1])[2]), 0.0)
         save_image(output, img, exposure=exposure)
-        typer.echo(f"wrote {output} ({resolution}x{resolution}, {method}, {scale:g}x, centre {cu:g},{cv:g})")
+        typer.echo(f"wrote {output} ({resolution}x{resolution}, {btf.synthesizer.name}, {scale:g}x, centre {cu:g},{cv:g})")
     if report:
         from ..synthesis.quality import format_report, quality_report, save_report
 

@@ -1,0 +1,196 @@
+"""Lattice-aligned cell quilting (``struct``), the structure analysis and ``auto``: against independent references."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+
+from dynbtf.errors import InputError
+from dynbtf.synthesis import make_synthesizer
+from dynbtf.synthesis.auto import choose_method
+from dynbtf.synthesis.cell_quilting import CellQuilting, build_cell_tables
+from dynbtf.synthesis.hash import hash_vertex
+from dynbtf.synthesis.structure import STRUCTURE_THRESHOLD, analyze_structure, autocorrelation
+
+
+def _lattice_exemplar(period=8, repeats=4, channels=4, variation=0.1, seed=0):
+    """A structured plane: one element repeated on a square lattice, plus per-element random tints."""
+    rng = np.random.default_rng(seed)
+    element = rng.random((period, period, channels))
+    plane = np.tile(element, (repeats, repeats, 1))
+    tints = rng.normal(size=(repeats, repeats, channels)) * variation
+    plane += np.repeat(np.repeat(tints, period, 0), period, 1)
+    return torch.from_numpy(plane.astype(np.float32))
+
+
+def _brute_force_read(synth: CellQuilting, u: float, v: float) -> tuple[int, tuple[float, float]]:
+    """The offset index and read texel position of one query, in Python integers and floats (no numpy/torch)."""
+    t = synth.prepared
+    h, w = synth.exemplar.shape[:2]
+    nx, ny = t.cells
+    tx, ty = w // nx, h // ny
+    mx, my = t.margin
+    k = t.count
+    iu, iv = int(np.floor(u)), int(np.floor(v))
+    fu, fv = u - iu, v - iv
+    px, py = fu * w, fv * h
+    xi, yi = min(int(px // 1), w - 1), min(int(py // 1), h - 1)
+    col, row = xi // tx, yi // ty
+    lx, ly = xi - col * tx, yi - row * ty
+    cx, cy = iu * nx + col, iv * ny + row
+
+    def choice(a, b):
+        return int(hash_vertex(np.int64(a), np.int64(b), synth.seed)) % k
+
+    own = choice(cx, cy)
+    vc, hc = t.vertical_cuts.numpy(), t.horizontal_cuts.numpy()
+    sx = sy = 0
+    if lx < mx and lx < vc[col, row, choice(cx - 1, cy), own, ly]:
+        sx = -1
+    elif lx >= tx - mx and lx - tx >= vc[(col + 1) % nx, row, own, choice(cx + 1, cy), ly]:
+        sx = 1
+    if ly < my and ly < hc[col, row, choice(cx, cy - 1), own, lx]:
+        sy = -1
+    elif ly >= ty - my and ly - ty >= hc[col, (row + 1) % ny, own, choice(cx, cy + 1), lx]:
+        sy = 1
+    chosen = choice(cx + sx, cy + sy)
+    ox, oy = (int(x) for x in t.offsets[chosen])
+    return chosen, ((px + ox) % w, (py + oy) % h)
+
+
+# ---------------------------------------------------------------- structure analysis
+def test_autocorrelation_matches_brute_force_sum():
+    rng = np.random.default_rng(1)
+    plane = rng.normal(size=(6, 5, 2))
+    z = (plane - plane.mean((0, 1))) / plane.std((0, 1))
+    ref = np.zeros((6, 5))
+    for dy, dx in itertools.product(range(6), range(5)):
+        ref[dy, dx] = (z * np.roll(z, (-dy, -dx), axis=(0, 1))).sum()
+    np.testing.assert_allclose(autocorrelation(plane), ref / ref[0, 0], atol=1e-12)
+
+
+def test_structure_strength_separates_lattices_from_noise():
+    structured = analyze_structure(_lattice_exemplar())
+    assert structured.strength > 0.8 and structured.structured
+    lags = {(dx, dy) for dx, dy, value in structured.peaks if value > 0.8}
+    assert {(8, 0), (0, 8)} <= lags  # the element lattice
+    noise = analyze_structure(torch.randn(64, 64, 4, generator=torch.Generator().manual_seed(0)))
+    assert noise.strength < 0.2 and not noise.structured
+    assert STRUCTURE_THRESHOLD == pytest.approx(0.5)
+
+
+def test_auto_chooses_struct_for_lattices_and_hist_for_noise():
+    choice = choose_method(_lattice_exemplar())
+    assert choice.method == "struct" and "struct" in choice.line and "structure strength" in choice.line
+    assert choose_method(torch.rand(32, 32, 3, generator=torch.Generator().manual_seed(2))).method == "hist"
+    synth = make_synthesizer("auto", _lattice_exemplar(), seed=3)
+    assert isinstance(synth, CellQuilting) and synth.choice.method == "struct" and synth.seed == 3
+    assert make_synthesizer("hist", _lattice_exemplar()).choice is None
+    with pytest.raises(InputError, match="chosen by 'auto'.*gamma"):
+        make_synthesizer("auto", _lattice_exemplar(), gamma=3.0)
+
+
+# ---------------------------------------------------------------- the method
+def test_offsets_are_lattice_vectors_and_cuts_are_minimal_paths():
+    exemplar = _lattice_exemplar(period=8, repeats=4)
+    tables = build_cell_tables(exemplar, offsets=6, cells=2)
+    offsets = tables.offsets.numpy()
+    assert tuple(offsets[0]) == (0, 0) and tables.count == 6
+    assert ((offsets % 8) == 0).all()  # every copy is shifted by whole elements
+    # one vertical edge's cut against an exhaustive search over all 8-connected paths
+    x = exemplar.numpy().astype(np.float64)
+    z = (x - x.mean((0, 1))) / x.std((0, 1))
+    mx = tables.margin[0]
+    a, b = 1, 2
+    rows, cols = np.arange(0, 16), np.arange(16 - mx, 16 + mx)  # the edge at x = 16 (cell column 1), cell row 0
+    ea = z[(rows[:, None] + offsets[a, 1]) % 32, (cols[None] + offsets[a, 0]) % 32]
+    eb = z[(rows[:, None] + offsets[b, 1]) % 32, (cols[None] + offsets[b, 0]) % 32]
+    err = ((ea - eb) ** 2).sum(-1)
+    cut = tables.vertical_cuts[1, 0, a, b].numpy().astype(int) + mx
+    assert np.abs(np.diff(cut)).max() <= 1
+    # the cheapest 8-connected path's cost, relaxed row by row in plain Python (16 rows x 8 columns: 8 * 3**15
+    # paths are too many to enumerate)
+    costs = {c: err[0, c] for c in range(2 * mx)}
+    for r in range(1, err.shape[0]):
+        costs = {c: err[r, c] + min(costs[p] for p in (c - 1, c, c + 1) if p in costs) for c in range(2 * mx)}
+    best = min(costs.values())
+    assert err[np.arange(err.shape[0]), cut].sum() == pytest.approx(best, rel=1e-9)
+
+
+def test_a_strictly_periodic_exemplar_is_reproduced_exactly():
+    """Every offset is a lattice vector: without per-element variation the copies are the exemplar itself."""
+    exemplar = _lattice_exemplar(variation=0.0)
+    exemplar = exemplar + 0.0  # strictly periodic with period 8
+    synth = CellQuilting(exemplar, seed=5, cells=2)
+    uv = torch.rand(4096, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 40 - 20
+    tile = make_synthesizer("tile", exemplar)
+    torch.testing.assert_close(synth(uv), tile(uv), atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("base", [0.0, 1e3, 2.0**33, 2.0**45])
+def test_read_positions_match_a_scalar_reference_far_from_the_origin(base):
+    synth = CellQuilting(_lattice_exemplar(), seed=11, cells=2)
+    rng = np.random.default_rng(int(base) % 1000 + 3)
+    points = base + rng.random((300, 2)) * 3.0
+    positions, chosen = synth.read_positions(torch.from_numpy(points))
+    for (u, v), pos, k in zip(points, positions.numpy(), chosen.numpy()):
+        ref_k, ref_pos = _brute_force_read(synth, float(u), float(v))
+        assert k == ref_k
+        assert tuple(pos) == pytest.approx(ref_pos, abs=1e-9)
+
+
+def test_fused_kernel_matches_the_torch_reference():
+    exemplar = _lattice_exemplar(channels=5)
+    fast = CellQuilting(exemplar, seed=2)
+    slow = CellQuilting(exemplar, seed=2, fast=False, prepared=fast.prepared)
+    uv = torch.from_numpy(np.random.default_rng(4).random((20000, 2)) * 64 - 32 + np.array([2.0**40, -3.0]))
+    torch.testing.assert_close(fast(uv), slow(uv), atol=2e-5, rtol=0)
+
+
+def test_cells_change_their_offsets_and_neighbours_continue_the_lattice():
+    exemplar = _lattice_exemplar(period=8, repeats=8, variation=0.2)
+    synth = CellQuilting(exemplar, seed=7, cells=2)
+    # texel centres of 16 x 16 cells far away
+    n = 64
+    base = 2.0**20
+    u = base + (np.arange(16 * n) + 0.5) / n
+    uv = torch.from_numpy(np.stack(np.meshgrid(u, base + (np.arange(16 * n) + 0.5) / n), -1).reshape(-1, 2))
+    positions, chosen = synth.read_positions(uv)
+    assert len(torch.unique(chosen)) == synth.prepared.count  # every copy is used
+    # structure continues everywhere: the read position's phase in the element lattice equals the query's
+    pos = positions.reshape(16 * n, 16 * n, 2).numpy()
+    grid = np.stack(np.meshgrid((np.arange(16 * n) + 0.5), (np.arange(16 * n) + 0.5)), -1) % n
+    np.testing.assert_allclose((pos - grid) % 8, 0.0, atol=1e-6)
+    # and it is not tiling: most cells read another copy
+    assert (chosen != 0).float().mean() > 0.8
+
+
+def test_footprints_read_the_pyramid_at_the_point_reads():
+    exemplar = _lattice_exemplar()
+    synth = CellQuilting(exemplar, seed=1)
+    uv = torch.from_numpy(np.random.default_rng(0).random((500, 2)) * 10)
+    torch.testing.assert_close(synth(uv, footprint=torch.full((500,), 0.5)), synth(uv), atol=2e-5, rtol=0)
+    mean = exemplar.mean((0, 1))
+    torch.testing.assert_close(synth(uv, footprint=1e4), mean.expand(500, -1), atol=1e-5, rtol=0)
+
+
+def test_bad_parameters_name_the_argument_and_the_limit():
+    exemplar = _lattice_exemplar(period=8, repeats=4)  # 32 x 32
+    with pytest.raises(InputError, match="cells: 3 cells per repeat do not divide the exemplar's 32 texels"):
+        CellQuilting(exemplar, cells=3)
+    with pytest.raises(InputError, match="cells need at least 8 texels"):
+        CellQuilting(exemplar, cells=8)
+    with pytest.raises(InputError, match="offsets: expected an integer number of lattice offsets in \\[1, 64\\]"):
+        CellQuilting(exemplar, offsets=0)
+    with pytest.raises(InputError, match="margin"):
+        CellQuilting(exemplar, margin=0.9)
+    with pytest.raises(InputError, match="at least 8x8 texels"):
+        CellQuilting(torch.rand(6, 6, 3))
+    other = CellQuilting(_lattice_exemplar(period=8, repeats=8))
+    with pytest.raises(InputError, match="prepared: its cut tables do not fit this 32x32 exemplar"):
+        CellQuilting(exemplar, prepared=other.prepared)
+    with pytest.raises(InputError, match="unknown; expected one of .*'auto'"):
+        make_synthesizer("wang", exemplar)
