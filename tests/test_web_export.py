@@ -375,3 +375,263 @@ def test_relief_model_marches_the_synthesized_height_like_the_library(relief_mod
     flat.set_height(torch.full((24, 20), float(relief_model.height_field().detach().mean())))
     flat_values = SynthesizedBTF(flat, method, seed=0).eval(points, wv.astype(np.float64), wl.astype(np.float64))
     assert _psnr(got["fp32"].rgb, flat_values) < 40.0
+
+
+# ---------------------------------------------------------------- struct (lattice-aligned cell quilting) and auto
+@pytest.fixture(scope="module")
+def structured_model():
+    """A random Triple Plane whose positional plane repeats an 8 x 8 element (plus noise): ``auto`` picks struct.
+
+    24 x 48 texels: 2 x 1 cells of 24 x 24 texels, cut bands of 6 texels, 16 lattice offsets.
+    """
+    from dynbtf.representations.triple_plane import TriplePlane
+
+    m = TriplePlane(24, 48, positional_channels=6, angular_channels=3, hidden=12, seed=5)
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        m.f_u.copy_(torch.randn(8, 8, 6, generator=g).repeat(3, 6, 1) + 0.3 * torch.randn(24, 48, 6, generator=g))
+        m.decoder.rest[-1].bias.add_(0.6)
+    return m
+
+
+@pytest.fixture(scope="module")
+def struct_exports(structured_model, tmp_path_factory):
+    """The default methods (auto, hist, tile) of the structured model, at every precision."""
+    root = tmp_path_factory.mktemp("web-struct")
+    return {p: export_web(structured_model, root / p, precision=p) for p in ("fp32", "fp16", "u8")}
+
+
+def test_export_of_auto_is_the_models_choice_exported_once(struct_exports, structured_model, model, tmp_path):
+    """auto exports the method SynthesizedBTF(model, "auto") chooses, under its name, first; never twice."""
+    manifest = struct_exports["u8"].manifest
+    choice = SynthesizedBTF(structured_model, "auto").synthesizer.choice
+    assert choice.method == "struct"
+    assert manifest["auto"]["method"] == "struct" and manifest["auto"]["line"] == choice.line
+    assert list(manifest["methods"]) == ["struct", "hist", "tile"] and manifest["default_method"] == "struct"
+    entry = manifest["methods"]["struct"]
+    tables = SynthesizedBTF(structured_model, "struct").synthesizer.prepared
+    assert entry["mode"] == 4 and entry["cells"] == [2, 1] and entry["margin"] == [6, 6] and entry["count"] == 16
+    assert entry["tables"]["format"] == "R16I"  # integer texture: the int16 tables exactly, at every precision
+    stored = np.fromfile(struct_exports["u8"].directory / entry["tables"]["file"], dtype="<i2")
+    for name in ("offsets", "vertical_cuts", "horizontal_cuts"):
+        part = entry["tables"][name]
+        values = getattr(tables, name).numpy()
+        assert part["shape"] == list(values.shape)
+        np.testing.assert_array_equal(stored[part["start"]:part["start"] + values.size], values.reshape(-1))
+    assert entry["tables"]["file"] in entry["files"] and struct_exports["u8"].method_bytes("struct") > 0
+    # a stochastic model: auto is hist, exported once (auto first, then the listed hist is the same)
+    plain = export_web(model, tmp_path / "plain", precision="u8", methods=("auto", "hist", "tile"), viewer=False)
+    assert plain.manifest["auto"]["method"] == "hist" and "-> hist" in plain.manifest["auto"]["line"]
+    assert list(plain.manifest["methods"]) == ["hist", "tile"] and plain.manifest["default_method"] == "hist"
+    assert not any("auto" in name for name in plain.manifest["files"])
+    # without auto there is no choice to report
+    assert export_web(model, tmp_path / "tile", methods=("tile",), viewer=False).manifest["auto"] is None
+
+
+def test_cli_export_defaults_to_auto_and_prints_the_choice(structured_model, tmp_path):
+    from dynbtf.representations.model_file import save_model
+
+    path = save_model(tmp_path / "weave.dbtfm", structured_model)
+    result = _cli("export", path, "-o", tmp_path / "out", "--precision", "u8", "--no-viewer")
+    assert result.exit_code == 0, result.text
+    assert "method auto -> struct: structured exemplar" in result.output
+    assert "the struct method alone needs" in result.output
+    manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    assert list(manifest["methods"]) == ["struct", "hist", "tile"]
+    result = _cli("export", path, "-o", tmp_path / "two", "--method", "tile", "--method", "struct", "--no-viewer")
+    assert result.exit_code == 0, result.text
+    assert "method auto" not in result.output
+    assert list(json.loads((tmp_path / "two" / "manifest.json").read_text())["methods"]) == ["tile", "struct"]
+
+
+def test_repeat_origin_gives_structs_int64_cell_words():
+    """The struct origin words are the repeat's first cell, I x cells, as (low, high) two's complement words."""
+    points = np.array([[0.25, 0.5], [-3.5, 7.75], [2.0 ** 45 + 0.5, -(2.0 ** 44) - 0.25], [-(2.0 ** 51), 2.0 ** 51 - 1]])
+    o = repeat_origin(points, (48, 24), (48, 24), cells=(2, 3))
+    whole = np.floor(points).astype(np.int64)
+    np.testing.assert_array_equal(o.cell_x, whole[:, 0] * 2)
+    np.testing.assert_array_equal(o.cell_y, whole[:, 1] * 3)
+    words = o.shader_words("struct").astype(np.uint64)
+    np.testing.assert_array_equal((words[:, 0] | (words[:, 1] << np.uint64(32))).view(np.int64), whole[:, 0] * 2)
+    np.testing.assert_array_equal((words[:, 2] | (words[:, 3] << np.uint64(32))).view(np.int64), whole[:, 1] * 3)
+    np.testing.assert_array_equal(o.shader_words("hist"), o.words())
+
+
+def _texel_edge_distance(points, density):
+    """Distance (texels) of each query's position to the nearest texel boundary (either axis), in float64."""
+    pos = (points - np.floor(points)) * np.asarray(density, np.float64)
+    return np.abs(pos - np.rint(pos)).min(-1)
+
+
+@browser
+@pytest.mark.browser
+def test_struct_shader_matches_synthesized_btf(struct_exports, structured_model):
+    """struct: fp32 equal to float32 rounding, fp16 >= 40 dB, u8 >= 30 dB; "auto" names it in the page too."""
+    points, shift, wv, wl = _queries(1024, seed=4)
+    btf = SynthesizedBTF(structured_model, "struct", seed=0)
+    ref = btf.eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    assert np.abs(ref).max() > 0.5 and ref.std() > 0.05
+    # a query within float32 rounding of a texel boundary may fall into the neighbouring texel, and with it
+    # into another cell (a different copy): set those aside (the local-uv ones resolve ~1e-3 texels)
+    keep = _texel_edge_distance(points, btf.synthesizer.density) > np.where(shift == 0, 1e-5, 2e-3)
+    assert keep.mean() > 0.95
+    got = {p: eval_in_browser(struct_exports[p].directory, "auto" if p == "fp32" else "struct", points, wv, wl,
+                              local_shift=shift).rgb for p in struct_exports}
+    peak = np.abs(ref).max()
+    exact = keep & (shift == 0)
+    np.testing.assert_allclose(got["fp32"][exact], ref[exact], rtol=0, atol=2e-4 * peak)
+    np.testing.assert_allclose(got["fp32"][keep & ~exact], ref[keep & ~exact], rtol=0, atol=5e-3 * peak)
+    assert _psnr(got["fp16"][keep], ref[keep]) >= 40.0
+    assert _psnr(got["u8"][keep], ref[keep]) >= 30.0
+    # not a trivial export: another seed chooses other copies, and tiling differs
+    other = SynthesizedBTF(structured_model, "struct", seed=1).eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    assert _psnr(got["fp32"][keep], other[keep]) < 30.0
+    tiled = SynthesizedBTF(structured_model, "tile").eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    assert _psnr(got["fp32"][keep], tiled[keep]) < 30.0
+
+
+_CELL_PAGE = """<!DOCTYPE html>
+<html><head><meta charset="utf-8"><title>dynbtf struct cells</title></head><body>
+<pre id="dynbtf-result"></pre><pre id="dynbtf-error" hidden></pre>
+<script src="viewer.js"></script>
+<script>
+(function () {
+  var job = __JOB__;
+  function fail(e) { var p = document.getElementById('dynbtf-error'); p.textContent = String(e && e.message || e); p.hidden = false; }
+  DynBTF.load('').then(function (data) {
+    var n = job.points.length, w = 256, h = Math.ceil(n / w);
+    var gl = document.createElement('canvas').getContext('webgl2');
+    var r = new DynBTF.Renderer(gl, data), m = data.manifest;
+    var words = new Uint32Array(4 * w * h), local = new Float32Array(4 * w * h), origins = [];
+    for (var i = 0; i < n; ++i) {
+      var k = job.shift[i], o = DynBTF.origin(m, 'auto', job.points[i][0] - k, job.points[i][1] - k);
+      words.set(o.lattice, 4 * i);
+      origins.push(o.lattice);
+      local[4 * i] = o.fraction[0] + k; local[4 * i + 1] = o.fraction[1] + k;
+    }
+    var program = r.program('uniform highp usampler2D q_words; uniform highp sampler2D q_local; uniform int q_what;\\n' +
+      'layout(location = 0) out uvec4 result;\\nvoid main() { ivec2 p = ivec2(gl_FragCoord.xy);\\n' +
+      '  DynbtfOrigin o; o.lattice = texelFetch(q_words, p, 0); o.phase = 0.0; o.texel = ivec2(0);\\n' +
+      '  DynbtfCell c = dynbtf_cell(o, texelFetch(q_local, p, 0).xy);\\n' +
+      '  if (q_what == 0) result = uvec4(c.cx, c.cy);\\n' +
+      '  else if (q_what == 1) result = uvec4(uint(c.chosen), uint(c.side.x + 1), uint(c.side.y + 1), 0u);\\n' +
+      '  else result = uvec4(uvec2(c.texel), uvec2(c.offset)); }\\n');
+    r.use(program, 'auto');
+    [[5, gl.RGBA32UI, gl.RGBA_INTEGER, gl.UNSIGNED_INT, words, 'q_words'], [6, gl.RGBA32F, gl.RGBA, gl.FLOAT, local, 'q_local']]
+      .forEach(function (a) {
+        var t = gl.createTexture();
+        gl.activeTexture(gl.TEXTURE0 + a[0]);
+        gl.bindTexture(gl.TEXTURE_2D, t);
+        gl.texImage2D(gl.TEXTURE_2D, 0, a[1], w, h, 0, a[2], a[3], a[4]);
+        gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+        gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+        gl.uniform1i(gl.getUniformLocation(program, a[5]), a[0]);
+      });
+    var rb = gl.createRenderbuffer();
+    gl.bindRenderbuffer(gl.RENDERBUFFER, rb);
+    gl.renderbufferStorage(gl.RENDERBUFFER, gl.RGBA32UI, w, h);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, gl.createFramebuffer());
+    gl.framebufferRenderbuffer(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.RENDERBUFFER, rb);
+    gl.viewport(0, 0, w, h);
+    var passes = [];
+    for (var pass = 0; pass < 3; ++pass) {
+      gl.uniform1i(gl.getUniformLocation(program, 'q_what'), pass);
+      gl.drawArrays(gl.TRIANGLES, 0, 3);
+      var out = new Uint32Array(4 * w * h);
+      gl.readPixels(0, 0, w, h, gl.RGBA_INTEGER, gl.UNSIGNED_INT, out);
+      passes.push(Array.prototype.slice.call(out, 0, 4 * n));
+    }
+    if (gl.getError() !== gl.NO_ERROR) throw new Error('WebGL error ' + gl.getError());
+    document.getElementById('dynbtf-result').textContent = JSON.stringify({passes: passes, origins: origins});
+  }).catch(fail);
+})();
+</script></body></html>
+"""
+
+
+@browser
+@pytest.mark.browser
+def test_struct_cells_offsets_and_texels_agree_bit_for_bit(struct_exports, structured_model):
+    """Every query's cell (int64), chosen lattice offset and texel equal the library's, up to 2**45 repeats.
+
+    The positions hold dyadic fractions that float32 and float64 represent exactly, so no query is set
+    aside; they land on cell edges, in the cut bands and on texel boundaries.
+    """
+    from dynbtf.render.web_browser import run_page
+
+    rng = np.random.default_rng(11)
+    n = 2048
+    whole = rng.integers(-60, 60, (n, 2)).astype(np.float64)
+    whole[512:1024] += 1e6
+    whole[1024:1536] += np.array([-(2.0 ** 33) - 5, 2.0 ** 31 + 3])  # beyond int32 cell indices
+    whole[1536:1792] += np.array([2.0 ** 45, -(2.0 ** 44)])
+    whole[1792:] += np.array([-(2.0 ** 45) + 7, 2.0 ** 45 - 3])
+    bits = np.full((n, 1), 12.0)
+    bits[1536:] = 6.0  # float64 holds 2**45 + 7 bits
+    frac = np.floor(rng.random((n, 2)) * 2.0 ** bits) / 2.0 ** bits
+    points = whole + frac
+    assert np.array_equal(points - whole, frac)
+    shift = np.zeros(n, np.int64)
+    shift[:384] = rng.integers(-2000, 2000, 384)  # into the float32 local uv (12-bit fractions stay exact)
+    job = {"points": points.tolist(), "shift": shift.tolist()}
+    directory = struct_exports["fp16"].directory
+    page = directory / "cells-probe.html"
+    page.write_text(_CELL_PAGE.replace("__JOB__", json.dumps(job)))
+    try:
+        run = run_page(page, budget_ms=600000)
+    finally:
+        page.unlink()
+    assert not (run.element("dynbtf-error") or "").strip(), run.element("dynbtf-error")
+    res = json.loads(run.element("dynbtf-result"))
+    cells_words, choice, texel = (np.array(p, dtype=np.uint64).reshape(n, 4) for p in res["passes"])
+
+    def int64(lo, hi):
+        return (lo | (hi << np.uint64(32))).view(np.int64)
+
+    synth = SynthesizedBTF(structured_model, "struct", seed=0).synthesizer
+    w, h = synth.density
+    nx, ny = synth.prepared.cells
+    positions, chosen = synth.read_positions(torch.from_numpy(points))
+    # the origin words viewer.js gave (for "auto") are repeat_origin's for struct
+    origin = repeat_origin(points - shift[:, None], (w, h), (w, h), cells=(nx, ny))
+    np.testing.assert_array_equal(np.array(res["origins"], dtype=np.uint32), origin.shader_words("struct"))
+    texel_x = np.minimum(np.floor(frac[:, 0] * w).astype(np.int64), w - 1)
+    texel_y = np.minimum(np.floor(frac[:, 1] * h).astype(np.int64), h - 1)
+    cell = np.stack([whole[:, 0].astype(np.int64) * nx + texel_x // (w // nx),
+                     whole[:, 1].astype(np.int64) * ny + texel_y // (h // ny)], -1)
+    np.testing.assert_array_equal(np.stack([int64(cells_words[:, 0], cells_words[:, 1]),
+                                            int64(cells_words[:, 2], cells_words[:, 3])], -1), cell)
+    np.testing.assert_array_equal(choice[:, 0].astype(np.int64), chosen.numpy())
+    offsets = synth.prepared.offsets.numpy()[chosen.numpy()]
+    np.testing.assert_array_equal(texel[:, 2:].astype(np.int64), offsets)
+    corner = np.floor(positions.numpy() - 0.5).astype(np.int64) % np.array([w, h])
+    np.testing.assert_array_equal(texel[:, :2].astype(np.int64), corner)
+    # the cuts were exercised: points taken by each neighbour, and by the diagonal cell
+    side = choice[:, 1:3].astype(np.int64) - 1
+    for axis in (0, 1):
+        assert (side[:, axis] == -1).any() and (side[:, axis] == 1).any()
+    assert ((side != 0).all(-1)).any() and len(np.unique(chosen.numpy())) == synth.prepared.count
+
+
+@browser
+@pytest.mark.browser
+def test_viewer_shows_the_auto_choice_by_default(struct_exports):
+    """The viewer selects struct, marked (auto), offers hist and tile, and draws it 1e6 uv units out."""
+    run = _probe_viewer(struct_exports["fp16"].directory, budget_ms=4000, query="method=auto&origin=1e6")
+    assert 'data-state="running"' in run.dom, (run.element("dynbtf-error") or "") + run.dom[-1500:]
+    assert run.element("probe-console") is None and run.console == []
+    assert '<option value="struct" title="method auto -&gt; struct' in run.dom
+    assert ">struct (auto)</option>" in run.dom and ">hist</option>" in run.dom and ">tile</option>" in run.dom
+
+
+def test_shader_cost_of_struct_is_one_fetch_and_the_cell_hashes(model):
+    from dynbtf.render.web_shader import shader_cost
+
+    cfg = model.config()
+    sizes = dict(channels=cfg["positional_channels"], angular_channels=cfg["angular_channels"], hidden=cfg["hidden"],
+                 layers=cfg["layers"])
+    struct, tile, hist = (shader_cost(m, **sizes) for m in ("struct", "tile", "hist"))
+    # one 2 x 2 footprint of 2 RGBA layers, the offset's two entries, one vertical and one horizontal cut
+    assert struct["texel_fetches"] == 4 * 2 + 2 + 2 + 2 * 4 * 1 == tile["texel_fetches"] + 4
+    assert struct["macs"] == tile["macs"] and struct["decoder_macs"] == hist["decoder_macs"]
+    assert struct["hashes"] == 4 and tile["hashes"] == hist["hashes"] == 3

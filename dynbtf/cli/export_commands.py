@@ -23,9 +23,11 @@ def export_command(
                                                                 "shader and a WebGL2 viewer page (index.html)."),
     precision: str = typer.Option("fp16", help="Texture storage: fp16 (half floats), u8 (8 bits per channel with a "
                                                "per-channel scale and bias) or fp32 (exact)."),
-    method: Optional[List[str]] = typer.Option(None, "--method", metavar="METHOD", help="Synthesis method(s) to export: tile, linear, "
-                                                                      "hist, hex (repeat the option; default: hist, "
-                                                                      "hex, tile; the first is the viewer's default)."),
+    method: Optional[List[str]] = typer.Option(
+        None, "--method", metavar="METHOD",
+        help="Synthesis method(s) to export: auto, struct, tile, linear, hist, hex (repeat the option; default: auto, "
+             "hist, tile; the first is the viewer's default). auto is the model's choice (struct for a structured "
+             "positional plane, else hist), printed and exported under the chosen name."),
     seed: int = typer.Option(0, help="Synthesis seed (the choices of SynthesizedBTF with this seed)."),
     scale: float = typer.Option(8.0, help="The viewer's initial exemplar repeats per unit of the surface's uv."),
     viewer: bool = typer.Option(True, "--viewer/--no-viewer", help="Also write the viewer page (index.html, viewer.js "
@@ -34,8 +36,9 @@ def export_command(
     """Export a synthesized BTF for real-time rendering: GPU textures, decoder weights and a shader (docs/realtime.md).
 
     Example: dynbtf export leather.dbtfm -o leather-web --precision u8, then open leather-web/index.html
+    (methods auto, hist, tile: auto prints its choice, struct for a structured material, else hist)
     """
-    from ..render.web_export import WEB_PRECISIONS, export_web
+    from ..render.web_export import DEFAULT_METHODS, WEB_PRECISIONS, export_web
     from ..representations.model_file import read_model_metadata
 
     if export_format not in FORMATS:
@@ -43,9 +46,11 @@ def export_command(
     if precision not in WEB_PRECISIONS:
         raise InputError(f"--precision: expected one of {sorted(WEB_PRECISIONS)}, got {precision!r}")
     read_model_metadata(model)  # a missing or damaged file is named before anything is written
-    result = export_web(model, output, precision=precision, methods=tuple(method or ("hist", "hex", "tile")),
+    result = export_web(model, output, precision=precision, methods=tuple(method or DEFAULT_METHODS),
                         seed=seed, scale=scale, viewer=viewer)
     m = result.manifest
+    if m.get("auto"):
+        typer.echo(m["auto"]["line"])
     first = m["default_method"]
     typer.echo(f"wrote {output}: {len(m['files'])} binary files ({result.total_bytes() / 1e6:.2f} MB, {precision}; "
                f"the {first} method alone needs {result.method_bytes(first) / 1e6:.2f} MB vs the model file's "

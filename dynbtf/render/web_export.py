@@ -8,15 +8,16 @@ viewer page (``index.html``, no build step, no network):
   synthesis parameters of every exported method, the decoder's layout, conventions).
 * ``*.bin`` -- textures and weights, little-endian, tightly packed (the shared decoder weights are
   also constants in the shader; each method's layer 1 is a uniform block):
-  the positional plane each method reads (the exemplar for ``tile``, the tileable exemplar for
-  ``linear``/``hex``, its Gaussianized PCA coefficients for ``hist``) as ``ceil(C / 4)`` RGBA
-  layers; the per-channel inverse transform tables of ``hist``; the luminance plane of ``hex``;
-  the angular planes ``f_H``, ``f_D`` (RGBA layers, rows = theta, columns = phi); and the
-  decoder's weights (float32, already in std140 uniform-block order).
+  the positional plane each method reads (the exemplar for ``tile`` and ``struct``, the tileable
+  exemplar for ``linear``/``hex``, its Gaussianized PCA coefficients for ``hist``) as ``ceil(C / 4)``
+  RGBA layers; the per-channel inverse transform tables of ``hist``; the luminance plane of ``hex``;
+  the lattice offsets and cut tables of ``struct`` (one ``R16I`` integer texture, exact); the
+  angular planes ``f_H``, ``f_D`` (RGBA layers, rows = theta, columns = phi); and the decoder's
+  weights (float32, already in std140 uniform-block order).
 * ``dynbtf.glsl`` -- the shader functions (GLSL ES 3.00): the triangle lattice, the integer
   vertex hash (bit for bit :func:`dynbtf.synthesis.hash.hash_vertex`), the blends, the inverse
-  tables, the Rusinkiewicz angular fetches, the relief march of ``triple-parallax`` models and
-  the decoder (:mod:`dynbtf.render.web_shader`). A renderer calls
+  tables, ``struct``'s cells and cuts, the Rusinkiewicz angular fetches, the relief march of
+  ``triple-parallax`` models and the decoder (:mod:`dynbtf.render.web_shader`). A renderer calls
   ``dynbtf_eval(origin, local_uv, w_view, w_light)``.
 * ``index.html``, ``viewer.js`` and ``*.js`` copies of the binary files (browsers do not let a
   page opened from disk read binary files; a ``<script>`` can be read).
@@ -31,11 +32,13 @@ A shader has 32-bit floats, which cannot hold ``uv = 1e6 + 0.3`` to a texel. The
 ``uv * scale`` (in float64, on the CPU) into an integer repeat index and a fraction; the
 repeat index enters the shader as a :class:`~dynbtf.render.web_shader.RepeatOrigin`: the lattice's 64-bit integer
 offset, its fractional phase ``2 sqrt(3) I_u mod 1`` and the texel offset of the repeat
-(:func:`dynbtf.render.web_shader.repeat_origin`; ``viewer.js`` has the same function). The shader adds a local uv
+(:func:`dynbtf.render.web_shader.repeat_origin`; ``viewer.js`` has the same function); for ``struct``
+the 64-bit words hold the cell index of the repeat's first cell, ``I * cells`` (int64), instead
+of the lattice vertex. The shader adds a local uv
 (the fraction plus up to ``2**12`` further repeats, e.g. a mesh's uv times the scale) in
 float32. Exact range: any ``|uv * scale| < 2**52`` repeats, the library's own limit; the
-vertex hashes and texel choices are those of the library bit for bit at every repeat index,
-and positions within a repeat have float32 resolution (``2**-24`` of the local uv's size).
+vertex hashes, cell hashes and texel choices are those of the library bit for bit at every
+repeat index, and positions within a repeat have float32 resolution (``2**-24`` of the local uv's size).
 """
 
 from __future__ import annotations
@@ -53,12 +56,16 @@ import torch
 
 from ..errors import InputError
 from ..io import atomic_path
+from ..synthesis.auto import AUTO
 from ..synthesis.hash import MASK32, seed_state
 from ..synthesized import SynthesizedBTF
 from .web_shader import WEB_METHODS, glsl_source, lattice_constants
 
 __all__ = ["export_web", "WebExport", "quantize", "dequantize", "quantized_model", "SUPPORTED_KINDS",
-           "WEB_PRECISIONS", "FORMAT_VERSION"]
+           "WEB_PRECISIONS", "FORMAT_VERSION", "DEFAULT_METHODS"]
+
+#: Methods exported by default: the model's automatic choice (the viewer's default), and hist and tile to compare.
+DEFAULT_METHODS = (AUTO, "hist", "tile")
 
 #: Model kinds the shader evaluates.
 SUPPORTED_KINDS = ("triple", "triple-parallax")
@@ -263,7 +270,29 @@ def _lut_texture(writer: _Writer, name: str, table: np.ndarray, precision: str) 
             "width": int(row), "size": int(size), "row": int(row), "scale": _pad4(scale, 0.0), "bias": _pad4(bias, 0.0)}
 
 
-def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex", "tile"), seed: int = 0,
+def _cell_tables_texture(writer: _Writer, name: str, tables) -> dict[str, Any]:
+    """``struct``'s offsets ``(K, 2)``, vertical and horizontal cuts, flattened (C order) one after the other
+    into one ``R16I`` texture (exact: every value fits int16), ``row`` entries per texture row."""
+    parts = {"offsets": tables.offsets.cpu().numpy(), "vertical_cuts": tables.vertical_cuts.cpu().numpy(),
+             "horizontal_cuts": tables.horizontal_cuts.cpu().numpy()}
+    if int(np.abs(parts["offsets"]).max()) > np.iinfo(np.int16).max:
+        raise InputError(f"export: struct's lattice offsets {parts['offsets'].max()} exceed int16 (an exemplar "
+                         "wider than 32767 texels)")
+    flat = np.concatenate([v.astype(np.int16).reshape(-1) for v in parts.values()])
+    row = min(len(flat), _LUT_ROW)
+    rows = (len(flat) + row - 1) // row
+    data = np.zeros(rows * row, np.int16)
+    data[:len(flat)] = flat
+    entry: dict[str, Any] = {"file": writer.add(name, data.reshape(rows, row)), "format": "R16I", "height": int(rows),
+                             "width": int(row), "row": int(row)}
+    start = 0
+    for key, values in parts.items():
+        entry[key] = {"start": start, "shape": [int(d) for d in values.shape]}
+        start += int(values.size)
+    return entry
+
+
+def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHODS, seed: int = 0,
                scale: float = 8.0, viewer: bool = True, method_params: dict[str, dict[str, Any]] | None = None
                ) -> WebExport:
     """Export a Triple Plane model for real-time evaluation in a GLSL ES 3.00 shader (and a WebGL2 viewer).
@@ -278,9 +307,12 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
         Directory to write (created; files of an earlier export are replaced).
     precision : {"fp16", "u8", "fp32"}
         Storage of the textures (see the module docstring).
-    methods : sequence of {"tile", "linear", "hist", "hex"}
+    methods : sequence of {"auto", "tile", "linear", "hist", "hex", "struct"}
         Synthesis methods to export (each with its own plane and tables); the first is the
-        viewer's default.
+        viewer's default. ``auto`` is the model's choice (``SynthesizedBTF(model, "auto")``:
+        ``struct`` for a structured positional plane, else ``hist``), exported under the chosen
+        method's name; the manifest's ``auto`` entry names it and holds the choice's line. A method
+        named twice (or chosen by ``auto`` and also listed) is exported once, where it first appears.
     seed : int
         Synthesis seed (the same choices as ``SynthesizedBTF(model, method, seed=seed)``).
     scale : float
@@ -288,7 +320,8 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
     viewer : bool
         Also write ``index.html``, ``viewer.js`` and the ``.js`` twins of the binary files.
     method_params : dict, optional
-        Per-method synthesizer parameters (e.g. ``{"hist": {"gamma": 3.0}}``).
+        Per-method synthesizer parameters (e.g. ``{"hist": {"gamma": 3.0}}``; ``"auto"``'s go to the
+        method it chooses).
 
     Returns
     -------
@@ -304,12 +337,13 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
     if precision not in WEB_PRECISIONS:
         raise InputError(f"precision: expected one of {sorted(WEB_PRECISIONS)} (fp16: half floats, u8: 8 bits per "
                          f"channel with per-channel scale and bias, fp32: exact), got {precision!r}")
-    methods = list(methods)
+    methods = [methods] if isinstance(methods, str) else list(methods)
+    accepted = [AUTO, *WEB_METHODS]
     if not methods:
-        raise InputError(f"methods: expected at least one of {list(WEB_METHODS)}")
+        raise InputError(f"methods: expected at least one of {accepted}")
     for m in methods:
-        if m not in WEB_METHODS:
-            raise InputError(f"method: {m!r} has no shader form; expected one of {list(WEB_METHODS)} "
+        if m not in accepted:
+            raise InputError(f"method: {m!r} has no shader form; expected one of {accepted} "
                              "(quilting is not dynamic)")
     method_params = dict(method_params or {})
     model = model.cpu().eval()
@@ -360,20 +394,37 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
                          f"{c_u} positional channels); export a model with a smaller decoder")
 
     method_entries: dict[str, Any] = {}
-    for m in methods:
-        params = dict(method_params.get(m, {}))
-        btf = SynthesizedBTF(model, m, seed=seed, **params)
+    auto = None
+    for requested in methods:
+        params = dict(method_params.get(requested, {}))
+        if requested == AUTO:  # the model's choice, under the chosen method's name
+            btf = SynthesizedBTF(model, AUTO, seed=seed, **params)
+            choice = btf.synthesizer.choice
+            auto = {"method": choice.method, "line": choice.line, "structure_strength": float(choice.analysis.strength)}
+            m = choice.method
+        else:
+            m = requested
+            if m in method_entries:
+                continue
+            btf = SynthesizedBTF(model, m, seed=seed, **params)
+        if m in method_entries:  # auto chose a method exported before it
+            continue
         synth = btf.synthesizer
         files = []
         entry: dict[str, Any] = {"mode": WEB_METHODS[m], "density": [int(synth.exemplar.shape[1]),
                                                                      int(synth.exemplar.shape[0])],
                                  "seed": int(seed), "seed_state": int(seed_state(int(seed) & MASK32)),
                                  "parameters": synth.parameters()}
-        plane = (synth.exemplar if m == "tile" else synth.prepared.plane).detach().cpu().numpy()
+        plane = (synth.exemplar if m in ("tile", "struct") else synth.prepared.plane).detach().cpu().numpy()
         entry["plane"] = _texture(writer, f"plane_{m}.bin", plane, precision, layered=True)
         files.append(entry["plane"]["file"])
         matrix, out_offset = synth.output_map()
-        kernel = synth.kernel_arguments() if m != "tile" else {}  # what the fused CPU kernel is given
+        kernel = synth.kernel_arguments() if m not in ("tile", "struct") else {}  # what the fused CPU kernel is given
+        if m == "struct":
+            t = synth.prepared
+            entry["tables"] = _cell_tables_texture(writer, f"tables_{m}.bin", t)
+            entry.update(cells=[int(c) for c in t.cells], margin=[int(c) for c in t.margin], count=int(t.count))
+            files.append(entry["tables"]["file"])
         if m == "hist":
             entry["lut"] = _lut_texture(writer, f"lut_{m}.bin", kernel["lut"].cpu().numpy(), precision)
             entry.update(gamma=float(kernel["gamma"]), g_min=float(kernel["g_min"]),
@@ -407,7 +458,8 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
         "source": None if source is None else source.name, "precision": precision,
         "channels": c_u, "relief": relief, "angular_channels": c_a, "angular_resolution": res, "hidden": hidden,
         "layers": layers, "negative_slope": float(decoder.negative_slope), "scale": float(scale),
-        "default_method": methods[0], "lattice": lattice_constants(), "angular": angular,
+        "default_method": next(iter(method_entries)), "auto": auto, "lattice": lattice_constants(),
+        "angular": angular,
         "decoder": {"file": decoder_file, "parts": decoder_entries,
                     "note": "layer 1's angular part (mat4 blocks) and layers 2.. (mat4 blocks, then each layer's "
                             "vec4 biases), also constants in dynbtf.glsl"},
@@ -418,7 +470,8 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=("hist", "hex
                         "towards the camera, w_light towards the light; (theta, phi) in degrees: theta from the "
                         "normal, phi from +u towards +v. Values: linear RGB, excluding cos(theta_light) (pi f_r). "
                         "uv: exemplar repeats = surface uv x scale; exact for |uv x scale| < 2**52 (split on the "
-                        "CPU into a repeat origin and a local uv of at most 2**12 repeats)."),
+                        "CPU into a repeat origin and a local uv of at most 2**12 repeats; struct's origin words "
+                        "are the int64 cell index of the repeat's first cell, I x cells)."),
     }
     with atomic_path(out_dir / "manifest.json") as tmp:
         tmp.write_text(json.dumps(manifest, indent=1), encoding="utf-8")

@@ -4,8 +4,9 @@
 :class:`dynbtf.synthesized.SynthesizedBTF` per pixel: the triangle lattice
 (:mod:`dynbtf.synthesis.lattice`), the integer vertex hash (:mod:`dynbtf.synthesis.hash`, bit for
 bit, in ``uint`` arithmetic), the blends of ``tile``, ``linear``, ``hist`` and ``hex``, the inverse
-histogram tables, the Rusinkiewicz angular fetches (:mod:`dynbtf.conventions`), the relief march of
-``triple-parallax`` models and the decoder. :func:`repeat_origin` is the CPU half of its large-uv
+histogram tables, the cells, cuts and lattice offsets of ``struct``
+(:mod:`dynbtf.synthesis.cell_quilting`), the Rusinkiewicz angular fetches (:mod:`dynbtf.conventions`),
+the relief march of ``triple-parallax`` models and the decoder. :func:`repeat_origin` is the CPU half of its large-uv
 contract (``viewer.js``'s ``DynBTF.origin`` is the same function in JavaScript), and
 :func:`shader_cost` counts what a pixel costs. The files and formats the shader reads are
 :mod:`dynbtf.render.web_export`'s.
@@ -26,10 +27,12 @@ from ..synthesis.lattice import (_C3, _N1, _N2, LATTICE_SCALE, LATTICE_SCALE_HI,
                                  _scaled_integer, split_uv)
 
 __all__ = ["glsl_source", "shader_cost", "repeat_origin", "RepeatOrigin", "lattice_constants", "WEB_METHODS",
-           "LOCAL_REPEATS", "MAX_MARCH_STEPS"]
+           "LATTICE_METHODS", "LOCAL_REPEATS", "MAX_MARCH_STEPS"]
 
 #: Synthesis methods the shader implements, with their mode numbers in ``dynbtf.glsl``.
-WEB_METHODS = {"tile": 0, "linear": 1, "hist": 2, "hex": 3}
+WEB_METHODS = {"tile": 0, "linear": 1, "hist": 2, "hex": 3, "struct": 4}
+#: Methods that read the triangle lattice (``struct`` reads a grid of cells instead).
+LATTICE_METHODS = ("tile", "linear", "hist", "hex")
 #: Repeats the shader's float32 local uv may span (beyond: the caller moves the origin).
 LOCAL_REPEATS = 2 ** 12
 #: Most steps of the relief ray march per pixel (views closer to grazing than ~89 deg march coarser than the library).
@@ -59,6 +62,10 @@ class RepeatOrigin:
         preprocessing).
     fraction : float64 ``(..., 2)``
         ``uv - I`` in ``[0, 1)``.
+    cell_x, cell_y : int64
+        ``I_u n_x`` and ``I_v n_y``: the ``struct`` cell index of the repeat's first cell
+        (:class:`~dynbtf.synthesis.cell_quilting.CellQuilting`, ``cells = (n_x, n_y)`` per repeat;
+        ``I`` itself when no cells were given).
     """
 
     lattice_x: np.ndarray
@@ -67,20 +74,39 @@ class RepeatOrigin:
     texel_x: np.ndarray
     texel_y: np.ndarray
     fraction: np.ndarray
+    cell_x: np.ndarray
+    cell_y: np.ndarray
+
+    @staticmethod
+    def _words(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        x = np.asarray(x).astype(np.int64).view(np.uint64)
+        y = np.asarray(y).astype(np.int64).view(np.uint64)
+        return np.stack([x & MASK32, x >> np.uint64(32), y & MASK32, y >> np.uint64(32)], -1).astype(np.uint32)
 
     def words(self) -> np.ndarray:
         """``(..., 4)`` uint32: low and high words of ``lattice_x`` and ``lattice_y`` (two's complement)."""
-        x = self.lattice_x.astype(np.int64).view(np.uint64)
-        y = self.lattice_y.astype(np.int64).view(np.uint64)
-        return np.stack([x & MASK32, x >> np.uint64(32), y & MASK32, y >> np.uint64(32)], -1).astype(np.uint32)
+        return self._words(self.lattice_x, self.lattice_y)
+
+    def cell_words(self) -> np.ndarray:
+        """``(..., 4)`` uint32: low and high words of ``cell_x`` and ``cell_y`` (two's complement)."""
+        return self._words(self.cell_x, self.cell_y)
+
+    def shader_words(self, method: str) -> np.ndarray:
+        """What the shader's ``DynbtfOrigin.lattice`` holds for ``method``: :meth:`cell_words` for ``struct``,
+        else :meth:`words`."""
+        return self.cell_words() if method == "struct" else self.words()
 
 
-def repeat_origin(points, plane_size: tuple[int, int], density: tuple[int, int]) -> RepeatOrigin:
+def repeat_origin(points, plane_size: tuple[int, int], density: tuple[int, int],
+                  cells: tuple[int, int] = (1, 1)) -> RepeatOrigin:
     """Split positions ``points (..., 2)`` (exemplar repeats, float64) for the shader.
 
-    ``plane_size = (W', H')`` of the plane read, ``density = (W, H)`` texels per repeat. The
-    arithmetic is :func:`dynbtf.synthesis.lattice.triangle_lattice`'s (same float64 and int64
-    operations), so the shader's vertices are the library's. ``|points| < 2**52`` is required.
+    ``plane_size = (W', H')`` of the plane read, ``density = (W, H)`` texels per repeat, ``cells =
+    (n_x, n_y)`` the ``struct`` cells per repeat. The arithmetic is
+    :func:`dynbtf.synthesis.lattice.triangle_lattice`'s (same float64 and int64 operations), so the
+    shader's vertices are the library's; the cell index ``I n`` is
+    :meth:`~dynbtf.synthesis.cell_quilting.CellQuilting.read_positions`'s (int64). ``|points| < 2**52``
+    is required.
     """
     points = torch.as_tensor(np.asarray(points, dtype=np.float64))
     if points.numel() and float(points.abs().max()) >= MAX_REPEATS:
@@ -89,12 +115,13 @@ def repeat_origin(points, plane_size: tuple[int, int], density: tuple[int, int])
     iu_whole, iu_frac = _scaled_integer(whole[..., 0])
     pw, ph = plane_size
     dw, dh = density
+    nx, ny = (int(c) for c in cells)
     return RepeatOrigin(
         lattice_x=(iu_whole - 2 * whole[..., 1]).numpy(), lattice_y=(4 * whole[..., 1]).numpy(),
         phase=iu_frac.numpy(),
         texel_x=torch.remainder(torch.remainder(whole[..., 0], pw) * (dw % pw), pw).numpy(),
         texel_y=torch.remainder(torch.remainder(whole[..., 1], ph) * (dh % ph), ph).numpy(),
-        fraction=frac.numpy())
+        fraction=frac.numpy(), cell_x=(whole[..., 0] * nx).numpy(), cell_y=(whole[..., 1] * ny).numpy())
 
 
 # ---------------------------------------------------------------- the shader
@@ -193,7 +220,7 @@ vec2 dynbtf_visible(DynbtfOrigin o, vec2 local, vec3 w) {{
 """
     return f"""// dynbtf real-time shader functions (GLSL ES 3.00), generated by dynbtf.render.web_shader.
 // Evaluates dynbtf.synthesized.SynthesizedBTF: synthesized positional features (tile, linear,
-// hist, hex), Rusinkiewicz angular features and the decoder. Conventions (dynbtf README):
+// hist, hex, struct), Rusinkiewicz angular features and the decoder. Conventions (dynbtf README):
 // directions are unit vectors in the local frame (x along +u, y along +v, z = normal), both
 // pointing away from the surface; the value excludes cos(theta_light) (pi f_r), linear RGB.
 // Sizes: {channels} positional channels ({g} RGBA layers), {angular_channels} angular channels per plane
@@ -209,7 +236,8 @@ uniform highp sampler2D dynbtf_lut;          // hist: inverse tables, channel c 
 uniform highp sampler2D dynbtf_lum;          // hex: luminance in [0, 1]
 uniform highp sampler2DArray dynbtf_fh;      // angular planes: x = phi column, y = theta row
 uniform highp sampler2DArray dynbtf_fd;
-uniform int dynbtf_mode;                     // 0 tile, 1 linear, 2 hist, 3 hex
+uniform highp isampler2D dynbtf_cells;       // struct: offsets, vertical cuts, horizontal cuts (int16), entry k at (k % row, k / row)
+uniform int dynbtf_mode;                     // 0 tile, 1 linear, 2 hist, 3 hex, 4 struct
 uniform ivec2 dynbtf_plane_size;             // (W', H') of the plane read
 uniform ivec2 dynbtf_density;                // (W, H): texels per repeat
 uniform uint dynbtf_seed_state;              // mix32((seed ^ 0x85EBCA6B)) (dynbtf.synthesis.hash.seed_state)
@@ -220,6 +248,11 @@ uniform float dynbtf_g_min;                  // hist: Gaussian value of table en
 uniform float dynbtf_inv_step;               // hist: table entries per Gaussian unit
 uniform int dynbtf_lut_size;                 // hist: entries per channel
 uniform int dynbtf_lut_row;                  // hist: entries per texture row
+uniform ivec2 dynbtf_cell_grid;              // struct: cells per repeat (n_x, n_y)
+uniform ivec2 dynbtf_cell_margin;            // struct: half-widths of the cut bands (m_x, m_y), texels
+uniform int dynbtf_cell_count;               // struct: K, the number of lattice offsets
+uniform int dynbtf_cell_row;                 // struct: table entries per texture row
+uniform ivec2 dynbtf_cut_start;              // struct: first entry of the vertical and of the horizontal cuts
 uniform vec4 dynbtf_plane_scale[DYNBTF_G];   // value = stored * scale + bias, per channel
 uniform vec4 dynbtf_plane_bias[DYNBTF_G];
 uniform vec4 dynbtf_lut_scale[DYNBTF_G];
@@ -237,7 +270,7 @@ layout(std140) uniform DynbtfLayer1 {{ mat4 dynbtf_w1p[{hg * g}]; vec4 dynbtf_b1
 
 // ---- the integer part of a position (computed on the CPU in float64: dynbtf.render.web_shader.repeat_origin)
 struct DynbtfOrigin {{
-    uvec4 lattice;   // (low, high) words of the int64 lattice x, then of lattice y
+    uvec4 lattice;   // (low, high) words of the int64 lattice x, then of lattice y; struct: of the cell I_u n_x, I_v n_y
     float phase;     // 2 sqrt(3) I_u mod 1
     ivec2 texel;     // (I_u W mod W', I_v H mod H')
 }};
@@ -311,6 +344,70 @@ DynbtfTriangle dynbtf_triangle(DynbtfOrigin o, vec2 local) {{
     return tri;
 }}
 
+// ---- lattice-aligned cell quilting (dynbtf.synthesis.cell_quilting): the cell, its hashed offset, the cuts
+struct DynbtfCell {{
+    uvec2 cx; uvec2 cy;   // the query's own cell, int64 (low, high) words: I n + w n + column (row)
+    ivec2 side;           // -1, 0 or 1 per axis: the point belongs to this neighbour of its cell (both: the diagonal one)
+    int chosen;           // offset index (hash of that cell mod K)
+    ivec2 offset;         // its lattice offset (dx, dy), texels
+    ivec2 texel;          // texel of the bilinear footprint's corner on the exemplar, offset applied
+    vec2 t;               // bilinear weights inside the footprint
+}};
+
+int dynbtf_cell_entry(int k) {{ return texelFetch(dynbtf_cells, ivec2(k % dynbtf_cell_row, k / dynbtf_cell_row), 0).r; }}
+int dynbtf_cell_choice(uvec2 cx, uvec2 cy) {{
+    return int(dynbtf_fold(dynbtf_fold(dynbtf_seed_state, cx), cy) % uint(dynbtf_cell_count));
+}}
+
+DynbtfCell dynbtf_cell(DynbtfOrigin o, vec2 local) {{
+    DynbtfCell c;
+    vec2 wf = floor(local);
+    vec2 f = local - wf;
+    if (f.x >= 1.0) {{ f.x -= 1.0; wf.x += 1.0; }}
+    if (f.y >= 1.0) {{ f.y -= 1.0; wf.y += 1.0; }}
+    ivec2 w = ivec2(wf);
+    ivec2 size = dynbtf_plane_size;   // the exemplar: W' = W, H' = H
+    ivec2 n = dynbtf_cell_grid;
+    ivec2 span = size / n;            // cell side (T_x, T_y)
+    ivec2 texel = min(ivec2(floor(f * vec2(size))), size - 1);
+    ivec2 cell = texel / span;        // column and row within the repeat
+    ivec2 l = texel - cell * span;    // texel within the cell
+    c.cx = dynbtf_add(o.lattice.xy, w.x * n.x + cell.x);
+    c.cy = dynbtf_add(o.lattice.zw, w.y * n.y + cell.y);
+    int k = dynbtf_cell_count;
+    int own = dynbtf_cell_choice(c.cx, c.cy);
+    ivec2 m = dynbtf_cell_margin;
+    c.side = ivec2(0);
+    if (l.x < m.x) {{   // the cut of the edge at the cell's start: left cell a, this cell b, texel row l.y
+        int a = dynbtf_cell_choice(dynbtf_add(c.cx, -1), c.cy);
+        int cut = dynbtf_cell_entry(dynbtf_cut_start.x + (((cell.x * n.y + cell.y) * k + a) * k + own) * span.y + l.y);
+        if (l.x < cut) c.side.x = -1;
+    }} else if (l.x >= span.x - m.x) {{   // the edge at the cell's end: this cell a, right cell b
+        int b = dynbtf_cell_choice(dynbtf_add(c.cx, 1), c.cy);
+        int i = cell.x + 1 == n.x ? 0 : cell.x + 1;
+        int cut = dynbtf_cell_entry(dynbtf_cut_start.x + (((i * n.y + cell.y) * k + own) * k + b) * span.y + l.y);
+        if (l.x - span.x >= cut) c.side.x = 1;
+    }}
+    if (l.y < m.y) {{
+        int a = dynbtf_cell_choice(c.cx, dynbtf_add(c.cy, -1));
+        int cut = dynbtf_cell_entry(dynbtf_cut_start.y + (((cell.x * n.y + cell.y) * k + a) * k + own) * span.x + l.x);
+        if (l.y < cut) c.side.y = -1;
+    }} else if (l.y >= span.y - m.y) {{
+        int b = dynbtf_cell_choice(c.cx, dynbtf_add(c.cy, 1));
+        int j = cell.y + 1 == n.y ? 0 : cell.y + 1;
+        int cut = dynbtf_cell_entry(dynbtf_cut_start.y + (((cell.x * n.y + j) * k + own) * k + b) * span.x + l.x);
+        if (l.y - span.y >= cut) c.side.y = 1;
+    }}
+    c.chosen = c.side == ivec2(0) ? own : dynbtf_cell_choice(dynbtf_add(c.cx, c.side.x), dynbtf_add(c.cy, c.side.y));
+    c.offset = ivec2(dynbtf_cell_entry(2 * c.chosen), dynbtf_cell_entry(2 * c.chosen + 1));
+    // one bilinear sample at the shifted position (texel centres at whole + 0.5), wrapped
+    vec2 p = f * vec2(size) - 0.5;
+    vec2 p0 = floor(p);
+    c.t = p - p0;
+    c.texel = ivec2(dynbtf_mod(int(p0.x) + c.offset.x, size.x), dynbtf_mod(int(p0.y) + c.offset.y, size.y));
+    return c;
+}}
+
 // ---- fetches
 void dynbtf_bilinear(ivec2 c, vec2 t, float weight, inout vec4 acc[DYNBTF_G]) {{
     ivec2 size = dynbtf_plane_size;
@@ -354,30 +451,35 @@ void dynbtf_latent(DynbtfOrigin o, vec2 local, out vec4 latent[DYNBTF_G]) {{
     vec4 acc[DYNBTF_G];
     for (int g = 0; g < DYNBTF_G; ++g) acc[g] = vec4(0.0);
     float total = 1.0;
-    DynbtfTriangle tri = dynbtf_triangle(o, local);
-    if (dynbtf_mode == 0) {{
-        dynbtf_bilinear(tri.texel, tri.t, 1.0, acc);
+    if (dynbtf_mode == 4) {{
+        DynbtfCell cell = dynbtf_cell(o, local);
+        dynbtf_bilinear(cell.texel, cell.t, 1.0, acc);
     }} else {{
-        vec3 s = vec3(tri.b[0], tri.b[1], tri.b[2]);
-        ivec2 size = dynbtf_plane_size;
-        ivec2 c[3];
-        for (int i = 0; i < 3; ++i) c[i] = ivec2((tri.texel.x + tri.offset[i].x) % size.x, (tri.texel.y + tri.offset[i].y) % size.y);
-        if (dynbtf_mode == 2) {{
-            s = dynbtf_gamma == 1.0 ? s : pow(max(s, 0.0), vec3(dynbtf_gamma));
-            s /= s.x + s.y + s.z;
-            s *= inversesqrt(dot(s, s));
-        }} else if (dynbtf_mode == 3) {{
-            vec3 lum = vec3(dynbtf_luminance(c[0], tri.t), dynbtf_luminance(c[1], tri.t), dynbtf_luminance(c[2], tri.t));
-            vec3 b = max(s, 0.0), b2 = b * b, b4 = b2 * b2;
-            s = (1.0 - dynbtf_beta + dynbtf_beta * lum) * (b4 * b2 * b);
-            s /= s.x + s.y + s.z;
-            if (dynbtf_gain_k != 1.0) {{
-                s = vec3(dynbtf_gain(s.x), dynbtf_gain(s.y), dynbtf_gain(s.z));
+        DynbtfTriangle tri = dynbtf_triangle(o, local);
+        if (dynbtf_mode == 0) {{
+            dynbtf_bilinear(tri.texel, tri.t, 1.0, acc);
+        }} else {{
+            vec3 s = vec3(tri.b[0], tri.b[1], tri.b[2]);
+            ivec2 size = dynbtf_plane_size;
+            ivec2 c[3];
+            for (int i = 0; i < 3; ++i) c[i] = ivec2((tri.texel.x + tri.offset[i].x) % size.x, (tri.texel.y + tri.offset[i].y) % size.y);
+            if (dynbtf_mode == 2) {{
+                s = dynbtf_gamma == 1.0 ? s : pow(max(s, 0.0), vec3(dynbtf_gamma));
                 s /= s.x + s.y + s.z;
+                s *= inversesqrt(dot(s, s));
+            }} else if (dynbtf_mode == 3) {{
+                vec3 lum = vec3(dynbtf_luminance(c[0], tri.t), dynbtf_luminance(c[1], tri.t), dynbtf_luminance(c[2], tri.t));
+                vec3 b = max(s, 0.0), b2 = b * b, b4 = b2 * b2;
+                s = (1.0 - dynbtf_beta + dynbtf_beta * lum) * (b4 * b2 * b);
+                s /= s.x + s.y + s.z;
+                if (dynbtf_gain_k != 1.0) {{
+                    s = vec3(dynbtf_gain(s.x), dynbtf_gain(s.y), dynbtf_gain(s.z));
+                    s /= s.x + s.y + s.z;
+                }}
             }}
+            for (int i = 0; i < 3; ++i) dynbtf_bilinear(c[i], tri.t, s[i], acc);
+            total = s.x + s.y + s.z;
         }}
-        for (int i = 0; i < 3; ++i) dynbtf_bilinear(c[i], tri.t, s[i], acc);
-        total = s.x + s.y + s.z;
     }}
     for (int g = 0; g < DYNBTF_G; ++g) acc[g] = acc[g] * dynbtf_plane_scale[g] + total * dynbtf_plane_bias[g];
     if (dynbtf_mode == 2) {{
@@ -447,20 +549,26 @@ vec3 dynbtf_eval(DynbtfOrigin o, vec2 local, vec3 w_view, vec3 w_light) {{
 
 def shader_cost(method: str, *, channels: int = 16, angular_channels: int = 8, hidden: int = 32, layers: int = 4
                 ) -> dict[str, int]:
-    """Work per pixel of ``dynbtf_eval`` as ``dynbtf.glsl`` does it: texel fetches and multiply-adds.
+    """Work per pixel of ``dynbtf_eval`` as ``dynbtf.glsl`` does it: texel fetches, multiply-adds, hashes.
 
     Fetches are ``texelFetch`` calls of RGBA (or single-channel) texels: the three samples of a
-    blend read a 2 x 2 bilinear footprint of ``ceil(C / 4)`` RGBA layers each (tile: one sample),
-    ``hist`` reads two table entries per channel, ``hex`` a 2 x 2 luminance footprint per sample, and
-    each angular plane a 2 x 2 footprint of ``ceil(C_A / 4)`` layers. Multiply-adds count the
-    bilinear and blend weights applied to every channel, the per-channel dequantization and table
+    blend read a 2 x 2 bilinear footprint of ``ceil(C / 4)`` RGBA layers each (tile and struct: one
+    sample), ``hist`` reads two table entries per channel, ``hex`` a 2 x 2 luminance footprint per
+    sample, ``struct`` the chosen offset's two table entries and, near a cell's edges, one entry of
+    the vertical and one of the horizontal cut table (counted: the most a pixel reads), and each
+    angular plane a 2 x 2 footprint of ``ceil(C_A / 4)`` layers. Multiply-adds count the bilinear
+    and blend weights applied to every channel, the per-channel dequantization and table
     interpolation, and the decoder's layers as the shader runs them (``mat4 x vec4`` blocks: widths
     padded to multiples of 4), not the integer hash or the lattice's few scalar operations.
+    ``hashes`` counts :func:`~dynbtf.synthesis.hash.hash_vertex` evaluations (four 32-bit
+    ``mix32`` each): the lattice methods hash their triangle's three vertices (tile too, unused),
+    ``struct`` its own cell and at most three more (the neighbours across the edges within the
+    cut bands, and the diagonal cell when both cuts claim the point).
     """
     if method not in WEB_METHODS:
         raise InputError(f"method: expected one of {list(WEB_METHODS)}, got {method!r}")
     g, ag, hg = (channels + 3) // 4, (angular_channels + 3) // 4, (hidden + 3) // 4
-    samples = 1 if method == "tile" else 3
+    samples = 1 if method in ("tile", "struct") else 3
     fetches = samples * 4 * g + 2 * 4 * ag
     macs = samples * 4 * 4 * g + 4 * g + 2 * (4 * 4 * ag + 4 * ag)  # bilinear+blend weights, dequantization
     if method == "hist":
@@ -469,5 +577,8 @@ def shader_cost(method: str, *, channels: int = 16, angular_channels: int = 8, h
     if method == "hex":
         fetches += samples * 4
         macs += samples * 4
+    if method == "struct":
+        fetches += 2 + 2  # the offset (dx, dy); one vertical and one horizontal cut entry at most
     decoder = 16 * hg * (g + 2 * ag) + 16 * hg * hg * (layers - 2) + 16 * hg
-    return {"texel_fetches": fetches, "macs": macs + decoder, "decoder_macs": decoder}
+    return {"texel_fetches": fetches, "macs": macs + decoder, "decoder_macs": decoder,
+            "hashes": 4 if method == "struct" else 3}

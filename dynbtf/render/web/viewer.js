@@ -78,7 +78,12 @@
   function mod(a, n) { var r = a % n; return r < 0 ? r + n : r; }
   function words(x) { var u = BigInt.asUintN(64, x); return [Number(u & 0xFFFFFFFFn), Number(u >> 32n)]; }
 
+  // The exported method a name stands for: 'auto' is the model's choice (manifest.auto.method).
+  DynBTF.methodName = function (m, name) { return name === 'auto' && m.auto ? m.auto.method : name; };
+
   // Split a position (pu, pv) in exemplar repeats for method entry `method` of manifest `m`.
+  // `lattice` holds the int64 lattice vertex of the repeat; for struct (an entry with cells) the int64
+  // index of the repeat's first cell, I x cells (the library's cell index is I n + column).
   DynBTF.origin = function (m, method, pu, pv) {
     var lat = m.lattice;
     if (!(Math.abs(pu) < lat.max_repeats && Math.abs(pv) < lat.max_repeats)) {
@@ -89,7 +94,10 @@
     if (fv >= 1) { fv -= 1; wv += 1; }
     var s = scaledInteger(lat, wu);
     var x = words(s.whole - 2n * BigInt(wv)), y = words(4n * BigInt(wv));
-    var e = m.methods[method], pw = e.plane.width, ph = e.plane.height;
+    var e = m.methods[DynBTF.methodName(m, method)];
+    if (!e) throw new Error('method ' + method + ' is not in this export (it has ' + Object.keys(m.methods).join(', ') + ')');
+    var pw = e.plane.width, ph = e.plane.height;
+    if (e.cells) { x = words(BigInt(wu) * BigInt(e.cells[0])); y = words(BigInt(wv) * BigInt(e.cells[1])); }
     return {lattice: [x[0], x[1], y[0], y[1]], phase: s.frac,
             texel: [mod(mod(wu, pw) * (e.density[0] % pw), pw), mod(mod(wv, ph) * (e.density[1] % ph), ph)],
             fraction: [fu, fv]};
@@ -99,9 +107,11 @@
   var FORMATS = {
     RGBA32F: ['RGBA32F', 'RGBA', 'FLOAT', Float32Array], RGBA16F: ['RGBA16F', 'RGBA', 'HALF_FLOAT', Uint16Array],
     RGBA8: ['RGBA8', 'RGBA', 'UNSIGNED_BYTE', Uint8Array], R32F: ['R32F', 'RED', 'FLOAT', Float32Array],
-    R16F: ['R16F', 'RED', 'HALF_FLOAT', Uint16Array], R8: ['R8', 'RED', 'UNSIGNED_BYTE', Uint8Array]
+    R16F: ['R16F', 'RED', 'HALF_FLOAT', Uint16Array], R8: ['R8', 'RED', 'UNSIGNED_BYTE', Uint8Array],
+    R16I: ['R16I', 'RED_INTEGER', 'SHORT', Int16Array]
   };
-  var UNITS = {plane: 0, lut: 1, lum: 2, fh: 3, fd: 4};
+  // texture units of the export's samplers (5..9 are left to the caller, e.g. dynbtf's query pages)
+  var UNITS = {plane: 0, lut: 1, lum: 2, fh: 3, fd: 4, cells: 10};
 
   function texture(gl, entry, buffer) {
     var f = FORMATS[entry.format];
@@ -162,12 +172,14 @@
       r.plane = texture(gl, e.plane, data.files[e.plane.file]);
       if (e.lut) r.lut = texture(gl, e.lut, data.files[e.lut.file]);
       if (e.luminance) r.lum = texture(gl, e.luminance, data.files[e.luminance.file]);
+      if (e.tables) r.cells = texture(gl, e.tables, data.files[e.tables.file]);
       r.layer1 = ubo(gl, data.files[e.layer1.file], 0, e.layer1.floats);
       self.methods[name] = r;
     });
     // 1x1 stand-ins for the samplers a method does not use (every sampler gets a texture of its type)
     var zero = {width: 1, height: 1, format: 'R32F', file: '(stand-in)'};
     this.dummy2d = texture(gl, zero, new Float32Array(1).buffer);
+    this.dummyInt = texture(gl, {width: 1, height: 1, format: 'R16I', file: '(stand-in)'}, new Int16Array(1).buffer);
   };
 
   // Compile `main` (GLSL declaring its outputs and main()) after dynbtf.glsl; `vertex` defaults to a full-screen triangle.
@@ -186,9 +198,9 @@
     return p;
   };
 
-  // Make `program` current with method `name`'s textures, tables and uniforms.
+  // Make `program` current with method `name`'s textures, tables and uniforms ('auto': the model's choice).
   DynBTF.Renderer.prototype.use = function (program, name) {
-    var gl = this.gl, r = this.methods[name];
+    var gl = this.gl, r = this.methods[DynBTF.methodName(this.manifest, name)];
     if (!r) throw new Error('method ' + name + ' is not in this export (it has ' + Object.keys(this.methods).join(', ') + ')');
     var e = r.entry;
     gl.useProgram(program);
@@ -203,6 +215,7 @@
     bind(UNITS.lum, gl.TEXTURE_2D, r.lum || this.dummy2d, 'dynbtf_lum');
     bind(UNITS.fh, gl.TEXTURE_2D_ARRAY, this.angular.fh, 'dynbtf_fh');
     bind(UNITS.fd, gl.TEXTURE_2D_ARRAY, this.angular.fd, 'dynbtf_fd');
+    bind(UNITS.cells, gl.TEXTURE_2D, r.cells || this.dummyInt, 'dynbtf_cells');
     gl.uniform1i(u('dynbtf_mode'), e.mode);
     gl.uniform2i(u('dynbtf_plane_size'), e.plane.width, e.plane.height);
     gl.uniform2i(u('dynbtf_density'), e.density[0], e.density[1]);
@@ -214,6 +227,12 @@
     gl.uniform1f(u('dynbtf_inv_step'), e.inv_step || 1.0);
     gl.uniform1i(u('dynbtf_lut_size'), e.lut ? e.lut.size : 2);
     gl.uniform1i(u('dynbtf_lut_row'), e.lut ? e.lut.row : 2);
+    var t = e.tables;  // struct: cells, cut bands, offsets and where each table starts in the texture
+    gl.uniform2i(u('dynbtf_cell_grid'), t ? e.cells[0] : 1, t ? e.cells[1] : 1);
+    gl.uniform2i(u('dynbtf_cell_margin'), t ? e.margin[0] : 0, t ? e.margin[1] : 0);
+    gl.uniform1i(u('dynbtf_cell_count'), t ? e.count : 1);
+    gl.uniform1i(u('dynbtf_cell_row'), t ? t.row : 1);
+    gl.uniform2i(u('dynbtf_cut_start'), t ? t.vertical_cuts.start : 0, t ? t.horizontal_cuts.start : 0);
     var ones = e.plane.scale.map(function () { return 1.0; }), zeros = e.plane.scale.map(function () { return 0.0; });
     gl.uniform4fv(u('dynbtf_plane_scale'), e.plane.scale);
     gl.uniform4fv(u('dynbtf_plane_bias'), e.plane.bias);
@@ -365,7 +384,9 @@
        'intensity', 'resolution'].forEach(function (id) { ui[id] = document.getElementById(id); });
       Object.keys(m.methods).forEach(function (name) {
         var o = document.createElement('option');
-        o.value = o.textContent = name;
+        o.value = name;
+        o.textContent = m.auto && m.auto.method === name ? name + ' (auto)' : name;
+        if (m.auto && m.auto.method === name) o.title = m.auto.line;
         ui.method.appendChild(o);
       });
       ui.method.value = m.default_method;
@@ -373,6 +394,7 @@
       // initial settings from the address: index.html?shape=sphere&method=hex&origin=1e6&light-theta=60 ...
       new URLSearchParams(window.location.search).forEach(function (v, k) {
         if (!ui[k]) throw new Error('unknown page parameter ' + k + ' (expected one of ' + Object.keys(ui).join(', ') + ')');
+        if (k === 'method') v = DynBTF.methodName(m, v);  // method=auto: the model's choice
         ui[k].value = v;
         if (ui[k].value !== v && ui[k].tagName === 'SELECT') throw new Error('page parameter ' + k + '=' + v + ' is not one of its choices');
       });
@@ -383,7 +405,8 @@
         ui.resolution.value = '0.25';  // software GL: a few frames per second at most
       }
       document.getElementById('info').textContent = m.kind + ' model' + (m.source ? ' ' + m.source : '') + ', ' +
-        m.precision + ' textures, ' + Object.keys(m.methods).length + ' method(s); ' +
+        m.precision + ' textures, ' + Object.keys(m.methods).length + ' method(s)' +
+        (m.auto ? ' (' + m.auto.line + ')' : '') + '; ' +
         m.channels + ' positional channels, decoder ' + m.layers + ' x ' + m.hidden + '. GL: ' + glName +
         (software ? ' (software GL: a few frames per second at most)' : '');
       function value(id) {
