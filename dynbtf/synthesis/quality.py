@@ -19,7 +19,17 @@ synthesized area with the exemplar statistically:
 * **verbatim copy** -- the fraction of synthesized texels lying within 1% of
   the channel std (L2 over standardized channels) of some exemplar texel:
   tiling and quilting copy (~1), blending methods create new values except
-  near lattice vertices.
+  near lattice vertices;
+* **structure** -- patch coherence and identity with tiling
+  (:mod:`dynbtf.synthesis.coherence`): 256 random 16 x 16 patches (a quarter of
+  the exemplar side if smaller) of a synthesized area decoded far from the origin
+  (``min(512, 4 max(H, W))`` texels per side, one pixel per texel, view (0, 0),
+  light (40, 30)) are matched against every wrapped position of the decoded
+  exemplar. ``coherence_median`` / ``coherence_p90``: the best match's mean squared
+  difference over the median of random exemplar patch pairs (0 = every patch
+  exists in the exemplar, ~1 = as foreign as random patches); ``identity``: the
+  share of patches whose best match is where plain tiling would read (1 for
+  tiling, low for a synthesis that reshuffles).
 
 The area is sampled at texel centres, ``repeats x repeats`` exemplar repeats,
 **reduced** so that it fits ``max_side`` texels per side (default 1024: 8 repeats
@@ -41,6 +51,7 @@ from scipy.stats import wasserstein_distance
 from ..conventions import spherical_to_direction
 from ..errors import InputError
 from ..io import atomic_path
+from .coherence import synthesized_coherence
 from .lattice import LATTICE_SCALE
 
 __all__ = ["quality_report", "format_report", "save_report", "repetition_score", "verbatim_fraction",
@@ -181,19 +192,26 @@ def quality_report(btf, *, repeats: int = 8, max_side: int = 1024, pairs=DEFAULT
                          "std_ratio": (syn_rgb.std(0) / np.maximum(ex_rgb.std(0), 1e-12)).tolist()})
     report["rgb"] = rgb_rows
     report["rgb_w1_over_std_max"] = float(max(max(r["w1_over_std"]) for r in rgb_rows))
+    coherence = synthesized_coherence(btf, seed=seed)
+    report["structure"] = {"coherence_median": coherence["median"], "coherence_p90": coherence["p90"],
+                           "identity": coherence["identity"],
+                           **{k: coherence[k] for k in ("patch", "patches", "side", "view", "light", "origin")}}
     return report
 
 
 def format_report(reports: list[dict[str, Any]]) -> str:
     """A plain-text table of one row per report (method)."""
     head = f"{'method':<8} {'W1/std feat (mean/max)':>23} {'sliced':>7} {'std ratio (min)':>15} {'W1/std RGB (max)':>16} " \
-           f"{'repetition':>10} {'verbatim':>8} {'storage':>10}"
+           f"{'repetition':>10} {'verbatim':>8} {'coh p90':>7} {'identity':>8} {'storage':>10}"
     rows = [head, "-" * len(head)]
     for r in reports:
+        structure = r.get("structure")  # absent from reports saved before the structure measures
+        coherence = f"{structure['coherence_p90']:>7.3f} {structure['identity']:>8.3f}" if structure \
+            else f"{'-':>7} {'-':>8}"
         rows.append(f"{r['method']:<8} {r['feature_w1_over_std_mean']:>11.4f} / {r['feature_w1_over_std_max']:<9.4f} "
                     f"{r['feature_sliced_w1_over_std']:>7.4f} "
                     f"{min(r['feature_std_ratio']):>15.3f} {r['rgb_w1_over_std_max']:>16.4f} "
-                    f"{r['repetition']['score']:>10.3f} {r['verbatim_fraction']:>8.3f} "
+                    f"{r['repetition']['score']:>10.3f} {r['verbatim_fraction']:>8.3f} {coherence} "
                     f"{r['synthesizer_storage_bytes'] / 1e6:>8.2f}MB")
     for area in dict.fromkeys((r["area_repeats"], tuple(r["area_texels"]), r.get("area_repeats_requested"),
                                r.get("max_side")) for r in reports):
