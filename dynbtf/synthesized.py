@@ -72,6 +72,9 @@ __all__ = ["SynthesizedBTF", "PRECISIONS", "footprint_width"]
 
 #: Accepted ``precision`` values: dtype of decoder layers 2.. on the fast path.
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16}
+#: (view, light) pairs, (theta, phi) in degrees, under which ``struct`` and ``auto`` see the exemplar's
+#: structure (normal view and light, a slanted pair, a grazing-ish pair from other azimuths).
+APPEARANCE_PAIRS = (((0.0, 0.0), (0.0, 0.0)), ((30.0, 0.0), (45.0, 180.0)), ((60.0, 90.0), (30.0, 270.0)))
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 
 
@@ -209,10 +212,12 @@ class SynthesizedBTF:
     model : Representation or str or Path
         A fitted representation with a positional plane (or a model file path,
         loaded with :func:`dynbtf.representations.model_file.load_model`).
-    synthesizer : str or Synthesizer, default "hist"
-        A method name (``tile``, ``linear``, ``hist``, ``hex``, ``quilt``) built on
-        the model's positional plane with ``seed`` and ``**params``, or a
-        ready synthesizer (then ``seed`` and ``params`` must be left out).
+    synthesizer : str or Synthesizer, default "auto"
+        A method name (``tile``, ``linear``, ``hist``, ``hex``, ``quilt``, ``struct``) built on
+        the model's positional plane with ``seed`` and ``**params``, or ``auto``: ``struct`` for
+        structured materials, ``hist`` otherwise, chosen from the model's decoded appearance
+        (:func:`dynbtf.synthesis.auto.choose_method`; ``self.synthesizer.choice.line`` says why),
+        or a ready synthesizer (then ``seed`` and ``params`` must be left out).
     scale : float, default 1.0
         Exemplar repeats per unit of the user's ``uv`` (positive).
     seed : int, default 0
@@ -252,7 +257,7 @@ class SynthesizedBTF:
     torch.Size([2, 3])
     """
 
-    def __init__(self, model, synthesizer: str | Synthesizer = "hist", scale: float = 1.0, seed: int = 0, *,
+    def __init__(self, model, synthesizer: str | Synthesizer = "auto", scale: float = 1.0, seed: int = 0, *,
                  chunk_size: int = 32768, precision: str = "fp32", workers: int | None = None,
                  device: str | torch.device | None = None, level_decoders: bool = True, **params) -> None:
         if device is not None:
@@ -294,6 +299,8 @@ class SynthesizedBTF:
             elif isinstance(synthesizer, str):
                 if synthesizer == "hex" and "luminance" not in params:
                     params["luminance"] = self._decoded_luminance(plane)
+                if synthesizer in ("auto", "struct") and "guide" not in params:
+                    params["guide"] = self._decoded_appearance(plane)
                 self.synthesizer = make_synthesizer(synthesizer, plane, seed=seed, **params)
             else:
                 raise InputError(f"synthesizer: expected a method name or a Synthesizer, got {type(synthesizer).__name__}")
@@ -318,6 +325,20 @@ class SynthesizedBTF:
         rgb = torch.cat([self.model.decode(chunk, n, n) for chunk, n in
                          zip(plane.reshape(h * w, -1).split(self.chunk_size), up.split(self.chunk_size))])
         return (rgb.float() @ torch.tensor([0.2126, 0.7152, 0.0722], device=rgb.device)).reshape(h, w)
+
+    def _decoded_appearance(self, plane: torch.Tensor) -> torch.Tensor:
+        """The exemplar decoded under :data:`APPEARANCE_PAIRS`, ``(H, W, 3 * pairs)`` (the guide of ``struct``/``auto``)."""
+        h, w, _ = plane.shape
+        rows = plane.reshape(h * w, -1)
+        images = []
+        for view, light in APPEARANCE_PAIRS:
+            wv = spherical_to_direction(np.array(view[0]), np.array(view[1]))
+            wl = spherical_to_direction(np.array(light[0]), np.array(light[1]))
+            wv = torch.as_tensor(wv, dtype=plane.dtype, device=plane.device).expand(h * w, 3)
+            wl = torch.as_tensor(wl, dtype=plane.dtype, device=plane.device).expand(h * w, 3)
+            images.append(torch.cat([self.model.decode(chunk, a, b) for chunk, a, b in
+                                     zip(rows.split(self.chunk_size), wv.split(self.chunk_size), wl.split(self.chunk_size))]))
+        return torch.cat(images, -1).float().reshape(h, w, -1)
 
     def _fold_first_layer(self) -> dict[str, Any] | None:
         """Layer-1 positional weights with the synthesizer's output map folded in (fast path), or None."""

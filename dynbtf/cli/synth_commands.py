@@ -88,7 +88,7 @@ def synth(
     gamma: Optional[float] = typer.Option(None, "--gamma", help="Blending exponent of hist (weights b^gamma; default "
                                                                  "7; 1 = Heitz & Neyret's smooth blending, whose decoded "
                                                                  "colours are over-contrasted on fitted models; see "
-                                                                 "docs/synthesis.md). Applies to hist only."),
+                                                                 "docs/synthesis.md). Applies to hist only (and to auto when it chooses hist)."),
     report: bool = typer.Option(False, "--report", help="Also measure synthesis quality (W1/std of features and "
                                                         "RGB, repetition, verbatim copies, patch coherence and "
                                                         "identity with tiling) and print a table."),
@@ -109,7 +109,6 @@ def synth(
     from ..device import resolve_device
     from ..io import save_image
     from ..representations.model_file import load_model
-    from ..synthesis.auto import choose_method
     from ..synthesis.base import check_uv
     from ..synthesized import SynthesizedBTF
     from .arguments import check_exposure, parse_theta_phi
@@ -132,14 +131,12 @@ def synth(
         if (output is not None and method == "quilt") or "quilt" in methods else None
 
     def build(name: str) -> SynthesizedBTF:
-        if name == "auto":
-            choice = choose_method(rep.positional_plane().detach())
-            typer.echo(choice.line)
-            name = choice.method
         params = {"repeats": float(quilt_size), "progress": True} if name == "quilt" else {}
-        if name == "hist" and gamma is not None:
-            params["gamma"] = gamma
+        if name in ("hist", "auto") and gamma is not None:
+            params["gamma"] = gamma  # auto: used if it chooses hist
         btf = SynthesizedBTF(rep, name, scale=scale, seed=seed, **params)
+        if btf.synthesizer.choice is not None:
+            typer.echo(btf.synthesizer.choice.line)
         if name == "quilt":
             size = btf.synthesizer.size
             typer.echo(f"quilt: {quilt_size} x {quilt_size} exemplar repeats = {size[0]} x {size[1]} texels, "

@@ -3,7 +3,8 @@
 Structured exemplars (weaves, tiles, bricks: strong autocorrelation peaks away from zero lag,
 :mod:`.structure`) are synthesized with lattice-aligned cell quilting (``struct``), which keeps
 their elements intact; stochastic ones with histogram-preserving blending (``hist``), which
-never repeats and keeps the histogram. The choice and its evidence are one line,
+never repeats and keeps the histogram. A fitted model's appearance is measured rather than its feature plane when the caller gives it
+(``guide``; :class:`dynbtf.synthesized.SynthesizedBTF` does). The choice and its evidence are one line,
 :attr:`MethodChoice.line`, that every command prints.
 
 Examples
@@ -44,7 +45,11 @@ class MethodChoice:
                 f"{STRUCTURE_THRESHOLD:.2f}")
 
 
-def choose_method(exemplar) -> MethodChoice:
-    """``struct`` for a structured ``exemplar (H, W, C)``, else ``hist`` (see the module docstring)."""
-    analysis = analyze_structure(exemplar)
+def choose_method(exemplar, guide=None) -> MethodChoice:
+    """``struct`` for a structured ``exemplar (H, W, C)``, else ``hist`` (see the module docstring).
+
+    ``guide (H, W, G)``, when given, is measured instead: the exemplar's appearance (e.g. a fitted
+    model's decoded colours; :class:`~dynbtf.synthesis.cell_quilting.CellQuilting`'s ``guide``).
+    """
+    analysis = analyze_structure(exemplar if guide is None else guide)
     return MethodChoice("struct" if analysis.structured else "hist", analysis)

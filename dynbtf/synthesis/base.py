@@ -78,26 +78,38 @@ def synthesizer_class(name: str) -> type["Synthesizer"]:
         raise InputError(f"synthesis method {name!r} is unknown; expected one of {sorted(SYNTHESIZERS) + ['auto']}") from None
 
 
+def _accepted(cls) -> list[str]:
+    """The method parameters of a synthesizer class (its constructor's keywords besides exemplar and seed)."""
+    return [p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "exemplar", "seed")]
+
+
 def make_synthesizer(name: str, exemplar, seed: int = 0, **params) -> "Synthesizer":
     """Build the synthesizer ``name`` on ``exemplar (H, W, C)`` with ``seed`` and method ``params``.
 
     ``name = "auto"`` chooses ``struct`` or ``hist`` from the exemplar's structure
     (:func:`dynbtf.synthesis.auto.choose_method`); the built synthesizer's ``choice`` attribute
-    then holds the :class:`~dynbtf.synthesis.auto.MethodChoice` (else None). Unknown parameter
-    names raise :class:`InputError` listing the accepted ones.
+    then holds the :class:`~dynbtf.synthesis.auto.MethodChoice` (else None); ``auto`` passes each
+    parameter to the chosen method if it takes it (``guide`` is also measured by the choice; ``gamma``
+    applies if ``hist`` is chosen). Unknown parameter names raise :class:`InputError` listing the
+    accepted ones.
     """
     choice = None
     if name == "auto":
         from .auto import choose_method
 
-        choice = choose_method(Synthesizer.check_exemplar(exemplar))
+        choice = choose_method(Synthesizer.check_exemplar(exemplar), params.get("guide"))
+        candidates = {m: _accepted(synthesizer_class(m)) for m in ("struct", "hist")}
+        unknown = sorted(set(params) - set().union(*candidates.values()))
+        if unknown:
+            raise InputError(f"synthesis method 'auto': unknown parameter(s) {unknown}; accepted: "
+                             f"{sorted(set().union(*candidates.values()))} (each passed to the method that takes it)")
         name = choice.method
+        params = {k: v for k, v in params.items() if k in candidates[name]}
     cls = synthesizer_class(name)
-    accepted = [p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "exemplar", "seed")]
+    accepted = _accepted(cls)
     unknown = sorted(set(params) - set(accepted))
     if unknown:
-        chosen = f" (chosen by 'auto': {choice.line})" if choice is not None else ""
-        raise InputError(f"synthesis method {name!r}{chosen}: unknown parameter(s) {unknown}; accepted: {accepted}")
+        raise InputError(f"synthesis method {name!r}: unknown parameter(s) {unknown}; accepted: {accepted}")
     synth = cls(exemplar, seed=seed, **params)
     synth.choice = choice
     return synth

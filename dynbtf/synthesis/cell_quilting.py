@@ -10,7 +10,11 @@ by the integer hash of the cell's index and the seed (:mod:`.hash`)::
     features(p) = E(p + o[k(cell(p))])        (texels, E read with wrap addressing)
 
 The offsets are the exemplar's own translational lattice: ``o[0] = (0, 0)`` and the
-strongest peaks of its autocorrelation (:mod:`.structure`). A copy shifted by a lattice
+strongest peaks of its autocorrelation (:mod:`.structure`), measured on a ``guide`` when one is
+given: what the plane looks like, e.g. a fitted model's colours decoded under a few lights
+(:class:`dynbtf.synthesized.SynthesizedBTF` passes them). A fitted feature plane spreads its
+variance over many channels, fine detail included, so its own autocorrelation peaks are weaker
+(0.31 at the simulated woven fabric's lattice against 0.96 for its decoded colours). A copy shifted by a lattice
 vector puts every yarn, joint and tile edge where the unshifted copy has one, so neighbouring
 cells continue each other's structure and differ only in the elements' own variation
 (each tile's tint, each brick's colour, each thread's twist).
@@ -60,7 +64,7 @@ from .mip import LevelOfDetail, PlanePyramid
 from .quilting import min_error_cut
 from .structure import StructureAnalysis, analyze_structure
 
-__all__ = ["CellQuilting", "CellTables", "build_cell_tables", "DEFAULT_OFFSETS", "MIN_CELL_TEXELS"]
+__all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "DEFAULT_OFFSETS", "MIN_CELL_TEXELS"]
 
 #: Default number of lattice offsets a cell chooses from (``K``).
 DEFAULT_OFFSETS = 16
@@ -150,13 +154,37 @@ def lattice_offsets(analysis: StructureAnalysis, count: int) -> tuple[np.ndarray
     return np.array(chosen, dtype=np.int64), np.array(values)
 
 
+def _standardized(plane: np.ndarray) -> np.ndarray:
+    """Channels minus their mean over their standard deviation, all divided by ``sqrt(channels)``."""
+    z = (plane - plane.mean((0, 1))) / np.maximum(plane.std((0, 1)), 1e-12)
+    return z / np.sqrt(plane.shape[-1])
+
+
+def check_guide(guide, exemplar: torch.Tensor) -> np.ndarray | None:
+    """Validate a guide plane: None, or a finite ``(H, W, G)`` array/tensor of the exemplar's size -> float64."""
+    if guide is None:
+        return None
+    g = guide.detach().cpu().numpy() if isinstance(guide, torch.Tensor) else np.asarray(guide)
+    h, w = exemplar.shape[:2]
+    if g.ndim == 2:
+        g = g[..., None]
+    if g.ndim != 3 or g.shape[:2] != (h, w) or not g.shape[2]:
+        raise InputError(f"guide: expected a plane of shape ({h}, {w}, G) like the exemplar's, got shape {g.shape}")
+    g = g.astype(np.float64)
+    if not np.isfinite(g).all():
+        raise InputError("guide: contains NaN or infinite values")
+    return g
+
+
 def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS, cells="auto",
-                      margin: float = 0.25) -> CellTables:
+                      margin: float = 0.25, guide=None) -> CellTables:
     """The offsets and cut tables of cell quilting for ``exemplar (H, W, C)`` (see the module docstring).
 
     ``offsets``: most copies ``K`` (2..64); ``cells``: cells per repeat, an int or ``(nx, ny)`` or
     ``"auto"`` (2 per axis where the side is even and at least 32 texels, else 1); ``margin``: half-width
-    of the cut bands as a fraction of the cell side (0 < margin <= 0.5).
+    of the cut bands as a fraction of the cell side (0 < margin <= 0.5); ``guide``: optional ``(H, W, G)``
+    appearance of the exemplar: the lattice is found on it, and the cuts weigh its differences equally
+    with the exemplar's.
     """
     start = time.perf_counter()
     if isinstance(offsets, bool) or not isinstance(offsets, (int, np.integer)) or not 1 <= int(offsets) <= 64:
@@ -172,11 +200,13 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
     nx, ny = _cells_per_repeat(w, cx, "u"), _cells_per_repeat(h, cy, "v")
     tx, ty = w // nx, h // ny
     mx, my = max(1, int(margin * tx)), max(1, int(margin * ty))
-    analysis = analyze_structure(exemplar)
+    guide = check_guide(guide, exemplar)
+    analysis = analyze_structure(exemplar if guide is None else guide)
     chosen, values = lattice_offsets(analysis, int(offsets))
     k = chosen.shape[0]
-    x = exemplar.detach().cpu().numpy().astype(np.float64)
-    z = (x - x.mean((0, 1))) / np.maximum(x.std((0, 1)), 1e-12)
+    z = _standardized(exemplar.detach().cpu().numpy().astype(np.float64))
+    if guide is not None:
+        z = np.concatenate([z, _standardized(guide)], -1)
 
     def band_errors(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Squared differences ``(K, K, len(rows), len(cols))`` between every two copies over a band."""
@@ -220,6 +250,8 @@ class CellQuilting(Synthesizer):
         the side is even and at least 32 texels, else 1.
     margin : float, default 0.25
         Half-width of the cut bands, as a fraction of the cell side.
+    guide : array ``(H, W, G)``, optional
+        The exemplar's appearance (e.g. decoded colours): finds the lattice and guides the cuts.
     fast : bool, optional
         Use the fused numba kernel (default: when the exemplar is on the CPU).
     prepared : CellTables, optional
@@ -227,13 +259,13 @@ class CellQuilting(Synthesizer):
     """
 
     def __init__(self, exemplar, seed: int = 0, *, offsets: int = DEFAULT_OFFSETS, cells="auto", margin: float = 0.25,
-                 fast: bool | None = None, prepared: CellTables | None = None) -> None:
+                 guide=None, fast: bool | None = None, prepared: CellTables | None = None) -> None:
         super().__init__(exemplar, seed)
         self.fast = self.device.type == "cpu" if fast is None else bool(fast)
         if self.fast and self.device.type != "cpu":
             raise InputError(f"fast: the fused kernel runs on the CPU; the exemplar is on {self.device}")
         if prepared is None:
-            prepared = build_cell_tables(self.exemplar, offsets=offsets, cells=cells, margin=margin)
+            prepared = build_cell_tables(self.exemplar, offsets=offsets, cells=cells, margin=margin, guide=guide)
         elif not isinstance(prepared, CellTables):
             raise InputError(f"prepared: expected the CellTables of a 'struct' synthesizer, got {type(prepared).__name__}")
         h, w, _ = self.exemplar.shape
