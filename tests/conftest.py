@@ -48,3 +48,17 @@ def small_level_decoder_fit():
         patch.setattr(synthesized, "LEVEL_FIT_STEPS", 300)
         patch.setattr(synthesized, "LEVEL_FIT_BATCH", 1024)
         yield
+
+
+@pytest.fixture(scope="session", autouse=True)
+def private_table_cache(tmp_path_factory):
+    """Synthesis tables (``struct``'s cut tables) are cached in a directory of this test session, not the user's."""
+    import os
+
+    previous = os.environ.get("DYNBTF_SYNTHESIS_CACHE")
+    os.environ["DYNBTF_SYNTHESIS_CACHE"] = str(tmp_path_factory.mktemp("synthesis-cache"))
+    yield
+    if previous is None:
+        os.environ.pop("DYNBTF_SYNTHESIS_CACHE", None)
+    else:
+        os.environ["DYNBTF_SYNTHESIS_CACHE"] = previous

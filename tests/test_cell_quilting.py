@@ -89,8 +89,6 @@ def test_auto_chooses_struct_for_lattices_and_hist_for_noise():
     synth = make_synthesizer("auto", _lattice_exemplar(), seed=3)
     assert isinstance(synth, CellQuilting) and synth.choice.method == "struct" and synth.seed == 3
     assert make_synthesizer("hist", _lattice_exemplar()).choice is None
-    with pytest.raises(InputError, match="chosen by 'auto'.*gamma"):
-        make_synthesizer("auto", _lattice_exemplar(), gamma=3.0)
 
 
 # ---------------------------------------------------------------- the method
@@ -194,3 +192,50 @@ def test_bad_parameters_name_the_argument_and_the_limit():
         CellQuilting(exemplar, prepared=other.prepared)
     with pytest.raises(InputError, match="unknown; expected one of .*'auto'"):
         make_synthesizer("wang", exemplar)
+
+
+def test_tables_are_cached_by_content_and_a_damaged_entry_is_rebuilt(tmp_path, monkeypatch):
+    monkeypatch.setenv("DYNBTF_SYNTHESIS_CACHE", str(tmp_path))
+    exemplar = _lattice_exemplar()
+    first = CellQuilting(exemplar, seed=1)
+    assert first.prepared.source == "stored"
+    entries = list(tmp_path.glob("struct-*.npz"))
+    assert len(entries) == 1
+    again = CellQuilting(exemplar.clone(), seed=2)  # same contents, another seed: the same tables
+    assert again.prepared.source == "cached"
+    for name in ("offsets", "vertical_cuts", "horizontal_cuts"):
+        assert torch.equal(getattr(again.prepared, name), getattr(first.prepared, name))
+    assert CellQuilting(exemplar + 1e-3, seed=1).prepared.source == "stored"  # other contents: another entry
+    assert CellQuilting(exemplar, seed=1, offsets=4).prepared.source == "stored"  # other parameters too
+    # flip bytes inside the stored cut table: detected, warned about, rebuilt and replaced
+    data = bytearray(entries[0].read_bytes())
+    at = data.find(b"vertical_cuts") + 200
+    data[at:at + 8] = bytes(8)
+    entries[0].write_bytes(bytes(data))
+    with pytest.warns(UserWarning, match="is damaged"):
+        rebuilt = CellQuilting(exemplar, seed=1)
+    assert rebuilt.prepared.source == "rebuilt"
+    assert torch.equal(rebuilt.prepared.vertical_cuts, first.prepared.vertical_cuts)
+    assert CellQuilting(exemplar, seed=1).prepared.source == "cached"
+    entries[0].write_bytes(b"not a zip file")
+    with pytest.warns(UserWarning, match="is damaged"):
+        assert CellQuilting(exemplar, seed=1).prepared.source == "rebuilt"
+    monkeypatch.setenv("DYNBTF_SYNTHESIS_CACHE", "off")
+    assert CellQuilting(exemplar, seed=1).prepared.source == "built"
+
+
+def test_guide_finds_the_lattice_that_noisy_features_hide():
+    rng = np.random.default_rng(5)
+    appearance = _lattice_exemplar(channels=3).numpy()
+    features = np.concatenate([appearance, rng.normal(size=(32, 32, 13)) * 3.0], -1)  # mostly noise channels
+    assert choose_method(features).method == "hist"
+    assert choose_method(features, guide=appearance).method == "struct"
+    synth = make_synthesizer("auto", torch.from_numpy(features.astype(np.float32)), guide=appearance, gamma=3.0)
+    assert isinstance(synth, CellQuilting)  # gamma was hist's: not passed to struct
+    assert ((synth.prepared.offsets.numpy() % 8) == 0).all()
+    hist = make_synthesizer("auto", torch.from_numpy(features.astype(np.float32)), gamma=3.0)
+    assert hist.name == "hist" and hist.gamma == 3.0
+    with pytest.raises(InputError, match="guide: expected a plane of shape \\(32, 32, G\\)"):
+        CellQuilting(torch.from_numpy(features.astype(np.float32)), guide=np.zeros((16, 16, 3)))
+    with pytest.raises(InputError, match="'auto': unknown parameter\\(s\\) \\['bogus'\\]"):
+        make_synthesizer("auto", torch.from_numpy(features.astype(np.float32)), bogus=1)

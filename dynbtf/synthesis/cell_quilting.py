@@ -27,7 +27,8 @@ between yarns). A query needs its own cell's hash, and near an edge the neighbou
 one table entry; it reads one bilinear sample. Where the two cuts of a corner both claim
 a point, it takes the diagonal cell.
 
-Tables (built once per exemplar and parameters, ``prepared``): the offsets ``(K, 2)``,
+Tables (built once per exemplar, guide and parameters, ``prepared``, and kept in the on-disk
+table cache of :mod:`.table_cache`): the offsets ``(K, 2)``,
 the vertical edges' cuts ``(nx, ny, K, K, T_y)`` and the horizontal edges' ``(nx, ny, K, K, T_x)``
 (int16, texels relative to the straight edge). Texel density is the exemplar's; any
 ``uv`` below ``2**52`` repeats is exact (the cell index is an int64 computed from the repeat
@@ -63,8 +64,9 @@ from .lattice import split_uv
 from .mip import LevelOfDetail, PlanePyramid
 from .quilting import min_error_cut
 from .structure import StructureAnalysis, analyze_structure
+from .table_cache import cached_tables
 
-__all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "DEFAULT_OFFSETS", "MIN_CELL_TEXELS"]
+__all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "cached_cell_tables", "DEFAULT_OFFSETS", "MIN_CELL_TEXELS"]
 
 #: Default number of lattice offsets a cell chooses from (``K``).
 DEFAULT_OFFSETS = 16
@@ -109,6 +111,29 @@ class CellTables:
     strength: float
     peak_values: np.ndarray
     build_seconds: float = 0.0
+
+    #: How these tables were obtained: "built", "cached" (read from the table cache), "stored" (built and
+    #: written to it) or "rebuilt" (a damaged cache entry replaced); see :mod:`.table_cache`.
+    source: str = "built"
+
+    ARRAYS = ("offsets", "cells", "margin", "vertical_cuts", "horizontal_cuts", "strength", "peak_values",
+              "build_seconds")
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The tables as named numpy arrays (the table cache's entry)."""
+        return {"offsets": self.offsets.numpy(), "cells": np.array(self.cells, dtype=np.int64),
+                "margin": np.array(self.margin, dtype=np.int64), "vertical_cuts": self.vertical_cuts.numpy(),
+                "horizontal_cuts": self.horizontal_cuts.numpy(), "strength": np.array(self.strength),
+                "peak_values": np.asarray(self.peak_values, dtype=np.float64), "build_seconds": np.array(self.build_seconds)}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], source: str) -> "CellTables":
+        return cls(offsets=torch.from_numpy(arrays["offsets"].astype(np.int64)),
+                   cells=tuple(int(n) for n in arrays["cells"]), margin=tuple(int(m) for m in arrays["margin"]),
+                   vertical_cuts=torch.from_numpy(arrays["vertical_cuts"].astype(np.int16)),
+                   horizontal_cuts=torch.from_numpy(arrays["horizontal_cuts"].astype(np.int16)),
+                   strength=float(arrays["strength"]), peak_values=arrays["peak_values"],
+                   build_seconds=float(arrays["build_seconds"]), source=source)
 
     @property
     def count(self) -> int:
@@ -230,6 +255,27 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
                       strength=analysis.strength, peak_values=values, build_seconds=time.perf_counter() - start)
 
 
+def cached_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS, cells="auto", margin: float = 0.25,
+                       guide=None) -> CellTables:
+    """:func:`build_cell_tables` through the on-disk table cache (:mod:`.table_cache`), keyed by the
+    exemplar's and the guide's contents and the parameters."""
+    guide_array = check_guide(guide, exemplar)
+    parameters = {"offsets": repr(offsets), "cells": repr(cells), "margin": repr(margin)}  # reprs: exact and stable
+    inputs = {"exemplar": exemplar.detach().cpu().numpy(),
+              "guide": None if guide_array is None else guide_array.astype(np.float32)}
+    built: list[CellTables] = []
+
+    def build() -> dict[str, np.ndarray]:
+        built.append(build_cell_tables(exemplar, offsets=offsets, cells=cells, margin=margin, guide=guide_array))
+        return built[0].to_arrays()
+
+    arrays, source = cached_tables("struct", parameters, inputs, CellTables.ARRAYS, build)
+    if built:
+        built[0].source = source
+        return built[0]
+    return CellTables.from_arrays(arrays, source)
+
+
 def cell_choice(cell_x, cell_y, seed: int, count: int):
     """Offset index ``hash(cell_x, cell_y, seed) mod K`` of int64 cells (numpy, torch or numba scalars)."""
     return hash_vertex(cell_x, cell_y, seed) % count
@@ -265,7 +311,7 @@ class CellQuilting(Synthesizer):
         if self.fast and self.device.type != "cpu":
             raise InputError(f"fast: the fused kernel runs on the CPU; the exemplar is on {self.device}")
         if prepared is None:
-            prepared = build_cell_tables(self.exemplar, offsets=offsets, cells=cells, margin=margin, guide=guide)
+            prepared = cached_cell_tables(self.exemplar, offsets=offsets, cells=cells, margin=margin, guide=guide)
         elif not isinstance(prepared, CellTables):
             raise InputError(f"prepared: expected the CellTables of a 'struct' synthesizer, got {type(prepared).__name__}")
         h, w, _ = self.exemplar.shape
@@ -362,7 +408,8 @@ class CellQuilting(Synthesizer):
     def parameters(self) -> dict[str, Any]:
         t = self.prepared
         return {"offsets": t.count, "cells": list(t.cells), "margin": list(t.margin), "fast": self.fast,
-                "structure_strength": round(t.strength, 4), "build_seconds": round(t.build_seconds, 3)}
+                "structure_strength": round(t.strength, 4), "build_seconds": round(t.build_seconds, 3),
+                "tables": t.source}
 
     def storage_bytes(self) -> int:
         return self.prepared.storage_bytes()
