@@ -380,3 +380,54 @@ def test_every_synthesis_method_in_numba_and_drjit_is_the_torch_reference(mi, me
     u = mi.Float64(uv[:, 0]) if precise else mi.Float(uv[:, 0].astype(np.float32))
     v = mi.Float64(uv[:, 1]) if precise else mi.Float(uv[:, 1].astype(np.float32))
     np.testing.assert_allclose(as_numpy(twin.features(u, v)), want, atol=5e-5 * scale)
+
+
+# ---------------------------------------------------------------------------- cell quilting (struct)
+@pytest.mark.parametrize("seed", [9, 2 ** 32 + 5])
+def test_cell_quilting_in_numba_and_drjit_is_the_torch_reference(mi, seed):
+    """struct: torch path = numba kernel = Dr.Jit twin (values to float rounding); the twin's read positions and
+    chosen offset indices are the torch path's bit for bit, near the origin and 2**45 repeats from it (int64
+    cell indices beyond any int32), on both sides; near cell edges neighbours' and diagonal cells' offsets are taken."""
+    from dynbtf.render.drjit_synthesis import make_dr_synthesizer
+    from dynbtf.synthesis.base import make_synthesizer
+    from dynbtf.synthesis.cell_quilting import cell_choice
+
+    rng = np.random.default_rng(45)
+    exemplar = torch.from_numpy(np.tile(rng.random((8, 8, 4)), (4, 4, 1)) + 0.1 * rng.random((32, 32, 4))).float()
+    reference = make_synthesizer("struct", exemplar, seed=seed, fast=False)  # the torch path, float64 positions
+    fast = make_synthesizer("struct", exemplar, seed=seed, fast=True, prepared=reference.prepared)  # numba
+    tables = reference.prepared
+    assert tables.count > 4 and tables.cells == (2, 2)  # a lattice to choose from, two cells per repeat
+    twin = make_dr_synthesizer(reference)
+    n = 4000
+    for origin in (0.0, 2.0 ** 45, -(2.0 ** 45)):
+        uv = origin + (rng.random((n, 2)) - 0.5) * (60.0 if origin == 0.0 else 6.0)
+        u, v = mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1])
+        positions, chosen = reference.read_positions(torch.from_numpy(uv))
+        x, y, got = twin.read_positions(u, v)
+        np.testing.assert_array_equal(np.array(got, dtype=np.int64), chosen.numpy())
+        np.testing.assert_allclose(np.stack([np.array(x), np.array(y)], -1), positions.numpy(), rtol=0, atol=1e-9)
+        # the cells (int64 from the repeat index and the fraction) and how often a neighbour's offset is read
+        whole = np.floor(uv).astype(np.int64)
+        texel = np.minimum(np.floor((uv - np.floor(uv)) * 32).astype(np.int64), 31)
+        cx, cy = whole[:, 0] * 2 + texel[:, 0] // 16, whole[:, 1] * 2 + texel[:, 1] // 16
+        if origin != 0.0:
+            assert np.abs(cx).min() > 2 ** 45 or np.abs(cy).min() > 2 ** 45
+        k = tables.count
+
+        def choice(dx, dy):
+            return cell_choice(torch.from_numpy(cx + dx), torch.from_numpy(cy + dy), seed, k).numpy()
+
+        own = choice(0, 0)
+        moved = chosen.numpy() != own
+        assert 0.05 < moved.mean() < 0.5, moved.mean()
+        axis = np.zeros(n, bool)
+        for dx, dy in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            axis |= chosen.numpy() == choice(dx, dy)
+        assert (moved & ~axis).sum() > 20  # lanes past both cuts of a corner: the diagonal cell's offset
+        want = reference(torch.from_numpy(uv)).double().numpy()
+        scale = np.abs(want).max()
+        np.testing.assert_allclose(fast(torch.from_numpy(uv)).double().numpy(), want, rtol=0, atol=2e-5 * scale)
+        features = as_numpy(twin.features(u, v))
+        np.testing.assert_allclose(features, want, rtol=0, atol=5e-5 * scale)
+        np.testing.assert_array_equal(np.array(twin.channel(u, v, 2), dtype=np.float64), features[:, 2])

@@ -18,8 +18,9 @@ from ..synthesis import hash as synthesis_hash
 from ..synthesis import lattice as synthesis_lattice
 from .drjit_ops import drjit_module, fetch_wrap, flat_array, gather_channels, mi_module, wrap01
 
-__all__ = ["mix32", "hash_vertex", "vertex_offsets", "triangle_lattice", "lut_lookup", "DrTiling",
-           "DrLatticeBlending", "DrLevelOfDetail", "DrPyramid", "make_dr_synthesizer"]
+__all__ = ["mix32", "fold_coordinate", "hash_vertex", "vertex_offsets", "triangle_lattice", "split_repeats",
+           "lut_lookup", "DrTiling", "DrCellQuilting", "DrLatticeBlending", "DrLevelOfDetail", "DrPyramid",
+           "make_dr_synthesizer"]
 
 
 # ---------------------------------------------------------------- integer hash (dynbtf.synthesis.hash)
@@ -33,19 +34,29 @@ def mix32(x):
 
 
 def _words(k):
-    """Low and high 32-bit words of an ``mi.Int32`` sign-extended to 64 bits, as ``mi.UInt32``."""
+    """Low and high 32-bit words (``mi.UInt32``) of an ``mi.Int32`` sign-extended to 64 bits, or of an ``mi.Int64``."""
     mi, dr = mi_module(), drjit_module()
+    if dr.type_v(k) == dr.VarType.Int64:  # the casts truncate; >> is arithmetic: Python's (k >> 32) & MASK32
+        return mi.UInt32(k), mi.UInt32(k >> 32)
     return mi.UInt32(k), dr.select(k < 0, mi.UInt32(0xFFFFFFFF), mi.UInt32(0))
 
 
-def hash_vertex(vx, vy, seed: int):
-    """:func:`dynbtf.synthesis.hash.hash_vertex` for ``mi.Int32`` vertices: identical 32-bit values."""
-    mi = mi_module()
-    h = mi.UInt32(int(synthesis_hash.mix32((int(seed) ^ synthesis_hash.SEED_SALT) & synthesis_hash.MASK32)))
-    lo, hi = _words(vx)
-    h = mix32(mix32(h ^ lo) ^ hi)
-    lo, hi = _words(vy)
+def fold_coordinate(h, k):
+    """:func:`dynbtf.synthesis.hash.fold_coordinate`: the low then the high word of ``k`` (``mi.Int32`` or
+    ``mi.Int64``) folded into the hash state ``h`` (``mi.UInt32`` or a Python int)."""
+    lo, hi = _words(k)
     return mix32(mix32(h ^ lo) ^ hi)
+
+
+def _seed_state(seed: int) -> int:
+    """:func:`dynbtf.synthesis.hash.seed_state` of ``seed`` (a Python int: a literal of the kernel)."""
+    return int(synthesis_hash.seed_state(int(seed)))
+
+
+def hash_vertex(vx, vy, seed: int):
+    """:func:`dynbtf.synthesis.hash.hash_vertex` for ``mi.Int32`` (or ``mi.Int64``) vertices: identical 32-bit values."""
+    mi = mi_module()
+    return fold_coordinate(fold_coordinate(mi.UInt32(_seed_state(seed)), vx), vy)
 
 
 def vertex_offsets(vx, vy, seed: int, width: int, height: int):
@@ -55,6 +66,17 @@ def vertex_offsets(vx, vy, seed: int, width: int, height: int):
 
 
 # ---------------------------------------------------------------- triangle lattice (dynbtf.synthesis.lattice)
+def split_repeats(x):
+    """:func:`dynbtf.synthesis.lattice.split_uv` of one coordinate: ``x`` (``mi.Float`` or ``mi.Float64``)
+    widened to float64 -> whole repeats (``mi.Float64``, an integer) and the fraction in ``[0, 1)``; exact."""
+    mi, dr = mi_module(), drjit_module()
+    x = mi.Float64(x)
+    whole = dr.floor(x)
+    frac = x - whole
+    carry = frac >= 1.0  # never for exact arithmetic; guards -tiny inputs
+    return dr.select(carry, whole + 1.0, whole), dr.select(carry, frac - 1.0, frac)
+
+
 def triangle_lattice(u, v):
     """:func:`dynbtf.synthesis.lattice.triangle_lattice` in Dr.Jit.
 
@@ -65,12 +87,7 @@ def triangle_lattice(u, v):
     Returns ``([(vx, vy)] * 3 as mi.Int32, [b0, b1, b2] as mi.Float64)``.
     """
     mi, dr = mi_module(), drjit_module()
-    u, v = mi.Float64(u), mi.Float64(v)
-    wu, wv = dr.floor(u), dr.floor(v)
-    fu, fv = u - wu, v - wv
-    cu, cv = fu >= 1.0, fv >= 1.0
-    wu, fu = dr.select(cu, wu + 1.0, wu), dr.select(cu, fu - 1.0, fu)
-    wv, fv = dr.select(cv, wv + 1.0, wv), dr.select(cv, fv - 1.0, fv)
+    (wu, fu), (wv, fv) = split_repeats(u), split_repeats(v)
     # 2 sqrt(3) * whole_u as integer + fraction (hi/lo split of the constant, as in torch)
     p_hi = wu * synthesis_lattice.LATTICE_SCALE_HI
     p_whole = dr.floor(p_hi)
@@ -235,23 +252,33 @@ class DrPyramid:
         mi, dr = mi_module(), drjit_module()
         if isinstance(level, int):  # one level for all lanes: its sizes are literals
             start, mw, mh = self.level_sizes[level]
-            cols, rows = mw, mh
             px = x * (mw / self.width) - 0.5
             py = y * (mh / self.height) - 0.5
         else:
             start = dr.gather(mi.UInt32, self.starts, level)
             mw = dr.gather(mi.UInt32, self.widths, level)
             mh = dr.gather(mi.UInt32, self.heights, level)
-            cols, rows = mi.Int32(mw), mi.Int32(mh)
             px = x * (mi.Float64(mw) / self.width) - 0.5
             py = y * (mi.Float64(mh) / self.height) - 0.5
-        fx, fy = dr.floor(px), dr.floor(py)
-        tx, ty = mi.Float(px - fx), mi.Float(py - fy)
-        c0, r0 = _wrap_small(mi.Int32(fx), cols), _wrap_small(mi.Int32(fy), rows)
-        c1 = dr.select(c0 + 1 == mw, 0, c0 + 1)
-        r1 = dr.select(r0 + 1 == mh, 0, r0 + 1)
-        return [(start + r0 * mw + c0, (1.0 - tx) * (1.0 - ty)), (start + r0 * mw + c1, tx * (1.0 - ty)),
-                (start + r1 * mw + c0, (1.0 - tx) * ty), (start + r1 * mw + c1, tx * ty)]
+        return periodic_taps(px, py, mw, mh, start)
+
+
+def periodic_taps(px, py, width, height, start=0):
+    """Bilinear taps of a periodic ``height x width`` plane at texel coordinates ``px, py`` (``mi.Float64``, texel
+    ``[i, j]`` centred at ``(j, i)``, within ``[-W, 3 W)``); ``width, height``: ints, or ``mi.UInt32`` per lane.
+
+    Returns 4 ``(texel index + start, weight: mi.Float)`` as :func:`~dynbtf.render.drjit_ops.bilinear_taps`
+    (the numba kernels' fetches: float64 positions, float32 weights).
+    """
+    mi, dr = mi_module(), drjit_module()
+    cols, rows = (width, height) if isinstance(width, int) else (mi.Int32(width), mi.Int32(height))
+    fx, fy = dr.floor(px), dr.floor(py)
+    tx, ty = mi.Float(px - fx), mi.Float(py - fy)
+    c0, r0 = _wrap_small(mi.Int32(fx), cols), _wrap_small(mi.Int32(fy), rows)
+    c1 = dr.select(c0 + 1 == width, 0, c0 + 1)
+    r1 = dr.select(r0 + 1 == height, 0, r0 + 1)
+    return [(start + r0 * width + c0, (1.0 - tx) * (1.0 - ty)), (start + r0 * width + c1, tx * (1.0 - ty)),
+            (start + r1 * width + c0, (1.0 - tx) * ty), (start + r1 * width + c1, tx * ty)]
 
 
 def _filtering_tables(pyramid_source, *, luminances: bool = False, inverse_tables: bool = False):
@@ -371,14 +398,10 @@ class DrLatticeBlending:
         position in the read plane before the offsets: whole texels ``(mu, mv)`` (``mi.Int32``,
         ``(repeat x density) mod plane size``) plus ``(fu x W, fv x H)`` (``mi.Float64``).
         """
-        mi, dr = mi_module(), drjit_module()
+        mi = mi_module()
         u, v = mi.Float64(u), mi.Float64(v)
         verts, bary = triangle_lattice(u, v)
-        wu, wv = dr.floor(u), dr.floor(v)
-        fu, fv = u - wu, v - wv
-        cu, cv = fu >= 1.0, fv >= 1.0
-        wu, fu = dr.select(cu, wu + 1.0, wu), dr.select(cu, fu - 1.0, fu)
-        wv, fv = dr.select(cv, wv + 1.0, wv), dr.select(cv, fv - 1.0, fv)
+        (wu, fu), (wv, fv) = split_repeats(u), split_repeats(v)
         dw, dh = self.density
         pw, ph = self.pw, self.ph
         # (iu * density) mod plane size, reduced before multiplying so nothing overflows
@@ -531,16 +554,21 @@ class DrTiling:
         """The exemplar pyramid's :class:`DrLevelOfDetail` (builds the pyramid on first use)."""
         return self._pyramid()[1]
 
+    def texel_positions(self, u, v, active=True):
+        """Where the point query at ``(u, v)`` reads the plane: level-0 texel positions ``x, y`` (``mi.Float64``,
+        in ``[0, W) x [0, H)``); footprint queries read the pyramid there (:meth:`filtered_latent`)."""
+        mi = mi_module()
+        h, w = self.size
+        return mi.Float64(wrap01(mi.Float64(u))) * w, mi.Float64(wrap01(mi.Float64(v))) * h
+
     def filtered_latent(self, u, v, lower, t=None, active=True):
         """The plane averaged over a footprint (``lower`` level, next level's weight ``t``: :meth:`level_of_detail`;
         as :meth:`DrLatticeBlending.filtered_latent`).
 
-        :func:`dynbtf.synthesis.mip.trilinear_fetch` at ``(u, v)``: list of ``C`` mi.Float.
+        :func:`dynbtf.synthesis.mip.trilinear_fetch` at :meth:`texel_positions`: list of ``C`` mi.Float.
         """
-        mi = mi_module()
         pyramid, lod, _ = self._pyramid()
-        x = mi.Float64(wrap01(mi.Float64(u))) * pyramid.width
-        y = mi.Float64(wrap01(mi.Float64(v))) * pyramid.height
+        x, y = self.texel_positions(u, v, active)
         out = None
         for level, share, mask in _level_shares(lower, t, lod.top, active):
             out = _accumulate(out, gather_channels(pyramid.flat, pyramid.channels, pyramid.taps(level, x, y), mask),
@@ -548,13 +576,145 @@ class DrTiling:
         return out
 
 
+class DrCellQuilting(DrTiling):
+    """Lattice-aligned cell quilting: :class:`dynbtf.synthesis.cell_quilting.CellQuilting` (its numba kernel
+    :func:`~dynbtf.synthesis.kernels.cell_quilt`) in Dr.Jit.
+
+    The same computation, step for step: ``u, v`` widened to float64 and split into whole repeats and
+    fractions (:func:`split_repeats`), the texel and its cell within the repeat, the cell's index as an
+    ``mi.Int64`` (``whole * n + column``: exact for any ``uv`` below ``2**52`` repeats), the offset index
+    ``hash(cell) mod K`` (:func:`fold_coordinate` on the index's two 32-bit words: the library's bits); near
+    a cell edge (within the margin) the neighbour's index and one cut-table entry decide whether the point
+    belongs to the neighbour (or, past both cuts of a corner, to the diagonal cell); then one bilinear,
+    periodic fetch of the exemplar at the shifted position. Footprint queries read the exemplar's pyramid
+    at that position (:meth:`DrTiling.filtered_latent` at :meth:`texel_positions`).
+
+    Per query: four hashes (the own cell, the nearer neighbour along ``u``, along ``v``, and the diagonal
+    between them; each lane needs at most the band's neighbours, so the two columns share their first
+    fold), two cut-table gathers and one fetch.
+
+    Parameters
+    ----------
+    plane : ``(H, W, C)``
+        The exemplar.
+    offsets : int ``(K, 2)``
+        The copies' texel offsets ``(dx, dy)``; ``cells``: ``(nx, ny)`` per repeat; ``margin``: ``(mx, my)`` texels;
+    vertical_cuts, horizontal_cuts : int ``(nx, ny, K, K, T_y)``, ``(nx, ny, K, K, T_x)``
+        As :class:`~dynbtf.synthesis.cell_quilting.CellTables`.
+    seed : int
+    pyramid_source : callable, optional
+        As :class:`DrTiling`.
+    """
+
+    def __init__(self, plane, offsets, cells, margin, vertical_cuts, horizontal_cuts, seed: int,
+                 pyramid_source=None) -> None:
+        import numpy as np
+
+        super().__init__(plane, pyramid_source)
+        mi = mi_module()
+        h, w = self.size
+        self.cells = (int(cells[0]), int(cells[1]))
+        self.margin = (int(margin[0]), int(margin[1]))
+        nx, ny = self.cells
+        self.cell_size = (w // nx, h // ny)
+        offsets = np.asarray(offsets.detach().cpu() if hasattr(offsets, "detach") else offsets, dtype=np.int64)
+        self.count = int(offsets.shape[0])
+
+        def table(t, last):
+            t = np.asarray(t.detach().cpu() if hasattr(t, "detach") else t, dtype=np.int32)
+            if t.shape != (nx, ny, self.count, self.count, last):
+                raise InputError(f"cell quilting: a cut table of shape {t.shape}, expected "
+                                 f"{(nx, ny, self.count, self.count, last)}")
+            return mi.Int32(np.ascontiguousarray(t).ravel())
+
+        tx, ty = self.cell_size
+        if w % nx or h % ny or not (0 < 2 * self.margin[0] <= tx and 0 < 2 * self.margin[1] <= ty):
+            raise InputError(f"cell quilting: cells {self.cells} with margins {self.margin} do not fit the {h}x{w} plane")
+        self.vertical = table(vertical_cuts, ty)
+        self.horizontal = table(horizontal_cuts, tx)
+        self.offset_x = mi.Float64(offsets[:, 0].astype(np.float64))
+        self.offset_y = mi.Float64(offsets[:, 1].astype(np.float64))
+        self.state = _seed_state(int(seed) & 0xFFFFFFFF)
+
+    @classmethod
+    def of(cls, synthesizer) -> "DrCellQuilting":
+        """The twin of a :class:`~dynbtf.synthesis.cell_quilting.CellQuilting` (its exemplar and tables)."""
+        t = synthesizer.prepared
+        return cls(synthesizer.exemplar, t.offsets, t.cells, t.margin, t.vertical_cuts, t.horizontal_cuts,
+                   synthesizer.seed, pyramid_source=synthesizer.pyramid)
+
+    def read_positions(self, u, v, active=True):
+        """:meth:`dynbtf.synthesis.cell_quilting.CellQuilting.read_positions`: texel positions ``x, y``
+        (``mi.Float64`` in ``[0, W) x [0, H)``) on the exemplar and the chosen offset index (``mi.UInt32``)."""
+        mi, dr = mi_module(), drjit_module()
+        h, w = self.size
+        nx, ny = self.cells
+        tx, ty = self.cell_size
+        mx, my = self.margin
+        k = self.count
+        (whole_u, frac_u), (whole_v, frac_v) = split_repeats(u), split_repeats(v)
+        pos_x, pos_y = frac_u * w, frac_v * h
+        texel_x = dr.minimum(mi.Int32(dr.floor(pos_x)), w - 1)
+        texel_y = dr.minimum(mi.Int32(dr.floor(pos_y)), h - 1)
+        if k == 1:  # one copy: the exemplar itself everywhere
+            return pos_x, pos_y, mi.UInt32(0)
+        col, row = texel_x // tx, texel_y // ty
+        local_x, local_y = texel_x - col * tx, texel_y - row * ty
+        cell_x = mi.Int64(whole_u) * nx + mi.Int64(col)
+        cell_y = mi.Int64(whole_v) * ny + mi.Int64(row)
+        # the band a lane is in (at most one per axis: 2 margin <= cell side) names its neighbour's index
+        left, right = local_x < mx, local_x >= tx - mx
+        lower, upper = local_y < my, local_y >= ty - my
+        near_x = cell_x + dr.select(left, mi.Int64(-1), mi.Int64(1))
+        near_y = cell_y + dr.select(lower, mi.Int64(-1), mi.Int64(1))
+        column, column_near = fold_coordinate(self.state, cell_x), fold_coordinate(self.state, near_x)
+        own = fold_coordinate(column, cell_y) % k
+        across_x = fold_coordinate(column_near, cell_y) % k
+        across_y = fold_coordinate(column, near_y) % k
+        diagonal = fold_coordinate(column_near, near_y) % k
+        # the cut of the edge between the lane's cell and that neighbour: [edge, row/column, first, second, texel]
+        edge = dr.select(left, col, dr.select(col + 1 == nx, 0, col + 1))
+        first, second = dr.select(left, across_x, own), dr.select(left, own, across_x)
+        index = (((mi.UInt32(edge) * ny + mi.UInt32(row)) * k + first) * k + second) * ty + mi.UInt32(local_y)
+        cut = dr.gather(mi.Int32, self.vertical, index, active & (left | right))
+        crossed_x = (left & (local_x < cut)) | (right & (local_x - tx >= cut))
+        edge = dr.select(lower, row, dr.select(row + 1 == ny, 0, row + 1))
+        first, second = dr.select(lower, across_y, own), dr.select(lower, own, across_y)
+        index = (((mi.UInt32(col) * ny + mi.UInt32(edge)) * k + first) * k + second) * tx + mi.UInt32(local_x)
+        cut = dr.gather(mi.Int32, self.horizontal, index, active & (lower | upper))
+        crossed_y = (lower & (local_y < cut)) | (upper & (local_y - ty >= cut))
+        chosen = dr.select(crossed_x, dr.select(crossed_y, diagonal, across_x), dr.select(crossed_y, across_y, own))
+        x = pos_x + dr.gather(mi.Float64, self.offset_x, chosen, active)
+        y = pos_y + dr.gather(mi.Float64, self.offset_y, chosen, active)
+        return dr.select(x >= w, x - w, x), dr.select(y >= h, y - h, y), chosen
+
+    def texel_positions(self, u, v, active=True):
+        """Where the point query at ``(u, v)`` reads the exemplar (:meth:`read_positions` without the index)."""
+        x, y, _ = self.read_positions(u, v, active)
+        return x, y
+
+    def _fetch(self, u, v, active, which=None):
+        h, w = self.size
+        x, y = self.texel_positions(u, v, active)
+        return gather_channels(self.plane, self.channels, periodic_taps(x - 0.5, y - 0.5, w, h), active, which)
+
+    def features(self, u, v, active=True):
+        """The synthesized features at ``(u, v)`` (``mi.Float`` or ``mi.Float64``): list of ``C`` mi.Float."""
+        return self._fetch(u, v, active)
+
+    def channel(self, u, v, index: int, active=True):
+        """One feature channel (``mi.Float``) at ``(u, v)``."""
+        return self._fetch(u, v, active, which=[index])[0]
+
+
 def make_dr_synthesizer(synthesizer):
     """The Dr.Jit twin of a :class:`dynbtf.synthesis.base.Synthesizer` (same tables, same function).
 
-    Supported: plain tiling and every lattice-blending method (``linear``,
-    ``hist``, ``hex``); quilting is not dynamic and has no kernel form.
+    Supported: plain tiling, every lattice-blending method (``linear``, ``hist``, ``hex``) and cell
+    quilting (``struct``); quilting is not dynamic and has no kernel form.
     """
     from ..synthesis.blending import LatticeBlending
+    from ..synthesis.cell_quilting import CellQuilting
     from ..synthesis.kernels import MODE_HEX, MODE_HIST, MODE_LINEAR
 
     def host(x):
@@ -568,10 +728,12 @@ def make_dr_synthesizer(synthesizer):
                                  matrix=None if matrix is None else host(matrix),
                                  offset=None if offset is None else host(offset),
                                  pyramid_source=synthesizer.pyramid, **kwargs)
+    if isinstance(synthesizer, CellQuilting):
+        return DrCellQuilting.of(synthesizer)
     if getattr(synthesizer, "name", None) == "tile":
         return DrTiling(tiling_plane(synthesizer), pyramid_source=synthesizer.pyramid)
     raise InputError(f"synthesis method {getattr(synthesizer, 'name', synthesizer)!r} has no Dr.Jit form; "
-                     f"expected one of ['tile', 'linear', 'hist', 'hex']")
+                     f"expected one of ['tile', 'linear', 'hist', 'hex', 'struct']")
 
 
 def tiling_plane(synthesizer):
