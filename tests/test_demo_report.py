@@ -40,7 +40,14 @@ def test_quick_demo_writes_every_stage_and_the_report(quick_demo):
     # the real-time viewer is written next to the report and linked from it
     assert "viewer/index.html" in re.findall(r"href='([^']+)'", html)
     assert (out / "viewer" / "index.html").is_file() and (out / "viewer" / "manifest.js").is_file()
-    assert json.loads((out / "viewer" / "manifest.json").read_text())["methods"].keys() == {"hist", "hex", "tile"}
+    manifest = json.loads((out / "viewer" / "manifest.json").read_text())
+    assert manifest["methods"].keys() == {manifest["auto"]["method"], "hist", "tile"}
+    # the structured material: auto picks struct, which keeps its structure (tiling's coherence is 0 by definition)
+    st = results["structured"]
+    assert st["material"] == "ceramic_tiles" and "auto -> struct" in st["choice"]
+    coherence = {row["method"]: row["coherence p90"] for row in st["quality"]}
+    assert coherence["tile"] < 1e-9 and coherence["auto (struct)"] < coherence["hist"]
+    assert "A structured material: tile | hist | auto" in html
     # words a reader understands: no raw keys, units, what finished, a command that works as typed
     import html as html_module
     import shlex
@@ -83,7 +90,8 @@ def test_report_as_a_person_sees_it_in_headless_chromium(quick_demo):
     assert seen.broken_images == []
     assert all(i["naturalWidth"] > 0 and i["naturalHeight"] > 0 for i in seen.images)
     captions = " ".join(t["caption"] for t in seen.tables)
-    for needed in ("Held-out metrics", "Model size", "Synthesis quality", "Render settings", "Wall time"):
+    for needed in ("Held-out metrics", "Model size", "Synthesis quality", "Structure measures", "Render settings",
+                   "Wall time"):
         assert needed in captions
     assert all(t["rows"] >= 2 for t in seen.tables)  # header + at least one row
     import imageio.v3 as iio
