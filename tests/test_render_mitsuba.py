@@ -560,10 +560,15 @@ def _footprint_reference(model, method, seed, uv, wv, wl, footprint):
 def test_plugin_footprint_from_uv_partials_matches_synthesized_btf(variant, model_file, method):
     """With ``si.duv_dx/dy`` set (an integer that traces ray differentials), the plugin answers
     ``SynthesizedBTF.eval(footprint=footprint_width(duv_dx, duv_dy))`` -- pyramid levels and per-level decoders."""
+    path, model = model_file
+    _assert_footprints_match(path, model, method)
+
+
+def _assert_footprints_match(path, model, method, *, n=3000):
+    """The plugin with uv partials = ``SynthesizedBTF.eval`` with their footprint, at ``n`` random queries."""
     from dynbtf.synthesized import footprint_width
 
-    path, model = model_file
-    scale, seed, n = 7.0, 3, 3000
+    scale, seed = 7.0, 3
     bsdf = mi.load_dict({"type": "dynbtf", "filename": str(path), "method": method, "scale": scale, "seed": seed})
     uv, wv, wl = _random_queries(n, seed=11)
     uv = (uv / np.float32(scale)) * np.float32(scale)
@@ -680,3 +685,104 @@ def test_table_density_of_an_isotropic_model_does_not_depend_on_the_view_azimuth
         for phi in (np.radians(22.5), np.radians(100.0)):  # between nodes, and another sector
             got = np.array(sampler.pdf(vec(rotated(wv[:len(wl)], phi)), vec(rotated(wl, phi))))
             np.testing.assert_allclose(got, ref, rtol=2e-3, err_msg=f"view at {theta} deg, rotated by {phi}")
+
+
+# ---------------------------------------------------------------- struct (cell quilting) and auto
+@pytest.fixture(scope="module")
+def structured_file(tmp_path_factory):
+    """A small random Triple Plane whose positional plane is a weave: an 8 x 8 element repeated 4 x 4 plus a
+    little noise (32 x 32 texels: two cells per repeat and a lattice of offsets to choose from), saved to disk."""
+    from dynbtf.representations.model_file import save_model
+    from dynbtf.representations.triple_plane import TriplePlane
+
+    model = TriplePlane(32, 32, positional_channels=6, angular_channels=3, hidden=12, seed=5)
+    generator = torch.Generator().manual_seed(6)
+    with torch.no_grad():
+        model.decoder.rest[-1].bias.add_(0.6)
+        element = model.f_u[:8, :8].clone()
+        noise = torch.randn(32, 32, 6, generator=generator)
+        model.f_u.copy_(element.repeat(4, 4, 1) + 0.1 * float(element.std()) * noise)
+    path = tmp_path_factory.mktemp("structured") / "weave.dbtfm"
+    save_model(path, model)
+    return path, model
+
+
+def test_plugin_struct_matches_synthesized_btf(variant, structured_file):
+    """struct in the plugin = ``SynthesizedBTF(model, "struct").eval`` to float rounding: near the origin through
+    the BSDF, and 2**45 repeats away through its evaluator (float64 uv, which mesh uv cannot carry)."""
+    from dynbtf.render.mitsuba_bsdf import DynBTFEvaluator
+    from dynbtf.synthesized import SynthesizedBTF
+
+    path, model = structured_file
+    btf = SynthesizedBTF(model, "struct", scale=1.0, seed=3)
+    assert btf.synthesizer.prepared.count > 4  # cells choose among several lattice offsets
+    _assert_plugin_matches(path, model, "struct", n=3000)
+    evaluator = DynBTFEvaluator(model, "struct", 3)
+    assert evaluator.method == "struct" and evaluator.choice is None
+    rng = np.random.default_rng(7)
+    uv = 2.0 ** 45 + rng.random((2000, 2)) * 4.0
+    uv[1000:] *= -1.0
+    _, wv, wl = _random_queries(2000, seed=8)
+    got = evaluator.eval(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1]), *(mi.Vector3f(*(mi.Float(w[:, k]) for k in range(3)))
+                                                                      for w in (wv, wl)))
+    got = np.stack([np.array(got[k], dtype=np.float64) for k in range(3)], -1)
+    ref = np.asarray(btf.eval(torch.from_numpy(uv), torch.from_numpy(wv), torch.from_numpy(wl)), dtype=np.float64)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=2e-4 * max(1.0, np.abs(ref).max()))
+
+
+def test_plugin_struct_footprints_match_synthesized_btf(variant, structured_file):
+    """struct's footprint queries (the exemplar's pyramid at the point query's read position, per-level decoders)
+    in the plugin = ``SynthesizedBTF.eval`` with the same footprints."""
+    path, model = structured_file
+    _assert_footprints_match(path, model, "struct", n=2000)
+
+
+def test_plugin_auto_chooses_struct_for_a_structured_exemplar_and_says_so_once(variant, structured_file, model_file,
+                                                                             capsys):
+    """The default method, auto: struct on the weave (the same kernel, bit for bit, as method struct), hist on
+    the random plane; the choice line is printed once per model file."""
+    path, model = structured_file
+    common = {"type": "dynbtf", "filename": str(path), "scale": 7.0, "seed": 3}
+    capsys.readouterr()
+    chosen = mi.load_dict(common)
+    again = mi.load_dict({**common, "method": "auto"})
+    err = capsys.readouterr().err
+    assert chosen.method == again.method == "auto" and chosen.synthesis == again.synthesis == "struct"
+    assert "auto -> struct" in chosen.to_string()
+    lines = [line for line in err.splitlines() if "method auto ->" in line]
+    assert len(lines) == 1 and str(path) in lines[0] and "method auto -> struct: structured exemplar" in lines[0], err
+    uv, wv, wl = _random_queries(1000, seed=9)
+    explicit = mi.load_dict({**common, "method": "struct"})
+    assert np.array_equal(_plugin_eval(chosen, uv, wv, wl, 7.0), _plugin_eval(explicit, uv, wv, wl, 7.0))
+    stochastic = mi.load_dict({"type": "dynbtf", "filename": str(model_file[0]), "filtered": False})
+    assert stochastic.synthesis == "hist"
+    assert "method auto -> hist: stochastic exemplar" in capsys.readouterr().err
+
+
+def test_render_auto_resolves_the_method_and_echoes_the_choice(variant, structured_file, tmp_path, monkeypatch,
+                                                               capsys):
+    """render_scene's and ``dynbtf render``'s default, auto: resolved before Mitsuba loads the scene (the plugin
+    gets struct and prints nothing), the choice line echoed (the command: on standard output)."""
+    from dynbtf.cli.main import main
+    from dynbtf.errors import InputError
+    from dynbtf.render.mitsuba_render import render_scene
+
+    path, _ = structured_file
+    loaded = []
+
+    def stop(scene):  # the scene dict reaches Mitsuba: record it, render nothing
+        loaded.append(scene)
+        raise InputError("stopped before the render")
+
+    monkeypatch.setattr(mi, "load_dict", stop)
+    echoed = []
+    with pytest.raises(InputError, match="stopped"):
+        render_scene(path, scene="plane", lighting="point", resolution=(8, 8), spp=1, progress=False,
+                     echo=echoed.append)
+    assert loaded[0]["surface"]["bsdf"]["method"] == "struct"
+    assert len(echoed) == 1 and echoed[0].startswith("method auto -> struct: structured exemplar")
+    capsys.readouterr()
+    assert main(["render", str(path), "-o", str(tmp_path / "x.png"), "--size", "8", "--spp", "1"]) == 2
+    captured = capsys.readouterr()
+    assert echoed[0] in captured.out and "stopped before the render" in captured.err
+    assert loaded[1]["surface"]["bsdf"]["method"] == "struct" and "dynbtf BSDF" not in captured.err

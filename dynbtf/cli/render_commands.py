@@ -18,7 +18,9 @@ def render(
     output: Path = typer.Option(..., "-o", "--output", help="Output image: .png (sRGB, exposure applied) or .exr (linear HDR)."),
     scene: str = typer.Option("plane", help="Scene: plane (grazing ground plane), sphere or cloth."),
     lighting: str = typer.Option("sky", help="Lighting: sky (procedural environment map) or point (point light + dim ambient)."),
-    method: str = typer.Option("hist", help="Synthesis of the positional plane: tile, hist or hex."),
+    method: str = typer.Option("auto", help="Synthesis of the positional plane: tile, hist, hex, struct (cell "
+                                            "quilting for weaves, tiles, bricks) or auto (struct for structured "
+                                            "exemplars, hist otherwise; the choice is printed)."),
     scale: float = typer.Option(25.0, help="Exemplar repeats across the mesh's uv range."),
     seed: int = typer.Option(0, help="Synthesis seed."),
     spp: int = typer.Option(16, help="Samples per pixel."),
@@ -49,7 +51,7 @@ def render(
         raise InputError(f"--size: expected a positive number of pixels, got {size}")
     result = render_scene(model, scene=scene, method=method, scale=scale, seed=seed, lighting=lighting,
                           resolution=(size, size), spp=spp, variant=variant, progress=True, sampling=sampling,
-                          filtered=filtered)
+                          filtered=filtered, echo=typer.echo)
     save_image(output, result.image, exposure=exposure)
     timing = (f"incl. {result.compile_seconds:.1f} s kernel compilation" if result.passes > 1
               else "one pass, kernel compilation included")

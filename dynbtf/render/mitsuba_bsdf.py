@@ -21,7 +21,7 @@ from . import drjit_ops
 from .sampling import AUTO_MIN_COSINE_VARIANCE, DEFAULT_TABLE_WEIGHT, SAMPLING_MODES
 
 __all__ = ["register_plugin", "plugin_variants", "load_plugin_model", "plugin_sampler", "PLUGIN_DOC", "METHODS",
-           "configure_jit", "DynBTFEvaluator", "ray_cone_angle"]
+           "DEFAULT_METHOD", "configure_jit", "DynBTFEvaluator", "ray_cone_angle", "announce_choice"]
 
 #: Mitsuba's ``BSDFFlags::NeedsDifferentials`` (not exported to Python): with it, integrators that trace ray
 #: differentials compute ``si.duv_dx`` / ``si.duv_dy`` before calling the BSDF.
@@ -44,8 +44,10 @@ def ray_cone_angle(fov: float, width: int, spp: int = 1) -> float:
         raise InputError(f"ray_cone_angle: fov must be below 180 degrees, got {fov}")
     return 2.0 * math.tan(math.radians(float(fov)) / 2.0) / float(width) / math.sqrt(float(spp))
 
-#: Synthesis methods the plugin evaluates in Dr.Jit.
-METHODS = ("tile", "hist", "hex")
+#: Synthesis methods the plugin evaluates in Dr.Jit, and ``auto`` (``struct`` or ``hist``, from the exemplar).
+METHODS = ("tile", "hist", "hex", "struct", "auto")
+#: The plugin's (and ``dynbtf render``'s) default method.
+DEFAULT_METHOD = "auto"
 
 PLUGIN_DOC = """Synthesized BTF material (``dynbtf``)
 
@@ -53,8 +55,9 @@ Evaluates an infinite, non-repeating BTF -- a fitted Triple Plane (or NeuMIP)
 model whose positional feature plane is synthesized on the fly -- at every
 shading point.
 The whole chain (lattice, integer hash, histogram-preserving blend, inverse
-transform, decoder MLP) is traced into the rendering kernel; nothing is
-pre-generated, so any ``scale`` costs the same.
+transform -- or for ``struct`` the cell's hash, its cut and one fetch --, decoder
+MLP) is traced into the rendering kernel; nothing is pre-generated, so any
+``scale`` costs the same.
 
 .. list-table::
    :header-rows: 1
@@ -75,8 +78,15 @@ pre-generated, so any ``scale`` costs the same.
      - string
      - Synthesis of the positional plane: ``tile`` (plain repetition, the
        reference point), ``hist`` (histogram-preserving blending on a triangle
-       lattice, the paper's method) or ``hex`` (hex-tiling).
-     - ``hist``
+       lattice, the paper's method), ``hex`` (hex-tiling), ``struct``
+       (lattice-aligned cell quilting: cells of the exemplar shifted by its own
+       lattice vectors, cut along minimum-error seams; keeps weaves, tiles and
+       bricks intact) or ``auto``: ``struct`` for a structured exemplar (the
+       model's positional plane), else ``hist``
+       (:func:`~dynbtf.synthesis.auto.choose_method`). With ``auto`` the
+       plugin prints its choice and the evidence (one line, on standard error)
+       once per model file and process.
+     - ``auto``
    * - ``scale``
      - float
      - Exemplar repeats per unit of mesh ``u`` (how many times the measured
@@ -208,7 +218,7 @@ def _build_class(mi):
             if not props.has_property("filename"):
                 raise InputError("dynbtf BSDF: parameter 'filename' (a dynbtf model file) is required")
             self.filename = str(props["filename"])
-            self.method = str(props["method"]) if props.has_property("method") else "hist"
+            self.method = str(props["method"]) if props.has_property("method") else DEFAULT_METHOD
             if self.method not in METHODS:
                 raise InputError(f"dynbtf BSDF: parameter 'method' must be one of {list(METHODS)}, "
                                  f"got {self.method!r}")
@@ -235,6 +245,10 @@ def _build_class(mi):
                                  f"got {self.cone}")
             model = load_plugin_model(self.filename)
             self.evaluator = DynBTFEvaluator(model, self.method, self.seed)
+            #: the method the kernel runs (``auto``'s choice, else ``method``)
+            self.synthesis = self.evaluator.method
+            if self.evaluator.choice is not None:
+                announce_choice(self.filename, self.evaluator.choice)
             if self.filtered:  # the pyramid and per-level decoders, before any kernel is traced
                 self.evaluator.prepare_footprints()
             self.sampler = None
@@ -346,7 +360,8 @@ def _build_class(mi):
             pass  # nothing differentiable is exposed
 
         def to_string(self):
-            return (f"DynBTFBSDF[filename={self.filename!r}, method={self.method!r}, "
+            method = self.method if self.synthesis == self.method else f"{self.method} -> {self.synthesis}"
+            return (f"DynBTFBSDF[filename={self.filename!r}, method={method!r}, "
                     f"scale={self.scale}, scale_v={self.scale_v}, seed={self.seed}, sampling={self.sampling!r}, "
                     f"filtered={self.filtered}, ray_cone_angle={self.cone}]")
 
@@ -360,10 +375,19 @@ class DynBTFEvaluator:
     ----------
     model : TriplePlane or NeuMIP
         The fitted representation (a kind of :data:`dynbtf.render.drjit_ops.DR_REPRESENTATIONS`).
-    method : {"tile", "hist", "hex"}
-        Synthesis method (the same synthesizer :class:`~dynbtf.synthesized.SynthesizedBTF` builds).
+    method : {"tile", "hist", "hex", "struct", "auto"}
+        Synthesis method (the same synthesizer :class:`~dynbtf.synthesized.SynthesizedBTF` builds;
+        ``auto``: ``struct`` or ``hist``, see :attr:`choice`).
     seed : int
         Synthesis seed.
+
+    Attributes
+    ----------
+    method : str
+        The method the kernel runs (``auto`` resolved).
+    choice : MethodChoice or None
+        What ``auto`` chose and why (:class:`~dynbtf.synthesis.auto.MethodChoice`; its ``line`` is the report),
+        ``None`` for a named method.
 
     :meth:`eval` takes Dr.Jit arrays of the active Mitsuba variant: ``u, v``
     (``mi.Float``, in exemplar repeats), ``w_view, w_light`` (``mi.Vector3f``,
@@ -375,6 +399,8 @@ class DynBTFEvaluator:
         from .drjit_synthesis import make_dr_synthesizer
 
         self.btf = SynthesizedBTF(model, method, scale=1.0, seed=seed)
+        self.method = self.btf.synthesizer.name
+        self.choice = self.btf.synthesizer.choice
         self.synthesizer = make_dr_synthesizer(self.btf.synthesizer)
         # fold the synthesizer's output map (PCA un-projection) into the decoder's first layer,
         # as SynthesizedBTF's fast path does: 16 x 16 fewer multiply-adds per shading point
@@ -490,6 +516,22 @@ class DynBTFEvaluator:
 
 _SAMPLERS: dict = {}
 _ANNOUNCED: set = set()
+_CHOICES_ANNOUNCED: set = set()
+
+
+def announce_choice(filename, choice) -> bool:
+    """Print what ``method = "auto"`` chose for model file ``filename`` (``choice.line``) on standard error,
+    once per file version (path, size, modification time) and process; True if it printed."""
+    import os
+    import sys
+
+    stat = os.stat(filename)
+    key = (os.path.abspath(str(filename)), stat.st_size, stat.st_mtime_ns)
+    if key in _CHOICES_ANNOUNCED:
+        return False
+    _CHOICES_ANNOUNCED.add(key)
+    print(f"dynbtf BSDF ({filename}): {choice.line}", file=sys.stderr, flush=True)
+    return True
 
 
 def plugin_sampler(filename, model, *, build=None):

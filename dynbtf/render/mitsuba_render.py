@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
-from .mitsuba_bsdf import METHODS, load_plugin_model, register_plugin
+from .mitsuba_bsdf import DEFAULT_METHOD, METHODS, load_plugin_model, register_plugin
 from .sampling import SAMPLING_MODES
 from .scenes import LIGHTINGS, SCENES, bsdf_dict, scene_dict
 
@@ -25,6 +25,8 @@ class RenderResult:
     pass, which includes tracing and compiling the kernel (or loading it from
     Dr.Jit's cache). ``compile_seconds``: the first pass's extra time over the
     mean of the later passes, 0 when there is only one pass (nothing to compare).
+    ``method``: the synthesis method the plugin ran (``auto`` resolved); ``choice_line``:
+    what ``auto`` chose and why (:attr:`dynbtf.synthesis.auto.MethodChoice.line`), else None.
     """
 
     image: np.ndarray
@@ -33,6 +35,8 @@ class RenderResult:
     variant: str
     first_pass_seconds: float = 0.0
     passes: int = 1
+    method: str = ""
+    choice_line: str | None = None
 
 
 def _status(progress: bool, text: str) -> None:
@@ -41,10 +45,10 @@ def _status(progress: bool, text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
 
-def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scale: float = 25.0, seed: int = 0,
-                 lighting: str = "sky", resolution=(512, 512), spp: int = 16, spp_per_pass: int = 4,
+def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METHOD, scale: float = 25.0,
+                 seed: int = 0, lighting: str = "sky", resolution=(512, 512), spp: int = 16, spp_per_pass: int = 4,
                  variant: str | None = None, progress: bool = True, sampling: str = "auto",
-                 filtered: bool = True) -> RenderResult:
+                 filtered: bool = True, echo=None) -> RenderResult:
     """Path-trace ``scene`` covered by the synthesized BTF of ``model_path``.
 
     Every argument is checked before Mitsuba loads anything, so a mistake raises
@@ -58,8 +62,10 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
         (:func:`dynbtf.render.mitsuba_bsdf.load_plugin_model`).
     scene : {"plane", "sphere", "cloth"}
         See :mod:`dynbtf.render.scenes`.
-    method : {"tile", "hist", "hex"}
-        Synthesis method of the plugin.
+    method : {"tile", "hist", "hex", "struct", "auto"}
+        Synthesis method of the plugin; ``auto`` (the default) is resolved here to ``struct`` for a
+        structured positional plane, else ``hist`` (:func:`dynbtf.synthesis.auto.choose_method`), and
+        the choice line is reported (``echo``) before the kernel is compiled.
     scale : float
         Exemplar repeats across the mesh's uv range (positive).
     seed : int
@@ -86,6 +92,8 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
         traces and compiles the kernel: up to a minute the first time a model, method and
         shape are rendered, during which no sample completes), its time after it,
         then a tqdm bar over the remaining passes' samples.
+    echo : callable, optional
+        Receives ``auto``'s choice line (default: standard error, with the status lines, if ``progress``).
 
     Returns
     -------
@@ -108,8 +116,18 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
         raise InputError(f"--scale: expected a positive number of repeats, got {scale}")
     if sampling not in SAMPLING_MODES:
         raise InputError(f"--sampling: expected one of {list(SAMPLING_MODES)}, got {sampling!r}")
-    load_plugin_model(model_path)  # a missing/damaged file or an unsupported kind fails here, not inside Mitsuba
+    model = load_plugin_model(model_path)  # a missing/damaged file or an unsupported kind fails here, not in Mitsuba
     active = register_plugin(variant)
+    choice_line = None
+    if method == "auto":  # resolved here (the plugin then runs the named method and reports nothing)
+        from ..synthesis.auto import choose_method
+
+        choice = choose_method(model.positional_plane().detach())
+        method, choice_line = choice.method, choice.line
+        if echo is not None:
+            echo(choice_line)
+        else:
+            _status(progress, choice_line)
     from .drjit_ops import drjit_module, mi_module
 
     mi = mi_module()
@@ -153,4 +171,4 @@ def render_scene(model_path, *, scene: str = "plane", method: str = "hist", scal
     compile_seconds = max(first - per_pass, 0.0) if n_passes > 1 else 0.0
     return RenderResult(image=(acc / total).astype(np.float32), seconds=seconds,
                         compile_seconds=compile_seconds, variant=active, first_pass_seconds=first,
-                        passes=n_passes)
+                        passes=n_passes, method=method, choice_line=choice_line)

@@ -35,9 +35,11 @@ SCENES = ("plane", "sphere", "cloth")
 LIGHTINGS = ("point", "sky")
 
 
-def bsdf_dict(model_path, *, method: str = "hist", scale: float = 1.0, seed: int = 0,
+def bsdf_dict(model_path, *, method: str = "auto", scale: float = 1.0, seed: int = 0,
               scale_v: float | None = None, sampling: str | None = None) -> dict:
     """The ``dynbtf`` BSDF as a Mitsuba dict (see :data:`dynbtf.render.mitsuba_bsdf.PLUGIN_DOC`).
+
+    ``method``: ``tile``, ``hist``, ``hex``, ``struct`` or ``auto`` (``struct`` or ``hist``, chosen by the plugin).
 
     ``sampling`` (``"auto"``, ``"mixture"`` or ``"cosine"``) is left to the plugin's default when ``None``.
     """
