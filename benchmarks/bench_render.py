@@ -20,8 +20,18 @@ largest difference to ``SynthesizedBTF.eval`` on a subset. The parallax model is
 one, else a random one of the same size with a relief of ``--relief-texels`` (default 5, the
 simulated stone's).
 
-Run: ``python benchmarks/bench_render.py [MODEL] [--method hist]`` (default: a random model of the
-paper's size, 128 x 128 texels).
+Then struct vs hist: the plugin's kernel cost per query of cell quilting (``struct``: the cell's
+hashes, one cut-table entry per edge band, one fetch) next to histogram-preserving blending (``hist``:
+the triangle lattice, three hashed fetches, the inverse transform), timed side by side (the two
+methods' calls interleaved, fresh inputs each, fastest of ``--repeats``): the synthesis alone (what
+the kernel computes before the decoder) and the whole evaluation (with the decoder, the same for
+both), and their ratios struct / hist. On a structured exemplar: MODEL's positional plane if
+``auto`` chooses struct for it, else the model with its plane replaced by a weave (a
+``1/8``-repeat element tiled 8 x 8, plus 10% noise), so that cells choose among a lattice of offsets.
+``--struct-only`` runs this part alone.
+
+Run: ``python benchmarks/bench_render.py [MODEL] [--method hist] [--struct-only]`` (default: a random
+model of the paper's size, 128 x 128 texels).
 """
 
 from __future__ import annotations
@@ -36,11 +46,12 @@ import torch
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("model", nargs="?", default=None)
-    parser.add_argument("--method", default="hist", choices=["tile", "hist", "hex"])
+    parser.add_argument("--method", default="hist", choices=["tile", "hist", "hex", "struct", "auto"])
     parser.add_argument("--queries", type=int, default=1920 * 1080)
     parser.add_argument("--repeats", type=int, default=5, help="timed calls of each path (plugin: fresh inputs each)")
     parser.add_argument("--relief-texels", type=float, default=5.0,
                         help="peak-to-peak height of the random parallax model, in texels")
+    parser.add_argument("--struct-only", action="store_true", help="only the struct vs hist comparison")
     args = parser.parse_args()
 
     from dynbtf.render.drjit_ops import mi_module
@@ -66,6 +77,9 @@ def main() -> None:
         return (w / np.linalg.norm(w, axis=1, keepdims=True)).astype(np.float32)
 
     wv, wl = hemisphere(), hemisphere()
+    if args.struct_only:
+        bench_struct(model, args, uv, wv, wl)
+        return
     uv64 = uv.astype(np.float64)
     t_eval = {}
     for precision in ("fp32", "bf16"):
@@ -80,12 +94,11 @@ def main() -> None:
     btf = SynthesizedBTF(model, args.method)  # float32: the reference for the difference
 
     ev = DynBTFEvaluator(model, args.method, 0)
-    # Dr.Jit may compile more than once before its kernel cache settles (observed: up to 3 times);
-    # time several calls on fresh inputs and report the first and the fastest
+    # the first call compiles (inputs in Dr.Jit's own memory, jit_array: NumPy buffers' varying alignment used to
+    # compile a new kernel on some calls); time several calls on fresh inputs and report the first and the fastest
     times, got = plugin_seconds(ev, uv, wv, wl, args.repeats)
     t_first, t_drjit = times[0], min(times)
-    shifted = uv.astype(np.float64)
-    shifted[:, 0] += args.repeats - 1
+    shifted = shifted_uv(uv, args.repeats - 1)
     ref = btf.eval(shifted, wv, wl)
     print(f"{n} queries, method {args.method}, model {tuple(model.positional_plane().shape)}")
     for precision, t in t_eval.items():
@@ -97,23 +110,45 @@ def main() -> None:
         print(f"{'ratio (b)/(a ' + precision + ')':<28}: {t / t_drjit:7.2f}x")
     print(f"max |difference|            : {np.abs(got - ref).max():.2e} (values up to {np.abs(ref).max():.2f})")
     bench_relief(model, args, uv, wv, wl)
+    bench_struct(model, args, uv, wv, wl)
 
 
-def plugin_seconds(evaluator, uv, wv, wl, repeats, footprint=None):
+def shifted_uv(uv, shift):
+    """The float64 uv the plugin's call with ``shift`` evaluated (:func:`plugin_seconds`): ``u + shift`` rounded to
+    float32 as the plugin's input was, so that the reference queries the same points."""
+    out = uv.astype(np.float64)
+    out[:, 0] = (uv[:, 0] + np.float32(shift)).astype(np.float64)
+    return out
+
+
+def jit_array(values):
+    """``values`` as an ``mi.Float`` in memory of Dr.Jit's own (computed): a buffer taken from NumPy has NumPy's
+    alignment, which Dr.Jit compiles into the kernel (aligned or unaligned loads), so inputs wrapped afresh per
+    call would compile a new kernel whenever their alignment changes."""
+    import drjit as dr
+    from dynbtf.render.drjit_ops import mi_module
+
+    mi = mi_module()
+    out = mi.Float(np.ascontiguousarray(values, dtype=np.float32)) * dr.opaque(mi.Float, 1.0)  # exact, a new buffer
+    dr.eval(out)
+    return out
+
+
+def plugin_seconds(evaluator, uv, wv, wl, repeats, footprint=None, start=0):
     """Seconds of ``repeats`` plugin evaluations on fresh inputs (uv shifted by whole repeats) and the last output.
 
-    ``footprint`` (optional, ``(N,)`` repeats): the evaluator's footprint queries.
+    ``footprint`` (optional, ``(N,)`` repeats): the evaluator's footprint queries; ``start``: the first shift.
     """
     import drjit as dr
     from dynbtf.render.drjit_ops import mi_module
 
     mi = mi_module()
-    WV = mi.Vector3f(*(mi.Float(wv[:, k]) for k in range(3)))
-    WL = mi.Vector3f(*(mi.Float(wl[:, k]) for k in range(3)))
+    WV = mi.Vector3f(*(jit_array(wv[:, k]) for k in range(3)))
+    WL = mi.Vector3f(*(jit_array(wl[:, k]) for k in range(3)))
     times = []
-    for k in range(repeats):
-        U, V = mi.Float(uv[:, 0] + np.float32(k)), mi.Float(uv[:, 1])
-        extra = {} if footprint is None else {"footprint": mi.Float(footprint)}
+    for k in range(start, start + repeats):
+        U, V = jit_array(uv[:, 0] + np.float32(k)), jit_array(uv[:, 1])
+        extra = {} if footprint is None else {"footprint": jit_array(footprint)}
         dr.eval(U, V, WV, WL, *extra.values())
         t0 = time.perf_counter()
         out = evaluator.eval(U, V, WV, WL, **extra)
@@ -163,11 +198,87 @@ def bench_relief(model, args, uv, wv, wl) -> None:
               f"ratio {marched / flat:5.2f}x")
     m = min(n, 100_000)
     got = results["random order", True][1][:m]
-    shifted = uv[:m].astype(np.float64)
-    shifted[:, 0] += args.repeats - 1
+    shifted = shifted_uv(uv[:m], args.repeats - 1)
     ref = SynthesizedBTF(relief, args.method).eval(shifted, wv[:m], wl[:m])
     print(f"  max |difference| to SynthesizedBTF.eval: {np.abs(got - ref).max():.2e} "
           f"(value range {ref.max() - ref.min():.2f}; {m} queries)")
+
+
+def synthesis_seconds(evaluator, uv, shift):
+    """Seconds of the evaluator's synthesis alone (what its kernel computes before the decoder) on ``uv`` shifted by
+    ``shift`` whole repeats."""
+    import drjit as dr
+
+    U, V = jit_array(uv[:, 0] + np.float32(shift)), jit_array(uv[:, 1])
+    synth = evaluator.synthesizer
+    t0 = time.perf_counter()
+    out = synth.latent(U, V) if evaluator._latent else synth.features(U, V)
+    dr.eval(out)
+    dr.sync_thread()
+    return time.perf_counter() - t0
+
+
+def structured_model(model):
+    """``model`` if ``auto`` chooses struct for its positional plane, else a copy whose plane is a weave
+    (an element of 1/8 of the plane's side, from the plane itself, tiled 8 x 8, plus 10% noise)."""
+    import copy
+
+    from dynbtf.synthesis.auto import choose_method
+
+    plane = model.positional_plane().detach()
+    if choose_method(plane).method == "struct":
+        return model
+    h, w, c = plane.shape
+    weave = copy.deepcopy(model)
+    element = plane[: h // 8, : w // 8]
+    generator = torch.Generator().manual_seed(0)
+    noise = torch.randn(h // 8 * 8, w // 8 * 8, c, generator=generator)
+    with torch.no_grad():
+        weave.positional_plane().zero_()
+        weave.positional_plane()[: h // 8 * 8, : w // 8 * 8] = element.repeat(8, 8, 1) + 0.1 * float(element.std()) * noise
+    return weave
+
+
+def bench_struct(model, args, uv, wv, wl) -> None:
+    """struct vs hist: the plugin's synthesis and whole evaluation per query, side by side (see the module docstring)."""
+    from dynbtf.render.mitsuba_bsdf import DynBTFEvaluator
+    from dynbtf.synthesis.auto import choose_method
+    from dynbtf.synthesized import SynthesizedBTF
+
+    weave = structured_model(model)
+    line = choose_method(weave.positional_plane().detach()).line
+    methods = ("hist", "struct")
+    evaluators = {m: DynBTFEvaluator(weave, m, 0) for m in methods}
+    n = len(uv)
+    compile_seconds = {}
+    for m, ev in evaluators.items():  # the first calls compile (or load the kernels from Dr.Jit's cache)
+        t0 = time.perf_counter()
+        plugin_seconds(ev, uv, wv, wl, 2, start=1000)
+        synthesis_seconds(ev, uv, 1000)
+        synthesis_seconds(ev, uv, 1001)
+        compile_seconds[m] = time.perf_counter() - t0
+    synthesis = {m: [] for m in methods}
+    whole = {m: [] for m in methods}
+    got = {}
+    for k in range(args.repeats):  # interleaved: both methods see the same machine load
+        for m, ev in evaluators.items():
+            synthesis[m].append(synthesis_seconds(ev, uv, k))
+            times, got[m] = plugin_seconds(ev, uv, wv, wl, 1, start=k)
+            whole[m] += times
+    params = evaluators["struct"].btf.synthesizer.parameters()
+    print(f"\nstruct vs hist: {n} queries, model {tuple(weave.positional_plane().shape)} "
+          f"({'MODEL' if weave is model else 'plane replaced by a weave'}); {line}")
+    print(f"  struct: {params['offsets']} offsets, cells {params['cells']}, margins {params['margin']} texels")
+    for what, runs in (("synthesis alone", synthesis), ("whole evaluation", whole)):
+        best = {m: min(t) for m, t in runs.items()}
+        print(f"  {what:<17}: hist {best['hist'] / n * 1e9:6.1f} ns/query, struct {best['struct'] / n * 1e9:6.1f} "
+              f"ns/query, ratio struct/hist {best['struct'] / best['hist']:5.2f}x (fastest of {args.repeats})")
+    print(f"  first calls incl. compile: hist {compile_seconds['hist']:.1f} s, struct {compile_seconds['struct']:.1f} s")
+    m = min(n, 100_000)
+    shifted = shifted_uv(uv[:m], args.repeats - 1)
+    ref = SynthesizedBTF(weave, "struct").eval(shifted, wv[:m], wl[:m])
+    print(f"  struct: max |difference| to SynthesizedBTF.eval: {np.abs(got['struct'][:m] - ref).max():.2e} "
+          f"(values up to {np.abs(ref).max():.2f}; {m} queries)")
 
 
 if __name__ == "__main__":
