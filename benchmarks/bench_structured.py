@@ -7,9 +7,11 @@ default recipe when not given). Then, for each method (tile, hist, hex, quilt, s
 picks, printed with its measurement) it measures:
 
 * **coherence p90 / identity** (:mod:`dynbtf.synthesis.coherence`): the synthesized area at one pixel per
-  texel, decoded at view (0, 0) and light (40, 30), ``scale`` repeats on a side (``--scales``, 8 and 25),
-  from a uv far from the origin (1e6 repeats), 256 random 16 x 16 patches against every periodic position of
-  the exemplar decoded the same way; medians over ``--seeds`` synthesis seeds (the spread is printed too).
+  texel, decoded at view (0, 0) and light (40, 30), ``scale`` repeats on a side (``--scales``, 8 and 25)
+  far from the origin (1e6 repeats) -- its central window of at most 1024 x 1024 texels (8 x 8 repeats of
+  a 128-texel exemplar; the synthesis is stationary, so a window's patches are distributed as the whole
+  area's) -- 256 random 16 x 16 patches against every periodic position of the exemplar decoded the same
+  way; medians over ``--seeds`` synthesis seeds (the spread is printed too).
   Quilting is measured at the first scale only (its plane is generated up front: 25 x 25 repeats of a
   128-texel plane are 655 MB);
 * **repetition** and **RGB W1/std** (max over three (view, light) pairs) from the quality report
@@ -44,6 +46,8 @@ STRUCTURED = ("woven_fabric", "ceramic_tiles", "brick_wall")
 STOCHASTIC = ("leather", "stone")
 METHODS = ("tile", "hist", "hex", "quilt", "struct")
 FAR = 1e6
+#: Largest side of the measured window, texels.
+WINDOW = 1024
 
 
 def ensure_model(folder: Path, material: str, minutes: float | None) -> Path:
@@ -63,10 +67,14 @@ def ensure_model(folder: Path, material: str, minutes: float | None) -> Path:
 
 
 def coherence(btf, scale: float, seed: int) -> dict:
+    """Coherence of the ``scale x scale``-repeat area far from the origin: its central window of at most
+    ``WINDOW`` texels (the synthesis is stationary: a window's patches are distributed as the area's)."""
     from dynbtf.synthesis.coherence import synthesized_coherence
 
     w = int(btf.synthesizer.exemplar.shape[1])
-    return synthesized_coherence(btf, side=int(round(scale * w)), origin=(FAR + 0.25, FAR + 0.5), seed=seed)
+    side = min(WINDOW, int(round(scale * w)))
+    corner = FAR + (scale - side / w) / 2  # the window's lower corner, exemplar repeats
+    return synthesized_coherence(btf, side=side, origin=(corner + 0.25, corner + 0.5), seed=seed)
 
 
 def cost_per_query(btfs: dict, repeats: int) -> dict[str, float]:

@@ -21,7 +21,9 @@ the exemplar is (:mod:`.structure`) and builds ``struct`` or ``hist``.
 Building blocks: :mod:`.lattice` (triangle grid, exact at any coordinate),
 :mod:`.hash` (integer vertex hash), :mod:`.histogram` (Gaussian transforms,
 PCA, variance-preserving blend), :mod:`.tileable` ("Avoiding Cuts"),
-:mod:`.kernels` (fused numba kernel), :mod:`.quality` (report).
+:mod:`.structure` (autocorrelation peaks, structure strength), :mod:`.table_cache` (on-disk
+tables), :mod:`.kernels` (fused numba kernels), :mod:`.quality` (report) and :mod:`.coherence`
+(patch coherence and identity with tiling).
 """
 
 from .base import SYNTHESIZERS, Synthesizer, make_synthesizer, register_synthesizer, synthesizer_class
