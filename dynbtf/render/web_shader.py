@@ -296,12 +296,18 @@ struct DynbtfTriangle {{
     vec2 t;                    // bilinear weights inside the footprint
 }};
 
+// whole repeats and fraction in [0, 1) of the local uv (dynbtf.synthesis.lattice.split_uv)
+void dynbtf_split(vec2 local, out vec2 whole, out vec2 f) {{
+    whole = floor(local);
+    f = local - whole;
+    if (f.x >= 1.0) {{ f.x -= 1.0; whole.x += 1.0; }}
+    if (f.y >= 1.0) {{ f.y -= 1.0; whole.y += 1.0; }}
+}}
+
 DynbtfTriangle dynbtf_triangle(DynbtfOrigin o, vec2 local) {{
     DynbtfTriangle tri;
-    vec2 wf = floor(local);
-    vec2 f = local - wf;
-    if (f.x >= 1.0) {{ f.x -= 1.0; wf.x += 1.0; }}
-    if (f.y >= 1.0) {{ f.y -= 1.0; wf.y += 1.0; }}
+    vec2 wf, f;
+    dynbtf_split(local, wf, f);
     ivec2 w = ivec2(wf);
     // 2 sqrt(3) w_u as an integer plus a fraction (the high part has 12 bits: exact for |w_u| < 2^12)
     float p_hi = wf.x * {_float(hi_scale)};
@@ -361,10 +367,8 @@ int dynbtf_cell_choice(uvec2 cx, uvec2 cy) {{
 
 DynbtfCell dynbtf_cell(DynbtfOrigin o, vec2 local) {{
     DynbtfCell c;
-    vec2 wf = floor(local);
-    vec2 f = local - wf;
-    if (f.x >= 1.0) {{ f.x -= 1.0; wf.x += 1.0; }}
-    if (f.y >= 1.0) {{ f.y -= 1.0; wf.y += 1.0; }}
+    vec2 wf, f;
+    dynbtf_split(local, wf, f);
     ivec2 w = ivec2(wf);
     ivec2 size = dynbtf_plane_size;   // the exemplar: W' = W, H' = H
     ivec2 n = dynbtf_cell_grid;

@@ -35,7 +35,7 @@ the vertical edges' cuts ``(nx, ny, K, K, T_y)`` and the horizontal edges' ``(nx
 index and the fraction, as the lattice methods do).
 
 Footprint queries read the exemplar's area pyramid at the point query's read position
-(:class:`~dynbtf.synthesis.mip.PlanePyramid`), like tiling.
+(:meth:`read_uv`), as :class:`~dynbtf.synthesis.tiling.Tiling`'s do (this class extends it).
 
 Examples
 --------
@@ -58,13 +58,13 @@ import torch
 
 from ..errors import InputError
 from ..texture import fetch_wrap
-from .base import Synthesizer, register_synthesizer
+from .base import register_synthesizer
 from .hash import hash_vertex
 from .lattice import split_uv
-from .mip import LevelOfDetail, PlanePyramid
 from .quilting import min_error_cut
 from .structure import StructureAnalysis, analyze_structure
 from .table_cache import cached_tables
+from .tiling import Tiling
 
 __all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "cached_cell_tables", "DEFAULT_OFFSETS", "MIN_CELL_TEXELS"]
 
@@ -282,7 +282,7 @@ def cell_choice(cell_x, cell_y, seed: int, count: int):
 
 
 @register_synthesizer("struct")
-class CellQuilting(Synthesizer):
+class CellQuilting(Tiling):
     """Lattice-aligned cell quilting of an exemplar plane (see the module docstring).
 
     Parameters
@@ -306,9 +306,8 @@ class CellQuilting(Synthesizer):
 
     def __init__(self, exemplar, seed: int = 0, *, offsets: int = DEFAULT_OFFSETS, cells="auto", margin: float = 0.25,
                  guide=None, fast: bool | None = None, prepared: CellTables | None = None) -> None:
-        super().__init__(exemplar, seed)
-        self.fast = self.device.type == "cpu" if fast is None else bool(fast)
-        if self.fast and self.device.type != "cpu":
+        super().__init__(exemplar, seed, fast=fast)
+        if fast and self.device.type != "cpu":
             raise InputError(f"fast: the fused kernel runs on the CPU; the exemplar is on {self.device}")
         if prepared is None:
             prepared = cached_cell_tables(self.exemplar, offsets=offsets, cells=cells, margin=margin, guide=guide)
@@ -319,7 +318,6 @@ class CellQuilting(Synthesizer):
         if w % nx or h % ny or prepared.vertical_cuts.shape[-1] != h // ny or prepared.horizontal_cuts.shape[-1] != w // nx:
             raise InputError(f"prepared: its cut tables do not fit this {h}x{w} exemplar")
         self.prepared = prepared
-        self._pyramid = PlanePyramid(self.exemplar)
         self._numpy: tuple | None = None
 
     # ------------------------------------------------------------ evaluation
@@ -368,9 +366,7 @@ class CellQuilting(Synthesizer):
 
     def reference_latent(self, uv: torch.Tensor) -> torch.Tensor:
         """The torch reference path of :meth:`latent` (any device)."""
-        positions, _ = self.read_positions(uv)
-        w, h = self.density
-        return fetch_wrap(self.exemplar, positions / positions.new_tensor([w, h]))
+        return fetch_wrap(self.exemplar, self.read_uv(uv))
 
     def _tables_numpy(self) -> tuple:
         if self._numpy is None:
@@ -388,21 +384,11 @@ class CellQuilting(Synthesizer):
         return torch.from_numpy(cell_quilt(uv.detach().cpu().numpy(), plane, offsets, vertical, horizontal,
                                            self.prepared.cells, self.prepared.margin, self.seed))
 
-    # ------------------------------------------------------------ footprint queries
-    def level_of_detail(self) -> LevelOfDetail:
-        return self._pyramid.level_of_detail
-
-    def pyramid(self) -> dict:
-        """The exemplar's pyramid: ``levels`` and ``lod``, built once."""
-        return {"levels": self._pyramid.levels, "lod": self._pyramid.level_of_detail}
-
-    def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
-        """The exemplar's pyramid read at the point query's read position (trilinear; see :mod:`.mip`)."""
-        if not bool((footprint > 1.0).any()):
-            return self.latent(uv)
+    # ------------------------------------------------------------ footprint queries (Tiling's, at read_uv)
+    def read_uv(self, uv: torch.Tensor) -> torch.Tensor:
         positions, _ = self.read_positions(uv)
         w, h = self.density
-        return self._pyramid.fetch(positions / positions.new_tensor([w, h]), footprint)
+        return positions / positions.new_tensor([w, h])
 
     # ------------------------------------------------------------ reports
     def parameters(self) -> dict[str, Any]:

@@ -139,24 +139,25 @@ def _gain(x, k):
 
 
 @numba.njit(inline="always")
+def _split_repeat(u):
+    """Repeat index (int64) and fraction in ``[0, 1)`` of one coordinate: scalar twin of ``lattice.split_uv``."""
+    whole = math.floor(u)
+    frac = u - whole
+    if frac >= 1.0:  # never for exact arithmetic; guards -tiny inputs
+        frac -= 1.0
+        whole += 1.0
+    return np.int64(whole), frac
+
+
+@numba.njit(inline="always")
 def _lattice_hashes(u, v, state):
     """Lattice triangle of a query (:func:`dynbtf.synthesis.lattice.triangle_lattice`) and its vertex hashes.
 
     Returns the repeat index ``iu, iv`` (int64), the fraction ``fu, fv`` in ``[0, 1)``, the three
     vertices' hashes ``h0, h1, h2`` and their barycentrics ``b0, b1, b2``.
     """
-    wu = math.floor(u)
-    wv = math.floor(v)
-    fu = u - wu
-    fv = v - wv
-    if fu >= 1.0:
-        fu -= 1.0
-        wu += 1.0
-    if fv >= 1.0:
-        fv -= 1.0
-        wv += 1.0
-    iu = np.int64(wu)
-    iv = np.int64(wv)
+    iu, fu = _split_repeat(u)
+    iv, fv = _split_repeat(v)
     # lattice (lattice.triangle_lattice)
     iu_whole, iu_frac = _scaled_integer(iu)
     kx = iu_frac + LATTICE_SCALE * fu - 2.0 * fv
@@ -541,6 +542,26 @@ def filtered_lattice_blend(uv: np.ndarray, level: np.ndarray, upper_weight: np.n
                      np.ascontiguousarray(luts, dtype=np.float32), float(g_min), 1.0 / float(step), out)
     return out
 
+@numba.njit(inline="always")
+def _bilinear_periodic(plane, x, y, out, n):
+    """``out[n] =`` bilinear periodic fetch of ``plane (H, W, C)`` at texel position ``(x, y)`` (float64, texel
+    ``[i, j]`` centred at ``(j + 0.5, i + 0.5)``, any value: wrapped); weights in float32."""
+    ph, pw, nc = plane.shape
+    px = x - 0.5
+    py = y - 0.5
+    x0 = math.floor(px)
+    y0 = math.floor(py)
+    tx = np.float32(px - x0)
+    ty = np.float32(py - y0)
+    c0 = np.int64(x0) % pw
+    c1 = (c0 + 1) % pw
+    r0 = np.int64(y0) % ph
+    r1 = (r0 + 1) % ph
+    for c in range(nc):
+        out[n, c] = ((1 - tx) * (1 - ty) * plane[r0, c0, c] + tx * (1 - ty) * plane[r0, c1, c]
+                     + (1 - tx) * ty * plane[r1, c0, c] + tx * ty * plane[r1, c1, c])
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _tile_kernel(uv, plane, out):
     n_queries = uv.shape[0]
@@ -548,19 +569,7 @@ def _tile_kernel(uv, plane, out):
     for n in numba.prange(n_queries):
         u = uv[n, 0]
         v = uv[n, 1]
-        px = (u - math.floor(u)) * pw - 0.5
-        py = (v - math.floor(v)) * ph - 0.5
-        x0 = math.floor(px)
-        y0 = math.floor(py)
-        tx = np.float32(px - x0)
-        ty = np.float32(py - y0)
-        c0 = np.int64(x0) % pw
-        c1 = (c0 + 1) % pw
-        r0 = np.int64(y0) % ph
-        r1 = (r0 + 1) % ph
-        for c in range(nc):
-            out[n, c] = ((1 - tx) * (1 - ty) * plane[r0, c0, c] + tx * (1 - ty) * plane[r0, c1, c]
-                         + (1 - tx) * ty * plane[r1, c0, c] + tx * ty * plane[r1, c1, c])
+        _bilinear_periodic(plane, (u - math.floor(u)) * pw, (v - math.floor(v)) * ph, out, n)
 
 
 def tile_fetch(uv: np.ndarray, plane: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -592,18 +601,8 @@ def _cell_quilt_kernel(uv, plane, offsets, vertical, horizontal, nx, ny, mx, my,
     tx = pw // nx
     ty = ph // ny
     for n in numba.prange(n_queries):
-        u = uv[n, 0]
-        v = uv[n, 1]
-        wu = math.floor(u)
-        wv = math.floor(v)
-        fu = u - wu
-        fv = v - wv
-        if fu >= 1.0:
-            fu -= 1.0
-            wu += 1.0
-        if fv >= 1.0:
-            fv -= 1.0
-            wv += 1.0
+        wu, fu = _split_repeat(uv[n, 0])
+        wv, fv = _split_repeat(uv[n, 1])
         pos_x = fu * pw
         pos_y = fv * ph
         texel_x = min(np.int64(math.floor(pos_x)), pw - 1)
@@ -612,8 +611,8 @@ def _cell_quilt_kernel(uv, plane, offsets, vertical, horizontal, nx, ny, mx, my,
         row = texel_y // ty
         local_x = texel_x - col * tx
         local_y = texel_y - row * ty
-        cell_x = np.int64(wu) * nx + col
-        cell_y = np.int64(wv) * ny + row
+        cell_x = wu * nx + col
+        cell_y = wv * ny + row
         own = _cell_choice(cell_x, cell_y, state, count)
         side_x = 0
         if local_x < mx:
@@ -630,20 +629,7 @@ def _cell_quilt_kernel(uv, plane, offsets, vertical, horizontal, nx, ny, mx, my,
             if local_y - ty >= horizontal[col, (row + 1) % ny, own, _cell_choice(cell_x, cell_y + 1, state, count), local_x]:
                 side_y = 1
         chosen = own if side_x == 0 and side_y == 0 else _cell_choice(cell_x + side_x, cell_y + side_y, state, count)
-        # bilinear periodic fetch at the shifted position (texel centres at whole + 0.5)
-        px = pos_x + offsets[chosen, 0] - 0.5
-        py = pos_y + offsets[chosen, 1] - 0.5
-        x0 = math.floor(px)
-        y0 = math.floor(py)
-        tx_ = np.float32(px - x0)
-        ty_ = np.float32(py - y0)
-        c0 = np.int64(x0) % pw
-        c1 = (c0 + 1) % pw
-        r0 = np.int64(y0) % ph
-        r1 = (r0 + 1) % ph
-        for c in range(nc):
-            out[n, c] = ((1 - tx_) * (1 - ty_) * plane[r0, c0, c] + tx_ * (1 - ty_) * plane[r0, c1, c]
-                         + (1 - tx_) * ty_ * plane[r1, c0, c] + tx_ * ty_ * plane[r1, c1, c])
+        _bilinear_periodic(plane, pos_x + offsets[chosen, 0], pos_y + offsets[chosen, 1], out, n)
 
 
 def cell_quilt(uv: np.ndarray, plane: np.ndarray, offsets: np.ndarray, vertical: np.ndarray, horizontal: np.ndarray,

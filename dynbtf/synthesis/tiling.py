@@ -49,7 +49,15 @@ class Tiling(Synthesizer):
         """The exemplar's pyramid: ``levels`` (:func:`~dynbtf.synthesis.mip.area_pyramid`) and ``lod``, built once."""
         return {"levels": self._pyramid.levels, "lod": self._pyramid.level_of_detail}
 
+    def read_uv(self, uv: torch.Tensor) -> torch.Tensor:
+        """Where the point query at ``uv (N, 2)`` reads the exemplar, in repeats ``(N, 2)`` float64 (tiling: ``uv``).
+
+        Methods that read one shifted copy of the exemplar per query (``struct``) override it; the
+        footprint query reads the pyramid there.
+        """
+        return uv
+
     def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
         if not bool((footprint > 1.0).any()):
             return self.latent(uv)
-        return self._pyramid.fetch(uv, footprint)
+        return self._pyramid.fetch(self.read_uv(uv), footprint)
