@@ -61,7 +61,8 @@ def render(
 @app.command()
 def demo(
     output: Path = typer.Option(Path("dynbtf-demo"), "-o", "--output", help="Output directory (rerun to resume)."),
-    material: str = typer.Option("leather", help="Simulated material: stone, leather, lacquered_wood or woven_fabric."),
+    material: str = typer.Option("leather", help="Simulated material: stone, leather, lacquered_wood, woven_fabric, "
+                                                      "ceramic_tiles or brick_wall."),
     size: int = typer.Option(128, help="Texels per side of the simulated BTF."),
     btf: Optional[str] = typer.Option(None, help="Your own BTF (file or sim: spec) instead of a simulated one."),
     minutes: float = typer.Option(10.0, help="Target wall time in minutes; training gets what the other stages leave."),

@@ -13,8 +13,8 @@ from .app import app
 
 @app.command()
 def simulate(
-    material: Optional[str] = typer.Argument(None, help="Material to simulate: stone, leather, lacquered_wood or "
-                                             "woven_fabric (see --list)."),
+    material: Optional[str] = typer.Argument(None, help="Material to simulate: stone, leather, lacquered_wood, "
+                                             "woven_fabric, ceramic_tiles or brick_wall (see --list)."),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="Where to write: a stored BTF directory "
                                           "(*.dbtf; an interrupted run resumes when run again) or, with a .btf "
                                           "suffix, a UBO2014 DFMF file (factored in bounded memory)."),

@@ -54,7 +54,8 @@ class SimulatedBTF(BTFSource):
     Parameters
     ----------
     material : str
-        One of :data:`MATERIALS` (``stone``, ``leather``, ``lacquered_wood``, ``woven_fabric``).
+        One of :data:`MATERIALS` (``stone``, ``leather``, ``lacquered_wood``, ``woven_fabric``,
+        ``ceramic_tiles``, ``brick_wall``).
     size : int
         Spatial resolution: ``size x size`` texels covering one exemplar ``[0, 1)^2``.
     grid : str
