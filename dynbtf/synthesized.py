@@ -188,6 +188,36 @@ def _adam_steps(loss_of, optimizer, schedule, batches) -> None:
             schedule.step()
 
 
+def decoded_appearance(model, plane: torch.Tensor | None = None, chunk_size: int = 32768) -> torch.Tensor:
+    """A model's positional plane decoded under :data:`APPEARANCE_PAIRS`: ``(H, W, 3 * pairs)`` float32.
+
+    What ``struct`` and ``auto`` see of a fitted model (their ``guide``): a feature plane spreads its
+    variance over many channels, fine detail included, while its decoded colours show the material's
+    structure. ``plane`` defaults to ``model.positional_plane()``.
+    """
+    with torch.no_grad():
+        plane = model.positional_plane().detach() if plane is None else plane
+        h, w, _ = plane.shape
+        rows = plane.reshape(h * w, -1)
+        images = []
+        for view, light in APPEARANCE_PAIRS:
+            wv = spherical_to_direction(np.array(view[0]), np.array(view[1]))
+            wl = spherical_to_direction(np.array(light[0]), np.array(light[1]))
+            wv = torch.as_tensor(wv, dtype=plane.dtype, device=plane.device).expand(h * w, 3)
+            wl = torch.as_tensor(wl, dtype=plane.dtype, device=plane.device).expand(h * w, 3)
+            images.append(torch.cat([model.decode(chunk, a, b) for chunk, a, b in
+                                     zip(rows.split(chunk_size), wv.split(chunk_size), wl.split(chunk_size))]))
+        return torch.cat(images, -1).float().reshape(h, w, -1)
+
+
+def auto_method(model):
+    """What ``synthesizer="auto"`` chooses for a fitted ``model``: a :class:`~dynbtf.synthesis.auto.MethodChoice`
+    measured on its :func:`decoded_appearance` (the same choice :class:`SynthesizedBTF` makes)."""
+    from .synthesis.auto import choose_method
+
+    return choose_method(model.positional_plane().detach(), decoded_appearance(model))
+
+
 def _same_device(a: torch.device, b: torch.device) -> bool:
     """Whether two devices are the same (``cuda`` without an index matches any ``cuda:N``)."""
     return a.type == b.type and (a.index is None or b.index is None or a.index == b.index)
@@ -327,18 +357,7 @@ class SynthesizedBTF:
         return (rgb.float() @ torch.tensor([0.2126, 0.7152, 0.0722], device=rgb.device)).reshape(h, w)
 
     def _decoded_appearance(self, plane: torch.Tensor) -> torch.Tensor:
-        """The exemplar decoded under :data:`APPEARANCE_PAIRS`, ``(H, W, 3 * pairs)`` (the guide of ``struct``/``auto``)."""
-        h, w, _ = plane.shape
-        rows = plane.reshape(h * w, -1)
-        images = []
-        for view, light in APPEARANCE_PAIRS:
-            wv = spherical_to_direction(np.array(view[0]), np.array(view[1]))
-            wl = spherical_to_direction(np.array(light[0]), np.array(light[1]))
-            wv = torch.as_tensor(wv, dtype=plane.dtype, device=plane.device).expand(h * w, 3)
-            wl = torch.as_tensor(wl, dtype=plane.dtype, device=plane.device).expand(h * w, 3)
-            images.append(torch.cat([self.model.decode(chunk, a, b) for chunk, a, b in
-                                     zip(rows.split(self.chunk_size), wv.split(self.chunk_size), wl.split(self.chunk_size))]))
-        return torch.cat(images, -1).float().reshape(h, w, -1)
+        return decoded_appearance(self.model, plane, self.chunk_size)
 
     def _fold_first_layer(self) -> dict[str, Any] | None:
         """Layer-1 positional weights with the synthesizer's output map folded in (fast path), or None."""

@@ -64,7 +64,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
         See :mod:`dynbtf.render.scenes`.
     method : {"tile", "hist", "hex", "struct", "auto"}
         Synthesis method of the plugin; ``auto`` (the default) is resolved here to ``struct`` for a
-        structured positional plane, else ``hist`` (:func:`dynbtf.synthesis.auto.choose_method`), and
+        structured material, else ``hist`` (:func:`dynbtf.synthesized.auto_method`), and
         the choice line is reported (``echo``) before the kernel is compiled.
     scale : float
         Exemplar repeats across the mesh's uv range (positive).
@@ -120,9 +120,9 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     active = register_plugin(variant)
     choice_line = None
     if method == "auto":  # resolved here (the plugin then runs the named method and reports nothing)
-        from ..synthesis.auto import choose_method
+        from ..synthesized import auto_method
 
-        choice = choose_method(model.positional_plane().detach())
+        choice = auto_method(model)  # on the decoded appearance, as SynthesizedBTF (and so the plugin) chooses
         method, choice_line = choice.method, choice.line
         if echo is not None:
             echo(choice_line)
