@@ -382,6 +382,38 @@ def test_every_synthesis_method_in_numba_and_drjit_is_the_torch_reference(mi, me
     np.testing.assert_allclose(as_numpy(twin.features(u, v)), want, atol=5e-5 * scale)
 
 
+@pytest.mark.parametrize("gamma", [1000.0, 1e10, 1e300])
+def test_hist_with_extreme_exponents_is_finite_and_one_sample_in_every_backend(mi, gamma):
+    """``b^gamma`` underflows to 0 for all three barycentrics once gamma is large (0/0: NaN weights, and a NaN
+    index into the inverse table crashed the numba kernel). The weights are ``(b / max b)^gamma``: finite for
+    any gamma, and for gamma -> inf one-hot on the dominant vertex, whose sample passes through unblended."""
+    from dynbtf.render.drjit_synthesis import make_dr_synthesizer
+    from dynbtf.synthesis.base import make_synthesizer
+
+    exemplar = smooth_lognormal(24, 20, 4, seed=4)
+    reference = make_synthesizer("hist", exemplar, seed=9, fast=False, gamma=gamma)
+    fast = make_synthesizer("hist", exemplar, seed=9, fast=True, gamma=gamma, prepared=reference.prepared)
+    uv = (RNG.random((400, 2)) - 0.5) * 50.0
+    want = reference(torch.from_numpy(uv)).double().numpy()
+    assert np.isfinite(want).all()
+    scale = np.abs(want).max()
+    np.testing.assert_allclose(fast(torch.from_numpy(uv)).double().numpy(), want, atol=0.01 * scale)
+    twin = make_dr_synthesizer(reference)
+    got = as_numpy(twin.features(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1])))
+    np.testing.assert_allclose(got, want, atol=0.01 * scale)
+    if gamma == 1e300:  # closed form: the dominant sample's own value (transform and inverse cancel)
+        uv_samples, bary = reference.sample_positions(torch.from_numpy(uv))
+        dominant = bary.argmax(-1)
+        reads = uv_samples[torch.arange(len(uv)), dominant]
+        from dynbtf.texture import fetch_wrap
+
+        gaussian = fetch_wrap(reference.prepared.plane.double(), reads)
+        latent = reference.prepared.extras["transform"].inverse(gaussian)
+        matrix, offset = reference.output_map()
+        closed = (latent.float() @ matrix + offset).double().numpy()
+        np.testing.assert_allclose(want, closed, atol=1e-4 * scale)
+
+
 # ---------------------------------------------------------------------------- cell quilting (struct)
 @pytest.mark.parametrize("seed", [9, 2 ** 32 + 5])
 def test_cell_quilting_in_numba_and_drjit_is_the_torch_reference(mi, seed):

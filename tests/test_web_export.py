@@ -92,6 +92,21 @@ def test_shader_matches_synthesized_btf(exports, model, method):
 
 @browser
 @pytest.mark.browser
+def test_hist_with_an_extreme_exponent_is_finite_and_the_librarys(model, tmp_path):
+    """gamma = 1e10: b^gamma underflows to 0 for every barycentric; the shader's (b / max b)^gamma does not
+    (NaN weights would reach the inverse table's index)."""
+    export = export_web(model, tmp_path / "web", precision="fp32", methods=("hist",),
+                        method_params={"hist": {"gamma": 1e10}})
+    points, shift, wv, wl = _queries(256)
+    exact = shift == 0
+    ref = SynthesizedBTF(model, "hist", seed=0, gamma=1e10).eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    got = eval_in_browser(export.directory, "hist", points[exact], wv[exact], wl[exact])
+    assert np.isfinite(got.rgb).all()
+    np.testing.assert_allclose(got.rgb, ref[exact], rtol=0, atol=2e-4 * np.abs(ref).max())
+
+
+@browser
+@pytest.mark.browser
 def test_lattice_vertices_and_texel_offsets_agree_bit_for_bit(exports, model):
     """Every query's three lattice vertices and hashed whole-texel offsets equal the library's, up to 2**45 repeats."""
     rng = np.random.default_rng(7)

@@ -377,7 +377,11 @@ class DrLatticeBlending:
         if self.mode == "linear":
             return [mi.Float(b) for b in bary]
         if self.mode == "hist":
-            s = list(bary) if self.gamma == 1.0 else [dr.power(dr.maximum(b, 0.0), self.gamma) for b in bary]
+            if self.gamma == 1.0:
+                s = list(bary)
+            else:  # (b / max b)^gamma: the largest term is 1, no underflow to 0/0 (blend_weights)
+                top = dr.maximum(dr.maximum(bary[0], bary[1]), bary[2])
+                s = [dr.power(dr.maximum(b, 0.0) / top, self.gamma) for b in bary]
             total = s[0] + s[1] + s[2]
             s = [x / total for x in s]
             scale = 1.0 / dr.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2])

@@ -468,7 +468,8 @@ void dynbtf_latent(DynbtfOrigin o, vec2 local, out vec4 latent[DYNBTF_G]) {{
             ivec2 c[3];
             for (int i = 0; i < 3; ++i) c[i] = ivec2((tri.texel.x + tri.offset[i].x) % size.x, (tri.texel.y + tri.offset[i].y) % size.y);
             if (dynbtf_mode == 2) {{
-                s = dynbtf_gamma == 1.0 ? s : pow(max(s, 0.0), vec3(dynbtf_gamma));
+                // (b / max b)^gamma: the largest term is 1, no underflow to 0/0 (dynbtf.synthesis.histogram.blend_weights)
+                s = dynbtf_gamma == 1.0 ? s : pow(max(s, 0.0) / max(max(s.x, s.y), s.z), vec3(dynbtf_gamma));
                 s /= s.x + s.y + s.z;
                 s *= inversesqrt(dot(s, s));
             }} else if (dynbtf_mode == 3) {{

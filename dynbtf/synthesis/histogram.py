@@ -177,8 +177,16 @@ class InverseLUT:
 
 
 def blend_weights(barycentrics: torch.Tensor, gamma: float = 1.0) -> torch.Tensor:
-    """Normalized blending weights ``w_i = b_i^gamma / sum_j b_j^gamma`` of ``(..., K)`` barycentrics."""
-    w = barycentrics if gamma == 1.0 else barycentrics.clamp_min(0.0) ** gamma
+    """Normalized blending weights ``w_i = b_i^gamma / sum_j b_j^gamma`` of ``(..., K)`` barycentrics.
+
+    Computed as ``(b_i / max_j b_j)^gamma`` normalized (the same weights): the largest term is 1, so no
+    exponent, however large, underflows every term to 0 (which would make the weights 0/0 = NaN).
+    """
+    if gamma == 1.0:
+        w = barycentrics
+    else:
+        b = barycentrics.clamp_min(0.0)
+        w = (b / b.amax(-1, keepdim=True)) ** gamma
     return w / w.sum(-1, keepdim=True)
 
 

@@ -194,10 +194,13 @@ def _sample_weights(mode, b0, b1, b2, l0, l1, l2, gamma, gamma_int, beta, gain_k
     if mode == MODE_HIST:
         if gamma == 1.0:
             s0, s1, s2 = b0, b1, b2
-        elif gamma_int > 0:  # integral exponent (default 7): repeated squaring (pow: ~25% of the kernel)
-            s0, s1, s2 = _int_power(b0, gamma_int), _int_power(b1, gamma_int), _int_power(b2, gamma_int)
-        else:
-            s0, s1, s2 = max(b0, 0.0) ** gamma, max(b1, 0.0) ** gamma, max(b2, 0.0) ** gamma
+        else:  # (b / max b)^gamma: the largest term is 1, so no exponent underflows all three to 0 (0/0)
+            top = max(b0, b1, b2)
+            b0, b1, b2 = b0 / top, b1 / top, b2 / top
+            if gamma_int > 0:  # integral exponent (default 7): repeated squaring (pow: ~25% of the kernel)
+                s0, s1, s2 = _int_power(b0, gamma_int), _int_power(b1, gamma_int), _int_power(b2, gamma_int)
+            else:
+                s0, s1, s2 = max(b0, 0.0) ** gamma, max(b1, 0.0) ** gamma, max(b2, 0.0) ** gamma
         total = s0 + s1 + s2
         s0, s1, s2 = s0 / total, s1 / total, s2 / total
         return s0, s1, s2, 1.0 / math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
