@@ -371,7 +371,7 @@ class CellQuilting(Tiling):
     def _tables_numpy(self) -> tuple:
         if self._numpy is None:
             t = self.prepared
-            self._numpy = (self.exemplar.cpu().numpy(), np.ascontiguousarray(t.offsets.numpy(), dtype=np.int64),
+            self._numpy = (self._plane_numpy, np.ascontiguousarray(t.offsets.numpy(), dtype=np.int64),
                            np.ascontiguousarray(t.vertical_cuts.numpy()), np.ascontiguousarray(t.horizontal_cuts.numpy()))
         return self._numpy
 
