@@ -20,7 +20,7 @@ calls each, interleaved), and what the filtering adds to memory and to the model
 Then the Mitsuba plugin (unless ``--no-mitsuba``): its cost per query filtered / point on the same
 queries (the evaluator the BSDF runs, fastest of ``--repeats`` interleaved calls after compiling),
 the largest difference to ``SynthesizedBTF.eval`` with the same footprints, and a render of
-:func:`dynbtf.render.scenes.scene_dict`'s ``plane`` scene (a 40 x 40 plane seen at a grazing
+:func:`dynbtf.render.mitsuba.scenes.scene_dict`'s ``plane`` scene (a 40 x 40 plane seen at a grazing
 angle; the point light alone, direct light; ``--mitsuba-size`` px, the material at ``--scale``
 repeats per mesh uv unit): 1 spp with footprints from the camera's ray cone, 1 spp without, and a
 ``--ref-spp`` reference without, FLIP of each against the reference (``plane_filtering_mitsuba.png``
@@ -57,7 +57,7 @@ def main() -> None:
     from dynbtf.metrics import flip
     from dynbtf.render.preview import DirectionalLight, grazing_camera, plane_footprint, render_preview
     from dynbtf.synthesis.mip import pyramid_storage_bytes
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     btf = SynthesizedBTF(args.model, args.method, scale=args.scale, seed=args.seed)
     t0 = time.perf_counter()
@@ -158,9 +158,9 @@ def bench_plugin(args, btf, uv, w_view, w_light, footprint) -> None:
     from bench_render import plugin_seconds
 
     from dynbtf.metrics import flip
-    from dynbtf.render.drjit_ops import mi_module
-    from dynbtf.render.mitsuba_bsdf import DynBTFEvaluator, register_plugin
-    from dynbtf.render.scenes import bsdf_dict, scene_dict
+    from dynbtf.render.mitsuba.drjit_ops import mi_module
+    from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator, register_plugin
+    from dynbtf.render.mitsuba.scenes import bsdf_dict, scene_dict
 
     register_plugin("llvm_ad_rgb")
     mi = mi_module()
@@ -179,7 +179,7 @@ def bench_plugin(args, btf, uv, w_view, w_light, footprint) -> None:
         times, got = plugin_seconds(evaluator, uv32, wv32, wl32, 1, fp32)
         best["filtered"] = min(best["filtered"], min(times))
     sub = slice(0, 200_000)
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     library = SynthesizedBTF(btf.model, args.method, scale=1.0, seed=args.seed)
     ref = library.eval(uv32[sub].astype(np.float64), wv32[sub], wl32[sub], footprint=fp32[sub].astype(np.float64))

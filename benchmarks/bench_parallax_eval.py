@@ -9,7 +9,7 @@ height field is the simulated stone's (pebbles up to ~5 texels high at 128^2; it
 random: speed does not depend on their values). For each synthesis method, the same queries
 (uv random in ``[0, 45)^2`` exemplar repeats, the paper's 45x; view directions uniform in solid
 angle up to ``--max-theta``, lights random) are evaluated with
-:meth:`dynbtf.synthesized.SynthesizedBTF.eval` by both; it prints queries/s of each and their
+:meth:`dynbtf.infinite_btf.SynthesizedBTF.eval` by both; it prints queries/s of each and their
 ratio, and the same ratio for views at normal incidence only (no march: the cost of the
 representation itself) and at ``--max-theta`` only (the longest marches). One warm-up run,
 then the best of ``--repeats``. Timings on shared machines move 10-50% between runs: compare
@@ -28,7 +28,7 @@ import torch
 from dynbtf.data.open import open_btf
 from dynbtf.representations.parallax import ParallaxTriplePlane
 from dynbtf.representations.triple_plane import TriplePlane
-from dynbtf.synthesized import SynthesizedBTF
+from dynbtf.infinite_btf import SynthesizedBTF
 
 
 def directions(n: int, rng: np.random.Generator, max_theta: float, fixed_theta: float | None = None) -> np.ndarray:

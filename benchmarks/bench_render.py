@@ -54,10 +54,10 @@ def main() -> None:
     parser.add_argument("--struct-only", action="store_true", help="only the struct vs hist comparison")
     args = parser.parse_args()
 
-    from dynbtf.render.drjit_ops import mi_module
-    from dynbtf.render.mitsuba_bsdf import DynBTFEvaluator, configure_jit
+    from dynbtf.render.mitsuba.drjit_ops import mi_module
+    from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator, configure_jit
     from dynbtf.representations.triple_plane import TriplePlane
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     if args.model:
         from dynbtf.representations.model_file import load_model
@@ -126,7 +126,7 @@ def jit_array(values):
     alignment, which Dr.Jit compiles into the kernel (aligned or unaligned loads), so inputs wrapped afresh per
     call would compile a new kernel whenever their alignment changes."""
     import drjit as dr
-    from dynbtf.render.drjit_ops import mi_module
+    from dynbtf.render.mitsuba.drjit_ops import mi_module
 
     mi = mi_module()
     out = mi.Float(np.ascontiguousarray(values, dtype=np.float32)) * dr.opaque(mi.Float, 1.0)  # exact, a new buffer
@@ -140,7 +140,7 @@ def plugin_seconds(evaluator, uv, wv, wl, repeats, footprint=None, start=0):
     ``footprint`` (optional, ``(N,)`` repeats): the evaluator's footprint queries; ``start``: the first shift.
     """
     import drjit as dr
-    from dynbtf.render.drjit_ops import mi_module
+    from dynbtf.render.mitsuba.drjit_ops import mi_module
 
     mi = mi_module()
     WV = mi.Vector3f(*(jit_array(wv[:, k]) for k in range(3)))
@@ -175,8 +175,8 @@ def parallax_model(model, relief_texels: float):
 
 
 def bench_relief(model, args, uv, wv, wl) -> None:
-    from dynbtf.render.mitsuba_bsdf import DynBTFEvaluator
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     relief = parallax_model(model, args.relief_texels)
     lo, hi = relief.height_range()
@@ -241,9 +241,9 @@ def structured_model(model):
 
 def bench_struct(model, args, uv, wv, wl) -> None:
     """struct vs hist: the plugin's synthesis and whole evaluation per query, side by side (see the module docstring)."""
-    from dynbtf.render.mitsuba_bsdf import DynBTFEvaluator
+    from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator
     from dynbtf.synthesis.auto import choose_method
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     weave = structured_model(model)
     line = choose_method(weave.positional_plane().detach()).line

@@ -1,7 +1,7 @@
 """Does the plugin's importance sampling converge faster? MSE against a converged render, cosine vs mixture.
 
 For each model (e.g. fitted lacquered wood, leather, stone) and each lighting of
-:func:`dynbtf.render.scenes.scene_dict` (``point``: a point light plus a dim constant
+:func:`dynbtf.render.mitsuba.scenes.scene_dict` (``point``: a point light plus a dim constant
 environment; ``sky``: an importance-sampled HDR sky), the ``sphere`` scene (a sphere
 covered by the synthesized BTF on a grey floor; Mitsuba's ``path`` integrator,
 max depth 3 (``--max-depth``), which combines BSDF and emitter sampling by MIS) is rendered with
@@ -74,10 +74,10 @@ def main() -> None:
     parser.add_argument("--max-depth", type=int, default=3, help="path length (2: direct light only, 3: one bounce)")
     args = parser.parse_args()
 
-    from dynbtf.render.drjit_ops import mi_module
-    from dynbtf.render.mitsuba_bsdf import load_plugin_model, register_plugin
-    from dynbtf.render.sampling import AUTO_MIN_COSINE_VARIANCE, build_sampling_table, cosine_relative_variance
-    from dynbtf.render.scenes import bsdf_dict, scene_dict
+    from dynbtf.render.mitsuba.drjit_ops import mi_module
+    from dynbtf.render.mitsuba.bsdf import load_plugin_model, register_plugin
+    from dynbtf.render.mitsuba.sampling import AUTO_MIN_COSINE_VARIANCE, build_sampling_table, cosine_relative_variance
+    from dynbtf.render.mitsuba.scenes import bsdf_dict, scene_dict
 
     register_plugin("llvm_ad_rgb")
     mi = mi_module()

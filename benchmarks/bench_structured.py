@@ -98,7 +98,7 @@ def cost_per_query(btfs: dict, repeats: int) -> dict[str, float]:
 def comparison_image(model: Path, material: str, folder: Path, size: int = 512) -> Path:
     """``structured_<material>.png``: rows 8x and 25x, columns tile | hist | auto (view (0, 0), light (40, 30))."""
     from dynbtf.io import save_image
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     rows = []
     gap = 6
@@ -134,7 +134,7 @@ def main() -> None:
 
     from dynbtf.synthesis.cell_quilting import build_cell_tables
     from dynbtf.synthesis.quality import quality_report
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     scales = [float(s) for s in args.scales.split(",")]
     results = []

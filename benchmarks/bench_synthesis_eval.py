@@ -12,7 +12,7 @@ directions are evaluated by
     samples fetched with ``grid_sample`` (:func:`dynbtf.texture.fetch_wrap`),
     the blend, the inverse-transform LUT and the PCA un-projection in torch,
     then ``model.decode`` on one big float32 batch;
-(b) **ours**: :meth:`dynbtf.synthesized.SynthesizedBTF.eval` (fused numba
+(b) **ours**: :meth:`dynbtf.infinite_btf.SynthesizedBTF.eval` (fused numba
     synthesis kernel, first layer as a BLAS positional product plus a numba
     angular kernel vectorized across queries with the LeakyReLU fused, decoder
     layers 2.. in torch on 16k-row blocks -- bf16 where the CPU has native bf16
@@ -39,12 +39,12 @@ import numpy as np
 import torch
 
 from dynbtf.conventions import spherical_to_direction
-from dynbtf.fast_decode import first_layer_preactivation
+from dynbtf.decoder.fast_decode import first_layer_preactivation
 from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.synthesis.blending import LatticeBlending
 from dynbtf.synthesis.histogram import variance_preserving_blend, blend_weights
 from dynbtf.synthesis.histogram_blending import HistogramBlending
-from dynbtf.synthesized import _MLP_ROWS, SynthesizedBTF
+from dynbtf.infinite_btf import _MLP_ROWS, SynthesizedBTF
 from dynbtf.texture import fetch_wrap
 
 

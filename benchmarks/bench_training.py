@@ -10,7 +10,7 @@ same AdamW groups and learning rates) on the same simulated BTF:
 * **ours (paper batches)** -- :func:`dynbtf.training.fit` with the paper's recipe
   (16 whole images per step, angular features once per image, layer 1's positional
   product once per texel, layers 2-4 with their loss and backward in the native fused
-  kernel of :mod:`dynbtf.fused_mlp`), at ``precision="auto"`` (bf16 products
+  kernel of :mod:`dynbtf.decoder.fused_mlp`), at ``precision="auto"`` (bf16 products
   with float32 accumulation on CPUs with AVX512-BF16, else fp32).
 * **ours (fast)** -- the same code with ``texel_groups`` (default 64: each step's
   texels in 64 blocks, each under its own 16 pairs, so 1024 distinct pairs
@@ -49,8 +49,8 @@ from dynbtf.conventions import texel_centers_uv
 from dynbtf.data.open import open_btf
 from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.training import ImageStore, TrainConfig, fit, held_out_split, predict_images
-from dynbtf import native
-from dynbtf.fused_mlp import resolve_precision, single_intra_op_thread
+from dynbtf.decoder import native
+from dynbtf.decoder.fused_mlp import resolve_precision, single_intra_op_thread
 
 
 def matmul_peak(dtype=torch.float32, size: int = 2048, repeats: int = 3) -> float:

@@ -21,6 +21,7 @@ of the paper's size, 128 x 128 texels; frame time and cost do not depend on the 
 from __future__ import annotations
 
 import argparse
+import sys
 import statistics
 import tempfile
 import time
@@ -61,12 +62,13 @@ def main() -> None:
                              "when the GL renderer printed is still SwiftShader on a machine with a GPU")
     args = parser.parse_args()
 
-    from dynbtf.render.web_browser import eval_in_browser, time_frames
-    from dynbtf.render.web_export import export_web, quantized_model
-    from dynbtf.render.web_shader import shader_cost
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the headless-Chromium driver
+    from chromium import eval_in_browser, time_frames
+    from dynbtf.export.web.exporter import export_web, quantized_model
+    from dynbtf.export.web.shader import shader_cost
     from dynbtf.representations.model_file import load_model, save_model
     from dynbtf.representations.triple_plane import TriplePlane
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     work = Path(tempfile.mkdtemp(prefix="dynbtf-bench-web-"))
     if args.model:

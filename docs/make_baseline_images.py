@@ -39,7 +39,7 @@ from dynbtf.data.open import open_btf
 from dynbtf.io import to_uint8_srgb
 from dynbtf.metrics import flip
 from dynbtf.representations.model_file import load_model
-from dynbtf.synthesized import SynthesizedBTF
+from dynbtf.infinite_btf import SynthesizedBTF
 
 REPEATS = 3  # exemplar repeats per panel side (tiling shows 3 x 3 copies)
 DETAIL_TEXELS = 64  # side of the centre detail, texels

@@ -32,9 +32,9 @@ def main() -> None:
     import drjit as dr
 
     from dynbtf.io import to_uint8_srgb
-    from dynbtf.render.drjit_ops import mi_module
-    from dynbtf.render.mitsuba_bsdf import load_plugin_model, register_plugin
-    from dynbtf.render.scenes import bsdf_dict, scene_dict
+    from dynbtf.render.mitsuba.drjit_ops import mi_module
+    from dynbtf.render.mitsuba.bsdf import load_plugin_model, register_plugin
+    from dynbtf.render.mitsuba.scenes import bsdf_dict, scene_dict
 
     model = load_plugin_model(args.model)
     if getattr(model, "kind", None) != "triple-parallax":

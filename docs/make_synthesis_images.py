@@ -29,7 +29,7 @@ from dynbtf.conventions import spherical_to_direction
 from dynbtf.io import save_image
 from dynbtf.representations.model_file import load_model
 from dynbtf.synthesis.quality import format_report, quality_report, save_report
-from dynbtf.synthesized import SynthesizedBTF
+from dynbtf.infinite_btf import SynthesizedBTF
 
 SCALES = (1.0, 8.0, 25.0, 45.0)
 VIEW, LIGHT = (0.0, 0.0), (40.0, 30.0)

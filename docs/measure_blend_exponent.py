@@ -35,7 +35,7 @@ from dynbtf.synthesis.base import register_synthesizer
 from dynbtf.synthesis.blending import LatticeBlending
 from dynbtf.synthesis.histogram import Decorrelation, GaussianTransform, blend_weights
 from dynbtf.synthesis.quality import DEFAULT_PAIRS, quality_report, w1_over_std
-from dynbtf.synthesized import SynthesizedBTF
+from dynbtf.infinite_btf import SynthesizedBTF
 from dynbtf.texture import fetch_wrap
 
 GAMMAS = (1.0, 3.0, 5.0, 7.0, 10.0)

@@ -6,7 +6,7 @@ The pipeline has three stages, each in its own subpackage:
    fitted by :mod:`dynbtf.training` on a BTF from :mod:`dynbtf.data`.
 2. **Synthesize** -- :mod:`dynbtf.synthesis` (tiling, histogram-preserving
    blending, hex-tiling, quilting) of the positional feature plane.
-3. **Recover** -- :mod:`dynbtf.synthesized` decodes synthesized features into
+3. **Recover** -- :mod:`dynbtf.infinite_btf` decodes synthesized features into
    reflectance at any uv; :mod:`dynbtf.render` renders it.
 
 Conventions are defined once, in :mod:`dynbtf.conventions`.
@@ -56,11 +56,11 @@ _FRONT_DOOR = {
     "load_model": "dynbtf.representations.model_file",
     "evaluate_model": "dynbtf.training.evaluate",
     # synthesis and recovery
-    "SynthesizedBTF": "dynbtf.synthesized",
+    "SynthesizedBTF": "dynbtf.infinite_btf",
     "make_synthesizer": "dynbtf.synthesis.base",
     # rendering (Mitsuba 3, optional) and real time (GLSL shader + WebGL2 viewer)
-    "register_plugin": "dynbtf.render.mitsuba_bsdf",
-    "export_web": "dynbtf.render.web_export",
+    "register_plugin": "dynbtf.render.mitsuba.bsdf",
+    "export_web": "dynbtf.export.web.exporter",
     # errors
     "DynBTFError": "dynbtf.errors",
     "InputError": "dynbtf.errors",

@@ -435,7 +435,7 @@ def compare_synthesis(model, output_dir, methods: Sequence[str] = DEFAULT_SYNTHE
         set-up time.
     """
     from .synthesis.quality import quality_report
-    from .synthesized import SynthesizedBTF
+    from .infinite_btf import SynthesizedBTF
 
     if isinstance(model, (str, Path)):
         model, _ = load_model(model)

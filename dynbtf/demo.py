@@ -23,7 +23,7 @@ options skips finished stages, and the training stage resumes its checkpoint):
 7. ``render``    -- Mitsuba 3 renders with the ``dynbtf`` plugin: plane, sphere and
                     cloth under two lighting conditions (the paper's teaser), and
                     the grazing plane per synthesis method.
-8. ``viewer``    -- the real-time export (:func:`dynbtf.render.web_export.export_web`, fp16):
+8. ``viewer``    -- the real-time export (:func:`dynbtf.export.web.exporter.export_web`, fp16):
                     ``viewer/index.html``, a WebGL2 page that synthesizes and decodes the
                     material per pixel in the browser.
 9. ``report``    -- ``report.html`` with every image and table, linking the viewer.
@@ -250,7 +250,7 @@ def _synth_resolution(cfg: DemoConfig) -> int:
 def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
     from .progress import progress_bar
     from .render.preview import DirectionalLight, grazing_camera, render_preview
-    from .synthesized import SynthesizedBTF
+    from .infinite_btf import SynthesizedBTF
 
     cfg = ctx.config
     rep = ctx.model()
@@ -297,7 +297,7 @@ def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
 def _synthesis_quality(ctx: _Context, rep) -> list[dict[str, Any]]:
     """One row of synthesis quality numbers per method (:func:`dynbtf.synthesis.quality.quality_report`)."""
     from .synthesis.quality import quality_report
-    from .synthesized import SynthesizedBTF
+    from .infinite_btf import SynthesizedBTF
 
     rows = []
     for method in METHODS:
@@ -319,7 +319,7 @@ def _stage_structured(ctx: _Context) -> dict[str, Any]:
     from .data.simulated import MATERIALS, simulated_btf
     from .representations.triple_plane import TriplePlane
     from .synthesis.coherence import synthesized_coherence
-    from .synthesized import SynthesizedBTF
+    from .infinite_btf import SynthesizedBTF
     from .training.fit import TrainConfig, fit
 
     cfg = ctx.config
@@ -375,7 +375,7 @@ def _render_jobs(cfg: DemoConfig) -> list[dict[str, Any]]:
 
 
 def _stage_render(ctx: _Context) -> dict[str, Any]:
-    from .render.mitsuba_render import render_scene
+    from .render.mitsuba.scene_render import render_scene
 
     cfg = ctx.config
     size = 48 if cfg.quick else cfg.render_size
@@ -394,7 +394,7 @@ def _stage_render(ctx: _Context) -> dict[str, Any]:
 
 
 def _stage_viewer(ctx: _Context) -> dict[str, Any]:
-    from .render.web_export import export_web
+    from .export.web.exporter import export_web
 
     result = export_web(ctx.out / "model.dbtfm", ctx.out / "viewer", precision="fp16", methods=("auto", "hist", "tile"),
                         seed=ctx.config.seed, scale=8.0)

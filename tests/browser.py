@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dynbtf.errors import InputError
-from dynbtf.render.web_browser import CHROMIUM_FLAGS as _LIBRARY_FLAGS
-from dynbtf.render.web_browser import find_chromium
+from chromium import CHROMIUM_FLAGS as _LIBRARY_FLAGS
+from chromium import find_chromium
 
 __all__ = ["find_chromium", "check_in_browser", "BrowserCheck", "CHROMIUM_FLAGS"]
 

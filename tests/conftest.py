@@ -41,7 +41,7 @@ def small_level_decoder_fit():
     the default's size buys robustness of the benchmark's FLIP, not correctness, and would double the
     suite's time (a fit per model, method and seed). Subprocesses (CLI tests) use the defaults.
     """
-    import dynbtf.synthesized as synthesized
+    import dynbtf.infinite_btf as synthesized
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(synthesized, "LEVEL_FIT_QUERIES", 4096)

@@ -338,7 +338,7 @@ def test_neumip_trains_with_the_shared_trainer_and_round_trips(btf, tmp_path):
 
 @pytest.mark.parametrize("kind", ["neumip", "pca", "sh"])
 def test_each_baseline_through_the_synthesized_btf(btf, kind):
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     model = fitted_baselines(btf)[kind]
     uv = torch.tensor(texel_centers_uv(btf.height, btf.width).reshape(-1, 2))

@@ -246,7 +246,7 @@ def test_auto_method_of_a_model_is_synthesized_btfs_choice():
     both measure the decoded appearance, so a lattice the decoder shows is found even when half of the
     feature channels are noise."""
     from dynbtf.representations.triple_plane import TriplePlane
-    from dynbtf.synthesized import SynthesizedBTF, auto_method, decoded_appearance
+    from dynbtf.infinite_btf import SynthesizedBTF, auto_method, decoded_appearance
 
     model = TriplePlane(32, 32, positional_channels=6, angular_channels=3, hidden=12, seed=5)
     with torch.no_grad():

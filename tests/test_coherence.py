@@ -14,7 +14,7 @@ from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.synthesis.coherence import (best_matches, default_patch_size, patch_coherence, synthesized_coherence,
                                         synthesized_images)
 from dynbtf.synthesis.quality import format_report, quality_report
-from dynbtf.synthesized import SynthesizedBTF
+from dynbtf.infinite_btf import SynthesizedBTF
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 

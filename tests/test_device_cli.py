@@ -19,7 +19,7 @@ from dynbtf.device import resolve_device
 from dynbtf.errors import InputError
 from dynbtf.representations.model_file import save_model
 from dynbtf.representations.triple_plane import TriplePlane
-from dynbtf.synthesized import SynthesizedBTF
+from dynbtf.infinite_btf import SynthesizedBTF
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 no_cuda = pytest.mark.skipif(torch.cuda.is_available(), reason="checks the behaviour without CUDA")

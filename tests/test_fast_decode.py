@@ -1,4 +1,4 @@
-"""The synthesized BTF's fused first-layer kernel (dynbtf.fast_decode) vs float64 references.
+"""The synthesized BTF's fused first-layer kernel (dynbtf.decoder.fast_decode) vs float64 references.
 
 The kernel computes the Rusinkiewicz h/d vectors in float64 and their plane angles with a
 branch-free polynomial atan2 (vectorized across queries). References: ``np.arctan2``; the
@@ -17,7 +17,7 @@ import torch.nn.functional as F
 
 from dynbtf.conventions import angular_plane_coords, half_diff_from_view_light, spherical_to_direction
 from dynbtf.errors import InputError
-from dynbtf.fast_decode import _atan2, all_unit_vectors, first_layer_preactivation
+from dynbtf.decoder.fast_decode import _atan2, all_unit_vectors, first_layer_preactivation
 from dynbtf.texture import fetch_angular
 
 
@@ -96,7 +96,7 @@ def test_all_unit_vectors():
 
 def test_threaded_evaluation_equals_serial():
     from dynbtf.representations.triple_plane import TriplePlane
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     rng = np.random.default_rng(5)
     model = TriplePlane(24, 24, seed=1)

@@ -16,7 +16,7 @@ from dynbtf.render.preview import DirectionalLight, PinholeCamera, grazing_camer
 from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.synthesis import make_synthesizer
 from dynbtf.synthesis.mip import LevelOfDetail, area_matrix, area_pyramid
-from dynbtf.synthesized import SynthesizedBTF, footprint_width
+from dynbtf.infinite_btf import SynthesizedBTF, footprint_width
 from synthesis_reference import smooth_lognormal
 
 METHODS = ("tile", "linear", "hist", "hex")
@@ -267,8 +267,8 @@ def test_level_decoders_are_fitted_once_per_model_contents_and_seed(btf, tmp_pat
     (its targets are that seed's synthesized BTF), so a seed's answers never depend on what ran before."""
     import copy
 
-    import dynbtf.synthesized as synthesized
-    from dynbtf.synthesized import SynthesizedBTF
+    import dynbtf.infinite_btf as synthesized
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     fits = []
     real = SynthesizedBTF._fit_level_decoders

@@ -58,7 +58,7 @@ def test_version_is_the_packages():
 def test_rendering_without_mitsuba_says_how_to_install_it(monkeypatch):
     """Mitsuba is the extra dynbtf[render]: without it, rendering fails with one line that says so."""
     from dynbtf.errors import MissingDependencyError
-    from dynbtf.render.mitsuba_bsdf import register_plugin
+    from dynbtf.render.mitsuba.bsdf import register_plugin
 
     monkeypatch.setitem(sys.modules, "mitsuba", None)  # what an absent package looks like to import
     monkeypatch.setitem(sys.modules, "drjit", None)

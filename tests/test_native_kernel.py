@@ -1,4 +1,4 @@
-"""The native fused training kernel (dynbtf/native/fused_mlp.cpp) against the PyTorch path it replaces.
+"""The native fused training kernel (dynbtf/decoder/native/fused_mlp.cpp) against the PyTorch path it replaces.
 
 References: the chunked PyTorch implementation of the same loss (itself tested against autograd and
 gradcheck in test_triple_plane.py) and plain autograd in float64. Targets are placed 0.3 away from the
@@ -12,10 +12,10 @@ import pytest
 import torch
 from torch import nn
 
-from dynbtf import native
+from dynbtf.decoder import native
 from dynbtf.errors import InputError
-from dynbtf import fused_mlp
-from dynbtf.fused_mlp import native_precisions, resolve_precision, split_mlp_l1_loss
+from dynbtf.decoder import fused_mlp
+from dynbtf.decoder.fused_mlp import native_precisions, resolve_precision, split_mlp_l1_loss
 
 needs_native = pytest.mark.skipif(not native_precisions(), reason="no native kernel on this machine")
 needs_bf16 = pytest.mark.skipif("bf16" not in native_precisions(), reason="CPU without AVX512-BF16")

@@ -130,7 +130,7 @@ def circular_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def mi():
     mitsuba = pytest.importorskip("mitsuba")
     pytest.importorskip("drjit")
-    from dynbtf.render.mitsuba_bsdf import plugin_variants
+    from dynbtf.render.mitsuba.bsdf import plugin_variants
 
     if "llvm_ad_rgb" not in plugin_variants():  # pragma: no cover - no LLVM on this machine
         pytest.skip("Mitsuba variant llvm_ad_rgb not usable here")
@@ -151,7 +151,7 @@ def vector3(mi, w: np.ndarray):
 
 # ---------------------------------------------------------------------------- hash
 def test_hash_in_drjit_is_the_reference_hash(mi):
-    from dynbtf.render import drjit_synthesis
+    from dynbtf.render.mitsuba import drjit_synthesis
     from dynbtf.synthesis.hash import vertex_offsets
 
     vx = RNG.integers(-2 ** 31, 2 ** 31, 300)
@@ -170,7 +170,7 @@ def test_hash_in_drjit_is_the_reference_hash(mi):
 # ---------------------------------------------------------------------------- lattice
 @pytest.mark.parametrize("offset", [0.0, -37.25, 1e6 + 0.5])
 def test_lattice_in_drjit_is_the_exact_lattice(mi, offset):
-    from dynbtf.render import drjit_synthesis
+    from dynbtf.render.mitsuba import drjit_synthesis
     from dynbtf.synthesis.lattice import triangle_lattice
 
     uv = RNG.random((200, 2)) * 3.0 + offset
@@ -208,7 +208,7 @@ def test_half_diff_numpy_and_torch_are_the_rotation_matrices():
 
 
 def test_half_diff_in_drjit_is_the_rotation_matrices(mi):
-    from dynbtf.render.drjit_ops import angular_coords, half_diff
+    from dynbtf.render.mitsuba.drjit_ops import angular_coords, half_diff
 
     wv, wl = hemisphere(400), hemisphere(400)
     h_ref, d_ref = reference_half_diff(wv, wl)
@@ -225,7 +225,7 @@ def test_half_diff_in_drjit_is_the_rotation_matrices(mi):
 
 # ---------------------------------------------------------------------------- bilinear taps
 def test_positional_fetch_torch_numba_drjit_are_the_bilinear_reference(mi):
-    from dynbtf.render.drjit_ops import fetch_wrap as drjit_fetch_wrap
+    from dynbtf.render.mitsuba.drjit_ops import fetch_wrap as drjit_fetch_wrap
     from dynbtf.synthesis.kernels import tile_fetch
     from dynbtf.texture import fetch_wrap
 
@@ -241,7 +241,7 @@ def test_positional_fetch_torch_numba_drjit_are_the_bilinear_reference(mi):
 
 
 def test_angular_fetch_torch_and_drjit_are_the_bilinear_reference(mi):
-    from dynbtf.render.drjit_ops import fetch_angular as drjit_fetch_angular
+    from dynbtf.render.mitsuba.drjit_ops import fetch_angular as drjit_fetch_angular
     from dynbtf.texture import fetch_angular
 
     plane = RNG.normal(size=(6, 9, 4)).astype(np.float32)
@@ -289,7 +289,7 @@ def _away_from_phi_seam(wv, wl, margin=1e-4):
 
 
 def test_decoder_torch_and_numba_first_layer_are_the_reference(triple_plane):
-    from dynbtf.fast_decode import first_layer_preactivation, fold_angular_planes
+    from dynbtf.decoder.fast_decode import first_layer_preactivation, fold_angular_planes
 
     model = triple_plane
     n = 300
@@ -312,7 +312,7 @@ def test_decoder_torch_and_numba_first_layer_are_the_reference(triple_plane):
 
 
 def test_decoder_in_drjit_is_the_reference(mi, triple_plane):
-    from dynbtf.render.drjit_ops import DrDecoder
+    from dynbtf.render.mitsuba.drjit_ops import DrDecoder
 
     model = triple_plane
     n = 200
@@ -324,7 +324,7 @@ def test_decoder_in_drjit_is_the_reference(mi, triple_plane):
 
 
 def test_native_training_kernel_loss_is_the_reference_l1():
-    from dynbtf.fused_mlp import native_precisions, split_mlp_l1_loss
+    from dynbtf.decoder.fused_mlp import native_precisions, split_mlp_l1_loss
 
     if "fp32" not in native_precisions():
         pytest.skip("no native kernel on this machine")
@@ -354,7 +354,7 @@ def test_every_synthesis_method_in_numba_and_drjit_is_the_torch_reference(mi, me
     definition for rendering); the reference then uses the same table, and the exact inverse is
     checked to be within the table's error bound (1% of a channel's spread).
     """
-    from dynbtf.render.drjit_synthesis import make_dr_synthesizer
+    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
     from dynbtf.synthesis.base import make_synthesizer
     from dynbtf.synthesis.histogram import blend_weights, variance_preserving_blend
 
@@ -387,7 +387,7 @@ def test_hist_with_extreme_exponents_is_finite_and_one_sample_in_every_backend(m
     """``b^gamma`` underflows to 0 for all three barycentrics once gamma is large (0/0: NaN weights, and a NaN
     index into the inverse table crashed the numba kernel). The weights are ``(b / max b)^gamma``: finite for
     any gamma, and for gamma -> inf one-hot on the dominant vertex, whose sample passes through unblended."""
-    from dynbtf.render.drjit_synthesis import make_dr_synthesizer
+    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
     from dynbtf.synthesis.base import make_synthesizer
 
     exemplar = smooth_lognormal(24, 20, 4, seed=4)
@@ -420,7 +420,7 @@ def test_cell_quilting_in_numba_and_drjit_is_the_torch_reference(mi, seed):
     """struct: torch path = numba kernel = Dr.Jit twin (values to float rounding); the twin's read positions and
     chosen offset indices are the torch path's bit for bit, near the origin and 2**45 repeats from it (int64
     cell indices beyond any int32), on both sides; near cell edges neighbours' and diagonal cells' offsets are taken."""
-    from dynbtf.render.drjit_synthesis import make_dr_synthesizer
+    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
     from dynbtf.synthesis.base import make_synthesizer
     from dynbtf.synthesis.cell_quilting import cell_choice
 

@@ -11,7 +11,7 @@ from dynbtf.data.simulator.geometry import trace_view
 from dynbtf.errors import InputError
 from dynbtf.representations.model_file import load_model, save_model
 from dynbtf.representations.parallax import ParallaxTriplePlane, march_visible_uv
-from dynbtf.synthesized import SynthesizedBTF
+from dynbtf.infinite_btf import SynthesizedBTF
 from dynbtf.texture import fetch_wrap
 from dynbtf.training import TrainConfig, checkpoint_path, fit, held_out_split
 from dynbtf.training.evaluate import evaluate_model

@@ -84,7 +84,7 @@ def test_render_command_bad_options(small_model, tmp_path, capsys, no_mitsuba_sc
 def test_render_command_unavailable_variant_lists_the_available_ones(small_model, tmp_path, capsys,
                                                                      no_mitsuba_scene):
     from dynbtf.cli.main import main
-    from dynbtf.render.mitsuba_bsdf import plugin_variants
+    from dynbtf.render.mitsuba.bsdf import plugin_variants
 
     available = plugin_variants()
     if "cuda_ad_rgb" in available:  # pragma: no cover - a machine with a GPU
@@ -96,7 +96,7 @@ def test_render_command_unavailable_variant_lists_the_available_ones(small_model
 
 
 def test_render_command_checks_the_output_extension_before_rendering(small_model, tmp_path, capsys, monkeypatch):
-    import dynbtf.render.mitsuba_render as mitsuba_render
+    import dynbtf.render.mitsuba.scene_render as mitsuba_render
     from dynbtf.cli.main import main
 
     def no_render(*args, **kwargs):
@@ -146,7 +146,7 @@ def test_render_command_model_file_errors(tmp_path, capsys, no_mitsuba_scene, sm
 def test_render_scene_validates_before_mitsuba(small_model, tmp_path, no_mitsuba_scene, kwargs, error, message):
     """Library callers get the same clear errors (not Mitsuba's RuntimeError from inside the plugin)."""
     from dynbtf import errors
-    from dynbtf.render.mitsuba_render import render_scene
+    from dynbtf.render.mitsuba.scene_render import render_scene
     from dynbtf.representations.model_file import save_model
     from dynbtf.representations.pca import PCA
 
@@ -162,7 +162,7 @@ def test_render_scene_validates_before_mitsuba(small_model, tmp_path, no_mitsuba
 def test_render_progress_says_when_the_kernel_compiles(small_model, capsys):
     """A status line before the first pass (kernel compilation: no sample completes meanwhile), its time
     after it, then a bar over the remaining samples only."""
-    from dynbtf.render.mitsuba_render import render_scene
+    from dynbtf.render.mitsuba.scene_render import render_scene
 
     result = render_scene(small_model, scene="plane", lighting="point", method="tile", scale=2.0,
                           resolution=(8, 8), spp=6, spp_per_pass=2, progress=True)

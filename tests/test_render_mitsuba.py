@@ -19,7 +19,7 @@ TOLERANCE_PAPER_SIZE = 1e-4
 
 @pytest.fixture(scope="module")
 def variant():
-    from dynbtf.render.mitsuba_bsdf import plugin_variants, register_plugin
+    from dynbtf.render.mitsuba.bsdf import plugin_variants, register_plugin
 
     if VARIANT not in plugin_variants():  # pragma: no cover - not built, or no LLVM on this machine
         pytest.skip(f"Mitsuba variant {VARIANT} not usable here")
@@ -83,7 +83,7 @@ def _plugin_eval(bsdf, uv, wv, wl, scale, dp_dv=(0.0, 1.0, 0.0), duv_dx=None, du
 
 def _reference(model, method, seed, uv, wv, wl):
     """dynbtf's own evaluation: SynthesizedBTF.eval (plain model for tiling when synthesis is absent)."""
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     btf = SynthesizedBTF(model, method, scale=1.0, seed=seed)
     out = btf.eval(torch.from_numpy(uv.astype(np.float64)), torch.from_numpy(wv), torch.from_numpy(wl))
@@ -158,7 +158,7 @@ def test_plugin_marches_parallax_like_synthesized_btf(variant, parallax_file, me
     Within 1e-3 of the value range (measured: ~2.5e-5); and the march matters: fetching the
     features at ``uv`` itself (no march) is off by far more.
     """
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     path, model = parallax_file
     got, ref = _assert_plugin_matches(path, model, method, n=3000, tolerance=1e-3 * 0.5)
@@ -282,7 +282,7 @@ def test_small_render_of_a_plane_matches_direct_lighting_by_hand(variant, model_
     """A 24x24 render of a plane under a point light, direct lighting only, against the closed form
     ``L = value / pi * cos(theta_l) * I / r^2`` evaluated with dynbtf at each pixel's hit point."""
     path, model = model_file
-    from dynbtf.render.scenes import bsdf_dict
+    from dynbtf.render.mitsuba.scenes import bsdf_dict
 
     res = 24
     scale = 3.0
@@ -413,7 +413,7 @@ def test_table_sampler_draws_its_density_exactly(variant, fitted_files, wi):
     direction is that density over the Jacobian ``8 pi (w_light . h)``."""
     from scipy import stats
 
-    from dynbtf.render.sampling import DrTableSampler, build_sampling_table
+    from dynbtf.render.mitsuba.sampling import DrTableSampler, build_sampling_table
     from dynbtf.representations.model_file import load_model
 
     model, _ = load_model(fitted_files["lacquered_wood"])
@@ -481,7 +481,7 @@ def test_cosine_relative_variance_matches_monte_carlo_over_the_decoder(variant, 
     import torch
 
     from dynbtf.conventions import spherical_to_direction
-    from dynbtf.render.sampling import SamplingTable, build_sampling_table, cosine_relative_variance
+    from dynbtf.render.mitsuba.sampling import SamplingTable, build_sampling_table, cosine_relative_variance
     from dynbtf.representations.model_file import load_model
 
     model, _ = load_model(fitted_files["leather"])
@@ -506,7 +506,7 @@ def test_cosine_relative_variance_matches_monte_carlo_over_the_decoder(variant, 
 
 def test_auto_sampling_uses_the_table_for_glossy_and_cosine_for_rough(variant, fitted_files):
     """The default, sampling='auto': the glossy wood gets the table, the rough leather cosine sampling."""
-    from dynbtf.render.sampling import AUTO_MIN_COSINE_VARIANCE
+    from dynbtf.render.mitsuba.sampling import AUTO_MIN_COSINE_VARIANCE
 
     wood = mi.load_dict({"type": "dynbtf", "filename": str(fitted_files["lacquered_wood"])})
     leather = mi.load_dict({"type": "dynbtf", "filename": str(fitted_files["leather"])})
@@ -529,8 +529,8 @@ def test_damaged_sampling_table_falls_back_to_cosine_once(variant, model_file, t
     import shutil
     import warnings
 
-    from dynbtf.render import mitsuba_bsdf
-    from dynbtf.render.sampling import build_sampling_table
+    from dynbtf.render.mitsuba import bsdf as mitsuba_bsdf
+    from dynbtf.render.mitsuba.sampling import build_sampling_table
 
     path, model = model_file
     copy = shutil.copy(path, tmp_path / "damaged.dbtfm")
@@ -550,7 +550,7 @@ def test_damaged_sampling_table_falls_back_to_cosine_once(variant, model_file, t
 
 # ---------------------------------------------------------------- footprints (filtered queries)
 def _footprint_reference(model, method, seed, uv, wv, wl, footprint):
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     btf = SynthesizedBTF(model, method, scale=1.0, seed=seed)
     return np.asarray(btf.eval(uv.astype(np.float64), wv, wl, footprint=footprint), dtype=np.float64)
@@ -566,7 +566,7 @@ def test_plugin_footprint_from_uv_partials_matches_synthesized_btf(variant, mode
 
 def _assert_footprints_match(path, model, method, *, n=3000):
     """The plugin with uv partials = ``SynthesizedBTF.eval`` with their footprint, at ``n`` random queries."""
-    from dynbtf.synthesized import footprint_width
+    from dynbtf.infinite_btf import footprint_width
 
     scale, seed = 7.0, 3
     bsdf = mi.load_dict({"type": "dynbtf", "filename": str(path), "method": method, "scale": scale, "seed": seed})
@@ -622,7 +622,7 @@ def test_plugin_without_a_footprint_is_the_point_query_bit_for_bit(variant, mode
 
 def test_ray_cone_angle_of_a_camera():
     from dynbtf.errors import InputError
-    from dynbtf.render.mitsuba_bsdf import ray_cone_angle
+    from dynbtf.render.mitsuba.bsdf import ray_cone_angle
 
     # 90 degrees over 512 px: the image plane at distance 1 is 2 wide, a pixel 2 / 512; 4 spp: half of it
     assert ray_cone_angle(90.0, 512, 4) == pytest.approx(2.0 / 512 / 2.0, rel=1e-12)
@@ -635,7 +635,7 @@ def test_ray_cone_angle_of_a_camera():
 def test_rendered_distant_plane_filters_with_the_scene_camera_cone(variant, model_file):
     """A grazing plane (``scene_dict``'s plane, which sets ``ray_cone_angle`` from its camera) at 1 spp is
     closer to a 64-spp render with footprints than without: the footprints reach the plugin in a real render."""
-    from dynbtf.render.scenes import bsdf_dict, scene_dict
+    from dynbtf.render.mitsuba.scenes import bsdf_dict, scene_dict
 
     path, _ = model_file
     res = (24, 32)
@@ -658,7 +658,7 @@ def test_table_density_of_an_isotropic_model_does_not_depend_on_the_view_azimuth
     (the nodes' lobes 45 degrees apart) would lose the lobe."""
     import torch
 
-    from dynbtf.render.sampling import DrTableSampler, build_sampling_table
+    from dynbtf.render.mitsuba.sampling import DrTableSampler, build_sampling_table
     from dynbtf.representations.model_file import load_model
 
     model, _ = load_model(fitted_files["lacquered_wood"])
@@ -710,8 +710,8 @@ def structured_file(tmp_path_factory):
 def test_plugin_struct_matches_synthesized_btf(variant, structured_file):
     """struct in the plugin = ``SynthesizedBTF(model, "struct").eval`` to float rounding: near the origin through
     the BSDF, and 2**45 repeats away through its evaluator (float64 uv, which mesh uv cannot carry)."""
-    from dynbtf.render.mitsuba_bsdf import DynBTFEvaluator
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     path, model = structured_file
     btf = SynthesizedBTF(model, "struct", scale=1.0, seed=3)
@@ -765,7 +765,7 @@ def test_render_auto_resolves_the_method_and_echoes_the_choice(variant, structur
     gets struct and prints nothing), the choice line echoed (the command: on standard output)."""
     from dynbtf.cli.main import main
     from dynbtf.errors import InputError
-    from dynbtf.render.mitsuba_render import render_scene
+    from dynbtf.render.mitsuba.scene_render import render_scene
 
     path, _ = structured_file
     loaded = []

@@ -49,7 +49,7 @@ def _top_view_points(res, extent, center, distance):
 
 
 def test_lambertian_under_point_light_matches_inverse_square_cosine_law():
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     albedo = [0.8, 0.5, 0.25]
     btf = SynthesizedBTF(ConstantAlbedo(albedo), "tile")

@@ -21,7 +21,7 @@ from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.synthesis import make_synthesizer
 from dynbtf.synthesis.base import MAX_REPEATS
 from dynbtf.synthesis.quality import format_report, quality_report, save_report
-from dynbtf.synthesized import SynthesizedBTF
+from dynbtf.infinite_btf import SynthesizedBTF
 from synthesis_reference import brute_force_lattice_blend, smooth_lognormal
 
 DYNAMIC_BLENDS = ("linear", "hist", "hex")
@@ -490,7 +490,7 @@ def test_cli_synth_writes_btf_values_and_cosine_only_when_asked(tmp_path):
     from dynbtf.io import load_image
     from dynbtf.representations.model_file import save_model
     from dynbtf.representations.triple_plane import TriplePlane
-    from dynbtf.synthesized import SynthesizedBTF
+    from dynbtf.infinite_btf import SynthesizedBTF
 
     model = TriplePlane(16, 16, positional_channels=4, angular_channels=4, hidden=16, seed=2)
     with torch.no_grad():

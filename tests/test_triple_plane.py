@@ -10,7 +10,7 @@ from dynbtf.errors import InputError
 from dynbtf.representations import get_representation_class
 from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.texture import fetch_angular, fetch_wrap
-from dynbtf.fused_mlp import split_mlp_l1_loss
+from dynbtf.decoder.fused_mlp import split_mlp_l1_loss
 
 
 def random_directions(shape, generator, dtype=torch.float32):

@@ -1,7 +1,7 @@
 """The web export's shader, run in headless Chromium's WebGL2, against the library.
 
-Queries are rendered into a float32 target and read back (:mod:`dynbtf.render.web_browser`);
-the reference is :meth:`dynbtf.synthesized.SynthesizedBTF.eval` on the same queries. The
+Queries are rendered into a float32 target and read back (tests/chromium.py);
+the reference is :meth:`dynbtf.infinite_btf.SynthesizedBTF.eval` on the same queries. The
 lattice check compares the shader's triangle vertices and hashed texel offsets with
 :func:`dynbtf.synthesis.lattice.triangle_lattice` and :func:`dynbtf.synthesis.hash.vertex_offsets`
 bit for bit, up to ~2**45 repeats from the origin.
@@ -16,12 +16,12 @@ import pytest
 import torch
 
 from dynbtf.errors import InputError
-from dynbtf.render.web_browser import eval_in_browser, find_chromium, lattice_in_browser
-from dynbtf.render.web_export import dequantize, export_web, quantize
-from dynbtf.render.web_shader import repeat_origin
+from chromium import eval_in_browser, find_chromium, lattice_in_browser
+from dynbtf.export.web.exporter import dequantize, export_web, quantize
+from dynbtf.export.web.shader import repeat_origin
 from dynbtf.synthesis.hash import vertex_offsets
 from dynbtf.synthesis.lattice import triangle_lattice
-from dynbtf.synthesized import SynthesizedBTF
+from dynbtf.infinite_btf import SynthesizedBTF
 
 browser = pytest.mark.skipif(find_chromium() is None, reason="needs headless Chromium (scripts/test.sh installs it)")
 METHODS = ("hist", "hex", "tile", "linear")
@@ -267,7 +267,7 @@ _PROBE = """<script>
 
 def _probe_viewer(directory, tmp_name="probe.html", **kwargs):
     """Load a copy of the viewer page with console/exception hooks; return the PageRun."""
-    from dynbtf.render.web_browser import run_page
+    from chromium import run_page
 
     page = directory / tmp_name
     page.write_text((directory / "index.html").read_text().replace("<head>", "<head>" + _PROBE, 1))
@@ -337,7 +337,7 @@ def test_viewer_reports_bad_page_parameters_in_the_page(exports):
 
 def test_shader_cost_counts_the_decoder_as_the_exported_weights_hold_it(exports, model):
     """The decoder's multiply-adds equal the float count of its exported mat4 blocks (padded widths)."""
-    from dynbtf.render.web_shader import shader_cost
+    from dynbtf.export.web.shader import shader_cost
 
     manifest = exports["fp32"].manifest
     cfg = model.config()
@@ -572,7 +572,7 @@ def test_struct_cells_offsets_and_texels_agree_bit_for_bit(struct_exports, struc
     The positions hold dyadic fractions that float32 and float64 represent exactly, so no query is set
     aside; they land on cell edges, in the cut bands and on texel boundaries.
     """
-    from dynbtf.render.web_browser import run_page
+    from chromium import run_page
 
     rng = np.random.default_rng(11)
     n = 2048
@@ -640,7 +640,7 @@ def test_viewer_shows_the_auto_choice_by_default(struct_exports):
 
 
 def test_shader_cost_of_struct_is_one_fetch_and_the_cell_hashes(model):
-    from dynbtf.render.web_shader import shader_cost
+    from dynbtf.export.web.shader import shader_cost
 
     cfg = model.config()
     sizes = dict(channels=cfg["positional_channels"], angular_channels=cfg["angular_channels"], hidden=cfg["hidden"],

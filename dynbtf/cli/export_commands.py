@@ -38,7 +38,7 @@ def export_command(
     Example: dynbtf export leather.dbtfm -o leather-web --precision u8, then open leather-web/index.html
     (methods auto, hist, tile: auto prints its choice, struct for a structured material, else hist)
     """
-    from ..render.web_export import DEFAULT_METHODS, WEB_PRECISIONS, export_web
+    from ..export.web.exporter import DEFAULT_METHODS, WEB_PRECISIONS, export_web
     from ..representations.model_file import read_model_metadata
 
     if export_format not in FORMATS:

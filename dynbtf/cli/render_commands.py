@@ -41,7 +41,7 @@ def render(
     shape are rendered; Dr.Jit caches it): a status line says so, then a bar counts samples.
     """
     from ..io import check_image_path, save_image
-    from ..render.mitsuba_render import render_scene
+    from ..render.mitsuba.scene_render import render_scene
 
     from .arguments import check_exposure
 

@@ -110,7 +110,7 @@ def synth(
     from ..io import save_image
     from ..representations.model_file import load_model
     from ..synthesis.base import check_uv
-    from ..synthesized import SynthesizedBTF
+    from ..infinite_btf import SynthesizedBTF
     from .arguments import check_exposure, parse_theta_phi
 
     if output is None and not report:

@@ -3,7 +3,7 @@
 No Mitsuba, no path tracing: every pixel's camera ray is intersected with the
 plane ``z = 0`` analytically, and the BTF is queried once per pixel sample with
 the exact view and light directions. This is for quick looks and for the report;
-:mod:`dynbtf.render.mitsuba_bsdf` is the renderer for real scenes.
+:mod:`dynbtf.render.mitsuba.bsdf` is the renderer for real scenes.
 
 Geometry and units
 ------------------
@@ -145,7 +145,7 @@ def _stratified_jitter(spp: int) -> np.ndarray:
 
 def plane_footprint(camera: PinholeCamera, directions: np.ndarray, height: int, width: int, spp: int = 1
                     ) -> np.ndarray:
-    """Footprint (uv units, :func:`dynbtf.synthesized.footprint_width`: the longer pixel axis) of pixel
+    """Footprint (uv units, :func:`dynbtf.infinite_btf.footprint_width`: the longer pixel axis) of pixel
     samples on the plane ``z = 0``.
 
     ``directions (..., 3)`` are unit rays of :meth:`PinholeCamera.rays` that hit the plane. The
@@ -153,7 +153,7 @@ def plane_footprint(camera: PinholeCamera, directions: np.ndarray, height: int, 
     transferred to the plane, ``t`` the hit distance, ``dD`` the per-pixel change of the ray direction
     over its length); with ``spp`` samples per pixel each covers ``1 / sqrt(spp)`` of the pixel's side.
     """
-    from ..synthesized import footprint_width
+    from ..infinite_btf import footprint_width
 
     origin, forward, _, _, _ = camera.frame()
     o_z = float(origin[2])
@@ -177,7 +177,7 @@ def render_preview(btf, camera: PinholeCamera, light, *, resolution=(256, 256), 
     Parameters
     ----------
     btf : object with ``eval(uv, w_view, w_light)``
-        E.g. a :class:`dynbtf.synthesized.SynthesizedBTF`, or any object whose
+        E.g. a :class:`dynbtf.infinite_btf.SynthesizedBTF`, or any object whose
         ``eval`` takes float64 NumPy arrays ``uv (N, 2)``, ``w_view, w_light (N, 3)``
         (or torch tensors: NumPy inputs are converted when the call needs tensors)
         and returns ``(N, 3)`` linear RGB values excluding cos(theta_light).

@@ -70,7 +70,7 @@ class FoldableDecoder:
     angular_planes : tuple of two tensors, optional
         ``(f_H, f_D)``, Rusinkiewicz feature planes ``(R, R, C)``, when the angular input is their bilinear
         fetch (the Triple Plane): the CPU kernel then folds them into layer 1
-        (:func:`dynbtf.fast_decode.fold_angular_planes`).
+        (:func:`dynbtf.decoder.fast_decode.fold_angular_planes`).
     """
 
     decoder: nn.Module
@@ -133,7 +133,7 @@ class Representation(nn.Module, abc.ABC):
 
     # ------------------------------------------------------------ optional abilities (defaults here)
     #: True when :meth:`texel_image_l1_loss` is a fused kernel that can run in bf16 arithmetic
-    #: (:func:`dynbtf.fused_mlp.split_mlp_l1_loss`); the default loss is generic and fp32 only.
+    #: (:func:`dynbtf.decoder.fused_mlp.split_mlp_l1_loss`); the default loss is generic and fp32 only.
     has_fused_loss: ClassVar[bool] = False
 
     def param_groups(self) -> list[dict[str, Any]]:

@@ -98,7 +98,7 @@ class NeuMIP(Representation):
         """The decoder's angular input, ``(..., 4)`` (:meth:`direction_inputs`).
 
         Same role as the Triple Plane's ``angular_features``: with it the
-        synthesized BTF (:class:`dynbtf.synthesized.SynthesizedBTF`) takes its fast
+        synthesized BTF (:class:`dynbtf.infinite_btf.SynthesizedBTF`) takes its fast
         path (layer 1's angular part once per chunk).
         """
         return self.direction_inputs(w_view, w_light)
@@ -142,7 +142,7 @@ class NeuMIP(Representation):
 
         The same fast path as the Triple Plane's (same decoder structure): layer 1's
         texture product once per texel, its direction part once per image, layers 2..
-        by :func:`dynbtf.fused_mlp.split_mlp_l1_loss`. Equal (to rounding)
+        by :func:`dynbtf.decoder.fused_mlp.split_mlp_l1_loss`. Equal (to rounding)
         to ``(self.predict_texel_images(...) - target).abs().mean()``; ``texel_groups``
         and ``precision`` as in :meth:`dynbtf.representations.triple_plane.TriplePlane.texel_image_l1_loss`.
         """

@@ -45,7 +45,7 @@ from torch import nn
 from ..conventions import angular_plane_coords, half_diff_from_view_light
 from ..errors import InputError, require_positive_ints
 from ..texture import fetch_angular
-from ..fused_mlp import split_mlp_l1_loss
+from ..decoder.fused_mlp import split_mlp_l1_loss
 from .base import FoldableDecoder, Representation, register
 
 __all__ = ["TriplePlane", "Decoder"]
@@ -121,10 +121,10 @@ class Decoder(nn.Module):
         ``positional (N, C_U)`` is shared by the ``B`` images, ``angular (B, C_A)`` is one
         vector per image: layer 1's positional product is computed once per texel, its
         angular part once per image, layers 2.. by
-        :func:`dynbtf.fused_mlp.split_mlp_l1_loss` in cache-sized chunks.
+        :func:`dynbtf.decoder.fused_mlp.split_mlp_l1_loss` in cache-sized chunks.
         With ``texel_groups = G``, the texels form ``G`` equal consecutive groups, group
         ``g`` seen under its own ``B`` images: ``angular`` is ``(G * B, C_A)`` (group-major).
-        ``precision``: arithmetic of layers 2.. (see :func:`~dynbtf.fused_mlp.split_mlp_l1_loss`).
+        ``precision``: arithmetic of layers 2.. (see :func:`~dynbtf.decoder.fused_mlp.split_mlp_l1_loss`).
         """
         dtype = self.first.weight.dtype
         positional_pre = self.first_layer_positional(positional.to(dtype))
@@ -264,7 +264,7 @@ class TriplePlane(Representation):
 
         Same value and gradients as ``(self.predict_texel_images(w_view, w_light, texels)
         - target).abs().mean()`` (to float rounding), computed by
-        :func:`dynbtf.fused_mlp.split_mlp_l1_loss`: layer 1's positional
+        :func:`dynbtf.decoder.fused_mlp.split_mlp_l1_loss`: layer 1's positional
         product once per texel, its angular part once per image, layers 2.. in
         cache-sized chunks with a hand-written backward pass.
 

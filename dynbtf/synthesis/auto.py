@@ -4,7 +4,7 @@ Structured exemplars (weaves, tiles, bricks: strong autocorrelation peaks away f
 :mod:`.structure`) are synthesized with lattice-aligned cell quilting (``struct``), which keeps
 their elements intact; stochastic ones with histogram-preserving blending (``hist``), which
 never repeats and keeps the histogram. A fitted model's appearance is measured rather than its feature plane when the caller gives it
-(``guide``; :class:`dynbtf.synthesized.SynthesizedBTF` does). The choice and its evidence are one line,
+(``guide``; :class:`dynbtf.infinite_btf.SynthesizedBTF` does). The choice and its evidence are one line,
 :attr:`MethodChoice.line`, that every command prints.
 
 Examples

@@ -12,7 +12,7 @@ by the integer hash of the cell's index and the seed (:mod:`.hash`)::
 The offsets are the exemplar's own translational lattice: ``o[0] = (0, 0)`` and the
 strongest peaks of its autocorrelation (:mod:`.structure`), measured on a ``guide`` when one is
 given: what the plane looks like, e.g. a fitted model's colours decoded under a few lights
-(:class:`dynbtf.synthesized.SynthesizedBTF` passes them). A fitted feature plane spreads its
+(:class:`dynbtf.infinite_btf.SynthesizedBTF` passes them). A fitted feature plane spreads its
 variance over many channels, fine detail included, so its own autocorrelation peaks are weaker
 (0.31 at the simulated woven fabric's lattice against 0.96 for its decoded colours). A copy shifted by a lattice
 vector puts every yarn, joint and tile edge where the unshifted copy has one, so neighbouring

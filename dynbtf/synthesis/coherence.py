@@ -22,7 +22,7 @@ copied patch scores exactly 0 and ties within FFT rounding go to tiling's place.
 400 x 400 one (one core, NumPy/SciPy FFTs).
 
 :func:`patch_coherence` works on any two images; :func:`synthesized_coherence`
-decodes them from a :class:`~dynbtf.synthesized.SynthesizedBTF` far from the origin.
+decodes them from a :class:`~dynbtf.infinite_btf.SynthesizedBTF` far from the origin.
 """
 
 from __future__ import annotations
@@ -274,7 +274,7 @@ def synthesized_images(btf, *, side: int | None = None, view=DEFAULT_VIEW, light
 
     Parameters
     ----------
-    btf : :class:`~dynbtf.synthesized.SynthesizedBTF`
+    btf : :class:`~dynbtf.infinite_btf.SynthesizedBTF`
     side : int, optional
         Side of the square synthesized area, texels; default ``min(MAX_SIDE, 4 max(H, W))``
         (4 exemplar repeats, at most 512 texels).
@@ -326,7 +326,7 @@ def synthesized_coherence(btf, *, side: int | None = None, view=DEFAULT_VIEW, li
 
     >>> import torch
     >>> from dynbtf.representations.triple_plane import TriplePlane
-    >>> from dynbtf.synthesized import SynthesizedBTF
+    >>> from dynbtf.infinite_btf import SynthesizedBTF
     >>> r = synthesized_coherence(SynthesizedBTF(TriplePlane(32, 32, seed=1), "tile", scale=4.0), patches=32)
     >>> r["patch"], r["side"], r["p90"] < 1e-9, r["identity"]
     (8, 128, True, 1.0)

@@ -13,7 +13,7 @@ content wins the transition) and ``r`` the contrast (``r = 0.5`` leaves the
 weights unchanged; larger values sharpen the transitions). For a 16-channel
 latent plane "luminance" is the first principal component of the exemplar
 (min-max normalized) unless a per-texel ``luminance`` plane is given (e.g. the
-decoded brightness, as :class:`dynbtf.synthesized.SynthesizedBTF` does).
+decoded brightness, as :class:`dynbtf.infinite_btf.SynthesizedBTF` does).
 
 Per-tile **rotation is off**: rotating a tile rotates the material frame that
 the decoder's view and light inputs assume. No variance correction: some

@@ -122,7 +122,7 @@ def verbatim_fraction(synthesized: np.ndarray, exemplar: np.ndarray, tolerance: 
 
 def quality_report(btf, *, repeats: int = 8, max_side: int = 1024, pairs=DEFAULT_PAIRS, rgb_side: int = 512,
                    seed: int = 0) -> dict[str, Any]:
-    """Quality statistics of a :class:`dynbtf.synthesized.SynthesizedBTF` (see the module docstring).
+    """Quality statistics of a :class:`dynbtf.infinite_btf.SynthesizedBTF` (see the module docstring).
 
     Parameters
     ----------

@@ -31,7 +31,7 @@ from ..io import atomic_path, linear_to_srgb, save_image, srgb_to_linear
 from ..metrics import PSNR_FIXED_LABEL, PSNR_LABEL, dssim, flip, flip_magma, psnr, psnr_fixed_range
 from ..representations.base import Representation
 from .fit import predict_images
-from ..fused_mlp import single_intra_op_thread
+from ..decoder.fused_mlp import single_intra_op_thread
 
 __all__ = ["Evaluation", "evaluate_model", "resolve_eval_pairs", "side_by_side", "write_evaluation",
            "GRAZING_THETA_DEG", "METRIC_DESCRIPTIONS"]

@@ -29,7 +29,7 @@ epoch then has ``sum over views of ceil(pairs of the view / B)`` steps.
 Any :class:`~dynbtf.representations.base.Representation` with parameters trains
 with :func:`fit` through the abilities the base class declares with defaults:
 ``param_groups()`` (optimizer groups), ``texel_image_l1_loss(...)`` (the batch's loss;
-fused for the Triple Plane and NeuMIP, :func:`dynbtf.fused_mlp.split_mlp_l1_loss`,
+fused for the Triple Plane and NeuMIP, :func:`dynbtf.decoder.fused_mlp.split_mlp_l1_loss`,
 ``has_fused_loss``), ``predict_texel_images(...)`` (images at texel centres) and
 ``view_coherent_batches``.
 
@@ -73,7 +73,7 @@ from ..device import resolve_device
 from ..errors import InputError
 from ..representations.base import Representation
 from ..representations.model_file import load_model, model_size_report, save_model
-from ..fused_mlp import resolve_precision, single_intra_op_thread
+from ..decoder.fused_mlp import resolve_precision, single_intra_op_thread
 from .batches import BatchSampler
 from .checkpoint import Checkpointer, checkpoint_path
 from .distributed import from_environment
@@ -131,7 +131,7 @@ class TrainConfig:
         ``"bf16"`` (bfloat16 products accumulated in float32, parameters, optimizer and
         gradients in float32: mixed precision; needs a CPU with AVX512-BF16); ``"auto"``
         (default: ``"bf16"`` where available, else ``"fp32"``; see
-        :func:`dynbtf.fused_mlp.resolve_precision`). The precision used is recorded in
+        :func:`dynbtf.decoder.fused_mlp.resolve_precision`). The precision used is recorded in
         the model file.
     """
 

@@ -41,7 +41,7 @@ from ..errors import InputError
 from ..representations.base import Representation
 from .batches import BatchSampler
 from .fit import TrainConfig, texel_image_loss
-from ..fused_mlp import resolve_precision, single_intra_op_thread
+from ..decoder.fused_mlp import resolve_precision, single_intra_op_thread
 from .images import ImageStore, held_out_split
 
 __all__ = ["Recipe", "auto_recipe", "choose_config", "RECIPES", "REFERENCE_STEPS", "MAX_TEXELS_PER_STEP"]

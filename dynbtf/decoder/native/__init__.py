@@ -1,11 +1,11 @@
 """Native CPU kernels: C++ sources shipped with the package, compiled on first use, loaded with ctypes.
 
-A kernel ``NAME`` is the file ``dynbtf/native/NAME.cpp``. :func:`load_library` compiles it with
+A kernel ``NAME`` is the file ``dynbtf/decoder/native/NAME.cpp``. :func:`load_library` compiles it with
 the system C++ compiler (``$CXX`` or ``g++``/``c++``/``clang++``) for the machine it runs on
 (``-O3 -march=native``), caches the shared library and returns a :class:`ctypes.CDLL`.
 
-* **Cache**: ``$DYNBTF_NATIVE_CACHE``, else ``$XDG_CACHE_HOME/dynbtf/native``, else
-  ``~/.cache/dynbtf/native``. The file name carries a hash of the source, the compiler's version,
+* **Cache**: ``$DYNBTF_NATIVE_CACHE``, else ``$XDG_CACHE_HOME/dynbtf/decoder/native``, else
+  ``~/.cache/dynbtf/decoder/native``. The file name carries a hash of the source, the compiler's version,
   the flags and the CPU's feature flags, so an edited source, another compiler or another CPU
   (a shared home directory) gets its own build. Builds are written to a temporary file and
   renamed, so concurrent processes never load a half-written library.
@@ -15,7 +15,7 @@ the system C++ compiler (``$CXX`` or ``g++``/``c++``/``clang++``) for the machin
 
 The kernels themselves are plain C ABI functions taking pointers to contiguous float32 CPU
 buffers (see each source's header comment); their Python wrappers live next to the code that
-uses them (:mod:`dynbtf.fused_mlp`).
+uses them (:mod:`dynbtf.decoder.fused_mlp`).
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ def _compile(compiler: str, source: Path, target: Path) -> str | None:
 
 
 def load_library(name: str) -> ctypes.CDLL | None:
-    """The compiled kernel ``dynbtf/native/<name>.cpp`` as a :class:`ctypes.CDLL`, or None if unavailable.
+    """The compiled kernel ``dynbtf/decoder/native/<name>.cpp`` as a :class:`ctypes.CDLL`, or None if unavailable.
 
     Compiles on the first call in a machine's lifetime (a few seconds), then loads from the cache.
     Thread-safe; the result is remembered for the process.

@@ -41,8 +41,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..conventions import spherical_to_direction
-from ..errors import InputError
+from ...conventions import spherical_to_direction
+from ...errors import InputError
 
 __all__ = ["SAMPLING_MODES", "DEFAULT_TABLE_WEIGHT", "AUTO_MIN_COSINE_VARIANCE", "SamplingTable",
            "build_sampling_table", "table_problem", "cosine_relative_variance", "DrTableSampler"]

@@ -1,10 +1,10 @@
 """Run a web export's shader in headless Chromium: evaluate queries, time frames, check the viewer.
 
-The shader of :mod:`dynbtf.render.web_export` is only as good as what a browser computes with it.
+The shader of :mod:`dynbtf.export.web.exporter` is only as good as what a browser computes with it.
 :func:`eval_in_browser` evaluates ``(uv, w_view, w_light)`` queries with the exported shader in
 Chromium's WebGL2 (rendered into a float32 target, ``EXT_color_buffer_float``, and read back),
 through the export's own ``viewer.js`` (its loader and its float64 repeat-origin split), so the
-result can be compared with :meth:`dynbtf.synthesized.SynthesizedBTF.eval` on the same queries.
+result can be compared with :meth:`dynbtf.infinite_btf.SynthesizedBTF.eval` on the same queries.
 
 Chromium runs with ``--headless``; ``gl="swiftshader"`` (default) forces its software GL
 (SwiftShader, on any machine), ``gl="gpu"`` lets it use the machine's GPU when it has one.
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from dynbtf.errors import InputError
 
 __all__ = ["find_chromium", "CHROMIUM_FLAGS", "PageRun", "run_page", "eval_in_browser", "lattice_in_browser",
            "BrowserResult", "time_frames", "FrameTimes"]
@@ -286,7 +286,7 @@ def eval_in_browser(export_dir, method: str, points, w_view, w_light, *, local_s
     Parameters
     ----------
     export_dir : path
-        A directory written by :func:`dynbtf.render.web_export.export_web` (with its viewer files).
+        A directory written by :func:`dynbtf.export.web.exporter.export_web` (with its viewer files).
     method : str
         One of the export's methods.
     points : ``(N, 2)`` float64

@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from ..errors import InputError
+from ...errors import InputError
 from .drjit_ops import mi_module
 
 __all__ = ["SCENES", "LIGHTINGS", "scene_dict", "bsdf_dict", "sky_bitmap", "cloth_mesh"]
@@ -37,7 +37,7 @@ LIGHTINGS = ("point", "sky")
 
 def bsdf_dict(model_path, *, method: str = "auto", scale: float = 1.0, seed: int = 0,
               scale_v: float | None = None, sampling: str | None = None) -> dict:
-    """The ``dynbtf`` BSDF as a Mitsuba dict (see :data:`dynbtf.render.mitsuba_bsdf.PLUGIN_DOC`).
+    """The ``dynbtf`` BSDF as a Mitsuba dict (see :data:`dynbtf.render.mitsuba.bsdf.PLUGIN_DOC`).
 
     ``method``: ``tile``, ``hist``, ``hex``, ``struct`` or ``auto`` (``struct`` or ``hist``, chosen by the plugin).
 
@@ -141,7 +141,7 @@ def scene_dict(scene: str, material: dict, *, lighting: str = "sky", resolution=
         A BSDF dict, normally :func:`bsdf_dict` (for the sphere, ``scale_v`` is
         set to half of ``scale`` unless given, so texels are square at the equator;
         a ``dynbtf`` material gets the camera's ``ray_cone_angle`` for its footprints
-        unless given: :func:`dynbtf.render.mitsuba_bsdf.ray_cone_angle` of the
+        unless given: :func:`dynbtf.render.mitsuba.bsdf.ray_cone_angle` of the
         scene's field of view, width and ``footprint_spp``).
     lighting : {"point", "sky"}
     resolution : (height, width)
@@ -163,7 +163,7 @@ def scene_dict(scene: str, material: dict, *, lighting: str = "sky", resolution=
     height, width = int(resolution[0]), int(resolution[1])
     fov = {"plane": 45.0, "sphere": 32.0, "cloth": 38.0}[scene]  # degrees along the image's width
     if material.get("type") == "dynbtf" and "ray_cone_angle" not in material:
-        from .mitsuba_bsdf import ray_cone_angle
+        from .bsdf import ray_cone_angle
 
         material = {**material, "ray_cone_angle": ray_cone_angle(fov, width, spp if footprint_spp is None
                                                                   else footprint_spp)}

@@ -1,7 +1,7 @@
 """Dr.Jit translations of dynbtf's evaluation primitives, for use inside a Mitsuba kernel.
 
 Everything here mirrors a torch function of the package operation by operation, so
-that a renderer evaluates exactly what :class:`dynbtf.synthesized.SynthesizedBTF`
+that a renderer evaluates exactly what :class:`dynbtf.infinite_btf.SynthesizedBTF`
 evaluates:
 
 ==========================================  ============================================
@@ -38,7 +38,7 @@ import math
 
 import numpy as np
 
-from ..errors import optional_module
+from ...errors import optional_module
 
 __all__ = [
     "mi_module",
@@ -120,7 +120,7 @@ def angular_coords(w):
     """``(s, t)`` angular-plane coordinates of unit vectors ``w``: ``theta/90deg`` clamped, ``phi/360deg`` wrapped."""
     dr = drjit_module()
     theta = dr.acos(dr.clip(w.z, -1.0, 1.0)) * (180.0 / math.pi)
-    from ..conventions import POLE_RADIUS
+    from ...conventions import POLE_RADIUS
 
     # phi = 0 at the poles, as dynbtf.conventions.direction_to_spherical
     pole = w.x * w.x + w.y * w.y < POLE_RADIUS ** 2
@@ -427,7 +427,7 @@ class DrParallaxTriplePlane(DrTriplePlane):
 
     The Triple Plane's decode (the height is the decoder's last positional input)
     plus :meth:`visible_uv`, the march through the synthesized height field that
-    :meth:`dynbtf.synthesized.SynthesizedBTF.eval` runs before fetching features.
+    :meth:`dynbtf.infinite_btf.SynthesizedBTF.eval` runs before fetching features.
     """
 
     def __init__(self, model, output_map=(None, None)) -> None:
@@ -465,7 +465,7 @@ def check_renderable(model, what="model") -> None:
     have no decoder to trace into a kernel (their value is a sum over measured
     directions), so they cannot be rendered by the plugin.
     """
-    from ..errors import InputError
+    from ...errors import InputError
 
     kind = getattr(model, "kind", type(model).__name__)
     if kind not in DR_REPRESENTATIONS:

@@ -3,7 +3,7 @@
 Each class here mirrors one synthesizer of :mod:`dynbtf.synthesis` and reads its
 precomputed tables (the exemplar plane after its preprocessing, transforms,
 look-up tables) from the torch object, so that the kernel evaluates the same
-function as :meth:`dynbtf.synthesized.SynthesizedBTF.features`.
+function as :meth:`dynbtf.infinite_btf.SynthesizedBTF.features`.
 
 Inputs are ``u, v`` (``mi.Float``, units of one exemplar repeat); outputs are
 lists of ``C`` ``mi.Float`` (one per feature channel).
@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import math
 
-from ..errors import InputError
-from ..synthesis import hash as synthesis_hash
-from ..synthesis import lattice as synthesis_lattice
+from ...errors import InputError
+from ...synthesis import hash as synthesis_hash
+from ...synthesis import lattice as synthesis_lattice
 from .drjit_ops import drjit_module, fetch_wrap, flat_array, gather_channels, mi_module, wrap01
 
 __all__ = ["mix32", "fold_coordinate", "hash_vertex", "vertex_offsets", "triangle_lattice", "split_repeats",
@@ -180,7 +180,7 @@ class DrLevelOfDetail:
         return lower, mi.Float(dr.clip(t, 0.0, 1.0))
 
     def nearest(self, lower, weight):
-        """The level nearest the footprint (``mi.UInt32``): :meth:`dynbtf.synthesized.SynthesizedBTF.nearest_level`."""
+        """The level nearest the footprint (``mi.UInt32``): :meth:`dynbtf.infinite_btf.SynthesizedBTF.nearest_level`."""
         dr = drjit_module()
         return lower + dr.select(weight >= 0.5, 1, 0)
 
@@ -247,7 +247,7 @@ class DrPyramid:
 
         Level-0 texel ``[i, j]`` covers ``[j, j + 1) x [i, i + 1)``; positions in ``[0, 3 W)``; the
         level wraps. Returns 4 ``(texel index into the flat buffer, weight)`` as
-        :func:`~dynbtf.render.drjit_ops.bilinear_taps` (the numba kernel's ``_level_tap``).
+        :func:`~dynbtf.render.mitsuba.drjit_ops.bilinear_taps` (the numba kernel's ``_level_tap``).
         """
         mi, dr = mi_module(), drjit_module()
         if isinstance(level, int):  # one level for all lanes: its sizes are literals
@@ -267,7 +267,7 @@ def periodic_taps(px, py, width, height, start=0):
     """Bilinear taps of a periodic ``height x width`` plane at texel coordinates ``px, py`` (``mi.Float64``, texel
     ``[i, j]`` centred at ``(j, i)``, within ``[-W, 3 W)``); ``width, height``: ints, or ``mi.UInt32`` per lane.
 
-    Returns 4 ``(texel index + start, weight: mi.Float)`` as :func:`~dynbtf.render.drjit_ops.bilinear_taps`
+    Returns 4 ``(texel index + start, weight: mi.Float)`` as :func:`~dynbtf.render.mitsuba.drjit_ops.bilinear_taps`
     (the numba kernels' fetches: float64 positions, float32 weights).
     """
     mi, dr = mi_module(), drjit_module()
@@ -520,7 +520,7 @@ class DrLatticeBlending:
 
 
 def gather_one(buffer, taps, active=True):
-    """Bilinear combination of a one-channel buffer over ``taps`` (as :func:`~dynbtf.render.drjit_ops.gather_channels`)."""
+    """Bilinear combination of a one-channel buffer over ``taps`` (as :func:`~dynbtf.render.mitsuba.drjit_ops.gather_channels`)."""
     return gather_channels(buffer, 1, taps, active)[0]
 
 
@@ -717,9 +717,9 @@ def make_dr_synthesizer(synthesizer):
     Supported: plain tiling, every lattice-blending method (``linear``, ``hist``, ``hex``) and cell
     quilting (``struct``); quilting is not dynamic and has no kernel form.
     """
-    from ..synthesis.blending import LatticeBlending
-    from ..synthesis.cell_quilting import CellQuilting
-    from ..synthesis.kernels import MODE_HEX, MODE_HIST, MODE_LINEAR
+    from ...synthesis.blending import LatticeBlending
+    from ...synthesis.cell_quilting import CellQuilting
+    from ...synthesis.kernels import MODE_HEX, MODE_HIST, MODE_LINEAR
 
     def host(x):
         return x.detach().cpu().numpy() if hasattr(x, "detach") else x

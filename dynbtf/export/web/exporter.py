@@ -1,7 +1,7 @@
 """Real-time export: a synthesized BTF as GPU textures, decoder weights and a GLSL ES 3.00 shader.
 
 :func:`export_web` writes, into one directory, everything a renderer needs to evaluate
-:class:`dynbtf.synthesized.SynthesizedBTF` per pixel on a GPU, plus a self-contained WebGL2
+:class:`dynbtf.infinite_btf.SynthesizedBTF` per pixel on a GPU, plus a self-contained WebGL2
 viewer page (``index.html``, no build step, no network):
 
 * ``manifest.json`` -- what every file holds (formats, sizes, per-channel scale and bias, the
@@ -17,7 +17,7 @@ viewer page (``index.html``, no build step, no network):
 * ``dynbtf.glsl`` -- the shader functions (GLSL ES 3.00): the triangle lattice, the integer
   vertex hash (bit for bit :func:`dynbtf.synthesis.hash.hash_vertex`), the blends, the inverse
   tables, ``struct``'s cells and cuts, the Rusinkiewicz angular fetches, the relief march of
-  ``triple-parallax`` models and the decoder (:mod:`dynbtf.render.web_shader`). A renderer calls
+  ``triple-parallax`` models and the decoder (:mod:`dynbtf.export.web.shader`). A renderer calls
   ``dynbtf_eval(origin, local_uv, w_view, w_light)``.
 * ``index.html``, ``viewer.js`` and ``*.js`` copies of the binary files (browsers do not let a
   page opened from disk read binary files; a ``<script>`` can be read).
@@ -30,9 +30,9 @@ Large uv
 --------
 A shader has 32-bit floats, which cannot hold ``uv = 1e6 + 0.3`` to a texel. The caller splits
 ``uv * scale`` (in float64, on the CPU) into an integer repeat index and a fraction; the
-repeat index enters the shader as a :class:`~dynbtf.render.web_shader.RepeatOrigin`: the lattice's 64-bit integer
+repeat index enters the shader as a :class:`~dynbtf.export.web.shader.RepeatOrigin`: the lattice's 64-bit integer
 offset, its fractional phase ``2 sqrt(3) I_u mod 1`` and the texel offset of the repeat
-(:func:`dynbtf.render.web_shader.repeat_origin`; ``viewer.js`` has the same function); for ``struct``
+(:func:`dynbtf.export.web.shader.repeat_origin`; ``viewer.js`` has the same function); for ``struct``
 the 64-bit words hold the cell index of the repeat's first cell, ``I * cells`` (int64), instead
 of the lattice vertex. The shader adds a local uv
 (the fraction plus up to ``2**12`` further repeats, e.g. a mesh's uv times the scale) in
@@ -54,12 +54,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..errors import InputError
-from ..io import atomic_path
-from ..synthesis.auto import AUTO
-from ..synthesis.hash import MASK32, seed_state
-from ..synthesized import SynthesizedBTF
-from .web_shader import WEB_METHODS, glsl_source, lattice_constants
+from ...errors import InputError
+from ...io import atomic_path
+from ...synthesis.auto import AUTO
+from ...synthesis.hash import MASK32, seed_state
+from ...infinite_btf import SynthesizedBTF
+from .shader import WEB_METHODS, glsl_source, lattice_constants
 
 __all__ = ["export_web", "WebExport", "quantize", "dequantize", "quantized_model", "SUPPORTED_KINDS",
            "WEB_PRECISIONS", "FORMAT_VERSION", "DEFAULT_METHODS"]
@@ -175,8 +175,8 @@ def _vec4s(bias: np.ndarray) -> np.ndarray:
 
 def _check_kind(model) -> str:
     """The model's kind if the shader evaluates it, else an :class:`InputError` saying why not."""
-    from ..representations.parallax import ParallaxTriplePlane
-    from ..representations.triple_plane import TriplePlane
+    from ...representations.parallax import ParallaxTriplePlane
+    from ...representations.triple_plane import TriplePlane
 
     kind = getattr(model, "kind", None) or type(model).__name__
     if type(model) not in (TriplePlane, ParallaxTriplePlane):
@@ -329,7 +329,7 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
     """
     source = None
     if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
-        from ..representations.model_file import load_model
+        from ...representations.model_file import load_model
 
         source = Path(model)
         model, _ = load_model(model)
@@ -478,7 +478,7 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
     if viewer:
         with atomic_path(out_dir / "manifest.js") as tmp:
             tmp.write_text(f"DynBTF.manifest({json.dumps(manifest)}, {json.dumps(shader)});\n", encoding="utf-8")
-        here = Path(__file__).parent / "web"
+        here = Path(__file__).parent / "assets"
         for name in _VIEWER_FILES:
             with atomic_path(out_dir / name) as tmp:
                 shutil.copyfile(here / name, tmp)

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import InputError
-from .mitsuba_bsdf import DEFAULT_METHOD, METHODS, load_plugin_model, register_plugin
+from ...errors import InputError
+from .bsdf import DEFAULT_METHOD, METHODS, load_plugin_model, register_plugin
 from .sampling import SAMPLING_MODES
 from .scenes import LIGHTINGS, SCENES, bsdf_dict, scene_dict
 
@@ -59,12 +59,12 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     ----------
     model_path : path
         A dynbtf model file: a Triple Plane or a NeuMIP
-        (:func:`dynbtf.render.mitsuba_bsdf.load_plugin_model`).
+        (:func:`dynbtf.render.mitsuba.bsdf.load_plugin_model`).
     scene : {"plane", "sphere", "cloth"}
-        See :mod:`dynbtf.render.scenes`.
+        See :mod:`dynbtf.render.mitsuba.scenes`.
     method : {"tile", "hist", "hex", "struct", "auto"}
         Synthesis method of the plugin; ``auto`` (the default) is resolved here to ``struct`` for a
-        structured material, else ``hist`` (:func:`dynbtf.synthesized.auto_method`), and
+        structured material, else ``hist`` (:func:`dynbtf.infinite_btf.auto_method`), and
         the choice line is reported (``echo``) before the kernel is compiled.
     scale : float
         Exemplar repeats across the mesh's uv range (positive).
@@ -79,11 +79,11 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
         Samples per ``mi.render`` call (positive); the passes are averaged.
     variant : str, optional
         Mitsuba variant (default: the active one, or ``llvm_ad_rgb``); one of
-        :func:`dynbtf.render.mitsuba_bsdf.plugin_variants`.
+        :func:`dynbtf.render.mitsuba.bsdf.plugin_variants`.
     sampling : {"auto", "mixture", "cosine"}
         The plugin's direction sampling: its importance-sampling table mixed with
         cosine sampling, cosine only, or the table for glossy models and cosine for
-        rough ones (see :data:`dynbtf.render.mitsuba_bsdf.PLUGIN_DOC`).
+        rough ones (see :data:`dynbtf.render.mitsuba.bsdf.PLUGIN_DOC`).
     filtered : bool
         The plugin's footprint queries (its ``filtered``), with footprints from the camera's ray
         cone for ``spp`` samples per pixel: distant surfaces show their filtered appearance.
@@ -120,7 +120,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     active = register_plugin(variant)
     choice_line = None
     if method == "auto":  # resolved here (the plugin then runs the named method and reports nothing)
-        from ..synthesized import auto_method
+        from ...infinite_btf import auto_method
 
         choice = auto_method(model)  # on the decoded appearance, as SynthesizedBTF (and so the plugin) chooses
         method, choice_line = choice.method, choice.line
@@ -132,7 +132,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
 
     mi = mi_module()
     dr = drjit_module()
-    from ..progress import progress_bar
+    from ...progress import progress_bar
     t0 = time.perf_counter()
     spp, spp_per_pass = int(spp), int(spp_per_pass)
     label = f"render {scene}/{lighting}/{method}"

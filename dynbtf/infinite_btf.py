@@ -42,7 +42,7 @@ prefetched); the PCA un-projection is folded into the decoder's first-layer
 positional weights, applied by one BLAS matmul; the angular features and their
 first-layer product come from a second numba kernel, vectorized across queries,
 that reads angular planes pre-multiplied by their layer-1 weights and applies
-the LeakyReLU (:mod:`dynbtf.fast_decode`); layers 2.. run in torch on blocks of
+the LeakyReLU (:mod:`dynbtf.decoder.fast_decode`); layers 2.. run in torch on blocks of
 16384 rows in ``precision`` (``"bf16"`` is ~2x faster on CPUs with bf16 matrix
 units and emulated, i.e. much slower, elsewhere; it differs from float32 by
 < 0.01, bounded in the tests). Representations without a split first layer are
@@ -176,8 +176,8 @@ def _random_direction_pairs(rng: np.random.Generator, n: int) -> np.ndarray:
 def _adam_steps(loss_of, optimizer, schedule, batches) -> None:
     """One optimizer and schedule step of ``loss_of(rows)`` per row-index batch, on one torch thread: the small
     layers' backward passes ran ~10x slower on two threads of a loaded 2-core machine (OpenMP spin-waiting), as
-    the evaluation does (:func:`dynbtf.fused_mlp.single_intra_op_thread`)."""
-    from .fused_mlp import single_intra_op_thread
+    the evaluation does (:func:`dynbtf.decoder.fused_mlp.single_intra_op_thread`)."""
+    from .decoder.fused_mlp import single_intra_op_thread
 
     with single_intra_op_thread():
         for rows in batches:
@@ -377,7 +377,7 @@ class SynthesizedBTF:
                     "first_bias": decoder.first.bias.detach().float(),
                     "slope": float(decoder.negative_slope), "dtype": dtype, "planes": None, "fast": fast}
             if fast.angular_planes is not None and self.device.type == "cpu":
-                from .fast_decode import fold_angular_planes
+                from .decoder.fast_decode import fold_angular_planes
 
                 fold["planes"] = fold_angular_planes(*fast.angular_planes,
                                                      decoder.first.weight[:, decoder.positional_channels:])
@@ -405,7 +405,7 @@ class SynthesizedBTF:
             raise InputError(f"{name}: batch shape {tuple(w.shape[:-1])} does not match uv's {tuple(batch)}")
         flat = w.reshape(-1, 3)
         if flat.device.type == "cpu" and flat.dtype in (torch.float32, torch.float64):
-            from .fast_decode import all_unit_vectors
+            from .decoder.fast_decode import all_unit_vectors
 
             valid = all_unit_vectors(flat.numpy())  # one pass; check_directions below words the error
         else:
@@ -467,7 +467,7 @@ class SynthesizedBTF:
         CPU path, without it on the torch path), each run's level decoder."""
         fold = self._fold
         if fold["planes"] is not None:  # fused CPU kernel: angular planes pre-multiplied by layer 1, LeakyReLU
-            from .fast_decode import first_layer_preactivation
+            from .decoder.fast_decode import first_layer_preactivation
 
             x = torch.from_numpy(first_layer_preactivation(
                 latent.numpy(), *fold["numpy"], wv.float().numpy(), wl.float().numpy(), *fold["planes"],
@@ -682,7 +682,7 @@ class SynthesizedBTF:
         fold = self._fold
         mean = self.level_decoder_parameters()[-1]["mean"]
         if fold["planes"] is not None:  # the fused kernel's angular plane fetches (no bias), no activation
-            from .fast_decode import first_layer_preactivation
+            from .decoder.fast_decode import first_layer_preactivation
 
             hidden = fold["planes"][0].shape[-1]
             angular = torch.from_numpy(first_layer_preactivation(
@@ -760,7 +760,7 @@ class SynthesizedBTF:
             # one chunk per Python thread, each with single-threaded torch and numba: no OpenMP pools
             # handing over between numba kernels and torch matmuls (on a loaded 2-core machine
             # their spin-waiting made two-thread evaluation ~8x slower than one thread)
-            from .fused_mlp import single_intra_op_thread
+            from .decoder.fused_mlp import single_intra_op_thread
 
             with single_intra_op_thread():
                 list(_eval_pool(workers).map(lambda sl: _single_numba_thread(run, sl), chunks))

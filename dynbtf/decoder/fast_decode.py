@@ -28,7 +28,7 @@ import numba
 import numpy as np
 import torch
 
-from .conventions import POLE_RADIUS
+from ..conventions import POLE_RADIUS
 
 __all__ = ["fold_angular_planes", "first_layer_preactivation", "all_unit_vectors"]
 

@@ -4,7 +4,7 @@ Call :func:`register_plugin` once and Mitsuba knows a BSDF of type ``"dynbtf"``:
 
     import mitsuba as mi
     mi.set_variant("llvm_ad_rgb")          # or a cuda_* variant
-    from dynbtf.render.mitsuba_bsdf import register_plugin
+    from dynbtf.render.mitsuba.bsdf import register_plugin
     register_plugin()
     bsdf = mi.load_dict({"type": "dynbtf", "filename": "leather.dynbtf", "method": "hist", "scale": 25})
 
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 
-from ..errors import InputError
+from ...errors import InputError
 from . import drjit_ops
 from .sampling import AUTO_MIN_COSINE_VARIANCE, DEFAULT_TABLE_WEIGHT, SAMPLING_MODES
 
@@ -109,7 +109,7 @@ MLP) is traced into the rendering kernel; nothing is pre-generated, so any
        positional features -- mixed with cosine sampling by one-sample multiple
        importance sampling), ``cosine`` (cosine-weighted only, the paper's), or
        ``auto``: ``mixture`` where the table's lobe is one cosine sampling misses
-       (:func:`~dynbtf.render.sampling.cosine_relative_variance` of the table at
+       (:func:`~dynbtf.render.mitsuba.sampling.cosine_relative_variance` of the table at
        least 4: glossy materials), else ``cosine`` (rough materials, where the
        table gains nothing per sample and costs ~10% per sample).
        Any other value is an error naming the allowed ones.
@@ -123,7 +123,7 @@ MLP) is traced into the rendering kernel; nothing is pre-generated, so any
      - boolean
      - Footprint queries: a shading point that stands for a footprint
        (below) answers the synthesized BTF averaged over it, as
-       :meth:`~dynbtf.synthesized.SynthesizedBTF.eval` with ``footprint``
+       :meth:`~dynbtf.infinite_btf.SynthesizedBTF.eval` with ``footprint``
        does (pyramid levels of the synthesized samples, a decoder per level),
        so distant surfaces do not alias. Where no footprint is known it is
        the point query. ``false``: always the point query.
@@ -132,15 +132,15 @@ MLP) is traced into the rendering kernel; nothing is pre-generated, so any
      - float
      - Spread (radians) of one camera sample's ray cone: the angle one pixel
        subtends divided by ``sqrt(spp)``
-       (:func:`~dynbtf.render.mitsuba_bsdf.ray_cone_angle`;
-       :func:`dynbtf.render.scenes.scene_dict` sets it from its camera).
+       (:func:`~dynbtf.render.mitsuba.bsdf.ray_cone_angle`;
+       :func:`dynbtf.render.mitsuba.scenes.scene_dict` sets it from its camera).
        Mitsuba's own integrators do not pass ray differentials to BSDFs, so
        the footprint is estimated from the cone: the side
        ``t ray_cone_angle / cos(theta_view)`` at hit distance ``t``, in uv
        through ``|dp/du|`` and ``|dp/dv|`` (the longer side). Where the
        integrator computed uv partials (``si.duv_dx``, ``si.duv_dy``, e.g. a
        custom integrator calling ``si.compute_uv_partials(ray)``), those are
-       used instead (:func:`~dynbtf.synthesized.footprint_width`). 0: partials only.
+       used instead (:func:`~dynbtf.infinite_btf.footprint_width`). 0: partials only.
      - 0
 
 Conventions: ``si.wi`` (towards the camera / previous path vertex) is the BTF's
@@ -152,7 +152,7 @@ where that points along ``-dp/dv`` (a left-handed parametrization, e.g. Mitsuba'
 with the texture's orientation on every mesh (on the ``rectangle`` and on
 meshes whose uv runs like their x, y no mirroring happens).
 ``eval`` returns ``value / pi * cos(theta_light)`` where ``value`` is what
-:meth:`dynbtf.synthesized.SynthesizedBTF.eval` returns at
+:meth:`dynbtf.infinite_btf.SynthesizedBTF.eval` returns at
 ``uv = (scale * u, scale_v * v)``; directions below either horizon give 0
 (one-sided reflection: wrap it in Mitsuba's ``twosided`` for cloth).
 Sampling: with ``sampling = "cosine"``, cosine-weighted over the upper hemisphere
@@ -161,10 +161,10 @@ itself. With ``"mixture"`` (what ``"auto"``, the default, picks for glossy model
 a direction comes from the sampling table with probability ``sampling_weight`` and from the cosine distribution
 otherwise; ``pdf`` returns the mixture's density
 ``a pdf_table + (1 - a) cos(theta) / pi`` whichever way the direction was drawn,
-and ``sample``'s weight is ``eval / pdf`` (see :mod:`dynbtf.render.sampling`).
+and ``sample``'s weight is ``eval / pdf`` (see :mod:`dynbtf.render.mitsuba.sampling`).
 The table costs a few seconds when a model is first loaded (cached for the
 process); so do the per-level decoders of ``filtered`` (fitted at load, cached
-for the process and shared with :class:`~dynbtf.synthesized.SynthesizedBTF`).
+for the process and shared with :class:`~dynbtf.infinite_btf.SynthesizedBTF`).
 If the table cannot be built (the decoder returns NaN or inf, or a view has
 no density), the plugin falls back to cosine sampling and says so once per
 model file with a warning (``UserWarning``).
@@ -185,7 +185,7 @@ that renders with the plugin calls :func:`configure_jit` itself.
 
 Precision: Mitsuba's mesh uv and the product ``scale * u`` are float32; from
 there on the lattice runs in float64 exactly as dynbtf does, so the plugin agrees
-with :class:`~dynbtf.synthesized.SynthesizedBTF` at the same float32 ``uv``. Repeat
+with :class:`~dynbtf.infinite_btf.SynthesizedBTF` at the same float32 ``uv``. Repeat
 counts beyond ~1e4 per mesh make float32 uv coarser than a texel (a mesh
 limitation, not a synthesis one).
 """
@@ -374,9 +374,9 @@ class DynBTFEvaluator:
     Parameters
     ----------
     model : TriplePlane or NeuMIP
-        The fitted representation (a kind of :data:`dynbtf.render.drjit_ops.DR_REPRESENTATIONS`).
+        The fitted representation (a kind of :data:`dynbtf.render.mitsuba.drjit_ops.DR_REPRESENTATIONS`).
     method : {"tile", "hist", "hex", "struct", "auto"}
-        Synthesis method (the same synthesizer :class:`~dynbtf.synthesized.SynthesizedBTF` builds;
+        Synthesis method (the same synthesizer :class:`~dynbtf.infinite_btf.SynthesizedBTF` builds;
         ``auto``: ``struct`` or ``hist``, see :attr:`choice`).
     seed : int
         Synthesis seed.
@@ -395,7 +395,7 @@ class DynBTFEvaluator:
     """
 
     def __init__(self, model, method: str, seed: int) -> None:
-        from ..synthesized import SynthesizedBTF
+        from ...infinite_btf import SynthesizedBTF
         from .drjit_synthesis import make_dr_synthesizer
 
         self.btf = SynthesizedBTF(model, method, scale=1.0, seed=seed)
@@ -420,9 +420,9 @@ class DynBTFEvaluator:
         self.level_decoders()
 
     def level_decoders(self) -> list:
-        """One :class:`~dynbtf.render.drjit_ops.DrDecoder` per pyramid level for footprint queries, or ``[]``.
+        """One :class:`~dynbtf.render.mitsuba.drjit_ops.DrDecoder` per pyramid level for footprint queries, or ``[]``.
 
-        The decoders of :meth:`dynbtf.synthesized.SynthesizedBTF.level_decoder_parameters` (fitted on
+        The decoders of :meth:`dynbtf.infinite_btf.SynthesizedBTF.level_decoder_parameters` (fitted on
         first use, shared with the library's evaluation in this process; level 0 is the model's
         decoder), with the synthesizer's output map folded into layer 1 like the point query's.
         ``[]`` where the library decodes every level with the model's decoder (e.g. NeuMIP).
@@ -457,7 +457,7 @@ class DynBTFEvaluator:
         """RGB value (``mi.Color3f``) of the synthesized BTF, excluding cos(theta_light).
 
         ``footprint`` (optional, ``mi.Float``): the side of the square each query stands for, in
-        exemplar repeats, as :meth:`dynbtf.synthesized.SynthesizedBTF.eval`'s ``footprint`` (at
+        exemplar repeats, as :meth:`dynbtf.infinite_btf.SynthesizedBTF.eval`'s ``footprint`` (at
         ``scale`` 1): the synthesized samples are read from the footprint's pyramid levels and
         decoded with the nearest level's decoder (:meth:`level_decoders`). ``None``: the point query.
         """
@@ -493,7 +493,7 @@ class DynBTFEvaluator:
         return dr.switch(mi.UInt32(index), targets, u, v, w_view, w_light, lower, t, active)
 
     def _mean_target(self, u, v, w_view, w_light, lower, t, active):
-        """The material's mean appearance (:meth:`dynbtf.synthesized.SynthesizedBTF.mean_appearance`): no synthesis."""
+        """The material's mean appearance (:meth:`dynbtf.infinite_btf.SynthesizedBTF.mean_appearance`): no synthesis."""
         angular = self.model.angular_features(w_view, w_light, active)
         value = None
         for weight, decoder in self._mean_appearance:
@@ -535,11 +535,11 @@ def announce_choice(filename, choice) -> bool:
 
 
 def plugin_sampler(filename, model, *, build=None):
-    """The :class:`~dynbtf.render.sampling.DrTableSampler` of model file ``filename``, or ``None``.
+    """The :class:`~dynbtf.render.mitsuba.sampling.DrTableSampler` of model file ``filename``, or ``None``.
 
     Built once per file version (path, size, modification time) and process, by
-    ``build(model)`` (default :func:`~dynbtf.render.sampling.build_sampling_table`).
-    A table that cannot be sampled (:func:`~dynbtf.render.sampling.table_problem`)
+    ``build(model)`` (default :func:`~dynbtf.render.mitsuba.sampling.build_sampling_table`).
+    A table that cannot be sampled (:func:`~dynbtf.render.mitsuba.sampling.table_problem`)
     gives ``None`` -- the plugin then samples cosine-weighted -- and a
     ``UserWarning`` naming the file and the problem, once per file.
     """
@@ -565,7 +565,7 @@ def plugin_sampler(filename, model, *, build=None):
 def load_plugin_model(filename):
     """The representation in model file ``filename``, checked for the plugin.
 
-    What the plugin's constructor loads; :func:`dynbtf.render.mitsuba_render.render_scene`
+    What the plugin's constructor loads; :func:`dynbtf.render.mitsuba.scene_render.render_scene`
     calls it before Mitsuba loads a scene, so that a mistake is a clear error and
     not one wrapped by Mitsuba.
 
@@ -576,7 +576,7 @@ def load_plugin_model(filename):
     InputError
         The model's kind is not one the plugin evaluates (PCA, SH).
     """
-    from ..representations.model_file import load_model
+    from ...representations.model_file import load_model
 
     model, _ = load_model(filename, device="cpu")
     drjit_ops.check_renderable(model, str(filename))

@@ -58,7 +58,7 @@
   };
 
   // ------------------------------------------------------------------ the repeat origin (float64 on the CPU)
-  // dynbtf.render.web_shader.repeat_origin: the same float64 and (BigInt) int64 operations as the library.
+  // dynbtf.export.web.shader.repeat_origin: the same float64 and (BigInt) int64 operations as the library.
   function scaledInteger(lat, i) {
     if (Math.abs(i) < 134217728) {  // 2^27: two-term float64 product
       var p = i * lat.scale_hi, whole = Math.floor(p);

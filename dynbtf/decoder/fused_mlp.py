@@ -23,8 +23,8 @@ flow on to the planes and the first layer through ordinary autograd.
 
 Two implementations compute the same thing:
 
-* the **native kernel** (``dynbtf/native/fused_mlp.cpp``, built on first use by
-  :mod:`dynbtf.native`), used for float32 CPU tensors: tiles of one image x 64 texels whose
+* the **native kernel** (``dynbtf/decoder/native/fused_mlp.cpp``, built on first use by
+  :mod:`dynbtf.decoder.native`), used for float32 CPU tensors: tiles of one image x 64 texels whose
   activations stay in the L1 cache, register-blocked products, no per-op overhead. In
   ``precision="fp32"`` it equals the PyTorch path to float rounding; in ``"bf16"`` (CPUs
   with AVX512-BF16) the products take bfloat16 inputs and accumulate in float32, everything
@@ -54,7 +54,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from . import native
-from .errors import InputError
+from ..errors import InputError
 
 __all__ = ["split_mlp_l1_loss", "single_intra_op_thread", "native_precisions", "resolve_precision"]
 
@@ -131,7 +131,7 @@ def _chunk_range(positional_pre, image_pre, weights, biases, slope, target, item
 
 # ---------------------------------------------------------------------------- native kernel
 class _NativeArgs(ctypes.Structure):
-    """``FusedL1Args`` of ``dynbtf/native/fused_mlp.cpp`` (same field order)."""
+    """``FusedL1Args`` of ``dynbtf/decoder/native/fused_mlp.cpp`` (same field order)."""
 
     _fields_ = [("hidden", ctypes.c_int32), ("out_channels", ctypes.c_int32), ("n_layers", ctypes.c_int32),
                 ("groups", ctypes.c_int32), ("images", ctypes.c_int32), ("texels_per_group", ctypes.c_int32),
@@ -154,7 +154,7 @@ def _native_library():
         library.dynbtf_fused_l1_supports.argtypes = [ctypes.c_int32] * 3
         native_size, mirror_size = library.dynbtf_fused_l1_args_size(), ctypes.sizeof(_NativeArgs)
         if native_size != mirror_size:  # a field added on one side only: never call with a wrong layout
-            raise RuntimeError(f"dynbtf/native/fused_mlp.cpp: FusedL1Args is {native_size} bytes but its ctypes "
+            raise RuntimeError(f"dynbtf/decoder/native/fused_mlp.cpp: FusedL1Args is {native_size} bytes but its ctypes "
                                f"mirror in {__name__} is {mirror_size}; update both field lists together")
         library._dynbtf_ready = True
     return library
@@ -164,7 +164,7 @@ def native_precisions() -> tuple[str, ...]:
     """Precisions the native CPU kernel offers on this machine: ``("fp32", "bf16")``, ``("fp32",)`` or ``()``.
 
     ``bf16`` needs a CPU with AVX512-BF16 (bfloat16 dot products); without a C++ compiler there is no
-    native kernel and training uses the PyTorch path (fp32). :func:`dynbtf.native.status` says why.
+    native kernel and training uses the PyTorch path (fp32). :func:`dynbtf.decoder.native.status` says why.
     """
     library = _native_library()
     if library is None:
