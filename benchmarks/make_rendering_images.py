@@ -1,6 +1,6 @@
 """Compose docs/rendering.md's figures from the output of one ``dynbtf demo`` run.
 
-Run: ``python docs/make_rendering_images.py DEMO_DIR [--out docs/images] [--no-screenshot]``
+Run: ``python benchmarks/make_rendering_images.py DEMO_DIR [--out docs/images] [--no-screenshot]``
 where ``DEMO_DIR`` is the demo's output directory (``dynbtf-demo`` by default). Writes
 
 * ``rendering_teaser.png`` -- Mitsuba renders of hist on plane / sphere / cloth, sky (top row)
@@ -55,7 +55,7 @@ def _save(image: Image.Image, path: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("demo", type=Path, help="output directory of `dynbtf demo`")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "images")
+    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "docs" / "images")
     parser.add_argument("--no-screenshot", action="store_true", help="do not run Chromium")
     args = parser.parse_args()
     demo, out = args.demo, args.out

@@ -2,20 +2,20 @@
 
 Two measurements behind docs/triple_plane.md ("Stone: what limits it"):
 
-``python docs/measure_stone_limits.py oracle SPEC MODEL``
+``python benchmarks/measure_stone_limits.py oracle SPEC MODEL``
     Scores MODEL on its held-out pairs and on 64 random training pairs (a large gap = over-fitting,
     none = the model's capacity), and two oracles that see the ground truth of the training pairs:
     the nearest measured light at the same view, and the inverse-angle-weighted blend of the three
     nearest lights. If the oracle reaches a PSNR, the BTF's angular sampling supports it.
 
-``python docs/measure_stone_limits.py views SPEC MAX_THETA OUTPUT``
+``python benchmarks/measure_stone_limits.py views SPEC MAX_THETA OUTPUT``
     Fits a Triple Plane (lr x3 as in the relief fits of docs/triple_plane.md, up to 64 texel groups, as many optimizer steps as a
     30-epoch fit of the whole BTF, the same total learning-rate decay) to the sub-BTF of the views
     with theta <= MAX_THETA degrees (all lights), and scores it on its held-out pairs (10%) and on
     64 training pairs. Training PSNR against the range of views shows how much of the model's
     capacity view dependence (parallax, masking) takes. ~3-4 minutes on 2 cores at 128^2.
 
-``python docs/measure_stone_limits.py parallax SPEC {none,oracle,stereo}``
+``python benchmarks/measure_stone_limits.py parallax SPEC {none,oracle,stereo}``
     Fits the Triple Plane with its positional fetch moved, per view, to a point of the surface
     (the fast recipe: 30 epochs, lr x6, 64 texel groups, bf16, with every group's 16 pairs sharing one
     view), and scores it on the held-out pairs of the usual split (5 %, seed 0) and on 64 training

@@ -12,7 +12,7 @@ per-image-peak PSNR:
   ``f_U`` and fitted (L1, Adam) to the filtered images with the decoder and angular planes kept;
 * **tuned planes + decoder** -- the same with a decoder copy per level fitted too.
 
-Run: ``python docs/measure_filtering.py MODEL.dbtfm 'sim:leather?size=32'`` (a few minutes at
+Run: ``python benchmarks/measure_filtering.py MODEL.dbtfm 'sim:leather?size=32'`` (a few minutes at
 32 x 32 texels on 2 cores).
 """
 

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python docs/make_baseline_images.py --row "woven fabric" 'sim:woven_fabric?size=128' CMP_DIR \\
+    python benchmarks/make_baseline_images.py --row "woven fabric" 'sim:woven_fabric?size=128' CMP_DIR \\
         [--row LABEL BTF CMP_DIR ...] [--out docs/images/baselines_fig9.png] [--panel 192] [--gamma G] \\
         [--strip SYN_DIR --strip-out docs/images/baselines_synthesis_wood128.png]
 
@@ -135,12 +135,12 @@ def synthesis_strip(syn_dir: Path, out: Path, side: int = 288, crop: int = 384) 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--row", nargs=3, action="append", metavar=("LABEL", "BTF", "CMP_DIR"), default=[])
-    parser.add_argument("--out", default="docs/images/baselines_fig9.png")
+    parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "images" / "baselines_fig9.png"))
     parser.add_argument("--panel", type=int, default=192, help="side of the full panels, pixels")
     parser.add_argument("--gamma", type=float, default=None, help="hist's blending exponent (default: the library's, "
                         "7; 1 = Heitz & Neyret's, the paper's)")
     parser.add_argument("--strip", type=Path, help="a `dynbtf compare --synthesis` output directory")
-    parser.add_argument("--strip-out", type=Path, default=Path("docs/images/baselines_synthesis_wood128.png"))
+    parser.add_argument("--strip-out", type=Path, default=Path(__file__).resolve().parents[1] / "docs" / "images" / "baselines_synthesis_wood128.png")
     args = parser.parse_args()
     if args.strip:
         synthesis_strip(args.strip, args.strip_out)

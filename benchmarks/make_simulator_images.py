@@ -1,6 +1,6 @@
 """Regenerate the simulator contact sheets in docs/images/ (used by docs/simulator.md and the README).
 
-Usage: python docs/make_simulator_images.py [--size 112] [--exposure 0.8]
+Usage: python benchmarks/make_simulator_images.py [--size 112] [--exposure 0.8]
 
 For each material: a 3 x 3 sheet of stored values (linear RGB pi * f_r, times
 the exposure, highlights above 0.6 compressed smoothly towards 1 (a film-like
@@ -54,7 +54,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=112)
     ap.add_argument("--exposure", type=float, default=0.8)
-    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "images")
+    ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "docs" / "images")
     args = ap.parse_args()
     for name in MATERIALS:
         sheet = compress_highlights(contact_sheet(simulated_btf(name, size=args.size)) * args.exposure)

@@ -9,8 +9,8 @@ PSNR and the training time after which the curve stays within 0.5 dB of it.
 
 Run::
 
-    python docs/measure_fit_curves.py --btf 'sim:leather?size=128' --name leather128
-    python docs/measure_fit_curves.py --btf /tmp/dynbtf-bench/leather400_c96.btf --name leather400
+    python benchmarks/measure_fit_curves.py --btf 'sim:leather?size=128' --name leather128
+    python benchmarks/measure_fit_curves.py --btf /tmp/dynbtf-bench/leather400_c96.btf --name leather400
 
 (the 400 x 400 file: ``dynbtf simulate leather --grid ubo2014 --size 400 -o FILE``, ~4 min;
 the fit is about an hour on 2 cores).
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-IMAGES = Path(__file__).resolve().parent / "images"
+IMAGES = Path(__file__).resolve().parents[1] / "docs" / "images"
 
 
 def run(spec: str, name: str, eval_every: float, seed: int) -> dict:

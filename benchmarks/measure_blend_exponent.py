@@ -2,7 +2,7 @@
 
 Usage::
 
-    python docs/measure_blend_exponent.py MODEL.dbtfm [MODEL2.dbtfm ...] [--out exponent.json] [--diagnose]
+    python benchmarks/measure_blend_exponent.py MODEL.dbtfm [MODEL2.dbtfm ...] [--out exponent.json] [--diagnose]
 
 Per model, for tile, hex, hist with ``gamma`` in :data:`GAMMAS` (and without decorrelation at
 gamma 1 and 7) and a *dithered selection* prototype (defined here, not in the library): the

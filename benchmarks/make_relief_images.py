@@ -1,6 +1,6 @@
 """Render docs/rendering.md's relief figure: a triple-parallax model in Mitsuba, with and without its march.
 
-Run: ``python docs/make_relief_images.py STONE_MODEL [--out docs/images] [--size 320] [--spp 64]``
+Run: ``python benchmarks/make_relief_images.py STONE_MODEL [--out docs/images] [--size 320] [--spp 64]``
 where ``STONE_MODEL`` is a ``triple-parallax`` model file, e.g. from
 ``dynbtf fit 'sim:stone?size=64' --repr triple-parallax -o stone.dbtfm --minutes 5``. Writes
 ``rendering_relief_stone.png``: the grazing plane (top) and the sphere (bottom) under the point
@@ -24,7 +24,7 @@ GAP = 3
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("model")
-    parser.add_argument("--out", default=str(Path(__file__).parent / "images"))
+    parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "images"))
     parser.add_argument("--size", type=int, default=320)
     parser.add_argument("--spp", type=int, default=64)
     args = parser.parse_args()

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python docs/make_synthesis_images.py MODEL.dbtfm [--out docs/images] [--panel 192]
+    python benchmarks/make_synthesis_images.py MODEL.dbtfm [--out docs/images] [--panel 192]
 
 Writes ``synthesis_crops.png`` (3 x 3 repeats at one texel per pixel, at uv 0 and 1e6),
 ``synthesis_scales.png`` (rows: tile, linear, hist, hex, quilt; columns: 1x, 8x,
@@ -102,7 +102,7 @@ def filtering(rep, out: Path, cos_light: float, panel: int) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("model")
-    parser.add_argument("--out", default="docs/images")
+    parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "images"))
     parser.add_argument("--panel", type=int, default=192, help="side of the full-view panels, pixels")
     parser.add_argument("--crops-only", action="store_true", help="only synthesis_crops.png")
     parser.add_argument("--filtering-only", action="store_true", help="only synthesis_filtering.png")
