@@ -21,15 +21,38 @@ def lint(root: Path) -> subprocess.CompletedProcess:
 def test_the_package_keeps_its_layers():
     result = lint(REPO)
     assert result.returncode == 0, result.stdout + result.stderr
-    assert "2 kept, 0 broken" in result.stdout
+    assert "3 kept, 0 broken" in result.stdout
+
+
+def copy_package(tmp_path: Path) -> Path:
+    """A copy of the package and its contracts in ``tmp_path`` (to break them without touching the repo)."""
+    shutil.copytree(REPO / "dynbtf", tmp_path / "dynbtf", ignore=shutil.ignore_patterns("__pycache__", "*.so"))
+    shutil.copy(REPO / "pyproject.toml", tmp_path)
+    return tmp_path / "dynbtf"
 
 
 def test_an_upward_import_breaks_the_contract(tmp_path):
-    shutil.copytree(REPO / "dynbtf", tmp_path / "dynbtf", ignore=shutil.ignore_patterns("__pycache__", "*.so"))
-    shutil.copy(REPO / "pyproject.toml", tmp_path)
-    base = tmp_path / "dynbtf" / "data" / "base.py"
+    base = copy_package(tmp_path) / "data" / "base.py"
     base.write_text(base.read_text() + "\n\ndef _up():\n    from ..training import fit  # stage 1 data reaching up\n")
     result = lint(tmp_path)
     assert result.returncode != 0
     assert "dynbtf.data is not allowed to import dynbtf.training" in result.stdout
     assert "dynbtf.data.base -> dynbtf.training" in result.stdout
+
+
+def test_a_deferred_import_from_the_interface_to_a_kind_breaks_the_contract(tmp_path):
+    # the cycle the registry used to close: base -> (deferred) kinds -> base
+    base = copy_package(tmp_path) / "representations" / "base.py"
+    base.write_text(base.read_text() + "\n\ndef _kinds():\n    from . import triple_plane  # noqa: F401\n")
+    result = lint(tmp_path)
+    assert result.returncode != 0
+    report = " ".join(result.stdout.split())  # the report wraps long lines
+    assert "dynbtf.representations.base is not allowed to import dynbtf.representations.triple_plane" in report
+    assert "dynbtf.representations.base -> dynbtf.representations.triple_plane" in report
+
+
+def test_a_new_representations_module_must_be_placed_in_a_layer(tmp_path):
+    (copy_package(tmp_path) / "representations" / "unplaced.py").write_text("from .base import Representation\n")
+    result = lint(tmp_path)
+    assert result.returncode != 0
+    assert "dynbtf.representations.unplaced" in result.stdout

@@ -1,8 +1,10 @@
 """Stage 1, Represent: BTF representations behind one interface.
 
-See :mod:`dynbtf.representations.base` for the interface.
+See :mod:`dynbtf.representations.base` for the interface and
+:mod:`dynbtf.representations.registry` for the lookup by kind name.
 """
 
-from .base import REPRESENTATIONS, Representation, get_representation_class, register
+from .base import Representation, register
+from .registry import REPRESENTATIONS, get_representation_class
 
 __all__ = ["Representation", "register", "REPRESENTATIONS", "get_representation_class"]

@@ -13,7 +13,8 @@ real value), ``w_view, w_light (..., 3)`` unit vectors in the local frame,
 ``features (..., C)``; outputs ``(..., 3)`` linear RGB (excluding cos(theta_light)).
 All leading (batch) shapes must be equal.
 
-New kinds register with :func:`register` so that model files can name them.
+New kinds register with :func:`register` so that model files can name them; the lookup by name
+lives above the kinds, in :mod:`dynbtf.representations.registry` (this module imports no kind).
 """
 
 from __future__ import annotations
@@ -28,9 +29,10 @@ from torch import nn
 from ..errors import InputError
 from ..texture import fetch_wrap
 
-__all__ = ["Representation", "register", "REPRESENTATIONS", "get_representation_class"]
+__all__ = ["Representation", "register", "REPRESENTATIONS"]
 
-#: kind name -> class, filled by :func:`register`.
+#: kind name -> class, filled by :func:`register` (look kinds up with
+#: :func:`dynbtf.representations.registry.get_representation_class`, which imports the built-in ones).
 REPRESENTATIONS: dict[str, type["Representation"]] = {}
 
 
@@ -43,16 +45,6 @@ def register(kind: str):
         return cls
 
     return deco
-
-
-def get_representation_class(kind: str) -> type["Representation"]:
-    """The class registered as ``kind``; a clear error lists the known kinds."""
-    from . import _load_builtin  # noqa: F401  (imports the built-in kinds)
-
-    try:
-        return REPRESENTATIONS[kind]
-    except KeyError:
-        raise InputError(f"unknown representation {kind!r}; expected one of {sorted(REPRESENTATIONS)}") from None
 
 
 @dataclass

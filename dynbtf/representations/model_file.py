@@ -41,7 +41,8 @@ import torch
 
 from ..errors import FormatError
 from ..io import atomic_path
-from .base import Representation, get_representation_class
+from .base import Representation
+from .registry import get_representation_class
 
 __all__ = ["save_model", "load_model", "read_model_metadata", "model_size_report", "FORMAT_NAME",
            "FORMAT_VERSION", "CONVENTIONS"]
