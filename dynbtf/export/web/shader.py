@@ -153,71 +153,50 @@ def glsl_source(*, channels: int, angular_channels: int, hidden: int, layers: in
     ``relief`` (models with a height field: ``h_min``, ``h_max``, ``step``, ``aspect``,
     ``height_scale``) adds the ray march of
     :func:`dynbtf.representations.parallax.march_visible_uv` through the synthesized height.
+
+    The source is the concatenation, in this order, of: the header (sizes, uniforms, decoder
+    constants), the integer part of a position and the hash, the triangle lattice (``tile``,
+    ``linear``, ``hist``, ``hex``), the cells and cuts (``struct``), the texel fetches, the
+    per-method synthesis of the latent, the angular features, then the decoder (with the relief
+    march, if any) and ``dynbtf_eval``.
     """
-    g = (channels + 3) // 4
-    ag = (angular_channels + 3) // 4
-    hg = (hidden + 3) // 4
-    hi_scale = math.ldexp(math.floor(math.ldexp(LATTICE_SCALE, 10)), -10)  # 12 significant bits
-    lo_scale = LATTICE_SCALE - hi_scale
     if len(rest_weights) != layers - 1:
         raise InputError(f"glsl_source: expected weights of {layers - 1} layers after the first, got {len(rest_weights)}")
-    rest = [_constant_array("dynbtf_w1a", "mat4", angular_weights)]
+    sizes = dict(channels=channels, angular_channels=angular_channels, hidden=hidden, layers=layers)
+    return "".join([
+        _glsl_header(**sizes, angular_resolution=angular_resolution,
+                     constants=_glsl_decoder_constants(angular_weights, rest_weights)),
+        _glsl_integers(),
+        _glsl_triangle(),
+        _glsl_cells(),
+        _glsl_fetches(),
+        _glsl_latent(),
+        _glsl_angular(angular_resolution),
+        _glsl_decoder_and_eval(**sizes, negative_slope=negative_slope, relief=relief),
+    ])
+
+
+def _groups(n: int) -> int:
+    """RGBA layers (vec4) holding ``n`` channels: ``ceil(n / 4)``."""
+    return (n + 3) // 4
+
+
+def _glsl_decoder_constants(angular_weights: np.ndarray, rest_weights: list[tuple[np.ndarray, np.ndarray]]
+                            ) -> list[str]:
+    """``const`` arrays of the decoder weights every method shares: ``dynbtf_w1a`` (layer 1's angular part,
+    mat4 blocks), then ``dynbtf_wK`` (mat4 blocks) and ``dynbtf_bK`` (vec4 biases) of each layer ``K >= 2``."""
+    constants = [_constant_array("dynbtf_w1a", "mat4", angular_weights)]
     for k, (weights, biases) in enumerate(rest_weights, start=2):
-        rest += [_constant_array(f"dynbtf_w{k}", "mat4", weights), _constant_array(f"dynbtf_b{k}", "vec4", biases)]
-    # the decoder unrolled into mat4 x vec4 statements on named vec4 variables (no local arrays: software
-    # GL keeps them in registers; GPU compilers unroll constant loops anyway)
-    decoder_code = []
-    for q in range(hg):
-        terms = [f"dynbtf_b1[{q}]"] + [f"dynbtf_w1p[{q * g + i}] * x[{i}]" for i in range(g)]
-        terms += [f"dynbtf_w1a[{q * 2 * ag + i}] * fh[{i}]" for i in range(ag)]
-        terms += [f"dynbtf_w1a[{q * 2 * ag + ag + i}] * fd[{i}]" for i in range(ag)]
-        decoder_code.append(f"    vec4 y1_{q} = dynbtf_leaky({' + '.join(terms)});")
-    for k in range(2, layers + 1):
-        og = 1 if k == layers else hg
-        for q in range(og):
-            terms = [f"dynbtf_b{k}[{q}]"] + [f"dynbtf_w{k}[{q * hg + i}] * y{k - 1}_{i}" for i in range(hg)]
-            value = " + ".join(terms)
-            decoder_code.append(f"    vec4 y{k}_{q} = {value if k == layers else f'dynbtf_leaky({value})'};")
-    relief_code = ""
-    if relief:
-        relief_code = f"""
-// ---- relief (dynbtf.representations.parallax): features are read where the camera ray meets the
-// synthesized height field, marched from h_max down to h_min in steps of at most {_float(relief["step"])} repeats
-uniform vec4 dynbtf_height_map[DYNBTF_G];   // height channel = latent . map + offset (the method's output map)
-uniform float dynbtf_height_offset;
-#define DYNBTF_MAX_MARCH {MAX_MARCH_STEPS}
-float dynbtf_height(DynbtfOrigin o, vec2 p) {{
-    vec4 x[DYNBTF_G];
-    dynbtf_latent(o, p, x);
-    float h = dynbtf_height_offset;
-    for (int g = 0; g < DYNBTF_G; ++g) h += dot(x[g], dynbtf_height_map[g]);
-    return h * {_float(relief["height_scale"])};
-}}
-vec2 dynbtf_visible(DynbtfOrigin o, vec2 local, vec3 w) {{
-    const float h_min = {_float(relief["h_min"])}, h_max = {_float(relief["h_max"])};
-    if (w.z <= 0.0) w = vec3(0.0, 0.0, 1.0);
-    vec2 slope = w.xy / max(w.z, 1e-6) * vec2(1.0, {_float(relief["aspect"])});
-    float depth = h_max - h_min;
-    int n = min(max(int(ceil(depth * length(slope) / {_float(relief["step"])})), 1), DYNBTF_MAX_MARCH);
-    float dz = depth / float(n);
-    float f_prev = dynbtf_height(o, local + h_max * slope) - h_max;
-    if (f_prev >= 0.0) return local + h_max * slope;
-    float z_hit = h_min;
-    for (int k = 1; k <= DYNBTF_MAX_MARCH; ++k) {{
-        bool last = k >= n;
-        float z_above = h_max - float(k - 1) * dz;
-        float z = last ? h_min : h_max - float(k) * dz;
-        float f = dynbtf_height(o, local + z * slope) - z;
-        if (f >= 0.0 || last) {{
-            float t = f - f_prev != 0.0 ? clamp(f / (f - f_prev), 0.0, 1.0) : 0.0;
-            z_hit = z + t * (z_above - z);
-            break;
-        }}
-        f_prev = f;
-    }}
-    return local + z_hit * slope;
-}}
-"""
+        constants += [_constant_array(f"dynbtf_w{k}", "mat4", weights), _constant_array(f"dynbtf_b{k}", "vec4", biases)]
+    return constants
+
+
+def _glsl_header(*, channels: int, angular_channels: int, hidden: int, layers: int, angular_resolution: int,
+                 constants: list[str]) -> str:
+    """The header: what the shader evaluates, its sizes (``DYNBTF_G``, ``DYNBTF_AG``, ``DYNBTF_HG``: RGBA
+    layers of the positional, angular and hidden channels), the per-method uniforms and textures, the
+    ``DynbtfLayer1`` uniform block (``hg * g`` mat4 and ``hg`` vec4) and the decoder ``constants``."""
+    g, ag, hg = _groups(channels), _groups(angular_channels), _groups(hidden)
     return f"""// dynbtf real-time shader functions (GLSL ES 3.00), generated by dynbtf.export.web.shader.
 // Evaluates dynbtf.infinite_btf.SynthesizedBTF: synthesized positional features (tile, linear,
 // hist, hex, struct), Rusinkiewicz angular features and the decoder. Conventions (dynbtf README):
@@ -266,9 +245,15 @@ uniform vec4 dynbtf_fd_bias[DYNBTF_AG];
 // decoder: layer 1 = positional part (the method's output map folded in) + bias, per method ...
 layout(std140) uniform DynbtfLayer1 {{ mat4 dynbtf_w1p[{hg * g}]; vec4 dynbtf_b1[{hg}]; }};
 // ... + angular part, and layers 2.. (the same for every method): constants
-{chr(10).join(rest)}
+{chr(10).join(constants)}
 
-// ---- the integer part of a position (computed on the CPU in float64: dynbtf.export.web.shader.repeat_origin)
+"""
+
+
+def _glsl_integers() -> str:
+    """``DynbtfOrigin`` (a position's integer part, from :func:`repeat_origin`), the uint hash
+    (:mod:`dynbtf.synthesis.hash`), 64-bit (low, high) word addition and a non-negative ``mod``."""
+    return f"""// ---- the integer part of a position (computed on the CPU in float64: dynbtf.export.web.shader.repeat_origin)
 struct DynbtfOrigin {{
     uvec4 lattice;   // (low, high) words of the int64 lattice x, then of lattice y; struct: of the cell I_u n_x, I_v n_y
     float phase;     // 2 sqrt(3) I_u mod 1
@@ -287,7 +272,18 @@ uvec2 dynbtf_add(uvec2 a, int d) {{
 }}
 int dynbtf_mod(int a, int n) {{ return a >= 0 ? a % n : (n - 1) - ((-a - 1) % n); }}
 
-// ---- the triangle lattice (dynbtf.synthesis.lattice) and the vertices' hashed whole-texel offsets
+"""
+
+
+def _glsl_triangle() -> str:
+    """The lattice methods' triangle (:mod:`dynbtf.synthesis.lattice`): ``dynbtf_split``, ``dynbtf_triangle``
+    (int64 vertices, barycentrics, hashed whole-texel offsets, the bilinear footprint on the read plane).
+
+    ``2 sqrt(3)`` enters as a 12-bit high part (exact products for ``|w_u| < 2**12`` repeats) plus the rest.
+    """
+    hi_scale = math.ldexp(math.floor(math.ldexp(LATTICE_SCALE, 10)), -10)  # 12 significant bits
+    lo_scale = LATTICE_SCALE - hi_scale
+    return f"""// ---- the triangle lattice (dynbtf.synthesis.lattice) and the vertices' hashed whole-texel offsets
 struct DynbtfTriangle {{
     uvec2 vx[3]; uvec2 vy[3];  // int64 vertex coordinates as (low, high) words
     float b[3];                // barycentrics
@@ -350,22 +346,29 @@ DynbtfTriangle dynbtf_triangle(DynbtfOrigin o, vec2 local) {{
     return tri;
 }}
 
-// ---- lattice-aligned cell quilting (dynbtf.synthesis.cell_quilting): the cell, its hashed offset, the cuts
-struct DynbtfCell {{
+"""
+
+
+def _glsl_cells() -> str:
+    """``struct``'s cells (:mod:`dynbtf.synthesis.cell_quilting`): ``dynbtf_cell`` finds the query's cell,
+    the neighbour the vertical and horizontal cuts give the point to, that cell's hashed lattice offset and
+    the bilinear footprint on the exemplar."""
+    return """// ---- lattice-aligned cell quilting (dynbtf.synthesis.cell_quilting): the cell, its hashed offset, the cuts
+struct DynbtfCell {
     uvec2 cx; uvec2 cy;   // the query's own cell, int64 (low, high) words: I n + w n + column (row)
     ivec2 side;           // -1, 0 or 1 per axis: the point belongs to this neighbour of its cell (both: the diagonal one)
     int chosen;           // offset index (hash of that cell mod K)
     ivec2 offset;         // its lattice offset (dx, dy), texels
     ivec2 texel;          // texel of the bilinear footprint's corner on the exemplar, offset applied
     vec2 t;               // bilinear weights inside the footprint
-}};
+};
 
-int dynbtf_cell_entry(int k) {{ return texelFetch(dynbtf_cells, ivec2(k % dynbtf_cell_row, k / dynbtf_cell_row), 0).r; }}
-int dynbtf_cell_choice(uvec2 cx, uvec2 cy) {{
+int dynbtf_cell_entry(int k) { return texelFetch(dynbtf_cells, ivec2(k % dynbtf_cell_row, k / dynbtf_cell_row), 0).r; }
+int dynbtf_cell_choice(uvec2 cx, uvec2 cy) {
     return int(dynbtf_fold(dynbtf_fold(dynbtf_seed_state, cx), cy) % uint(dynbtf_cell_count));
-}}
+}
 
-DynbtfCell dynbtf_cell(DynbtfOrigin o, vec2 local) {{
+DynbtfCell dynbtf_cell(DynbtfOrigin o, vec2 local) {
     DynbtfCell c;
     vec2 wf, f;
     dynbtf_split(local, wf, f);
@@ -382,26 +385,26 @@ DynbtfCell dynbtf_cell(DynbtfOrigin o, vec2 local) {{
     int own = dynbtf_cell_choice(c.cx, c.cy);
     ivec2 m = dynbtf_cell_margin;
     c.side = ivec2(0);
-    if (l.x < m.x) {{   // the cut of the edge at the cell's start: left cell a, this cell b, texel row l.y
+    if (l.x < m.x) {   // the cut of the edge at the cell's start: left cell a, this cell b, texel row l.y
         int a = dynbtf_cell_choice(dynbtf_add(c.cx, -1), c.cy);
         int cut = dynbtf_cell_entry(dynbtf_cut_start.x + (((cell.x * n.y + cell.y) * k + a) * k + own) * span.y + l.y);
         if (l.x < cut) c.side.x = -1;
-    }} else if (l.x >= span.x - m.x) {{   // the edge at the cell's end: this cell a, right cell b
+    } else if (l.x >= span.x - m.x) {   // the edge at the cell's end: this cell a, right cell b
         int b = dynbtf_cell_choice(dynbtf_add(c.cx, 1), c.cy);
         int i = cell.x + 1 == n.x ? 0 : cell.x + 1;
         int cut = dynbtf_cell_entry(dynbtf_cut_start.x + (((i * n.y + cell.y) * k + own) * k + b) * span.y + l.y);
         if (l.x - span.x >= cut) c.side.x = 1;
-    }}
-    if (l.y < m.y) {{
+    }
+    if (l.y < m.y) {
         int a = dynbtf_cell_choice(c.cx, dynbtf_add(c.cy, -1));
         int cut = dynbtf_cell_entry(dynbtf_cut_start.y + (((cell.x * n.y + cell.y) * k + a) * k + own) * span.x + l.x);
         if (l.y < cut) c.side.y = -1;
-    }} else if (l.y >= span.y - m.y) {{
+    } else if (l.y >= span.y - m.y) {
         int b = dynbtf_cell_choice(c.cx, dynbtf_add(c.cy, 1));
         int j = cell.y + 1 == n.y ? 0 : cell.y + 1;
         int cut = dynbtf_cell_entry(dynbtf_cut_start.y + (((cell.x * n.y + j) * k + own) * k + b) * span.x + l.x);
         if (l.y - span.y >= cut) c.side.y = 1;
-    }}
+    }
     c.chosen = c.side == ivec2(0) ? own : dynbtf_cell_choice(dynbtf_add(c.cx, c.side.x), dynbtf_add(c.cy, c.side.y));
     c.offset = ivec2(dynbtf_cell_entry(2 * c.chosen), dynbtf_cell_entry(2 * c.chosen + 1));
     // one bilinear sample at the shifted position (texel centres at whole + 0.5), wrapped
@@ -410,31 +413,37 @@ DynbtfCell dynbtf_cell(DynbtfOrigin o, vec2 local) {{
     c.t = p - p0;
     c.texel = ivec2(dynbtf_mod(int(p0.x) + c.offset.x, size.x), dynbtf_mod(int(p0.y) + c.offset.y, size.y));
     return c;
-}}
+}
 
-// ---- fetches
-void dynbtf_bilinear(ivec2 c, vec2 t, float weight, inout vec4 acc[DYNBTF_G]) {{
+"""
+
+
+def _glsl_fetches() -> str:
+    """Texel fetches: the bilinear footprint of the plane (every method), the luminance (``hex``), the
+    inverse histogram tables (``hist``) and ``hex``'s contrast gain."""
+    return """// ---- fetches
+void dynbtf_bilinear(ivec2 c, vec2 t, float weight, inout vec4 acc[DYNBTF_G]) {
     ivec2 size = dynbtf_plane_size;
     int c1 = c.x + 1 == size.x ? 0 : c.x + 1;
     int r1 = c.y + 1 == size.y ? 0 : c.y + 1;
     float w00 = weight * (1.0 - t.x) * (1.0 - t.y), w01 = weight * t.x * (1.0 - t.y);
     float w10 = weight * (1.0 - t.x) * t.y, w11 = weight * t.x * t.y;
-    for (int g = 0; g < DYNBTF_G; ++g) {{
+    for (int g = 0; g < DYNBTF_G; ++g) {
         acc[g] += w00 * texelFetch(dynbtf_plane, ivec3(c.x, c.y, g), 0) + w01 * texelFetch(dynbtf_plane, ivec3(c1, c.y, g), 0)
                 + w10 * texelFetch(dynbtf_plane, ivec3(c.x, r1, g), 0) + w11 * texelFetch(dynbtf_plane, ivec3(c1, r1, g), 0);
-    }}
-}}
+    }
+}
 
-float dynbtf_luminance(ivec2 c, vec2 t) {{
+float dynbtf_luminance(ivec2 c, vec2 t) {
     ivec2 size = dynbtf_plane_size;
     int c1 = c.x + 1 == size.x ? 0 : c.x + 1;
     int r1 = c.y + 1 == size.y ? 0 : c.y + 1;
     float v = (1.0 - t.x) * (1.0 - t.y) * texelFetch(dynbtf_lum, c, 0).r + t.x * (1.0 - t.y) * texelFetch(dynbtf_lum, ivec2(c1, c.y), 0).r
             + (1.0 - t.x) * t.y * texelFetch(dynbtf_lum, ivec2(c.x, r1), 0).r + t.x * t.y * texelFetch(dynbtf_lum, ivec2(c1, r1), 0).r;
     return v * dynbtf_lum_scale_bias.x + dynbtf_lum_scale_bias.y;
-}}
+}
 
-float dynbtf_inverse_table(int c, float g) {{
+float dynbtf_inverse_table(int c, float g) {
     float top = float(dynbtf_lut_size - 1);
     float pos = clamp((g - dynbtf_g_min) * dynbtf_inv_step, 0.0, top);
     int lo = min(int(pos), dynbtf_lut_size - 2);
@@ -444,60 +453,73 @@ float dynbtf_inverse_table(int c, float g) {{
     float x0 = texelFetch(dynbtf_lut, ivec2(lo % dynbtf_lut_row, c * rows + lo / dynbtf_lut_row), 0).r;
     float x1 = texelFetch(dynbtf_lut, ivec2(hi % dynbtf_lut_row, c * rows + hi / dynbtf_lut_row), 0).r;
     return x0 + t * (x1 - x0);
-}}
+}
 
-float dynbtf_gain(float x) {{
+float dynbtf_gain(float x) {
     return x < 0.5 ? 0.5 * pow(2.0 * x, dynbtf_gain_k) : 1.0 - 0.5 * pow(max(2.0 - 2.0 * x, 0.0), dynbtf_gain_k);
-}}
+}
 
-// ---- synthesized positional features before the output map (the "latent", DYNBTF_G vec4)
-void dynbtf_latent(DynbtfOrigin o, vec2 local, out vec4 latent[DYNBTF_G]) {{
+"""
+
+
+def _glsl_latent() -> str:
+    """``dynbtf_latent``: the synthesized positional features before the output map, per method
+    (``dynbtf_mode``): one sample (``tile``, ``struct``), or three blended with barycentric (``linear``),
+    ``(b / max b)^gamma`` (``hist``, then its inverse tables) or luminance-weighted (``hex``) weights."""
+    return """// ---- synthesized positional features before the output map (the "latent", DYNBTF_G vec4)
+void dynbtf_latent(DynbtfOrigin o, vec2 local, out vec4 latent[DYNBTF_G]) {
     vec4 acc[DYNBTF_G];
     for (int g = 0; g < DYNBTF_G; ++g) acc[g] = vec4(0.0);
     float total = 1.0;
-    if (dynbtf_mode == 4) {{
+    if (dynbtf_mode == 4) {
         DynbtfCell cell = dynbtf_cell(o, local);
         dynbtf_bilinear(cell.texel, cell.t, 1.0, acc);
-    }} else {{
+    } else {
         DynbtfTriangle tri = dynbtf_triangle(o, local);
-        if (dynbtf_mode == 0) {{
+        if (dynbtf_mode == 0) {
             dynbtf_bilinear(tri.texel, tri.t, 1.0, acc);
-        }} else {{
+        } else {
             vec3 s = vec3(tri.b[0], tri.b[1], tri.b[2]);
             ivec2 size = dynbtf_plane_size;
             ivec2 c[3];
             for (int i = 0; i < 3; ++i) c[i] = ivec2((tri.texel.x + tri.offset[i].x) % size.x, (tri.texel.y + tri.offset[i].y) % size.y);
-            if (dynbtf_mode == 2) {{
+            if (dynbtf_mode == 2) {
                 // (b / max b)^gamma: the largest term is 1, no underflow to 0/0 (dynbtf.synthesis.histogram.blend_weights)
                 s = dynbtf_gamma == 1.0 ? s : pow(max(s, 0.0) / max(max(s.x, s.y), s.z), vec3(dynbtf_gamma));
                 s /= s.x + s.y + s.z;
                 s *= inversesqrt(dot(s, s));
-            }} else if (dynbtf_mode == 3) {{
+            } else if (dynbtf_mode == 3) {
                 vec3 lum = vec3(dynbtf_luminance(c[0], tri.t), dynbtf_luminance(c[1], tri.t), dynbtf_luminance(c[2], tri.t));
                 vec3 b = max(s, 0.0), b2 = b * b, b4 = b2 * b2;
                 s = (1.0 - dynbtf_beta + dynbtf_beta * lum) * (b4 * b2 * b);
                 s /= s.x + s.y + s.z;
-                if (dynbtf_gain_k != 1.0) {{
+                if (dynbtf_gain_k != 1.0) {
                     s = vec3(dynbtf_gain(s.x), dynbtf_gain(s.y), dynbtf_gain(s.z));
                     s /= s.x + s.y + s.z;
-                }}
-            }}
+                }
+            }
             for (int i = 0; i < 3; ++i) dynbtf_bilinear(c[i], tri.t, s[i], acc);
             total = s.x + s.y + s.z;
-        }}
-    }}
+        }
+    }
     for (int g = 0; g < DYNBTF_G; ++g) acc[g] = acc[g] * dynbtf_plane_scale[g] + total * dynbtf_plane_bias[g];
-    if (dynbtf_mode == 2) {{
-        for (int g = 0; g < DYNBTF_G; ++g) {{
+    if (dynbtf_mode == 2) {
+        for (int g = 0; g < DYNBTF_G; ++g) {
             vec4 v;
             for (int k = 0; k < 4; ++k) v[k] = dynbtf_inverse_table(4 * g + k, acc[g][k]);
             acc[g] = v * dynbtf_lut_scale[g] + dynbtf_lut_bias[g];
-        }}
-    }}
+        }
+    }
     for (int g = 0; g < DYNBTF_G; ++g) latent[g] = acc[g];
-}}
+}
 
-// ---- angular features (dynbtf.conventions: Rusinkiewicz h and d, plane coords (theta/90, phi/360))
+"""
+
+
+def _glsl_angular(angular_resolution: int) -> str:
+    """The angular features: Rusinkiewicz difference vector and the bilinear fetch of an
+    ``R x R`` angular plane (``R = angular_resolution``) at ``(theta / 90 deg, phi / 360 deg)``."""
+    return f"""// ---- angular features (dynbtf.conventions: Rusinkiewicz h and d, plane coords (theta/90, phi/360))
 vec3 dynbtf_difference(vec3 h, vec3 wl) {{
     float cos_t = clamp(h.z, -1.0, 1.0);
     float sin_t = sqrt(max(1.0 - cos_t * cos_t, 0.0));
@@ -532,7 +554,86 @@ void dynbtf_angular_fetch(highp sampler2DArray plane, vec3 w, vec4 scale[DYNBTF_
         result[g] = v * scale[g] + bias[g];
     }}
 }}
+"""
 
+
+def _glsl_relief(relief: dict[str, float] | None) -> str:
+    """The relief ray march (``dynbtf_height``, ``dynbtf_visible``) when ``relief`` is given, else ``""``.
+
+    ``relief``: ``h_min``, ``h_max`` (height range, repeats), ``step`` (largest march step, repeats),
+    ``aspect`` (the plane's rows over columns) and ``height_scale``, as
+    :func:`dynbtf.representations.parallax.march_visible_uv` uses them.
+    """
+    if not relief:
+        return ""
+    return f"""
+// ---- relief (dynbtf.representations.parallax): features are read where the camera ray meets the
+// synthesized height field, marched from h_max down to h_min in steps of at most {_float(relief["step"])} repeats
+uniform vec4 dynbtf_height_map[DYNBTF_G];   // height channel = latent . map + offset (the method's output map)
+uniform float dynbtf_height_offset;
+#define DYNBTF_MAX_MARCH {MAX_MARCH_STEPS}
+float dynbtf_height(DynbtfOrigin o, vec2 p) {{
+    vec4 x[DYNBTF_G];
+    dynbtf_latent(o, p, x);
+    float h = dynbtf_height_offset;
+    for (int g = 0; g < DYNBTF_G; ++g) h += dot(x[g], dynbtf_height_map[g]);
+    return h * {_float(relief["height_scale"])};
+}}
+vec2 dynbtf_visible(DynbtfOrigin o, vec2 local, vec3 w) {{
+    const float h_min = {_float(relief["h_min"])}, h_max = {_float(relief["h_max"])};
+    if (w.z <= 0.0) w = vec3(0.0, 0.0, 1.0);
+    vec2 slope = w.xy / max(w.z, 1e-6) * vec2(1.0, {_float(relief["aspect"])});
+    float depth = h_max - h_min;
+    int n = min(max(int(ceil(depth * length(slope) / {_float(relief["step"])})), 1), DYNBTF_MAX_MARCH);
+    float dz = depth / float(n);
+    float f_prev = dynbtf_height(o, local + h_max * slope) - h_max;
+    if (f_prev >= 0.0) return local + h_max * slope;
+    float z_hit = h_min;
+    for (int k = 1; k <= DYNBTF_MAX_MARCH; ++k) {{
+        bool last = k >= n;
+        float z_above = h_max - float(k - 1) * dz;
+        float z = last ? h_min : h_max - float(k) * dz;
+        float f = dynbtf_height(o, local + z * slope) - z;
+        if (f >= 0.0 || last) {{
+            float t = f - f_prev != 0.0 ? clamp(f / (f - f_prev), 0.0, 1.0) : 0.0;
+            z_hit = z + t * (z_above - z);
+            break;
+        }}
+        f_prev = f;
+    }}
+    return local + z_hit * slope;
+}}
+"""
+
+
+def _glsl_decoder_statements(*, channels: int, angular_channels: int, hidden: int, layers: int) -> list[str]:
+    """The decoder unrolled into ``mat4 x vec4`` statements on named vec4 variables ``yK_q`` (layer ``K``,
+    RGBA group ``q``; the last layer has one group, its ``.rgb`` is the value)."""
+    g, ag, hg = _groups(channels), _groups(angular_channels), _groups(hidden)
+    # no local arrays: software GL keeps named variables in registers; GPU compilers unroll constant loops anyway
+    decoder_code = []
+    for q in range(hg):
+        terms = [f"dynbtf_b1[{q}]"] + [f"dynbtf_w1p[{q * g + i}] * x[{i}]" for i in range(g)]
+        terms += [f"dynbtf_w1a[{q * 2 * ag + i}] * fh[{i}]" for i in range(ag)]
+        terms += [f"dynbtf_w1a[{q * 2 * ag + ag + i}] * fd[{i}]" for i in range(ag)]
+        decoder_code.append(f"    vec4 y1_{q} = dynbtf_leaky({' + '.join(terms)});")
+    for k in range(2, layers + 1):
+        og = 1 if k == layers else hg
+        for q in range(og):
+            terms = [f"dynbtf_b{k}[{q}]"] + [f"dynbtf_w{k}[{q * hg + i}] * y{k - 1}_{i}" for i in range(hg)]
+            value = " + ".join(terms)
+            decoder_code.append(f"    vec4 y{k}_{q} = {value if k == layers else f'dynbtf_leaky({value})'};")
+    return decoder_code
+
+
+def _glsl_decoder_and_eval(*, channels: int, angular_channels: int, hidden: int, layers: int,
+                           negative_slope: float, relief: dict[str, float] | None) -> str:
+    """The LeakyReLU, the relief march (:func:`_glsl_relief`) and ``dynbtf_eval``: latent at the visible
+    point, angular features, the unrolled decoder; linear RGB, zero below either horizon."""
+    relief_code = _glsl_relief(relief)
+    decoder_code = _glsl_decoder_statements(channels=channels, angular_channels=angular_channels, hidden=hidden,
+                                            layers=layers)
+    return f"""
 vec4 dynbtf_leaky(vec4 x) {{ return max(x, 0.0) + {_float(negative_slope)} * min(x, 0.0); }}
 
 {relief_code}
