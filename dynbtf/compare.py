@@ -291,11 +291,7 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
     list of RepresentationScore, in the order of ``kinds``.
     """
     config = (config or TrainConfig()).validate()
-    kinds = list(dict.fromkeys(kinds))
-    if not kinds:
-        raise InputError("--repr: expected at least one representation kind")
-    for kind in kinds:
-        get_fitter(kind)  # fail early on an unknown kind
+    kinds = _checked_kinds(kinds)
     output_dir = Path(output_dir)
     (output_dir / "images").mkdir(parents=True, exist_ok=True)
     _, held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction, config.seed)
@@ -310,29 +306,74 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
 
     scores, kept = [], {}
     for kind in kinds:
-        start = time.perf_counter()
-        rep, meta = fit_or_load(kind, source, output_dir / f"{kind}.dbtfm", config, progress=progress)
-        wall = time.perf_counter() - start
-        prov = meta.get("provenance", {})
-        evaluation = evaluate_model(rep, ground_truth, held_out, out_dir=output_dir / f"eval_{kind}", images=examples,
-                                    progress=progress)
-        kept[kind] = example_images(rep, ground_truth, held_out[shown])
-        plane = rep.positional_plane()
-        score = RepresentationScore(
-            kind=kind, psnr=evaluation.mean["psnr"], psnr_fixed1=evaluation.mean["psnr_fixed1"],
-            psnr_grazing=evaluation.by_angle["grazing"].get("psnr", float("nan")),
-            psnr_others=evaluation.by_angle["others"].get("psnr", float("nan")),
-            dssim=evaluation.mean["dssim"], flip=evaluation.mean["flip"],
-            storage_bytes=int(rep.storage_bytes()), positional_bytes=int(plane.numel() * plane.element_size()),
-            fit_seconds=float(prov.get("training_seconds", wall)), finished=bool(prov.get("finished", True)),
-            model_path=str(output_dir / f"{kind}.dbtfm"), per_pair=evaluation.rows)
+        score, kept[kind] = _score_kind(kind, source, ground_truth, held_out, held_out[shown], output_dir, config,
+                                        examples=examples, progress=progress)
         scores.append(score)
         if progress:
-            print(f"{kind}: PSNR (per-image peak) {score.psnr:.2f} dB (grazing {score.psnr_grazing:.2f}, others "
-                  f"{score.psnr_others:.2f}), PSNR (fixed peak 1) {score.psnr_fixed1:.2f} dB, "
-                  f"DSSIM {score.dssim:.4f}, FLIP {score.flip:.4f}, "
-                  f"{score.storage_bytes / 1e6:.3g} MB, fit {score.fit_seconds:.0f} s")
+            _print_score(score)
 
+    table = _write_representation_table(output_dir, source, held_out, scores)
+    labels, figure_items = _write_representation_figure(output_dir, source, held_out, shown, truths, scores, kept)
+    own_report = report is None
+    report = report or HtmlReport(f"dynbtf compare: {source.name}",
+                                  f"{source.height} x {source.width} texels, {source.n_views} views x "
+                                  f"{source.n_lights} lights; {len(held_out)} held-out pairs")
+    _report_representations(report, output_dir, table, labels, figure_items)
+    if own_report:
+        report.write(output_dir / "index.html")
+    return scores
+
+
+def _checked_kinds(kinds: Sequence[str]) -> list[str]:
+    """``kinds`` without repeats, in order; an empty list or an unknown kind raises :class:`InputError` (before
+    any fit)."""
+    kinds = list(dict.fromkeys(kinds))
+    if not kinds:
+        raise InputError("--repr: expected at least one representation kind")
+    for kind in kinds:
+        get_fitter(kind)  # fail early on an unknown kind
+    return kinds
+
+
+def _score_kind(kind: str, source: BTFSource, ground_truth: BTFSource, held_out: np.ndarray, shown_pairs: np.ndarray,
+                output_dir: Path, config: TrainConfig, *, examples: int, progress: bool
+                ) -> tuple[RepresentationScore, list[tuple[np.ndarray, np.ndarray, float]]]:
+    """Fit or load ``kind`` (``<kind>.dbtfm``), evaluate it on the ``held_out (P, 2)`` pairs (``eval_<kind>/``).
+
+    Returns its score (fit time: the model's recorded training seconds, else this call's wall time) and
+    :func:`example_images` at ``shown_pairs (E, 2)`` for the figure.
+    """
+    start = time.perf_counter()
+    rep, meta = fit_or_load(kind, source, output_dir / f"{kind}.dbtfm", config, progress=progress)
+    wall = time.perf_counter() - start
+    prov = meta.get("provenance", {})
+    evaluation = evaluate_model(rep, ground_truth, held_out, out_dir=output_dir / f"eval_{kind}", images=examples,
+                                progress=progress)
+    examples_kept = example_images(rep, ground_truth, shown_pairs)
+    plane = rep.positional_plane()
+    score = RepresentationScore(
+        kind=kind, psnr=evaluation.mean["psnr"], psnr_fixed1=evaluation.mean["psnr_fixed1"],
+        psnr_grazing=evaluation.by_angle["grazing"].get("psnr", float("nan")),
+        psnr_others=evaluation.by_angle["others"].get("psnr", float("nan")),
+        dssim=evaluation.mean["dssim"], flip=evaluation.mean["flip"],
+        storage_bytes=int(rep.storage_bytes()), positional_bytes=int(plane.numel() * plane.element_size()),
+        fit_seconds=float(prov.get("training_seconds", wall)), finished=bool(prov.get("finished", True)),
+        model_path=str(output_dir / f"{kind}.dbtfm"), per_pair=evaluation.rows)
+    return score, examples_kept
+
+
+def _print_score(score: RepresentationScore) -> None:
+    """One summary line: PSNR (dB), DSSIM, FLIP, storage (MB) and fit time (s) of a kind."""
+    print(f"{score.kind}: PSNR (per-image peak) {score.psnr:.2f} dB (grazing {score.psnr_grazing:.2f}, others "
+          f"{score.psnr_others:.2f}), PSNR (fixed peak 1) {score.psnr_fixed1:.2f} dB, "
+          f"DSSIM {score.dssim:.4f}, FLIP {score.flip:.4f}, "
+          f"{score.storage_bytes / 1e6:.3g} MB, fit {score.fit_seconds:.0f} s")
+
+
+def _write_representation_table(output_dir: Path, source: BTFSource, held_out: np.ndarray,
+                                scores: list[RepresentationScore]) -> list[dict[str, Any]]:
+    """``representations.csv`` / ``.json`` (with the source, the held-out pairs, every pair's numbers and what
+    the metrics mean); returns the table rows."""
     table = [s.row() for s in scores]
     _write_table(output_dir, "representations", table, {
         "source": source.describe(), "held_out_pairs": held_out.tolist(),
@@ -340,8 +381,20 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
         "metrics": METRIC_DESCRIPTIONS | {
             "psnr_grazing": "psnr over the pairs with view or light beyond 60 degrees",
             "psnr_others": "psnr over the other pairs"}})
+    return table
 
-    # the figure: GT | reps | FLIP maps, one row per example
+
+def _write_representation_figure(output_dir: Path, source: BTFSource, held_out: np.ndarray, shown: list[int],
+                                 truths: dict[int, np.ndarray], scores: list[RepresentationScore],
+                                 kept: dict[str, list[tuple[np.ndarray, np.ndarray, float]]]
+                                 ) -> tuple[list[str], list[list[tuple[Path, str]]]]:
+    """The figure ``representations.png`` (GT | each kind | FLIP map of each, one row per example) and its
+    images in ``images/``.
+
+    ``shown``: positions in ``held_out (P, 2)`` of the examples; ``truths``: their ground truth ``(H, W, 3)``
+    by position; ``kept``: :func:`example_images` per kind. Returns the column labels and, per example, the
+    ``(path, caption)`` of its images (for the report).
+    """
     cells, row_labels, figure_items = [], [], []
     for row_index, p in enumerate(shown):
         v, l = map(int, held_out[p])
@@ -366,11 +419,13 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
     labels = ["GT", *[s.kind for s in scores], *[f"FLIP {s.kind}" for s in scores]]
     scale = max(1, 128 // max(source.height, source.width))
     _write_png(output_dir / "representations.png", _labelled_grid(cells, labels, row_labels, scale))
+    return labels, figure_items
 
-    own_report = report is None
-    report = report or HtmlReport(f"dynbtf compare: {source.name}",
-                                  f"{source.height} x {source.width} texels, {source.n_views} views x "
-                                  f"{source.n_lights} lights; {len(held_out)} held-out pairs")
+
+def _report_representations(report: HtmlReport, output_dir: Path, table: list[dict[str, Any]], labels: list[str],
+                            figure_items: list[list[tuple[Path, str]]]) -> None:
+    """The "Representations" section of ``report``: what the numbers mean, the table, the figure and each
+    example's images."""
     report.section("Representations", "Means over the same held-out (view, light) pairs, never used in any fit. "
                    "PSNR on linear values against each reference image's peak (psnr; split into grazing pairs, "
                    "view or light beyond 60 degrees, and the others) and against a fixed peak of 1 (psnr_fixed1, the "
@@ -383,9 +438,6 @@ def compare_representations(source: BTFSource, output_dir, kinds: Sequence[str] 
                   width=min(1400, 160 * len(labels)))
     for items in figure_items:
         report.images(items, width=128, pixelated=True)
-    if own_report:
-        report.write(output_dir / "index.html")
-    return scores
 
 
 # ---------------------------------------------------------------------- synthesis
