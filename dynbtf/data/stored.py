@@ -165,19 +165,39 @@ def write_stored(path, source: BTFSource, *, dtype: str = "float16", progress: b
     partial directory of another source is discarded.
     """
     path = Path(path)
+    _check_write_arguments(path, source, dtype, overwrite)
+    meta = _meta_for(source, dtype)
+    image_shape = (source.height, source.width, 3)
+    total_bytes = source.n_pairs * int(np.prod(image_shape)) * np.dtype(dtype).itemsize
+    partial = _partial_dir(path)
+    done = _prepare_partial(partial, meta, source.n_pairs, total_bytes)
+    if lights_per_batch is None:
+        lights_per_batch = max(1, min(source.n_lights, (64 << 20) // max(1, int(np.prod(image_shape)) * 4)))
+    _write_images(partial, source, dtype, done, lights_per_batch, desc=f"writing {path.name}", progress=progress,
+                  callback=callback)
+    os.remove(partial / _PROGRESS_FILE)
+    _move_into_place(partial, path)
+    return path
+
+
+def _check_write_arguments(path: Path, source: BTFSource, dtype: str, overwrite: bool) -> None:
+    """:class:`InputError` for an unknown ``dtype``, a ``source`` that is no BTFSource, or an existing ``path``
+    without ``overwrite``."""
     if dtype not in STORED_DTYPES:
         raise InputError(f"dtype: expected one of {STORED_DTYPES}, got {dtype!r}")
     if not isinstance(source, BTFSource):
         raise InputError(f"source: expected a BTFSource, got {type(source).__name__}")
     if path.exists() and not overwrite:
         raise InputError(f"{path}: already exists (pass overwrite=True, or --overwrite on the command line)")
-    meta = _meta_for(source, dtype)
-    n_lights, n_images = source.n_lights, source.n_pairs
-    image_shape = (source.height, source.width, 3)
-    itemsize = np.dtype(dtype).itemsize
-    total_bytes = n_images * int(np.prod(image_shape)) * itemsize
 
-    partial = _partial_dir(path)
+
+def _prepare_partial(partial: Path, meta: dict[str, Any], n_images: int, total_bytes: int) -> int:
+    """Resume or start the partial directory; returns the images already written there.
+
+    A partial directory is resumed when its ``meta.json`` equals ``meta``, its ``values.bin`` has
+    ``total_bytes`` bytes and its ``progress.json`` counts ``0 <= done <= n_images`` images; otherwise it is
+    discarded and a new one made: ``meta.json``, ``values.bin`` preallocated (sparse) and a progress of 0.
+    """
     done = 0
     if partial.exists():
         try:
@@ -196,30 +216,24 @@ def write_stored(path, source: BTFSource, *, dtype: str = "float16", progress: b
         with open(partial / DATA_FILE, "wb") as f:
             f.truncate(total_bytes)
         _write_json_atomic(partial / _PROGRESS_FILE, {"images_done": 0, "images_total": n_images})
+    return done
 
-    if lights_per_batch is None:
-        lights_per_batch = max(1, min(n_lights, (64 << 20) // max(1, int(np.prod(image_shape)) * 4)))
+
+def _write_images(partial: Path, source: BTFSource, dtype: str, done: int, lights_per_batch: int, *, desc: str,
+                  progress: bool, callback: Callable[[int], None] | None) -> None:
+    """Write images ``done..n_pairs`` (view-major) into ``partial/values.bin``, ``lights_per_batch`` of one view
+    at a time, committing ``progress.json`` (and calling ``callback(images done)``) after each batch."""
+    from ..progress import progress_bar
+
+    n_lights, n_images = source.n_lights, source.n_pairs
+    image_shape = (source.height, source.width, 3)
     values = np.memmap(partial / DATA_FILE, dtype=np.dtype(dtype).newbyteorder("<"), mode="r+",
                        shape=(source.n_views, n_lights) + image_shape)
-    view_images = getattr(source, "view_images", None)
-    from ..progress import progress_bar
-    limit = np.finfo(np.float16).max if dtype == "float16" else np.inf
-    with progress_bar(total=n_images, initial=done, unit="img", desc=f"writing {path.name}",
-                      disable=not progress) as bar:
+    with progress_bar(total=n_images, initial=done, unit="img", desc=desc, disable=not progress) as bar:
         while done < n_images:
             v, l0 = divmod(done, n_lights)
             lights = np.arange(l0, min(n_lights, l0 + lights_per_batch))
-            if view_images is not None:
-                batch = np.asarray(view_images(v, lights), dtype=np.float32)
-            else:
-                batch = np.stack([source.image(v, int(l)) for l in lights])
-            if batch.shape != (len(lights),) + image_shape:
-                raise InputError(f"{source.name}: view {v} returned images of shape {batch.shape[1:]}, "
-                                 f"expected {image_shape}")
-            if not np.isfinite(batch).all() or np.abs(batch).max() > limit:
-                raise InputError(f"{source.name}: view {v} has NaN, infinite or out-of-range values "
-                                 f"(|value| must stay below {limit:g} for {dtype})")
-            values[v, lights] = batch
+            values[v, lights] = _read_batch(source, v, lights, dtype)
             values.flush()
             done += len(lights)
             _write_json_atomic(partial / _PROGRESS_FILE, {"images_done": done, "images_total": n_images})
@@ -227,7 +241,30 @@ def write_stored(path, source: BTFSource, *, dtype: str = "float16", progress: b
             if callback is not None:
                 callback(done)
     del values
-    os.remove(partial / _PROGRESS_FILE)
+
+
+def _read_batch(source: BTFSource, view: int, lights: np.ndarray, dtype: str) -> np.ndarray:
+    """Images ``(len(lights), H, W, 3)`` of one ``view`` (through ``source.view_images`` when it has it);
+    :class:`InputError` for a wrong shape, NaN, infinite values or values ``dtype`` cannot hold."""
+    image_shape = (source.height, source.width, 3)
+    view_images = getattr(source, "view_images", None)
+    if view_images is not None:
+        batch = np.asarray(view_images(view, lights), dtype=np.float32)
+    else:
+        batch = np.stack([source.image(view, int(l)) for l in lights])
+    if batch.shape != (len(lights),) + image_shape:
+        raise InputError(f"{source.name}: view {view} returned images of shape {batch.shape[1:]}, "
+                         f"expected {image_shape}")
+    limit = np.finfo(np.float16).max if dtype == "float16" else np.inf
+    if not np.isfinite(batch).all() or np.abs(batch).max() > limit:
+        raise InputError(f"{source.name}: view {view} has NaN, infinite or out-of-range values "
+                         f"(|value| must stay below {limit:g} for {dtype})")
+    return batch
+
+
+def _move_into_place(partial: Path, path: Path) -> None:
+    """Rename the finished ``partial`` directory onto ``path``; an existing ``path`` (overwrite) is moved aside
+    first and removed after the swap."""
     if path.exists():  # overwrite: move the old one aside, then swap in the new one
         trash = path.with_name(f".{path.name}.old")
         if trash.exists():
@@ -240,7 +277,6 @@ def write_stored(path, source: BTFSource, *, dtype: str = "float16", progress: b
             os.remove(trash)
     else:
         os.replace(partial, path)
-    return path
 
 
 def _field(meta: dict, key: str, kind, where: Path):
