@@ -664,16 +664,44 @@ def write_ubo2014(path, source_or_arrays, *, components: int = 16, scalar: str =
     Path : the file written. Our reader returns images equal to the input up to
     the SVD truncation and the scalar precision.
     """
-    source = source_or_arrays
-    if not isinstance(source, BTFSource):
-        if views is None or lights is None:
-            raise InputError("write_ubo2014: an array input needs views= and lights= direction arrays")
-        try:
-            source = ArrayBTF(source, views, lights, name="array")
-        except DynBTFError:
-            raise
-        except ValueError as e:  # check_directions' plain ValueError names the argument
-            raise InputError(f"write_ubo2014: {e}") from None
+    source = _writable_source(source_or_arrays, views, lights)
+    _check_write_options(source, components=components, scalar=scalar, colour_model=colour_model, version=version,
+                         method=method)
+    matrix_bytes = source.n_pairs * source.height * source.width * 3 * 8
+    if method == "randomized" or (method == "auto" and matrix_bytes > max_bytes):
+        return _write_ubo2014_randomized(path, source, int(components), scalar=scalar, colour_model=colour_model,
+                                         version=version, oversample=oversample, seed=seed, progress=progress)
+    if matrix_bytes > max_bytes:
+        raise InputError(f"write_ubo2014: {source.name} needs {matrix_bytes / 2**30:.2f} GiB while "
+                         f"compressing exactly (max_bytes={max_bytes}); use method='randomized' (bounded memory)")
+    factors = _exact_factors(source, int(components), colour_model=colour_model, progress=progress)
+    provenance = (f'<dynbtf source="{source.name}" writer="dynbtf.data.ubo2014.write_ubo2014" '
+                  f'components="{components}" scalar="{scalar}"/>')
+    return write_dfmf_factors(path, source.views, source.lights, source.height, source.width,
+                              [f[0] for f in factors], [f[2] for f in factors],
+                              singular_values=[f[1] for f in factors], scalar=scalar,
+                              colour_model=colour_model, version=version, xml=provenance)
+
+
+def _writable_source(source_or_arrays, views, lights) -> BTFSource:
+    """The BTF to write: a :class:`BTFSource` as is, an array ``(n_views, n_lights, H, W, 3)`` with its
+    ``views, lights (N, 3)`` as an :class:`ArrayBTF` (:class:`InputError` when they are missing or invalid)."""
+    if isinstance(source_or_arrays, BTFSource):
+        return source_or_arrays
+    if views is None or lights is None:
+        raise InputError("write_ubo2014: an array input needs views= and lights= direction arrays")
+    try:
+        return ArrayBTF(source_or_arrays, views, lights, name="array")
+    except DynBTFError:
+        raise
+    except ValueError as e:  # check_directions' plain ValueError names the argument
+        raise InputError(f"write_ubo2014: {e}") from None
+
+
+def _check_write_options(source: BTFSource, *, components: int, scalar: str, colour_model: int, version: int,
+                         method: str) -> None:
+    """:class:`InputError` for options :func:`write_ubo2014` does not know, and for directions below the
+    horizon (a ``.btf`` file stores (theta, phi) of the upper hemisphere)."""
     if scalar not in _SCALAR_NAMES:
         raise InputError(f"scalar: expected one of {sorted(_SCALAR_NAMES)}, got {scalar!r}")
     if colour_model not in COLOUR_MODELS:
@@ -684,16 +712,18 @@ def write_ubo2014(path, source_or_arrays, *, components: int = 16, scalar: str =
         raise InputError(f"version: expected 1, 2, 3 or 4, got {version!r}")
     if (source.views[:, 2] < -1e-6).any() or (source.lights[:, 2] < -1e-6).any():
         raise InputError(f"{source.name}: directions below the horizon cannot be stored in a .btf file")
-    rows, cols = source.n_pairs, source.height * source.width
     if method not in ("auto", "exact", "randomized"):
         raise InputError(f"method: expected 'auto', 'exact' or 'randomized', got {method!r}")
-    if method == "randomized" or (method == "auto" and rows * cols * 3 * 8 > max_bytes):
-        return _write_ubo2014_randomized(path, source, int(components), scalar=scalar, colour_model=colour_model,
-                                         version=version, oversample=oversample, seed=seed, progress=progress)
-    if rows * cols * 3 * 8 > max_bytes:
-        raise InputError(f"write_ubo2014: {source.name} needs {rows * cols * 24 / 2**30:.2f} GiB while "
-                         f"compressing exactly (max_bytes={max_bytes}); use method='randomized' (bounded memory)")
-    # one matrix per channel, rows view-major, columns = file texels (rows bottom-up)
+
+
+def _exact_factors(source: BTFSource, components: int, *, colour_model: int, progress: bool
+                   ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Exact rank-``components`` SVD (:func:`_truncated_svd`) of each channel's float64 matrix, read whole.
+
+    Rows: the ``n_views * n_lights`` images, view-major; columns: the ``H * W`` texels in file order (rows
+    bottom-up); values RGB, or log-YUV for ``colour_model`` 11. Returns per channel ``(U, s, SxV)``.
+    """
+    rows, cols = source.n_pairs, source.height * source.width
     matrix = np.empty((rows, source.height, source.width, 3), dtype=np.float64)
     view_images = getattr(source, "view_images", None)  # all lights of a view at once, when offered
     from ..progress import progress_bar
@@ -703,14 +733,7 @@ def write_ubo2014(path, source_or_arrays, *, components: int = 16, scalar: str =
     if colour_model == 11:
         matrix = _rgb_to_log_yuv(matrix)
     matrix = matrix.reshape(rows, cols, 3)
-    factors = [_truncated_svd(np.ascontiguousarray(matrix[:, :, c]), int(components)) for c in range(3)]
-    del matrix
-    provenance = (f'<dynbtf source="{source.name}" writer="dynbtf.data.ubo2014.write_ubo2014" '
-                  f'components="{components}" scalar="{scalar}"/>')
-    return write_dfmf_factors(path, source.views, source.lights, source.height, source.width,
-                              [f[0] for f in factors], [f[2] for f in factors],
-                              singular_values=[f[1] for f in factors], scalar=scalar,
-                              colour_model=colour_model, version=version, xml=provenance)
+    return [_truncated_svd(np.ascontiguousarray(matrix[:, :, c]), components) for c in range(3)]
 
 
 def _write_ubo2014_randomized(path, source: BTFSource, components: int, *, scalar: str, colour_model: int,
