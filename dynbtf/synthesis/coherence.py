@@ -195,48 +195,21 @@ def patch_coherence(image, exemplar, *, tiling_origin=(0, 0), patch: int | None 
     (True, 0.0)
     """
     image, exemplar = _image(image, "image"), _image(exemplar, "exemplar")
-    hs, ws, cs = image.shape
-    h, w, c = exemplar.shape
-    if cs != c:
-        raise InputError(f"image: {cs} channels, but the exemplar has {c}; expected the same channels")
-    patch = default_patch_size(exemplar.shape) if patch is None else _integer(patch, "patch")
-    if patch > min(h, w):
-        raise InputError(f"patch: {patch} texels is larger than the {h}x{w} exemplar; expected at most {min(h, w)}")
-    if hs < patch or ws < patch:
-        raise InputError(f"image: {hs}x{ws} is smaller than a {patch}x{patch} patch; expected at least "
-                         f"{patch} texels per side")
+    patch = _checked_patch(image.shape, exemplar.shape, patch)
     patches = _integer(patches, "patches")
     reference_pairs = _integer(reference_pairs, "reference_pairs")
     seed = _integer(seed, "seed", low=0)
-    if tiling_origin is not None:
-        try:
-            row0, col0 = tiling_origin
-            if not all(isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_)) for x in (row0, col0)):
-                raise TypeError
-        except (TypeError, ValueError):
-            raise InputError(f"tiling_origin: expected (row0, col0) integers or None, got {tiling_origin!r}") from None
-        row0, col0 = int(row0), int(col0)
+    origin = None if tiling_origin is None else _checked_tiling_origin(tiling_origin)
+    hs, ws = image.shape[:2]
     rng = np.random.default_rng(seed)
     corners = np.stack([rng.integers(0, hs - patch + 1, patches), rng.integers(0, ws - patch + 1, patches)], 1)
-    a = rng.integers(0, (h, w), (reference_pairs, 2))
-    b = rng.integers(0, (h, w), (reference_pairs, 2))
-    values = patch * patch * c
-    diff = _patches_at(exemplar, a[:, 0], a[:, 1], patch) - _patches_at(exemplar, b[:, 0], b[:, 1], patch)
-    reference = float(np.median((diff * diff).sum((1, 2, 3)))) / values
+    reference = _reference_msd(exemplar, rng, reference_pairs, patch)
 
     ssd, best = best_matches(image, exemplar, corners, patch)
     at_tiling = None
-    if tiling_origin is not None:
-        place = np.stack([(row0 + corners[:, 0]) % h, (col0 + corners[:, 1]) % w], 1)
-        pats = _patches_at(image, corners[:, 0], corners[:, 1], patch)
-        d = pats - _patches_at(exemplar, place[:, 0], place[:, 1], patch)
-        ssd_tiling = (d * d).sum((1, 2, 3))
-        # ties within rounding (of the FFT's argmin) go to tiling's place
-        scale = (pats * pats).sum((1, 2, 3)) + ssd_tiling + ssd
-        at_tiling = (best == place).all(1) | (ssd_tiling <= ssd + 1e-12 * scale)
-        best = np.where(at_tiling[:, None], place, best)
-        ssd = np.where(at_tiling, np.minimum(ssd, ssd_tiling), ssd)
-    msd = ssd / values
+    if origin is not None:
+        ssd, best, at_tiling = _prefer_tiling(image, exemplar, corners, patch, origin, ssd, best)
+    msd = ssd / (patch * patch * exemplar.shape[2])
     if reference > 0:
         scores = msd / reference
     else:
@@ -251,11 +224,74 @@ def patch_coherence(image, exemplar, *, tiling_origin=(0, 0), patch: int | None 
         "patches": patches,
         "reference_pairs": reference_pairs,
         "seed": seed,
-        "tiling_origin": None if tiling_origin is None else [row0, col0],
+        "tiling_origin": None if origin is None else list(origin),
     }
     if details:
         out.update(corners=corners, best=best, scores=scores, at_tiling=at_tiling)
     return out
+
+
+def _checked_patch(image_shape: tuple[int, int, int], exemplar_shape: tuple[int, int, int], patch: int | None
+                   ) -> int:
+    """The patch side ``P`` (texels; default :func:`default_patch_size`) once the image ``(Hs, Ws, C)`` and the
+    exemplar ``(H, W, C)`` share their channels and hold a ``P x P`` patch (else :class:`InputError`)."""
+    hs, ws, cs = image_shape
+    h, w, c = exemplar_shape
+    if cs != c:
+        raise InputError(f"image: {cs} channels, but the exemplar has {c}; expected the same channels")
+    patch = default_patch_size(exemplar_shape) if patch is None else _integer(patch, "patch")
+    if patch > min(h, w):
+        raise InputError(f"patch: {patch} texels is larger than the {h}x{w} exemplar; expected at most {min(h, w)}")
+    if hs < patch or ws < patch:
+        raise InputError(f"image: {hs}x{ws} is smaller than a {patch}x{patch} patch; expected at least "
+                         f"{patch} texels per side")
+    return patch
+
+
+def _checked_tiling_origin(tiling_origin) -> tuple[int, int]:
+    """``(row0, col0)`` as Python ints; :class:`InputError` unless two integers (not bools)."""
+    try:
+        row0, col0 = tiling_origin
+        if not all(isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_)) for x in (row0, col0)):
+            raise TypeError
+    except (TypeError, ValueError):
+        raise InputError(f"tiling_origin: expected (row0, col0) integers or None, got {tiling_origin!r}") from None
+    return int(row0), int(col0)
+
+
+def _reference_msd(exemplar: np.ndarray, rng: np.random.Generator, pairs: int, patch: int) -> float:
+    """Median mean squared difference (per value: the exemplar's units squared) between the ``P x P`` patches
+    of ``pairs`` random pairs of (wrapped) exemplar positions, drawn from ``rng``: the coherence's unit."""
+    h, w, c = exemplar.shape
+    a = rng.integers(0, (h, w), (pairs, 2))
+    b = rng.integers(0, (h, w), (pairs, 2))
+    diff = _patches_at(exemplar, a[:, 0], a[:, 1], patch) - _patches_at(exemplar, b[:, 0], b[:, 1], patch)
+    return float(np.median((diff * diff).sum((1, 2, 3)))) / (patch * patch * c)
+
+
+def _prefer_tiling(image: np.ndarray, exemplar: np.ndarray, corners: np.ndarray, patch: int,
+                   origin: tuple[int, int], ssd: np.ndarray, best: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Give tiling's place the image patches it matches as well as their best match.
+
+    ``corners (N, 2)``: the image patches' top-left texels; ``ssd (N,)``, ``best (N, 2)``: their best
+    exemplar match (:func:`best_matches`); ``origin = (row0, col0)``: where plain tiling reads. A patch is
+    at tiling when its best place is tiling's, or when tiling's sum of squared differences is within
+    rounding (of the FFT's argmin) of the best one. Returns the updated ``ssd``, ``best`` and
+    ``at_tiling (N,)`` bool.
+    """
+    h, w = exemplar.shape[:2]
+    row0, col0 = origin
+    place = np.stack([(row0 + corners[:, 0]) % h, (col0 + corners[:, 1]) % w], 1)
+    pats = _patches_at(image, corners[:, 0], corners[:, 1], patch)
+    d = pats - _patches_at(exemplar, place[:, 0], place[:, 1], patch)
+    ssd_tiling = (d * d).sum((1, 2, 3))
+    # ties within rounding (of the FFT's argmin) go to tiling's place
+    scale = (pats * pats).sum((1, 2, 3)) + ssd_tiling + ssd
+    at_tiling = (best == place).all(1) | (ssd_tiling <= ssd + 1e-12 * scale)
+    best = np.where(at_tiling[:, None], place, best)
+    ssd = np.where(at_tiling, np.minimum(ssd, ssd_tiling), ssd)
+    return ssd, best, at_tiling
 
 
 def _pair(value, name: str) -> tuple[float, float]:
