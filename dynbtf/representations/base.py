@@ -20,6 +20,8 @@ lives above the kinds, in :mod:`dynbtf.representations.registry` (this module im
 from __future__ import annotations
 
 import abc
+import math
+import numbers
 from dataclasses import dataclass
 from typing import Any, Callable, ClassVar
 
@@ -45,6 +47,65 @@ def register(kind: str):
         return cls
 
     return deco
+
+
+# ---------------------------------------------------------------------- constructor arguments
+# A representation's constructor arguments are its model file's ``config`` (read from a shared, untrusted
+# file): every constructor checks each one's type and range with these helpers before it allocates anything,
+# so that a config can be tried on PyTorch's "meta" device (shapes without memory) and compared with the
+# tensors a file holds (:func:`dynbtf.representations.model_file.load_model`). The bounds are far above any
+# real model and keep the module count and the tensor ranks sane.
+
+#: Largest side of a positional plane, texels.
+MAX_SIDE = 65536
+#: Largest number of channels of a plane or of hidden units of a decoder layer.
+MAX_CHANNELS = 4096
+#: Largest number of linear layers of a decoder.
+MAX_LAYERS = 64
+#: Largest number of measured view (or light) directions a tabulated representation stores.
+MAX_DIRECTIONS = 65536
+#: Largest number of measured directions blended by a tabulated representation.
+MAX_NEIGHBOURS = 64
+#: Largest initialization seed (``torch.Generator.manual_seed`` takes 64-bit integers).
+MAX_SEED = 2 ** 63 - 1
+
+
+def config_int(owner: str, name: str, value, low: int, high: int) -> int:
+    """``value`` as an ``int`` if it is an integer (not a bool) in ``[low, high]``, else :class:`InputError`
+    ``"{owner} {name}: expected an integer in [low, high], got ..."``.
+
+    >>> config_int("TriplePlane", "layers", 1000000, 2, 64)
+    Traceback (most recent call last):
+    ...
+    dynbtf.errors.InputError: TriplePlane layers: expected an integer in [2, 64], got 1000000
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not low <= value <= high:
+        raise InputError(f"{owner} {name}: expected an integer in [{low}, {high}], got {value!r}")
+    return int(value)
+
+
+def config_number(owner: str, name: str, value, low: float, high: float, *, low_open: bool = False) -> float:
+    """``value`` as a ``float`` if it is a finite number (not a bool) in ``[low, high]`` (``(low, high]`` with
+    ``low_open``), else :class:`InputError` naming ``owner``, ``name`` and the range.
+
+    >>> config_number("TriplePlane", "negative_slope", float("nan"), 0.0, 1.0)
+    Traceback (most recent call last):
+    ...
+    dynbtf.errors.InputError: TriplePlane negative_slope: expected a finite number in [0.0, 1.0], got nan
+    """
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value) \
+        and (low < value if low_open else low <= value) and value <= high
+    if not ok:
+        raise InputError(f"{owner} {name}: expected a finite number in {'(' if low_open else '['}{low}, {high}], "
+                         f"got {value!r}")
+    return float(value)
+
+
+def config_flag(owner: str, name: str, value) -> bool:
+    """``value`` if it is a bool (JSON ``true``/``false``), else :class:`InputError` naming ``owner`` and ``name``."""
+    if not isinstance(value, bool):
+        raise InputError(f"{owner} {name}: expected true or false, got {value!r}")
+    return bool(value)
 
 
 @dataclass

@@ -27,12 +27,32 @@ A model file is a `safetensors <https://github.com/huggingface/safetensors>`_ fi
 Loading a file that is missing, truncated, corrupt, of another format, of a
 newer version or of an unknown kind raises :class:`dynbtf.errors.FormatError`
 with the path and the problem. Files are written atomically.
+
+Loading an untrusted file
+-------------------------
+A model file is what people share, so :func:`load_model` trusts nothing in it and
+allocates nothing before it has checked, in this order:
+
+1. the metadata's fields and JSON types (``kind`` a registered name, ``config`` an
+   object with exactly the constructor's arguments);
+2. every ``config`` value's type and range, by building the module on PyTorch's
+   ``meta`` device (shapes without memory; each constructor checks its arguments,
+   :func:`dynbtf.representations.base.config_int`);
+3. the tensor names, shapes and dtypes of the safetensors **header** against that
+   module (so a config can never make the loader allocate more than the file holds);
+
+then reads the tensors, checks the checksum, that every value is finite and below
+:data:`MAX_ABS_PARAMETER`, and decodes :data:`CHECK_QUERIES` fixed queries: a model
+answering a non-finite value or one beyond ``max_output`` (:data:`MAX_ABS_OUTPUT`) is refused,
+naming its largest tensor.
 """
 
 from __future__ import annotations
 
 import hashlib
+import inspect
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -45,10 +65,21 @@ from .base import Representation
 from .registry import get_representation_class
 
 __all__ = ["save_model", "load_model", "read_model_metadata", "model_size_report", "FORMAT_NAME",
-           "FORMAT_VERSION", "CONVENTIONS"]
+           "FORMAT_VERSION", "CONVENTIONS", "MAX_ABS_PARAMETER", "MAX_ABS_OUTPUT", "CHECK_QUERIES"]
 
 FORMAT_NAME = "dynbtf-model"
 FORMAT_VERSION = 1
+
+#: Largest magnitude a stored parameter may have. Trained planes and decoders stay within ~1e2, a PCA's
+#: singular values within ~1e7 for a full-size UBO2014 BTF; beyond this a file is damaged (e.g. flipped
+#: exponent bits) or hand-made.
+MAX_ABS_PARAMETER = 1e8
+#: Default of ``load_model(max_output=...)``: the largest |value| (reflectance ``pi f_r``, linear RGB) a
+#: loaded model may answer to :data:`CHECK_QUERIES` queries. Measured materials stay below ~1e2; a
+#: model fitted to data brighter than this (``dynbtf fit --max-reflectance``) is loaded with a larger one.
+MAX_ABS_OUTPUT = 1e4
+#: Queries (fixed uv and directions) a loaded model is decoded at to check its answers.
+CHECK_QUERIES = 64
 
 #: What every model file's tensors assume (see :mod:`dynbtf.conventions`).
 CONVENTIONS = {
@@ -138,14 +169,75 @@ def read_model_metadata(path) -> dict[str, Any]:
     if version > FORMAT_VERSION:
         raise FormatError(path, f"format version {version} is newer than this dynbtf supports "
                                 f"({FORMAT_VERSION}); upgrade dynbtf to read it")
-    for field in ("kind", "config"):
+    for field, kind, expected in (("kind", str, "a string (a representation name)"),
+                                  ("config", dict, "a JSON object (the constructor's arguments)")):
         if field not in meta:
             raise FormatError(path, f"metadata lacks the field {field!r}")
+        if not isinstance(meta[field], kind):
+            raise FormatError(path, f"metadata field {field!r} must be {expected}, got {_short(meta[field])}")
+    for field, kind, expected in (("tensor_sha256", str, "a hex string"), ("provenance", dict, "a JSON object")):
+        if field in meta and not isinstance(meta[field], kind):
+            raise FormatError(path, f"metadata field {field!r} must be {expected}, got {_short(meta[field])}")
     return meta
 
 
-def _check_tensors(path: Path, kind: str, expected: dict[str, torch.Tensor], found: dict[str, torch.Tensor]) -> None:
-    """:class:`FormatError` naming the first tensor that is missing, extra, of the wrong shape or not finite."""
+def _short(value, limit: int = 60) -> str:
+    """``repr(value)`` cut to ``limit`` characters (a hand-made file may hold anything)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _tensor_header(path: Path) -> dict[str, tuple[tuple[int, ...], str]]:
+    """``{name: (shape, dtype)}`` of the tensors a safetensors file declares, from its header only.
+
+    safetensors validates the header (its size, every tensor's offsets against the file's length) without
+    reading the data; dtypes are its names (``"F32"``, ...).
+    """
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            return {name: (tuple(f.get_slice(name).get_shape()), str(f.get_slice(name).get_dtype()))
+                    for name in f.keys()}
+    except Exception as e:  # SafetensorError, OSError
+        raise FormatError(path, f"damaged or truncated tensor data ({e})") from None
+
+
+#: torch dtype -> safetensors dtype name.
+_SAFETENSORS_DTYPES = {torch.float32: "F32", torch.float16: "F16", torch.bfloat16: "BF16", torch.float64: "F64",
+                       torch.int64: "I64", torch.int32: "I32", torch.uint8: "U8", torch.bool: "BOOL"}
+
+
+def _architecture(path: Path, meta: dict[str, Any]) -> Representation:
+    """The module ``meta`` describes, built on the ``meta`` device (no memory): :class:`FormatError` naming the
+    file and the config field that is missing, unknown, of the wrong type or out of range."""
+    from ..errors import InputError
+
+    kind, config = meta["kind"], meta["config"]
+    try:
+        cls = get_representation_class(kind)
+    except InputError as e:
+        raise FormatError(path, str(e)) from None
+    parameters = list(inspect.signature(cls.__init__).parameters.values())[1:]
+    names = {p.name for p in parameters}
+    unknown = sorted(set(config) - names)
+    if unknown:
+        raise FormatError(path, f"metadata 'config' field {unknown[0]!r} is not an argument of a {kind!r} model "
+                                f"(expected some of {sorted(names)}): the config does not describe a {kind!r} model")
+    missing = [p.name for p in parameters if p.default is inspect.Parameter.empty and p.name not in config]
+    if missing:
+        raise FormatError(path, f"metadata 'config' lacks the field {missing[0]!r} of a {kind!r} model")
+    try:
+        with torch.device("meta"):
+            return cls(**config)
+    except InputError as e:
+        raise FormatError(path, f"metadata 'config' does not describe a valid {kind!r} model: {e}") from None
+
+
+def _check_header(path: Path, kind: str, expected: dict[str, torch.Tensor],
+                  found: dict[str, tuple[tuple[int, ...], str]]) -> None:
+    """:class:`FormatError` naming the first tensor that is missing, extra, or of another shape or dtype than
+    the config's module ``expected`` (on the meta device) needs."""
     missing = [name for name in expected if name not in found]
     if missing:
         raise FormatError(path, f"tensor {missing[0]!r} of the {kind!r} model is missing"
@@ -154,58 +246,96 @@ def _check_tensors(path: Path, kind: str, expected: dict[str, torch.Tensor], fou
     if extra:
         raise FormatError(path, f"tensor {extra[0]!r} is not part of a {kind!r} model")
     for name, want in expected.items():
-        got = found[name]
-        if tuple(got.shape) != tuple(want.shape):
-            raise FormatError(path, f"tensor {name!r} has shape {tuple(got.shape)}; the model's config needs "
+        shape, dtype = found[name]
+        if shape != tuple(want.shape):
+            raise FormatError(path, f"tensor {name!r} has shape {shape}; the model's config needs "
                                     f"{tuple(want.shape)}")
-        if got.is_floating_point() and not bool(torch.isfinite(got).all()):
-            bad = int((~torch.isfinite(got)).sum())
+        want_dtype = _SAFETENSORS_DTYPES.get(want.dtype, str(want.dtype))
+        if dtype != want_dtype:
+            raise FormatError(path, f"tensor {name!r} has dtype {dtype}; the model needs {want_dtype}")
+
+
+def _check_values(path: Path, tensors: dict[str, torch.Tensor]) -> None:
+    """:class:`FormatError` naming the first tensor holding a non-finite value or one beyond
+    :data:`MAX_ABS_PARAMETER`."""
+    for name in sorted(tensors):
+        t = tensors[name]
+        if not t.is_floating_point() or t.numel() == 0:
+            continue
+        finite = torch.isfinite(t)
+        if not bool(finite.all()):
+            bad = int((~finite).sum())
             raise FormatError(path, f"tensor {name!r} holds {bad} non-finite value(s) (NaN or Inf): the model is "
                                     "damaged; refit it")
+        largest = float(t.abs().max())
+        if largest > MAX_ABS_PARAMETER:
+            raise FormatError(path, f"tensor {name!r} holds a value of magnitude {largest:.3g}, beyond any fitted "
+                                    f"model (at most {MAX_ABS_PARAMETER:.0e}): the model is damaged; refit it")
 
 
-def load_model(path, device=None) -> tuple[Representation, dict[str, Any]]:
-    """Load a model file: ``(representation, metadata)``.
+def _check_outputs(path: Path, rep: Representation, max_output: float) -> None:
+    """Decode :data:`CHECK_QUERIES` fixed queries; :class:`FormatError` if an answer is non-finite or beyond
+    ``max_output``, naming the tensor of largest magnitude (the likeliest culprit)."""
+    generator = torch.Generator().manual_seed(0)
+    n = CHECK_QUERIES
+    uv = torch.rand(n, 2, generator=generator, dtype=torch.float64)
+    theta = torch.rand(2, n, generator=generator) * math.radians(80.0)
+    phi = torch.rand(2, n, generator=generator) * (2 * math.pi)
+    w = torch.stack([theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos()], dim=-1)  # (2, n, 3) unit
+    device = rep.device
+    with torch.no_grad():
+        rgb = rep(uv.to(device), w[0].to(device), w[1].to(device)).double().cpu()
+    worst = float(rgb.abs().max()) if bool(torch.isfinite(rgb).all()) else math.inf
+    if worst <= max_output:
+        return
+    name, tensor = max(((k, v) for k, v in rep.state_dict().items() if v.is_floating_point() and v.numel()),
+                       key=lambda item: float(item[1].abs().max()), default=("?", torch.zeros(1)))
+    answer = "non-finite values" if math.isinf(worst) else f"values up to {worst:.3g}"
+    raise FormatError(path, f"the model answers {answer} on {n} test queries (a reflectance model stays below "
+                            f"{max_output:g}); its largest tensor is {name!r} (|value| up to "
+                            f"{float(tensor.abs().max()):.3g}): the model is damaged; refit it")
+
+
+def load_model(path, device=None, *, max_output: float = MAX_ABS_OUTPUT) -> tuple[Representation, dict[str, Any]]:
+    """Load a model file: ``(representation, metadata)``, checked before anything is allocated (module docs).
 
     Parameters
     ----------
     path : str or Path
     device : str or torch.device, optional
         Where to put the representation (default: the CPU).
+    max_output : float
+        Largest |value| the model may answer on the check queries (default :data:`MAX_ABS_OUTPUT`).
 
     Raises
     ------
     FormatError
-        Missing, truncated or damaged file, newer format version, unknown kind,
-        or tensors that do not match the stored architecture.
+        Missing, truncated or damaged file, newer format version, unknown kind, a config field missing,
+        unknown, of the wrong type or out of range, tensors that do not match the config, non-finite or
+        absurd values or answers. The message starts with the path and names the field or tensor.
     """
     from safetensors.torch import load_file
 
     from ..device import resolve_device
-    from ..errors import InputError
 
     path = Path(path)
     meta = read_model_metadata(path)
-    try:
-        cls = get_representation_class(meta["kind"])
-    except InputError as e:
-        raise FormatError(path, str(e)) from None
+    header = _tensor_header(path)
+    architecture = _architecture(path, meta)  # on the meta device: shapes only
+    _check_header(path, meta["kind"], architecture.state_dict(), header)
     try:
         tensors = load_file(str(path))
     except Exception as e:
         raise FormatError(path, f"damaged or truncated tensor data ({e})") from None
     if meta.get("tensor_sha256") != _tensor_digest(tensors):
         raise FormatError(path, "tensor data does not match its checksum: the file is damaged")
-    try:
-        rep = cls(**meta["config"])
-    except (TypeError, InputError) as e:
-        raise FormatError(path, f"metadata 'config' {meta['config']} does not describe a {meta['kind']!r} model ({e})") \
-            from None
-    _check_tensors(path, meta["kind"], rep.state_dict(), tensors)
-    rep.load_state_dict(tensors, strict=True)
+    _check_values(path, tensors)
+    rep = architecture
+    rep.load_state_dict(tensors, strict=True, assign=True)  # the meta module takes the file's tensors
     rep.eval()
     if device is not None:
         rep.to(resolve_device(device))
+    _check_outputs(path, rep, max_output)
     return rep, meta
 
 
@@ -250,3 +380,21 @@ def _to_jsonable(x):
     if isinstance(x, np.generic):
         return x.item()
     return x
+
+
+def representation_from_state(path, kind: str, config: dict[str, Any], tensors: dict[str, torch.Tensor],
+                              max_output: float = MAX_ABS_OUTPUT) -> Representation:
+    """A representation of ``kind`` and ``config`` holding ``tensors`` (a state dict read from ``path``, e.g.
+    the ``model.*`` section of a compiled material), under the checks of :func:`load_model`: config fields,
+    tensor shapes and dtypes against the config (before anything is allocated), values and answers.
+    :class:`FormatError` names ``path`` and the field or tensor."""
+    path = Path(path)
+    meta = {"kind": kind, "config": config}
+    architecture = _architecture(path, meta)
+    _check_header(path, kind, architecture.state_dict(),
+                  {name: (tuple(t.shape), _SAFETENSORS_DTYPES.get(t.dtype, str(t.dtype))) for name, t in tensors.items()})
+    _check_values(path, tensors)
+    architecture.load_state_dict(tensors, strict=True, assign=True)
+    architecture.eval()
+    _check_outputs(path, architecture, max_output)
+    return architecture

@@ -34,8 +34,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..errors import require_positive_ints
-from .base import FoldableDecoder, Representation, register
+from .base import MAX_CHANNELS, MAX_SEED, MAX_SIDE, FoldableDecoder, Representation, config_int, register
 from .triple_plane import Decoder
 
 __all__ = ["NeuMIP"]
@@ -72,13 +71,18 @@ class NeuMIP(Representation):
     def __init__(self, height: int, width: int, channels: int = 8, hidden: int = 32, layers: int = 4,
                  negative_slope: float = 0.01, seed: int = 0) -> None:
         super().__init__()
-        require_positive_ints("NeuMIP", height=height, width=width, channels=channels, hidden=hidden)
-        self._config = dict(height=height, width=width, channels=channels, hidden=hidden, layers=layers,
-                            negative_slope=negative_slope, seed=seed)
-        generator = torch.Generator().manual_seed(int(seed))
+        height, width = (config_int("NeuMIP", name, value, 1, MAX_SIDE) for name, value in
+                         (("height", height), ("width", width)))
+        channels = config_int("NeuMIP", "channels", channels, 1, MAX_CHANNELS)
+        seed = config_int("NeuMIP", "seed", seed, 0, MAX_SEED)
+        # built first: it checks its own arguments before the texture is allocated
+        decoder = Decoder(channels, 4, hidden, layers, negative_slope, owner="NeuMIP")
+        self._config = dict(height=height, width=width, channels=channels, hidden=int(hidden), layers=int(layers),
+                            negative_slope=decoder.negative_slope, seed=seed)
+        generator = torch.Generator().manual_seed(seed)
         self.texture = nn.Parameter(torch.randn((height, width, channels), generator=generator)
                                     * math.sqrt(2.0 / channels))
-        self.decoder = Decoder(channels, 4, hidden, layers, negative_slope)
+        self.decoder = decoder
         self.decoder.reset_parameters(generator)
 
     # ------------------------------------------------------------ Representation API

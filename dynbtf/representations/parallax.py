@@ -39,7 +39,7 @@ from torch import nn
 from ..conventions import texel_centers_uv
 from ..errors import InputError
 from ..texture import fetch_wrap
-from .base import register
+from .base import config_flag, config_number, register
 from .triple_plane import TriplePlane
 
 __all__ = ["view_offsets", "march_visible_uv", "ParallaxTriplePlane"]
@@ -181,20 +181,18 @@ class ParallaxTriplePlane(TriplePlane):
                  angular_channels: int = 8, hidden: int = 32, layers: int = 4, negative_slope: float = 0.01,
                  seed: int = 0, height_scale: float = 0.02, march_step_texels: float = MARCH_STEP_TEXELS,
                  learn_height: bool = True, height_refresh_texels: float = 0.05) -> None:
+        owner = "ParallaxTriplePlane"
+        # checked before the Triple Plane allocates its planes
+        height_scale = config_number(owner, "height_scale", height_scale, 0.0, 1e6, low_open=True)  # uv units
+        march_step_texels = config_number(owner, "march_step_texels", march_step_texels, 0.0, 4.0, low_open=True)
+        learn_height = config_flag(owner, "learn_height", learn_height)
+        height_refresh_texels = config_number(owner, "height_refresh_texels", height_refresh_texels, 0.0, 1e6,
+                                              low_open=True)
         super().__init__(height, width, positional_channels, angular_resolution, angular_channels, hidden, layers,
                          negative_slope, seed)
-        if not (isinstance(height_scale, (int, float)) and math.isfinite(height_scale) and height_scale > 0):
-            raise InputError(f"ParallaxTriplePlane: height_scale must be a positive number of uv units, "
-                             f"got {height_scale!r}")
-        if not (isinstance(march_step_texels, (int, float)) and 0 < march_step_texels <= 4):
-            raise InputError(f"ParallaxTriplePlane: march_step_texels must be in (0, 4] texels, "
-                             f"got {march_step_texels!r}")
-        if not (isinstance(height_refresh_texels, (int, float)) and height_refresh_texels > 0):
-            raise InputError(f"ParallaxTriplePlane: height_refresh_texels must be a positive number of texels, "
-                             f"got {height_refresh_texels!r}")
-        self._config.update(height_scale=float(height_scale), march_step_texels=float(march_step_texels),
-                            learn_height=bool(learn_height),
-                            height_refresh_texels=float(height_refresh_texels))
+        height, width = self._config["height"], self._config["width"]
+        self._config.update(height_scale=height_scale, march_step_texels=march_step_texels,
+                            learn_height=learn_height, height_refresh_texels=height_refresh_texels)
         if learn_height:
             self.height_channel = nn.Parameter(torch.zeros(height, width))
         else:

@@ -45,8 +45,9 @@ import torch
 from torch import nn
 from ..progress import progress_bar
 from ..data.base import BTFSource
-from ..errors import InputError, require_positive_ints
-from .base import Representation, register
+from ..errors import InputError
+from .base import (MAX_CHANNELS, MAX_DIRECTIONS, MAX_NEIGHBOURS, MAX_SIDE, Representation, config_flag, config_int,
+                   register)
 from .measured_directions import check_pairs, nearest_direction_weights
 
 __all__ = ["PCA", "fit_pca", "streamed_randomized_svd"]
@@ -78,10 +79,15 @@ class PCA(Representation):
     def __init__(self, height: int, width: int, n_views: int, n_lights: int, components: int = 5,
                  centered: bool = True, neighbours: int = 3) -> None:
         super().__init__()
-        require_positive_ints("PCA", height=height, width=width, n_views=n_views, n_lights=n_lights,
-                              components=components, neighbours=neighbours)
+        height, width = (config_int("PCA", name, value, 1, MAX_SIDE) for name, value in
+                         (("height", height), ("width", width)))
+        n_views, n_lights = (config_int("PCA", name, value, 1, MAX_DIRECTIONS) for name, value in
+                             (("n_views", n_views), ("n_lights", n_lights)))
+        components = config_int("PCA", "components", components, 1, MAX_CHANNELS)
+        neighbours = config_int("PCA", "neighbours", neighbours, 1, MAX_NEIGHBOURS)
         self._config = dict(height=height, width=width, n_views=n_views, n_lights=n_lights,
-                            components=components, centered=bool(centered), neighbours=neighbours)
+                            components=components, centered=config_flag("PCA", "centered", centered),
+                            neighbours=neighbours)
         frozen = dict(requires_grad=False)
         self.coefficients = nn.Parameter(torch.zeros(height, width, 3 * components), **frozen)
         self.basis = nn.Parameter(torch.zeros(n_views, n_lights, 3, components), **frozen)

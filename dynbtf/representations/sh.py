@@ -37,8 +37,8 @@ import torch
 from torch import nn
 from ..progress import progress_bar
 from ..data.base import BTFSource
-from ..errors import InputError, require_positive_ints
-from .base import Representation, register
+from ..errors import InputError
+from .base import MAX_DIRECTIONS, MAX_NEIGHBOURS, MAX_SIDE, Representation, config_int, register
 from .measured_directions import check_pairs, nearest_direction_weights
 
 __all__ = ["SphericalHarmonics", "fit_sh", "real_sh_basis", "SH_NORMALIZATION"]
@@ -106,9 +106,12 @@ class SphericalHarmonics(Representation):
 
     def __init__(self, height: int, width: int, n_views: int, bands: int = 3, neighbours: int = 3) -> None:
         super().__init__()
-        require_positive_ints("SphericalHarmonics", height=height, width=width, n_views=n_views, neighbours=neighbours)
-        if bands not in (1, 2, 3):
-            raise InputError(f"SphericalHarmonics bands: expected 1, 2 or 3, got {bands!r}")
+        owner = "SphericalHarmonics"
+        height, width = (config_int(owner, name, value, 1, MAX_SIDE) for name, value in
+                         (("height", height), ("width", width)))
+        n_views = config_int(owner, "n_views", n_views, 1, MAX_DIRECTIONS)
+        bands = config_int(owner, "bands", bands, 1, 3)
+        neighbours = config_int(owner, "neighbours", neighbours, 1, MAX_NEIGHBOURS)
         self._config = dict(height=height, width=width, n_views=n_views, bands=bands, neighbours=neighbours)
         self.coefficients = nn.Parameter(torch.zeros(height, width, n_views * 3 * bands * bands),
                                          requires_grad=False)

@@ -43,10 +43,11 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..conventions import angular_plane_coords, half_diff_from_view_light
-from ..errors import InputError, require_positive_ints
+from ..errors import InputError
 from ..texture import fetch_angular
 from ..decoder.fused_mlp import split_mlp_l1_loss
-from .base import FoldableDecoder, Representation, register
+from .base import (MAX_CHANNELS, MAX_LAYERS, MAX_SEED, MAX_SIDE, FoldableDecoder, Representation, config_int,
+                   config_number, register)
 
 __all__ = ["TriplePlane", "Decoder"]
 
@@ -61,11 +62,13 @@ class Decoder(nn.Module):
     hidden : int
         Hidden units per layer (32 in the paper).
     layers : int
-        Number of linear layers (4 in the paper, >= 2).
+        Number of linear layers (4 in the paper, 2 .. :data:`~dynbtf.representations.base.MAX_LAYERS`).
     negative_slope : float
-        LeakyReLU slope (PyTorch's default 0.01).
+        LeakyReLU slope (PyTorch's default 0.01), in [0, 1].
     out_channels : int
         3 (linear RGB).
+    owner : str
+        Names the model in the :class:`InputError` raised for an argument of the wrong type or range.
 
     Attributes
     ----------
@@ -77,10 +80,15 @@ class Decoder(nn.Module):
     """
 
     def __init__(self, positional_channels: int = 16, angular_channels: int = 16, hidden: int = 32,
-                 layers: int = 4, negative_slope: float = 0.01, out_channels: int = 3) -> None:
+                 layers: int = 4, negative_slope: float = 0.01, out_channels: int = 3, *,
+                 owner: str = "Decoder") -> None:
         super().__init__()
-        if layers < 2:
-            raise InputError(f"decoder layers: expected at least 2 linear layers, got {layers}")
+        positional_channels = config_int(owner, "positional_channels", positional_channels, 1, MAX_CHANNELS + 1)
+        angular_channels = config_int(owner, "angular_channels", angular_channels, 1, 2 * MAX_CHANNELS)
+        hidden = config_int(owner, "hidden", hidden, 1, MAX_CHANNELS)
+        layers = config_int(owner, "layers", layers, 2, MAX_LAYERS)
+        negative_slope = config_number(owner, "negative_slope", negative_slope, 0.0, 1.0)
+        out_channels = config_int(owner, "out_channels", out_channels, 1, MAX_CHANNELS)
         self.positional_channels = positional_channels
         self.negative_slope = negative_slope
         self.first = nn.Linear(positional_channels + angular_channels, hidden)
@@ -182,13 +190,21 @@ class TriplePlane(Representation):
                  angular_channels: int = 8, hidden: int = 32, layers: int = 4, negative_slope: float = 0.01,
                  seed: int = 0) -> None:
         super().__init__()
-        require_positive_ints("TriplePlane", height=height, width=width, positional_channels=positional_channels,
-                              angular_resolution=angular_resolution, angular_channels=angular_channels,
-                              hidden=hidden)
+        owner = type(self).__name__
+        height, width = (config_int(owner, name, value, 1, MAX_SIDE) for name, value in
+                         (("height", height), ("width", width)))
+        positional_channels, angular_channels = (config_int(owner, name, value, 1, MAX_CHANNELS) for name, value in
+                                                 (("positional_channels", positional_channels),
+                                                  ("angular_channels", angular_channels)))
+        angular_resolution = config_int(owner, "angular_resolution", angular_resolution, 1, MAX_SIDE)
+        seed = config_int(owner, "seed", seed, 0, MAX_SEED)
+        # built first: it checks its own arguments before the planes are allocated
+        decoder = Decoder(positional_channels + self.extra_positional_channels, 2 * angular_channels, hidden,
+                          layers, negative_slope, owner=owner)
         self._config = dict(height=height, width=width, positional_channels=positional_channels,
                             angular_resolution=angular_resolution, angular_channels=angular_channels,
-                            hidden=hidden, layers=layers, negative_slope=negative_slope, seed=seed)
-        generator = torch.Generator().manual_seed(int(seed))
+                            hidden=int(hidden), layers=int(layers), negative_slope=decoder.negative_slope, seed=seed)
+        generator = torch.Generator().manual_seed(seed)
 
         def he_plane(*shape: int) -> nn.Parameter:
             return nn.Parameter(torch.randn(shape, generator=generator) * math.sqrt(2.0 / shape[-1]))
@@ -196,8 +212,7 @@ class TriplePlane(Representation):
         self.f_u = he_plane(height, width, positional_channels)
         self.f_h = he_plane(angular_resolution, angular_resolution, angular_channels)
         self.f_d = he_plane(angular_resolution, angular_resolution, angular_channels)
-        self.decoder = Decoder(positional_channels + self.extra_positional_channels, 2 * angular_channels, hidden,
-                               layers, negative_slope)
+        self.decoder = decoder
         self.decoder.reset_parameters(generator)
 
     # ------------------------------------------------------------ Representation API

@@ -1,0 +1,294 @@
+"""Untrusted input: model files (.dbtfm) are checked before anything is allocated, and fail as one clear line.
+
+Part of the issue "untrusted input never crashes, hangs or writes elsewhere". A model file is what people
+share; its JSON config used to build the modules before the tensors were compared with it (a 300 KB file
+asking for 57.6 GB, a million layers, a NaN slope, 1e30 weights accepted). Each test states the independent
+expectation: the field or tensor the message must name, exit status 2 through the command line, and for
+the fuzz test that every outcome is a clean error or a load giving the original tensors bit for bit.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import random
+import resource
+import struct
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+
+from dynbtf.cli.main import main
+from dynbtf.errors import DynBTFError, FormatError
+from dynbtf.representations.model_file import (_tensor_digest, load_model, read_model_metadata, save_model)
+from dynbtf.representations.parallax import ParallaxTriplePlane
+from dynbtf.representations.triple_plane import TriplePlane
+
+DATA = Path(__file__).parent / "data" / "round1_models"
+
+
+@pytest.fixture
+def model_path(tmp_path):
+    model = TriplePlane(16, 16, positional_channels=4, angular_resolution=6, angular_channels=4, hidden=16, seed=2)
+    return save_model(tmp_path / "m.dbtfm", model)
+
+
+def edited(path: Path, out: Path, change_meta=None, change_tensors=None) -> Path:
+    """A copy of model file ``path`` with its metadata / tensors edited and the checksum recomputed
+    (a hand-made file: the checksum does not protect against a deliberate edit)."""
+    meta, tensors = read_model_metadata(path), load_file(str(path))
+    if change_tensors:
+        change_tensors(tensors)
+    meta["tensor_sha256"] = _tensor_digest(tensors)
+    if change_meta:
+        change_meta(meta)
+    save_file(tensors, str(out), metadata={"dynbtf": json.dumps(meta, allow_nan=True)})
+    return out
+
+
+def cli(capsys, *argv) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+# ---------------------------------------------------------------------------- the reported cases
+@pytest.mark.parametrize("field, value, expected", [
+    ("hidden", 200000, r"hidden: expected an integer in \[1, 4096\], got 200000"),
+    ("layers", 1000000, r"layers: expected an integer in \[2, 64\], got 1000000"),
+    ("negative_slope", float("nan"), r"negative_slope: expected a finite number in \[0.0, 1.0\], got nan"),
+    ("height", "16", r"height: expected an integer in \[1, 65536\], got '16'"),
+    ("seed", -1, r"seed: expected an integer in \[0, \d+\], got -1"),
+    ("angular_channels", True, r"angular_channels: expected an integer in \[1, 4096\], got True"),
+])
+def test_config_fields_are_checked_before_anything_is_built(tmp_path, model_path, capsys, field, value, expected):
+    bad = edited(model_path, tmp_path / "bad.dbtfm", change_meta=lambda m: m["config"].update({field: value}))
+    before = peak_rss_mb()
+    start = time.perf_counter()
+    with pytest.raises(FormatError, match=expected) as error:
+        load_model(bad)
+    assert str(error.value).startswith(str(bad)), "the message starts with the file"
+    assert time.perf_counter() - start < 2.0 and peak_rss_mb() - before < 100
+    code, out, err = cli(capsys, "inspect", bad)
+    assert code == 2 and out == "" and err.count("\n") == 1 and str(bad) in err and field in err
+
+
+def test_a_config_asking_for_more_than_the_file_holds_allocates_nothing(tmp_path, model_path, capsys):
+    """height = width = 30000 in a small file: 57.6 GB were allocated before; now the header says no."""
+    bad = edited(model_path, tmp_path / "huge.dbtfm",
+                 change_meta=lambda m: m["config"].update(height=30000, width=30000))
+    assert bad.stat().st_size < 100_000
+    before = peak_rss_mb()
+    with pytest.raises(FormatError, match=r"tensor 'f_u' has shape \(16, 16, 4\); the model's config needs "
+                                          r"\(30000, 30000, 4\)"):
+        load_model(bad)
+    assert peak_rss_mb() - before < 100
+    assert cli(capsys, "inspect", bad)[0] == 2
+
+
+def test_metadata_of_the_wrong_json_type_missing_or_unknown(tmp_path, model_path):
+    cases = [
+        (lambda m: m.update(kind=3), r"field 'kind' must be a string"),
+        (lambda m: m.update(kind="bogus"), r"unknown representation 'bogus'"),
+        (lambda m: m.update(config=[1, 2]), r"field 'config' must be a JSON object"),
+        (lambda m: m.pop("config"), r"lacks the field 'config'"),
+        (lambda m: m["config"].pop("width"), r"'config' lacks the field 'width' of a 'triple' model"),
+        (lambda m: m["config"].update(colour="red"), r"'config' field 'colour' is not an argument of a 'triple'"),
+        (lambda m: m.update(tensor_sha256=5), r"field 'tensor_sha256' must be a hex string"),
+        (lambda m: m.update(format_version="1"), r"'format_version' must be an integer"),
+    ]
+    for k, (change, expected) in enumerate(cases):
+        with pytest.raises(FormatError, match=expected):
+            load_model(edited(model_path, tmp_path / f"c{k}.dbtfm", change_meta=change))
+
+
+def test_absurd_but_finite_weights_are_refused_naming_the_tensor(tmp_path, model_path, capsys):
+    def scale(factor):
+        def change(t):
+            t["decoder.rest.2.weight"] = t["decoder.rest.2.weight"] * factor
+        return change
+
+    huge = edited(model_path, tmp_path / "e30.dbtfm", change_tensors=scale(1e30))
+    with pytest.raises(FormatError, match=r"tensor 'decoder.rest.2.weight' holds a value of magnitude [0-9.]+e\+29"):
+        load_model(huge)
+    # below the parameter bound but the answers are absurd: named through the decoded values
+    loud = edited(model_path, tmp_path / "e7.dbtfm", change_tensors=scale(1e7))
+    with pytest.raises(FormatError, match=r"answers values up to .* test queries .* largest tensor is "
+                                          r"'decoder.rest.2.weight'"):
+        load_model(loud)
+    code, _, err = cli(capsys, "inspect", loud)
+    assert code == 2 and "e7.dbtfm" in err
+    # and a model answering within bounds still loads (the check is not a tautology)
+    model, _ = load_model(edited(model_path, tmp_path / "ok.dbtfm", change_tensors=scale(2.0)))
+    assert model.kind == "triple"
+
+
+def test_a_larger_output_bound_is_a_load_option(tmp_path, model_path):
+    loud = edited(model_path, tmp_path / "bright.dbtfm",
+                  change_tensors=lambda t: t.update({"decoder.rest.2.bias": t["decoder.rest.2.bias"] + 3e4}))
+    with pytest.raises(FormatError, match="answers values up to 3"):
+        load_model(loud)
+    model, _ = load_model(loud, max_output=1e5)
+    assert float(model.decoder.rest[-1].bias.detach().min()) > 2.9e4
+
+
+def test_truncated_non_safetensors_and_huge_header_claims(tmp_path, model_path, capsys):
+    data = model_path.read_bytes()
+    (tmp_path / "cut.dbtfm").write_bytes(data[: len(data) - 100])
+    (tmp_path / "png.dbtfm").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(200))
+    (tmp_path / "len.dbtfm").write_bytes(struct.pack("<Q", 2 ** 62) + data[8:])
+    header_len = struct.unpack("<Q", data[:8])[0]
+    header = json.loads(data[8:8 + header_len])
+    header["f_u"]["shape"] = [100000, 100000, 4]  # claims 160 GB in the same bytes
+    text = json.dumps(header).encode()
+    (tmp_path / "claim.dbtfm").write_bytes(struct.pack("<Q", len(text)) + text + data[8 + header_len:])
+    for name in ("cut", "png", "len", "claim"):
+        path = tmp_path / f"{name}.dbtfm"
+        with pytest.raises(FormatError) as error:
+            load_model(path)
+        assert str(error.value).startswith(str(path))
+        code, out, err = cli(capsys, "inspect", path)
+        assert code == 2 and err.startswith("dynbtf: error: ") and err.count("\n") == 1
+
+
+def test_every_builtin_kind_still_loads_its_earlier_files():
+    for kind in ("triple", "neumip", "pca", "sh"):
+        model, meta = load_model(DATA / f"{kind}.dbtfm")
+        assert model.kind == kind
+        assert all(t.device.type == "cpu" for t in model.state_dict().values())
+
+
+# ---------------------------------------------------------------------------- seeded fuzz
+#: values that no config field accepts (wrong type, non-finite, negative, far beyond any bound)
+INVALID_VALUES = [None, "16", [16], {"a": 1}, float("nan"), float("inf"), -float("inf"), -1, -10 ** 9, 10 ** 30,
+                  2 ** 63, 1e308]
+#: values some fields accept (a seed, a height scale): the file must either be refused or load with its own tensors
+MAYBE_VALUES = [0, 1, 2, 3, 4, 5, 16, 0.5, 0.0, True, False, 0.01, 1e-9, 200000, 10 ** 6]
+
+
+def _parallax_file(tmp_path) -> Path:
+    model = ParallaxTriplePlane(8, 8, positional_channels=4, angular_resolution=6, angular_channels=4, hidden=16,
+                                seed=1)
+    model.set_height(0.01 * torch.rand(8, 8))
+    return save_model(tmp_path / "parallax.dbtfm", model)
+
+
+def _raw_parts(data: bytes) -> tuple[dict, bytes]:
+    n = struct.unpack("<Q", data[:8])[0]
+    return json.loads(data[8:8 + n]), data[8 + n:]
+
+
+def _raw_file(header: dict, payload: bytes) -> bytes:
+    text = json.dumps(header, allow_nan=True).encode()
+    return struct.pack("<Q", len(text)) + text + payload
+
+
+def _mutate(rng: random.Random, original: bytes) -> tuple[bytes, str, bool]:
+    """One mutation of a model file's bytes: ``(bytes, description, must_fail)``."""
+    header, payload = _raw_parts(original)
+    meta = json.loads(header["__metadata__"]["dynbtf"])
+    tensors = [k for k in header if k != "__metadata__"]
+    kind = rng.randrange(9)
+    must_fail = False
+    if kind <= 2:  # a config value
+        key = rng.choice(sorted(meta["config"]) + ["extra_field"])
+        if rng.random() < 0.6:
+            value, must_fail = rng.choice(INVALID_VALUES), True
+        else:
+            value = rng.choice(MAYBE_VALUES)
+        meta["config"][key] = value
+        must_fail = must_fail or key == "extra_field"
+        what = f"config[{key!r}] = {value!r}"
+    elif kind == 3:  # a config key removed
+        key = rng.choice(sorted(meta["config"]))
+        del meta["config"][key]
+        what = f"config lacks {key!r}"
+    elif kind == 4:  # a top-level metadata field
+        key = rng.choice(["kind", "config", "format", "format_version", "tensor_sha256", "provenance"])
+        value = rng.choice([None, 3, "x", [], {}, float("nan"), 10 ** 30, -1, "triple"])
+        meta[key] = value
+        what = f"meta[{key!r}] = {value!r}"
+    elif kind == 5:  # a tensor's declared shape or dtype
+        name = rng.choice(tensors)
+        before = dict(header[name])
+        if rng.random() < 0.5:
+            shape = list(header[name]["shape"])
+            if shape:
+                shape[rng.randrange(len(shape))] = rng.choice([0, 1, 3, 10 ** 5, 2 ** 40])
+            header[name]["shape"] = shape
+            what = f"{name} shape {shape}"
+        else:
+            header[name]["dtype"] = rng.choice(["F16", "F64", "I64", "U8", "BOOL", "X"])
+            what = f"{name} dtype {header[name]['dtype']}"
+        must_fail = header[name] != before  # sizes no longer match the offsets, or the dtype is not the model's
+    elif kind == 6:  # offsets
+        name = rng.choice(tensors)
+        begin, end = header[name]["data_offsets"]
+        header[name]["data_offsets"] = [begin, end + rng.choice([4, 2 ** 33, -4])]
+        what, must_fail = f"{name} offsets", True
+    elif kind == 7:  # raw bytes: a cut or flipped bits anywhere
+        data = bytearray(original)
+        if rng.random() < 0.5:
+            cut = rng.randrange(len(data))
+            return bytes(data[:cut]), f"cut at {cut}", True
+        for _ in range(rng.randint(1, 4)):
+            data[rng.randrange(len(data))] ^= 1 << rng.randrange(8)
+        return bytes(data), "bit flips", False  # a flip in JSON whitespace or a key's case may be harmless
+    else:  # the header's length field
+        value = rng.choice([0, 7, 2 ** 62, 2 ** 64 - 1, len(original)])
+        return struct.pack("<Q", value) + original[8:], f"header length {value}", True
+    header["__metadata__"]["dynbtf"] = json.dumps(meta, allow_nan=True)
+    return _raw_file(header, payload), what, must_fail
+
+
+CASES = 400
+
+
+def test_fuzz_model_metadata_and_header(tmp_path, capsys):
+    """CASES seeded mutations of five small model files, loaded through ``dynbtf inspect``.
+
+    Expectation, independent of the loader: every outcome is exit status 0 or 2 (never another exception, a
+    crash or a hang); a mutation that makes the file invalid (a config value of the wrong type, non-finite,
+    negative or beyond any bound, an unknown field, a shape or dtype that disagrees with the bytes, a cut)
+    exits with 2 and a one-line message naming the file; a file that loads gives the original's tensors bit
+    for bit.
+    """
+    originals = [DATA / f"{k}.dbtfm" for k in ("triple", "neumip", "pca", "sh")] + [_parallax_file(tmp_path)]
+    reference = {p: load_file(str(p)) for p in originals}
+    rng = random.Random(20240917)
+    outcomes = {"loaded": 0, "clean error": 0}
+    before = peak_rss_mb()
+    start = time.perf_counter()
+    for case in range(CASES):
+        source = rng.choice(originals)
+        data, what, must_fail = _mutate(rng, source.read_bytes())
+        path = tmp_path / f"case{case}.dbtfm"
+        path.write_bytes(data)
+        t0 = time.perf_counter()
+        code, out, err = cli(capsys, "inspect", path)
+        assert time.perf_counter() - t0 < 10.0, f"case {case} ({what}) took too long"
+        assert code in (0, 2), f"case {case} ({what}): exit {code}, {err}"
+        if code == 2:
+            outcomes["clean error"] += 1
+            assert err.startswith(f"dynbtf: error: {path}") and err.count("\n") == 1, (what, err)
+        else:
+            outcomes["loaded"] += 1
+            assert not must_fail, f"case {case} ({what}) loaded but should have been refused"
+            loaded, _ = load_model(path)
+            for name, tensor in reference[source].items():
+                assert torch.equal(loaded.state_dict()[name], tensor), (what, name)
+        path.unlink()
+    elapsed = time.perf_counter() - start
+    growth = peak_rss_mb() - before
+    print(f"\nfuzz: {CASES} cases, {outcomes['clean error']} clean errors, {outcomes['loaded']} loaded, 0 tracebacks, "
+          f"{elapsed:.1f} s, peak RSS growth {growth:.0f} MB")
+    assert outcomes["clean error"] > CASES // 2 and outcomes["loaded"] > 5  # the mutations reach both outcomes
+    assert elapsed < 60 and growth < 300
+    assert not list(tmp_path.glob("*.tmp*")) and sorted(p.name for p in tmp_path.iterdir()) == ["parallax.dbtfm"]
