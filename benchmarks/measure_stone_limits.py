@@ -1,6 +1,6 @@
 """What limits the Triple Plane on deep-relief materials: the data, over-fitting, or the model?
 
-Two measurements behind docs/triple_plane.md ("Stone: what limits it"):
+Two measurements behind docs/triple_plane.md ("Stone: the limit is parallax"):
 
 ``python benchmarks/measure_stone_limits.py oracle SPEC MODEL``
     Scores MODEL on its held-out pairs and on 64 random training pairs (a large gap = over-fitting,
