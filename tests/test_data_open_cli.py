@@ -149,7 +149,7 @@ def test_convert_to_the_exchange_formats(files, tmp_path, capsys):
     (["convert", "{btf}", "-o", "{tmp}/n.btf", "--scalar", "quad"], "scalar"),
     (["info", "sim:stone?size=abc"], "'size' must be an integer"),
     (["fit", "{btf}", "-o", "{tmp}/m.dbtfm", "--lr-scale", "-1"], "--lr-scale (TrainConfig.lr_scale): expected a "
-                                                                  "number > 0, got -1.0"),
+                                                                  "finite number in (0, 1000000], got -1.0"),
     (["synth", "{dbtf}", "-o", "{tmp}/s.png"], "is a BTF (stored), not a model file"),
     (["synth", "{btf}", "-o", "{tmp}/s.png"], "is a BTF (ubo2014), not a model file"),
 ])

@@ -26,6 +26,7 @@ from dynbtf.errors import DynBTFError, FormatError
 from dynbtf.representations.model_file import (_tensor_digest, load_model, read_model_metadata, save_model)
 from dynbtf.representations.parallax import ParallaxTriplePlane
 from dynbtf.representations.triple_plane import TriplePlane
+from dynbtf.training.checkpoint import checkpoint_path
 
 DATA = Path(__file__).parent / "data" / "round1_models"
 
@@ -292,3 +293,283 @@ def test_fuzz_model_metadata_and_header(tmp_path, capsys):
     assert outcomes["clean error"] > CASES // 2 and outcomes["loaded"] > 5  # the mutations reach both outcomes
     assert elapsed < 60 and growth < 300
     assert not list(tmp_path.glob("*.tmp*")) and sorted(p.name for p in tmp_path.iterdir()) == ["parallax.dbtfm"]
+
+
+# ============================================================================ checkpoints
+# A checkpoint that does not fit the run (tensors missing or of another shape, a position outside the schedule,
+# non-finite values, another optimizer) is reported as damaged, naming its path and how to start over; the
+# model file is not touched (an epoch of 1e9 used to end the run at once and write a model marked finished).
+
+SMALL_GRID = dict(thetas=(0.0, 30.0, 60.0), counts=(1, 6, 8))  # 15 x 15 pairs
+
+
+@pytest.fixture(scope="module")
+def stored_btf(tmp_path_factory):
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synthetic_btf import synthetic_btf
+
+    from dynbtf.data import write_stored
+
+    return write_stored(tmp_path_factory.mktemp("btf") / "small.dbtf", synthetic_btf(8, **SMALL_GRID), progress=False)
+
+
+def fit_argv(btf, out, *extra) -> list[str]:
+    return ["fit", str(btf), "-o", str(out), "--epochs", "2", "--quiet", "--device", "cpu", "--workers", "1",
+            *map(str, extra)]
+
+
+def _damage_epoch(value):
+    return lambda state: state.update(epoch=value)
+
+
+def _damage_step(value):
+    return lambda state: state.update(step=value)
+
+
+def _reshape_f_u(state):
+    state["model"]["f_u"] = torch.zeros(3, 3, 3)
+
+
+def _drop_f_h(state):
+    del state["model"]["f_h"]
+
+
+def _nan_f_u(state):
+    state["model"]["f_u"] = state["model"]["f_u"].clone()
+    state["model"]["f_u"][0, 0, 0] = float("nan")
+
+
+def _optimizer_of_another_model(state):
+    moments = next(iter(state["optimizer"]["state"].values()))
+    moments["exp_avg"] = torch.zeros(7)
+
+
+@pytest.mark.parametrize("damage, expected", [
+    (_reshape_f_u, r"model tensor 'f_u' is torch.float32 \(3, 3, 3\); the model needs torch.float32 \(8, 8, 16\)"),
+    (_drop_f_h, r"model tensor 'f_h' is missing"),
+    (_damage_epoch(-1), r"it is at epoch -1, outside this run's 0..2"),
+    (_damage_epoch(10 ** 9), r"it is at epoch 1000000000, outside this run's 0..2"),
+    (_damage_step(-3), r"it is at step -3 of epoch 0"),
+    (_damage_step(10 ** 9), r"it is at step 1000000000 of epoch 0"),
+    (_damage_epoch(1.5), r"epoch is 1.5, not an integer"),
+    (_nan_f_u, r"model tensor 'f_u' holds non-finite values"),
+    (_optimizer_of_another_model, r"its optimizer state does not fit this model"),
+    (lambda state: state.update(history=[{}] * 5), r"its history lists 5 epoch\(s\) but its position is epoch 0"),
+    (lambda state: state["config"].update(epochs="many"), r"its training options are not valid \(--epochs"),
+])
+def test_a_checkpoint_that_does_not_fit_the_run_is_damaged_never_a_traceback(tmp_path, stored_btf, capsys, damage,
+                                                                             expected):
+    out = tmp_path / "m.dbtfm"
+    # a run stopped by its time budget after its first step: an unfinished model and its checkpoint
+    assert cli(capsys, *fit_argv(stored_btf, out, "--max-minutes", "1e-9"))[0] == 0
+    ckpt = checkpoint_path(out)
+    assert ckpt.exists() and out.exists()
+    state = torch.load(ckpt, weights_only=True)
+    assert (state["epoch"], state["step"]) == (0, 1)
+    damage(state)
+    torch.save(state, ckpt)
+    model_bytes, ckpt_bytes = out.read_bytes(), ckpt.read_bytes()
+    code, output, err = cli(capsys, *fit_argv(stored_btf, out))
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"dynbtf: error: {ckpt}: damaged checkpoint: ")
+    assert "delete it to start over" in err and f"rm '{ckpt}'" in err
+    import re
+
+    assert re.search(expected, err), err
+    # nothing was written: the unfinished model and the checkpoint are as they were, no stray files
+    assert out.read_bytes() == model_bytes and ckpt.read_bytes() == ckpt_bytes
+    assert read_model_metadata(out)["provenance"]["finished"] is False
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.dbtfm", "m.dbtfm.ckpt"]
+    # deleting it, as the message says, starts over and finishes
+    ckpt.unlink()
+    assert cli(capsys, *fit_argv(stored_btf, out))[0] == 0
+    assert read_model_metadata(out)["provenance"]["finished"] is True and not ckpt.exists()
+
+
+def test_an_intact_checkpoint_still_resumes(tmp_path, stored_btf, capsys):
+    """The checks are not a tautology: the same steps with an untouched checkpoint continue and finish."""
+    out = tmp_path / "m.dbtfm"
+    assert cli(capsys, *fit_argv(stored_btf, out, "--max-minutes", "1e-9"))[0] == 0
+    code, _, err = cli(capsys, *fit_argv(stored_btf, out))
+    assert code == 0, err
+    meta = read_model_metadata(out)
+    assert meta["provenance"]["finished"] is True and meta["provenance"]["epochs_completed"] == 2
+
+
+# ============================================================================ fit options
+@pytest.mark.parametrize("option, value, expected", [
+    ("--epochs", "0", "--epochs (TrainConfig.epochs): expected an integer in [1, 1000000], got 0"),
+    ("--memory-mb", "inf", "--memory-mb (TrainConfig.memory_budget_mb): expected a finite number in (0, "),
+    ("--memory-mb", "nan", "--memory-mb (TrainConfig.memory_budget_mb): expected a finite number"),
+    ("--lr-decay", "0", "--lr-decay (TrainConfig.lr_decay): expected a finite number in (0, 1], got 0.0"),
+    ("--lr-scale", "inf", "--lr-scale (TrainConfig.lr_scale): expected a finite number in (0, 1000000], got inf"),
+    ("--held-out-fraction", "1", "--held-out-fraction (TrainConfig.held_out_fraction): expected a finite number "
+                                 "in [0, 1), got 1.0"),
+    ("--seed", "-1", "--seed (TrainConfig.seed): expected an integer in [0, "),
+    ("--images-per-step", "0", "--images-per-step (TrainConfig.images_per_step)"),
+    ("--texel-groups", "0", "--texel-groups (TrainConfig.texel_groups)"),
+    ("--texels-per-image", "0", "--texels-per-image (TrainConfig.texels_per_image)"),
+    ("--workers", "0", "--workers (TrainConfig.workers)"),
+    ("--max-minutes", "-5", "--max-minutes (TrainConfig.max_minutes)"),
+    ("--max-reflectance", "0", "--max-reflectance (TrainConfig.max_reflectance)"),
+    ("--minutes", "inf", "--minutes: expected a positive, finite number of minutes, got inf"),
+    ("--minutes", "0", "--minutes: expected a positive, finite number of minutes, got 0.0"),
+    ("--stereo-max-height", "nan", "--stereo-max-height: expected a positive, finite height"),
+])
+def test_every_numeric_fit_option_is_checked_up_front(tmp_path, stored_btf, capsys, option, value, expected):
+    out = tmp_path / "out" / "m.dbtfm"
+    code, output, err = cli(capsys, *fit_argv(stored_btf, out, option, value))
+    assert code == 2 and err.count("\n") == 1 and expected in err, err
+    assert not (tmp_path / "out").exists()  # nothing written, not even the output's directory
+
+
+# ============================================================================ BTFs that decode to garbage
+def _dfmf_with_a_bright_image(tmp_path, pair) -> Path:
+    """A float DFMF file whose image ``pair`` decodes to ~1e19: its U row scaled by 2^64 (what flipping one
+    exponent bit of a float32 does), finite, so no NaN check catches it."""
+    import sys
+
+    import numpy as np
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synthetic_btf import synthetic_btf
+
+    from dynbtf.data import UBO2014BTF, write_ubo2014
+
+    path = write_ubo2014(tmp_path / "bright.btf", synthetic_btf(8, **SMALL_GRID), components=4, scalar="float",
+                         progress=False)
+    with UBO2014BTF(path) as btf:
+        channel, n_lights = btf.header.channels[0], btf.n_lights
+    data = bytearray(path.read_bytes())
+    at = channel.u_offset + (pair[0] * n_lights + pair[1]) * channel.components * 4
+    row = np.frombuffer(bytes(data[at:at + 4 * channel.components]), "<f4") * np.float32(2.0 ** 64)
+    data[at:at + 4 * channel.components] = row.astype("<f4").tobytes()
+    path.write_bytes(bytes(data))
+    return path
+
+
+@pytest.mark.parametrize("memory_mb", [None, "0.05"])  # cached images, and texels read straight from the file
+def test_a_btf_decoding_to_absurd_values_stops_the_fit_naming_the_image(tmp_path, capsys, memory_mb):
+    from dynbtf.training.images import held_out_split
+
+    train, _ = held_out_split(15, 15, 0.05, 0)
+    pair = tuple(int(x) for x in train[40])  # a training pair (the held-out ones are never trained on)
+    btf = _dfmf_with_a_bright_image(tmp_path, pair)
+    code, out, err = cli(capsys, "info", btf, "--images", "225")
+    assert code == 0 and "values" in out
+    assert err.startswith(f"dynbtf: warning: {btf}: sampled values reach 1.") and "e+19" in err
+    out_dir = tmp_path / "fit"
+    extra = ["--memory-mb", memory_mb, "--texel-groups", "4"] if memory_mb else []
+    code, _, err = cli(capsys, *fit_argv(btf, out_dir / "m.dbtfm", *extra))
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"{btf}: image (view {pair[0]}, light {pair[1]}) holds values up to 1." in err and "e+19" in err
+    assert "--max-reflectance" in err
+    assert not (out_dir / "m.dbtfm").exists()  # no model; a streamed fit keeps the checkpoint of its good steps
+    assert sorted(p.name for p in out_dir.iterdir()) in ([], ["m.dbtfm.ckpt"]) if out_dir.exists() else True
+
+
+def test_max_reflectance_lets_bright_data_through(tmp_path, capsys):
+    btf = _dfmf_with_a_bright_image(tmp_path, (0, 1))
+    streamed = ["--memory-mb", "0.05", "--texel-groups", "4"]
+    code, _, err = cli(capsys, *fit_argv(btf, tmp_path / "m.dbtfm", "--epochs", "1", "--max-reflectance", "1e30",
+                                         *streamed))
+    assert code == 0, err
+    assert read_model_metadata(tmp_path / "m.dbtfm")["provenance"]["finished"] is True
+    # the float16 image cache cannot hold it: said so, with the way round
+    code, _, err = cli(capsys, *fit_argv(btf, tmp_path / "c.dbtfm", "--epochs", "1", "--max-reflectance", "1e30"))
+    assert code == 2 and "beyond the float16 image cache (65504)" in err and "--memory-mb" in err, err
+
+
+def test_a_diverging_fit_stops_before_the_update_and_names_the_btf(tmp_path, stored_btf):
+    from dynbtf.data import open_btf
+    from dynbtf.training import TrainConfig, fit
+    from dynbtf.training.fit import TrainingDiverged
+
+    out = tmp_path / "m.dbtfm"
+    losses = []
+    with open_btf(stored_btf) as btf, pytest.raises(TrainingDiverged) as error:
+        fit(TriplePlane(8, 8), btf, TrainConfig(epochs=50, lr_scale=1e6, device="cpu", workers=1, monitor_pairs=0),
+            out, progress=False, callback=lambda info: losses.append(info["loss"]))
+    message = str(error.value)
+    assert message.startswith(f"{stored_btf}: the fit diverged at epoch ") and "--lr-scale" in message
+    assert not out.exists()
+    state = torch.load(checkpoint_path(out), weights_only=True)  # the last good state, finite
+    assert all(bool(torch.isfinite(t).all()) for t in state["model"].values())
+    assert state["epoch"] * 1000 + state["step"] >= 0 and losses and all(math.isfinite(x) for x in losses)
+
+
+def test_an_unsupported_dfmf_version_is_named_as_such(tmp_path, capsys):
+    btf = _dfmf_with_a_bright_image(tmp_path, (0, 1))
+    data = bytearray(btf.read_bytes())
+    data[13:17] = struct.pack("<I", 7)  # the common header's version field (after 9 magic bytes and the size)
+    btf.write_bytes(bytes(data))
+    code, _, err = cli(capsys, "info", btf)
+    assert code == 2 and err == (f"dynbtf: error: {btf}: unsupported DFMF version 7: this reader supports versions "
+                                 "1..4 (the common header's layout differs between versions)\n")
+
+
+# ============================================================================ a file shortened while read
+_TRUNCATE_WHILE_READING = r"""
+import os, sys
+import numpy as np
+from dynbtf.data import UBO2014BTF
+from dynbtf.errors import FormatError
+path = sys.argv[1]
+with UBO2014BTF(path, factor_cache_bytes=int(sys.argv[2])) as btf:
+    first = btf.read_texels(np.array([[0, 0], [14, 14]]), np.arange(64))
+    os.truncate(path, btf.header.channels[0].u_offset + 8)  # in place: the same inode, the mapping now too long
+    try:
+        btf.read_texels(np.array([[14, 14]]), np.arange(64))
+    except FormatError as e:
+        print("clean:", e)
+"""
+
+
+@pytest.mark.parametrize("cache", [0, 1 << 30])  # factors read from the mapping, or only U rows
+def test_a_btf_truncated_between_reads_is_a_clear_error_not_sigbus(tmp_path, cache):
+    import subprocess
+    import sys
+
+    btf = _dfmf_with_a_bright_image(tmp_path, (0, 1))
+    size = btf.stat().st_size
+    run = subprocess.run([sys.executable, "-c", _TRUNCATE_WHILE_READING, str(btf), str(cache)], capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, (run.returncode, run.stderr[-2000:])  # SIGBUS would be -7
+    assert run.stdout.startswith(f"clean: {btf}: the file shrank from {size} to ")
+
+
+_FIT_WHILE_TRUNCATED = r"""
+import os, sys
+from dynbtf.data import UBO2014BTF
+from dynbtf.errors import DynBTFError
+from dynbtf.representations.triple_plane import TriplePlane
+from dynbtf.training import TrainConfig, fit
+path, out = sys.argv[1], sys.argv[2]
+def shorten(info):
+    if info["global_step"] == 3:
+        os.truncate(path, 4096)
+with UBO2014BTF(path) as btf:
+    config = TrainConfig(epochs=2, images_per_step=8, memory_budget_mb=0.05, texel_groups=4, workers=1,
+                         monitor_pairs=0, device="cpu", max_reflectance=1e30)
+    try:
+        fit(TriplePlane(8, 8), btf, config, out, progress=False, callback=shorten)
+    except DynBTFError as e:
+        print("clean:", e)
+"""
+
+
+def test_a_fit_whose_btf_is_truncated_keeps_its_checkpoint(tmp_path):
+    import subprocess
+    import sys
+
+    btf = _dfmf_with_a_bright_image(tmp_path, (0, 1))
+    out = tmp_path / "m.dbtfm"
+    run = subprocess.run([sys.executable, "-c", _FIT_WHILE_TRUNCATED, str(btf), str(out)], capture_output=True,
+                         text=True, timeout=600)
+    assert run.returncode == 0, (run.returncode, run.stderr[-2000:])
+    assert run.stdout.startswith(f"clean: {btf}: the file shrank from ") and "checkpoint" in run.stdout
+    state = torch.load(checkpoint_path(out), weights_only=True)
+    assert state["epoch"] * 1000 + state["step"] >= 3  # the steps before the truncation are kept
+    assert not out.exists()

@@ -99,9 +99,15 @@ def info(
     Example: dynbtf info leather.dbtf
     """
     from ..data.open import open_btf
+    from ..training.fit import MAX_REFLECTANCE
 
     with open_btf(btf) as source:
         s = btf_summary(source, btf, images)
+    lo, hi = s["value_range_sampled"]
+    if not max(abs(lo), abs(hi)) <= MAX_REFLECTANCE:  # NaN too
+        typer.echo(f"dynbtf: warning: {btf}: sampled values reach {lo if abs(lo) > abs(hi) else hi:.3g}, beyond any "
+                   f"plausible reflectance ({MAX_REFLECTANCE:g}): the file probably decodes to garbage (damaged "
+                   "factors?); `dynbtf fit` refuses it unless --max-reflectance is raised", err=True)
     if as_json:
         typer.echo(json.dumps(s, indent=1))
         return

@@ -60,6 +60,10 @@ def fit(
     precision: str = typer.Option("auto", help="Arithmetic of the decoder's training kernel: fp32, bf16 "
                                   "(bfloat16 products, float32 accumulation and parameters; CPUs with "
                                   "AVX512-BF16), or auto (bf16 where available, else fp32)."),
+    max_reflectance: Optional[float] = typer.Option(None, "--max-reflectance", help="Largest |value| a training "
+                                                    "image may hold (reflectance pi f_r, linear RGB; default 1e4): "
+                                                    "beyond it the BTF decodes to garbage and the fit stops naming "
+                                                    "the image. Raise it for data that really is that bright."),
     stereo_max_height: Optional[float] = typer.Option(None, "--stereo-max-height", help="triple-parallax only: "
                                                       "largest relief height the stereo estimate searches, in uv "
                                                       "units (default 0.08: +-10 texels at 128 texels)."),
@@ -69,15 +73,22 @@ def fit(
 
     Example: dynbtf fit leather.btf -o leather.dbtfm --minutes 60
     """
+    from ..errors import positive_number
     from ..training import get_fitter
+    from ..training.fit import check_options
     from ..training.recipe import choose_config
 
     given = {name: value for name, value in (
         ("epochs", epochs), ("max_minutes", max_minutes), ("lr_scale", lr_scale), ("lr_decay", lr_decay),
         ("texels_per_image", texels_per_image), ("texel_groups", texel_groups), ("memory_budget_mb", memory_mb),
-        ("workers", workers)) if value is not None}
+        ("workers", workers), ("max_reflectance", max_reflectance)) if value is not None}
     common = dict(seed=seed, held_out_fraction=held_out_fraction, images_per_step=images_per_step, device=device,
                   precision=precision)
+    check_options(**given, **common)  # every number finite and in range before the recipe computes with it
+    if minutes is not None:
+        positive_number("--minutes", minutes, "number of minutes")
+    if stereo_max_height is not None:
+        positive_number("--stereo-max-height", stereo_max_height, "height in uv units")
     fitter = get_fitter(repr)
     source = _open_source(btf)
     config, summary = choose_config(source, output, recipe=recipe, minutes=minutes, **common, **given)

@@ -81,10 +81,13 @@ from .array import ArrayBTF
 from .base import BTFSource
 
 __all__ = ["UBO2014BTF", "DFMFHeader", "read_ubo2014", "write_ubo2014", "write_dfmf_factors", "btf_extractor_angles",
-           "DFMF_MAGIC", "COLOUR_MODELS", "SCALAR_TYPES"]
+           "DFMF_MAGIC", "DFMF_VERSIONS", "COLOUR_MODELS", "SCALAR_TYPES"]
 
 #: The 9 magic bytes every DFMF file starts with.
 DFMF_MAGIC = b"!DFMF08FC"
+#: Common-header versions this reader (and the writer) knows: 1; 2 adds the cosine flag, 3 an XML string,
+#: 4 channel names.
+DFMF_VERSIONS = (1, 2, 3, 4)
 #: Supported colour models.
 COLOUR_MODELS = {0: "RGB", 11: "log-YUV (Y = exp(c0) - 1e-5, U = c1 Y, V = c2 Y)"}
 #: Scalar size in bytes -> little-endian numpy dtype, and the names the writer accepts.
@@ -216,6 +219,9 @@ def _parse_header(path: Path, buf, size: int) -> tuple[DFMFHeader, int]:
     start = cur.pos
     hsize, version, setup, sensor, light_src, ppmm, r, g, b = _COMMON_HEADER.unpack(
         cur.take(_COMMON_HEADER.size, "common header"))
+    if version not in DFMF_VERSIONS:
+        cur.fail(f"unsupported DFMF version {version}: this reader supports versions "
+                 f"{min(DFMF_VERSIONS)}..{max(DFMF_VERSIONS)} (the common header's layout differs between versions)")
     if not np.isfinite([ppmm, r, g, b]).all():
         cur.fail("common header: ppmm or RGB scale contains NaN or infinite values")
     cosine_flag, xml, names = 0, "", ["R", "G", "B"]
@@ -357,6 +363,8 @@ class UBO2014BTF(BTFSource):
         self.views = _angles_to_vectors(h.view_angles)
         self.lights = _angles_to_vectors(h.light_angles)
         self.name = self.path.name
+        stat = self.path.stat()
+        self._file_identity, self._file_bytes = (stat.st_dev, stat.st_ino), size
         self._u = [np.memmap(self.path, SCALAR_TYPES[c.scalar_size], "r", c.u_offset, (c.rows, c.components))
                    for c in h.channels]
         self._sxv = [np.memmap(self.path, SCALAR_TYPES[c.scalar_size], "r", c.sxv_offset, (c.cols, c.components))
@@ -385,11 +393,30 @@ class UBO2014BTF(BTFSource):
             "file_bytes": size,
         }
 
+    def _check_size(self) -> None:
+        """:class:`FormatError` when the file has become shorter than its header says since it was opened.
+
+        The factors are memory-mapped: reading a mapped page beyond the end of a file truncated in place
+        (while being rewritten, say) kills the process with SIGBUS, without a message. Every read of the
+        mapping is preceded by this check (a ``stat``, about a microsecond). A file replaced by another (a
+        new inode) or deleted leaves the mapping of the old one intact, so only a shorter file of the same
+        inode is an error.
+        """
+        try:
+            stat = self.path.stat()
+        except OSError:
+            return  # removed: the mapping keeps the old file alive
+        if (stat.st_dev, stat.st_ino) == self._file_identity and stat.st_size < self._file_bytes:
+            raise FormatError(self.path, f"the file shrank from {self._file_bytes} to {stat.st_size} bytes while it "
+                                         "was being read (truncated, or being rewritten?); reading on would crash. "
+                                         "Restore the file and run again (a fit continues from its checkpoint)")
+
     def _check_payload(self) -> None:
         for c, (u, sxv) in enumerate(zip(self._u, self._sxv)):
             for what, m in (("U", u), ("SxV", sxv)):
                 step = max(1, _CHUNK_BYTES // max(1, m.shape[1] * m.itemsize))
                 for a in range(0, len(m), step):
+                    self._check_size()
                     if not np.isfinite(m[a:a + step]).all():
                         raise FormatError(self.path, f"{what} matrix of channel {c} contains NaN or infinite "
                                                      f"values (rows {a}..{min(a + step, len(m)) - 1})")
@@ -401,12 +428,14 @@ class UBO2014BTF(BTFSource):
         """``(start, block)`` pieces of channel ``c``'s SxV in the compute dtype."""
         if self._cache_sxv:
             if self._sxv_cached is None:
+                self._check_size()
                 self._sxv_cached = [np.asarray(m, dtype=t) for m, t in zip(self._sxv, self._compute)]
             yield 0, self._sxv_cached[c]
             return
         sxv = self._sxv[c]
         step = max(1, _CHUNK_BYTES // max(1, sxv.shape[1] * 4))
         for a in range(0, sxv.shape[0], step):
+            self._check_size()
             yield a, np.asarray(sxv[a:a + step], dtype=self._compute[c])
 
     # ------------------------------------------------------------------ decoding
@@ -415,6 +444,7 @@ class UBO2014BTF(BTFSource):
         if not self._u:
             raise InputError(f"{self.path}: the file was closed")
         k = len(rows)
+        self._check_size()
         with np.errstate(over="ignore", invalid="ignore"):  # corrupt factors: caught by the check below
             out = np.empty((k, self.height * self.width, 3), dtype=np.float32)
             for c, u in enumerate(self._u):
@@ -443,6 +473,7 @@ class UBO2014BTF(BTFSource):
 
         key = str(device)
         if key not in self._texel_factor_cache:
+            self._check_size()
             h, w = self.height, self.width
             ours = []
             for m, t in zip(self._sxv, self._compute):
@@ -471,6 +502,7 @@ class UBO2014BTF(BTFSource):
         n = texels.shape[1]
         rows = (pairs[..., 0] * self.n_lights + pairs[..., 1]).reshape(-1)
         factors = self._texel_factors(device)
+        self._check_size()
         channels = []
         for c, u in enumerate(self._u):
             coeff = torch.from_numpy(np.asarray(u[rows], dtype=self._compute[c])).to(device)
@@ -513,6 +545,7 @@ class UBO2014BTF(BTFSource):
             return
         step = max(1, _CHUNK_BYTES // max(1, self._sxv[c].shape[1] * 4))
         for lo in range(0, n, step):
+            self._check_size()
             file_rows = self._file_texels(texels[lo:lo + step])
             block = np.asarray(self._sxv[c][file_rows], dtype=self._compute[c])
             yield lo, lo + len(file_rows), torch.from_numpy(block).to(device)
@@ -708,8 +741,8 @@ def _check_write_options(source: BTFSource, *, components: int, scalar: str, col
         raise InputError(f"colour_model: expected one of {sorted(COLOUR_MODELS)}, got {colour_model!r}")
     if int(components) < 1:
         raise InputError(f"components: expected a positive integer, got {components!r}")
-    if version not in (1, 2, 3, 4):
-        raise InputError(f"version: expected 1, 2, 3 or 4, got {version!r}")
+    if version not in DFMF_VERSIONS:
+        raise InputError(f"version: expected one of {DFMF_VERSIONS}, got {version!r}")
     if (source.views[:, 2] < -1e-6).any() or (source.lights[:, 2] < -1e-6).any():
         raise InputError(f"{source.name}: directions below the horizon cannot be stored in a .btf file")
     if method not in ("auto", "exact", "randomized"):
@@ -810,8 +843,8 @@ def write_dfmf_factors(path, views, lights, height: int, width: int, u, sxv, *, 
         raise InputError(f"scalar: expected one of {sorted(_SCALAR_NAMES)}, got {scalar!r}")
     if colour_model not in COLOUR_MODELS:
         raise InputError(f"colour_model: expected one of {sorted(COLOUR_MODELS)}, got {colour_model!r}")
-    if version not in (1, 2, 3, 4):
-        raise InputError(f"version: expected 1, 2, 3 or 4, got {version!r}")
+    if version not in DFMF_VERSIONS:
+        raise InputError(f"version: expected one of {DFMF_VERSIONS}, got {version!r}")
     views, lights = np.asarray(views, dtype=np.float64), np.asarray(lights, dtype=np.float64)
     for what, w in (("views", views), ("lights", lights)):
         if w.ndim != 2 or w.shape[1] != 3 or len(w) == 0:

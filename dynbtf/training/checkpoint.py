@@ -4,11 +4,15 @@ A checkpoint (``<model file>.ckpt``, :func:`checkpoint_path`) is a ``torch.save`
 holding the model and optimizer states and the position (epoch, step), plus a
 *fingerprint* of everything that changes the result (representation kind and
 configuration, the BTF's name and shape, the result-changing training options).
-Resuming refuses a checkpoint whose fingerprint differs, naming the fields.
+Resuming refuses a checkpoint whose fingerprint differs, naming the fields, and one that does not
+fit the run (:meth:`Checkpointer.restore`: tensors missing, of another shape or not finite, a position
+outside the schedule, an optimizer state of other parameters) as damaged, naming its path and how to
+start over. Nothing of such a checkpoint reaches the model.
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -69,6 +73,77 @@ class Checkpointer:
                              "delete it or choose another output to start over")
         return state
 
+    def damaged(self, problem: str) -> FormatError:
+        """The error for a checkpoint that does not fit this run: names it and how to start over."""
+        return FormatError(self.path, f"damaged checkpoint: {problem}; delete it to start over (rm '{self.path}'; "
+                                      "the training it holds is lost)")
+
+    def restore(self, model: torch.nn.Module, optimizer: torch.optim.Optimizer, *, epochs: int,
+                steps_per_epoch: int) -> dict[str, Any]:
+        """Load the checkpoint into ``model`` and ``optimizer`` once it is checked to fit this run.
+
+        Checked before anything is copied: the model tensors (names, shapes, dtypes as ``model``'s, finite),
+        the position (``0 <= epoch <= epochs``, ``0 <= step < steps_per_epoch``, one history entry per
+        finished epoch), the elapsed time, and the optimizer state (its parameters' shapes, finite moments).
+        Anything else is :meth:`damaged` (:class:`FormatError`, never another exception).
+
+        Returns the state (``epoch``, ``step``, ``elapsed_seconds``, ``history``, ...), its numbers as Python
+        ``int`` / ``float``.
+        """
+        state = self.load()
+        saved = state.get("model")
+        if not isinstance(saved, dict):
+            raise self.damaged("it holds no model state")
+        for name, want in model.state_dict().items():
+            got = saved.get(name)
+            if not isinstance(got, torch.Tensor):
+                raise self.damaged(f"model tensor {name!r} is missing")
+            if tuple(got.shape) != tuple(want.shape) or got.dtype != want.dtype:
+                raise self.damaged(f"model tensor {name!r} is {got.dtype} {tuple(got.shape)}; the model needs "
+                                   f"{want.dtype} {tuple(want.shape)}")
+            if got.is_floating_point() and not bool(torch.isfinite(got).all()):
+                raise self.damaged(f"model tensor {name!r} holds non-finite values (NaN or Inf)")
+        extra = sorted(set(saved) - set(model.state_dict()))
+        if extra:
+            raise self.damaged(f"model tensor {extra[0]!r} is not part of this model")
+        position = {}
+        for name in ("epoch", "step"):
+            value = state.get(name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise self.damaged(f"{name} is {value!r}, not an integer")
+            position[name] = value
+        epoch, step = position["epoch"], position["step"]
+        if not 0 <= epoch <= epochs:
+            raise self.damaged(f"it is at epoch {epoch}, outside this run's 0..{epochs} (to continue a run "
+                               "beyond its epochs, rerun with more --epochs)" if epoch > epochs else
+                               f"it is at epoch {epoch}, outside this run's 0..{epochs}")
+        if not 0 <= step < steps_per_epoch or (epoch == epochs and step != 0):
+            raise self.damaged(f"it is at step {step} of epoch {epoch}; an epoch of this run has "
+                               f"{steps_per_epoch} steps (0..{steps_per_epoch - 1})")
+        history = state.get("history")
+        if not isinstance(history, list) or len(history) != epoch or not all(isinstance(h, dict) for h in history):
+            raise self.damaged(f"its history lists {len(history) if isinstance(history, list) else history!r} "
+                               f"epoch(s) but its position is epoch {epoch}")
+        elapsed = state.get("elapsed_seconds")
+        if isinstance(elapsed, bool) or not isinstance(elapsed, (int, float)) or not math.isfinite(elapsed) \
+                or elapsed < 0:
+            raise self.damaged(f"elapsed_seconds is {elapsed!r}, not a finite number >= 0")
+        previous = optimizer.state_dict()
+        try:
+            optimizer.load_state_dict(state.get("optimizer"))
+            for parameter, moments in optimizer.state.items():
+                for key, value in moments.items():
+                    if not isinstance(value, torch.Tensor) or value.numel() <= 1:
+                        continue  # the step count
+                    if tuple(value.shape) != tuple(parameter.shape) or not bool(torch.isfinite(value).all()):
+                        raise ValueError(f"its {key!r} is {tuple(value.shape)} or not finite, for a parameter of "
+                                         f"shape {tuple(parameter.shape)}")
+        except Exception as e:  # ValueError, KeyError, TypeError from torch's own checks, or ours
+            optimizer.load_state_dict(previous)
+            raise self.damaged(f"its optimizer state does not fit this model ({e})") from None
+        model.load_state_dict(saved, strict=True)
+        return {**state, "epoch": epoch, "step": step, "elapsed_seconds": float(elapsed), "history": list(history)}
+
     @staticmethod
     def saved_config(path) -> dict[str, Any] | None:
         """The training options a checkpoint was started with (``None``: no checkpoint, or one without them)."""
@@ -80,7 +155,15 @@ class Checkpointer:
         except Exception as e:
             raise FormatError(path, f"damaged checkpoint ({e}); delete it to start over") from None
         config = state.get("config") if isinstance(state, dict) else None
-        return dict(config) if isinstance(config, dict) else None
+        if not isinstance(config, dict):
+            return None
+        from .fit import check_options  # the options' rules live with TrainConfig
+
+        try:
+            check_options(**{str(k): v for k, v in config.items()})
+        except InputError as e:
+            raise Checkpointer(path, {}).damaged(f"its training options are not valid ({e})") from None
+        return dict(config)
 
     def remove(self) -> None:
         """Delete the checkpoint (after a finished run wrote its model file)."""

@@ -80,8 +80,99 @@ from .distributed import from_environment
 from .images import ImageStore, held_out_split
 from .monitor import HeldOutMonitor
 
-__all__ = ["TrainConfig", "FitResult", "fit", "checkpoint_path", "texel_image_loss", "predict_images",
+__all__ = ["TrainConfig", "FitResult", "fit", "check_options", "TrainingDiverged", "implausible_targets",
+           "OPTION_RULES", "MAX_REFLECTANCE", "checkpoint_path", "texel_image_loss", "predict_images",
            "training_provenance"]
+
+#: Default largest |value| of a training target (reflectance ``pi f_r``): measured materials stay
+#: below ~1e2 (specular peaks included); values beyond are decoding garbage.
+MAX_REFLECTANCE = 1e4
+#: A fit stops when its loss exceeds its first loss by this factor (diverged).
+DIVERGENCE_FACTOR = 1e6
+
+
+@dataclass(frozen=True)
+class _Rule:
+    """The valid values of one :class:`TrainConfig` option: ``kind`` ``"int"``, ``"number"`` (finite) or
+    ``"choice"``; ``low``/``high`` bounds (``low_open``: ``low`` excluded); ``optional``: None allowed."""
+
+    kind: str
+    low: float = 0
+    high: float = 0
+    low_open: bool = False
+    high_open: bool = False
+    optional: bool = False
+    choices: tuple = ()
+    flag: str = ""
+
+    def expectation(self) -> str:
+        """``"an integer in [1, 1000000]"``, ``"a finite number in (0, 1]"``, ``"'auto', 'fp32' or 'bf16'"``."""
+        if self.kind == "choice":
+            return ", ".join(repr(c) for c in self.choices[:-1]) + f" or {self.choices[-1]!r}"
+        what = "an integer" if self.kind == "int" else "a finite number"
+        low, high = (f"{int(v)}" if float(v).is_integer() else f"{v:g}" for v in (self.low, self.high))
+        return f"{what} in {'(' if self.low_open else '['}{low}, {high}{')' if self.high_open else ']'}"
+
+    def accepts(self, value) -> bool:
+        if value is None:
+            return self.optional
+        if self.kind == "choice":
+            return isinstance(value, str) and value in self.choices
+        if isinstance(value, bool) or not isinstance(value, (int, float) if self.kind == "number" else int):
+            return False
+        if not math.isfinite(value):
+            return False
+        return (value > self.low if self.low_open else value >= self.low) and \
+            (value < self.high if self.high_open else value <= self.high)
+
+
+#: The valid values of every :class:`TrainConfig` option (one truth for :meth:`TrainConfig.validate`,
+#: :func:`check_options` and the command line).
+OPTION_RULES: dict[str, _Rule] = {
+    "epochs": _Rule("int", 1, 10 ** 6),
+    "images_per_step": _Rule("int", 1, 10 ** 6),
+    "lr_decay": _Rule("number", 0, 1, low_open=True),
+    "lr_scale": _Rule("number", 0, 1e6, low_open=True),
+    "held_out_fraction": _Rule("number", 0, 1, high_open=True),
+    "seed": _Rule("int", 0, 2 ** 63 - 1),
+    "texels_per_image": _Rule("int", 1, 2 ** 40, optional=True),
+    "texel_groups": _Rule("int", 1, 2 ** 20),
+    "max_minutes": _Rule("number", 0, 1e9, low_open=True, optional=True),
+    "checkpoint_every": _Rule("int", 1, 2 ** 40),
+    "memory_budget_mb": _Rule("number", 0, 2 ** 30, low_open=True, flag="--memory-mb"),
+    "workers": _Rule("int", 1, 4096, optional=True),
+    "chunk_texels": _Rule("int", 1, 2 ** 24),
+    "monitor_pairs": _Rule("int", 0, 10 ** 6),
+    "device": _Rule("choice", choices=()),  # any string; resolved (and checked) by dynbtf.device
+    "precision": _Rule("choice", choices=("auto", "fp32", "bf16")),
+    "max_reflectance": _Rule("number", 0, 1e30, low_open=True),
+}
+
+
+def check_options(**options) -> None:
+    """Check the given :class:`TrainConfig` options (by field name) before anything uses them.
+
+    :class:`InputError` ``"--flag (TrainConfig.name): expected ..., got ..."`` for the first one of the
+    wrong type or out of range (e.g. ``epochs=0``, ``memory_budget_mb=inf``); unknown names too.
+
+    >>> check_options(epochs=0)
+    Traceback (most recent call last):
+    ...
+    dynbtf.errors.InputError: --epochs (TrainConfig.epochs): expected an integer in [1, 1000000], got 0
+    """
+    for name, value in options.items():
+        rule = OPTION_RULES.get(name)
+        if rule is None:
+            raise InputError(f"unknown training option {name!r}; expected one of {sorted(OPTION_RULES)}")
+        if name == "device":
+            if not isinstance(value, str):
+                raise InputError(f"--device (TrainConfig.device): expected a device name such as 'cpu', got {value!r}")
+            continue
+        if not rule.accepts(value):
+            flag = rule.flag or "--" + name.replace("_", "-")
+            raise InputError(f"{flag} (TrainConfig.{name}): expected {rule.expectation()}"
+                             + (" (or unset)" if rule.optional else "") + f", got {value!r}")
+
 
 @dataclass
 class TrainConfig:
@@ -133,6 +224,10 @@ class TrainConfig:
         (default: ``"bf16"`` where available, else ``"fp32"``; see
         :func:`dynbtf.decoder.fused_mlp.resolve_precision`). The precision used is recorded in
         the model file.
+    max_reflectance : float
+        Largest |value| (``pi f_r``, linear RGB) a training target may have (default
+        :data:`MAX_REFLECTANCE`): a BTF beyond it decodes to garbage (e.g. flipped exponent bits)
+        and the fit stops naming the first such image. Raise it for data that really is that bright.
     """
 
     epochs: int = 12
@@ -152,28 +247,12 @@ class TrainConfig:
     device: str = "auto"
     precision: str = "auto"
 
+    max_reflectance: float = MAX_REFLECTANCE
+
     def validate(self) -> "TrainConfig":
-        """Check every option; :class:`InputError` names the option (and its command-line flag) and the
-        valid range."""
-        checks = [("epochs", self.epochs >= 1, "an integer >= 1"),
-                  ("images_per_step", self.images_per_step >= 1, "an integer >= 1"),
-                  ("lr_decay", 0 < self.lr_decay <= 1, "a factor in (0, 1]"),
-                  ("lr_scale", self.lr_scale > 0, "a number > 0"),
-                  ("held_out_fraction", 0 <= self.held_out_fraction < 1, "a fraction in [0, 1)"),
-                  ("texels_per_image", self.texels_per_image is None or self.texels_per_image >= 1,
-                   "an integer >= 1"),
-                  ("texel_groups", self.texel_groups >= 1, "an integer >= 1"),
-                  ("max_minutes", self.max_minutes is None or self.max_minutes > 0, "a number of minutes > 0"),
-                  ("checkpoint_every", self.checkpoint_every >= 1, "an integer >= 1"),
-                  ("chunk_texels", self.chunk_texels >= 1, "an integer >= 1"),
-                  ("workers", self.workers is None or self.workers >= 1, "an integer >= 1"),
-                  ("monitor_pairs", self.monitor_pairs >= 0, "an integer >= 0"),
-                  ("memory_budget_mb", self.memory_budget_mb > 0, "a number of MB > 0"),
-                  ("precision", self.precision in ("auto", "fp32", "bf16"), "'auto', 'fp32' or 'bf16'")]
-        for name, ok, valid in checks:
-            if not ok:
-                flag = "--" + name.replace("_", "-").replace("memory-budget-mb", "memory-mb")
-                raise InputError(f"{flag} (TrainConfig.{name}): expected {valid}, got {getattr(self, name)!r}")
+        """Check every option's type and range; :class:`InputError` names the option (and its command-line flag)
+        and the valid range."""
+        check_options(**dataclasses.asdict(self))
         return self
 
     # options that change the result: a checkpoint must agree on them to be resumed
@@ -315,6 +394,87 @@ def _check_memory(config: TrainConfig, sampler: BatchSampler, store: ImageStore)
                          f"{math.ceil(step_bytes / 1024 ** 2)} MB (or use --texels-per-image)")
 
 
+# ---------------------------------------------------------------------------- implausible data
+class TrainingDiverged(InputError):
+    """The loss became non-finite or grew by :data:`DIVERGENCE_FACTOR`: the fit stops before the update."""
+
+
+def _btf_label(source: BTFSource) -> str:
+    """The BTF's file path when it has one, else its name."""
+    return str(source.metadata.get("path", source.name)) if isinstance(source.metadata, dict) else source.name
+
+
+def implausible_targets(batch, limit: float) -> tuple[int, int, float] | None:
+    """``(view, light, largest |value|)`` of the first image of ``batch`` (in pair order) holding a value that
+    is non-finite or beyond ``limit``, else None.
+
+    ``batch.target (B, G * n, 3)``: texel block ``g`` under pair ``batch.pairs[g * B + b]``
+    (:class:`~dynbtf.training.batches.Batch`).
+    """
+    target = batch.target
+    if target.numel() == 0:
+        return None
+    b, groups = target.shape[0], max(int(batch.groups), 1)
+    largest = target.detach().abs().reshape(b, groups, -1).amax(-1)  # (B, G)
+    largest = torch.where(torch.isnan(largest), math.inf, largest)
+    bad = largest > limit
+    if not bool(bad.any()):
+        return None
+    b_bad, g_bad = torch.nonzero(bad, as_tuple=True)
+    order = g_bad * b + b_bad  # index into batch.pairs
+    first = int(order.argmin())
+    view, light = (int(x) for x in batch.pairs[int(order[first])])
+    return view, light, float(largest[b_bad[first], g_bad[first]])
+
+
+def _garbage_message(source: BTFSource, problem: tuple[int, int, float], limit: float) -> str:
+    view, light, value = problem
+    return (f"{_btf_label(source)}: image (view {view}, light {light}) holds values up to {value:.3g}, beyond any "
+            f"plausible reflectance (--max-reflectance {limit:g}): the BTF decodes to garbage (a damaged file?); "
+            f"check it with `dynbtf info`, or if the data really is this bright, rerun with --max-reflectance above "
+            f"{value:.3g}")
+
+
+def _image_problem(image: np.ndarray, limit: float) -> float | None:
+    """The largest |value| of ``image`` (inf if any is NaN) when beyond ``limit``, else None."""
+    image = np.asarray(image)
+    largest = float(np.abs(image).max()) if image.size and np.isfinite(image).all() else \
+        (math.inf if image.size else 0.0)
+    return largest if largest > limit else None
+
+
+class _PlausibleImages(BTFSource):
+    """``source`` whose whole images are checked against ``limit`` as they are decoded (what the trainer's
+    image cache reads: a value beyond float16 would otherwise be cached as inf, naming nothing); texels
+    read straight from the source are checked per batch (:func:`implausible_targets`)."""
+
+    #: Largest value of the trainer's float16 image cache.
+    FLOAT16_MAX = 65504.0
+
+    def __init__(self, source: BTFSource, limit: float) -> None:
+        super().__init__()
+        self.source, self.limit = source, limit
+        self.cached = False  # set by the trainer: images are then stored as float16
+        self.height, self.width, self.views, self.lights = source.height, source.width, source.views, source.lights
+        self.name, self.metadata = source.name, source.metadata
+
+    def _read_image(self, view_index: int, light_index: int) -> np.ndarray:
+        image = self.source.image(view_index, light_index)
+        largest = _image_problem(image, self.limit)
+        if largest is not None:
+            raise InputError(_garbage_message(self.source, (view_index, light_index, largest), self.limit))
+        largest = _image_problem(image, self.FLOAT16_MAX) if self.cached else None
+        if largest is not None:
+            raise InputError(f"{_btf_label(self.source)}: image (view {view_index}, light {light_index}) holds values "
+                             f"up to {largest:.3g}, beyond the float16 image cache ({self.FLOAT16_MAX:g}); to train "
+                             "on data this bright, read it straight from the BTF: --memory-mb below the cache's "
+                             "size")
+        return image
+
+    def _read_texels(self, pairs: np.ndarray, texels: np.ndarray, device=None):
+        return self.source.read_texels(pairs, texels, device=device)
+
+
 # ---------------------------------------------------------------------------- the loop
 class _TrainingRun:
     """One run of :func:`fit`: its parts (sampler, optimizer, monitor, checkpointer) and its position.
@@ -338,7 +498,9 @@ class _TrainingRun:
         self.workers = int(config.workers or torch.get_num_threads()) if device.type == "cpu" else 1
         self.train_pairs, self.held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction,
                                                          config.seed)
-        self.store = ImageStore(source, int(config.memory_budget_mb * 1024 ** 2))
+        checked = _PlausibleImages(source, config.max_reflectance)
+        self.store = ImageStore(checked, int(config.memory_budget_mb * 1024 ** 2))
+        checked.cached = self.store.cached
         self.sampler = BatchSampler(self.store, self.train_pairs, images_per_step=config.images_per_step,
                                     texel_groups=config.texel_groups, texels_per_image=config.texels_per_image,
                                     seed=config.seed, view_coherent=rep.view_coherent_batches, device=device,
@@ -352,12 +514,12 @@ class _TrainingRun:
         self.monitor = HeldOutMonitor(self.store, self.held_out, config.monitor_pairs, config.seed, device)
         self.checkpointer = Checkpointer(checkpoint_path(output), _fingerprint(rep, source, config))
         self.epoch, self.step, self.elapsed, self.history = 0, 0, 0.0, []
+        self.first_loss: float | None = None  # of this run (a resumed run: its first step)
         if self.checkpointer.exists():
-            state = self.checkpointer.load()
-            rep.load_state_dict(state["model"])
-            self.optimizer.load_state_dict(state["optimizer"])
-            self.epoch, self.step = int(state["epoch"]), int(state["step"])
-            self.elapsed, self.history = float(state["elapsed_seconds"]), list(state["history"])
+            state = self.checkpointer.restore(rep, self.optimizer, epochs=config.epochs,
+                                              steps_per_epoch=self.sampler.steps_per_epoch)
+            self.epoch, self.step = state["epoch"], state["step"]
+            self.elapsed, self.history = state["elapsed_seconds"], state["history"]
         self.total_steps = config.epochs * self.sampler.steps_per_epoch
         self.done_steps = min(self.epoch * self.sampler.steps_per_epoch + self.step, self.total_steps)
         self.last_checkpoint_step = self.done_steps
@@ -399,8 +561,30 @@ class _TrainingRun:
             loss.backward()
             loss_value = float(loss.detach())
         parallel.average_gradients(self.rep.parameters())
+        loss_value = parallel.mean(loss_value)
+        self._check_loss(loss_value)  # before the update: the model keeps its last good state
         self.optimizer.step()
-        return parallel.mean(loss_value)
+        return loss_value
+
+    def _check_targets(self, batch) -> None:
+        """:class:`InputError` naming the BTF and the first image of ``batch`` beyond ``max_reflectance``."""
+        problem = implausible_targets(batch, self.config.max_reflectance)
+        if self.parallel.any(problem is not None):
+            raise InputError(_garbage_message(self.source, problem, self.config.max_reflectance) if problem else
+                             f"{_btf_label(self.source)}: another process of this data-parallel fit read "
+                             "implausible values (its message names the image)")
+
+    def _check_loss(self, loss: float) -> None:
+        """:class:`TrainingDiverged` when ``loss`` is not finite or :data:`DIVERGENCE_FACTOR` x the run's first."""
+        if self.first_loss is None and math.isfinite(loss):
+            self.first_loss = loss
+        if math.isfinite(loss) and loss <= DIVERGENCE_FACTOR * max(self.first_loss, 1e-12):
+            return
+        raise TrainingDiverged(
+            f"{_btf_label(self.source)}: the fit diverged at epoch {self.epoch}, step {self.step}: loss {loss:.3g} "
+            f"(this run started at {self.first_loss if self.first_loss is not None else float('nan'):.3g}); "
+            f"nothing was written beyond the last checkpoint ({self.checkpointer.path}). Check the BTF's values "
+            f"(dynbtf info), or lower --lr-scale and delete the checkpoint to start over")
 
     # ------------------------------------------------------------------ the loop
     def train_steps(self, bar, callback) -> None:
@@ -423,8 +607,13 @@ class _TrainingRun:
                     batch = pending.result()
                     nxt = self._next_position()
                     pending = prefetch.submit(self.sampler.batch, *nxt) if nxt[0] < config.epochs else None
+                    self._check_targets(batch)
                     consistent = False
-                    loss = self._optimizer_step(batch)
+                    try:
+                        loss = self._optimizer_step(batch)
+                    except TrainingDiverged:
+                        consistent = True  # raised before the update: the state is still that of (epoch, step)
+                        raise
                     self.epoch, self.step = nxt
                     consistent = True
                     dt = time.perf_counter() - t0
