@@ -216,6 +216,9 @@ def _mutate(rng: random.Random, original: bytes) -> tuple[bytes, str, bool]:
         value = rng.choice([None, 3, "x", [], {}, float("nan"), 10 ** 30, -1, "triple"])
         meta[key] = value
         what = f"meta[{key!r}] = {value!r}"
+        if rng.random() < 0.1:  # JSON nested deeper than Python's recursion limit
+            header["__metadata__"]["dynbtf"] = "[" * 100000 + "]" * 100000
+            return _raw_file(header, payload), "metadata nested 100000 deep", True
     elif kind == 5:  # a tensor's declared shape or dtype
         name = rng.choice(tensors)
         before = dict(header[name])
@@ -573,3 +576,21 @@ def test_a_fit_whose_btf_is_truncated_keeps_its_checkpoint(tmp_path):
     state = torch.load(checkpoint_path(out), weights_only=True)
     assert state["epoch"] * 1000 + state["step"] >= 3  # the steps before the truncation are kept
     assert not out.exists()
+
+
+def test_fit_options_are_the_train_config_fields(capsys):
+    """One truth: every TrainConfig field marked as an option is a `dynbtf fit` flag with the field's help, and its
+    range check (check_options) names that flag."""
+    import re
+
+    from dynbtf.training.fit import OPTION_RULES, command_line_options
+
+    assert main(["fit", "--help"]) == 0
+    text = re.sub(r"[\s│]+", " ", capsys.readouterr().out)
+    options = command_line_options()
+    assert {"epochs", "memory_budget_mb", "max_reflectance", "device"} <= set(options)
+    assert set(options) <= set(OPTION_RULES)
+    for name, (_, cli) in options.items():
+        flag = cli.flag or "--" + name.replace("_", "-")
+        assert f" {flag} " in text, flag
+        assert " ".join(cli.help.split()[:6]) in text, name

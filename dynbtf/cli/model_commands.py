@@ -19,7 +19,13 @@ def _open_source(spec: str):
     return open_btf(spec)
 
 
-@app.command()
+# The order in which fit's help lists the training options (each one's flag, type, default and help are those of its
+# TrainConfig field: dynbtf.training.fit.command_line_options).
+_FIT_TRAINING_OPTIONS = ("epochs", "max_minutes", "seed", "held_out_fraction", "images_per_step", "lr_scale",
+                         "lr_decay", "texels_per_image", "texel_groups", "memory_budget_mb", "workers", "device",
+                         "precision", "max_reflectance")
+
+
 def fit(
     btf: str = typer.Argument(..., help="BTF to fit: a file path or a spec such as 'sim:leather?size=128'."),
     output: Path = typer.Option(..., "-o", "--output", help="Model file to write (.dbtfm). Its checkpoint "
@@ -34,40 +40,11 @@ def fit(
     minutes: Optional[float] = typer.Option(None, "--minutes", help="Time budget in minutes: the auto recipe "
                                             "times a few steps and shortens its schedule to fit, and training stops "
                                             "(checkpointed) if it still overruns."),
-    epochs: Optional[int] = typer.Option(None, help="Passes over the training (view, light) pairs (auto: from the "
-                                         "BTF's size; paper: 50, the paper's)."),
-    max_minutes: Optional[float] = typer.Option(None, "--max-minutes", help="Stop after this many minutes of "
-                                                "training (checkpointed; run again to continue). Default: no limit."),
-    seed: int = typer.Option(0, help="Seed of the held-out split, batch order and initialization."),
-    held_out_fraction: float = typer.Option(0.05, "--held-out-fraction", help="Fraction of (view, light) pairs "
-                                            "never trained on, for evaluation."),
-    images_per_step: int = typer.Option(16, "--images-per-step", help="Whole images per optimizer step."),
-    lr_scale: Optional[float] = typer.Option(None, "--lr-scale", help="Multiplier of the learning rates (paper: 1, "
-                                             "i.e. 1e-3 for planes, 3e-4 for the decoder; auto: 6)."),
-    lr_decay: Optional[float] = typer.Option(None, "--lr-decay", help="Learning-rate factor per epoch (paper: 0.9; "
-                                             "auto: the reference's total decay 0.9^30 spread over its epochs)."),
-    texels_per_image: Optional[int] = typer.Option(None, "--texels-per-image", help="Train on a random subset of "
-                                                   "this many texels per step (auto: all up to 262,144)."),
-    texel_groups: Optional[int] = typer.Option(None, "--texel-groups", help="Split each step's texels into this "
-                                               "many groups, each under its own --images-per-step pairs: more "
-                                               "(view, light) pairs per step at the same cost (paper: 1, whole "
-                                               "images; auto: 64)."),
-    memory_mb: Optional[float] = typer.Option(None, "--memory-mb", help="RAM (MB) for the float16 image cache; "
-                                              "larger BTFs are read texel block by texel block from the source "
-                                              "(paper: 2048; auto: 40% of RAM, at most 8 GiB)."),
-    workers: Optional[int] = typer.Option(None, help="Threads of the fused training kernel (default: torch's)."),
-    device: str = typer.Option("auto", help="auto (CUDA if available), cpu, cuda:0, ..."),
-    precision: str = typer.Option("auto", help="Arithmetic of the decoder's training kernel: fp32, bf16 "
-                                  "(bfloat16 products, float32 accumulation and parameters; CPUs with "
-                                  "AVX512-BF16), or auto (bf16 where available, else fp32)."),
-    max_reflectance: Optional[float] = typer.Option(None, "--max-reflectance", help="Largest |value| a training "
-                                                    "image may hold (reflectance pi f_r, linear RGB; default 1e4): "
-                                                    "beyond it the BTF decodes to garbage and the fit stops naming "
-                                                    "the image. Raise it for data that really is that bright."),
     stereo_max_height: Optional[float] = typer.Option(None, "--stereo-max-height", help="triple-parallax only: "
                                                       "largest relief height the stereo estimate searches, in uv "
                                                       "units (default 0.08: +-10 texels at 128 texels)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
+    **training,
 ) -> None:
     """Fit a representation to a BTF (L1, AdamW; the recipe chosen from its size, or the paper's).
 
@@ -78,20 +55,15 @@ def fit(
     from ..training.fit import check_options
     from ..training.recipe import choose_config
 
-    given = {name: value for name, value in (
-        ("epochs", epochs), ("max_minutes", max_minutes), ("lr_scale", lr_scale), ("lr_decay", lr_decay),
-        ("texels_per_image", texels_per_image), ("texel_groups", texel_groups), ("memory_budget_mb", memory_mb),
-        ("workers", workers), ("max_reflectance", max_reflectance)) if value is not None}
-    common = dict(seed=seed, held_out_fraction=held_out_fraction, images_per_step=images_per_step, device=device,
-                  precision=precision)
-    check_options(**given, **common)  # every number finite and in range before the recipe computes with it
+    given = {name: value for name, value in training.items() if value is not None}  # None: the recipe chooses
+    check_options(**given)  # every number finite and in range before the recipe computes with it
     if minutes is not None:
         positive_number("--minutes", minutes, "number of minutes")
     if stereo_max_height is not None:
         positive_number("--stereo-max-height", stereo_max_height, "height in uv units")
     fitter = get_fitter(repr)
     source = _open_source(btf)
-    config, summary = choose_config(source, output, recipe=recipe, minutes=minutes, **common, **given)
+    config, summary = choose_config(source, output, recipe=recipe, minutes=minutes, **given)
     if not quiet:
         typer.echo(summary)
     options = {}
@@ -103,6 +75,36 @@ def fit(
     if quiet:
         size = result.metadata.get("provenance", {}).get("size", {})
         typer.echo(f"wrote {result.model_path}" + (f" ({size['summary']})" if "summary" in size else ""))
+
+
+def _with_training_options(command):
+    """``command``'s signature with the :class:`~dynbtf.training.TrainConfig` options inserted after
+    ``minutes`` (as ``typer.Option`` parameters built from the fields), so that typer parses them into
+    ``**training``."""
+    import inspect
+    import types
+    import typing
+
+    from ..training.fit import command_line_options
+
+    fields = command_line_options()
+    made = []
+    for name in _FIT_TRAINING_OPTIONS:
+        annotation, cli = fields[name]
+        base = next(a for a in typing.get_args(annotation) if a is not type(None)) \
+            if isinstance(annotation, types.UnionType) else annotation
+        flags = (cli.flag,) if cli.flag else ()
+        made.append(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=Optional[base]
+                                      if cli.default is None else base,
+                                      default=typer.Option(cli.default, *flags, help=cli.help)))
+    own = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in inspect.signature(command).parameters.values()
+           if p.kind is not inspect.Parameter.VAR_KEYWORD]
+    cut = [p.name for p in own].index("minutes") + 1
+    command.__signature__ = inspect.Signature(own[:cut] + made + own[cut:], return_annotation=None)
+    return command
+
+
+app.command()(_with_training_options(fit))
 
 
 @app.command("eval")

@@ -158,8 +158,8 @@ def read_model_metadata(path) -> dict[str, Any]:
         raise FormatError(path, "safetensors file without dynbtf metadata: not a dynbtf model file")
     try:
         meta = json.loads(raw)
-    except json.JSONDecodeError as e:
-        raise FormatError(path, f"damaged metadata (invalid JSON: {e})") from None
+    except (json.JSONDecodeError, RecursionError) as e:  # RecursionError: nested deeper than Python's stack
+        raise FormatError(path, f"damaged metadata (invalid JSON: {str(e)[:200]})") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
         raise FormatError(path, f"metadata field 'format' is {meta.get('format') if isinstance(meta, dict) else None!r}, "
                                 f"expected {FORMAT_NAME!r}")
@@ -296,7 +296,8 @@ def _check_outputs(path: Path, rep: Representation, max_output: float) -> None:
                             f"{float(tensor.abs().max()):.3g}): the model is damaged; refit it")
 
 
-def load_model(path, device=None, *, max_output: float = MAX_ABS_OUTPUT) -> tuple[Representation, dict[str, Any]]:
+def load_model(path, device=None, *,
+               max_output: float = MAX_ABS_OUTPUT) -> tuple[Representation, dict[str, Any]]:
     """Load a model file: ``(representation, metadata)``, checked before anything is allocated (module docs).
 
     Parameters

@@ -81,8 +81,8 @@ from .images import ImageStore, held_out_split
 from .monitor import HeldOutMonitor
 
 __all__ = ["TrainConfig", "FitResult", "fit", "check_options", "TrainingDiverged", "implausible_targets",
-           "OPTION_RULES", "MAX_REFLECTANCE", "checkpoint_path", "texel_image_loss", "predict_images",
-           "training_provenance"]
+           "OPTION_RULES", "MAX_REFLECTANCE", "CommandLineOption", "command_line_options", "option_flag",
+           "checkpoint_path", "texel_image_loss", "predict_images", "training_provenance"]
 
 #: Default largest |value| of a training target (reflectance ``pi f_r``): measured materials stay
 #: below ~1e2 (specular peaks included); values beyond are decoding garbage.
@@ -94,7 +94,7 @@ DIVERGENCE_FACTOR = 1e6
 @dataclass(frozen=True)
 class _Rule:
     """The valid values of one :class:`TrainConfig` option: ``kind`` ``"int"``, ``"number"`` (finite) or
-    ``"choice"``; ``low``/``high`` bounds (``low_open``: ``low`` excluded); ``optional``: None allowed."""
+    ``"choice"``; ``low``/``high`` bounds (``low_open``, ``high_open``: excluded); ``optional``: None allowed."""
 
     kind: str
     low: float = 0
@@ -103,7 +103,6 @@ class _Rule:
     high_open: bool = False
     optional: bool = False
     choices: tuple = ()
-    flag: str = ""
 
     def expectation(self) -> str:
         """``"an integer in [1, 1000000]"``, ``"a finite number in (0, 1]"``, ``"'auto', 'fp32' or 'bf16'"``."""
@@ -139,7 +138,7 @@ OPTION_RULES: dict[str, _Rule] = {
     "texel_groups": _Rule("int", 1, 2 ** 20),
     "max_minutes": _Rule("number", 0, 1e9, low_open=True, optional=True),
     "checkpoint_every": _Rule("int", 1, 2 ** 40),
-    "memory_budget_mb": _Rule("number", 0, 2 ** 30, low_open=True, flag="--memory-mb"),
+    "memory_budget_mb": _Rule("number", 0, 2 ** 30, low_open=True),
     "workers": _Rule("int", 1, 4096, optional=True),
     "chunk_texels": _Rule("int", 1, 2 ** 24),
     "monitor_pairs": _Rule("int", 0, 10 ** 6),
@@ -169,9 +168,42 @@ def check_options(**options) -> None:
                 raise InputError(f"--device (TrainConfig.device): expected a device name such as 'cpu', got {value!r}")
             continue
         if not rule.accepts(value):
-            flag = rule.flag or "--" + name.replace("_", "-")
+            flag = option_flag(name)
             raise InputError(f"{flag} (TrainConfig.{name}): expected {rule.expectation()}"
                              + (" (or unset)" if rule.optional else "") + f", got {value!r}")
+
+
+@dataclass(frozen=True)
+class CommandLineOption:
+    """How a :class:`TrainConfig` field appears on ``dynbtf fit``'s command line (the field's metadata
+    ``"cli"``): its ``flag`` (empty: ``--`` and the name with dashes), its ``help`` text and the command's
+    ``default`` (None: the recipe chooses)."""
+
+    flag: str
+    help: str
+    default: Any
+
+
+def _option(default, cli_default, help: str, *, flag: str = ""):
+    """A :class:`TrainConfig` field (library ``default``) that is also a ``dynbtf fit`` option."""
+    return field(default=default, metadata={"cli": CommandLineOption(flag, help, cli_default)})
+
+
+def option_flag(name: str) -> str:
+    """The command-line flag of :class:`TrainConfig` field ``name`` (``--memory-mb``, ``--epochs``, ...); error
+    messages name fields without an option the same way."""
+    spec = TrainConfig.__dataclass_fields__.get(name)
+    cli = spec.metadata.get("cli") if spec is not None else None
+    return cli.flag if cli is not None and cli.flag else "--" + name.replace("_", "-")
+
+
+def command_line_options() -> dict[str, tuple[Any, CommandLineOption]]:
+    """``{field name: (type, CommandLineOption)}`` of the :class:`TrainConfig` fields that are ``dynbtf fit``
+    options, in field order; ``type`` is the field's annotation, resolved (``int``, ``float | None``, ...)."""
+    import typing
+
+    hints = typing.get_type_hints(TrainConfig)
+    return {f.name: (hints[f.name], f.metadata["cli"]) for f in dataclasses.fields(TrainConfig) if "cli" in f.metadata}
 
 
 @dataclass
@@ -230,24 +262,38 @@ class TrainConfig:
         and the fit stops naming the first such image. Raise it for data that really is that bright.
     """
 
-    epochs: int = 12
-    images_per_step: int = 16
-    lr_decay: float = 0.9
-    lr_scale: float = 1.0
-    held_out_fraction: float = 0.05
-    seed: int = 0
-    texels_per_image: int | None = None
-    texel_groups: int = 1
-    max_minutes: float | None = None
+    epochs: int = _option(12, None, "Passes over the training (view, light) pairs (auto: from the BTF's size; "
+                          "paper: 50, the paper's).")
+    images_per_step: int = _option(16, 16, "Whole images per optimizer step.")
+    lr_decay: float = _option(0.9, None, "Learning-rate factor per epoch (paper: 0.9; auto: the reference's total "
+                              "decay 0.9^30 spread over its epochs).")
+    lr_scale: float = _option(1.0, None, "Multiplier of the learning rates (paper: 1, i.e. 1e-3 for planes, 3e-4 "
+                              "for the decoder; auto: 6).")
+    held_out_fraction: float = _option(0.05, 0.05, "Fraction of (view, light) pairs never trained on, for "
+                                       "evaluation.")
+    seed: int = _option(0, 0, "Seed of the held-out split, batch order and initialization.")
+    texels_per_image: int | None = _option(None, None, "Train on a random subset of this many texels per step "
+                                           "(auto: all up to 262,144).")
+    texel_groups: int = _option(1, None, "Split each step's texels into this many groups, each under its own "
+                                "--images-per-step pairs: more (view, light) pairs per step at the same cost (paper: "
+                                "1, whole images; auto: 64).")
+    max_minutes: float | None = _option(None, None, "Stop after this many minutes of training (checkpointed; run "
+                                        "again to continue). Default: no limit.")
     checkpoint_every: int = 100
-    memory_budget_mb: float = 2048.0
-    workers: int | None = None
+    memory_budget_mb: float = _option(2048.0, None, "RAM (MB) for the float16 image cache; larger BTFs are read "
+                                      "texel block by texel block from the source (paper: 2048; auto: 40% of RAM, at "
+                                      "most 8 GiB).", flag="--memory-mb")
+    workers: int | None = _option(None, None, "Threads of the fused training kernel (default: torch's).")
     chunk_texels: int = 256
     monitor_pairs: int = 16
-    device: str = "auto"
-    precision: str = "auto"
-
-    max_reflectance: float = MAX_REFLECTANCE
+    device: str = _option("auto", "auto", "auto (CUDA if available), cpu, cuda:0, ...")
+    precision: str = _option("auto", "auto", "Arithmetic of the decoder's training kernel: fp32, bf16 (bfloat16 "
+                             "products, float32 accumulation and parameters; CPUs with AVX512-BF16), or auto (bf16 "
+                             "where available, else fp32).")
+    max_reflectance: float = _option(MAX_REFLECTANCE, None, "Largest |value| a training image may hold "
+                                     "(reflectance pi f_r, linear RGB; default 1e4): beyond it the BTF decodes to "
+                                     "garbage and the fit stops naming the image. Raise it for data that really is "
+                                     "that bright.")
 
     def validate(self) -> "TrainConfig":
         """Check every option's type and range; :class:`InputError` names the option (and its command-line flag)
