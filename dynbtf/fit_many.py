@@ -25,6 +25,17 @@ as an uninterrupted fit. A source that fails (a missing file, a bad BTF) is repo
 the others go on. Results: one model per source, ``results.csv`` / ``results.json`` (held-out PSNR,
 DSSIM, FLIP, training time, model size, status) and ``index.html`` with each model's evaluation
 images. Ray is the optional extra ``dynbtf[cluster]``.
+
+Untrusted manifests: everything is checked before Ray starts or anything is written, and every
+problem of every source is reported together (one line each, nothing runs; fix them and run
+again), rather than running the good sources and skipping the bad. A manifest is UTF-8 TOML of at
+most :data:`MAX_MANIFEST_BYTES`; a ``name`` is :data:`NAME_RULE` (so a model is always written
+inside the output directory: ``"../x"``, ``"/tmp/x"``, ``"a/b"`` are refused, not resolved);
+numbers are finite and fit in 64 bits. The output directory must be writable, ``--cpus``,
+``--cpus-per-task`` and ``--max-retries`` in range, a task must fit on one machine
+(``--cpus-per-task`` <= ``--cpus``, or the CPUs of the cluster's largest node), and an
+``--address`` must answer within :data:`CONNECT_TIMEOUT` seconds. ``check=True``
+(``dynbtf fit-many --check``) stops after these checks.
 """
 
 from __future__ import annotations
@@ -33,17 +44,22 @@ import csv
 import dataclasses
 import io
 import json
+import math
 import os
 import re
+import socket
+import subprocess
+import sys
 import time
 import tomllib
 from pathlib import Path
 from typing import Any, Callable
 
 from .errors import DynBTFError, InputError, optional_module
-from .io import atomic_path
+from .io import atomic_path, check_writable
 
-__all__ = ["fit_many", "fit_one", "read_manifest", "FitTask", "MANIFEST_OPTIONS", "RESULT_COLUMNS"]
+__all__ = ["fit_many", "fit_one", "read_manifest", "check_name", "FitTask", "MANIFEST_OPTIONS", "RESULT_COLUMNS",
+           "NAME_RULE", "MAX_NAME_LENGTH", "MAX_MANIFEST_BYTES", "CONNECT_TIMEOUT"]
 
 #: Manifest keys: ``dynbtf fit`` options (command-line names with ``_`` for ``-``) and their types.
 MANIFEST_OPTIONS: dict[str, type | tuple[type, ...]] = {
@@ -60,6 +76,18 @@ RESULT_COLUMNS = ("name", "btf", "status", "psnr", "psnr_fixed1", "dssim", "flip
 
 #: ``dynbtf fit`` option names that are :class:`~dynbtf.training.fit.TrainConfig` fields under another name.
 _TRAIN_FIELD = {"memory_mb": "memory_budget_mb"}
+#: Longest source name (the files written for it add up to ~40 characters to it; file names stop at 255).
+MAX_NAME_LENGTH = 100
+#: What a source name may be (its files are ``DIR/<name>.dbtfm``, ``DIR/<name>_eval/``).
+NAME_RULE = (f"1 to {MAX_NAME_LENGTH} characters of A-Z, a-z, 0-9, '_', '-' and '.', starting with a letter, "
+             "a digit or '_'")
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*\Z")
+#: Largest manifest file read (bytes).
+MAX_MANIFEST_BYTES = 4 * 2**20
+#: Seconds an ``address`` has to answer (a TCP connection, then a Ray driver connecting to it).
+CONNECT_TIMEOUT = 60.0
+#: Largest ``max_retries`` (Ray's -1, retry for ever, is not offered).
+MAX_RETRIES = 100
 
 
 @dataclasses.dataclass
@@ -110,7 +138,14 @@ def _check_table(path: Path, table: dict[str, Any], lines: dict[str, int], where
         kind = allowed[key]
         if isinstance(value, bool) or not isinstance(value, kind):
             names = " or ".join(t.__name__ for t in (kind if isinstance(kind, tuple) else (kind,)))
-            raise InputError(f"{path}:{line}: {where} key {key!r} = {value!r}: expected {names}")
+            raise InputError(f"{path}:{line}: {where} key {key!r} = {_short(value)}: expected {names}")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise InputError(f"{path}:{line}: {where} key {key!r} = {value!r}: expected a finite number")
+        if isinstance(value, int) and not -2**63 <= value < 2**63:
+            raise InputError(f"{path}:{line}: {where} key {key!r} = {_short(value)}: out of range (a 64-bit integer)")
+        if isinstance(value, str) and key != "name" and ("\x00" in value or len(value) > 4096):
+            raise InputError(f"{path}:{line}: {where} key {key!r} = {_short(value)}: expected text without NUL "
+                             "characters, at most 4096 characters")
 
 
 def _default_name(btf: str) -> str:
@@ -118,7 +153,38 @@ def _default_name(btf: str) -> str:
     stem = Path(base).name
     for suffix in (".btf", ".zip", ".dbtf"):
         stem = stem.removesuffix(suffix)
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", stem) or "btf"
+    name = re.sub(r"[^A-Za-z0-9_.-]+", "_", stem).lstrip(".-")[:MAX_NAME_LENGTH]
+    return name or "btf"
+
+
+def check_name(name) -> str | None:
+    """Why ``name`` is not a valid source name (:data:`NAME_RULE`), or ``None`` if it is.
+
+    >>> check_name("leather_01")
+    >>> check_name("../../x")
+    "'../../x' is a path"
+    """
+    if not isinstance(name, str):
+        return f"{_short(name)} is not a string"
+    if "/" in name or "\\" in name or name in (".", "..") or os.path.isabs(name):
+        return f"{_short(name)} is a path"
+    if len(name) > MAX_NAME_LENGTH:
+        return f"{_short(name)} has {len(name)} characters; at most {MAX_NAME_LENGTH}"
+    if not _NAME.match(name):
+        bad = sorted({c for c in name if not (c.isascii() and (c.isalnum() or c in "_.-"))})
+        if bad:
+            return f"{_short(name)} contains {', '.join(repr(c) for c in bad[:5])}"
+        return f"{_short(name)} starts with {name[:1]!r}" if name else "the name is empty"
+    return None
+
+
+def _short(value, limit: int = 60) -> str:
+    """``repr(value)``, cut to ``limit`` characters for a message (a value may be megabytes)."""
+    try:
+        text = repr(value)
+    except RecursionError:
+        text = f"<a deeply nested {type(value).__name__}>"
+    return text if len(text) <= limit else text[:limit - 5] + "...'" + f" ({len(text)} characters)"
 
 
 def _check_options(path: Path, options: dict[str, Any], lines: dict[str, int]) -> None:
@@ -150,52 +216,117 @@ def _check_options(path: Path, options: dict[str, Any], lines: dict[str, int]) -
         fail(key, str(e))
 
 
+def _read_text(path: Path) -> str:
+    """The manifest's text: a file of at most :data:`MAX_MANIFEST_BYTES`, UTF-8 (a BOM is skipped)."""
+    try:
+        if not path.is_file():
+            raise InputError(f"{path}: manifest not found" if not path.exists() else
+                             f"{path}: not a file (expected a TOML manifest)")
+        size = path.stat().st_size
+        if size > MAX_MANIFEST_BYTES:
+            raise InputError(f"{path}: {size} bytes; a manifest is at most {MAX_MANIFEST_BYTES} bytes")
+        data = path.read_bytes()[:MAX_MANIFEST_BYTES + 1]
+    except OSError as e:
+        from .io import os_error_message
+
+        raise InputError(f"{path}: cannot read the manifest: {os_error_message(e)}") from None
+    if len(data) > MAX_MANIFEST_BYTES:
+        raise InputError(f"{path}: more than {MAX_MANIFEST_BYTES} bytes; a manifest is at most {MAX_MANIFEST_BYTES}")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = data[:e.start].count(b"\n") + 1
+        column = e.start - (data.rfind(b"\n", 0, e.start) + 1) + 1
+        raise InputError(f"{path}:{line}: byte 0x{data[e.start]:02x} (column {column}) is not UTF-8; a manifest is "
+                         "TOML, which is UTF-8 text (comments too)") from None
+    return text.removeprefix("\ufeff")
+
+
+def _parse(path: Path, text: str) -> dict:
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"{path}: not valid TOML ({e})") from None
+    except RecursionError:
+        raise InputError(f"{path}: arrays or inline tables nested too deeply to read; a manifest's values are "
+                         "numbers and strings") from None
+
+
+def _problems_error(path: Path, problems: list[str]) -> InputError:
+    if len(problems) == 1:
+        return InputError(problems[0])
+    return InputError(f"{path}: {len(problems)} problems, nothing was run (each is fixed in the manifest):\n  "
+                      + "\n  ".join(problems))
+
+
 def read_manifest(manifest, output_dir, *, cpus_per_task: int = 1) -> list[FitTask]:
     """The tasks of a manifest file, every key and option checked.
 
     Raises :class:`InputError` naming the file, line and key for an unknown key, a value of the wrong
-    type or range, a ``[[source]]`` without ``btf``, or two sources with one name; nothing runs before.
+    type or range, a ``[[source]]`` without ``btf``, a ``name`` that is not :data:`NAME_RULE`, or two
+    sources with one name; every problem of every source is listed in one error (one line each), and
+    nothing runs before. Also for a file that is not UTF-8 TOML of at most :data:`MAX_MANIFEST_BYTES`.
     """
     path = Path(manifest)
-    if not path.is_file():
-        raise InputError(f"{path}: manifest not found")
-    text = path.read_text()
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as e:
-        raise InputError(f"{path}: not valid TOML ({e})") from None
+    text = _read_text(path)
+    data = _parse(path, text)
     default_lines, source_lines = _key_lines(text)
     unknown = set(data) - {"defaults", "source"}
     if unknown:
         key = sorted(unknown)[0]
         line = next((n for n, s in enumerate(text.splitlines(), 1) if re.match(rf"\s*\[*\s*{re.escape(key)}\b", s)), 0)
-        raise InputError(f"{path}:{line}: unknown key {key!r}; a manifest has [defaults] and [[source]] tables")
+        raise InputError(f"{path}:{line}: unknown key {_short(key)}; a manifest has [defaults] and [[source]] tables")
     defaults = data.get("defaults", {})
     if not isinstance(defaults, dict):
         raise InputError(f"{path}: 'defaults' must be a table ([defaults])")
-    _check_table(path, defaults, default_lines, "[defaults]", MANIFEST_OPTIONS)
+    problems: list[str] = []
+    try:
+        _check_table(path, defaults, default_lines, "[defaults]", MANIFEST_OPTIONS)
+    except InputError as e:
+        problems.append(str(e))
     sources = data.get("source", [])
-    if not isinstance(sources, list) or not sources:
-        raise InputError(f"{path}: no [[source]] tables: nothing to fit")
+    if isinstance(sources, list) and not sources:
+        raise _problems_error(path, problems + [f"{path}: no [[source]] tables: nothing to fit"])
+    if not isinstance(sources, list) or any(not isinstance(table, dict) for table in sources):
+        raise _problems_error(path, problems + [f"{path}: 'source' must be an array of tables ([[source]])"])
+    defaults_ok = not problems
     tasks: list[FitTask] = []
     seen: dict[str, int] = {}
     for index, table in enumerate(sources):
         lines = source_lines[index] if index < len(source_lines) else {}
-        _check_table(path, table, lines, f"[[source]] #{index + 1}", MANIFEST_OPTIONS | SOURCE_KEYS)
-        if "btf" not in table:
-            raise InputError(f"{path}:{lines.get('', 0)}: [[source]] #{index + 1} has no 'btf' key (a BTF file "
-                             "or a spec such as 'sim:leather?size=128')")
-        options = {**defaults, **{k: v for k, v in table.items() if k not in SOURCE_KEYS}}
-        _check_options(path, options, {**default_lines, **lines})
+        where = lines.get("", 0)
+        try:
+            _check_table(path, table, lines, f"[[source]] #{index + 1}", MANIFEST_OPTIONS | SOURCE_KEYS)
+            if "btf" not in table:
+                raise InputError(f"{path}:{where}: [[source]] #{index + 1} has no 'btf' key (a BTF file "
+                                 "or a spec such as 'sim:leather?size=128')")
+            if not table["btf"].strip():
+                raise InputError(f"{path}:{lines.get('btf', where)}: [[source]] #{index + 1} key 'btf' is empty; "
+                                 "expected a BTF file or a spec such as 'sim:leather?size=128'")
+            name = table.get("name")
+            if name is not None:
+                why = check_name(name)
+                if why is not None:
+                    raise InputError(f"{path}:{lines.get('name', where)}: [[source]] #{index + 1} name {why}; a name "
+                                     f"is {NAME_RULE}, so that its model is written inside the output directory")
+            name = name or _default_name(table["btf"])
+            options = {**defaults, **{k: v for k, v in table.items() if k not in SOURCE_KEYS}}
+            if defaults_ok:
+                _check_options(path, options, {**default_lines, **lines})
+        except InputError as e:
+            problems.append(str(e))
+            continue
         btf = table["btf"]
         if not btf.startswith("sim:") and not Path(btf).is_absolute():
-            btf = str((path.parent / btf).resolve())
-        name = table.get("name") or _default_name(table["btf"])
+            btf = os.path.abspath(path.parent / btf)
         if name in seen:
-            raise InputError(f"{path}:{lines.get('name', lines.get('', 0))}: two sources are named {name!r} "
-                             f"(also line {seen[name]}); give one a 'name'")
-        seen[name] = lines.get("", 0)
-        tasks.append(FitTask(name, btf, options, str(output_dir), int(cpus_per_task), lines.get("", 0)))
+            problems.append(f"{path}:{lines.get('name', where)}: two sources are named {name!r} (also line "
+                            f"{seen[name]}); give one a 'name'")
+            continue
+        seen[name] = where
+        tasks.append(FitTask(name, btf, options, str(output_dir), int(cpus_per_task), where))
+    if problems:
+        raise _problems_error(path, problems)
     return tasks
 
 
@@ -299,6 +430,116 @@ def _counted(task_fn: Callable[..., dict[str, Any]]):
     return run
 
 
+def _first_line(e: BaseException) -> str:
+    text = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {text[0][:300]}" if text else type(e).__name__
+
+
+def _check_fits(node_cpus: list[float], cpus_per_task: int, where: str) -> None:
+    """A task of ``cpus_per_task`` CPUs must fit on one node, or Ray waits for ever."""
+    largest = max(node_cpus, default=0.0)
+    if cpus_per_task > largest:
+        raise InputError(f"--cpus-per-task {cpus_per_task}: no task could ever be scheduled: {where} has at most "
+                         f"{largest:g} CPUs on one node; expected --cpus-per-task {max(1, int(largest))} or less"
+                         + (" (or a larger --cpus)" if where.startswith("the local") else ""))
+
+
+def _node_cpus(ray) -> list[float]:
+    return [float(n.get("Resources", {}).get("CPU", 0.0)) for n in ray.nodes() if n.get("Alive")]
+
+
+_ADDRESS = re.compile(r"(?:(?P<scheme>[A-Za-z][A-Za-z0-9+.-]*)://)?(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+)"
+                      r":(?P<port>[0-9]{1,5})\Z")
+
+
+def check_address(address: str) -> tuple[str, int] | None:
+    """``(host, port)`` of a Ray ``address`` (``host:port`` or ``ray://host:port``); ``None`` for ``"auto"``.
+
+    Raises :class:`InputError` for anything else (the forms Ray accepts are named).
+
+    >>> check_address("ray://head:10001")
+    ('head', 10001)
+    """
+    if address in ("auto",):
+        return None
+    match = _ADDRESS.match(address or "")
+    port = int(match.group("port")) if match else 0
+    scheme = match.group("scheme") if match else None
+    if match is None or not 1 <= port <= 65535 or scheme not in (None, "ray"):
+        raise InputError(f"--address {_short(address)}: expected 'auto', HOST:PORT (the head's GCS, e.g. "
+                         "10.0.0.5:6379) or ray://HOST:PORT (Ray Client, e.g. ray://head:10001)")
+    return match.group("host").strip("[]"), port
+
+
+_PROBE = """
+import json, sys
+import ray
+ray.init(address=sys.argv[1], include_dashboard=False, log_to_driver=False, configure_logging=False)
+print(json.dumps([float(n.get("Resources", {}).get("CPU", 0.0)) for n in ray.nodes() if n.get("Alive")]))
+ray.shutdown()
+"""
+
+
+def _probe_cluster(address: str, cpus_per_task: int) -> None:
+    """Check that ``address`` answers (within :data:`CONNECT_TIMEOUT` s) and has a node large enough.
+
+    A Ray driver that connects to an address where no Ray head answers waits for minutes and then
+    exits the process; the probe runs in a child process with a deadline instead.
+    """
+    hostport = check_address(address)
+    if hostport is not None:
+        try:
+            with socket.create_connection(hostport, timeout=min(10.0, CONNECT_TIMEOUT)):
+                pass
+        except OSError as e:
+            reason = e.strerror or str(e) or type(e).__name__
+            raise InputError(f"--address {address!r}: cannot reach {hostport[0]}:{hostport[1]} ({reason}); is the "
+                             "Ray head running there (ray start --head) and the port open?") from None
+    try:
+        done = subprocess.run([sys.executable, "-c", _PROBE, address], capture_output=True, text=True,
+                              timeout=CONNECT_TIMEOUT)
+    except subprocess.TimeoutExpired:
+        raise InputError(f"--address {address!r}: no Ray cluster answered within {CONNECT_TIMEOUT:g} s (the port is "
+                         "open, but is it a Ray head's GCS port, 6379 by default, or a Ray Client port?)") from None
+    lines = done.stdout.strip().splitlines()
+    try:
+        node_cpus = [float(x) for x in json.loads(lines[-1])] if done.returncode == 0 and lines else None
+    except (ValueError, TypeError):
+        node_cpus = None
+    if node_cpus is None:
+        errors = [line for line in done.stderr.strip().splitlines() if "Error" in line] or done.stderr.strip().splitlines()
+        reason = errors[-1][:300] if errors else f"exit status {done.returncode}"
+        raise InputError(f"--address {address!r}: cannot connect to a Ray cluster: {reason}")
+    _check_fits(node_cpus, cpus_per_task, f"the cluster at {address}")
+
+
+def check_run(manifest, output_dir, *, address: str | None = None, cpus: int | None = None, cpus_per_task: int = 1,
+              max_retries: int = 3) -> list[FitTask]:
+    """Everything :func:`fit_many` checks before it starts Ray; the tasks it would run.
+
+    The arguments' ranges, the output directory (writable, not a file), the manifest
+    (:func:`read_manifest`), the address's form, and that a task fits on the local instance
+    (``cpus_per_task <= cpus``). Raises :class:`InputError`; writes nothing, starts nothing.
+    """
+    from .limits import check_count
+
+    check_count(cpus_per_task, "--cpus-per-task", high=4096, unit="CPUs per task")
+    if cpus is not None:
+        check_count(cpus, "--cpus", high=65536, unit="CPUs for the local Ray instance")
+    check_count(max_retries, "--max-retries", low=0, high=MAX_RETRIES, unit="retries of a task whose worker died")
+    check_writable(output_dir, "-o/--output", directory=True)
+    tasks = read_manifest(manifest, output_dir, cpus_per_task=cpus_per_task)
+    if address:
+        check_address(address)
+    else:
+        local = cpus or os.cpu_count() or 1
+        if cpus_per_task > local:
+            raise InputError(f"--cpus-per-task {cpus_per_task}: no task could ever be scheduled: the local Ray "
+                             f"instance has {local} CPU(s) ({'--cpus' if cpus else 'all of this machine'}); expected "
+                             f"--cpus-per-task {local} or less, or a larger --cpus")
+    return tasks
+
+
 def fit_many(manifest, output_dir, *, address: str | None = None, cpus: int | None = None, cpus_per_task: int = 1,
              max_retries: int = 3, progress: bool = True, task_fn: Callable[[FitTask], dict[str, Any]] = fit_one
              ) -> list[dict[str, Any]]:
@@ -312,12 +553,13 @@ def fit_many(manifest, output_dir, *, address: str | None = None, cpus: int | No
         Models (``<name>.dbtfm``), evaluations (``<name>_eval/``), ``results.csv``, ``results.json``,
         ``index.html``.
     address : str, optional
-        An existing Ray cluster; default: a local Ray instance with ``cpus`` CPUs (default: all),
-        started and stopped here.
+        An existing Ray cluster (``"auto"``, ``"HOST:PORT"`` or ``"ray://HOST:PORT"``), which must
+        answer within :data:`CONNECT_TIMEOUT` seconds and have a node with ``cpus_per_task`` CPUs;
+        default: a local Ray instance with ``cpus`` CPUs (default: all), started and stopped here.
     cpus_per_task : int
-        CPUs (torch threads) per fit.
+        CPUs (torch threads) per fit, at most ``cpus`` (a task never runs otherwise: refused).
     max_retries : int
-        Retries of a task whose worker process died (a retry resumes from the checkpoint).
+        Retries of a task whose worker process died (a retry resumes from the checkpoint), 0..100.
     task_fn : callable
         What a task runs (default :func:`fit_one`).
 
@@ -327,17 +569,24 @@ def fit_many(manifest, output_dir, *, address: str | None = None, cpus: int | No
         One result row per source, in manifest order (:data:`RESULT_COLUMNS`).
     """
     output_dir = Path(output_dir)
-    if cpus_per_task < 1:
-        raise InputError(f"--cpus-per-task: expected an integer >= 1, got {cpus_per_task}")
-    tasks = read_manifest(manifest, output_dir, cpus_per_task=cpus_per_task)
+    tasks = check_run(manifest, output_dir, address=address, cpus=cpus, cpus_per_task=cpus_per_task,
+                      max_retries=max_retries)
     ray = optional_module("ray", "cluster", "dynbtf fit-many")
+    if address and not ray.is_initialized():
+        _probe_cluster(address, cpus_per_task)
     output_dir.mkdir(parents=True, exist_ok=True)
     for task in tasks:
         (output_dir / f".{task.name}.attempts").unlink(missing_ok=True)
     started_here = not ray.is_initialized()
     if started_here:
         init = {"address": address} if address else {"num_cpus": cpus or os.cpu_count() or 1}
-        ray.init(**init, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        try:
+            ray.init(**init, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        except Exception as e:  # a cluster that went away since the probe, a local instance that cannot start
+            where = f"--address {address!r}" if address else "the local Ray instance"
+            raise InputError(f"{where}: Ray could not start or connect: {_first_line(e)}") from None
+    else:
+        _check_fits(_node_cpus(ray), cpus_per_task, "the running Ray instance")
     try:
         remote = ray.remote(_counted(task_fn)).options(num_cpus=cpus_per_task, max_retries=max_retries,
                                                         retry_exceptions=False)

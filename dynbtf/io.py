@@ -9,6 +9,7 @@ silently write TIFF data into a ``.exr`` name).
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from pathlib import Path
@@ -19,6 +20,8 @@ from .errors import FormatError, InputError
 
 __all__ = [
     "atomic_path",
+    "check_writable",
+    "os_error_message",
     "require_file",
     "linear_to_srgb",
     "srgb_to_linear",
@@ -57,10 +60,97 @@ def atomic_path(path, suffix: str | None = None):
         if os.path.isfile(tmp):  # mkstemp makes 0600 files; give the usual umask-based mode
             os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+    except BaseException as e:
+        with contextlib.suppress(OSError):
             os.remove(tmp)
+        if isinstance(e, OSError) and e.filename is None:  # a failed write or close names no file: name it
+            e.filename = str(path)
         raise
+
+
+def _nearest_existing(path: Path) -> Path:
+    """``path`` or its nearest ancestor that exists (``.`` for a relative path with none)."""
+    current = path
+    while not os.path.lexists(current):
+        parent = current.parent
+        if parent == current:
+            break
+        current = parent
+    return current
+
+
+def check_writable(path, what: str, *, directory: bool = False, needed_bytes: int | None = None) -> Path:
+    """Check, before any work, that output ``path`` can be written; else :class:`InputError`, one line.
+
+    ``what`` names the output in the message (e.g. ``"-o/--output"``). ``directory``: ``path`` is
+    a directory to create or fill (else a file to create or replace). Refused, with the reason:
+    ``path`` is a directory where a file is wanted (``-o .``) or a file where a directory is
+    wanted; a component of the path is a file (``out.png/x.png``); the nearest existing directory
+    is not writable (permissions, a read-only file system); its file system has no space left
+    (or less than ``needed_bytes``). Nothing is created. Writes themselves go through
+    :func:`atomic_path`, so a disk that fills up later leaves no partial file.
+
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> root = Path(tempfile.mkdtemp())
+    >>> check_writable(root / "new" / "x.png", "-o").name
+    'x.png'
+    >>> check_writable(root, "-o")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    dynbtf.errors.InputError: -o ...: is a directory; expected a file name in it (e.g. .../out.png)
+    """
+    raw = path
+    try:
+        path = Path(os.fsdecode(path))
+        text = str(path)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{what}: expected a path, got {raw!r} ({e})") from None
+    if not text or "\x00" in text:
+        raise InputError(f"{what}: expected a path, got {raw!r}")
+    try:
+        is_dir, exists = path.is_dir(), os.path.lexists(path)
+        if directory and exists and not is_dir:
+            raise InputError(f"{what} {path}: exists and is not a directory")
+        if not directory and is_dir:
+            example = "out" + (path.suffix or ".png")
+            raise InputError(f"{what} {path}: is a directory; expected a file name in it (e.g. {path / example})")
+        base = _nearest_existing(path if directory else path.parent)
+        if not base.is_dir():
+            raise InputError(f"{what} {path}: cannot be created: {base} is a file, not a directory")
+        if not os.access(base, os.W_OK | os.X_OK):
+            readonly = bool(os.statvfs(base).f_flag & getattr(os, "ST_RDONLY", 1))
+            reason = "read-only file system" if readonly else "permission denied"
+            raise InputError(f"{what} {path}: cannot write into {base}: {reason}")
+        stat = os.statvfs(base)
+        free = stat.f_bavail * stat.f_frsize
+        if free <= 0 or (needed_bytes is not None and free < needed_bytes):
+            need = f" (about {needed_bytes / 1e6:.3g} MB needed, {free / 1e6:.3g} MB free)" if needed_bytes else ""
+            raise InputError(f"{what} {path}: cannot write into {base}: no space left on device{need}")
+    except OSError as e:  # a path too long, a loop of links, an unreadable parent
+        raise InputError(f"{what} {path}: cannot be written: {os_error_message(e)}") from None
+    return path
+
+
+def os_error_message(e: OSError) -> str:
+    """One line for an operating-system error: ``"PATH: no space left on device"``.
+
+    What the command line prints for an :class:`OSError` (a full disk, a read-only file system)
+    met while reading or writing, instead of a traceback.
+
+    >>> import errno
+    >>> os_error_message(OSError(errno.ENOSPC, "No space left on device", "/tmp/x.png"))
+    '/tmp/x.png: no space left on device'
+    """
+    reason = e.strerror or str(e) or type(e).__name__
+    if e.errno is not None and not e.strerror:
+        reason = os.strerror(e.errno)
+    reason = reason[:1].lower() + reason[1:]
+    if e.errno == errno.ENOSPC:
+        reason = "no space left on device"
+    names = [n for n in (e.filename, e.filename2) if n is not None]
+    where = " -> ".join(os.fsdecode(n) if isinstance(n, (str, bytes)) else str(n) for n in names)
+    return f"{where}: {reason}" if where else reason
 
 
 def require_file(path, expected: str) -> Path:
@@ -141,12 +231,20 @@ def save_image(path, rgb, *, exposure: float = 1.0) -> Path:
             header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
             channels = {"RGB": np.ascontiguousarray(rgb, dtype=np.float32)}
             with OpenEXR.File(header, channels) as f:
-                f.write(str(tmp))
+                try:
+                    f.write(str(tmp))
+                except RuntimeError as e:  # OpenEXR reports a failed write (a full disk) as a RuntimeError
+                    full = "No space left on device" in str(e)
+                    raise OSError(errno.ENOSPC if full else errno.EIO,
+                                  "No space left on device" if full else f"cannot write the EXR file ({e})",
+                                  str(path)) from None
     else:
         import imageio.v3 as iio
 
+        # encoded in memory, then written: a failed write raises here, not in a plug-in's destructor
+        data = iio.imwrite("<bytes>", to_uint8_srgb(rgb, exposure), extension=ext)
         with atomic_path(path) as tmp:
-            iio.imwrite(tmp, to_uint8_srgb(rgb, exposure), extension=ext)
+            tmp.write_bytes(data)
     return path
 
 

@@ -29,7 +29,9 @@ def export_command(
              "hist, tile; the first is the viewer's default). auto is the model's choice (struct for a structured "
              "positional plane, else hist), printed and exported under the chosen name."),
     seed: int = typer.Option(0, help="Synthesis seed (the choices of SynthesizedBTF with this seed)."),
-    scale: float = typer.Option(8.0, help="The viewer's initial exemplar repeats per unit of the surface's uv."),
+    scale: float = typer.Option(8.0, help="The viewer's initial exemplar repeats per unit of the surface's uv "
+                                          "(positive, below 4096: the shader's float32 local uv spans at most "
+                                          "2**12 repeats)."),
     viewer: bool = typer.Option(True, "--viewer/--no-viewer", help="Also write the viewer page (index.html, viewer.js "
                                                                    "and .js copies of the binary files)."),
 ) -> None:
@@ -39,8 +41,15 @@ def export_command(
     (methods auto, hist, tile: auto prints its choice, struct for a structured material, else hist)
     """
     from ..export.web.exporter import DEFAULT_METHODS, WEB_PRECISIONS, export_web
+    from ..export.web.shader import LOCAL_REPEATS
+    from ..io import check_writable
+    from ..limits import check_scale
     from ..representations.model_file import read_model_metadata
 
+    check_writable(output, "-o/--output", directory=True)
+    # the viewer's meshes have uv in [0, 1]: uv x scale is the shader's float32 local uv
+    check_scale(scale, "--scale", float32=True, limit=LOCAL_REPEATS,
+                where="the shader's float32 local uv (dynbtf.export.web.shader.LOCAL_REPEATS)")
     if export_format not in FORMATS:
         raise InputError(f"--format: expected one of {list(FORMATS)}, got {export_format!r}")
     if precision not in WEB_PRECISIONS:

@@ -24,12 +24,26 @@ def fit_many_command(
     max_retries: int = typer.Option(3, "--max-retries", help="Retries of a fit whose worker process died (it "
                                                              "resumes from its checkpoint)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress display."),
+    check: bool = typer.Option(False, "--check", help="Check the manifest, the output directory and the resources "
+                                                      "(every problem listed), print the tasks, and stop: nothing "
+                                                      "is written and Ray is not started."),
 ) -> None:
     """Fit every BTF of a manifest as a Ray task; a results table and an index.html with the evaluations.
 
+    Everything is checked before Ray starts: every problem of the manifest is listed together and
+    nothing runs (a source's name must be a plain file name: models stay inside -o).
+
     Example: dynbtf fit-many library.toml -o library/ --cpus-per-task 2
     """
-    from ..fit_many import fit_many
+    from ..fit_many import check_run, fit_many
+
+    if check:
+        tasks = check_run(manifest, output, address=address, cpus=cpus, cpus_per_task=cpus_per_task,
+                          max_retries=max_retries)
+        for task in tasks:
+            typer.echo(f"{task.name}: {task.btf} -> {task.model_path}")
+        typer.echo(f"{manifest}: {len(tasks)} source(s) checked; nothing was run (--check)")
+        return
 
     rows = fit_many(manifest, output, address=address, cpus=cpus, cpus_per_task=cpus_per_task,
                     max_retries=max_retries, progress=not quiet)

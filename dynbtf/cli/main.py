@@ -1,7 +1,9 @@
 """Entry point of the ``dynbtf`` command.
 
 User mistakes (:class:`dynbtf.errors.DynBTFError`) are printed as one clear line
-on standard error with exit status 2, never as a traceback.
+on standard error with exit status 2, never as a traceback; so are the operating system's
+refusals met while reading or writing (:class:`OSError`: a full disk, a read-only file
+system, a path under a file), e.g. ``dynbtf: error: out.png: no space left on device``.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from . import compare_commands  # noqa: F401,E402
 from . import synth_commands  # noqa: F401,E402
 from . import fit_many_commands  # noqa: F401,E402
 from . import export_commands  # noqa: F401,E402
+from . import system_commands  # noqa: F401,E402
 
 __all__ = ["app", "main"]
 
@@ -32,6 +35,11 @@ def main(argv: list[str] | None = None) -> int:
             return status
     except DynBTFError as e:
         print(f"dynbtf: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # the environment refused a read or write (a full disk, a read-only file system)
+        from ..io import os_error_message
+
+        print(f"dynbtf: error: {os_error_message(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("dynbtf: interrupted (long jobs resume when run again with the same output)", file=sys.stderr)

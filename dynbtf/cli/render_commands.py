@@ -34,24 +34,35 @@ def render(
     exposure: float = typer.Option(1.0, help="Multiplier applied before sRGB encoding (PNG only)."),
     variant: Optional[str] = typer.Option(None, help="Mitsuba variant (default llvm_ad_rgb; cuda_ad_rgb on a GPU); "
                                                      "an unavailable one is refused with the list of available ones."),
+    memory_mb: Optional[float] = typer.Option(None, "--memory-mb", help="Limit (MB) of the render's estimated working "
+                                                                        "memory (~0.5 kB per sample in flight: --size "
+                                                                        "squared x min(--spp, 4)); default half of "
+                                                                        "this machine's memory. Larger requests are "
+                                                                        "refused up front."),
 ) -> None:
     """Path-trace a scene covered by the synthesized BTF with Mitsuba 3 (decoder inside the kernel).
 
     The first pass compiles the rendering kernel (up to a minute the first time a model, method and
     shape are rendered; Dr.Jit caches it): a status line says so, then a bar counts samples.
+
+    Limits, checked before anything loads: --scale below 2**24 repeats (Mitsuba's uv is float32),
+    --spp at most 65536 and --size^2 x --spp at most 2**32 samples, the estimated memory within
+    --memory-mb; Mitsuba's CPU back end needs LLVM 16 or newer (`dynbtf system` shows the one found).
     """
-    from ..io import check_image_path, save_image
-    from ..render.mitsuba.scene_render import render_scene
+    from ..io import check_image_path, check_writable, save_image
+    from ..render.mitsuba.scene_render import check_render_request, render_scene
 
     from .arguments import check_exposure
 
     check_image_path(output)  # before the render, not after it
+    check_writable(output, "-o/--output")
     check_exposure(exposure)
     if size < 1:
         raise InputError(f"--size: expected a positive number of pixels, got {size}")
+    check_render_request(scale=scale, resolution=(size, size), spp=spp, memory_mb=memory_mb, size_name="size")
     result = render_scene(model, scene=scene, method=method, scale=scale, seed=seed, lighting=lighting,
                           resolution=(size, size), spp=spp, variant=variant, progress=True, sampling=sampling,
-                          filtered=filtered, echo=typer.echo)
+                          filtered=filtered, echo=typer.echo, memory_mb=memory_mb)
     save_image(output, result.image, exposure=exposure)
     timing = (f"incl. {result.compile_seconds:.1f} s kernel compilation" if result.passes > 1
               else "one pass, kernel compilation included")

@@ -22,6 +22,33 @@ from .app import app
 #: Largest quilted plane ``dynbtf synth`` generates, bytes of stored float32 (512 MiB: 22 x 22
 #: repeats of a 128^2 x 16 plane, 7 x 7 of a 400^2 x 16 one; peak memory while quilting ~9x that).
 QUILT_MAX_BYTES = 512 * 2**20
+#: Working memory of ``SynthesizedBTF.image`` per pixel, bytes (float64 sums, uv grids, the decoded
+#: chunk; measured ~92 bytes per pixel at 1024^2 to 2048^2, hist, 128^2 x 16 plane).
+BYTES_PER_PIXEL = 100
+#: Most samples per pixel axis (--spp; spp x spp samples per pixel).
+MAX_SPP = 64
+#: Most queries of one image (pixels x spp^2): 2**32, about an hour at 1-2 million queries per second.
+MAX_QUERIES = 2**32
+
+
+def check_image_request(resolution: int, spp: int, memory_mb: float | None) -> None:
+    """--resolution, --spp and the estimated memory of ``SynthesizedBTF.image`` within limits, else InputError."""
+    from ..limits import check_count, check_memory
+
+    if resolution < 1:
+        raise InputError(f"--resolution: expected a positive number of pixels, got {resolution}")
+    if spp < 1:
+        raise InputError(f"--spp: expected a positive number of samples per pixel axis, got {spp}")
+    check_count(spp, "--spp", high=MAX_SPP, unit="samples per pixel axis",
+                why=f"--spp N takes N x N samples per pixel; {MAX_SPP} x {MAX_SPP} already averages 4096")
+    check_memory(float(resolution) ** 2 * BYTES_PER_PIXEL,
+                 f"--resolution {resolution} ({float(resolution) ** 2:.3g} pixels, ~{BYTES_PER_PIXEL} bytes each)",
+                 memory_mb, fix="expected a smaller --resolution")
+    queries = float(resolution) ** 2 * spp * spp
+    if queries > MAX_QUERIES:
+        raise InputError(f"--resolution {resolution} with --spp {spp} is {queries:.3g} queries ({spp} x {spp} per "
+                         f"pixel), above the limit of {MAX_QUERIES:.3g} (2**32, about an hour); expected a smaller "
+                         "--resolution or --spp")
 
 
 def _pair(text: str, name: str) -> tuple[float, float]:
@@ -98,16 +125,24 @@ def synth(
     repeats: int = typer.Option(8, help="Side of the area measured by --report, in exemplar repeats; reduced to "
                                         "fit 1024 texels per side (8 repeats of a 128-texel exemplar; the report "
                                         "prints the measured area)."),
+    memory_mb: Optional[float] = typer.Option(None, "--memory-mb", help="Limit (MB) of the image's estimated "
+                                                                        f"working memory (~{BYTES_PER_PIXEL} bytes "
+                                                                        "per pixel); default half of this machine's "
+                                                                        "memory. Larger images are refused up front."),
 ) -> None:
     """Synthesize a flat sample of the BTF at any scale and position; optionally report quality.
 
     The image shows the uv square of side 1 centred at --center under one view
     and one directional light; pixel values are BTF values (linear RGB, excluding
     cos(theta_light), as everywhere in dynbtf; --cosine multiplies it in).
+
+    Limits, checked before the model loads: |uv| * --scale below 2**52 repeats, --spp at most 64
+    per axis, --resolution^2 x --spp^2 at most 2**32 queries, the estimated memory within --memory-mb.
     """
     from ..conventions import spherical_to_direction
     from ..device import resolve_device
-    from ..io import save_image
+    from ..io import check_image_path, check_writable, save_image
+    from ..limits import check_scale
     from ..representations.model_file import load_model
     from ..synthesis.base import check_uv
     from ..infinite_btf import SynthesizedBTF
@@ -115,11 +150,16 @@ def synth(
 
     if output is None and not report:
         raise InputError("nothing to do: give -o/--output for an image and/or --report")
+    if output is not None:
+        check_image_path(output)
+        check_writable(output, "-o/--output")
+    if report:
+        check_writable(report_json or (output.with_suffix(".quality.json") if output is not None
+                                       else Path("synthesis-quality.json")), "--report-json")
     where = resolve_device(device)
-    if resolution < 1:
-        raise InputError(f"--resolution: expected a positive number of pixels, got {resolution}")
-    if not (math.isfinite(scale) and scale > 0):
-        raise InputError(f"--scale: expected a positive number of exemplar repeats, got {scale}")
+    if output is not None:
+        check_image_request(resolution, spp, memory_mb)
+    scale = check_scale(scale, "--scale", where="the library's float64 uv")
     view_dir, light_dir = parse_theta_phi(view, "view"), parse_theta_phi(light, "light")
     check_exposure(exposure)
     cu, cv = _pair(center, "center")

@@ -10,11 +10,54 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import InputError
+from ...limits import check_count, check_memory, check_scale
 from .bsdf import DEFAULT_METHOD, METHODS, load_plugin_model, register_plugin
+from .llvm import check_llvm
 from .sampling import SAMPLING_MODES
 from .scenes import LIGHTINGS, SCENES, bsdf_dict, scene_dict
 
-__all__ = ["render_scene", "RenderResult"]
+__all__ = ["render_scene", "RenderResult", "render_memory_bytes", "check_render_request", "MAX_SPP", "MAX_SAMPLES",
+           "BYTES_PER_SAMPLE"]
+
+#: Working memory of a render pass per sample in flight (Dr.Jit's wavefront buffers of the path tracer and
+#: the plugin; measured: ~1.7 kB per pixel at 4 samples per pass, 512^2 to 1024^2, llvm_ad_rgb), bytes.
+BYTES_PER_SAMPLE = 512
+#: Most samples per pixel ``dynbtf render`` takes (a converged reference needs ~1-4k).
+MAX_SPP = 65536
+#: Most samples in one render (pixels x spp): 2**32, about an hour of the CPU back end.
+MAX_SAMPLES = 2**32
+#: What Mitsuba's uv arithmetic is, for the scale's limit (:func:`dynbtf.limits.check_scale`).
+UV_ARITHMETIC = "Mitsuba's float32 uv (mesh uv x scale, in float32)"
+
+
+def render_memory_bytes(resolution, spp: int, spp_per_pass: int = 4) -> float:
+    """Estimated working memory of a render (its image buffers and one pass's samples in flight), bytes."""
+    height, width = (int(x) for x in resolution)
+    in_flight = min(int(spp), int(spp_per_pass))
+    return float(height) * width * (in_flight * BYTES_PER_SAMPLE + 3 * 8 * 2)
+
+
+def check_render_request(*, scale: float, resolution, spp: int, spp_per_pass: int = 4,
+                         memory_mb: float | None = None, size_name: str = "resolution") -> float:
+    """The limits of a render, checked before anything loads: the scale (finite, positive, below the
+    2**24 repeats float32 uv resolves: the scenes' uv span [0, 1]), the samples (:data:`MAX_SPP` per
+    pixel, :data:`MAX_SAMPLES` in all) and the estimated memory (:func:`render_memory_bytes` within
+    ``memory_mb``, default half the machine's memory). Returns the scale as a float."""
+    scale = check_scale(scale, "--scale", float32=True, where=UV_ARITHMETIC)
+    if int(spp) != spp or spp < 1:
+        raise InputError(f"--spp: expected a positive number of samples per pixel, got {spp}")
+    check_count(int(spp), "--spp", high=MAX_SPP, unit="samples per pixel")
+    height, width = (int(x) for x in resolution)
+    check_memory(render_memory_bytes((height, width), spp, spp_per_pass),
+                 f"--{size_name} {height if height == width else (height, width)} ({height * width:.3g} pixels, "
+                 f"{min(int(spp), int(spp_per_pass))} samples per pass)", memory_mb,
+                 fix="expected a smaller image")
+    samples = float(height) * width * int(spp)
+    if samples > MAX_SAMPLES:
+        raise InputError(f"--spp {spp} at {height}x{width} pixels is {samples:.3g} samples, above the limit of "
+                         f"{MAX_SAMPLES:.3g} (2**32, about an hour on the CPU); expected fewer samples per pixel or "
+                         "pixels")
+    return scale
 
 
 @dataclass
@@ -45,10 +88,19 @@ def _status(progress: bool, text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
 
+def _wanted_variant(variant: str | None) -> str:
+    """The variant :func:`register_plugin` will set (the active one, else ``llvm_ad_rgb``), without importing Mitsuba."""
+    if variant is not None:
+        return variant
+    mi = sys.modules.get("mitsuba")
+    active = mi.variant() if mi is not None and hasattr(mi, "variant") else None
+    return active or "llvm_ad_rgb"
+
+
 def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METHOD, scale: float = 25.0,
                  seed: int = 0, lighting: str = "sky", resolution=(512, 512), spp: int = 16, spp_per_pass: int = 4,
                  variant: str | None = None, progress: bool = True, sampling: str = "auto",
-                 filtered: bool = True, echo=None) -> RenderResult:
+                 filtered: bool = True, echo=None, memory_mb: float | None = None) -> RenderResult:
     """Path-trace ``scene`` covered by the synthesized BTF of ``model_path``.
 
     Every argument is checked before Mitsuba loads anything, so a mistake raises
@@ -67,7 +119,9 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
         structured material, else ``hist`` (:func:`dynbtf.infinite_btf.auto_method`), and
         the choice line is reported (``echo``) before the kernel is compiled.
     scale : float
-        Exemplar repeats across the mesh's uv range (positive).
+        Exemplar repeats across the mesh's uv range: positive, below 2**24 (Mitsuba's uv is float32,
+        which resolves no fraction of a repeat beyond; texels of a ``W``-texel exemplar are resolved
+        below ``2**23 / W`` repeats).
     seed : int
         Synthesis seed (the sampler uses the pass index).
     lighting : {"point", "sky"}
@@ -94,6 +148,9 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
         then a tqdm bar over the remaining passes' samples.
     echo : callable, optional
         Receives ``auto``'s choice line (default: standard error, with the status lines, if ``progress``).
+    memory_mb : float, optional
+        Limit of the estimated working memory (:func:`render_memory_bytes`), MB; default half the
+        machine's memory. Also: at most :data:`MAX_SPP` samples per pixel, :data:`MAX_SAMPLES` in all.
 
     Returns
     -------
@@ -112,11 +169,12 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
         raise InputError(f"--spp: expected a positive number of samples per pixel, got {spp}")
     if int(spp_per_pass) != spp_per_pass or spp_per_pass < 1:
         raise InputError(f"spp_per_pass: expected a positive number of samples per pixel, got {spp_per_pass}")
-    if not (math.isfinite(scale) and scale > 0):
-        raise InputError(f"--scale: expected a positive number of repeats, got {scale}")
+    scale = check_render_request(scale=scale, resolution=resolution, spp=spp, spp_per_pass=spp_per_pass,
+                                 memory_mb=memory_mb)
     if sampling not in SAMPLING_MODES:
         raise InputError(f"--sampling: expected one of {list(SAMPLING_MODES)}, got {sampling!r}")
     model = load_plugin_model(model_path)  # a missing/damaged file or an unsupported kind fails here, not in Mitsuba
+    check_llvm(_wanted_variant(variant))  # an old LLVM aborts the process while compiling: refused before
     active = register_plugin(variant)
     choice_line = None
     if method == "auto":  # resolved here (the plugin then runs the named method and reports nothing)
