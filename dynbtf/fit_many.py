@@ -86,6 +86,8 @@ _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*\Z")
 MAX_MANIFEST_BYTES = 4 * 2**20
 #: Seconds an ``address`` has to answer (a TCP connection, then a Ray driver connecting to it).
 CONNECT_TIMEOUT = 60.0
+#: Most problems of a manifest listed in one error (the count says how many more).
+MAX_LISTED = 50
 #: Largest ``max_retries`` (Ray's -1, retry for ever, is not offered).
 MAX_RETRIES = 100
 
@@ -255,8 +257,10 @@ def _parse(path: Path, text: str) -> dict:
 def _problems_error(path: Path, problems: list[str]) -> InputError:
     if len(problems) == 1:
         return InputError(problems[0])
+    listed = problems[:MAX_LISTED]
+    more = f"\n  ... and {len(problems) - MAX_LISTED} more" if len(problems) > MAX_LISTED else ""
     return InputError(f"{path}: {len(problems)} problems, nothing was run (each is fixed in the manifest):\n  "
-                      + "\n  ".join(problems))
+                      + "\n  ".join(listed) + more)
 
 
 def read_manifest(manifest, output_dir, *, cpus_per_task: int = 1) -> list[FitTask]:

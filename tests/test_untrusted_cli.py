@@ -93,6 +93,15 @@ def test_every_bad_source_is_reported_together_and_nothing_runs(tmp_path, capsys
     assert not (tmp_path / "out").exists()
 
 
+def test_a_manifest_of_many_bad_sources_lists_fifty_and_counts_the_rest(tmp_path, capsys):
+    manifest = _manifest(tmp_path, "".join(f'[[source]]\nbtf = "sim:leather?size=8"\nname = "../n{i}"\n'
+                                           for i in range(3000)))
+    assert main(["fit-many", str(manifest), "-o", str(tmp_path / "out"), "--check"]) == 2
+    err = capsys.readouterr().err
+    assert "3000 problems, nothing was run" in err and err.rstrip().endswith("... and 2950 more")
+    assert len(err.splitlines()) == 52
+
+
 def test_default_names_from_odd_files_stay_inside_the_output_directory(tmp_path):
     from dynbtf.fit_many import read_manifest
 
