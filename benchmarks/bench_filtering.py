@@ -62,7 +62,7 @@ def main() -> None:
     btf = SynthesizedBTF(args.model, args.method, scale=args.scale, seed=args.seed)
     t0 = time.perf_counter()
     if btf.level_decoders:
-        btf.level_decoder_parameters()
+        btf.footprint_decoder()
     t_fit = time.perf_counter() - t0
     camera = grazing_camera(distance=6.0, height=0.6, fov=40.0)
     light = DirectionalLight((0.3, 0.5, 0.8), 1.0)

@@ -44,7 +44,8 @@ from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.synthesis.blending import LatticeBlending
 from dynbtf.synthesis.histogram import variance_preserving_blend, blend_weights
 from dynbtf.synthesis.histogram_blending import HistogramBlending
-from dynbtf.infinite_btf import _MLP_ROWS, SynthesizedBTF
+from dynbtf.decoder.folded import MLP_ROWS, mlp
+from dynbtf.infinite_btf import SynthesizedBTF
 from dynbtf.texture import fetch_wrap
 
 
@@ -168,7 +169,8 @@ def main() -> None:
     chunk = btf.chunk_size
     rest = f"layers 2-4 ({precision}, torch)"
     stages = {"synthesis kernel": 0.0, "layer 1 (BLAS + angular kernel)": 0.0, rest: 0.0}
-    fold = btf._fold
+    path = btf.decode_path
+    planes, weight, bias = path._fused
     threads = torch.get_num_threads(), numba.get_num_threads()
     torch.set_num_threads(1)
     numba.set_num_threads(1)
@@ -179,12 +181,12 @@ def main() -> None:
                 t0 = time.perf_counter()
                 latent = btf.synthesizer.latent(uv[sl])
                 t1 = time.perf_counter()
-                x = torch.from_numpy(first_layer_preactivation(latent.numpy(), *fold["numpy"], w_view[sl].numpy(),
-                                                               w_light[sl].numpy(), *fold["planes"],
-                                                               negative_slope=fold["slope"])).to(fold["dtype"])
+                x = torch.from_numpy(first_layer_preactivation(latent.numpy(), weight, bias, w_view[sl].numpy(),
+                                                               w_light[sl].numpy(), *planes,
+                                                               negative_slope=path.decoder.slope)).to(path.dtype)
                 t2 = time.perf_counter()
-                for block in x.split(_MLP_ROWS):
-                    btf._decode_rest(block)
+                for block in x.split(MLP_ROWS):
+                    mlp(block, path._rest[0], path.decoder.slope)
                 t3 = time.perf_counter()
                 stages["synthesis kernel"] += t1 - t0
                 stages["layer 1 (BLAS + angular kernel)"] += t2 - t1

@@ -41,24 +41,28 @@ def small_level_decoder_fit():
     the default's size buys robustness of the benchmark's FLIP, not correctness, and would double the
     suite's time (a fit per model, method and seed). Subprocesses (CLI tests) use the defaults.
     """
-    import dynbtf.infinite_btf as synthesized
+    import dynbtf.training.footprint_decoders as fits
 
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(synthesized, "LEVEL_FIT_QUERIES", 4096)
-        patch.setattr(synthesized, "LEVEL_FIT_STEPS", 300)
-        patch.setattr(synthesized, "LEVEL_FIT_BATCH", 1024)
+        patch.setattr(fits, "LEVEL_FIT_QUERIES", 4096)
+        patch.setattr(fits, "LEVEL_FIT_STEPS", 300)
+        patch.setattr(fits, "LEVEL_FIT_BATCH", 1024)
         yield
 
 
 @pytest.fixture(scope="session", autouse=True)
 def private_table_cache(tmp_path_factory):
-    """Synthesis tables (``struct``'s cut tables) are cached in a directory of this test session, not the user's."""
+    """Synthesis tables (``struct``'s cut tables) and compiled materials are cached in directories of this test session,
+    not the user's."""
     import os
 
-    previous = os.environ.get("DYNBTF_SYNTHESIS_CACHE")
-    os.environ["DYNBTF_SYNTHESIS_CACHE"] = str(tmp_path_factory.mktemp("synthesis-cache"))
+    names = {"DYNBTF_SYNTHESIS_CACHE": "synthesis-cache", "DYNBTF_COMPILED_CACHE": "compiled-cache"}
+    previous = {name: os.environ.get(name) for name in names}
+    for name, folder in names.items():
+        os.environ[name] = str(tmp_path_factory.mktemp(folder))
     yield
-    if previous is None:
-        os.environ.pop("DYNBTF_SYNTHESIS_CACHE", None)
-    else:
-        os.environ["DYNBTF_SYNTHESIS_CACHE"] = previous
+    for name, value in previous.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value

@@ -40,7 +40,7 @@ def model_file(model, tmp_path_factory):
 def test_auto_is_the_cpu_here(model_file):
     assert resolve_device("auto") == torch.device("cpu")
     btf = SynthesizedBTF(model_file, "hist", device="auto")
-    assert btf.device.type == "cpu" and btf._fold["planes"] is not None  # the CPU's numba fast path
+    assert btf.device.type == "cpu" and btf.decode_path.fused  # the CPU's numba fast path
 
 
 def test_synthesized_btf_device_cpu(model, model_file):

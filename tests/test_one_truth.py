@@ -318,7 +318,7 @@ def test_decoder_in_drjit_is_the_reference(mi, triple_plane):
     n = 200
     features, angular = RNG.normal(size=(n, 6)), RNG.normal(size=(n, 8))
     want = reference_mlp(np.concatenate([features, angular], 1), _layers(model.decoder), model.decoder.negative_slope)
-    rgb = DrDecoder(model.decoder)([mi.Float(c.astype(np.float32)) for c in features.T],
+    rgb = DrDecoder.of(model.decoder)([mi.Float(c.astype(np.float32)) for c in features.T],
                                    [mi.Float(c.astype(np.float32)) for c in angular.T])
     np.testing.assert_allclose(as_numpy([rgb.x, rgb.y, rgb.z]), want, atol=2e-5)
 

@@ -245,7 +245,7 @@ def test_eval_equals_decoding_the_synthesized_features(model, method):
         expected = model.decode_with_angular(btf.features(uv), model.angular_features(wv.double(), wl.double()).float())
     torch.testing.assert_close(btf.eval(uv, wv, wl), expected, rtol=0, atol=2e-5)
     # the same without the fused first-layer kernel (torch angular features, float32 directions)
-    btf._fold["planes"] = None
+    btf.decode_path._fused = None
     torch.testing.assert_close(btf.eval(uv, wv, wl), model.decode(btf.features(uv), wv, wl), rtol=0, atol=2e-5)
 
 

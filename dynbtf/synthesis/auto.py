@@ -45,6 +45,25 @@ class MethodChoice:
                 f"{STRUCTURE_THRESHOLD:.2f}")
 
 
+    @property
+    def strength(self) -> float:
+        """The measured structure strength."""
+        return float(self.analysis.strength)
+
+    def record(self) -> dict:
+        """``{"method", "line", "strength"}`` (JSON): what a compiled material keeps of the choice."""
+        return {"method": self.method, "line": self.line, "strength": self.strength}
+
+
+@dataclass(frozen=True)
+class RecordedChoice:
+    """A :class:`MethodChoice` as stored (:meth:`MethodChoice.record`): its method, line and strength."""
+
+    method: str
+    line: str
+    strength: float
+
+
 def choose_method(exemplar, guide=None) -> MethodChoice:
     """``struct`` for a structured ``exemplar (H, W, C)``, else ``hist`` (see the module docstring).
 

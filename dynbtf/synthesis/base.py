@@ -290,3 +290,23 @@ class Synthesizer(abc.ABC):
     def storage_bytes(self) -> int:
         """Bytes the synthesizer stores beyond the exemplar (tables, or the pre-generated plane)."""
         return 0
+
+    # ------------------------------------------------------------ compiled state
+    def prepared_arrays(self) -> dict[str, torch.Tensor]:
+        """Everything this synthesizer derived from its exemplar off-line, as named CPU tensors.
+
+        Its ``prepared`` state (inverse tables, luminance, cut tables, a quilted plane) and the
+        footprint pyramid with its per-level tables: what a compiled material stores
+        (:mod:`dynbtf.compiled_material`). :meth:`prepared_from_arrays` turns them back into the
+        ``prepared=`` argument, so a reader answers queries without rebuilding anything. Scalars
+        are 0-d tensors. Methods without off-line work return ``{}``.
+        """
+        return {}
+
+    @classmethod
+    def prepared_from_arrays(cls, arrays: dict[str, torch.Tensor], device: torch.device | str = "cpu"):
+        """The ``prepared=`` argument rebuilt from :meth:`prepared_arrays` (on ``device``), or None.
+
+        Raises ``KeyError`` for a missing array (the caller names the file it came from).
+        """
+        return None

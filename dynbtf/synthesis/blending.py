@@ -243,6 +243,46 @@ class LatticeBlending(Synthesizer):
                 out[mask] += share[mask, None] * self.blend(samples, bary[mask], uv_samples[mask], lv).float()
         return out
 
+    # ------------------------------------------------------------ compiled state
+    def prepared_arrays(self) -> dict[str, torch.Tensor]:
+        """The read plane, its seam numbers, the method's tables (:meth:`extras_arrays`) and the pyramid."""
+        pyr = self.pyramid()
+        arrays = {"plane": self.prepared.plane, "tileable": torch.tensor(bool(self.prepared.tileable)),
+                  "seam_before": torch.tensor(float(self.prepared.seam_before), dtype=torch.float64),
+                  "seam_after": torch.tensor(float(self.prepared.seam_after), dtype=torch.float64),
+                  **self.extras_arrays(), **self.filter_arrays(pyr)}
+        arrays.update({f"pyramid.{i}": level for i, level in enumerate(pyr["levels"])})
+        return {k: v.detach().cpu().contiguous() for k, v in arrays.items()}
+
+    @classmethod
+    def prepared_from_arrays(cls, arrays: dict[str, torch.Tensor], device: torch.device | str = "cpu") -> LatticePlane:
+        arrays = {k: v.to(device) for k, v in arrays.items()}
+        prepared = LatticePlane(arrays["plane"].to(torch.float32).contiguous(), bool(arrays["tileable"]),
+                                float(arrays["seam_before"]), float(arrays["seam_after"]), cls.extras_from_arrays(arrays))
+        count = sum(1 for k in arrays if k.startswith("pyramid."))
+        levels = [arrays[f"pyramid.{i}"].to(torch.float32).contiguous() for i in range(count)]
+        prepared.extras["pyramid"] = {"levels": levels, "lod": LevelOfDetail.of(levels),
+                                      **cls.filter_from_arrays(arrays)}
+        return prepared
+
+    def extras_arrays(self) -> dict[str, torch.Tensor]:
+        """The method's tables in ``prepared.extras`` as named tensors (see :meth:`prepared_arrays`)."""
+        return {}
+
+    @classmethod
+    def extras_from_arrays(cls, arrays: dict[str, torch.Tensor]) -> dict[str, Any]:
+        """``prepared.extras`` rebuilt from :meth:`extras_arrays`."""
+        return {}
+
+    def filter_arrays(self, pyramid: dict[str, Any]) -> dict[str, torch.Tensor]:
+        """The per-level tables of :meth:`filter_tables` as named tensors."""
+        return {}
+
+    @classmethod
+    def filter_from_arrays(cls, arrays: dict[str, torch.Tensor]) -> dict[str, Any]:
+        """The per-level tables rebuilt from :meth:`filter_arrays`."""
+        return {}
+
     def parameters(self) -> dict[str, Any]:
         return {"tileable": self.prepared.tileable, "band": self.band, "fast": self.fast,
                 "seam_before": round(self.prepared.seam_before, 4), "seam_after": round(self.prepared.seam_after, 4)}

@@ -391,6 +391,14 @@ class CellQuilting(Tiling):
         return positions / positions.new_tensor([w, h])
 
     # ------------------------------------------------------------ reports
+    def prepared_arrays(self) -> dict[str, torch.Tensor]:
+        """The cut tables (:meth:`CellTables.to_arrays`) as tensors."""
+        return {k: torch.from_numpy(np.array(v)) for k, v in self.prepared.to_arrays().items()}  # np.array: 0-d stays 0-d
+
+    @classmethod
+    def prepared_from_arrays(cls, arrays: dict[str, torch.Tensor], device: torch.device | str = "cpu") -> CellTables:
+        return CellTables.from_arrays({k: arrays[k].cpu().numpy() for k in CellTables.ARRAYS}, source="compiled")
+
     def parameters(self) -> dict[str, Any]:
         t = self.prepared
         return {"offsets": t.count, "cells": list(t.cells), "margin": list(t.margin), "fast": self.fast,

@@ -118,6 +118,21 @@ class HexTiling(LatticeBlending):
         """The luminance's pyramid (the weights of a level's samples come from its luminance)."""
         return {"luminances": [t[..., 0] for t in area_pyramid(self.prepared.extras["luminance"][..., None])]}
 
+    def extras_arrays(self) -> dict[str, torch.Tensor]:
+        return {"luminance": self.prepared.extras["luminance"]}
+
+    @classmethod
+    def extras_from_arrays(cls, arrays: dict[str, torch.Tensor]) -> dict[str, Any]:
+        return {"luminance": arrays["luminance"].to(torch.float32).contiguous()}
+
+    def filter_arrays(self, pyramid: dict[str, Any]) -> dict[str, torch.Tensor]:
+        return {f"luminances.{i}": plane for i, plane in enumerate(pyramid["luminances"])}
+
+    @classmethod
+    def filter_from_arrays(cls, arrays: dict[str, torch.Tensor]) -> dict[str, Any]:
+        count = sum(1 for k in arrays if k.startswith("luminances."))
+        return {"luminances": [arrays[f"luminances.{i}"].to(torch.float32).contiguous() for i in range(count)]}
+
     def kernel_arguments(self) -> dict[str, Any]:
         return {"luminance": self.prepared.extras["luminance"], "beta": self.beta,
                 "gain_k": math.log(1.0 - self.contrast) / math.log(0.5)}

@@ -129,6 +129,35 @@ class HistogramBlending(LatticeBlending):
         luts[0] = self.prepared.extras["lut_table"]
         return {"luts": luts, "luts_numpy": luts.cpu().numpy()}
 
+    def extras_arrays(self) -> dict[str, torch.Tensor]:
+        extras = self.prepared.extras
+        lut, decorrelation = extras["lut"], extras["decorrelation"]
+        arrays = {"transform.sorted_values": extras["transform"].sorted_values, "lut.table": lut.table,
+                  "lut.g_min": torch.tensor(lut.g_min, dtype=torch.float64),
+                  "lut.step": torch.tensor(lut.step, dtype=torch.float64), "lut_table": extras["lut_table"]}
+        if decorrelation is not None:
+            arrays.update({"decorrelation.mean": decorrelation.mean, "decorrelation.basis": decorrelation.basis,
+                           "decorrelation.variances": decorrelation.variances})
+        return arrays
+
+    @classmethod
+    def extras_from_arrays(cls, arrays: dict[str, torch.Tensor]) -> dict[str, Any]:
+        decorrelation = None
+        if "decorrelation.mean" in arrays:
+            decorrelation = Decorrelation(arrays["decorrelation.mean"], arrays["decorrelation.basis"],
+                                          arrays["decorrelation.variances"])
+        lut = InverseLUT(arrays["lut.table"].to(torch.float64), float(arrays["lut.g_min"]), float(arrays["lut.step"]))
+        return {"transform": GaussianTransform(arrays["transform.sorted_values"].to(torch.float64)),
+                "decorrelation": decorrelation, "lut": lut, "lut_table": arrays["lut_table"].to(torch.float32)}
+
+    def filter_arrays(self, pyramid: dict[str, Any]) -> dict[str, torch.Tensor]:
+        return {"luts": pyramid["luts"]}
+
+    @classmethod
+    def filter_from_arrays(cls, arrays: dict[str, torch.Tensor]) -> dict[str, Any]:
+        luts = arrays["luts"].to(torch.float32).contiguous()
+        return {"luts": luts, "luts_numpy": luts.cpu().numpy()}
+
     def kernel_arguments(self) -> dict[str, Any]:
         lut = self.prepared.extras["lut"]
         return {"gamma": self.gamma, "lut": self.prepared.extras["lut_table"], "g_min": lut.g_min, "step": lut.step}

@@ -232,6 +232,14 @@ class Quilting(Synthesizer):
     def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
         return self._pyramid.fetch(self._positions(uv), footprint)
 
+    def prepared_arrays(self) -> dict[str, torch.Tensor]:
+        """The quilted plane."""
+        return {"plane": self.prepared.detach().cpu().contiguous()}
+
+    @classmethod
+    def prepared_from_arrays(cls, arrays: dict[str, torch.Tensor], device: torch.device | str = "cpu") -> torch.Tensor:
+        return arrays["plane"].to(device, torch.float32).contiguous()
+
     def storage_bytes(self) -> int:
         return self.prepared.numel() * self.prepared.element_size()
 

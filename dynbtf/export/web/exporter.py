@@ -364,9 +364,7 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
         relief = {"h_min": h_min, "h_max": h_max, "step": cfg["march_step_texels"] / max(rows, cols),
                   "aspect": cols / rows, "height_scale": model.height_scale}
     g, ag, hg = (c_u + 3) // 4, (c_a + 3) // 4, (hidden + 3) // 4
-    first_w = decoder.first.weight.detach().double().numpy()
-    first_b = decoder.first.bias.detach().double().numpy()
-    w_pos, w_ang = first_w[:, :c_u], first_w[:, c_u:]
+    w_ang = decoder.first.weight.detach().double().numpy()[:, c_u:]
     # the angular part of layer 1: f_H's channels then f_D's, each padded to whole vec4 groups
     w_ang_padded = np.zeros((hidden, 8 * ag))
     w_ang_padded[:, :c_a] = w_ang[:, :c_a]
@@ -400,7 +398,7 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
         if requested == AUTO:  # the model's choice, under the chosen method's name
             btf = SynthesizedBTF(model, AUTO, seed=seed, **params)
             choice = btf.synthesizer.choice
-            auto = {"method": choice.method, "line": choice.line, "structure_strength": float(choice.analysis.strength)}
+            auto = {"method": choice.method, "line": choice.line, "structure_strength": choice.strength}
             m = choice.method
         else:
             m = requested
@@ -435,12 +433,13 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
                                           layered=False)
             entry.update(beta=float(kernel["beta"]), gain_k=float(kernel["gain_k"]))
             files.append(entry["luminance"]["file"])
-        # layer 1 with the method's output map folded in: W_U (M x + o) + b = (W_U M) x + (W_U o + b)
+        # layer 1 with the method's output map folded in, as the compiled material holds it (FoldedDecoder.fold)
+        folded = btf.material.decoder
+        w_fold = folded.levels[0].weight.T.double().cpu().numpy()                 # (hidden, C)
+        b_fold = (folded.levels[0].bias + folded.first_bias).double().cpu().numpy()
+        block = np.concatenate([_mat4_blocks(w_fold), _vec4s(b_fold)])
         m_mat = np.eye(c_u) if matrix is None else matrix.double().cpu().numpy()   # features = latent @ M + o
         m_off = np.zeros(c_u) if out_offset is None else out_offset.double().cpu().numpy()
-        w_fold = w_pos @ m_mat.T                                                   # (hidden, C)
-        b_fold = w_pos @ m_off + first_b
-        block = np.concatenate([_mat4_blocks(w_fold), _vec4s(b_fold)])
         entry["layer1"] = {"file": writer.add(f"layer1_{m}.bin", block), "floats": int(block.size)}
         if relief is not None:  # the height channel (the plane's last) in terms of the latent
             entry["height"] = {"map": _pad4(m_mat[:, -1], 0.0), "offset": float(m_off[-1])}

@@ -398,19 +398,18 @@ class DynBTFEvaluator:
         from ...infinite_btf import SynthesizedBTF
         from .drjit_synthesis import make_dr_synthesizer
 
-        self.btf = SynthesizedBTF(model, method, scale=1.0, seed=seed)
+        self.btf = SynthesizedBTF(model, method, scale=1.0, seed=seed)  # its compiled material, from the cache
         self.method = self.btf.synthesizer.name
         self.choice = self.btf.synthesizer.choice
         self.synthesizer = make_dr_synthesizer(self.btf.synthesizer)
-        # fold the synthesizer's output map (PCA un-projection) into the decoder's first layer,
-        # as SynthesizedBTF's fast path does: 16 x 16 fewer multiply-adds per shading point
-        matrix, offset = getattr(self.synthesizer, "matrix", None), getattr(self.synthesizer, "offset", None)
-        self.model = drjit_ops.dr_representation(model, output_map=(matrix, offset))
-        self._latent = matrix is not None
+        # the compiled material's decoder: the synthesizer's output map (PCA un-projection) folded into layer 1,
+        # as SynthesizedBTF's fast path reads it: 16 x 16 fewer multiply-adds per shading point
+        self._latent = getattr(self.synthesizer, "matrix", None) is not None
+        self.model = drjit_ops.dr_representation(self.btf.model, self.btf.material.decoder)
         # representations with relief answer at the visible point, marched through the synthesized height
         # (the positional plane's last channel), as SynthesizedBTF.eval does
         self.relief = hasattr(self.model, "visible_uv")
-        self._height_index = int(model.positional_plane().shape[-1]) - 1
+        self._height_index = int(self.btf.model.positional_plane().shape[-1]) - 1
         self._level_decoders = None
         self._mean_appearance = None
 
@@ -422,31 +421,23 @@ class DynBTFEvaluator:
     def level_decoders(self) -> list:
         """One :class:`~dynbtf.render.mitsuba.drjit_ops.DrDecoder` per pyramid level for footprint queries, or ``[]``.
 
-        The decoders of :meth:`dynbtf.infinite_btf.SynthesizedBTF.level_decoder_parameters` (fitted on
-        first use, shared with the library's evaluation in this process; level 0 is the model's
-        decoder), with the synthesizer's output map folded into layer 1 like the point query's.
-        ``[]`` where the library decodes every level with the model's decoder (e.g. NeuMIP).
+        The compiled material's per-level decoders (:meth:`dynbtf.infinite_btf.SynthesizedBTF.footprint_decoder`:
+        read from the cache, or fitted and stored on first use; level 0 is the point decoder) and its mean
+        appearance (one decoder of the angular inputs per quadrature node). ``[]`` where the library decodes
+        every level with the model's decoder.
         """
         if self._level_decoders is None:
             self._level_decoders = []
             if self.btf.level_decoders:
-                import numpy as np
-
-                decoder = self.btf.model.decoder
-                c = int(decoder.positional_channels)
-                angular = decoder.first.weight[:, c:].detach().float().cpu().numpy()
-                levels = self.btf.level_decoder_parameters()
-                for params in levels:
-                    first = (np.concatenate([params["weight"].detach().float().cpu().numpy().T, angular], axis=1),
-                             params["bias_total"])
-                    self._level_decoders.append(drjit_ops.DrDecoder.from_layers(
-                        [first, *params["rest"]], c, decoder.negative_slope))
-                mean = levels[-1].get("mean")
-                if mean is not None:  # the top level's quadrature: one decoder (angular inputs only) per node
+                folded = self.btf.footprint_decoder()
+                self._level_decoders = [drjit_ops.DrDecoder.of_folded(folded, level)
+                                        for level in range(len(folded.levels))]
+                if folded.mean is not None:  # the top level's quadrature: one decoder (angular inputs only) per node
+                    mean = folded.mean
                     self._mean_appearance = [
-                        (float(weight), drjit_ops.DrDecoder.from_layers([(angular, node), *mean["rest"]], 0,
-                                                                         decoder.negative_slope))
-                        for weight, node in zip(mean["weights"].tolist(), mean["nodes_total"])]
+                        (float(weight), drjit_ops.DrDecoder.from_layers(
+                            [(folded.angular_weight, node + folded.first_bias), *mean.rest], 0, folded.slope))
+                        for weight, node in zip(mean.weights.tolist(), mean.nodes)]
         return self._level_decoders
 
     def features(self, u, v, active=True):

@@ -212,35 +212,25 @@ def flat_array(mi, array) -> "object":
 class DrDecoder:
     """The representations' MLP (:class:`dynbtf.representations.triple_plane.Decoder`) in Dr.Jit.
 
-    Unrolled into scalar fused multiply-adds with the weights as float32 kernel
-    literals (NumPy arrays here).
-
-    Parameters
-    ----------
-    decoder : Decoder
-        A fitted decoder: layer 1 on ``concat(positional (C_U), angular (C_A))``,
-        LeakyReLU after every layer but the last, 3 outputs (RGB).
-    output_map : (matrix ``(C_U, C_U)``, offset ``(C_U,)``), optional
-        A linear map applied to the positional features before the decoder
-        (a synthesizer's PCA un-projection), folded into the first layer:
-        ``W_U (latent @ M + o) = (W_U M^T) latent + W_U o``. Then :meth:`__call__`
-        takes the synthesizer's latent values.
+    Unrolled into scalar fused multiply-adds with the weights as float32 kernel literals (NumPy
+    arrays here). Built from layers (:meth:`from_layers`): a decoder's own (:meth:`of`) or a
+    compiled material's folded ones (:meth:`of_folded`: the synthesizer's output map is folded
+    into layer 1, :class:`~dynbtf.decoder.folded.FoldedDecoder`; :meth:`__call__` then takes the
+    synthesizer's latent values).
     """
 
-    def __init__(self, decoder, output_map=(None, None)) -> None:
-        self.positional_channels = int(decoder.positional_channels)
-        self.negative_slope = float(decoder.negative_slope)
-        layers = [(layer.weight.detach().double().cpu().numpy(), layer.bias.detach().double().cpu().numpy())
-                  for layer in [decoder.first, *decoder.rest]]
-        matrix, offset = output_map
-        if matrix is not None:
-            c = self.positional_channels
-            w_first, b_first = layers[0]
-            w_pos = w_first[:, :c]
-            folded = np.concatenate([w_pos @ np.asarray(matrix, dtype=np.float64).T, w_first[:, c:]], axis=1)
-            bias = b_first + w_pos @ np.asarray(offset, dtype=np.float64)
-            layers[0] = (folded, bias)
-        self.layers = [(w.astype(np.float32), b.astype(np.float32)) for w, b in layers]
+    @classmethod
+    def of(cls, decoder) -> "DrDecoder":
+        """A fitted decoder's own layers: layer 1 on ``concat(positional (C_U), angular (C_A))``, LeakyReLU after
+        every layer but the last, 3 outputs (RGB)."""
+        return cls.from_layers([(layer.weight, layer.bias) for layer in [decoder.first, *decoder.rest]],
+                               decoder.positional_channels, decoder.negative_slope)
+
+    @classmethod
+    def of_folded(cls, folded, level: int = 0) -> "DrDecoder":
+        """Level ``level``'s decoder of a :class:`~dynbtf.decoder.folded.FoldedDecoder` (0: the point query's)."""
+        return cls.from_layers([folded.first_layer(level), *folded.levels[level].rest], folded.positional_channels,
+                               folded.slope)
 
     @classmethod
     def from_layers(cls, layers, positional_channels: int, negative_slope: float) -> "DrDecoder":
@@ -283,9 +273,9 @@ class DrTriplePlane:
     ----------
     model : TriplePlane
         A fitted model (any device; its tensors are copied to the host once).
-    output_map : (matrix, offset), optional
-        Folded into the decoder's first layer (see :class:`DrDecoder`); then
-        :meth:`decode` takes the synthesizer's latent values.
+    folded : FoldedDecoder, optional
+        The compiled material's decoder, the synthesizer's output map folded into layer 1
+        (:meth:`DrDecoder.of_folded`); then :meth:`decode` takes the synthesizer's latent values.
 
     Examples
     --------
@@ -294,7 +284,7 @@ class DrTriplePlane:
     equal (to float32 rounding) to ``model.decode(features, w_view, w_light)``.
     """
 
-    def __init__(self, model, output_map=(None, None)) -> None:
+    def __init__(self, model, folded=None) -> None:
         mi = mi_module()
         half = model.f_h.detach().float().cpu().numpy()
         diff = model.f_d.detach().float().cpu().numpy()
@@ -303,7 +293,7 @@ class DrTriplePlane:
         self.positional_channels = int(model.positional_plane().shape[-1])
         self.half = flat_array(mi, half)
         self.diff = flat_array(mi, diff)
-        self.decoder = DrDecoder(model.decoder, output_map)
+        self.decoder = DrDecoder.of(model.decoder) if folded is None else DrDecoder.of_folded(folded)
 
     def angular_features(self, wv, wl, active=True):
         """``concat(f_H(h), f_D(d))`` as a list of ``2 C_A`` mi.Float."""
@@ -331,13 +321,13 @@ class DrNeuMIP:
     ----------
     model : NeuMIP
         A fitted model.
-    output_map : (matrix, offset), optional
-        Folded into the decoder's first layer (see :class:`DrDecoder`).
+    folded : FoldedDecoder, optional
+        The compiled material's folded decoder (see :class:`DrTriplePlane`).
     """
 
-    def __init__(self, model, output_map=(None, None)) -> None:
+    def __init__(self, model, folded=None) -> None:
         self.positional_channels = int(model.positional_plane().shape[-1])
-        self.decoder = DrDecoder(model.decoder, output_map)
+        self.decoder = DrDecoder.of(model.decoder) if folded is None else DrDecoder.of_folded(folded)
 
     @staticmethod
     def angular_features(wv, wl, active=True):
@@ -430,8 +420,8 @@ class DrParallaxTriplePlane(DrTriplePlane):
     :meth:`dynbtf.infinite_btf.SynthesizedBTF.eval` runs before fetching features.
     """
 
-    def __init__(self, model, output_map=(None, None)) -> None:
-        super().__init__(model, output_map)
+    def __init__(self, model, folded=None) -> None:
+        super().__init__(model, folded)
         config = model.config()
         rows, cols = (int(x) for x in model.height_channel.shape)
         self.height_scale = float(config["height_scale"])
@@ -474,7 +464,8 @@ def check_renderable(model, what="model") -> None:
                          f"`dynbtf fit --repr neumip`) models, got a model of kind {kind!r}")
 
 
-def dr_representation(model, output_map=(None, None)):
-    """The Dr.Jit evaluator of ``model`` (:data:`DR_REPRESENTATIONS`): ``.decode(features, wv, wl, active)``."""
+def dr_representation(model, folded=None):
+    """The Dr.Jit evaluator of ``model`` (:data:`DR_REPRESENTATIONS`): ``.decode(features, wv, wl, active)``;
+    with ``folded`` (a compiled material's :class:`~dynbtf.decoder.folded.FoldedDecoder`) it decodes latents."""
     check_renderable(model)
-    return DR_REPRESENTATIONS[model.kind](model, output_map)
+    return DR_REPRESENTATIONS[model.kind](model, folded)

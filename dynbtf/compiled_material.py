@@ -1,0 +1,256 @@
+"""The compiled material: one saved artifact from which every backend answers queries.
+
+A synthesized BTF is a fitted model, a synthesis method and a seed. Answering a query needs more
+than the model file: the method's off-line tables (inverse histogram tables, hex luminance, cut
+tables, a quilted plane), the feature pyramid and its per-level tables, the decoder with the
+method's output map folded into layer 1, the per-level decoders and the mean appearance of
+footprint queries (fitted, ~20 s per model, method and seed), and the renderer's importance-sampling
+table. A :class:`CompiledMaterial` holds all of it; :func:`dynbtf.training.compile.compile_material`
+builds it once, and the library's evaluation (:class:`dynbtf.infinite_btf.SynthesizedBTF`), the
+Mitsuba plugin and the web export read it.
+
+File format (``.dbtfc``)
+------------------------
+A safetensors file. Tensors: ``model.*`` (the representation's state dict), ``synthesis.*``
+(:meth:`~dynbtf.synthesis.base.Synthesizer.prepared_arrays`), ``decoder.*``
+(:meth:`~dynbtf.decoder.folded.FoldedDecoder.to_tensors`) and, once a renderer built it,
+``sampling.*``. The metadata entry ``dynbtf`` is a JSON header: ``format``
+(``"dynbtf-compiled-material"``), ``format_version`` (:data:`FORMAT_VERSION`; a reader refuses
+newer versions), the model's ``kind`` and ``config``, ``model_sha256`` (the digest of the model's
+tensors, as in the model file), ``method``, ``seed``, ``arguments`` (the method's parameters that
+rebuild it from the tables), ``choice`` (what ``auto`` chose: method, line, strength; or null), ``key`` (the cache
+key) and ``tensor_sha256``, a checksum of every tensor: a damaged file is detected, never used.
+
+Conventions as everywhere in dynbtf: directions in the local frame, linear RGB without
+``cos(theta_light)``, ``uv`` in exemplar repeats.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .decoder.folded import FoldedDecoder
+from .errors import FormatError
+from .io import atomic_path
+
+__all__ = ["CompiledMaterial", "save_compiled", "load_compiled", "is_compiled_material", "material_key",
+           "compiled_cache_dir", "FORMAT_NAME", "FORMAT_VERSION", "SUFFIX"]
+
+FORMAT_NAME = "dynbtf-compiled-material"
+#: Bumped whenever a stored table changes meaning: older readers refuse newer files, old cache entries miss.
+FORMAT_VERSION = 1
+SUFFIX = ".dbtfc"
+
+
+@dataclass
+class CompiledMaterial:
+    """Everything a backend needs to answer queries of one model, synthesis method and seed.
+
+    Attributes
+    ----------
+    model : Representation
+        The fitted representation (its decoder, angular planes and positional plane ``f_U``).
+    method : str
+        The synthesis method, resolved (``auto`` is stored as the method it chose).
+    seed : int
+    arguments : dict
+        The method's parameters (JSON) that, with :attr:`synthesis`, rebuild the synthesizer.
+    synthesis : dict of str to tensor
+        The method's off-line tables and pyramid (:meth:`~dynbtf.synthesis.base.Synthesizer.prepared_arrays`).
+    decoder : FoldedDecoder or None
+        Layer 1 folded with the method's output map, per-level decoders, mean appearance. None for
+        representations without a foldable decoder (they decode with their own ``decode``).
+    choice : dict or None
+        What ``auto`` chose and why (:meth:`~dynbtf.synthesis.auto.MethodChoice.record`: ``method``,
+        ``line``, ``strength``), or None for a method asked by name.
+    sampling : dict of str to tensor or None
+        The importance-sampling table (:mod:`dynbtf.render.mitsuba.sampling`), once built.
+    key : str
+        The cache key: model contents, method, arguments, seed and format version.
+    model_sha256 : str
+        Digest of the model's tensors.
+    """
+
+    model: Any
+    method: str
+    seed: int
+    arguments: dict[str, Any]
+    synthesis: dict[str, torch.Tensor]
+    decoder: FoldedDecoder | None
+    choice: dict[str, Any] | None = None
+    sampling: dict[str, torch.Tensor] | None = None
+    key: str = ""
+    model_sha256: str = ""
+    _synthesizers: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def synthesizer(self, device: torch.device | str | None = None):
+        """The synthesizer rebuilt from the stored tables on ``device`` (default: the model's), built once."""
+        from .synthesis.base import make_synthesizer, synthesizer_class
+
+        device = torch.device(device) if device is not None else self.model.positional_plane().device
+        if str(device) not in self._synthesizers:
+            plane = self.model.positional_plane().detach().to(device)
+            prepared = synthesizer_class(self.method).prepared_from_arrays(self.synthesis, device)
+            extra = {} if prepared is None else {"prepared": prepared}
+            if device.type != "cpu" and "fast" in _accepted_arguments(self.method):
+                extra["fast"] = False
+            synth = make_synthesizer(self.method, plane, seed=self.seed, **self.arguments, **extra)
+            if synth.choice is None and self.choice is not None:
+                from .synthesis.auto import RecordedChoice
+
+                synth.choice = RecordedChoice(str(self.choice["method"]), str(self.choice["line"]),
+                                              float(self.choice["strength"]))
+            self._synthesizers[str(device)] = synth
+        return self._synthesizers[str(device)]
+
+    def with_sampling(self, table: dict[str, torch.Tensor]) -> "CompiledMaterial":
+        """The same material with an importance-sampling table."""
+        return replace(self, sampling={k: v.detach().cpu().contiguous() for k, v in table.items()},
+                       _synthesizers=self._synthesizers)
+
+    def storage_bytes(self) -> int:
+        """Bytes of the stored tables beyond the model (synthesis, decoders, sampling)."""
+        tensors = list(self.synthesis.values()) + list((self.decoder.to_tensors() if self.decoder else {}).values())
+        tensors += list((self.sampling or {}).values())
+        return sum(t.numel() * t.element_size() for t in tensors)
+
+    def describe(self) -> dict[str, Any]:
+        """Method, seed, arguments, choice, levels and sizes (JSON-serializable)."""
+        return {"method": self.method, "seed": self.seed, "arguments": self.arguments, "choice": self.choice,
+                "footprint_levels": 0 if self.decoder is None else len(self.decoder.levels),
+                "mean_appearance": self.decoder is not None and self.decoder.mean is not None,
+                "sampling_table": self.sampling is not None, "table_bytes": self.storage_bytes(), "key": self.key}
+
+
+def _accepted_arguments(method: str) -> list[str]:
+    import inspect
+
+    from .synthesis.base import synthesizer_class
+
+    return list(inspect.signature(synthesizer_class(method).__init__).parameters)
+
+
+def compiled_cache_dir() -> Path | None:
+    """Where compiled materials are cached: ``$DYNBTF_COMPILED_CACHE`` if set (``off`` disables the cache),
+    else ``$XDG_CACHE_HOME/dynbtf/compiled`` (``~/.cache/dynbtf/compiled``)."""
+    setting = os.environ.get("DYNBTF_COMPILED_CACHE")
+    if setting is not None and setting.strip().lower() in ("off", "0", "none", ""):
+        return None
+    if setting:
+        return Path(setting)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "dynbtf" / "compiled"
+
+
+def tensor_digest(tensors: dict[str, torch.Tensor]) -> str:
+    """SHA-256 of tensors' names, dtypes, shapes and bytes (the model file's digest when given its state dict)."""
+    digest = hashlib.sha256()
+    for name in sorted(tensors):
+        t = tensors[name].detach().cpu().contiguous()
+        digest.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        digest.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return digest.hexdigest()
+
+
+def material_key(model_sha256: str, method: str, seed: int, arguments: dict[str, Any], footprints) -> str:
+    """The cache key of a compiled material: SHA-256 of the format version, the model's digest, the method as
+    asked for (``auto`` included), its arguments (JSON), the seed and the footprint fits' settings (or False)."""
+    text = json.dumps({"format_version": FORMAT_VERSION, "model": model_sha256, "method": method, "seed": int(seed),
+                       "arguments": arguments, "footprints": footprints}, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def save_compiled(material: CompiledMaterial, path) -> Path:
+    """Write ``material`` to ``path`` atomically (temporary file, then rename). Returns the path."""
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    tensors = {f"model.{k}": v for k, v in material.model.state_dict().items()}
+    tensors.update({f"synthesis.{k}": v for k, v in material.synthesis.items()})
+    if material.decoder is not None:
+        tensors.update({f"decoder.{k}": v for k, v in material.decoder.to_tensors().items()})
+    tensors.update({f"sampling.{k}": v for k, v in (material.sampling or {}).items()})
+    tensors = {k: v.detach().cpu().clone() for k, v in tensors.items()}  # clones: tables may share storage
+    header = {"format": FORMAT_NAME, "format_version": FORMAT_VERSION, "kind": material.model.kind,
+              "config": material.model.config(), "model_sha256": material.model_sha256, "method": material.method,
+              "seed": material.seed, "arguments": material.arguments, "choice": material.choice,
+              "key": material.key, "tensor_sha256": tensor_digest(tensors)}
+    with atomic_path(path) as tmp:
+        save_file(tensors, str(tmp), metadata={"dynbtf": json.dumps(header, default=str)})
+    return path
+
+
+def _header(path: Path) -> dict[str, Any]:
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            text = (f.metadata() or {}).get("dynbtf")
+    except Exception as e:  # SafetensorError, OSError
+        raise FormatError(path, f"not a compiled material (unreadable safetensors data: {e})") from None
+    try:
+        header = json.loads(text) if text is not None else None
+    except ValueError as e:
+        raise FormatError(path, f"damaged header ({e})") from None
+    if not isinstance(header, dict) or header.get("format") != FORMAT_NAME:
+        raise FormatError(path, f"not a compiled material (expected format {FORMAT_NAME!r} in the header)")
+    version = header.get("format_version")
+    if not isinstance(version, int) or version > FORMAT_VERSION or version < 1:
+        raise FormatError(path, f"compiled-material format version {version!r}; this dynbtf reads versions 1 to "
+                                f"{FORMAT_VERSION} (compile the model again with this version: dynbtf compile)")
+    return header
+
+
+def is_compiled_material(path) -> bool:
+    """Whether ``path`` is a compiled material file (its header says so)."""
+    try:
+        _header(Path(path))
+        return True
+    except FormatError:
+        return False
+
+
+def _section(tensors: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
+    return {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
+
+
+def load_compiled(path, device: torch.device | str | None = None) -> CompiledMaterial:
+    """Read a compiled material; :class:`~dynbtf.errors.FormatError` names the file and what is wrong
+    (not a compiled material, a newer version, a checksum mismatch, a missing table)."""
+    from safetensors.torch import load_file
+
+    from .representations.model_file import representation_from_state
+
+    path = Path(path)
+    header = _header(path)
+    try:
+        tensors = load_file(str(path))
+    except Exception as e:
+        raise FormatError(path, f"damaged or truncated tensor data ({e})") from None
+    if header.get("tensor_sha256") != tensor_digest(tensors):
+        raise FormatError(path, "tensor data does not match its checksum: the file is damaged")
+    try:
+        model = representation_from_state(path, header["kind"], header["config"], _section(tensors, "model."))
+        decoder_tensors = _section(tensors, "decoder.")
+        material = CompiledMaterial(
+            model=model, method=str(header["method"]), seed=int(header["seed"]), arguments=dict(header["arguments"]),
+            synthesis=_section(tensors, "synthesis."),
+            decoder=FoldedDecoder.from_tensors(decoder_tensors) if decoder_tensors else None,
+            choice=header.get("choice"), sampling=_section(tensors, "sampling.") or None,
+            key=str(header.get("key", "")), model_sha256=str(header.get("model_sha256", "")))
+    except KeyError as e:
+        raise FormatError(path, f"missing entry {e} of a compiled material") from None
+    except (TypeError, ValueError) as e:
+        raise FormatError(path, f"damaged header ({e})") from None
+    if device is not None:
+        material.model.to(torch.device(device))
+        if material.decoder is not None:
+            material.decoder = FoldedDecoder.from_tensors(material.decoder.to_tensors(), device)
+    return material
