@@ -57,7 +57,7 @@ _FRONT_DOOR = {
     "evaluate_model": "dynbtf.training.evaluate",
     # synthesis and recovery
     "SynthesizedBTF": "dynbtf.infinite_btf",
-    "make_synthesizer": "dynbtf.synthesis.base",
+    "make_synthesizer": "dynbtf.synthesis.registry",
     # rendering (Mitsuba 3, optional) and real time (GLSL shader + WebGL2 viewer)
     "register_plugin": "dynbtf.render.mitsuba.bsdf",
     "export_web": "dynbtf.export.web.exporter",

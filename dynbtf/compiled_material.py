@@ -92,7 +92,7 @@ class CompiledMaterial:
 
     def synthesizer(self, device: torch.device | str | None = None):
         """The synthesizer rebuilt from the stored tables on ``device`` (default: the model's), built once."""
-        from .synthesis.base import make_synthesizer, synthesizer_class
+        from .synthesis.registry import make_synthesizer, synthesizer_class
 
         device = torch.device(device) if device is not None else self.model.positional_plane().device
         if str(device) not in self._synthesizers:
@@ -132,7 +132,7 @@ class CompiledMaterial:
 def _accepted_arguments(method: str) -> list[str]:
     import inspect
 
-    from .synthesis.base import synthesizer_class
+    from .synthesis.registry import synthesizer_class
 
     return list(inspect.signature(synthesizer_class(method).__init__).parameters)
 

@@ -21,7 +21,7 @@ def lint(root: Path) -> subprocess.CompletedProcess:
 def test_the_package_keeps_its_layers():
     result = lint(REPO)
     assert result.returncode == 0, result.stdout + result.stderr
-    assert "3 kept, 0 broken" in result.stdout
+    assert "4 kept, 0 broken" in result.stdout
 
 
 def copy_package(tmp_path: Path) -> Path:
@@ -49,6 +49,24 @@ def test_a_deferred_import_from_the_interface_to_a_kind_breaks_the_contract(tmp_
     report = " ".join(result.stdout.split())  # the report wraps long lines
     assert "dynbtf.representations.base is not allowed to import dynbtf.representations.triple_plane" in report
     assert "dynbtf.representations.base -> dynbtf.representations.triple_plane" in report
+
+
+def test_a_deferred_import_from_the_synthesis_interface_to_a_method_breaks_the_contract(tmp_path):
+    # the cycle synthesizer_class used to close: base -> (deferred) methods -> base
+    base = copy_package(tmp_path) / "synthesis" / "base.py"
+    base.write_text(base.read_text() + "\n\ndef _methods():\n    from . import histogram_blending  # noqa: F401\n")
+    result = lint(tmp_path)
+    assert result.returncode != 0
+    report = " ".join(result.stdout.split())
+    assert "dynbtf.synthesis.base is not allowed to import dynbtf.synthesis.histogram_blending" in report
+    assert "dynbtf.synthesis.base -> dynbtf.synthesis.histogram_blending" in report
+
+
+def test_a_new_synthesis_module_must_be_placed_in_a_layer(tmp_path):
+    (copy_package(tmp_path) / "synthesis" / "unplaced.py").write_text("from .base import Synthesizer\n")
+    result = lint(tmp_path)
+    assert result.returncode != 0
+    assert "dynbtf.synthesis.unplaced" in result.stdout
 
 
 def test_a_new_representations_module_must_be_placed_in_a_layer(tmp_path):

@@ -355,7 +355,7 @@ def test_every_synthesis_method_in_numba_and_drjit_is_the_torch_reference(mi, me
     checked to be within the table's error bound (1% of a channel's spread).
     """
     from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
-    from dynbtf.synthesis.base import make_synthesizer
+    from dynbtf.synthesis.registry import make_synthesizer
     from dynbtf.synthesis.histogram import blend_weights, variance_preserving_blend
 
     exemplar = smooth_lognormal(24, 20, 4, seed=4)
@@ -388,7 +388,7 @@ def test_hist_with_extreme_exponents_is_finite_and_one_sample_in_every_backend(m
     index into the inverse table crashed the numba kernel). The weights are ``(b / max b)^gamma``: finite for
     any gamma, and for gamma -> inf one-hot on the dominant vertex, whose sample passes through unblended."""
     from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
-    from dynbtf.synthesis.base import make_synthesizer
+    from dynbtf.synthesis.registry import make_synthesizer
 
     exemplar = smooth_lognormal(24, 20, 4, seed=4)
     reference = make_synthesizer("hist", exemplar, seed=9, fast=False, gamma=gamma)
@@ -421,7 +421,7 @@ def test_cell_quilting_in_numba_and_drjit_is_the_torch_reference(mi, seed):
     chosen offset indices are the torch path's bit for bit, near the origin and 2**45 repeats from it (int64
     cell indices beyond any int32), on both sides; near cell edges neighbours' and diagonal cells' offsets are taken."""
     from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
-    from dynbtf.synthesis.base import make_synthesizer
+    from dynbtf.synthesis.registry import make_synthesizer
     from dynbtf.synthesis.cell_quilting import cell_choice
 
     rng = np.random.default_rng(45)

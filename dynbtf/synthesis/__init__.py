@@ -23,16 +23,18 @@ Building blocks: :mod:`.lattice` (triangle grid, exact at any coordinate),
 PCA, variance-preserving blend), :mod:`.tileable` ("Avoiding Cuts"),
 :mod:`.structure` (autocorrelation peaks, structure strength), :mod:`.table_cache` (on-disk
 tables), :mod:`.kernels` (fused numba kernels), :mod:`.quality` (report) and :mod:`.coherence`
-(patch coherence and identity with tiling).
+(patch coherence and identity with tiling). :mod:`.registry` (``make_synthesizer``,
+``synthesizer_class``) sits above the methods, :mod:`.base` below them.
 """
 
-from .base import SYNTHESIZERS, Synthesizer, make_synthesizer, register_synthesizer, synthesizer_class
+from .base import SYNTHESIZERS, Synthesizer, register_synthesizer
 from .cell_quilting import CellQuilting
 from .blending import LatticeBlending, LinearBlending
 from .hex_tiling import HexTiling
 from .histogram_blending import HistogramBlending
 from .quilting import Quilting
 from .tiling import Tiling
+from .registry import make_synthesizer, synthesizer_class
 
 __all__ = ["Synthesizer", "SYNTHESIZERS", "make_synthesizer", "register_synthesizer", "synthesizer_class",
            "Tiling", "CellQuilting", "LatticeBlending", "LinearBlending", "HistogramBlending", "HexTiling", "Quilting"]

@@ -18,15 +18,16 @@ finite plane up front and wraps it.
 Texel density is that of the original exemplar: one unit of ``uv`` spans ``W``
 texels along ``u`` and ``H`` along ``v`` even when preprocessing crops the plane.
 
-Methods register by name (:func:`register_synthesizer`) and are built with
-:func:`make_synthesizer`: ``tile``, ``linear``, ``hist``, ``hex``, ``quilt``, ``struct``, and
-``auto`` (``struct`` or ``hist``, chosen from the exemplar's structure).
+Methods register by name (:func:`register_synthesizer`, which fills :data:`SYNTHESIZERS`) and are
+built with :func:`dynbtf.synthesis.registry.make_synthesizer`: ``tile``, ``linear``, ``hist``,
+``hex``, ``quilt``, ``struct``, and ``auto`` (``struct`` or ``hist``, chosen from the exemplar's
+structure). This module is the bottom of the methods: it imports none of them (the registry,
+above them, does; the import-linter contract in ``pyproject.toml`` checks this).
 """
 
 from __future__ import annotations
 
 import abc
-import inspect
 from typing import Any, ClassVar
 
 import numpy as np
@@ -39,8 +40,6 @@ __all__ = [
     "Synthesizer",
     "SYNTHESIZERS",
     "register_synthesizer",
-    "make_synthesizer",
-    "synthesizer_class",
     "check_uv",
     "check_footprint",
     "wrapped_texel_position",
@@ -66,53 +65,6 @@ def register_synthesizer(name: str):
         return cls
 
     return deco
-
-
-def synthesizer_class(name: str) -> type["Synthesizer"]:
-    """The class registered as ``name``; unknown names raise :class:`InputError` listing the known ones."""
-    import dynbtf.synthesis  # noqa: F401  (the package imports and so registers the built-in methods)
-
-    try:
-        return SYNTHESIZERS[name]
-    except KeyError:
-        raise InputError(f"synthesis method {name!r} is unknown; expected one of {sorted(SYNTHESIZERS) + ['auto']}") from None
-
-
-def _accepted(cls) -> list[str]:
-    """The method parameters of a synthesizer class (its constructor's keywords besides exemplar and seed)."""
-    return [p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "exemplar", "seed")]
-
-
-def make_synthesizer(name: str, exemplar, seed: int = 0, **params) -> "Synthesizer":
-    """Build the synthesizer ``name`` on ``exemplar (H, W, C)`` with ``seed`` and method ``params``.
-
-    ``name = "auto"`` chooses ``struct`` or ``hist`` from the exemplar's structure
-    (:func:`dynbtf.synthesis.auto.choose_method`); the built synthesizer's ``choice`` attribute
-    then holds the :class:`~dynbtf.synthesis.auto.MethodChoice` (else None); ``auto`` passes each
-    parameter to the chosen method if it takes it (``guide`` is also measured by the choice; ``gamma``
-    applies if ``hist`` is chosen). Unknown parameter names raise :class:`InputError` listing the
-    accepted ones.
-    """
-    choice = None
-    if name == "auto":
-        from .auto import choose_method
-
-        choice = choose_method(Synthesizer.check_exemplar(exemplar), params.get("guide"))
-        candidates = {m: _accepted(synthesizer_class(m)) for m in ("struct", "hist")}
-        unknown = sorted(set(params) - set().union(*candidates.values()))
-        if unknown:
-            raise InputError(f"synthesis method 'auto': unknown parameter(s) {unknown}; accepted: "
-                             f"{sorted(set().union(*candidates.values()))} (each passed to the method that takes it)")
-        name = choice.method
-        params = {k: v for k, v in params.items() if k in candidates[name]}
-    cls = synthesizer_class(name)
-    accepted = _accepted(cls)
-    unknown = sorted(set(params) - set(accepted))
-    if unknown:
-        raise InputError(f"synthesis method {name!r}: unknown parameter(s) {unknown}; accepted: {accepted}")
-    synth = cls(exemplar, seed=seed, **params)
-    synth.choice = choice
-    return synth
 
 
 def check_uv(uv, name: str = "uv", scale: float = 1.0) -> torch.Tensor:

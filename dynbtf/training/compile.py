@@ -33,7 +33,7 @@ from ..compiled_material import (SUFFIX, CompiledMaterial, compiled_cache_dir, l
 from ..conventions import spherical_to_direction
 from ..decoder.folded import DecodePath, FoldedDecoder
 from ..errors import FormatError, InputError
-from ..synthesis.base import make_synthesizer, synthesizer_class
+from ..synthesis.registry import make_synthesizer, synthesizer_class
 from .footprint_decoders import fit_footprint_decoders
 
 __all__ = ["compile_material", "cached_material", "decoded_appearance", "decoded_luminance", "APPEARANCE_PAIRS",

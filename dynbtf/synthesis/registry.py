@@ -1,0 +1,63 @@
+"""The synthesis registry: every built-in method, looked up and built by its registry name.
+
+This module sits above the methods (it imports them, so that their
+:func:`~dynbtf.synthesis.base.register_synthesizer` decorators have run, and
+:mod:`.auto`, which chooses between two of them), and the methods sit above
+:mod:`~dynbtf.synthesis.base`, which only defines the interface, the decorator and
+:data:`~dynbtf.synthesis.base.SYNTHESIZERS`: no module of the package imports one
+above it (the import-linter contract in ``pyproject.toml`` checks this).
+"""
+
+from __future__ import annotations
+
+import inspect
+
+from ..errors import InputError
+from . import blending, cell_quilting, hex_tiling, histogram_blending, quilting, tiling  # noqa: F401  (register)
+from .auto import choose_method
+from .base import SYNTHESIZERS, Synthesizer
+
+__all__ = ["SYNTHESIZERS", "synthesizer_class", "make_synthesizer"]
+
+
+def synthesizer_class(name: str) -> type[Synthesizer]:
+    """The class registered as ``name``; unknown names raise :class:`InputError` listing the known ones."""
+    try:
+        return SYNTHESIZERS[name]
+    except KeyError:
+        raise InputError(f"synthesis method {name!r} is unknown; expected one of {sorted(SYNTHESIZERS) + ['auto']}") from None
+
+
+def _accepted(cls) -> list[str]:
+    """The method parameters of a synthesizer class (its constructor's keywords besides exemplar and seed)."""
+    return [p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "exemplar", "seed")]
+
+
+def make_synthesizer(name: str, exemplar, seed: int = 0, **params) -> Synthesizer:
+    """Build the synthesizer ``name`` on ``exemplar (H, W, C)`` with ``seed`` and method ``params``.
+
+    ``name = "auto"`` chooses ``struct`` or ``hist`` from the exemplar's structure
+    (:func:`dynbtf.synthesis.auto.choose_method`); the built synthesizer's ``choice`` attribute
+    then holds the :class:`~dynbtf.synthesis.auto.MethodChoice` (else None); ``auto`` passes each
+    parameter to the chosen method if it takes it (``guide`` is also measured by the choice; ``gamma``
+    applies if ``hist`` is chosen). Unknown parameter names raise :class:`InputError` listing the
+    accepted ones.
+    """
+    choice = None
+    if name == "auto":
+        choice = choose_method(Synthesizer.check_exemplar(exemplar), params.get("guide"))
+        candidates = {m: _accepted(synthesizer_class(m)) for m in ("struct", "hist")}
+        unknown = sorted(set(params) - set().union(*candidates.values()))
+        if unknown:
+            raise InputError(f"synthesis method 'auto': unknown parameter(s) {unknown}; accepted: "
+                             f"{sorted(set().union(*candidates.values()))} (each passed to the method that takes it)")
+        name = choice.method
+        params = {k: v for k, v in params.items() if k in candidates[name]}
+    cls = synthesizer_class(name)
+    accepted = _accepted(cls)
+    unknown = sorted(set(params) - set(accepted))
+    if unknown:
+        raise InputError(f"synthesis method {name!r}: unknown parameter(s) {unknown}; accepted: {accepted}")
+    synth = cls(exemplar, seed=seed, **params)
+    synth.choice = choice
+    return synth
