@@ -244,6 +244,24 @@ def test_outputs_that_cannot_be_created_are_refused_up_front(tmp_path, capsys, s
     assert _tree(tmp_path) == before
 
 
+def test_fit_refuses_an_unwritable_output_before_opening_the_btf(tmp_path, capsys, monkeypatch):
+    import dynbtf.training as training
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the fitter was looked up before -o/--output was checked")
+
+    monkeypatch.setattr(training, "get_fitter", refuse)
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    before = _tree(tmp_path)
+    missing = str(tmp_path / "nothere.dbtf")  # the output is checked first: this BTF is never opened
+    for output, needle in ((a_file / "m.dbtfm", "is a file, not a directory"),
+                           (tmp_path, "is a directory; expected a file name in it")):
+        assert main(["fit", missing, "-o", str(output), "--epochs", "1"]) == 2
+        _one_error(capsys, "-o/--output", needle)
+    assert _tree(tmp_path) == before
+
+
 def test_check_writable_names_the_problem(tmp_path):
     from dynbtf.errors import InputError
     from dynbtf.io import check_writable

@@ -51,10 +51,12 @@ def fit(
     Example: dynbtf fit leather.btf -o leather.dbtfm --minutes 60
     """
     from ..errors import positive_number
+    from ..io import check_writable
     from ..training import get_fitter
     from ..training.fit import check_options
     from ..training.recipe import choose_config
 
+    check_writable(output, "-o/--output")  # an unwritable model file fails before any training
     given = {name: value for name, value in training.items() if value is not None}  # None: the recipe chooses
     check_options(**given)  # every number finite and in range before the recipe computes with it
     if minutes is not None:
