@@ -214,6 +214,14 @@ def test_bad_arguments_are_clear_errors(model, tmp_path):
         export_web(model, tmp_path / "file")
 
 
+@pytest.mark.parametrize("scale", [float("nan"), float("inf"), 0.0, -2.0, 4096.0, 1e30, "many"])
+def test_export_web_refuses_a_scale_the_shader_cannot_hold_before_writing(model, tmp_path, scale):
+    """The library call checks scale like the CLI: no manifest with NaN (invalid JSON), nothing written."""
+    with pytest.raises(InputError, match=r"scale: .*(positive, finite number|the shader's float32 local uv)"):
+        export_web(model, tmp_path / "out", methods=("tile",), scale=scale)
+    assert not (tmp_path / "out").exists()
+
+
 def _cli(*args):
     from typer.testing import CliRunner
 
@@ -300,6 +308,18 @@ def test_viewer_page_draws_without_console_errors(exports, tmp_path, query):
     drawn = np.abs(canvas - background).max(-1) > 0.05
     assert drawn.mean() > 0.2  # the plane covers a good part of the view
     assert canvas[drawn].std(0).max() > 0.01  # and shows texture, not a flat colour
+
+
+@browser
+@pytest.mark.browser
+@pytest.mark.parametrize("scale, low, high", [(1000.0, "1", "2000"), (3000.0, "1", "4096"), (0.5, "0.5", "64")])
+def test_viewer_scale_slider_reaches_the_exported_scale(model, tmp_path, scale, low, high):
+    """A scale beyond the slider's default range (64) or below 1 is shown as exported, not clamped."""
+    export = export_web(model, tmp_path / "out", precision="fp16", methods=("tile",), scale=scale)
+    run = _probe_viewer(export.directory, budget_ms=2500)
+    assert 'data-state="running"' in run.dom, (run.element("dynbtf-error") or "") + run.dom[-1500:]
+    assert f'<span class="value" id="scale-value">{scale:g}</span>' in run.dom
+    assert f'min="{low}" max="{high}"' in run.dom
 
 
 @browser

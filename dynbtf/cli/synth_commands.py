@@ -139,23 +139,13 @@ def synth(
     Limits, checked before the model loads: |uv| * --scale below 2**52 repeats, --spp at most 64
     per axis, --resolution^2 x --spp^2 at most 2**32 queries, the estimated memory within --memory-mb.
     """
-    from ..conventions import spherical_to_direction
     from ..device import resolve_device
-    from ..io import check_image_path, check_writable, save_image
     from ..limits import check_scale
     from ..representations.model_file import load_model
     from ..synthesis.base import check_uv
-    from ..infinite_btf import SynthesizedBTF
     from .arguments import check_exposure, parse_theta_phi
 
-    if output is None and not report:
-        raise InputError("nothing to do: give -o/--output for an image and/or --report")
-    if output is not None:
-        check_image_path(output)
-        check_writable(output, "-o/--output")
-    if report:
-        check_writable(report_json or (output.with_suffix(".quality.json") if output is not None
-                                       else Path("synthesis-quality.json")), "--report-json")
+    _check_outputs(output, report, report_json)
     where = resolve_device(device)
     if output is not None:
         check_image_request(resolution, spp, memory_mb)
@@ -165,39 +155,78 @@ def synth(
     cu, cv = _pair(center, "center")
     check_uv([[cu - 0.5, cv - 0.5], [cu + 0.5, cv + 0.5]], "--center", scale=scale)  # before any work
     rep, _ = load_model(model, device=where)
-    plane_shape = tuple(rep.positional_plane().shape)
     methods = [m.strip() for m in report_methods.split(",") if m.strip()] if report else []
-    quilt_size = _quilt_repeats(quilt_repeats, scale, plane_shape) \
+    quilt_size = _quilt_repeats(quilt_repeats, scale, tuple(rep.positional_plane().shape)) \
         if (output is not None and method == "quilt") or "quilt" in methods else None
 
-    def build(name: str) -> SynthesizedBTF:
-        params = {"repeats": float(quilt_size), "progress": True} if name == "quilt" else {}
-        if name in ("hist", "auto") and gamma is not None:
-            params["gamma"] = gamma  # auto: used if it chooses hist
-        btf = SynthesizedBTF(rep, name, scale=scale, seed=seed, **params)
-        if btf.synthesizer.choice is not None:
-            typer.echo(btf.synthesizer.choice.line)
-        if name == "quilt":
-            size = btf.synthesizer.size
-            typer.echo(f"quilt: {quilt_size} x {quilt_size} exemplar repeats = {size[0]} x {size[1]} texels, "
-                       f"storage {rep.storage_bytes() / 1e6:.3g} MB (model) + "
-                       f"{btf.synthesizer.storage_bytes() / 1e6:.3g} MB (quilted plane, float32)")
-        return btf
+    def build(name: str):
+        return _build(rep, name, scale=scale, seed=seed, quilt_size=quilt_size, gamma=gamma)
 
     if output is not None:
         btf = build(method)
-        img = btf.image(view=view_dir, light=light_dir, uv_rect=(cu - 0.5, cv - 0.5, cu + 0.5, cv + 0.5),
-                        resolution=resolution, spp=spp, filtered=filtered)
-        if cosine:
-            img = img * max(float(spherical_to_direction(light_dir[0], light_dir[1])[2]), 0.0)
-        save_image(output, img, exposure=exposure)
+        _write_image(btf, output, view_dir, light_dir, (cu, cv), resolution=resolution, spp=spp, filtered=filtered,
+                     cosine=cosine, exposure=exposure)
         typer.echo(f"wrote {output} ({resolution}x{resolution}, {btf.synthesizer.name}, {scale:g}x, centre {cu:g},{cv:g})")
     if report:
-        from ..synthesis.quality import format_report, quality_report, save_report
+        _write_report(build, methods, repeats, _report_path(output, report_json))
 
-        reports = [quality_report(build(name), repeats=repeats) for name in methods]
-        typer.echo(format_report(reports))
-        path = report_json or (output.with_suffix(".quality.json") if output is not None
-                               else Path("synthesis-quality.json"))
-        save_report(reports, path)
-        typer.echo(f"wrote {path}")
+
+def _report_path(output: Path | None, report_json: Path | None) -> Path:
+    """Where --report saves its JSON: --report-json, else next to -o, else synthesis-quality.json."""
+    return report_json or (output.with_suffix(".quality.json") if output is not None
+                           else Path("synthesis-quality.json"))
+
+
+def _check_outputs(output: Path | None, report: bool, report_json: Path | None) -> None:
+    """Something to do, and every output (the image, the report's JSON) writable, before any work."""
+    from ..io import check_image_path, check_writable
+
+    if output is None and not report:
+        raise InputError("nothing to do: give -o/--output for an image and/or --report")
+    if output is not None:
+        check_image_path(output)
+        check_writable(output, "-o/--output")
+    if report:
+        check_writable(_report_path(output, report_json), "--report-json")
+
+
+def _build(rep, name: str, *, scale: float, seed: int, quilt_size: int | None, gamma: float | None):
+    """The :class:`~dynbtf.infinite_btf.SynthesizedBTF` of method ``name``; prints auto's choice and the quilt's size."""
+    from ..infinite_btf import SynthesizedBTF
+
+    params = {"repeats": float(quilt_size), "progress": True} if name == "quilt" else {}
+    if name in ("hist", "auto") and gamma is not None:
+        params["gamma"] = gamma  # auto: used if it chooses hist
+    btf = SynthesizedBTF(rep, name, scale=scale, seed=seed, **params)
+    if btf.synthesizer.choice is not None:
+        typer.echo(btf.synthesizer.choice.line)
+    if name == "quilt":
+        size = btf.synthesizer.size
+        typer.echo(f"quilt: {quilt_size} x {quilt_size} exemplar repeats = {size[0]} x {size[1]} texels, "
+                   f"storage {rep.storage_bytes() / 1e6:.3g} MB (model) + "
+                   f"{btf.synthesizer.storage_bytes() / 1e6:.3g} MB (quilted plane, float32)")
+    return btf
+
+
+def _write_image(btf, output: Path, view_dir, light_dir, center: tuple[float, float], *, resolution: int, spp: int,
+                 filtered: bool, cosine: bool, exposure: float) -> None:
+    """Render the uv square of side 1 centred at ``center`` under one view and light, and save it."""
+    from ..conventions import spherical_to_direction
+    from ..io import save_image
+
+    cu, cv = center
+    img = btf.image(view=view_dir, light=light_dir, uv_rect=(cu - 0.5, cv - 0.5, cu + 0.5, cv + 0.5),
+                    resolution=resolution, spp=spp, filtered=filtered)
+    if cosine:
+        img = img * max(float(spherical_to_direction(light_dir[0], light_dir[1])[2]), 0.0)
+    save_image(output, img, exposure=exposure)
+
+
+def _write_report(build, methods: list[str], repeats: int, path: Path) -> None:
+    """Build and measure each method in turn (one at a time in memory), print the table and save its JSON to ``path``."""
+    from ..synthesis.quality import format_report, quality_report, save_report
+
+    reports = [quality_report(build(name), repeats=repeats) for name in methods]
+    typer.echo(format_report(reports))
+    save_report(reports, path)
+    typer.echo(f"wrote {path}")

@@ -56,10 +56,11 @@ import torch
 
 from ...errors import InputError
 from ...io import atomic_path
+from ...limits import check_scale
 from ...synthesis.auto import AUTO
 from ...synthesis.hash import MASK32, seed_state
 from ...infinite_btf import SynthesizedBTF
-from .shader import WEB_METHODS, glsl_source, lattice_constants
+from .shader import LOCAL_REPEATS, WEB_METHODS, glsl_source, lattice_constants
 
 __all__ = ["export_web", "WebExport", "quantize", "dequantize", "quantized_model", "SUPPORTED_KINDS",
            "WEB_PRECISIONS", "FORMAT_VERSION", "DEFAULT_METHODS"]
@@ -316,7 +317,9 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
     seed : int
         Synthesis seed (the same choices as ``SynthesizedBTF(model, method, seed=seed)``).
     scale : float
-        The viewer's initial exemplar repeats per unit of the surface's uv.
+        The viewer's initial exemplar repeats per unit of the surface's uv: positive and below
+        :data:`~dynbtf.export.web.shader.LOCAL_REPEATS` (``2**12``, what the shader's float32 local
+        uv spans; else :class:`~dynbtf.errors.InputError`, before anything is written).
     viewer : bool
         Also write ``index.html``, ``viewer.js`` and the ``.js`` twins of the binary files.
     method_params : dict, optional
@@ -327,13 +330,45 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
     -------
     WebExport
     """
-    source = None
+    # the viewer's meshes have uv in [0, 1]: uv x scale is the shader's float32 local uv
+    scale = check_scale(scale, "scale", float32=True, limit=LOCAL_REPEATS, where="the shader's float32 local uv")
+    model, source = _resolve_model(model)
+    kind = _check_kind(model)
+    methods = _check_options(precision, methods)
+    method_params = dict(method_params or {})
+    model = model.cpu().eval()
+    out_dir = _output_directory(out_dir)
+    writer = _Writer(out_dir, scripts=viewer)
+    layout = _DecoderLayout.of(model, kind)
+    with torch.no_grad():
+        angular = {"f_H": _texture(writer, "f_H.bin", model.f_h.detach().numpy(), precision, layered=True),
+                   "f_D": _texture(writer, "f_D.bin", model.f_d.detach().numpy(), precision, layered=True)}
+    decoder_file, decoder_entries = _write_shared_decoder(writer, layout)
+    method_entries, auto = _export_methods(writer, model, layout, methods, method_params, seed, precision)
+    shader = glsl_source(channels=layout.c_u, angular_channels=layout.c_a, hidden=layout.hidden, layers=layout.layers,
+                         negative_slope=layout.negative_slope, angular_resolution=layout.res,
+                         angular_weights=layout.angular_blocks, rest_weights=layout.rest_weights, relief=layout.relief)
+    with atomic_path(out_dir / "dynbtf.glsl") as tmp:
+        tmp.write_text(shader, encoding="utf-8")
+    manifest = _manifest(kind, source, precision, scale, layout, angular, decoder_file, decoder_entries,
+                         method_entries, auto, writer.files)
+    _write_manifest_and_viewer(out_dir, manifest, shader, viewer)
+    return WebExport(out_dir, manifest)
+
+
+def _resolve_model(model):
+    """``(model, source path or None)``: a model file is loaded, a model passes through."""
     if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
         from ...representations.model_file import load_model
 
         source = Path(model)
         model, _ = load_model(model)
-    kind = _check_kind(model)
+        return model, source
+    return model, None
+
+
+def _check_options(precision: str, methods) -> list[str]:
+    """Check ``precision`` and ``methods`` (an :class:`InputError` naming the accepted ones); the methods as a list."""
     if precision not in WEB_PRECISIONS:
         raise InputError(f"precision: expected one of {sorted(WEB_PRECISIONS)} (fp16: half floats, u8: 8 bits per "
                          f"channel with per-channel scale and bias, fp32: exact), got {precision!r}")
@@ -345,52 +380,87 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
         if m not in accepted:
             raise InputError(f"method: {m!r} has no shader form; expected one of {accepted} "
                              "(quilting is not dynamic)")
-    method_params = dict(method_params or {})
-    model = model.cpu().eval()
+    return methods
+
+
+def _output_directory(out_dir) -> Path:
+    """``out_dir`` as a created directory (an existing file there is an :class:`InputError`)."""
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"-o/--output: {out_dir} exists and is not a directory")
     out_dir.mkdir(parents=True, exist_ok=True)
-    writer = _Writer(out_dir, scripts=viewer)
-    cfg = model.config()
-    decoder = model.decoder
-    hidden, layers = int(cfg["hidden"]), int(cfg["layers"])
-    # positional channels as the decoder reads them (a relief model's plane adds its height channel)
-    c_u, c_a, res = int(decoder.positional_channels), int(cfg["angular_channels"]), int(cfg["angular_resolution"])
-    relief = None
-    if kind == "triple-parallax":
-        h_min, h_max = model.height_range()
-        rows, cols = model.height_channel.shape
-        relief = {"h_min": h_min, "h_max": h_max, "step": cfg["march_step_texels"] / max(rows, cols),
-                  "aspect": cols / rows, "height_scale": model.height_scale}
-    g, ag, hg = (c_u + 3) // 4, (c_a + 3) // 4, (hidden + 3) // 4
-    w_ang = decoder.first.weight.detach().double().numpy()[:, c_u:]
-    # the angular part of layer 1: f_H's channels then f_D's, each padded to whole vec4 groups
-    w_ang_padded = np.zeros((hidden, 8 * ag))
-    w_ang_padded[:, :c_a] = w_ang[:, :c_a]
-    w_ang_padded[:, 4 * ag:4 * ag + c_a] = w_ang[:, c_a:]
-    angular_blocks = _mat4_blocks(w_ang_padded)
+    return out_dir
 
-    with torch.no_grad():
-        angular = {"f_H": _texture(writer, "f_H.bin", model.f_h.detach().numpy(), precision, layered=True),
-                   "f_D": _texture(writer, "f_D.bin", model.f_d.detach().numpy(), precision, layered=True)}
-    # the weights every method shares (layer 1's angular part, layers 2..): constants in the shader, and one
-    # float32 file in std140 order for engines that prefer uniforms
-    rest_weights = [(_mat4_blocks(layer.weight.detach().double().numpy()), _vec4s(layer.bias.detach().double().numpy()))
-                    for layer in decoder.rest]
-    parts = [("angular", angular_blocks)] + [(f"w{k}", w) for k, (w, _) in enumerate(rest_weights, start=2)]
-    parts += [(f"b{k}", b) for k, (_, b) in enumerate(rest_weights, start=2)]
+
+@dataclass
+class _DecoderLayout:
+    """The model's decoder as the shader sees it: sizes, relief parameters and the weights every method shares."""
+
+    cfg: dict[str, Any]
+    hidden: int
+    layers: int
+    c_u: int  # positional channels as the decoder reads them (a relief model's plane adds its height channel)
+    c_a: int
+    res: int
+    negative_slope: float
+    relief: dict[str, Any] | None
+    angular_blocks: np.ndarray  # layer 1's angular part (mat4 blocks)
+    rest_weights: list[tuple[np.ndarray, np.ndarray]]  # layers 2..: (mat4 blocks, vec4 biases)
+
+    @classmethod
+    def of(cls, model, kind: str) -> "_DecoderLayout":
+        cfg = model.config()
+        decoder = model.decoder
+        hidden, layers = int(cfg["hidden"]), int(cfg["layers"])
+        c_u, c_a, res = int(decoder.positional_channels), int(cfg["angular_channels"]), int(cfg["angular_resolution"])
+        relief = None
+        if kind == "triple-parallax":
+            h_min, h_max = model.height_range()
+            rows, cols = model.height_channel.shape
+            relief = {"h_min": h_min, "h_max": h_max, "step": cfg["march_step_texels"] / max(rows, cols),
+                      "aspect": cols / rows, "height_scale": model.height_scale}
+        ag = (c_a + 3) // 4
+        w_ang = decoder.first.weight.detach().double().numpy()[:, c_u:]
+        # the angular part of layer 1: f_H's channels then f_D's, each padded to whole vec4 groups
+        w_ang_padded = np.zeros((hidden, 8 * ag))
+        w_ang_padded[:, :c_a] = w_ang[:, :c_a]
+        w_ang_padded[:, 4 * ag:4 * ag + c_a] = w_ang[:, c_a:]
+        rest_weights = [(_mat4_blocks(layer.weight.detach().double().numpy()),
+                         _vec4s(layer.bias.detach().double().numpy())) for layer in decoder.rest]
+        return cls(cfg, hidden, layers, c_u, c_a, res, float(decoder.negative_slope), relief,
+                   _mat4_blocks(w_ang_padded), rest_weights)
+
+
+def _write_shared_decoder(writer: _Writer, layout: _DecoderLayout) -> tuple[str, dict[str, Any]]:
+    """Write ``decoder.bin`` (the weights every method shares: constants in the shader, and one float32 file in
+    std140 order for engines that prefer uniforms); check that layer 1's uniform block fits WebGL2.
+
+    Returns the file's name and its parts (offset and size of each, in floats).
+    """
+    parts = [("angular", layout.angular_blocks)]
+    parts += [(f"w{k}", w) for k, (w, _) in enumerate(layout.rest_weights, start=2)]
+    parts += [(f"b{k}", b) for k, (_, b) in enumerate(layout.rest_weights, start=2)]
     decoder_entries, offset = {}, 0
     for name, values in parts:
         decoder_entries[name] = {"offset": offset, "floats": int(values.size)}
         offset += int(values.size)
     decoder_file = writer.add("decoder.bin", np.concatenate([v for _, v in parts]))
+    g, hg = (layout.c_u + 3) // 4, (layout.hidden + 3) // 4
     layer1_floats = 16 * hg * g + 4 * hg
     if layer1_floats * 4 > _MAX_UNIFORM_BLOCK:
         raise InputError(f"export: decoder block DynbtfLayer1 needs {layer1_floats * 4} bytes, more than the "
-                         f"{_MAX_UNIFORM_BLOCK} bytes WebGL2 guarantees per uniform block (hidden = {hidden}, "
-                         f"{c_u} positional channels); export a model with a smaller decoder")
+                         f"{_MAX_UNIFORM_BLOCK} bytes WebGL2 guarantees per uniform block (hidden = {layout.hidden}, "
+                         f"{layout.c_u} positional channels); export a model with a smaller decoder")
+    return decoder_file, decoder_entries
 
+
+def _export_methods(writer: _Writer, model, layout: _DecoderLayout, methods: list[str],
+                    method_params: dict[str, dict[str, Any]], seed: int, precision: str
+                    ) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """Each method's plane, tables and folded layer 1: ``(method entries, the auto choice or None)``.
+
+    ``auto`` is exported under the chosen method's name; a method already exported is skipped.
+    """
     method_entries: dict[str, Any] = {}
     auto = None
     for requested in methods:
@@ -407,56 +477,65 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
             btf = SynthesizedBTF(model, m, seed=seed, **params)
         if m in method_entries:  # auto chose a method exported before it
             continue
-        synth = btf.synthesizer
-        files = []
-        entry: dict[str, Any] = {"mode": WEB_METHODS[m], "density": [int(synth.exemplar.shape[1]),
-                                                                     int(synth.exemplar.shape[0])],
-                                 "seed": int(seed), "seed_state": int(seed_state(int(seed) & MASK32)),
-                                 "parameters": synth.parameters()}
-        plane = (synth.exemplar if m in ("tile", "struct") else synth.prepared.plane).detach().cpu().numpy()
-        entry["plane"] = _texture(writer, f"plane_{m}.bin", plane, precision, layered=True)
-        files.append(entry["plane"]["file"])
-        matrix, out_offset = synth.output_map()
-        kernel = synth.kernel_arguments() if m not in ("tile", "struct") else {}  # what the fused CPU kernel is given
-        if m == "struct":
-            t = synth.prepared
-            entry["tables"] = _cell_tables_texture(writer, f"tables_{m}.bin", t)
-            entry.update(cells=[int(c) for c in t.cells], margin=[int(c) for c in t.margin], count=int(t.count))
-            files.append(entry["tables"]["file"])
-        if m == "hist":
-            entry["lut"] = _lut_texture(writer, f"lut_{m}.bin", kernel["lut"].cpu().numpy(), precision)
-            entry.update(gamma=float(kernel["gamma"]), g_min=float(kernel["g_min"]),
-                         inv_step=float(1.0 / kernel["step"]))
-            files.append(entry["lut"]["file"])
-        if m == "hex":
-            entry["luminance"] = _texture(writer, f"luminance_{m}.bin", kernel["luminance"].cpu().numpy(), precision,
-                                          layered=False)
-            entry.update(beta=float(kernel["beta"]), gain_k=float(kernel["gain_k"]))
-            files.append(entry["luminance"]["file"])
-        # layer 1 with the method's output map folded in, as the compiled material holds it (FoldedDecoder.fold)
-        folded = btf.material.decoder
-        w_fold = folded.levels[0].weight.T.double().cpu().numpy()                 # (hidden, C)
-        b_fold = (folded.levels[0].bias + folded.first_bias).double().cpu().numpy()
-        block = np.concatenate([_mat4_blocks(w_fold), _vec4s(b_fold)])
-        m_mat = np.eye(c_u) if matrix is None else matrix.double().cpu().numpy()   # features = latent @ M + o
-        m_off = np.zeros(c_u) if out_offset is None else out_offset.double().cpu().numpy()
-        entry["layer1"] = {"file": writer.add(f"layer1_{m}.bin", block), "floats": int(block.size)}
-        if relief is not None:  # the height channel (the plane's last) in terms of the latent
-            entry["height"] = {"map": _pad4(m_mat[:, -1], 0.0), "offset": float(m_off[-1])}
-        files.append(entry["layer1"]["file"])
-        entry["files"] = files
-        method_entries[m] = entry
+        method_entries[m] = _method_entry(writer, m, btf, seed, precision, layout)
+    return method_entries, auto
 
-    shader = glsl_source(channels=c_u, angular_channels=c_a, hidden=hidden, layers=layers,
-                         negative_slope=float(decoder.negative_slope), angular_resolution=res,
-                         angular_weights=angular_blocks, rest_weights=rest_weights, relief=relief)
-    with atomic_path(out_dir / "dynbtf.glsl") as tmp:
-        tmp.write_text(shader, encoding="utf-8")
-    manifest = {
-        "format": "dynbtf-web", "version": FORMAT_VERSION, "kind": kind, "config": cfg,
+
+def _method_entry(writer: _Writer, m: str, btf: SynthesizedBTF, seed: int, precision: str,
+                  layout: _DecoderLayout) -> dict[str, Any]:
+    """Write one method's files (plane, its tables, layer 1 with its output map folded in): its manifest entry."""
+    synth = btf.synthesizer
+    files = []
+    entry: dict[str, Any] = {"mode": WEB_METHODS[m], "density": [int(synth.exemplar.shape[1]),
+                                                                 int(synth.exemplar.shape[0])],
+                             "seed": int(seed), "seed_state": int(seed_state(int(seed) & MASK32)),
+                             "parameters": synth.parameters()}
+    plane = (synth.exemplar if m in ("tile", "struct") else synth.prepared.plane).detach().cpu().numpy()
+    entry["plane"] = _texture(writer, f"plane_{m}.bin", plane, precision, layered=True)
+    files.append(entry["plane"]["file"])
+    matrix, out_offset = synth.output_map()
+    kernel = synth.kernel_arguments() if m not in ("tile", "struct") else {}  # what the fused CPU kernel is given
+    if m == "struct":
+        t = synth.prepared
+        entry["tables"] = _cell_tables_texture(writer, f"tables_{m}.bin", t)
+        entry.update(cells=[int(c) for c in t.cells], margin=[int(c) for c in t.margin], count=int(t.count))
+        files.append(entry["tables"]["file"])
+    if m == "hist":
+        entry["lut"] = _lut_texture(writer, f"lut_{m}.bin", kernel["lut"].cpu().numpy(), precision)
+        entry.update(gamma=float(kernel["gamma"]), g_min=float(kernel["g_min"]),
+                     inv_step=float(1.0 / kernel["step"]))
+        files.append(entry["lut"]["file"])
+    if m == "hex":
+        entry["luminance"] = _texture(writer, f"luminance_{m}.bin", kernel["luminance"].cpu().numpy(), precision,
+                                      layered=False)
+        entry.update(beta=float(kernel["beta"]), gain_k=float(kernel["gain_k"]))
+        files.append(entry["luminance"]["file"])
+    # layer 1 with the method's output map folded in, as the compiled material holds it (FoldedDecoder.fold)
+    folded = btf.material.decoder
+    w_fold = folded.levels[0].weight.T.double().cpu().numpy()                 # (hidden, C)
+    b_fold = (folded.levels[0].bias + folded.first_bias).double().cpu().numpy()
+    block = np.concatenate([_mat4_blocks(w_fold), _vec4s(b_fold)])
+    c_u = layout.c_u
+    m_mat = np.eye(c_u) if matrix is None else matrix.double().cpu().numpy()   # features = latent @ M + o
+    m_off = np.zeros(c_u) if out_offset is None else out_offset.double().cpu().numpy()
+    entry["layer1"] = {"file": writer.add(f"layer1_{m}.bin", block), "floats": int(block.size)}
+    if layout.relief is not None:  # the height channel (the plane's last) in terms of the latent
+        entry["height"] = {"map": _pad4(m_mat[:, -1], 0.0), "offset": float(m_off[-1])}
+    files.append(entry["layer1"]["file"])
+    entry["files"] = files
+    return entry
+
+
+def _manifest(kind: str, source: Path | None, precision: str, scale: float, layout: _DecoderLayout,
+              angular: dict[str, Any], decoder_file: str, decoder_entries: dict[str, Any],
+              method_entries: dict[str, Any], auto: dict[str, Any] | None, files: dict[str, Any]) -> dict[str, Any]:
+    """The content of ``manifest.json``."""
+    return {
+        "format": "dynbtf-web", "version": FORMAT_VERSION, "kind": kind, "config": layout.cfg,
         "source": None if source is None else source.name, "precision": precision,
-        "channels": c_u, "relief": relief, "angular_channels": c_a, "angular_resolution": res, "hidden": hidden,
-        "layers": layers, "negative_slope": float(decoder.negative_slope), "scale": float(scale),
+        "channels": layout.c_u, "relief": layout.relief, "angular_channels": layout.c_a,
+        "angular_resolution": layout.res, "hidden": layout.hidden,
+        "layers": layout.layers, "negative_slope": layout.negative_slope, "scale": float(scale),
         "default_method": next(iter(method_entries)), "auto": auto, "lattice": lattice_constants(),
         "angular": angular,
         "decoder": {"file": decoder_file, "parts": decoder_entries,
@@ -464,7 +543,7 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
                             "vec4 biases), also constants in dynbtf.glsl"},
         "methods": method_entries, "shared_files": sorted({angular["f_H"]["file"], angular["f_D"]["file"],
                                                            decoder_file}),
-        "files": writer.files, "shader": "dynbtf.glsl",
+        "files": files, "shader": "dynbtf.glsl",
         "conventions": ("directions: unit vectors in the local frame (x along +u, y along +v, z = normal), w_view "
                         "towards the camera, w_light towards the light; (theta, phi) in degrees: theta from the "
                         "normal, phi from +u towards +v. Values: linear RGB, excluding cos(theta_light) (pi f_r). "
@@ -472,6 +551,10 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
                         "CPU into a repeat origin and a local uv of at most 2**12 repeats; struct's origin words "
                         "are the int64 cell index of the repeat's first cell, I x cells)."),
     }
+
+
+def _write_manifest_and_viewer(out_dir: Path, manifest: dict[str, Any], shader: str, viewer: bool) -> None:
+    """Write ``manifest.json`` and, with ``viewer``, ``manifest.js`` and the viewer page."""
     with atomic_path(out_dir / "manifest.json") as tmp:
         tmp.write_text(json.dumps(manifest, indent=1), encoding="utf-8")
     if viewer:
@@ -481,4 +564,3 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
         for name in _VIEWER_FILES:
             with atomic_path(out_dir / name) as tmp:
                 shutil.copyfile(here / name, tmp)
-    return WebExport(out_dir, manifest)

@@ -390,6 +390,12 @@
         ui.method.appendChild(o);
       });
       ui.method.value = m.default_method;
+      // the slider reaches the exported scale (up to twice it, at least 64; down to it if below 1), within what
+      // the shader's local uv spans
+      var localRepeats = (m.lattice && m.lattice.local_repeats) || 4096;
+      ui.scale.max = Math.min(localRepeats, Math.max(64, Math.ceil(2 * m.scale)));
+      ui.scale.min = Math.min(1, m.scale);
+      if (m.scale !== Math.round(m.scale)) ui.scale.step = 'any';  // a fractional scale is kept, not rounded
       ui.scale.value = m.scale;
       // initial settings from the address: index.html?shape=sphere&method=hex&origin=1e6&light-theta=60 ...
       new URLSearchParams(window.location.search).forEach(function (v, k) {
