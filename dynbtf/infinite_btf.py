@@ -68,6 +68,7 @@ from __future__ import annotations
 
 import copy
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -303,11 +304,12 @@ class SynthesizedBTF:
         """The folded decoder with its per-level decoders and mean appearance (read from the compiled-material
         cache, or fitted and stored, on the first call)."""
         if self.level_decoders and not self._footprints_ready:
-            synthesizer, seed, params = self._request
-            if self.material.key and isinstance(synthesizer, str):
-                self.material = cached_material(self.model, synthesizer, seed, footprints=True, **params)[0]
-            else:
-                self.material = compile_material(self.model, base=self.material, footprints=True)
+            m, given = self.material, self._request[2]
+            if m.key and not {"guide", "luminance"} & set(given):  # the resolved method's entry in the cache
+                full = cached_material(self.model, m.method, m.seed, footprints=True, **m.arguments)[0]
+                self.material = replace(full, choice=m.choice, _synthesizers=full._synthesizers)
+            else:  # tables from inputs the cache key does not cover: fitted here, not cached
+                self.material = compile_material(self.model, base=m, footprints=True)
             self._footprints_ready = True
             self.decode_path = self._decode_path()
         return self.material.decoder

@@ -23,6 +23,7 @@ from . import synth_commands  # noqa: F401,E402
 from . import fit_many_commands  # noqa: F401,E402
 from . import export_commands  # noqa: F401,E402
 from . import system_commands  # noqa: F401,E402
+from . import compile_commands  # noqa: F401,E402
 
 __all__ = ["app", "main"]
 

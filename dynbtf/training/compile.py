@@ -233,7 +233,14 @@ def cached_material(model, method: str = "auto", seed: int = 0, *, footprints: b
 
     Without ``footprints`` a cached material with footprint decoders is used as well (it holds the same
     tables); with ``footprints``, a cached material without them is completed (tables reused) and stored.
+    ``auto`` with ``footprints`` is the material of the method it chooses (one fit per resolved method).
     """
+    if method == "auto" and footprints:  # the footprint decoders are keyed by the method auto resolves to
+        from dataclasses import replace
+
+        chosen, _ = cached_material(model, "auto", seed, footprints=False, progress=progress, **arguments)
+        full, how = cached_material(model, chosen.method, seed, footprints=True, progress=progress, **chosen.arguments)
+        return replace(full, choice=chosen.choice, _synthesizers=full._synthesizers), how
     device = model.positional_plane().device
     digest = model_digest(model)
     keys = {flag: material_key(digest, method, seed, _argument_key(arguments), footprint_settings(flag))
