@@ -459,7 +459,7 @@ def compare_synthesis(model, output_dir, methods: Sequence[str] = DEFAULT_SYNTHE
         Receives ``synthesis.csv`` / ``.json``, ``images/synthesis_<method>.png``
         and (unless ``report`` is given) ``synthesis.html``.
     methods : sequence of str
-        Synthesis methods (:func:`dynbtf.synthesis.base.make_synthesizer` names).
+        Synthesis methods (:func:`dynbtf.synthesis.registry.make_synthesizer` names).
     scale : float, default 15
         Exemplar repeats per side of the synthesized area (the paper's 15x);
         quilting pre-generates a plane of this size.
