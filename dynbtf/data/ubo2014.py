@@ -204,9 +204,8 @@ def _check_angles(cur: _Cursor, angles: np.ndarray, what: str) -> None:
         cur.fail(f"{what}: phi outside -1440..1440 deg (corrupt angle values)")
 
 
-def _parse_header(path: Path, buf, size: int) -> tuple[DFMFHeader, int]:
-    """Parse and validate every header field; returns the header and the end offset of the data."""
-    cur = _Cursor(path, buf, size)
+def _check_magic(cur: "_Cursor", buf, size: int) -> bool:
+    """Read the magic (a clear error for other BTF variants); returns whether the 'R' (rotations) flag follows."""
     magic = cur.take(min(len(DFMF_MAGIC), size), "magic")
     if magic != DFMF_MAGIC:
         if magic[:1] == b"!" and magic[1:5] in (b"FMF0", b"FMF1", b"PVF0", b"BDIF"):
@@ -215,6 +214,13 @@ def _parse_header(path: Path, buf, size: int) -> tuple[DFMFHeader, int]:
     rotations_included = cur.pos < size and bytes(buf[cur.pos:cur.pos + 1]) == b"R"
     if rotations_included:
         cur.pos += 1
+    return rotations_included
+
+
+def _parse_header(path: Path, buf, size: int) -> tuple[DFMFHeader, int]:
+    """Parse and validate every header field; returns the header and the end offset of the data."""
+    cur = _Cursor(path, buf, size)
+    rotations_included = _check_magic(cur, buf, size)
 
     start = cur.pos
     hsize, version, setup, sensor, light_src, ppmm, r, g, b = _COMMON_HEADER.unpack(
