@@ -548,6 +548,37 @@ def test_damaged_sampling_table_falls_back_to_cosine_once(variant, model_file, t
     assert len(messages) == 1 and "non-finite" in messages[0] and "cosine" in messages[0], messages
 
 
+def test_sampling_table_is_stored_in_the_compiled_material_and_read_back(variant, model_file, tmp_path, monkeypatch):
+    """The first plugin load of a model builds its sampling table and writes it into the model's compiled material
+    (cache); another load of the same model (here: a copy of the file, as a second process would see it) reads it
+    from there without building, and samples the same densities."""
+    import shutil
+
+    from dynbtf.compiled_material import load_compiled
+    from dynbtf.render.mitsuba import sampling
+
+    monkeypatch.setenv("DYNBTF_COMPILED_CACHE", str(tmp_path / "cache"))
+    real, built = sampling.build_sampling_table, []
+
+    def counting(model, **kwargs):
+        built.append(model)
+        return real(model, **kwargs)
+
+    monkeypatch.setattr(sampling, "build_sampling_table", counting)
+    path = shutil.copy(model_file[0], tmp_path / "first.dbtfm")  # a file this process has not sampled yet
+    common = {"type": "dynbtf", "method": "hist", "sampling": "mixture", "filtered": False, "seed": 4}
+    first = mi.load_dict({**common, "filename": str(path)})
+    assert len(built) == 1 and first.sampling == "mixture"
+    stored = [load_compiled(f) for f in (tmp_path / "cache").iterdir()]
+    assert [sorted(m.sampling) for m in stored if m.sampling] == [["density", "phi_nodes", "theta_nodes"]]
+    assert first.evaluator.btf.material.sampling is not None
+    second = mi.load_dict({**common, "filename": str(shutil.copy(path, tmp_path / "copy.dbtfm"))})
+    assert len(built) == 1 and second.sampling == "mixture"
+    assert np.array_equal(np.array(first.sampler.cells), np.array(second.sampler.cells))
+    mi.load_dict({**common, "filename": str(path), "sampling": "cosine"})
+    assert len(built) == 1
+
+
 # ---------------------------------------------------------------- footprints (filtered queries)
 def _footprint_reference(model, method, seed, uv, wv, wl, footprint):
     from dynbtf.infinite_btf import SynthesizedBTF
@@ -618,6 +649,45 @@ def test_plugin_without_a_footprint_is_the_point_query_bit_for_bit(variant, mode
     # a ray cone, but the hit at distance 0 (a footprint of 0 texels): the point query to float rounding
     cone = _plugin_eval(mi.load_dict({**common, "ray_cone_angle": 0.01}), uv, wv, wl, 4.0, t=np.zeros(len(uv)))
     np.testing.assert_allclose(cone, off, rtol=0, atol=1e-5 * np.abs(off).max())
+
+
+def test_parameter_table_is_the_documented_one():
+    """The plugin's parameters come from one table (bsdf.PARAMETERS): the table in docs/rendering.md is generated
+    from it (regenerate: ``python -c "from dynbtf.render.mitsuba.bsdf import parameter_table_markdown as t;
+    print(t())"``), and PLUGIN_DOC lists every parameter with its default."""
+    from pathlib import Path
+
+    from dynbtf.render.mitsuba.bsdf import PARAMETERS, PLUGIN_DOC, parameter_table_markdown
+
+    lines = (Path(__file__).parents[1] / "docs" / "rendering.md").read_text(encoding="utf-8").splitlines()
+    start = lines.index("| Parameter | Type | Description | Default |")
+    end = next((k for k in range(start, len(lines)) if not lines[k].startswith("|")), len(lines))
+    assert "\n".join(lines[start:end]) + "\n" == parameter_table_markdown()
+    for parameter in PARAMETERS:
+        assert f"   * - ``{parameter.name}``\n     - {parameter.type}\n" in PLUGIN_DOC
+    assert [p.name for p in PARAMETERS] == ["filename", "method", "scale", "scale_v", "seed", "sampling",
+                                            "sampling_weight", "filtered", "ray_cone_angle"]
+
+
+def test_parameter_errors_name_the_parameter(variant, model_file, tmp_path):
+    """Every checked parameter's error: ``dynbtf BSDF: parameter 'name' ...``, before the model file is read."""
+    path, _ = model_file
+    cases = [({"method": "quilt"}, "parameter 'method' must be one of ['tile', 'hist', 'hex', 'struct', 'auto'], "
+                                   "got 'quilt'"),
+             ({"scale": 0.0}, "parameter 'scale': expected a positive, finite number of exemplar repeats, got 0.0"),
+             ({"scale_v": -1.0}, "parameter 'scale_v': expected a positive, finite number"),
+             ({"scale": 3e7}, "parameter 'scale': 3e+07 exemplar repeats across the uv range exceed the 16777216 "
+                              "(2**24) that Mitsuba's float32 uv resolves"),
+             ({"sampling_weight": 0.0}, "parameter 'sampling_weight' must be a probability in (0, 1], got 0.0"),
+             ({"ray_cone_angle": float("inf")}, "parameter 'ray_cone_angle' must be a non-negative angle in radians"),
+             ({"filename": None}, "parameter 'filename' (a dynbtf model file) is required")]
+    for extra, message in cases:
+        props = {"type": "dynbtf", "filename": str(tmp_path / "never-read.dbtfm"), **extra}
+        if props["filename"] is None:
+            del props["filename"]
+        with pytest.raises(Exception) as info:
+            mi.load_dict(props)
+        assert "dynbtf BSDF: " + message in str(info.value), (extra, str(info.value))
 
 
 def test_ray_cone_angle_of_a_camera():
@@ -767,7 +837,8 @@ def test_render_auto_resolves_the_method_and_echoes_the_choice(variant, structur
     from dynbtf.errors import InputError
     from dynbtf.render.mitsuba.scene_render import render_scene
 
-    path, _ = structured_file
+    path, model = structured_file
+    monkeypatch.setenv("DYNBTF_COMPILED_CACHE", str(tmp_path / "cache"))  # nothing compiled yet
     loaded = []
 
     def stop(scene):  # the scene dict reaches Mitsuba: record it, render nothing
@@ -781,6 +852,12 @@ def test_render_auto_resolves_the_method_and_echoes_the_choice(variant, structur
                      echo=echoed.append)
     assert loaded[0]["surface"]["bsdf"]["method"] == "struct"
     assert len(echoed) == 1 and echoed[0].startswith("method auto -> struct: structured exemplar")
+    # resolved through the compiled material, which the plugin (given struct) then finds in the cache
+    from dynbtf.training.compile import cached_material
+
+    found, how = cached_material(model, "struct", 0, footprints=False, progress=False)
+    assert how == "cached" and found.method == "struct" and found.choice is None
+    assert echoed[0] == cached_material(model, "auto", 0, footprints=False, progress=False)[0].choice["line"]
     capsys.readouterr()
     assert main(["render", str(path), "-o", str(tmp_path / "x.png"), "--size", "8", "--spp", "1"]) == 2
     captured = capsys.readouterr()

@@ -9,19 +9,24 @@ Call :func:`register_plugin` once and Mitsuba knows a BSDF of type ``"dynbtf"``:
     bsdf = mi.load_dict({"type": "dynbtf", "filename": "leather.dynbtf", "method": "hist", "scale": 25})
 
 The class docstring of :class:`DynBTFBSDF` (available as :data:`PLUGIN_DOC`) is the
-plugin's reference page.
+plugin's reference page. Its parameters are one table, :data:`PARAMETERS`: the constructor reads and
+checks them from it, and :data:`PLUGIN_DOC`'s and docs/rendering.md's parameter tables are generated
+from it (:func:`parameter_table_markdown`).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Any, Callable
 
 from ...errors import InputError
 from . import drjit_ops
 from .sampling import AUTO_MIN_COSINE_VARIANCE, DEFAULT_TABLE_WEIGHT, SAMPLING_MODES
 
 __all__ = ["register_plugin", "plugin_variants", "load_plugin_model", "plugin_sampler", "PLUGIN_DOC", "METHODS",
-           "DEFAULT_METHOD", "configure_jit", "DynBTFEvaluator", "ray_cone_angle", "announce_choice"]
+           "DEFAULT_METHOD", "configure_jit", "DynBTFEvaluator", "ray_cone_angle", "announce_choice", "PARAMETERS",
+           "PluginParameter", "read_parameters", "parameter_table_markdown"]
 
 #: Mitsuba's ``BSDFFlags::NeedsDifferentials`` (not exported to Python): with it, integrators that trace ray
 #: differentials compute ``si.duv_dx`` / ``si.duv_dy`` before calling the BSDF.
@@ -49,7 +54,220 @@ METHODS = ("tile", "hist", "hex", "struct", "auto")
 #: The plugin's (and ``dynbtf render``'s) default method.
 DEFAULT_METHOD = "auto"
 
-PLUGIN_DOC = """Synthesized BTF material (``dynbtf``)
+@dataclass(frozen=True)
+class PluginParameter:
+    """One parameter of the ``dynbtf`` BSDF: how the constructor reads it and how the references document it.
+
+    The plugin's constructor, :data:`PLUGIN_DOC`'s parameter table and the table in docs/rendering.md
+    (:func:`parameter_table_markdown`) all come from :data:`PARAMETERS`.
+
+    Attributes
+    ----------
+    name : str
+        The property's name in a scene (``filename``, ``scale``, ...).
+    type : {"string", "float", "integer", "boolean"}
+        What the constructor converts the property to (``str``, ``float``, ``int``, ``bool``).
+    default : object
+        The value where the scene does not set it; a callable takes the parameters read so far (by
+        name) and returns it (``scale_v`` defaults to ``scale``); unused for a ``required`` parameter.
+    doc : str
+        The reference text (reStructuredText) of :data:`PLUGIN_DOC`.
+    summary : str
+        One line (Markdown) for the table in docs/rendering.md.
+    check : callable, optional
+        ``check(name, value)`` returns the value to keep or raises :class:`InputError` (``dynbtf BSDF:
+        parameter 'name' ...``).
+    attribute : str
+        The BSDF's attribute holding the value (default: ``name``).
+    required : str
+        What a required parameter is, for the error naming it (empty: optional).
+    shown_default : str
+        The default as documented, where it is not the value itself (e.g. ``scale``, or ``0`` for ``0.0``).
+    """
+
+    name: str
+    type: str
+    default: Any
+    doc: str
+    summary: str
+    check: Callable[[str, Any], Any] | None = None
+    attribute: str = ""
+    required: str = ""
+    shown_default: str = ""
+
+    def read(self, props, parsed: dict[str, Any]) -> Any:
+        """The parameter's value in Mitsuba ``props`` (converted, checked), given the parameters ``parsed`` so far."""
+        if props.has_property(self.name):
+            value = _CONVERTERS[self.type](props[self.name])
+        elif self.required:
+            raise InputError(f"dynbtf BSDF: parameter '{self.name}' ({self.required}) is required")
+        else:
+            value = self.default(parsed) if callable(self.default) else self.default
+        return self.check(self.name, value) if self.check is not None else value
+
+    def default_text(self, markdown: bool = False) -> str:
+        """The documented default: ``(required)``, a literal (``auto``, ``true``, ``scale``) or a number."""
+        if self.required:
+            return "required" if markdown else "(required)"
+        quote = "`" if markdown else "``"
+        if self.shown_default:
+            text = self.shown_default
+            return f"{quote}{text}{quote}" if not _is_number(text) else text
+        if isinstance(self.default, bool):
+            return f"{quote}{str(self.default).lower()}{quote}"
+        if isinstance(self.default, str):
+            return f"{quote}{self.default}{quote}"
+        return str(self.default)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
+
+
+_CONVERTERS: dict[str, Callable[[Any], Any]] = {"string": str, "float": float, "integer": int, "boolean": bool}
+
+
+def _one_of(choices):
+    def check(name, value):
+        if value not in choices:
+            raise InputError(f"dynbtf BSDF: parameter '{name}' must be one of {list(choices)}, got {value!r}")
+        return value
+
+    return check
+
+
+def _repeats(name, value):
+    """A scale: finite, positive, below the 2**24 repeats Mitsuba's float32 uv resolves."""
+    from ...limits import check_scale
+
+    return check_scale(value, f"dynbtf BSDF: parameter '{name}'", float32=True, where="Mitsuba's float32 uv")
+
+
+def _probability(name, value):
+    if not (math.isfinite(value) and 0.0 < value <= 1.0):
+        raise InputError(f"dynbtf BSDF: parameter '{name}' must be a probability in (0, 1], got {value}")
+    return value
+
+
+def _angle(name, value):
+    if not (math.isfinite(value) and value >= 0.0):
+        raise InputError(f"dynbtf BSDF: parameter '{name}' must be a non-negative angle in radians, got {value}")
+    return value
+
+
+#: The plugin's parameters, in the order the constructor reads them and the references list them.
+PARAMETERS: tuple[PluginParameter, ...] = (
+    PluginParameter(
+        "filename", "string", None, required="a dynbtf model file",
+        doc="""Path of a dynbtf model file: a Triple Plane (``dynbtf fit``), one
+with relief (``--repr triple-parallax``: the kernel marches the view
+ray through the synthesized height first) or a NeuMIP (``dynbtf fit
+--repr neumip``); PCA and SH models have no decoder to run in a kernel
+and are refused.""",
+        summary="model file: Triple Plane (also `triple-parallax`) or NeuMIP; PCA and SH are refused (no decoder "
+                "to run in a kernel)"),
+    PluginParameter(
+        "method", "string", DEFAULT_METHOD, check=_one_of(METHODS),
+        doc="""Synthesis of the positional plane: ``tile`` (plain repetition, the
+reference point), ``hist`` (histogram-preserving blending on a triangle
+lattice, the paper's method), ``hex`` (hex-tiling), ``struct``
+(lattice-aligned cell quilting: cells of the exemplar shifted by its own
+lattice vectors, cut along minimum-error seams; keeps weaves, tiles and
+bricks intact) or ``auto``: ``struct`` for a structured exemplar (the
+model's positional plane), else ``hist``
+(:func:`~dynbtf.synthesis.auto.choose_method`). With ``auto`` the
+plugin prints its choice and the evidence (one line, on standard error)
+once per model file and process.""",
+        summary="`tile`, `hist` (the paper's), `hex`, `struct` (cell quilting for structured materials) or `auto` "
+                "(`struct` for a structured exemplar, else `hist`; the choice is printed once per model file)"),
+    PluginParameter(
+        "scale", "float", 1.0, check=_repeats,
+        doc="""Exemplar repeats per unit of mesh ``u`` (how many times the measured
+patch would fit across the mesh's uv range).""",
+        summary="exemplar repeats per unit of mesh `u` (positive, below 2**24: Mitsuba's uv is float32)"),
+    PluginParameter(
+        "scale_v", "float", lambda parsed: parsed["scale"], check=_repeats, shown_default="scale",
+        doc="""Repeats per unit of mesh ``v``; set it to ``scale / 2`` on Mitsuba's
+``sphere`` (whose ``u`` spans the circumference, ``v`` half of it).""",
+        summary="repeats per unit of mesh `v` (use `scale / 2` on Mitsuba's `sphere`)"),
+    PluginParameter(
+        "seed", "integer", 0,
+        doc="Seed of the synthesis' integer hash (another seed, another material instance).",
+        summary="synthesis seed"),
+    PluginParameter(
+        "sampling", "string", "auto", check=_one_of(SAMPLING_MODES),
+        doc="""How ``sample`` draws directions: ``mixture`` (importance sampling: the
+model's sampling table, built once when the plugin loads the model --
+a half-vector density per view direction from the decoder, averaged over
+positional features -- mixed with cosine sampling by one-sample multiple
+importance sampling), ``cosine`` (cosine-weighted only, the paper's), or
+``auto``: ``mixture`` where the table's lobe is one cosine sampling misses
+(:func:`~dynbtf.render.mitsuba.sampling.cosine_relative_variance` of the table at
+least 4: glossy materials), else ``cosine`` (rough materials, where the
+table gains nothing per sample and costs ~10% per sample).
+Any other value is an error naming the allowed ones.""",
+        summary="`mixture` (the model's sampling table mixed with cosine sampling), `cosine` (the paper's), `auto` "
+                "(`mixture` for glossy models, `cosine` for rough ones)"),
+    PluginParameter(
+        "sampling_weight", "float", DEFAULT_TABLE_WEIGHT, check=_probability, attribute="table_weight",
+        doc="""In ``mixture`` mode, the probability of drawing from the table (the
+rest draws cosine-weighted directions), in ``(0, 1]``.""",
+        summary="in `mixture`, the probability of drawing from the table, in (0, 1]"),
+    PluginParameter(
+        "filtered", "boolean", True,
+        doc="""Footprint queries: a shading point that stands for a footprint
+(below) answers the synthesized BTF averaged over it, as
+:meth:`~dynbtf.infinite_btf.SynthesizedBTF.eval` with ``footprint``
+does (pyramid levels of the synthesized samples, a decoder per level),
+so distant surfaces do not alias. Where no footprint is known it is
+the point query. ``false``: always the point query.""",
+        summary="footprint queries where a footprint is known (below); `false`: always the point query"),
+    PluginParameter(
+        "ray_cone_angle", "float", 0.0, check=_angle, attribute="cone", shown_default="0",
+        doc="""Spread (radians) of one camera sample's ray cone: the angle one pixel
+subtends divided by ``sqrt(spp)``
+(:func:`~dynbtf.render.mitsuba.bsdf.ray_cone_angle`;
+:func:`dynbtf.render.mitsuba.scenes.scene_dict` sets it from its camera).
+Mitsuba's own integrators do not pass ray differentials to BSDFs, so
+the footprint is estimated from the cone: the side
+``t ray_cone_angle / cos(theta_view)`` at hit distance ``t``, in uv
+through ``|dp/du|`` and ``|dp/dv|`` (the longer side). Where the
+integrator computed uv partials (``si.duv_dx``, ``si.duv_dy``, e.g. a
+custom integrator calling ``si.compute_uv_partials(ray)``), those are
+used instead (:func:`~dynbtf.infinite_btf.footprint_width`). 0: partials only.""",
+        summary="radians: one camera sample's spread (`dynbtf.render.mitsuba.bsdf.ray_cone_angle(fov, width, "
+                "spp)`; `scene_dict` sets it), used where the integrator gives no uv partials; 0: partials only"),
+)
+
+
+def read_parameters(props) -> dict[str, Any]:
+    """The plugin's parameters from Mitsuba ``props``, converted and checked (:data:`PARAMETERS`), by name."""
+    parsed: dict[str, Any] = {}
+    for parameter in PARAMETERS:
+        parsed[parameter.name] = parameter.read(props, parsed)
+    return parsed
+
+
+def _rst_parameter_rows() -> str:
+    rows = []
+    for p in PARAMETERS:
+        description = "\n       ".join(p.doc.splitlines())
+        rows.append(f"   * - ``{p.name}``\n     - {p.type}\n     - {description}\n     - {p.default_text()}\n")
+    return "".join(rows)
+
+
+def parameter_table_markdown() -> str:
+    """The plugin's parameter table in Markdown, as docs/rendering.md shows it (a test keeps the two equal)."""
+    lines = ["| Parameter | Type | Description | Default |", "|---|---|---|---|"]
+    lines += [f"| `{p.name}` | {p.type} | {p.summary} | {p.default_text(markdown=True)} |" for p in PARAMETERS]
+    return "\n".join(lines) + "\n"
+
+
+_DOC_HEAD = """Synthesized BTF material (``dynbtf``)
 
 Evaluates an infinite, non-repeating BTF -- a fitted Triple Plane (or NeuMIP)
 model whose positional feature plane is synthesized on the fly -- at every
@@ -66,84 +284,9 @@ MLP) is traced into the rendering kernel; nothing is pre-generated, so any
      - Type
      - Description
      - Default
-   * - ``filename``
-     - string
-     - Path of a dynbtf model file: a Triple Plane (``dynbtf fit``), one
-       with relief (``--repr triple-parallax``: the kernel marches the view
-       ray through the synthesized height first) or a NeuMIP (``dynbtf fit
-       --repr neumip``); PCA and SH models have no decoder to run in a kernel
-       and are refused.
-     - (required)
-   * - ``method``
-     - string
-     - Synthesis of the positional plane: ``tile`` (plain repetition, the
-       reference point), ``hist`` (histogram-preserving blending on a triangle
-       lattice, the paper's method), ``hex`` (hex-tiling), ``struct``
-       (lattice-aligned cell quilting: cells of the exemplar shifted by its own
-       lattice vectors, cut along minimum-error seams; keeps weaves, tiles and
-       bricks intact) or ``auto``: ``struct`` for a structured exemplar (the
-       model's positional plane), else ``hist``
-       (:func:`~dynbtf.synthesis.auto.choose_method`). With ``auto`` the
-       plugin prints its choice and the evidence (one line, on standard error)
-       once per model file and process.
-     - ``auto``
-   * - ``scale``
-     - float
-     - Exemplar repeats per unit of mesh ``u`` (how many times the measured
-       patch would fit across the mesh's uv range).
-     - 1.0
-   * - ``scale_v``
-     - float
-     - Repeats per unit of mesh ``v``; set it to ``scale / 2`` on Mitsuba's
-       ``sphere`` (whose ``u`` spans the circumference, ``v`` half of it).
-     - ``scale``
-   * - ``seed``
-     - integer
-     - Seed of the synthesis' integer hash (another seed, another material instance).
-     - 0
-   * - ``sampling``
-     - string
-     - How ``sample`` draws directions: ``mixture`` (importance sampling: the
-       model's sampling table, built once when the plugin loads the model --
-       a half-vector density per view direction from the decoder, averaged over
-       positional features -- mixed with cosine sampling by one-sample multiple
-       importance sampling), ``cosine`` (cosine-weighted only, the paper's), or
-       ``auto``: ``mixture`` where the table's lobe is one cosine sampling misses
-       (:func:`~dynbtf.render.mitsuba.sampling.cosine_relative_variance` of the table at
-       least 4: glossy materials), else ``cosine`` (rough materials, where the
-       table gains nothing per sample and costs ~10% per sample).
-       Any other value is an error naming the allowed ones.
-     - ``auto``
-   * - ``sampling_weight``
-     - float
-     - In ``mixture`` mode, the probability of drawing from the table (the
-       rest draws cosine-weighted directions), in ``(0, 1]``.
-     - 0.75
-   * - ``filtered``
-     - boolean
-     - Footprint queries: a shading point that stands for a footprint
-       (below) answers the synthesized BTF averaged over it, as
-       :meth:`~dynbtf.infinite_btf.SynthesizedBTF.eval` with ``footprint``
-       does (pyramid levels of the synthesized samples, a decoder per level),
-       so distant surfaces do not alias. Where no footprint is known it is
-       the point query. ``false``: always the point query.
-     - ``true``
-   * - ``ray_cone_angle``
-     - float
-     - Spread (radians) of one camera sample's ray cone: the angle one pixel
-       subtends divided by ``sqrt(spp)``
-       (:func:`~dynbtf.render.mitsuba.bsdf.ray_cone_angle`;
-       :func:`dynbtf.render.mitsuba.scenes.scene_dict` sets it from its camera).
-       Mitsuba's own integrators do not pass ray differentials to BSDFs, so
-       the footprint is estimated from the cone: the side
-       ``t ray_cone_angle / cos(theta_view)`` at hit distance ``t``, in uv
-       through ``|dp/du|`` and ``|dp/dv|`` (the longer side). Where the
-       integrator computed uv partials (``si.duv_dx``, ``si.duv_dy``, e.g. a
-       custom integrator calling ``si.compute_uv_partials(ray)``), those are
-       used instead (:func:`~dynbtf.infinite_btf.footprint_width`). 0: partials only.
-     - 0
+"""
 
-Conventions: ``si.wi`` (towards the camera / previous path vertex) is the BTF's
+_DOC_TAIL = """Conventions: ``si.wi`` (towards the camera / previous path vertex) is the BTF's
 ``w_view``, ``wo`` (towards the light / next vertex) its ``w_light``, both in the
 local shading frame with ``x`` along ``dp/du`` and ``y`` along ``dp/dv`` (the
 BTF's frame: x along +u, y along +v). Mitsuba's frame has ``y = n x dp/du``;
@@ -162,9 +305,11 @@ a direction comes from the sampling table with probability ``sampling_weight`` a
 otherwise; ``pdf`` returns the mixture's density
 ``a pdf_table + (1 - a) cos(theta) / pi`` whichever way the direction was drawn,
 and ``sample``'s weight is ``eval / pdf`` (see :mod:`dynbtf.render.mitsuba.sampling`).
-The table costs a few seconds when a model is first loaded (cached for the
-process); so do the per-level decoders of ``filtered`` (fitted at load, cached
-for the process and shared with :class:`~dynbtf.infinite_btf.SynthesizedBTF`).
+The table costs a few seconds when a model is first loaded; so do the per-level
+decoders of ``filtered`` (fitted at load). Both are stored in the model's compiled
+material (:mod:`dynbtf.compiled_material`, in the cache shared with
+:class:`~dynbtf.infinite_btf.SynthesizedBTF`), so later loads, in this process or
+another, read them.
 If the table cannot be built (the decoder returns NaN or inf, or a view has
 no density), the plugin falls back to cosine sampling and says so once per
 model file with a warning (``UserWarning``).
@@ -190,6 +335,9 @@ counts beyond ~1e4 per mesh make float32 uv coarser than a texel (a mesh
 limitation, not a synthesis one).
 """
 
+#: The plugin's reference page (the class docstring of the BSDF); its parameter table comes from :data:`PARAMETERS`.
+PLUGIN_DOC = _DOC_HEAD + _rst_parameter_rows() + "\n" + _DOC_TAIL
+
 
 def configure_jit() -> None:
     """Dr.Jit flags under which the unrolled decoder compiles into one fast kernel.
@@ -207,166 +355,166 @@ def configure_jit() -> None:
     dr.set_flag(dr.JitFlag.SymbolicCalls, False)
 
 
+def _mi():
+    return drjit_ops.mitsuba_module()
+
+
+def _dr():
+    return drjit_ops.drjit_module()
+
+
+class _DynBTFBSDFBody:
+    """The body of the ``dynbtf`` BSDF class: :func:`_build_class` copies it onto a subclass of the active
+    variant's ``mi.BSDF`` (nanobind classes take one base, so this cannot be a mix-in)."""
+
+    # ------------------------------------------------------------ construction
+    def __init__(self, props):
+        self._bsdf_base.__init__(self, props)
+        mi = _mi()
+        parsed = read_parameters(props)  # every parameter converted and checked, before the model loads
+        for parameter in PARAMETERS:
+            setattr(self, parameter.attribute or parameter.name, parsed[parameter.name])
+        model = load_plugin_model(self.filename)
+        self.evaluator = DynBTFEvaluator(model, self.method, self.seed)
+        #: the method the kernel runs (``auto``'s choice, else ``method``)
+        self.synthesis = self.evaluator.method
+        if self.evaluator.choice is not None:
+            announce_choice(self.filename, self.evaluator.choice)
+        if self.filtered:  # the pyramid and per-level decoders, before any kernel is traced
+            self.evaluator.prepare_footprints()
+        self.sampler = self._choose_sampler(model)
+        self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
+        self.m_components = [self.m_flags]
+        if self.filtered:
+            self.m_flags = int(self.m_flags) | NEEDS_DIFFERENTIALS
+
+    def _choose_sampler(self, model):
+        """The table sampler of ``sampling`` ``auto``/``mixture`` (None: cosine); resolves :attr:`sampling`."""
+        if self.sampling not in ("auto", "mixture"):
+            return None
+        sampler = plugin_sampler(self.filename, model, btf=self.evaluator.btf)
+        if sampler is None:
+            self.sampling = "cosine"  # the fall-back, announced once by plugin_sampler
+        elif self.sampling == "auto":
+            # the table where cosine sampling misses the model's lobe (glossy), else cosine
+            glossy = sampler.cosine_relative_variance >= AUTO_MIN_COSINE_VARIANCE
+            self.sampling = "mixture" if glossy else "cosine"
+            sampler = sampler if glossy else None
+        return sampler
+
+    # ------------------------------------------------------------ BTF value
+    @staticmethod
+    def _mirror(si):
+        """+1, or -1 where the BTF's y (+v) is the frame's -t (a left-handed parametrization)."""
+        # Mitsuba's frame t = n x s runs along -dp/dv where the parametrization is left-handed
+        # (its sphere): the BTF sees both directions mirrored in y there
+        return _dr().select(_dr().dot(si.sh_frame.t, si.dp_dv) < 0.0, -1.0, 1.0)
+
+    @staticmethod
+    def _flip_y(w, y):
+        """``w`` with its y multiplied by ``y`` (:meth:`_mirror`): the frame's and the BTF's directions."""
+        return _mi().Vector3f(w.x, w.y * y, w.z)
+
+    def _value(self, si, wo, active):
+        mi, dr = _mi(), _dr()
+        # opaque: the scale is a kernel parameter, not a literal, so scenes that differ
+        # only in scale share one compiled kernel
+        scale_u, scale_v = dr.opaque(mi.Float, self.scale), dr.opaque(mi.Float, self.scale_v)
+        u = si.uv.x * scale_u
+        v = si.uv.y * scale_v
+        y = self._mirror(si)
+        return self.evaluator.eval(u, v, self._flip_y(si.wi, y), self._flip_y(wo, y), active,
+                                   footprint=self._footprint(si, scale_u, scale_v))
+
+    def _footprint(self, si, scale_u, scale_v):
+        """Each lane's footprint (side of a square, exemplar repeats) or None: the point query everywhere."""
+        if not self.filtered:
+            return None
+        mi, dr = _mi(), _dr()
+        partials = (si.duv_dx.x != 0.0) | (si.duv_dx.y != 0.0) | (si.duv_dy.x != 0.0) | (si.duv_dy.y != 0.0)
+        if self.cone == 0.0 and not dr.flag(dr.JitFlag.SymbolicScope) and not dr.any(partials):
+            return None  # nothing has a footprint: the point query, bit for bit
+        width = dr.maximum(dr.norm(mi.Vector2f(si.duv_dx.x * scale_u, si.duv_dx.y * scale_v)),
+                           dr.norm(mi.Vector2f(si.duv_dy.x * scale_u, si.duv_dy.y * scale_v)))
+        if self.cone > 0.0:  # the camera ray's cone at the hit, stretched along the view, in uv
+            side = si.t * self.cone / dr.maximum(dr.abs(mi.Frame3f.cos_theta(si.wi)), 1e-6)
+            cone = side * dr.maximum(scale_u / dr.norm(si.dp_du), scale_v / dr.norm(si.dp_dv))
+            width = dr.select(partials, width, dr.select(dr.isfinite(cone), cone, 0.0))
+        return width
+
+    @staticmethod
+    def _valid(si, wo, active):
+        mi = _mi()
+        return active & (mi.Frame3f.cos_theta(si.wi) > 0.0) & (mi.Frame3f.cos_theta(wo) > 0.0)
+
+    def _pdf(self, si, wo, active):
+        """The density ``sample`` draws ``wo`` with (solid angle), for valid ``wo``."""
+        cosine = _mi().warp.square_to_cosine_hemisphere_pdf(wo)
+        if self.sampler is None:
+            return cosine
+        y = self._mirror(si)
+        table = self.sampler.pdf(self._flip_y(si.wi, y), self._flip_y(wo, y), active)
+        a = self.table_weight
+        return a * table + (1.0 - a) * cosine
+
+    # ------------------------------------------------------------ BSDF API
+    def sample(self, ctx, si, sample1, sample2, active=True):
+        mi, dr = _mi(), _dr()
+        bs = dr.zeros(mi.BSDFSample3f)
+        wo = mi.warp.square_to_cosine_hemisphere(sample2)
+        if self.sampler is not None:
+            y = self._mirror(si)
+            from_table = active & (sample1 < self.table_weight)
+            # sample1 < a chose the table; sample1 / a is uniform again and picks the view node
+            drawn = self.sampler.sample(self._flip_y(si.wi, y),
+                                        sample1 * (1.0 / self.table_weight), sample2, from_table)
+            wo = dr.select(from_table, self._flip_y(drawn, y), wo)
+        bs.wo = wo
+        bs.eta = 1.0
+        bs.sampled_type = mi.UInt32(+mi.BSDFFlags.DiffuseReflection)
+        bs.sampled_component = mi.UInt32(0)
+        ok = self._valid(si, bs.wo, active)
+        bs.pdf = dr.select(ok, self._pdf(si, bs.wo, ok), 0.0)
+        ok &= bs.pdf > 0.0
+        value = self._value(si, bs.wo, ok)
+        if self.sampler is None:
+            # weight = eval / pdf = (value / pi * cos) / (cos / pi) = value
+            return bs, dr.select(ok, value, 0.0)
+        weight = value * (dr.inv_pi * mi.Frame3f.cos_theta(bs.wo) / dr.select(ok, bs.pdf, 1.0))
+        return bs, dr.select(ok, weight, 0.0)
+
+    def eval(self, ctx, si, wo, active=True):
+        mi, dr = _mi(), _dr()
+        ok = self._valid(si, wo, active)
+        value = self._value(si, wo, ok)
+        return dr.select(ok, value * (dr.inv_pi * mi.Frame3f.cos_theta(wo)), 0.0)
+
+    def pdf(self, ctx, si, wo, active=True):
+        ok = self._valid(si, wo, active)
+        return _dr().select(ok, self._pdf(si, wo, ok), 0.0)
+
+    def eval_pdf(self, ctx, si, wo, active=True):
+        mi, dr = _mi(), _dr()
+        ok = self._valid(si, wo, active)
+        value = self._value(si, wo, ok) * (dr.inv_pi * mi.Frame3f.cos_theta(wo))
+        return dr.select(ok, value, 0.0), dr.select(ok, self._pdf(si, wo, ok), 0.0)
+
+    def traverse(self, callback):
+        pass  # nothing differentiable is exposed
+
+    def to_string(self):
+        method = self.method if self.synthesis == self.method else f"{self.method} -> {self.synthesis}"
+        return (f"DynBTFBSDF[filename={self.filename!r}, method={method!r}, "
+                f"scale={self.scale}, scale_v={self.scale_v}, seed={self.seed}, sampling={self.sampling!r}, "
+                f"filtered={self.filtered}, ray_cone_angle={self.cone}]")
+
+
 def _build_class(mi):
-    dr = drjit_ops.drjit_module()
-
-    class DynBTFBSDF(mi.BSDF):
-        __doc__ = PLUGIN_DOC
-
-        def __init__(self, props):
-            mi.BSDF.__init__(self, props)
-            if not props.has_property("filename"):
-                raise InputError("dynbtf BSDF: parameter 'filename' (a dynbtf model file) is required")
-            self.filename = str(props["filename"])
-            self.method = str(props["method"]) if props.has_property("method") else DEFAULT_METHOD
-            if self.method not in METHODS:
-                raise InputError(f"dynbtf BSDF: parameter 'method' must be one of {list(METHODS)}, "
-                                 f"got {self.method!r}")
-            self.scale = float(props["scale"]) if props.has_property("scale") else 1.0
-            self.scale_v = float(props["scale_v"]) if props.has_property("scale_v") else self.scale
-            self.seed = int(props["seed"]) if props.has_property("seed") else 0
-            for name, value in (("scale", self.scale), ("scale_v", self.scale_v)):
-                if not (math.isfinite(value) and value > 0):
-                    raise InputError(f"dynbtf BSDF: parameter '{name}' must be a positive number of repeats, "
-                                     f"got {value}")
-            self.sampling = str(props["sampling"]) if props.has_property("sampling") else "auto"
-            if self.sampling not in SAMPLING_MODES:
-                raise InputError(f"dynbtf BSDF: parameter 'sampling' must be one of {list(SAMPLING_MODES)}, "
-                                 f"got {self.sampling!r}")
-            self.table_weight = (float(props["sampling_weight"]) if props.has_property("sampling_weight")
-                                 else DEFAULT_TABLE_WEIGHT)
-            if not (math.isfinite(self.table_weight) and 0.0 < self.table_weight <= 1.0):
-                raise InputError(f"dynbtf BSDF: parameter 'sampling_weight' must be a probability in (0, 1], "
-                                 f"got {self.table_weight}")
-            self.filtered = bool(props["filtered"]) if props.has_property("filtered") else True
-            self.cone = float(props["ray_cone_angle"]) if props.has_property("ray_cone_angle") else 0.0
-            if not (math.isfinite(self.cone) and self.cone >= 0.0):
-                raise InputError(f"dynbtf BSDF: parameter 'ray_cone_angle' must be a non-negative angle in radians, "
-                                 f"got {self.cone}")
-            model = load_plugin_model(self.filename)
-            self.evaluator = DynBTFEvaluator(model, self.method, self.seed)
-            #: the method the kernel runs (``auto``'s choice, else ``method``)
-            self.synthesis = self.evaluator.method
-            if self.evaluator.choice is not None:
-                announce_choice(self.filename, self.evaluator.choice)
-            if self.filtered:  # the pyramid and per-level decoders, before any kernel is traced
-                self.evaluator.prepare_footprints()
-            self.sampler = None
-            if self.sampling in ("auto", "mixture"):
-                self.sampler = plugin_sampler(self.filename, model)
-                if self.sampler is None:
-                    self.sampling = "cosine"  # the fall-back, announced once by plugin_sampler
-                elif self.sampling == "auto":
-                    # the table where cosine sampling misses the model's lobe (glossy), else cosine
-                    glossy = self.sampler.cosine_relative_variance >= AUTO_MIN_COSINE_VARIANCE
-                    self.sampling = "mixture" if glossy else "cosine"
-                    self.sampler = self.sampler if glossy else None
-            self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
-            self.m_components = [self.m_flags]
-            if self.filtered:
-                self.m_flags = int(self.m_flags) | NEEDS_DIFFERENTIALS
-
-        # ------------------------------------------------------------ BTF value
-        @staticmethod
-        def _mirror(si):
-            """+1, or -1 where the BTF's y (+v) is the frame's -t (a left-handed parametrization)."""
-            # Mitsuba's frame t = n x s runs along -dp/dv where the parametrization is left-handed
-            # (its sphere): the BTF sees both directions mirrored in y there
-            return dr.select(dr.dot(si.sh_frame.t, si.dp_dv) < 0.0, -1.0, 1.0)
-
-        @staticmethod
-        def _flip_y(w, y):
-            """``w`` with its y multiplied by ``y`` (:meth:`_mirror`): the frame's and the BTF's directions."""
-            return mi.Vector3f(w.x, w.y * y, w.z)
-
-        def _value(self, si, wo, active):
-            # opaque: the scale is a kernel parameter, not a literal, so scenes that differ
-            # only in scale share one compiled kernel
-            scale_u, scale_v = dr.opaque(mi.Float, self.scale), dr.opaque(mi.Float, self.scale_v)
-            u = si.uv.x * scale_u
-            v = si.uv.y * scale_v
-            y = self._mirror(si)
-            return self.evaluator.eval(u, v, self._flip_y(si.wi, y), self._flip_y(wo, y), active,
-                                       footprint=self._footprint(si, scale_u, scale_v))
-
-        def _footprint(self, si, scale_u, scale_v):
-            """Each lane's footprint (side of a square, exemplar repeats) or None: the point query everywhere."""
-            if not self.filtered:
-                return None
-            partials = (si.duv_dx.x != 0.0) | (si.duv_dx.y != 0.0) | (si.duv_dy.x != 0.0) | (si.duv_dy.y != 0.0)
-            if self.cone == 0.0 and not dr.flag(dr.JitFlag.SymbolicScope) and not dr.any(partials):
-                return None  # nothing has a footprint: the point query, bit for bit
-            width = dr.maximum(dr.norm(mi.Vector2f(si.duv_dx.x * scale_u, si.duv_dx.y * scale_v)),
-                               dr.norm(mi.Vector2f(si.duv_dy.x * scale_u, si.duv_dy.y * scale_v)))
-            if self.cone > 0.0:  # the camera ray's cone at the hit, stretched along the view, in uv
-                side = si.t * self.cone / dr.maximum(dr.abs(mi.Frame3f.cos_theta(si.wi)), 1e-6)
-                cone = side * dr.maximum(scale_u / dr.norm(si.dp_du), scale_v / dr.norm(si.dp_dv))
-                width = dr.select(partials, width, dr.select(dr.isfinite(cone), cone, 0.0))
-            return width
-
-        def _valid(self, si, wo, active):
-            return active & (mi.Frame3f.cos_theta(si.wi) > 0.0) & (mi.Frame3f.cos_theta(wo) > 0.0)
-
-        def _pdf(self, si, wo, active):
-            """The density ``sample`` draws ``wo`` with (solid angle), for valid ``wo``."""
-            cosine = mi.warp.square_to_cosine_hemisphere_pdf(wo)
-            if self.sampler is None:
-                return cosine
-            y = self._mirror(si)
-            table = self.sampler.pdf(self._flip_y(si.wi, y), self._flip_y(wo, y), active)
-            a = self.table_weight
-            return a * table + (1.0 - a) * cosine
-
-        # ------------------------------------------------------------ BSDF API
-        def sample(self, ctx, si, sample1, sample2, active=True):
-            bs = dr.zeros(mi.BSDFSample3f)
-            wo = mi.warp.square_to_cosine_hemisphere(sample2)
-            if self.sampler is not None:
-                y = self._mirror(si)
-                from_table = active & (sample1 < self.table_weight)
-                # sample1 < a chose the table; sample1 / a is uniform again and picks the view node
-                drawn = self.sampler.sample(self._flip_y(si.wi, y),
-                                            sample1 * (1.0 / self.table_weight), sample2, from_table)
-                wo = dr.select(from_table, self._flip_y(drawn, y), wo)
-            bs.wo = wo
-            bs.eta = 1.0
-            bs.sampled_type = mi.UInt32(+mi.BSDFFlags.DiffuseReflection)
-            bs.sampled_component = mi.UInt32(0)
-            ok = self._valid(si, bs.wo, active)
-            bs.pdf = dr.select(ok, self._pdf(si, bs.wo, ok), 0.0)
-            ok &= bs.pdf > 0.0
-            value = self._value(si, bs.wo, ok)
-            if self.sampler is None:
-                # weight = eval / pdf = (value / pi * cos) / (cos / pi) = value
-                return bs, dr.select(ok, value, 0.0)
-            weight = value * (dr.inv_pi * mi.Frame3f.cos_theta(bs.wo) / dr.select(ok, bs.pdf, 1.0))
-            return bs, dr.select(ok, weight, 0.0)
-
-        def eval(self, ctx, si, wo, active=True):
-            ok = self._valid(si, wo, active)
-            value = self._value(si, wo, ok)
-            return dr.select(ok, value * (dr.inv_pi * mi.Frame3f.cos_theta(wo)), 0.0)
-
-        def pdf(self, ctx, si, wo, active=True):
-            ok = self._valid(si, wo, active)
-            return dr.select(ok, self._pdf(si, wo, ok), 0.0)
-
-        def eval_pdf(self, ctx, si, wo, active=True):
-            ok = self._valid(si, wo, active)
-            value = self._value(si, wo, ok) * (dr.inv_pi * mi.Frame3f.cos_theta(wo))
-            return dr.select(ok, value, 0.0), dr.select(ok, self._pdf(si, wo, ok), 0.0)
-
-        def traverse(self, callback):
-            pass  # nothing differentiable is exposed
-
-        def to_string(self):
-            method = self.method if self.synthesis == self.method else f"{self.method} -> {self.synthesis}"
-            return (f"DynBTFBSDF[filename={self.filename!r}, method={method!r}, "
-                    f"scale={self.scale}, scale_v={self.scale_v}, seed={self.seed}, sampling={self.sampling!r}, "
-                    f"filtered={self.filtered}, ray_cone_angle={self.cone}]")
-
-    return DynBTFBSDF
-
+    """The ``dynbtf`` BSDF class of the active variant: :class:`_DynBTFBSDFBody`'s methods on ``mi.BSDF``."""
+    namespace = {name: value for name, value in vars(_DynBTFBSDFBody).items()
+                 if name not in ("__dict__", "__weakref__", "__doc__", "__module__", "__qualname__")}
+    namespace.update(__doc__=PLUGIN_DOC, __module__=__name__, __qualname__="DynBTFBSDF", _bsdf_base=mi.BSDF)
+    return type("DynBTFBSDF", (mi.BSDF,), namespace)
 
 class DynBTFEvaluator:
     """``SynthesizedBTF.eval`` re-expressed in Dr.Jit: the body of the plugin's ``eval``.
@@ -506,6 +654,7 @@ class DynBTFEvaluator:
 
 
 _SAMPLERS: dict = {}
+_TABLES: dict = {}  # the tables of _SAMPLERS' samplers (None: not sampleable)
 _ANNOUNCED: set = set()
 _CHOICES_ANNOUNCED: set = set()
 
@@ -525,14 +674,20 @@ def announce_choice(filename, choice) -> bool:
     return True
 
 
-def plugin_sampler(filename, model, *, build=None):
+def plugin_sampler(filename, model, *, build=None, btf=None):
     """The :class:`~dynbtf.render.mitsuba.sampling.DrTableSampler` of model file ``filename``, or ``None``.
 
-    Built once per file version (path, size, modification time) and process, by
-    ``build(model)`` (default :func:`~dynbtf.render.mitsuba.sampling.build_sampling_table`).
+    Made once per file version (path, size, modification time) and process. The table comes from the
+    compiled material of ``btf`` (a :class:`~dynbtf.infinite_btf.SynthesizedBTF` of ``model``: the
+    plugin's evaluator's) when it holds one (``material.sampling``); else it is built by
+    :func:`~dynbtf.render.mitsuba.sampling.build_sampling_table` and stored into the material, which is
+    written back to the compiled-material cache (when it has a cache key), so that the next process
+    reads it (a material of the same file that comes later in the process, e.g. another method or seed,
+    gets the process's table). ``build(model)`` replaces both (tests): the table is built by it, neither
+    read nor stored.
     A table that cannot be sampled (:func:`~dynbtf.render.mitsuba.sampling.table_problem`)
     gives ``None`` -- the plugin then samples cosine-weighted -- and a
-    ``UserWarning`` naming the file and the problem, once per file.
+    ``UserWarning`` naming the file and the problem, once per file; it is not stored.
     """
     import os
     import warnings
@@ -543,14 +698,38 @@ def plugin_sampler(filename, model, *, build=None):
     stat = os.stat(filename)
     key = (os.path.abspath(str(filename)), stat.st_size, stat.st_mtime_ns, mi.variant(), build)
     if key not in _SAMPLERS:
-        table = (build or build_sampling_table)(model)
+        table = build(model) if build is not None else _material_table(btf) or build_sampling_table(model)
         problem = table_problem(table)
         _SAMPLERS[key] = None if problem else DrTableSampler(table)
+        _TABLES[key] = None if problem else table
         if problem and key[0] not in _ANNOUNCED:
             _ANNOUNCED.add(key[0])
             warnings.warn(f"{filename}: {problem}; the dynbtf plugin samples this model cosine-weighted "
                           f"(sampling='cosine')", UserWarning, stacklevel=2)
+    if build is None and _TABLES.get(key) is not None:
+        _store_table(btf, _TABLES[key])  # this material's first table (another method or seed of the same file)
     return _SAMPLERS[key]
+
+
+def _material_table(btf):
+    """The sampling table stored in ``btf``'s compiled material, or None (none, or one that cannot be sampled)."""
+    from .sampling import SamplingTable, table_problem
+
+    table = SamplingTable.from_tensors(getattr(getattr(btf, "material", None), "sampling", None))
+    return table if table is not None and table_problem(table) is None else None
+
+
+def _store_table(btf, table) -> None:
+    """Put ``table`` into ``btf``'s compiled material unless it holds one, and write the material to the
+    compiled-material cache (when it has a cache key: a material of a ready synthesizer has none)."""
+    material = getattr(btf, "material", None)
+    if material is None or _material_table(btf) is not None:
+        return
+    btf.material = material = material.with_sampling(table.to_tensors())
+    if material.key:
+        from ...training.compile import store_cached
+
+        store_cached(material)
 
 
 def load_plugin_model(filename):
@@ -641,6 +820,9 @@ def register_plugin(variant: str | None = None) -> str:
     mi = drjit_ops.mitsuba_module()
 
     wanted = variant if variant is not None else (mi.variant() or "llvm_ad_rgb")
+    from .llvm import check_llvm
+
+    check_llvm(wanted)  # an old LLVM aborts the process while compiling: refused before the variant is set
     _check_variant(wanted, plugin_variants())
     if mi.variant() != wanted:
         mi.set_variant(wanted)

@@ -70,9 +70,13 @@ def mitsuba_module():
 
 
 def mi_module():
-    """The ``mitsuba`` module with a variant set (``llvm_ad_rgb`` if none was chosen)."""
+    """The ``mitsuba`` module with a variant set (``llvm_ad_rgb`` if none was chosen; a missing or too old LLVM is
+    refused first, :func:`~dynbtf.render.mitsuba.llvm.check_llvm`)."""
     mi = mitsuba_module()
     if mi.variant() is None:
+        from .llvm import check_llvm
+
+        check_llvm("llvm_ad_rgb")  # an old LLVM aborts the process while compiling: refused before
         mi.set_variant("llvm_ad_rgb")
     return mi
 

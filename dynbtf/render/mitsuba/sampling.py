@@ -81,6 +81,22 @@ class SamplingTable:
     phi_nodes: np.ndarray
     theta_nodes: np.ndarray
 
+    #: The tensors of a table as a compiled material stores it (``CompiledMaterial.sampling``).
+    FIELDS = ("density", "phi_nodes", "theta_nodes")
+
+    def to_tensors(self) -> dict:
+        """``{"density", "phi_nodes", "theta_nodes"}`` as CPU tensors (what a compiled material stores)."""
+        import torch
+
+        return {name: torch.from_numpy(np.ascontiguousarray(getattr(self, name))) for name in self.FIELDS}
+
+    @classmethod
+    def from_tensors(cls, tensors) -> "SamplingTable | None":
+        """The table stored as :meth:`to_tensors` gave it, or None where a tensor is missing."""
+        if not tensors or any(name not in tensors for name in cls.FIELDS):
+            return None
+        return cls(*(np.asarray(tensors[name].detach().cpu().numpy()) for name in cls.FIELDS))
+
 
 def _square_to_hemisphere(points: np.ndarray) -> np.ndarray:
     """``mi.warp.square_to_uniform_hemisphere`` (concentric, area-preserving) in NumPy, float64 ``(N, 3)``."""

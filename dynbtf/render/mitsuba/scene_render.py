@@ -16,8 +16,8 @@ from .llvm import check_llvm
 from .sampling import SAMPLING_MODES
 from .scenes import LIGHTINGS, SCENES, bsdf_dict, scene_dict
 
-__all__ = ["render_scene", "RenderResult", "render_memory_bytes", "check_render_request", "MAX_SPP", "MAX_SAMPLES",
-           "BYTES_PER_SAMPLE"]
+__all__ = ["render_scene", "resolve_auto", "RenderResult", "render_memory_bytes", "check_render_request", "MAX_SPP",
+           "MAX_SAMPLES", "BYTES_PER_SAMPLE"]
 
 #: Working memory of a render pass per sample in flight (Dr.Jit's wavefront buffers of the path tracer and
 #: the plugin; measured: ~1.7 kB per pixel at 4 samples per pass, 512^2 to 1024^2, llvm_ad_rgb), bytes.
@@ -116,8 +116,9 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
         See :mod:`dynbtf.render.mitsuba.scenes`.
     method : {"tile", "hist", "hex", "struct", "auto"}
         Synthesis method of the plugin; ``auto`` (the default) is resolved here to ``struct`` for a
-        structured material, else ``hist`` (:func:`dynbtf.infinite_btf.auto_method`), and
-        the choice line is reported (``echo``) before the kernel is compiled.
+        structured material, else ``hist`` (:func:`resolve_auto`: the choice of the model's compiled
+        material, which the plugin then reads from the cache), and the choice line is reported (``echo``)
+        before the kernel is compiled.
     scale : float
         Exemplar repeats across the mesh's uv range: positive, below 2**24 (Mitsuba's uv is float32,
         which resolves no fraction of a repeat beyond; texels of a ``W``-texel exemplar are resolved
@@ -156,6 +157,32 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     -------
     RenderResult
     """
+    scale, spp, spp_per_pass = _check_request(scene, lighting, method, scale, resolution, spp, spp_per_pass,
+                                              sampling, memory_mb)
+    model = load_plugin_model(model_path)  # a missing/damaged file or an unsupported kind fails here, not in Mitsuba
+    check_llvm(_wanted_variant(variant))  # an old LLVM aborts the process while compiling: refused before
+    active = register_plugin(variant)
+    choice_line = None
+    if method == "auto":  # resolved here (the plugin then runs the named method and reports nothing)
+        method, choice_line = resolve_auto(model, seed)
+        if echo is not None:
+            echo(choice_line)
+        else:
+            _status(progress, choice_line)
+    from .drjit_ops import mi_module
+
+    material = {**bsdf_dict(model_path, method=method, scale=scale, seed=seed, sampling=sampling),
+                "filtered": bool(filtered)}
+    scene_obj = mi_module().load_dict(scene_dict(scene, material, lighting=lighting, resolution=resolution,
+                                                 spp=min(spp, spp_per_pass), footprint_spp=spp))
+    image, timing = _render_passes(scene_obj, spp, spp_per_pass, f"render {scene}/{lighting}/{method}", progress)
+    return RenderResult(image=image, variant=active, method=method, choice_line=choice_line, **timing)
+
+
+def _check_request(scene, lighting, method, scale, resolution, spp, spp_per_pass, sampling,
+                   memory_mb) -> tuple[float, int, int]:
+    """:func:`render_scene`'s choices, sizes and limits checked (before anything loads): ``(scale, spp,
+    spp_per_pass)``."""
     if scene not in SCENES:
         raise InputError(f"--scene: expected one of {list(SCENES)}, got {scene!r}")
     if lighting not in LIGHTINGS:
@@ -173,31 +200,48 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
                                  memory_mb=memory_mb)
     if sampling not in SAMPLING_MODES:
         raise InputError(f"--sampling: expected one of {list(SAMPLING_MODES)}, got {sampling!r}")
-    model = load_plugin_model(model_path)  # a missing/damaged file or an unsupported kind fails here, not in Mitsuba
-    check_llvm(_wanted_variant(variant))  # an old LLVM aborts the process while compiling: refused before
-    active = register_plugin(variant)
-    choice_line = None
-    if method == "auto":  # resolved here (the plugin then runs the named method and reports nothing)
-        from ...infinite_btf import auto_method
+    return scale, int(spp), int(spp_per_pass)
 
-        choice = auto_method(model)  # on the decoded appearance, as SynthesizedBTF (and so the plugin) chooses
-        method, choice_line = choice.method, choice.line
-        if echo is not None:
-            echo(choice_line)
-        else:
-            _status(progress, choice_line)
+
+def resolve_auto(model, seed: int = 0) -> tuple[str, str]:
+    """``(method, choice line)`` of ``auto`` for ``model`` and ``seed``: what its compiled material chose
+    (:func:`dynbtf.training.compile.cached_material`: read from the cache, or compiled and stored).
+
+    The material is also cached under the chosen method's name (same tables, no choice), so that the
+    plugin, which then gets the named method, reads it instead of compiling (decoding) the model again.
+    """
+    from ...training.compile import cached_material
+
+    material, _ = cached_material(model, "auto", seed, footprints=False, progress=False)
+    _alias_material(model, material, seed)
+    return material.method, str(material.choice["line"])
+
+
+def _alias_material(model, material, seed: int) -> None:
+    """Store ``material`` (compiled for ``auto``) under the key of its chosen method, unless that entry exists."""
+    from dataclasses import replace
+
+    from ...compiled_material import SUFFIX, compiled_cache_dir, material_key
+    from ...training.compile import footprint_settings, model_digest, store_cached
+
+    folder = compiled_cache_dir()
+    if folder is None or not material.key:
+        return
+    digest = model_digest(model)
+    footprints = material.key == material_key(digest, "auto", seed, {}, footprint_settings(True))
+    key = material_key(digest, material.method, seed, {}, footprint_settings(footprints))
+    if not (folder / f"{key}{SUFFIX}").exists():
+        store_cached(replace(material, key=key, choice=None, _synthesizers=material._synthesizers))
+
+
+def _render_passes(scene_obj, spp: int, spp_per_pass: int, label: str, progress: bool) -> tuple[np.ndarray, dict]:
+    """Render ``spp`` samples per pixel in passes of ``spp_per_pass`` and average them: ``(image, timing)``,
+    ``timing`` the :class:`RenderResult` fields ``seconds``, ``compile_seconds``, ``first_pass_seconds``, ``passes``."""
+    from ...progress import progress_bar
     from .drjit_ops import drjit_module, mi_module
 
-    mi = mi_module()
-    dr = drjit_module()
-    from ...progress import progress_bar
+    mi, dr = mi_module(), drjit_module()
     t0 = time.perf_counter()
-    spp, spp_per_pass = int(spp), int(spp_per_pass)
-    label = f"render {scene}/{lighting}/{method}"
-    material = {**bsdf_dict(model_path, method=method, scale=scale, seed=seed, sampling=sampling),
-                "filtered": bool(filtered)}
-    scene_obj = mi.load_dict(scene_dict(scene, material, lighting=lighting, resolution=resolution,
-                                        spp=min(spp, spp_per_pass), footprint_spp=spp))
     n_passes = int(math.ceil(spp / spp_per_pass))
     acc = None
     total = 0
@@ -224,9 +268,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
             bar.update(n)
     if bar is not None:
         bar.close()
-    seconds = time.perf_counter() - t0
     per_pass = later / (n_passes - 1) if n_passes > 1 else 0.0
     compile_seconds = max(first - per_pass, 0.0) if n_passes > 1 else 0.0
-    return RenderResult(image=(acc / total).astype(np.float32), seconds=seconds,
-                        compile_seconds=compile_seconds, variant=active, first_pass_seconds=first,
-                        passes=n_passes, method=method, choice_line=choice_line)
+    return (acc / total).astype(np.float32), {"seconds": time.perf_counter() - t0, "compile_seconds": compile_seconds,
+                                              "first_pass_seconds": first, "passes": n_passes}
