@@ -143,6 +143,25 @@ def _as_tensor(x, name: str, last: int) -> torch.Tensor:
     return x
 
 
+def _check_directions(w, name: str, batch) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit directions ``(N, 3)`` (rows below the horizon allowed) and whether each is above it."""
+    w = _as_tensor(w, name, 3)
+    if tuple(w.shape[:-1]) != tuple(batch):
+        raise InputError(f"{name}: batch shape {tuple(w.shape[:-1])} does not match uv's {tuple(batch)}")
+    flat = w.reshape(-1, 3)
+    valid = False
+    if flat.device.type == "cpu" and flat.dtype in (torch.float32, torch.float64):
+        from .decoder.fast_decode import all_unit_vectors
+
+        valid = all_unit_vectors(flat.numpy())  # one pass; check_directions below words the error
+    if not valid:
+        try:
+            check_directions(w, name, allow_below_horizon=True)
+        except ValueError as e:
+            raise InputError(str(e)) from None
+    return flat, flat[:, 2] >= 0
+
+
 def _open(model, device) -> tuple[Any, CompiledMaterial | None]:
     """``(representation, compiled material or None)`` of a representation, a material, or a file of either."""
     if isinstance(model, CompiledMaterial):
@@ -326,23 +345,6 @@ class SynthesizedBTF:
         c = self.synthesizer.channels
         return (torch.cat(out) if out else torch.zeros(0, c, device=self.device)).reshape(*uv.shape[:-1], c)
 
-    def _check_directions(self, w, name: str, batch) -> tuple[torch.Tensor, torch.Tensor]:
-        w = _as_tensor(w, name, 3)
-        if tuple(w.shape[:-1]) != tuple(batch):
-            raise InputError(f"{name}: batch shape {tuple(w.shape[:-1])} does not match uv's {tuple(batch)}")
-        flat = w.reshape(-1, 3)
-        valid = False
-        if flat.device.type == "cpu" and flat.dtype in (torch.float32, torch.float64):
-            from .decoder.fast_decode import all_unit_vectors
-
-            valid = all_unit_vectors(flat.numpy())  # one pass; check_directions below words the error
-        if not valid:
-            try:
-                check_directions(w, name, allow_below_horizon=True)
-            except ValueError as e:
-                raise InputError(str(e)) from None
-        return flat, flat[:, 2] >= 0
-
     def texels_per_uv(self) -> float:
         """Texels of the exemplar per unit of the user's ``uv`` (``scale`` x the exemplar's side; the geometric
         mean of both sides for a non-square exemplar): converts a footprint to texels."""
@@ -387,8 +389,8 @@ class SynthesizedBTF:
         as_numpy = not isinstance(uv, torch.Tensor)
         uv = check_uv(uv, scale=self.scale)
         batch = uv.shape[:-1]
-        wv, up_v = self._check_directions(w_view, "w_view", batch)
-        wl, up_l = self._check_directions(w_light, "w_light", batch)
+        wv, up_v = _check_directions(w_view, "w_view", batch)
+        wl, up_l = _check_directions(w_light, "w_light", batch)
         flat = uv.reshape(-1, 2).to(torch.float64)
         fp = None if footprint is None else check_footprint(footprint, batch).reshape(-1)
         if fp is not None and self.level_decoders:
