@@ -690,6 +690,26 @@ def test_parameter_errors_name_the_parameter(variant, model_file, tmp_path):
         assert "dynbtf BSDF: " + message in str(info.value), (extra, str(info.value))
 
 
+def test_register_plugin_checks_llvm_before_the_variant(variant, monkeypatch):
+    """register_plugin asks render.mitsuba.llvm.check_llvm about the variant it will set, before checking it."""
+    from dynbtf.errors import MissingDependencyError
+    from dynbtf.render.mitsuba import llvm
+    from dynbtf.render.mitsuba.bsdf import register_plugin
+
+    asked = []
+
+    def refuse(wanted):
+        asked.append(wanted)
+        raise MissingDependencyError(f"Mitsuba variant {wanted}: LLVM too old (test)")
+
+    monkeypatch.setattr(llvm, "check_llvm", refuse)
+    with pytest.raises(MissingDependencyError, match="LLVM too old"):
+        register_plugin("llvm_ad_rgb")
+    with pytest.raises(MissingDependencyError):
+        register_plugin()  # the active variant
+    assert asked == ["llvm_ad_rgb", mi.variant()]
+
+
 def test_ray_cone_angle_of_a_camera():
     from dynbtf.errors import InputError
     from dynbtf.render.mitsuba.bsdf import ray_cone_angle
