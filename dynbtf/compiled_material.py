@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -38,7 +37,8 @@ import torch
 
 from .decoder.folded import FoldedDecoder
 from .errors import FormatError
-from .io import atomic_path
+from .io import atomic_path, user_cache_dir
+from .representations.model_file import read_checked_tensors, representation_from_state, tensor_digest
 
 __all__ = ["CompiledMaterial", "save_compiled", "load_compiled", "is_compiled_material", "material_key",
            "compiled_cache_dir", "FORMAT_NAME", "FORMAT_VERSION", "SUFFIX"]
@@ -110,6 +110,14 @@ class CompiledMaterial:
             self._synthesizers[str(device)] = synth
         return self._synthesizers[str(device)]
 
+    def to(self, device: torch.device | str) -> "CompiledMaterial":
+        """The same material with its model and decoder on ``device`` (copies; this one is unchanged)."""
+        import copy
+
+        decoder = None if self.decoder is None else FoldedDecoder.from_tensors(self.decoder.to_tensors(), device)
+        return replace(self, model=copy.deepcopy(self.model).to(torch.device(device)), decoder=decoder,
+                       _synthesizers={})
+
     def with_sampling(self, table: dict[str, torch.Tensor]) -> "CompiledMaterial":
         """The same material with an importance-sampling table."""
         return replace(self, sampling={k: v.detach().cpu().contiguous() for k, v in table.items()},
@@ -140,23 +148,7 @@ def _accepted_arguments(method: str) -> list[str]:
 def compiled_cache_dir() -> Path | None:
     """Where compiled materials are cached: ``$DYNBTF_COMPILED_CACHE`` if set (``off`` disables the cache),
     else ``$XDG_CACHE_HOME/dynbtf/compiled`` (``~/.cache/dynbtf/compiled``)."""
-    setting = os.environ.get("DYNBTF_COMPILED_CACHE")
-    if setting is not None and setting.strip().lower() in ("off", "0", "none", ""):
-        return None
-    if setting:
-        return Path(setting)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "dynbtf" / "compiled"
-
-
-def tensor_digest(tensors: dict[str, torch.Tensor]) -> str:
-    """SHA-256 of tensors' names, dtypes, shapes and bytes (the model file's digest when given its state dict)."""
-    digest = hashlib.sha256()
-    for name in sorted(tensors):
-        t = tensors[name].detach().cpu().contiguous()
-        digest.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
-        digest.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
-    return digest.hexdigest()
+    return user_cache_dir("DYNBTF_COMPILED_CACHE", "compiled")
 
 
 def material_key(model_sha256: str, method: str, seed: int, arguments: dict[str, Any], footprints) -> str:
@@ -224,18 +216,9 @@ def _section(tensors: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.T
 def load_compiled(path, device: torch.device | str | None = None) -> CompiledMaterial:
     """Read a compiled material; :class:`~dynbtf.errors.FormatError` names the file and what is wrong
     (not a compiled material, a newer version, a checksum mismatch, a missing table)."""
-    from safetensors.torch import load_file
-
-    from .representations.model_file import representation_from_state
-
     path = Path(path)
     header = _header(path)
-    try:
-        tensors = load_file(str(path))
-    except Exception as e:
-        raise FormatError(path, f"damaged or truncated tensor data ({e})") from None
-    if header.get("tensor_sha256") != tensor_digest(tensors):
-        raise FormatError(path, "tensor data does not match its checksum: the file is damaged")
+    tensors = read_checked_tensors(path, header.get("tensor_sha256"))
     try:
         model = representation_from_state(path, header["kind"], header["config"], _section(tensors, "model."))
         decoder_tensors = _section(tensors, "decoder.")
@@ -249,8 +232,4 @@ def load_compiled(path, device: torch.device | str | None = None) -> CompiledMat
         raise FormatError(path, f"missing entry {e} of a compiled material") from None
     except (TypeError, ValueError) as e:
         raise FormatError(path, f"damaged header ({e})") from None
-    if device is not None:
-        material.model.to(torch.device(device))
-        if material.decoder is not None:
-            material.decoder = FoldedDecoder.from_tensors(material.decoder.to_tensors(), device)
-    return material
+    return material if device is None else material.to(device)

@@ -283,11 +283,9 @@ class SynthesizedBTF:
         if not hasattr(model, "positional_plane") or not hasattr(model, "decode"):
             raise InputError(f"model: expected a Representation with a positional plane, got {type(model).__name__}")
         if device is not None and not _same_device(model.positional_plane().device, device):
-            model = copy.deepcopy(model).to(device)  # the caller's model stays on its device
-            material = None if material is None else copy.copy(material)
-            if material is not None:
-                material.model, material.decoder = model, FoldedDecoder.from_tensors(material.decoder.to_tensors(),
-                                                                                      device)
+            # copies: the caller's model (or material) stays on its device
+            material = None if material is None else material.to(device)
+            model = copy.deepcopy(model).to(device) if material is None else material.model
         self.scale = positive_number("scale", scale, "number of exemplar repeats per uv unit")
         if precision not in PRECISIONS:
             raise InputError(f"precision: expected one of {sorted(PRECISIONS)}, got {precision!r}")

@@ -79,6 +79,22 @@ def _nearest_existing(path: Path) -> Path:
     return current
 
 
+def user_cache_dir(variable: str, name: str) -> Path | None:
+    """A dynbtf cache directory: ``$variable`` if set (``off``, ``0``, ``none`` or empty: no cache, None), else
+    ``$XDG_CACHE_HOME/dynbtf/<name>`` (``~/.cache/dynbtf/<name>``). Nothing is created.
+
+    >>> user_cache_dir("DYNBTF_UNSET_EXAMPLE_CACHE", "example").parts[-2:]
+    ('dynbtf', 'example')
+    """
+    setting = os.environ.get(variable)
+    if setting is not None and setting.strip().lower() in ("off", "0", "none", ""):
+        return None
+    if setting:
+        return Path(setting)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "dynbtf" / name
+
+
 def check_writable(path, what: str, *, directory: bool = False, needed_bytes: int | None = None) -> Path:
     """Check, before any work, that output ``path`` can be written; else :class:`InputError`, one line.
 

@@ -66,3 +66,20 @@ def private_table_cache(tmp_path_factory):
             os.environ.pop(name, None)
         else:
             os.environ[name] = value
+
+
+@pytest.fixture(scope="session")
+def small_model(tmp_path_factory):
+    """A small Triple Plane model file (16 x 16 texels, 4 positional channels, a decoder of width 8) for command
+    line tests: quick to load, render and export."""
+    import torch
+
+    from dynbtf.representations.model_file import save_model
+    from dynbtf.representations.triple_plane import TriplePlane
+
+    model = TriplePlane(16, 16, positional_channels=4, angular_channels=2, hidden=8, seed=1)
+    with torch.no_grad():
+        model.decoder.rest[-1].bias.add_(0.5)
+    path = tmp_path_factory.mktemp("small-model") / "small.dbtfm"
+    save_model(path, model)
+    return path

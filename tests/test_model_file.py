@@ -91,7 +91,7 @@ def _rewrite(tmp_path, path, change_meta=None, change_tensors=None):
     (what a hand-edited file or a buggy writer produces)."""
     from safetensors.torch import load_file
 
-    from dynbtf.representations.model_file import _tensor_digest
+    from dynbtf.representations.model_file import tensor_digest
 
     meta = read_model_metadata(path)
     tensors = load_file(str(path))
@@ -99,7 +99,7 @@ def _rewrite(tmp_path, path, change_meta=None, change_tensors=None):
         change_meta(meta)
     if change_tensors:
         change_tensors(tensors)
-    meta["tensor_sha256"] = _tensor_digest(tensors)
+    meta["tensor_sha256"] = tensor_digest(tensors)
     out = tmp_path / "edited.dbtfm"
     save_file(tensors, str(out), metadata={"dynbtf": json.dumps(meta)})
     return out

@@ -9,19 +9,6 @@ import torch
 pytest.importorskip("mitsuba")
 
 
-@pytest.fixture(scope="module")
-def small_model(tmp_path_factory):
-    from dynbtf.representations.model_file import save_model
-    from dynbtf.representations.triple_plane import TriplePlane
-
-    model = TriplePlane(16, 16, positional_channels=4, angular_channels=2, hidden=8, seed=1)
-    with torch.no_grad():
-        model.decoder.rest[-1].bias.add_(0.5)
-    path = tmp_path_factory.mktemp("cli") / "small.dbtfm"
-    save_model(path, model)
-    return path
-
-
 @pytest.mark.mitsuba
 def test_render_command_writes_png_and_exr(small_model, tmp_path, capsys):
     from dynbtf.cli.main import main

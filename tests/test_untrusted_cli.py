@@ -19,22 +19,8 @@ import time
 from pathlib import Path
 
 import pytest
-import torch
 
 from dynbtf.cli.main import main
-
-
-@pytest.fixture(scope="module")
-def small_model(tmp_path_factory):
-    from dynbtf.representations.model_file import save_model
-    from dynbtf.representations.triple_plane import TriplePlane
-
-    model = TriplePlane(16, 16, positional_channels=4, angular_channels=2, hidden=8, seed=1)
-    with torch.no_grad():
-        model.decoder.rest[-1].bias.add_(0.5)
-    path = tmp_path_factory.mktemp("model") / "small.dbtfm"
-    save_model(path, model)
-    return path
 
 
 def _tree(root: Path) -> set[str]:

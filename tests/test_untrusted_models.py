@@ -23,7 +23,7 @@ from safetensors.torch import load_file, save_file
 
 from dynbtf.cli.main import main
 from dynbtf.errors import DynBTFError, FormatError
-from dynbtf.representations.model_file import (_tensor_digest, load_model, read_model_metadata, save_model)
+from dynbtf.representations.model_file import (tensor_digest, load_model, read_model_metadata, save_model)
 from dynbtf.representations.parallax import ParallaxTriplePlane
 from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.training.checkpoint import checkpoint_path
@@ -43,7 +43,7 @@ def edited(path: Path, out: Path, change_meta=None, change_tensors=None) -> Path
     meta, tensors = read_model_metadata(path), load_file(str(path))
     if change_tensors:
         change_tensors(tensors)
-    meta["tensor_sha256"] = _tensor_digest(tensors)
+    meta["tensor_sha256"] = tensor_digest(tensors)
     if change_meta:
         change_meta(meta)
     save_file(tensors, str(out), metadata={"dynbtf": json.dumps(meta, allow_nan=True)})

@@ -90,13 +90,29 @@ CONVENTIONS = {
 }
 
 
-def _tensor_digest(tensors: dict[str, torch.Tensor]) -> str:
+def tensor_digest(tensors: dict[str, torch.Tensor]) -> str:
+    """SHA-256 of tensors' names, dtypes, shapes and bytes: a model file's (and a compiled material's)
+    ``tensor_sha256``."""
     digest = hashlib.sha256()
     for name in sorted(tensors):
         t = tensors[name].detach().cpu().contiguous()
         digest.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
-        digest.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+        digest.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
     return digest.hexdigest()
+
+
+def read_checked_tensors(path: Path, expected_sha256) -> dict[str, torch.Tensor]:
+    """Every tensor of safetensors file ``path``, checked against its header's ``tensor_sha256``:
+    :class:`FormatError` for damaged or truncated data or a checksum mismatch."""
+    from safetensors.torch import load_file
+
+    try:
+        tensors = load_file(str(path))
+    except Exception as e:
+        raise FormatError(path, f"damaged or truncated tensor data ({e})") from None
+    if expected_sha256 != tensor_digest(tensors):
+        raise FormatError(path, "tensor data does not match its checksum: the file is damaged")
+    return tensors
 
 
 def save_model(path, representation: Representation, provenance: dict[str, Any] | None = None) -> Path:
@@ -114,7 +130,7 @@ def save_model(path, representation: Representation, provenance: dict[str, Any] 
         "kind": representation.kind,
         "config": representation.config(),
         "conventions": CONVENTIONS,
-        "tensor_sha256": _tensor_digest(tensors),
+        "tensor_sha256": tensor_digest(tensors),
         "provenance": _to_jsonable(provenance or {}),
     }
     try:
@@ -324,12 +340,7 @@ def load_model(path, device=None, *,
     header = _tensor_header(path)
     architecture = _architecture(path, meta)  # on the meta device: shapes only
     _check_header(path, meta["kind"], architecture.state_dict(), header)
-    try:
-        tensors = load_file(str(path))
-    except Exception as e:
-        raise FormatError(path, f"damaged or truncated tensor data ({e})") from None
-    if meta.get("tensor_sha256") != _tensor_digest(tensors):
-        raise FormatError(path, "tensor data does not match its checksum: the file is damaged")
+    tensors = read_checked_tensors(path, meta.get("tensor_sha256"))
     _check_values(path, tensors)
     rep = architecture
     rep.load_state_dict(tensors, strict=True, assign=True)  # the meta module takes the file's tensors

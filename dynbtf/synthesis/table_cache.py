@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import warnings
 import zipfile
 from pathlib import Path
@@ -28,7 +27,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..io import atomic_path
+from ..io import atomic_path, user_cache_dir
 
 __all__ = ["cache_dir", "cache_key", "cached_tables", "FORMAT_VERSION"]
 
@@ -38,13 +37,7 @@ FORMAT_VERSION = 1
 
 def cache_dir() -> Path | None:
     """The cache directory, or None when ``DYNBTF_SYNTHESIS_CACHE=off``."""
-    setting = os.environ.get("DYNBTF_SYNTHESIS_CACHE")
-    if setting is not None and setting.strip().lower() in ("off", "0", "none", ""):
-        return None
-    if setting:
-        return Path(setting)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "dynbtf" / "synthesis"
+    return user_cache_dir("DYNBTF_SYNTHESIS_CACHE", "synthesis")
 
 
 def cache_key(method: str, parameters: dict, arrays: dict[str, np.ndarray | None]) -> str:

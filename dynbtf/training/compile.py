@@ -22,18 +22,19 @@ Example
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from ..compiled_material import (SUFFIX, CompiledMaterial, compiled_cache_dir, load_compiled, material_key,
-                                 save_compiled, tensor_digest)
+from ..compiled_material import SUFFIX, CompiledMaterial, compiled_cache_dir, load_compiled, material_key, save_compiled
 from ..conventions import spherical_to_direction
 from ..decoder.folded import DecodePath, FoldedDecoder
 from ..errors import FormatError, InputError
 from ..synthesis.registry import make_synthesizer, synthesizer_class
+from ..representations.model_file import tensor_digest
 from .footprint_decoders import fit_footprint_decoders
 
 __all__ = ["compile_material", "cached_material", "decoded_appearance", "decoded_luminance", "APPEARANCE_PAIRS",
@@ -47,8 +48,10 @@ APPEARANCE_PAIRS = (((0.0, 0.0), (0.0, 0.0)), ((30.0, 0.0), (45.0, 180.0)), ((60
 _TABLE_INPUTS = ("guide", "luminance", "prepared", "progress")
 
 
-def decoded_appearance(model, plane: torch.Tensor | None = None, chunk_size: int = 32768) -> torch.Tensor:
-    """A model's positional plane decoded under :data:`APPEARANCE_PAIRS`: ``(H, W, 3 * pairs)`` float32.
+def decoded_appearance(model, plane: torch.Tensor | None = None, chunk_size: int = 32768,
+                       pairs=APPEARANCE_PAIRS) -> torch.Tensor:
+    """A model's positional plane decoded under ``pairs`` of (view, light) ``(theta, phi)`` in degrees (default
+    :data:`APPEARANCE_PAIRS`): ``(H, W, 3 * pairs)`` float32.
 
     What ``struct`` and ``auto`` see of a fitted model (their ``guide``): a feature plane spreads its
     variance over many channels, fine detail included, while its decoded colours show the material's
@@ -59,7 +62,7 @@ def decoded_appearance(model, plane: torch.Tensor | None = None, chunk_size: int
         h, w, _ = plane.shape
         rows = plane.reshape(h * w, -1)
         images = []
-        for view, light in APPEARANCE_PAIRS:
+        for view, light in pairs:
             wv = spherical_to_direction(np.array(view[0]), np.array(view[1]))
             wl = spherical_to_direction(np.array(light[0]), np.array(light[1]))
             wv = torch.as_tensor(wv, dtype=plane.dtype, device=plane.device).expand(h * w, 3)
@@ -71,7 +74,7 @@ def decoded_appearance(model, plane: torch.Tensor | None = None, chunk_size: int
 
 def decoded_luminance(model, chunk_size: int = 32768) -> torch.Tensor:
     """Rec. 709 luminance ``(H, W)`` of the positional plane decoded at normal view and light (``hex``'s default)."""
-    rgb = decoded_appearance(model, chunk_size=chunk_size)[..., :3]
+    rgb = decoded_appearance(model, chunk_size=chunk_size, pairs=APPEARANCE_PAIRS[:1])  # normal view and light
     return rgb @ torch.tensor([0.2126, 0.7152, 0.0722], device=rgb.device)
 
 
@@ -134,10 +137,7 @@ def _fit_footprints(material: CompiledMaterial, progress: bool) -> CompiledMater
     h, w = synth.exemplar.shape[:2]
     decoder = fit_footprint_decoders(material.decoder, synth, point_query(material.model, synth, path),
                                      fast.angular_features, float(np.sqrt(h * w)), progress=progress)
-    synth.level_of_detail()
-    from dataclasses import replace
-
-    return replace(material, decoder=decoder, synthesis=synth.prepared_arrays(), _synthesizers=material._synthesizers)
+    return replace(material, decoder=decoder, _synthesizers=material._synthesizers)
 
 
 def compile_material(model, method: str = "auto", seed: int = 0, *, footprints: bool = True, progress: bool = True,
@@ -167,24 +167,22 @@ def compile_material(model, method: str = "auto", seed: int = 0, *, footprints: 
     if not hasattr(model, "positional_plane"):
         raise InputError(f"model: expected a Representation with a positional plane, got {type(model).__name__}")
     digest = model_digest(model)
-    key = "" if synthesizer is not None else material_key(digest, method, seed, _argument_key(arguments),
-                                                           footprint_settings(footprints))
+    cacheable = synthesizer is None and (base is None or bool(base.key))  # a ready synthesizer has no key
+    key = material_key(digest, method, seed, _argument_key(arguments), footprint_settings(footprints)) \
+        if cacheable else ""
     if base is None:
         with torch.no_grad():
             synth = synthesizer if synthesizer is not None else _build_synthesizer(model, method, seed, arguments)
             fast = model.fast_decoder()
             decoder = None if fast is None else FoldedDecoder.fold(fast.decoder, *synth.output_map())
-            if synth.level_of_detail() is not None:
-                synth.level_of_detail()  # the pyramid and its tables are part of what is stored
         choice = synth.choice.record() if synth.choice is not None else None
         base = CompiledMaterial(model=model, method=synth.name, seed=synth.seed,
-                                arguments=_stored_arguments(synth, arguments), synthesis=synth.prepared_arrays(),
+                                arguments=_stored_arguments(synth, arguments),
+                                synthesis=synth.prepared_arrays(),  # the tables and the pyramid
                                 decoder=decoder, choice=choice, model_sha256=digest)
         base._synthesizers[str(model.positional_plane().device)] = synth
-    from dataclasses import replace
-
     material = _fit_footprints(base, progress) if footprints else base
-    return replace(material, key=key if base.key or synthesizer is None else "", _synthesizers=material._synthesizers)
+    return replace(material, key=key, _synthesizers=material._synthesizers)
 
 
 def footprint_settings(footprints: bool) -> dict[str, Any] | bool:
@@ -236,8 +234,6 @@ def cached_material(model, method: str = "auto", seed: int = 0, *, footprints: b
     ``auto`` with ``footprints`` is the material of the method it chooses (one fit per resolved method).
     """
     if method == "auto" and footprints:  # the footprint decoders are keyed by the method auto resolves to
-        from dataclasses import replace
-
         chosen, _ = cached_material(model, "auto", seed, footprints=False, progress=progress, **arguments)
         full, how = cached_material(model, chosen.method, seed, footprints=True, progress=progress, **chosen.arguments)
         return replace(full, choice=chosen.choice, _synthesizers=full._synthesizers), how
