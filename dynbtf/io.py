@@ -63,8 +63,8 @@ def atomic_path(path, suffix: str | None = None):
     except BaseException as e:
         with contextlib.suppress(OSError):
             os.remove(tmp)
-        if isinstance(e, OSError) and e.filename is None:  # a failed write or close names no file: name it
-            e.filename = str(path)
+        if isinstance(e, OSError) and e.filename is None and e.errno is not None:
+            e.filename = str(path)  # a failed write or close names no file: name it (an errno-less message stays)
         raise
 
 
