@@ -33,8 +33,8 @@ from .errors import InputError
 __all__ = ["MAX_REPEATS", "FLOAT32_MAX_REPEATS", "FALLBACK_MEMORY_MB", "check_scale", "check_count",
            "memory_limit_mb", "check_memory", "format_bytes"]
 
-#: Exemplar repeats below which float64 resolves a fraction of a repeat (the library's uv rule;
-#: the same value as :data:`dynbtf.synthesis.lattice.MAX_REPEATS`).
+#: Exemplar repeats below which float64 resolves a fraction of a repeat: the library's uv rule, the bound of the
+#: synthesis lattice's exactness (:data:`dynbtf.synthesis.lattice.MAX_REPEATS` is this value).
 MAX_REPEATS = 2.0**52
 #: The same for float32 arithmetic (Mitsuba's uv, a shader's local uv): integers are exact up to 2**24.
 FLOAT32_MAX_REPEATS = 2.0**24

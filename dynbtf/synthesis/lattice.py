@@ -44,7 +44,8 @@ __all__ = ["split_uv", "triangle_lattice", "vertex_uv", "large_scaled_integer", 
 #: texel addresses) fits; from it on float64 holds no fraction of a repeat at all (its spacing is
 #: >= 1 repeat), so a query can only land on whole repeats. Texel resolution ends earlier, where the
 #: float64 spacing ``2**(e - 52)`` exceeds ``1 / W`` repeats: ``|uv| >= 2**52 / W`` (~1e13 for W = 400).
-MAX_REPEATS = 2.0**52
+#: Defined in :mod:`dynbtf.limits` (the commands check scales against the same value).
+from ..limits import MAX_REPEATS  # noqa: E402
 
 #: ``2 sqrt(3)``: lattice units per exemplar repeat along ``u``.
 LATTICE_SCALE = 2.0 * math.sqrt(3.0)
