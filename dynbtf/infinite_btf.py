@@ -295,7 +295,8 @@ class SynthesizedBTF:
             raise InputError(f"workers: expected a positive number of threads, got {workers}")
         self.workers = torch.get_num_threads() if workers is None else int(workers)
         self.chunk_size, self.precision, self.model = int(chunk_size), precision, model.eval()
-        self._request = (synthesizer, seed, params)
+        # tables built from arrays the caller gave (a guide, a luminance) are not in the cache's key
+        self._given_tables = bool({"guide", "luminance"} & set(params))
         self.material = _material(model, material, synthesizer, seed, params)
         self.synthesizer = self.material.synthesizer(model.positional_plane().device)
         if self.synthesizer.channels != model.positional_plane().shape[-1]:
@@ -321,8 +322,8 @@ class SynthesizedBTF:
         """The folded decoder with its per-level decoders and mean appearance (read from the compiled-material
         cache, or fitted and stored, on the first call)."""
         if self.level_decoders and not self._footprints_ready:
-            m, given = self.material, self._request[2]
-            if m.key and not {"guide", "luminance"} & set(given):  # the resolved method's entry in the cache
+            m = self.material
+            if m.key and not self._given_tables:  # the resolved method's entry in the cache
                 full = cached_material(self.model, m.method, m.seed, footprints=True, **m.arguments)[0]
                 self.material = replace(full, choice=m.choice, _synthesizers=full._synthesizers)
             else:  # tables from inputs the cache key does not cover: fitted here, not cached
