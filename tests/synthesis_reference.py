@@ -105,3 +105,24 @@ def brute_force_lattice_blend(synth, uv: np.ndarray, mode: str) -> np.ndarray:
     if matrix is not None:
         out = out @ matrix.double().numpy() + offset.double().numpy()
     return out
+
+
+def reference_lattice_reads(synth, u: float, v: float):
+    """Where a lattice-blending synthesizer's point query at ``(u, v)`` reads its plane: the three vertices'
+    barycentrics (floats) and read positions ``(X, Y)`` in level-0 texels of the read plane, exact fractions in
+    ``[0, W) x [0, H)`` (texel ``[i, j]`` covers ``[j, j + 1) x [i, i + 1)``): ``X = u W_density + offset_x mod W``.
+
+    Lattice from :func:`exact_lattice`, offsets from :func:`reference_hash` (as :func:`brute_force_lattice_blend`)."""
+    ph, pw = synth.prepared.plane.shape[:2]
+    dw, dh = synth.density
+    (bx, by), (fx, fy) = exact_lattice(u, v)
+    if 1 - fx - fy > 0:
+        verts, bary = [(bx, by), (bx, by + 1), (bx + 1, by)], [1 - fx - fy, fy, fx]
+    else:
+        verts, bary = [(bx + 1, by + 1), (bx + 1, by), (bx, by + 1)], [fx + fy - 1, 1 - fy, 1 - fx]
+    positions = []
+    for vx, vy in verts:
+        h = reference_hash(vx, vy, synth.seed)
+        ox, oy = h % pw, lowbias32(h ^ 0x9E3779B9) % ph
+        positions.append(((Fraction(u) * dw + ox) % pw, (Fraction(v) * dh + oy) % ph))
+    return bary, positions

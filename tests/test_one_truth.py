@@ -12,7 +12,16 @@ Formulas and backends:
   numba (``synthesis.kernels.tile_fetch``, ``fast_decode``), Dr.Jit;
 * the decoder MLP -- torch, numba layer 1 + torch (the synthesized BTF's fast path), Dr.Jit, and the
   C++ training kernel (its loss);
-* every dynamic synthesis method (tile, linear, hist, hex) -- torch reference path, numba kernel, Dr.Jit.
+* every dynamic synthesis method (tile, linear, hist, hex) -- torch reference path, numba kernel, Dr.Jit;
+* the relief march (``ParallaxTriplePlane.visible_uv``) -- torch synthesis path, numba kernel, Dr.Jit
+  (``march_visible_uv``), GLSL (through its values) -- against the documented march in float64 through a
+  float64 reference of the synthesized height;
+* the footprint pyramid -- its levels (``mip.area_pyramid``) against brute-force box averages, the level of detail
+  (library, Dr.Jit) against its documented rule, the filtered read (torch path, numba ``filtered_lattice_blend``,
+  Dr.Jit ``filtered_latent``) against a float64 read of the reference levels;
+* the mean appearance (``DecodePath.mean_appearance``, the plugin's mean target) against its quadrature in float64,
+  and the quadrature against the brute-force mean of point queries;
+* a compiled material's point query -- numba, torch, Dr.Jit, GLSL -- against a float64 reference from its tensors.
 
 The hash and lattice references are the exact-integer / exact-rational ones of
 ``synthesis_reference.py``; the others are below, in float64 NumPy, from the definitions in
@@ -463,3 +472,503 @@ def test_cell_quilting_in_numba_and_drjit_is_the_torch_reference(mi, seed):
         features = as_numpy(twin.features(u, v))
         np.testing.assert_allclose(features, want, rtol=0, atol=5e-5 * scale)
         np.testing.assert_array_equal(np.array(twin.channel(u, v, 2), dtype=np.float64), features[:, 2])
+
+
+# ---------------------------------------------------------------------------- the relief march
+def reference_march(uv: np.ndarray, w: np.ndarray, height_at, *, h_min: float, h_max: float, step: float,
+                    aspect: float = 1.0) -> np.ndarray:
+    """The visible points of ``march_visible_uv``'s documented definition, one ray at a time in float64.
+
+    Ray ``uv + z s``, ``s = (w_x, w_y aspect) / max(w_z, 1e-6)`` (``w_z <= 0``: vertical); samples
+    ``z_k = h_max - k dz``, ``k = 0..n``, ``n = max(1, ceil((h_max - h_min) |s| / step))``, the last at
+    ``h_min``; a field at or above ``h_max`` at ``k = 0`` is hit there; else the first ``k`` with
+    ``height - z >= 0`` (or ``k = n``) and the sample before it bracket the hit, placed by linear
+    interpolation of ``height - z`` (clamped to the step; no change: the lower sample)."""
+    out = np.array(uv, dtype=np.float64)
+    depth = h_max - h_min
+    for q, (point, direction) in enumerate(zip(out, np.asarray(w, np.float64))):
+        wx, wy, wz = direction if direction[2] > 0 else (0.0, 0.0, 1.0)
+        s = np.array([wx, wy * aspect]) / max(wz, 1e-6)
+        n = max(1, math.ceil(depth * math.hypot(*s) / step))
+        z_prev, f_prev = h_max, height_at(point + h_max * s) - h_max
+        z_hit = h_max
+        if f_prev < 0:
+            for k in range(1, n + 1):
+                z = h_min if k == n else h_max - k * (depth / n)
+                f = height_at(point + z * s) - z
+                if f >= 0 or k == n:
+                    t = f / (f - f_prev) if f != f_prev else 0.0
+                    z_hit = z + min(1.0, max(0.0, t)) * (z_prev - z)
+                    break
+                z_prev, f_prev = z, f
+        out[q] = point + z_hit * s
+    return out
+
+
+@pytest.fixture(scope="module")
+def relief_model():
+    """A small triple-parallax model: waves plus noise, a relief of ~2.5 texels."""
+    from dynbtf.representations.parallax import ParallaxTriplePlane
+
+    model = ParallaxTriplePlane(24, 20, positional_channels=6, angular_channels=3, hidden=12, seed=5)
+    generator = torch.Generator().manual_seed(4)
+    with torch.no_grad():
+        model.decoder.rest[-1].bias.add_(0.6)
+        model.f_h.normal_(generator=generator)
+        model.f_d.normal_(generator=generator)
+        yy, xx = torch.meshgrid(torch.arange(24.0), torch.arange(20.0), indexing="ij")
+        waves = torch.sin(2 * np.pi * xx / 10) * torch.cos(2 * np.pi * yy / 8)
+        model.set_height(0.05 * (waves + 0.3 * torch.rand(24, 20, generator=generator)))
+    return model.eval()
+
+
+def relief_queries(n: int, seed: int):
+    """Points over +-20 repeats; float32 views from the normal to 75 degrees (the last ones steep: long marches)."""
+    from dynbtf.conventions import spherical_to_direction
+
+    rng = np.random.default_rng(seed)
+    uv = (rng.random((n, 2)) - 0.5) * 40.0
+    theta, phi = rng.random((2, n)) * [[75.0], [360.0]]
+    theta[0], theta[-n // 8:] = 0.0, 70.0 + 5.0 * rng.random(n // 8)
+    w = spherical_to_direction(np.stack([theta, rng.random(n) * 70.0]), np.stack([phi, rng.random(n) * 360.0]))
+    return uv, w[0].astype(np.float32).astype(np.float64), w[1].astype(np.float32).astype(np.float64)
+
+
+def reference_relief_field(model, synth, method: str):
+    """The synthesized height (uv units) at one point, float64: tile -- the bilinear reference of the height channel;
+    linear -- the brute-force lattice blend of the synthesizer's tables."""
+    from synthesis_reference import brute_force_lattice_blend
+
+    scale = model.height_scale
+    if method == "tile":
+        plane = model.positional_plane().detach().double().numpy()[..., -1:]
+        return lambda p: float(reference_fetch_wrap(plane, p[None])[0, 0]) * scale
+    return lambda p: float(brute_force_lattice_blend(synth, p[None], "linear")[0, -1]) * scale
+
+
+def march_parameters(model) -> dict:
+    """``h_min, h_max`` (the exemplar's height range, float64), ``step`` and ``aspect`` from the model's config."""
+    rows, cols = model.height_channel.shape
+    height = model.height_channel.detach().double() * model.height_scale
+    return {"h_min": float(height.min()), "h_max": float(height.max()),
+            "step": model.config()["march_step_texels"] / max(rows, cols), "aspect": cols / rows}
+
+
+@pytest.mark.parametrize("method", ["tile", "linear"])
+def test_relief_march_in_torch_numba_drjit_is_the_reference(mi, relief_model, method):
+    """The visible point through the synthesized height: the library's march (through the torch synthesis path
+    and through the numba kernel) and Dr.Jit's ``march_visible_uv`` = :func:`reference_march` of the float64
+    reference field.
+
+    Every backend reads a float32 height (~1e-9 uv from the reference), which moves a hit by about that over
+    ``1 - grad h . s``: within 1e-5 texels. Where a ray grazes a ridge (a sample within that of the surface,
+    then below it again) the rounding may decide between the ridge and a surface further on: a jump by up to the
+    march's reach. Such queries are rare (measured: none in these 240): at most 2% of them may jump."""
+    from dynbtf.render.mitsuba.drjit_ops import DrParallaxTriplePlane
+    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
+    from dynbtf.synthesis.registry import make_synthesizer
+
+    model = relief_model
+    plane = model.positional_plane().detach()
+    reference = make_synthesizer(method, plane, seed=3, fast=False)
+    fast = make_synthesizer(method, plane, seed=3, fast=True, **({} if method == "tile" else
+                                                                {"prepared": reference.prepared}))
+    uv, wv, _ = relief_queries(240, seed=31)
+    want = reference_march(uv, wv, reference_relief_field(model, reference, method), **march_parameters(model))
+    texels = np.array(model.height_channel.shape[::-1], np.float64)  # uv -> texels per axis
+
+    def check(got, what):
+        error = np.abs(np.asarray(got, np.float64) - want).max(1) * texels.max()
+        assert np.mean(error < 1e-5) >= 0.98, (what, np.sort(error)[-8:])
+
+    for name, synth in (("torch", reference), ("numba", fast)):
+        check(model.visible_uv(torch.from_numpy(uv), torch.from_numpy(wv).float(), synth).numpy(), name)
+    twin = make_dr_synthesizer(reference)
+    index = int(plane.shape[-1]) - 1
+    u, v = DrParallaxTriplePlane(model).visible_uv(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1]), vector3(mi, wv),
+                                                   lambda pu, pv, mask: twin.channel(pu, pv, index, mask))
+    check(as_numpy([u, v]), "drjit")
+    # the march matters here: the visible points move by up to ~3 texels (not a comparison of uv with itself)
+    assert (np.abs(want - uv).max(1) * texels.max()).max() > 1.0
+
+
+# ---------------------------------------------------------------------------- every backend reads a compiled material
+def material_model():
+    """The Triple Plane of the compiled-material tests: a plane with structure (a 16-texel period) and visible
+    angular variation (also ``test_compiled_material.py``'s model)."""
+    from dynbtf.representations.triple_plane import TriplePlane
+
+    rep = TriplePlane(32, 32, seed=5)
+    with torch.no_grad():
+        grid = torch.arange(32.0)
+        rep.f_u.add_(0.5 * torch.sin(grid * np.pi / 8)[:, None, None] * torch.cos(grid * np.pi / 8)[None, :, None])
+        rep.f_h.normal_(generator=torch.Generator().manual_seed(1))
+        rep.f_d.normal_(generator=torch.Generator().manual_seed(2))
+    return rep.eval()
+
+
+def material_queries(n: int, spread: float = 40.0, seed: int | None = None):
+    """``n`` points over ``+-spread / 2`` repeats and (view, light) pairs up to 70 degrees from the normal."""
+    from dynbtf.conventions import spherical_to_direction
+
+    rng = RNG if seed is None else np.random.default_rng(seed)
+    uv = (rng.random((n, 2)) - 0.5) * spread
+    theta = rng.random((2, n)) * 70.0
+    phi = rng.random((2, n)) * 360.0
+    w = spherical_to_direction(theta, phi)
+    return uv, w[0], w[1]
+
+
+def reference_eval(material, uv: np.ndarray, wv: np.ndarray, wl: np.ndarray) -> np.ndarray:
+    """float64 reference of a compiled material's point query: the stored synthesizer's torch path (float64
+    positions), the stored folded layer 1, the model's angular planes fetched at the reference angular coordinates,
+    the stored layers 2.. in float64."""
+    synth = material.synthesizer()
+    fast = synth.fast
+    synth.fast = False
+    if material.method == "hist":  # rendering's definition inverts the Gaussian transform through the stored table
+        from dynbtf.synthesis.histogram import blend_weights, variance_preserving_blend
+
+        lut = synth.prepared.extras["lut"]
+        synth.blend = lambda samples, bary, uv_samples: lut(variance_preserving_blend(
+            samples.double(), blend_weights(bary, synth.gamma))).float()
+    try:
+        latent = synth.latent(torch.from_numpy(uv)).double().numpy()
+    finally:
+        synth.fast = fast
+        synth.__dict__.pop("blend", None)
+    d = material.decoder
+    point = d.levels[0]
+    h, dd = reference_half_diff(wv, wl)
+    model = material.model
+    angular = np.concatenate([reference_fetch_angular(model.f_h.detach().numpy(), reference_angular_coords(h)),
+                              reference_fetch_angular(model.f_d.detach().numpy(), reference_angular_coords(dd))], 1)
+    first = latent @ point.weight.double().numpy() + point.bias.double().numpy() \
+        + angular @ d.angular_weight.double().numpy().T + d.first_bias.double().numpy()
+    x = np.where(first >= 0, first, first * d.slope)
+    layers = [(w.double().numpy(), b.double().numpy()) for w, b in point.rest]
+    return reference_mlp(x, layers, d.slope)
+
+
+@pytest.fixture(scope="module")
+def compiled(tmp_path_factory):
+    """One saved compiled material per method, read back (the backends below read these files' contents)."""
+    from dynbtf.compiled_material import load_compiled, save_compiled
+    from dynbtf.training.compile import compile_material
+
+    model = material_model()
+    folder = tmp_path_factory.mktemp("compiled")
+    out = {}
+    for method in ("tile", "hist", "hex", "struct"):
+        save_compiled(compile_material(model, method, seed=9, footprints=False), folder / f"{method}.dbtfc")
+        out[method] = load_compiled(folder / f"{method}.dbtfc")
+    return out
+
+
+def glsl_eval(model, method: str, seed: int, folder, uv, wv, wl) -> np.ndarray:
+    """The exported fp32 shader's values in headless Chromium (skips without Chromium)."""
+    from chromium import eval_in_browser, find_chromium
+
+    if find_chromium() is None:
+        pytest.skip("needs headless Chromium (scripts/test.sh installs it)")
+    from dynbtf.export.web.exporter import export_web
+
+    export_web(model, folder, precision="fp32", methods=(method,), seed=seed)
+    return eval_in_browser(folder, method, uv, wv, wl).rgb
+
+
+@pytest.mark.parametrize("method", ["tile", "hist", "hex", "struct"])
+@pytest.mark.parametrize("backend", ["numba", "torch", "drjit", "glsl"])
+def test_every_backend_reads_the_compiled_material_as_the_float64_reference(compiled, method, backend, tmp_path):
+    from dynbtf.infinite_btf import SynthesizedBTF
+
+    material = compiled[method]
+    uv, wv, wl = material_queries(300, spread=1e3, seed=17)  # the same queries for every backend and method
+    # float32 directions for every backend (the Dr.Jit kernel and the shader take float32 vectors), the reference
+    # computed from those same values in float64
+    wv, wl = wv.astype(np.float32).astype(np.float64), wl.astype(np.float32).astype(np.float64)
+    keep = _away_from_phi_seam(wv, wl)
+    want = reference_eval(material, uv, wv, wl)
+    scale = np.abs(want).max()
+    if backend in ("numba", "torch"):
+        btf = SynthesizedBTF(material)
+        if backend == "torch":  # the torch synthesis path and the torch decoder's first layer
+            btf.synthesizer.fast = False
+            btf.decode_path._fused = None
+        got = btf.eval(uv, wv, wl)
+    elif backend == "drjit":
+        mi = pytest.importorskip("mitsuba")
+        from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator
+        from dynbtf.render.mitsuba.drjit_ops import mi_module
+
+        mi = mi_module()
+        evaluator = DynBTFEvaluator(material.model, method, material.seed)
+        assert evaluator.btf.material.key == material.key  # the cached twin of the file's material
+        rgb = evaluator.eval(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1]), mi.Vector3f(*wv.T.astype(np.float32)),
+                             mi.Vector3f(*wl.T.astype(np.float32)))
+        got = np.stack([np.asarray(rgb.x), np.asarray(rgb.y), np.asarray(rgb.z)], axis=-1)
+    else:
+        got = glsl_eval(material.model, method, material.seed, tmp_path / "web", uv, wv, wl)
+    # the torch path computes the angular coordinates from float32 directions (the others in float64 or with
+    # their own float32 care): near the poles of h and d that moves the fetch by ~1e-4 of the value range
+    tolerance = {"numba": 2e-5, "torch": 5e-4, "drjit": 1e-4, "glsl": 2e-3}[backend]
+    error = np.abs(got[keep] - want[keep]).max(1)
+    if backend in ("drjit", "glsl"):
+        # float32 kernels: a few queries at a lattice edge or an angular seam may round to the other side (a jump
+        # of a few 1e-3 of the range); every query stays within 1%, and 99% within the tolerance
+        assert error.max() < 1e-2 * scale
+        assert np.mean(error < tolerance * scale) > 0.99
+    else:
+        assert error.max() < tolerance * scale
+
+
+def test_relief_march_in_glsl_is_the_reference(relief_model, tmp_path):
+    """The shader's march (tiling: the reference field is the bilinear height channel) = the float64 reference
+    decode (:func:`reference_eval`) at :func:`reference_march`'s visible points. Tolerances as the compiled
+    material's GLSL backend above (float32 shader: 99% within 2e-3 of the range, every query within 1%); the
+    march moves the answer by far more than that (checked)."""
+    from dynbtf.training.compile import compile_material
+
+    model = relief_model
+    material = compile_material(model, "tile", seed=0, footprints=False)
+    uv, wv, wl = relief_queries(200, seed=32)
+    keep = _away_from_phi_seam(wv, wl)
+    visible = reference_march(uv, wv, reference_relief_field(model, None, "tile"), **march_parameters(model))
+    want = reference_eval(material, visible, wv, wl)
+    got = glsl_eval(model, "tile", 0, tmp_path / "web", uv, wv, wl)
+    scale = np.abs(want).max()
+    error = np.abs(got[keep] - want[keep]).max(1)
+    assert error.max() < 1e-2 * scale
+    assert np.mean(error < 2e-3 * scale) > 0.99
+    unmarched = np.abs(reference_eval(material, uv, wv, wl) - want).max(1)
+    assert unmarched.max() > 0.1 * scale
+
+
+# ---------------------------------------------------------------------------- the footprint pyramid
+def reference_box_levels(plane: np.ndarray) -> list[np.ndarray]:
+    """Levels of a plane ``(H, W, C)`` by brute force: level ``l`` has ``max(1, ceil(H / 2**l)) x max(1, ceil(W / 2**l))``
+    texels, texel ``[i, j]`` the float64 mean of the plane (piecewise constant: texel ``[r, c]`` on ``[c, c + 1) x
+    [r, r + 1)``) over ``[j W / W_l, (j + 1) W / W_l) x [i H / H_l, (i + 1) H / H_l)``. Every level-0 texel is cut
+    into ``H_l x W_l`` equal sub-texels: the box of ``[i, j]`` is then exactly sub-rows ``[i H, (i + 1) H)`` and
+    sub-columns ``[j W, (j + 1) W)``, whose plain mean it is."""
+    plane = np.asarray(plane, np.float64)
+    h, w, c = plane.shape
+    levels, l = [plane], 1
+    while levels[-1].shape[:2] != (1, 1):
+        hl, wl = max(1, math.ceil(h / 2 ** l)), max(1, math.ceil(w / 2 ** l))
+        fine = np.repeat(np.repeat(plane, hl, axis=0), wl, axis=1)
+        levels.append(fine.reshape(hl, h, wl, w, c).mean(axis=(1, 3)))
+        l += 1
+    return levels
+
+
+def reference_level_of_detail(shapes, blend_band: float, footprint: float) -> tuple[int, float]:
+    """``LevelOfDetail``'s documented rule for one footprint (level-0 texels): level widths ``sqrt(H / H_l W / W_l)``;
+    the last level whose width is at most the footprint (at most one texel: level 0; beyond the top: the top) and
+    the next level's weight, linear in ``log2`` between the two widths; with ``blend_band < 1`` the weight is
+    ``(t - 0.5) / band + 0.5``, a weight reaching 1 reads the next level alone; clamped to ``[0, 1]``."""
+    (h, w), top = shapes[0], len(shapes) - 1
+    log_w = [math.log2(math.sqrt(h / hl * (w / wl))) for hl, wl in shapes]
+    log_f = math.log2(max(footprint, 1.0))
+    lower = max([k for k in range(top + 1) if log_w[k] <= log_f] or [0])
+    upper = min(lower + 1, top)
+    span = log_w[upper] - log_w[lower]
+    t = (log_f - log_w[lower]) / span if span > 0 else 0.0
+    if blend_band < 1.0:
+        t = (t - 0.5) / blend_band + 0.5
+        if t >= 1.0:
+            lower, t = upper, 0.0
+    return lower, min(1.0, max(0.0, t))
+
+
+def reference_filtered(synth, method: str, uv: np.ndarray, footprint: np.ndarray, levels, luminances=None):
+    """The footprint read of ``tile``/``linear``/``hex`` in float64 (latent values, before the output map): each
+    sample where the point query reads it (tile: ``frac(uv)``; lattice methods: :func:`reference_lattice_reads`),
+    bilinear in the reference ``levels`` at that position, blended per level (hex: weights from the level's
+    luminance), the two levels of :func:`reference_level_of_detail` mixed."""
+    from synthesis_reference import reference_lattice_reads
+
+    ph, pw = levels[0].shape[:2]
+    shapes = [t.shape[:2] for t in levels]
+    band = synth.level_of_detail().blend_band
+    out = np.zeros((len(uv), levels[0].shape[2]))
+    for q, ((u, v), f) in enumerate(zip(uv, footprint)):
+        lower, t = reference_level_of_detail(shapes, band, float(f))
+        if method == "tile":
+            bary, positions = [1.0], [((u - math.floor(u)) * pw, (v - math.floor(v)) * ph)]
+        else:
+            bary, positions = reference_lattice_reads(synth, float(u), float(v))
+        for level, share in ((lower, 1.0 - t), (min(lower + 1, len(levels) - 1), t)):
+            if share == 0.0:
+                continue
+            hl, wl = shapes[level]
+
+            def read(plane):  # bilinear reads of the three samples at level-l texel coordinates
+                return np.concatenate([reference_bilinear(plane, np.array([float(x) * wl / pw - 0.5]),
+                                                          np.array([float(y) * hl / ph - 0.5]), wrap_x=True,
+                                                          wrap_y=True) for x, y in positions])
+
+            samples, b = read(levels[level]), np.array(bary)
+            if method == "hex":
+                lum = read(luminances[level][..., None])[:, 0]
+                weights = (1 - synth.beta + synth.beta * lum) * np.maximum(b, 0.0) ** 7
+                weights /= weights.sum()
+                k = math.log(1 - synth.contrast) / math.log(0.5)
+                weights = np.where(weights < 0.5, 0.5 * (2 * weights) ** k, 1 - 0.5 * (2 - 2 * weights) ** k)
+                b = weights / weights.sum()
+            out[q] += share * (b @ samples)
+    return out
+
+
+def footprint_queries(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Points over +-25 repeats and footprints from half a texel to 300 texels (beyond the 24 x 20 exemplar),
+    a few at exactly the levels' widths."""
+    rng = np.random.default_rng(seed)
+    uv = (rng.random((n, 2)) - 0.5) * 50.0
+    texels = np.exp(rng.uniform(math.log(0.5), math.log(300.0), n))
+    texels[:6] = [1.0, 2.0, math.sqrt(8 * 7), 1.5, 2 ** 0.65, 2 ** 0.35]
+    return uv, texels
+
+
+@pytest.mark.parametrize("method", ["tile", "linear", "hist", "hex"])
+def test_pyramid_levels_and_level_of_detail_are_the_brute_force_box_average(mi, method):
+    """Every level every backend reads (the read plane's pyramid; hex's luminance pyramid) = the brute-force box
+    average (float32 storage of a float64 mean: 1e-6 of the plane's range); the level of detail of the library
+    and of Dr.Jit = the documented rule (same level; weights to float32)."""
+    from dynbtf.render.mitsuba.drjit_synthesis import DrLevelOfDetail
+    from dynbtf.synthesis.registry import make_synthesizer
+
+    synth = make_synthesizer(method, smooth_lognormal(24, 20, 4, seed=4), seed=9)
+    pyr = synth.pyramid()
+    plane = synth.exemplar if method == "tile" else synth.prepared.plane
+    pairs = [(pyr["levels"], reference_box_levels(plane.double().numpy()))]
+    if method == "hex":
+        pairs.append(([t[..., None] for t in pyr["luminances"]],
+                      reference_box_levels(synth.prepared.extras["luminance"].double().numpy()[..., None])))
+    for got, want in pairs:
+        assert [tuple(t.shape) for t in got] == [t.shape for t in want]
+        for level, (a, b) in enumerate(zip(got, want)):
+            np.testing.assert_allclose(a.double().numpy(), b, rtol=0, atol=1e-6 * np.ptp(want[0]), err_msg=level)
+    shapes = [t.shape[:2] for t in pyr["levels"]]
+    _, texels = footprint_queries(300, seed=40)
+    lod = synth.level_of_detail()
+    for band in (lod.blend_band, 1.0):  # rendering's band ("brilinear"), and trilinear
+        lod.blend_band = band
+        want = np.array([reference_level_of_detail(shapes, band, f) for f in texels])
+        assert 0 < np.mean(want[:, 1] > 0) < 1 and len(set(want[:, 0])) == len(shapes)  # mixed and single reads
+        level, upper = lod(texels)
+        np.testing.assert_array_equal(level, want[:, 0])
+        np.testing.assert_allclose(upper, want[:, 1], rtol=0, atol=1e-6)
+        twin_level, twin_upper = DrLevelOfDetail(lod)(mi.Float64(texels))
+        np.testing.assert_array_equal(np.array(twin_level, np.int64), want[:, 0])
+        np.testing.assert_allclose(np.array(twin_upper, np.float64), want[:, 1], rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["tile", "linear", "hist", "hex"])
+def test_filtered_read_in_torch_numba_drjit_is_the_reference(mi, method):
+    """The footprint query's latent values: torch reference path, numba kernel (the lattice methods; tile's
+    footprint read is the torch trilinear fetch) and Dr.Jit = the float64 reference from the brute-force levels
+    (:func:`reference_filtered`). hist's per-level inverse tables have no float64 form here: its torch path
+    (float64 positions, Gaussian-space blend; level 0 through the point query's table, as rendering defines it)
+    is the reference, and its levels are the ones checked above.
+
+    Tolerance 5e-6 of the values' range: float32 levels, float32 bilinear weights (the torch fetch also at
+    float32 texel positions); measured at most 1.2e-6 (torch path), 1.4e-7 (numba, Dr.Jit)."""
+    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
+    from dynbtf.synthesis.registry import make_synthesizer
+
+    exemplar = smooth_lognormal(24, 20, 4, seed=4)
+    reference = make_synthesizer(method, exemplar, seed=9, fast=False)
+    uv, texels = footprint_queries(200, seed=41)
+    footprint = torch.from_numpy(texels)
+    if method == "hist":
+        lut, blend = reference.prepared.extras["lut"], reference.blend
+        from dynbtf.synthesis.histogram import blend_weights, variance_preserving_blend
+
+        reference.blend = lambda samples, bary, uv_samples, level=0: (lut(variance_preserving_blend(
+            samples.double(), blend_weights(bary, reference.gamma))).float() if level == 0
+            else blend(samples, bary, uv_samples, level))
+        want = reference.filtered_latent(torch.from_numpy(uv), footprint).double().numpy()
+    else:
+        plane = reference.exemplar if method == "tile" else reference.prepared.plane
+        luminances = (reference_box_levels(reference.prepared.extras["luminance"].double().numpy()[..., None])
+                      if method == "hex" else None)
+        want = reference_filtered(reference, method, uv, texels, reference_box_levels(plane.double().numpy()),
+                                  None if luminances is None else [t[..., 0] for t in luminances])
+    scale = np.ptp(want)
+    got = {"torch": reference.filtered_latent(torch.from_numpy(uv), footprint).double().numpy()}
+    if method != "tile":
+        fast = make_synthesizer(method, exemplar, seed=9, fast=True, prepared=reference.prepared)
+        got["numba"] = fast.filtered_latent(torch.from_numpy(uv), footprint).double().numpy()
+    twin = make_dr_synthesizer(reference)
+    lower, t = twin.level_of_detail()(mi.Float64(texels))
+    got["drjit"] = as_numpy(twin.filtered_latent(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1]), lower, t))
+    for backend, values in got.items():
+        np.testing.assert_allclose(values, want, rtol=0, atol=5e-6 * scale, err_msg=backend)
+    # the footprint matters: the point query differs (not a comparison of the point query with itself)
+    point = reference.latent(torch.from_numpy(uv)).double().numpy()
+    assert np.abs(point - want).max() > 0.1 * scale
+
+
+# ---------------------------------------------------------------------------- the mean appearance
+def reference_mean_appearance(decoder, model, wv: np.ndarray, wl: np.ndarray) -> np.ndarray:
+    """``MeanAppearance``'s definition in float64: ``sum_k weights[k] decode(nodes[k])``, where ``decode(node)`` is
+    layer 1 (``node`` as its positional pre-activation, plus the angular part and layer 1's bias), LeakyReLU, then
+    the mean's own layers 2..; angular inputs as :func:`reference_decode`'s."""
+    mean = decoder.mean
+    h, d = reference_half_diff(wv, wl)
+    angular = np.concatenate([reference_fetch_angular(model.f_h.detach().numpy(), reference_angular_coords(h)),
+                              reference_fetch_angular(model.f_d.detach().numpy(), reference_angular_coords(d))], 1)
+    pre = angular @ decoder.angular_weight.double().numpy().T + decoder.first_bias.double().numpy()
+    layers = [(w.double().numpy(), b.double().numpy()) for w, b in mean.rest]
+    out = 0.0
+    for weight, node in zip(mean.weights.double().tolist(), mean.nodes.double().numpy()):
+        x = pre + node
+        out = out + weight * reference_mlp(np.where(x >= 0, x, decoder.slope * x), layers, decoder.slope)
+    return out
+
+
+def test_mean_appearance_in_every_backend_is_its_quadrature_and_answers_the_brute_force_mean(mi):
+    """Footprints that read only the 1 x 1 top level answer the material's mean appearance.
+
+    Its formula (the fitted quadrature, :func:`reference_mean_appearance`): the library's fused and torch paths,
+    ``eval`` at a footprint beyond the exemplar and the Dr.Jit plugin's mean-appearance path at one are held to
+    it (float32: 2e-5 of the range; the torch path computes angular coordinates from float32 directions, 5e-4 as
+    for point queries). Its accuracy: against the brute-force mean of point queries over 4096 random positions per
+    (view, light) pair, in units of their spread around it -- the fitted quadrature far closer than the plain
+    decoder on the mean features (measured: 0.07 vs 0.41 of the spread)."""
+    from dynbtf.decoder.folded import DecodePath
+    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator
+    from dynbtf.representations.triple_plane import TriplePlane
+    from dynbtf.conventions import spherical_to_direction
+
+    btf = SynthesizedBTF(TriplePlane(16, 16, seed=3), "hist", scale=4.0, seed=1)  # 5 levels: 4 fits
+    plain = SynthesizedBTF(btf.model, "hist", scale=btf.scale, seed=btf.seed, level_decoders=False)
+    rng = np.random.default_rng(14)
+    w = spherical_to_direction(rng.random((2, 24)) * 70.0, rng.random((2, 24)) * 360.0)
+    wv, wl = (x.astype(np.float32).astype(np.float64) for x in w)
+    keep = _away_from_phi_seam(wv, wl)
+    folded = btf.footprint_decoder()
+    assert folded.mean is not None
+    want = reference_mean_appearance(folded, btf.model, wv, wl)
+    scale = np.abs(want).max()
+    uv = np.random.default_rng(16).random((24, 2)) * 1e4
+    torch_path = DecodePath(folded, btf.model.fast_decoder().angular_features)  # no angular planes: torch layer 1
+    evaluator = DynBTFEvaluator(btf.model, "hist", btf.seed)
+    rgb = evaluator.eval(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1]), vector3(mi, wv), vector3(mi, wl),
+                         footprint=mi.Float(np.full(24, 1e4, np.float32)))
+    got = {"fused": btf.mean_appearance(torch.from_numpy(wv).float(), torch.from_numpy(wl).float()).numpy(),
+           "torch": torch_path.mean_appearance(torch.from_numpy(wv).float(), torch.from_numpy(wl).float()).detach().numpy(),
+           "eval": btf.eval(uv, wv, wl, footprint=1e4), "drjit": as_numpy([rgb.x, rgb.y, rgb.z])}
+    for backend, values in got.items():
+        tolerance = 5e-4 if backend == "torch" else 2e-5
+        np.testing.assert_allclose(values[keep], want[keep], rtol=0, atol=tolerance * scale, err_msg=backend)
+    # the quadrature's accuracy against the brute-force mean
+    positions = np.random.default_rng(15).random((4096, 2)) * 50
+    points = np.stack([btf.eval(positions, np.repeat(wv[i:i + 1], 4096, 0), np.repeat(wl[i:i + 1], 4096, 0))
+                       for i in range(24)])
+    brute, spread = points.mean(1), float(points.std(1).mean())  # the mean, and the spread around it
+    ours = float(np.abs(want - brute).mean()) / spread
+    theirs = float(np.abs(plain.eval(uv, wv, wl, footprint=1e4) - brute).mean()) / spread
+    assert ours < 0.2 and ours < 0.5 * theirs, (ours, theirs)
