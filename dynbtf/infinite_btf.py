@@ -26,8 +26,8 @@ Units and conventions
   (none at normal view).
 * ``footprint`` (optional) -- the side of the square of surface a query stands for, in ``uv``
   units (a pixel's footprint): the answer approximates the BTF averaged over it (mip pyramid of
-  the synthesized plane, per-level inverse tables and per-level decoders fitted on first use;
-  :mod:`dynbtf.synthesis.mip`, "Footprint queries" in ``docs/synthesis.md``). ``None``: the point query.
+  the synthesized plane, per-level inverse tables and the compiled material's per-level decoders;
+  :mod:`dynbtf.synthesis.mip`, :mod:`dynbtf.training.footprint_decoders`). ``None``: the point query.
 * Output -- linear RGB ``(..., 3)`` float32, excluding ``cos(theta_light)``
   (``pi f_r``); NumPy in, NumPy out; torch in, torch out.
 
