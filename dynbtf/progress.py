@@ -3,7 +3,7 @@
 Every long loop in dynbtf reports through :func:`progress_bar` (a configured ``tqdm``). On a
 terminal it is tqdm's live bar with rate and ETA. When stderr is not a terminal (a log file, CI,
 a pipe) the same bar is written as complete lines, at most one every :data:`LOG_INTERVAL_SECONDS`
-plus the final state, instead of a carriage-return update per step (a 3-epoch fit used to log
+plus the final state, each with every field the bar shows (never cut to a width), instead of a carriage-return update per step (a 3-epoch fit used to log
 167 KB of them).
 
 >>> import io
@@ -57,7 +57,8 @@ def progress_bar(iterable: Iterable | None = None, *, file=None, **options: Any)
     """A ``tqdm`` progress bar (same arguments) that suits where it is written.
 
     ``file`` defaults to stderr. On a terminal: tqdm's live bar (dynamic width). Elsewhere: complete
-    lines, one every :data:`LOG_INTERVAL_SECONDS` at most and one at the end, with the same rate and ETA.
+    lines, one every :data:`LOG_INTERVAL_SECONDS` at most and one at the end, with the same rate, ETA and
+    postfix fields, however long the line.
     """
     from tqdm.auto import tqdm
 
@@ -67,5 +68,5 @@ def progress_bar(iterable: Iterable | None = None, *, file=None, **options: Any)
         return tqdm(iterable, file=target, **options)
     options.pop("dynamic_ncols", None)
     options.setdefault("mininterval", LOG_INTERVAL_SECONDS)
-    options.setdefault("ncols", 100)
+    # no ncols: tqdm then never trims a line, so every postfix field (loss, samples/s, held-out PSNR) is kept
     return tqdm(iterable, file=_LogLines(target), **options)

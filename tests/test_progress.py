@@ -21,6 +21,22 @@ def test_a_log_gets_whole_lines_not_carriage_returns():
     assert all("step" in line for line in lines[1:])  # rate in steps
 
 
+def test_a_log_line_keeps_every_postfix_field_however_long():
+    """Progress lines in a log are not cut to a terminal width: the fit's last fields survive."""
+    log = io.StringIO()
+    bar = progress_bar(total=3, desc="fit triple-parallax on sim:woven_fabric?size=128", unit="step", file=log,
+                       mininterval=0)
+    for _ in range(3):
+        bar.update(1)
+        bar.set_postfix(loss="0.0123", samples_s="1.23e+07", heldout_psnr="31.42", chosen="triple-parallax")
+    bar.close()
+    last = log.getvalue().splitlines()[-1]
+    assert len(last) > 100
+    assert last.endswith("]") and "3/3" in last, last
+    for field in ("loss=0.0123", "samples_s=1.23e+07", "heldout_psnr=31.42", "chosen=triple-parallax"):
+        assert field in last, (field, last)
+
+
 def test_a_fast_loop_in_a_log_writes_a_line_every_few_seconds_at_most():
     assert LOG_INTERVAL_SECONDS >= 2
     log = io.StringIO()
