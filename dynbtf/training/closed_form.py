@@ -27,7 +27,8 @@ __all__ = ["fit_closed_form"]
 
 
 def fit_closed_form(compute: Callable[..., Representation], source: BTFSource, output, config: TrainConfig | None,
-                    *, progress: bool = True, **options: Any) -> FitResult:
+                    *, progress: bool = True, extra_provenance: dict[str, Any] | None = None,
+                    **options: Any) -> FitResult:
     """Run ``compute(source, pairs=train_pairs, progress=progress, **options)`` and write the model file.
 
     Parameters
@@ -41,6 +42,8 @@ def fit_closed_form(compute: Callable[..., Representation], source: BTFSource, o
         Only ``held_out_fraction`` and ``seed`` (the split) matter here.
     progress : bool
         Passed to ``compute`` (its tqdm bar) and prints a summary line.
+    extra_provenance : dict, optional
+        Added to the model file's provenance.
     **options
         Keyword arguments of ``compute`` (e.g. ``components=5``).
 
@@ -62,7 +65,8 @@ def fit_closed_form(compute: Callable[..., Representation], source: BTFSource, o
         source, held_out, seed=config.seed, training={"method": f"closed form ({compute.__name__})",
                                                       "held_out_fraction": config.held_out_fraction,
                                                       "seed": config.seed, "options": options},
-        finished=True, training_seconds=elapsed, size=size_info, n_training_pairs=int(len(train_pairs)))
+        finished=True, training_seconds=elapsed, size=size_info, n_training_pairs=int(len(train_pairs)),
+        **(extra_provenance or {}))
     save_model(output, rep, provenance)
     if progress:
         print(f"wrote {output} ({size_info['summary']}; fitted in {elapsed:.1f} s from "

@@ -8,9 +8,11 @@ closed-form kinds (PCA, SH) compute theirs directly from the training pairs of
 :func:`dynbtf.training.fit.training_provenance`. The built-in fitters are all
 here; a new kind registers its own with :func:`register_fitter`.
 
-Signature: ``fitter(source, output, config: TrainConfig, *, progress=True, callback=None, **options) ->
-FitResult``; ``callback`` is :func:`~dynbtf.training.fit.fit`'s per-step callback (closed-form
-fitters take no optimizer steps and never call it).
+Signature: ``fitter(source, output, config: TrainConfig, *, progress=True, callback=None,
+extra_provenance=None, **options) -> FitResult``; ``callback`` is :func:`~dynbtf.training.fit.fit`'s
+per-step callback (closed-form fitters take no optimizer steps and never call it);
+``extra_provenance`` is added to the model file's provenance. ``--repr auto``
+(:mod:`dynbtf.training.model_choice`) races the gradient-trained kinds and registers here too.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ def get_fitter(kind: str) -> Callable[..., FitResult]:
 
 @register_fitter("triple")
 def fit_triple_plane(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
-                     callback=None, **options: Any) -> FitResult:
+                     callback=None, extra_provenance: dict[str, Any] | None = None, **options: Any) -> FitResult:
     """Fit the paper's Triple Plane to ``source``.
 
     ``options`` are :class:`~dynbtf.representations.triple_plane.TriplePlane`
@@ -59,12 +61,13 @@ def fit_triple_plane(source: BTFSource, output, config: TrainConfig | None = Non
 
     config = config or TrainConfig()
     rep = TriplePlane(source.height, source.width, seed=config.seed, **options)
-    return fit(rep, source, config, output, progress=progress, callback=callback)
+    return fit(rep, source, config, output, progress=progress, callback=callback, extra_provenance=extra_provenance)
 
 
 @register_fitter("triple-parallax")
 def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | None = None, *,
-                              progress: bool = True, callback=None, **options: Any) -> FitResult:
+                              progress: bool = True, callback=None, extra_provenance: dict[str, Any] | None = None,
+                              **options: Any) -> FitResult:
     """Fit the Triple Plane with parallax: estimate the height field by stereo, then train as the paper.
 
     ``options`` are :class:`~dynbtf.representations.parallax.ParallaxTriplePlane`
@@ -83,13 +86,13 @@ def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | N
     if not checkpoint_path(output).exists():  # a resumed run reads the height from the checkpoint
         rep.set_height(stereo_height(source, progress=progress, **stereo_options))
     provenance = {"height_field": {"method": "plane-sweep stereo (dynbtf.training.stereo_height)",
-                                   "options": stereo_options}}
+                                   "options": stereo_options}} | (extra_provenance or {})
     return fit(rep, source, config, output, progress=progress, callback=callback, extra_provenance=provenance)
 
 
 @register_fitter("neumip")
 def fit_neumip(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
-               callback=None, **options: Any) -> FitResult:
+               callback=None, extra_provenance: dict[str, Any] | None = None, **options: Any) -> FitResult:
     """``dynbtf fit --repr neumip``: the shared gradient trainer (:func:`dynbtf.training.fit.fit`).
 
     ``options`` are :class:`~dynbtf.representations.neumip.NeuMIP` constructor arguments (``channels``,
@@ -100,12 +103,12 @@ def fit_neumip(source: BTFSource, output, config: TrainConfig | None = None, *, 
 
     config = config or TrainConfig()
     rep = NeuMIP(source.height, source.width, seed=config.seed, **options)
-    return fit(rep, source, config, output, progress=progress, callback=callback)
+    return fit(rep, source, config, output, progress=progress, callback=callback, extra_provenance=extra_provenance)
 
 
 @register_fitter("pca")
 def fit_pca_model(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
-                  callback=None, **options: Any) -> FitResult:
+                  callback=None, extra_provenance: dict[str, Any] | None = None, **options: Any) -> FitResult:
     """``dynbtf fit --repr pca``: :func:`~dynbtf.representations.pca.fit_pca` on the training pairs, as a model file.
 
     ``options`` are :func:`~dynbtf.representations.pca.fit_pca` keywords (``components``, ``centered``, ...);
@@ -115,12 +118,13 @@ def fit_pca_model(source: BTFSource, output, config: TrainConfig | None = None, 
     from .closed_form import fit_closed_form
 
     config = config or TrainConfig()
-    return fit_closed_form(fit_pca, source, output, config, progress=progress, **({"seed": config.seed} | options))
+    return fit_closed_form(fit_pca, source, output, config, progress=progress, extra_provenance=extra_provenance,
+                           **({"seed": config.seed} | options))
 
 
 @register_fitter("sh")
 def fit_sh_model(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
-                 callback=None, **options: Any) -> FitResult:
+                 callback=None, extra_provenance: dict[str, Any] | None = None, **options: Any) -> FitResult:
     """``dynbtf fit --repr sh``: :func:`~dynbtf.representations.sh.fit_sh` on the training pairs, as a model file.
 
     ``options`` are :func:`~dynbtf.representations.sh.fit_sh` keywords (``bands``, ``neighbours``).
@@ -128,4 +132,5 @@ def fit_sh_model(source: BTFSource, output, config: TrainConfig | None = None, *
     from ..representations.sh import fit_sh
     from .closed_form import fit_closed_form
 
-    return fit_closed_form(fit_sh, source, output, config, progress=progress, **options)
+    return fit_closed_form(fit_sh, source, output, config, progress=progress, extra_provenance=extra_provenance,
+                           **options)
