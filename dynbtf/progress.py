@@ -67,6 +67,9 @@ def progress_bar(iterable: Iterable | None = None, *, file=None, **options: Any)
         options.setdefault("dynamic_ncols", True)
         return tqdm(iterable, file=target, **options)
     options.pop("dynamic_ncols", None)
+    # no cursor movement in a log (ESC [A): a bar inside another's loop is not moved to a line of its own, and a
+    # bar that would clear itself keeps its last line
+    options["leave"], options["position"] = True, 0
     options.setdefault("mininterval", LOG_INTERVAL_SECONDS)
     # no ncols: tqdm then never trims a line, so every postfix field (loss, samples/s, held-out PSNR) is kept
     return tqdm(iterable, file=_LogLines(target), **options)

@@ -37,6 +37,16 @@ def test_a_log_line_keeps_every_postfix_field_however_long():
         assert field in last, (field, last)
 
 
+def test_a_bar_that_clears_itself_on_a_terminal_leaves_no_escape_codes_in_a_log():
+    log = io.StringIO()
+    outer = progress_bar(total=2, desc="fit", file=log, mininterval=0)
+    for _ in progress_bar(range(3), desc="decoding BTF", file=log, leave=False, mininterval=0):
+        pass
+    outer.close()
+    text = log.getvalue()
+    assert "\x1b" not in text and "decoding BTF: 100%" in text
+
+
 def test_a_fast_loop_in_a_log_writes_a_line_every_few_seconds_at_most():
     assert LOG_INTERVAL_SECONDS >= 2
     log = io.StringIO()
@@ -69,10 +79,10 @@ def test_a_fit_logged_to_a_file_writes_a_few_lines_not_one_per_step(tmp_path):
     log = tmp_path / "fit.log"
     with open(log, "w") as handle:
         done = subprocess.run([sys.executable, "-m", "dynbtf", "fit", "sim:leather?size=8", "-o",
-                               str(tmp_path / "m.dbtfm"), "--epochs", "1", "--texel-groups", "4"],
+                               str(tmp_path / "m.dbtfm"), "--epochs", "1", "--texel-groups", "4", "--repr", "triple"],
                               stdout=handle, stderr=subprocess.STDOUT, timeout=600)
     assert done.returncode == 0
     lines = log.read_text().splitlines()
-    assert "\r" not in log.read_text()
+    assert "\r" not in log.read_text() and "\x1b" not in log.read_text()
     assert 2 <= len(lines) <= 20, lines  # the recipe, progress every few seconds, the result
     assert any("390/390" in line for line in lines) and lines[-1].startswith("wrote ")
