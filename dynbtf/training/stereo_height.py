@@ -22,6 +22,15 @@ cost curve is flat) the height is filled in from trusted neighbours, or 0.
 Measured on the simulated stone (128 x 128, UBO2003 grid, ~10 texels of relief):
 RMSE 0.66 texels against the simulator's true height, correlation 0.89, 35 s on
 two cores (``docs/triple_plane.md``).
+
+**Scale.** The sweep runs over blocks of texels (``chunk_texels``; every texel's cost is
+its own, so the blocks change nothing numerically) with each light's images padded
+once: memory is one light's images plus a bounded block, whatever the BTF's size.
+Time grows with views x texels x lights x levels; ``max_views`` sweeps a subset of
+views spread over the hemisphere (:func:`spread_views`) and ``max_lights`` the lights
+nearest the normal, which the parallax fitter chooses for large BTFs
+(:func:`auto_stereo_options`: a 400 x 400, 151-view file sweeps 32
+views and 3 lights).
 """
 
 from __future__ import annotations
@@ -36,20 +45,121 @@ from ..conventions import texel_centers_uv
 from ..data.base import BTFSource
 from ..errors import InputError
 from ..representations.parallax import view_offsets
-from ..texture import fetch_wrap_stack
+from ..texture import _grid_sample_hwc, wrap_uv
 
-__all__ = ["stereo_height"]
+__all__ = ["stereo_height", "spread_views", "auto_stereo_options", "STEREO_VIEW_TEXELS", "BLOCK_VIEW_TEXELS",
+           "CHUNK_ALIGN"]
+
+#: Views x texels of one light's sweep above which the parallax fitter sweeps a spread subset of views
+#: and the lights nearest the normal (:func:`auto_stereo_options`); a 128 x 128 BTF of 81 views (1.3 M)
+#: sweeps them all.
+STEREO_VIEW_TEXELS = 5_120_000
+#: Lights the parallax fitter sweeps on a large BTF (the normal one and two at the next elevation on
+#: the UBO grids).
+LARGE_BTF_LIGHTS = 3
+#: Views x texels of one block of the sweep when ``chunk_texels`` is not given (~100 bytes each at the peak).
+BLOCK_VIEW_TEXELS = 2_097_152
+#: Blocks are multiples of this many texels: CPU sums over the views then take the same vectorized
+#: path for every texel as in one block of all texels (measured: blocks of 100 texels do not).
+CHUNK_ALIGN = 256
+
+
+def spread_views(views: np.ndarray, count: int) -> np.ndarray:
+    """Indices (sorted, int64) of ``count`` of ``views (V, 3)`` (unit directions) spread over the hemisphere.
+
+    Farthest-point order: the view nearest the normal first, then repeatedly the view
+    whose angle to the nearest chosen one is largest (ties: the lowest index).
+    ``count >= V`` returns every index.
+    """
+    views = np.asarray(views, dtype=np.float64)
+    if count >= len(views):
+        return np.arange(len(views))
+    chosen = [int(np.argmax(views[:, 2]))]
+    nearest = views @ views[chosen[0]]  # cosine to the nearest chosen view
+    while len(chosen) < count:
+        pick = int(np.argmin(nearest))
+        chosen.append(pick)
+        nearest = np.maximum(nearest, views @ views[pick])
+    return np.sort(np.asarray(chosen, dtype=np.int64))
+
+
+def auto_stereo_options(source: BTFSource) -> dict:
+    """The :func:`stereo_height` options the parallax fitter adds for ``source``: none when
+    ``views x texels <= STEREO_VIEW_TEXELS`` (every view and light), else ``max_views`` (the views
+    that fit that budget, at least 16) and ``max_lights = LARGE_BTF_LIGHTS``. A 400 x 400 BTF of 151
+    views: 32 views, 3 lights."""
+    texels = source.height * source.width
+    if source.n_views * texels <= STEREO_VIEW_TEXELS:
+        return {}
+    return {"max_views": int(min(source.n_views, max(16, STEREO_VIEW_TEXELS // texels))),
+            "max_lights": LARGE_BTF_LIGHTS}
+
+
+def _check_options(source: BTFSource, levels, max_height, window, min_contrast, fill_window, max_views,
+                   max_lights, chunk_texels) -> None:
+    if int(levels) < 3:
+        raise InputError(f"stereo levels: expected at least 3 candidate heights, got {levels}")
+    if not max_height > 0:
+        raise InputError(f"stereo max_height: expected a positive height in uv units, got {max_height}")
+    for name, value in (("window", window), ("fill_window", fill_window)):
+        if int(value) < 1 or int(value) % 2 == 0:
+            raise InputError(f"stereo {name}: expected an odd number of texels, got {value}")
+    if not 0 <= min_contrast < 1:
+        raise InputError(f"stereo min_contrast: expected a fraction in [0, 1), got {min_contrast}")
+    if source.n_views < 2:
+        raise InputError(f"{source.name}: stereo needs at least two views, the BTF has {source.n_views}")
+    if max_views is not None and int(max_views) < 2:
+        raise InputError(f"stereo max_views: expected at least 2 views (or None: all), got {max_views}")
+    if max_lights is not None and int(max_lights) < 1:
+        raise InputError(f"stereo max_lights: expected at least 1 light (or None: all), got {max_lights}")
+    if chunk_texels is not None and int(chunk_texels) < 1:
+        raise InputError(f"stereo chunk_texels: expected a positive number of texels (or None), got {chunk_texels}")
+
+
+def _sweep_cost(source: BTFSource, view_set: np.ndarray, light_set: np.ndarray, heights: torch.Tensor,
+                chunk_texels: int, bar) -> torch.Tensor:
+    """Photo-consistency cost ``(levels, H * W)`` float64 of every candidate height at every texel.
+
+    Per light, the views' images ``(V', H, W, 3)`` are read and padded once; the texels are
+    swept in blocks of ``chunk_texels``: per level the block's samples ``(V', n, 3)`` float32
+    (points ``(V', n, 2)`` float64, as :func:`~dynbtf.texture.fetch_wrap_stack`).
+    """
+    h, w = source.height, source.width
+    views = torch.as_tensor(np.asarray(source.views)[view_set], dtype=torch.float64)
+    offsets = view_offsets(views, w / h)  # (V', 2)
+    centres = torch.from_numpy(texel_centers_uv(h, w).reshape(-1, 2))  # (N, 2) float64
+    cost = torch.zeros(len(heights), h * w, dtype=torch.float64)
+    for light in light_set:
+        first = np.asarray(source.image(int(view_set[0]), int(light)))
+        images = np.empty((len(view_set),) + first.shape, dtype=first.dtype)  # (V', H, W, 3)
+        images[0] = first
+        for i, v in enumerate(view_set[1:], 1):
+            images[i] = source.image(int(v), int(light))
+        stack = torch.from_numpy(images)
+        padded = F.pad(stack.permute(0, 3, 1, 2), (1, 1, 1, 1), mode="circular")  # (V', 3, H + 2, W + 2)
+        del images, stack, first
+        for k, z in enumerate(heights):
+            for a in range(0, h * w, chunk_texels):
+                points = centres[None, a:a + chunk_texels] - float(z) * offsets[:, None]  # (V', n, 2)
+                frac = wrap_uv(points)
+                x = (frac[..., 0] * w + 0.5).to(padded.dtype)  # padded coordinate: texel j centre at j + 1
+                y = (frac[..., 1] * h + 0.5).to(padded.dtype)
+                seen = _grid_sample_hwc(padded, x, y)  # (V', n, 3)
+                cost[k, a:a + chunk_texels] += (seen - seen.median(0).values).abs().sum((0, 2)).double()
+            bar.update(1)
+    return cost
 
 
 def stereo_height(source: BTFSource, *, max_light_theta: float = 15.0, levels: int = 65, max_height: float = 0.08,
-                  window: int = 3, min_contrast: float = 0.1, fill_window: int = 7,
+                  window: int = 3, min_contrast: float = 0.1, fill_window: int = 7, max_views: int | None = None,
+                  max_lights: int | None = None, chunk_texels: int | None = None,
                   progress: bool = False) -> torch.Tensor:
     """Height field ``(H, W)`` float64, uv units, of ``source`` by plane-sweep stereo.
 
     Parameters
     ----------
     source : BTFSource
-        The BTF (every view's images under the selected lights are read once).
+        The BTF (every swept view's images under the selected lights are read once).
     max_light_theta : float
         Lights with ``theta <= max_light_theta`` degrees are used (at least the one
         nearest the normal).
@@ -67,6 +177,16 @@ def stereo_height(source: BTFSource, *, max_light_theta: float = 15.0, levels: i
         ``fill_window`` texels, or 0 where there are none. 0 trusts every texel.
     fill_window : int
         Odd side of that window.
+    max_views : int or None
+        Sweep at most this many views, spread over the hemisphere (:func:`spread_views`);
+        None: every view. Time and the images held are proportional to it.
+    max_lights : int or None
+        Of the lights within ``max_light_theta``, sweep the ``max_lights`` nearest the normal
+        (ties: the lowest index); None: all of them. Time is proportional to it.
+    chunk_texels : int or None
+        Texels per block of the sweep, rounded up to a multiple of ``CHUNK_ALIGN`` (None:
+        ``BLOCK_VIEW_TEXELS // views``, so a block's arrays stay near 200 MB); the result
+        does not depend on it (bit for bit).
     progress : bool
         Show a progress bar.
 
@@ -75,43 +195,39 @@ def stereo_height(source: BTFSource, *, max_light_theta: float = 15.0, levels: i
     float64 ``(H, W)``: height of each texel centre relative to the reference plane.
     """
     from ..progress import progress_bar
-    if int(levels) < 3:
-        raise InputError(f"stereo levels: expected at least 3 candidate heights, got {levels}")
-    if not max_height > 0:
-        raise InputError(f"stereo max_height: expected a positive height in uv units, got {max_height}")
-    for name, value in (("window", window), ("fill_window", fill_window)):
-        if int(value) < 1 or int(value) % 2 == 0:
-            raise InputError(f"stereo {name}: expected an odd number of texels, got {value}")
-    if not 0 <= min_contrast < 1:
-        raise InputError(f"stereo min_contrast: expected a fraction in [0, 1), got {min_contrast}")
-    if source.n_views < 2:
-        raise InputError(f"{source.name}: stereo needs at least two views, the BTF has {source.n_views}")
+    _check_options(source, levels, max_height, window, min_contrast, fill_window, max_views, max_lights,
+                   chunk_texels)
     h, w = source.height, source.width
     lights = np.asarray(source.lights, dtype=np.float64)
     light_set = np.nonzero(lights[:, 2] >= math.cos(math.radians(max_light_theta)) - 1e-9)[0]
     if len(light_set) == 0:
         light_set = np.array([int(np.argmax(lights[:, 2]))])
-    offsets = view_offsets(torch.as_tensor(np.asarray(source.views), dtype=torch.float64), w / h)  # (V, 2)
-    centres = torch.from_numpy(texel_centers_uv(h, w).reshape(-1, 2))  # (N, 2) float64
+    if max_lights is not None and len(light_set) > int(max_lights):
+        nearest = np.argsort(-lights[light_set, 2], kind="stable")[: int(max_lights)]
+        light_set = np.sort(light_set[nearest])
+    view_set = np.arange(source.n_views) if max_views is None else spread_views(source.views, int(max_views))
+    chunk = int(chunk_texels) if chunk_texels is not None else BLOCK_VIEW_TEXELS // len(view_set)
+    chunk = -(-chunk // CHUNK_ALIGN) * CHUNK_ALIGN  # blocks aligned so that the sums round as one block's would
     heights = torch.linspace(-max_height, max_height, int(levels), dtype=torch.float64)
-    cost = torch.zeros(int(levels), h * w, dtype=torch.float64)
     bar = progress_bar(total=len(light_set) * int(levels), unit="level", disable=not progress, desc="stereo height")
     try:
-        for light in light_set:
-            images = torch.from_numpy(np.stack([source.image(v, int(light)) for v in range(source.n_views)]))
-            for k, z in enumerate(heights):
-                points = centres[None] - float(z) * offsets[:, None]  # (V, N, 2)
-                seen = fetch_wrap_stack(images, points)  # (V, N, 3)
-                cost[k] += (seen - seen.median(0).values).abs().sum((0, 2)).double()
-                bar.update(1)
+        cost = _sweep_cost(source, view_set, light_set, heights, chunk, bar)
     finally:
         bar.close()
+    return _pick_heights(cost, heights, h, w, window, min_contrast, fill_window)
+
+
+def _pick_heights(cost: torch.Tensor, heights: torch.Tensor, h: int, w: int, window: int, min_contrast: float,
+                  fill_window: int) -> torch.Tensor:
+    """The height ``(H, W)`` float64 (uv units) of least ``cost (levels, H * W)`` (window-summed,
+    parabola-refined), filled in from trusted neighbours where untrusted (see :func:`stereo_height`)."""
+    levels = len(heights)
     if window > 1:
         pad = int(window) // 2
-        padded = F.pad(cost.view(int(levels), 1, h, w), (pad, pad, pad, pad), mode="circular")
-        cost = F.avg_pool2d(padded, int(window), stride=1).view(int(levels), h * w)
+        padded = F.pad(cost.view(levels, 1, h, w), (pad, pad, pad, pad), mode="circular")
+        cost = F.avg_pool2d(padded, int(window), stride=1).view(levels, h * w)
     best = cost.argmin(0)
-    k = best.clamp(1, int(levels) - 2)
+    k = best.clamp(1, levels - 2)
     below, at, above = (cost.gather(0, (k + d)[None])[0] for d in (-1, 0, 1))
     shift = (0.5 * (below - above) / (below - 2 * at + above).clamp_min(1e-12)).clamp(-0.5, 0.5)
     estimate = (heights[k] + shift * (heights[1] - heights[0])).view(h, w)

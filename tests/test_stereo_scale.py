@@ -1,0 +1,97 @@
+"""Plane-sweep stereo at scale: blocks of texels change nothing; a spread subset of views and the
+lights nearest the normal still recover a known height; the fitter's choice for large BTFs."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from dynbtf.data.array import ArrayBTF
+from dynbtf.data.directions import direction_set
+from dynbtf.errors import InputError
+from dynbtf.representations.parallax import view_offsets
+from dynbtf.texture import fetch_wrap
+from dynbtf.training.stereo_height import (CHUNK_ALIGN, auto_stereo_options, spread_views, stereo_height)
+
+pytestmark = pytest.mark.usefixtures("single_thread")
+
+SIZE = 48
+
+
+def true_height() -> torch.Tensor:
+    """``(SIZE, SIZE)`` uv units: a smooth periodic relief of +-3 texels."""
+    u = (torch.arange(SIZE, dtype=torch.float64) + 0.5) / SIZE
+    return 3.0 / SIZE * torch.sin(2 * math.pi * u)[:, None] * torch.cos(2 * math.pi * u)[None, :]
+
+
+@pytest.fixture(scope="module")
+def relief_btf() -> ArrayBTF:
+    """A textured Lambertian relief of known height, UBO2003 views, three lights near the normal: the image
+    of view ``w`` at reference point ``p`` shows the texture at the surface point ``q = p + z(q) s_w``."""
+    rng = np.random.default_rng(0)
+    texture = torch.from_numpy(rng.random((SIZE, SIZE, 3)))
+    texture = (texture + texture.roll(1, 0) + texture.roll(1, 1) + texture.roll((1, 1), (0, 1))) / 4
+    height = true_height()[..., None]
+    views = direction_set("ubo2003")
+    lights = np.array([[0.0, 0.0, 1.0], [math.sin(0.15), 0.0, math.cos(0.15)], [0.0, math.sin(0.2), math.cos(0.2)],
+                       [math.sin(1.0), 0.0, math.cos(1.0)]])
+    u = (torch.arange(SIZE, dtype=torch.float64) + 0.5) / SIZE
+    p = torch.stack(torch.meshgrid(u, u, indexing="xy"), -1).reshape(-1, 2)  # (N, 2): (u = column, v = row)
+    images = []
+    for w in views:
+        s = view_offsets(torch.as_tensor(w, dtype=torch.float64))
+        q = p.clone()
+        for _ in range(20):  # fixed point of q = p + z(q) s (contracting: |grad z| |s| < 1 here)
+            q = p + fetch_wrap(height, q) * s
+        images.append(fetch_wrap(texture, q).reshape(SIZE, SIZE, 3).numpy())
+    values = np.stack([[image * (0.5 + 0.5 * l[2]) for l in lights] for image in images])
+    return ArrayBTF(values, views, lights, name="relief")
+
+
+def texels_rmse(estimate: torch.Tensor) -> float:
+    return float((estimate - true_height()).pow(2).mean().sqrt()) * SIZE
+
+
+def test_blocks_of_texels_change_nothing(relief_btf):
+    whole = stereo_height(relief_btf, chunk_texels=SIZE * SIZE)
+    for chunk in (1, CHUNK_ALIGN, 1000):  # rounded up to multiples of CHUNK_ALIGN: 256, 256, 1024 (2 + 1 blocks)
+        assert torch.equal(stereo_height(relief_btf, chunk_texels=chunk), whole), chunk
+    assert torch.equal(stereo_height(relief_btf), whole)
+    assert texels_rmse(whole) < 0.5, texels_rmse(whole)
+
+
+def test_spread_views_and_nearest_lights_still_recover_the_height(relief_btf):
+    every = texels_rmse(stereo_height(relief_btf))
+    subset = stereo_height(relief_btf, max_views=16, max_lights=1)
+    assert texels_rmse(subset) < max(0.5, 1.5 * every), (texels_rmse(subset), every)
+    # one light: the one nearest the normal (light 0), not the others within 15 degrees
+    only_first = ArrayBTF(relief_btf.values[:, :1], relief_btf.views, relief_btf.lights[:1])
+    assert torch.equal(subset, stereo_height(only_first, max_views=16))
+    with pytest.raises(InputError, match="max_views"):
+        stereo_height(relief_btf, max_views=1)
+    with pytest.raises(InputError, match="max_lights"):
+        stereo_height(relief_btf, max_lights=0)
+
+
+def test_spread_views_cover_the_hemisphere():
+    views = direction_set("ubo2014")
+    chosen = spread_views(views, 32)
+    assert len(chosen) == 32 and len(set(chosen.tolist())) == 32 and list(chosen) == sorted(chosen)
+    assert int(np.argmax(views[:, 2])) in chosen  # the normal view first
+    # every view lies within the largest gap of the subset's farthest-point cover: about 20 degrees here
+    angle = np.degrees(np.arccos(np.clip(views @ views[chosen].T, -1, 1))).min(1)
+    assert angle.max() < 25.0, angle.max()
+    assert np.array_equal(spread_views(views, 500), np.arange(len(views)))
+
+
+def test_auto_options_only_for_large_btfs():
+    class Shape:
+        def __init__(self, size, n_views):
+            self.height = self.width = size
+            self.n_views = n_views
+
+    assert auto_stereo_options(Shape(128, 81)) == {}
+    assert auto_stereo_options(Shape(400, 151)) == {"max_views": 32, "max_lights": 3}
