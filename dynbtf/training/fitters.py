@@ -72,16 +72,17 @@ def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | N
 
     ``options`` are :class:`~dynbtf.representations.parallax.ParallaxTriplePlane`
     constructor arguments, plus ``stereo`` (a dict of
-    :func:`~dynbtf.training.stereo_height.stereo_height` options). The height is
-    estimated from the BTF's images before training and kept fixed; a resumed run
-    takes it from its checkpoint.
+    :func:`~dynbtf.training.stereo_height.stereo_height` options; on a large BTF
+    :func:`~dynbtf.training.stereo_height.auto_stereo_options` adds a subset of views and
+    lights unless given). The height is estimated from the BTF's images before training
+    and refined by it; a resumed run takes it from its checkpoint.
     """
     from ..representations.parallax import ParallaxTriplePlane
     from .fit import checkpoint_path
-    from .stereo_height import stereo_height
+    from .stereo_height import auto_stereo_options, stereo_height
 
     config = config or TrainConfig()
-    stereo_options = dict(options.pop("stereo", None) or {})
+    stereo_options = auto_stereo_options(source) | dict(options.pop("stereo", None) or {})
     rep = ParallaxTriplePlane(source.height, source.width, seed=config.seed, **options)
     if not checkpoint_path(output).exists():  # a resumed run reads the height from the checkpoint
         rep.set_height(stereo_height(source, progress=progress, **stereo_options))
