@@ -21,7 +21,7 @@ def _open_source(spec: str):
 
 # The order in which fit's help lists the training options (each one's flag, type, default and help are those of its
 # TrainConfig field: dynbtf.training.fit.command_line_options).
-_FIT_TRAINING_OPTIONS = ("epochs", "max_minutes", "seed", "held_out_fraction", "images_per_step", "lr_scale",
+_FIT_TRAINING_OPTIONS = ("epochs", "schedule", "max_minutes", "seed", "held_out_fraction", "images_per_step", "lr_scale",
                          "lr_decay", "texels_per_image", "texel_groups", "memory_budget_mb", "workers", "device",
                          "precision", "max_reflectance")
 
@@ -30,7 +30,9 @@ def fit(
     btf: str = typer.Argument(..., help="BTF to fit: a file path or a spec such as 'sim:leather?size=128'."),
     output: Path = typer.Option(..., "-o", "--output", help="Model file to write (.dbtfm). Its checkpoint "
                                 "<output>.ckpt makes a re-run continue where an interrupted one stopped."),
-    repr: str = typer.Option("triple", "--repr", help="Representation kind: triple (the paper's Triple Plane), "
+    repr: str = typer.Option("auto", "--repr", help="Representation kind: auto (a short trial fit of triple and "
+                             "triple-parallax on the same held-out pairs; the better one's fit continues: the "
+                             "choice is printed and recorded in the model), triple (the paper's Triple Plane), "
                              "triple-parallax (Triple Plane fetched at the visible point of a height field "
                              "estimated by stereo: materials with relief), or another registered kind "
                              "(neumip, pca, sh)."),
@@ -70,9 +72,10 @@ def fit(
         typer.echo(summary)
     options = {}
     if stereo_max_height is not None:
-        if repr != "triple-parallax":
-            raise InputError(f"--stereo-max-height applies to --repr triple-parallax, not {repr!r}")
-        options["stereo"] = {"max_height": stereo_max_height}
+        if repr not in ("triple-parallax", "auto"):
+            raise InputError(f"--stereo-max-height applies to --repr triple-parallax (or auto), not {repr!r}")
+        stereo = {"stereo": {"max_height": stereo_max_height}}
+        options = {"kind_options": {"triple-parallax": stereo}} if repr == "auto" else stereo
     result = fitter(source, output, config, progress=not quiet, **options)
     if quiet:
         size = result.metadata.get("provenance", {}).get("size", {})

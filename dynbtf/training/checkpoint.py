@@ -124,6 +124,11 @@ class Checkpointer:
         if not isinstance(history, list) or len(history) != epoch or not all(isinstance(h, dict) for h in history):
             raise self.damaged(f"its history lists {len(history) if isinstance(history, list) else history!r} "
                                f"epoch(s) but its position is epoch {epoch}")
+        monitor = state.get("monitor", [])  # the held-out checks (older checkpoints: none recorded)
+        if not isinstance(monitor, list) or not all(
+                isinstance(r, dict) and isinstance(r.get("step"), int) and isinstance(r.get("held_out_psnr"), float)
+                for r in monitor):
+            raise self.damaged("its monitor record is not a list of held-out checks {step, held_out_psnr}")
         elapsed = state.get("elapsed_seconds")
         if isinstance(elapsed, bool) or not isinstance(elapsed, (int, float)) or not math.isfinite(elapsed) \
                 or elapsed < 0:
@@ -142,7 +147,8 @@ class Checkpointer:
             optimizer.load_state_dict(previous)
             raise self.damaged(f"its optimizer state does not fit this model ({e})") from None
         model.load_state_dict(saved, strict=True)
-        return {**state, "epoch": epoch, "step": step, "elapsed_seconds": float(elapsed), "history": list(history)}
+        return {**state, "epoch": epoch, "step": step, "elapsed_seconds": float(elapsed), "history": list(history),
+                "monitor": list(monitor)}
 
     @staticmethod
     def saved_config(path) -> dict[str, Any] | None:

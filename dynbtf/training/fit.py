@@ -79,6 +79,7 @@ from .checkpoint import Checkpointer, checkpoint_path
 from .distributed import from_environment
 from .images import ImageStore, held_out_split
 from .monitor import HeldOutMonitor
+from .schedule import SCHEDULES, make_schedule
 
 __all__ = ["TrainConfig", "FitResult", "fit", "check_options", "TrainingDiverged", "implausible_targets",
            "OPTION_RULES", "MAX_REFLECTANCE", "CommandLineOption", "command_line_options", "option_flag",
@@ -145,6 +146,9 @@ OPTION_RULES: dict[str, _Rule] = {
     "device": _Rule("choice", choices=()),  # any string; resolved (and checked) by dynbtf.device
     "precision": _Rule("choice", choices=("auto", "fp32", "bf16")),
     "max_reflectance": _Rule("number", 0, 1e30, low_open=True),
+    "schedule": _Rule("choice", choices=SCHEDULES),
+    "monitor_every": _Rule("int", 0, 2 ** 40),
+    "min_steps": _Rule("int", 0, 2 ** 40),
 }
 
 
@@ -260,10 +264,20 @@ class TrainConfig:
         Largest |value| (``pi f_r``, linear RGB) a training target may have (default
         :data:`MAX_REFLECTANCE`): a BTF beyond it decodes to garbage (e.g. flipped exponent bits)
         and the fit stops naming the first such image. Raise it for data that really is that bright.
+    schedule : str
+        ``"epochs"`` (default: ``epochs`` epochs, ``lr_decay`` per epoch) or ``"converge"`` (until
+        the held-out monitor stops improving: the learning rate decays to 1/32 at the ceiling
+        ``epochs`` and is halved at every stall, the fit stops at a stall once it is 1/32;
+        :mod:`dynbtf.training.schedule`).
+    monitor_every : int
+        Steps between held-out checks of ``"converge"`` (0: once per epoch).
+    min_steps : int
+        Fewest steps before ``"converge"`` may stop.
     """
 
-    epochs: int = _option(12, None, "Passes over the training (view, light) pairs (auto: from the BTF's size; "
-                          "paper: 50, the paper's).")
+    epochs: int = _option(12, None, "Passes over the training (view, light) pairs (auto: none, the fit runs until "
+                          "the held-out monitor stops improving, at most the reference's steps; paper: 50, the "
+                          "paper's).")
     images_per_step: int = _option(16, 16, "Whole images per optimizer step.")
     lr_decay: float = _option(0.9, None, "Learning-rate factor per epoch (paper: 0.9; auto: the reference's total "
                               "decay 0.9^30 spread over its epochs).")
@@ -294,6 +308,12 @@ class TrainConfig:
                                      "(reflectance pi f_r, linear RGB; default 1e4): beyond it the BTF decodes to "
                                      "garbage and the fit stops naming the image. Raise it for data that really is "
                                      "that bright.")
+    schedule: str = _option("epochs", None, "epochs: --epochs passes, lr x--lr-decay per epoch (paper); converge: "
+                            "train until the held-out monitor stops improving (lr decaying to 1/32 at the ceiling "
+                            "--epochs and halved at every stall; stop at a stall once lr is 1/32). auto: converge "
+                            "unless --epochs or --lr-decay is given.")
+    monitor_every: int = 0
+    min_steps: int = 0
 
     def validate(self) -> "TrainConfig":
         """Check every option's type and range; :class:`InputError` names the option (and its command-line flag)
@@ -303,7 +323,7 @@ class TrainConfig:
 
     # options that change the result: a checkpoint must agree on them to be resumed
     RESULT_FIELDS = ("images_per_step", "lr_decay", "lr_scale", "held_out_fraction", "seed", "texels_per_image",
-                     "texel_groups", "chunk_texels", "precision")
+                     "texel_groups", "chunk_texels", "precision", "schedule", "monitor_every", "min_steps")
 
 
 @dataclass
@@ -558,18 +578,24 @@ class _TrainingRun:
         # fused: one kernel per step for all parameters (same update; ~0.2 ms less per step on the CPU)
         self.optimizer = torch.optim.AdamW(_param_groups(rep, config.lr_scale), fused=True)
         self.monitor = HeldOutMonitor(self.store, self.held_out, config.monitor_pairs, config.seed, device)
+        self.schedule = make_schedule(config, self.sampler.steps_per_epoch)
+        if self.schedule.kind == "converge" and len(self.monitor.pairs) == 0:
+            raise InputError("--schedule converge stops when the held-out monitor stops improving: it needs held-out "
+                             "pairs (--held-out-fraction > 0, TrainConfig.monitor_pairs > 0)")
         self.checkpointer = Checkpointer(checkpoint_path(output), _fingerprint(rep, source, config))
         self.epoch, self.step, self.elapsed, self.history = 0, 0, 0.0, []
+        self.record: list[dict[str, float]] = []  # every held-out check: step, score, lr multiplier, time
         self.first_loss: float | None = None  # of this run (a resumed run: its first step)
         if self.checkpointer.exists():
             state = self.checkpointer.restore(rep, self.optimizer, epochs=config.epochs,
                                               steps_per_epoch=self.sampler.steps_per_epoch)
             self.epoch, self.step = state["epoch"], state["step"]
             self.elapsed, self.history = state["elapsed_seconds"], state["history"]
+            self.record = state["monitor"]
         self.total_steps = config.epochs * self.sampler.steps_per_epoch
         self.done_steps = min(self.epoch * self.sampler.steps_per_epoch + self.step, self.total_steps)
         self.last_checkpoint_step = self.done_steps
-        self.finished = self.epoch >= config.epochs
+        self.finished = self.epoch >= config.epochs or self.schedule.converged(self.done_steps, self.record)
         self.size_info = model_size_report(rep, source.nbytes_float32)
 
     # ------------------------------------------------------------------ parts of a step
@@ -579,7 +605,7 @@ class _TrainingRun:
             return
         self.checkpointer.save({"config": _saved_options(self.config), "model": self.rep.state_dict(),
                                 "optimizer": self.optimizer.state_dict(), "epoch": self.epoch, "step": self.step,
-                                "elapsed_seconds": self.elapsed, "history": self.history,
+                                "elapsed_seconds": self.elapsed, "history": self.history, "monitor": self.record,
                                 "held_out_pairs": torch.from_numpy(self.held_out)})
         self.last_checkpoint_step = self.done_steps
 
@@ -588,8 +614,9 @@ class _TrainingRun:
 
     def _optimizer_step(self, batch) -> float:
         """One step of the optimizer on ``batch``; returns the loss."""
+        multiplier = self.schedule.lr_multiplier(self.epoch, self.done_steps, self.record)
         for g in self.optimizer.param_groups:
-            g["lr"] = g["initial_lr"] * self.config.lr_decay ** self.epoch
+            g["lr"] = g["initial_lr"] * multiplier
         source, device = self.source, self.device
         wv = torch.as_tensor(source.views[batch.pairs[:, 0]], dtype=torch.float32, device=device)
         wl = torch.as_tensor(source.lights[batch.pairs[:, 1]], dtype=torch.float32, device=device)
@@ -612,6 +639,14 @@ class _TrainingRun:
         self.optimizer.step()
         return loss_value
 
+    def _check_held_out(self) -> None:
+        """Score the held-out monitor now and add it to the record (in every process of a data-parallel fit: the
+        schedule's decisions depend on it)."""
+        score = self.monitor.score(self.rep, predict_images)
+        self.record.append({"step": self.done_steps, "held_out_psnr": score, "elapsed_seconds": self.elapsed,
+                            "lr_multiplier": self.schedule.lr_multiplier(self.epoch, self.done_steps - 1,
+                                                                         self.record)})
+
     def _check_targets(self, batch) -> None:
         """:class:`InputError` naming the BTF and the first image of ``batch`` beyond ``max_reflectance``."""
         problem = implausible_targets(batch, self.config.max_reflectance)
@@ -631,6 +666,31 @@ class _TrainingRun:
             f"(this run started at {self.first_loss if self.first_loss is not None else float('nan'):.3g}); "
             f"nothing was written beyond the last checkpoint ({self.checkpointer.path}). Check the BTF's values "
             f"(dynbtf info), or lower --lr-scale and delete the checkpoint to start over")
+
+    def _after_step(self, loss: float, samples: int, seconds: float, bar) -> bool:
+        """The bookkeeping after a step: time, progress, held-out check, epoch history, convergence, checkpoint.
+        Returns whether the held-out monitor was checked."""
+        self.elapsed += seconds
+        self.done_steps += 1
+        bar.update(1)
+        checked = self.schedule.monitor_due(self.done_steps, self.step == 0)
+        if checked:
+            self._check_held_out()
+        bar.set_postfix(loss=f"{loss:.4f}", samples_s=f"{samples / seconds:.3g}",
+                        **({"heldout_psnr": f"{self.record[-1]['held_out_psnr']:.2f}"} if self.record else {}),
+                        refresh=False)  # shown at the bar's own pace
+        if self.step == 0:  # an epoch ended
+            self.history.append({"epoch": self.epoch, "loss": loss, "held_out_psnr":
+                                 self.record[-1]["held_out_psnr"] if self.record else float("nan"),
+                                 "elapsed_seconds": self.elapsed})
+        self.finished = self.epoch >= self.config.epochs or self.schedule.converged(self.done_steps, self.record)
+        if self.finished and self.epoch < self.config.epochs:
+            bar.write(f"converged at step {self.done_steps}: the held-out monitor stopped improving (best "
+                      f"{max(r['held_out_psnr'] for r in self.record):.2f} dB; {self.schedule.rule.describe()})")
+        if self.step == 0 or self.finished or \
+                self.done_steps - self.last_checkpoint_step >= self.config.checkpoint_every:
+            self.checkpoint()
+        return checked
 
     # ------------------------------------------------------------------ the loop
     def train_steps(self, bar, callback) -> None:
@@ -663,24 +723,12 @@ class _TrainingRun:
                     self.epoch, self.step = nxt
                     consistent = True
                     dt = time.perf_counter() - t0
-                    self.elapsed += dt
-                    self.done_steps += 1
-                    bar.update(1)
-                    bar.set_postfix(loss=f"{loss:.4f}", samples_s=f"{batch.samples / dt:.3g}",
-                                    **({"heldout_psnr": f"{self.history[-1]['held_out_psnr']:.2f}"}
-                                       if self.history else {}), refresh=False)  # shown at the bar's own pace
-                    if self.step == 0:  # an epoch ended
-                        score = self.monitor.score(self.rep, predict_images) if self.parallel.is_main else \
-                            float("nan")
-                        self.history.append({"epoch": self.epoch, "loss": loss, "held_out_psnr": score,
-                                             "elapsed_seconds": self.elapsed})
-                        self.finished = self.epoch >= config.epochs
-                    if self.step == 0 or self.done_steps - self.last_checkpoint_step >= config.checkpoint_every:
-                        self.checkpoint()
+                    checked = self._after_step(loss, batch.samples, dt, bar)
                     if callback is not None:
                         callback({"epoch": self.epoch if self.step else self.epoch - 1,
                                   "step": self.step or steps_per_epoch, "global_step": self.done_steps,
-                                  "loss": loss, "step_seconds": dt, "samples": batch.samples})
+                                  "loss": loss, "step_seconds": dt, "samples": batch.samples,
+                                  **({"held_out_psnr": self.record[-1]["held_out_psnr"]} if checked else {})})
                     over_budget = budget is not None and time.perf_counter() - run_start >= budget
                     if self.parallel.world > 1:  # every process stops at the same step
                         stop = self.parallel.any(interrupt.raised or over_budget)
@@ -702,6 +750,13 @@ class _TrainingRun:
         if self.done_steps > self.last_checkpoint_step:
             self.checkpoint()
 
+    def stop_reason(self) -> str:
+        """Why training ended: ``"converged"``, ``"ceiling"`` (all its epochs) or ``"unfinished"`` (time budget,
+        interrupt)."""
+        if not self.finished:
+            return "unfinished"
+        return "ceiling" if self.epoch >= self.config.epochs else "converged"
+
     def write_model(self, extra_provenance: dict[str, Any] | None) -> float:
         """Write the model file with its provenance (process 0); returns the epochs completed."""
         config, rep = self.config, self.rep
@@ -716,9 +771,11 @@ class _TrainingRun:
             epochs_completed=completed_epochs, finished=self.finished, training_seconds=self.elapsed,
             history=self.history, samples_per_epoch=self.sampler.samples_per_epoch, size=self.size_info,
             run=_jsonable(_fingerprint(rep, self.source, config) | {"epochs": config.epochs}),
+            schedule={"rule": self.schedule.describe(), "steps": self.done_steps,
+                      "stopped": self.stop_reason(), "monitor": self.record},
             **(extra_provenance or {}))
-        if self.history:
-            provenance["held_out_psnr_monitor"] = self.history[-1]["held_out_psnr"]
+        if self.record:
+            provenance["held_out_psnr_monitor"] = self.record[-1]["held_out_psnr"]
             provenance["held_out_psnr_monitor_metric"] = "per-image peak"
         if self.parallel.world > 1:
             provenance["data_parallel_processes"] = self.parallel.world
@@ -797,8 +854,8 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     if run.finished and run.parallel.is_main:  # the model file has everything; a rerun returns at once
         run.checkpointer.remove()
     if progress:
-        history = run.history
-        print(f"wrote {output} ({run.size_info['summary']}; {completed_epochs:.2f} epochs in {run.elapsed / 60:.1f} "
-              "min" + (f", held-out PSNR {history[-1]['held_out_psnr']:.2f} dB (per-image peak, "
-                       f"{len(run.monitor.pairs)} pairs)" if history else "") + ")")
+        record = run.record
+        print(f"wrote {output} ({run.size_info['summary']}; {completed_epochs:.2f} epochs ({run.done_steps} steps) in "
+              f"{run.elapsed / 60:.1f} min" + (f", held-out PSNR {record[-1]['held_out_psnr']:.2f} dB (per-image peak, "
+                                                f"{len(run.monitor.pairs)} pairs)" if record else "") + ")")
     return FitResult(output, run.rep, read_model_metadata(output), run.history, run.finished)

@@ -11,16 +11,23 @@ that per-texel schedule for any BTF:
 * **texel subsets**: none up to :data:`MAX_TEXELS_PER_STEP` texels per step; larger
   BTFs train on that many texels per step (so a step stays a fraction of a second and
   progress, checkpoints and interrupts stay fine-grained);
-* **epochs**: the reference step count, ``30 x 6,233 / 16 = 11,700`` steps, converted
-  to this BTF's epochs (a 151 x 151 grid has 3.5x more pairs per epoch: 9 epochs), and
-  the learning-rate decay per epoch set so the whole run decays as the reference
-  (``0.9 ** 30`` in all);
+* **schedule**: until the held-out monitor stops improving (``schedule="converge"``,
+  :mod:`dynbtf.training.schedule`: checked every :data:`MONITOR_EVERY` steps, the rate halved
+  at every stall on top of a steady decay to 1/32 at the ceiling, stopped at a stall once the
+  rate is 1/32), at least :data:`MIN_STEPS` steps. The **ceiling** is the reference's step
+  count, ``30 x 6,233 / 16 = 11,700`` steps, times the reference's samples per step over this
+  BTF's (at least 1, at most :data:`MAX_STEP_FACTOR`): a 64 x 64 BTF, whose steps hold a quarter
+  of the samples, may train twice the steps, a 128 x 128 or 400 x 400 one the reference's
+  (converted to whole epochs: a 151 x 151 grid has 3.5x more pairs per epoch, so 9). With an
+  explicit ``epochs`` or ``lr_decay`` the schedule is the paper's kind instead
+  (``schedule="epochs"``): that many epochs, the decay per epoch set so the whole run decays as
+  the reference (``0.9 ** 30`` in all);
 * **memory**: the float16 image cache when the BTF fits in 40 % of the machine's RAM
   (at most 8 GiB), else texels read straight from the source each step;
 * **a time budget** (``minutes``): a few steps are timed on this machine (on random
   targets of the step's shape, plus one real read of a batch when the BTF is streamed),
-  and the epochs are reduced, with the decay steepened to match, when the full
-  schedule would not fit in 90 % of the budget. Explicit options override any choice.
+  and the epochs (the ceiling) are reduced, with the decay steepened to match, when they
+  would not fit in 90 % of the budget. Explicit options override any choice.
 """
 
 from __future__ import annotations
@@ -55,6 +62,14 @@ PAPER_EPOCHS = 50
 REFERENCE_STEPS = 30 * 6233 / 16
 #: Texels per step above which the recipe trains on random texel subsets.
 MAX_TEXELS_PER_STEP = 1 << 18
+#: Samples per optimizer step of the reference schedule (16 pairs x 128 x 128 texels).
+REFERENCE_SAMPLES_PER_STEP = 16 * 128 * 128
+#: Most reference step counts a BTF with small steps may train (the converge schedule's ceiling).
+MAX_STEP_FACTOR = 2.0
+#: Steps between held-out checks of the converge schedule (one reference epoch).
+MONITOR_EVERY = round(REFERENCE_STEPS / 30)
+#: Fewest steps before the converge schedule may stop (a quarter of the reference).
+MIN_STEPS = round(REFERENCE_STEPS / 4)
 _REFERENCE_EPOCHS = 30
 _LR_DECAY = 0.9
 
@@ -112,10 +127,20 @@ def auto_recipe(source: BTFSource, *, minutes: float | None = None, representati
     n_texels = source.height * source.width
     texels = overrides.get("texels_per_image", None if n_texels <= MAX_TEXELS_PER_STEP else MAX_TEXELS_PER_STEP)
     steps_per_epoch = math.ceil(len(train_pairs) / b)
-    full_epochs = max(1, round(REFERENCE_STEPS / steps_per_epoch))
+    converge = overrides.get("schedule", "converge" if not {"epochs", "lr_decay"} & set(overrides) else "epochs") \
+        == "converge" and base.held_out_fraction > 0 and base.monitor_pairs > 0
+    if converge:
+        samples_per_step = b * (n_texels if texels is None else texels)
+        ceiling = REFERENCE_STEPS * min(MAX_STEP_FACTOR, max(1.0, REFERENCE_SAMPLES_PER_STEP / samples_per_step))
+        full_epochs = max(1, math.ceil(ceiling / steps_per_epoch - 0.05))  # (a 5 % overshoot is not an epoch)
+    else:
+        full_epochs = max(1, round(REFERENCE_STEPS / steps_per_epoch))
     memory_mb = overrides.get("memory_budget_mb", max(base.memory_budget_mb, _memory_for_cache_mb()))
     config = dataclasses.replace(base, texel_groups=groups, texels_per_image=texels, memory_budget_mb=memory_mb,
-                                 lr_scale=overrides.get("lr_scale", 6.0), epochs=overrides.get("epochs", full_epochs))
+                                 lr_scale=overrides.get("lr_scale", 6.0), epochs=overrides.get("epochs", full_epochs),
+                                 schedule="converge" if converge else "epochs",
+                                 monitor_every=overrides.get("monitor_every", MONITOR_EVERY if converge else 0),
+                                 min_steps=overrides.get("min_steps", MIN_STEPS if converge else 0))
     epochs = config.epochs
     step_seconds = None
     budget_note = ""
@@ -133,10 +158,14 @@ def auto_recipe(source: BTFSource, *, minutes: float | None = None, representati
         config.lr_decay = _LR_DECAY ** (_REFERENCE_EPOCHS / epochs)  # the reference's total decay, 0.9 ** 30
     config.validate()
     cached = source.n_pairs * n_texels * 3 * 2 <= config.memory_budget_mb * 1024 ** 2
+    schedule = (f"until the held-out monitor stops improving (checked every {config.monitor_every} steps, lr halved "
+                f"at each stall), {config.min_steps}-{config.epochs * steps_per_epoch} steps ({config.epochs} epochs "
+                f"x {steps_per_epoch} at most)" if converge else
+                f"{config.epochs} epochs x {steps_per_epoch} steps, lr decaying x{config.lr_decay:.3f} per epoch")
     summary = (f"recipe for {source.height} x {source.width} texels, {source.n_views} x {source.n_lights} "
-               f"directions: {config.epochs} epochs x {steps_per_epoch} steps, {config.texel_groups} texel groups, "
+               f"directions: {schedule}, {config.texel_groups} texel groups, "
                + ("all texels" if config.texels_per_image is None else f"{config.texels_per_image} texels")
-               + f" per step, lr x{config.lr_scale:g} decaying x{config.lr_decay:.3f} per epoch, "
+               + f" per step, lr x{config.lr_scale:g}, "
                + ("images cached in RAM" if cached else "texels read from the BTF each step") + budget_note)
     return Recipe(config, summary, full_epochs, step_seconds)
 

@@ -1,0 +1,183 @@
+"""``dynbtf fit --repr auto`` (the default): the representation chosen by a race on held-out pairs.
+
+Which model is best depends on the material: the Triple Plane with parallax gains 4-8 dB on
+materials with relief and loses 2 dB on a flat, glossy one (docs/parallax.md), and no
+statistic of the BTF predicts that as well as trying. So each candidate kind
+(:data:`CANDIDATES`) trains a **trial** of :data:`TRIAL_CHECKS` held-out checks
+(``TRIAL_CHECKS x monitor_every`` steps, the first part of its own schedule: same recipe, seed,
+held-out pairs and monitor), and the best held-out PSNR at the trial's end wins; a kind
+listed later must beat the ones before it by :data:`MARGIN_DB` (the first kind, the Triple
+Plane, is the cheaper to render). The **winner's fit continues from its trial** (its
+checkpoint becomes the output's), so only the losers' trials are extra work.
+
+The choice is printed in one line and recorded in the model's provenance
+(``representation_choice``: each trial's steps, held-out PSNR and seconds). A re-run on the
+same output continues the chosen kind (it is read from the checkpoint, or from the finished
+model file); an interrupted race starts its trials again.
+
+>>> from dynbtf.training.model_choice import pick
+>>> pick({"triple": 24.0, "triple-parallax": 24.05})    # within the margin: the cheaper kind
+'triple'
+>>> pick({"triple": 24.0, "triple-parallax": 27.4})
+'triple-parallax'
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+from ..data.base import BTFSource
+from ..errors import DynBTFError, InputError
+from ..device import resolve_device
+from .checkpoint import checkpoint_path
+from .distributed import from_environment
+from .fit import FitResult, TrainConfig
+from .fitters import get_fitter, register_fitter
+
+__all__ = ["CANDIDATES", "TRIAL_CHECKS", "MARGIN_DB", "pick", "fit_best", "kind_in_progress"]
+
+#: The kinds ``--repr auto`` chooses among, cheapest to render first.
+CANDIDATES = ("triple", "triple-parallax")
+#: Held-out checks (of ``monitor_every`` steps each) in a trial.
+TRIAL_CHECKS = 3
+#: dB by which a later candidate must beat every earlier one.
+MARGIN_DB = 0.1
+
+
+class _TrialOver(Exception):
+    """Raised by the trial's step callback once the trial's last held-out check is done."""
+
+
+def pick(scores: dict[str, float]) -> str:
+    """The winning kind of ``scores`` (held-out PSNR per kind, in :data:`CANDIDATES` order): the first kind
+    unless a later one beats the best so far by more than :data:`MARGIN_DB` (NaN never wins)."""
+    winner, best = None, -math.inf
+    for kind, score in scores.items():
+        if winner is None or score > best + MARGIN_DB:
+            winner, best = kind, (score if math.isfinite(score) else -math.inf)
+    return winner
+
+
+def kind_in_progress(output) -> str | None:
+    """The kind an earlier ``--repr auto`` run on ``output`` chose: from its checkpoint (unfinished) or from the
+    finished model file's metadata; None when there is neither."""
+    import torch
+
+    from ..representations.model_file import read_model_metadata
+
+    ckpt = checkpoint_path(output)
+    if ckpt.exists():
+        try:
+            state = torch.load(ckpt, map_location="cpu", weights_only=True)
+            kind = state.get("fingerprint", {}).get("kind")
+        except Exception:
+            kind = None  # a damaged checkpoint: the fitter of the race's first kind reports it
+        return kind if kind in CANDIDATES else None
+    if Path(output).is_file():
+        try:
+            kind = read_model_metadata(output).get("kind")
+        except DynBTFError:
+            return None
+        return kind if kind in CANDIDATES else None
+    return None
+
+
+def _trial_output(output: Path, kind: str) -> Path:
+    return output.with_name(f".{output.name}.trial-{kind}.dbtfm")
+
+
+def _run_trial(kind: str, source: BTFSource, output: Path, config: TrainConfig, steps: int, progress: bool,
+               options: dict[str, Any]) -> tuple[float, float]:
+    """Train ``kind``'s first ``steps`` steps into its trial output; returns (held-out PSNR, seconds)."""
+    scores = []
+
+    def stop_after_trial(info: dict[str, Any]) -> None:
+        if "held_out_psnr" in info:
+            scores.append(info["held_out_psnr"])
+        if info["global_step"] >= steps:
+            raise _TrialOver
+
+    start = time.perf_counter()
+    try:
+        result = get_fitter(kind)(source, _trial_output(output, kind), config, progress=progress,
+                                  callback=stop_after_trial, **options)
+        scores.append(result.history[-1]["held_out_psnr"] if result.history else math.nan)  # a fit shorter than a trial
+    except _TrialOver:
+        pass
+    return (scores[-1] if scores else math.nan), time.perf_counter() - start
+
+
+def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
+             callback=None, kind_options: dict[str, dict[str, Any]] | None = None) -> FitResult:
+    """``dynbtf fit --repr auto``: race :data:`CANDIDATES` (see the module docstring), then finish the winner's fit.
+
+    Parameters
+    ----------
+    source, output, config, progress, callback :
+        As any fitter (:mod:`dynbtf.training.fitters`); ``config.monitor_every`` sets the trial length (0: one
+        epoch per check).
+    kind_options : dict, optional
+        Fitter options per kind (e.g. ``{"triple-parallax": {"stereo": {...}}}``).
+
+    Returns
+    -------
+    FitResult
+        Of the winner; its model file's provenance holds ``representation_choice``.
+    """
+    config = (config or TrainConfig()).validate()
+    output, kind_options = Path(output), dict(kind_options or {})
+    if config.held_out_fraction <= 0 or config.monitor_pairs <= 0:
+        raise InputError("--repr auto chooses by held-out PSNR: it needs held-out pairs (--held-out-fraction > 0); "
+                         f"name a kind instead, one of {list(CANDIDATES)}")
+    chosen = kind_in_progress(output)
+    if chosen is not None:
+        if progress:
+            print(f"representation: {chosen} (chosen by the earlier run on {output}; continuing it)")
+        return get_fitter(chosen)(source, output, config, progress=progress, callback=callback,
+                                  **kind_options.get(chosen, {}))
+    every = config.monitor_every or math.ceil(
+        (source.n_views * source.n_lights * (1 - config.held_out_fraction)) / config.images_per_step)
+    steps = TRIAL_CHECKS * every
+    if progress:
+        print(f"choosing the representation: a trial of {steps} steps each of {', '.join(CANDIDATES)} on the same "
+              f"held-out pairs")
+    parallel, _ = from_environment(resolve_device(config.device))  # (a data-parallel fit: every process races)
+    trials = {}
+    try:
+        for kind in CANDIDATES:
+            score, seconds = _run_trial(kind, source, output, config, steps, progress and parallel.is_main,
+                                        kind_options.get(kind, {}))
+            trials[kind] = {"held_out_psnr": score, "steps": steps, "seconds": round(seconds, 1)}
+        winner = pick({k: t["held_out_psnr"] for k, t in trials.items()})
+        if progress and parallel.is_main:
+            print(f"representation: {winner} (held-out PSNR after {steps} trial steps: "
+                  + ", ".join(f"{k} {t['held_out_psnr']:.2f} dB" for k, t in trials.items())
+                  + f"; a kind after {CANDIDATES[0]} must win by {MARGIN_DB:g} dB)")
+        parallel.barrier()  # every trial's checkpoint is written
+        trial = _trial_output(output, winner)
+        for made, final in ((checkpoint_path(trial), checkpoint_path(output)), (trial, output)):
+            if made.exists() and parallel.is_main:
+                shutil.move(made, final)  # the winner's fit continues from its trial
+    finally:
+        if parallel.is_main:
+            for kind in CANDIDATES:
+                _trial_output(output, kind).unlink(missing_ok=True)
+                checkpoint_path(_trial_output(output, kind)).unlink(missing_ok=True)
+    parallel.barrier()
+    evidence = {"kind": winner, "rule": f"best held-out PSNR after a {steps}-step trial each; later kinds win by "
+                                        f"more than {MARGIN_DB:g} dB", "trials": trials}
+    if output.is_file() and parallel.is_main:  # the trial was the whole fit (a short schedule): add the evidence
+        from ..representations.model_file import load_model, save_model
+
+        rep, meta = load_model(output, device="cpu")
+        save_model(output, rep, meta["provenance"] | {"representation_choice": evidence})
+    parallel.barrier()
+    return get_fitter(winner)(source, output, config, progress=progress, callback=callback,
+                              extra_provenance={"representation_choice": evidence}, **kind_options.get(winner, {}))
+
+
+register_fitter("auto")(fit_best)

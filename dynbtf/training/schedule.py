@@ -1,0 +1,157 @@
+"""The learning-rate schedule of a fit, and when the fit stops.
+
+Two schedules (``TrainConfig.schedule``):
+
+* ``"epochs"`` -- the paper's: ``epochs`` passes over the training pairs, the learning rate
+  multiplied by ``lr_decay`` after every epoch. The held-out monitor is scored once per epoch,
+  for display only.
+* ``"converge"`` -- set by the held-out monitor, scored every ``monitor_every`` steps. The
+  learning rate follows an exponential decay that reaches 1/32 of its start at the ceiling
+  (``epochs`` epochs; the fast recipe's own decay is ``0.9 ** 30 = 1/24``), and is **halved
+  on top of that whenever the monitor stalls** (:class:`PlateauRule`: no new best by more than
+  0.02 dB in 2 checks in a row); the fit **stops at a stall once the rate is at most 1/32** of its
+  start, never before ``min_steps``, at the latest at the ceiling; ``max_minutes`` still stops
+  it as a time budget. A BTF whose monitor stalls early (a small one, or an easy one) stops early;
+  one whose monitor keeps improving trains to the ceiling, which the recipe sets from the BTF's
+  size (:mod:`dynbtf.training.recipe`).
+
+Both are pure functions of the monitor's record (``[{"step", "held_out_psnr", ...}, ...]``), which
+the checkpoint keeps: a resumed fit makes the same decisions as an uninterrupted one.
+
+>>> rule = PlateauRule(factor=0.5, patience=2, threshold_db=0.02, decays=1)
+>>> rule.state([20.0, 21.0, 21.01, 21.0])       # two checks without a 0.02 dB gain: one halving
+(1, False)
+>>> rule.state([20.0, 21.0, 21.01, 21.0, 21.5, 21.4, 21.49])   # the next stall at the lowest rate: stop
+(1, True)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+__all__ = ["SCHEDULES", "PlateauRule", "PLATEAU", "Schedule", "make_schedule"]
+
+#: The values of ``TrainConfig.schedule``.
+SCHEDULES = ("epochs", "converge")
+
+
+@dataclass(frozen=True)
+class PlateauRule:
+    """Reduce-on-plateau: halve the rate when the held-out score stalls; stop after the last halving's stall.
+
+    Attributes
+    ----------
+    factor : float
+        Learning-rate factor applied at each stall (0.5).
+    patience : int
+        Checks in a row without a new best (by more than ``threshold_db``) that make a stall (2).
+    threshold_db : float
+        A check is a new best when it beats the best so far by more than this (dB; 0.02).
+    decays : int
+        The lowest rate is ``factor ** decays`` (5: 1/32); a stall at (or below) it stops the fit.
+    """
+
+    factor: float = 0.5
+    patience: int = 2
+    threshold_db: float = 0.02
+    decays: int = 5
+
+    def state(self, scores: Sequence[float], anneal: Sequence[float] | None = None) -> tuple[int, bool]:
+        """``(halvings so far, stop?)`` after the held-out ``scores`` (dB, in order; NaN counts as no gain).
+
+        ``anneal``: the rate's factor from the steady decay at each check (default 1): a stall stops the fit
+        when ``factor ** halvings * anneal`` is already at most ``factor ** decays``.
+        """
+        best, stalled, decays = -math.inf, 0, 0
+        for i, score in enumerate(scores):
+            if score > best + self.threshold_db:  # False for NaN
+                best, stalled = score, 0
+                continue
+            stalled += 1
+            if stalled >= self.patience:
+                rate = self.factor ** decays * (1.0 if anneal is None else anneal[i])
+                if rate <= self.factor ** self.decays * (1 + 1e-9):
+                    return decays, True
+                decays, stalled = decays + 1, 0
+        return decays, False
+
+    def describe(self) -> str:
+        """One line: the rule in words."""
+        return (f"lr x{self.factor:g} when {self.patience} held-out checks in a row gain no more than "
+                f"{self.threshold_db:g} dB, stop at such a stall once lr is x{self.factor ** self.decays:g}")
+
+
+#: The rule of ``schedule="converge"``.
+PLATEAU = PlateauRule()
+
+
+class Schedule:
+    """The learning-rate multiplier, monitor timing and stopping of one fit (see the module docstring).
+
+    Parameters
+    ----------
+    kind : str
+        ``"epochs"`` or ``"converge"``.
+    epochs : int
+        The fit's epochs (``"converge"``: the ceiling, in whole epochs).
+    steps_per_epoch : int
+    lr_decay : float
+        Factor per epoch (``"epochs"`` only).
+    monitor_every : int
+        Steps between held-out checks (``"converge"``; 0: once per epoch).
+    min_steps : int
+        Fewest steps before ``"converge"`` may stop.
+    rule : PlateauRule
+    """
+
+    def __init__(self, kind: str, *, epochs: int, steps_per_epoch: int, lr_decay: float = 0.9,
+                 monitor_every: int = 0, min_steps: int = 0, rule: PlateauRule = PLATEAU) -> None:
+        if kind not in SCHEDULES:
+            raise ValueError(f"schedule: expected one of {SCHEDULES}, got {kind!r}")
+        self.kind, self.epochs, self.steps_per_epoch = kind, int(epochs), int(steps_per_epoch)
+        self.lr_decay, self.min_steps, self.rule = float(lr_decay), int(min_steps), rule
+        self.monitor_every = int(monitor_every) if kind == "converge" and monitor_every > 0 else 0
+        self.total_steps = self.epochs * self.steps_per_epoch
+
+    def monitor_due(self, done_steps: int, epoch_ended: bool) -> bool:
+        """Whether the held-out monitor is scored after step ``done_steps`` (1-based count of steps done)."""
+        if self.monitor_every:
+            return done_steps % self.monitor_every == 0 or done_steps >= self.total_steps
+        return epoch_ended
+
+    def anneal(self, done_steps: int) -> float:
+        """``"converge"``: the steady part of the rate's factor after ``done_steps`` steps (1 at the start, the
+        rule's lowest rate ``factor ** decays`` at the ceiling)."""
+        return self.rule.factor ** (self.rule.decays * min(done_steps, self.total_steps) / max(self.total_steps, 1))
+
+    def _plateau(self, record: Sequence[dict[str, Any]]) -> tuple[int, bool]:
+        return self.rule.state([r["held_out_psnr"] for r in record], [self.anneal(r["step"]) for r in record])
+
+    def lr_multiplier(self, epoch: int, done_steps: int, record: Sequence[dict[str, Any]]) -> float:
+        """Factor on every group's initial learning rate for the next step (after ``done_steps`` steps, in
+        ``epoch``)."""
+        if self.kind == "epochs":
+            return self.lr_decay ** epoch
+        return self.rule.factor ** self._plateau(record)[0] * self.anneal(done_steps)
+
+    def converged(self, done_steps: int, record: Sequence[dict[str, Any]]) -> bool:
+        """``"converge"``: the monitor's record says stop (and ``min_steps`` are done)."""
+        if self.kind != "converge" or done_steps < self.min_steps:
+            return False
+        return self._plateau(record)[1]
+
+    def describe(self) -> str:
+        """One line for logs and the recipe summary."""
+        if self.kind == "epochs":
+            return f"{self.epochs} epochs x {self.steps_per_epoch} steps, lr x{self.lr_decay:.3g} per epoch"
+        every = self.monitor_every or self.steps_per_epoch
+        return (f"until the held-out monitor stops improving (checked every {every} steps; {self.rule.describe()}), "
+                f"at least {self.min_steps} and at most {self.total_steps} steps")
+
+
+def make_schedule(config, steps_per_epoch: int) -> Schedule:
+    """The :class:`Schedule` of a :class:`~dynbtf.training.fit.TrainConfig`."""
+    return Schedule(config.schedule, epochs=config.epochs, steps_per_epoch=steps_per_epoch,
+                    lr_decay=config.lr_decay, monitor_every=config.monitor_every, min_steps=config.min_steps)

@@ -1,0 +1,60 @@
+"""``--repr auto``: the representation chosen by a trial of each kind on the same held-out pairs."""
+
+import pytest
+import torch
+
+from dynbtf.cli.main import main
+from dynbtf.data.open import open_btf
+from dynbtf.representations.model_file import load_model, read_model_metadata
+from dynbtf.training import TrainConfig, get_fitter
+from dynbtf.training.model_choice import CANDIDATES, MARGIN_DB, fit_best, pick
+
+pytestmark = pytest.mark.usefixtures("single_thread")
+
+
+def test_pick_prefers_the_cheaper_kind_unless_beaten_by_the_margin():
+    assert pick({"triple": 20.0, "triple-parallax": 20.0 + MARGIN_DB / 2}) == "triple"
+    assert pick({"triple": 20.0, "triple-parallax": 20.0 + 2 * MARGIN_DB}) == "triple-parallax"
+    assert pick({"triple": 22.0, "triple-parallax": 21.0}) == "triple"
+    assert pick({"triple": float("nan"), "triple-parallax": 18.0}) == "triple-parallax"
+    assert pick({"triple": 18.0, "triple-parallax": float("nan")}) == "triple"
+
+
+def _config():
+    return TrainConfig(epochs=2, texel_groups=4, schedule="converge", monitor_every=20, monitor_pairs=4, workers=1,
+                       device="cpu", precision="fp32", lr_scale=6.0)
+
+
+def test_the_race_continues_the_winner_to_the_same_model_as_its_own_fit(tmp_path, capsys):
+    source = open_btf("sim:stone?size=8")
+    result = fit_best(source, tmp_path / "auto.dbtfm", _config(), progress=True)
+    printed = capsys.readouterr().out
+    choice = result.metadata["provenance"]["representation_choice"]
+    scores = {k: t["held_out_psnr"] for k, t in choice["trials"].items()}
+    assert list(scores) == list(CANDIDATES) and all(t["steps"] == 60 for t in choice["trials"].values())
+    assert choice["kind"] == pick(scores) == result.metadata["kind"]
+    line = next(x for x in printed.splitlines() if x.startswith("representation: "))
+    assert line.startswith(f"representation: {choice['kind']} (held-out PSNR after 60 trial steps: ")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["auto.dbtfm"]  # no trial or checkpoint left
+    direct = get_fitter(choice["kind"])(source, tmp_path / "direct.dbtfm", _config(), progress=False)
+    a, _ = load_model(tmp_path / "auto.dbtfm")
+    b, _ = load_model(direct.model_path)
+    for name, tensor in a.state_dict().items():  # the trial was the first part of the winner's own fit
+        assert torch.equal(tensor, b.state_dict()[name]), name
+    # the trial's own monitor checks are the direct fit's first ones
+    first = direct.metadata["provenance"]["schedule"]["monitor"][2]
+    assert first["step"] == 60 and first["held_out_psnr"] == scores[choice["kind"]]
+    again = fit_best(source, tmp_path / "auto.dbtfm", _config(), progress=True)  # a rerun: nothing to race
+    assert "continuing" in capsys.readouterr().out and again.metadata["kind"] == choice["kind"]
+
+
+def test_auto_is_the_command_line_default_and_its_choice_is_in_the_model(tmp_path, capsys):
+    out = tmp_path / "m.dbtfm"
+    assert main(["fit", "sim:leather?size=8", "-o", str(out), "--epochs", "1", "--texel-groups", "4",
+                 "--device", "cpu", "--workers", "1"]) == 0
+    printed = capsys.readouterr().out
+    assert "representation: " in printed
+    meta = read_model_metadata(out)
+    assert meta["kind"] in CANDIDATES and meta["provenance"]["representation_choice"]["kind"] == meta["kind"]
+    assert main(["fit", "sim:leather?size=8", "-o", str(tmp_path / "x.dbtfm"), "--held-out-fraction", "0"]) == 2
+    assert "--repr auto chooses by held-out PSNR" in capsys.readouterr().err

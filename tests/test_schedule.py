@@ -1,0 +1,127 @@
+"""The converge schedule: learning rate and stop set by the held-out monitor, resumable, chosen by the recipe."""
+
+import math
+
+import pytest
+import torch
+
+from dynbtf.data.open import open_btf
+from dynbtf.errors import DynBTFError
+from dynbtf.representations.model_file import load_model
+from dynbtf.training import TrainConfig, checkpoint_path, get_fitter
+from dynbtf.training.images import held_out_split
+from dynbtf.training.recipe import REFERENCE_STEPS, auto_recipe
+from dynbtf.training.schedule import PlateauRule, Schedule
+
+pytestmark = pytest.mark.usefixtures("single_thread")
+
+
+def test_plateau_rule_halves_at_each_stall_and_stops_at_the_lowest_rate():
+    rule = PlateauRule(factor=0.5, patience=2, threshold_db=0.02, decays=2)
+    improving = [20.0 + 0.1 * k for k in range(30)]
+    assert rule.state(improving) == (0, False)  # never stalls
+    # gains of 0.01 dB are no gains: a stall every 2 checks after the first
+    flat = [20.0] * 7
+    assert [rule.state(flat[:n]) for n in range(1, 8)] == [
+        (0, False), (0, False), (1, False), (1, False), (2, False), (2, False), (2, True)]
+    assert rule.state([20.0, 20.5, float("nan"), float("nan")]) == (1, False)  # NaN is no gain
+    # the steady decay counts: at a rate already at the floor, the first stall stops
+    assert rule.state([20.0, 20.0, 20.0], anneal=[1.0, 0.5, 0.25]) == (0, True)
+
+
+def test_schedule_multiplier_is_the_halvings_times_a_steady_decay_to_the_floor_at_the_ceiling():
+    schedule = Schedule("converge", epochs=10, steps_per_epoch=100, monitor_every=50, min_steps=0)
+    assert schedule.anneal(0) == 1.0 and math.isclose(schedule.anneal(1000), 1 / 32)
+    assert math.isclose(schedule.anneal(500), 2 ** -2.5)
+    record = [{"step": 50 * (k + 1), "held_out_psnr": 20.0} for k in range(3)]  # one stall after the best
+    assert math.isclose(schedule.lr_multiplier(1, 150, record), 0.5 * schedule.anneal(150))
+    assert schedule.monitor_due(50, False) and not schedule.monitor_due(60, True)
+    paper = Schedule("epochs", epochs=10, steps_per_epoch=100, lr_decay=0.9)
+    assert paper.lr_multiplier(3, 350, []) == 0.9 ** 3 and paper.monitor_due(300, True)
+    assert not paper.converged(999, [{"step": 1, "held_out_psnr": 1.0}] * 50)
+
+
+def _config(**options):
+    return TrainConfig(**{"epochs": 3, "texel_groups": 4, "schedule": "converge", "monitor_every": 25,
+                          "monitor_pairs": 4, "workers": 1, "device": "cpu", "precision": "fp32",
+                          "lr_scale": 6.0, **options})
+
+
+def test_a_converge_fit_stops_on_its_monitor_and_an_interrupted_one_ends_identically(tmp_path):
+    source = open_btf("sim:leather?size=8")
+    config = _config()
+    whole = get_fitter("triple")(source, tmp_path / "whole.dbtfm", config, progress=False)
+    provenance = whole.metadata["provenance"]
+    record = provenance["schedule"]["monitor"]
+    schedule = Schedule("converge", epochs=3, steps_per_epoch=390, monitor_every=25)
+    assert provenance["schedule"]["stopped"] == "converged" and whole.finished
+    steps = provenance["schedule"]["steps"]
+    assert steps < 3 * 390 and steps == record[-1]["step"]
+    rule = PlateauRule()
+    halvings = [rule.state([r["held_out_psnr"] for r in record[:i]],
+                           [schedule.anneal(r["step"]) for r in record[:i]])[0] for i in range(len(record))]
+    assert halvings[-1] >= 1  # the rate was halved on the way
+    for r, k in zip(record, halvings):  # the rate each check was trained at: the rule's, recomputed here
+        assert math.isclose(r["lr_multiplier"], 0.5 ** k * schedule.anneal(r["step"] - 1), rel_tol=1e-12)
+
+    class Stop(Exception):
+        pass
+
+    def interrupt(info):
+        if info["global_step"] == 137:
+            raise Stop
+
+    with pytest.raises(Stop):
+        get_fitter("triple")(source, tmp_path / "resumed.dbtfm", config, progress=False, callback=interrupt)
+    assert checkpoint_path(tmp_path / "resumed.dbtfm").exists()
+    resumed = get_fitter("triple")(source, tmp_path / "resumed.dbtfm", config, progress=False)
+    assert resumed.metadata["provenance"]["schedule"] == provenance["schedule"] | {
+        "monitor": resumed.metadata["provenance"]["schedule"]["monitor"]}
+    assert [r["held_out_psnr"] for r in resumed.metadata["provenance"]["schedule"]["monitor"]] == \
+        [r["held_out_psnr"] for r in record]
+    a, _ = load_model(tmp_path / "whole.dbtfm")
+    b, _ = load_model(tmp_path / "resumed.dbtfm")
+    for name, tensor in a.state_dict().items():
+        assert torch.equal(tensor, b.state_dict()[name]), name
+
+
+def test_a_checkpoint_with_a_damaged_monitor_record_is_refused_by_name(tmp_path):
+    source = open_btf("sim:leather?size=8")
+    out = tmp_path / "m.dbtfm"
+
+    class Stop(Exception):
+        pass
+
+    def interrupt(info):
+        if info["global_step"] == 60:
+            raise Stop
+
+    with pytest.raises(Stop):
+        get_fitter("triple")(source, out, _config(), progress=False, callback=interrupt)
+    ckpt = checkpoint_path(out)
+    state = torch.load(ckpt, weights_only=True)
+    assert [r["step"] for r in state["monitor"]] == [25, 50]
+    state["monitor"] = [{"step": "x"}]
+    torch.save(state, ckpt)
+    with pytest.raises(DynBTFError, match="damaged checkpoint: its monitor record"):
+        get_fitter("triple")(source, out, _config(), progress=False)
+
+
+def test_the_auto_recipe_trains_until_converged_under_a_ceiling_set_by_the_step_size():
+    stone = auto_recipe(open_btf("sim:stone?size=128"))
+    assert stone.config.schedule == "converge" and stone.config.epochs == 30  # 30 x 390 steps: the reference
+    assert "until the held-out monitor stops improving" in stone.summary
+    small = auto_recipe(open_btf("sim:stone?size=64&grid=ubo2014"))  # a quarter of the samples per step: 2x steps
+    per_epoch = math.ceil(len(held_out_split(151, 151, 0.05, 0)[0]) / 16)
+    assert small.config.schedule == "converge"
+    assert small.config.epochs == math.ceil(2 * REFERENCE_STEPS / per_epoch - 0.05)
+    fixed = auto_recipe(open_btf("sim:stone?size=128"), epochs=5)
+    assert fixed.config.schedule == "epochs" and fixed.config.epochs == 5 and "5 epochs x 390 steps" in fixed.summary
+    no_held_out = auto_recipe(open_btf("sim:stone?size=128"), held_out_fraction=0.0)
+    assert no_held_out.config.schedule == "epochs"
+
+
+def test_converge_without_held_out_pairs_is_refused():
+    with pytest.raises(DynBTFError, match="needs held-out pairs"):
+        get_fitter("triple")(open_btf("sim:leather?size=8"), "/tmp/never.dbtfm", _config(held_out_fraction=0.0),
+                             progress=False)
