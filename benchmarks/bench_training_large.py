@@ -20,7 +20,13 @@ The full-size file is written once by ``dynbtf simulate leather --grid ubo2014
 --size 400 -o FILE`` (``--components``, default 96: 105 MB; about 4 minutes on 2
 cores) unless ``--btf`` names one.
 
-Run: ``python benchmarks/bench_training_large.py`` (about 10 minutes with the file present).
+``--repr triple-parallax`` measures the parallax Triple Plane instead: each run first
+estimates the height by stereo as ``dynbtf fit`` does
+(:func:`dynbtf.training.stereo_height.auto_stereo_options`; its time is printed, its
+memory is in the peak RSS), then trains with view-coherent batches.
+
+Run: ``python benchmarks/bench_training_large.py`` (about 10 minutes with the file present;
+``--repr triple-parallax --recipes fast``: the parallax model, the fast recipe only).
 """
 
 from __future__ import annotations
@@ -38,15 +44,32 @@ from pathlib import Path
 RECIPES = {"paper batches": dict(texel_groups=1, lr_scale=1.0), "fast": dict(texel_groups=64, lr_scale=6.0)}
 
 
-def worker(spec: str, recipe: str, steps: int, warmup: int, memory_mb: float) -> dict:
+def build(kind: str, source, seed: int = 0):
+    """``(representation, stereo seconds)``: a fresh model of ``kind`` for ``source``, as ``dynbtf fit`` builds it
+    (``triple-parallax``: with its stereo height, :func:`~dynbtf.training.stereo_height.auto_stereo_options`)."""
+    if kind == "triple":
+        from dynbtf.representations.triple_plane import TriplePlane
+        return TriplePlane(source.height, source.width, seed=seed), 0.0
+    if kind != "triple-parallax":
+        raise SystemExit(f"--repr: expected triple or triple-parallax, got {kind!r}")
+    from dynbtf.representations.parallax import ParallaxTriplePlane
+    from dynbtf.training.stereo_height import auto_stereo_options, stereo_height
+
+    rep = ParallaxTriplePlane(source.height, source.width, seed=seed)
+    start = time.perf_counter()
+    rep.set_height(stereo_height(source, **auto_stereo_options(source)))
+    return rep, time.perf_counter() - start
+
+
+def worker(spec: str, recipe: str, steps: int, warmup: int, memory_mb: float, kind: str = "triple") -> dict:
     """One measurement in this process: rate over ``steps`` steps after ``warmup``, and peak RSS."""
     import numpy as np
 
     from dynbtf.data.open import open_btf
-    from dynbtf.representations.triple_plane import TriplePlane
     from dynbtf.training import TrainConfig, fit
 
     source = open_btf(spec)
+    rep, stereo_seconds = build(kind, source)
     times, samples = [], []
 
     class Enough(Exception):
@@ -62,18 +85,17 @@ def worker(spec: str, recipe: str, steps: int, warmup: int, memory_mb: float) ->
     config = TrainConfig(epochs=1, monitor_pairs=0, memory_budget_mb=memory_mb, **RECIPES[recipe])
     with tempfile.TemporaryDirectory() as tmp:
         try:
-            fit(TriplePlane(source.height, source.width), source, config, Path(tmp) / "m.dbtfm", progress=False,
-                callback=callback)
+            fit(rep, source, config, Path(tmp) / "m.dbtfm", progress=False, callback=callback)
         except Enough:
             pass
     return {"samples_per_second": float(np.sum(samples) / np.sum(times)), "steps": len(times),
-            "step_seconds": float(np.median(times)),
+            "step_seconds": float(np.median(times)), "stereo_seconds": stereo_seconds,
             "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9}
 
 
 def measure(spec: str, recipe: str, args) -> dict:
     cmd = [sys.executable, __file__, "--worker", spec, "--recipe", recipe, "--steps", str(args.steps),
-           "--warmup", str(args.warmup), "--memory-mb", str(args.memory_mb)]
+           "--warmup", str(args.warmup), "--memory-mb", str(args.memory_mb), "--repr", args.repr]
     out = subprocess.run(cmd, check=True, capture_output=True, text=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -88,11 +110,14 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=40, help="timed steps per measurement")
     parser.add_argument("--warmup", type=int, default=5, help="untimed steps first")
     parser.add_argument("--memory-mb", type=float, default=2048.0, help="image cache budget (as dynbtf fit)")
+    parser.add_argument("--repr", default="triple", choices=["triple", "triple-parallax"],
+                        help="the representation (default %(default)s)")
+    parser.add_argument("--recipes", default=",".join(RECIPES), help="comma-separated recipes (default %(default)s)")
     parser.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--recipe", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
-        print(json.dumps(worker(args.worker, args.recipe, args.steps, args.warmup, args.memory_mb)))
+        print(json.dumps(worker(args.worker, args.recipe, args.steps, args.warmup, args.memory_mb, args.repr)))
         return
     big = args.btf
     if big is None:
@@ -102,15 +127,17 @@ def main() -> None:
             print(f"writing {big} (once) ...", flush=True)
             subprocess.run([sys.executable, "-m", "dynbtf", "simulate", "leather", "--grid", "ubo2014", "--size",
                             "400", "--components", str(args.components), "-o", big, "--quiet"], check=True)
-    print(f"full size: {big} ({Path(big).stat().st_size / 1e6:.0f} MB); cached reference: {args.reference}")
+    print(f"full size: {big} ({Path(big).stat().st_size / 1e6:.0f} MB); cached reference: {args.reference}; "
+          f"representation: {args.repr}")
     print(f"{'recipe':<14} {'cached 128^2 (M samples/s)':>27} {'400^2 DFMF (M samples/s)':>25} {'ratio':>6} "
-          f"{'RSS 400^2 (GB)':>15}")
-    for recipe in RECIPES:
+          f"{'RSS 400^2 (GB)':>15} {'step 400^2 (s)':>15} {'stereo 128^2 / 400^2 (s)':>25}")
+    for recipe in args.recipes.split(","):
         small = measure(args.reference, recipe, args)
         large = measure(big, recipe, args)
         ratio = large["samples_per_second"] / small["samples_per_second"]
         print(f"{recipe:<14} {small['samples_per_second'] / 1e6:>27.2f} {large['samples_per_second'] / 1e6:>25.2f} "
-              f"{ratio:>6.2f} {large['peak_rss_gb']:>15.2f}", flush=True)
+              f"{ratio:>6.2f} {large['peak_rss_gb']:>15.2f} {large['step_seconds']:>15.3f} "
+              f"{small['stereo_seconds']:>11.0f} / {large['stereo_seconds']:>11.0f}", flush=True)
     print("targets: ratio >= 0.8, RSS <= 4 GB")
 
 

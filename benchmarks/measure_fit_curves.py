@@ -14,6 +14,11 @@ Run::
 
 (the 400 x 400 file: ``dynbtf simulate leather --grid ubo2014 --size 400 -o FILE``, ~4 min;
 the fit is about an hour on 2 cores).
+
+``--repr triple-parallax`` fits the parallax Triple Plane (its stereo height first, as
+``dynbtf fit``; the stereo's seconds are recorded, not counted as training time);
+``--out-dir`` writes the curve elsewhere (the figure is drawn from ``docs/images`` only).
+The curve file is rewritten after every score (``"finished": false`` until the end).
 """
 
 from __future__ import annotations
@@ -29,9 +34,12 @@ import numpy as np
 IMAGES = Path(__file__).resolve().parents[1] / "docs" / "images"
 
 
-def run(spec: str, name: str, eval_every: float, seed: int) -> dict:
+def run(spec: str, name: str, eval_every: float, seed: int, kind: str = "triple", out_dir: Path = IMAGES) -> dict:
+    """Fit ``kind`` to ``spec`` with the auto recipe, scoring the held-out monitor every ``eval_every`` seconds
+    of training; writes and returns the curve (``out_dir / fit_curve_<name>.json``)."""
+    from bench_training_large import build
+
     from dynbtf.data.open import open_btf
-    from dynbtf.representations.triple_plane import TriplePlane
     from dynbtf.training import ImageStore, held_out_split, predict_images
     from dynbtf.training.fit import fit
     from dynbtf.training.monitor import HeldOutMonitor
@@ -41,11 +49,16 @@ def run(spec: str, name: str, eval_every: float, seed: int) -> dict:
     recipe = auto_recipe(source, seed=seed)
     print(recipe.summary, flush=True)
     config = recipe.config
-    rep = TriplePlane(source.height, source.width, seed=seed)
+    rep, stereo_seconds = build(kind, source, seed)
+    print(f"{kind}: stereo height {stereo_seconds:.0f} s", flush=True)
     _, held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction, seed)
     monitor = HeldOutMonitor(ImageStore(source, int(config.memory_budget_mb * 1024 ** 2)), held_out, 16, seed)
     curve = [{"seconds": 0.0, "psnr": monitor.score(rep, predict_images), "step": 0}]
     state = {"train_seconds": 0.0, "next": eval_every, "wall": time.perf_counter()}
+    head = {"name": name, "btf": spec, "repr": kind, "size": [source.height, source.width],
+            "directions": [source.n_views, source.n_lights], "recipe": recipe.summary, "curve": curve,
+            "stereo_seconds": stereo_seconds}
+    path = Path(out_dir) / f"fit_curve_{name}.json"
 
     def callback(info):
         state["train_seconds"] += info["step_seconds"]
@@ -56,7 +69,9 @@ def run(spec: str, name: str, eval_every: float, seed: int) -> dict:
             rep.train()
             state["next"] += eval_every
             print(f"{state['train_seconds'] / 60:6.1f} min  step {info['global_step']:6d}  "
-                  f"held-out PSNR {curve[-1]['psnr']:.2f} dB", flush=True)
+                  f"held-out PSNR {curve[-1]['psnr']:.2f} dB  ({info['step_seconds']:.3f} s/step)", flush=True)
+            path.write_text(json.dumps(head | {"finished": False, "training_seconds": state["train_seconds"],
+                                               "wall_seconds": time.perf_counter() - state["wall"]}, indent=1))
 
     with tempfile.TemporaryDirectory() as tmp:
         result = fit(rep, source, config, Path(tmp) / "m.dbtfm", progress=False, callback=callback)
@@ -65,11 +80,10 @@ def run(spec: str, name: str, eval_every: float, seed: int) -> dict:
                   "step": curve[-1]["step"]})
     final = curve[-1]["psnr"]
     within = next(p["seconds"] for p in curve if all(q["psnr"] >= final - 0.5 for q in curve[curve.index(p):]))
-    out = {"name": name, "btf": spec, "size": [source.height, source.width],
-           "directions": [source.n_views, source.n_lights], "recipe": recipe.summary, "curve": curve,
-           "final_psnr": final, "seconds_to_within_0_5_db": within, "training_seconds": state["train_seconds"],
-           "wall_seconds": time.perf_counter() - state["wall"]}
-    (IMAGES / f"fit_curve_{name}.json").write_text(json.dumps(out, indent=1))
+    out = head | {"finished": True, "final_psnr": final, "seconds_to_within_0_5_db": within,
+                  "training_seconds": state["train_seconds"], "wall_seconds": time.perf_counter() - state["wall"],
+                  "steps": curve[-1]["step"]}
+    path.write_text(json.dumps(out, indent=1))
     print(f"{name}: final held-out PSNR {final:.2f} dB after {state['train_seconds'] / 60:.1f} min of training; "
           f"within 0.5 dB of it from {within / 60:.1f} min", flush=True)
     return out
@@ -81,12 +95,13 @@ def plot() -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    runs = [json.loads(p.read_text()) for p in sorted(IMAGES.glob("fit_curve_*.json"))]
+    runs = [r for r in (json.loads(p.read_text()) for p in sorted(IMAGES.glob("fit_curve_*.json")))
+            if r.get("finished", True)]
     fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
     for r in runs:
         t = np.array([p["seconds"] for p in r["curve"]]) / 60
         y = np.array([p["psnr"] for p in r["curve"]])
-        label = (f"{r['size'][0]} x {r['size'][1]} texels, {r['directions'][0]} x {r['directions'][1]} directions "
+        label = (f"{r.get('repr', 'triple')}, {r['size'][0]} x {r['size'][1]} texels, {r['directions'][0]} x {r['directions'][1]} directions "
                  f"(final {r['final_psnr']:.1f} dB)")
         line, = ax.plot(t, y, marker="o", ms=3, label=label)
         ax.axvline(r["seconds_to_within_0_5_db"] / 60, color=line.get_color(), ls=":", lw=1)
@@ -107,12 +122,17 @@ def main() -> None:
     parser.add_argument("--name", help="name of the curve (file fit_curve_<name>.json)")
     parser.add_argument("--eval-every", type=float, default=120.0, help="seconds of training between scores")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--repr", default="triple", choices=["triple", "triple-parallax"],
+                        help="the representation (default %(default)s)")
+    parser.add_argument("--out-dir", default=str(IMAGES), help="where the curve file goes (default %(default)s)")
     parser.add_argument("--plot-only", action="store_true", help="only redraw the figure")
     args = parser.parse_args()
     if not args.plot_only:
         if not args.btf or not args.name:
             parser.error("--btf and --name are required (or --plot-only)")
-        run(args.btf, args.name, args.eval_every, args.seed)
+        run(args.btf, args.name, args.eval_every, args.seed, args.repr, Path(args.out_dir))
+        if Path(args.out_dir).resolve() != IMAGES:
+            return  # the figure shows docs/images' curves
     print(f"wrote {plot()}")
 
 
