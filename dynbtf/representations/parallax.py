@@ -272,23 +272,40 @@ class ParallaxTriplePlane(TriplePlane):
                                 aspect=cols / rows).reshape(*batch, 2)
 
     # ------------------------------------------------------------ training fast path
-    def _visible_texel_table(self, w_view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Visible points ``(H * W, 2)`` (float32, wrapped) of every texel centre under one view and
-        their heights ``(H * W,)``, uv units; cached (see :meth:`_check_visible_cache`)."""
+    def _visible_texel_table(self, w_view: torch.Tensor,
+                             texels: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Visible points ``(H * W, 2)`` (float32, wrapped) of the texel centres under one view and
+        their heights ``(H * W,)``, uv units; cached (see :meth:`_check_visible_cache`).
+
+        Rows are marched on demand: the rows of ``texels (n,)`` (int64 texel indices; None: all)
+        the table does not hold yet (a training step reads ``n = N / G`` texels per view, so a
+        refresh costs one march of the step's texels, not of every view's ``N``). Rows never
+        asked for hold zeros. Each ray is marched on its own, so a row is the same whichever
+        rows are marched with it.
+        """
         key = w_view.detach().to("cpu", torch.float64).numpy().tobytes()
         entry = self._visible_cache.get(key)
+        h, w = self.height_channel.shape
+        device = self.height_channel.device
         if entry is None:
-            h, w = self.height_channel.shape
-            centres = torch.from_numpy(texel_centers_uv(h, w).reshape(-1, 2)).to(self.height_channel.device)
-            marched = self.marched_height_channel[..., None]
-            with torch.no_grad():
-                hit = self.visible_uv(centres, w_view.reshape(1, 3).expand(len(centres), 3), marched)
-                height = fetch_wrap(marched.double() * self.height_scale, hit)[:, 0]
             if len(self._visible_cache) >= 512:
                 self._visible_cache.clear()
-            entry = ((hit - hit.floor()).to(torch.float32), height.to(torch.float32))
+            entry = (torch.zeros(h * w, 2, device=device), torch.zeros(h * w, device=device),
+                     torch.zeros(h * w, dtype=torch.bool, device=device))  # points, heights, marched
             self._visible_cache[key] = entry
-        return entry
+        points, heights, marched = entry
+        todo = torch.nonzero(~marched).reshape(-1) if texels is None else \
+            torch.unique(texels[~marched[texels]])
+        if todo.numel():
+            centres = torch.from_numpy(texel_centers_uv(h, w).reshape(-1, 2)).to(device)[todo]
+            plane = self.marched_height_channel[..., None]
+            with torch.no_grad():
+                hit = self.visible_uv(centres, w_view.reshape(1, 3).expand(len(centres), 3), plane)
+                height = fetch_wrap(plane.double() * self.height_scale, hit)[:, 0]
+            points[todo] = (hit - hit.floor()).to(torch.float32)
+            heights[todo] = height.to(torch.float32)
+            marched[todo] = True
+        return points, heights
 
     def _check_visible_cache(self) -> None:
         """Empty the visible-point cache once the height has moved since it was filled by
@@ -312,10 +329,10 @@ class ParallaxTriplePlane(TriplePlane):
         ``dz = (height(p) - z) / (1 - grad height . s)``; its value follows the height
         between two marches and its gradient is the implicit-function one.
         """
-        tables = [self._visible_texel_table(w) for w in w_views]
-        points = torch.stack([t[0] for t in tables]).gather(1, texels[..., None].expand(-1, -1, 2)).reshape(-1, 2)
+        tables = [self._visible_texel_table(w, t) for w, t in zip(w_views, texels)]
+        points = torch.stack([t[0][sel] for t, sel in zip(tables, texels)]).reshape(-1, 2)
         if self.height_channel.requires_grad and torch.is_grad_enabled():
-            z = torch.stack([t[1] for t in tables]).gather(1, texels).reshape(-1)
+            z = torch.stack([t[1][sel] for t, sel in zip(tables, texels)]).reshape(-1)
             rows, cols = self.height_channel.shape
             slope = view_offsets(w_views, cols / rows).to(points.dtype).repeat_interleave(texels.shape[1], 0)
             height = self.height_field()[..., None]
