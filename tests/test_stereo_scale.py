@@ -1,5 +1,6 @@
-"""Plane-sweep stereo at scale: blocks of texels change nothing; a spread subset of views and the
-lights nearest the normal still recover a known height; the fitter's choice for large BTFs."""
+"""The parallax fit at scale. Plane-sweep stereo: blocks of texels change nothing; a spread subset
+of views and the lights nearest the normal still recover a known height; the fitter's choice for
+large BTFs. Training: visible points marched on demand equal a whole march."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import torch
 from dynbtf.data.array import ArrayBTF
 from dynbtf.data.directions import direction_set
 from dynbtf.errors import InputError
-from dynbtf.representations.parallax import view_offsets
+from dynbtf.representations.parallax import ParallaxTriplePlane, view_offsets
 from dynbtf.texture import fetch_wrap
 from dynbtf.training.stereo_height import (CHUNK_ALIGN, auto_stereo_options, spread_views, stereo_height)
 
@@ -95,3 +96,20 @@ def test_auto_options_only_for_large_btfs():
 
     assert auto_stereo_options(Shape(128, 81)) == {}
     assert auto_stereo_options(Shape(400, 151)) == {"max_views": 32, "max_lights": 3}
+
+
+def test_visible_points_marched_on_demand_equal_a_whole_march():
+    """Training's visible-point table, filled texel block by texel block (as a step asks), equals the
+    table of one march of every texel, bit for bit."""
+    model = ParallaxTriplePlane(24, 32)
+    relief = torch.nn.functional.avg_pool2d(torch.rand(1, 1, 24, 32, generator=torch.Generator().manual_seed(1)), 5,
+                                            1, 2, count_include_pad=False)[0, 0]
+    model.set_height(0.1 * relief)
+    for w in torch.as_tensor(direction_set("ubo2003")[::20], dtype=torch.float32):
+        model._visible_cache.clear()
+        whole = [t.clone() for t in model._visible_texel_table(w)]
+        model._visible_cache.clear()
+        for block in torch.randperm(24 * 32, generator=torch.Generator().manual_seed(2)).split(100):
+            points, heights = model._visible_texel_table(w, block)
+            torch.testing.assert_close(points[block], whole[0][block], rtol=0, atol=0)
+        assert torch.equal(points, whole[0]) and torch.equal(heights, whole[1])
