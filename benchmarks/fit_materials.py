@@ -4,6 +4,11 @@ Run: ``python benchmarks/fit_materials.py [--repr triple] [--size 128] [--epochs
 [--texel-groups 64] [--out DIR]`` (about 3-4 minutes per material on 2 cores with the native bf16
 kernel; ~7 with ``--repr triple-parallax``), or on any BTFs:
 ``--specs 'sim:stone?relief=0.25,sim:stone?relief=0.5'``.
+
+``--default`` fits as ``dynbtf fit BTF -o MODEL`` with no options does (``--repr auto``: a trial of
+each kind, the winner's fit continued; the auto recipe: until the held-out monitor stops
+improving), and adds the chosen kind, the trial scores and the whole command's wall time
+(trials and stereo included) to each row.
 Each material is fitted with :func:`dynbtf.training.fit` (resumable: re-running
 with the same ``--out`` continues unfinished fits), evaluated on its held-out
 pairs with :func:`dynbtf.training.evaluate.evaluate_model` (tables and
@@ -15,6 +20,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
+import time
 from pathlib import Path
 
 from dynbtf.data.open import open_btf
@@ -22,6 +29,7 @@ from dynbtf.data.simulator import MATERIALS
 from dynbtf.representations.model_file import load_model
 from dynbtf.training import TrainConfig, get_fitter
 from dynbtf.training.evaluate import evaluate_model, resolve_eval_pairs
+from dynbtf.training.recipe import choose_config
 
 
 def main() -> None:
@@ -35,17 +43,27 @@ def main() -> None:
     parser.add_argument("--materials", default=",".join(MATERIALS))
     parser.add_argument("--specs", default=None, help="comma-separated BTF specs or files (instead of --materials)")
     parser.add_argument("--out", default="materials_out")
+    parser.add_argument("--default", action="store_true", help="fit as `dynbtf fit BTF -o M` with no options "
+                        "(--repr auto, the auto recipe); --repr, --epochs, --lr-scale, --texel-groups are ignored")
     args = parser.parse_args()
     out = Path(args.out)
     rows = []
     specs = args.specs.split(",") if args.specs else [f"sim:{m}?size={args.size}" for m in args.materials.split(",")]
     for spec in specs:
         source = open_btf(spec)
-        material = source.name.replace("sim:", "").replace("?", "_").replace("=", "")
+        material = re.sub(r"[^A-Za-z0-9_.-]+", "_", spec.replace("sim:", "")).strip("_")
         model = out / f"{material}.dbtfm"
-        config = TrainConfig(epochs=args.epochs, max_minutes=args.minutes, lr_scale=args.lr_scale,
-                             texel_groups=args.texel_groups)
-        get_fitter(args.repr)(source, model, config)
+        start = time.perf_counter()
+        if args.default:
+            out.mkdir(parents=True, exist_ok=True)
+            config, summary = choose_config(source, model, recipe="auto", minutes=args.minutes)
+            print(summary)
+            get_fitter("auto")(source, model, config)
+        else:
+            config = TrainConfig(epochs=args.epochs, max_minutes=args.minutes, lr_scale=args.lr_scale,
+                                 texel_groups=args.texel_groups)
+            get_fitter(args.repr)(source, model, config)
+        wall = time.perf_counter() - start
         rep, meta = load_model(model)
         ev = evaluate_model(rep, source, resolve_eval_pairs("held-out", source, meta), out_dir=out / f"{material}_eval",
                             images=4)
@@ -55,15 +73,21 @@ def main() -> None:
                      "psnr_grazing": by_angle.get("grazing", {}).get("psnr", float("nan")),
                      "psnr_others": by_angle.get("others", {}).get("psnr", float("nan")),
                      "n_grazing": by_angle.get("grazing", {}).get("n", 0), "epochs": prov["epochs_completed"],
-                     "minutes": prov["training_seconds"] / 60, "model_bytes": prov["size"]["model_bytes"]})
+                     "minutes": prov["training_seconds"] / 60, "model_bytes": prov["size"]["model_bytes"],
+                     "kind": meta["kind"], "steps": prov.get("schedule", {}).get("steps"), "wall_minutes": wall / 60,
+                     "trials": {k: t["held_out_psnr"] for k, t in
+                                prov.get("representation_choice", {}).get("trials", {}).items()}})
         print(json.dumps(rows[-1]))
-    print(f"\n{args.repr}: held-out pairs; PSNR against each reference image's peak (psnr), and against a fixed "
-          "peak of 1.0 (psnr_fixed1, the earlier definition); grazing = view or light beyond 60 degrees")
-    print("| material | PSNR (dB) | grazing / other pairs | PSNR fixed peak 1 | DSSIM | FLIP | epochs | training min |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(f"\n{'dynbtf fit with no options' if args.default else args.repr}: held-out pairs; PSNR against each "
+          "reference image's peak (psnr), and against a fixed peak of 1.0 (psnr_fixed1, the earlier definition); "
+          "grazing = view or light beyond 60 degrees; wall = the whole fit call (trials, stereo, training)")
+    print("| material | kind | PSNR (dB) | grazing / other pairs | PSNR fixed peak 1 | DSSIM | FLIP | epochs | "
+          "training min | wall min |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['material']} | {r['psnr']:.2f} | {r['psnr_grazing']:.2f} / {r['psnr_others']:.2f} | "
-              f"{r['psnr_fixed1']:.2f} | {r['dssim']:.4f} | {r['flip']:.4f} | {r['epochs']:.2f} | {r['minutes']:.1f} |")
+        print(f"| {r['material']} | {r['kind']} | {r['psnr']:.2f} | {r['psnr_grazing']:.2f} / {r['psnr_others']:.2f} | "
+              f"{r['psnr_fixed1']:.2f} | {r['dssim']:.4f} | {r['flip']:.4f} | {r['epochs']:.2f} | {r['minutes']:.1f} | "
+              f"{r['wall_minutes']:.1f} |")
 
 
 if __name__ == "__main__":

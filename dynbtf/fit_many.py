@@ -5,7 +5,7 @@ in ``[defaults]`` for every source or in a source's own table::
 
     [defaults]
     minutes = 60            # dynbtf fit --minutes: the auto recipe fitted to an hour per material
-    repr = "triple"
+    repr = "auto"           # the default: a trial of each kind, the better one's fit continued
 
     [[source]]
     btf = "leather.btf"     # required: a path (relative to the manifest) or a spec such as 'sim:leather?size=128'
@@ -193,6 +193,7 @@ def _check_options(path: Path, options: dict[str, Any], lines: dict[str, int]) -
     """Values a fit would refuse, found before any task starts (the line of the offending key)."""
     from .training.fit import TrainConfig
     from .training.fitters import get_fitter
+    from .training.model_choice import DEFAULT_KIND
     from .training.recipe import RECIPES
 
     def fail(key: str, message: str):
@@ -201,13 +202,13 @@ def _check_options(path: Path, options: dict[str, Any], lines: dict[str, int]) -
     if options.get("recipe", "auto") not in RECIPES:
         fail("recipe", f"expected one of {list(RECIPES)}, got {options['recipe']!r}")
     try:
-        get_fitter(options.get("repr", "triple"))
+        get_fitter(options.get("repr", DEFAULT_KIND))
     except InputError as e:
         fail("repr", str(e))
     if "minutes" in options and not options["minutes"] > 0:
         fail("minutes", f"expected a positive time budget, got {options['minutes']!r}")
-    if "stereo_max_height" in options and options.get("repr") != "triple-parallax":
-        fail("stereo_max_height", "applies to repr = 'triple-parallax' only")
+    if "stereo_max_height" in options and options.get("repr", DEFAULT_KIND) not in ("triple-parallax", "auto"):
+        fail("stereo_max_height", "applies to repr = 'triple-parallax' (or 'auto') only")
     fields = {_TRAIN_FIELD.get(k, k): v for k, v in options.items() if _TRAIN_FIELD.get(k, k) in
               {f.name for f in dataclasses.fields(TrainConfig)}}
     try:
@@ -346,6 +347,7 @@ def fit_one(task: FitTask, callback: Callable[[dict[str, Any]], None] | None = N
     from .data.open import open_btf
     from .training.evaluate import evaluate_model, resolve_eval_pairs
     from .training.fitters import get_fitter
+    from .training.model_choice import DEFAULT_KIND, stereo_fitter_options
     from .training.recipe import choose_config
 
     torch.set_num_threads(max(1, task.cpus))
@@ -353,7 +355,7 @@ def fit_one(task: FitTask, callback: Callable[[dict[str, Any]], None] | None = N
     started = time.perf_counter()
     try:
         options = dict(task.options)
-        repr_kind = options.pop("repr", "triple")
+        repr_kind = options.pop("repr", DEFAULT_KIND)
         recipe = options.pop("recipe", "auto")
         minutes = options.pop("minutes", None)
         stereo = options.pop("stereo_max_height", None)
@@ -362,7 +364,7 @@ def fit_one(task: FitTask, callback: Callable[[dict[str, Any]], None] | None = N
         source = open_btf(task.btf)
         Path(task.output_dir).mkdir(parents=True, exist_ok=True)
         config, summary = choose_config(source, task.model_path, recipe=recipe, minutes=minutes, **train)
-        extra = {"stereo": {"max_height": stereo}} if stereo is not None else {}
+        extra = stereo_fitter_options(repr_kind, stereo, "stereo_max_height")
         fitter = get_fitter(repr_kind)
         if callback is not None:
             extra["callback"] = callback

@@ -262,8 +262,10 @@ def test_cli_fits_a_parallax_model_and_rejects_stereo_options_for_other_kinds(tm
     assert main(["inspect", str(out), "-o", str(tmp_path / "planes")]) == 0
     assert (tmp_path / "planes" / "height.png").exists()
     capsys.readouterr()
-    assert main(["fit", "sim:stone?size=16", "-o", str(tmp_path / "t.dbtfm"), "--stereo-max-height", "0.1"]) == 2
-    assert "--stereo-max-height applies to --repr triple-parallax, not 'triple'" in capsys.readouterr().err
+    assert main(["fit", "sim:stone?size=16", "-o", str(tmp_path / "t.dbtfm"), "--stereo-max-height", "0.1",
+                 "--repr", "triple"]) == 2
+    assert "--stereo-max-height applies to --repr triple-parallax (or auto), not 'triple'" in \
+        capsys.readouterr().err
     assert not (tmp_path / "t.dbtfm").exists()
 
 

@@ -9,6 +9,7 @@ from typing import Optional
 import typer
 
 from ..errors import InputError
+from ..training.model_choice import DEFAULT_KIND, stereo_fitter_options
 from .app import app
 
 
@@ -30,7 +31,7 @@ def fit(
     btf: str = typer.Argument(..., help="BTF to fit: a file path or a spec such as 'sim:leather?size=128'."),
     output: Path = typer.Option(..., "-o", "--output", help="Model file to write (.dbtfm). Its checkpoint "
                                 "<output>.ckpt makes a re-run continue where an interrupted one stopped."),
-    repr: str = typer.Option("auto", "--repr", help="Representation kind: auto (a short trial fit of triple and "
+    repr: str = typer.Option(DEFAULT_KIND, "--repr", help="Representation kind: auto (a short trial fit of triple and "
                              "triple-parallax on the same held-out pairs; the better one's fit continues: the "
                              "choice is printed and recorded in the model), triple (the paper's Triple Plane), "
                              "triple-parallax (Triple Plane fetched at the visible point of a height field "
@@ -70,12 +71,7 @@ def fit(
     config, summary = choose_config(source, output, recipe=recipe, minutes=minutes, **given)
     if not quiet:
         typer.echo(summary)
-    options = {}
-    if stereo_max_height is not None:
-        if repr not in ("triple-parallax", "auto"):
-            raise InputError(f"--stereo-max-height applies to --repr triple-parallax (or auto), not {repr!r}")
-        stereo = {"stereo": {"max_height": stereo_max_height}}
-        options = {"kind_options": {"triple-parallax": stereo}} if repr == "auto" else stereo
+    options = stereo_fitter_options(repr, stereo_max_height)
     result = fitter(source, output, config, progress=not quiet, **options)
     if quiet:
         size = result.metadata.get("provenance", {}).get("size", {})

@@ -38,8 +38,11 @@ from .distributed import from_environment
 from .fit import FitResult, TrainConfig
 from .fitters import get_fitter, register_fitter
 
-__all__ = ["CANDIDATES", "TRIAL_CHECKS", "MARGIN_DB", "pick", "fit_best", "kind_in_progress"]
+__all__ = ["DEFAULT_KIND", "CANDIDATES", "TRIAL_CHECKS", "MARGIN_DB", "pick", "fit_best", "kind_in_progress",
+           "stereo_fitter_options"]
 
+#: The kind ``dynbtf fit`` and ``dynbtf fit-many`` fit when none is named.
+DEFAULT_KIND = "auto"
 #: The kinds ``--repr auto`` chooses among, cheapest to render first.
 CANDIDATES = ("triple", "triple-parallax")
 #: Held-out checks (of ``monitor_every`` steps each) in a trial.
@@ -60,6 +63,17 @@ def pick(scores: dict[str, float]) -> str:
         if winner is None or score > best + MARGIN_DB:
             winner, best = kind, (score if math.isfinite(score) else -math.inf)
     return winner
+
+
+def stereo_fitter_options(kind: str, max_height: float | None, option: str = "--stereo-max-height") -> dict:
+    """The fitter keywords that set the stereo search range ``max_height`` (uv units) for ``--repr kind``: ``{}``
+    without one; :class:`InputError` naming ``option`` for a kind without a height field."""
+    if max_height is None:
+        return {}
+    if kind not in ("triple-parallax", "auto"):
+        raise InputError(f"{option} applies to --repr triple-parallax (or auto), not {kind!r}")
+    stereo = {"stereo": {"max_height": max_height}}
+    return {"kind_options": {"triple-parallax": stereo}} if kind == "auto" else stereo
 
 
 def kind_in_progress(output) -> str | None:
