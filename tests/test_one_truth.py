@@ -476,32 +476,44 @@ def test_cell_quilting_in_numba_and_drjit_is_the_torch_reference(mi, seed):
 
 # ---------------------------------------------------------------------------- the relief march
 def reference_march(uv: np.ndarray, w: np.ndarray, height_at, *, h_min: float, h_max: float, step: float,
-                    aspect: float = 1.0) -> np.ndarray:
+                    max_step: float | None = None, surface_slope: float = 0.0, aspect: float = 1.0) -> np.ndarray:
     """The visible points of ``march_visible_uv``'s documented definition, one ray at a time in float64.
 
-    Ray ``uv + z s``, ``s = (w_x, w_y aspect) / max(w_z, 1e-6)`` (``w_z <= 0``: vertical); samples
-    ``z_k = h_max - k dz``, ``k = 0..n``, ``n = max(1, ceil((h_max - h_min) |s| / step))``, the last at
-    ``h_min``; a field at or above ``h_max`` at ``k = 0`` is hit there; else the first ``k`` with
-    ``height - z >= 0`` (or ``k = n``) and the sample before it bracket the hit, placed by linear
-    interpolation of ``height - z`` (clamped to the step; no change: the lower sample)."""
+    Ray ``uv + z s``, ``s = (w_x, w_y aspect) / max(w_z, 1e-6)`` (``w_z <= 0``: vertical), ``L = max(|s|, 1e-12)``;
+    a field at or above ``h_max`` at ``z = h_max`` is hit there; else from each sample ``z`` (gap ``g = z - height``)
+    the next is ``max(h_min, z - clamp(g / (1 + surface_slope L), step / L, max_step / L))`` until one is at or
+    below the surface or at ``h_min``: it and the one before bracket the hit. The bracket is halved (midpoint
+    sampled, the half that still brackets kept) while longer than ``step (1 + 1e-6) / L`` in z; the hit is the
+    linear interpolation of ``height - z`` between its ends (clamped to the bracket; no change: the lower end)."""
     out = np.array(uv, dtype=np.float64)
-    depth = h_max - h_min
+    max_step = step if max_step is None else max_step
     for q, (point, direction) in enumerate(zip(out, np.asarray(w, np.float64))):
         wx, wy, wz = direction if direction[2] > 0 else (0.0, 0.0, 1.0)
         s = np.array([wx, wy * aspect]) / max(wz, 1e-6)
-        n = max(1, math.ceil(depth * math.hypot(*s) / step))
-        z_prev, f_prev = h_max, height_at(point + h_max * s) - h_max
-        z_hit = h_max
-        if f_prev < 0:
-            for k in range(1, n + 1):
-                z = h_min if k == n else h_max - k * (depth / n)
-                f = height_at(point + z * s) - z
-                if f >= 0 or k == n:
-                    t = f / (f - f_prev) if f != f_prev else 0.0
-                    z_hit = z + min(1.0, max(0.0, t)) * (z_prev - z)
+        length = max(math.hypot(*s), 1e-12)
+
+        def f(z):
+            return height_at(point + z * s) - z
+
+        z_hi = z_lo = h_max
+        f_hi = f_lo = f(h_max)
+        if f_hi < 0:
+            while True:  # the search
+                z = max(h_min, z_hi - min(max(-f_hi / (1 + surface_slope * length), step / length), max_step / length))
+                fz = f(z)
+                if fz >= 0 or z <= h_min:
+                    z_lo, f_lo = z, fz
                     break
-                z_prev, f_prev = z, f
-        out[q] = point + z_hit * s
+                z_hi, f_hi = z, fz
+            while z_hi - z_lo > step * (1 + 1e-6) / length:  # the bracket halved
+                z = 0.5 * (z_lo + z_hi)
+                fz = f(z)
+                if fz >= 0:
+                    z_lo, f_lo = z, fz
+                else:
+                    z_hi, f_hi = z, fz
+        t = f_lo / (f_lo - f_hi) if f_lo != f_hi else 0.0
+        out[q] = point + (z_lo + min(1.0, max(0.0, t)) * (z_hi - z_lo)) * s
     return out
 
 
@@ -547,11 +559,15 @@ def reference_relief_field(model, synth, method: str):
 
 
 def march_parameters(model) -> dict:
-    """``h_min, h_max`` (the exemplar's height range, float64), ``step`` and ``aspect`` from the model's config."""
+    """``h_min, h_max`` (the exemplar's height range, float64), ``step``, ``max_step``, ``surface_slope`` and
+    ``aspect`` from the model's config and the march's documented constants."""
+    from dynbtf.representations.parallax import MARCH_SEARCH_FACTOR, MARCH_SURFACE_SLOPE
+
     rows, cols = model.height_channel.shape
     height = model.height_channel.detach().double() * model.height_scale
-    return {"h_min": float(height.min()), "h_max": float(height.max()),
-            "step": model.config()["march_step_texels"] / max(rows, cols), "aspect": cols / rows}
+    step = model.config()["march_step_texels"] / max(rows, cols)
+    return {"h_min": float(height.min()), "h_max": float(height.max()), "step": step,
+            "max_step": MARCH_SEARCH_FACTOR * step, "surface_slope": MARCH_SURFACE_SLOPE, "aspect": cols / rows}
 
 
 @pytest.mark.parametrize("method", ["tile", "linear"])
@@ -590,6 +606,37 @@ def test_relief_march_in_torch_numba_drjit_is_the_reference(mi, relief_model, me
     check(as_numpy([u, v]), "drjit")
     # the march matters here: the visible points move by up to ~3 texels (not a comparison of uv with itself)
     assert (np.abs(want - uv).max(1) * texels.max()).max() > 1.0
+
+
+def dense_march(uv: np.ndarray, w: np.ndarray, plane: np.ndarray, *, h_min: float, h_max: float, texels: float,
+                aspect: float = 1.0, **_) -> np.ndarray:
+    """Brute force: every ray sampled from ``h_max`` to ``h_min`` every 1/50 texel (horizontally) of the height
+    plane ``(H, W, 1)`` (uv units, bilinear, periodic); the first sample at or below the surface and the one
+    before it bracket the hit, placed by linear interpolation (no sample below: ``h_min``)."""
+    slope = np.where(w[:, 2:3] > 0, w[:, :2], 0.0) / np.maximum(w[:, 2:3], 1e-6) * [1.0, aspect]
+    count = int(np.ceil((h_max - h_min) * np.hypot(*slope.T).max() * texels * 50)) + 1
+    z = np.linspace(h_max, h_min, count)
+    f = np.stack([reference_fetch_wrap(plane, uv + zk * slope)[:, 0] - zk for zk in z], 1)  # (N, count)
+    first = np.where((f >= 0).any(1), np.argmax(f >= 0, 1), count - 1)
+    above = np.maximum(first - 1, 0)
+    rows = np.arange(len(uv))
+    fa, fb = f[rows, above], f[rows, first]
+    t = np.where(fb != fa, np.clip(fb / np.where(fb != fa, fb - fa, 1.0), 0.0, 1.0), 0.0)
+    return uv + (z[first] + t * (z[above] - z[first]))[:, None] * slope
+
+
+def test_relief_march_is_the_dense_march_but_where_rays_graze_a_ridge(relief_model):
+    """The march's variable search steps and bisected bracket lose nothing against a brute-force march 25x finer
+    than its resolution: 97% of the hits within 0.05 texels (measured: 98.5% for 2000 queries, as a fixed
+    half-texel march), the others where a ray grazes a ridge either march may miss."""
+    model = relief_model
+    uv, wv, _ = relief_queries(400, seed=33)
+    plane = model.height_channel.detach().double().numpy()[..., None] * model.height_scale
+    texels = max(model.height_channel.shape)
+    want = dense_march(uv, wv, plane, texels=texels, **march_parameters(model))
+    got = model.visible_uv(torch.from_numpy(uv), torch.from_numpy(wv), model.height_channel.detach()[..., None])
+    error = np.abs(got.numpy() - want).max(1) * texels
+    assert np.mean(error < 0.05) >= 0.97, np.sort(error)[-12:]
 
 
 # ---------------------------------------------------------------------------- every backend reads a compiled material

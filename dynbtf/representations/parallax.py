@@ -44,8 +44,14 @@ from .triple_plane import TriplePlane
 
 __all__ = ["view_offsets", "march_visible_uv", "ParallaxTriplePlane"]
 
-#: Default horizontal distance between two samples of a march, in texels of the height field.
+#: Default resolution of a march: the largest horizontal length of the bracket its hit is interpolated in, in
+#: texels of the height field (``march_step_texels``).
 MARCH_STEP_TEXELS = 0.5
+#: The longest search step of a model's march in units of its resolution (``march_step_texels``).
+MARCH_SEARCH_FACTOR = 16
+#: The slope the march's search step assumes the surface may rise at (height per horizontal distance): a step
+#: covers the gap under the ray as if the surface rose towards the ray at this slope (see :func:`march_visible_uv`).
+MARCH_SURFACE_SLOPE = 0.5
 
 
 def view_offsets(w_view: torch.Tensor, aspect: float = 1.0) -> torch.Tensor:
@@ -60,7 +66,8 @@ def view_offsets(w_view: torch.Tensor, aspect: float = 1.0) -> torch.Tensor:
 
 
 def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor, height_at: Callable[[torch.Tensor], torch.Tensor], *,
-                     h_min: float, h_max: float, step: float, aspect: float = 1.0) -> torch.Tensor:
+                     h_min: float, h_max: float, step: float, max_step: float | None = None,
+                     surface_slope: float = MARCH_SURFACE_SLOPE, aspect: float = 1.0) -> torch.Tensor:
     """Where the camera rays through the reference-plane points ``uv`` first meet a height field.
 
     Parameters
@@ -71,11 +78,16 @@ def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor, height_at: Callable
         Unit directions towards the viewer, ``z > 0``.
     height_at : callable
         ``height_at(points (M, 2) float64) -> (M,)`` the height field (uv units) at
-        any points; called about ``reach / step`` times on shrinking subsets.
+        any points; called once per sample of a ray, on shrinking subsets.
     h_min, h_max : float
         Bounds of the field (a point where the field exceeds ``h_max`` is hit at ``h_max``).
     step : float
-        Largest horizontal distance (uv units) between two samples of a ray.
+        Resolution (uv units): the shortest horizontal search step and the longest
+        bracket the hit is interpolated in.
+    max_step : float, optional
+        Longest horizontal search step (uv units; default ``step``: every step is ``step``).
+    surface_slope : float
+        The slope (height per horizontal distance) the search step assumes the surface may rise at.
     aspect : float
         ``W / H`` of the plane: heights are in u units, so a v displacement is
         scaled by it (1 for square planes).
@@ -86,13 +98,19 @@ def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor, height_at: Callable
 
     Notes
     -----
-    Each ray ``uv + z s`` (``s = (w_x, w_y) / w_z``) is sampled from ``z = h_max``
-    down to ``h_min`` in ``ceil(reach / step)`` equal steps (``reach`` = the
-    ray's horizontal length over ``[h_min, h_max]``); the first sample at or below
-    the surface and the one before it bracket the intersection, placed by linear
-    interpolation of ``height - z``. A vertical ray therefore lands exactly on
-    ``height(uv)``. Features narrower than ``step`` can be missed, as in any
-    height-field ray march.
+    Each ray ``uv + z s`` (``s = (w_x, w_y) / w_z``) is searched from ``z = h_max``
+    down to ``h_min``. From a sample at ``z`` with a gap ``g = z - height > 0`` the
+    next sample is a horizontal distance ``clamp(g |s| / (1 + surface_slope |s|), step,
+    max_step)`` further (where the ray would meet a surface rising towards it at
+    ``surface_slope`` from the point below it), never below ``h_min``. The first
+    sample at or below the surface (or the one at ``h_min``) and the one before it
+    bracket the intersection. The bracket is halved (its midpoint sampled, the half
+    that still brackets kept) while its horizontal length exceeds ``step (1 + 1e-6)``,
+    and the hit is placed by linear interpolation of ``height - z`` between its ends
+    (clamped to the bracket). A vertical ray therefore lands exactly on ``height(uv)``
+    and a planar field is hit exactly. Features narrower than ``step`` can be missed,
+    as in any height-field ray march; so can features steeper than ``surface_slope``
+    and narrower than the longer steps taken in the gap above them.
 
     Examples
     --------
@@ -101,7 +119,8 @@ def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor, height_at: Callable
     >>> import torch
     >>> w = torch.tensor([[math.sqrt(0.5), 0.0, math.sqrt(0.5)]], dtype=torch.float64)
     >>> march_visible_uv(torch.tensor([[0.2, 0.3]], dtype=torch.float64), w,
-    ...                  lambda p: torch.full(p.shape[:1], 0.1, dtype=torch.float64), h_min=0.0, h_max=0.2, step=0.01)
+    ...                  lambda p: torch.full(p.shape[:1], 0.1, dtype=torch.float64), h_min=0.0, h_max=0.2,
+    ...                  step=0.01, max_step=0.08)
     tensor([[0.3000, 0.3000]], dtype=torch.float64)
     """
     uv = uv.to(torch.float64)
@@ -109,34 +128,37 @@ def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor, height_at: Callable
     if uv.ndim != 2 or uv.shape[-1] != 2 or w.shape != (uv.shape[0], 3):
         raise InputError(f"march_visible_uv: expected uv (N, 2) and w_view (N, 3), got {tuple(uv.shape)} and "
                          f"{tuple(w_view.shape)}")
-    if not h_max >= h_min or not step > 0:
-        raise InputError(f"march_visible_uv: expected h_min <= h_max and step > 0, got {h_min}, {h_max}, {step}")
-    slope = view_offsets(w, aspect)
-    depth = float(h_max - h_min)
-    n_steps = (depth * slope.norm(dim=-1) / step).ceil().clamp_min(1).to(torch.int64)
-    dz = depth / n_steps.to(torch.float64)
-    z_hit = torch.full((uv.shape[0],), float(h_min), dtype=torch.float64, device=uv.device)
+    max_step = step if max_step is None else max_step
+    if not h_max >= h_min or not 0 < step <= max_step or not surface_slope >= 0:
+        raise InputError(f"march_visible_uv: expected h_min <= h_max, 0 < step <= max_step and surface_slope >= 0, "
+                         f"got {h_min}, {h_max}, {step}, {max_step}, {surface_slope}")
     if uv.shape[0] == 0:
         return uv.clone()
-    f_prev = height_at(uv + h_max * slope).to(torch.float64) - h_max  # height - z at the previous sample
-    above = f_prev >= 0  # the field reaches h_max here: hit at once
-    z_hit[above] = h_max
-    active = torch.nonzero(~above).reshape(-1)
-    k = 0
+    slope = view_offsets(w, aspect)
+    length = slope.norm(dim=-1).clamp_min(1e-12)  # horizontal uv per unit of z
+    shortest, longest, fine = step / length, max_step / length, step * (1.0 + 1e-6) / length  # in z
+    f_hi = height_at(uv + h_max * slope).to(torch.float64) - h_max  # height - z at the bracket's ends
+    z_hi, z_lo, f_lo = torch.full_like(f_hi, h_max), torch.full_like(f_hi, h_max), f_hi.clone()
+    bracketed = f_hi >= 0  # the field reaches h_max here: hit at once
+    active = torch.nonzero(~bracketed).reshape(-1)
     while active.numel():
-        k += 1
-        last = n_steps[active] <= k
-        z_above = h_max - (k - 1) * dz[active]
-        z = torch.where(last, torch.full_like(z_above, h_min), h_max - k * dz[active])
+        inside = bracketed[active]  # halving the bracket, else searching
+        zh, fh = z_hi[active], f_hi[active]
+        gap = torch.minimum(torch.maximum(-fh / (1.0 + surface_slope * length[active]), shortest[active]),
+                            longest[active])
+        search = (zh - gap).clamp_min(h_min)
+        z = torch.where(inside, 0.5 * (z_lo[active] + zh), search)
         f = height_at(uv[active] + z[:, None] * slope[active]).to(torch.float64) - z
-        hit = (f >= 0) | last
-        if bool(hit.any()):
-            before = f_prev[active]
-            t = (f / (f - before)).clamp(0.0, 1.0).nan_to_num(0.0)  # fraction of the step back up
-            z_hit[active[hit]] = (z + t * (z_above - z))[hit]
-        f_prev[active] = f
-        active = active[~hit]
-    return uv + z_hit[:, None] * slope
+        below = (f >= 0) | (~inside & (search <= h_min))
+        z_lo[active] = torch.where(below, z, z_lo[active])
+        f_lo[active] = torch.where(below, f, f_lo[active])
+        z_hi[active] = torch.where(below, zh, z)
+        f_hi[active] = torch.where(below, fh, f)
+        bracketed[active] = inside | below
+        done = bracketed[active] & (z_hi[active] - z_lo[active] <= fine[active])
+        active = active[~done]
+    t = (f_lo / (f_lo - f_hi)).clamp(0.0, 1.0).nan_to_num(0.0)  # fraction of the bracket back up
+    return uv + (z_lo + t * (z_hi - z_lo))[:, None] * slope
 
 
 @register("triple-parallax")
@@ -152,7 +174,9 @@ class ParallaxTriplePlane(TriplePlane):
         channel is ``height / height_scale`` (of the order of the learned features,
         which matters to synthesis and to the decoder, which reads it too).
     march_step_texels : float, default 0.5
-        Largest horizontal step of the ray march, in texels of the plane.
+        Resolution of the ray march, in texels of the plane: the largest horizontal length of the
+        bracket its hit is interpolated in and the shortest search step (the longest is ``MARCH_SEARCH_FACTOR``
+        times this).
     learn_height : bool, default True
         Train the height with the other parameters (a parameter) or keep it as set (a buffer).
     height_refresh_texels : float, default 0.05
@@ -266,10 +290,16 @@ class ParallaxTriplePlane(TriplePlane):
 
             def height_at(points):
                 return fetch(points)[..., -1].to(torch.float64) * self.height_scale
+        return march_visible_uv(flat, w, height_at, h_min=h_min, h_max=h_max,
+                                **self.march_parameters()).reshape(*batch, 2)
+
+    def march_parameters(self) -> dict[str, float]:
+        """``step``, ``max_step`` (uv units), ``surface_slope`` and ``aspect`` of this model's march (:func:`march_visible_uv`):
+        every backend marches with these."""
         rows, cols = self.height_channel.shape
-        step = self._config["march_step_texels"] / max(rows, cols)
-        return march_visible_uv(flat, w, height_at, h_min=h_min, h_max=h_max, step=step,
-                                aspect=cols / rows).reshape(*batch, 2)
+        resolution = self._config["march_step_texels"] / max(rows, cols)
+        return {"step": resolution, "max_step": MARCH_SEARCH_FACTOR * resolution,
+                "surface_slope": MARCH_SURFACE_SLOPE, "aspect": cols / rows}
 
     # ------------------------------------------------------------ training fast path
     def _visible_texel_table(self, w_view: torch.Tensor,

@@ -416,9 +416,7 @@ class _DecoderLayout:
         relief = None
         if kind == "triple-parallax":
             h_min, h_max = model.height_range()
-            rows, cols = model.height_channel.shape
-            relief = {"h_min": h_min, "h_max": h_max, "step": cfg["march_step_texels"] / max(rows, cols),
-                      "aspect": cols / rows, "height_scale": model.height_scale}
+            relief = {"h_min": h_min, "h_max": h_max, **model.march_parameters(), "height_scale": model.height_scale}
         ag = (c_a + 3) // 4
         w_ang = decoder.first.weight.detach().double().numpy()[:, c_u:]
         # the angular part of layer 1: f_H's channels then f_D's, each padded to whole vec4 groups

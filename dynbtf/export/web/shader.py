@@ -35,7 +35,7 @@ WEB_METHODS = {"tile": 0, "linear": 1, "hist": 2, "hex": 3, "struct": 4}
 LATTICE_METHODS = ("tile", "linear", "hist", "hex")
 #: Repeats the shader's float32 local uv may span (beyond: the caller moves the origin).
 LOCAL_REPEATS = 2 ** 12
-#: Most steps of the relief ray march per pixel (views closer to grazing than ~89 deg march coarser than the library).
+#: Most samples of the relief ray march per pixel after the first (a march that needs more stops short of the library's).
 MAX_MARCH_STEPS = 1024
 
 
@@ -150,7 +150,7 @@ def glsl_source(*, channels: int, angular_channels: int, hidden: int, layers: in
     values; as constants they run 2-4x faster in software GL than read from uniform blocks).
     The method's quantities (tables, parameters, layer 1's positional part with its output map
     folded in) are uniforms, a uniform block and textures, so one program serves every method.
-    ``relief`` (models with a height field: ``h_min``, ``h_max``, ``step``, ``aspect``,
+    ``relief`` (models with a height field: ``h_min``, ``h_max``, ``step``, ``max_step``, ``surface_slope``, ``aspect``,
     ``height_scale``) adds the ray march of
     :func:`dynbtf.representations.parallax.march_visible_uv` through the synthesized height.
 
@@ -560,15 +560,16 @@ void dynbtf_angular_fetch(highp sampler2DArray plane, vec3 w, vec4 scale[DYNBTF_
 def _glsl_relief(relief: dict[str, float] | None) -> str:
     """The relief ray march (``dynbtf_height``, ``dynbtf_visible``) when ``relief`` is given, else ``""``.
 
-    ``relief``: ``h_min``, ``h_max`` (height range, repeats), ``step`` (largest march step, repeats),
-    ``aspect`` (the plane's rows over columns) and ``height_scale``, as
+    ``relief``: ``h_min``, ``h_max`` (height range, repeats), ``step``, ``max_step`` (shortest and longest search
+    step, repeats), ``surface_slope``, ``aspect`` (the plane's rows over columns) and ``height_scale``, as
     :func:`dynbtf.representations.parallax.march_visible_uv` uses them.
     """
     if not relief:
         return ""
     return f"""
 // ---- relief (dynbtf.representations.parallax): features are read where the camera ray meets the
-// synthesized height field, marched from h_max down to h_min in steps of at most {_float(relief["step"])} repeats
+// synthesized height field, searched from h_max down to h_min in steps of {_float(relief["step"])} to
+// {_float(relief["max_step"])} repeats, the hit's bracket halved down to {_float(relief["step"])}
 uniform vec4 dynbtf_height_map[DYNBTF_G];   // height channel = latent . map + offset (the method's output map)
 uniform float dynbtf_height_offset;
 #define DYNBTF_MAX_MARCH {MAX_MARCH_STEPS}
@@ -583,25 +584,24 @@ vec2 dynbtf_visible(DynbtfOrigin o, vec2 local, vec3 w) {{
     const float h_min = {_float(relief["h_min"])}, h_max = {_float(relief["h_max"])};
     if (w.z <= 0.0) w = vec3(0.0, 0.0, 1.0);
     vec2 slope = w.xy / max(w.z, 1e-6) * vec2(1.0, {_float(relief["aspect"])});
-    float depth = h_max - h_min;
-    int n = min(max(int(ceil(depth * length(slope) / {_float(relief["step"])})), 1), DYNBTF_MAX_MARCH);
-    float dz = depth / float(n);
-    float f_prev = dynbtf_height(o, local + h_max * slope) - h_max;
-    if (f_prev >= 0.0) return local + h_max * slope;
-    float z_hit = h_min;
-    for (int k = 1; k <= DYNBTF_MAX_MARCH; ++k) {{
-        bool last = k >= n;
-        float z_above = h_max - float(k - 1) * dz;
-        float z = last ? h_min : h_max - float(k) * dz;
+    float len = max(length(slope), 1e-12);
+    float shortest = {_float(relief["step"])} / len, longest = {_float(relief["max_step"])} / len;
+    float fine = {_float(relief["step"] * (1.0 + 1e-6))} / len, climb = 1.0 + {_float(relief["surface_slope"])} * len;
+    float z_hi = h_max, f_hi = dynbtf_height(o, local + h_max * slope) - h_max;
+    float z_lo = h_max, f_lo = f_hi;
+    bool bracketed = f_hi >= 0.0;
+    for (int k = 0; k < DYNBTF_MAX_MARCH && !(bracketed && z_hi - z_lo <= fine); ++k) {{
+        float search = max(z_hi - min(max(-f_hi / climb, shortest), longest), h_min);
+        float z = bracketed ? 0.5 * (z_lo + z_hi) : search;
         float f = dynbtf_height(o, local + z * slope) - z;
-        if (f >= 0.0 || last) {{
-            float t = f - f_prev != 0.0 ? clamp(f / (f - f_prev), 0.0, 1.0) : 0.0;
-            z_hit = z + t * (z_above - z);
-            break;
+        if (f >= 0.0 || (!bracketed && search <= h_min)) {{
+            z_lo = z; f_lo = f; bracketed = true;
+        }} else {{
+            z_hi = z; f_hi = f;
         }}
-        f_prev = f;
     }}
-    return local + z_hit * slope;
+    float t = f_lo - f_hi != 0.0 ? clamp(f_lo / (f_lo - f_hi), 0.0, 1.0) : 0.0;
+    return local + (z_lo + t * (z_hi - z_lo)) * slope;
 }}
 """
 

@@ -343,14 +343,16 @@ class DrNeuMIP:
         return self.decoder(features, self.angular_features(wv, wl, active))
 
 
-def march_visible_uv(u, v, w_view, height_at, *, h_min: float, h_max: float, step: float, aspect: float = 1.0,
-                     active=True):
+def march_visible_uv(u, v, w_view, height_at, *, h_min: float, h_max: float, step: float,
+                     max_step: float | None = None, surface_slope: float = 0.5, aspect: float = 1.0, active=True):
     """:func:`dynbtf.representations.parallax.march_visible_uv` in Dr.Jit: where the camera rays through
     the reference-plane points ``(u, v)`` first meet a height field.
 
-    The same march, step for step, in float64: ``ceil(reach / step)`` equal steps from
-    ``z = h_max`` down to ``h_min``, the first sample at or below the surface and the one
-    before it bracketing the hit, placed by linear interpolation of ``height - z``.
+    The same march, sample for sample, in float64: search steps from ``z = h_max`` down to
+    ``h_min`` scaled by the gap under the ray (between ``step`` and ``max_step``), the first
+    sample at or below the surface and the one before it bracketing the hit, the bracket
+    halved while longer than ``step``, the hit placed by linear interpolation of
+    ``height - z`` between its ends.
 
     Parameters
     ----------
@@ -360,7 +362,7 @@ def march_visible_uv(u, v, w_view, height_at, *, h_min: float, h_max: float, ste
         Unit directions towards the viewer; ``z <= 0`` is treated as vertical.
     height_at : callable
         ``height_at(u, v, active) -> mi.Float`` (uv units) at ``mi.Float64`` points.
-    h_min, h_max, step, aspect : float
+    h_min, h_max, step, max_step, surface_slope, aspect : float
         As the torch function.
     active : mi.Bool
         Lanes to march (the others return ``(u, v)`` unchanged).
@@ -371,10 +373,10 @@ def march_visible_uv(u, v, w_view, height_at, *, h_min: float, h_max: float, ste
 
     Notes
     -----
-    One symbolic loop per lane inside the kernel (whatever Dr.Jit's ``SymbolicLoops`` flag):
-    a lane runs as many steps as its own ray needs, so the cost per query is that of the
-    steep views' marches; lanes of one SIMD vector wait for the longest march among them
-    (coherent camera rays, which see similar elevations, wait least).
+    One symbolic loop per lane inside the kernel (whatever Dr.Jit's ``SymbolicLoops`` flag),
+    searching and halving in the same loop: a lane takes as many samples as its own ray needs
+    and stops (its fetches masked) once its bracket is short enough; the loop ends when every
+    lane of a SIMD vector has (coherent camera rays, which see similar elevations, wait least).
     """
     mi, dr = mi_module(), drjit_module()
     F64 = mi.Float64
@@ -384,35 +386,38 @@ def march_visible_uv(u, v, w_view, height_at, *, h_min: float, h_max: float, ste
     wx, wy, wz = dr.select(up, wx, 0.0), dr.select(up, wy, 0.0), dr.select(up, wz, 1.0)
     inv = 1.0 / dr.maximum(wz, 1e-6)
     sx, sy = wx * inv, wy * inv * float(aspect)
-    depth = float(h_max - h_min)
-    n_steps = dr.maximum(dr.ceil(depth * dr.sqrt(sx * sx + sy * sy) / float(step)), 1.0)
-    dz = depth / n_steps
+    length = dr.maximum(dr.sqrt(sx * sx + sy * sy), 1e-12)  # horizontal uv per unit of z
+    max_step = float(step if max_step is None else max_step)
+    shortest, longest, fine = float(step) / length, max_step / length, float(step) * (1.0 + 1e-6) / length  # in z
+    climb = 1.0 + float(surface_slope) * length
     active = mi.Bool(active)
-    f_prev = F64(height_at(u + h_max * sx, v + h_max * sy, active)) - h_max
-    above = f_prev >= 0.0
-    z_hit = dr.select(above, F64(h_max), F64(h_min))
-    k = F64(0.0)
-    marching = active & ~above
+    f_hi = F64(height_at(u + h_max * sx, v + h_max * sy, active)) - h_max  # height - z at the bracket's ends
+    z_hi, z_lo, f_lo = F64(h_max), F64(h_max), F64(f_hi)
+    bracketed = f_hi >= 0.0  # the field reaches h_max here: hit at once
+    marching = active & ~bracketed
 
-    def cond(k, f_prev, z_hit, marching):
+    def cond(z_hi, f_hi, z_lo, f_lo, bracketed, marching):
         return marching
 
-    def body(k, f_prev, z_hit, marching):
-        k = k + 1.0
-        last = n_steps <= k
-        z_above = h_max - (k - 1.0) * dz
-        z = dr.select(last, F64(h_min), h_max - k * dz)
+    def body(z_hi, f_hi, z_lo, f_lo, bracketed, marching):
+        inside = bracketed  # halving the bracket, else searching
+        search = dr.maximum(z_hi - dr.minimum(dr.maximum(-f_hi / climb, shortest), longest), h_min)
+        z = dr.select(inside, 0.5 * (z_lo + z_hi), search)
         f = F64(height_at(u + z * sx, v + z * sy, marching)) - z
-        hit = (f >= 0.0) | last
-        denominator = f - f_prev
-        t = dr.select(denominator != 0.0, f / denominator, 0.0)
-        t = dr.clip(dr.select(dr.isnan(t), 0.0, t), 0.0, 1.0)
-        z_hit = dr.select(marching & hit, z + t * (z_above - z), z_hit)
-        return k, f, z_hit, marching & ~hit
+        below = (f >= 0.0) | (~inside & (search <= h_min))
+        z_lo, f_lo = dr.select(below, z, z_lo), dr.select(below, f, f_lo)
+        z_hi, f_hi = dr.select(below, z_hi, z), dr.select(below, f_hi, f)
+        bracketed = inside | below
+        return z_hi, f_hi, z_lo, f_lo, bracketed, marching & ~(bracketed & (z_hi - z_lo <= fine))
 
-    k, f_prev, z_hit, marching = dr.while_loop(state=(k, f_prev, z_hit, marching), cond=cond, body=body,
-                                               labels=("k", "f_prev", "z_hit", "marching"),
-                                               label="dynbtf_parallax_march", mode="symbolic")
+    z_hi, f_hi, z_lo, f_lo, _, _ = dr.while_loop(
+        state=(z_hi, f_hi, z_lo, f_lo, bracketed, marching), cond=cond, body=body,
+        labels=("z_hi", "f_hi", "z_lo", "f_lo", "bracketed", "marching"), label="dynbtf_parallax_march",
+        mode="symbolic")
+    denominator = f_lo - f_hi
+    t = dr.select(denominator != 0.0, f_lo / denominator, 0.0)  # fraction of the bracket back up
+    t = dr.clip(dr.select(dr.isnan(t), 0.0, t), 0.0, 1.0)
+    z_hit = dr.select(active, z_lo + t * (z_hi - z_lo), 0.0)
     return u + z_hit * sx, v + z_hit * sy
 
 
@@ -427,11 +432,9 @@ class DrParallaxTriplePlane(DrTriplePlane):
     def __init__(self, model, folded=None) -> None:
         super().__init__(model, folded)
         config = model.config()
-        rows, cols = (int(x) for x in model.height_channel.shape)
         self.height_scale = float(config["height_scale"])
         self.h_min, self.h_max = model.height_range()
-        self.step = float(config["march_step_texels"]) / max(rows, cols)
-        self.aspect = cols / rows
+        self.march = model.march_parameters()  # step, resolution, aspect
 
     def visible_uv(self, u, v, w_view, height_channel, active=True):
         """The surface point (``mi.Float64`` pair) seen through ``(u, v)`` from ``w_view``.
@@ -444,8 +447,8 @@ class DrParallaxTriplePlane(DrTriplePlane):
         def height_at(pu, pv, mask):
             return mi_module().Float64(height_channel(pu, pv, mask)) * scale
 
-        return march_visible_uv(u, v, w_view, height_at, h_min=self.h_min, h_max=self.h_max, step=self.step,
-                                aspect=self.aspect, active=active)
+        return march_visible_uv(u, v, w_view, height_at, h_min=self.h_min, h_max=self.h_max, **self.march,
+                                active=active)
 
 
 #: Representation kind (model files' ``kind``) -> its Dr.Jit evaluator; what the Mitsuba plugin renders.
