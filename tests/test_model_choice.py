@@ -34,7 +34,8 @@ def test_the_race_continues_the_winner_to_the_same_model_as_its_own_fit(tmp_path
     assert list(scores) == list(CANDIDATES) and all(t["steps"] == 60 for t in choice["trials"].values())
     assert choice["kind"] == pick(scores) == result.metadata["kind"]
     line = next(x for x in printed.splitlines() if x.startswith("representation: "))
-    assert line.startswith(f"representation: {choice['kind']} (held-out PSNR after 60 trial steps: ")
+    assert line.startswith(f"representation: {choice['kind']} (held-out PSNR after a trial of triple ")
+    assert f"triple-parallax {scores['triple-parallax']:.2f} dB at step 60" in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["auto.dbtfm"]  # no trial or checkpoint left
     direct = get_fitter(choice["kind"])(source, tmp_path / "direct.dbtfm", _config(), progress=False)
     a, _ = load_model(tmp_path / "auto.dbtfm")

@@ -104,25 +104,26 @@ def _trial_output(output: Path, kind: str) -> Path:
     return output.with_name(f".{output.name}.trial-{kind}.dbtfm")
 
 
-def _run_trial(kind: str, source: BTFSource, output: Path, config: TrainConfig, steps: int, progress: bool,
-               options: dict[str, Any]) -> tuple[float, float]:
-    """Train ``kind``'s first ``steps`` steps into its trial output; returns (held-out PSNR, seconds)."""
-    scores = []
+def _run_trial(kind: str, source: BTFSource, output: Path, config: TrainConfig, progress: bool,
+               options: dict[str, Any]) -> dict[str, Any]:
+    """Train ``kind`` into its trial output until its :data:`TRIAL_CHECKS`-th held-out check (or the end of a shorter
+    fit); returns ``{"held_out_psnr", "steps", "seconds"}`` at that check."""
+    checks = []
 
     def stop_after_trial(info: dict[str, Any]) -> None:
         if "held_out_psnr" in info:
-            scores.append(info["held_out_psnr"])
-        if info["global_step"] >= steps:
-            raise _TrialOver
+            checks.append((info["held_out_psnr"], info["global_step"]))
+            if len(checks) >= TRIAL_CHECKS:
+                raise _TrialOver
 
     start = time.perf_counter()
     try:
-        result = get_fitter(kind)(source, _trial_output(output, kind), config, progress=progress,
-                                  callback=stop_after_trial, **options)
-        scores.append(result.history[-1]["held_out_psnr"] if result.history else math.nan)  # a fit shorter than a trial
+        get_fitter(kind)(source, _trial_output(output, kind), config, progress=progress, callback=stop_after_trial,
+                         **options)
     except _TrialOver:
         pass
-    return (scores[-1] if scores else math.nan), time.perf_counter() - start
+    score, steps = checks[-1] if checks else (math.nan, 0)
+    return {"held_out_psnr": score, "steps": steps, "seconds": round(time.perf_counter() - start, 1)}
 
 
 def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
@@ -153,23 +154,19 @@ def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, pr
             print(f"representation: {chosen} (chosen by the earlier run on {output}; continuing it)")
         return get_fitter(chosen)(source, output, config, progress=progress, callback=callback,
                                   **kind_options.get(chosen, {}))
-    every = config.monitor_every or math.ceil(
-        (source.n_views * source.n_lights * (1 - config.held_out_fraction)) / config.images_per_step)
-    steps = TRIAL_CHECKS * every
     if progress:
-        print(f"choosing the representation: a trial of {steps} steps each of {', '.join(CANDIDATES)} on the same "
-              f"held-out pairs")
+        print(f"choosing the representation: a trial of {TRIAL_CHECKS} held-out checks each of "
+              f"{', '.join(CANDIDATES)} on the same held-out pairs")
     parallel, _ = from_environment(resolve_device(config.device))  # (a data-parallel fit: every process races)
     trials = {}
     try:
         for kind in CANDIDATES:
-            score, seconds = _run_trial(kind, source, output, config, steps, progress and parallel.is_main,
-                                        kind_options.get(kind, {}))
-            trials[kind] = {"held_out_psnr": score, "steps": steps, "seconds": round(seconds, 1)}
+            trials[kind] = _run_trial(kind, source, output, config, progress and parallel.is_main,
+                                      kind_options.get(kind, {}))
         winner = pick({k: t["held_out_psnr"] for k, t in trials.items()})
         if progress and parallel.is_main:
-            print(f"representation: {winner} (held-out PSNR after {steps} trial steps: "
-                  + ", ".join(f"{k} {t['held_out_psnr']:.2f} dB" for k, t in trials.items())
+            print(f"representation: {winner} (held-out PSNR after a trial of "
+                  + ", ".join(f"{k} {t['held_out_psnr']:.2f} dB at step {t['steps']}" for k, t in trials.items())
                   + f"; a kind after {CANDIDATES[0]} must win by {MARGIN_DB:g} dB)")
         parallel.barrier()  # every trial's checkpoint is written
         trial = _trial_output(output, winner)
@@ -182,8 +179,8 @@ def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, pr
                 _trial_output(output, kind).unlink(missing_ok=True)
                 checkpoint_path(_trial_output(output, kind)).unlink(missing_ok=True)
     parallel.barrier()
-    evidence = {"kind": winner, "rule": f"best held-out PSNR after a {steps}-step trial each; later kinds win by "
-                                        f"more than {MARGIN_DB:g} dB", "trials": trials}
+    evidence = {"kind": winner, "rule": f"best held-out PSNR at the last of {TRIAL_CHECKS} held-out checks of a "
+                                        f"trial of each kind; later kinds win by more than {MARGIN_DB:g} dB", "trials": trials}
     if output.is_file() and parallel.is_main:  # the trial was the whole fit (a short schedule): add the evidence
         from ..representations.model_file import load_model, save_model
 
