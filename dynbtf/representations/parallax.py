@@ -302,40 +302,53 @@ class ParallaxTriplePlane(TriplePlane):
                 "surface_slope": MARCH_SURFACE_SLOPE, "aspect": cols / rows}
 
     # ------------------------------------------------------------ training fast path
-    def _visible_texel_table(self, w_view: torch.Tensor,
-                             texels: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Visible points ``(H * W, 2)`` (float32, wrapped) of the texel centres under one view and
-        their heights ``(H * W,)``, uv units; cached (see :meth:`_check_visible_cache`).
+    def _visible_texel_tables(self, w_views: torch.Tensor,
+                              texels: torch.Tensor | None = None) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Per view ``w_views[g] (G, 3)``: visible points ``(H * W, 2)`` (float32, wrapped) of the texel
+        centres and their heights ``(H * W,)``, uv units; cached (see :meth:`_check_visible_cache`).
 
-        Rows are marched on demand: the rows of ``texels (n,)`` (int64 texel indices; None: all)
-        the table does not hold yet (a training step reads ``n = N / G`` texels per view, so a
-        refresh costs one march of the step's texels, not of every view's ``N``). Rows never
-        asked for hold zeros. Each ray is marched on its own, so a row is the same whichever
-        rows are marched with it.
+        Rows are marched on demand: the rows of ``texels[g] (G, n)`` (int64 texel indices; None: all)
+        that view ``g``'s table does not hold yet, all views' in **one** march (a training step reads
+        ``n = N / G`` texels per view, so a refresh costs one march of the step's ``N`` texels, not
+        ``G`` marches of ``N``). Rows never asked for hold zeros. Each ray is marched on its own, so a
+        row is the same whichever rays are marched with it.
         """
-        key = w_view.detach().to("cpu", torch.float64).numpy().tobytes()
-        entry = self._visible_cache.get(key)
         h, w = self.height_channel.shape
         device = self.height_channel.device
-        if entry is None:
-            if len(self._visible_cache) >= 512:
-                self._visible_cache.clear()
-            entry = (torch.zeros(h * w, 2, device=device), torch.zeros(h * w, device=device),
-                     torch.zeros(h * w, dtype=torch.bool, device=device))  # points, heights, marched
-            self._visible_cache[key] = entry
-        points, heights, marched = entry
-        todo = torch.nonzero(~marched).reshape(-1) if texels is None else \
-            torch.unique(texels[~marched[texels]])
-        if todo.numel():
-            centres = torch.from_numpy(texel_centers_uv(h, w).reshape(-1, 2)).to(device)[todo]
+        tables, todo, rays = [], [], []
+        for g, w_view in enumerate(w_views):
+            key = w_view.detach().to("cpu", torch.float64).numpy().tobytes()
+            entry = self._visible_cache.get(key)
+            if entry is None:
+                if len(self._visible_cache) >= 512:
+                    self._visible_cache.clear()
+                entry = (torch.zeros(h * w, 2, device=device), torch.zeros(h * w, device=device),
+                         torch.zeros(h * w, dtype=torch.bool, device=device))  # points, heights, marched
+                self._visible_cache[key] = entry
+            marched = entry[2]
+            rows = torch.nonzero(~marched).reshape(-1) if texels is None else \
+                torch.unique(texels[g][~marched[texels[g]]])
+            marched[rows] = True
+            tables.append(entry)
+            todo.append(rows)
+            rays.append(w_view.reshape(1, 3).expand(len(rows), 3))
+        count = sum(len(rows) for rows in todo)
+        if count:
+            if getattr(self, "_texel_centres", None) is None or self._texel_centres.device != device:
+                self._texel_centres = torch.from_numpy(texel_centers_uv(h, w).reshape(-1, 2)).to(device)
             plane = self.marched_height_channel[..., None]
-            with torch.no_grad():
-                hit = self.visible_uv(centres, w_view.reshape(1, 3).expand(len(centres), 3), plane)
-                height = fetch_wrap(plane.double() * self.height_scale, hit)[:, 0]
-            points[todo] = (hit - hit.floor()).to(torch.float32)
-            heights[todo] = height.to(torch.float32)
-            marched[todo] = True
-        return points, heights
+            try:
+                with torch.no_grad():
+                    hit = self.visible_uv(self._texel_centres[torch.cat(todo)], torch.cat(rays), plane)
+                    height = fetch_wrap(plane.double() * self.height_scale, hit)[:, 0]
+            except BaseException:  # (an interrupt): the rows were marked as marched
+                self._visible_cache.clear()
+                raise
+            for (points, heights, _), rows, part, z in zip(tables, todo, hit.split([len(r) for r in todo]),
+                                                           height.split([len(r) for r in todo])):
+                points[rows] = (part - part.floor()).to(torch.float32)
+                heights[rows] = z.to(torch.float32)
+        return [(points, heights) for points, heights, _ in tables]
 
     def _check_visible_cache(self) -> None:
         """Empty the visible-point cache once the height has moved since it was filled by
@@ -345,7 +358,8 @@ class ParallaxTriplePlane(TriplePlane):
         moved = (current - self.marched_height_channel).abs() * (self.height_scale * max(current.shape))  # texels
         if float(moved.mean()) < self._config["height_refresh_texels"] and float(moved.max()) < 1.0:
             return
-        self._visible_cache.clear()
+        for _, _, marched in self._visible_cache.values():  # the tables are kept, their rows marched again
+            marched.zero_()
         with torch.no_grad():
             self.marched_height_channel.copy_(current)
 
@@ -359,7 +373,7 @@ class ParallaxTriplePlane(TriplePlane):
         ``dz = (height(p) - z) / (1 - grad height . s)``; its value follows the height
         between two marches and its gradient is the implicit-function one.
         """
-        tables = [self._visible_texel_table(w, t) for w, t in zip(w_views, texels)]
+        tables = self._visible_texel_tables(w_views, texels)
         points = torch.stack([t[0][sel] for t, sel in zip(tables, texels)]).reshape(-1, 2)
         if self.height_channel.requires_grad and torch.is_grad_enabled():
             z = torch.stack([t[1][sel] for t, sel in zip(tables, texels)]).reshape(-1)
