@@ -107,9 +107,19 @@ def test_visible_points_marched_on_demand_equal_a_whole_march():
     model.set_height(0.1 * relief)
     for w in torch.as_tensor(direction_set("ubo2003")[::20], dtype=torch.float32):
         model._visible_cache.clear()
-        whole = [t.clone() for t in model._visible_texel_table(w)]
+        whole = [t.clone() for t in model._visible_texel_tables(w[None])[0]]
         model._visible_cache.clear()
         for block in torch.randperm(24 * 32, generator=torch.Generator().manual_seed(2)).split(100):
-            points, heights = model._visible_texel_table(w, block)
+            points, heights = model._visible_texel_tables(w[None], block[None])[0]
             torch.testing.assert_close(points[block], whole[0][block], rtol=0, atol=0)
         assert torch.equal(points, whole[0]) and torch.equal(heights, whole[1])
+    # several views' blocks in one march, as a training step asks
+    views = torch.as_tensor(direction_set("ubo2003")[::7], dtype=torch.float32)
+    wholes = [[t.clone() for t in model._visible_texel_tables(w[None])[0]] for w in views]
+    model._visible_cache.clear()
+    order = torch.randperm(24 * 32, generator=torch.Generator().manual_seed(3))
+    for blocks in order.reshape(-1, len(views), 8)[:5]:  # steps of (views, 8 texels each)
+        model._visible_texel_tables(views, blocks)
+    tables = model._visible_texel_tables(views)  # the rows no block asked for
+    for (points, heights), (p_whole, h_whole) in zip(tables, wholes):
+        assert torch.equal(points, p_whole) and torch.equal(heights, h_whole)

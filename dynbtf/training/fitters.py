@@ -23,8 +23,8 @@ from ..data.base import BTFSource
 from ..errors import InputError
 from .fit import FitResult, TrainConfig, fit
 
-__all__ = ["FITTERS", "register_fitter", "get_fitter", "fit_triple_plane", "fit_parallax_triple_plane", "fit_neumip",
-           "fit_pca_model", "fit_sh_model"]
+__all__ = ["FITTERS", "register_fitter", "get_fitter", "fit_triple_plane", "fit_parallax_triple_plane",
+           "parallax_size_options", "fit_neumip", "fit_pca_model", "fit_sh_model"]
 
 #: kind -> fitter
 FITTERS: dict[str, Callable[..., FitResult]] = {}
@@ -64,6 +64,20 @@ def fit_triple_plane(source: BTFSource, output, config: TrainConfig | None = Non
     return fit(rep, source, config, output, progress=progress, callback=callback, extra_provenance=extra_provenance)
 
 
+def parallax_size_options(source: BTFSource) -> dict[str, float]:
+    """:class:`~dynbtf.representations.parallax.ParallaxTriplePlane` options the parallax fitter picks for
+    ``source`` (given options win): none for BTFs that stereo sweeps whole
+    (:func:`~dynbtf.training.stereo_height.auto_stereo_options` empty, e.g. 128 x 128 x 81 views); for
+    larger ones ``height_refresh_texels`` = the same height change in uv units as the default 0.05 texels
+    at 128 texels (the learned height moves by about as many uv units per step at any size, and every step
+    reads every texel, so each refresh marches all ``H * W`` rays): 0.16 texels at 400 x 400."""
+    from .stereo_height import auto_stereo_options
+
+    if not auto_stereo_options(source):
+        return {}
+    return {"height_refresh_texels": 0.05 * max(source.height, source.width) / 128}
+
+
 @register_fitter("triple-parallax")
 def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | None = None, *,
                               progress: bool = True, callback=None, extra_provenance: dict[str, Any] | None = None,
@@ -74,7 +88,7 @@ def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | N
     constructor arguments, plus ``stereo`` (a dict of
     :func:`~dynbtf.training.stereo_height.stereo_height` options; on a large BTF
     :func:`~dynbtf.training.stereo_height.auto_stereo_options` adds a subset of views and
-    lights unless given). The height is estimated from the BTF's images before training
+    lights unless given, and ``height_refresh_texels`` grows with the size). The height is estimated from the BTF's images before training
     and refined by it; a resumed run takes it from its checkpoint.
     """
     from ..representations.parallax import ParallaxTriplePlane
@@ -83,6 +97,7 @@ def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | N
 
     config = config or TrainConfig()
     stereo_options = auto_stereo_options(source) | dict(options.pop("stereo", None) or {})
+    options = parallax_size_options(source) | options
     rep = ParallaxTriplePlane(source.height, source.width, seed=config.seed, **options)
     if not checkpoint_path(output).exists():  # a resumed run reads the height from the checkpoint
         rep.set_height(stereo_height(source, progress=progress, **stereo_options))
