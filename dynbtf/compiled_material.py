@@ -45,7 +45,7 @@ __all__ = ["CompiledMaterial", "save_compiled", "load_compiled", "is_compiled_ma
 
 FORMAT_NAME = "dynbtf-compiled-material"
 #: Bumped whenever a stored table changes meaning: older readers refuse newer files, old cache entries miss.
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: a relief model's hist tables keep the height out of the PCA (separate)
 SUFFIX = ".dbtfc"
 
 

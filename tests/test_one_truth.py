@@ -558,6 +558,65 @@ def reference_relief_field(model, synth, method: str):
     return lambda p: float(brute_force_lattice_blend(synth, p[None], "linear")[0, -1]) * scale
 
 
+def reference_hist_height(model, seed: int, table: bool, gamma: float = 7.0):
+    """hist's separately synthesized height (``separate=1``, no tileable preprocessing) at one point, uv units,
+    float64, from the model's height channel alone: its texels ranked (stable) to ``G = ndtri((rank + 0.5) / N)``,
+    the exact lattice, each vertex's hashed whole-texel offset, bilinear reads of ``G`` at the three offset
+    positions, the blend ``sum w_i G_i / sqrt(sum w_i^2)`` with ``w_i = b_i^gamma / sum_j b_j^gamma``, then the
+    inverse ``np.interp(ndtr(g), (arange(N) + 0.5) / N, sorted heights)`` -- or (``table``, the kernels' inverse)
+    that inverse tabulated at 4096 points evenly from ``G_min = ndtri(0.5 / N)`` to ``-G_min``, interpolated
+    linearly, clamped at both ends."""
+    from fractions import Fraction
+
+    from scipy.special import ndtr, ndtri
+    from synthesis_reference import lowbias32
+
+    height = model.height_channel.detach().double().numpy()
+    rows, cols = height.shape
+    flat = height.reshape(-1)
+    order = np.argsort(flat, kind="stable")
+    ranks = (np.arange(flat.size) + 0.5) / flat.size
+    gaussian = np.empty(flat.size)
+    gaussian[order] = ndtri(ranks)
+    gaussian = gaussian.reshape(rows, cols)
+
+    def inverse(g):
+        return np.interp(ndtr(g), ranks, flat[order])
+
+    g_min = float(ndtri(0.5 / flat.size))
+    grid = np.linspace(g_min, -g_min, 4096)
+    tabulated = inverse(grid)
+
+    def inverse_table(g):
+        pos = min(max((g - g_min) / (grid[1] - grid[0]), 0.0), 4095.0)
+        lo = min(int(pos), 4094)
+        return tabulated[lo] + (pos - lo) * (tabulated[lo + 1] - tabulated[lo])
+
+    def field(p):
+        u, v = float(p[0]), float(p[1])
+        (bx, by), (fx, fy) = exact_lattice(u, v)
+        if 1 - fx - fy > 0:
+            verts, bary = [(bx, by), (bx, by + 1), (bx + 1, by)], [1 - fx - fy, fy, fx]
+        else:
+            verts, bary = [(bx + 1, by + 1), (bx + 1, by), (bx, by + 1)], [fx + fy - 1, 1 - fy, 1 - fx]
+        px, py = Fraction(u) * cols - Fraction(1, 2), Fraction(v) * rows - Fraction(1, 2)
+        x0, y0 = math.floor(px), math.floor(py)
+        tx, ty = float(px - x0), float(py - y0)
+        samples = []
+        for vx, vy in verts:
+            h = reference_hash(vx, vy, seed)
+            ox, oy = h % cols, lowbias32(h ^ 0x9E3779B9) % rows
+            c0, c1, r0, r1 = (x0 + ox) % cols, (x0 + ox + 1) % cols, (y0 + oy) % rows, (y0 + oy + 1) % rows
+            samples.append((1 - tx) * (1 - ty) * gaussian[r0, c0] + tx * (1 - ty) * gaussian[r0, c1]
+                           + (1 - tx) * ty * gaussian[r1, c0] + tx * ty * gaussian[r1, c1])
+        w = np.array(bary) ** gamma
+        w /= w.sum()
+        g = float(w @ np.array(samples)) / math.sqrt(float(w @ w))
+        return float(inverse_table(g) if table else inverse(g)) * model.height_scale
+
+    return field
+
+
 def march_parameters(model) -> dict:
     """``h_min, h_max`` (the exemplar's height range, float64), ``step``, ``max_step``, ``surface_slope`` and
     ``aspect`` from the model's config and the march's documented constants."""
@@ -570,7 +629,7 @@ def march_parameters(model) -> dict:
             "max_step": MARCH_SEARCH_FACTOR * step, "surface_slope": MARCH_SURFACE_SLOPE, "aspect": cols / rows}
 
 
-@pytest.mark.parametrize("method", ["tile", "linear"])
+@pytest.mark.parametrize("method", ["tile", "linear", "hist"])
 def test_relief_march_in_torch_numba_drjit_is_the_reference(mi, relief_model, method):
     """The visible point through the synthesized height: the library's march (through the torch synthesis path
     and through the numba kernel) and Dr.Jit's ``march_visible_uv`` = :func:`reference_march` of the float64
@@ -586,14 +645,22 @@ def test_relief_march_in_torch_numba_drjit_is_the_reference(mi, relief_model, me
 
     model = relief_model
     plane = model.positional_plane().detach()
-    reference = make_synthesizer(method, plane, seed=3, fast=False)
+    options = {"separate": 1, "tileable": False} if method == "hist" else {}  # hist: the height on its own
+    reference = make_synthesizer(method, plane, seed=3, fast=False, **options)
     fast = make_synthesizer(method, plane, seed=3, fast=True, **({} if method == "tile" else
-                                                                {"prepared": reference.prepared}))
+                                                                {"prepared": reference.prepared, **options}))
     uv, wv, _ = relief_queries(240, seed=31)
-    want = reference_march(uv, wv, reference_relief_field(model, reference, method), **march_parameters(model))
+    if method == "hist":  # the torch path inverts exactly, the kernels through the table
+        wants = {table: reference_march(uv, wv, reference_hist_height(model, 3, table), **march_parameters(model))
+                 for table in (False, True)}
+    else:
+        field = reference_relief_field(model, reference, method)
+        wants = dict.fromkeys((False, True), reference_march(uv, wv, field, **march_parameters(model)))
+    want = wants[True]
     texels = np.array(model.height_channel.shape[::-1], np.float64)  # uv -> texels per axis
 
     def check(got, what):
+        want = wants[what != "torch"]
         error = np.abs(np.asarray(got, np.float64) - want).max(1) * texels.max()
         assert np.mean(error < 1e-5) >= 0.98, (what, np.sort(error)[-8:])
 

@@ -140,6 +140,11 @@ class Representation(nn.Module, abc.ABC):
     #: (representations whose positional fetch depends on the view, e.g. parallax).
     view_coherent_batches: ClassVar[bool] = False
 
+    #: How many of the positional plane's last channels synthesis keeps out of the features'
+    #: decorrelation (``hist``'s ``separate``): a relief model's height, synthesized on its own so that
+    #: a march reads one channel per step (same lattice, offsets and weights as the features).
+    separate_channels: ClassVar[int] = 0
+
     # ------------------------------------------------------------ to implement
     @abc.abstractmethod
     def positional_plane(self) -> torch.Tensor:

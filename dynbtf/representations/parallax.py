@@ -200,6 +200,7 @@ class ParallaxTriplePlane(TriplePlane):
     extra_positional_channels = 1
     #: The fit loop gives every texel group images of one view (see :mod:`dynbtf.training.fit`).
     view_coherent_batches = True
+    separate_channels = 1  # the height: synthesized on its own (its own histogram transform, outside the PCA)
 
     def __init__(self, height: int, width: int, positional_channels: int = 16, angular_resolution: int = 20,
                  angular_channels: int = 8, hidden: int = 32, layers: int = 4, negative_slope: float = 0.01,
@@ -266,7 +267,8 @@ class ParallaxTriplePlane(TriplePlane):
 
         ``fetch(points (M, 2)) -> (M, C_U + 1)`` is the positional fetch whose last
         channel is the height (default: this model's plane; a synthesized BTF passes
-        its synthesizer, so the march follows the synthesized relief), or a height
+        its synthesizer, so the march follows the synthesized relief, read through its
+        ``channel(points, -1)``: the height channel alone), or a height
         plane ``(H, W, 1)`` in channel units. Directions
         with ``z <= 0`` are treated as vertical (they evaluate to zero anyway).
         Returns float64 ``(..., 2)``.
@@ -287,9 +289,11 @@ class ParallaxTriplePlane(TriplePlane):
                 return fetch_wrap(plane, points)[:, 0]
         else:
             h_min, h_max = self.height_range()
+            # a synthesizer synthesizes the height channel alone (Synthesizer.channel), not every channel
+            read = getattr(fetch, "channel", None) or (lambda points, index: fetch(points)[..., index])
 
             def height_at(points):
-                return fetch(points)[..., -1].to(torch.float64) * self.height_scale
+                return read(points, -1).to(torch.float64) * self.height_scale
         return march_visible_uv(flat, w, height_at, h_min=h_min, h_max=h_max,
                                 **self.march_parameters()).reshape(*batch, 2)
 

@@ -210,6 +210,31 @@ class Synthesizer(abc.ABC):
         out = latent if matrix is None else latent @ matrix.to(latent.dtype) + offset.to(latent.dtype)
         return out.reshape(*batch, self.channels)
 
+    def channel(self, uv, index: int) -> torch.Tensor:
+        """Feature channel ``index`` ``(...)`` float32 at ``uv (..., 2)``: the values of ``self(uv)[..., index]``.
+
+        Only the latent channels the output map mixes into it are synthesized (:meth:`latent_channels`):
+        one, for a channel kept out of the decorrelation (a relief model's height, marched through), or
+        without an output map.
+        """
+        uv = check_uv(uv).to(self.device)
+        batch = uv.shape[:-1]
+        flat = uv.reshape(-1, 2).to(torch.float64)
+        index = int(index) % self.channels
+        matrix, offset = self.output_map()
+        if matrix is None:
+            return self.latent_channels(flat, [index])[:, 0].reshape(batch)
+        rows = torch.nonzero(matrix[:, index]).reshape(-1).tolist()
+        latent = self.latent_channels(flat, rows)
+        column = matrix[rows, index].to(latent.dtype)
+        out = (latent @ column if len(rows) > 1 else latent[:, 0] * column[0]) + offset[index].to(latent.dtype)
+        return out.reshape(batch)
+
+    def latent_channels(self, uv: torch.Tensor, rows: list[int]) -> torch.Tensor:
+        """Latent channels ``rows`` only: ``uv (N, 2)`` float64 -> ``(N, len(rows))`` float32, the values of
+        ``latent(uv)[:, rows]`` (methods whose channels are synthesized independently compute only those)."""
+        return self.latent(uv)[:, rows]
+
     # ------------------------------------------------------------ to implement
     @abc.abstractmethod
     def latent(self, uv: torch.Tensor) -> torch.Tensor:

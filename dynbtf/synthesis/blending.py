@@ -189,6 +189,22 @@ class LatticeBlending(Synthesizer):
                                self.seed, self.mode, out=out, **kwargs)
         return torch.from_numpy(result)
 
+    def latent_channels(self, uv: torch.Tensor, rows: list[int]) -> torch.Tensor:
+        """:meth:`latent`'s channels ``rows`` ``(N, len(rows))`` float32 for ``uv (N, 2)`` float64: the fused kernel
+        reads only those channels of the plane (and of the inverse tables): every channel is blended with the
+        same weights on its own, so the values are those of :meth:`latent`."""
+        if not self.fast or len(rows) == self.plane_channels():
+            return self.latent(uv)[:, rows]
+        from .kernels import lattice_blend
+
+        key = ",".join(map(str, rows))
+        kwargs = {k: (self._numpy(f"{k}[{key}]", v[rows]) if k == "lut" else
+                      self._numpy(k, v) if isinstance(v, torch.Tensor) else v)
+                  for k, v in self.kernel_arguments().items()}
+        plane = self._numpy(f"plane[{key}]", self.prepared.plane[..., rows])
+        return torch.from_numpy(lattice_blend(uv.detach().cpu().numpy(), plane, self.density, self.seed, self.mode,
+                                              **kwargs))
+
     # ------------------------------------------------------------ footprint queries
     def pyramid(self) -> dict[str, Any]:
         """The read plane's pyramid, its level of detail and the method's per-level tables (built once).

@@ -42,8 +42,13 @@ class Decorrelation:
     variances: torch.Tensor
 
     @classmethod
-    def fit(cls, values: torch.Tensor) -> "Decorrelation":
-        """Fit to ``values (N, C)``.
+    def fit(cls, values: torch.Tensor, separate: int = 0) -> "Decorrelation":
+        """Fit to ``values (N, C)``; the last ``separate`` channels stay out of the PCA.
+
+        With ``separate = s > 0`` the PCA runs on the first ``C - s`` channels and each of the last ``s``
+        is its own coefficient, only centred: ``basis`` is block-diagonal (the PCA's columns, then an
+        identity block), so a coefficient of the last ``s`` depends on that channel alone and the
+        channel on that coefficient alone (a relief model's height, synthesized on its own).
 
         >>> import torch
         >>> x = torch.randn(1000, 2, dtype=torch.float64) @ torch.tensor([[1.0, 0.9], [0.0, 0.3]], dtype=torch.float64)
@@ -53,6 +58,19 @@ class Decorrelation:
         (True, True)
         """
         values = values.to(torch.float64)
+        c = values.shape[1]
+        if separate:
+            if not 0 < separate < c:
+                from ..errors import InputError
+
+                raise InputError(f"separate: expected fewer than the {c} channels, got {separate}")
+            head = cls.fit(values[:, : c - separate])
+            basis = torch.zeros(c, c, dtype=torch.float64, device=values.device)
+            basis[: c - separate, : c - separate] = head.basis
+            basis[c - separate:, c - separate:] = torch.eye(separate, dtype=torch.float64, device=values.device)
+            tail = values[:, c - separate:]
+            variances = tail.var(0) if values.shape[0] > 1 else torch.zeros(separate, dtype=torch.float64)
+            return cls(torch.cat([head.mean, tail.mean(0)]), basis, torch.cat([head.variances, variances]))
         mean = values.mean(0)
         centred = values - mean
         cov = centred.T @ centred / max(values.shape[0] - 1, 1)

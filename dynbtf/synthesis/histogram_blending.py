@@ -68,6 +68,12 @@ class HistogramBlending(LatticeBlending):
         docstring); integral values are as fast as 1 in the fused kernel.
     decorrelate : bool, default True
         PCA over the channels before the per-channel transforms.
+    separate : int, default 0
+        The last ``separate`` channels stay out of the PCA: each gets its own 1-D transform of the
+        channel itself (:meth:`~dynbtf.synthesis.histogram.Decorrelation.fit`), blended with the same
+        lattice, offsets and weights as the others. A relief model's height (its plane's last
+        channel) is synthesized so: a march reads it alone (:meth:`channel`: one channel's three
+        bilinear reads and one inverse table instead of all ``C``). 0: every channel in the PCA.
     lut_size : int, default 4096
         Entries of the inverse-transform table of the fused kernel.
     tileable, band, fast, prepared
@@ -91,20 +97,21 @@ class HistogramBlending(LatticeBlending):
     mode = MODE_HIST
 
     def __init__(self, exemplar, seed: int = 0, *, gamma: float = DEFAULT_GAMMA, decorrelate: bool = True,
-                 lut_size: int = 4096, tileable="auto", band: int | None = None, fast: bool | None = None,
+                 separate: int = 0, lut_size: int = 4096, tileable="auto", band: int | None = None, fast: bool | None = None,
                  prepared: LatticePlane | None = None) -> None:
         gamma = positive_number("gamma", gamma, "exponent")
         if int(lut_size) < 2:
             raise InputError(f"lut_size: expected at least 2 entries, got {lut_size!r}")
         self.gamma = gamma
         self.decorrelate = bool(decorrelate)
+        self.separate = int(separate)
         self.lut_size = int(lut_size)
         super().__init__(exemplar, seed, tileable=tileable, band=band, fast=fast, prepared=prepared)
 
     def prepare(self, source: torch.Tensor) -> LatticePlane:
         h, w, c = source.shape
         values = source.reshape(-1, c).to(torch.float64)
-        decorrelation = Decorrelation.fit(values) if self.decorrelate else None
+        decorrelation = Decorrelation.fit(values, self.separate) if self.decorrelate else None
         coefficients = decorrelation.project(values) if decorrelation is not None else values
         transform, gaussian = GaussianTransform.fit(coefficients)
         lut = transform.lut(self.lut_size)
@@ -169,5 +176,5 @@ class HistogramBlending(LatticeBlending):
         return decorrelation.basis.T.to(torch.float32), decorrelation.mean.to(torch.float32)
 
     def parameters(self) -> dict[str, Any]:
-        return {"gamma": self.gamma, "decorrelate": self.decorrelate, "lut_size": self.lut_size,
+        return {"gamma": self.gamma, "decorrelate": self.decorrelate, "separate": self.separate, "lut_size": self.lut_size,
                 **super().parameters()}

@@ -102,6 +102,8 @@ def _build_synthesizer(model, method: str, seed: int, arguments: dict[str, Any])
         arguments["guide"] = decoded_appearance(model, plane)
     if method == "hex" and "luminance" not in arguments:
         arguments["luminance"] = decoded_luminance(model)
+    if getattr(model, "separate_channels", 0) and "separate" not in arguments and method in ("auto", "hist"):
+        arguments["separate"] = int(model.separate_channels)  # a relief model's height: its own transform
     return make_synthesizer(method, plane, seed=seed, **arguments)
 
 

@@ -422,13 +422,13 @@ def _glsl_fetches() -> str:
     """Texel fetches: the bilinear footprint of the plane (every method), the luminance (``hex``), the
     inverse histogram tables (``hist``) and ``hex``'s contrast gain."""
     return """// ---- fetches
-void dynbtf_bilinear(ivec2 c, vec2 t, float weight, inout vec4 acc[DYNBTF_G]) {
+void dynbtf_bilinear(ivec2 c, vec2 t, float weight, int g0, int g1, inout vec4 acc[DYNBTF_G]) {
     ivec2 size = dynbtf_plane_size;
     int c1 = c.x + 1 == size.x ? 0 : c.x + 1;
     int r1 = c.y + 1 == size.y ? 0 : c.y + 1;
     float w00 = weight * (1.0 - t.x) * (1.0 - t.y), w01 = weight * t.x * (1.0 - t.y);
     float w10 = weight * (1.0 - t.x) * t.y, w11 = weight * t.x * t.y;
-    for (int g = 0; g < DYNBTF_G; ++g) {
+    for (int g = g0; g < g1; ++g) {
         acc[g] += w00 * texelFetch(dynbtf_plane, ivec3(c.x, c.y, g), 0) + w01 * texelFetch(dynbtf_plane, ivec3(c1, c.y, g), 0)
                 + w10 * texelFetch(dynbtf_plane, ivec3(c.x, r1, g), 0) + w11 * texelFetch(dynbtf_plane, ivec3(c1, r1, g), 0);
     }
@@ -465,19 +465,20 @@ float dynbtf_gain(float x) {
 def _glsl_latent() -> str:
     """``dynbtf_latent``: the synthesized positional features before the output map, per method
     (``dynbtf_mode``): one sample (``tile``, ``struct``), or three blended with barycentric (``linear``),
-    ``(b / max b)^gamma`` (``hist``, then its inverse tables) or luminance-weighted (``hex``) weights."""
+    ``(b / max b)^gamma`` (``hist``, then its inverse tables) or luminance-weighted (``hex``) weights; only the
+    channel groups ``[g0, g1)`` (the others are 0: a relief march reads the height's group alone)."""
     return """// ---- synthesized positional features before the output map (the "latent", DYNBTF_G vec4)
-void dynbtf_latent(DynbtfOrigin o, vec2 local, out vec4 latent[DYNBTF_G]) {
+void dynbtf_latent(DynbtfOrigin o, vec2 local, int g0, int g1, out vec4 latent[DYNBTF_G]) {
     vec4 acc[DYNBTF_G];
     for (int g = 0; g < DYNBTF_G; ++g) acc[g] = vec4(0.0);
     float total = 1.0;
     if (dynbtf_mode == 4) {
         DynbtfCell cell = dynbtf_cell(o, local);
-        dynbtf_bilinear(cell.texel, cell.t, 1.0, acc);
+        dynbtf_bilinear(cell.texel, cell.t, 1.0, g0, g1, acc);
     } else {
         DynbtfTriangle tri = dynbtf_triangle(o, local);
         if (dynbtf_mode == 0) {
-            dynbtf_bilinear(tri.texel, tri.t, 1.0, acc);
+            dynbtf_bilinear(tri.texel, tri.t, 1.0, g0, g1, acc);
         } else {
             vec3 s = vec3(tri.b[0], tri.b[1], tri.b[2]);
             ivec2 size = dynbtf_plane_size;
@@ -498,13 +499,13 @@ void dynbtf_latent(DynbtfOrigin o, vec2 local, out vec4 latent[DYNBTF_G]) {
                     s /= s.x + s.y + s.z;
                 }
             }
-            for (int i = 0; i < 3; ++i) dynbtf_bilinear(c[i], tri.t, s[i], acc);
+            for (int i = 0; i < 3; ++i) dynbtf_bilinear(c[i], tri.t, s[i], g0, g1, acc);
             total = s.x + s.y + s.z;
         }
     }
-    for (int g = 0; g < DYNBTF_G; ++g) acc[g] = acc[g] * dynbtf_plane_scale[g] + total * dynbtf_plane_bias[g];
+    for (int g = g0; g < g1; ++g) acc[g] = acc[g] * dynbtf_plane_scale[g] + total * dynbtf_plane_bias[g];
     if (dynbtf_mode == 2) {
-        for (int g = 0; g < DYNBTF_G; ++g) {
+        for (int g = g0; g < g1; ++g) {
             vec4 v;
             for (int k = 0; k < 4; ++k) v[k] = dynbtf_inverse_table(4 * g + k, acc[g][k]);
             acc[g] = v * dynbtf_lut_scale[g] + dynbtf_lut_bias[g];
@@ -574,8 +575,13 @@ uniform vec4 dynbtf_height_map[DYNBTF_G];   // height channel = latent . map + o
 uniform float dynbtf_height_offset;
 #define DYNBTF_MAX_MARCH {MAX_MARCH_STEPS}
 float dynbtf_height(DynbtfOrigin o, vec2 p) {{
+    // only the latent groups the height map mixes (one for hist's separately synthesized height)
+    int g0 = DYNBTF_G, g1 = 0;
+    for (int g = 0; g < DYNBTF_G; ++g) {{
+        if (dynbtf_height_map[g] != vec4(0.0)) {{ g0 = min(g0, g); g1 = g + 1; }}
+    }}
     vec4 x[DYNBTF_G];
-    dynbtf_latent(o, p, x);
+    dynbtf_latent(o, p, g0, max(g1, g0), x);
     float h = dynbtf_height_offset;
     for (int g = 0; g < DYNBTF_G; ++g) h += dot(x[g], dynbtf_height_map[g]);
     return h * {_float(relief["height_scale"])};
@@ -641,7 +647,7 @@ vec4 dynbtf_leaky(vec4 x) {{ return max(x, 0.0) + {_float(negative_slope)} * min
 vec3 dynbtf_eval(DynbtfOrigin o, vec2 local, vec3 w_view, vec3 w_light) {{
     if (w_view.z < 0.0 || w_light.z < 0.0) return vec3(0.0);
     vec4 x[DYNBTF_G];
-    dynbtf_latent(o, {"dynbtf_visible(o, local, w_view)" if relief else "local"}, x);
+    dynbtf_latent(o, {"dynbtf_visible(o, local, w_view)" if relief else "local"}, 0, DYNBTF_G, x);
     vec3 sum = w_view + w_light;
     vec3 h = dot(sum, sum) < 1e-24 ? vec3(0.0, 0.0, 1.0) : normalize(sum);
     vec4 fh[DYNBTF_AG], fd[DYNBTF_AG];

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from ...errors import InputError
 from ...synthesis import hash as synthesis_hash
 from ...synthesis import lattice as synthesis_lattice
@@ -506,16 +508,19 @@ class DrLatticeBlending:
     def channel(self, u, v, index: int, active=True):
         """One synthesized feature channel (``mi.Float``) at ``(u, v)``: e.g. a parallax model's height.
 
-        Without an output map only that channel is blended; with one, every latent
-        channel contributes to it.
+        Only the latent channels the output map mixes into it are blended (as
+        :meth:`dynbtf.synthesis.base.Synthesizer.channel`): that channel alone without an
+        output map, or for a channel kept out of the decorrelation (hist's ``separate``: one
+        channel's three bilinear reads and one inverse table); else every latent channel.
         """
         dr = drjit_module()
         if self.matrix is None:
             return self.latent(u, v, active, which=[index])[0]
-        latent = self.latent(u, v, active)
-        acc = latent[0] * float(self.matrix[0, index]) + float(self.offset[index])
-        for i in range(1, self.matrix.shape[0]):
-            acc = dr.fma(latent[i], float(self.matrix[i, index]), acc)
+        rows = [int(i) for i in np.nonzero(self.matrix[:, index])[0]]
+        latent = self.latent(u, v, active, which=rows)
+        acc = latent[0] * float(self.matrix[rows[0], index]) + float(self.offset[index])
+        for x, i in zip(latent[1:], rows[1:]):
+            acc = dr.fma(x, float(self.matrix[i, index]), acc)
         return acc
 
 
