@@ -145,14 +145,16 @@ def test_cli_fit_states_the_recipe_and_a_rerun_continues_with_it(tmp_path, dfmf,
     # the fit's clock advances 10 s per reading: the 0.06 s budget runs out after the first step, on any machine
     clock = itertools.count(0.0, 10.0)
     monkeypatch.setattr(fit_module, "time", types.SimpleNamespace(perf_counter=lambda: next(clock)))
-    first = runner.invoke(app, ["fit", str(dfmf), "-o", str(out), "--max-minutes", "0.001", "--epochs", "2",
+    first = runner.invoke(app, ["fit", str(dfmf), "-o", str(out), "--repr", "triple", "--max-minutes", "0.001",
+                                "--epochs", "2",
                                 "--device", "cpu", "--workers", "1"])
     monkeypatch.undo()
     assert first.exit_code == 0, first.output
     assert "recipe for 12 x 12 texels, 15 x 15 directions: 2 epochs" in first.output
     saved = Checkpointer.saved_config(checkpoint_path(out))
     assert saved["epochs"] == 2 and saved["texel_groups"] == 13  # 213 training pairs // 16
-    second = runner.invoke(app, ["fit", str(dfmf), "-o", str(out), "--device", "cpu", "--workers", "1"])
+    second = runner.invoke(app, ["fit", str(dfmf), "-o", str(out), "--repr", "triple", "--device", "cpu",
+                                 "--workers", "1"])
     assert second.exit_code == 0, second.output
     assert "continuing" in second.output and "(2 epochs)" in second.output
     meta = load_model(out)[1]["provenance"]

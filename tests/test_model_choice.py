@@ -23,13 +23,27 @@ def test_pick_prefers_the_cheaper_kind_unless_beaten_by_the_margin():
     assert pick({"triple": 23.69, "triple-parallax": 28.12}) == "triple-parallax"
 
 
-def _config():
-    return TrainConfig(epochs=2, texel_groups=4, schedule="converge", monitor_every=20, monitor_pairs=4, workers=1,
-                       device="cpu", precision="fp32", lr_scale=6.0)
+def _config(**options):
+    return TrainConfig(**{"epochs": 2, "texel_groups": 4, "schedule": "converge", "monitor_every": 20,
+                          "monitor_pairs": 4, "workers": 1, "device": "cpu", "precision": "fp32", "lr_scale": 6.0,
+                          **options})
 
 
-def test_the_race_continues_the_winner_to_the_same_model_as_its_own_fit(tmp_path, capsys):
+def test_the_race_continues_the_winner_to_the_same_model_as_its_own_fit(tmp_path, capsys, monkeypatch):
+    import importlib
+    import itertools
+    import types
+
     source = open_btf("sim:stone?size=8")
+    # a budget that runs out in the first trial (the fit's clock advances 10 s per reading): nothing is chosen yet,
+    # the trial is checkpointed, and the same call again continues the race where it stopped
+    clock = itertools.count(0.0, 10.0)
+    fit_module = importlib.import_module("dynbtf.training.fit")
+    with monkeypatch.context() as patch:
+        patch.setattr(fit_module, "time", types.SimpleNamespace(perf_counter=lambda: next(clock)))
+        stopped = fit_best(source, tmp_path / "auto.dbtfm", _config(max_minutes=0.5), progress=True)
+    assert not stopped.finished and "time budget reached during the trial of triple" in capsys.readouterr().out
+    assert not (tmp_path / "auto.dbtfm").exists() and any(p.name.endswith(".ckpt") for p in tmp_path.iterdir())
     result = fit_best(source, tmp_path / "auto.dbtfm", _config(), progress=True)
     printed = capsys.readouterr().out
     choice = result.metadata["provenance"]["representation_choice"]

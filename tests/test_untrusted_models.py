@@ -319,8 +319,8 @@ def stored_btf(tmp_path_factory):
 
 
 def fit_argv(btf, out, *extra) -> list[str]:
-    return ["fit", str(btf), "-o", str(out), "--epochs", "2", "--quiet", "--device", "cpu", "--workers", "1",
-            *map(str, extra)]
+    return ["fit", str(btf), "-o", str(out), "--repr", "triple", "--epochs", "2", "--quiet", "--device", "cpu",
+            "--workers", "1", *map(str, extra)]
 
 
 def _damage_epoch(value):

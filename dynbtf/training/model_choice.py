@@ -14,7 +14,8 @@ checkpoint becomes the output's), so only the losers' trials are extra work.
 The choice is printed in one line and recorded in the model's provenance
 (``representation_choice``: each trial's steps, held-out PSNR and seconds). A re-run on the
 same output continues the chosen kind (it is read from the checkpoint, or from the finished
-model file); an interrupted race starts its trials again.
+model file); an interrupted race continues its trials (each from its checkpoint, the finished
+ones recorded next to the output). ``max_minutes`` is the whole command's budget, trials included.
 
 >>> from dynbtf.training.model_choice import pick
 >>> pick({"triple": 24.0, "triple-parallax": 24.05})    # within the margin: the cheaper kind
@@ -25,6 +26,8 @@ model file); an interrupted race starts its trials again.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 import shutil
 import time
@@ -107,11 +110,43 @@ def _trial_output(output: Path, kind: str) -> Path:
     return output.with_name(f".{output.name}.trial-{kind}.dbtfm")
 
 
+def _race_path(output: Path) -> Path:
+    """The finished trials of an unfinished race (JSON), so that a re-run continues the race."""
+    return output.with_name(f".{output.name}.race.json")
+
+
+def _finished_trials(output: Path) -> dict[str, dict[str, Any]]:
+    """The trials an earlier, interrupted race on ``output`` finished (``{}`` when none, or unreadable)."""
+    import json
+
+    try:
+        trials = json.loads(_race_path(output).read_text())
+    except (OSError, ValueError):
+        return {}
+    ok = isinstance(trials, dict) and all(k in CANDIDATES and isinstance(t, dict) and
+                                          isinstance(t.get("held_out_psnr"), float) for k, t in trials.items())
+    return trials if ok else {}
+
+
+def _checks_in_checkpoint(path: Path) -> list[tuple[float, int]]:
+    """The held-out checks ``(score, step)`` recorded in a trial's checkpoint (none without one)."""
+    import torch
+
+    if not path.exists():
+        return []
+    try:
+        record = torch.load(path, map_location="cpu", weights_only=True).get("monitor", [])
+        return [(float(r["held_out_psnr"]), int(r["step"])) for r in record]
+    except Exception:
+        return []  # a damaged checkpoint: the trial's fitter reports it
+
+
 def _run_trial(kind: str, source: BTFSource, output: Path, config: TrainConfig, progress: bool,
-               options: dict[str, Any]) -> dict[str, Any]:
+               options: dict[str, Any]) -> tuple[dict[str, Any] | None, FitResult | None]:
     """Train ``kind`` into its trial output until its :data:`TRIAL_CHECKS`-th held-out check (or the end of a shorter
-    fit); returns ``{"held_out_psnr", "steps", "seconds"}`` at that check."""
-    checks = []
+    fit; an interrupted trial continues from its checkpoint). Returns ``({"held_out_psnr", "steps", "seconds"},
+    None)`` at that check, or ``(None, result)`` when the time budget stopped the trial first."""
+    checks = _checks_in_checkpoint(checkpoint_path(_trial_output(output, kind)))
 
     def stop_after_trial(info: dict[str, Any]) -> None:
         if "held_out_psnr" in info:
@@ -120,13 +155,36 @@ def _run_trial(kind: str, source: BTFSource, output: Path, config: TrainConfig, 
                 raise _TrialOver
 
     start = time.perf_counter()
-    try:
-        get_fitter(kind)(source, _trial_output(output, kind), config, progress=progress, callback=stop_after_trial,
-                         **options)
-    except _TrialOver:
-        pass
-    score, steps = checks[-1] if checks else (math.nan, 0)
-    return {"held_out_psnr": score, "steps": steps, "seconds": round(time.perf_counter() - start, 1)}
+    if len(checks) < TRIAL_CHECKS:
+        try:
+            result = get_fitter(kind)(source, _trial_output(output, kind), config, progress=progress,
+                                      callback=stop_after_trial, **options)
+            if not result.finished:
+                return None, result
+        except _TrialOver:
+            pass
+    score, steps = checks[min(len(checks), TRIAL_CHECKS) - 1] if checks else (math.nan, 0)
+    return {"held_out_psnr": score, "steps": steps, "seconds": round(time.perf_counter() - start, 1)}, None
+
+
+def _remaining(config: TrainConfig, start: float) -> TrainConfig:
+    """``config`` with ``max_minutes`` less the minutes since ``start`` (the whole command's budget)."""
+    if config.max_minutes is None:
+        return config
+    left = config.max_minutes - (time.perf_counter() - start) / 60
+    return dataclasses.replace(config, max_minutes=max(left, 1e-9))
+
+
+def _promote(output: Path, winner: str) -> None:
+    """Make the winner's trial the output's fit (checkpoint and model file); delete every trial and the race."""
+    trial = _trial_output(output, winner)
+    for made, final in ((checkpoint_path(trial), checkpoint_path(output)), (trial, output)):
+        if made.exists():
+            shutil.move(made, final)
+    for kind in CANDIDATES:
+        _trial_output(output, kind).unlink(missing_ok=True)
+        checkpoint_path(_trial_output(output, kind)).unlink(missing_ok=True)
+    _race_path(output).unlink(missing_ok=True)
 
 
 def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
@@ -136,8 +194,9 @@ def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, pr
     Parameters
     ----------
     source, output, config, progress, callback :
-        As any fitter (:mod:`dynbtf.training.fitters`); ``config.monitor_every`` sets the trial length (0: one
-        epoch per check).
+        As any fitter (:mod:`dynbtf.training.fitters`); ``config.max_minutes`` is the whole command's budget (trials
+        included): when it runs out during a trial, that trial's result (unfinished) is returned, and the same call
+        again continues the race.
     kind_options : dict, optional
         Fitter options per kind (e.g. ``{"triple-parallax": {"stereo": {...}}}``).
 
@@ -146,8 +205,10 @@ def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, pr
     FitResult
         Of the winner; its model file's provenance holds ``representation_choice``.
     """
+    from ..io import atomic_path
+
     config = (config or TrainConfig()).validate()
-    output, kind_options = Path(output), dict(kind_options or {})
+    output, kind_options, start = Path(output), dict(kind_options or {}), time.perf_counter()
     if config.held_out_fraction <= 0 or config.monitor_pairs <= 0:
         raise InputError("--repr auto chooses by held-out PSNR: it needs held-out pairs (--held-out-fraction > 0); "
                          f"name a kind instead, one of {list(CANDIDATES)}")
@@ -157,40 +218,43 @@ def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, pr
             print(f"representation: {chosen} (chosen by the earlier run on {output}; continuing it)")
         return get_fitter(chosen)(source, output, config, progress=progress, callback=callback,
                                   **kind_options.get(chosen, {}))
+    parallel, _ = from_environment(resolve_device(config.device))  # (a data-parallel fit: every process races)
+    progress = progress and parallel.is_main
+    trials = _finished_trials(output)
     if progress:
         print(f"choosing the representation: a trial of {TRIAL_CHECKS} held-out checks each of "
-              f"{', '.join(CANDIDATES)} on the same held-out pairs")
-    parallel, _ = from_environment(resolve_device(config.device))  # (a data-parallel fit: every process races)
-    trials = {}
-    try:
-        for kind in CANDIDATES:
-            trials[kind] = _run_trial(kind, source, output, config, progress and parallel.is_main,
-                                      kind_options.get(kind, {}))
-        winner = pick({k: t["held_out_psnr"] for k, t in trials.items()})
-        if progress and parallel.is_main:
-            print(f"representation: {winner} (held-out PSNR after a trial of "
-                  + ", ".join(f"{k} {t['held_out_psnr']:.2f} dB at step {t['steps']}" for k, t in trials.items())
-                  + f"; a kind after {CANDIDATES[0]} must win by {MARGIN_DB:g} dB)")
-        parallel.barrier()  # every trial's checkpoint is written
-        trial = _trial_output(output, winner)
-        for made, final in ((checkpoint_path(trial), checkpoint_path(output)), (trial, output)):
-            if made.exists() and parallel.is_main:
-                shutil.move(made, final)  # the winner's fit continues from its trial
-    finally:
-        if parallel.is_main:
-            for kind in CANDIDATES:
-                _trial_output(output, kind).unlink(missing_ok=True)
-                checkpoint_path(_trial_output(output, kind)).unlink(missing_ok=True)
-    parallel.barrier()
+              f"{', '.join(CANDIDATES)} on the same held-out pairs" + (f" (continuing the race: {', '.join(trials)} "
+                                                                       "done)" if trials else ""))
+    for kind in CANDIDATES:
+        if kind not in trials:
+            trial, stopped = _run_trial(kind, source, output, _remaining(config, start), progress,
+                                        kind_options.get(kind, {}))
+            if stopped is not None:
+                if progress:
+                    print(f"time budget reached during the trial of {kind}; run the same command again to continue")
+                return stopped
+            trials[kind] = trial
+            if parallel.is_main:
+                with atomic_path(_race_path(output)) as tmp:
+                    tmp.write_text(json.dumps(trials))
+    winner = pick({k: t["held_out_psnr"] for k, t in trials.items()})
+    if progress:
+        print(f"representation: {winner} (held-out PSNR after a trial of "
+              + ", ".join(f"{k} {t['held_out_psnr']:.2f} dB at step {t['steps']}" for k, t in trials.items())
+              + f"; a kind after {CANDIDATES[0]} must win by {MARGIN_DB:g} dB)")
+    parallel.barrier()  # every trial's checkpoint is written
+    if parallel.is_main:
+        _promote(output, winner)
     evidence = {"kind": winner, "rule": f"best held-out PSNR at the last of {TRIAL_CHECKS} held-out checks of a "
-                                        f"trial of each kind; later kinds win by more than {MARGIN_DB:g} dB", "trials": trials}
+                                        f"trial of each kind; later kinds win by more than {MARGIN_DB:g} dB",
+                "trials": trials}
     if output.is_file() and parallel.is_main:  # the trial was the whole fit (a short schedule): add the evidence
         from ..representations.model_file import load_model, save_model
 
         rep, meta = load_model(output, device="cpu")
         save_model(output, rep, meta["provenance"] | {"representation_choice": evidence})
     parallel.barrier()
-    return get_fitter(winner)(source, output, config, progress=progress, callback=callback,
+    return get_fitter(winner)(source, output, _remaining(config, start), progress=progress, callback=callback,
                               extra_provenance={"representation_choice": evidence}, **kind_options.get(winner, {}))
 
 
