@@ -41,6 +41,18 @@ def test_schedule_multiplier_is_the_halvings_times_a_steady_decay_to_the_floor_a
     assert not paper.converged(999, [{"step": 1, "held_out_psnr": 1.0}] * 50)
 
 
+class Stop(Exception):
+    """Raised by :func:`stop_at`'s callback: an interrupted fit."""
+
+
+def stop_at(step: int):
+    """A fit callback that interrupts the fit after global step ``step`` (checkpointed)."""
+    def callback(info):
+        if info["global_step"] == step:
+            raise Stop
+    return callback
+
+
 def _config(**options):
     return TrainConfig(**{"epochs": 3, "texel_groups": 4, "schedule": "converge", "monitor_every": 25,
                           "monitor_pairs": 4, "workers": 1, "device": "cpu", "precision": "fp32",
@@ -64,15 +76,8 @@ def test_a_converge_fit_stops_on_its_monitor_and_an_interrupted_one_ends_identic
     for r, k in zip(record, halvings):  # the rate each check was trained at: the rule's, recomputed here
         assert math.isclose(r["lr_multiplier"], 0.5 ** k * schedule.anneal(r["step"] - 1), rel_tol=1e-12)
 
-    class Stop(Exception):
-        pass
-
-    def interrupt(info):
-        if info["global_step"] == 137:
-            raise Stop
-
     with pytest.raises(Stop):
-        get_fitter("triple")(source, tmp_path / "resumed.dbtfm", config, progress=False, callback=interrupt)
+        get_fitter("triple")(source, tmp_path / "resumed.dbtfm", config, progress=False, callback=stop_at(137))
     assert checkpoint_path(tmp_path / "resumed.dbtfm").exists()
     resumed = get_fitter("triple")(source, tmp_path / "resumed.dbtfm", config, progress=False)
     assert resumed.metadata["provenance"]["schedule"] == provenance["schedule"] | {
@@ -88,16 +93,8 @@ def test_a_converge_fit_stops_on_its_monitor_and_an_interrupted_one_ends_identic
 def test_a_checkpoint_with_a_damaged_monitor_record_is_refused_by_name(tmp_path):
     source = open_btf("sim:leather?size=8")
     out = tmp_path / "m.dbtfm"
-
-    class Stop(Exception):
-        pass
-
-    def interrupt(info):
-        if info["global_step"] == 60:
-            raise Stop
-
     with pytest.raises(Stop):
-        get_fitter("triple")(source, out, _config(), progress=False, callback=interrupt)
+        get_fitter("triple")(source, out, _config(), progress=False, callback=stop_at(60))
     ckpt = checkpoint_path(out)
     state = torch.load(ckpt, weights_only=True)
     assert [r["step"] for r in state["monitor"]] == [25, 50]
