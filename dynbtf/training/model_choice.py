@@ -142,13 +142,16 @@ def _checks_in_checkpoint(path: Path) -> list[tuple[float, int]]:
 
 
 def _run_trial(kind: str, source: BTFSource, output: Path, config: TrainConfig, progress: bool,
-               options: dict[str, Any]) -> tuple[dict[str, Any] | None, FitResult | None]:
+               options: dict[str, Any], callback=None) -> tuple[dict[str, Any] | None, FitResult | None]:
     """Train ``kind`` into its trial output until its :data:`TRIAL_CHECKS`-th held-out check (or the end of a shorter
     fit; an interrupted trial continues from its checkpoint). Returns ``({"held_out_psnr", "steps", "seconds"},
-    None)`` at that check, or ``(None, result)`` when the time budget stopped the trial first."""
+    None)`` at that check, or ``(None, result)`` when the time budget stopped the trial first. ``callback`` (the
+    caller's per-step callback) sees the trial's steps too."""
     checks = _checks_in_checkpoint(checkpoint_path(_trial_output(output, kind)))
 
     def stop_after_trial(info: dict[str, Any]) -> None:
+        if callback is not None:
+            callback(info)
         if "held_out_psnr" in info:
             checks.append((info["held_out_psnr"], info["global_step"]))
             if len(checks) >= TRIAL_CHECKS:
@@ -194,8 +197,8 @@ def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, pr
     Parameters
     ----------
     source, output, config, progress, callback :
-        As any fitter (:mod:`dynbtf.training.fitters`); ``config.max_minutes`` is the whole command's budget (trials
-        included): when it runs out during a trial, that trial's result (unfinished) is returned, and the same call
+        As any fitter (:mod:`dynbtf.training.fitters`); ``callback`` sees every step, the trials' included;
+        ``config.max_minutes`` is the whole command's budget (trials included): when it runs out during a trial, that trial's result (unfinished) is returned, and the same call
         again continues the race.
     kind_options : dict, optional
         Fitter options per kind (e.g. ``{"triple-parallax": {"stereo": {...}}}``).
@@ -228,7 +231,7 @@ def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, pr
     for kind in CANDIDATES:
         if kind not in trials:
             trial, stopped = _run_trial(kind, source, output, _remaining(config, start), progress,
-                                        kind_options.get(kind, {}))
+                                        kind_options.get(kind, {}), callback)
             if stopped is not None:
                 if progress:
                     print(f"time budget reached during the trial of {kind}; run the same command again to continue")
