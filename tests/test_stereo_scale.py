@@ -105,21 +105,40 @@ def test_visible_points_marched_on_demand_equal_a_whole_march():
     relief = torch.nn.functional.avg_pool2d(torch.rand(1, 1, 24, 32, generator=torch.Generator().manual_seed(1)), 5,
                                             1, 2, count_include_pad=False)[0, 0]
     model.set_height(0.1 * relief)
+    every = torch.arange(24 * 32)[None]
     for w in torch.as_tensor(direction_set("ubo2003")[::20], dtype=torch.float32):
         model._visible_cache.clear()
-        whole = [t.clone() for t in model._visible_texel_tables(w[None])[0]]
+        whole = [t[0].clone() for t in model._visible_texel_points(w[None], every)]
         model._visible_cache.clear()
         for block in torch.randperm(24 * 32, generator=torch.Generator().manual_seed(2)).split(100):
-            points, heights = model._visible_texel_tables(w[None], block[None])[0]
-            torch.testing.assert_close(points[block], whole[0][block], rtol=0, atol=0)
-        assert torch.equal(points, whole[0]) and torch.equal(heights, whole[1])
+            points, heights = model._visible_texel_points(w[None], block[None])
+            assert torch.equal(points[0], whole[0][block]) and torch.equal(heights[0], whole[1][block])
     # several views' blocks in one march, as a training step asks
     views = torch.as_tensor(direction_set("ubo2003")[::7], dtype=torch.float32)
-    wholes = [[t.clone() for t in model._visible_texel_tables(w[None])[0]] for w in views]
+    wholes = [[t[0].clone() for t in model._visible_texel_points(w[None], every)] for w in views]
     model._visible_cache.clear()
     order = torch.randperm(24 * 32, generator=torch.Generator().manual_seed(3))
     for blocks in order.reshape(-1, len(views), 8)[:5]:  # steps of (views, 8 texels each)
-        model._visible_texel_tables(views, blocks)
-    tables = model._visible_texel_tables(views)  # the rows no block asked for
-    for (points, heights), (p_whole, h_whole) in zip(tables, wholes):
-        assert torch.equal(points, p_whole) and torch.equal(heights, h_whole)
+        model._visible_texel_points(views, blocks)
+    assert 0 < int(model._visible_cache.marched.sum()) == 5 * len(views) * 8 < len(views) * 24 * 32
+    points, heights = model._visible_texel_points(views, every.expand(len(views), -1))  # the rest
+    for p, h, (p_whole, h_whole) in zip(points, heights, wholes):
+        assert torch.equal(p, p_whole) and torch.equal(h, h_whole)
+
+
+def test_visible_texel_cache_matches_views_exactly_and_starts_over_when_full(monkeypatch):
+    from dynbtf.representations.parallax import VisibleTexelCache
+
+    cache = VisibleTexelCache(10)
+    views = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.0, 1.0]])
+    texels = torch.tensor([[1, 2], [2, 3], [2, 5]])
+    slots, todo = cache.lookup(views, texels)
+    assert slots.tolist() == [0, 1, 0] and todo.tolist() == [1, 2, 5, 12, 13]
+    cache.store(todo // 10, todo % 10, torch.ones(5, 2), torch.ones(5))
+    slots, todo = cache.lookup(views[1:2], torch.tensor([[3, 4]]))
+    assert slots.tolist() == [1] and todo.tolist() == [14]  # texel 3 of view 1 is held
+    cache.forget_rows()
+    assert cache.lookup(views[:1], torch.tensor([[1]]))[1].tolist() == [1]
+    monkeypatch.setattr(VisibleTexelCache, "MAX_VIEWS", 3)
+    slots, _ = cache.lookup(torch.tensor([[0.1, 0.0, 0.99], [0.2, 0.0, 0.98]]), torch.tensor([[0], [0]]))
+    assert cache.count == 2 and slots.tolist() == [0, 1]  # two known + two new > 3: started over

@@ -40,9 +40,10 @@ from ..conventions import texel_centers_uv
 from ..errors import InputError
 from ..texture import fetch_wrap
 from .base import config_flag, config_number, register
+from .march_kernel import march_plane
 from .triple_plane import TriplePlane
 
-__all__ = ["view_offsets", "march_visible_uv", "ParallaxTriplePlane"]
+__all__ = ["view_offsets", "march_visible_uv", "VisibleTexelCache", "ParallaxTriplePlane"]
 
 #: Default resolution of a march: the largest horizontal length of the bracket its hit is interpolated in, in
 #: texels of the height field (``march_step_texels``).
@@ -65,7 +66,8 @@ def view_offsets(w_view: torch.Tensor, aspect: float = 1.0) -> torch.Tensor:
     return offsets * torch.tensor([1.0, aspect], dtype=offsets.dtype, device=offsets.device)
 
 
-def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor, height_at: Callable[[torch.Tensor], torch.Tensor], *,
+def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor,
+                     height_at: Callable[[torch.Tensor], torch.Tensor] | torch.Tensor, *,
                      h_min: float, h_max: float, step: float, max_step: float | None = None,
                      surface_slope: float = MARCH_SURFACE_SLOPE, aspect: float = 1.0) -> torch.Tensor:
     """Where the camera rays through the reference-plane points ``uv`` first meet a height field.
@@ -76,9 +78,13 @@ def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor, height_at: Callable
         Reference-plane points, uv units (any real values).
     w_view : ``(N, 3)``
         Unit directions towards the viewer, ``z > 0``.
-    height_at : callable
+    height_at : callable or tensor
         ``height_at(points (M, 2) float64) -> (M,)`` the height field (uv units) at
-        any points; called once per sample of a ray, on shrinking subsets.
+        any points; called once per sample of a ray, on shrinking subsets. Or a
+        height plane ``(H, W)`` (uv units, at the texel centres, fetched bilinearly and
+        periodically as :func:`~dynbtf.texture.fetch_wrap` does): on the CPU its rays are
+        marched by a compiled kernel (:func:`~dynbtf.representations.march_kernel.march_plane`),
+        the same march in one loop per ray.
     h_min, h_max : float
         Bounds of the field (a point where the field exceeds ``h_max`` is hit at ``h_max``).
     step : float
@@ -135,6 +141,14 @@ def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor, height_at: Callable
     if uv.shape[0] == 0:
         return uv.clone()
     slope = view_offsets(w, aspect)
+    if isinstance(height_at, torch.Tensor):
+        plane = height_at.to(torch.float64)
+        if plane.ndim != 2:
+            raise InputError(f"march_visible_uv: expected a height plane (H, W), got {tuple(height_at.shape)}")
+        if plane.device.type == "cpu" and uv.device.type == "cpu":
+            return march_plane(uv, slope, plane, h_min=h_min, h_max=h_max, step=step, max_step=max_step,
+                               surface_slope=surface_slope)
+        height_at = lambda points: fetch_wrap(plane[..., None], points)[:, 0]  # noqa: E731
     length = slope.norm(dim=-1).clamp_min(1e-12)  # horizontal uv per unit of z
     shortest, longest, fine = step / length, max_step / length, step * (1.0 + 1e-6) / length  # in z
     f_hi = height_at(uv + h_max * slope).to(torch.float64) - h_max  # height - z at the bracket's ends
@@ -159,6 +173,75 @@ def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor, height_at: Callable
         active = active[~done]
     t = (f_lo / (f_lo - f_hi)).clamp(0.0, 1.0).nan_to_num(0.0)  # fraction of the bracket back up
     return uv + (z_lo + t * (z_hi - z_lo))[:, None] * slope
+
+
+class VisibleTexelCache:
+    """Training's table of visible points: for each view seen so far, each texel centre's visible point
+    (float32, wrapped) and its height (uv units), filled row by row as steps ask for them.
+
+    ``views (V, 3)`` float64, ``points (V, T, 2)``, ``heights (V, T)``, ``marched (V, T)`` bool for
+    ``T = n_texels``; rows not marched hold zeros. A view is matched by exact equality of its direction.
+    Capacity grows in blocks of ``GROW_VIEWS`` views (13 bytes per texel and view: 0.3 GB for 400 x 400
+    texels under 151 views); past ``MAX_VIEWS`` views the cache starts over.
+    """
+
+    GROW_VIEWS = 32
+    MAX_VIEWS = 512
+
+    def __init__(self, n_texels: int) -> None:
+        self.n_texels = int(n_texels)
+        self.clear()
+
+    def clear(self, device: torch.device | str = "cpu") -> None:
+        """Forget every view."""
+        self.count = 0
+        self.views = torch.zeros(0, 3, dtype=torch.float64, device=device)
+        self.points = torch.zeros(0, self.n_texels, 2, device=device)
+        self.heights = torch.zeros(0, self.n_texels, device=device)
+        self.marched = torch.zeros(0, self.n_texels, dtype=torch.bool, device=device)
+
+    def forget_rows(self) -> None:
+        """Keep the views, mark every row as to be marched again (the height has moved)."""
+        self.marched.zero_()
+
+    def _reserve(self, count: int) -> None:
+        capacity = self.views.shape[0]
+        if count <= capacity:
+            return
+        extra = -(-(count - capacity) // self.GROW_VIEWS) * self.GROW_VIEWS
+        self.views, self.points, self.heights, self.marched = (
+            torch.cat([t, t.new_zeros(extra, *t.shape[1:])]) for t in (self.views, self.points, self.heights,
+                                                                          self.marched))
+
+    def lookup(self, w_views: torch.Tensor, texels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Slots ``(G,)`` int64 of the views ``w_views (G, 3)`` (new views are added) and the rows to march:
+        sorted unique flat indices ``slot * n_texels + texel`` of ``texels (G, n)`` not marched yet."""
+        device = texels.device
+        if self.views.device != torch.device(device):
+            self.clear(device)
+        w = w_views.detach().to(device=device, dtype=torch.float64)
+        match = (w[:, None, :] == self.views[None, : self.count]).all(-1)  # (G, V)
+        found = match.any(1)
+        slots = match.to(torch.int32).argmax(1) if self.count else torch.zeros(len(w), dtype=torch.int64,
+                                                                                 device=device)
+        if not bool(found.all()):
+            new, inverse = torch.unique(w[~found], dim=0, return_inverse=True)
+            if self.count + len(new) > self.MAX_VIEWS and self.count:
+                self.clear(device)
+                return self.lookup(w_views, texels)
+            self._reserve(self.count + len(new))
+            self.views[self.count: self.count + len(new)] = new
+            slots[~found] = self.count + inverse
+            self.count += len(new)
+        missing = ~self.marched[slots[:, None], texels]
+        todo = torch.unique(slots[:, None].expand_as(texels)[missing] * self.n_texels + texels[missing])
+        return slots, todo
+
+    def store(self, slots: torch.Tensor, texels: torch.Tensor, points: torch.Tensor, heights: torch.Tensor) -> None:
+        """Rows ``(slots[k], texels[k])`` now hold ``points (K, 2)`` and ``heights (K,)``."""
+        self.points[slots, texels] = points
+        self.heights[slots, texels] = heights
+        self.marched[slots, texels] = True
 
 
 @register("triple-parallax")
@@ -225,7 +308,7 @@ class ParallaxTriplePlane(TriplePlane):
         # the height (channel units) training's visible-point tables are marched through: a buffer, so that a
         # resumed run marches through the same field as an uninterrupted one (see _check_visible_cache)
         self.register_buffer("marched_height_channel", torch.zeros(height, width))
-        self._visible_cache: dict[bytes, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._visible_cache = VisibleTexelCache(height * width)
 
     # ------------------------------------------------------------ the height field
     @property
@@ -282,11 +365,8 @@ class ParallaxTriplePlane(TriplePlane):
         if fetch is None:
             fetch = self.height_channel.detach()[..., None]
         if isinstance(fetch, torch.Tensor):  # a height plane (H, W, 1), channel units
-            plane = fetch.to(torch.float64) * self.height_scale
-            h_min, h_max = float(plane.min()), float(plane.max())
-
-            def height_at(points):
-                return fetch_wrap(plane, points)[:, 0]
+            height_at = fetch[..., 0].to(torch.float64) * self.height_scale
+            h_min, h_max = float(height_at.min()), float(height_at.max())
         else:
             h_min, h_max = self.height_range()
             # a synthesizer synthesizes the height channel alone (Synthesizer.channel), not every channel
@@ -306,53 +386,29 @@ class ParallaxTriplePlane(TriplePlane):
                 "surface_slope": MARCH_SURFACE_SLOPE, "aspect": cols / rows}
 
     # ------------------------------------------------------------ training fast path
-    def _visible_texel_tables(self, w_views: torch.Tensor,
-                              texels: torch.Tensor | None = None) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """Per view ``w_views[g] (G, 3)``: visible points ``(H * W, 2)`` (float32, wrapped) of the texel
-        centres and their heights ``(H * W,)``, uv units; cached (see :meth:`_check_visible_cache`).
+    def _visible_texel_points(self, w_views: torch.Tensor, texels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Visible points ``(G, n, 2)`` (float32, wrapped) and their heights ``(G, n)`` (uv units) of the
+        texel centres ``texels[g] (G, n)`` (int64 texel indices) under view ``w_views[g] (G, 3)``.
 
-        Rows are marched on demand: the rows of ``texels[g] (G, n)`` (int64 texel indices; None: all)
-        that view ``g``'s table does not hold yet, all views' in **one** march (a training step reads
-        ``n = N / G`` texels per view, so a refresh costs one march of the step's ``N`` texels, not
-        ``G`` marches of ``N``). Rows never asked for hold zeros. Each ray is marched on its own, so a
-        row is the same whichever rays are marched with it.
+        Answered from :class:`VisibleTexelCache` (see :meth:`_check_visible_cache`); the rows it does
+        not hold yet are marched first, all views' in **one** march through ``marched_height_channel``
+        (a training step reads ``n = N / G`` texels per view, so a refresh costs one march of the step's
+        ``N`` texels). Each ray is marched on its own, so a row is the same whichever rays are marched
+        with it.
         """
-        h, w = self.height_channel.shape
-        device = self.height_channel.device
-        tables, todo, rays = [], [], []
-        for g, w_view in enumerate(w_views):
-            key = w_view.detach().to("cpu", torch.float64).numpy().tobytes()
-            entry = self._visible_cache.get(key)
-            if entry is None:
-                if len(self._visible_cache) >= 512:
-                    self._visible_cache.clear()
-                entry = (torch.zeros(h * w, 2, device=device), torch.zeros(h * w, device=device),
-                         torch.zeros(h * w, dtype=torch.bool, device=device))  # points, heights, marched
-                self._visible_cache[key] = entry
-            marched = entry[2]
-            rows = torch.nonzero(~marched).reshape(-1) if texels is None else \
-                torch.unique(texels[g][~marched[texels[g]]])
-            marched[rows] = True
-            tables.append(entry)
-            todo.append(rows)
-            rays.append(w_view.reshape(1, 3).expand(len(rows), 3))
-        count = sum(len(rows) for rows in todo)
-        if count:
-            if getattr(self, "_texel_centres", None) is None or self._texel_centres.device != device:
-                self._texel_centres = torch.from_numpy(texel_centers_uv(h, w).reshape(-1, 2)).to(device)
+        cache = self._visible_cache
+        rows, cols = self.height_channel.shape
+        slots, todo = cache.lookup(w_views, texels)
+        if todo.numel():
+            if getattr(self, "_texel_centres", None) is None or self._texel_centres.device != todo.device:
+                self._texel_centres = torch.from_numpy(texel_centers_uv(rows, cols).reshape(-1, 2)).to(todo.device)
             plane = self.marched_height_channel[..., None]
-            try:
-                with torch.no_grad():
-                    hit = self.visible_uv(self._texel_centres[torch.cat(todo)], torch.cat(rays), plane)
-                    height = fetch_wrap(plane.double() * self.height_scale, hit)[:, 0]
-            except BaseException:  # (an interrupt): the rows were marked as marched
-                self._visible_cache.clear()
-                raise
-            for (points, heights, _), rows, part, z in zip(tables, todo, hit.split([len(r) for r in todo]),
-                                                           height.split([len(r) for r in todo])):
-                points[rows] = (part - part.floor()).to(torch.float32)
-                heights[rows] = z.to(torch.float32)
-        return [(points, heights) for points, heights, _ in tables]
+            slot, texel = todo // (rows * cols), todo % (rows * cols)
+            with torch.no_grad():
+                hit = self.visible_uv(self._texel_centres[texel], cache.views[slot], plane)
+                height = fetch_wrap(plane.double() * self.height_scale, hit)[:, 0]
+            cache.store(slot, texel, (hit - hit.floor()).to(torch.float32), height.to(torch.float32))
+        return cache.points[slots[:, None], texels], cache.heights[slots[:, None], texels]
 
     def _check_visible_cache(self) -> None:
         """Empty the visible-point cache once the height has moved since it was filled by
@@ -362,8 +418,7 @@ class ParallaxTriplePlane(TriplePlane):
         moved = (current - self.marched_height_channel).abs() * (self.height_scale * max(current.shape))  # texels
         if float(moved.mean()) < self._config["height_refresh_texels"] and float(moved.max()) < 1.0:
             return
-        for _, _, marched in self._visible_cache.values():  # the tables are kept, their rows marched again
-            marched.zero_()
+        self._visible_cache.forget_rows()  # the tables are kept, their rows marched again
         with torch.no_grad():
             self.marched_height_channel.copy_(current)
 
@@ -377,10 +432,9 @@ class ParallaxTriplePlane(TriplePlane):
         ``dz = (height(p) - z) / (1 - grad height . s)``; its value follows the height
         between two marches and its gradient is the implicit-function one.
         """
-        tables = self._visible_texel_tables(w_views, texels)
-        points = torch.stack([t[0][sel] for t, sel in zip(tables, texels)]).reshape(-1, 2)
+        points, z = self._visible_texel_points(w_views, texels)
+        points, z = points.reshape(-1, 2), z.reshape(-1)
         if self.height_channel.requires_grad and torch.is_grad_enabled():
-            z = torch.stack([t[1][sel] for t, sel in zip(tables, texels)]).reshape(-1)
             rows, cols = self.height_channel.shape
             slope = view_offsets(w_views, cols / rows).to(points.dtype).repeat_interleave(texels.shape[1], 0)
             height = self.height_field()[..., None]
