@@ -29,10 +29,10 @@ def test_plateau_rule_halves_at_each_stall_and_stops_at_the_lowest_rate():
     assert rule.state([20.0, 20.0, 20.0], anneal=[1.0, 0.5, 0.25]) == (0, True)
 
 
-def test_schedule_multiplier_is_the_halvings_times_a_steady_decay_to_the_floor_at_the_ceiling():
-    schedule = Schedule("converge", epochs=10, steps_per_epoch=100, monitor_every=50, min_steps=0)
-    assert schedule.anneal(0) == 1.0 and math.isclose(schedule.anneal(1000), 1 / 32)
-    assert math.isclose(schedule.anneal(500), 2 ** -2.5)
+def test_schedule_multiplier_is_the_halvings_times_a_steady_decay_to_the_floor_over_the_ceilings_last_third():
+    schedule = Schedule("converge", epochs=9, steps_per_epoch=100, monitor_every=50, min_steps=0)
+    assert schedule.anneal(0) == schedule.anneal(600) == 1.0 and math.isclose(schedule.anneal(900), 1 / 32)
+    assert math.isclose(schedule.anneal(750), 2 ** -2.5) and schedule.anneal(5000) == schedule.anneal(900)
     record = [{"step": 50 * (k + 1), "held_out_psnr": 20.0} for k in range(3)]  # one stall after the best
     assert math.isclose(schedule.lr_multiplier(1, 150, record), 0.5 * schedule.anneal(150))
     assert schedule.monitor_due(50, False) and not schedule.monitor_due(60, True)
@@ -112,6 +112,10 @@ def test_the_auto_recipe_trains_until_converged_under_a_ceiling_set_by_the_step_
     per_epoch = math.ceil(len(held_out_split(151, 151, 0.05, 0)[0]) / 16)
     assert small.config.schedule == "converge"
     assert small.config.epochs == math.ceil(2 * REFERENCE_STEPS / per_epoch - 0.05)
+    # its checks and minimum scale with the steps: a check after as many samples as at 128 x 128
+    assert (stone.config.monitor_every, stone.config.min_steps) == (390, 2922)
+    assert (small.config.monitor_every, small.config.min_steps) == (780, 5844)
+    assert auto_recipe(open_btf("sim:stone?size=64&grid=ubo2014"), monitor_every=100).config.monitor_every == 100
     fixed = auto_recipe(open_btf("sim:stone?size=128"), epochs=5)
     assert fixed.config.schedule == "epochs" and fixed.config.epochs == 5 and "5 epochs x 390 steps" in fixed.summary
     no_held_out = auto_recipe(open_btf("sim:stone?size=128"), held_out_fraction=0.0)

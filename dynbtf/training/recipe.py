@@ -15,9 +15,10 @@ that per-texel schedule for any BTF:
   :mod:`dynbtf.training.schedule`: checked every :data:`MONITOR_EVERY` steps, the rate halved
   at every stall on top of a steady decay to 1/32 at the ceiling, stopped at a stall once the
   rate is 1/32), at least :data:`MIN_STEPS` steps. The **ceiling** is the reference's step
-  count, ``30 x 6,233 / 16 = 11,700`` steps, times the reference's samples per step over this
-  BTF's (at least 1, at most :data:`MAX_STEP_FACTOR`): a 64 x 64 BTF, whose steps hold a quarter
-  of the samples, may train twice the steps, a 128 x 128 or 400 x 400 one the reference's
+  count, ``30 x 6,233 / 16 = 11,700`` steps, times the **step factor**: the reference's samples
+  per step over this BTF's (at least 1, at most :data:`MAX_STEP_FACTOR`). A 64 x 64 BTF, whose
+  steps hold a quarter of the samples, may train twice the steps, and its checks and minimum
+  scale with them (every 780 steps, at least 5,844); a 128 x 128 or 400 x 400 one keeps the reference's
   (converted to whole epochs: a 151 x 151 grid has 3.5x more pairs per epoch, so 9). With an
   explicit ``epochs`` or ``lr_decay`` the schedule is the paper's kind instead
   (``schedule="epochs"``): that many epochs, the decay per epoch set so the whole run decays as
@@ -66,9 +67,11 @@ MAX_TEXELS_PER_STEP = 1 << 18
 REFERENCE_SAMPLES_PER_STEP = 16 * 128 * 128
 #: Most reference step counts a BTF with small steps may train (the converge schedule's ceiling).
 MAX_STEP_FACTOR = 2.0
-#: Steps between held-out checks of the converge schedule (one reference epoch).
+#: Steps between held-out checks of the converge schedule (one reference epoch), for steps of the reference's
+#: size; a BTF whose steps are smaller checks every ``MONITOR_EVERY x`` its step factor (the ceiling's), so that
+#: a check always follows the same number of samples and the stall threshold means the same gain per sample.
 MONITOR_EVERY = round(REFERENCE_STEPS / 30)
-#: Fewest steps before the converge schedule may stop (a quarter of the reference).
+#: Fewest steps before the converge schedule may stop (a quarter of the reference; scaled as ``MONITOR_EVERY``).
 MIN_STEPS = round(REFERENCE_STEPS / 4)
 _REFERENCE_EPOCHS = 30
 _LR_DECAY = 0.9
@@ -129,18 +132,20 @@ def auto_recipe(source: BTFSource, *, minutes: float | None = None, representati
     steps_per_epoch = math.ceil(len(train_pairs) / b)
     converge = overrides.get("schedule", "converge" if not {"epochs", "lr_decay"} & set(overrides) else "epochs") \
         == "converge" and base.held_out_fraction > 0 and base.monitor_pairs > 0
+    step_factor = 1.0  # reference steps per step of this BTF (converge: the ceiling's and the checks' scale)
     if converge:
         samples_per_step = b * (n_texels if texels is None else texels)
-        ceiling = REFERENCE_STEPS * min(MAX_STEP_FACTOR, max(1.0, REFERENCE_SAMPLES_PER_STEP / samples_per_step))
-        full_epochs = max(1, math.ceil(ceiling / steps_per_epoch - 0.05))  # (a 5 % overshoot is not an epoch)
+        step_factor = min(MAX_STEP_FACTOR, max(1.0, REFERENCE_SAMPLES_PER_STEP / samples_per_step))
+        full_epochs = max(1, math.ceil(REFERENCE_STEPS * step_factor / steps_per_epoch - 0.05))  # (5 %: no epoch)
     else:
         full_epochs = max(1, round(REFERENCE_STEPS / steps_per_epoch))
     memory_mb = overrides.get("memory_budget_mb", max(base.memory_budget_mb, _memory_for_cache_mb()))
     config = dataclasses.replace(base, texel_groups=groups, texels_per_image=texels, memory_budget_mb=memory_mb,
                                  lr_scale=overrides.get("lr_scale", 6.0), epochs=overrides.get("epochs", full_epochs),
                                  schedule="converge" if converge else "epochs",
-                                 monitor_every=overrides.get("monitor_every", MONITOR_EVERY if converge else 0),
-                                 min_steps=overrides.get("min_steps", MIN_STEPS if converge else 0))
+                                 monitor_every=overrides.get("monitor_every",
+                                                             round(MONITOR_EVERY * step_factor) if converge else 0),
+                                 min_steps=overrides.get("min_steps", round(MIN_STEPS * step_factor) if converge else 0))
     epochs = config.epochs
     step_seconds = None
     budget_note = ""
