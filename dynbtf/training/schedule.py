@@ -155,7 +155,9 @@ class Schedule:
         if self.kind == "epochs":
             return f"{self.epochs} epochs x {self.steps_per_epoch} steps, lr x{self.lr_decay:.3g} per epoch"
         every = self.monitor_every or self.steps_per_epoch
-        return (f"until the held-out monitor stops improving (checked every {every} steps; {self.rule.describe()}), "
+        tail = round((1.0 - ANNEAL_TAIL) * self.total_steps)
+        return (f"until the held-out monitor stops improving (checked every {every} steps; {self.rule.describe()}; "
+                f"from step {tail} lr also decays steadily to x{self.rule.factor ** self.rule.decays:g} at the ceiling), "
                 f"at least {self.min_steps} and at most {self.total_steps} steps")
 
 
