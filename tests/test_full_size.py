@@ -21,6 +21,7 @@ from dynbtf.training import ImageStore, TrainConfig, checkpoint_path, fit
 from dynbtf.training import recipe as recipe_module
 from dynbtf.training.checkpoint import Checkpointer
 from dynbtf.training.recipe import auto_recipe
+from interrupt import Stop, stop_at
 from synthetic_btf import synthetic_btf
 
 
@@ -36,10 +37,6 @@ def streamed(**kw):
     base = dict(epochs=2, images_per_step=8, held_out_fraction=0.1, seed=5, workers=1, monitor_pairs=4,
                 device="cpu", memory_budget_mb=0.1, texel_groups=4, lr_scale=3.0, checkpoint_every=3)
     return TrainConfig(**{**base, **kw})
-
-
-class Stop(Exception):
-    pass
 
 
 def test_streamed_fit_reads_texels_from_the_factors_and_matches_the_cached_fit(tmp_path, dfmf, monkeypatch):
@@ -68,13 +65,9 @@ def test_interrupted_streamed_fit_resumes_to_the_same_model(tmp_path, dfmf, stop
     with UBO2014BTF(dfmf) as btf:
         reference = fit(TriplePlane(12, 12, seed=5), btf, streamed(), tmp_path / "ref.dbtfm", progress=False)
 
-        def stop(info):
-            if info["global_step"] == stop_after:
-                raise Stop
-
         out = tmp_path / "run.dbtfm"
         with pytest.raises(Stop):
-            fit(TriplePlane(12, 12, seed=5), btf, streamed(), out, progress=False, callback=stop)
+            fit(TriplePlane(12, 12, seed=5), btf, streamed(), out, progress=False, callback=stop_at(stop_after))
         assert checkpoint_path(out).exists() and not out.exists()
         resumed = fit(TriplePlane(12, 12, seed=5), btf, streamed(), out, progress=False)
     for (name, a), b in zip(reference.representation.state_dict().items(), resumed.representation.state_dict().values()):

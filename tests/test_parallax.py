@@ -18,6 +18,8 @@ from dynbtf.training.evaluate import evaluate_model
 from dynbtf.training.fitters import get_fitter
 from dynbtf.training.stereo_height import stereo_height
 
+from interrupt import Stop, stop_at
+
 pytestmark = pytest.mark.usefixtures("single_thread")
 
 
@@ -258,18 +260,11 @@ def test_fit_uses_view_coherent_batches_resumes_and_beats_the_flat_model(tmp_pat
     assert parallax_psnr > flat_psnr + 1.0, (parallax_psnr, flat_psnr)
     assert result.metadata["provenance"]["height_field"]["method"].startswith("plane-sweep stereo")
 
-    class Stop(Exception):
-        pass
-
-    def stop(info):
-        if info["global_step"] == 7:
-            raise Stop
-
     out = tmp_path / "resumed.dbtfm"
     first = ParallaxTriplePlane(32, 32, seed=0)
     first.set_height(stereo_height(stone))  # what the fitter started from
     with pytest.raises(Stop):
-        fit(first, stone, config, out, progress=False, callback=stop)
+        fit(first, stone, config, out, progress=False, callback=stop_at(7))
     assert checkpoint_path(out).exists()
     resumed = fit(ParallaxTriplePlane(32, 32, seed=0), stone, config, out, progress=False)  # height from the checkpoint
     for (name, a), b in zip(result.representation.state_dict().items(), resumed.representation.state_dict().values()):

@@ -13,6 +13,8 @@ from dynbtf.training.images import held_out_split
 from dynbtf.training.recipe import REFERENCE_STEPS, auto_recipe
 from dynbtf.training.schedule import PlateauRule, Schedule
 
+from interrupt import Stop, stop_at
+
 pytestmark = pytest.mark.usefixtures("single_thread")
 
 
@@ -39,18 +41,6 @@ def test_schedule_multiplier_is_the_halvings_times_a_steady_decay_to_the_floor_o
     paper = Schedule("epochs", epochs=10, steps_per_epoch=100, lr_decay=0.9)
     assert paper.lr_multiplier(3, 350, []) == 0.9 ** 3 and paper.monitor_due(300, True)
     assert not paper.converged(999, [{"step": 1, "held_out_psnr": 1.0}] * 50)
-
-
-class Stop(Exception):
-    """Raised by :func:`stop_at`'s callback: an interrupted fit."""
-
-
-def stop_at(step: int):
-    """A fit callback that interrupts the fit after global step ``step`` (checkpointed)."""
-    def callback(info):
-        if info["global_step"] == step:
-            raise Stop
-    return callback
 
 
 def _config(**options):
