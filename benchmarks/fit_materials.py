@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import time
 from pathlib import Path
@@ -29,7 +30,8 @@ from dynbtf.data.simulator import MATERIALS
 from dynbtf.representations.model_file import load_model
 from dynbtf.training import TrainConfig, get_fitter
 from dynbtf.training.evaluate import evaluate_model, resolve_eval_pairs
-from dynbtf.training.recipe import choose_config
+from dynbtf.training.images import held_out_split
+from dynbtf.training.recipe import auto_recipe, choose_config
 
 
 def main() -> None:
@@ -76,18 +78,34 @@ def main() -> None:
                      "minutes": prov["training_seconds"] / 60, "model_bytes": prov["size"]["model_bytes"],
                      "kind": meta["kind"], "steps": prov.get("schedule", {}).get("steps"), "wall_minutes": wall / 60,
                      "trials": {k: t["held_out_psnr"] for k, t in
-                                prov.get("representation_choice", {}).get("trials", {}).items()}})
+                                prov.get("representation_choice", {}).get("trials", {}).items()},
+                     "today_minutes": earlier_default_minutes(source, prov) if args.default else None})
         print(json.dumps(rows[-1]))
     print(f"\n{'dynbtf fit with no options' if args.default else args.repr}: held-out pairs; PSNR against each "
           "reference image's peak (psnr), and against a fixed peak of 1.0 (psnr_fixed1, the earlier definition); "
           "grazing = view or light beyond 60 degrees; wall = the whole fit call (trials, stereo, training)")
     print("| material | kind | PSNR (dB) | grazing / other pairs | PSNR fixed peak 1 | DSSIM | FLIP | epochs | "
-          "training min | wall min |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "training min | wall min | vs earlier default |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
+        today = f"{r['wall_minutes'] / r['today_minutes']:.2f}x" if r.get("today_minutes") else "-"
         print(f"| {r['material']} | {r['kind']} | {r['psnr']:.2f} | {r['psnr_grazing']:.2f} / {r['psnr_others']:.2f} | "
               f"{r['psnr_fixed1']:.2f} | {r['dssim']:.4f} | {r['flip']:.4f} | {r['epochs']:.2f} | {r['minutes']:.1f} | "
-              f"{r['wall_minutes']:.1f} |")
+              f"{r['wall_minutes']:.1f} | {today} |")
+
+
+def earlier_default_minutes(source, provenance: dict) -> float | None:
+    """The earlier default's wall minutes (``--repr triple``, a fixed schedule of the reference's step count) at this
+    run's speed: the Triple Plane trial's seconds (its set-up, image decoding included, and first steps) plus the
+    rest of that schedule's steps at the trial's seconds per step. None without a Triple Plane trial."""
+    trial = provenance.get("representation_choice", {}).get("trials", {}).get("triple")
+    if not trial or "seconds_per_step" not in trial:
+        return None
+    earlier = auto_recipe(source, schedule="epochs").config
+    steps_per_epoch = math.ceil(len(held_out_split(source.n_views, source.n_lights, earlier.held_out_fraction,
+                                                   earlier.seed)[0]) / earlier.images_per_step)
+    steps = earlier.epochs * steps_per_epoch
+    return (trial["seconds"] + max(steps - trial["steps"], 0) * trial["seconds_per_step"]) / 60
 
 
 if __name__ == "__main__":

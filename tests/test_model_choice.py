@@ -49,6 +49,7 @@ def test_the_race_continues_the_winner_to_the_same_model_as_its_own_fit(tmp_path
     choice = result.metadata["provenance"]["representation_choice"]
     scores = {k: t["held_out_psnr"] for k, t in choice["trials"].items()}
     assert list(scores) == list(CANDIDATES) and all(t["steps"] == 60 for t in choice["trials"].values())
+    assert all(0 < t["seconds_per_step"] for t in choice["trials"].values())  # of the steps run in that call
     assert choice["kind"] == pick(scores) == result.metadata["kind"]
     line = next(x for x in printed.splitlines() if x.startswith("representation: "))
     assert line.startswith(f"representation: {choice['kind']} (held-out PSNR after a trial of triple ")

@@ -144,14 +144,18 @@ def _checks_in_checkpoint(path: Path) -> list[tuple[float, int]]:
 def _run_trial(kind: str, source: BTFSource, output: Path, config: TrainConfig, progress: bool,
                options: dict[str, Any], callback=None) -> tuple[dict[str, Any] | None, FitResult | None]:
     """Train ``kind`` into its trial output until its :data:`TRIAL_CHECKS`-th held-out check (or the end of a shorter
-    fit; an interrupted trial continues from its checkpoint). Returns ``({"held_out_psnr", "steps", "seconds"},
-    None)`` at that check, or ``(None, result)`` when the time budget stopped the trial first. ``callback`` (the
-    caller's per-step callback) sees the trial's steps too."""
+    fit; an interrupted trial continues from its checkpoint). Returns ``({"held_out_psnr", "steps", "seconds",
+    "seconds_per_step"}, None)`` at that check (``seconds_per_step``: the mean of the optimizer steps run in this
+    call, set-up and checks not counted), or ``(None, result)`` when the time budget stopped the trial first.
+    ``callback`` (the caller's per-step callback) sees the trial's steps too."""
     checks = _checks_in_checkpoint(checkpoint_path(_trial_output(output, kind)))
+    timed = [0, 0.0]  # optimizer steps run in this call, their seconds
 
     def stop_after_trial(info: dict[str, Any]) -> None:
         if callback is not None:
             callback(info)
+        timed[0] += 1
+        timed[1] += float(info.get("step_seconds", 0.0))
         if "held_out_psnr" in info:
             checks.append((info["held_out_psnr"], info["global_step"]))
             if len(checks) >= TRIAL_CHECKS:
@@ -167,7 +171,10 @@ def _run_trial(kind: str, source: BTFSource, output: Path, config: TrainConfig, 
         except _TrialOver:
             pass
     score, steps = checks[min(len(checks), TRIAL_CHECKS) - 1] if checks else (math.nan, 0)
-    return {"held_out_psnr": score, "steps": steps, "seconds": round(time.perf_counter() - start, 1)}, None
+    record = {"held_out_psnr": score, "steps": steps, "seconds": round(time.perf_counter() - start, 1)}
+    if timed[0]:
+        record["seconds_per_step"] = timed[1] / timed[0]  # the optimizer steps alone (no set-up, no checks)
+    return record, None
 
 
 def _remaining(config: TrainConfig, start: float) -> TrainConfig:
