@@ -7,7 +7,7 @@ from dynbtf.cli.main import main
 from dynbtf.data.open import open_btf
 from dynbtf.representations.model_file import load_model, read_model_metadata
 from dynbtf.training import TrainConfig, get_fitter
-from dynbtf.training.model_choice import CANDIDATES, MARGIN_DB, fit_best, pick
+from dynbtf.training.model_choice import CANDIDATES, MARGIN_DB, TRUSTED_RELIEF, fit_best, pick
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -21,6 +21,15 @@ def test_pick_prefers_the_cheaper_kind_unless_beaten_by_the_margin():
     # measured trials: the lacquered wood (flat, glossy; parallax ends 2 dB behind) and a 64 x 64 stone (relief)
     assert pick({"triple": 26.60, "triple-parallax": 26.80}) == "triple"
     assert pick({"triple": 23.69, "triple-parallax": 28.12}) == "triple-parallax"
+    # an undecided trial goes to the parallax model where the stereo height was trusted: leather, not the wood
+    leather, wood = {"triple": 26.86, "triple-parallax": 26.82}, {"triple": 26.71, "triple-parallax": 26.81}
+    assert pick(leather) == pick(wood) == "triple"
+    assert pick(leather, stereo_trusted=TRUSTED_RELIEF) == "triple-parallax"
+    assert pick(wood, stereo_trusted=TRUSTED_RELIEF / 2) == "triple"
+    # a decided trial stays decided, and a parallax trial behind by more than the margin loses whatever the stereo
+    assert pick({"triple": 23.69, "triple-parallax": 28.12}, stereo_trusted=0.0) == "triple-parallax"
+    assert pick({"triple": 27.0, "triple-parallax": 27.0 - 2 * MARGIN_DB}, stereo_trusted=1.0) == "triple"
+    assert pick({"triple": 27.0, "triple-parallax": float("nan")}, stereo_trusted=1.0) == "triple"
 
 
 def _config(**options):
@@ -50,7 +59,8 @@ def test_the_race_continues_the_winner_to_the_same_model_as_its_own_fit(tmp_path
     scores = {k: t["held_out_psnr"] for k, t in choice["trials"].items()}
     assert list(scores) == list(CANDIDATES) and all(t["steps"] == 60 for t in choice["trials"].values())
     assert all(0 < t["seconds_per_step"] for t in choice["trials"].values())  # of the steps run in that call
-    assert choice["kind"] == pick(scores) == result.metadata["kind"]
+    trusted = choice["trials"]["triple-parallax"]["stereo_trusted"]
+    assert 0.0 <= trusted <= 1.0 and choice["kind"] == pick(scores, trusted) == result.metadata["kind"]
     line = next(x for x in printed.splitlines() if x.startswith("representation: "))
     assert line.startswith(f"representation: {choice['kind']} (held-out PSNR after a trial of triple ")
     assert f"triple-parallax {scores['triple-parallax']:.2f} dB at step 60" in line

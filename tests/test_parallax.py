@@ -136,9 +136,11 @@ def test_stereo_recovers_the_simulated_height(stone):
     """Plane-sweep stereo from the BTF's images alone vs the simulator's true height field (at 64^2: at
     32^2 the stone's relief is about one texel deep; measured: correlation 0.85, RMSE 0.37 texels)."""
     btf = open_btf("sim:stone?size=64")
-    estimate = stereo_height(btf)
+    estimate, trusted = stereo_height(btf, return_trusted=True)
+    assert torch.equal(estimate, stereo_height(btf))
     true = texel_heights(btf)
-    assert estimate.shape == (64, 64) and estimate.dtype == torch.float64
+    assert estimate.shape == trusted.shape == (64, 64) and estimate.dtype == torch.float64
+    assert float(trusted.double().mean()) > 0.75  # the views agree on the relief on most texels (measured 0.85)
     correlation = float(np.corrcoef(estimate.reshape(-1), true.reshape(-1))[0, 1])
     rmse, spread = float((estimate - true).pow(2).mean().sqrt()), float(true.std())
     assert correlation > 0.75 and rmse < 0.6 * spread, (correlation, rmse, spread)
@@ -151,7 +153,9 @@ def test_stereo_recovers_the_simulated_height(stone):
 def test_stereo_finds_no_relief_on_a_flat_btf():
     """relief=0: the views agree best on the reference plane; no texel may be given relief."""
     flat = open_btf("sim:stone?size=32&relief=0")
-    assert float(stereo_height(flat).abs().max()) * 32 < 0.05
+    height, trusted = stereo_height(flat, return_trusted=True)
+    assert float(height.abs().max()) * 32 < 0.05
+    assert float(trusted.double().mean()) < 0.1  # the reference plane is as good as any height: not trusted
     with pytest.raises(InputError, match="window"):
         stereo_height(stone, window=2)
 

@@ -88,8 +88,11 @@ def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | N
     constructor arguments, plus ``stereo`` (a dict of
     :func:`~dynbtf.training.stereo_height.stereo_height` options; on a large BTF
     :func:`~dynbtf.training.stereo_height.auto_stereo_options` adds a subset of views and
-    lights unless given, and ``height_refresh_texels`` grows with the size). The height is estimated from the BTF's images before training
-    and refined by it; a resumed run takes it from its checkpoint.
+    lights unless given, and ``height_refresh_texels`` grows with the size), and ``stereo_estimate``: the
+    ``(height, trusted)`` pair of ``stereo_height(source, return_trusted=True, **stereo)`` when the caller has
+    already computed it (``--repr auto`` does). The height is estimated from the BTF's images before training
+    and refined by it; a resumed run takes it from its checkpoint. The provenance records the stereo options
+    and the fraction of texels whose estimate was trusted.
     """
     from ..representations.parallax import ParallaxTriplePlane
     from .fit import checkpoint_path
@@ -97,12 +100,15 @@ def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | N
 
     config = config or TrainConfig()
     stereo_options = auto_stereo_options(source) | dict(options.pop("stereo", None) or {})
+    estimate = options.pop("stereo_estimate", None)
     options = parallax_size_options(source) | options
     rep = ParallaxTriplePlane(source.height, source.width, seed=config.seed, **options)
+    height_field = {"method": "plane-sweep stereo (dynbtf.training.stereo_height)", "options": stereo_options}
     if not checkpoint_path(output).exists():  # a resumed run reads the height from the checkpoint
-        rep.set_height(stereo_height(source, progress=progress, **stereo_options))
-    provenance = {"height_field": {"method": "plane-sweep stereo (dynbtf.training.stereo_height)",
-                                   "options": stereo_options}} | (extra_provenance or {})
+        height, trusted = estimate or stereo_height(source, progress=progress, return_trusted=True, **stereo_options)
+        rep.set_height(height)
+        height_field["trusted_fraction"] = float(trusted.double().mean())
+    provenance = {"height_field": height_field} | (extra_provenance or {})
     return fit(rep, source, config, output, progress=progress, callback=callback, extra_provenance=provenance)
 
 
