@@ -92,7 +92,7 @@ def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | N
     ``(height, trusted)`` pair of ``stereo_height(source, return_trusted=True, **stereo)`` when the caller has
     already computed it (``--repr auto`` does). The height is estimated from the BTF's images before training
     and refined by it; a resumed run takes it from its checkpoint. The provenance records the stereo options
-    and the fraction of texels whose estimate was trusted.
+    and, when the height was set in this run, the fraction of texels whose estimate was trusted.
     """
     from ..representations.parallax import ParallaxTriplePlane
     from .fit import checkpoint_path

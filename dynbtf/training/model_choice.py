@@ -46,8 +46,8 @@ from .distributed import from_environment
 from .fit import FitResult, TrainConfig
 from .fitters import get_fitter, register_fitter
 
-__all__ = ["DEFAULT_KIND", "CANDIDATES", "TRIAL_CHECKS", "MARGIN_DB", "RELIEF_KIND", "TRUSTED_RELIEF", "pick", "fit_best", "kind_in_progress",
-           "stereo_fitter_options"]
+__all__ = ["DEFAULT_KIND", "CANDIDATES", "TRIAL_CHECKS", "MARGIN_DB", "RELIEF_KIND", "TRUSTED_RELIEF", "pick",
+           "fit_best", "kind_in_progress", "stereo_fitter_options"]
 
 #: The kind ``dynbtf fit`` and ``dynbtf fit-many`` fit when none is named.
 DEFAULT_KIND = "auto"
@@ -271,7 +271,8 @@ def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, pr
     for kind in CANDIDATES:
         if kind not in trials:
             options, evidence = dict(kind_options.get(kind, {})), {}
-            if kind == RELIEF_KIND:  # the stereo estimate, computed once: its height starts the trial
+            if kind == RELIEF_KIND:  # the stereo estimate, computed once: its height starts the trial (a trial
+                # resumed from its checkpoint keeps its own height; the sweep is run again for the evidence alone)
                 options["stereo_estimate"] = _stereo_estimate(source, options, progress)
                 evidence["stereo_trusted"] = float(options["stereo_estimate"][1].double().mean())
             trial, stopped = _run_trial(kind, source, output, _remaining(config, start), progress, options, callback)
