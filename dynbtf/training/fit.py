@@ -266,8 +266,8 @@ class TrainConfig:
         and the fit stops naming the first such image. Raise it for data that really is that bright.
     schedule : str
         ``"epochs"`` (default: ``epochs`` epochs, ``lr_decay`` per epoch) or ``"converge"`` (until
-        the held-out monitor stops improving: the learning rate decays to 1/32 at the ceiling
-        ``epochs`` and is halved at every stall, the fit stops at a stall once it is 1/32;
+        the held-out monitor stops improving: the learning rate is halved at every stall and decays
+        to 1/32 over the last third of the ceiling ``epochs``, the fit stops at a stall once it is 1/32;
         :mod:`dynbtf.training.schedule`).
     monitor_every : int
         Steps between held-out checks of ``"converge"`` (0: once per epoch).
@@ -309,8 +309,9 @@ class TrainConfig:
                                      "garbage and the fit stops naming the image. Raise it for data that really is "
                                      "that bright.")
     schedule: str = _option("epochs", None, "epochs: --epochs passes, lr x--lr-decay per epoch (paper); converge: "
-                            "train until the held-out monitor stops improving (lr decaying to 1/32 at the ceiling "
-                            "--epochs and halved at every stall; stop at a stall once lr is 1/32). auto: converge "
+                            "train until the held-out monitor stops improving (lr halved at every stall and decaying to "
+                            "1/32 over the last third of the ceiling --epochs; stop at a stall once lr is 1/32). "
+                            "auto: converge "
                             "unless --epochs or --lr-decay is given.")
     monitor_every: int = 0
     min_steps: int = 0
