@@ -46,7 +46,7 @@ RECIPES = {"paper batches": dict(texel_groups=1, lr_scale=1.0), "fast": dict(tex
 
 def build(kind: str, source, seed: int = 0):
     """``(representation, stereo seconds)``: a fresh model of ``kind`` for ``source``, as ``dynbtf fit`` builds it
-    (``triple-parallax``: with its stereo height, :func:`~dynbtf.training.stereo_height.auto_stereo_options`,
+    (``triple-parallax``: with its stereo height, :func:`~dynbtf.training.fitters.parallax_stereo_options`,
     and :func:`~dynbtf.training.fitters.parallax_size_options`)."""
     if kind == "triple":
         from dynbtf.representations.triple_plane import TriplePlane
@@ -54,12 +54,12 @@ def build(kind: str, source, seed: int = 0):
     if kind != "triple-parallax":
         raise SystemExit(f"--repr: expected triple or triple-parallax, got {kind!r}")
     from dynbtf.representations.parallax import ParallaxTriplePlane
-    from dynbtf.training.fitters import parallax_size_options
-    from dynbtf.training.stereo_height import auto_stereo_options, stereo_height
+    from dynbtf.training.fitters import parallax_size_options, parallax_stereo_options
+    from dynbtf.training.stereo_height import stereo_height
 
     rep = ParallaxTriplePlane(source.height, source.width, seed=seed, **parallax_size_options(source))
     start = time.perf_counter()
-    rep.set_height(stereo_height(source, **auto_stereo_options(source)))
+    rep.set_height(stereo_height(source, **parallax_stereo_options(source)))
     return rep, time.perf_counter() - start
 
 

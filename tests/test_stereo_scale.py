@@ -15,6 +15,7 @@ from dynbtf.data.directions import direction_set
 from dynbtf.errors import InputError
 from dynbtf.representations.parallax import ParallaxTriplePlane, view_offsets
 from dynbtf.texture import fetch_wrap
+from dynbtf.training.fitters import parallax_stereo_options
 from dynbtf.training.stereo_height import (CHUNK_ALIGN, auto_stereo_options, spread_views, stereo_height)
 
 pytestmark = pytest.mark.usefixtures("single_thread")
@@ -96,6 +97,10 @@ def test_auto_options_only_for_large_btfs():
 
     assert auto_stereo_options(Shape(128, 81)) == {}
     assert auto_stereo_options(Shape(400, 151)) == {"max_views": 32, "max_lights": 3}
+    # what the parallax fitter and --repr auto's evidence sweep with: the automatic subset, overridden by the user's
+    assert parallax_stereo_options(Shape(400, 151), {"max_lights": 5, "max_height": 0.05}) == {
+        "max_views": 32, "max_lights": 5, "max_height": 0.05}
+    assert parallax_stereo_options(Shape(128, 81), None) == {}
 
 
 def test_visible_points_marched_on_demand_equal_a_whole_march():

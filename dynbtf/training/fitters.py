@@ -24,7 +24,7 @@ from ..errors import InputError
 from .fit import FitResult, TrainConfig, fit
 
 __all__ = ["FITTERS", "register_fitter", "get_fitter", "fit_triple_plane", "fit_parallax_triple_plane",
-           "parallax_size_options", "fit_neumip", "fit_pca_model", "fit_sh_model"]
+           "parallax_size_options", "parallax_stereo_options", "fit_neumip", "fit_pca_model", "fit_sh_model"]
 
 #: kind -> fitter
 FITTERS: dict[str, Callable[..., FitResult]] = {}
@@ -78,6 +78,16 @@ def parallax_size_options(source: BTFSource) -> dict[str, float]:
     return {"height_refresh_texels": 0.05 * max(source.height, source.width) / 128}
 
 
+def parallax_stereo_options(source: BTFSource, given: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The :func:`~dynbtf.training.stereo_height.stereo_height` options the parallax fitter sweeps ``source``
+    with: :func:`~dynbtf.training.stereo_height.auto_stereo_options` (a subset of views and lights on a large
+    BTF), overridden by ``given`` (the fitter's ``stereo`` option). ``--repr auto`` runs its stereo evidence
+    with these, so the race's estimate is the one the parallax fit starts from."""
+    from .stereo_height import auto_stereo_options
+
+    return auto_stereo_options(source) | dict(given or {})
+
+
 @register_fitter("triple-parallax")
 def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | None = None, *,
                               progress: bool = True, callback=None, extra_provenance: dict[str, Any] | None = None,
@@ -96,10 +106,10 @@ def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | N
     """
     from ..representations.parallax import ParallaxTriplePlane
     from .fit import checkpoint_path
-    from .stereo_height import auto_stereo_options, stereo_height
+    from .stereo_height import stereo_height
 
     config = config or TrainConfig()
-    stereo_options = auto_stereo_options(source) | dict(options.pop("stereo", None) or {})
+    stereo_options = parallax_stereo_options(source, options.pop("stereo", None))
     estimate = options.pop("stereo_estimate", None)
     options = parallax_size_options(source) | options
     rep = ParallaxTriplePlane(source.height, source.width, seed=config.seed, **options)

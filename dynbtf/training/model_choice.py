@@ -44,7 +44,7 @@ from ..device import resolve_device
 from .checkpoint import checkpoint_path
 from .distributed import from_environment
 from .fit import FitResult, TrainConfig
-from .fitters import get_fitter, register_fitter
+from .fitters import get_fitter, parallax_stereo_options, register_fitter
 
 __all__ = ["DEFAULT_KIND", "CANDIDATES", "TRIAL_CHECKS", "MARGIN_DB", "RELIEF_KIND", "TRUSTED_RELIEF", "pick",
            "fit_best", "kind_in_progress", "stereo_fitter_options"]
@@ -202,11 +202,11 @@ def _run_trial(kind: str, source: BTFSource, output: Path, config: TrainConfig, 
 
 
 def _stereo_estimate(source: BTFSource, options: dict[str, Any], progress: bool):
-    """``(height, trusted)`` of the stereo sweep the parallax fitter would run with ``options`` (its ``stereo``
-    dict over :func:`~dynbtf.training.stereo_height.auto_stereo_options`)."""
-    from .stereo_height import auto_stereo_options, stereo_height
+    """``(height, trusted)`` of the stereo sweep the parallax fitter would run with ``options``
+    (:func:`~dynbtf.training.fitters.parallax_stereo_options`)."""
+    from .stereo_height import stereo_height
 
-    stereo = auto_stereo_options(source) | dict(options.get("stereo") or {})
+    stereo = parallax_stereo_options(source, options.get("stereo"))
     return stereo_height(source, progress=progress, return_trusted=True, **stereo)
 
 
