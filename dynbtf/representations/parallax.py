@@ -38,7 +38,7 @@ from torch import nn
 
 from ..conventions import texel_centers_uv
 from ..errors import InputError
-from ..texture import fetch_wrap
+from ..texture import fetch_wrap, wrap_uv
 from .base import config_flag, config_number, register
 from .march_kernel import march_plane
 from .triple_plane import TriplePlane
@@ -407,7 +407,7 @@ class ParallaxTriplePlane(TriplePlane):
             with torch.no_grad():
                 hit = self.visible_uv(self._texel_centres[texel], cache.views[slot], plane)
                 height = fetch_wrap(plane.double() * self.height_scale, hit)[:, 0]
-            cache.store(slot, texel, (hit - hit.floor()).to(torch.float32), height.to(torch.float32))
+            cache.store(slot, texel, wrap_uv(hit).to(torch.float32), height.to(torch.float32))
         return cache.points[slots[:, None], texels], cache.heights[slots[:, None], texels]
 
     def _check_visible_cache(self) -> None:
