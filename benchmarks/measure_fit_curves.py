@@ -17,7 +17,8 @@ the fit is about an hour on 2 cores).
 
 ``--repr triple-parallax`` fits the parallax Triple Plane (its stereo height first, as
 ``dynbtf fit``; the stereo's seconds are recorded, not counted as training time);
-``--out-dir`` writes the curve elsewhere (the figure is drawn from ``docs/images`` only).
+``--out-dir`` writes the curve elsewhere (the figure is drawn from ``docs/images`` only); ``--model PATH``
+keeps the fitted model.
 The curve file is rewritten after every score (``"finished": false`` until the end).
 """
 
@@ -34,9 +35,11 @@ import numpy as np
 IMAGES = Path(__file__).resolve().parents[1] / "docs" / "images"
 
 
-def run(spec: str, name: str, eval_every: float, seed: int, kind: str = "triple", out_dir: Path = IMAGES) -> dict:
+def run(spec: str, name: str, eval_every: float, seed: int, kind: str = "triple", out_dir: Path = IMAGES,
+        model: Path | None = None) -> dict:
     """Fit ``kind`` to ``spec`` with the auto recipe, scoring the held-out monitor every ``eval_every`` seconds
-    of training; writes and returns the curve (``out_dir / fit_curve_<name>.json``)."""
+    of training; writes and returns the curve (``out_dir / fit_curve_<name>.json``). ``model``: where the fitted
+    model goes (with its provenance: the schedule's own held-out checks); default a temporary file."""
     from bench_training_large import build
 
     from dynbtf.data.open import open_btf
@@ -74,7 +77,7 @@ def run(spec: str, name: str, eval_every: float, seed: int, kind: str = "triple"
                                                "wall_seconds": time.perf_counter() - state["wall"]}, indent=1))
 
     with tempfile.TemporaryDirectory() as tmp:
-        result = fit(rep, source, config, Path(tmp) / "m.dbtfm", progress=False, callback=callback)
+        fit(rep, source, config, Path(model) if model else Path(tmp) / "m.dbtfm", progress=False, callback=callback)
     rep.eval()
     curve.append({"seconds": state["train_seconds"], "psnr": monitor.score(rep, predict_images),
                   "step": curve[-1]["step"]})
@@ -125,12 +128,13 @@ def main() -> None:
     parser.add_argument("--repr", default="triple", choices=["triple", "triple-parallax"],
                         help="the representation (default %(default)s)")
     parser.add_argument("--out-dir", default=str(IMAGES), help="where the curve file goes (default %(default)s)")
+    parser.add_argument("--model", default=None, help="keep the fitted model here (default: not kept)")
     parser.add_argument("--plot-only", action="store_true", help="only redraw the figure")
     args = parser.parse_args()
     if not args.plot_only:
         if not args.btf or not args.name:
             parser.error("--btf and --name are required (or --plot-only)")
-        run(args.btf, args.name, args.eval_every, args.seed, args.repr, Path(args.out_dir))
+        run(args.btf, args.name, args.eval_every, args.seed, args.repr, Path(args.out_dir), args.model)
         if Path(args.out_dir).resolve() != IMAGES:
             return  # the figure shows docs/images' curves
     print(f"wrote {plot()}")
