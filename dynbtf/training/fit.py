@@ -267,7 +267,7 @@ class TrainConfig:
     schedule : str
         ``"epochs"`` (default: ``epochs`` epochs, ``lr_decay`` per epoch) or ``"converge"`` (until
         the held-out monitor stops improving: the learning rate is halved at every stall and decays
-        to 1/32 over the last third of the ceiling ``epochs``, the fit stops at a stall once it is 1/32;
+        to 1/32 over the last third of the ceiling ``epochs``, the fit stops at a stall once it is 1/16;
         :mod:`dynbtf.training.schedule`).
     monitor_every : int
         Steps between held-out checks of ``"converge"`` (0: once per epoch).
@@ -310,7 +310,7 @@ class TrainConfig:
                                      "that bright.")
     schedule: str = _option("epochs", None, "epochs: --epochs passes, lr x--lr-decay per epoch (paper); converge: "
                             "train until the held-out monitor stops improving (lr halved at every stall and decaying to "
-                            "1/32 over the last third of the ceiling --epochs; stop at a stall once lr is 1/32). "
+                            "1/32 over the last third of the ceiling --epochs; stop at a stall once lr is 1/16). "
                             "auto: converge "
                             "unless --epochs or --lr-decay is given.")
     monitor_every: int = 0

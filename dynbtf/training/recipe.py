@@ -14,7 +14,7 @@ that per-texel schedule for any BTF:
 * **schedule**: until the held-out monitor stops improving (``schedule="converge"``,
   :mod:`dynbtf.training.schedule`: checked every :data:`MONITOR_EVERY` steps, the rate halved
   at every stall and, over the last third of the ceiling, decaying steadily to 1/32 at the
-  ceiling, stopped at a stall once the rate is 1/32), at least :data:`MIN_STEPS` steps. The **ceiling** is the reference's step
+  ceiling, stopped at a stall once the rate is 1/16), at least :data:`MIN_STEPS` steps. The **ceiling** is the reference's step
   count, ``30 x 6,233 / 16 = 11,700`` steps, times the **step factor**: the reference's samples
   per step over this BTF's (at least 1, at most :data:`MAX_STEP_FACTOR`). A 64 x 64 BTF, whose
   steps hold a quarter of the samples, may train twice the steps, and its checks and minimum
