@@ -5,7 +5,8 @@ Run: ``python benchmarks/fit_materials.py [--repr triple] [--size 128] [--epochs
 kernel; ~7 with ``--repr triple-parallax``), or on any BTFs:
 ``--specs 'sim:stone?relief=0.25,sim:stone?relief=0.5'``.
 
-``--default`` fits as ``dynbtf fit BTF -o MODEL`` with no options does (``--repr auto``: a trial of
+``--converge`` fits ``--repr`` as ``dynbtf fit BTF --repr KIND -o MODEL`` does (the auto recipe's
+converge schedule). ``--default`` fits as ``dynbtf fit BTF -o MODEL`` with no options does (``--repr auto``: a trial of
 each kind, the winner's fit continued; the auto recipe: until the held-out monitor stops
 improving), and adds the chosen kind, the trial scores and the whole command's wall time
 (trials and stereo included) to each row.
@@ -47,6 +48,9 @@ def main() -> None:
     parser.add_argument("--out", default="materials_out")
     parser.add_argument("--default", action="store_true", help="fit as `dynbtf fit BTF -o M` with no options "
                         "(--repr auto, the auto recipe); --repr, --epochs, --lr-scale, --texel-groups are ignored")
+    parser.add_argument("--converge", action="store_true", help="fit --repr as `dynbtf fit BTF --repr KIND -o M` "
+                        "does (the auto recipe: until the held-out monitor stops improving); --epochs, --lr-scale, "
+                        "--texel-groups are ignored")
     args = parser.parse_args()
     out = Path(args.out)
     rows = []
@@ -56,11 +60,11 @@ def main() -> None:
         material = re.sub(r"[^A-Za-z0-9_.-]+", "_", spec.replace("sim:", "")).strip("_")
         model = out / f"{material}.dbtfm"
         start = time.perf_counter()
-        if args.default:
+        if args.default or args.converge:
             out.mkdir(parents=True, exist_ok=True)
             config, summary = choose_config(source, model, recipe="auto", minutes=args.minutes)
             print(summary)
-            get_fitter("auto")(source, model, config)
+            get_fitter("auto" if args.default else args.repr)(source, model, config)
         else:
             config = TrainConfig(epochs=args.epochs, max_minutes=args.minutes, lr_scale=args.lr_scale,
                                  texel_groups=args.texel_groups)
