@@ -1,6 +1,7 @@
 """The converge schedule: learning rate and stop set by the held-out monitor, resumable, chosen by the recipe."""
 
 import math
+import sys
 
 import pytest
 import torch
@@ -11,7 +12,7 @@ from dynbtf.representations.model_file import load_model
 from dynbtf.training import TrainConfig, checkpoint_path, get_fitter
 from dynbtf.training.images import held_out_split
 from dynbtf.training.recipe import REFERENCE_STEPS, auto_recipe
-from dynbtf.training.schedule import PlateauRule, Schedule
+from dynbtf.training.schedule import ANNEAL_FLOOR, PlateauRule, Schedule
 
 from interrupt import Stop, stop_at
 
@@ -116,3 +117,54 @@ def test_converge_without_held_out_pairs_is_refused():
     with pytest.raises(DynBTFError, match="needs held-out pairs"):
         get_fitter("triple")(open_btf("sim:leather?size=8"), "/tmp/never.dbtfm", _config(held_out_fraction=0.0),
                              progress=False)
+
+
+def test_a_lowered_ceiling_moves_the_decay_and_the_end():
+    schedule = Schedule("converge", epochs=9, steps_per_epoch=100, monitor_every=50, min_steps=0)
+    record = [{"step": 50, "held_out_psnr": 20.0}, {"step": 100, "held_out_psnr": 21.0, "ceiling": 600},
+              {"step": 150, "held_out_psnr": 22.0, "ceiling": 700}]  # a later, higher plan does not raise it
+    assert schedule.ceilings(record) == [900, 600, 600] and schedule.ceiling(record) == 600
+    assert schedule.ceiling([]) == 900
+    # the decay over the last third of the lowered ceiling: from step 400 to x1/32 at 600
+    assert schedule.lr_multiplier(0, 400, record) == 1.0
+    assert math.isclose(schedule.lr_multiplier(0, 500, record), ANNEAL_FLOOR ** 0.5)
+    assert math.isclose(schedule.lr_multiplier(0, 600, record), ANNEAL_FLOOR)
+    assert schedule.replan(150, 300.7, record) == 450 and schedule.replan(150, 500, record) is None
+    assert Schedule("epochs", epochs=9, steps_per_epoch=100).replan(150, 10, record) is None
+
+
+class _Clock:
+    """A stand-in for the ``time`` module in :mod:`dynbtf.training.fit`: ``seconds_per_step(step)`` pass when a
+    step ends (and a nanosecond per reading), so the budget's arithmetic holds whatever the machine's speed."""
+
+    def __init__(self, seconds_per_step):
+        self.now, self.seconds_per_step = 1000.0, seconds_per_step
+
+    def perf_counter(self):
+        self.now += 1e-9
+        return self.now
+
+    def callback(self, info):
+        self.now += self.seconds_per_step(info["global_step"])
+
+
+def test_a_budget_fit_the_machine_slows_down_ends_annealed_at_the_ceiling_it_replans(tmp_path, monkeypatch):
+    """1 s per step, then 3 s from step 100 on, under a 10-minute budget: each check re-plans the ceiling to what
+    95 % of the budget's rest affords at the last interval's rate; the fit ends there, its rate decayed to the
+    floor, inside the budget (cut by the budget mid-schedule, it would end at the unannealed rate)."""
+    clock = _Clock(lambda step: 1.0 if step <= 100 else 3.0)
+    monkeypatch.setattr(sys.modules["dynbtf.training.fit"], "time", clock)
+    result = get_fitter("triple")(open_btf("sim:leather?size=8"), tmp_path / "m.dbtfm", _config(max_minutes=10.0),
+                                  progress=False, callback=clock.callback)
+    schedule_info = result.metadata["provenance"]["schedule"]
+    record, steps = schedule_info["monitor"], schedule_info["steps"]
+    assert result.finished and schedule_info["stopped"] == "ceiling"
+    # the plans, recomputed (the check of step k sees steps 1..k-1 on the clock): at 25, 25 steps in 24 s
+    plans = {r["step"]: r["ceiling"] for r in record if "ceiling" in r}
+    assert abs(plans[25] - (25 + 0.95 * (600 - 24) * 25 / 24)) <= 1
+    # at 125 (100 + 24 x 3 s spent): 25 steps in 73 s since the plan at 100
+    assert abs(plans[125] - (125 + 0.95 * (600 - 172) * 25 / 73)) <= 1
+    assert steps == min(plans.values()) < 3 * 390
+    assert clock.now - 1000.0 <= 600.0  # inside the budget
+    schedule = Schedule("converge", epochs=3, steps_per_epoch=390, monitor_every=25)
+    assert math.isclose(schedule.anneal(steps, steps), ANNEAL_FLOOR)

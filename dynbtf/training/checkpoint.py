@@ -127,8 +127,9 @@ class Checkpointer:
         monitor = state.get("monitor", [])  # the held-out checks (older checkpoints: none recorded)
         if not isinstance(monitor, list) or not all(
                 isinstance(r, dict) and isinstance(r.get("step"), int) and isinstance(r.get("held_out_psnr"), float)
-                for r in monitor):
-            raise self.damaged("its monitor record is not a list of held-out checks {step, held_out_psnr}")
+                and (type(r.get("ceiling", 0)) is int and r.get("ceiling", 0) >= 0) for r in monitor):
+            raise self.damaged("its monitor record is not a list of held-out checks {step, held_out_psnr[, ceiling: a "
+                               "step count >= 0]}")
         elapsed = state.get("elapsed_seconds")
         if isinstance(elapsed, bool) or not isinstance(elapsed, (int, float)) or not math.isfinite(elapsed) \
                 or elapsed < 0:

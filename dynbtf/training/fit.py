@@ -79,7 +79,7 @@ from .checkpoint import Checkpointer, checkpoint_path
 from .distributed import from_environment
 from .images import ImageStore, held_out_split
 from .monitor import HeldOutMonitor
-from .schedule import SCHEDULES, make_schedule
+from .schedule import ANNEAL_FLOOR, SCHEDULES, make_schedule
 
 __all__ = ["TrainConfig", "FitResult", "fit", "check_options", "TrainingDiverged", "implausible_targets",
            "OPTION_RULES", "MAX_REFLECTANCE", "CommandLineOption", "command_line_options", "option_flag",
@@ -90,6 +90,9 @@ __all__ = ["TrainConfig", "FitResult", "fit", "check_options", "TrainingDiverged
 MAX_REFLECTANCE = 1e4
 #: A fit stops when its loss exceeds its first loss by this factor (diverged).
 DIVERGENCE_FACTOR = 1e6
+#: Under a time budget, the converge schedule's ceiling is re-planned at each held-out check to the steps this
+#: fraction of the budget's rest affords (the rest: the last checks, the checkpoint and the model file).
+BUDGET_PLAN_FRACTION = 0.95
 
 
 @dataclass(frozen=True)
@@ -239,7 +242,9 @@ class TrainConfig:
         cache is read block by block from the source (the texels of the step only).
     max_minutes : float or None
         Stop (checkpointed, model written) after this much training time in this
-        run; run again to continue.
+        run; run again to continue. Under ``"converge"`` each held-out check also
+        re-plans the ceiling to the steps the rest affords, so the fit ends annealed
+        inside the budget even if the machine slows down (:mod:`dynbtf.training.schedule`).
     checkpoint_every : int
         Steps between checkpoints (also at every epoch end).
     memory_budget_mb : float
@@ -292,7 +297,8 @@ class TrainConfig:
                                 "--images-per-step pairs: more (view, light) pairs per step at the same cost (paper: "
                                 "1, whole images; auto: 64).")
     max_minutes: float | None = _option(None, None, "Stop after this many minutes of training (checkpointed; run "
-                                        "again to continue). Default: no limit.")
+                                        "again to continue); the converge schedule re-plans its ceiling at each "
+                                        "check to end annealed inside it. Default: no limit.")
     checkpoint_every: int = 100
     memory_budget_mb: float = _option(2048.0, None, "RAM (MB) for the float16 image cache; larger BTFs are read "
                                       "texel block by texel block from the source (paper: 2048; auto: 40% of RAM, at "
@@ -585,7 +591,8 @@ class _TrainingRun:
                              "pairs (--held-out-fraction > 0, TrainConfig.monitor_pairs > 0)")
         self.checkpointer = Checkpointer(checkpoint_path(output), _fingerprint(rep, source, config))
         self.epoch, self.step, self.elapsed, self.history = 0, 0, 0.0, []
-        self.record: list[dict[str, float]] = []  # every held-out check: step, score, lr multiplier, time
+        self.record: list[dict[str, float]] = []  # every held-out check: step, score, lr multiplier, time[, ceiling]
+        self.budget_clock: dict[str, float] | None = None  # the budget's end, and the last plan's time and step
         self.first_loss: float | None = None  # of this run (a resumed run: its first step)
         if self.checkpointer.exists():
             state = self.checkpointer.restore(rep, self.optimizer, epochs=config.epochs,
@@ -596,7 +603,7 @@ class _TrainingRun:
         self.total_steps = config.epochs * self.sampler.steps_per_epoch
         self.done_steps = min(self.epoch * self.sampler.steps_per_epoch + self.step, self.total_steps)
         self.last_checkpoint_step = self.done_steps
-        self.finished = self.epoch >= config.epochs or self.schedule.converged(self.done_steps, self.record)
+        self.finished = self._schedule_ended()
         self.size_info = model_size_report(rep, source.nbytes_float32)
 
     # ------------------------------------------------------------------ parts of a step
@@ -642,11 +649,28 @@ class _TrainingRun:
 
     def _check_held_out(self) -> None:
         """Score the held-out monitor now and add it to the record (in every process of a data-parallel fit: the
-        schedule's decisions depend on it)."""
+        schedule's decisions depend on it). Under a time budget, the check also re-plans the ceiling
+        (:meth:`~dynbtf.training.schedule.Schedule.replan`): the steps :data:`BUDGET_PLAN_FRACTION` of the
+        budget's rest affords at the rate since the last plan (wall time, this check included)."""
         score = self.monitor.score(self.rep, predict_images)
         self.record.append({"step": self.done_steps, "held_out_psnr": score, "elapsed_seconds": self.elapsed,
                             "lr_multiplier": self.schedule.lr_multiplier(self.epoch, self.done_steps - 1,
                                                                          self.record)})
+        clock = self.budget_clock
+        if clock is not None:
+            now = time.perf_counter()
+            steps, seconds = self.done_steps - clock["step"], now - clock["time"]
+            if steps > 0 and seconds > 0:  # the same plan in every process of a data-parallel fit
+                affordable = self.parallel.mean(BUDGET_PLAN_FRACTION * (clock["end"] - now) * steps / seconds)
+                ceiling = self.schedule.replan(self.done_steps, affordable, self.record)
+                if ceiling is not None:
+                    self.record[-1]["ceiling"] = ceiling
+            clock.update(time=now, step=self.done_steps)
+
+    def _schedule_ended(self) -> bool:
+        """All epochs done, the monitor converged, or a time budget's lowered ceiling reached."""
+        return (self.epoch >= self.config.epochs or self.schedule.converged(self.done_steps, self.record)
+                or self.done_steps >= self.schedule.ceiling(self.record))
 
     def _check_targets(self, batch) -> None:
         """:class:`InputError` naming the BTF and the first image of ``batch`` beyond ``max_reflectance``."""
@@ -684,10 +708,14 @@ class _TrainingRun:
             self.history.append({"epoch": self.epoch, "loss": loss, "held_out_psnr":
                                  self.record[-1]["held_out_psnr"] if self.record else float("nan"),
                                  "elapsed_seconds": self.elapsed})
-        self.finished = self.epoch >= self.config.epochs or self.schedule.converged(self.done_steps, self.record)
-        if self.finished and self.epoch < self.config.epochs:
+        self.finished = self._schedule_ended()
+        if self.finished and self.stop_reason() == "converged":
             bar.write(f"converged at step {self.done_steps}: the held-out monitor stopped improving (best "
                       f"{max(r['held_out_psnr'] for r in self.record):.2f} dB; {self.schedule.rule.describe()})")
+        elif self.finished and self.epoch < self.config.epochs:
+            best = max(r["held_out_psnr"] for r in self.record)
+            bar.write(f"reached step {self.done_steps}, the ceiling the time budget left room for (the rate decayed "
+                      f"to at most x{ANNEAL_FLOOR:g} by then; best held-out {best:.2f} dB)")
         if self.step == 0 or self.finished or \
                 self.done_steps - self.last_checkpoint_step >= self.config.checkpoint_every:
             self.checkpoint()
@@ -702,6 +730,8 @@ class _TrainingRun:
         config, steps_per_epoch = self.config, self.sampler.steps_per_epoch
         run_start = time.perf_counter()
         budget = None if config.max_minutes is None else config.max_minutes * 60.0
+        self.budget_clock = None if budget is None else {"end": run_start + budget, "time": run_start,
+                                                          "step": self.done_steps}
         consistent = True  # model/optimizer state matches (epoch, step)
         prefetch = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dynbtf-prefetch")
         # On the CPU the loop runs torch kernels on one intra-op thread and parallelizes the fused loss over
@@ -752,11 +782,11 @@ class _TrainingRun:
             self.checkpoint()
 
     def stop_reason(self) -> str:
-        """Why training ended: ``"converged"``, ``"ceiling"`` (all its epochs) or ``"unfinished"`` (time budget,
-        interrupt)."""
+        """Why training ended: ``"converged"``, ``"ceiling"`` (all its epochs, or the ceiling a time budget
+        lowered it to) or ``"unfinished"`` (time budget, interrupt)."""
         if not self.finished:
             return "unfinished"
-        return "ceiling" if self.epoch >= self.config.epochs else "converged"
+        return "ceiling" if self.done_steps >= self.schedule.ceiling(self.record) else "converged"
 
     def write_model(self, extra_provenance: dict[str, Any] | None) -> float:
         """Write the model file with its provenance (process 0); returns the epochs completed."""

@@ -18,8 +18,16 @@ Two schedules (``TrainConfig.schedule``):
   one whose monitor keeps improving trains to the ceiling, which the recipe sets from the BTF's
   size (:mod:`dynbtf.training.recipe`).
 
-Both are pure functions of the monitor's record (``[{"step", "held_out_psnr", ...}, ...]``), which
-the checkpoint keeps: a resumed fit makes the same decisions as an uninterrupted one.
+With a time budget (``max_minutes``) the converge schedule's **ceiling follows the budget**: at
+each held-out check the fit re-plans how many steps the rest of the budget affords at the rate
+measured so far, and a lower ceiling is written into that check's record (``"ceiling"``). The
+steady decay then runs to the floor at the lowered ceiling, so a fit the machine slowed down
+still ends annealed, and a fit that reaches the lowered ceiling ends there (``"ceiling"``)
+instead of being cut by the budget mid-schedule.
+
+Both are pure functions of the monitor's record (``[{"step", "held_out_psnr", ...}, ...]``, with any
+lowered ``"ceiling"``), which the checkpoint keeps: a resumed fit makes the same decisions as an
+uninterrupted one.
 
 >>> rule = PlateauRule(factor=0.5, patience=2, threshold_db=0.02, decays=1)
 >>> rule.state([20.0, 21.0, 21.01, 21.0])       # two checks without a 0.02 dB gain: one halving
@@ -129,28 +137,52 @@ class Schedule:
             return done_steps % self.monitor_every == 0 or done_steps >= self.total_steps
         return epoch_ended
 
-    def anneal(self, done_steps: int) -> float:
+    def anneal(self, done_steps: int, ceiling: int | None = None) -> float:
         """``"converge"``: the steady part of the rate's factor after ``done_steps`` steps: 1 until the last
-        :data:`ANNEAL_TAIL` of the ceiling, then an exponential decay to :data:`ANNEAL_FLOOR` at the ceiling."""
-        start = (1.0 - ANNEAL_TAIL) * self.total_steps
-        progress = (min(done_steps, self.total_steps) - start) / max(self.total_steps - start, 1)
+        :data:`ANNEAL_TAIL` of the ceiling (``ceiling`` steps, default the epochs' :attr:`total_steps`), then an
+        exponential decay to :data:`ANNEAL_FLOOR` at the ceiling."""
+        total = self.total_steps if ceiling is None else min(int(ceiling), self.total_steps)
+        start = (1.0 - ANNEAL_TAIL) * total
+        progress = (min(done_steps, total) - start) / max(total - start, 1)
         return ANNEAL_FLOOR ** max(progress, 0.0)
 
+    def ceilings(self, record: Sequence[dict[str, Any]]) -> list[int]:
+        """The ceiling in force after each check of ``record``: :attr:`total_steps`, lowered by any check's
+        ``"ceiling"`` (a time budget's re-plan) from that check on."""
+        out, ceiling = [], self.total_steps
+        for r in record:
+            ceiling = min(ceiling, int(r.get("ceiling", ceiling)))
+            out.append(ceiling)
+        return out
+
+    def ceiling(self, record: Sequence[dict[str, Any]]) -> int:
+        """The step at which the fit ends at the latest, after the checks of ``record``."""
+        return self.ceilings(record)[-1] if record else self.total_steps
+
     def _plateau(self, record: Sequence[dict[str, Any]]) -> tuple[int, bool]:
-        return self.rule.state([r["held_out_psnr"] for r in record], [self.anneal(r["step"]) for r in record])
+        return self.rule.state([r["held_out_psnr"] for r in record],
+                               [self.anneal(r["step"], c) for r, c in zip(record, self.ceilings(record))])
 
     def lr_multiplier(self, epoch: int, done_steps: int, record: Sequence[dict[str, Any]]) -> float:
         """Factor on every group's initial learning rate for the next step (after ``done_steps`` steps, in
         ``epoch``)."""
         if self.kind == "epochs":
             return self.lr_decay ** epoch
-        return self.rule.factor ** self._plateau(record)[0] * self.anneal(done_steps)
+        return self.rule.factor ** self._plateau(record)[0] * self.anneal(done_steps, self.ceiling(record))
 
     def converged(self, done_steps: int, record: Sequence[dict[str, Any]]) -> bool:
         """``"converge"``: the monitor's record says stop (and ``min_steps`` are done)."""
         if self.kind != "converge" or done_steps < self.min_steps:
             return False
         return self._plateau(record)[1]
+
+    def replan(self, done_steps: int, affordable_steps: float, record: Sequence[dict[str, Any]]) -> int | None:
+        """``"converge"`` under a time budget, at a check after ``done_steps`` steps: the lowered ceiling when the
+        rest of the budget affords only ``affordable_steps`` more steps (the fit ends there, annealed), else None."""
+        if self.kind != "converge":
+            return None
+        planned = done_steps + max(int(affordable_steps), 0)
+        return planned if planned < self.ceiling(record) else None
 
     def describe(self) -> str:
         """One line for logs and the recipe summary."""
