@@ -1,6 +1,7 @@
 """Parallax (kind triple-parallax): the ray march, stereo height, the model, its training and synthesis."""
 
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -239,9 +240,10 @@ def test_save_load_is_bit_exact_with_the_height(tmp_path):
     assert torch.equal(model(uv, w, w), loaded(uv, w, w))
 
 
-def test_fit_uses_view_coherent_batches_resumes_and_beats_the_flat_model(tmp_path, stone):
+def test_fit_uses_view_coherent_batches_resumes_and_beats_the_flat_model(tmp_path, stone, monkeypatch):
     """Every step's groups each see one view; a resumed run ends where an uninterrupted one does; with
-    its stereo height the model fits the stone's held-out pairs better than the Triple Plane."""
+    its stereo height the model fits the stone's held-out pairs better than the Triple Plane; a rerun on
+    the finished output returns it without sweeping the stereo again."""
     config = TrainConfig(epochs=3, texel_groups=4, images_per_step=8, lr_scale=6.0, seed=0, workers=1,
                          monitor_pairs=0, device="cpu", checkpoint_every=50, precision="fp32")
     seen = []
@@ -263,6 +265,14 @@ def test_fit_uses_view_coherent_batches_resumes_and_beats_the_flat_model(tmp_pat
     flat_psnr = evaluate_model(flat, stone, held, progress=False).mean["psnr"]
     assert parallax_psnr > flat_psnr + 1.0, (parallax_psnr, flat_psnr)
     assert result.metadata["provenance"]["height_field"]["method"].startswith("plane-sweep stereo")
+
+    def no_sweep(*args, **kwargs):
+        raise AssertionError("the stereo was swept again for a finished fit")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(sys.modules["dynbtf.training.stereo_height"], "stereo_height", no_sweep)
+        again = get_fitter("triple-parallax")(stone, tmp_path / "p.dbtfm", config, progress=False)
+    assert again.finished and torch.equal(again.representation.height_channel, result.representation.height_channel)
 
     out = tmp_path / "resumed.dbtfm"
     first = ParallaxTriplePlane(32, 32, seed=0)

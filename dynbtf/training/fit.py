@@ -83,7 +83,7 @@ from .schedule import ANNEAL_FLOOR, SCHEDULES, make_schedule
 
 __all__ = ["TrainConfig", "FitResult", "fit", "check_options", "TrainingDiverged", "implausible_targets",
            "OPTION_RULES", "MAX_REFLECTANCE", "CommandLineOption", "command_line_options", "option_flag",
-           "checkpoint_path", "texel_image_loss", "predict_images", "training_provenance"]
+           "checkpoint_path", "texel_image_loss", "predict_images", "training_provenance", "finished_fit"]
 
 #: Default largest |value| of a training target (reflectance ``pi f_r``): measured materials stay
 #: below ~1e2 (specular peaks included); values beyond are decoding garbage.
@@ -426,6 +426,13 @@ def _already_fitted(output: Path, rep: Representation, source: BTFSource, config
         raise InputError(f"{output}: holds a fit of a different training run (differs in {differ}); delete it or "
                          "choose another output to start over")
     return meta if provenance.get("finished") else None
+
+
+def finished_fit(representation: Representation, source: BTFSource, config: TrainConfig, output) -> bool:
+    """Whether ``output`` already holds the finished fit of this run (the same representation, BTF and result-changing
+    options), which :func:`fit` returns at once: a fitter can skip its own preparation (e.g. the parallax fitter's
+    stereo sweep). A model file of another run raises :class:`InputError`, as :func:`fit` would."""
+    return _already_fitted(Path(output), representation, source, (config or TrainConfig()).validate()) is not None
 
 
 class _InterruptFlag:

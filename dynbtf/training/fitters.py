@@ -105,7 +105,7 @@ def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | N
     and, when the height was set in this run, the fraction of texels whose estimate was trusted.
     """
     from ..representations.parallax import ParallaxTriplePlane
-    from .fit import checkpoint_path
+    from .fit import checkpoint_path, finished_fit
     from .stereo_height import stereo_height
 
     config = config or TrainConfig()
@@ -114,7 +114,8 @@ def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | N
     options = parallax_size_options(source) | options
     rep = ParallaxTriplePlane(source.height, source.width, seed=config.seed, **options)
     height_field = {"method": "plane-sweep stereo (dynbtf.training.stereo_height)", "options": stereo_options}
-    if not checkpoint_path(output).exists():  # a resumed run reads the height from the checkpoint
+    # a resumed run reads the height from the checkpoint; a finished one is returned as it is
+    if not checkpoint_path(output).exists() and not finished_fit(rep, source, config, output):
         height, trusted = estimate or stereo_height(source, progress=progress, return_trusted=True, **stereo_options)
         rep.set_height(height)
         height_field["trusted_fraction"] = float(trusted.double().mean())
