@@ -149,9 +149,9 @@ class _Clock:
 
 
 def test_a_budget_fit_the_machine_slows_down_ends_annealed_at_the_ceiling_it_replans(tmp_path, monkeypatch):
-    """1 s per step, then 3 s from step 100 on, under a 10-minute budget: each check re-plans the ceiling to what
-    95 % of the budget's rest affords at the last interval's rate; the fit ends there, its rate decayed to the
-    floor, inside the budget (cut by the budget mid-schedule, it would end at the unannealed rate)."""
+    """1 s per step, then 3 s from step 100 on, under a 10-minute budget: each check after the first re-plans the
+    ceiling to what 95 % of the budget's rest affords at the last interval's rate; the fit ends there, its rate
+    decayed to the floor, inside the budget (cut by the budget mid-schedule, it would end at the unannealed rate)."""
     clock = _Clock(lambda step: 1.0 if step <= 100 else 3.0)
     monkeypatch.setattr(sys.modules["dynbtf.training.fit"], "time", clock)
     result = get_fitter("triple")(open_btf("sim:leather?size=8"), tmp_path / "m.dbtfm", _config(max_minutes=10.0),
@@ -159,9 +159,10 @@ def test_a_budget_fit_the_machine_slows_down_ends_annealed_at_the_ceiling_it_rep
     schedule_info = result.metadata["provenance"]["schedule"]
     record, steps = schedule_info["monitor"], schedule_info["steps"]
     assert result.finished and schedule_info["stopped"] == "ceiling"
-    # the plans, recomputed (the check of step k sees steps 1..k-1 on the clock): at 25, 25 steps in 24 s
+    # the plans, recomputed (the check of step k sees steps 1..k-1 on the clock); the first check (25) starts the
+    # clock; at 50, 25 steps in 25 s
     plans = {r["step"]: r["ceiling"] for r in record if "ceiling" in r}
-    assert abs(plans[25] - (25 + 0.95 * (600 - 24) * 25 / 24)) <= 1
+    assert 25 not in plans and abs(plans[50] - (50 + 0.95 * (600 - 49))) <= 1
     # at 125 (100 + 24 x 3 s spent): 25 steps in 73 s since the plan at 100
     assert abs(plans[125] - (125 + 0.95 * (600 - 172) * 25 / 73)) <= 1
     assert steps == min(plans.values()) < 3 * 390

@@ -315,10 +315,9 @@ class TrainConfig:
                                      "garbage and the fit stops naming the image. Raise it for data that really is "
                                      "that bright.")
     schedule: str = _option("epochs", None, "epochs: --epochs passes, lr x--lr-decay per epoch (paper); converge: "
-                            "train until the held-out monitor stops improving (lr halved at every stall and decaying to "
-                            "1/32 over the last third of the ceiling --epochs; stop at a stall once lr is 1/16). "
-                            "auto: converge "
-                            "unless --epochs or --lr-decay is given.")
+                            "train until the held-out monitor stops improving (lr halved at every stall and "
+                            "decaying to 1/32 over the last third of the ceiling --epochs; stop at a stall once lr is "
+                            "1/16). auto: converge unless --epochs or --lr-decay is given.")
     monitor_every: int = 0
     min_steps: int = 0
 
@@ -599,7 +598,7 @@ class _TrainingRun:
         self.checkpointer = Checkpointer(checkpoint_path(output), _fingerprint(rep, source, config))
         self.epoch, self.step, self.elapsed, self.history = 0, 0, 0.0, []
         self.record: list[dict[str, float]] = []  # every held-out check: step, score, lr multiplier, time[, ceiling]
-        self.budget_clock: dict[str, float] | None = None  # the budget's end, and the last plan's time and step
+        self.budget_clock: dict[str, float] | None = None  # the budget's end, and this run's last check's time, step
         self.first_loss: float | None = None  # of this run (a resumed run: its first step)
         if self.checkpointer.exists():
             state = self.checkpointer.restore(rep, self.optimizer, epochs=config.epochs,
@@ -658,7 +657,8 @@ class _TrainingRun:
         """Score the held-out monitor now and add it to the record (in every process of a data-parallel fit: the
         schedule's decisions depend on it). Under a time budget, the check also re-plans the ceiling
         (:meth:`~dynbtf.training.schedule.Schedule.replan`): the steps :data:`BUDGET_PLAN_FRACTION` of the
-        budget's rest affords at the rate since the last plan (wall time, this check included)."""
+        budget's rest affords at the rate since this run's previous check (wall time, this check included; the
+        run's first check only starts the clock, its interval holding the run's start-up)."""
         score = self.monitor.score(self.rep, predict_images)
         self.record.append({"step": self.done_steps, "held_out_psnr": score, "elapsed_seconds": self.elapsed,
                             "lr_multiplier": self.schedule.lr_multiplier(self.epoch, self.done_steps - 1,
@@ -666,7 +666,7 @@ class _TrainingRun:
         clock = self.budget_clock
         if clock is not None:
             now = time.perf_counter()
-            steps, seconds = self.done_steps - clock["step"], now - clock["time"]
+            steps, seconds = self.done_steps - clock["step"], now - clock.get("time", now)
             if steps > 0 and seconds > 0:  # the same plan in every process of a data-parallel fit
                 affordable = self.parallel.mean(BUDGET_PLAN_FRACTION * (clock["end"] - now) * steps / seconds)
                 ceiling = self.schedule.replan(self.done_steps, affordable, self.record)
@@ -737,8 +737,7 @@ class _TrainingRun:
         config, steps_per_epoch = self.config, self.sampler.steps_per_epoch
         run_start = time.perf_counter()
         budget = None if config.max_minutes is None else config.max_minutes * 60.0
-        self.budget_clock = None if budget is None else {"end": run_start + budget, "time": run_start,
-                                                          "step": self.done_steps}
+        self.budget_clock = None if budget is None else {"end": run_start + budget, "step": self.done_steps}
         consistent = True  # model/optimizer state matches (epoch, step)
         prefetch = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dynbtf-prefetch")
         # On the CPU the loop runs torch kernels on one intra-op thread and parallelizes the fused loss over

@@ -11,9 +11,9 @@ Two schedules (``TrainConfig.schedule``):
   epochs) it also decays steadily, exponentially, to 1/32 of its start at the ceiling (the fast
   recipe's own decay is ``0.9 ** 30 = 1/24``): the rate stays high while the monitor gains,
   which on a 64 x 64 stone reached in 7,800 steps what a decay over the whole ceiling reached in
-  19,000, and a fit cut by the ceiling still ends annealed. The fit **stops at a stall once the rate is at most 1/16** of its
-  start (on that stone the checks at 1/32 gained 0.01 dB more in 1,560 more steps), never before ``min_steps``,
-  at the latest at the ceiling; ``max_minutes`` still stops
+  19,000, and a fit cut by the ceiling still ends annealed. The fit **stops at a stall once the
+  rate is at most 1/16** of its start (on that stone the checks at 1/32 gained 0.01 dB more in
+  1,560 more steps), never before ``min_steps``, at the latest at the ceiling; ``max_minutes`` still stops
   it as a time budget. A BTF whose monitor stalls early (a small one, or an easy one) stops early;
   one whose monitor keeps improving trains to the ceiling, which the recipe sets from the BTF's
   size (:mod:`dynbtf.training.recipe`).
