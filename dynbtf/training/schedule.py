@@ -19,8 +19,9 @@ Two schedules (``TrainConfig.schedule``):
   size (:mod:`dynbtf.training.recipe`).
 
 With a time budget (``max_minutes``) the converge schedule's **ceiling follows the budget**: at
-each held-out check the fit re-plans how many steps the rest of the budget affords at the rate
-measured so far, and a lower ceiling is written into that check's record (``"ceiling"``). The
+each held-out check after a run's first, the fit re-plans how many steps the rest of the budget
+affords at the rate since the previous check, and a lower ceiling is written into that check's
+record (``"ceiling"``; a ceiling is never raised). The
 steady decay then runs to the floor at the lowered ceiling, so a fit the machine slowed down
 still ends annealed, and a fit that reaches the lowered ceiling ends there (``"ceiling"``)
 instead of being cut by the budget mid-schedule.
