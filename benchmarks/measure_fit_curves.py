@@ -65,6 +65,7 @@ def run(spec: str, name: str, eval_every: float, seed: int, kind: str = "triple"
 
     def callback(info):
         state["train_seconds"] += info["step_seconds"]
+        state["step"] = info["global_step"]
         if state["train_seconds"] >= state["next"]:
             rep.eval()
             curve.append({"seconds": state["train_seconds"], "psnr": monitor.score(rep, predict_images),
@@ -80,7 +81,7 @@ def run(spec: str, name: str, eval_every: float, seed: int, kind: str = "triple"
         fit(rep, source, config, Path(model) if model else Path(tmp) / "m.dbtfm", progress=False, callback=callback)
     rep.eval()
     curve.append({"seconds": state["train_seconds"], "psnr": monitor.score(rep, predict_images),
-                  "step": curve[-1]["step"]})
+                  "step": state.get("step", curve[-1]["step"])})
     final = curve[-1]["psnr"]
     within = next(p["seconds"] for p in curve if all(q["psnr"] >= final - 0.5 for q in curve[curve.index(p):]))
     out = head | {"finished": True, "final_psnr": final, "seconds_to_within_0_5_db": within,
