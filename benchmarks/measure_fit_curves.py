@@ -61,6 +61,7 @@ def run(spec: str, name: str, eval_every: float, seed: int, kind: str = "triple"
     head = {"name": name, "btf": spec, "repr": kind, "size": [source.height, source.width],
             "directions": [source.n_views, source.n_lights], "recipe": recipe.summary, "curve": curve,
             "stereo_seconds": stereo_seconds}
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
     path = Path(out_dir) / f"fit_curve_{name}.json"
 
     def callback(info):
