@@ -65,6 +65,29 @@ def test_blocks_of_texels_change_nothing(relief_btf):
     assert texels_rmse(whole) < 0.5, texels_rmse(whole)
 
 
+def test_images_are_read_view_major_and_the_grouping_of_lights_changes_nothing(relief_btf, monkeypatch):
+    import dynbtf.training.stereo_height as stereo
+
+    reads = []
+    image = relief_btf.image
+    monkeypatch.setattr(relief_btf, "image", lambda v, l: reads.append((v, l)) or image(v, l))
+    together = stereo_height(relief_btf)  # the three lights near the normal fit in READ_BYTES: one view-major read
+    n_views = relief_btf.n_views
+    assert reads == [(v, l) for v in range(n_views) for l in (0, 1, 2)]
+    reads.clear()
+    monkeypatch.setattr(stereo, "READ_BYTES", 1)  # at least one light at a time: light-major, as many reads
+    assert torch.equal(stereo_height(relief_btf), together)
+    assert reads == [(v, l) for l in (0, 1, 2) for v in range(n_views)]
+
+
+@pytest.mark.parametrize("views", [7, 8])
+def test_the_median_over_views_is_torch_median(views):
+    from dynbtf.training.stereo_height import _median_views
+
+    seen = torch.rand(views, 50, 3, generator=torch.Generator().manual_seed(views))
+    assert torch.equal(_median_views(seen), seen.median(0).values)  # for an even count the lower middle value
+
+
 def test_spread_views_and_nearest_lights_still_recover_the_height(relief_btf):
     every = texels_rmse(stereo_height(relief_btf))
     subset = stereo_height(relief_btf, max_views=16, max_lights=1)
@@ -137,13 +160,16 @@ def test_visible_texel_cache_matches_views_exactly_and_starts_over_when_full(mon
     cache = VisibleTexelCache(10)
     views = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.0, 1.0]])
     texels = torch.tensor([[1, 2], [2, 3], [2, 5]])
-    slots, todo = cache.lookup(views, texels)
-    assert slots.tolist() == [0, 1, 0] and todo.tolist() == [1, 2, 5, 12, 13]
-    cache.store(todo // 10, todo % 10, torch.ones(5, 2), torch.ones(5))
-    slots, todo = cache.lookup(views[1:2], torch.tensor([[3, 4]]))
-    assert slots.tolist() == [1] and todo.tolist() == [14]  # texel 3 of view 1 is held
+    rows, todo = cache.lookup(views, texels)
+    assert rows.tolist() == [[1, 2], [12, 13], [2, 5]] and todo.tolist() == [1, 2, 5, 12, 13]
+    cache.store(todo, torch.arange(10.0).view(5, 2), torch.arange(5.0))
+    points, heights = cache.read(rows)
+    assert points.tolist() == [[[0, 1], [2, 3]], [[6, 7], [8, 9]], [[2, 3], [4, 5]]]
+    assert heights.tolist() == [[0, 1], [3, 4], [1, 2]]
+    rows, todo = cache.lookup(views[1:2], torch.tensor([[3, 4]]))
+    assert rows.tolist() == [[13, 14]] and todo.tolist() == [14]  # texel 3 of view 1 is held
     cache.forget_rows()
     assert cache.lookup(views[:1], torch.tensor([[1]]))[1].tolist() == [1]
     monkeypatch.setattr(VisibleTexelCache, "MAX_VIEWS", 3)
-    slots, _ = cache.lookup(torch.tensor([[0.1, 0.0, 0.99], [0.2, 0.0, 0.98]]), torch.tensor([[0], [0]]))
-    assert cache.count == 2 and slots.tolist() == [0, 1]  # two known + two new > 3: started over
+    rows, _ = cache.lookup(torch.tensor([[0.1, 0.0, 0.99], [0.2, 0.0, 0.98]]), torch.tensor([[0], [0]]))
+    assert cache.count == 2 and rows.tolist() == [[0], [10]]  # two known + two new > 3: started over

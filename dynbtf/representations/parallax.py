@@ -214,8 +214,8 @@ class VisibleTexelCache:
                                                                           self.marched))
 
     def lookup(self, w_views: torch.Tensor, texels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Slots ``(G,)`` int64 of the views ``w_views (G, 3)`` (new views are added) and the rows to march:
-        sorted unique flat indices ``slot * n_texels + texel`` of ``texels (G, n)`` not marched yet."""
+        """Rows ``(G, n)`` int64 (flat indices ``slot * n_texels + texel``) of ``texels (G, n)`` under the views
+        ``w_views (G, 3)`` (new views are added) and the rows to march: the sorted unique ones not marched yet."""
         device = texels.device
         if self.views.device != torch.device(device):
             self.clear(device)
@@ -233,15 +233,21 @@ class VisibleTexelCache:
             self.views[self.count: self.count + len(new)] = new
             slots[~found] = self.count + inverse
             self.count += len(new)
-        missing = ~self.marched[slots[:, None], texels]
-        todo = torch.unique(slots[:, None].expand_as(texels)[missing] * self.n_texels + texels[missing])
-        return slots, todo
+        rows = slots[:, None].to(torch.int64) * self.n_texels + texels
+        todo = torch.unique(rows[~self.marched.view(-1)[rows]])
+        return rows, todo
 
-    def store(self, slots: torch.Tensor, texels: torch.Tensor, points: torch.Tensor, heights: torch.Tensor) -> None:
-        """Rows ``(slots[k], texels[k])`` now hold ``points (K, 2)`` and ``heights (K,)``."""
-        self.points[slots, texels] = points
-        self.heights[slots, texels] = heights
-        self.marched[slots, texels] = True
+    def store(self, rows: torch.Tensor, points: torch.Tensor, heights: torch.Tensor) -> None:
+        """Rows ``rows (K,)`` (flat indices, as :meth:`lookup`'s) now hold ``points (K, 2)`` and ``heights (K,)``."""
+        self.points.view(-1, 2)[rows] = points
+        self.heights.view(-1)[rows] = heights
+        self.marched.view(-1)[rows] = True
+
+    def read(self, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The points ``(..., 2)`` and heights ``(...)`` of ``rows (...)`` (flat indices, as :meth:`lookup`'s)."""
+        flat = rows.reshape(-1)
+        return (self.points.view(-1, 2).index_select(0, flat).view(*rows.shape, 2),
+                self.heights.view(-1).index_select(0, flat).view(rows.shape))
 
 
 @register("triple-parallax")
@@ -398,17 +404,20 @@ class ParallaxTriplePlane(TriplePlane):
         """
         cache = self._visible_cache
         rows, cols = self.height_channel.shape
-        slots, todo = cache.lookup(w_views, texels)
+        cached, todo = cache.lookup(w_views, texels)
         if todo.numel():
             if getattr(self, "_texel_centres", None) is None or self._texel_centres.device != todo.device:
                 self._texel_centres = torch.from_numpy(texel_centers_uv(rows, cols).reshape(-1, 2)).to(todo.device)
-            plane = self.marched_height_channel[..., None]
+            height = self.marched_height_channel.double() * self.height_scale  # (H, W) uv units
             slot, texel = todo // (rows * cols), todo % (rows * cols)
+            w = cache.views[slot]
+            w = torch.where(w[:, 2:3] > 0, w, torch.tensor([0.0, 0.0, 1.0], dtype=w.dtype, device=w.device))
             with torch.no_grad():
-                hit = self.visible_uv(self._texel_centres[texel], cache.views[slot], plane)
-                height = fetch_wrap(plane.double() * self.height_scale, hit)[:, 0]
-            cache.store(slot, texel, wrap_uv(hit).to(torch.float32), height.to(torch.float32))
-        return cache.points[slots[:, None], texels], cache.heights[slots[:, None], texels]
+                hit = march_visible_uv(self._texel_centres[texel], w, height, h_min=float(height.min()),
+                                       h_max=float(height.max()), **self.march_parameters())
+                at_hit = fetch_wrap(height[..., None], hit)[:, 0]
+            cache.store(todo, wrap_uv(hit).to(torch.float32), at_hit.to(torch.float32))
+        return cache.read(cached)
 
     def _check_visible_cache(self) -> None:
         """Empty the visible-point cache once the height has moved since it was filled by

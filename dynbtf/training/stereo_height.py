@@ -25,7 +25,8 @@ two cores (``docs/triple_plane.md``).
 
 **Scale.** The sweep runs over blocks of texels (``chunk_texels``; every texel's cost is
 its own, so the blocks change nothing numerically) with each light's images padded
-once: memory is one light's images plus a bounded block, whatever the BTF's size.
+once: memory is the images read at a time (:data:`READ_BYTES`, or one light's images if more) plus a
+bounded block, whatever the BTF's size.
 Time grows with views x texels x lights x levels; ``max_views`` sweeps a subset of
 views spread over the hemisphere (:func:`spread_views`) and ``max_lights`` the lights
 nearest the normal, which the parallax fitter chooses for large BTFs
@@ -48,7 +49,7 @@ from ..representations.parallax import view_offsets
 from ..texture import _grid_sample_hwc, wrap_uv
 
 __all__ = ["stereo_height", "spread_views", "auto_stereo_options", "STEREO_VIEW_TEXELS", "BLOCK_VIEW_TEXELS",
-           "CHUNK_ALIGN"]
+           "READ_BYTES", "CHUNK_ALIGN"]
 
 #: Views x texels of one light's sweep above which the parallax fitter sweeps a spread subset of views
 #: and the lights nearest the normal (:func:`auto_stereo_options`); a 128 x 128 BTF of 81 views (1.3 M)
@@ -59,6 +60,10 @@ STEREO_VIEW_TEXELS = 5_120_000
 LARGE_BTF_LIGHTS = 3
 #: Views x texels of one block of the sweep when ``chunk_texels`` is not given (~100 bytes each at the peak).
 BLOCK_VIEW_TEXELS = 2_097_152
+#: Bytes of images (float32) the sweep reads at a time: the lights whose images under the swept views fit are read
+#: together, view-major (at least one light): 7 lights x 151 views of 64 x 64 texels (52 MB), or the 3 lights x 32
+#: views of a 400 x 400 file's auto subset (184 MB).
+READ_BYTES = 256 * 1024 ** 2
 #: Blocks are multiples of this many texels: CPU sums over the views then take the same vectorized
 #: path for every texel as in one block of all texels (measured: blocks of 100 texels do not).
 CHUNK_ALIGN = 256
@@ -116,28 +121,52 @@ def _check_options(source: BTFSource, levels, max_height, window, min_contrast, 
         raise InputError(f"stereo chunk_texels: expected a positive number of texels (or None), got {chunk_texels}")
 
 
+def _read_lights(source: BTFSource, view_set: np.ndarray, lights: np.ndarray) -> np.ndarray:
+    """The images ``(len(lights), V', H, W, 3)`` of ``lights`` under the views ``view_set``, read **view-major**:
+    sources that render or decode a view's lights together (simulated BTFs, DFMF files) then do it once per
+    view, not once per view and light."""
+    stack = None
+    for i, v in enumerate(view_set):
+        for j, light in enumerate(lights):
+            image = np.asarray(source.image(int(v), int(light)))
+            if stack is None:
+                stack = np.empty((len(lights), len(view_set)) + image.shape, dtype=image.dtype)
+            stack[j, i] = image
+    return stack
+
+
+def _median_views(seen: torch.Tensor) -> torch.Tensor:
+    """The median over the views of ``seen (V', n, C)`` -> ``(n, C)``: for an even ``V'`` the lower of the two
+    middle values (as ``torch.median``), found by a selection (``numpy.partition``), which on the CPU takes a
+    third of ``torch.median``'s time."""
+    k = (seen.shape[0] - 1) // 2
+    by_texel = np.ascontiguousarray(seen.detach().cpu().permute(1, 2, 0).numpy())  # (n, C, V')
+    return torch.from_numpy(np.partition(by_texel, k, axis=-1)[..., k]).to(seen.device)
+
+
 def _sweep_cost(source: BTFSource, view_set: np.ndarray, light_set: np.ndarray, heights: torch.Tensor,
                 chunk_texels: int, bar) -> torch.Tensor:
     """Photo-consistency cost ``(levels, H * W)`` float64 of every candidate height at every texel.
 
-    Per light, the views' images ``(V', H, W, 3)`` are read and padded once; the texels are
-    swept in blocks of ``chunk_texels``: per level the block's samples ``(V', n, 3)`` float32
-    (points ``(V', n, 2)`` float64, as :func:`~dynbtf.texture.fetch_wrap_stack`).
+    The swept views' images are read once, view-major, as many lights together as fit in :data:`READ_BYTES`
+    (``(L'', V', H, W, 3)``); per light they are padded once and the texels are swept in blocks of
+    ``chunk_texels``: per level the block's samples ``(V', n, 3)`` float32 (points ``(V', n, 2)`` float64, as
+    :func:`~dynbtf.texture.fetch_wrap_stack`).
     """
     h, w = source.height, source.width
     views = torch.as_tensor(np.asarray(source.views)[view_set], dtype=torch.float64)
     offsets = view_offsets(views, w / h)  # (V', 2)
     centres = torch.from_numpy(texel_centers_uv(h, w).reshape(-1, 2))  # (N, 2) float64
     cost = torch.zeros(len(heights), h * w, dtype=torch.float64)
-    for light in light_set:
-        first = np.asarray(source.image(int(view_set[0]), int(light)))
-        images = np.empty((len(view_set),) + first.shape, dtype=first.dtype)  # (V', H, W, 3)
-        images[0] = first
-        for i, v in enumerate(view_set[1:], 1):
-            images[i] = source.image(int(v), int(light))
-        stack = torch.from_numpy(images)
+    per_read = max(1, READ_BYTES // (len(view_set) * h * w * 3 * 4))  # lights read together
+    images = None
+    for j in range(len(light_set)):
+        if j % per_read == 0:
+            images = None  # (the previous lights' images are released first)
+            images = _read_lights(source, view_set, light_set[j: j + per_read])
+        stack = torch.from_numpy(images[j % per_read])
         padded = F.pad(stack.permute(0, 3, 1, 2), (1, 1, 1, 1), mode="circular")  # (V', 3, H + 2, W + 2)
-        del images, stack, first
+        del stack
         for k, z in enumerate(heights):
             for a in range(0, h * w, chunk_texels):
                 points = centres[None, a:a + chunk_texels] - float(z) * offsets[:, None]  # (V', n, 2)
@@ -145,7 +174,7 @@ def _sweep_cost(source: BTFSource, view_set: np.ndarray, light_set: np.ndarray, 
                 x = (frac[..., 0] * w + 0.5).to(padded.dtype)  # padded coordinate: texel j centre at j + 1
                 y = (frac[..., 1] * h + 0.5).to(padded.dtype)
                 seen = _grid_sample_hwc(padded, x, y)  # (V', n, 3)
-                cost[k, a:a + chunk_texels] += (seen - seen.median(0).values).abs().sum((0, 2)).double()
+                cost[k, a:a + chunk_texels] += (seen - _median_views(seen)).abs().sum((0, 2)).double()
             bar.update(1)
     return cost
 
