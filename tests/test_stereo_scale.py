@@ -161,11 +161,11 @@ def test_visible_texel_cache_matches_views_exactly_and_starts_over_when_full(mon
     views = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.0, 1.0]])
     texels = torch.tensor([[1, 2], [2, 3], [2, 5]])
     rows, todo = cache.lookup(views, texels)
-    assert rows.tolist() == [[1, 2], [12, 13], [2, 5]] and todo.tolist() == [1, 2, 5, 12, 13]
-    cache.store(todo, torch.arange(10.0).view(5, 2), torch.arange(5.0))
+    assert rows.tolist() == [[1, 2], [12, 13], [2, 5]] and todo.tolist() == [1, 2, 12, 13, 2, 5]  # (2: twice)
+    cache.store(todo, torch.stack([todo, -todo], 1).float(), 0.5 * todo.float())  # a row's value: its own
     points, heights = cache.read(rows)
-    assert points.tolist() == [[[0, 1], [2, 3]], [[6, 7], [8, 9]], [[2, 3], [4, 5]]]
-    assert heights.tolist() == [[0, 1], [3, 4], [1, 2]]
+    assert points.tolist() == [[[1, -1], [2, -2]], [[12, -12], [13, -13]], [[2, -2], [5, -5]]]
+    assert heights.tolist() == [[0.5, 1], [6, 6.5], [1, 2.5]]
     rows, todo = cache.lookup(views[1:2], torch.tensor([[3, 4]]))
     assert rows.tolist() == [[13, 14]] and todo.tolist() == [14]  # texel 3 of view 1 is held
     cache.forget_rows()

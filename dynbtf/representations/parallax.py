@@ -195,6 +195,7 @@ class VisibleTexelCache:
     def clear(self, device: torch.device | str = "cpu") -> None:
         """Forget every view."""
         self.count = 0
+        self.slots: dict[tuple[float, float, float], int] = {}  # view direction -> its slot
         self.views = torch.zeros(0, 3, dtype=torch.float64, device=device)
         self.points = torch.zeros(0, self.n_texels, 2, device=device)
         self.heights = torch.zeros(0, self.n_texels, device=device)
@@ -215,27 +216,25 @@ class VisibleTexelCache:
 
     def lookup(self, w_views: torch.Tensor, texels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rows ``(G, n)`` int64 (flat indices ``slot * n_texels + texel``) of ``texels (G, n)`` under the views
-        ``w_views (G, 3)`` (new views are added) and the rows to march: the sorted unique ones not marched yet."""
+        ``w_views (G, 3)`` (new views are added) and the rows to march: those not marched yet (in row order; a row
+        asked for twice is marched twice, to the same value)."""
         device = texels.device
         if self.views.device != torch.device(device):
             self.clear(device)
         w = w_views.detach().to(device=device, dtype=torch.float64)
-        match = (w[:, None, :] == self.views[None, : self.count]).all(-1)  # (G, V)
-        found = match.any(1)
-        slots = match.to(torch.int32).argmax(1) if self.count else torch.zeros(len(w), dtype=torch.int64,
-                                                                                 device=device)
-        if not bool(found.all()):
-            new, inverse = torch.unique(w[~found], dim=0, return_inverse=True)
+        keys = [tuple(v) for v in w.tolist()]  # exact values: a view is matched by equality of its direction
+        new = list(dict.fromkeys(k for k in keys if k not in self.slots))
+        if new:
             if self.count + len(new) > self.MAX_VIEWS and self.count:
                 self.clear(device)
                 return self.lookup(w_views, texels)
             self._reserve(self.count + len(new))
-            self.views[self.count: self.count + len(new)] = new
-            slots[~found] = self.count + inverse
+            self.views[self.count: self.count + len(new)] = torch.tensor(new, dtype=torch.float64, device=device)
+            self.slots.update((k, self.count + i) for i, k in enumerate(new))
             self.count += len(new)
-        rows = slots[:, None].to(torch.int64) * self.n_texels + texels
-        todo = torch.unique(rows[~self.marched.view(-1)[rows]])
-        return rows, todo
+        slots = torch.tensor([self.slots[k] for k in keys], dtype=torch.int64, device=device)
+        rows = slots[:, None] * self.n_texels + texels
+        return rows, rows[~self.marched.view(-1)[rows]]
 
     def store(self, rows: torch.Tensor, points: torch.Tensor, heights: torch.Tensor) -> None:
         """Rows ``rows (K,)`` (flat indices, as :meth:`lookup`'s) now hold ``points (K, 2)`` and ``heights (K,)``."""
@@ -425,7 +424,8 @@ class ParallaxTriplePlane(TriplePlane):
         optimizer step; between two marches :meth:`_visible_features` follows it by a Newton step)."""
         current = self.height_channel.detach()
         moved = (current - self.marched_height_channel).abs() * (self.height_scale * max(current.shape))  # texels
-        if float(moved.mean()) < self._config["height_refresh_texels"] and float(moved.max()) < 1.0:
+        mean, largest = torch.stack([moved.mean(), moved.max()]).tolist()  # (one synchronization)
+        if mean < self._config["height_refresh_texels"] and largest < 1.0:
             return
         self._visible_cache.forget_rows()  # the tables are kept, their rows marched again
         with torch.no_grad():

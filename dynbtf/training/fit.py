@@ -580,6 +580,9 @@ class _TrainingRun:
         checked = _PlausibleImages(source, config.max_reflectance)
         self.store = ImageStore(checked, int(config.memory_budget_mb * 1024 ** 2))
         checked.cached = self.store.cached
+        # cached images were checked whole as they were decoded (_PlausibleImages); texels read straight from the BTF
+        # are checked per batch (the same decision in every process of a data-parallel fit)
+        self.check_batches = self.parallel.any(not self.store.cached)
         self.sampler = BatchSampler(self.store, self.train_pairs, images_per_step=config.images_per_step,
                                     texel_groups=config.texel_groups, texels_per_image=config.texels_per_image,
                                     seed=config.seed, view_coherent=rep.view_coherent_batches, device=device,
@@ -680,7 +683,10 @@ class _TrainingRun:
                 or self.done_steps >= self.schedule.ceiling(self.record))
 
     def _check_targets(self, batch) -> None:
-        """:class:`InputError` naming the BTF and the first image of ``batch`` beyond ``max_reflectance``."""
+        """:class:`InputError` naming the BTF and the first image of ``batch`` beyond ``max_reflectance`` (a batch read
+        straight from the BTF; the image cache's images were checked as they were decoded)."""
+        if not self.check_batches:
+            return
         problem = implausible_targets(batch, self.config.max_reflectance)
         if self.parallel.any(problem is not None):
             raise InputError(_garbage_message(self.source, problem, self.config.max_reflectance) if problem else

@@ -149,9 +149,9 @@ def _sweep_cost(source: BTFSource, view_set: np.ndarray, light_set: np.ndarray, 
     """Photo-consistency cost ``(levels, H * W)`` float64 of every candidate height at every texel.
 
     The swept views' images are read once, view-major, as many lights together as fit in :data:`READ_BYTES`
-    (``(L'', V', H, W, 3)``); per light they are padded once and the texels are swept in blocks of
-    ``chunk_texels``: per level the block's samples ``(V', n, 3)`` float32 (points ``(V', n, 2)`` float64, as
-    :func:`~dynbtf.texture.fetch_wrap_stack`).
+    (``(L'', V', H, W, 3)``), and padded once; the texels are swept in blocks of ``chunk_texels``: per level the
+    block's sample points ``(V', n, 2)`` float64 (as :func:`~dynbtf.texture.fetch_wrap_stack`) are computed once
+    for those lights, and each light's samples ``(V', n, 3)`` float32 taken there.
     """
     h, w = source.height, source.width
     views = torch.as_tensor(np.asarray(source.views)[view_set], dtype=torch.float64)
@@ -159,23 +159,21 @@ def _sweep_cost(source: BTFSource, view_set: np.ndarray, light_set: np.ndarray, 
     centres = torch.from_numpy(texel_centers_uv(h, w).reshape(-1, 2))  # (N, 2) float64
     cost = torch.zeros(len(heights), h * w, dtype=torch.float64)
     per_read = max(1, READ_BYTES // (len(view_set) * h * w * 3 * 4))  # lights read together
-    images = None
-    for j in range(len(light_set)):
-        if j % per_read == 0:
-            images = None  # (the previous lights' images are released first)
-            images = _read_lights(source, view_set, light_set[j: j + per_read])
-        stack = torch.from_numpy(images[j % per_read])
-        padded = F.pad(stack.permute(0, 3, 1, 2), (1, 1, 1, 1), mode="circular")  # (V', 3, H + 2, W + 2)
-        del stack
+    for j in range(0, len(light_set), per_read):
+        images = _read_lights(source, view_set, light_set[j: j + per_read])
+        padded = [F.pad(torch.from_numpy(stack).permute(0, 3, 1, 2), (1, 1, 1, 1), mode="circular")
+                  for stack in images]  # per light (V', 3, H + 2, W + 2)
+        del images
         for k, z in enumerate(heights):
             for a in range(0, h * w, chunk_texels):
                 points = centres[None, a:a + chunk_texels] - float(z) * offsets[:, None]  # (V', n, 2)
                 frac = wrap_uv(points)
-                x = (frac[..., 0] * w + 0.5).to(padded.dtype)  # padded coordinate: texel j centre at j + 1
-                y = (frac[..., 1] * h + 0.5).to(padded.dtype)
-                seen = _grid_sample_hwc(padded, x, y)  # (V', n, 3)
-                cost[k, a:a + chunk_texels] += (seen - _median_views(seen)).abs().sum((0, 2)).double()
-            bar.update(1)
+                x = (frac[..., 0] * w + 0.5).to(padded[0].dtype)  # padded coordinate: texel j centre at j + 1
+                y = (frac[..., 1] * h + 0.5).to(padded[0].dtype)
+                for light_images in padded:  # (the lights' costs added in order, as one light at a time would)
+                    seen = _grid_sample_hwc(light_images, x, y)  # (V', n, 3)
+                    cost[k, a:a + chunk_texels] += (seen - _median_views(seen)).abs().sum((0, 2)).double()
+            bar.update(len(padded))
     return cost
 
 
