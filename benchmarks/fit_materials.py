@@ -6,10 +6,11 @@ kernel; ~7 with ``--repr triple-parallax``), or on any BTFs:
 ``--specs 'sim:stone?relief=0.25,sim:stone?relief=0.5'``.
 
 ``--converge`` fits ``--repr`` as ``dynbtf fit BTF --repr KIND -o MODEL`` does (the auto recipe's
-converge schedule). ``--default`` fits as ``dynbtf fit BTF -o MODEL`` with no options does (``--repr auto``: a trial of
-each kind, the winner's fit continued; the auto recipe: until the held-out monitor stops
-improving), and adds the chosen kind, the trial scores and the whole command's wall time
-(trials and stereo included) to each row.
+converge schedule). ``--default`` fits as ``dynbtf fit BTF -o MODEL`` with no options does (``--repr auto``: the
+stereo estimate, then unless it decides a trial of each kind, the winner's fit continued; the auto recipe: until the
+held-out monitor stops improving), and adds the chosen kind, the stereo's trusted fraction, the trial scores and the
+whole command's wall time (stereo and trials included) to each row ("vs earlier default" needs the Triple Plane's
+trial: "-" where the stereo decided alone).
 Each material is fitted with :func:`dynbtf.training.fit` (resumable: re-running
 with the same ``--out`` continues unfinished fits), evaluated on its held-out
 pairs with :func:`dynbtf.training.evaluate.evaluate_model` (tables and
@@ -83,6 +84,7 @@ def main() -> None:
                      "kind": meta["kind"], "steps": prov.get("schedule", {}).get("steps"), "wall_minutes": wall / 60,
                      "trials": {k: t["held_out_psnr"] for k, t in
                                 prov.get("representation_choice", {}).get("trials", {}).items()},
+                     "stereo_trusted": prov.get("representation_choice", {}).get("stereo_trusted"),
                      "today_minutes": earlier_default_minutes(source, prov) if args.default else None})
         print(json.dumps(rows[-1]))
     print(f"\n{'dynbtf fit with no options' if args.default else args.repr}: held-out pairs; PSNR against each "

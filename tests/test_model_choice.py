@@ -7,7 +7,8 @@ from dynbtf.cli.main import main
 from dynbtf.data.open import open_btf
 from dynbtf.representations.model_file import load_model, read_model_metadata
 from dynbtf.training import TrainConfig, get_fitter
-from dynbtf.training.model_choice import CANDIDATES, MARGIN_DB, TRUSTED_RELIEF, fit_best, pick
+from dynbtf.training import model_choice
+from dynbtf.training.model_choice import CANDIDATES, DECISIVE_RELIEF, MARGIN_DB, TRUSTED_RELIEF, fit_best, pick
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -34,6 +35,10 @@ def test_pick_prefers_the_cheaper_kind_unless_beaten_by_the_margin():
     assert pick({"triple": 23.69, "triple-parallax": 28.12}, stereo_trusted=0.0) == "triple-parallax"
     assert pick({"triple": 27.0, "triple-parallax": 27.0 - 2 * MARGIN_DB}, stereo_trusted=1.0) == "triple"
     assert pick({"triple": 27.0, "triple-parallax": float("nan")}, stereo_trusted=1.0) == "triple"
+    # the stereo decides alone above the materials that ended better flat (tiles 0.28, wood 0.002) and at or below
+    # those with a relief whose trials were decided (woven 0.71, brick 0.84, stone 0.86 and 0.88); the leather
+    # (0.45), undecided at the trial, is left to the race
+    assert max(0.28, 0.002, 0.45) < DECISIVE_RELIEF <= min(0.71, 0.84, 0.86, 0.88)
 
 
 def _config(**options):
@@ -48,6 +53,7 @@ def test_the_race_continues_the_winner_to_the_same_model_as_its_own_fit(tmp_path
     import types
 
     source = open_btf("sim:stone?size=8")
+    monkeypatch.setattr(model_choice, "DECISIVE_RELIEF", 1.01)  # the race, whatever the stereo finds
     # a budget that runs out in the first trial (the fit's clock advances 10 s per reading): nothing is chosen yet,
     # the trial is checkpointed, and the same call again continues the race where it stopped
     clock = itertools.count(0.0, 10.0)
@@ -79,6 +85,40 @@ def test_the_race_continues_the_winner_to_the_same_model_as_its_own_fit(tmp_path
     assert first["step"] == 60 and first["held_out_psnr"] == scores[choice["kind"]]
     again = fit_best(source, tmp_path / "auto.dbtfm", _config(), progress=True)  # a rerun: nothing to race
     assert "continuing" in capsys.readouterr().out and again.metadata["kind"] == choice["kind"]
+
+
+def test_a_relief_the_stereo_trusts_decides_without_a_trial(tmp_path, capsys, monkeypatch):
+    from dynbtf.training.fitters import FITTERS, parallax_stereo_options
+    from dynbtf.training.stereo_height import stereo_height
+
+    source = open_btf("sim:stone?size=16")
+    trusted = float(stereo_height(source, return_trusted=True, **parallax_stereo_options(source))[1].double().mean())
+    assert trusted > 0.5  # a stone: a relief the views agree on
+
+    class TrialStarted(Exception):
+        pass
+
+    def no_trial(*args, **kwargs):
+        raise TrialStarted
+
+    monkeypatch.setitem(FITTERS, "triple", no_trial)
+    monkeypatch.setattr(model_choice, "DECISIVE_RELIEF", trusted + 1e-9)  # just below the threshold: the race
+    with pytest.raises(TrialStarted):
+        fit_best(source, tmp_path / "raced.dbtfm", _config(), progress=False)
+    monkeypatch.setattr(model_choice, "DECISIVE_RELIEF", trusted)  # at the threshold: no trial of either kind
+    result = fit_best(source, tmp_path / "auto.dbtfm", _config(), progress=True)
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("representation: "))
+    assert line.startswith(f"representation: triple-parallax (stereo height trusted on {trusted:.0%} of the texels; "
+                           f"triple-parallax without a trial where")
+    choice = result.metadata["provenance"]["representation_choice"]
+    assert choice["kind"] == result.metadata["kind"] == "triple-parallax"
+    assert choice["stereo_trusted"] == trusted and choice["trials"] == {}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["auto.dbtfm"]
+    direct = get_fitter("triple-parallax")(source, tmp_path / "direct.dbtfm", _config(), progress=False)
+    a, _ = load_model(tmp_path / "auto.dbtfm")
+    b, _ = load_model(direct.model_path)
+    for name, tensor in a.state_dict().items():  # the model --repr triple-parallax trains, bit for bit
+        assert torch.equal(tensor, b.state_dict()[name]), name
 
 
 def test_auto_is_the_command_line_default_and_its_choice_is_in_the_model(tmp_path, capsys):

@@ -1,8 +1,10 @@
-"""``dynbtf fit --repr auto`` (the default): the representation chosen by a race on held-out pairs.
+"""``dynbtf fit --repr auto`` (the default): the representation chosen by stereo evidence and a held-out race.
 
 Which model is best depends on the material: the Triple Plane with parallax gains 4-8 dB on
-materials with relief and loses 2 dB on a flat, glossy one (docs/parallax.md), and no
-statistic of the BTF predicts that as well as trying. So each candidate kind
+materials with relief and loses 2 dB on a flat, glossy one (docs/parallax.md). The **stereo
+height estimate** the parallax model starts from is computed first: where it is trusted on at
+least :data:`DECISIVE_RELIEF` of the texels (a relief the views agree on over most of the
+surface), the parallax model is chosen without a trial. Otherwise each candidate kind
 (:data:`CANDIDATES`) trains a **trial** of :data:`TRIAL_CHECKS` held-out checks
 (``TRIAL_CHECKS x monitor_every`` steps, the first part of its own schedule: same recipe, seed,
 held-out pairs and monitor), and the best held-out PSNR at the trial's end wins; a kind
@@ -10,16 +12,17 @@ listed later must beat the ones before it by :data:`MARGIN_DB` (0.5 dB; the firs
 Triple Plane, is the cheaper to render, and an early lead smaller than that did not last on a
 flat, glossy material). A trial that leaves the two within the margin of each other is undecided
 (leather and lacquered wood both score 26.8 dB for both kinds there, and the parallax model ends
-3.9 dB ahead on one and 2 dB behind on the other); the stereo estimate the parallax trial starts
-from decides it: the parallax model wins where the views agreed on a relief, i.e. the estimate was
-trusted on at least :data:`TRUSTED_RELIEF` of the texels. The **winner's fit continues from its trial** (its
-checkpoint becomes the output's), so only the losers' trials are extra work.
+4.6 dB ahead on one and 2 dB behind on the other); the stereo estimate decides it: the parallax
+model wins where the estimate was trusted on at least :data:`TRUSTED_RELIEF` of the texels. The
+**winner's fit continues from its trial** (its checkpoint becomes the output's), so only the losers'
+trials are extra work.
 
 The choice is printed in one line and recorded in the model's provenance
-(``representation_choice``: each trial's steps, held-out PSNR and seconds). A re-run on the
-same output continues the chosen kind (it is read from the checkpoint, or from the finished
-model file); an interrupted race continues its trials (each from its checkpoint, the finished
-ones recorded next to the output). ``max_minutes`` is the whole command's budget, trials included.
+(``representation_choice``: the stereo's trusted fraction and each trial's steps, held-out PSNR
+and seconds). A re-run on the same output continues the chosen kind (it is read from the
+checkpoint, or from the finished model file); an interrupted race continues its trials (each from
+its checkpoint, the finished ones recorded next to the output). ``max_minutes`` is the whole
+command's budget, stereo and trials included.
 
 >>> from dynbtf.training.model_choice import pick
 >>> pick({"triple": 24.0, "triple-parallax": 24.05})    # within the margin: the cheaper kind
@@ -46,8 +49,8 @@ from .distributed import from_environment
 from .fit import FitResult, TrainConfig
 from .fitters import get_fitter, parallax_stereo_options, register_fitter
 
-__all__ = ["DEFAULT_KIND", "CANDIDATES", "TRIAL_CHECKS", "MARGIN_DB", "RELIEF_KIND", "TRUSTED_RELIEF", "pick",
-           "fit_best", "kind_in_progress", "stereo_fitter_options"]
+__all__ = ["DEFAULT_KIND", "CANDIDATES", "TRIAL_CHECKS", "MARGIN_DB", "RELIEF_KIND", "TRUSTED_RELIEF",
+           "DECISIVE_RELIEF", "pick", "fit_best", "kind_in_progress", "stereo_fitter_options"]
 
 #: The kind ``dynbtf fit`` and ``dynbtf fit-many`` fit when none is named.
 DEFAULT_KIND = "auto"
@@ -67,6 +70,12 @@ RELIEF_KIND = "triple-parallax"
 #: 1.7 dB behind) and lacquered wood 0.002 (2 dB behind); woven fabric 0.71, stone 0.88 and brick wall 0.84, whose
 #: trials are decided anyway. The threshold sits between the tiles and the leather; it rests on those three.
 TRUSTED_RELIEF = 0.35
+#: Fraction of trusted texels at which the stereo estimate decides alone, before any trial: the parallax model,
+#: without a trial of the Triple Plane. Every simulated material measured with that much trusted relief ended
+#: better with parallax (stone 0.86-0.88, brick wall 0.84, woven fabric 0.71: by 2.7-8 dB) and every material
+#: that ended better flat had at most 0.28 (the ceramic tiles); the leather (0.45, parallax 4.6 dB ahead) is
+#: left to the race.
+DECISIVE_RELIEF = 0.6
 
 
 class _TrialOver(Exception):
@@ -233,14 +242,15 @@ def _promote(output: Path, winner: str) -> None:
 
 def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
              callback=None, kind_options: dict[str, dict[str, Any]] | None = None) -> FitResult:
-    """``dynbtf fit --repr auto``: race :data:`CANDIDATES` (see the module docstring), then finish the winner's fit.
+    """``dynbtf fit --repr auto``: the stereo evidence, a race of :data:`CANDIDATES` unless it decides (see the
+    module docstring), then the winner's fit.
 
     Parameters
     ----------
     source, output, config, progress, callback :
         As any fitter (:mod:`dynbtf.training.fitters`); ``callback`` sees every step, the trials' included;
-        ``config.max_minutes`` is the whole command's budget (trials included): when it runs out during a trial, that trial's result (unfinished) is returned, and the same call
-        again continues the race.
+        ``config.max_minutes`` is the whole command's budget (stereo and trials included): when it runs out during
+        a trial, that trial's result (unfinished) is returned, and the same call again continues the race.
     kind_options : dict, optional
         Fitter options per kind (e.g. ``{"triple-parallax": {"stereo": {...}}}``).
 
@@ -266,47 +276,66 @@ def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, pr
     progress = progress and parallel.is_main
     trials = _finished_trials(output)
     if progress:
-        print(f"choosing the representation: a trial of {TRIAL_CHECKS} held-out checks each of "
-              f"{', '.join(CANDIDATES)} on the same held-out pairs" + (f" (continuing the race: {', '.join(trials)} "
-                                                                       "done)" if trials else ""))
+        print(f"choosing the representation: the stereo height estimate, then, unless it is trusted on at least "
+              f"{DECISIVE_RELIEF:.0%} of the texels, a trial of {TRIAL_CHECKS} held-out checks each of "
+              f"{', '.join(CANDIDATES)} on the same held-out pairs"
+              + (f" (continuing the race: {', '.join(trials)} done)" if trials else ""))
+    # the stereo estimate first (computed once: it may decide alone, and its height starts the parallax fit; a
+    # parallax trial resumed from its checkpoint keeps its own height, the sweep is then evidence alone)
+    relief_options = dict(kind_options.get(RELIEF_KIND, {}))
+    relief_options["stereo_estimate"] = _stereo_estimate(source, relief_options, progress)
+    trusted = float(relief_options["stereo_estimate"][1].double().mean())
+    options_of = {kind: (relief_options if kind == RELIEF_KIND else dict(kind_options.get(kind, {})))
+                  for kind in CANDIDATES}
+    if trusted >= DECISIVE_RELIEF:
+        winner = RELIEF_KIND
+        rule = (f"{RELIEF_KIND} without a trial where the stereo height is trusted on at least "
+                f"{DECISIVE_RELIEF:.0%} of the texels")
+        if progress:
+            print(f"representation: {winner} (stereo height trusted on {trusted:.0%} of the texels; {rule})")
+        evidence = {"kind": winner, "rule": rule, "stereo_trusted": trusted, "trials": trials}
+        return _continue_winner(source, output, _remaining(config, start), winner, evidence, options_of[winner],
+                                parallel, progress, callback)
     for kind in CANDIDATES:
         if kind not in trials:
-            options, evidence = dict(kind_options.get(kind, {})), {}
-            if kind == RELIEF_KIND:  # the stereo estimate, computed once: its height starts the trial (a trial
-                # resumed from its checkpoint keeps its own height; the sweep is run again for the evidence alone)
-                options["stereo_estimate"] = _stereo_estimate(source, options, progress)
-                evidence["stereo_trusted"] = float(options["stereo_estimate"][1].double().mean())
-            trial, stopped = _run_trial(kind, source, output, _remaining(config, start), progress, options, callback)
+            trial, stopped = _run_trial(kind, source, output, _remaining(config, start), progress, options_of[kind],
+                                        callback)
             if stopped is not None:
                 if progress:
                     print(f"time budget reached during the trial of {kind}; run the same command again to continue")
                 return stopped
-            trials[kind] = trial | evidence
+            trials[kind] = trial | ({"stereo_trusted": trusted} if kind == RELIEF_KIND else {})
             if parallel.is_main:
                 with atomic_path(_race_path(output)) as tmp:
                     tmp.write_text(json.dumps(trials))
-    trusted = trials.get(RELIEF_KIND, {}).get("stereo_trusted")
     winner = pick({k: t["held_out_psnr"] for k, t in trials.items()}, trusted)
     rule = (f"a kind after {CANDIDATES[0]} must win by {MARGIN_DB:g} dB; within that, {RELIEF_KIND} wins where the "
             f"stereo height is trusted on at least {TRUSTED_RELIEF:.0%} of the texels")
     if progress:
         print(f"representation: {winner} (held-out PSNR after a trial of "
               + ", ".join(f"{k} {t['held_out_psnr']:.2f} dB at step {t['steps']}" for k, t in trials.items())
-              + (f"; stereo height trusted on {trusted:.0%} of the texels" if trusted is not None else "")
-              + f"; {rule})")
+              + f"; stereo height trusted on {trusted:.0%} of the texels; {rule})")
+    evidence = {"kind": winner, "rule": f"best held-out PSNR at the last of {TRIAL_CHECKS} held-out checks of a "
+                                        f"trial of each kind; {rule}", "stereo_trusted": trusted, "trials": trials}
+    return _continue_winner(source, output, _remaining(config, start), winner, evidence, options_of[winner],
+                            parallel, progress, callback)
+
+
+def _continue_winner(source: BTFSource, output: Path, config: TrainConfig, winner: str, evidence: dict[str, Any],
+                     options: dict[str, Any], parallel, progress: bool, callback) -> FitResult:
+    """The winner's fit, continued from its trial if it had one (whose checkpoint or finished model becomes the
+    output's), with ``evidence`` as its provenance's ``representation_choice``."""
     parallel.barrier()  # every trial's checkpoint is written
     if parallel.is_main:
         _promote(output, winner)
-    evidence = {"kind": winner, "rule": f"best held-out PSNR at the last of {TRIAL_CHECKS} held-out checks of a "
-                                        f"trial of each kind; {rule}", "trials": trials}
     if output.is_file() and parallel.is_main:  # the trial was the whole fit (a short schedule): add the evidence
         from ..representations.model_file import load_model, save_model
 
         rep, meta = load_model(output, device="cpu")
         save_model(output, rep, meta["provenance"] | {"representation_choice": evidence})
     parallel.barrier()
-    return get_fitter(winner)(source, output, _remaining(config, start), progress=progress, callback=callback,
-                              extra_provenance={"representation_choice": evidence}, **kind_options.get(winner, {}))
+    return get_fitter(winner)(source, output, config, progress=progress, callback=callback,
+                              extra_provenance={"representation_choice": evidence}, **options)
 
 
 register_fitter("auto")(fit_best)
