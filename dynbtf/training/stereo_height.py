@@ -20,7 +20,7 @@ is clearly below the reference plane's; elsewhere (flat or glossy regions, whose
 cost curve is flat) the height is filled in from trusted neighbours, or 0.
 
 Measured on the simulated stone (128 x 128, UBO2003 grid, ~10 texels of relief):
-RMSE 0.66 texels against the simulator's true height, correlation 0.89, 35 s on
+RMSE 0.66 texels against the simulator's true height, correlation 0.89, 17 s on
 two cores (``docs/triple_plane.md``).
 
 **Scale.** The sweep runs over blocks of texels (``chunk_texels``; every texel's cost is
