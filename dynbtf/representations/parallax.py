@@ -407,14 +407,11 @@ class ParallaxTriplePlane(TriplePlane):
         if todo.numel():
             if getattr(self, "_texel_centres", None) is None or self._texel_centres.device != todo.device:
                 self._texel_centres = torch.from_numpy(texel_centers_uv(rows, cols).reshape(-1, 2)).to(todo.device)
-            height = self.marched_height_channel.double() * self.height_scale  # (H, W) uv units
+            plane = self.marched_height_channel[..., None]
             slot, texel = todo // (rows * cols), todo % (rows * cols)
-            w = cache.views[slot]
-            w = torch.where(w[:, 2:3] > 0, w, torch.tensor([0.0, 0.0, 1.0], dtype=w.dtype, device=w.device))
             with torch.no_grad():
-                hit = march_visible_uv(self._texel_centres[texel], w, height, h_min=float(height.min()),
-                                       h_max=float(height.max()), **self.march_parameters())
-                at_hit = fetch_wrap(height[..., None], hit)[:, 0]
+                hit = self.visible_uv(self._texel_centres[texel], cache.views[slot], plane)
+                at_hit = fetch_wrap(plane.double() * self.height_scale, hit)[:, 0]
             cache.store(todo, wrap_uv(hit).to(torch.float32), at_hit.to(torch.float32))
         return cache.read(cached)
 
