@@ -7,16 +7,19 @@ benchmark trains, on the same BTF, with the fast recipe (64 texel groups, view-c
 for the parallax model):
 
 * **triple** -- the Triple Plane;
-* **parallax** -- ``triple-parallax`` as ``dynbtf fit`` trains it (the march through the height
-  plane in the compiled kernel, :mod:`dynbtf.representations.march_kernel`);
-* **parallax, torch march** -- the same model with the march run by the torch loop of
-  :func:`~dynbtf.representations.parallax.march_visible_uv` (what any other device runs).
+* **parallax** -- ``triple-parallax`` as ``dynbtf fit`` trains it on the CPU: the visible-point table
+  read, its missing rows marched, and the Newton step and fetch at the visible points with their backward,
+  in the compiled loops of :mod:`dynbtf.representations.parallax_kernels`;
+* **parallax, torch ops** -- the same model with ``use_compiled_kernels = False``: the table and the fetch in
+  torch operations, the march still compiled (:func:`~dynbtf.representations.parallax_kernels.march_plane`);
+* **parallax, torch ops and march** -- also the march run by the torch loop of
+  :func:`~dynbtf.representations.parallax.march_visible_uv`: what any other device runs.
 
 Each variant trains ``--steps`` optimizer steps after ``--warmup`` (the height estimated once
-by stereo, as ``dynbtf fit`` does, and given to both parallax variants). Printed: mean ms per
+by stereo, as ``dynbtf fit`` does, and given to every parallax variant). Printed: mean ms per
 step and each variant's ratio to the Triple Plane.
 
-Run: ``python benchmarks/bench_parallax_training.py`` (about 3 minutes on 2 cores; ``--btf``
+Run: ``python benchmarks/bench_parallax_training.py`` (about 4 minutes on 2 cores; ``--btf``
 any BTF path or spec).
 """
 
@@ -82,6 +85,11 @@ def main() -> None:
 
     compiled = parallax.march_plane
 
+    def torch_ops_model():  # the visible-point table and the fetch in torch ops, as any other device runs them
+        rep = parallax_model()
+        rep.use_compiled_kernels = False
+        return rep
+
     def torch_loop(uv, slope, plane, **march):  # the march of any other device: the torch loop, same rays
         w = torch.nn.functional.normalize(torch.cat([slope, torch.ones_like(slope[:, :1])], dim=-1), dim=-1)
         return parallax.march_visible_uv(uv, w, lambda p: parallax.fetch_wrap(plane[..., None], p)[:, 0], **march)
@@ -89,7 +97,8 @@ def main() -> None:
     rows = []
     for name, make, march in [("triple", lambda: TriplePlane(source.height, source.width), compiled),
                               ("parallax", parallax_model, compiled),
-                              ("parallax, torch march", parallax_model, torch_loop)]:
+                              ("parallax, torch ops", torch_ops_model, compiled),
+                              ("parallax, torch ops and march", torch_ops_model, torch_loop)]:
         parallax.march_plane = march
         try:
             times = step_times(make(), source, args.steps, args.warmup)

@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 from typing import Any, Callable
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -40,8 +41,9 @@ from ..conventions import texel_centers_uv
 from ..errors import InputError
 from ..texture import fetch_wrap, wrap_uv
 from .base import config_flag, config_number, register
-from .march_kernel import march_plane
+from .parallax_kernels import march_plane, visible_texel_points
 from .triple_plane import TriplePlane
+from .visible_fetch import fetch_visible
 
 __all__ = ["view_offsets", "march_visible_uv", "VisibleTexelCache", "ParallaxTriplePlane"]
 
@@ -66,6 +68,12 @@ def view_offsets(w_view: torch.Tensor, aspect: float = 1.0) -> torch.Tensor:
     return offsets * torch.tensor([1.0, aspect], dtype=offsets.dtype, device=offsets.device)
 
 
+def _marchable(w_view: torch.Tensor) -> torch.Tensor:
+    """``w_view (N, 3)`` as float64 with directions ``z <= 0`` replaced by the vertical (they evaluate to zero anyway)."""
+    w = w_view.to(torch.float64)
+    return torch.where(w[:, 2:3] > 0, w, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64, device=w.device))
+
+
 def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor,
                      height_at: Callable[[torch.Tensor], torch.Tensor] | torch.Tensor, *,
                      h_min: float, h_max: float, step: float, max_step: float | None = None,
@@ -83,7 +91,7 @@ def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor,
         any points; called once per sample of a ray, on shrinking subsets. Or a
         height plane ``(H, W)`` (uv units, at the texel centres, fetched bilinearly and
         periodically as :func:`~dynbtf.texture.fetch_wrap` does): on the CPU its rays are
-        marched by a compiled kernel (:func:`~dynbtf.representations.march_kernel.march_plane`),
+        marched by a compiled kernel (:func:`~dynbtf.representations.parallax_kernels.march_plane`),
         the same march in one loop per ray.
     h_min, h_max : float
         Bounds of the field (a point where the field exceeds ``h_max`` is hit at ``h_max``).
@@ -195,7 +203,8 @@ class VisibleTexelCache:
     def clear(self, device: torch.device | str = "cpu") -> None:
         """Forget every view."""
         self.count = 0
-        self.slots: dict[tuple[float, float, float], int] = {}  # view direction -> its slot
+        self.slots_of: dict[tuple[float, float, float], int] = {}  # view direction -> its slot
+        self.field = None  # (height plane, h_min, h_max) the rows are marched through, as the compiled path keeps it
         self.views = torch.zeros(0, 3, dtype=torch.float64, device=device)
         self.points = torch.zeros(0, self.n_texels, 2, device=device)
         self.heights = torch.zeros(0, self.n_texels, device=device)
@@ -204,6 +213,7 @@ class VisibleTexelCache:
     def forget_rows(self) -> None:
         """Keep the views, mark every row as to be marched again (the height has moved)."""
         self.marched.zero_()
+        self.field = None
 
     def _reserve(self, count: int) -> None:
         capacity = self.views.shape[0]
@@ -214,26 +224,30 @@ class VisibleTexelCache:
             torch.cat([t, t.new_zeros(extra, *t.shape[1:])]) for t in (self.views, self.points, self.heights,
                                                                           self.marched))
 
-    def lookup(self, w_views: torch.Tensor, texels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Rows ``(G, n)`` int64 (flat indices ``slot * n_texels + texel``) of ``texels (G, n)`` under the views
-        ``w_views (G, 3)`` (new views are added) and the rows to march: those not marched yet (in row order; a row
-        asked for twice is marched twice, to the same value)."""
-        device = texels.device
+    def slots(self, w_views: torch.Tensor) -> torch.Tensor:
+        """The slots ``(G,)`` int64 of the views ``w_views (G, 3)``; views not seen yet are added (past
+        ``MAX_VIEWS`` the cache starts over first)."""
+        device = w_views.device
         if self.views.device != torch.device(device):
             self.clear(device)
         w = w_views.detach().to(device=device, dtype=torch.float64)
         keys = [tuple(v) for v in w.tolist()]  # exact values: a view is matched by equality of its direction
-        new = list(dict.fromkeys(k for k in keys if k not in self.slots))
+        new = list(dict.fromkeys(k for k in keys if k not in self.slots_of))
         if new:
             if self.count + len(new) > self.MAX_VIEWS and self.count:
                 self.clear(device)
-                return self.lookup(w_views, texels)
+                return self.slots(w_views)
             self._reserve(self.count + len(new))
             self.views[self.count: self.count + len(new)] = torch.tensor(new, dtype=torch.float64, device=device)
-            self.slots.update((k, self.count + i) for i, k in enumerate(new))
+            self.slots_of.update((k, self.count + i) for i, k in enumerate(new))
             self.count += len(new)
-        slots = torch.tensor([self.slots[k] for k in keys], dtype=torch.int64, device=device)
-        rows = slots[:, None] * self.n_texels + texels
+        return torch.tensor([self.slots_of[k] for k in keys], dtype=torch.int64, device=device)
+
+    def lookup(self, w_views: torch.Tensor, texels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rows ``(G, n)`` int64 (flat indices ``slot * n_texels + texel``) of ``texels (G, n)`` under the views
+        ``w_views (G, 3)`` (new views are added) and the rows to march: those not marched yet (in row order; a row
+        asked for twice is marched twice, to the same value)."""
+        rows = self.slots(w_views.to(texels.device))[:, None] * self.n_texels + texels
         return rows, rows[~self.marched.view(-1)[rows]]
 
     def store(self, rows: torch.Tensor, points: torch.Tensor, heights: torch.Tensor) -> None:
@@ -286,6 +300,10 @@ class ParallaxTriplePlane(TriplePlane):
     """
 
     extra_positional_channels = 1
+    #: Training on the CPU reads the visible-point table, marches its missing rows and fetches the features
+    #: at the visible points in compiled loops (:mod:`~dynbtf.representations.parallax_kernels`); ``False``
+    #: runs the torch operations every other device runs (same rays; features equal to float32 rounding).
+    use_compiled_kernels = True
     #: The fit loop gives every texel group images of one view (see :mod:`dynbtf.training.fit`).
     view_coherent_batches = True
     separate_channels = 1  # the height: synthesized on its own (its own histogram transform, outside the PCA)
@@ -363,8 +381,7 @@ class ParallaxTriplePlane(TriplePlane):
         """
         batch = uv.shape[:-1]
         flat = uv.reshape(-1, 2).to(torch.float64)
-        w = w_view.reshape(-1, 3).to(device=flat.device, dtype=torch.float64)
-        w = torch.where(w[:, 2:3] > 0, w, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64, device=w.device))
+        w = _marchable(w_view.reshape(-1, 3).to(device=flat.device))
         # the exemplar's range: a synthesized field (blends of the exemplar's) may leave it a little, where
         # the march lands on its bounds (a ray meeting heights above h_max is stopped at h_max)
         if fetch is None:
@@ -396,17 +413,34 @@ class ParallaxTriplePlane(TriplePlane):
         texel centres ``texels[g] (G, n)`` (int64 texel indices) under view ``w_views[g] (G, 3)``.
 
         Answered from :class:`VisibleTexelCache` (see :meth:`_check_visible_cache`); the rows it does
-        not hold yet are marched first, all views' in **one** march through ``marched_height_channel``
+        not hold yet are marched first, through ``marched_height_channel`` as :meth:`visible_uv` marches
         (a training step reads ``n = N / G`` texels per view, so a refresh costs one march of the step's
         ``N`` texels). Each ray is marched on its own, so a row is the same whichever rays are marched
-        with it.
+        with it. On the CPU (:attr:`use_compiled_kernels`) the table is read and its missing rows marched
+        in one compiled loop (:func:`~dynbtf.representations.parallax_kernels.visible_texel_points`); elsewhere
+        by torch operations and :meth:`visible_uv`. Both march the same rays.
         """
         cache = self._visible_cache
         rows, cols = self.height_channel.shape
+        if getattr(self, "_texel_centres", None) is None or self._texel_centres.device != texels.device:
+            self._texel_centres = torch.from_numpy(texel_centers_uv(rows, cols).reshape(-1, 2)).to(texels.device)
+        if self.use_compiled_kernels and texels.device.type == "cpu":
+            slots = cache.slots(w_views.cpu())
+            if cache.field is None:  # the field visible_uv marches a height plane through
+                plane = self.marched_height_channel.detach().to(torch.float64) * self.height_scale
+                cache.field = (plane.numpy(), float(plane.min()), float(plane.max()))
+            plane, h_min, h_max = cache.field
+            march = self.march_parameters()
+            slope = view_offsets(_marchable(cache.views[slots]), march["aspect"])
+            points = np.empty((*texels.shape, 2), dtype=np.float32)
+            heights = np.empty(texels.shape, dtype=np.float32)
+            visible_texel_points(slots.numpy(), texels.numpy(), self._texel_centres.numpy(), slope.numpy(),
+                                 plane, h_min, h_max, march["step"], march["max_step"], march["surface_slope"],
+                                 cache.points.view(-1, 2).numpy(), cache.heights.view(-1).numpy(),
+                                 cache.marched.view(-1).numpy(), points, heights)
+            return torch.from_numpy(points), torch.from_numpy(heights)
         cached, todo = cache.lookup(w_views, texels)
         if todo.numel():
-            if getattr(self, "_texel_centres", None) is None or self._texel_centres.device != todo.device:
-                self._texel_centres = torch.from_numpy(texel_centers_uv(rows, cols).reshape(-1, 2)).to(todo.device)
             plane = self.marched_height_channel[..., None]
             slot, texel = todo // (rows * cols), todo % (rows * cols)
             with torch.no_grad():
@@ -420,9 +454,14 @@ class ParallaxTriplePlane(TriplePlane):
         ``height_refresh_texels`` on average or by a texel anywhere (a learned height changes every
         optimizer step; between two marches :meth:`_visible_features` follows it by a Newton step)."""
         current = self.height_channel.detach()
-        moved = (current - self.marched_height_channel).abs() * (self.height_scale * max(current.shape))  # texels
-        mean, largest = torch.stack([moved.mean(), moved.max()]).tolist()  # (one synchronization)
-        if mean < self._config["height_refresh_texels"] and largest < 1.0:
+        if current.device.type == "cpu":  # (numpy: a few microseconds where torch's reductions take ~0.2 ms)
+            moved = np.abs(current.numpy() - self.marched_height_channel.numpy())
+            mean, largest = float(moved.mean()), float(moved.max())
+        else:
+            moved = (current - self.marched_height_channel).abs()
+            mean, largest = torch.stack([moved.mean(), moved.max()]).tolist()  # (one synchronization)
+        texels = self.height_scale * max(current.shape)  # texels per channel unit
+        if mean * texels < self._config["height_refresh_texels"] and largest * texels < 1.0:
             return
         self._visible_cache.forget_rows()  # the tables are kept, their rows marched again
         with torch.no_grad():
@@ -436,24 +475,17 @@ class ParallaxTriplePlane(TriplePlane):
         cached hit ``p`` at height ``z`` (where ``height(p) = z`` when it was
         marched), one Newton step of ``height(p + dz s) = z + dz`` gives
         ``dz = (height(p) - z) / (1 - grad height . s)``; its value follows the height
-        between two marches and its gradient is the implicit-function one.
+        between two marches and its gradient is the implicit-function one
+        (:func:`~dynbtf.representations.visible_fetch.fetch_visible`, a compiled kernel on the CPU).
         """
         points, z = self._visible_texel_points(w_views, texels)
-        points, z = points.reshape(-1, 2), z.reshape(-1)
-        if self.height_channel.requires_grad and torch.is_grad_enabled():
-            rows, cols = self.height_channel.shape
-            slope = view_offsets(w_views, cols / rows).to(points.dtype).repeat_interleave(texels.shape[1], 0)
-            height = self.height_field()[..., None]
-            eps = 0.5 / max(rows, cols)
-            with torch.no_grad():
-                along = fetch_wrap(height, torch.cat([points + eps * slope, points - eps * slope]))[:, 0]
-                along = along[: len(points)] - along[len(points):]
-                denominator = (1.0 - along / (2 * eps)).clamp_min(0.25)
-            dz = (fetch_wrap(height, points)[:, 0] - z) / denominator
-            points = points + dz[:, None] * slope
+        rows, cols = self.height_channel.shape
+        slope = view_offsets(w_views, cols / rows).to(points.dtype).repeat_interleave(texels.shape[1], 0)
         # the height learns both as geometry (the visible point) and as a decoder input; learning it as
         # geometry alone (detached here) measured worse on the stone: 30.14 vs 30.23 dB, height RMSE 0.25 vs 0.16
-        return fetch_wrap(self.positional_plane(), points)
+        return fetch_visible(self.f_u, self.height_channel, points.reshape(-1, 2), z.reshape(-1), slope,
+                             self.height_scale, newton=self.height_channel.requires_grad and torch.is_grad_enabled(),
+                             kernel=None if self.use_compiled_kernels else False)
 
     def predict_texel_images(self, w_view: torch.Tensor, w_light: torch.Tensor,
                              texels: torch.Tensor | None = None) -> torch.Tensor:
