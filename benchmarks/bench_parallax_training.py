@@ -8,10 +8,10 @@ for the parallax model):
 
 * **triple** -- the Triple Plane;
 * **parallax** -- ``triple-parallax`` as ``dynbtf fit`` trains it on the CPU: the visible-point table
-  read, its missing rows marched, and the Newton step and fetch at the visible points with their backward,
-  in the compiled loops of :mod:`dynbtf.representations.parallax_kernels`;
-* **parallax, torch ops** -- the same model with ``use_compiled_kernels = False``: the table and the fetch in
-  torch operations, the march still compiled (:func:`~dynbtf.representations.parallax_kernels.march_plane`);
+  read and its missing rows marched in one compiled loop
+  (:func:`~dynbtf.representations.parallax_kernels.visible_texel_points`);
+* **parallax, torch ops** -- the same model with ``use_compiled_kernels = False``: the table in torch
+  operations, its marches still compiled (:func:`~dynbtf.representations.parallax_kernels.march_plane`);
 * **parallax, torch ops and march** -- also the march run by the torch loop of
   :func:`~dynbtf.representations.parallax.march_visible_uv`: what any other device runs.
 

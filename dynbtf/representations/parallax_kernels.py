@@ -1,8 +1,8 @@
-"""Compiled CPU kernels of the parallax model (numba): the march through a height plane, and the fetch at
-the visible points with its backward.
+"""Compiled CPU kernels of the parallax model (numba): the march through a height plane, and training's
+table of visible points.
 
-They live in one module because they share the bilinear, periodic addressing (:func:`bilinear_corners`), and
-numba's on-disk cache of a kernel is keyed on its own source file only.
+They live in one module because they share the march and the bilinear, periodic addressing
+(:func:`bilinear_corners`), and numba's on-disk cache of a kernel is keyed on its own source file only.
 
 **The march.** :func:`dynbtf.representations.parallax.march_visible_uv` is the definition: a torch loop over
 shrinking sets of rays that calls a height function once per sample, which serves any height
@@ -18,9 +18,6 @@ torch march given the same bilinear height function.
 
 **Training's visible points** (:func:`visible_texel_points`): the table of every view's visible texel points
 read, and its missing rows marched (the same rays as :func:`march_plane`), in one loop.
-
-**The fetch at the visible points** (:func:`visible_fetch_forward`, :func:`visible_fetch_backward`) is the
-compiled form of :func:`dynbtf.representations.visible_fetch.fetch_visible`, whose module states the math.
 """
 
 from __future__ import annotations
@@ -31,7 +28,7 @@ import numba
 import numpy as np
 import torch
 
-__all__ = ["march_plane", "bilinear_corners", "visible_texel_points", "visible_fetch_forward", "visible_fetch_backward"]
+__all__ = ["march_plane", "bilinear_corners", "visible_texel_points"]
 
 
 @numba.njit(inline="always")
@@ -178,76 +175,3 @@ def march_plane(uv: torch.Tensor, slope: torch.Tensor, plane: torch.Tensor, *, h
     march(uv_np, slope_np, plane_np, float(h_min), float(h_max), float(step), float(max_step), float(surface_slope),
           out)
     return torch.from_numpy(out)
-
-
-@numba.njit(inline="always")
-def _corner_rows(rows, cols, x, y):
-    """Rows of the ``(rows * cols, C)`` table at the four bilinear corners of uv ``(x, y)`` and their weights."""
-    i0, i1, j0, j1, wx, wy = bilinear_corners(rows, cols, x, y)
-    return (i0 * cols + j0, i0 * cols + j1, i1 * cols + j0, i1 * cols + j1,
-            (1.0 - wx) * (1.0 - wy), wx * (1.0 - wy), (1.0 - wx) * wy, wx * wy, wx, wy)
-
-
-@numba.njit(inline="always")
-def _height(height, x, y):
-    i0, i1, j0, j1, wx, wy = bilinear_corners(height.shape[0], height.shape[1], x, y)
-    top = (1.0 - wx) * height[i0, j0] + wx * height[i0, j1]
-    bottom = (1.0 - wx) * height[i1, j0] + wx * height[i1, j1]
-    return (1.0 - wy) * top + wy * bottom
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def visible_fetch_forward(plane, height, points, z, slope, height_scale, eps, newton, out, hits, gain):  # pragma: no cover
-    """:func:`~dynbtf.representations.visible_fetch.fetch_visible` at ``points (N, 2)`` (float64): ``out (N, C)`` (float32)
-    from ``plane (H * W, C)`` (float32, the height channel last) and ``height (H, W)``; writes the fetch points
-    ``hits (N, 2)`` and ``gain (N,)`` (``height_scale / denominator``, 0 without ``newton``) for the backward."""
-    rows, cols = height.shape
-    channels = plane.shape[1]
-    for n in range(points.shape[0]):
-        x, y = points[n, 0], points[n, 1]
-        gain[n] = 0.0
-        if newton:
-            sx, sy = slope[n, 0], slope[n, 1]
-            along = height_scale * (_height(height, x + eps * sx, y + eps * sy)
-                                    - _height(height, x - eps * sx, y - eps * sy))
-            denominator = max(1.0 - along / (2.0 * eps), 0.25)
-            dz = (height_scale * _height(height, x, y) - z[n]) / denominator
-            gain[n] = height_scale / denominator
-            x, y = x + dz * sx, y + dz * sy
-        hits[n, 0], hits[n, 1] = x, y
-        r00, r01, r10, r11, w00, w01, w10, w11, wx, wy = _corner_rows(rows, cols, x, y)
-        a, b, c, d = np.float32(w00), np.float32(w01), np.float32(w10), np.float32(w11)
-        for k in range(channels):
-            out[n, k] = a * plane[r00, k] + b * plane[r01, k] + c * plane[r10, k] + d * plane[r11, k]
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def visible_fetch_backward(plane, rows, cols, points, slope, hits, gain, newton, grad_out, grad):  # pragma: no cover
-    """Adds to ``grad (H * W, C)`` the gradient of ``sum(grad_out * out)`` for :func:`visible_fetch_forward`'s ``out``
-    (one loop over the points, in order: deterministic)."""
-    channels = plane.shape[1]
-    for n in range(points.shape[0]):
-        r00, r01, r10, r11, w00, w01, w10, w11, wx, wy = _corner_rows(rows, cols, hits[n, 0], hits[n, 1])
-        a, b, c, d = np.float32(w00), np.float32(w01), np.float32(w10), np.float32(w11)
-        top, bottom, left, right = np.float32(0.0), np.float32(0.0), np.float32(0.0), np.float32(0.0)  # parts of d loss / d q
-        for k in range(channels):
-            g = grad_out[n, k]
-            v00, v01, v10, v11 = plane[r00, k], plane[r01, k], plane[r10, k], plane[r11, k]
-            grad[r00, k] += a * g
-            grad[r01, k] += b * g
-            grad[r10, k] += c * g
-            grad[r11, k] += d * g
-            top += g * (v01 - v00)
-            bottom += g * (v11 - v10)
-            left += g * (v10 - v00)
-            right += g * (v11 - v01)
-        if newton:  # q = p + dz s, dz = (height_scale h(p) - z) / denominator
-            d_x = (1.0 - wy) * top + wy * bottom
-            d_y = (1.0 - wx) * left + wx * right
-            g_h = (d_x * cols * slope[n, 0] + d_y * rows * slope[n, 1]) * gain[n]
-            p00, p01, p10, p11, u00, u01, u10, u11, _, _ = _corner_rows(rows, cols, points[n, 0], points[n, 1])
-            last = channels - 1  # the height channel
-            grad[p00, last] += u00 * g_h
-            grad[p01, last] += u01 * g_h
-            grad[p10, last] += u10 * g_h
-            grad[p11, last] += u11 * g_h
