@@ -19,7 +19,7 @@ Each variant trains ``--steps`` optimizer steps after ``--warmup`` (the height e
 by stereo, as ``dynbtf fit`` does, and given to every parallax variant). Printed: mean ms per
 step and each variant's ratio to the Triple Plane.
 
-Run: ``python benchmarks/bench_parallax_training.py`` (about 4 minutes on 2 cores; ``--btf``
+Run: ``python benchmarks/bench_parallax_training.py`` (about 2 minutes on 2 cores; ``--btf``
 any BTF path or spec).
 """
 

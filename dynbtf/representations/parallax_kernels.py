@@ -1,8 +1,8 @@
 """Compiled CPU kernels of the parallax model (numba): the march through a height plane, and training's
 table of visible points.
 
-They live in one module because they share the march and the bilinear, periodic addressing
-(:func:`bilinear_corners`), and numba's on-disk cache of a kernel is keyed on its own source file only.
+They live in one module because they share the march and its bilinear, periodic fetch, and numba's on-disk
+cache of a kernel is keyed on its own source file only (a helper edited in another file would leave it stale).
 
 **The march.** :func:`dynbtf.representations.parallax.march_visible_uv` is the definition: a torch loop over
 shrinking sets of rays that calls a height function once per sample, which serves any height
@@ -28,7 +28,7 @@ import numba
 import numpy as np
 import torch
 
-__all__ = ["march_plane", "bilinear_corners", "visible_texel_points"]
+__all__ = ["march_plane", "visible_texel_points"]
 
 
 @numba.njit(inline="always")
@@ -38,7 +38,7 @@ def _wrapped_fraction(x):
 
 
 @numba.njit(inline="always")
-def bilinear_corners(rows, cols, x, y):
+def _bilinear_corners(rows, cols, x, y):
     """The four texels and weights of a bilinear, periodic fetch of a ``(rows, cols)`` plane at uv ``(x, y)``:
     ``(i0, i1, j0, j1, wx, wy)``, the value being ``(1 - wy) ((1 - wx) p[i0, j0] + wx p[i0, j1]) + wy ((1 - wx)
     p[i1, j0] + wx p[i1, j1])``. Texel ``[i, j]`` is centred at ``((j + 0.5) / cols, (i + 0.5) / rows)`` (the
@@ -61,16 +61,15 @@ def _wrapped_index(floor, count):
 
 @numba.njit(inline="always")
 def _height_at(plane, x, y):
-    """Bilinear, periodic fetch of ``plane (H, W)`` at uv ``(x, y)`` (see :func:`bilinear_corners`)."""
-    i0, i1, j0, j1, wx, wy = bilinear_corners(plane.shape[0], plane.shape[1], x, y)
+    """Bilinear, periodic fetch of ``plane (H, W)`` at uv ``(x, y)`` (see :func:`_bilinear_corners`)."""
+    i0, i1, j0, j1, wx, wy = _bilinear_corners(plane.shape[0], plane.shape[1], x, y)
     top = (1.0 - wx) * plane[i0, j0] + wx * plane[i0, j1]
     bottom = (1.0 - wx) * plane[i1, j0] + wx * plane[i1, j1]
     return (1.0 - wy) * top + wy * bottom
 
 
 #: Rays below which :func:`march_plane` marches on the calling thread: waking the parallel workers costs more
-#: than it saves there (in training, where the decoder's threads hold both cores, up to ~1 ms per call; a
-#: training step marches a few dozen rays on most steps, the rows the table has not seen yet).
+#: than it saves there (up to ~1 ms per call, measured in training while the decoder's threads held both cores).
 PARALLEL_MARCH_RAYS = 1024
 
 
