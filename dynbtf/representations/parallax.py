@@ -386,8 +386,7 @@ class ParallaxTriplePlane(TriplePlane):
         if fetch is None:
             fetch = self.height_channel.detach()[..., None]
         if isinstance(fetch, torch.Tensor):  # a height plane (H, W, 1), channel units
-            height_at = fetch[..., 0].to(torch.float64) * self.height_scale
-            h_min, h_max = float(height_at.min()), float(height_at.max())
+            height_at, h_min, h_max = self._height_plane(fetch[..., 0])
         else:
             h_min, h_max = self.height_range()
             # a synthesizer synthesizes the height channel alone (Synthesizer.channel), not every channel
@@ -397,6 +396,12 @@ class ParallaxTriplePlane(TriplePlane):
                 return read(points, -1).to(torch.float64) * self.height_scale
         return march_visible_uv(flat, w, height_at, h_min=h_min, h_max=h_max,
                                 **self.march_parameters()).reshape(*batch, 2)
+
+    def _height_plane(self, channel: torch.Tensor) -> tuple[torch.Tensor, float, float]:
+        """A height plane in channel units ``(H, W)`` as :meth:`visible_uv` marches through it: float64 uv units,
+        with its ``h_min`` and ``h_max``."""
+        plane = channel.to(torch.float64) * self.height_scale
+        return plane, float(plane.min()), float(plane.max())
 
     def march_parameters(self) -> dict[str, float]:
         """``step``, ``max_step`` (uv units), ``surface_slope`` and ``aspect`` of this model's march (:func:`march_visible_uv`):
@@ -425,9 +430,9 @@ class ParallaxTriplePlane(TriplePlane):
             self._texel_centres = torch.from_numpy(texel_centers_uv(rows, cols).reshape(-1, 2)).to(texels.device)
         if self.use_compiled_kernels and texels.device.type == "cpu":
             slots = cache.slots(w_views.cpu())
-            if cache.field is None:  # the field visible_uv marches a height plane through
-                plane = self.marched_height_channel.detach().to(torch.float64) * self.height_scale
-                cache.field = (plane.numpy(), float(plane.min()), float(plane.max()))
+            if cache.field is None:
+                plane, h_min, h_max = self._height_plane(self.marched_height_channel.detach())
+                cache.field = (plane.numpy(), h_min, h_max)
             plane, h_min, h_max = cache.field
             march = self.march_parameters()
             slope = view_offsets(_marchable(cache.views[slots]), march["aspect"])
