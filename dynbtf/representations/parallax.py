@@ -43,6 +43,7 @@ from ..texture import fetch_wrap, wrap_uv
 from .base import config_flag, config_number, register
 from .parallax_kernels import march_plane, visible_texel_points
 from .triple_plane import TriplePlane
+from .visible_fetch import fetch_visible
 
 __all__ = ["view_offsets", "march_visible_uv", "VisibleTexelCache", "ParallaxTriplePlane"]
 
@@ -300,8 +301,9 @@ class ParallaxTriplePlane(TriplePlane):
 
     extra_positional_channels = 1
     #: Training on the CPU reads the visible-point table and marches its missing rows in one compiled loop
-    #: (:func:`~dynbtf.representations.parallax_kernels.visible_texel_points`); ``False`` runs the torch
-    #: operations every other device runs (the same rays and points).
+    #: (:func:`~dynbtf.representations.parallax_kernels.visible_texel_points`), and fetches the features there and
+    #: their gradients in compiled loops (:func:`~dynbtf.representations.visible_fetch.fetch_visible`); ``False``
+    #: runs the torch operations every other device runs (the same rays and points, and on x86 the same bits).
     use_compiled_kernels = True
     #: The fit loop gives every texel group images of one view (see :mod:`dynbtf.training.fit`).
     view_coherent_batches = True
@@ -479,23 +481,18 @@ class ParallaxTriplePlane(TriplePlane):
         cached hit ``p`` at height ``z`` (where ``height(p) = z`` when it was
         marched), one Newton step of ``height(p + dz s) = z + dz`` gives
         ``dz = (height(p) - z) / (1 - grad height . s)``; its value follows the height
-        between two marches and its gradient is the implicit-function one.
+        between two marches and its gradient is the implicit-function one
+        (:func:`~dynbtf.representations.visible_fetch.fetch_visible`).
         """
         points, z = self._visible_texel_points(w_views, texels)
         points, z = points.reshape(-1, 2), z.reshape(-1)
         if self.height_channel.requires_grad and torch.is_grad_enabled():
             rows, cols = self.height_channel.shape
             slope = view_offsets(w_views, cols / rows).to(points.dtype).repeat_interleave(texels.shape[1], 0)
-            height = self.height_field()[..., None]
-            eps = 0.5 / max(rows, cols)
-            with torch.no_grad():
-                along = fetch_wrap(height, torch.cat([points + eps * slope, points - eps * slope]))[:, 0]
-                along = along[: len(points)] - along[len(points):]
-                denominator = (1.0 - along / (2 * eps)).clamp_min(0.25)
-            dz = (fetch_wrap(height, points)[:, 0] - z) / denominator
-            points = points + dz[:, None] * slope
-        # the height learns both as geometry (the visible point) and as a decoder input; learning it as
-        # geometry alone (detached here) measured worse on the stone: 30.14 vs 30.23 dB, height RMSE 0.25 vs 0.16
+            # the height learns both as geometry (the visible point) and as a decoder input; learning it as
+            # geometry alone (detached here) measured worse on the stone: 30.14 vs 30.23 dB, height RMSE 0.25 vs 0.16
+            return fetch_visible(self.f_u, self.height_channel, points, z, slope, self.height_scale,
+                                 compiled=None if self.use_compiled_kernels else False)
         return fetch_wrap(self.positional_plane(), points)
 
     def predict_texel_images(self, w_view: torch.Tensor, w_light: torch.Tensor,
