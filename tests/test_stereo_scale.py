@@ -136,20 +136,21 @@ def test_visible_points_marched_on_demand_equal_a_whole_march():
     every = torch.arange(24 * 32)[None]
     for w in torch.as_tensor(direction_set("ubo2003")[::20], dtype=torch.float32):
         model._visible_cache.clear()
-        whole = [t[0].clone() for t in model._visible_texel_points(w[None], every)]
+        whole = [t[0].clone() for t in model._visible_texel_points(w[None], every)[:2]]
         model._visible_cache.clear()
         for block in torch.randperm(24 * 32, generator=torch.Generator().manual_seed(2)).split(100):
-            points, heights = model._visible_texel_points(w[None], block[None])
+            points, heights, _ = model._visible_texel_points(w[None], block[None])
             assert torch.equal(points[0], whole[0][block]) and torch.equal(heights[0], whole[1][block])
     # several views' blocks in one march, as a training step asks
     views = torch.as_tensor(direction_set("ubo2003")[::7], dtype=torch.float32)
-    wholes = [[t[0].clone() for t in model._visible_texel_points(w[None], every)] for w in views]
+    wholes = [[t[0].clone() for t in model._visible_texel_points(w[None], every)[:2]] for w in views]
     model._visible_cache.clear()
     order = torch.randperm(24 * 32, generator=torch.Generator().manual_seed(3))
     for blocks in order.reshape(-1, len(views), 8)[:5]:  # steps of (views, 8 texels each)
         model._visible_texel_points(views, blocks)
     assert 0 < int(model._visible_cache.marched.sum()) == 5 * len(views) * 8 < len(views) * 24 * 32
-    points, heights = model._visible_texel_points(views, every.expand(len(views), -1))  # the rest
+    points, heights, slots = model._visible_texel_points(views, every.expand(len(views), -1))  # the rest
+    assert slots.tolist() == list(range(len(views)))
     for p, h, (p_whole, h_whole) in zip(points, heights, wholes):
         assert torch.equal(p, p_whole) and torch.equal(h, h_whole)
 
@@ -157,11 +158,19 @@ def test_visible_points_marched_on_demand_equal_a_whole_march():
 def test_visible_texel_cache_matches_views_exactly_and_starts_over_when_full(monkeypatch):
     from dynbtf.representations.parallax import VisibleTexelCache
 
-    cache = VisibleTexelCache(10)
+    cache = VisibleTexelCache(10, aspect=2.0)
     views = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.0, 1.0]])
     texels = torch.tensor([[1, 2], [2, 3], [2, 5]])
     rows, todo = cache.lookup(views, texels)
     assert rows.tolist() == [[1, 2], [12, 13], [2, 5]] and todo.tolist() == [1, 2, 12, 13, 2, 5]  # (2: twice)
+    # each view's slopes: (w_x, w_y) / w_z with v times the aspect, kept with its slot
+    below = torch.tensor([[0.6, 0.8, -0.01]], dtype=torch.float64)  # below the horizon: marched vertically
+    assert cache.slots(below).tolist() == [2]
+    assert cache.march_slopes[:3].tolist() == [[0, 0], [float(np.float32(0.6)) / float(np.float32(0.8)), 0], [0, 0]]
+    assert cache.fetch_slopes.dtype == np.float32 and cache.fetch_slopes[1].tolist() == [np.float32(0.6) / np.float32(0.8), 0]
+    assert cache.fetch_slopes[2].tolist() == [np.float32(0.6 / 1e-6), np.float32(2 * 0.8 / 1e-6)]  # as given, clamped
+    cache.clear()
+    rows, todo = cache.lookup(views, texels)
     cache.store(todo, torch.stack([todo, -todo], 1).float(), 0.5 * todo.float())  # a row's value: its own
     points, heights = cache.read(rows)
     assert points.tolist() == [[[1, -1], [2, -2]], [[12, -12], [13, -13]], [[2, -2], [5, -5]]]
