@@ -80,12 +80,18 @@ def test_images_are_read_view_major_and_the_grouping_of_lights_changes_nothing(r
     assert reads == [(v, l) for l in (0, 1, 2) for v in range(n_views)]
 
 
-@pytest.mark.parametrize("views", [7, 8])
-def test_the_median_over_views_is_torch_median(views):
+@pytest.mark.parametrize("views, texels", [(7, 50), (8, 50), (1, 33), (151, 100)])
+@pytest.mark.parametrize("ties", [False, True])
+def test_the_median_over_views_is_torch_median(views, texels, ties):
+    """Any view count (for an even one the lower middle value), texel counts across the copy's tiles, ties,
+    and grid_sample's layout (views, channels, texels) seen as (views, texels, channels)."""
     from dynbtf.training.stereo_height import _median_views
 
-    seen = torch.rand(views, 50, 3, generator=torch.Generator().manual_seed(views))
-    assert torch.equal(_median_views(seen), seen.median(0).values)  # for an even count the lower middle value
+    values = torch.rand(views, 3, texels, generator=torch.Generator().manual_seed(views))
+    if ties:
+        values = (4 * values).floor()
+    seen = values.transpose(1, 2)
+    assert torch.equal(_median_views(seen), seen.median(0).values)
 
 
 def test_spread_views_and_nearest_lights_still_recover_the_height(relief_btf):
