@@ -134,22 +134,24 @@ class _CompiledFetch(torch.autograd.Function):
         plane[:, channels] = height_channel.detach().reshape(-1).numpy()
         points_np, slope_np = _contiguous(points), _contiguous(slope)
         constants = _constants(rows, cols, height_scale)
-        out = np.empty((len(points_np), channels + 1), dtype=np.float32)
-        hits = np.empty_like(points_np)  # q: where the features were fetched
-        denominator = np.empty(len(points_np), dtype=np.float32)
-        _forward(plane, rows, cols, points_np, _contiguous(z), slope_np, *constants, out, hits, denominator)
+        n = len(points_np)
+        out = np.empty((n, channels + 1), dtype=np.float32)
+        denominator = np.empty(n, dtype=np.float32)
+        footprints = (np.empty((n, 2), dtype=np.int64), np.empty((n, 4), dtype=np.int64),
+                      np.empty((n, 8), dtype=np.float32), np.empty((n, 4), dtype=np.float32))
+        _forward(plane, rows, cols, points_np, _contiguous(z), slope_np, *constants, out, denominator, *footprints)
         ctx.save_for_backward(f_u, height_channel)
-        ctx.arrays = (plane, points_np, slope_np, hits, denominator, constants)
+        ctx.arrays = (plane, slope_np, denominator, footprints, constants)
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad_out):
-        plane, points, slope, hits, denominator, constants = ctx.arrays
+        plane, slope, denominator, footprints, constants = ctx.arrays
         f_u, height_channel = ctx.saved_tensors
         rows, cols, channels = f_u.shape
         grad_f_u = np.empty((rows, cols, channels), dtype=np.float32)
         grad_height = np.empty((rows, cols), dtype=np.float32)
-        _backward(plane, rows, cols, points, slope, hits, denominator, *constants, _contiguous(grad_out),
+        _backward(plane, rows, cols, slope, denominator, *footprints, *constants, _contiguous(grad_out),
                   grad_f_u, grad_height)
         return torch.from_numpy(grad_f_u), torch.from_numpy(grad_height), None, None, None, None
 
@@ -241,9 +243,12 @@ def _height(height, rows, cols, x, y, constants):
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _forward(plane, rows, cols, points, z, slope, size_u, to_grid_u, half_u, size_v, to_grid_v, half_v, eps, two_eps,
-             height_scale, out, hits, denominator):  # pragma: no cover - compiled
-    """The features ``out (N, C)`` at the points after the Newton step; writes the hits ``q`` and the
-    denominators for the backward. ``plane (rows * cols, C)`` float32, the height channel last."""
+             height_scale, out, denominator, cells, texels, weights, terms):  # pragma: no cover - compiled
+    """The features ``out (N, C)`` at the points after the Newton step, from ``plane (rows * cols, C)`` float32
+    (the height channel last). Writes for the backward the denominators and the footprints (:func:`_bilinear`) of
+    the fetch at ``q`` and of the height's at ``p``: ``cells (N, 2)`` their padded north-west cells (``q``, ``p``),
+    ``texels (N, 4)`` and ``weights[:, :4]`` ``q``'s, ``weights[:, 4:]`` ``p``'s, ``terms (N, 4)`` ``q``'s
+    ``(ty, tx, my, mx)``."""
     constants = (size_u, to_grid_u, half_u, size_v, to_grid_v, half_v)
     last = plane.shape[1] - 1
     height = np.empty((plane.shape[0], 1), dtype=np.float32)  # uv units: height_channel * height_scale
@@ -255,25 +260,17 @@ def _forward(plane, rows, cols, points, z, slope, size_u, to_grid_u, half_u, siz
         along = (_height(height, rows, cols, px + ex, py + ey, constants)
                  - _height(height, rows, cols, px - ex, py - ey, constants))
         d = max(_ONE - along / two_eps, np.float32(0.25))
-        dz = (_height(height, rows, cols, px, py, constants) - z[n]) / d
+        at_p, p_weights, iy, jx, _, _, _, _ = _bilinear(rows, cols, px, py, constants)
+        dz = (_interpolate(height, at_p, p_weights, 0) - z[n]) / d
         qx, qy = px + dz * sx, py + dz * sy
-        denominator[n], hits[n, 0], hits[n, 1] = d, qx, qy
-        texels, weights, _, _, _, _, _, _ = _bilinear(rows, cols, qx, qy, constants)
+        at_q, q_weights, qiy, qjx, ty, tx, my, mx = _bilinear(rows, cols, qx, qy, constants)
         for k in range(last + 1):
-            out[n, k] = _interpolate(plane, texels, weights, k)
-
-
-@numba.njit(inline="always")
-def _footprints(rows, cols, xs, ys, constants):
-    """Each point's padded north-west cell (flat, ``cols + 2`` per row) and four corner weights."""
-    cells = np.empty(xs.shape[0], dtype=np.int64)
-    weights = np.empty((xs.shape[0], 4), dtype=np.float32)
-    for n in range(xs.shape[0]):
-        _, corner_weights, iy, jx, _, _, _, _ = _bilinear(rows, cols, xs[n], ys[n], constants)
-        cells[n] = iy * (cols + 2) + jx
+            out[n, k] = _interpolate(plane, at_q, q_weights, k)
+        denominator[n] = d
+        cells[n, 0], cells[n, 1] = qiy * (cols + 2) + qjx, iy * (cols + 2) + jx
         for c in range(4):
-            weights[n, c] = corner_weights[c]
-    return cells, weights
+            texels[n, c], weights[n, c], weights[n, 4 + c] = at_q[c], q_weights[c], p_weights[c]
+        terms[n, 0], terms[n, 1], terms[n, 2], terms[n, 3] = ty, tx, my, mx
 
 
 @numba.njit(inline="always")
@@ -304,33 +301,31 @@ def _unpad(grad, rows, cols, k):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _backward(plane, rows, cols, points, slope, hits, denominator, size_u, to_grid_u, half_u, size_v, to_grid_v,
-              half_v, eps, two_eps, height_scale, grad_out, grad_f_u, grad_height):  # pragma: no cover - compiled
+def _backward(plane, rows, cols, slope, denominator, cells, texels, weights, terms, size_u, to_grid_u, half_u, size_v,
+              to_grid_v, half_v, eps, two_eps, height_scale, grad_out, grad_f_u, grad_height):  # pragma: no cover
     """The gradients of ``sum(grad_out * out)``: ``grad_f_u (rows, cols, C - 1)`` and ``grad_height (rows, cols)``
-    (channel units: through the fetch and through ``dz``)."""
-    constants = (size_u, to_grid_u, half_u, size_v, to_grid_v, half_v)
+    (channel units: through the fetch and through ``dz``), from :func:`_forward`'s footprints."""
     channels = plane.shape[1]
-    n_points = points.shape[0]
+    n_points = slope.shape[0]
     padded = (rows + 2) * (cols + 2)
     grad_plane = np.zeros((padded, channels), dtype=np.float32)
     grad_along_height = np.zeros((padded, 1), dtype=np.float32)
     grad_h = np.empty((n_points, 1), dtype=np.float32)  # d loss / d h(p)
-    cells, weights = _footprints(rows, cols, hits[:, 0], hits[:, 1], constants)
-    _scatter(grad_plane, cols, cells, weights, grad_out)
+    _scatter(grad_plane, cols, cells[:, 0], weights[:, :4], grad_out)
     for n in range(n_points):  # grid_sample's coordinate gradient, then back through fetch_wrap and q = p + dz s
-        texels, _, _, _, ty, tx, my, mx = _bilinear(rows, cols, hits[n, 0], hits[n, 1], constants)
+        ty, tx, my, mx = terms[n, 0], terms[n, 1], terms[n, 2], terms[n, 3]
         east, south = _ONE - tx, _ONE - ty
         gx, gy = _ZERO, _ZERO
         for k in range(channels):
-            nw, ne, sw, se = plane[texels[0], k], plane[texels[1], k], plane[texels[2], k], plane[texels[3], k]
+            nw, ne = plane[texels[n, 0], k], plane[texels[n, 1], k]
+            sw, se = plane[texels[n, 2], k], plane[texels[n, 3], k]
             g = grad_out[n, k]
             gx = _fma(_fma(se - sw, ty, (ne - nw) * south), g, gx)
             gy = _fma(_fma(se - ne, tx, (sw - nw) * east), g, gy)
         grad_u = ((gx * mx) * to_grid_u) * size_u
         grad_v = ((gy * my) * to_grid_v) * size_v
         grad_h[n, 0] = (grad_u * slope[n, 0] + grad_v * slope[n, 1]) / denominator[n]
-    cells, weights = _footprints(rows, cols, points[:, 0], points[:, 1], constants)
-    _scatter(grad_along_height, cols, cells, weights, grad_h)
+    _scatter(grad_along_height, cols, cells[:, 1], weights[:, 4:], grad_h)
     for k in range(channels):
         _unpad(grad_plane, rows, cols, k)
     _unpad(grad_along_height, rows, cols, 0)
