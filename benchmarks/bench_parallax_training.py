@@ -9,9 +9,11 @@ for the parallax model):
 * **triple** -- the Triple Plane;
 * **parallax** -- ``triple-parallax`` as ``dynbtf fit`` trains it on the CPU: the visible-point table
   read and its missing rows marched in one compiled loop
-  (:func:`~dynbtf.representations.parallax_kernels.visible_texel_points`);
-* **parallax, torch ops** -- the same model with ``use_compiled_kernels = False``: the table in torch
-  operations, its marches still compiled (:func:`~dynbtf.representations.parallax_kernels.march_plane`);
+  (:func:`~dynbtf.representations.parallax_kernels.visible_texel_points`), the Newton step and the fetch
+  there with their backward in compiled loops (:func:`~dynbtf.representations.visible_fetch.fetch_visible`);
+* **parallax, torch ops** -- the same model with ``use_compiled_kernels = False``: the table, the Newton
+  step and the fetch in torch operations (the same values, bit for bit on x86), the marches still compiled
+  (:func:`~dynbtf.representations.parallax_kernels.march_plane`);
 * **parallax, torch ops and march** -- also the march run by the torch loop of
   :func:`~dynbtf.representations.parallax.march_visible_uv`: what any other device runs.
 
@@ -20,7 +22,8 @@ by stereo, as ``dynbtf fit`` does, and given to every parallax variant). Printed
 step and each variant's ratio to the Triple Plane.
 
 Run: ``python benchmarks/bench_parallax_training.py`` (about 2 minutes on 2 cores; ``--btf``
-any BTF path or spec).
+any BTF path or spec, e.g. ``'sim:stone?size=64&grid=ubo2014&seed=7'`` for the 64 x 64 default-fit row of
+docs/choosing.md).
 """
 
 from __future__ import annotations
