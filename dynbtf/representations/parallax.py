@@ -464,6 +464,7 @@ class ParallaxTriplePlane(TriplePlane):
                                  cache.points.view(-1, 2).numpy(), cache.heights.view(-1).numpy(),
                                  cache.marched.view(-1).numpy(), points, heights)
             return torch.from_numpy(points), torch.from_numpy(heights), slots
+        slots = cache.slots(w_views.to(texels.device))
         cached, todo = cache.lookup(w_views, texels)
         if todo.numel():
             plane = self.marched_height_channel[..., None]
@@ -472,7 +473,7 @@ class ParallaxTriplePlane(TriplePlane):
                 hit = self.visible_uv(self._texel_centres[texel], cache.views[slot], plane)
                 at_hit = fetch_wrap(plane.double() * self.height_scale, hit)[:, 0]
             cache.store(todo, wrap_uv(hit).to(torch.float32), at_hit.to(torch.float32))
-        return (*cache.read(cached), (cached[:, 0] // cache.n_texels).cpu().numpy())
+        return (*cache.read(cached), slots)
 
     def _check_visible_cache(self) -> None:
         """Empty the visible-point cache once the height has moved since it was filled by
