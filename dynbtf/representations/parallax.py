@@ -264,8 +264,11 @@ class VisibleTexelCache:
         """Rows ``(G, n)`` int64 (flat indices ``slot * n_texels + texel``) of ``texels (G, n)`` under the views
         ``w_views (G, 3)`` (new views are added) and the rows to march: those not marched yet (in row order; a row
         asked for twice is marched twice, to the same value)."""
-        slots = torch.from_numpy(self.slots(w_views.to(texels.device))).to(texels.device)
-        rows = slots[:, None] * self.n_texels + texels
+        return self.rows(self.slots(w_views.to(texels.device)), texels)
+
+    def rows(self, slots: np.ndarray, texels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`lookup` for views already given their ``slots (G,)`` by :meth:`slots`."""
+        rows = torch.from_numpy(slots).to(texels.device)[:, None] * self.n_texels + texels
         return rows, rows[~self.marched.view(-1)[rows]]
 
     def store(self, rows: torch.Tensor, points: torch.Tensor, heights: torch.Tensor) -> None:
@@ -465,7 +468,7 @@ class ParallaxTriplePlane(TriplePlane):
                                  cache.marched.view(-1).numpy(), points, heights)
             return torch.from_numpy(points), torch.from_numpy(heights), slots
         slots = cache.slots(w_views.to(texels.device))
-        cached, todo = cache.lookup(w_views, texels)
+        cached, todo = cache.rows(slots, texels)
         if todo.numel():
             plane = self.marched_height_channel[..., None]
             slot, texel = todo // (rows * cols), todo % (rows * cols)

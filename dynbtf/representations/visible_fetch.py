@@ -140,15 +140,14 @@ class _CompiledFetch(torch.autograd.Function):
         footprints = (np.empty((n, 2), dtype=np.int64), np.empty((n, 4), dtype=np.int64),
                       np.empty((n, 8), dtype=np.float32), np.empty((n, 4), dtype=np.float32))
         _forward(plane, rows, cols, points_np, _contiguous(z), slope_np, *constants, out, denominator, *footprints)
-        ctx.save_for_backward(f_u, height_channel)
+        ctx.shape = (rows, cols, channels)
         ctx.arrays = (plane, slope_np, denominator, footprints, constants)
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad_out):
         plane, slope, denominator, footprints, constants = ctx.arrays
-        f_u, height_channel = ctx.saved_tensors
-        rows, cols, channels = f_u.shape
+        rows, cols, channels = ctx.shape
         grad_f_u = np.empty((rows, cols, channels), dtype=np.float32)
         grad_height = np.empty((rows, cols), dtype=np.float32)
         _backward(plane, rows, cols, slope, denominator, *footprints, *constants, _contiguous(grad_out),
