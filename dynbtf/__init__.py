@@ -38,6 +38,11 @@ from __future__ import annotations
 import importlib
 
 from ._version import __version__
+from .cpu import apply_isa_environment
+
+# DYNBTF_CPU_ISA (dynbtf.cpu) forces an instruction-set level on PyTorch, MKL, oneDNN and numba too: their
+# variables must be set before they load, which is now (dynbtf loads none of them at import)
+apply_isa_environment()
 
 #: The front door: public name -> module that defines it (imported when the name is first used).
 _FRONT_DOOR = {

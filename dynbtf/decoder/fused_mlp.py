@@ -143,6 +143,7 @@ class _NativeArgs(ctypes.Structure):
 
 
 def _native_library():
+    """The kernel built for the active instruction-set level (:func:`dynbtf.cpu.active_isa`), or None."""
     library = native.load_library("fused_mlp")
     if library is not None and not hasattr(library, "_dynbtf_ready"):
         for fn in (library.dynbtf_fused_l1_fp32, library.dynbtf_fused_l1_bf16):

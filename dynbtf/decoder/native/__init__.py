@@ -1,14 +1,16 @@
 """Native CPU kernels: C++ sources shipped with the package, compiled on first use, loaded with ctypes.
 
 A kernel ``NAME`` is the file ``dynbtf/decoder/native/NAME.cpp``. :func:`load_library` compiles it with
-the system C++ compiler (``$CXX`` or ``g++``/``c++``/``clang++``) for the machine it runs on
-(``-O3 -march=native``), caches the shared library and returns a :class:`ctypes.CDLL`.
+the system C++ compiler (``$CXX`` or ``g++``/``c++``/``clang++``) for one instruction-set level of
+:mod:`dynbtf.cpu` (by default the active one: the CPU's best, or the one ``$DYNBTF_CPU_ISA`` forces),
+caches the shared library and returns a :class:`ctypes.CDLL`. The level's flags (:data:`ISA_FLAGS`) are
+explicit, never ``-march=native``: a build is the same on every machine of its level, and each level
+can be built and run on any CPU that has it (``load_library("fused_mlp", "avx2")`` on an AVX-512 CPU).
 
-* **Cache**: ``$DYNBTF_NATIVE_CACHE``, else ``$XDG_CACHE_HOME/dynbtf/decoder/native``, else
-  ``~/.cache/dynbtf/decoder/native``. The file name carries a hash of the source, the compiler's version,
-  the flags and the CPU's feature flags, so an edited source, another compiler or another CPU
-  (a shared home directory) gets its own build. Builds are written to a temporary file and
-  renamed, so concurrent processes never load a half-written library.
+* **Cache**: ``$DYNBTF_NATIVE_CACHE``, else ``$XDG_CACHE_HOME/dynbtf/native``, else
+  ``~/.cache/dynbtf/native``. The file name carries the level and a hash of the source, the compiler's
+  version and the flags, so an edited source or another compiler gets its own build. Builds are
+  written to a temporary file and renamed, so concurrent processes never load a half-written library.
 * **No compiler, or a failed build**: :func:`load_library` returns ``None`` and
   :func:`status` says why; callers fall back to their PyTorch code path, which computes the same
   values (slower). ``DYNBTF_NATIVE=0`` disables native kernels.
@@ -30,13 +32,35 @@ import tempfile
 import threading
 from pathlib import Path
 
-__all__ = ["load_library", "status", "cache_dir"]
+__all__ = ["load_library", "status", "cache_dir", "ISA_FLAGS", "isa_flags", "probe_cpu_features"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent
-_FLAGS = ["-O3", "-std=c++17", "-shared", "-fPIC", "-fno-math-errno"]
+_FLAGS = ["-O3", "-std=c++17", "-ffp-contract=fast", "-shared", "-fPIC", "-fno-math-errno"]
 _LOCK = threading.Lock()
-_LOADED: dict[str, ctypes.CDLL | None] = {}
-_STATUS: dict[str, str] = {}
+_LOADED: dict[tuple[str, str], ctypes.CDLL | None] = {}
+_STATUS: dict[tuple[str, str], str] = {}
+
+#: Compiler flags of each instruction-set level of :mod:`dynbtf.cpu` on x86-64 (explicit features rather than
+#: ``-march=x86-64-v3`` etc., which older compilers lack; ``-mtune=generic``: no one CPU model's scheduling).
+ISA_FLAGS = {
+    "portable": ["-mtune=generic"],
+    "avx2": ["-mavx2", "-mfma", "-mf16c", "-mbmi2", "-mtune=generic"],
+    "avx512": ["-mavx2", "-mfma", "-mf16c", "-mbmi2", "-mavx512f", "-mavx512bw", "-mavx512dq", "-mavx512vl",
+               "-mavx512cd", "-mprefer-vector-width=512", "-mtune=generic"],
+    "avx512bf16": ["-mavx2", "-mfma", "-mf16c", "-mbmi2", "-mavx512f", "-mavx512bw", "-mavx512dq", "-mavx512vl",
+                   "-mavx512cd", "-mavx512bf16", "-mprefer-vector-width=512", "-mtune=generic"],
+}
+
+
+def isa_flags(isa: str) -> list[str]:
+    """The compiler flags of level ``isa`` on this machine's architecture (ARM64: ``-march=armv8-a``, whose
+    128-bit NEON is the portable level; other architectures: none)."""
+    machine = platform.machine().lower()
+    if machine in ("x86_64", "amd64"):
+        return list(ISA_FLAGS[isa])
+    if isa != "portable":
+        raise ValueError(f"instruction-set level {isa!r} exists on x86-64 only")
+    return ["-march=armv8-a"] if machine in ("aarch64", "arm64") else []
 
 
 def cache_dir() -> Path:
@@ -55,34 +79,19 @@ def _compiler() -> str | None:
     return None
 
 
-def _cpu_signature() -> str:
-    """The CPU's feature flags (Linux), or the platform's processor string."""
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
-            for line in f:
-                if line.startswith(("flags", "Features")):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return f"{platform.machine()} {platform.processor()}"
-
-
-def _compile(compiler: str, source: Path, target: Path) -> str | None:
-    """Compile ``source`` into ``target`` (atomically); returns an error message or None."""
+def _compile(compiler: str, flags: list[str], source: Path, target: Path) -> str | None:
+    """Compile ``source`` into ``target`` (atomically) with ``flags``; returns an error message or None."""
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".tmp", dir=target.parent)
     os.close(fd)
     try:
-        errors = []
-        for arch in (["-march=native"], ["-mcpu=native"], []):
-            result = subprocess.run([compiler, *_FLAGS, *arch, str(source), "-o", tmp],
-                                    capture_output=True, text=True, timeout=300)
-            if result.returncode == 0:
-                os.chmod(tmp, 0o755)
-                os.replace(tmp, target)
-                return None
-            errors.append(result.stderr.strip().splitlines()[-1:] or ["(no message)"])
-        return f"{compiler} failed: {errors[-1][0]}"
+        result = subprocess.run([compiler, *flags, str(source), "-o", tmp], capture_output=True, text=True,
+                                timeout=300)
+        if result.returncode == 0:
+            os.chmod(tmp, 0o755)
+            os.replace(tmp, target)
+            return None
+        return f"{compiler} failed: {(result.stderr.strip().splitlines() or ['(no message)'])[-1]}"
     except (OSError, subprocess.SubprocessError) as e:
         return f"{compiler} could not run: {e}"
     finally:
@@ -90,47 +99,77 @@ def _compile(compiler: str, source: Path, target: Path) -> str | None:
             os.unlink(tmp)
 
 
-def load_library(name: str) -> ctypes.CDLL | None:
-    """The compiled kernel ``dynbtf/decoder/native/<name>.cpp`` as a :class:`ctypes.CDLL`, or None if unavailable.
+def load_library(name: str, isa: str | None = None) -> ctypes.CDLL | None:
+    """The compiled kernel ``dynbtf/decoder/native/<name>.cpp`` for instruction-set level ``isa`` (default: the
+    active one, :func:`dynbtf.cpu.active_isa`) as a :class:`ctypes.CDLL`, or None if unavailable.
 
     Compiles on the first call in a machine's lifetime (a few seconds), then loads from the cache.
-    Thread-safe; the result is remembered for the process.
+    Thread-safe; the result is remembered for the process. A level the CPU lacks raises
+    :class:`~dynbtf.errors.InputError` (its code would stop the process with an illegal instruction).
     """
+    from ...cpu import ISAS, active_isa, hardware_isa
+    from ...errors import InputError
+
+    isa = isa or active_isa()
+    if isa not in ISAS:
+        raise InputError(f"isa: expected one of {', '.join(ISAS)}, got {isa!r}")
+    if ISAS.index(isa) > ISAS.index(hardware_isa()):
+        raise InputError(f"isa={isa!r}: this CPU runs at most {hardware_isa()!r}")
+    key_name = (name, isa)
     with _LOCK:
-        if name in _LOADED:
-            return _LOADED[name]
+        if key_name in _LOADED:
+            return _LOADED[key_name]
         library = None
         source = _SOURCE_DIR / f"{name}.cpp"
         compiler = _compiler()
         if os.environ.get("DYNBTF_NATIVE", "1") == "0":
-            _STATUS[name] = "disabled by DYNBTF_NATIVE=0"
+            _STATUS[key_name] = "disabled by DYNBTF_NATIVE=0"
         elif not source.is_file():
-            _STATUS[name] = f"source {source} is missing"
+            _STATUS[key_name] = f"source {source} is missing"
         elif compiler is None:
-            _STATUS[name] = "no C++ compiler found (set CXX, or install g++)"
+            _STATUS[key_name] = "no C++ compiler found (set CXX, or install g++)"
         else:
             try:
                 version = subprocess.run([compiler, "--version"], capture_output=True, text=True,
                                          timeout=60).stdout
             except (OSError, subprocess.SubprocessError):
                 version = ""
-            key = hashlib.sha256("\0".join([source.read_text(), compiler, version, " ".join(_FLAGS),
-                                            _cpu_signature()]).encode()).hexdigest()[:20]
-            target = cache_dir() / f"{name}-{key}.so"
-            error = None if target.is_file() else _compile(compiler, source, target)
+            flags = _FLAGS + isa_flags(isa)
+            key = hashlib.sha256("\0".join([source.read_text(), compiler, version, " ".join(flags)]).encode()
+                                 ).hexdigest()[:20]
+            target = cache_dir() / f"{name}-{isa}-{key}.so"
+            error = None if target.is_file() else _compile(compiler, flags, source, target)
             if error is None:
                 try:
                     library = ctypes.CDLL(str(target))
-                    _STATUS[name] = f"loaded {target}"
+                    _STATUS[key_name] = f"loaded {target} ({isa})"
                 except OSError as e:
-                    _STATUS[name] = f"could not load {target}: {e}"
+                    _STATUS[key_name] = f"could not load {target}: {e}"
             else:
-                _STATUS[name] = error
-        _LOADED[name] = library
+                _STATUS[key_name] = error
+        _LOADED[key_name] = library
         return library
 
 
-def status(name: str) -> str:
-    """Why ``name`` is (not) available: ``"loaded <path>"`` or the reason it is not."""
-    load_library(name)
-    return _STATUS.get(name, "not loaded")
+def status(name: str, isa: str | None = None) -> str:
+    """Why ``name`` is (not) available at level ``isa`` (default: the active one): ``"loaded <path> (<isa>)"``
+    or the reason it is not."""
+    from ...cpu import active_isa
+
+    isa = isa or active_isa()
+    load_library(name, isa)
+    return _STATUS.get((name, isa), "not loaded")
+
+
+def probe_cpu_features() -> list[str]:
+    """The x86 features the compiler's ``__builtin_cpu_supports`` finds (Linux names, e.g. ``avx512_bf16``), for
+    systems without ``/proc/cpuinfo``; empty without a compiler or on another architecture."""
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return []
+    library = load_library("cpu_probe", "portable")
+    if library is None:
+        return []
+    library.dynbtf_cpu_supports.restype = ctypes.c_int
+    library.dynbtf_cpu_supports.argtypes = [ctypes.c_char_p]
+    names = ["avx2", "fma", "f16c", "bmi2", "avx512f", "avx512bw", "avx512dq", "avx512vl", "avx512cd", "avx512bf16"]
+    return [n.replace("avx512bf16", "avx512_bf16") for n in names if library.dynbtf_cpu_supports(n.encode())]

@@ -13,12 +13,14 @@
 //
 // Samples are processed in tiles of one image x up to TILE texels whose activations stay in the
 // L1 cache. Two precisions share one driver:
-//   * fp32: GCC vector extensions (16 floats), compiled for the build machine's vector unit;
+//   * fp32: GCC vector extensions of the build level's width (VW floats: 16 on AVX-512, 8 on AVX2, 4 on
+//     SSE2/NEON), register blocks sized to its vector registers;
 //   * bf16: AVX512-BF16 dot products (vdpbf16ps) on bfloat16 activations, weights and
 //     gradients, accumulated in fp32 (mixed precision: P, Q, biases, loss, residuals, masks and
 //     every gradient accumulator stay fp32). Only built when the compiler targets AVX512-BF16.
 //
-// Built on first use by dynbtf/native/__init__.py (g++ -O3 -march=native), called via ctypes.
+// Built on first use by dynbtf/decoder/native/__init__.py, once per instruction-set level (explicit flags,
+// never -march=native; see dynbtf/cpu.py), called via ctypes from dynbtf/decoder/fused_mlp.py.
 
 #include <cstdint>
 #include <cstring>
@@ -70,32 +72,55 @@ constexpr int MAX_LAYERS = 8;
 constexpr int MAX_OUT = 16;
 constexpr int TILE = 64;   // samples per tile (one image x up to TILE texels); a multiple of 8
 
-typedef float v16 __attribute__((vector_size(64)));
+// The build's vector unit (dynbtf/decoder/native/__init__.py compiles one library per level):
+// VW float32 lanes per vector and NREG vector registers, which size the register blocks below.
+#if defined(__AVX512F__)
+constexpr int VW = 16, NREG = 32;
+#elif defined(__AVX2__)
+constexpr int VW = 8, NREG = 16;
+#elif defined(__aarch64__)
+constexpr int VW = 4, NREG = 32;   // NEON
+#else
+constexpr int VW = 4, NREG = 16;   // SSE2 (x86-64 baseline) or the compiler's generic vectors
+#endif
+constexpr int OUT_LD = 16;  // leading dimension of the output rows (MAX_OUT floats)
 
-inline v16 load16(const float* p) { v16 v; std::memcpy(&v, p, sizeof v); return v; }
-inline void store16(float* p, v16 v) { std::memcpy(p, &v, sizeof v); }
-inline v16 splat(float x) { return v16{} + x; }
-inline v16 lrelu16(v16 z, float slope) { return z > 0 ? z : z * slope; }
-inline float hsum16(v16 v) {
+typedef float vf __attribute__((vector_size(4 * VW)));
+
+inline vf loadv(const float* p) { vf v; std::memcpy(&v, p, sizeof v); return v; }
+inline void storev(float* p, vf v) { std::memcpy(p, &v, sizeof v); }
+// a broadcast: x - 0 is x for every x, so the compiler drops the subtraction (vf{} + x is not: -0 + 0 = +0)
+inline vf splat(float x) { return x - vf{}; }
+inline vf lrelu(vf z, float slope) { return z > 0 ? z : z * slope; }
+inline float hsum(vf v) {
     float s = 0.f;
-    for (int j = 0; j < 16; ++j) s += v[j];
+    for (int j = 0; j < VW; ++j) s += v[j];
     return s;
+}
+
+// Rows of samples per register block of a product with NV vectors per row: the accumulators (R x NV),
+// one row of weights (NV) and a broadcast must fit the vector registers (AVX-512, H = 32: 8; AVX2: 2).
+template <int NV>
+constexpr int block_rows() {
+    constexpr int fit = (NREG - NV - 1) / NV;
+    return fit >= 8 ? 8 : fit >= 4 ? 4 : fit >= 2 ? 2 : 1;
 }
 
 // ------------------------------------------------------------------------------------------ fp32
 // Activations are fp32 rows of H floats; layer weights are used as given (row-major (out, in)) and
-// transposed (in, out) for the forward pass.
+// transposed (in, out padded to whole vectors) for the forward pass.
 struct Fp32 {
     typedef float act_t;
     int H, C;
     // per layer: transposed weights (in, out_padded) for the forward pass and (out, in) as given
-    float wt[MAX_LAYERS][MAX_HIDDEN * MAX_HIDDEN];
+    alignas(64) float wt[MAX_LAYERS][MAX_HIDDEN * MAX_HIDDEN];
     const float* w[MAX_LAYERS];
 
     void prepare(const FusedL1Args* a) {
         H = a->hidden; C = a->out_channels;
         for (int k = 0; k < a->n_layers; ++k) {
-            int out = (k == a->n_layers - 1) ? C : H, outp = (k == a->n_layers - 1) ? 16 : H;
+            const bool last = k == a->n_layers - 1;
+            const int out = last ? C : H, outp = last ? (C + VW - 1) / VW * VW : H;
             w[k] = a->weights[k];
             for (int i = 0; i < H; ++i)
                 for (int o = 0; o < outp; ++o) wt[k][i * outp + o] = o < out ? a->weights[k][o * H + i] : 0.f;
@@ -109,15 +134,15 @@ struct Fp32 {
         return src;
     }
 
-    // acc[r][v] += sum over i < n of rows[r * ld + i] * w[i * 16 NV + 16 v .. + 16] (w row-major, 16 NV wide)
+    // acc[r][v] += sum over i < n of rows[r * ld + i] * w[i * VW NV + VW v .. + VW] (w row-major, VW NV wide)
     template <int NV, int R>
     __attribute__((always_inline)) static inline void accumulate_rows(const float* rows, int ld, const float* w, int n,
-                                                                      v16 (&acc)[R][NV]) {
+                                                                      vf (&acc)[R][NV]) {
         for (int i = 0; i < n; ++i) {
-            v16 wv[NV];
-            for (int v = 0; v < NV; ++v) wv[v] = load16(w + i * 16 * NV + 16 * v);
+            vf wv[NV];
+            for (int v = 0; v < NV; ++v) wv[v] = loadv(w + (i * NV + v) * VW);
             for (int r = 0; r < R; ++r) {
-                v16 x = splat(rows[r * ld + i]);
+                vf x = splat(rows[r * ld + i]);
                 for (int v = 0; v < NV; ++v) acc[r][v] += x * wv[v];
             }
         }
@@ -126,65 +151,68 @@ struct Fp32 {
     // Y[s] = lrelu(W X[s] + c) for S samples (S a multiple of 8); gain[s] = lrelu'(pre-activation) (1 or slope)
     template <int NV>
     void hidden_forward(int k, const act_t* X, const float* bias, float slope, int S, act_t* Y, float* gain) const {
-        const int H = 16 * NV;
-        constexpr int R = NV <= 2 ? 8 : 4;
+        const int H = VW * NV;
+        constexpr int R = block_rows<NV>();
         for (int s = 0; s < S; s += R) {
-            v16 acc[R][NV];
+            vf acc[R][NV];
             for (int r = 0; r < R; ++r)
-                for (int v = 0; v < NV; ++v) acc[r][v] = load16(bias + 16 * v);
+                for (int v = 0; v < NV; ++v) acc[r][v] = loadv(bias + VW * v);
             accumulate_rows<NV, R>(X + s * H, H, wt[k], H, acc);
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) {
-                    store16(Y + (s + r) * H + 16 * v, lrelu16(acc[r][v], slope));
-                    store16(gain + (s + r) * H + 16 * v, acc[r][v] > 0 ? splat(1.f) : splat(slope));
+                    storev(Y + (s + r) * H + VW * v, lrelu(acc[r][v], slope));
+                    storev(gain + (s + r) * H + VW * v, acc[r][v] > 0 ? splat(1.f) : splat(slope));
                 }
         }
     }
-    // out[s, 0:16] = W_L X[s] + c (lanes >= C are zero)
-    template <int NV>
-    void output_forward(int k, const act_t* X, const float* bias16, int S, float* out) const {
-        const int H = 16 * NV;
-        for (int s = 0; s < S; s += 8) {
-            v16 acc[8][1];
-            for (int r = 0; r < 8; ++r) acc[r][0] = load16(bias16);
-            accumulate_rows<1, 8>(X + s * H, H, wt[k], H, acc);
-            for (int r = 0; r < 8; ++r) store16(out + (s + r) * 16, acc[r][0]);
+    // out[s, 0:VW NO] = W_L X[s] + c (lanes >= C are zero; rows OUT_LD apart)
+    template <int NV, int NO>
+    void output_forward(int k, const act_t* X, const float* bias, int S, float* out) const {
+        const int H = VW * NV;
+        constexpr int R = block_rows<NO>();
+        for (int s = 0; s < S; s += R) {
+            vf acc[R][NO];
+            for (int r = 0; r < R; ++r)
+                for (int v = 0; v < NO; ++v) acc[r][v] = loadv(bias + VW * v);
+            accumulate_rows<NO, R>(X + s * H, H, wt[k], H, acc);
+            for (int r = 0; r < R; ++r)
+                for (int v = 0; v < NO; ++v) storev(out + (s + r) * OUT_LD + VW * v, acc[r][v]);
         }
     }
-    // dX[s] = (W^T dZ[s]) for S samples; dZ rows have `out` (16-padded for the output layer) fp32 entries
+    // dX[s] = (W^T dZ[s]) for S samples; dZ rows have `out` fp32 entries, ldz apart
     template <int NV>
     void backward_input(int k, const float* dZ, int out, int ldz, int S, float* dX) const {
-        const int H = 16 * NV;
-        constexpr int R = NV <= 2 ? 8 : 4;
+        const int H = VW * NV;
+        constexpr int R = block_rows<NV>();
         for (int s = 0; s < S; s += R) {
-            v16 acc[R][NV];
+            vf acc[R][NV];
             for (int r = 0; r < R; ++r)
-                for (int v = 0; v < NV; ++v) acc[r][v] = v16{};
+                for (int v = 0; v < NV; ++v) acc[r][v] = vf{};
             accumulate_rows<NV, R>(dZ + s * ldz, ldz, w[k], out, acc);
             for (int r = 0; r < R; ++r)
-                for (int v = 0; v < NV; ++v) store16(dX + (s + r) * H + 16 * v, acc[r][v]);
+                for (int v = 0; v < NV; ++v) storev(dX + (s + r) * H + VW * v, acc[r][v]);
         }
     }
     // dW[o, :] += sum_s dZ[s, o] X[s, :] for o < out
     template <int NV>
     void backward_weights(const float* dZ, int out, int ldz, const act_t* X, int S, float* dW) const {
-        const int H = 16 * NV;
-        constexpr int R = NV <= 2 ? 8 : 4;
+        const int H = VW * NV;
+        constexpr int R = block_rows<NV>();
         for (int o0 = 0; o0 < out; o0 += R) {
             int rn = std::min(R, out - o0);
-            v16 acc[R][NV];
+            vf acc[R][NV];
             for (int r = 0; r < R; ++r)
-                for (int v = 0; v < NV; ++v) acc[r][v] = r < rn ? load16(dW + (o0 + r) * H + 16 * v) : v16{};
+                for (int v = 0; v < NV; ++v) acc[r][v] = r < rn ? loadv(dW + (o0 + r) * H + VW * v) : vf{};
             for (int s = 0; s < S; ++s) {
-                v16 xv[NV];
-                for (int v = 0; v < NV; ++v) xv[v] = load16(X + s * H + 16 * v);
+                vf xv[NV];
+                for (int v = 0; v < NV; ++v) xv[v] = loadv(X + s * H + VW * v);
                 for (int r = 0; r < R; ++r) {
-                    v16 g = splat(r < rn ? dZ[s * ldz + o0 + r] : 0.f);
+                    vf g = splat(r < rn ? dZ[s * ldz + o0 + r] : 0.f);
                     for (int v = 0; v < NV; ++v) acc[r][v] += g * xv[v];
                 }
             }
             for (int r = 0; r < rn; ++r)
-                for (int v = 0; v < NV; ++v) store16(dW + (o0 + r) * H + 16 * v, acc[r][v]);
+                for (int v = 0; v < NV; ++v) storev(dW + (o0 + r) * H + VW * v, acc[r][v]);
         }
     }
 };
@@ -281,8 +309,9 @@ struct Bf16 {
                 }
         }
     }
-    template <int NV>
+    template <int NV, int NO>
     void output_forward(int k, const act_t* X, const float* bias16, int S, float* out) const {
+        static_assert(NO == 1, "bf16 builds have 16 lanes: one vector holds every output");
         const int H = 16 * NV;
         for (int s = 0; s < S; s += 8) {
             __m512 acc[8][1];
@@ -353,9 +382,10 @@ struct Bf16 {
 #endif
 
 // ---------------------------------------------------------------------------------------- driver
-template <class Prec, int NV>
+// NV vectors per hidden row, NO vectors per output row (ceil(C / VW)).
+template <class Prec, int NV, int NO>
 int run(FusedL1Args* a) {
-    const int H = 16 * NV, C = a->out_channels, L = a->n_layers, B = a->images, n = a->texels_per_group;
+    const int H = VW * NV, C = a->out_channels, L = a->n_layers, B = a->images, n = a->texels_per_group;
     const float slope = a->slope;
     static thread_local Prec prec;  // weight layouts: per thread, reused between calls
     prec.prepare(a);
@@ -367,11 +397,11 @@ int run(FusedL1Args* a) {
     alignas(64) static thread_local float a1[TILE * MAX_HIDDEN];
     alignas(64) static thread_local float dz[2][TILE * MAX_HIDDEN];
     alignas(64) static thread_local act_t dz_low[TILE * MAX_HIDDEN];
-    alignas(64) static thread_local float out[TILE * 16];
+    alignas(64) static thread_local float out[TILE * OUT_LD];
     alignas(64) static thread_local float dgrad_p[TILE * MAX_HIDDEN];
-    float bias_out[16] = {0};
+    alignas(64) float bias_out[OUT_LD] = {0};
     for (int c = 0; c < C; ++c) bias_out[c] = a->biases[L - 1][c];
-    const v16 one = splat(1.f), zero = v16{}, sl = splat(slope);
+    const vf one = splat(1.f), zero = vf{}, sl = splat(slope);
     double loss = 0.0;   // per-tile float partial sums, added in double
 
     for (int it = 0; it < a->n_items; ++it) {
@@ -388,49 +418,53 @@ int run(FusedL1Args* a) {
                 // layer 1: z1 = P[t] + Q[b]; a1 = lrelu(z1)
                 for (int s = 0; s < S; ++s)
                     for (int v = 0; v < NV; ++v) {
-                        v16 z = s < T ? load16(P + s * H + 16 * v) + load16(Q + 16 * v) : v16{};
-                        store16(a1 + s * H + 16 * v, lrelu16(z, slope));
-                        store16(gain[0] + s * H + 16 * v, z > 0 ? one : sl);
+                        vf z = s < T ? loadv(P + s * H + VW * v) + loadv(Q + VW * v) : vf{};
+                        storev(a1 + s * H + VW * v, lrelu(z, slope));
+                        storev(gain[0] + s * H + VW * v, z > 0 ? one : sl);
                     }
                 for (int s = 0; s < S; ++s) Prec::store_row(act[0] + s * H, a1 + s * H, H);
                 // hidden layers 2 .. L-1, output layer L
                 for (int k = 0; k < L - 1; ++k)
                     prec.template hidden_forward<NV>(k, act[k], a->biases[k], slope, S, act[k + 1], gain[k + 1]);
-                prec.template output_forward<NV>(L - 1, act[L - 1], bias_out, S, out);
-                // L1 loss and its gradient sign(r), rows of 16 (lanes >= C and padded samples: 0)
+                prec.template output_forward<NV, NO>(L - 1, act[L - 1], bias_out, S, out);
+                // L1 loss and its gradient sign(r), rows of OUT_LD (lanes >= C and padded samples: 0)
                 float* dy = dz[1];
                 const float* tgt = a->target + (static_cast<int64_t>(b) * a->groups * n + row0) * C;
-                v16 loss_acc = v16{};
+                vf loss_acc = vf{};
                 for (int s = 0; s < S; ++s) {
-                    v16 t = v16{};
-                    if (s < T) std::memcpy(&t, tgt + s * C, sizeof(float) * C);
-                    v16 r = s < T ? load16(out + s * 16) - t : v16{};
-                    loss_acc += r > 0 ? r : -r;
-                    store16(dy + s * 16, (r > 0 ? one : zero) - (r < 0 ? one : zero));
+                    alignas(64) float t[OUT_LD] = {0};
+                    if (s < T) std::memcpy(t, tgt + s * C, sizeof(float) * C);
+                    for (int v = 0; v < NO; ++v) {
+                        vf r = s < T ? loadv(out + s * OUT_LD + VW * v) - loadv(t + VW * v) : vf{};
+                        loss_acc += r > 0 ? r : -r;
+                        storev(dy + s * OUT_LD + VW * v, (r > 0 ? one : zero) - (r < 0 ? one : zero));
+                    }
                 }
-                loss += hsum16(loss_acc);
+                loss += hsum(loss_acc);
                 // output layer backward
                 float* gb = a->grad_biases[L - 1];
-                v16 gb_acc = v16{};
-                for (int s = 0; s < T; ++s) gb_acc += load16(dy + s * 16);
-                for (int c = 0; c < C; ++c) gb[c] += gb_acc[c];
-                const act_t* dy_low = Prec::lowp(dy, S, 16, dz_low);
-                prec.template backward_weights<NV>(dy_low, C, 16, act[L - 1], S, a->grad_weights[L - 1]);
-                prec.template backward_input<NV>(L - 1, dy_low, C, 16, S, dz[0]);
+                for (int v = 0; v < NO; ++v) {
+                    vf gb_acc = vf{};
+                    for (int s = 0; s < T; ++s) gb_acc += loadv(dy + s * OUT_LD + VW * v);
+                    for (int j = 0; j < VW && VW * v + j < C; ++j) gb[VW * v + j] += gb_acc[j];
+                }
+                const act_t* dy_low = Prec::lowp(dy, S, OUT_LD, dz_low);
+                prec.template backward_weights<NV>(dy_low, C, OUT_LD, act[L - 1], S, a->grad_weights[L - 1]);
+                prec.template backward_input<NV>(L - 1, dy_low, C, OUT_LD, S, dz[0]);
                 int cur = 0;  // dz[cur]: dL/d act[k + 1] (fp32)
                 for (int k = L - 2; k >= 0; --k) {
                     // through the LeakyReLU that produced act[k + 1], then hidden layer k (weights[k])
                     float* d = dz[cur];
                     const float* gk = gain[k + 1];
-                    v16 gbk[NV];
-                    for (int v = 0; v < NV; ++v) gbk[v] = load16(a->grad_biases[k] + 16 * v);
+                    vf gbk[NV];
+                    for (int v = 0; v < NV; ++v) gbk[v] = loadv(a->grad_biases[k] + VW * v);
                     for (int s = 0; s < S; ++s)
                         for (int v = 0; v < NV; ++v) {
-                            v16 x = load16(d + s * H + 16 * v) * load16(gk + s * H + 16 * v);
-                            store16(d + s * H + 16 * v, x);
+                            vf x = loadv(d + s * H + VW * v) * loadv(gk + s * H + VW * v);
+                            storev(d + s * H + VW * v, x);
                             gbk[v] += x;   // padded samples are zero
                         }
-                    for (int v = 0; v < NV; ++v) store16(a->grad_biases[k] + 16 * v, gbk[v]);
+                    for (int v = 0; v < NV; ++v) storev(a->grad_biases[k] + VW * v, gbk[v]);
                     const act_t* d_low = Prec::lowp(d, S, H, dz_low);
                     prec.template backward_weights<NV>(d_low, H, H, act[k], S, a->grad_weights[k]);
                     prec.template backward_input<NV>(k, d_low, H, H, S, dz[1 - cur]);
@@ -438,15 +472,15 @@ int run(FusedL1Args* a) {
                 }
                 // through layer 1's LeakyReLU: dL/dz1 -> P (per texel) and Q (per image)
                 const float* d = dz[cur];
-                v16 q_acc[NV];
-                for (int v = 0; v < NV; ++v) q_acc[v] = load16(dQ + 16 * v);
+                vf q_acc[NV];
+                for (int v = 0; v < NV; ++v) q_acc[v] = loadv(dQ + VW * v);
                 for (int s = 0; s < T; ++s)
                     for (int v = 0; v < NV; ++v) {
-                        v16 x = load16(d + s * H + 16 * v) * load16(gain[0] + s * H + 16 * v);
+                        vf x = loadv(d + s * H + VW * v) * loadv(gain[0] + s * H + VW * v);
                         q_acc[v] += x;
-                        store16(dgrad_p + s * H + 16 * v, load16(dgrad_p + s * H + 16 * v) + x);
+                        storev(dgrad_p + s * H + VW * v, loadv(dgrad_p + s * H + VW * v) + x);
                     }
-                for (int v = 0; v < NV; ++v) store16(dQ + 16 * v, q_acc[v]);
+                for (int v = 0; v < NV; ++v) storev(dQ + VW * v, q_acc[v]);
             }
             std::memcpy(a->grad_positional + row0 * H, dgrad_p, sizeof(float) * T * H);
         }
@@ -463,15 +497,26 @@ bool supported(int hidden, int out_channels, int n_layers) {
            n_layers <= MAX_LAYERS - 1;
 }
 
+template <class Prec, int NV>
+int dispatch_out(FusedL1Args* a) {
+    switch ((a->out_channels + VW - 1) / VW) {
+        case 1: return run<Prec, NV, 1>(a);
+        case 2: return run<Prec, NV, (VW < 16 ? 2 : 1)>(a);
+        case 3: return run<Prec, NV, (VW < 8 ? 3 : 1)>(a);
+        case 4: return run<Prec, NV, (VW < 8 ? 4 : 1)>(a);
+        default: return 1;
+    }
+}
+
 template <class Prec>
 int dispatch(FusedL1Args* a) {
     if (!supported(a->hidden, a->out_channels, a->n_layers) || !(a->slope > 0)) return 1;
-    switch (a->hidden / 16) {
-        case 1: return run<Prec, 1>(a);
-        case 2: return run<Prec, 2>(a);
-        case 3: return run<Prec, 3>(a);
-        case 4: return run<Prec, 4>(a);
-        case 8: return run<Prec, 8>(a);
+    switch (a->hidden / VW) {
+        case 16 / VW: return dispatch_out<Prec, 16 / VW>(a);
+        case 32 / VW: return dispatch_out<Prec, 32 / VW>(a);
+        case 48 / VW: return dispatch_out<Prec, 48 / VW>(a);
+        case 64 / VW: return dispatch_out<Prec, 64 / VW>(a);
+        case 128 / VW: return dispatch_out<Prec, 128 / VW>(a);
         default: return 1;
     }
 }
