@@ -15,6 +15,12 @@ addressing modes exist:
 
 Both are differentiable with respect to the plane (training) and run on any
 device (implemented with ``torch.nn.functional.grid_sample`` on a padded plane).
+
+A fetch whose coordinates repeat (training reads the angular planes at the BTF's fixed
+(view, light) pairs, step after step) can be split in two: :func:`angular_taps` computes
+once where and with which weights it reads (four texels per point), and
+:func:`fetch_taps` reads them: a gather and a weighted sum, whose backward is a
+scatter-add, cheaper than a fresh ``grid_sample`` for a few thousand points.
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["fetch_wrap", "fetch_wrap_stack", "fetch_angular", "wrap_uv"]
+__all__ = ["fetch_wrap", "fetch_wrap_stack", "fetch_angular", "wrap_uv", "angular_taps", "fetch_taps"]
 
 
 def wrap_uv(uv: torch.Tensor) -> torch.Tensor:
@@ -94,3 +100,35 @@ def fetch_angular(plane: torch.Tensor, st: torch.Tensor) -> torch.Tensor:
     padded = F.pad(chw, (1, 1, 0, 0), mode="circular")
     padded = F.pad(padded, (0, 0, 1, 1), mode="replicate")[0]
     return _grid_sample_hwc(padded[None], x[None], y[None])[0].reshape(*batch, c)
+
+
+def angular_taps(st: torch.Tensor, rows: int, columns: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where :func:`fetch_angular` reads a ``rows x columns`` plane at ``st`` ``(..., 2)``: the four texels
+    (flat indices ``row * columns + column``, int64 ``(..., 4)``) and their bilinear weights (``(..., 4)``,
+    ``st``'s dtype, summing to 1), with the same addressing (rows clamp to the edge texels, columns wrap).
+
+    ``fetch_taps(plane.reshape(-1, C), *angular_taps(st, R_s, R_t))`` equals ``fetch_angular(plane, st)``
+    to float rounding.
+
+    >>> index, weight = angular_taps(torch.tensor([[0.0, 0.0]]), 20, 20)  # theta 0, phi 0: a corner
+    >>> index.tolist(), weight.tolist()
+    ([[19, 0, 19, 0]], [[0.25, 0.25, 0.25, 0.25]])
+    """
+    s = st[..., 0].clamp(0.0, 1.0) * rows - 0.5      # continuous row: texel k is centred at k + 0.5
+    t = wrap_uv(st[..., 1]) * columns - 0.5
+    r0, c0 = torch.floor(s), torch.floor(t)
+    fr, fc = s - r0, t - c0
+    r0, c0 = r0.long(), c0.long()
+    top, bottom = r0.clamp(0, rows - 1) * columns, (r0 + 1).clamp(0, rows - 1) * columns
+    left, right = c0 % columns, (c0 + 1) % columns
+    index = torch.stack([top + left, top + right, bottom + left, bottom + right], dim=-1)
+    weight = torch.stack([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc], dim=-1)
+    return index, weight
+
+
+def fetch_taps(flat_plane: torch.Tensor, index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """``sum_k weight[..., k] * flat_plane[index[..., k]]``: ``(T, C)`` texels, ``(..., K)`` taps -> ``(..., C)``.
+
+    Differentiable with respect to ``flat_plane`` (its gradient is a scatter-add).
+    """
+    return (flat_plane[index] * weight[..., None].to(flat_plane.dtype)).sum(-2)

@@ -220,9 +220,17 @@ class Representation(nn.Module, abc.ABC):
         b, n = w_view.shape[0], uv.shape[0]
         return self(uv[None].expand(b, n, 2), w_view[:, None].expand(b, n, 3), w_light[:, None].expand(b, n, 3))
 
+    def direction_taps(self, w_view: torch.Tensor, w_light: torch.Tensor) -> tuple[torch.Tensor, ...] | None:
+        """What the model reads for each direction pair ``w_view, w_light (P, 3)`` that depends on the
+        directions alone, computed once and passed back as ``angular_taps`` (rows of it) to
+        :meth:`texel_image_l1_loss`: the fit computes it for all of a BTF's pairs before training. A tuple of
+        tensors whose first dimension is ``P``, or None (default: nothing to precompute)."""
+        return None
+
     def texel_image_l1_loss(self, w_view: torch.Tensor, w_light: torch.Tensor, target: torch.Tensor,
                             texels: torch.Tensor | None = None, *, chunk_texels: int = 256, workers: int = 1,
-                            texel_groups: int = 1, precision: str = "fp32") -> torch.Tensor:
+                            texel_groups: int = 1, precision: str = "fp32",
+                            angular_taps: tuple[torch.Tensor, ...] | None = None) -> torch.Tensor:
         """Mean L1 loss of a whole-image batch (the training loss).
 
         Parameters
@@ -237,6 +245,8 @@ class Representation(nn.Module, abc.ABC):
             Chunking and threads of a fused implementation (unused by this default).
         precision : ``"fp32"`` or ``"bf16"``
             Only fused losses (:attr:`has_fused_loss`) accept ``"bf16"``.
+        angular_taps : tuple of tensors, optional
+            Rows of :meth:`direction_taps` for these pairs (None: computed from the directions).
 
         Default: :meth:`predict_texel_images` per group, then the mean absolute error (float64 sum).
         """

@@ -141,8 +141,10 @@ class NeuMIP(Representation):
 
     def texel_image_l1_loss(self, w_view: torch.Tensor, w_light: torch.Tensor, target: torch.Tensor,
                             texels: torch.Tensor | None = None, *, chunk_texels: int = 256,
-                            workers: int = 1, texel_groups: int = 1, precision: str = "fp32") -> torch.Tensor:
-        """Mean L1 loss of :meth:`predict_texel_images` against ``target (B, N, 3)``, fused.
+                            workers: int = 1, texel_groups: int = 1, precision: str = "fp32",
+                            angular_taps: tuple[torch.Tensor, ...] | None = None) -> torch.Tensor:
+        """Mean L1 loss of :meth:`predict_texel_images` against ``target (B, N, 3)``, fused (NeuMIP's direction
+        inputs are the directions themselves: it has no ``angular_taps``).
 
         The same fast path as the Triple Plane's (same decoder structure): layer 1's
         texture product once per texel, its direction part once per image, layers 2..

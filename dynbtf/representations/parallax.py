@@ -531,7 +531,8 @@ class ParallaxTriplePlane(TriplePlane):
 
     def texel_image_l1_loss(self, w_view: torch.Tensor, w_light: torch.Tensor, target: torch.Tensor,
                             texels: torch.Tensor | None = None, *, chunk_texels: int = 256,
-                            workers: int = 1, texel_groups: int = 1, precision: str = "fp32") -> torch.Tensor:
+                            workers: int = 1, texel_groups: int = 1, precision: str = "fp32",
+                            angular_taps: tuple[torch.Tensor, ...] | None = None) -> torch.Tensor:
         """Fused mean L1 loss, as :meth:`TriplePlane.texel_image_l1_loss`, fetching at the visible points.
 
         Every texel group's images must share **one view** (the fit loop's
@@ -551,8 +552,8 @@ class ParallaxTriplePlane(TriplePlane):
             texels = torch.arange(self.height_channel.numel(), device=w_view.device)
         n = texels.shape[0] // texel_groups
         features = self._visible_features(group_views[:, 0], texels[: n * texel_groups].reshape(texel_groups, n))
-        return self.decoder.texel_image_l1_loss(features, self.angular_features(w_view, w_light), target,
-                                                chunk_texels=chunk_texels, workers=workers,
+        return self.decoder.texel_image_l1_loss(features, self.angular_features(w_view, w_light, angular_taps),
+                                                target, chunk_texels=chunk_texels, workers=workers,
                                                 texel_groups=texel_groups, precision=precision)
 
     def storage_bytes(self) -> int:

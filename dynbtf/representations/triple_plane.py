@@ -44,7 +44,7 @@ from torch import nn
 
 from ..conventions import angular_plane_coords, half_diff_from_view_light
 from ..errors import InputError
-from ..texture import fetch_angular
+from ..texture import angular_taps, fetch_angular, fetch_taps
 from ..decoder.fused_mlp import split_mlp_l1_loss
 from .base import (MAX_CHANNELS, MAX_LAYERS, MAX_SEED, MAX_SIDE, FoldableDecoder, Representation, config_int,
                    config_number, register)
@@ -223,16 +223,32 @@ class TriplePlane(Representation):
         """``f_U``, ``(H, W, C_U)``: the texture synthesis consumes."""
         return self.f_u
 
-    def angular_features(self, w_view: torch.Tensor, w_light: torch.Tensor) -> torch.Tensor:
+    def angular_features(self, w_view: torch.Tensor, w_light: torch.Tensor,
+                         taps: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """``concat(f_H(h), f_D(d))``, ``(..., 2 C_A)``, for unit directions ``(..., 3)``.
 
         Depends only on the directions: callers that decode many positions under
         one (view, light) pair compute it once and pass it to
-        :meth:`decode_with_angular`.
+        :meth:`decode_with_angular`. ``taps``: these pairs' rows of :meth:`direction_taps`
+        (then the directions are not read again; equal to float rounding).
         """
+        if taps is not None:
+            index, weight = taps  # (P, 2, 4) into [f_H; f_D] flattened, (P, 2, 4)
+            planes = torch.cat([self.f_h.reshape(-1, self.f_h.shape[-1]), self.f_d.reshape(-1, self.f_d.shape[-1])])
+            return fetch_taps(planes, index, weight).reshape(index.shape[0], -1)
         h, d = half_diff_from_view_light(w_view, w_light)
         return torch.cat([fetch_angular(self.f_h, angular_plane_coords(h)),
                           fetch_angular(self.f_d, angular_plane_coords(d))], dim=-1)
+
+    def direction_taps(self, w_view: torch.Tensor, w_light: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The texels and bilinear weights :meth:`angular_features` reads for pairs ``(P, 3)``:
+        ``(index, weight)``, each ``(P, 2, 4)`` (``[:, 0]`` the half-vector plane, ``[:, 1]`` the
+        difference-vector plane, as flat rows of ``[f_H; f_D]``; :func:`dynbtf.texture.angular_taps`)."""
+        rows, columns = self.f_h.shape[:2]
+        h, d = half_diff_from_view_light(w_view, w_light)
+        index_h, weight_h = angular_taps(angular_plane_coords(h), rows, columns)
+        index_d, weight_d = angular_taps(angular_plane_coords(d), rows, columns)
+        return torch.stack([index_h, index_d + rows * columns], 1), torch.stack([weight_h, weight_d], 1)
 
     def decode_with_angular(self, features: torch.Tensor, angular: torch.Tensor) -> torch.Tensor:
         """RGB ``(..., 3)`` from positional ``features (..., C_U)`` and ``angular (..., 2 C_A)``.
@@ -274,7 +290,8 @@ class TriplePlane(Representation):
 
     def texel_image_l1_loss(self, w_view: torch.Tensor, w_light: torch.Tensor, target: torch.Tensor,
                             texels: torch.Tensor | None = None, *, chunk_texels: int = 256,
-                            workers: int = 1, texel_groups: int = 1, precision: str = "fp32") -> torch.Tensor:
+                            workers: int = 1, texel_groups: int = 1, precision: str = "fp32",
+                            angular_taps: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """Mean L1 loss of :meth:`predict_texel_images` against ``target (B, N, 3)``, fused.
 
         Same value and gradients as ``(self.predict_texel_images(w_view, w_light, texels)
@@ -286,12 +303,13 @@ class TriplePlane(Representation):
         With ``texel_groups = G``, the texels form ``G`` equal consecutive groups,
         ``w_view, w_light`` are ``(G * B, 3)``, group-major, and ``target[b, t]`` is
         texel ``t`` under image ``b`` of its group (see :func:`dynbtf.training.fit.texel_image_loss`).
+        ``angular_taps``: these pairs' rows of :meth:`direction_taps` (the fit passes them).
         """
         plane = self.f_u.reshape(-1, self.f_u.shape[-1])
         features = plane if texels is None else plane.index_select(0, texels)
-        return self.decoder.texel_image_l1_loss(features, self.angular_features(w_view, w_light), target,
-                                                chunk_texels=chunk_texels, workers=workers, texel_groups=texel_groups,
-                                                precision=precision)
+        return self.decoder.texel_image_l1_loss(features, self.angular_features(w_view, w_light, angular_taps),
+                                                target, chunk_texels=chunk_texels, workers=workers,
+                                                texel_groups=texel_groups, precision=precision)
 
     def param_groups(self) -> list[dict[str, Any]]:
         """Optimizer parameter groups, the paper's recipe: AdamW (PyTorch's default weight

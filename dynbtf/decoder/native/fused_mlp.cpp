@@ -26,6 +26,7 @@
 #include <cstring>
 #include <cmath>
 #include <algorithm>
+#include <type_traits>
 #if defined(__AVX512BF16__) && defined(__AVX512BW__)
 #include <immintrin.h>
 #define DYNBTF_HAVE_BF16 1
@@ -86,6 +87,7 @@ constexpr int VW = 4, NREG = 16;   // SSE2 (x86-64 baseline) or the compiler's g
 constexpr int OUT_LD = 16;  // leading dimension of the output rows (MAX_OUT floats)
 
 typedef float vf __attribute__((vector_size(4 * VW)));
+typedef int32_t vi __attribute__((vector_size(4 * VW)));
 
 inline vf loadv(const float* p) { vf v; std::memcpy(&v, p, sizeof v); return v; }
 inline void storev(float* p, vf v) { std::memcpy(p, &v, sizeof v); }
@@ -196,24 +198,31 @@ struct Fp32 {
     // dW[o, :] += sum_s dZ[s, o] X[s, :] for o < out
     template <int NV>
     void backward_weights(const float* dZ, int out, int ldz, const act_t* X, int S, float* dW) const {
-        const int H = VW * NV;
+        // whole blocks of R output rows, then the rest in halving blocks (3 rows: 2 + 1), no zero rows computed
         constexpr int R = block_rows<NV>();
-        for (int o0 = 0; o0 < out; o0 += R) {
-            int rn = std::min(R, out - o0);
-            vf acc[R][NV];
-            for (int r = 0; r < R; ++r)
-                for (int v = 0; v < NV; ++v) acc[r][v] = r < rn ? loadv(dW + (o0 + r) * H + VW * v) : vf{};
-            for (int s = 0; s < S; ++s) {
-                vf xv[NV];
-                for (int v = 0; v < NV; ++v) xv[v] = loadv(X + s * H + VW * v);
-                for (int r = 0; r < R; ++r) {
-                    vf g = splat(r < rn ? dZ[s * ldz + o0 + r] : 0.f);
-                    for (int v = 0; v < NV; ++v) acc[r][v] += g * xv[v];
-                }
+        int o0 = 0;
+        for (; o0 + R <= out; o0 += R) weight_rows<NV, R>(dZ, o0, ldz, X, S, dW);
+        if (R >= 8 && o0 + 4 <= out) { weight_rows<NV, (R >= 8 ? 4 : 1)>(dZ, o0, ldz, X, S, dW); o0 += 4; }
+        if (R >= 4 && o0 + 2 <= out) { weight_rows<NV, (R >= 4 ? 2 : 1)>(dZ, o0, ldz, X, S, dW); o0 += 2; }
+        if (o0 < out) weight_rows<NV, 1>(dZ, o0, ldz, X, S, dW);
+    }
+    // dW[o0 + r, :] += sum_s dZ[s, o0 + r] X[s, :] for r < RB
+    template <int NV, int RB>
+    static void weight_rows(const float* dZ, int o0, int ldz, const act_t* X, int S, float* dW) {
+        const int H = VW * NV;
+        vf acc[RB][NV];
+        for (int r = 0; r < RB; ++r)
+            for (int v = 0; v < NV; ++v) acc[r][v] = loadv(dW + (o0 + r) * H + VW * v);
+        for (int s = 0; s < S; ++s) {
+            vf xv[NV];
+            for (int v = 0; v < NV; ++v) xv[v] = loadv(X + s * H + VW * v);
+            for (int r = 0; r < RB; ++r) {
+                vf g = splat(dZ[s * ldz + o0 + r]);
+                for (int v = 0; v < NV; ++v) acc[r][v] += g * xv[v];
             }
-            for (int r = 0; r < rn; ++r)
-                for (int v = 0; v < NV; ++v) storev(dW + (o0 + r) * H + VW * v, acc[r][v]);
         }
+        for (int r = 0; r < RB; ++r)
+            for (int v = 0; v < NV; ++v) storev(dW + (o0 + r) * H + VW * v, acc[r][v]);
     }
 };
 
@@ -402,6 +411,9 @@ int run(FusedL1Args* a) {
     alignas(64) float bias_out[OUT_LD] = {0};
     for (int c = 0; c < C; ++c) bias_out[c] = a->biases[L - 1][c];
     const vf one = splat(1.f), zero = vf{}, sl = splat(slope);
+    vi lane_ok[NO];  // output lane VW v + j is a channel (< C)
+    for (int v = 0; v < NO; ++v)
+        for (int j = 0; j < VW; ++j) lane_ok[v][j] = VW * v + j < C ? -1 : 0;
     double loss = 0.0;   // per-tile float partial sums, added in double
 
     for (int it = 0; it < a->n_items; ++it) {
@@ -416,13 +428,17 @@ int run(FusedL1Args* a) {
                 const float* Q = a->image_pre + (g * B + b) * H;
                 float* dQ = a->grad_image + (g * B + b) * H;
                 // layer 1: z1 = P[t] + Q[b]; a1 = lrelu(z1)
+                // fp32 products read a1 itself; bf16 ones a rounded copy
+                constexpr bool same_rows = std::is_same<act_t, float>::value;
+                float* a1_rows = same_rows ? reinterpret_cast<float*>(act[0]) : a1;
                 for (int s = 0; s < S; ++s)
                     for (int v = 0; v < NV; ++v) {
                         vf z = s < T ? loadv(P + s * H + VW * v) + loadv(Q + VW * v) : vf{};
-                        storev(a1 + s * H + VW * v, lrelu(z, slope));
+                        storev(a1_rows + s * H + VW * v, lrelu(z, slope));
                         storev(gain[0] + s * H + VW * v, z > 0 ? one : sl);
                     }
-                for (int s = 0; s < S; ++s) Prec::store_row(act[0] + s * H, a1 + s * H, H);
+                if (!same_rows)
+                    for (int s = 0; s < S; ++s) Prec::store_row(act[0] + s * H, a1 + s * H, H);
                 // hidden layers 2 .. L-1, output layer L
                 for (int k = 0; k < L - 1; ++k)
                     prec.template hidden_forward<NV>(k, act[k], a->biases[k], slope, S, act[k + 1], gain[k + 1]);
@@ -431,15 +447,22 @@ int run(FusedL1Args* a) {
                 float* dy = dz[1];
                 const float* tgt = a->target + (static_cast<int64_t>(b) * a->groups * n + row0) * C;
                 vf loss_acc = vf{};
-                for (int s = 0; s < S; ++s) {
-                    alignas(64) float t[OUT_LD] = {0};
-                    if (s < T) std::memcpy(t, tgt + s * C, sizeof(float) * C);
+                for (int s = 0; s < S; ++s)
                     for (int v = 0; v < NO; ++v) {
-                        vf r = s < T ? loadv(out + s * OUT_LD + VW * v) - loadv(t + VW * v) : vf{};
+                        // target lanes VW v .. of sample s: read whole where the tile's targets hold VW floats
+                        // from there (the lanes >= C, the next samples' values, are masked), else copied
+                        vf t;
+                        if (s < T && (s * C + VW * (v + 1)) <= T * C) {
+                            t = lane_ok[v] ? loadv(tgt + s * C + VW * v) : zero;
+                        } else {
+                            alignas(64) float part[VW] = {0};
+                            if (s < T) std::memcpy(part, tgt + s * C + VW * v, sizeof(float) * std::max(0, std::min(VW, C - VW * v)));
+                            t = loadv(part);
+                        }
+                        vf r = s < T ? loadv(out + s * OUT_LD + VW * v) - t : vf{};
                         loss_acc += r > 0 ? r : -r;
                         storev(dy + s * OUT_LD + VW * v, (r > 0 ? one : zero) - (r < 0 ? one : zero));
                     }
-                }
                 loss += hsum(loss_acc);
                 // output layer backward
                 float* gb = a->grad_biases[L - 1];
