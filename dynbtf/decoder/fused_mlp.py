@@ -56,7 +56,7 @@ from torch import nn
 from . import native
 from ..errors import InputError
 
-__all__ = ["split_mlp_l1_loss", "single_intra_op_thread", "native_precisions", "resolve_precision"]
+__all__ = ["split_mlp_l1_loss", "decoder_l1_loss", "single_intra_op_thread", "native_precisions", "resolve_precision"]
 
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 
@@ -138,8 +138,8 @@ class _NativeArgs(ctypes.Structure):
                 ("slope", ctypes.c_float), ("n_items", ctypes.c_int32), ("items", ctypes.c_void_p),
                 ("positional_pre", ctypes.c_void_p), ("image_pre", ctypes.c_void_p), ("target", ctypes.c_void_p),
                 ("weights", ctypes.c_void_p), ("biases", ctypes.c_void_p), ("grad_positional", ctypes.c_void_p),
-                ("grad_image", ctypes.c_void_p), ("grad_weights", ctypes.c_void_p), ("grad_biases", ctypes.c_void_p),
-                ("loss", ctypes.c_double)]
+                ("item_stride", ctypes.c_int64), ("item_grads", ctypes.c_void_p), ("item_loss", ctypes.c_void_p),
+                ("next_item", ctypes.c_void_p)]
 
 
 def _native_library():
@@ -153,6 +153,8 @@ def _native_library():
         library.dynbtf_fused_l1_args_size.restype = ctypes.c_int
         library.dynbtf_fused_l1_supports.restype = ctypes.c_int
         library.dynbtf_fused_l1_supports.argtypes = [ctypes.c_int32] * 3
+        library.dynbtf_fused_l1_item_floats.restype = ctypes.c_int64
+        library.dynbtf_fused_l1_item_floats.argtypes = [ctypes.c_int32] * 4
         native_size, mirror_size = library.dynbtf_fused_l1_args_size(), ctypes.sizeof(_NativeArgs)
         if native_size != mirror_size:  # a field added on one side only: never call with a wrong layout
             raise RuntimeError(f"dynbtf/decoder/native/fused_mlp.cpp: FusedL1Args is {native_size} bytes but its ctypes "
@@ -196,27 +198,51 @@ def _pointer_array(tensors: Sequence[torch.Tensor]):
     return (ctypes.c_void_p * len(tensors))(*[t.data_ptr() for t in tensors])
 
 
-def _native_range(precision, positional_pre, image_pre, weights, biases, slope, target, items, g_positional):
-    """The native kernel over ``items`` (int64 ``(k, 3)``: group, texel range); same partial sums as
-    :func:`_chunk_range` but ``g_positional`` rows are written in place."""
+def _native_loss(precision, positional_pre, image_pre, weights, biases, slope, target, chunk, workers, scale):
+    """The native kernel over every ``(group, chunk of texels)`` item, on ``workers`` threads that take items
+    from a shared counter. Returns the same sums as :func:`_chunk_range` over all items: ``(loss, g_positional,
+    g_image, g_weights, g_biases)``, the gradients times ``scale``, each item's summed in item order
+    (deterministic)."""
     groups, b, hidden = image_pre.shape
-    g_weights = [torch.zeros_like(w) for w in weights]
-    g_biases = [torch.zeros_like(x) for x in biases]
-    g_image = torch.zeros_like(image_pre)
-    args = _NativeArgs(hidden=hidden, out_channels=weights[-1].shape[0], n_layers=len(weights), groups=groups,
-                       images=b, texels_per_group=positional_pre.shape[0] // groups, slope=slope,
-                       n_items=items.shape[0], items=items.data_ptr(), positional_pre=positional_pre.data_ptr(),
-                       image_pre=image_pre.data_ptr(), target=target.data_ptr(), loss=0.0)
-    keep = [_pointer_array(weights), _pointer_array(biases), _pointer_array(g_weights), _pointer_array(g_biases)]
-    args.weights, args.biases, args.grad_weights, args.grad_biases = [ctypes.addressof(k) for k in keep]
-    args.grad_positional, args.grad_image = g_positional.data_ptr(), g_image.data_ptr()
+    n = positional_pre.shape[0] // groups
+    items = torch.tensor([(g, a, min(a + chunk, n)) for g in range(groups) for a in range(0, n, chunk)],
+                         dtype=torch.int64)
+    per_group = len(items) // groups  # every group has the same number of items, in group order
     library = _native_library()
+    out = weights[-1].shape[0]
+    stride = library.dynbtf_fused_l1_item_floats(hidden, out, len(weights), b)
+    item_grads = torch.empty((len(items), stride), dtype=torch.float32)
+    item_loss = torch.empty(len(items), dtype=torch.float64)
+    next_item = torch.zeros(1, dtype=torch.int32)
+    g_positional = torch.empty_like(positional_pre)
+    keep = [_pointer_array(weights), _pointer_array(biases)]
+    args = _NativeArgs(hidden=hidden, out_channels=out, n_layers=len(weights), groups=groups, images=b,
+                       texels_per_group=n, slope=slope, n_items=len(items), items=items.data_ptr(),
+                       positional_pre=positional_pre.data_ptr(), image_pre=image_pre.data_ptr(),
+                       target=target.data_ptr(), weights=ctypes.addressof(keep[0]), biases=ctypes.addressof(keep[1]),
+                       grad_positional=g_positional.data_ptr(), item_stride=stride, item_grads=item_grads.data_ptr(),
+                       item_loss=item_loss.data_ptr(), next_item=next_item.data_ptr())
     fn = library.dynbtf_fused_l1_bf16 if precision == "bf16" else library.dynbtf_fused_l1_fp32
-    code = fn(ctypes.byref(args))
-    if code != 0:
-        raise RuntimeError(f"native fused_mlp kernel refused its arguments (code {code})")
-    loss = torch.tensor(args.loss, dtype=torch.float64)
-    return loss, g_image, g_weights, g_biases
+    workers = max(1, min(workers, len(items)))
+    if workers == 1:
+        codes = [fn(ctypes.byref(args))]
+    else:
+        futures = [_pool(workers).submit(fn, ctypes.byref(args)) for _ in range(workers)]
+        codes = [f.result() for f in futures]
+    if any(codes):
+        raise RuntimeError(f"native fused_mlp kernel refused its arguments (codes {codes})")
+    # the slots' layout: dW_k, dc_k, then dQ (B, H); scaled by `scale` on the way
+    sizes = [w.numel() for w in weights] + [x.numel() for x in biases] + [b * hidden]
+    if groups == 1:
+        parts = list(item_grads.sum(0).mul_(scale).split(sizes))
+        g_image = parts.pop().reshape(1, b, hidden)
+    else:  # dQ per group: the group's items summed; the weights over all items
+        parts = list(item_grads[:, :-b * hidden].sum(0).mul_(scale).split(sizes[:-1]))
+        g_image = item_grads[:, -b * hidden:].reshape(groups, per_group, b, hidden).sum(1).mul_(scale)
+    g_positional.mul_(scale)
+    g_weights = [p.view_as(w) for p, w in zip(parts[:len(weights)], weights)]
+    g_biases = [p.view_as(x) for p, x in zip(parts[len(weights):], biases)]
+    return item_loss.sum(), g_positional, g_image, g_weights, g_biases
 
 
 def _native_supports(positional_pre, weights, precision) -> bool:
@@ -230,58 +256,134 @@ def _native_supports(positional_pre, weights, precision) -> bool:
     return bool(_native_library().dynbtf_fused_l1_supports(hidden, weights[-1].shape[0], len(weights)))
 
 
+def _fused_sums(positional_pre, image_pre, target, slope, chunk, workers, precision, weights, biases):
+    """Sum of ``|residual|`` over the batch and the gradients of its mean ``(loss_sum, g_positional, g_image,
+    g_weights, g_biases)``, by the native kernel where it runs, else the PyTorch path."""
+    scale = 1.0 / target.numel()
+    groups = image_pre.shape[0]
+    n = positional_pre.shape[0] // groups
+    args = (positional_pre.detach().contiguous(), image_pre.detach().contiguous(),
+            [w.detach().contiguous() for w in weights], [x.detach().contiguous() for x in biases], slope,
+            target.contiguous())
+    if _native_supports(positional_pre, weights, precision):
+        with single_intra_op_thread():
+            return _native_loss(precision, *args, chunk, workers, scale)
+    if precision != "fp32":
+        raise InputError(f"precision={precision!r} needs the native CPU kernel; it is not available here")
+    items = _chunks(groups, n, chunk)
+    workers = max(1, min(workers, len(items)))
+    split = [round(len(items) * k / workers) for k in range(workers + 1)]
+    if workers == 1:
+        parts = [_chunk_range(*args, items)]
+    else:
+        with single_intra_op_thread():
+            futures = [_pool(workers).submit(_chunk_range, *args, items[split[k]:split[k + 1]])
+                       for k in range(workers)]
+            parts = [f.result() for f in futures]
+    g_positional = torch.cat([p[1][r0] for p in parts for r0 in sorted(p[1])])
+    loss = sum(p[0] for p in parts)
+    g_image = parts[0][2].clone()
+    g_weights = [g.clone() for g in parts[0][3]]
+    g_biases = [g.clone() for g in parts[0][4]]
+    for p in parts[1:]:
+        g_image += p[2]
+        for acc, g in zip(g_weights + g_biases, p[3] + p[4]):
+            acc += g
+    for g in [g_positional, g_image, *g_weights, *g_biases]:
+        g.mul_(scale)
+    return loss, g_positional, g_image, g_weights, g_biases
+
+
 class _SplitMLPL1(torch.autograd.Function):
+    """The mean L1 loss from layer 1's two parts ``P``, ``Q`` (:func:`split_mlp_l1_loss`)."""
+
     @staticmethod
     def forward(ctx, positional_pre, image_pre, target, slope, chunk, workers, precision, *weights_and_biases):
         n_layers = len(weights_and_biases) // 2
-        weights, biases = weights_and_biases[:n_layers], weights_and_biases[n_layers:]
-        groups = image_pre.shape[0]
-        n = positional_pre.shape[0] // groups
-        args = (positional_pre.detach().contiguous(), image_pre.detach().contiguous(),
-                [w.detach().contiguous() for w in weights], [x.detach().contiguous() for x in biases], slope,
-                target.contiguous())
-        native_kernel = _native_supports(positional_pre, weights, precision)
-        if native_kernel:
-            # work items: (group, texel range) in chunks, split evenly over the workers
-            items = torch.tensor([(g, a, min(a + chunk, n)) for g in range(groups) for a in range(0, n, chunk)],
-                                 dtype=torch.int64)
-            g_positional = torch.empty_like(args[0])
-            run = lambda part: _native_range(precision, *args, part, g_positional)  # noqa: E731
-        else:
-            if precision != "fp32":
-                raise InputError(f"precision={precision!r} needs the native CPU kernel; it is not available here")
-            items = _chunks(groups, n, chunk)
-            run = lambda part: _chunk_range(*args, part)  # noqa: E731
-        workers = max(1, min(workers, len(items)))
-        split = [round(len(items) * k / workers) for k in range(workers + 1)]
-        if workers == 1:
-            parts = [run(items)]
-        else:
-            with single_intra_op_thread():
-                futures = [_pool(workers).submit(run, items[split[k]:split[k + 1]]) for k in range(workers)]
-                parts = [f.result() for f in futures]
-        count = float(target.numel())
-        if native_kernel:
-            parts = [(p[0], None, *p[1:]) for p in parts]
-        else:
-            g_positional = torch.cat([p[1][r0] for p in parts for r0 in sorted(p[1])])
-        loss = sum(p[0] for p in parts) / count
-        g_image = parts[0][2].clone()
-        g_weights = [g.clone() for g in parts[0][3]]
-        g_biases = [g.clone() for g in parts[0][4]]
-        for p in parts[1:]:
-            g_image += p[2]
-            for acc, g in zip(g_weights + g_biases, p[3] + p[4]):
-                acc += g
-        ctx.save_for_backward(g_positional / count, g_image / count, *[g / count for g in g_weights + g_biases])
-        return loss.to(positional_pre.dtype)
+        loss, g_positional, g_image, g_weights, g_biases = _fused_sums(
+            positional_pre, image_pre, target, slope, chunk, workers, precision, weights_and_biases[:n_layers],
+            weights_and_biases[n_layers:])
+        ctx.save_for_backward(g_positional, g_image, *g_weights, *g_biases)  # of the mean
+        return (loss / target.numel()).to(positional_pre.dtype)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_loss):
-        g_positional, g_image, *g_params = ctx.saved_tensors
-        return (g_positional * grad_loss, g_image * grad_loss, None, None, None, None, None,
-                *[g * grad_loss for g in g_params])
+        g_positional, g_image, *g_params = _times(ctx.saved_tensors, grad_loss)
+        return (g_positional, g_image, None, None, None, None, None, *g_params)
+
+
+class _DecoderL1(torch.autograd.Function):
+    """The mean L1 loss from the decoder's inputs, layer 1 included (:func:`decoder_l1_loss`): one autograd
+    node for the whole decoder, layer 1's products and their gradients written out."""
+
+    @staticmethod
+    def forward(ctx, positional, angular, first_weight, first_bias, target, slope, chunk, workers, precision,
+                *weights_and_biases):
+        n_layers = len(weights_and_biases) // 2
+        c_u, images = positional.shape[1], target.shape[0]
+        w_u, w_a = first_weight[:, :c_u], first_weight[:, c_u:]
+        positional_pre = positional @ w_u.t()                        # (N, hidden): once per texel
+        image_pre = torch.addmm(first_bias, angular, w_a.t())         # (G * B, hidden): once per image
+        loss, g_positional, g_image, g_weights, g_biases = _fused_sums(
+            positional_pre, image_pre.reshape(-1, images, image_pre.shape[-1]), target, slope, chunk, workers,
+            precision, weights_and_biases[:n_layers], weights_and_biases[n_layers:])
+        ctx.save_for_backward(positional, angular, w_u, w_a, g_positional, g_image.reshape(image_pre.shape),
+                              *g_weights, *g_biases)
+        return (loss / target.numel()).to(positional.dtype)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_loss):
+        positional, angular, w_u, w_a = ctx.saved_tensors[:4]
+        g_positional, g_image, *g_params = _times(ctx.saved_tensors[4:], grad_loss)  # d loss / d P, d Q, ...
+        g_first = torch.cat([g_positional.t() @ positional, g_image.t() @ angular], dim=1)
+        return (g_positional @ w_u if ctx.needs_input_grad[0] else None,
+                g_image @ w_a if ctx.needs_input_grad[1] else None,
+                g_first, g_image.sum(0), None, None, None, None, None, *g_params)
+
+
+def _times(gradients, grad_loss):
+    """The saved gradients of the mean times the incoming ``grad_loss`` (skipped when it is 1, as in training)."""
+    if grad_loss.numel() == 1 and float(grad_loss) == 1.0:
+        return list(gradients)
+    return [g * grad_loss for g in gradients]
+
+
+def decoder_l1_loss(positional: torch.Tensor, angular: torch.Tensor, first: nn.Linear, layers: Sequence[nn.Linear],
+                    negative_slope: float, target: torch.Tensor, *, chunk_texels: int = 256, workers: int = 1,
+                    precision: str = "fp32") -> torch.Tensor:
+    """:func:`split_mlp_l1_loss` with layer 1 included: the mean L1 loss of a decoder whose first layer ``first``
+    acts on ``concat(positional, angular)``, given ``positional (N, C_U)`` (the texels, shared by a group's
+    images) and ``angular (G * B, C_A)`` (one vector per image, group-major). Layer 1 is split as
+    ``P = W_U positional``, ``Q = W_A angular + b`` and its gradients are written out, so the whole decoder is
+    one autograd node (measured cheaper per step than layer 1 as ordinary ops). Equal to float rounding."""
+    c_u = positional.shape[-1]
+    if first.weight.shape[1] != c_u + angular.shape[-1]:
+        raise InputError(f"first layer takes {first.weight.shape[1]} inputs, but positional ({c_u}) + angular "
+                         f"({angular.shape[-1]}) give {c_u + angular.shape[-1]}")
+    images = target.shape[0]
+    if angular.ndim != 2 or angular.shape[0] % images or positional.shape[0] % (angular.shape[0] // images):
+        raise InputError(f"angular: expected (G * {images}, C_A) with G dividing the {positional.shape[0]} texels, "
+                         f"got {tuple(angular.shape)}")
+    groups = angular.shape[0] // images
+    _check_split_shapes(positional.shape[0], first.weight.shape[0], (groups, images), target, chunk_texels, workers)
+    weights = [layer.weight for layer in layers]
+    biases = [layer.bias for layer in layers]
+    dtype = first.weight.dtype
+    precision = resolve_precision(precision, first.weight.device)
+    return _DecoderL1.apply(positional.to(dtype), angular.to(dtype), first.weight, first.bias, target.to(dtype),
+                            float(negative_slope), int(chunk_texels), int(workers), precision, *weights, *biases)
+
+
+def _check_split_shapes(n: int, hidden: int, groups_images: tuple[int, int], target, chunk_texels, workers) -> None:
+    groups, images = groups_images
+    if n % groups:
+        raise InputError(f"image_pre: {groups} texel groups do not divide the {n} texels evenly")
+    if tuple(target.shape[:2]) != (images, n):
+        raise InputError(f"target: expected shape ({images}, {n}, C), got {tuple(target.shape)}")
+    if chunk_texels < 1 or workers < 1:
+        raise InputError(f"chunk_texels and workers must be >= 1, got {chunk_texels}, {workers}")
 
 
 def split_mlp_l1_loss(positional_pre: torch.Tensor, image_pre: torch.Tensor, layers: Sequence[nn.Linear],
@@ -329,12 +431,7 @@ def split_mlp_l1_loss(positional_pre: torch.Tensor, image_pre: torch.Tensor, lay
         image_pre = image_pre[None]
     if image_pre.ndim != 3 or image_pre.shape[2] != hidden:
         raise InputError(f"image_pre: expected shape (B, {hidden}) or (G, B, {hidden}), got {tuple(image_pre.shape)}")
-    if n % image_pre.shape[0]:
-        raise InputError(f"image_pre: {image_pre.shape[0]} texel groups do not divide the {n} texels evenly")
-    if target.shape[:2] != (image_pre.shape[1], n):
-        raise InputError(f"target: expected shape ({image_pre.shape[1]}, {n}, C), got {tuple(target.shape)}")
-    if chunk_texels < 1 or workers < 1:
-        raise InputError(f"chunk_texels and workers must be >= 1, got {chunk_texels}, {workers}")
+    _check_split_shapes(n, hidden, image_pre.shape[:2], target, chunk_texels, workers)
     weights = [layer.weight for layer in layers]
     biases = [layer.bias for layer in layers]
     target = target.to(positional_pre.dtype)

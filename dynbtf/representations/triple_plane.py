@@ -45,7 +45,7 @@ from torch import nn
 from ..conventions import angular_plane_coords, half_diff_from_view_light
 from ..errors import InputError
 from ..texture import angular_taps, fetch_angular, fetch_taps
-from ..decoder.fused_mlp import split_mlp_l1_loss
+from ..decoder.fused_mlp import decoder_l1_loss
 from .base import (MAX_CHANNELS, MAX_LAYERS, MAX_SEED, MAX_SIDE, FoldableDecoder, Representation, config_int,
                    config_number, register)
 
@@ -134,14 +134,11 @@ class Decoder(nn.Module):
         ``g`` seen under its own ``B`` images: ``angular`` is ``(G * B, C_A)`` (group-major).
         ``precision``: arithmetic of layers 2.. (see :func:`~dynbtf.decoder.fused_mlp.split_mlp_l1_loss`).
         """
-        dtype = self.first.weight.dtype
-        positional_pre = self.first_layer_positional(positional.to(dtype))
-        image_pre = self.first_layer_angular(angular.to(dtype))
-        if texel_groups < 1 or image_pre.shape[0] % texel_groups:
-            raise InputError(f"texel_groups={texel_groups} does not divide the {image_pre.shape[0]} images")
-        image_pre = image_pre.reshape(texel_groups, -1, image_pre.shape[-1])
-        return split_mlp_l1_loss(positional_pre, image_pre, self.rest, self.negative_slope,
-                                 target, chunk_texels=chunk_texels, workers=workers, precision=precision)
+        if texel_groups < 1 or angular.shape[0] % texel_groups or angular.shape[0] // texel_groups != target.shape[0]:
+            raise InputError(f"texel_groups={texel_groups}: expected {texel_groups} x {target.shape[0]} images, got "
+                             f"{angular.shape[0]}")
+        return decoder_l1_loss(positional, angular, self.first, self.rest, self.negative_slope, target,
+                               chunk_texels=chunk_texels, workers=workers, precision=precision)
 
     def forward(self, positional: torch.Tensor, angular: torch.Tensor) -> torch.Tensor:
         """RGB ``(..., 3)`` from broadcastable ``positional (..., C_U)`` and ``angular (..., C_A)``."""

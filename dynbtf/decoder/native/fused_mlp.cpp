@@ -9,7 +9,7 @@
 //   loss = sum |y - target|                         (summed; the caller divides by the count)
 //
 // and the gradients of that sum with respect to P (rows of the items, overwritten), Q, every
-// W_k and c_k (accumulated into the caller's buffers). d|r|/dr = sign(r), sign(0) = 0.
+// W_k and c_k (per work item, into the item's slot; see FusedL1Args). d|r|/dr = sign(r), sign(0) = 0.
 //
 // Samples are processed in tiles of one image x up to TILE texels whose activations stay in the
 // L1 cache. Two precisions share one driver:
@@ -36,7 +36,12 @@
 
 extern "C" {
 
-// Mirrored by ctypes in dynbtf/native/__init__.py: keep the field order.
+// Mirrored by ctypes in dynbtf/decoder/fused_mlp.py: keep the field order.
+//
+// Several threads call the kernel with the same arguments; each takes the next work item from the shared
+// counter `next_item` until none is left (so a thread the OS delays does less, not the others waiting for
+// it), and writes that item's gradients into the item's own slot of `item_grads`. The caller sums the
+// slots in item order: the result does not depend on which thread ran which item.
 struct FusedL1Args {
     int32_t hidden;            // H (a multiple of 16, at most 128)
     int32_t out_channels;      // C (1 .. 16)
@@ -53,10 +58,10 @@ struct FusedL1Args {
     const float* const* weights;   // n_layers pointers, row-major (out, in)
     const float* const* biases;    // n_layers pointers
     float* grad_positional;        // (G * n, H): the items' rows are overwritten
-    float* grad_image;             // (G, B, H), accumulated
-    float* const* grad_weights;    // accumulated
-    float* const* grad_biases;     // accumulated
-    double loss;                   // out: sum of |residual| over the items' samples
+    int64_t item_stride;           // floats per item slot (dynbtf_fused_l1_item_floats)
+    float* item_grads;             // (n_items, item_stride): per item dW_0 .. dW_{L-1}, dc_0 .. dc_{L-1}, dQ (B, H)
+    double* item_loss;             // (n_items,): sum of |residual| over the item's samples
+    int32_t* next_item;            // shared by the calling threads: the next item to take (starts at 0)
 };
 
 int dynbtf_fused_l1_fp32(FusedL1Args* args);
@@ -64,6 +69,8 @@ int dynbtf_fused_l1_bf16(FusedL1Args* args);
 int dynbtf_fused_l1_has_bf16(void);
 int dynbtf_fused_l1_args_size(void);  // sizeof(FusedL1Args): the ctypes mirror checks it on load
 int dynbtf_fused_l1_supports(int32_t hidden, int32_t out_channels, int32_t n_layers);  // 1 if a path exists
+// floats of one item's gradient slot: the layers' weights and biases, then the item's images' dQ (B x H)
+int64_t dynbtf_fused_l1_item_floats(int32_t hidden, int32_t out_channels, int32_t n_layers, int32_t images);
 }
 
 namespace {
@@ -414,10 +421,26 @@ int run(FusedL1Args* a) {
     vi lane_ok[NO];  // output lane VW v + j is a channel (< C)
     for (int v = 0; v < NO; ++v)
         for (int j = 0; j < VW; ++j) lane_ok[v][j] = VW * v + j < C ? -1 : 0;
-    double loss = 0.0;   // per-tile float partial sums, added in double
-
-    for (int it = 0; it < a->n_items; ++it) {
+    for (;;) {
+        const int it = __atomic_fetch_add(a->next_item, 1, __ATOMIC_RELAXED);
+        if (it >= a->n_items) break;
         const int64_t g = a->items[3 * it], t_begin = a->items[3 * it + 1], t_end = a->items[3 * it + 2];
+        // this item's gradient slot: dW_k, dc_k, then dQ of its images
+        float* slot = a->item_grads + static_cast<int64_t>(it) * a->item_stride;
+        std::fill(slot, slot + a->item_stride, 0.f);
+        float* grad_weights[MAX_LAYERS];
+        float* grad_biases[MAX_LAYERS];
+        float* cursor = slot;
+        for (int k = 0; k < L; ++k) {
+            grad_weights[k] = cursor;
+            cursor += (k == L - 1 ? C : H) * H;
+        }
+        for (int k = 0; k < L; ++k) {
+            grad_biases[k] = cursor;
+            cursor += k == L - 1 ? C : H;
+        }
+        float* grad_image = cursor;  // (B, H)
+        double loss = 0.0;   // per-tile float partial sums, added in double
         for (int64_t t0 = t_begin; t0 < t_end; t0 += TILE) {
             const int T = static_cast<int>(std::min<int64_t>(TILE, t_end - t0));
             const int S = (T + 7) & ~7;             // padded samples carry zero gradients
@@ -426,7 +449,7 @@ int run(FusedL1Args* a) {
             std::fill(dgrad_p, dgrad_p + T * H, 0.f);
             for (int b = 0; b < B; ++b) {
                 const float* Q = a->image_pre + (g * B + b) * H;
-                float* dQ = a->grad_image + (g * B + b) * H;
+                float* dQ = grad_image + b * H;
                 // layer 1: z1 = P[t] + Q[b]; a1 = lrelu(z1)
                 // fp32 products read a1 itself; bf16 ones a rounded copy
                 constexpr bool same_rows = std::is_same<act_t, float>::value;
@@ -465,14 +488,14 @@ int run(FusedL1Args* a) {
                     }
                 loss += hsum(loss_acc);
                 // output layer backward
-                float* gb = a->grad_biases[L - 1];
+                float* gb = grad_biases[L - 1];
                 for (int v = 0; v < NO; ++v) {
                     vf gb_acc = vf{};
                     for (int s = 0; s < T; ++s) gb_acc += loadv(dy + s * OUT_LD + VW * v);
                     for (int j = 0; j < VW && VW * v + j < C; ++j) gb[VW * v + j] += gb_acc[j];
                 }
                 const act_t* dy_low = Prec::lowp(dy, S, OUT_LD, dz_low);
-                prec.template backward_weights<NV>(dy_low, C, OUT_LD, act[L - 1], S, a->grad_weights[L - 1]);
+                prec.template backward_weights<NV>(dy_low, C, OUT_LD, act[L - 1], S, grad_weights[L - 1]);
                 prec.template backward_input<NV>(L - 1, dy_low, C, OUT_LD, S, dz[0]);
                 int cur = 0;  // dz[cur]: dL/d act[k + 1] (fp32)
                 for (int k = L - 2; k >= 0; --k) {
@@ -480,16 +503,16 @@ int run(FusedL1Args* a) {
                     float* d = dz[cur];
                     const float* gk = gain[k + 1];
                     vf gbk[NV];
-                    for (int v = 0; v < NV; ++v) gbk[v] = loadv(a->grad_biases[k] + VW * v);
+                    for (int v = 0; v < NV; ++v) gbk[v] = loadv(grad_biases[k] + VW * v);
                     for (int s = 0; s < S; ++s)
                         for (int v = 0; v < NV; ++v) {
                             vf x = loadv(d + s * H + VW * v) * loadv(gk + s * H + VW * v);
                             storev(d + s * H + VW * v, x);
                             gbk[v] += x;   // padded samples are zero
                         }
-                    for (int v = 0; v < NV; ++v) storev(a->grad_biases[k] + VW * v, gbk[v]);
+                    for (int v = 0; v < NV; ++v) storev(grad_biases[k] + VW * v, gbk[v]);
                     const act_t* d_low = Prec::lowp(d, S, H, dz_low);
-                    prec.template backward_weights<NV>(d_low, H, H, act[k], S, a->grad_weights[k]);
+                    prec.template backward_weights<NV>(d_low, H, H, act[k], S, grad_weights[k]);
                     prec.template backward_input<NV>(k, d_low, H, H, S, dz[1 - cur]);
                     cur = 1 - cur;
                 }
@@ -507,8 +530,8 @@ int run(FusedL1Args* a) {
             }
             std::memcpy(a->grad_positional + row0 * H, dgrad_p, sizeof(float) * T * H);
         }
+        a->item_loss[it] = loss;
     }
-    a->loss = loss;
     return 0;
 }
 
@@ -563,4 +586,10 @@ extern "C" int dynbtf_fused_l1_args_size(void) { return static_cast<int>(sizeof(
 
 extern "C" int dynbtf_fused_l1_supports(int32_t hidden, int32_t out_channels, int32_t n_layers) {
     return supported(hidden, out_channels, n_layers) ? 1 : 0;
+}
+
+extern "C" int64_t dynbtf_fused_l1_item_floats(int32_t hidden, int32_t out_channels, int32_t n_layers,
+                                               int32_t images) {
+    const int64_t H = hidden, C = out_channels, L = n_layers;
+    return (L - 1) * (H * H + H) + C * H + C + static_cast<int64_t>(images) * H;
 }
