@@ -48,21 +48,8 @@ def _config(**options):
 
 
 def test_the_race_continues_the_winner_to_the_same_model_as_its_own_fit(tmp_path, capsys, monkeypatch):
-    import importlib
-    import itertools
-    import types
-
     source = open_btf("sim:stone?size=8")
     monkeypatch.setattr(model_choice, "DECISIVE_RELIEF", 1.01)  # the race, whatever the stereo finds
-    # a budget that runs out in the first trial (the fit's clock advances 10 s per reading): nothing is chosen yet,
-    # the trial is checkpointed, and the same call again continues the race where it stopped
-    clock = itertools.count(0.0, 10.0)
-    fit_module = importlib.import_module("dynbtf.training.fit")
-    with monkeypatch.context() as patch:
-        patch.setattr(fit_module, "time", types.SimpleNamespace(perf_counter=lambda: next(clock)))
-        stopped = fit_best(source, tmp_path / "auto.dbtfm", _config(max_minutes=0.5), progress=True)
-    assert not stopped.finished and "time budget reached during the trial of triple" in capsys.readouterr().out
-    assert not (tmp_path / "auto.dbtfm").exists() and any(p.name.endswith(".ckpt") for p in tmp_path.iterdir())
     result = fit_best(source, tmp_path / "auto.dbtfm", _config(), progress=True)
     printed = capsys.readouterr().out
     choice = result.metadata["provenance"]["representation_choice"]
@@ -80,11 +67,60 @@ def test_the_race_continues_the_winner_to_the_same_model_as_its_own_fit(tmp_path
     b, _ = load_model(direct.model_path)
     for name, tensor in a.state_dict().items():  # the trial was the first part of the winner's own fit
         assert torch.equal(tensor, b.state_dict()[name]), name
-    # the trial's own monitor checks are the direct fit's first ones
-    first = direct.metadata["provenance"]["schedule"]["monitor"][2]
-    assert first["step"] == 60 and first["held_out_psnr"] == scores[choice["kind"]]
+    # the trial's score is the direct fit's own check at the trial's end
+    check = direct.metadata["provenance"]["schedule"]["monitor"][2]
+    assert check["step"] == 60 and check["held_out_psnr"] == scores[choice["kind"]]
     again = fit_best(source, tmp_path / "auto.dbtfm", _config(), progress=True)  # a rerun: nothing to race
     assert "continuing" in capsys.readouterr().out and again.metadata["kind"] == choice["kind"]
+
+
+def _fake_clock(monkeypatch, seconds_per_reading: float):
+    """Every time.perf_counter() of the fit and the race advances a shared clock by ``seconds_per_reading``."""
+    import importlib
+    import itertools
+    import types
+
+    clock = itertools.count(0.0, seconds_per_reading)
+    fake = types.SimpleNamespace(perf_counter=lambda: next(clock))
+    for module in (importlib.import_module("dynbtf.training.fit"), model_choice):
+        monkeypatch.setattr(module, "time", fake)
+
+
+def test_a_budget_that_ends_in_the_race_writes_the_leader(tmp_path, capsys, monkeypatch):
+    """The budget runs out during the first trial: the output is still a model (that trial's), the choice and why
+    are one line, and the same call again continues its fit."""
+    source = open_btf("sim:stone?size=8")
+    monkeypatch.setattr(model_choice, "DECISIVE_RELIEF", 1.01)
+    with monkeypatch.context() as patch:
+        _fake_clock(patch, 10.0)  # 30 s of budget: a few readings
+        stopped = fit_best(source, tmp_path / "auto.dbtfm", _config(max_minutes=0.5), progress=True)
+    printed = capsys.readouterr().out
+    line = next(x for x in printed.splitlines() if x.startswith("representation: "))
+    assert line.startswith("representation: triple (") and "time budget" in line
+    assert not stopped.finished and stopped.model_path.is_file()
+    meta = read_model_metadata(tmp_path / "auto.dbtfm")
+    assert meta["kind"] == "triple" and meta["provenance"]["representation_choice"]["race_finished"] is False
+    assert (tmp_path / "auto.dbtfm.ckpt").exists()  # a later run continues the leader's fit
+    again = fit_best(source, tmp_path / "auto.dbtfm", _config(), progress=True)
+    assert "continuing" in capsys.readouterr().out and again.finished and again.metadata["kind"] == "triple"
+
+
+def test_a_short_budget_sizes_both_trials_alike(tmp_path, capsys, monkeypatch):
+    """A budget too short for the full trials: the first trial's step time sizes both to the same step count."""
+    source = open_btf("sim:stone?size=8")
+    monkeypatch.setattr(model_choice, "DECISIVE_RELIEF", 1.01)
+    monkeypatch.setattr(model_choice, "MIN_TRIAL_STEPS", 5)
+    with monkeypatch.context() as patch:
+        _fake_clock(patch, 0.05)
+        result = fit_best(source, tmp_path / "auto.dbtfm", _config(max_minutes=2.0, monitor_every=100),
+                          progress=True)
+    printed = capsys.readouterr().out
+    choice = result.metadata["provenance"]["representation_choice"]
+    steps = {k: t["steps"] for k, t in choice["trials"].items()}
+    assert list(steps) == list(CANDIDATES) and len(set(steps.values())) == 1
+    assert model_choice.MIN_TRIAL_STEPS <= steps["triple"] < 300  # fewer than 3 checks of 100 steps
+    assert f"trial of triple: {steps['triple']} steps (sized to the time budget" in printed
+    assert result.model_path.is_file() and choice["kind"] == result.metadata["kind"]
 
 
 def test_a_relief_the_stereo_trusts_decides_without_a_trial(tmp_path, capsys, monkeypatch):

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import time
 from pathlib import Path
 from typing import Optional
 
@@ -40,9 +42,11 @@ def fit(
     recipe: str = typer.Option("auto", help="auto: options chosen from the BTF's size (and --minutes), stated in "
                                "one line (docs/triple_plane.md); paper: the paper's batches and learning rates "
                                "(16 whole images per step, x0.9 per epoch). Options below override either."),
-    minutes: Optional[float] = typer.Option(None, "--minutes", help="Time budget in minutes: the auto recipe "
-                                            "times a few steps and shortens its schedule to fit, and training stops "
-                                            "(checkpointed) if it still overruns."),
+    minutes: Optional[float] = typer.Option(None, "--minutes", help="Time budget of the whole command in minutes "
+                                            "(decoding, stereo, the representation's trials, training, writing): the "
+                                            "auto recipe times a few steps and shortens its schedule to fit, the "
+                                            "trials are sized to it, and the model trained so far is written when "
+                                            "it runs out (checkpointed: the same command again continues)."),
     stereo_max_height: Optional[float] = typer.Option(None, "--stereo-max-height", help="triple-parallax only: "
                                                       "largest relief height the stereo estimate searches, in uv "
                                                       "units (default 0.08: +-10 texels at 128 texels)."),
@@ -56,8 +60,10 @@ def fit(
     from ..errors import positive_number
     from ..io import check_writable
     from ..training import get_fitter
-    from ..training.fit import check_options
+    from ..training.fit import budget_left, check_options
     from ..training.recipe import choose_config
+
+    started = time.perf_counter() - _process_age()  # --minutes counts from the command's start
 
     check_writable(output, "-o/--output")  # an unwritable model file fails before any training
     given = {name: value for name, value in training.items() if value is not None}  # None: the recipe chooses
@@ -72,10 +78,23 @@ def fit(
     if not quiet:
         typer.echo(summary)
     options = stereo_fitter_options(repr, stereo_max_height)
-    result = fitter(source, output, config, progress=not quiet, **options)
+    result = fitter(source, output, budget_left(config, started), progress=not quiet, **options)
     if quiet:
         size = result.metadata.get("provenance", {}).get("size", {})
         typer.echo(f"wrote {result.model_path}" + (f" ({size['summary']})" if "summary" in size else ""))
+
+
+def _process_age() -> float:
+    """Seconds since this process started (Linux: from /proc; elsewhere 0), so that a time budget includes the
+    interpreter's and the libraries' start."""
+    try:
+        with open("/proc/self/stat", encoding="ascii") as f:
+            start_ticks = float(f.read().rsplit(")", 1)[1].split()[19])
+        with open("/proc/uptime", encoding="ascii") as f:
+            uptime = float(f.read().split()[0])
+        return max(0.0, uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError):
+        return 0.0
 
 
 def _with_training_options(command):

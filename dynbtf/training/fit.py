@@ -54,6 +54,8 @@ uninterrupted run (same ``workers``, same machine).
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import json
 import math
@@ -81,7 +83,8 @@ from .images import ImageStore, held_out_split
 from .monitor import HeldOutMonitor
 from .schedule import ANNEAL_FLOOR, SCHEDULES, make_schedule
 
-__all__ = ["TrainConfig", "FitResult", "fit", "check_options", "TrainingDiverged", "implausible_targets",
+__all__ = ["TrainConfig", "FitResult", "fit", "check_options", "TrainingDiverged", "StopTraining", "budget_left",
+           "WRITE_RESERVE_SECONDS", "shared_image_cache", "steps_after_this_fit", "implausible_targets",
            "OPTION_RULES", "MAX_REFLECTANCE", "CommandLineOption", "command_line_options", "option_flag",
            "checkpoint_path", "texel_image_loss", "predict_images", "training_provenance", "finished_fit"]
 
@@ -93,6 +96,18 @@ DIVERGENCE_FACTOR = 1e6
 #: Under a time budget, the converge schedule's ceiling is re-planned at each held-out check to the steps this
 #: fraction of the budget's rest affords (the rest: the last checks, the checkpoint and the model file).
 BUDGET_PLAN_FRACTION = 0.95
+#: Seconds of a time budget kept for writing the checkpoint and the model file after the last step.
+WRITE_RESERVE_SECONDS = 1.0
+
+
+def budget_left(config: "TrainConfig", started: float) -> "TrainConfig":
+    """``config`` with ``max_minutes`` less the time since ``started`` (a ``time.perf_counter()`` time): what a step of
+    a command passes on to the next, so that the command's budget covers all of them. At least a millisecond is
+    left (the next step then stops at its first chance, its model written)."""
+    if config.max_minutes is None:
+        return config
+    left = config.max_minutes - (time.perf_counter() - started) / 60.0
+    return dataclasses.replace(config, max_minutes=max(left, 1e-5))
 
 
 @dataclass(frozen=True)
@@ -476,6 +491,11 @@ def _check_memory(config: TrainConfig, sampler: BatchSampler, store: ImageStore)
 
 
 # ---------------------------------------------------------------------------- implausible data
+class StopTraining(Exception):
+    """Raised by a :func:`fit` callback to end training after the current step: the fit is checkpointed, its model
+    file written (unfinished) and its :class:`FitResult` returned, as when a time budget runs out."""
+
+
 class TrainingDiverged(InputError):
     """The loss became non-finite or grew by :data:`DIVERGENCE_FACTOR`: the fit stops before the update."""
 
@@ -556,6 +576,56 @@ class _PlausibleImages(BTFSource):
         return self.source.read_texels(pairs, texels, device=device)
 
 
+# ---------------------------------------------------------------------------- the command's plan
+_STEPS_AFTER: contextvars.ContextVar[tuple[int, int | None]] = contextvars.ContextVar("steps_after_this_fit",
+                                                                                       default=(0, None))
+
+
+@contextlib.contextmanager
+def steps_after_this_fit(steps: int, stop_at: int | None = None):
+    """Within this block, a fit's progress shows the whole command's ETA (``command_eta``) as its own steps (up to
+    its ceiling, or ``stop_at`` when the caller stops it there) plus ``steps`` more at its step time: what a command
+    that runs several fits (``--repr auto``'s trials, then the winner's fit) has left after this one."""
+    token = _STEPS_AFTER.set((max(int(steps), 0), stop_at))
+    try:
+        yield
+    finally:
+        _STEPS_AFTER.reset(token)
+
+
+# ---------------------------------------------------------------------------- the image cache
+_SHARED: list[dict] | None = None  # the stores of the innermost shared_image_cache(), else None
+
+
+@contextlib.contextmanager
+def shared_image_cache():
+    """Within this block, the fits of one BTF share its decoded images: ``dynbtf fit --repr auto`` decodes the BTF
+    once for its trials and the winner's fit, not once per fit. Outside, each fit decodes its own (and frees
+    them when it returns)."""
+    global _SHARED
+    previous, _SHARED = _SHARED, []
+    try:
+        yield
+    finally:
+        _SHARED = previous
+
+
+def _image_store(source: BTFSource, config: TrainConfig) -> ImageStore:
+    """The training run's image cache of ``source``: whole images checked against ``config.max_reflectance`` as they
+    are decoded; inside :func:`shared_image_cache`, the one an earlier fit of the same source and options made."""
+    budget = int(config.memory_budget_mb * 1024 ** 2)
+    if _SHARED is not None:
+        for entry in _SHARED:
+            if entry["source"] is source and entry["key"] == (config.max_reflectance, budget):
+                return entry["store"]
+    checked = _PlausibleImages(source, config.max_reflectance)
+    store = ImageStore(checked, budget)
+    checked.cached = store.cached
+    if _SHARED is not None:
+        _SHARED.append({"source": source, "key": (config.max_reflectance, budget), "store": store})
+    return store
+
+
 # ---------------------------------------------------------------------------- the loop
 class _TrainingRun:
     """One run of :func:`fit`: its parts (sampler, optimizer, monitor, checkpointer) and its position.
@@ -579,9 +649,7 @@ class _TrainingRun:
         self.workers = int(config.workers or torch.get_num_threads()) if device.type == "cpu" else 1
         self.train_pairs, self.held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction,
                                                          config.seed)
-        checked = _PlausibleImages(source, config.max_reflectance)
-        self.store = ImageStore(checked, int(config.memory_budget_mb * 1024 ** 2))
-        checked.cached = self.store.cached
+        self.store = _image_store(source, config)
         # cached images were checked whole as they were decoded (_PlausibleImages); texels read straight from the BTF
         # are checked per batch (the same decision in every process of a data-parallel fit)
         self.check_batches = self.parallel.any(not self.store.cached)
@@ -610,6 +678,7 @@ class _TrainingRun:
         self.record: list[dict[str, float]] = []  # every held-out check: step, score, lr multiplier, time[, ceiling]
         self.budget_clock: dict[str, float] | None = None  # the budget's end, and this run's last check's time, step
         self.first_loss: float | None = None  # of this run (a resumed run: its first step)
+        self.step_seconds: float | None = None  # recent seconds per step (a running mean), for the command's ETA
         if self.checkpointer.exists():
             state = self.checkpointer.restore(rep, self.optimizer, epochs=config.epochs,
                                               steps_per_epoch=self.sampler.steps_per_epoch)
@@ -688,6 +757,18 @@ class _TrainingRun:
                     self.record[-1]["ceiling"] = ceiling
             clock.update(time=now, step=self.done_steps)
 
+    def _command_eta(self) -> str:
+        """The whole command's time left, ``h:mm:ss``: this fit's steps up to its ceiling and the steps that follow it
+        (:func:`steps_after_this_fit`, e.g. the other trial and the winner's fit of ``--repr auto``) at the recent
+        step time; at most the time budget's rest."""
+        after, stop_at = _STEPS_AFTER.get()
+        end = self.schedule.ceiling(self.record) if stop_at is None else min(stop_at, self.schedule.ceiling(self.record))
+        left = (max(end - self.done_steps, 0) + after) * self.step_seconds
+        if self.budget_clock is not None:
+            left = min(left, max(self.budget_clock["end"] - time.perf_counter(), 0.0))
+        left = int(round(left))
+        return f"{left // 3600}:{left // 60 % 60:02d}:{left % 60:02d}"
+
     def _schedule_ended(self) -> bool:
         """All epochs done, the monitor converged, or a time budget's lowered ceiling reached."""
         return (self.epoch >= self.config.epochs or self.schedule.converged(self.done_steps, self.record)
@@ -725,9 +806,10 @@ class _TrainingRun:
         checked = self.schedule.monitor_due(self.done_steps, self.step == 0)
         if checked:
             self._check_held_out()
+        self.step_seconds = seconds if self.step_seconds is None else 0.95 * self.step_seconds + 0.05 * seconds
         bar.set_postfix(loss=f"{loss:.4f}", samples_s=f"{samples / seconds:.3g}",
                         **({"heldout_psnr": f"{self.record[-1]['held_out_psnr']:.2f}"} if self.record else {}),
-                        refresh=False)  # shown at the bar's own pace
+                        command_eta=self._command_eta(), refresh=False)  # shown at the bar's own pace
         if self.step == 0:  # an epoch ended
             self.history.append({"epoch": self.epoch, "loss": loss, "held_out_psnr":
                                  self.record[-1]["held_out_psnr"] if self.record else float("nan"),
@@ -746,15 +828,14 @@ class _TrainingRun:
         return checked
 
     # ------------------------------------------------------------------ the loop
-    def train_steps(self, bar, callback) -> None:
-        """Train until the schedule ends, the time budget runs out, or an interrupt (checkpointed either way).
+    def train_steps(self, bar, callback, deadline: float | None = None) -> None:
+        """Train until the schedule ends, the time budget runs out (``deadline``, a ``time.perf_counter()`` time),
+        the ``callback`` raises :class:`StopTraining`, or an interrupt (checkpointed either way).
 
         A background thread prepares the next step's batch while this one trains.
         """
         config, steps_per_epoch = self.config, self.sampler.steps_per_epoch
-        run_start = time.perf_counter()
-        budget = None if config.max_minutes is None else config.max_minutes * 60.0
-        self.budget_clock = None if budget is None else {"end": run_start + budget, "step": self.done_steps}
+        self.budget_clock = None if deadline is None else {"end": deadline, "step": self.done_steps}
         consistent = True  # model/optimizer state matches (epoch, step)
         prefetch = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dynbtf-prefetch")
         # On the CPU the loop runs torch kernels on one intra-op thread and parallelizes the fused loss over
@@ -779,11 +860,16 @@ class _TrainingRun:
                     dt = time.perf_counter() - t0
                     checked = self._after_step(loss, batch.samples, dt, bar)
                     if callback is not None:
-                        callback({"epoch": self.epoch if self.step else self.epoch - 1,
-                                  "step": self.step or steps_per_epoch, "global_step": self.done_steps,
-                                  "loss": loss, "step_seconds": dt, "samples": batch.samples,
-                                  **({"held_out_psnr": self.record[-1]["held_out_psnr"]} if checked else {})})
-                    over_budget = budget is not None and time.perf_counter() - run_start >= budget
+                        try:
+                            callback({"epoch": self.epoch if self.step else self.epoch - 1,
+                                      "step": self.step or steps_per_epoch, "global_step": self.done_steps,
+                                      "loss": loss, "step_seconds": dt, "samples": batch.samples,
+                                      **({"held_out_psnr": self.record[-1]["held_out_psnr"]} if checked else {})})
+                        except StopTraining as stop:
+                            if not self.finished:
+                                bar.write(f"stopped at step {self.done_steps}: {stop}")
+                            break
+                    over_budget = deadline is not None and time.perf_counter() >= deadline
                     if self.parallel.world > 1:  # every process stops at the same step
                         stop = self.parallel.any(interrupt.raised or over_budget)
                         interrupted, over_budget = stop and interrupt.raised, stop and not interrupt.raised
@@ -792,8 +878,9 @@ class _TrainingRun:
                     if interrupted:
                         raise KeyboardInterrupt
                     if over_budget and not self.finished:
-                        bar.write(f"time budget of {config.max_minutes} min reached at epoch {self.epoch}, "
-                                  f"step {self.step}; run again to continue")
+                        bar.write(f"time budget of {config.max_minutes:.3g} min reached at step {self.done_steps} "
+                                  f"(epoch {self.epoch}, step {self.step}): the model so far is written; run again "
+                                  "to continue")
                         break
         except BaseException:
             if consistent and self.done_steps > self.last_checkpoint_step:
@@ -865,7 +952,8 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
         Show a tqdm progress bar (loss, samples/s, held-out PSNR, ETA).
     callback : callable, optional
         Called after every optimizer step with a dict (epoch, step, global_step,
-        loss, step_seconds, samples); an exception it raises stops training after a checkpoint.
+        loss, step_seconds, samples); :class:`StopTraining` from it ends training as a time budget does (model
+        written, unfinished); another exception stops training after a checkpoint and propagates.
     extra_provenance : dict, optional
         Added to the model file's provenance.
 
@@ -877,6 +965,7 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
     from ..progress import progress_bar
     from ..representations.model_file import read_model_metadata
 
+    started = time.perf_counter()  # a time budget counts from here: the image cache's decoding is part of it
     config = (config or TrainConfig()).validate()
     if output is None:
         raise InputError("output: a model file path is required")
@@ -900,8 +989,9 @@ def fit(representation: Representation, source: BTFSource, config: TrainConfig |
                   (f" (resuming at epoch {run.epoch}, step {run.step})" if run.done_steps else ""))
     if not run.finished and store.cached:
         store.fill(np.concatenate([run.train_pairs, run.monitor.pairs]), progress=progress)
+    deadline = None if config.max_minutes is None else started + config.max_minutes * 60.0 - WRITE_RESERVE_SECONDS
     try:
-        run.train_steps(bar, callback)
+        run.train_steps(bar, callback, deadline)
     finally:
         bar.close()
     completed_epochs = run.write_model(extra_provenance)

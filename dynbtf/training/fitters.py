@@ -17,11 +17,12 @@ per-step callback (closed-form fitters take no optimizer steps and never call it
 
 from __future__ import annotations
 
+import time
 from typing import Any, Callable
 
 from ..data.base import BTFSource
 from ..errors import InputError
-from .fit import FitResult, TrainConfig, fit
+from .fit import FitResult, TrainConfig, budget_left, fit
 
 __all__ = ["FITTERS", "register_fitter", "get_fitter", "fit_triple_plane", "fit_parallax_triple_plane",
            "parallax_size_options", "parallax_stereo_options", "fit_neumip", "fit_pca_model", "fit_sh_model"]
@@ -108,6 +109,7 @@ def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | N
     from .fit import checkpoint_path, finished_fit
     from .stereo_height import stereo_height
 
+    started = time.perf_counter()  # a time budget covers the stereo estimate too
     config = config or TrainConfig()
     stereo_options = parallax_stereo_options(source, options.pop("stereo", None))
     estimate = options.pop("stereo_estimate", None)
@@ -120,7 +122,8 @@ def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | N
         rep.set_height(height)
         height_field["trusted_fraction"] = float(trusted.double().mean())
     provenance = {"height_field": height_field} | (extra_provenance or {})
-    return fit(rep, source, config, output, progress=progress, callback=callback, extra_provenance=provenance)
+    return fit(rep, source, budget_left(config, started), output, progress=progress, callback=callback,
+               extra_provenance=provenance)
 
 
 @register_fitter("neumip")

@@ -21,8 +21,15 @@ The choice is printed in one line and recorded in the model's provenance
 (``representation_choice``: the stereo's trusted fraction and each trial's steps, held-out PSNR
 and seconds). A re-run on the same output continues the chosen kind (it is read from the
 checkpoint, or from the finished model file); an interrupted race continues its trials (each from
-its checkpoint, the finished ones recorded next to the output). ``max_minutes`` is the whole
-command's budget, stereo and trials included.
+its checkpoint, the finished ones recorded next to the output).
+
+**A time budget** (``max_minutes``) is the whole command's, counted from its start: the stereo, the
+trials and the winner's fit. The trials then take at most :data:`RACE_SHARE` of what the stereo
+leaves: the first one's measured step time sizes both (fewer steps than a full trial when the budget
+is short, the same number for each kind, so both are scored at the same step). A budget that
+affords fewer than :data:`MIN_TRIAL_STEPS` steps per trial leaves the choice to the stereo estimate
+(the parallax model from :data:`TRUSTED_RELIEF` trusted texels), and a budget that runs out during a
+trial writes the leader so far; either way the choice and why is one line, and the output is a model.
 
 >>> from dynbtf.training.model_choice import pick
 >>> pick({"triple": 24.0, "triple-parallax": 24.05})    # within the margin: the cheaper kind
@@ -58,6 +65,17 @@ DEFAULT_KIND = "auto"
 CANDIDATES = ("triple", "triple-parallax")
 #: Held-out checks (of ``monitor_every`` steps each) in a trial.
 TRIAL_CHECKS = 3
+#: Under a time budget, the fraction of the budget left after the stereo estimate that the trials may take together.
+RACE_SHARE = 0.3
+#: A parallax step's cost in Triple Plane steps, for sizing the second trial from the first one's step time
+#: (benchmarks/bench_parallax_training.py: 1.1-1.2x; kept above it, the visible-point table grows during a trial).
+RELIEF_STEP_COST = 1.5
+#: Timed steps of the first trial before a time budget sizes the trials.
+SIZING_STEPS = 10
+#: Fewest steps a trial must have for the race to decide; a budget affording fewer leaves it to the stereo estimate.
+MIN_TRIAL_STEPS = 100
+#: Seconds of budget below which the leader of an unfinished race is written as its trial left it (no more training).
+LEADER_MIN_SECONDS = 5.0
 #: dB by which a later candidate must beat every earlier one at the trial's end. A real relief shows as a lead of
 #: several dB there (the 64 x 64 stone on the UBO2014 grid: 4.4 dB); the flat, glossy lacquered wood, which the parallax
 #: model ends 2 dB *behind*, gives it a 0.2 dB lead at the trial (its extra input channel), so 0.1 chose wrongly.
@@ -162,53 +180,50 @@ def _finished_trials(output: Path) -> dict[str, dict[str, Any]]:
     return trials if ok else {}
 
 
-def _checks_in_checkpoint(path: Path) -> list[tuple[float, int]]:
-    """The held-out checks ``(score, step)`` recorded in a trial's checkpoint (none without one)."""
-    import torch
-
-    if not path.exists():
-        return []
-    try:
-        record = torch.load(path, map_location="cpu", weights_only=True).get("monitor", [])
-        return [(float(r["held_out_psnr"]), int(r["step"])) for r in record]
-    except Exception:
-        return []  # a damaged checkpoint: the trial's fitter reports it
-
-
 def _run_trial(kind: str, source: BTFSource, output: Path, config: TrainConfig, progress: bool,
-               options: dict[str, Any], callback=None) -> tuple[dict[str, Any] | None, FitResult | None]:
-    """Train ``kind`` into its trial output until its :data:`TRIAL_CHECKS`-th held-out check (or the end of a shorter
-    fit; an interrupted trial continues from its checkpoint). Returns ``({"held_out_psnr", "steps", "seconds",
-    "seconds_per_step"}, None)`` at that check (``seconds_per_step``: the mean of the optimizer steps run in this
-    call, set-up and checks not counted), or ``(None, result)`` when the time budget stopped the trial first.
-    ``callback`` (the caller's per-step callback) sees the trial's steps too."""
-    checks = _checks_in_checkpoint(checkpoint_path(_trial_output(output, kind)))
-    timed = [0, 0.0]  # optimizer steps run in this call, their seconds
+               options: dict[str, Any], steps: int | None, sizer=None, callback=None) -> dict[str, Any]:
+    """Train ``kind`` into its trial output for ``steps`` optimizer steps (or until ``sizer``, given the mean
+    seconds of the first timed steps, returns the count; an interrupted trial continues from its checkpoint), then
+    score its model on the held-out monitor. Returns ``{"held_out_psnr", "steps", "seconds", "seconds_per_step",
+    "complete"}``: ``complete`` is False when the time budget stopped the trial first (its model file is written
+    either way). ``callback`` (the caller's per-step callback) sees the trial's steps too."""
+    from .fit import StopTraining, _image_store, predict_images
+    from .images import held_out_split
+    from .monitor import HeldOutMonitor
+
+    timed = [0, 0.0, 0, None]  # steps timed in this call (the first, with the set-up, left out), their seconds,
+    target = [steps]             # the last step, the seconds from the start to the end of the first step
 
     def stop_after_trial(info: dict[str, Any]) -> None:
         if callback is not None:
             callback(info)
-        timed[0] += 1
-        timed[1] += float(info.get("step_seconds", 0.0))
-        if "held_out_psnr" in info:
-            checks.append((info["held_out_psnr"], info["global_step"]))
-            if len(checks) >= TRIAL_CHECKS:
-                raise _TrialOver
+        timed[2] = info["global_step"]
+        if timed[3] is None:
+            timed[3] = time.perf_counter() - start
+        else:
+            timed[0] += 1
+            timed[1] += float(info.get("step_seconds", 0.0))
+        if target[0] is None and timed[0] >= SIZING_STEPS:
+            target[0] = max(timed[2] + 1, sizer(timed[1] / timed[0], timed[2], timed[3]))
+            if progress:
+                print(f"trial of {kind}: {target[0]} steps (sized to the time budget at "
+                      f"{1e3 * timed[1] / timed[0]:.3g} ms per step)")
+        if target[0] is not None and info["global_step"] >= target[0]:
+            raise StopTraining(f"the trial's {target[0]} steps are done")
 
     start = time.perf_counter()
-    if len(checks) < TRIAL_CHECKS:
-        try:
-            result = get_fitter(kind)(source, _trial_output(output, kind), config, progress=progress,
-                                      callback=stop_after_trial, **options)
-            if not result.finished:
-                return None, result
-        except _TrialOver:
-            pass
-    score, steps = checks[min(len(checks), TRIAL_CHECKS) - 1] if checks else (math.nan, 0)
-    record = {"held_out_psnr": score, "steps": steps, "seconds": round(time.perf_counter() - start, 1)}
+    result = get_fitter(kind)(source, _trial_output(output, kind), config, progress=progress,
+                              callback=stop_after_trial, **options)
+    done = int(result.metadata.get("provenance", {}).get("schedule", {}).get("steps", timed[2]))
+    _, held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction, config.seed)
+    monitor = HeldOutMonitor(_image_store(source, config), held_out, config.monitor_pairs, config.seed,
+                             result.representation.positional_plane().device)  # the fit's own monitor, at its end
+    score = monitor.score(result.representation, predict_images)
+    record = {"held_out_psnr": score, "steps": done, "seconds": round(time.perf_counter() - start, 1),
+              "complete": bool(result.finished or (target[0] is not None and done >= target[0]))}
     if timed[0]:
         record["seconds_per_step"] = timed[1] / timed[0]  # the optimizer steps alone (no set-up, no checks)
-    return record, None
+    return record
 
 
 def _stereo_estimate(source: BTFSource, options: dict[str, Any], progress: bool):
@@ -218,14 +233,6 @@ def _stereo_estimate(source: BTFSource, options: dict[str, Any], progress: bool)
 
     stereo = parallax_stereo_options(source, options.get("stereo"))
     return stereo_height(source, progress=progress, return_trusted=True, **stereo)
-
-
-def _remaining(config: TrainConfig, start: float) -> TrainConfig:
-    """``config`` with ``max_minutes`` less the minutes since ``start`` (the whole command's budget)."""
-    if config.max_minutes is None:
-        return config
-    left = config.max_minutes - (time.perf_counter() - start) / 60
-    return dataclasses.replace(config, max_minutes=max(left, 1e-9))
 
 
 def _promote(output: Path, winner: str) -> None:
@@ -241,7 +248,8 @@ def _promote(output: Path, winner: str) -> None:
 
 
 def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, progress: bool = True,
-             callback=None, kind_options: dict[str, dict[str, Any]] | None = None) -> FitResult:
+             callback=None, kind_options: dict[str, dict[str, Any]] | None = None,
+             started: float | None = None) -> FitResult:
     """``dynbtf fit --repr auto``: the stereo evidence, a race of :data:`CANDIDATES` unless it decides (see the
     module docstring), then the winner's fit.
 
@@ -249,20 +257,35 @@ def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, pr
     ----------
     source, output, config, progress, callback :
         As any fitter (:mod:`dynbtf.training.fitters`); ``callback`` sees every step, the trials' included;
-        ``config.max_minutes`` is the whole command's budget (stereo and trials included): when it runs out during
-        a trial, that trial's result (unfinished) is returned, and the same call again continues the race.
+        ``config.max_minutes`` is the whole command's budget, counted from ``started``: the stereo, the trials
+        (sized to take at most :data:`RACE_SHARE` of what the stereo leaves) and the winner's fit. When it runs
+        out during the race, the leader so far is written (its choice stated in one line), and the same call
+        again continues its fit.
     kind_options : dict, optional
         Fitter options per kind (e.g. ``{"triple-parallax": {"stereo": {...}}}``).
+    started : float, optional
+        ``time.perf_counter()`` when the command started (default: now).
 
     Returns
     -------
     FitResult
         Of the winner; its model file's provenance holds ``representation_choice``.
     """
-    from ..io import atomic_path
+    from .fit import shared_image_cache
 
+    with shared_image_cache():  # the trials and the winner's fit decode the BTF once
+        return _fit_best(source, output, config, progress=progress, callback=callback, kind_options=kind_options,
+                         started=started)
+
+
+def _fit_best(source: BTFSource, output, config: TrainConfig | None, *, progress: bool, callback,
+              kind_options: dict[str, dict[str, Any]] | None, started: float | None) -> FitResult:
+    from ..io import atomic_path
+    from .fit import budget_left, steps_after_this_fit
+
+    started = time.perf_counter() if started is None else started
     config = (config or TrainConfig()).validate()
-    output, kind_options, start = Path(output), dict(kind_options or {}), time.perf_counter()
+    output, kind_options = Path(output), dict(kind_options or {})
     if config.held_out_fraction <= 0 or config.monitor_pairs <= 0:
         raise InputError("--repr auto chooses by held-out PSNR: it needs held-out pairs (--held-out-fraction > 0); "
                          f"name a kind instead, one of {list(CANDIDATES)}")
@@ -270,15 +293,18 @@ def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, pr
     if chosen is not None:
         if progress:
             print(f"representation: {chosen} (chosen by the earlier run on {output}; continuing it)")
-        return get_fitter(chosen)(source, output, config, progress=progress, callback=callback,
-                                  **kind_options.get(chosen, {}))
+        return get_fitter(chosen)(source, output, budget_left(config, started), progress=progress,
+                                  callback=callback, **kind_options.get(chosen, {}))
     parallel, _ = from_environment(resolve_device(config.device))  # (a data-parallel fit: every process races)
     progress = progress and parallel.is_main
     trials = _finished_trials(output)
+    full_trial = TRIAL_CHECKS * _monitor_interval(source, config)
+    winner_steps = config.epochs * _monitor_interval(source, dataclasses.replace(config, monitor_every=0))
     if progress:
         print(f"choosing the representation: the stereo height estimate, then, unless it is trusted on at least "
-              f"{DECISIVE_RELIEF:.0%} of the texels, a trial of {TRIAL_CHECKS} held-out checks each of "
-              f"{', '.join(CANDIDATES)} on the same held-out pairs"
+              f"{DECISIVE_RELIEF:.0%} of the texels, a trial of {full_trial} steps ({TRIAL_CHECKS} held-out checks"
+              + (", fewer if the time budget is short" if config.max_minutes is not None else "")
+              + f") each of {', '.join(CANDIDATES)} on the same held-out pairs"
               + (f" (continuing the race: {', '.join(trials)} done)" if trials else ""))
     # the stereo estimate first (computed once: it may decide alone, and its height starts the parallax fit; a
     # parallax trial resumed from its checkpoint keeps its own height, the sweep is then evidence alone)
@@ -287,53 +313,121 @@ def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, pr
     trusted = float(relief_options["stereo_estimate"][1].double().mean())
     options_of = {kind: (relief_options if kind == RELIEF_KIND else dict(kind_options.get(kind, {})))
                   for kind in CANDIDATES}
+
+    def decided(winner: str, rule: str, line: str) -> FitResult:
+        if progress:
+            print(f"representation: {winner} ({line})")
+        evidence = {"kind": winner, "rule": rule, "stereo_trusted": trusted, "trials": trials}
+        return _continue_winner(source, output, budget_left(config, started), winner, evidence, options_of[winner],
+                                parallel, progress, callback)
+
     if trusted >= DECISIVE_RELIEF:
-        winner = RELIEF_KIND
         rule = (f"{RELIEF_KIND} without a trial where the stereo height is trusted on at least "
                 f"{DECISIVE_RELIEF:.0%} of the texels")
-        if progress:
-            print(f"representation: {winner} (stereo height trusted on {trusted:.0%} of the texels; {rule})")
-        evidence = {"kind": winner, "rule": rule, "stereo_trusted": trusted, "trials": trials}
-        return _continue_winner(source, output, _remaining(config, start), winner, evidence, options_of[winner],
-                                parallel, progress, callback)
+        return decided(RELIEF_KIND, rule, f"stereo height trusted on {trusted:.0%} of the texels; {rule}")
+    # the trials' length: the full trial, or what RACE_SHARE of the budget left affords (sized in the first trial
+    # from its measured step time; the second gets the same steps, so that both are scored at the same step)
+    race_end = None if config.max_minutes is None else \
+        time.perf_counter() + RACE_SHARE * budget_left(config, started).max_minutes * 60
+    steps = next((t["steps"] for t in trials.values()), None if race_end is not None else full_trial)
+
+    def sizer(step_seconds: float, done: int, setup_seconds: float) -> int:
+        """Steps K of each trial, from the first trial's step time after ``done`` steps: the rest of the first
+        trial and the whole second one (its steps RELIEF_STEP_COST times as dear, its set-up as long as the
+        first's, which decoded the BTF) end by race_end."""
+        left = race_end - time.perf_counter() - setup_seconds
+        return int(min(full_trial, max((left + done * step_seconds) / (step_seconds * (1 + RELIEF_STEP_COST)), 1)))
+
     for kind in CANDIDATES:
-        if kind not in trials:
-            trial, stopped = _run_trial(kind, source, output, _remaining(config, start), progress, options_of[kind],
-                                        callback)
-            if stopped is not None:
-                if progress:
-                    print(f"time budget reached during the trial of {kind}; run the same command again to continue")
-                return stopped
-            trials[kind] = trial | ({"stereo_trusted": trusted} if kind == RELIEF_KIND else {})
-            if parallel.is_main:
-                with atomic_path(_race_path(output)) as tmp:
-                    tmp.write_text(json.dumps(trials))
+        if kind in trials:
+            continue
+        if steps is not None and race_end is not None and len(trials) == 0 and steps < MIN_TRIAL_STEPS:
+            break
+        trial_steps = steps or full_trial  # (sized during the first trial under a budget)
+        later = (len(CANDIDATES) - len(trials) - 1) * trial_steps + max(winner_steps - trial_steps, 0)
+        with steps_after_this_fit(later, stop_at=trial_steps):
+            trial = _run_trial(kind, source, output, budget_left(config, started), progress, options_of[kind], steps,
+                               sizer, callback)
+        trials[kind] = trial | ({"stereo_trusted": trusted} if kind == RELIEF_KIND else {})
+        steps = steps or trial["steps"]
+        if parallel.is_main:
+            with atomic_path(_race_path(output)) as tmp:
+                tmp.write_text(json.dumps(trials))
+        if not trial["complete"]:
+            break
+        if race_end is not None and steps < MIN_TRIAL_STEPS:
+            break  # the budget affords no real trial: the stereo decides (below)
+    if len(trials) < len(CANDIDATES) or not all(t["complete"] for t in trials.values()):
+        return _write_leader(source, output, config, trials, trusted, parallel, progress, started, options_of,
+                             callback)
     winner = pick({k: t["held_out_psnr"] for k, t in trials.items()}, trusted)
     rule = (f"a kind after {CANDIDATES[0]} must win by {MARGIN_DB:g} dB; within that, {RELIEF_KIND} wins where the "
             f"stereo height is trusted on at least {TRUSTED_RELIEF:.0%} of the texels")
+    line = ("held-out PSNR after a trial of "
+            + ", ".join(f"{k} {t['held_out_psnr']:.2f} dB at step {t['steps']}" for k, t in trials.items())
+            + f"; stereo height trusted on {trusted:.0%} of the texels; {rule}")
+    return decided(winner, f"best held-out PSNR at the end of a trial of {steps} steps of each kind; {rule}", line)
+
+
+def _monitor_interval(source: BTFSource, config: TrainConfig) -> int:
+    """Steps between the held-out checks of ``config``'s schedule on ``source`` (an epoch when it names none)."""
+    from .images import held_out_split
+
+    if config.monitor_every:
+        return int(config.monitor_every)
+    train_pairs, _ = held_out_split(source.n_views, source.n_lights, config.held_out_fraction, config.seed)
+    return math.ceil(len(train_pairs) / config.images_per_step)
+
+
+def _write_leader(source: BTFSource, output: Path, config: TrainConfig, trials: dict[str, dict[str, Any]],
+                  trusted: float, parallel, progress: bool, started: float, options_of, callback) -> FitResult:
+    """The race did not finish in the time budget (or the budget affords no real trial): the leader so far becomes
+    the output, stated in one line; the fit goes on in what is left of the budget, if anything."""
+    from .fit import budget_left
+
+    run = {k: t for k, t in trials.items() if t["steps"] > 0}
+    if len(run) == len(CANDIDATES) and all(t["steps"] >= MIN_TRIAL_STEPS for t in run.values()):
+        leader = pick({k: t["held_out_psnr"] for k, t in run.items()}, trusted)
+        why = ("the time budget ran out during the race; the leader so far: "
+               + ", ".join(f"{k} {t['held_out_psnr']:.2f} dB at step {t['steps']}" for k, t in run.items()))
+    else:
+        leader = RELIEF_KIND if trusted >= TRUSTED_RELIEF else CANDIDATES[0]
+        why = (f"the time budget leaves no room for a race of at least {MIN_TRIAL_STEPS} steps per kind; the stereo "
+               f"height estimate decides: trusted on {trusted:.0%} of the texels, {RELIEF_KIND} from "
+               f"{TRUSTED_RELIEF:.0%}")
     if progress:
-        print(f"representation: {winner} (held-out PSNR after a trial of "
-              + ", ".join(f"{k} {t['held_out_psnr']:.2f} dB at step {t['steps']}" for k, t in trials.items())
-              + f"; stereo height trusted on {trusted:.0%} of the texels; {rule})")
-    evidence = {"kind": winner, "rule": f"best held-out PSNR at the last of {TRIAL_CHECKS} held-out checks of a "
-                                        f"trial of each kind; {rule}", "stereo_trusted": trusted, "trials": trials}
-    return _continue_winner(source, output, _remaining(config, start), winner, evidence, options_of[winner],
-                            parallel, progress, callback)
+        print(f"representation: {leader} ({why})")
+    evidence = {"kind": leader, "rule": why, "stereo_trusted": trusted, "trials": trials, "race_finished": False}
+    for kind in CANDIDATES:  # the losers' trials are not kept
+        if kind != leader:
+            _trial_output(output, kind).unlink(missing_ok=True)
+            checkpoint_path(_trial_output(output, kind)).unlink(missing_ok=True)
+    left = budget_left(config, started)
+    return _continue_winner(source, output, left, leader, evidence, options_of[leader], parallel, progress, callback,
+                            train=left.max_minutes * 60 > LEADER_MIN_SECONDS)
 
 
 def _continue_winner(source: BTFSource, output: Path, config: TrainConfig, winner: str, evidence: dict[str, Any],
-                     options: dict[str, Any], parallel, progress: bool, callback) -> FitResult:
-    """The winner's fit, continued from its trial if it had one (whose checkpoint or finished model becomes the
-    output's), with ``evidence`` as its provenance's ``representation_choice``."""
+                     options: dict[str, Any], parallel, progress: bool, callback, train: bool = True) -> FitResult:
+    """The winner's fit, continued from its trial if it had one (whose checkpoint and model file become the
+    output's), with ``evidence`` as its provenance's ``representation_choice``. ``train=False``: the trial's model
+    (with the evidence) is the result as it is; its checkpoint stays for a later run to continue."""
     parallel.barrier()  # every trial's checkpoint is written
     if parallel.is_main:
         _promote(output, winner)
-    if output.is_file() and parallel.is_main:  # the trial was the whole fit (a short schedule): add the evidence
+    if output.is_file() and parallel.is_main:  # the trial's model (a whole fit, or where it stopped): the evidence
         from ..representations.model_file import load_model, save_model
 
         rep, meta = load_model(output, device="cpu")
         save_model(output, rep, meta["provenance"] | {"representation_choice": evidence})
     parallel.barrier()
+    if not train and output.is_file():
+        from ..representations.model_file import load_model
+
+        rep, meta = load_model(output, device="cpu")
+        if progress:
+            print(f"wrote {output} (the {winner} trial's model; run the same command again to continue its fit)")
+        return FitResult(output, rep, meta, list(meta["provenance"].get("history", [])), False)
     return get_fitter(winner)(source, output, config, progress=progress, callback=callback,
                               extra_provenance={"representation_choice": evidence}, **options)
 

@@ -259,12 +259,15 @@ def measure_step_seconds(source: BTFSource, config: TrainConfig, representation:
     workers = int(config.workers or torch.get_num_threads()) if device.type == "cpu" else 1
     precision = resolve_precision(config.precision, device)
     chunk = config.chunk_texels if device.type == "cpu" else n
+    with torch.no_grad():
+        taps = rep.direction_taps(wv, wl)  # as the fit reads them (once per pair, before training)
     times = []
     with single_intra_op_thread(device.type == "cpu"):
         for _ in range(steps + 2):
             t0 = time.perf_counter()
             loss = texel_image_loss(rep, wv, wl, target, (source.height, source.width), texel_t, chunk_texels=chunk,
-                                    workers=workers, texel_groups=sampler.n_groups, precision=precision)
+                                    workers=workers, texel_groups=sampler.n_groups, precision=precision,
+                                    angular_taps=taps)
             loss.backward()
             times.append(time.perf_counter() - t0)
     seconds = float(np.median(times[2:]))  # after two warm-up steps
