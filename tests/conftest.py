@@ -1,10 +1,25 @@
-"""Shared pytest fixtures."""
+"""Shared pytest fixtures.
+
+``DYNBTF_CPU_ISA=avx2 bash scripts/test.sh`` runs the whole suite on the AVX2 path (dynbtf's kernels, PyTorch's,
+MKL's and numba's) on a CPU that has more: dynbtf is imported first so that it sets the libraries' variables
+before they load (:mod:`dynbtf.cpu`).
+"""
 
 import random
 
+import dynbtf  # noqa: F401  (first: DYNBTF_CPU_ISA reaches PyTorch, MKL and numba before they load)
 import numpy as np
 import pytest
 import torch
+
+
+def pytest_report_header(config):
+    from dynbtf.cpu import check_forced_environment, isa_description
+
+    problem = check_forced_environment()
+    if problem:
+        raise pytest.UsageError(problem)
+    return f"dynbtf CPU level: {isa_description()}; PyTorch kernels: {torch.backends.cpu.get_cpu_capability()}"
 
 
 @pytest.fixture(autouse=True)

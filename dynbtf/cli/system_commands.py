@@ -46,11 +46,23 @@ def system_report() -> list[tuple[str, str]]:
 
     rows = [("dynbtf", __version__), ("python", f"{platform.python_version()} ({sys.executable})"),
             ("platform", f"{platform.platform()}, {os.cpu_count()} CPUs")]
+    from ..cpu import ISA_ENV, isa_description
+    from ..errors import DynBTFError
+
+    try:
+        rows.append(("CPU level", isa_description()))
+    except DynBTFError as e:
+        rows.append(("CPU level", f"problem: {e}"))
     torch_version, torch = _version("torch")
     if torch is not None:
         cuda = torch.cuda.is_available()
         torch_version += f", CUDA {'available: ' + torch.cuda.get_device_name(0) if cuda else 'not available'}"
+        torch_version += f"; CPU kernels {torch.backends.cpu.get_cpu_capability()}"
     rows.append(("torch", torch_version))
+    from ..decoder import native
+
+    rows.append(("native kernels", native.status("fused_mlp") + (f" ({ISA_ENV}={os.environ[ISA_ENV]})"
+                                                                 if os.environ.get(ISA_ENV) else "")))
     for name in ("numpy", "numba", "ray"):
         rows.append((name, _version(name)[0]))
     from ..errors import DynBTFError

@@ -32,7 +32,7 @@ import tempfile
 import threading
 from pathlib import Path
 
-__all__ = ["load_library", "status", "cache_dir", "ISA_FLAGS", "isa_flags", "probe_cpu_features"]
+__all__ = ["load_library", "status", "cache_dir", "ISA_FLAGS", "isa_flags", "probe_cpu_features", "fma_peak_flops"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent
 _FLAGS = ["-O3", "-std=c++17", "-ffp-contract=fast", "-shared", "-fPIC", "-fno-math-errno"]
@@ -173,3 +173,33 @@ def probe_cpu_features() -> list[str]:
     library.dynbtf_cpu_supports.argtypes = [ctypes.c_char_p]
     names = ["avx2", "fma", "f16c", "bmi2", "avx512f", "avx512bw", "avx512dq", "avx512vl", "avx512cd", "avx512bf16"]
     return [n.replace("avx512bf16", "avx512_bf16") for n in names if library.dynbtf_cpu_supports(n.encode())]
+
+
+def fma_peak_flops(isa: str | None = None, threads: int = 1, seconds: float = 0.5) -> float | None:
+    """Measured fused multiply-add throughput (FLOP/s, 2 per lane per FMA) of ``threads`` threads at level ``isa``
+    (default: the active one): independent FMAs on the level's vectors held in registers
+    (``dynbtf/decoder/native/fma_peak.cpp``), about ``seconds`` long. The peak a kernel's "share" is measured
+    against; None without a compiler."""
+    from concurrent.futures import ThreadPoolExecutor
+    import time
+
+    library = load_library("fma_peak", isa)
+    if library is None:
+        return None
+    library.dynbtf_fma_loop.restype = ctypes.c_float
+    library.dynbtf_fma_loop.argtypes = [ctypes.c_int64]
+    library.dynbtf_fma_lanes.restype = ctypes.c_int
+    library.dynbtf_fma_chains.restype = ctypes.c_int
+    lanes, chains = library.dynbtf_fma_lanes(), library.dynbtf_fma_chains()
+    iterations = 1 << 16
+    while True:  # calibrate on one thread: a run of about seconds / 4
+        t0 = time.perf_counter()
+        library.dynbtf_fma_loop(iterations)
+        if time.perf_counter() - t0 > seconds / 4 or iterations > 1 << 34:
+            break
+        iterations *= 4
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        t0 = time.perf_counter()
+        list(pool.map(library.dynbtf_fma_loop, [iterations] * threads))
+        elapsed = time.perf_counter() - t0
+    return 2.0 * lanes * chains * iterations * threads / elapsed

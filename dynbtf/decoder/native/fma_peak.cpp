@@ -16,6 +16,7 @@ constexpr int CHAINS = 12;  // 12 x 8 lanes: AVX2's 16 registers hold them; 2 FM
 typedef float vf __attribute__((vector_size(4 * VW)));
 
 extern "C" int dynbtf_fma_lanes(void) { return VW; }
+extern "C" int dynbtf_fma_chains(void) { return CHAINS; }
 
 // Runs `iterations` rounds of CHAINS vector FMAs; returns a value that depends on all of them (so none is
 // optimized away). FLOP = 2 * VW * CHAINS * iterations.
