@@ -198,3 +198,36 @@ def test_native_loader_reports_build_failures(tmp_path, monkeypatch):
     (tmp_path / "other_kernel.cpp").write_text('extern "C" int answer(void) { return 1; }\n')
     assert native.load_library("other_kernel") is None
     assert "DYNBTF_NATIVE=0" in native.status("other_kernel")
+
+
+@needs_native
+@pytest.mark.parametrize("hidden,out,layers,rows", [(32, 3, 3, 1000), (16, 1, 1, 7), (64, 5, 2, 130), (32, 16, 3, 64),
+                                                    (48, 3, 4, 65), (128, 3, 2, 9)])
+@pytest.mark.parametrize("activate_input", [False, True])
+def test_native_inference_forward_matches_float64(hidden, out, layers, rows, activate_input):
+    """The evaluation's forward (layers 2.. on rows of layer 1's activations) against the same layers in float64,
+    to float32 rounding of sums of ``hidden`` products; tiles of 64 rows with tails, every template width."""
+    g = torch.Generator().manual_seed(hidden + out + layers)
+    mlp = [(torch.randn(hidden, hidden, generator=g) / hidden ** 0.5, torch.randn(hidden, generator=g))
+           for _ in range(layers - 1)] + [(torch.randn(out, hidden, generator=g) / hidden ** 0.5,
+                                            torch.randn(out, generator=g))]
+    x = torch.randn(rows, hidden, generator=g)
+    got = fused_mlp.native_mlp_forward(x, mlp, 0.01, activate_input=activate_input)
+    y = x.double()
+    y = torch.nn.functional.leaky_relu(y, 0.01) if activate_input else y
+    for k, (w, b) in enumerate(mlp):
+        y = y @ w.double().t() + b.double()
+        if k < len(mlp) - 1:
+            y = torch.nn.functional.leaky_relu(y, 0.01)
+    assert got is not None and got.shape == (rows, out)
+    torch.testing.assert_close(got.double(), y, rtol=1e-5, atol=1e-5 * float(y.abs().max()))
+
+
+def test_native_inference_forward_declines_what_it_has_no_path_for():
+    """Another dtype, a shape without a template instance, or a non-square hidden layer: None (torch answers)."""
+    layers = [(torch.randn(32, 32), torch.randn(32)), (torch.randn(3, 32), torch.randn(3))]
+    assert fused_mlp.native_mlp_forward(torch.randn(4, 32, dtype=torch.float64), layers, 0.01) is None
+    assert fused_mlp.native_mlp_forward(torch.randn(4, 24), [(torch.randn(24, 24), torch.randn(24)),
+                                                             (torch.randn(3, 24), torch.randn(3))], 0.01) is None
+    assert fused_mlp.native_mlp_forward(torch.randn(4, 32), [(torch.randn(16, 32), torch.randn(16)),
+                                                             (torch.randn(3, 16), torch.randn(3))], 0.01) is None

@@ -46,7 +46,15 @@ def hidden_layers(x: torch.Tensor, layers: Layers, slope: float) -> torch.Tensor
 
 
 def mlp(x: torch.Tensor, layers: Layers, slope: float) -> torch.Tensor:
-    """Linear layers ``[(weight, bias), ...]`` with LeakyReLU between them on ``x (N, in)`` -> float32."""
+    """Linear layers ``[(weight, bias), ...]`` with LeakyReLU between them on ``x (N, in)`` -> float32.
+
+    On the CPU in float32 the training kernel's forward runs them (:func:`dynbtf.decoder.fused_mlp.native_mlp_forward`:
+    register-blocked products on tiles of rows that stay in the L1 cache); elsewhere torch."""
+    from .fused_mlp import native_mlp_forward
+
+    out = native_mlp_forward(x, layers, slope)
+    if out is not None:
+        return out
     weight, bias = layers[-1]
     return F.linear(hidden_layers(x, layers[:-1], slope), weight, bias).float()
 

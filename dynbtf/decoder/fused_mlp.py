@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 from concurrent.futures import ThreadPoolExecutor
 from typing import Sequence
 
@@ -56,7 +57,7 @@ from torch import nn
 from . import native
 from ..errors import InputError
 
-__all__ = ["split_mlp_l1_loss", "decoder_l1_loss", "single_intra_op_thread", "native_precisions", "resolve_precision"]
+__all__ = ["split_mlp_l1_loss", "decoder_l1_loss", "native_mlp_forward", "single_intra_op_thread", "native_precisions", "resolve_precision"]
 
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 
@@ -155,12 +156,53 @@ def _native_library():
         library.dynbtf_fused_l1_supports.argtypes = [ctypes.c_int32] * 3
         library.dynbtf_fused_l1_item_floats.restype = ctypes.c_int64
         library.dynbtf_fused_l1_item_floats.argtypes = [ctypes.c_int32] * 4
+        library.dynbtf_mlp_forward_fp32.argtypes = [ctypes.POINTER(_MlpArgs)]
+        library.dynbtf_mlp_forward_fp32.restype = ctypes.c_int
         native_size, mirror_size = library.dynbtf_fused_l1_args_size(), ctypes.sizeof(_NativeArgs)
         if native_size != mirror_size:  # a field added on one side only: never call with a wrong layout
             raise RuntimeError(f"dynbtf/decoder/native/fused_mlp.cpp: FusedL1Args is {native_size} bytes but its ctypes "
                                f"mirror in {__name__} is {mirror_size}; update both field lists together")
         library._dynbtf_ready = True
     return library
+
+
+class _MlpArgs(ctypes.Structure):
+    """``MlpArgs`` of ``dynbtf/decoder/native/fused_mlp.cpp`` (same field order)."""
+
+    _fields_ = [("hidden", ctypes.c_int32), ("out_channels", ctypes.c_int32), ("n_layers", ctypes.c_int32),
+                ("slope", ctypes.c_float), ("activate_input", ctypes.c_int32), ("rows", ctypes.c_int64),
+                ("x", ctypes.c_void_p),
+                ("weights", ctypes.c_void_p), ("biases", ctypes.c_void_p), ("out", ctypes.c_void_p)]
+
+
+def native_mlp_forward(x: torch.Tensor, layers: Sequence[tuple[torch.Tensor, torch.Tensor]], slope: float, *,
+                       activate_input: bool = False) -> torch.Tensor | None:
+    """Inference with the training kernel's products: layers ``[(weight (out, in), bias (out,)), ...]`` with
+    LeakyReLU between them on rows ``x (N, H)`` (layer 1's activations; ``activate_input``: its pre-activation,
+    the LeakyReLU applied first) -> float32 ``(N, C)``; tiles of rows stay in the L1 cache. None where the native
+    kernel does not take the call (another device or dtype, a shape without a template instance, no compiler):
+    the caller uses torch."""
+    if not (x.device.type == "cpu" and x.dtype == torch.float32 and x.ndim == 2 and layers):
+        return None
+    hidden = x.shape[1]
+    weights = [w.detach().contiguous() for w, _ in layers]
+    biases = [b.detach().contiguous() for _, b in layers]
+    if not all(w.dtype == torch.float32 and w.device.type == "cpu" for w in weights + biases):
+        return None
+    if not (all(tuple(w.shape) == (hidden, hidden) for w in weights[:-1]) and weights[-1].shape[1] == hidden):
+        return None
+    library = _native_library()
+    if library is None or not library.dynbtf_fused_l1_supports(hidden, weights[-1].shape[0], len(weights)):
+        return None
+    x = x.detach().contiguous()
+    out = torch.empty((x.shape[0], weights[-1].shape[0]), dtype=torch.float32)
+    keep = [_pointer_array(weights), _pointer_array(biases)]
+    args = _MlpArgs(hidden=hidden, out_channels=weights[-1].shape[0], n_layers=len(weights), slope=float(slope),
+                    activate_input=int(activate_input), rows=x.shape[0], x=x.data_ptr(), weights=ctypes.addressof(keep[0]),
+                    biases=ctypes.addressof(keep[1]), out=out.data_ptr())
+    if library.dynbtf_mlp_forward_fp32(ctypes.byref(args)) != 0:
+        return None
+    return out
 
 
 def native_precisions() -> tuple[str, ...]:
@@ -198,6 +240,14 @@ def _pointer_array(tensors: Sequence[torch.Tensor]):
     return (ctypes.c_void_p * len(tensors))(*[t.data_ptr() for t in tensors])
 
 
+@functools.lru_cache(maxsize=16)
+def _work_items(groups: int, n: int, chunk: int) -> torch.Tensor:
+    """The native kernel's work items, int64 ``(k, 3)``: (group, first texel, end texel) in chunks of ``chunk``
+    texels, group by group (the same for every step of a fit: computed once)."""
+    return torch.tensor([(g, a, min(a + chunk, n)) for g in range(groups) for a in range(0, n, chunk)],
+                        dtype=torch.int64)
+
+
 def _native_loss(precision, positional_pre, image_pre, weights, biases, slope, target, chunk, workers, scale):
     """The native kernel over every ``(group, chunk of texels)`` item, on ``workers`` threads that take items
     from a shared counter. Returns the same sums as :func:`_chunk_range` over all items: ``(loss, g_positional,
@@ -205,8 +255,7 @@ def _native_loss(precision, positional_pre, image_pre, weights, biases, slope, t
     (deterministic)."""
     groups, b, hidden = image_pre.shape
     n = positional_pre.shape[0] // groups
-    items = torch.tensor([(g, a, min(a + chunk, n)) for g in range(groups) for a in range(0, n, chunk)],
-                         dtype=torch.int64)
+    items = _work_items(groups, n, chunk)
     per_group = len(items) // groups  # every group has the same number of items, in group order
     library = _native_library()
     out = weights[-1].shape[0]

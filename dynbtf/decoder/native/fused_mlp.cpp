@@ -71,6 +71,23 @@ int dynbtf_fused_l1_args_size(void);  // sizeof(FusedL1Args): the ctypes mirror 
 int dynbtf_fused_l1_supports(int32_t hidden, int32_t out_channels, int32_t n_layers);  // 1 if a path exists
 // floats of one item's gradient slot: the layers' weights and biases, then the item's images' dQ (B x H)
 int64_t dynbtf_fused_l1_item_floats(int32_t hidden, int32_t out_channels, int32_t n_layers, int32_t images);
+
+// Inference: out = MLP(a) for rows a of layer 1's activations, a = lrelu(x) of its pre-activation x when
+// activate_input is 1, else a = x (the same products as the training forward, fp32, no gradients). Mirrored
+// by ctypes in dynbtf/decoder/fused_mlp.py.
+struct MlpArgs {
+    int32_t hidden;                // H
+    int32_t out_channels;          // C
+    int32_t n_layers;              // layers after the first, as FusedL1Args
+    float slope;
+    int32_t activate_input;
+    int64_t rows;
+    const float* x;                // (rows, H)
+    const float* const* weights;   // n_layers pointers, row-major (out, in)
+    const float* const* biases;
+    float* out;                    // (rows, C)
+};
+int dynbtf_mlp_forward_fp32(MlpArgs* args);
 }
 
 namespace {
@@ -125,14 +142,15 @@ struct Fp32 {
     alignas(64) float wt[MAX_LAYERS][MAX_HIDDEN * MAX_HIDDEN];
     const float* w[MAX_LAYERS];
 
-    void prepare(const FusedL1Args* a) {
-        H = a->hidden; C = a->out_channels;
-        for (int k = 0; k < a->n_layers; ++k) {
-            const bool last = k == a->n_layers - 1;
+    void prepare(const FusedL1Args* a) { prepare(a->hidden, a->out_channels, a->n_layers, a->weights); }
+    void prepare(int hidden, int out_channels, int n_layers, const float* const* weights) {
+        H = hidden; C = out_channels;
+        for (int k = 0; k < n_layers; ++k) {
+            const bool last = k == n_layers - 1;
             const int out = last ? C : H, outp = last ? (C + VW - 1) / VW * VW : H;
-            w[k] = a->weights[k];
+            w[k] = weights[k];
             for (int i = 0; i < H; ++i)
-                for (int o = 0; o < outp; ++o) wt[k][i * outp + o] = o < out ? a->weights[k][o * H + i] : 0.f;
+                for (int o = 0; o < outp; ++o) wt[k][i * outp + o] = o < out ? weights[k][o * H + i] : 0.f;
         }
     }
     // row of fp32 values -> stored activation row (identity)
@@ -157,7 +175,8 @@ struct Fp32 {
         }
     }
 
-    // Y[s] = lrelu(W X[s] + c) for S samples (S a multiple of 8); gain[s] = lrelu'(pre-activation) (1 or slope)
+    // Y[s] = lrelu(W X[s] + c) for S samples (S a multiple of 8); gain[s] = lrelu'(pre-activation) (1 or slope),
+    // unless gain is null (inference)
     template <int NV>
     void hidden_forward(int k, const act_t* X, const float* bias, float slope, int S, act_t* Y, float* gain) const {
         const int H = VW * NV;
@@ -170,7 +189,7 @@ struct Fp32 {
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) {
                     storev(Y + (s + r) * H + VW * v, lrelu(acc[r][v], slope));
-                    storev(gain + (s + r) * H + VW * v, acc[r][v] > 0 ? splat(1.f) : splat(slope));
+                    if (gain) storev(gain + (s + r) * H + VW * v, acc[r][v] > 0 ? splat(1.f) : splat(slope));
                 }
         }
     }
@@ -535,6 +554,34 @@ int run(FusedL1Args* a) {
     return 0;
 }
 
+template <int NV, int NO>
+int run_forward(MlpArgs* a) {
+    const int H = VW * NV, C = a->out_channels, L = a->n_layers;
+    static thread_local Fp32 prec;
+    prec.prepare(H, C, L, a->weights);
+    alignas(64) static thread_local float act[MAX_LAYERS][TILE * MAX_HIDDEN];
+    alignas(64) static thread_local float out[TILE * OUT_LD];
+    alignas(64) float bias_out[OUT_LD] = {0};
+    for (int c = 0; c < C; ++c) bias_out[c] = a->biases[L - 1][c];
+    for (int64_t r0 = 0; r0 < a->rows; r0 += TILE) {
+        const int T = static_cast<int>(std::min<int64_t>(TILE, a->rows - r0));
+        const int S = (T + 7) & ~7;
+        const float* x = a->x + r0 * H;
+        for (int s = 0; s < S; ++s)
+            for (int v = 0; v < NV; ++v) {
+                const vf z = s < T ? loadv(x + s * H + VW * v) : vf{};
+                storev(act[0] + s * H + VW * v, a->activate_input ? lrelu(z, a->slope) : z);
+            }
+        for (int k = 0; k < L - 1; ++k)
+            prec.template hidden_forward<NV>(k, act[k], a->biases[k], a->slope, S, act[k + 1], nullptr);
+        prec.template output_forward<NV, NO>(L - 1, act[L - 1], bias_out, S, out);
+        float* y = a->out + r0 * C;
+        for (int s = 0; s < T; ++s)
+            for (int c = 0; c < C; ++c) y[s * C + c] = out[s * OUT_LD + c];
+    }
+    return 0;
+}
+
 // The one rule for which shapes the kernel runs (Python asks dynbtf_fused_l1_supports).
 bool supported(int hidden, int out_channels, int n_layers) {
     const int blocks = hidden / 16;
@@ -578,6 +625,29 @@ extern "C" int dynbtf_fused_l1_bf16(FusedL1Args* args) {
     (void)args;
     return 2;
 #endif
+}
+
+template <int NV>
+int forward_out(MlpArgs* a) {
+    switch ((a->out_channels + VW - 1) / VW) {
+        case 1: return run_forward<NV, 1>(a);
+        case 2: return run_forward<NV, (VW < 16 ? 2 : 1)>(a);
+        case 3: return run_forward<NV, (VW < 8 ? 3 : 1)>(a);
+        case 4: return run_forward<NV, (VW < 8 ? 4 : 1)>(a);
+        default: return 1;
+    }
+}
+
+extern "C" int dynbtf_mlp_forward_fp32(MlpArgs* a) {
+    if (!supported(a->hidden, a->out_channels, a->n_layers) || !(a->slope >= 0)) return 1;
+    switch (a->hidden / VW) {
+        case 16 / VW: return forward_out<16 / VW>(a);
+        case 32 / VW: return forward_out<32 / VW>(a);
+        case 48 / VW: return forward_out<48 / VW>(a);
+        case 64 / VW: return forward_out<64 / VW>(a);
+        case 128 / VW: return forward_out<128 / VW>(a);
+        default: return 1;
+    }
 }
 
 extern "C" int dynbtf_fused_l1_has_bf16(void) { return DYNBTF_HAVE_BF16; }

@@ -22,7 +22,7 @@ import tempfile
 
 from ...errors import MissingDependencyError, optional_module
 
-__all__ = ["MIN_LLVM", "llvm_status", "check_llvm", "LLVM_FIX"]
+__all__ = ["MIN_LLVM", "llvm_status", "check_llvm", "LLVM_FIX", "apply_isa_target", "LLVM_TARGETS"]
 
 #: Oldest LLVM major version that compiles Mitsuba 3.9's kernels (15 aborts on ``fminimum``).
 MIN_LLVM = 16
@@ -135,3 +135,42 @@ def check_llvm(variant: str | None = "llvm_ad_rgb") -> None:
     status = llvm_status()
     if status["problem"]:
         raise MissingDependencyError(f"Mitsuba variant {variant or 'llvm_ad_rgb'}: {status['problem']}; {LLVM_FIX}")
+    apply_isa_target()
+
+
+#: Dr.Jit's LLVM target (CPU name, features, vector width) per forced level of :mod:`dynbtf.cpu` (x86-64).
+LLVM_TARGETS = {
+    "portable": ("x86-64", "+sse2,-avx,-avx2,-fma,-avx512f", 4),
+    "avx2": ("haswell", "+avx,+avx2,+fma,+f16c,+bmi,+bmi2,+popcnt,+sse4.2,-avx512f", 8),
+    "avx512": ("skylake-avx512", "+avx2,+fma,+avx512f,+avx512bw,+avx512dq,+avx512vl,+avx512cd", 16),
+}
+_TARGET_SET: str | None = None
+
+
+def apply_isa_target() -> str | None:
+    """Where ``DYNBTF_CPU_ISA`` forces a level below the CPU's (:mod:`dynbtf.cpu`), make Dr.Jit compile its LLVM
+    kernels for it too (its C function ``jit_llvm_set_target``, before a kernel is compiled), so that the plugin's
+    speed on an AVX2 machine can be measured on one with AVX-512. Returns the target set (``"haswell"``, ...),
+    or None when nothing is forced (or this Dr.Jit has no such function: the kernels then use the CPU's own)."""
+    global _TARGET_SET
+    from ...cpu import ISA_ENV, active_isa, hardware_isa
+
+    if _TARGET_SET is not None or not os.environ.get(ISA_ENV):
+        return _TARGET_SET
+    isa = active_isa()
+    if isa == hardware_isa() or isa not in LLVM_TARGETS:
+        return None
+    import ctypes
+
+    dr = optional_module("drjit", "render", "rendering with Mitsuba 3")
+    try:
+        core = ctypes.CDLL(os.path.join(os.path.dirname(dr.__file__), "libdrjit-core.so"))
+        set_target = core._Z19jit_llvm_set_targetPKcS0_j  # jit_llvm_set_target(const char*, const char*, uint32_t)
+    except (OSError, AttributeError):
+        return None
+    set_target.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_uint32]
+    set_target.restype = None
+    cpu, features, width = LLVM_TARGETS[isa]
+    set_target(cpu.encode(), features.encode(), width)
+    _TARGET_SET = cpu
+    return cpu

@@ -1,0 +1,161 @@
+"""The GPU check: training and evaluation on an NVIDIA GPU, in at most about 5 minutes of GPU time.
+
+Run on a machine with a CUDA build of PyTorch: ``python benchmarks/gpu_check.py`` (``--device cpu`` runs the same
+steps on the CPU, smaller, as a smoke test). Three measurements, each printed as it ends and written as JSON
+(``--json``, default ``benchmarks/results/gpu.json``):
+
+1. **training throughput**: samples/s of :func:`dynbtf.training.fit` on the GPU (``--device cuda``: the whole
+   step's texels in one chunk, every op on the device) with the fast recipe (64 texel groups of 16 pairs, lr x6)
+   on a 128 x 128 simulated BTF, ``--train-seconds`` of optimizer steps after a warm-up;
+2. **a full-size fit**: a 400 x 400 BTF on the UBO2014 grid (151 x 151 directions; simulated on the CPU first,
+   not counted) fitted with ``dynbtf fit``'s auto recipe under ``--fit-minutes``; the held-out monitor's curve gives
+   the time at which the fit came within 0.5 dB of the best it reached (the converged PSNR when it converged);
+3. **a 1080p evaluation**: 1920 x 1080 queries of :meth:`dynbtf.SynthesizedBTF.eval` (hist, random uv in
+   ``[0, 45)^2``, random directions) on the GPU, best of 3 after a warm-up.
+
+The CPU's figures for the same steps are in docs/results.md (``benchmarks/bench_training.py``,
+``benchmarks/bench_synthesis_eval.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results" / "gpu.json"
+
+
+def synchronize(device) -> None:
+    import torch
+
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def training_throughput(spec: str, device: str, seconds: float) -> dict:
+    from dynbtf.data.open import open_btf
+    from dynbtf.representations.triple_plane import TriplePlane
+    from dynbtf.training import TrainConfig, fit
+    from dynbtf.training.fit import StopTraining
+
+    source = open_btf(spec)
+    timed = {"steps": 0, "seconds": 0.0, "samples": 0}
+
+    def callback(info):
+        if info["global_step"] <= 10:  # warm-up: allocator, kernels' first launches
+            return
+        timed["steps"] += 1
+        timed["seconds"] += info["step_seconds"]
+        timed["samples"] += info["samples"]
+        if timed["seconds"] >= seconds:
+            raise StopTraining("timed")
+
+    config = TrainConfig(epochs=1000, held_out_fraction=0.05, monitor_pairs=0, checkpoint_every=10 ** 9,
+                         texel_groups=64, lr_scale=6.0, device=device)
+    with tempfile.TemporaryDirectory() as workdir:
+        fit(TriplePlane(source.height, source.width), source, config, Path(workdir) / "m.dbtfm", progress=False,
+            callback=callback)
+    rate = timed["samples"] / timed["seconds"]
+    return {"btf": spec, "device": device, "samples_per_second": rate, "steps": timed["steps"],
+            "ms_per_step": 1e3 * timed["seconds"] / timed["steps"]}
+
+
+def full_size_fit(spec: str, device: str, minutes: float) -> dict:
+    from dynbtf.data.open import open_btf
+    from dynbtf.training import get_fitter
+    from dynbtf.training.recipe import choose_config
+
+    source = open_btf(spec)
+    with tempfile.TemporaryDirectory() as workdir:
+        output = Path(workdir) / "full.dbtfm"
+        started = time.perf_counter()
+        config, summary = choose_config(source, output, minutes=minutes, device=device)
+        result = get_fitter("triple")(source, output, config, progress=True)
+        wall = time.perf_counter() - started
+    schedule = result.metadata["provenance"]["schedule"]
+    curve = [(r["elapsed_seconds"], r["held_out_psnr"]) for r in schedule["monitor"]]
+    best = max(p for _, p in curve)
+    within = next(t for t, p in curve if p >= best - 0.5)
+    return {"btf": spec, "device": device, "recipe": summary, "minutes_budget": minutes, "wall_seconds": wall,
+            "steps": schedule["steps"], "stopped": schedule["stopped"], "best_held_out_psnr": best,
+            "seconds_to_within_half_db": within, "curve": curve}
+
+
+def evaluation_1080p(device: str, repeats: int = 3) -> dict:
+    import numpy as np
+    import torch
+
+    import dynbtf
+    from dynbtf.representations.triple_plane import TriplePlane
+
+    model = TriplePlane(400, 400, seed=0).eval()
+    synth = dynbtf.SynthesizedBTF(model, "hist", scale=1.0, seed=0, device=device)
+    n = 1920 * 1080
+    rng = np.random.default_rng(0)
+    uv = torch.from_numpy(rng.random((n, 2)) * 45.0)
+    w_view = torch.from_numpy(dynbtf.spherical_to_direction(rng.random(n) * 80, rng.random(n) * 360)).float()
+    w_light = torch.from_numpy(dynbtf.spherical_to_direction(rng.random(n) * 80, rng.random(n) * 360)).float()
+    uv, w_view, w_light = uv.to(device), w_view.to(device), w_light.to(device)
+    synth.eval(uv[:50000], w_view[:50000], w_light[:50000])
+    best = float("inf")
+    for _ in range(repeats):
+        synchronize(device)
+        t0 = time.perf_counter()
+        synth.eval(uv, w_view, w_light)
+        synchronize(device)
+        best = min(best, time.perf_counter() - t0)
+    return {"device": device, "queries": n, "seconds": best, "queries_per_second": n / best}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--device", default="cuda", help="cuda (default), cuda:N, or cpu for a smoke test")
+    parser.add_argument("--train-btf", default="sim:leather?size=128")
+    parser.add_argument("--train-seconds", type=float, default=20.0)
+    parser.add_argument("--full-btf", default="sim:leather?size=400&grid=ubo2014",
+                        help="the full-size BTF (a file is faster than simulating one)")
+    parser.add_argument("--fit-minutes", type=float, default=3.0)
+    parser.add_argument("--skip", nargs="*", default=[], choices=["train", "fit", "eval"])
+    parser.add_argument("--json", type=Path, default=RESULTS)
+    args = parser.parse_args()
+
+    import torch
+
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        raise SystemExit("gpu_check: CUDA is not available here (torch " + torch.__version__ + "); run it on a GPU "
+                         "machine with a CUDA build of PyTorch, or pass --device cpu for a smoke test")
+    name = torch.cuda.get_device_name(args.device) if args.device.startswith("cuda") else "CPU"
+    result = {"benchmark": "gpu_check", "device": args.device, "device_name": name, "torch": torch.__version__,
+              "command": " ".join(["python", "benchmarks/gpu_check.py", *sys.argv[1:]])}
+    if "train" not in args.skip:
+        result["training"] = training_throughput(args.train_btf, args.device, args.train_seconds)
+        print(f"training ({args.train_btf}, fast recipe): {result['training']['samples_per_second'] / 1e6:.1f} M "
+              f"samples/s, {result['training']['ms_per_step']:.2f} ms/step", flush=True)
+    if "eval" not in args.skip:
+        result["evaluation"] = evaluation_1080p(args.device)
+        print(f"1080p evaluation (hist): {1e3 * result['evaluation']['seconds']:.0f} ms, "
+              f"{result['evaluation']['queries_per_second'] / 1e6:.1f} M queries/s", flush=True)
+    if "fit" not in args.skip:
+        t0 = time.perf_counter()
+        from dynbtf.data.open import open_btf
+
+        open_btf(args.full_btf).image(0, 0)  # (a simulated BTF: its set-up before the clock)
+        result["full_size_fit"] = full_size_fit(args.full_btf, args.device, args.fit_minutes)
+        fit = result["full_size_fit"]
+        print(f"full-size fit ({args.full_btf}): best held-out {fit['best_held_out_psnr']:.2f} dB, within 0.5 dB of "
+              f"it after {fit['seconds_to_within_half_db'] / 60:.1f} min of training ({fit['steps']} steps, "
+              f"{fit['stopped']}); {time.perf_counter() - t0:.0f} s with the BTF's set-up", flush=True)
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.json.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(result, indent=1) + "\n")
+    os.replace(tmp, args.json)
+    print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()
