@@ -1,12 +1,14 @@
-"""Evaluation speed of the synthesized BTF: a 1080p frame of queries, naive PyTorch vs our path.
+"""Evaluation speed of the synthesized BTF per instruction-set level: a 1080p frame of queries, naive PyTorch vs ours.
 
 Usage::
 
     python benchmarks/bench_synthesis_eval.py [--model MODEL.dbtfm] [--queries 2073600] [--methods tile,linear,hist,hex]
+                                              [--isa avx2 avx512 ...] [--json benchmarks/results/evaluation.json]
 
-For each method, 1920 x 1080 queries with random uv inside a frame's range
-(``[0, 45)^2`` exemplar repeats, the paper's 45x) and random view/light
-directions are evaluated by
+For each level of :mod:`dynbtf.cpu` this CPU runs from AVX2 up (each in a process of its own with the level
+forced: dynbtf's kernels, PyTorch's, MKL's and numba's), and each method, 1920 x 1080 queries with random uv
+inside a frame's range (``[0, 45)^2`` exemplar repeats, the paper's 45x) and random view/light directions are
+evaluated by
 
 (a) a **naive PyTorch path**: lattice + hash in torch, the three exemplar
     samples fetched with ``grid_sample`` (:func:`dynbtf.texture.fetch_wrap`),
@@ -15,23 +17,23 @@ directions are evaluated by
 (b) **ours**: :meth:`dynbtf.infinite_btf.SynthesizedBTF.eval` (fused numba
     synthesis kernel, first layer as a BLAS positional product plus a numba
     angular kernel vectorized across queries with the LeakyReLU fused, decoder
-    layers 2.. in torch on 16k-row blocks -- bf16 where the CPU has native bf16
-    matmul, i.e. where bf16 measures faster than fp32, else fp32; chunks spread
-    over one Python thread per core, each running numba and torch single-threaded).
+    layers 2.. in the training kernel's float32 forward on tiles of rows;
+    chunks spread over one Python thread per core, each running numba and torch single-threaded).
 
 Both paths are timed alike: one warm-up run on the first 50,000 queries (kernel
 compilation/loading, allocator, caches), then the best of ``--repeats`` full runs.
 
-It prints queries/s, the speed-up, a per-stage breakdown of our path (on one
-thread, as each worker runs it), and our throughput as a fraction of the
-decoder-FLOP bound at the machine's matmul peak
-(a 4096^2 matmul measured in the same run, bf16 where native, else fp32). Timings on shared
-machines move 10-50% between runs: compare the ratios of one run.
+Printed per level and method: queries/s of each and the speed-up, and our share of the **FMA bound**: the
+decoder's FLOP per query times queries/s over the level's FMA peak on all threads
+(:func:`dynbtf.decoder.native.fma_peak_flops`, measured in the same process), and, on the CPU's own level, a
+per-stage breakdown of our path on one thread. The rows are written as JSON (docs/results.md's table is
+generated from it). Timings on shared machines move 10-50% between runs: compare the ratios of one run.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
 import numba
@@ -69,24 +71,6 @@ def warm_then_best(run, n: int, repeats: int) -> float:
     return best_time(lambda: run(slice(0, n)), repeats)
 
 
-def matmul_peak_flops(dtype, size: int, repeats: int = 2) -> float:
-    """FLOP/s of a ``size^2`` matmul in ``dtype`` (best of ``repeats``)."""
-    a = torch.randn(size, size).to(dtype)
-    b = torch.randn(size, size).to(dtype)
-    a @ b
-    return 2 * size ** 3 / best_time(lambda: a @ b, repeats)
-
-
-def peaks() -> dict[str, tuple[float, int]]:
-    """Matmul peaks: fp32 at 4096^2; bf16 at 4096^2 when it is native, else at 512^2 (emulated bf16 on
-    CPUs without AVX-512-BF16/AMX takes minutes at 4096^2)."""
-    fp32 = matmul_peak_flops(torch.float32, 4096)
-    probe = matmul_peak_flops(torch.bfloat16, 512, repeats=1)
-    if probe > 0.25 * fp32:
-        return {"fp32": (fp32, 4096), "bf16": (matmul_peak_flops(torch.bfloat16, 4096), 4096)}
-    return {"fp32": (fp32, 4096), "bf16": (probe, 512)}
-
-
 def decoder_flops(model) -> int:
     """Multiply-adds x 2 of the decoder's linear layers per query."""
     layers = [model.decoder.first, *model.decoder.rest]
@@ -111,15 +95,11 @@ def naive_eval(model, synth, uv, w_view, w_light):
     return model.decode_with_angular(features.float(), model.angular_features(w_view, w_light).float())
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--model", help="model file (default: a random 400x400x16 Triple Plane; speed does not "
-                                        "depend on training)")
-    parser.add_argument("--methods", default="tile,linear,hist,hex")
-    parser.add_argument("--queries", type=int, default=1920 * 1080, help="queries per frame (default 1080p)")
-    parser.add_argument("--repeats", type=int, default=2, help="timed full runs per path after one warm-up run "
-                                                               f"on {WARM_UP_QUERIES} queries (best is kept)")
-    args = parser.parse_args()
+def measure(args) -> list[dict]:
+    """This process's level: a row per method (and the per-stage breakdown printed, on the CPU's own level)."""
+    from dynbtf.cpu import active_isa, hardware_isa
+    from dynbtf.decoder.native import fma_peak_flops
+
     torch.manual_seed(0)
     if args.model:
         from dynbtf.representations.model_file import load_model
@@ -133,42 +113,40 @@ def main() -> None:
     uv = torch.from_numpy(rng.random((n, 2)) * 45.0)
     w_view = torch.from_numpy(spherical_to_direction(rng.random(n) * 80, rng.random(n) * 360)).float()
     w_light = torch.from_numpy(spherical_to_direction(rng.random(n) * 80, rng.random(n) * 360)).float()
-    measured = peaks()
-    # the bound uses the faster matmul precision (bf16 where it is native, as the issue intends)
-    precision = max(measured, key=lambda k: measured[k][0])
-    peak = measured[precision][0]
+    isa = active_isa()
+    peak = fma_peak_flops(isa, threads=torch.get_num_threads(), seconds=1.0)
     flops = decoder_flops(model) * n
     bound = flops / peak
-    print(f"machine: torch {torch.__version__}, {torch.get_num_threads()} threads, CPU capability "
-          f"{torch.backends.cpu.get_cpu_capability()}; matmul peaks: "
-          + ", ".join(f"{k} {v[0] / 1e9:.0f} GFLOP/s ({v[1]}^2)" for k, v in measured.items()))
-    print(f"frame: {n} queries; decoder {decoder_flops(model)} FLOP/query = {flops / 1e9:.1f} GFLOP; "
-          f"bound at the {precision} peak {bound * 1e3:.1f} ms; our decoder runs in {precision}\n")
-    header = f"{'method':<7} {'naive q/s':>11} {'ours q/s':>11} {'speed-up':>9} {'of peak bound':>14} " \
-             f"{'max |ours-naive|':>17}"
-    print(header)
-    print("-" * len(header))
-    ours_hist = None  # (queries/s, workers) of the hist row
+    print(f"[{isa}] torch {torch.__version__}, {torch.get_num_threads()} threads, CPU capability "
+          f"{torch.backends.cpu.get_cpu_capability()}; FMA peak {peak / 1e9:.0f} GFLOP/s; {n} queries, decoder "
+          f"{decoder_flops(model)} FLOP/query: bound {bound * 1e3:.1f} ms", file=sys.stderr)
+    rows = []
     for method in args.methods.split(","):
-        ours = SynthesizedBTF(model, method, scale=1.0, precision=precision)
+        ours = SynthesizedBTF(model, method, scale=1.0)
         t_naive = warm_then_best(lambda sl: naive_eval(model, ours.synthesizer, uv[sl], w_view[sl], w_light[sl]),
                                  n, args.repeats)
         t_ours = warm_then_best(lambda sl: ours.eval(uv[sl], w_view[sl], w_light[sl]), n, args.repeats)
-        if method == "hist":
-            ours_hist = (n / t_ours, ours.workers)
         sub = slice(0, 200000)
         # error vs the naive path with float64 directions (float32 directions make phi_h ill-conditioned
         # near the pole of h, where the naive float32 path itself is off by up to ~0.1)
         err = float((ours.eval(uv[sub], w_view[sub], w_light[sub])
                      - naive_eval(model, ours.synthesizer, uv[sub], w_view[sub].double(),
                                   w_light[sub].double())).abs().max())
-        print(f"{method:<7} {n / t_naive:>11.3g} {n / t_ours:>11.3g} {t_naive / t_ours:>8.1f}x {bound / t_ours:>13.1%} "
-              f"{err:>17.2g}", flush=True)
-    # where our time goes (hist): per-stage timings over the same chunks, on one thread as each worker runs them
-    btf = SynthesizedBTF(model, "hist", scale=1.0, precision=precision, workers=1)
+        rows.append({"isa": isa, "method": method, "queries": n, "naive_qps": n / t_naive, "ours_qps": n / t_ours,
+                     "share_of_fma_bound": bound / t_ours, "fma_peak_gflops": peak / 1e9, "workers": ours.workers,
+                     "max_abs_difference": err, "decoder_flop_per_query": decoder_flops(model)})
+        print(f"[{isa}] {method:<7} naive {n / t_naive:.3g} q/s, ours {n / t_ours:.3g} q/s ({t_naive / t_ours:.1f}x), "
+              f"{bound / t_ours:.1%} of the FMA bound, max |ours - naive| {err:.2g}", file=sys.stderr, flush=True)
+    if isa == hardware_isa() and "hist" in args.methods.split(","):
+        stage_breakdown(model, uv, w_view, w_light, n)
+    return rows
+
+
+def stage_breakdown(model, uv, w_view, w_light, n) -> None:
+    """Where our hist path's time goes: per-stage timings over the same chunks, on one thread as each worker runs."""
+    btf = SynthesizedBTF(model, "hist", scale=1.0, workers=1)
     chunk = btf.chunk_size
-    rest = f"layers 2-4 ({precision}, torch)"
-    stages = {"synthesis kernel": 0.0, "layer 1 (BLAS + angular kernel)": 0.0, rest: 0.0}
+    stages = {"synthesis kernel": 0.0, "layer 1 (BLAS + angular kernel)": 0.0, "layers 2.. (native forward)": 0.0}
     path = btf.decode_path
     planes, weight, bias = path._fused
     threads = torch.get_num_threads(), numba.get_num_threads()
@@ -190,18 +168,65 @@ def main() -> None:
                 t3 = time.perf_counter()
                 stages["synthesis kernel"] += t1 - t0
                 stages["layer 1 (BLAS + angular kernel)"] += t2 - t1
-                stages[rest] += t3 - t2
+                stages["layers 2.. (native forward)"] += t3 - t2
         t_one = best_time(lambda: btf.eval(uv, w_view, w_light), 1)
     finally:
         torch.set_num_threads(threads[0])
         numba.set_num_threads(threads[1])
     stages["eval's own work (validation, chunks)"] = max(t_one - sum(stages.values()), 0.0)
     total = sum(stages.values())
-    print(f"\nour hist path on ONE thread, per stage ({precision}; {n / t_one:.3g} q/s on one thread"
-          + (f", {ours_hist[0]:.3g} q/s with {ours_hist[1]} workers above" if ours_hist else "") + "):")
+    print(f"\nour hist path on ONE thread, per stage ({n / t_one:.3g} q/s on one thread):", file=sys.stderr)
     for name, t in stages.items():
-        print(f"  {name:<38} {t * 1e3:8.1f} ms  {t / total:6.1%}")
-    print(f"  {'bound at ' + precision + ' peak (all threads)':<38} {bound * 1e3:8.1f} ms")
+        print(f"  {name:<38} {t * 1e3:8.1f} ms  {t / total:6.1%}", file=sys.stderr)
+
+
+def main() -> None:
+    import json
+    import os
+    import subprocess
+    from pathlib import Path
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--model", help="model file (default: a random 400x400x16 Triple Plane; speed does not "
+                                        "depend on training)")
+    parser.add_argument("--methods", default="tile,linear,hist,hex")
+    parser.add_argument("--queries", type=int, default=1920 * 1080, help="queries per frame (default 1080p)")
+    parser.add_argument("--repeats", type=int, default=2, help="timed full runs per path after one warm-up run "
+                                                               f"on {WARM_UP_QUERIES} queries (best is kept)")
+    parser.add_argument("--isa", nargs="+", default=None, help="levels to measure (default: avx2 and up)")
+    parser.add_argument("--json", type=Path, default=Path(__file__).resolve().parent / "results" / "evaluation.json")
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        print(json.dumps(measure(args)))
+        return
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_training import commit, cpu_model, levels_to_measure
+
+    from dynbtf.cpu import hardware_isa, isa_environment
+
+    rows = []
+    for isa in levels_to_measure(args.isa):
+        env = {k: v for k, v in os.environ.items() if k not in isa_environment(isa)} | isa_environment(isa)
+        command = [sys.executable, __file__, "--worker", "--methods", args.methods, "--queries", str(args.queries),
+                   "--repeats", str(args.repeats)] + (["--model", args.model] if args.model else [])
+        done = subprocess.run(command, env=env, capture_output=True, text=True)
+        sys.stderr.write(done.stderr)
+        if done.returncode != 0:
+            raise SystemExit(f"level {isa}: the measuring process failed")
+        rows += json.loads(done.stdout.strip().splitlines()[-1])
+    result = {"benchmark": "evaluation", "command": " ".join(["python", "benchmarks/bench_synthesis_eval.py",
+                                                              *sys.argv[1:]]),
+              "commit": commit(), "cpu": cpu_model(), "cpu_isa": hardware_isa(), "cores": os.cpu_count(),
+              "queries": args.queries, "rows": rows}
+    from tables import evaluation
+
+    print("\n" + evaluation(result))
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.json.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(result, indent=1) + "\n")
+    os.replace(tmp, args.json)
+    print(f"\nwrote {args.json}")
 
 
 if __name__ == "__main__":

@@ -19,8 +19,9 @@ variable ``DYNBTF_CPU_ISA`` names a lower one: ``DYNBTF_CPU_ISA=avx2`` on an AVX
 every dynbtf kernel as an AVX2 machine would, so the AVX2 path can be measured and tested anywhere.
 Forcing works only before PyTorch, MKL and numba start: ``import dynbtf`` applies
 :func:`isa_environment` to ``os.environ`` when ``DYNBTF_CPU_ISA`` is set (``ATEN_CPU_CAPABILITY``,
-``MKL_ENABLE_INSTRUCTIONS``, ``ONEDNN_MAX_CPU_ISA``, ``NUMBA_CPU_NAME``; variables the user set
-already are kept), and :func:`check_forced_environment` says when a library was loaded before that.
+``MKL_ENABLE_INSTRUCTIONS``, ``MKL_CBWR``, ``ONEDNN_MAX_CPU_ISA``, ``NUMBA_CPU_NAME``; variables the user set
+already are kept), and :func:`check_forced_environment` says when a library was loaded before that. It also
+asks MKL for reproducible results whatever the level (``MKL_CBWR``, :data:`MKL_REPRODUCIBLE`).
 A level above the CPU's is an error, not a silent fallback.
 
 >>> ISAS
@@ -53,15 +54,19 @@ _NEEDS = {"avx2": {"avx2", "fma", "f16c", "bmi2"},
 
 #: What each level tells the other libraries (PyTorch's ATen, Intel MKL, oneDNN, numba/LLVM).
 _LIBRARY_SETTINGS = {
-    "portable": {"ATEN_CPU_CAPABILITY": "default", "MKL_ENABLE_INSTRUCTIONS": "SSE4_2",
+    "portable": {"ATEN_CPU_CAPABILITY": "default", "MKL_ENABLE_INSTRUCTIONS": "SSE4_2", "MKL_CBWR": "SSE4_2,STRICT",
                  "ONEDNN_MAX_CPU_ISA": "SSE41", "NUMBA_CPU_NAME": "x86-64"},
-    "avx2": {"ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_INSTRUCTIONS": "AVX2",
+    "avx2": {"ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_INSTRUCTIONS": "AVX2", "MKL_CBWR": "AVX2,STRICT",
              "ONEDNN_MAX_CPU_ISA": "AVX2", "NUMBA_CPU_NAME": "haswell"},
-    "avx512": {"ATEN_CPU_CAPABILITY": "avx512", "MKL_ENABLE_INSTRUCTIONS": "AVX512",
+    "avx512": {"ATEN_CPU_CAPABILITY": "avx512", "MKL_ENABLE_INSTRUCTIONS": "AVX512", "MKL_CBWR": "AVX512,STRICT",
                "ONEDNN_MAX_CPU_ISA": "AVX512_CORE", "NUMBA_CPU_NAME": "skylake-avx512"},
-    "avx512bf16": {"ATEN_CPU_CAPABILITY": "avx512", "MKL_ENABLE_INSTRUCTIONS": "AVX512",
+    "avx512bf16": {"ATEN_CPU_CAPABILITY": "avx512", "MKL_ENABLE_INSTRUCTIONS": "AVX512", "MKL_CBWR": "AVX512,STRICT",
                    "ONEDNN_MAX_CPU_ISA": "AVX512_CORE_BF16", "NUMBA_CPU_NAME": "cooperlake"},
 }
+#: MKL's conditional numerical reproducibility, set unless the user set it: with MKL's AVX2 kernels a product's
+#: rounding otherwise depends on its operands' memory alignment and on the calling thread (measured: one ulp
+#: between two calls on the same data), which would make two runs of a fit differ. Costs ~5% of a large matmul.
+MKL_REPRODUCIBLE = "AUTO,STRICT"
 
 
 def _is_x86() -> bool:
@@ -155,12 +160,15 @@ def isa_environment(isa: str) -> dict[str, str]:
 
 def apply_isa_environment() -> None:
     """When ``$DYNBTF_CPU_ISA`` forces a level, set the other libraries' variables of :func:`isa_environment`
-    in ``os.environ`` (keeping any the user set). Called by ``import dynbtf``, before PyTorch or numba load."""
+    in ``os.environ`` (keeping any the user set); in any case MKL's reproducible mode (:data:`MKL_REPRODUCIBLE`).
+    Called by ``import dynbtf``, before PyTorch or numba load."""
     try:
         requested = _requested()
     except InputError:
         return  # reported by active_isa() where a kernel is chosen, not at import
     if requested is None:
+        if _is_x86():
+            os.environ.setdefault("MKL_CBWR", MKL_REPRODUCIBLE)
         return
     for key, value in isa_environment(requested).items():
         os.environ.setdefault(key, value)

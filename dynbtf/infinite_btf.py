@@ -66,6 +66,8 @@ on CUDA the synthesizers use their torch paths and the decoder its torch layers.
 
 from __future__ import annotations
 
+import contextlib
+
 import copy
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -109,6 +111,22 @@ def _eval_pool(workers: int) -> ThreadPoolExecutor:
     if workers not in _POOLS:
         _POOLS[workers] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="dynbtf-eval")
     return _POOLS[workers]
+
+
+@contextlib.contextmanager
+def _numba_threads(count: int | None):
+    """numba kernels called from this thread use ``count`` threads inside the block (None: as they are)."""
+    if count is None:
+        yield
+        return
+    import numba
+
+    previous = numba.get_num_threads()
+    numba.set_num_threads(count)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(previous)
 
 
 def _single_numba_thread(fn, *args):
@@ -409,7 +427,8 @@ class SynthesizedBTF:
             out[sl] = rgb if bool(vis.all()) else torch.where(vis.to(self.device)[:, None], rgb, torch.zeros_like(rgb))
 
         chunks = [slice(start, min(start + self.chunk_size, n)) for start in range(0, n, self.chunk_size)]
-        if self.workers > 1 and len(chunks) > 1 and self.decode_path is not None and self.decode_path.fused:
+        fused = self.decode_path is not None and self.decode_path.fused
+        if self.workers > 1 and len(chunks) > 1 and fused:
             # one chunk per Python thread, each with single-threaded torch and numba: no OpenMP pools handing
             # over between numba kernels and torch matmuls (their spin-waiting made two threads ~8x slower)
             from .decoder.fused_mlp import single_intra_op_thread
@@ -417,8 +436,14 @@ class SynthesizedBTF:
             with single_intra_op_thread():
                 list(_eval_pool(self.workers).map(lambda sl: _single_numba_thread(run, sl), chunks))
         else:
-            for sl in chunks:
-                run(sl)
+            from .decoder.fused_mlp import single_intra_op_thread
+
+            # the fused CPU path on one thread too, as each worker above runs it: a chunk split over threads rounds
+            # some rows differently (MKL's and numba's vector loops and their remainders), and the answers must not
+            # depend on the number of workers
+            with single_intra_op_thread(fused), _numba_threads(1 if fused else None):
+                for sl in chunks:
+                    run(sl)
         out = out.reshape(*batch, 3)
         return out.cpu().numpy() if as_numpy else out
 

@@ -135,9 +135,13 @@ def test_cli_fit_states_the_recipe_and_a_rerun_continues_with_it(tmp_path, dfmf,
 
     out = tmp_path / "m.dbtfm"
     runner = CliRunner()
-    # the fit's clock advances 10 s per reading: the 0.06 s budget runs out after the first step, on any machine
+    # the fit's clock advances 10 s per reading (the command's start read from it too): the 0.06 s budget runs out
+    # after the first step, on any machine
+    import dynbtf.cli.app as cli_app
+
     clock = itertools.count(0.0, 10.0)
     monkeypatch.setattr(fit_module, "time", types.SimpleNamespace(perf_counter=lambda: next(clock)))
+    monkeypatch.setattr(cli_app, "command_started", lambda: next(clock))
     first = runner.invoke(app, ["fit", str(dfmf), "-o", str(out), "--repr", "triple", "--max-minutes", "0.001",
                                 "--epochs", "2",
                                 "--device", "cpu", "--workers", "1"])

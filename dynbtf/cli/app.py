@@ -48,3 +48,36 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
+
+
+_STARTED: list[float] = []  # when the `dynbtf` command started (set by dynbtf.cli.main.main for the real command)
+
+
+def process_age() -> float:
+    """Seconds since this process started (Linux: from /proc; elsewhere 0)."""
+    import os
+
+    try:
+        with open("/proc/self/stat", encoding="ascii") as f:
+            start_ticks = float(f.read().rsplit(")", 1)[1].split()[19])
+        with open("/proc/uptime", encoding="ascii") as f:
+            uptime = float(f.read().split()[0])
+        return max(0.0, uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+def mark_command_start(include_process: bool) -> None:
+    """Record the command's start (``time.perf_counter()``): the process's own start when it is the ``dynbtf``
+    command (its interpreter and imports belong to the command's time), else now (a call from Python)."""
+    import time
+
+    _STARTED[:] = [time.perf_counter() - (process_age() if include_process else 0.0)]
+
+
+def command_started() -> float:
+    """``time.perf_counter()`` at the command's start (:func:`mark_command_start`; now when nothing marked it): what
+    a time budget such as ``dynbtf fit --minutes`` counts from."""
+    import time
+
+    return _STARTED[0] if _STARTED else time.perf_counter()

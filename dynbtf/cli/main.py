@@ -30,6 +30,9 @@ __all__ = ["app", "main"]
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
+    from .app import mark_command_start
+
+    mark_command_start(include_process=argv is None)  # the installed `dynbtf` command: from the process's start
     try:
         status = app(args=argv, prog_name="dynbtf", standalone_mode=False)  # a command's typer.Exit code
         if isinstance(status, int) and status != 0:

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import time
 from pathlib import Path
 from typing import Optional
 
@@ -63,7 +61,9 @@ def fit(
     from ..training.fit import budget_left, check_options
     from ..training.recipe import choose_config
 
-    started = time.perf_counter() - _process_age()  # --minutes counts from the command's start
+    from .app import command_started
+
+    started = command_started()  # --minutes counts from the command's start
 
     check_writable(output, "-o/--output")  # an unwritable model file fails before any training
     given = {name: value for name, value in training.items() if value is not None}  # None: the recipe chooses
@@ -82,19 +82,6 @@ def fit(
     if quiet:
         size = result.metadata.get("provenance", {}).get("size", {})
         typer.echo(f"wrote {result.model_path}" + (f" ({size['summary']})" if "summary" in size else ""))
-
-
-def _process_age() -> float:
-    """Seconds since this process started (Linux: from /proc; elsewhere 0), so that a time budget includes the
-    interpreter's and the libraries' start."""
-    try:
-        with open("/proc/self/stat", encoding="ascii") as f:
-            start_ticks = float(f.read().rsplit(")", 1)[1].split()[19])
-        with open("/proc/uptime", encoding="ascii") as f:
-            uptime = float(f.read().split()[0])
-        return max(0.0, uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
-    except (OSError, ValueError, IndexError):
-        return 0.0
 
 
 def _with_training_options(command):

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from ..conventions import POLE_RADIUS
+from .fused_mlp import native_affine_rows
 
 __all__ = ["fold_angular_planes", "first_layer_preactivation", "all_unit_vectors"]
 
@@ -231,10 +232,13 @@ def first_layer_preactivation(latent: np.ndarray, w_pos: np.ndarray, bias: np.nd
     n = latent.shape[0]
     if out is None:
         out = np.empty((n, w_pos.shape[1]), dtype=np.float32)
-    # the positional product is a small dense matmul: BLAS (via torch) beats a per-query loop ~5x
-    torch.addmm(torch.from_numpy(np.asarray(bias, dtype=np.float32)),
-                torch.from_numpy(np.asarray(latent, dtype=np.float32)),
-                torch.from_numpy(np.asarray(w_pos, dtype=np.float32)), out=torch.from_numpy(out))
+    # the positional product, a small dense matmul: the native kernel's row-by-row products (what BLAS does at
+    # this size, but each row's sum the same whatever the chunk or thread it is computed in), else BLAS
+    latent = np.ascontiguousarray(latent, dtype=np.float32)
+    w_pos = np.ascontiguousarray(w_pos, dtype=np.float32)
+    bias = np.ascontiguousarray(bias, dtype=np.float32)
+    if not native_affine_rows(latent, w_pos, bias, out):
+        torch.addmm(torch.from_numpy(bias), torch.from_numpy(latent), torch.from_numpy(w_pos), out=torch.from_numpy(out))
     _angular_kernel(np.ascontiguousarray(w_view, dtype=np.float32), np.ascontiguousarray(w_light, dtype=np.float32),
                     np.ascontiguousarray(plane_h, dtype=np.float32), np.ascontiguousarray(plane_d, dtype=np.float32),
                     np.float32(1.0 if negative_slope is None else negative_slope), out)

@@ -50,6 +50,7 @@ import functools
 from concurrent.futures import ThreadPoolExecutor
 from typing import Sequence
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -57,7 +58,7 @@ from torch import nn
 from . import native
 from ..errors import InputError
 
-__all__ = ["split_mlp_l1_loss", "decoder_l1_loss", "native_mlp_forward", "single_intra_op_thread", "native_precisions", "resolve_precision"]
+__all__ = ["split_mlp_l1_loss", "decoder_l1_loss", "native_mlp_forward", "native_affine_rows", "single_intra_op_thread", "native_precisions", "resolve_precision"]
 
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 
@@ -158,6 +159,9 @@ def _native_library():
         library.dynbtf_fused_l1_item_floats.argtypes = [ctypes.c_int32] * 4
         library.dynbtf_mlp_forward_fp32.argtypes = [ctypes.POINTER(_MlpArgs)]
         library.dynbtf_mlp_forward_fp32.restype = ctypes.c_int
+        library.dynbtf_affine_rows_fp32.argtypes = [ctypes.c_int64, ctypes.c_int32, ctypes.c_int32] + \
+            [ctypes.c_void_p] * 4
+        library.dynbtf_affine_rows_fp32.restype = ctypes.c_int
         native_size, mirror_size = library.dynbtf_fused_l1_args_size(), ctypes.sizeof(_NativeArgs)
         if native_size != mirror_size:  # a field added on one side only: never call with a wrong layout
             raise RuntimeError(f"dynbtf/decoder/native/fused_mlp.cpp: FusedL1Args is {native_size} bytes but its ctypes "
@@ -180,10 +184,12 @@ def native_mlp_forward(x: torch.Tensor, layers: Sequence[tuple[torch.Tensor, tor
     """Inference with the training kernel's products: layers ``[(weight (out, in), bias (out,)), ...]`` with
     LeakyReLU between them on rows ``x (N, H)`` (layer 1's activations; ``activate_input``: its pre-activation,
     the LeakyReLU applied first) -> float32 ``(N, C)``; tiles of rows stay in the L1 cache. None where the native
-    kernel does not take the call (another device or dtype, a shape without a template instance, no compiler):
-    the caller uses torch."""
+    kernel does not take the call (another device or dtype, a shape without a template instance, gradients to
+    carry, no compiler): the caller uses torch."""
     if not (x.device.type == "cpu" and x.dtype == torch.float32 and x.ndim == 2 and layers):
         return None
+    if torch.is_grad_enabled() and (x.requires_grad or any(t.requires_grad for layer in layers for t in layer)):
+        return None  # training these layers (e.g. the per-level decoders' fit): torch's ops carry the gradients
     hidden = x.shape[1]
     weights = [w.detach().contiguous() for w, _ in layers]
     biases = [b.detach().contiguous() for _, b in layers]
@@ -205,6 +211,20 @@ def native_mlp_forward(x: torch.Tensor, layers: Sequence[tuple[torch.Tensor, tor
     return out
 
 
+def native_affine_rows(x: np.ndarray, weight: np.ndarray, bias: np.ndarray, out: np.ndarray) -> bool:
+    """``out = x @ weight + bias`` row by row (float32 ``(N, in)``, ``(in, hidden)``, ``(hidden,)``, ``(N, hidden)``,
+    C-contiguous) in the native kernel: each row's sum in input order whatever the rows around it or the calling
+    thread (BLAS's depend on both). False when the kernel does not take it (no compiler, ``hidden`` not a whole
+    number of vectors): the caller computes it another way."""
+    library = _native_library()
+    if library is None:
+        return False
+    rows, inputs = x.shape
+    code = library.dynbtf_affine_rows_fp32(rows, inputs, weight.shape[1], x.ctypes.data, weight.ctypes.data,
+                                           bias.ctypes.data, out.ctypes.data)
+    return code == 0
+
+
 def native_precisions() -> tuple[str, ...]:
     """Precisions the native CPU kernel offers on this machine: ``("fp32", "bf16")``, ``("fp32",)`` or ``()``.
 
@@ -220,15 +240,17 @@ def native_precisions() -> tuple[str, ...]:
 def resolve_precision(precision: str, device: torch.device | str = "cpu") -> str:
     """The arithmetic of the fused loss: ``"fp32"`` or ``"bf16"``.
 
-    ``"auto"`` picks ``"bf16"`` on a CPU whose native kernel has it (several times faster, see
-    ``benchmarks/bench_training.py``), else ``"fp32"``. ``"bf16"`` on a machine without it is an error.
+    ``"auto"`` is ``"fp32"`` on every machine: the float32 kernel, register-blocked for each level's vectors,
+    trains as fast as the bfloat16 one or faster where both were measured (``benchmarks/bench_training.py``,
+    docs/results.md), and its results agree across levels to float32 rounding. ``"bf16"`` (bfloat16 products,
+    float32 accumulation) is there to ask for on CPUs with AVX512-BF16; on a machine without it, an error.
     """
     device = torch.device(device)
     if precision not in ("auto", "fp32", "bf16"):
         raise InputError(f"precision: expected 'auto', 'fp32' or 'bf16', got {precision!r}")
-    available = native_precisions() if device.type == "cpu" else ()
     if precision == "auto":
-        return "bf16" if "bf16" in available else "fp32"
+        return "fp32"
+    available = native_precisions() if device.type == "cpu" else ()
     if precision == "bf16" and "bf16" not in available:
         where = "on the GPU" if device.type != "cpu" else f"on this CPU ({native.status('fused_mlp')})"
         raise InputError(f"precision='bf16': the bfloat16 training kernel is not available {where}; "

@@ -277,9 +277,8 @@ class TrainConfig:
         Arithmetic of the fused loss (decoder layers 2.., the bulk of the work): ``"fp32"``;
         ``"bf16"`` (bfloat16 products accumulated in float32, parameters, optimizer and
         gradients in float32: mixed precision; needs a CPU with AVX512-BF16); ``"auto"``
-        (default: ``"bf16"`` where available, else ``"fp32"``; see
-        :func:`dynbtf.decoder.fused_mlp.resolve_precision`). The precision used is recorded in
-        the model file.
+        (default: ``"fp32"``; see :func:`dynbtf.decoder.fused_mlp.resolve_precision`). The precision
+        used is recorded in the model file.
     max_reflectance : float
         Largest |value| (``pi f_r``, linear RGB) a training target may have (default
         :data:`MAX_REFLECTANCE`): a BTF beyond it decodes to garbage (e.g. flipped exponent bits)
@@ -323,8 +322,8 @@ class TrainConfig:
     monitor_pairs: int = 16
     device: str = _option("auto", "auto", "auto (CUDA if available), cpu, cuda:0, ...")
     precision: str = _option("auto", "auto", "Arithmetic of the decoder's training kernel: fp32, bf16 (bfloat16 "
-                             "products, float32 accumulation and parameters; CPUs with AVX512-BF16), or auto (bf16 "
-                             "where available, else fp32).")
+                             "products, float32 accumulation and parameters; CPUs with AVX512-BF16), or auto "
+                             "(fp32: as fast or faster where both were measured).")
     max_reflectance: float = _option(MAX_REFLECTANCE, None, "Largest |value| a training image may hold "
                                      "(reflectance pi f_r, linear RGB; default 1e4): beyond it the BTF decodes to "
                                      "garbage and the fit stops naming the image. Raise it for data that really is "

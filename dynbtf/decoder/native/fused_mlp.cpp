@@ -88,6 +88,12 @@ struct MlpArgs {
     float* out;                    // (rows, C)
 };
 int dynbtf_mlp_forward_fp32(MlpArgs* args);
+
+// y = x W + b for rows x (rows, in) and W (in, out) row-major, out a multiple of 16 (at most MAX_HIDDEN):
+// each row's sum in input order, whatever the rows around it (BLAS's sums depend on the blocking, and with
+// MKL's AVX2 kernels on the calling thread, so evaluation's layer 1 comes here). Returns 1 for another out.
+int dynbtf_affine_rows_fp32(int64_t rows, int32_t in, int32_t out, const float* x, const float* w, const float* b,
+                            float* y);
 }
 
 namespace {
@@ -646,6 +652,40 @@ extern "C" int dynbtf_mlp_forward_fp32(MlpArgs* a) {
         case 48 / VW: return forward_out<48 / VW>(a);
         case 64 / VW: return forward_out<64 / VW>(a);
         case 128 / VW: return forward_out<128 / VW>(a);
+        default: return 1;
+    }
+}
+
+template <int NV>
+void affine_rows(int64_t rows, int in, const float* x, const float* w, const float* b, float* y) {
+    constexpr int R = block_rows<NV>();
+    const int out = VW * NV;
+    int64_t r0 = 0;
+    for (; r0 + R <= rows; r0 += R) {
+        vf acc[R][NV];
+        for (int r = 0; r < R; ++r)
+            for (int v = 0; v < NV; ++v) acc[r][v] = loadv(b + VW * v);
+        Fp32::accumulate_rows<NV, R>(x + r0 * in, in, w, in, acc);
+        for (int r = 0; r < R; ++r)
+            for (int v = 0; v < NV; ++v) storev(y + (r0 + r) * out + VW * v, acc[r][v]);
+    }
+    for (; r0 < rows; ++r0) {  // the last rows one at a time: the same sums
+        vf acc[1][NV];
+        for (int v = 0; v < NV; ++v) acc[0][v] = loadv(b + VW * v);
+        Fp32::accumulate_rows<NV, 1>(x + r0 * in, in, w, in, acc);
+        for (int v = 0; v < NV; ++v) storev(y + r0 * out + VW * v, acc[0][v]);
+    }
+}
+
+extern "C" int dynbtf_affine_rows_fp32(int64_t rows, int32_t in, int32_t out, const float* x, const float* w,
+                                       const float* b, float* y) {
+    if (in < 1 || out % VW || out > MAX_HIDDEN) return 1;
+    switch (out / VW) {
+        case 16 / VW: affine_rows<16 / VW>(rows, in, x, w, b, y); return 0;
+        case 32 / VW: affine_rows<32 / VW>(rows, in, x, w, b, y); return 0;
+        case 48 / VW: affine_rows<48 / VW>(rows, in, x, w, b, y); return 0;
+        case 64 / VW: affine_rows<64 / VW>(rows, in, x, w, b, y); return 0;
+        case 128 / VW: affine_rows<128 / VW>(rows, in, x, w, b, y); return 0;
         default: return 1;
     }
 }
