@@ -266,18 +266,6 @@ def commit() -> str | None:
         return None
 
 
-def table(rows: list[dict]) -> str:
-    lines = ["| level | BTF | variant | M samples/s | x naive | GFLOP/s | share of FMA peak |",
-             "|---|---|---|---|---|---|---|"]
-    for r in rows:
-        share = r.get("share_of_fma_peak")
-        lines.append(f"| {r['isa']} | {r['btf']} | {r['variant']} | {r['samples_per_second'] / 1e6:.2f} | "
-                     + (f"{r['ratio_to_naive']:.1f}x" if "ratio_to_naive" in r else "1x") + " | "
-                     + (f"{r['gflops']:.0f}" if "gflops" in r else "") + " | "
-                     + (f"{100 * share:.0f}% of {r['fma_peak_gflops']:.0f}" if share is not None else "") + " |")
-    return "\n".join(lines)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--btf", nargs="+", default=["sim:leather?size=64", "sim:leather?size=128"],
@@ -316,8 +304,10 @@ def main() -> None:
     if args.convergence:
         result["convergence"] = [convergence(spec, args.naive_seconds * 4, args.naive_batch, args.seed)
                                  for spec in args.btf]
-    print(f"\n{cpu_model()} ({hardware_isa()}), {os.cpu_count()} cores\n")
-    print(table(rows))
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from tables import training  # the table docs/results.md shows, rendered from the same rows
+
+    print("\n" + training(result))
     for c in result.get("convergence", []):
         print(f"\n{c['btf']}: naive reached {c['naive_final_psnr']:.2f} dB in {c['naive_seconds']:.0f} s; ours (fast) "
               + (f"in {c['ours_seconds_to_reach']:.1f} s ({c['speedup']:.1f}x sooner)" if c["speedup"] else

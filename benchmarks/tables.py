@@ -86,7 +86,7 @@ def gpu(data: dict) -> str:
 
 
 RENDERERS = {"training": training, "budget": budget, "evaluation": evaluation, "gpu": gpu}
-_BLOCK = re.compile(r"(<!-- table:(?P<name>[a-z_]+) -->\n)(?P<body>.*?)(\n<!-- /table:(?P=name) -->)", re.S)
+_BLOCK = re.compile(r"<!-- table:(?P<name>[a-z_]+) -->\n(?P<body>.*?)\n?<!-- /table:(?P=name) -->", re.S)
 
 
 def render(name: str) -> str:
@@ -104,7 +104,7 @@ def update(check: bool) -> list[str]:
             body = render(match["name"])
             if body != match["body"]:
                 stale.append(f"{path.relative_to(ROOT)}: {match['name']}")
-            return match.group(1) + body + match.group(4)
+            return f"<!-- table:{match['name']} -->\n{body}\n<!-- /table:{match['name']} -->"
 
         new = _BLOCK.sub(replace, text)
         if not check and new != text:

@@ -77,9 +77,8 @@ def _is_x86() -> bool:
 def cpu_features() -> frozenset[str]:
     """The CPU's feature flags as Linux names them (``/proc/cpuinfo``: ``avx2``, ``avx512_bf16``, ``asimd``, ...).
 
-    Elsewhere (macOS, Windows) the flags are asked of the native kernels' probe
-    (:func:`dynbtf.decoder.native.probe_cpu_features`), which uses the compiler's ``__builtin_cpu_supports``;
-    without a compiler the set is empty and the level is ``portable``.
+    Elsewhere (macOS, Windows) LLVM's view of the host CPU (llvmlite, which numba brings) answers, its names
+    mapped to Linux's; without it the set is empty and the level is ``portable``.
     """
     try:
         with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
@@ -88,9 +87,13 @@ def cpu_features() -> frozenset[str]:
                     return frozenset(line.split(":", 1)[1].split())
     except OSError:
         pass
-    from .decoder.native import probe_cpu_features
+    try:
+        from llvmlite import binding
 
-    return frozenset(probe_cpu_features())
+        host = binding.get_host_cpu_features()
+    except Exception:  # no llvmlite, or it cannot tell
+        return frozenset()
+    return frozenset(name.replace("avx512bf16", "avx512_bf16") for name, on in host.items() if on)
 
 
 def hardware_isa(features: frozenset[str] | None = None) -> str:

@@ -32,7 +32,7 @@ import tempfile
 import threading
 from pathlib import Path
 
-__all__ = ["load_library", "status", "cache_dir", "ISA_FLAGS", "isa_flags", "probe_cpu_features", "fma_peak_flops"]
+__all__ = ["load_library", "status", "cache_dir", "ISA_FLAGS", "isa_flags", "fma_peak_flops"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent
 _FLAGS = ["-O3", "-std=c++17", "-ffp-contract=fast", "-shared", "-fPIC", "-fno-math-errno"]
@@ -159,20 +159,6 @@ def status(name: str, isa: str | None = None) -> str:
     isa = isa or active_isa()
     load_library(name, isa)
     return _STATUS.get((name, isa), "not loaded")
-
-
-def probe_cpu_features() -> list[str]:
-    """The x86 features the compiler's ``__builtin_cpu_supports`` finds (Linux names, e.g. ``avx512_bf16``), for
-    systems without ``/proc/cpuinfo``; empty without a compiler or on another architecture."""
-    if platform.machine().lower() not in ("x86_64", "amd64"):
-        return []
-    library = load_library("cpu_probe", "portable")
-    if library is None:
-        return []
-    library.dynbtf_cpu_supports.restype = ctypes.c_int
-    library.dynbtf_cpu_supports.argtypes = [ctypes.c_char_p]
-    names = ["avx2", "fma", "f16c", "bmi2", "avx512f", "avx512bw", "avx512dq", "avx512vl", "avx512cd", "avx512bf16"]
-    return [n.replace("avx512bf16", "avx512_bf16") for n in names if library.dynbtf_cpu_supports(n.encode())]
 
 
 def fma_peak_flops(isa: str | None = None, threads: int = 1, seconds: float = 0.5) -> float | None:
