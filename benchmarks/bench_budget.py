@@ -15,7 +15,6 @@ generated from it (``python benchmarks/tables.py``).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
@@ -36,9 +35,9 @@ def main() -> None:
     args = parser.parse_args()
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from bench_training import commit, cpu_model  # noqa: E402
+    from results_io import header, write_result  # noqa: E402
 
-    from dynbtf.cpu import active_isa, hardware_isa, isa_environment
+    from dynbtf.cpu import active_isa, isa_environment
     from dynbtf.representations.model_file import read_model_metadata
 
     env = dict(os.environ)
@@ -69,14 +68,7 @@ def main() -> None:
                   + (f", {row['kind']} {row['held_out_psnr']:.2f} dB" if row.get("held_out_psnr") else ""),
                   flush=True)
     isa = args.isa or active_isa()
-    result = {"benchmark": "budget", "command": " ".join(["python", "benchmarks/bench_budget.py", *sys.argv[1:]]),
-              "commit": commit(), "cpu": cpu_model(), "cpu_isa": hardware_isa(), "cores": os.cpu_count(),
-              "isa": isa, "btf": args.btf, "rows": rows}
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.json.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=1) + "\n")
-    os.replace(tmp, args.json)
-    print(f"wrote {args.json}")
+    write_result(args.json, header("budget", "bench_budget.py") | {"isa": isa, "btf": args.btf, "rows": rows})
 
 
 if __name__ == "__main__":

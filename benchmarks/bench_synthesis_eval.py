@@ -201,9 +201,10 @@ def main() -> None:
         print(json.dumps(measure(args)))
         return
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from bench_training import commit, cpu_model, levels_to_measure
+    from bench_training import levels_to_measure
+    from results_io import header, write_result
 
-    from dynbtf.cpu import hardware_isa, isa_environment
+    from dynbtf.cpu import isa_environment
 
     rows = []
     for isa in levels_to_measure(args.isa):
@@ -215,18 +216,11 @@ def main() -> None:
         if done.returncode != 0:
             raise SystemExit(f"level {isa}: the measuring process failed")
         rows += json.loads(done.stdout.strip().splitlines()[-1])
-    result = {"benchmark": "evaluation", "command": " ".join(["python", "benchmarks/bench_synthesis_eval.py",
-                                                              *sys.argv[1:]]),
-              "commit": commit(), "cpu": cpu_model(), "cpu_isa": hardware_isa(), "cores": os.cpu_count(),
-              "queries": args.queries, "rows": rows}
+    result = header("evaluation", "bench_synthesis_eval.py") | {"queries": args.queries, "rows": rows}
     from tables import evaluation
 
     print("\n" + evaluation(result))
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.json.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=1) + "\n")
-    os.replace(tmp, args.json)
-    print(f"\nwrote {args.json}")
+    write_result(args.json, result)
 
 
 if __name__ == "__main__":

@@ -33,7 +33,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -49,8 +48,9 @@ def fused_flops_per_sample(model) -> int:
     return 3 * sum(2 * layer.in_features * layer.out_features for layer in model.decoder.rest)
 
 
-def naive_rate(source, store, train_pairs, seconds: float, batch: int, seed: int) -> tuple[float, int]:
-    """Samples/s of the naive recipe (and the torch thread count it ran with)."""
+def naive_recipe(source, store, train_pairs, batch: int, seed: int):
+    """``(model, step)``: a fresh Triple Plane and one optimizer step of the naive recipe on it (per-sample random
+    batches of ``batch`` samples over random texels and training pairs, the model's forward, L1, AdamW)."""
     import numpy as np
     import torch
 
@@ -76,6 +76,14 @@ def naive_rate(source, store, train_pairs, seconds: float, batch: int, seed: int
         loss.backward()
         optimizer.step()
 
+    return rep, step
+
+
+def naive_rate(source, store, train_pairs, seconds: float, batch: int, seed: int) -> tuple[float, int]:
+    """Samples/s of the naive recipe (and the torch thread count it ran with: the faster of 1 and all)."""
+    import torch
+
+    _, step = naive_recipe(source, store, train_pairs, batch, seed)
     threads = torch.get_num_threads()
     speeds = {}
     for setting in sorted({1, threads}):  # the faster thread setting (OpenMP can stall on a shared machine)
@@ -97,8 +105,10 @@ def naive_rate(source, store, train_pairs, seconds: float, batch: int, seed: int
         torch.set_num_threads(threads)
 
 
-def our_rate(source, seconds: float, seed: int, workdir: Path, warmup_steps: int = 10, **options) -> float:
-    """Samples/s of :func:`dynbtf.training.fit` (the optimizer steps' own time, after ``warmup_steps``)."""
+def our_rate(source, seconds: float, seed: int, workdir: Path, warmup_steps: int = 10, details: bool = False,
+             **options):
+    """Samples/s of :func:`dynbtf.training.fit` (the optimizer steps' own time, after ``warmup_steps``); with
+    ``details``, ``(samples/s, steps timed, seconds per step)``."""
     from dynbtf.representations.triple_plane import TriplePlane
     from dynbtf.training import TrainConfig, fit
     from dynbtf.training.fit import StopTraining
@@ -118,7 +128,8 @@ def our_rate(source, seconds: float, seed: int, workdir: Path, warmup_steps: int
                          **options)
     fit(TriplePlane(source.height, source.width, seed=seed), source, config, workdir / "m.dbtfm", progress=False,
         callback=callback)
-    return timed["samples"] / timed["seconds"]
+    rate = timed["samples"] / timed["seconds"]
+    return (rate, timed["steps"], timed["seconds"] / timed["steps"]) if details else rate
 
 
 def measure_level(btfs: list[str], seconds: float, naive_seconds: float, batch: int, seed: int) -> list[dict]:
@@ -171,7 +182,6 @@ def convergence(spec: str, naive_seconds: float, batch: int, seed: int) -> dict:
     import numpy as np
     import torch
 
-    from dynbtf.conventions import texel_centers_uv
     from dynbtf.data.open import open_btf
     from dynbtf.decoder.fused_mlp import single_intra_op_thread
     from dynbtf.representations.triple_plane import TriplePlane
@@ -196,24 +206,11 @@ def convergence(spec: str, naive_seconds: float, batch: int, seed: int) -> dict:
                 count += target.numel()
         return -10.0 * math.log10(se / count)
 
-    rep = TriplePlane(source.height, source.width, seed=seed)
-    optimizer = torch.optim.AdamW(rep.param_groups())
-    n = source.height * source.width
-    uv_all = torch.from_numpy(texel_centers_uv(source.height, source.width)).reshape(-1, 2).float()
-    views = torch.as_tensor(source.views, dtype=torch.float32)
-    lights = torch.as_tensor(source.lights, dtype=torch.float32)
-    images = torch.from_numpy(store.get(train_pairs)).to(torch.float16)
-    rng = np.random.default_rng(seed)
+    rep, step = naive_recipe(source, store, train_pairs, batch, seed)
     trained = 0.0
     while trained < naive_seconds:
         t0 = time.perf_counter()
-        p = torch.from_numpy(rng.integers(0, len(train_pairs), batch))
-        t = torch.from_numpy(rng.integers(0, n, batch))
-        pairs = torch.from_numpy(train_pairs)[p]
-        loss = (rep(uv_all[t], views[pairs[:, 0]], lights[pairs[:, 1]]) - images[p, t].float()).abs().mean()
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
+        step()
         trained += time.perf_counter() - t0
     target = psnr(rep)
     ours = TriplePlane(source.height, source.width, seed=seed)
@@ -250,22 +247,6 @@ def levels_to_measure(requested: list[str] | None) -> list[str]:
     return available
 
 
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        return platform.processor() or platform.machine()
-
-
-def commit() -> str | None:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).resolve().parent, timeout=10).stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        return None
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--btf", nargs="+", default=["sim:leather?size=64", "sim:leather?size=128"],
@@ -285,7 +266,10 @@ def main() -> None:
         print(json.dumps(rows))
         return
 
-    from dynbtf.cpu import hardware_isa, isa_environment
+    from dynbtf.cpu import isa_environment
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from results_io import header, write_result
 
     rows = []
     for isa in levels_to_measure(args.isa):
@@ -298,9 +282,8 @@ def main() -> None:
             raise SystemExit(f"level {isa}: the measuring process failed:\n{done.stderr[-3000:]}")
         sys.stderr.write(done.stderr)
         rows += json.loads(done.stdout.strip().splitlines()[-1])
-    result = {"benchmark": "training", "command": " ".join(["python", "benchmarks/bench_training.py", *sys.argv[1:]]),
-              "commit": commit(), "cpu": cpu_model(), "cpu_isa": hardware_isa(), "cores": os.cpu_count(),
-              "seed": args.seed, "seconds_per_variant": args.seconds, "rows": rows}
+    result = header("training", "bench_training.py") | {"seed": args.seed, "seconds_per_variant": args.seconds,
+                                                          "rows": rows}
     if args.convergence:
         result["convergence"] = [convergence(spec, args.naive_seconds * 4, args.naive_batch, args.seed)
                                  for spec in args.btf]
@@ -312,11 +295,7 @@ def main() -> None:
         print(f"\n{c['btf']}: naive reached {c['naive_final_psnr']:.2f} dB in {c['naive_seconds']:.0f} s; ours (fast) "
               + (f"in {c['ours_seconds_to_reach']:.1f} s ({c['speedup']:.1f}x sooner)" if c["speedup"] else
                  "did not reach it in as long"))
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.json.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=1) + "\n")
-    os.replace(tmp, args.json)
-    print(f"\nwrote {args.json}")
+    write_result(args.json, result)
 
 
 if __name__ == "__main__":

@@ -20,8 +20,6 @@ The CPU's figures for the same steps are in docs/results.md (``benchmarks/bench_
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 import tempfile
 import time
@@ -38,31 +36,19 @@ def synchronize(device) -> None:
 
 
 def training_throughput(spec: str, device: str, seconds: float) -> dict:
+    """Samples/s of the fast recipe on ``device`` (:func:`bench_training.our_rate`)."""
+    import tempfile
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_training import our_rate
+
     from dynbtf.data.open import open_btf
-    from dynbtf.representations.triple_plane import TriplePlane
-    from dynbtf.training import TrainConfig, fit
-    from dynbtf.training.fit import StopTraining
 
-    source = open_btf(spec)
-    timed = {"steps": 0, "seconds": 0.0, "samples": 0}
-
-    def callback(info):
-        if info["global_step"] <= 10:  # warm-up: allocator, kernels' first launches
-            return
-        timed["steps"] += 1
-        timed["seconds"] += info["step_seconds"]
-        timed["samples"] += info["samples"]
-        if timed["seconds"] >= seconds:
-            raise StopTraining("timed")
-
-    config = TrainConfig(epochs=1000, held_out_fraction=0.05, monitor_pairs=0, checkpoint_every=10 ** 9,
-                         texel_groups=64, lr_scale=6.0, device=device)
     with tempfile.TemporaryDirectory() as workdir:
-        fit(TriplePlane(source.height, source.width), source, config, Path(workdir) / "m.dbtfm", progress=False,
-            callback=callback)
-    rate = timed["samples"] / timed["seconds"]
-    return {"btf": spec, "device": device, "samples_per_second": rate, "steps": timed["steps"],
-            "ms_per_step": 1e3 * timed["seconds"] / timed["steps"]}
+        rate, steps, seconds_per_step = our_rate(open_btf(spec), seconds, 0, Path(workdir), texel_groups=64,
+                                                 lr_scale=6.0, device=device, details=True)
+    return {"btf": spec, "device": device, "samples_per_second": rate, "steps": steps,
+            "ms_per_step": 1e3 * seconds_per_step}
 
 
 def full_size_fit(spec: str, device: str, minutes: float) -> dict:
@@ -150,11 +136,10 @@ def main() -> None:
         print(f"full-size fit ({args.full_btf}): best held-out {fit['best_held_out_psnr']:.2f} dB, within 0.5 dB of "
               f"it after {fit['seconds_to_within_half_db'] / 60:.1f} min of training ({fit['steps']} steps, "
               f"{fit['stopped']}); {time.perf_counter() - t0:.0f} s with the BTF's set-up", flush=True)
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.json.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=1) + "\n")
-    os.replace(tmp, args.json)
-    print(f"wrote {args.json}")
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from results_io import write_result
+
+    write_result(args.json, result)
 
 
 if __name__ == "__main__":

@@ -13,6 +13,8 @@ from dynbtf import cpu
 from dynbtf.decoder import fused_mlp, native
 from dynbtf.errors import InputError
 
+from test_native_kernel import float64_reference
+
 
 def test_levels_from_cpu_flags():
     avx2 = frozenset({"sse2", "avx", "avx2", "fma", "f16c", "bmi2"})
@@ -95,18 +97,7 @@ def test_every_level_the_cpu_runs_computes_the_same_loss_and_gradients(isa, monk
         results.append([loss.detach(), pp.grad, qq.grad, *[t.grad.clone() for layer in mlp for t in layer.parameters()]])
     for other in results[1:]:
         assert all(torch.equal(a, b) for a, b in zip(results[0], other))
-    # float64 reference: the un-split MLP by autograd
-    p64, q64 = p.double().requires_grad_(), q.double().requires_grad_()
-    mlp64 = [nn.Linear(l.in_features, l.out_features).double() for l in mlp]
-    for a, b in zip(mlp64, mlp):
-        a.load_state_dict({k: v.double() for k, v in b.state_dict().items()})
-    x = nn.functional.leaky_relu(p64.view(8, 1, 70, 32) + q64.view(8, 16, 1, 32), 0.01)
-    for layer in mlp64[:-1]:
-        x = nn.functional.leaky_relu(layer(x), 0.01)
-    y = mlp64[-1](x).transpose(0, 1).reshape(16, 560, 3)
-    loss = (y - target.double()).abs().mean()
-    loss.backward()
-    expected = [loss.detach(), p64.grad, q64.grad, *[t.grad for layer in mlp64 for t in layer.parameters()]]
+    expected = float64_reference(p, q, mlp, target)  # the un-split MLP by float64 autograd
     eps = float(torch.finfo(torch.float32).eps)
     for got, want in zip(results[0], expected):
         # a gradient sums sign(residual) x products over 8,960 samples: float32 rounding of such sums

@@ -99,22 +99,30 @@ def test_native_fp32_equals_the_torch_path(monkeypatch, groups, images, texels, 
         torch.testing.assert_close(a, b, rtol=2e-5, atol=2e-6 * float(b.abs().max()), msg=name)
 
 
+def float64_reference(p, q, mlp, target, slope=0.01):
+    """The loss and every gradient ``[loss, dP, dQ, dW_2, dc_2, ...]`` of the un-split MLP in float64 autograd on
+    the concatenated batch: ``P (G * n, H)``, ``Q (G, B, H)``, ``target (B, G * n, C)``."""
+    groups, images, hidden = q.shape
+    n = p.shape[0] // groups
+    p64, q64 = p.detach().double().requires_grad_(), q.detach().double().requires_grad_()
+    mlp64 = [nn.Linear(l.in_features, l.out_features).double() for l in mlp]
+    for a, b in zip(mlp64, mlp):
+        a.load_state_dict({k: v.double() for k, v in b.state_dict().items()})
+    x = nn.functional.leaky_relu(p64.view(groups, 1, n, hidden) + q64.view(groups, images, 1, hidden), slope)
+    for layer in mlp64[:-1]:
+        x = nn.functional.leaky_relu(layer(x), slope)
+    y = mlp64[-1](x).transpose(0, 1).reshape(images, groups * n, -1)
+    loss = (y - target.double()).abs().mean()
+    loss.backward()
+    return [loss.detach(), p64.grad, q64.grad, *[x.grad for layer in mlp64 for x in layer.parameters()]]
+
+
 @needs_native
 def test_native_kernel_matches_float64_autograd():
     """An independent reference: the un-split MLP in float64 autograd on the concatenated batch."""
     p, q, mlp, target = problem(3, 5, 24, layers=3, seed=3)
     result = loss_and_grads(p, q, mlp, target, True, chunk_texels=8, workers=2)
-    p64, q64 = p.detach().double().requires_grad_(), q.detach().double().requires_grad_()
-    mlp64 = [nn.Linear(l.in_features, l.out_features).double() for l in mlp]
-    for a, b in zip(mlp64, mlp):
-        a.load_state_dict({k: v.double() for k, v in b.state_dict().items()})
-    x = nn.functional.leaky_relu(p64.view(3, 1, 24, 32) + q64.view(3, 5, 1, 32), 0.01)
-    for layer in mlp64[:-1]:
-        x = nn.functional.leaky_relu(layer(x), 0.01)
-    y = mlp64[-1](x).transpose(0, 1).reshape(5, 72, 3)
-    loss = (y - target.double()).abs().mean()
-    loss.backward()
-    expected = [loss.detach(), p64.grad, q64.grad, *[x.grad for layer in mlp64 for x in layer.parameters()]]
+    expected = float64_reference(p, q, mlp, target)
     for a, b in zip(result, expected):
         torch.testing.assert_close(a.double(), b, rtol=1e-4, atol=1e-6 * float(b.abs().max()))
 
