@@ -216,3 +216,42 @@ def test_fetches_are_differentiable_and_follow_the_plane_device():
     out.backward()
     assert plane.grad is not None and float(plane.grad.sum()) == pytest.approx(4.0)
     assert fetch_wrap(plane.detach(), torch.tensor([[0.1, 0.2]])).device == plane.device
+
+
+def test_angular_taps_read_what_fetch_angular_reads():
+    """Training reads the angular planes through taps computed once per (view, light) pair: the same values as the
+    grid_sample fetch (float64: to rounding), seams, poles and clamped rows included, and the same gradient."""
+    from dynbtf.representations.triple_plane import TriplePlane
+    from dynbtf.texture import angular_taps, fetch_angular, fetch_taps
+
+    g = torch.Generator().manual_seed(7)
+    plane = torch.randn(20, 20, 8, generator=g, dtype=torch.float64)
+    st = torch.rand(500, 2, generator=g, dtype=torch.float64) * torch.tensor([1.2, 3.0], dtype=torch.float64) \
+        - torch.tensor([0.1, 1.0], dtype=torch.float64)
+    st[:6] = torch.tensor([[0, 0], [1, 0.999999], [0.5, 1.0], [0.025, 0.025], [1, 1], [0.0, 0.5]])
+    index, weight = angular_taps(st, 20, 20)
+    torch.testing.assert_close(fetch_taps(plane.reshape(-1, 8), index, weight), fetch_angular(plane, st),
+                               rtol=0, atol=1e-13)
+    flat = plane.reshape(-1, 8).clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda x: fetch_taps(x, index, weight), (flat,))
+    # the model's angular features through its taps, as the fit reads them, and its gradients
+    model = TriplePlane(4, 4, seed=3)
+    w = torch.nn.functional.normalize(torch.rand(64, 3, generator=g) + torch.tensor([0.0, 0.0, 0.2]), dim=-1)
+    v = torch.nn.functional.normalize(torch.rand(64, 3, generator=g) + torch.tensor([0.0, 0.0, 0.2]), dim=-1)
+    direct = model.angular_features(v, w)
+    direct.square().sum().backward()
+    grads = [model.f_h.grad.clone(), model.f_d.grad.clone()]
+    model.zero_grad()
+    with torch.no_grad():
+        taps = model.direction_taps(v, w)
+    tapped = model.angular_features(None, None, taps)
+    tapped.square().sum().backward()
+    # float32: the two compute the texel coordinate with different roundings (a few ulps of the padded side, 22),
+    # which moves a value by that times the largest step between neighbouring texels
+    eps = torch.finfo(torch.float32).eps
+    planes = torch.stack([model.f_h, model.f_d]).detach()
+    step = max(planes.diff(dim=1).abs().max(), planes.diff(dim=2).abs().max())
+    torch.testing.assert_close(tapped, direct, rtol=0, atol=float(4 * 22 * eps * step + 8 * eps * planes.abs().max()))
+    # the gradients: the same bilinear weights (to the coordinate's rounding) times 2 x the feature, summed
+    torch.testing.assert_close([model.f_h.grad, model.f_d.grad], grads, rtol=0,
+                               atol=float(4 * 22 * eps * 2 * direct.detach().abs().max() * 64))
