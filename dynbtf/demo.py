@@ -168,10 +168,11 @@ def _stage_data(ctx: _Context) -> dict[str, Any]:
             "images": images, "raw_bytes": int(src.nbytes_float32)}
 
 
-#: Minutes the stages after the fit take at the defaults on 2 cores of an AVX2 machine with an empty Dr.Jit kernel
-#: cache (measured with the AVX2 path forced: synthesis 2.2, of it 1.8 fitting the per-level footprint decoders of
-#: three methods; structured 0.3; render 4.6, of it 3.1 compiling the Mitsuba kernels; the rest 0.2), plus a margin.
-OTHER_STAGES_MINUTES = 7.5
+#: Minutes the stages after the fit take at the defaults on 2 cores of an AVX2 machine with empty kernel caches
+#: (measured with the AVX2 path forced: synthesis 2.9, of it 1.8 fitting the per-level footprint decoders of three
+#: methods and 0.4 compiling numba kernels; structured 0.4; render 4.7, of it 3.1 compiling the Mitsuba kernels;
+#: the rest 0.1), plus a margin.
+OTHER_STAGES_MINUTES = 8.5
 
 
 def _fit_minutes(cfg: DemoConfig) -> float:
