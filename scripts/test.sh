@@ -18,5 +18,5 @@ if [ $# -eq 0 ] && [ -z "${DYNBTF_CPU_ISA:-}" ] && \
   echo "== the AVX2 path (DYNBTF_CPU_ISA=avx2): kernels, training, evaluation, one-truth tests"
   DYNBTF_CPU_ISA=avx2 "$PY" -m pytest -q -p no:cacheprovider tests/test_native_kernel.py tests/test_triple_plane.py \
     tests/test_training.py tests/test_fast_decode.py tests/test_one_truth.py tests/test_parallax_kernels.py \
-    tests/test_visible_fetch.py tests/test_filtering.py tests/test_synthesis_btf.py tests/test_cpu_levels.py
+    tests/test_visible_fetch.py tests/test_cpu_levels.py
 fi
