@@ -239,3 +239,38 @@ def test_native_inference_forward_declines_what_it_has_no_path_for():
                                                              (torch.randn(3, 24), torch.randn(3))], 0.01) is None
     assert fused_mlp.native_mlp_forward(torch.randn(4, 32), [(torch.randn(16, 32), torch.randn(16)),
                                                              (torch.randn(3, 16), torch.randn(3))], 0.01) is None
+
+
+def test_texel_blocks_convert_every_float16_exactly():
+    """The cache gather's float16 -> float32 conversion, its vector (F16C) path and its scalar path, equals NumPy's
+    for all 65,536 bit patterns (NaNs stay NaN with their sign)."""
+    import ctypes
+
+    import numpy as np
+
+    library = native.load_library("texel_blocks")
+    if library is None:
+        pytest.skip("no native kernel on this machine")
+    halves = np.arange(65536, dtype=np.uint16)
+    expected = halves.view(np.float16).astype(np.float32)
+    nan = np.isnan(expected)
+    scalar = np.empty(65536, np.float32)
+    library.dynbtf_half_to_float(ctypes.c_void_p(halves.ctypes.data), ctypes.c_int64(65536),
+                                 ctypes.c_void_p(scalar.ctypes.data))
+    # one image of 65,536 one-channel texels, read as one block that starts at 40,000 and wraps at the end
+    gathered = np.empty(65536, np.float32)
+    rows, starts = np.zeros(1, np.int64), np.array([40000], np.int64)
+    code = library.dynbtf_gather_blocks_f16(
+        ctypes.c_void_p(halves.ctypes.data), ctypes.c_int64(1), ctypes.c_int64(65536), ctypes.c_int32(1),
+        ctypes.c_void_p(rows.ctypes.data), ctypes.c_int64(1), ctypes.c_int64(1), ctypes.c_void_p(starts.ctypes.data),
+        ctypes.c_int64(65536), ctypes.c_void_p(gathered.ctypes.data))
+    assert code == 0
+    gathered = np.roll(gathered, 40000)
+    for converted in (scalar, gathered):
+        assert np.array_equal(converted.view(np.uint32)[~nan], expected.view(np.uint32)[~nan])
+        assert np.isnan(converted[nan]).all() and np.array_equal(np.signbit(converted), np.signbit(expected))
+    bad_row = np.array([1], np.int64)  # outside the cache's one image: refused, nothing read
+    assert library.dynbtf_gather_blocks_f16(
+        ctypes.c_void_p(halves.ctypes.data), ctypes.c_int64(1), ctypes.c_int64(65536), ctypes.c_int32(1),
+        ctypes.c_void_p(bad_row.ctypes.data), ctypes.c_int64(1), ctypes.c_int64(1),
+        ctypes.c_void_p(starts.ctypes.data), ctypes.c_int64(16), ctypes.c_void_p(gathered.ctypes.data)) == 1

@@ -55,9 +55,17 @@ def test_image_store_cache_and_streaming_agree(btf):
     np.testing.assert_allclose(cached.get(pairs, texels), exact[:, texels], rtol=1e-3)
 
 
+@pytest.mark.parametrize("gather", ["native", "numpy"])
 @pytest.mark.parametrize("budget", [2 ** 30, 0])
-def test_image_store_blocks_match_scattered_reads(btf, budget):
-    """get_blocks(pairs (G, B, 2), starts, n) == get(pairs[g], texels of block g) side by side, wrapping at the end."""
+def test_image_store_blocks_match_scattered_reads(btf, budget, gather, monkeypatch):
+    """get_blocks(pairs (G, B, 2), starts, n) == get(pairs[g], texels of block g) side by side, wrapping at the end
+    (the cache's native gather and its NumPy fallback; get converts with NumPy)."""
+    from dynbtf.training import images
+
+    if gather == "numpy":
+        monkeypatch.setattr(images, "_native_gather", lambda: None)
+    elif images._native_gather() is None:
+        pytest.skip("no native kernel on this machine")
     store = ImageStore(btf, memory_budget=budget)
     pairs = np.array([[[0, 3], [14, 2]], [[5, 5], [1, 0]], [[2, 9], [2, 9]]])
     store.fill(pairs.reshape(-1, 2))  # cached: both read the float16 cache

@@ -298,8 +298,9 @@ def _native_loss(precision, positional_pre, image_pre, weights, biases, slope, t
     if workers == 1:
         codes = [fn(ctypes.byref(args))]
     else:
-        futures = [_pool(workers).submit(fn, ctypes.byref(args)) for _ in range(workers)]
-        codes = [f.result() for f in futures]
+        # the calling thread is one of the workers (ctypes releases the GIL during the call)
+        futures = [_pool(workers - 1).submit(fn, ctypes.byref(args)) for _ in range(workers - 1)]
+        codes = [fn(ctypes.byref(args))] + [f.result() for f in futures]
     if any(codes):
         raise RuntimeError(f"native fused_mlp kernel refused its arguments (codes {codes})")
     # the slots' layout: dW_k, dc_k, then dQ (B, H); scaled by `scale` on the way

@@ -11,6 +11,8 @@ digits, far below the representation's error.
 
 from __future__ import annotations
 
+import ctypes
+import functools
 import threading
 
 import numpy as np
@@ -138,17 +140,20 @@ class ImageStore:
             out = self.source.read_texels(pairs, texels, device=device)  # (G, B, n, 3)
             return out.transpose(0, 1).reshape(b, groups * length, 3) if device is not None else \
                 np.ascontiguousarray(out.transpose(1, 0, 2, 3)).reshape(b, groups * length, 3)
+        rows = pairs[..., 0] * self.source.n_lights + pairs[..., 1]                       # (G, B)
         out = np.empty((b, groups * length, 3), dtype=np.float32)
-        for g in range(groups):
-            rows = pairs[g, :, 0] * self.source.n_lights + pairs[g, :, 1]
-            a = int(starts[g]) % self.n_texels
-            pieces = [(a, min(a + length, self.n_texels))]
-            if a + length > self.n_texels:  # wraps around the end of the image
-                pieces.append((0, a + length - self.n_texels))
-            offset = g * length
-            for lo, hi in pieces:
-                out[:, offset:offset + hi - lo] = self._cache[rows, lo:hi]
-                offset += hi - lo
+        gather = _native_gather()
+        if gather is not None:  # one pass that converts while it copies (no index arrays)
+            rows = np.ascontiguousarray(rows, dtype=np.int64)
+            starts = np.ascontiguousarray(starts, dtype=np.int64)
+            code = gather(self._cache.ctypes.data, self._cache.shape[0], self.n_texels, 3, rows.ctypes.data, groups,
+                          b, starts.ctypes.data, length, out.ctypes.data)
+            if code:
+                raise InputError(f"get_blocks: image rows outside the cache's {self._cache.shape[0]} images")
+        else:  # one gather of flat (image, texel) rows, converted after selecting
+            texels = (starts[:, None] + np.arange(length)[None, :]) % self.n_texels          # (G, length)
+            flat = rows.T[:, :, None] * self.n_texels + texels[None, :, :]                    # (B, G, length)
+            out[:] = np.take(self._cache.reshape(-1, 3), flat.reshape(-1), axis=0).reshape(out.shape)
         return _on(out, device)
 
     def _all_cached(self, pairs: np.ndarray) -> bool:
@@ -174,6 +179,22 @@ class ImageStore:
             return _on(out, device)
         texels = np.arange(self.n_texels) if texels is None else np.asarray(texels, dtype=np.int64)
         return self.source.read_texels(pairs, texels, device=device)
+
+
+@functools.lru_cache(maxsize=1)
+def _native_gather():
+    """``dynbtf_gather_blocks_f16`` of the native ``texel_blocks`` kernel (see its source), or None where no
+    kernel builds (then NumPy gathers)."""
+    from ..decoder.native import load_library
+
+    library = load_library("texel_blocks")
+    if library is None:
+        return None
+    fn = library.dynbtf_gather_blocks_f16
+    fn.restype = ctypes.c_int
+    fn.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p, ctypes.c_int64,
+                   ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p]
+    return fn
 
 
 def _on(array: np.ndarray, device):

@@ -130,12 +130,22 @@ inline float hsum(vf v) {
     return s;
 }
 
-// Rows of samples per register block of a product with NV vectors per row: the accumulators (R x NV),
-// one row of weights (NV) and a broadcast must fit the vector registers (AVX-512, H = 32: 8; AVX2: 2).
+// Rows of samples per register block of a product with NV vectors per row: the accumulators (R x NV), the R
+// rows' broadcasts and one vector of weights must fit the vector registers (AVX2, H = 32: 3; AVX-512: 8).
 template <int NV>
 constexpr int block_rows() {
-    constexpr int fit = (NREG - NV - 1) / NV;
-    return fit >= 8 ? 8 : fit >= 4 ? 4 : fit >= 2 ? 2 : 1;
+    constexpr int fit = (NREG - 1) / (NV + 1);
+    return fit >= 8 ? 8 : fit < 1 ? 1 : fit;
+}
+
+// body(rows, s) with rows a std::integral_constant: whole blocks of R rows s = 0, R, 2R, ... of S, then the rest
+// in blocks of 2 and 1 (the sums of a row do not depend on its block)
+template <int R, class Body>
+__attribute__((always_inline)) inline void in_blocks(int S, Body&& body) {
+    int s = 0;
+    for (; s + R <= S; s += R) body(std::integral_constant<int, R>{}, s);
+    if (R > 2 && s + 2 <= S) { body(std::integral_constant<int, 2>{}, s); s += 2; }
+    for (; s < S; ++s) body(std::integral_constant<int, 1>{}, s);
 }
 
 // ------------------------------------------------------------------------------------------ fp32
@@ -167,16 +177,17 @@ struct Fp32 {
         return src;
     }
 
-    // acc[r][v] += sum over i < n of rows[r * ld + i] * w[i * VW NV + VW v .. + VW] (w row-major, VW NV wide)
+    // acc[r][v] += sum over i < n of rows[r * ld + i] * w[i * VW NV + VW v .. + VW] (w row-major, VW NV wide):
+    // per i, the R broadcasts stay in registers while the NV weight vectors stream through one register
     template <int NV, int R>
     __attribute__((always_inline)) static inline void accumulate_rows(const float* rows, int ld, const float* w, int n,
                                                                       vf (&acc)[R][NV]) {
         for (int i = 0; i < n; ++i) {
-            vf wv[NV];
-            for (int v = 0; v < NV; ++v) wv[v] = loadv(w + (i * NV + v) * VW);
-            for (int r = 0; r < R; ++r) {
-                vf x = splat(rows[r * ld + i]);
-                for (int v = 0; v < NV; ++v) acc[r][v] += x * wv[v];
+            vf x[R];
+            for (int r = 0; r < R; ++r) x[r] = splat(rows[r * ld + i]);
+            for (int v = 0; v < NV; ++v) {
+                const vf wv = loadv(w + (i * NV + v) * VW);
+                for (int r = 0; r < R; ++r) acc[r][v] += x[r] * wv;
             }
         }
     }
@@ -186,59 +197,59 @@ struct Fp32 {
     template <int NV>
     void hidden_forward(int k, const act_t* X, const float* bias, float slope, int S, act_t* Y, float* gain) const {
         const int H = VW * NV;
-        constexpr int R = block_rows<NV>();
-        for (int s = 0; s < S; s += R) {
+        const float* wk = wt[k];
+        in_blocks<block_rows<NV>()>(S, [&](auto rows, int s) {
+            constexpr int R = decltype(rows)::value;
             vf acc[R][NV];
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) acc[r][v] = loadv(bias + VW * v);
-            accumulate_rows<NV, R>(X + s * H, H, wt[k], H, acc);
+            accumulate_rows<NV, R>(X + s * H, H, wk, H, acc);
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) {
                     storev(Y + (s + r) * H + VW * v, lrelu(acc[r][v], slope));
                     if (gain) storev(gain + (s + r) * H + VW * v, acc[r][v] > 0 ? splat(1.f) : splat(slope));
                 }
-        }
+        });
     }
     // out[s, 0:VW NO] = W_L X[s] + c (lanes >= C are zero; rows OUT_LD apart)
     template <int NV, int NO>
     void output_forward(int k, const act_t* X, const float* bias, int S, float* out) const {
         const int H = VW * NV;
-        constexpr int R = block_rows<NO>();
-        for (int s = 0; s < S; s += R) {
+        const float* wk = wt[k];
+        in_blocks<block_rows<NO>()>(S, [&](auto rows, int s) {
+            constexpr int R = decltype(rows)::value;
             vf acc[R][NO];
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NO; ++v) acc[r][v] = loadv(bias + VW * v);
-            accumulate_rows<NO, R>(X + s * H, H, wt[k], H, acc);
+            accumulate_rows<NO, R>(X + s * H, H, wk, H, acc);
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NO; ++v) storev(out + (s + r) * OUT_LD + VW * v, acc[r][v]);
-        }
+        });
     }
     // dX[s] = (W^T dZ[s]) for S samples; dZ rows have `out` fp32 entries, ldz apart
     template <int NV>
     void backward_input(int k, const float* dZ, int out, int ldz, int S, float* dX) const {
         const int H = VW * NV;
-        constexpr int R = block_rows<NV>();
-        for (int s = 0; s < S; s += R) {
+        const float* wk = w[k];
+        in_blocks<block_rows<NV>()>(S, [&](auto rows, int s) {
+            constexpr int R = decltype(rows)::value;
             vf acc[R][NV];
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) acc[r][v] = vf{};
-            accumulate_rows<NV, R>(dZ + s * ldz, ldz, w[k], out, acc);
+            accumulate_rows<NV, R>(dZ + s * ldz, ldz, wk, out, acc);
             for (int r = 0; r < R; ++r)
                 for (int v = 0; v < NV; ++v) storev(dX + (s + r) * H + VW * v, acc[r][v]);
-        }
+        });
     }
-    // dW[o, :] += sum_s dZ[s, o] X[s, :] for o < out
+    // dW[o, :] += sum_s dZ[s, o] X[s, :] for o < out: blocks of output rows (no zero rows computed)
     template <int NV>
     void backward_weights(const float* dZ, int out, int ldz, const act_t* X, int S, float* dW) const {
-        // whole blocks of R output rows, then the rest in halving blocks (3 rows: 2 + 1), no zero rows computed
-        constexpr int R = block_rows<NV>();
-        int o0 = 0;
-        for (; o0 + R <= out; o0 += R) weight_rows<NV, R>(dZ, o0, ldz, X, S, dW);
-        if (R >= 8 && o0 + 4 <= out) { weight_rows<NV, (R >= 8 ? 4 : 1)>(dZ, o0, ldz, X, S, dW); o0 += 4; }
-        if (R >= 4 && o0 + 2 <= out) { weight_rows<NV, (R >= 4 ? 2 : 1)>(dZ, o0, ldz, X, S, dW); o0 += 2; }
-        if (o0 < out) weight_rows<NV, 1>(dZ, o0, ldz, X, S, dW);
+        in_blocks<block_rows<NV>()>(out, [&](auto rows, int o0) {
+            weight_rows<NV, decltype(rows)::value>(dZ, o0, ldz, X, S, dW);
+        });
     }
-    // dW[o0 + r, :] += sum_s dZ[s, o0 + r] X[s, :] for r < RB
+    // dW[o0 + r, :] += sum_s dZ[s, o0 + r] X[s, :] for r < RB: per sample, the RB broadcasts stay in registers
+    // while the NV vectors of X[s] stream through one register
     template <int NV, int RB>
     static void weight_rows(const float* dZ, int o0, int ldz, const act_t* X, int S, float* dW) {
         const int H = VW * NV;
@@ -246,11 +257,11 @@ struct Fp32 {
         for (int r = 0; r < RB; ++r)
             for (int v = 0; v < NV; ++v) acc[r][v] = loadv(dW + (o0 + r) * H + VW * v);
         for (int s = 0; s < S; ++s) {
-            vf xv[NV];
-            for (int v = 0; v < NV; ++v) xv[v] = loadv(X + s * H + VW * v);
-            for (int r = 0; r < RB; ++r) {
-                vf g = splat(dZ[s * ldz + o0 + r]);
-                for (int v = 0; v < NV; ++v) acc[r][v] += g * xv[v];
+            vf g[RB];
+            for (int r = 0; r < RB; ++r) g[r] = splat(dZ[s * ldz + o0 + r]);
+            for (int v = 0; v < NV; ++v) {
+                const vf x = loadv(X + s * H + VW * v);
+                for (int r = 0; r < RB; ++r) acc[r][v] += g[r] * x;
             }
         }
         for (int r = 0; r < RB; ++r)
