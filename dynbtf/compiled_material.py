@@ -19,7 +19,19 @@ A safetensors file. Tensors: ``model.*`` (the representation's state dict), ``sy
 newer versions), the model's ``kind`` and ``config``, ``model_sha256`` (the digest of the model's
 tensors, as in the model file), ``method``, ``seed``, ``arguments`` (the method's parameters that
 rebuild it from the tables), ``choice`` (what ``auto`` chose: method, line, strength; or null), ``key`` (the cache
-key) and ``tensor_sha256``, a checksum of every tensor: a damaged file is detected, never used.
+key), ``tensor_sha256``, a checksum of every tensor, and ``header_sha256``, a checksum of every other header
+field: a damaged file is detected, never used.
+
+Opening a file from anyone
+--------------------------
+A checksum anyone can recompute proves that a file was not damaged, not that it is sound. Before any
+kernel reads a table, :func:`load_compiled` holds the file to what its writer would have produced: the
+model's tensors to the model file's checks and to ``model_sha256``; every ``synthesis.*`` table to its
+method's declared rules (:meth:`~dynbtf.synthesis.base.Synthesizer.stored_tables`: dtype, shape, value
+bounds, monotone inverse tables, indices in range); the ``decoder.*`` tables to the shapes of the model's
+own decoder (:meth:`~dynbtf.decoder.folded.FoldedDecoder.stored_tables`), finite and bounded; the
+``sampling.*`` table to its shape and ranges. A file that breaks any of them is refused with a
+:class:`~dynbtf.errors.FormatError` naming the file and the table.
 
 Conventions as everywhere in dynbtf: directions in the local frame, linear RGB without
 ``cos(theta_light)``, ``uv`` in exemplar repeats.
@@ -29,6 +41,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -36,16 +49,18 @@ from typing import Any
 import torch
 
 from .decoder.folded import FoldedDecoder
-from .errors import FormatError
+from .decoder.folded import MAX_MEAN_NODES
+from .errors import FormatError, InputError
 from .io import atomic_path, user_cache_dir
 from .representations.model_file import read_checked_tensors, representation_from_state, tensor_digest
+from .tables import Table, TableError, check_tables
 
 __all__ = ["CompiledMaterial", "save_compiled", "load_compiled", "is_compiled_material", "material_key",
            "compiled_cache_dir", "FORMAT_NAME", "FORMAT_VERSION", "SUFFIX"]
 
 FORMAT_NAME = "dynbtf-compiled-material"
 #: Bumped whenever a stored table changes meaning: older readers refuse newer files, old cache entries miss.
-FORMAT_VERSION = 2  # 2: a relief model's hist tables keep the height out of the PCA (separate)
+FORMAT_VERSION = 3  # 2: a relief model's hist tables keep the height out of the PCA (separate); 3: header_sha256
 SUFFIX = ".dbtfc"
 
 
@@ -101,7 +116,11 @@ class CompiledMaterial:
             extra = {} if prepared is None else {"prepared": prepared}
             if device.type != "cpu" and "fast" in _accepted_arguments(self.method):
                 extra["fast"] = False
-            synth = make_synthesizer(self.method, plane, seed=self.seed, **self.arguments, **extra)
+            try:
+                synth = make_synthesizer(self.method, plane, seed=self.seed, **self.arguments, **extra)
+            except (TypeError, ValueError, OverflowError) as e:  # arguments read from a file, of the wrong kind
+                raise InputError(f"the material's arguments {self.arguments} do not build method {self.method!r}: "
+                                 f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
             if synth.choice is None and self.choice is not None:
                 from .synthesis.auto import RecordedChoice
 
@@ -173,10 +192,18 @@ def save_compiled(material: CompiledMaterial, path) -> Path:
     header = {"format": FORMAT_NAME, "format_version": FORMAT_VERSION, "kind": material.model.kind,
               "config": material.model.config(), "model_sha256": material.model_sha256, "method": material.method,
               "seed": material.seed, "arguments": material.arguments, "choice": material.choice,
-              "key": material.key, "tensor_sha256": tensor_digest(tensors)}
+              "key": material.key}
+    header = json.loads(json.dumps(header, default=str))  # as a reader will see it
+    header.update(header_sha256=header_digest(header), tensor_sha256=tensor_digest(tensors))
     with atomic_path(path) as tmp:
         save_file(tensors, str(tmp), metadata={"dynbtf": json.dumps(header, default=str)})
     return path
+
+
+def header_digest(header: dict[str, Any]) -> str:
+    """SHA-256 of a header's fields other than its checksums (canonical JSON): its ``header_sha256``."""
+    fields = {k: v for k, v in header.items() if k not in ("header_sha256", "tensor_sha256")}
+    return hashlib.sha256(json.dumps(fields, sort_keys=True, default=str).encode()).hexdigest()
 
 
 def _header(path: Path) -> dict[str, Any]:
@@ -194,9 +221,11 @@ def _header(path: Path) -> dict[str, Any]:
     if not isinstance(header, dict) or header.get("format") != FORMAT_NAME:
         raise FormatError(path, f"not a compiled material (expected format {FORMAT_NAME!r} in the header)")
     version = header.get("format_version")
-    if not isinstance(version, int) or version > FORMAT_VERSION or version < 1:
-        raise FormatError(path, f"compiled-material format version {version!r}; this dynbtf reads versions 1 to "
+    if not isinstance(version, int) or version != FORMAT_VERSION:
+        raise FormatError(path, f"compiled-material format version {version!r}; this dynbtf reads version "
                                 f"{FORMAT_VERSION} (compile the model again with this version: dynbtf compile)")
+    if header.get("header_sha256") != header_digest(header):
+        raise FormatError(path, "header fields do not match their checksum: the file is damaged")
     return header
 
 
@@ -215,21 +244,92 @@ def _section(tensors: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.T
 
 def load_compiled(path, device: torch.device | str | None = None) -> CompiledMaterial:
     """Read a compiled material; :class:`~dynbtf.errors.FormatError` names the file and what is wrong
-    (not a compiled material, a newer version, a checksum mismatch, a missing table)."""
+    (not a compiled material, another version, a checksum mismatch, a missing table, a table that breaks
+    its rule: see "Opening a file from anyone" in the module docstring). Nothing but regular files is read."""
     path = Path(path)
+    if path.exists() and not path.is_file():
+        raise FormatError(path, "not a regular file (a compiled material is a file)")
     header = _header(path)
     tensors = read_checked_tensors(path, header.get("tensor_sha256"))
     try:
-        model = representation_from_state(path, header["kind"], header["config"], _section(tensors, "model."))
-        decoder_tensors = _section(tensors, "decoder.")
+        model_tensors = _section(tensors, "model.")
+        if header["model_sha256"] != tensor_digest(model_tensors):
+            raise FormatError(path, "model_sha256 does not match the model stored in the file")
+        model = representation_from_state(path, header["kind"], header["config"], model_tensors)
+        method, seed = header["method"], header["seed"]
+        if not isinstance(method, str) or isinstance(seed, bool) or not isinstance(seed, int) or \
+                not 0 <= seed < 2 ** 63 or not isinstance(header["arguments"], dict):
+            raise FormatError(path, "damaged header: method, seed or arguments of the wrong type")
+        choice = header.get("choice")
+        if choice is not None and not (isinstance(choice, dict) and isinstance(choice.get("method"), str)
+                                       and isinstance(choice.get("line"), str)
+                                       and isinstance(choice.get("strength"), (int, float))
+                                       and not isinstance(choice.get("strength"), bool)
+                                       and math.isfinite(choice["strength"])):
+            raise FormatError(path, "damaged header: choice is not null or {method, line, strength}")
+        synthesis, decoder_tensors = _section(tensors, "synthesis."), _section(tensors, "decoder.")
+        sampling = _section(tensors, "sampling.")
+        unknown = sorted(k for k in tensors if not k.startswith(("model.", "synthesis.", "decoder.", "sampling.")))
+        if unknown:
+            raise FormatError(path, f"unexpected tensor {unknown[0]!r} (expected model.*, synthesis.*, decoder.*, "
+                                    "sampling.*)")
+        _check_tables(path, model, method, synthesis, decoder_tensors, sampling)
         material = CompiledMaterial(
-            model=model, method=str(header["method"]), seed=int(header["seed"]), arguments=dict(header["arguments"]),
-            synthesis=_section(tensors, "synthesis."),
+            model=model, method=method, seed=seed, arguments=dict(header["arguments"]), synthesis=synthesis,
             decoder=FoldedDecoder.from_tensors(decoder_tensors) if decoder_tensors else None,
-            choice=header.get("choice"), sampling=_section(tensors, "sampling.") or None,
-            key=str(header.get("key", "")), model_sha256=str(header.get("model_sha256", "")))
+            choice=header.get("choice"), sampling=sampling or None,
+            key=str(header.get("key", "")), model_sha256=str(header["model_sha256"]))
     except KeyError as e:
         raise FormatError(path, f"missing entry {e} of a compiled material") from None
     except (TypeError, ValueError) as e:
         raise FormatError(path, f"damaged header ({e})") from None
     return material if device is None else material.to(device)
+
+
+def _check_tables(path: Path, model, method: str, synthesis: dict[str, torch.Tensor],
+                  decoder: dict[str, torch.Tensor], sampling: dict[str, torch.Tensor]) -> None:
+    """Hold the stored tables to their rules (module docstring); FormatError names the table."""
+    from .synthesis.mip import level_shapes
+    from .synthesis.registry import synthesizer_class
+
+    try:
+        synthesizer = synthesizer_class(method)
+    except InputError:
+        raise FormatError(path, f"unknown synthesis method {method!r} in the header") from None
+    plane = model.positional_plane().detach().cpu()
+    section = "synthesis"
+    try:
+        synthesizer.check_stored(synthesis, plane)
+        section = "decoder"
+        fast = model.fast_decoder()
+        if fast is None:
+            check_tables(decoder, [])
+        else:
+            reference = FoldedDecoder.fold(fast.decoder, None, None)
+            check_tables(decoder, FoldedDecoder.stored_tables(decoder, reference))
+            count = sum(1 for name in decoder if name.endswith(".weight") and name.count(".") == 2)
+            levels = len(level_shapes(*synthesizer.pyramid_size(synthesis, plane)))
+            if count not in (1, levels):
+                raise TableError(f"{count} level decoders, expected 1 (the point decoder) or one per pyramid level "
+                                 f"({levels})")
+            if "mean.weights" in decoder:
+                weights = decoder["mean.weights"].double()
+                if not 1 <= len(weights) <= MAX_MEAN_NODES or abs(float(weights.sum()) - 1.0) > 1e-3:
+                    raise TableError(f"table 'mean.weights': {len(weights)} weights summing to "
+                                     f"{float(weights.sum()):.6g}, expected 1 to {MAX_MEAN_NODES} summing to 1")
+        section = "sampling"
+        if sampling:
+            check_tables(sampling, _sampling_rules(sampling))
+    except TableError as e:
+        raise FormatError(path, f"{section} tables of method {method!r}: {e}") from None
+
+
+def _sampling_rules(sampling: dict[str, torch.Tensor]) -> list[Table]:
+    """The importance-sampling table (:mod:`dynbtf.render.mitsuba.sampling`): non-negative densities on an
+    ``R x R`` grid per view node, azimuth nodes in ``[0, 2 pi]``, polar nodes in ``[0, pi / 2]``."""
+    density = sampling.get("density")
+    p, t, r = (density.shape[0], density.shape[1], density.shape[2]) if isinstance(density, torch.Tensor) and \
+        density.ndim == 4 else (None, None, None)
+    return [Table("density", torch.float32, (p, t, r, r), 0.0, 1e30),
+            Table("phi_nodes", torch.float64, (p,), 0.0, 2 * math.pi + 1e-9, monotone=True),
+            Table("theta_nodes", torch.float64, (t,), 0.0, 0.5 * math.pi + 1e-9, monotone=True)]

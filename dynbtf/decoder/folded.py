@@ -22,12 +22,15 @@ Weights are ``(out, in)`` like ``torch.nn.Linear``'s, except the folded position
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+
+from ..tables import Table
 
 __all__ = ["FoldedDecoder", "LevelDecoder", "MeanAppearance", "DecodePath", "mlp", "hidden_layers", "MLP_ROWS"]
 
@@ -36,6 +39,12 @@ __all__ = ["FoldedDecoder", "LevelDecoder", "MeanAppearance", "DecodePath", "mlp
 MLP_ROWS = 16384
 
 Layers = list[tuple[torch.Tensor, torch.Tensor]]
+
+#: Largest magnitude of a stored decoder value (:meth:`FoldedDecoder.stored_tables`): trained decoders stay
+#: within a few hundred; beyond this a decode could overflow float32.
+MAX_STORED_VALUE = 1e6
+#: Most quadrature nodes of a stored mean appearance.
+MAX_MEAN_NODES = 4096
 
 
 def hidden_layers(x: torch.Tensor, layers: Layers, slope: float) -> torch.Tensor:
@@ -167,6 +176,38 @@ class FoldedDecoder:
             out["mean.nodes"], out["mean.weights"] = self.mean.nodes, self.mean.weights
             out.update(_layers_tensors("mean.rest", self.mean.rest))
         return {k: v.detach().cpu().contiguous() for k, v in out.items()}
+
+    @classmethod
+    def stored_tables(cls, arrays: dict[str, torch.Tensor], reference: "FoldedDecoder") -> list[Table]:
+        """The rules of :meth:`to_tensors` for a decoder folded from the same model as ``reference`` (that
+        model's decoder folded with any output map): its positional channels and slope, as many levels as
+        ``arrays`` store (at least one), each shaped like the reference's point decoder, and, if stored, a mean
+        appearance of ``K`` nodes with weights in ``[0, 1]``. Every value finite and within
+        :data:`MAX_STORED_VALUE`."""
+        v, f32 = MAX_STORED_VALUE, torch.float32
+        point = reference.levels[0]
+
+        def layer_rules(prefix: str, layers: Layers) -> list[Table]:
+            return [rule for k, (w, b) in enumerate(layers) for rule in
+                    (Table(f"{prefix}.{k}.weight", f32, tuple(w.shape), -v, v),
+                     Table(f"{prefix}.{k}.bias", f32, tuple(b.shape), -v, v))]
+
+        rules = [Table("first_bias", f32, tuple(reference.first_bias.shape), -v, v),
+                 Table("angular_weight", f32, tuple(reference.angular_weight.shape), -v, v),
+                 Table("positional_channels", torch.int64, (), reference.positional_channels,
+                       reference.positional_channels),
+                 Table("slope", torch.float64, (), reference.slope, reference.slope)]
+        count = sum(1 for name in arrays if re.fullmatch(r"level\.\d+\.weight", name))
+        for i in range(max(count, 1)):
+            rules += [Table(f"level.{i}.weight", f32, tuple(point.weight.shape), -v, v),
+                      Table(f"level.{i}.bias", f32, tuple(point.bias.shape), -v, v)]
+            rules += layer_rules(f"level.{i}.rest", point.rest)
+        if any(name.startswith("mean.") for name in arrays):
+            nodes = arrays.get("mean.nodes")
+            k = nodes.shape[0] if isinstance(nodes, torch.Tensor) and nodes.ndim == 2 else None
+            rules += [Table("mean.nodes", f32, (k, reference.hidden), -v, v), Table("mean.weights", f32, (k,), 0.0, 1.0)]
+            rules += layer_rules("mean.rest", point.rest)
+        return rules
 
     @classmethod
     def from_tensors(cls, arrays: dict[str, torch.Tensor], device="cpu") -> "FoldedDecoder":

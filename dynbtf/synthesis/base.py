@@ -28,6 +28,7 @@ above them, does; the import-linter contract in ``pyproject.toml`` checks this).
 from __future__ import annotations
 
 import abc
+import math
 from typing import Any, ClassVar
 
 import numpy as np
@@ -35,6 +36,7 @@ import torch
 
 from ..errors import InputError
 from .lattice import MAX_REPEATS
+from ..tables import Table, TableError, check_tables
 
 __all__ = [
     "Synthesizer",
@@ -45,7 +47,27 @@ __all__ = [
     "wrapped_texel_position",
     "MIN_EXEMPLAR_TEXELS",
     "MAX_REPEATS",
+    "GAUSSIAN_BOUND",
+    "feature_bound",
+    "coefficient_bound",
 ]
+
+#: Largest magnitude of a Gaussianized value (the inverse normal CDF of ``1 - 1e-15`` is 7.9): the bound of
+#: a histogram-preserving method's stored plane.
+GAUSSIAN_BOUND = 8.0
+
+
+def feature_bound(plane: torch.Tensor) -> float:
+    """Largest magnitude a stored table of the exemplar's own values may hold: the plane's, with room for
+    float rounding (preprocessing maps values back with exact inverses, pyramids average them)."""
+    return 1.001 * float(plane.detach().abs().max()) + 1e-6 if plane.numel() else 1e-6
+
+
+def coefficient_bound(plane: torch.Tensor) -> float:
+    """Largest magnitude of a decorrelated coefficient of the plane's values: ``|(v - mean) . b| <= sqrt(C) *
+    2 max |v|`` for unit basis vectors ``b``."""
+    return 2.0 * math.sqrt(plane.shape[-1]) * feature_bound(plane)
+
 
 #: name -> class, filled by :func:`register_synthesizer`.
 SYNTHESIZERS: dict[str, type["Synthesizer"]] = {}
@@ -287,3 +309,35 @@ class Synthesizer(abc.ABC):
         Raises ``KeyError`` for a missing array (the caller names the file it came from).
         """
         return None
+
+    @classmethod
+    def stored_tables(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor) -> list[Table]:
+        """The rules of the tables :meth:`prepared_arrays` stores (:class:`~dynbtf.tables.Table`: dtype,
+        shape, value bounds, monotone rows) for the exemplar ``plane (H, W, C)`` (a model's positional plane).
+
+        ``arrays`` are the stored tables themselves, read only for the sizes a rule depends on (e.g. the
+        number of offsets), so that one rule set holds every table to the others. Default: no tables.
+        """
+        return []
+
+    @classmethod
+    def pyramid_size(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor) -> tuple[int, int]:
+        """``(rows, columns)`` of the plane whose pyramid footprint queries read, given stored tables that
+        follow their rules: the exemplar's by default (a method that reads another plane says so)."""
+        return int(plane.shape[0]), int(plane.shape[1])
+
+    @classmethod
+    def table_relations(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor) -> str | None:
+        """What is wrong between stored tables that each follow their rule (e.g. a cell count that does not
+        divide the exemplar), or None. Called by :meth:`check_stored` after the rules hold."""
+        return None
+
+    @classmethod
+    def check_stored(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor) -> None:
+        """Hold stored tables (a compiled material's ``synthesis.*``) to :meth:`stored_tables` and
+        :meth:`table_relations` before any kernel reads them: :class:`~dynbtf.tables.TableError`
+        names the table and what was expected."""
+        check_tables(arrays, cls.stored_tables(arrays, plane))
+        problem = cls.table_relations(arrays, plane)
+        if problem is not None:
+            raise TableError(problem)

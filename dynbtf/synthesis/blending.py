@@ -35,7 +35,9 @@ from ..texture import fetch_wrap
 from .base import Synthesizer, register_synthesizer, wrapped_texel_position
 from .hash import vertex_offsets
 from .lattice import split_uv, triangle_lattice
-from .mip import LevelOfDetail, area_pyramid
+from ..tables import Table
+from .base import feature_bound
+from .mip import LevelOfDetail, area_pyramid, level_shapes
 from .tileable import make_tileable, seam_discontinuity
 
 __all__ = ["LatticeBlending", "LinearBlending", "LatticePlane", "SEAM_THRESHOLD"]
@@ -280,6 +282,43 @@ class LatticeBlending(Synthesizer):
         prepared.extras["pyramid"] = {"levels": levels, "lod": LevelOfDetail.of(levels),
                                       **cls.filter_from_arrays(arrays)}
         return prepared
+
+    @classmethod
+    def stored_tables(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor) -> list[Table]:
+        """The read plane ``(H', W', C)`` (``H' <= H``, ``W' <= W``: tileable preprocessing crops), its seam
+        numbers, the pyramid of the read plane and the method's tables (:meth:`extra_tables`)."""
+        h, w, c = plane.shape
+        read = arrays.get("plane")
+        hp, wp = (tuple(read.shape[:2]) if isinstance(read, torch.Tensor) and read.ndim == 3
+                  and 1 <= read.shape[0] <= h and 1 <= read.shape[1] <= w else (h, w))
+        bound = cls.plane_bound(plane)
+        rules = [Table("plane", torch.float32, (hp, wp, c), -bound, bound), Table("tileable", torch.bool, ()),
+                 Table("seam_before", torch.float64, (), 0.0), Table("seam_after", torch.float64, (), 0.0)]
+        rules += [Table(f"pyramid.{i}", torch.float32, (lh, lw, c), -bound, bound)
+                  for i, (lh, lw) in enumerate(level_shapes(hp, wp))]
+        return rules + cls.extra_tables(arrays, plane, (hp, wp))
+
+    @classmethod
+    def pyramid_size(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor) -> tuple[int, int]:
+        return int(arrays["plane"].shape[0]), int(arrays["plane"].shape[1])  # the read plane's pyramid
+
+    @classmethod
+    def plane_bound(cls, plane: torch.Tensor) -> float:
+        """Largest magnitude of the read plane's values (raw features: the exemplar's own)."""
+        return feature_bound(plane)
+
+    @classmethod
+    def extra_tables(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor, read: tuple[int, int]) -> list[Table]:
+        """Rules of the method's tables (:meth:`extras_arrays`, :meth:`filter_arrays`) for a read plane of
+        ``read = (H', W')`` texels."""
+        return []
+
+    @classmethod
+    def table_relations(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor) -> str | None:
+        if not bool(arrays["tileable"]) and tuple(arrays["plane"].shape[:2]) != tuple(plane.shape[:2]):
+            return (f"table 'plane': {tuple(arrays['plane'].shape[:2])} texels, but a plane that was not made "
+                    f"tileable is the exemplar's {tuple(plane.shape[:2])}")
+        return None
 
     def extras_arrays(self) -> dict[str, torch.Tensor]:
         """The method's tables in ``prepared.extras`` as named tensors (see :meth:`prepared_arrays`)."""

@@ -64,6 +64,7 @@ from .lattice import split_uv
 from .quilting import min_error_cut
 from .structure import StructureAnalysis, analyze_structure
 from .table_cache import cached_tables
+from ..tables import Table, TableError, check_tables
 from .tiling import Tiling
 
 __all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "cached_cell_tables", "DEFAULT_OFFSETS", "MIN_CELL_TEXELS"]
@@ -74,6 +75,8 @@ DEFAULT_OFFSETS = 16
 MIN_CELL_TEXELS = 8
 #: Peaks at least this share of the strongest one are lattice offsets (the rest are the variation's).
 PEAK_SHARE = 0.5
+#: Most offsets a stored table may have (the cut tables grow as ``K^2``).
+MAX_OFFSETS = 256
 
 
 @dataclass
@@ -134,6 +137,58 @@ class CellTables:
                    horizontal_cuts=torch.from_numpy(arrays["horizontal_cuts"].astype(np.int16)),
                    strength=float(arrays["strength"]), peak_values=arrays["peak_values"],
                    build_seconds=float(arrays["build_seconds"]), source=source)
+
+    @classmethod
+    def rules(cls, arrays: dict[str, torch.Tensor], height: int, width: int) -> list[Table]:
+        """The rules of :meth:`to_arrays` (as tensors) for an ``height x width`` exemplar: ``K`` from the stored
+        offsets (at most :data:`MAX_OFFSETS`, a relation), the cut tables' sizes from the stored cells and margins."""
+        def values(name, n):  # n stored integers, or None where the table is not that yet
+            a = arrays.get(name)
+            ok = isinstance(a, torch.Tensor) and a.dtype == torch.int64 and tuple(a.shape) == (n,)
+            return [int(v) for v in a] if ok else None
+
+        offsets = arrays.get("offsets")
+        k = offsets.shape[0] if isinstance(offsets, torch.Tensor) and offsets.ndim == 2 else None
+        side = max(height, width)
+        cells, margin = values("cells", 2), values("margin", 2)
+        tx, ty = ((width // cells[0], height // cells[1]) if cells and min(cells) >= 1 else (None, None))
+        nx, ny = cells if cells else (None, None)
+        mx, my = margin if margin else (0, 0)
+        return [Table("offsets", torch.int64, (k, 2), 0, side - 1),
+                Table("cells", torch.int64, (2,), 1, side), Table("margin", torch.int64, (2,), 1, side),
+                Table("vertical_cuts", torch.int16, (nx, ny, k, k, ty), -mx, mx - 1),
+                Table("horizontal_cuts", torch.int16, (nx, ny, k, k, tx), -my, my - 1),
+                Table("strength", torch.float64, ()), Table("peak_values", torch.float64, (k,)),
+                Table("build_seconds", torch.float64, (), 0.0)]
+
+    @classmethod
+    def relations(cls, arrays: dict[str, torch.Tensor], height: int, width: int) -> str | None:
+        """What is wrong between tables that each follow :meth:`rules` (cells that do not divide the exemplar,
+        margins wider than a cell, an offset outside it, a first offset other than ``(0, 0)``), or None."""
+        if arrays["offsets"].shape[0] > MAX_OFFSETS:
+            return f"table 'offsets': {arrays['offsets'].shape[0]} offsets, expected at most {MAX_OFFSETS}"
+        nx, ny = (int(v) for v in arrays["cells"])
+        mx, my = (int(v) for v in arrays["margin"])
+        if width % nx or height % ny:
+            return f"table 'cells': {nx} x {ny} cells do not divide the {width} x {height} exemplar"
+        if mx > width // nx // 2 or my > height // ny // 2:
+            return f"table 'margin': ({mx}, {my}) texels, expected at most half a cell ({width // nx // 2}, {height // ny // 2})"
+        offsets = arrays["offsets"]
+        if bool((offsets[:, 0] >= width).any()) or bool((offsets[:, 1] >= height).any()):
+            return f"table 'offsets': an offset outside the {width} x {height} exemplar"
+        if offsets[0].tolist() != [0, 0]:
+            return f"table 'offsets': the first offset is {offsets[0].tolist()}, expected [0, 0]"
+        return None
+
+    @classmethod
+    def check_arrays(cls, arrays: dict, height: int, width: int) -> None:
+        """Hold stored tables (NumPy arrays or tensors) to :meth:`rules` and :meth:`relations`; raises
+        :class:`~dynbtf.tables.TableError` naming the table."""
+        arrays = {k: torch.from_numpy(np.array(v)) if isinstance(v, np.ndarray) else v for k, v in arrays.items()}
+        check_tables(arrays, cls.rules(arrays, height, width))
+        problem = cls.relations(arrays, height, width)
+        if problem is not None:
+            raise TableError(problem)
 
     @property
     def count(self) -> int:
@@ -269,7 +324,9 @@ def cached_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS
         built.append(build_cell_tables(exemplar, offsets=offsets, cells=cells, margin=margin, guide=guide_array))
         return built[0].to_arrays()
 
-    arrays, source = cached_tables("struct", parameters, inputs, CellTables.ARRAYS, build)
+    h, w = exemplar.shape[:2]
+    arrays, source = cached_tables("struct", parameters, inputs, CellTables.ARRAYS, build,
+                                   check=lambda stored: CellTables.check_arrays(stored, h, w))
     if built:
         built[0].source = source
         return built[0]
@@ -394,6 +451,14 @@ class CellQuilting(Tiling):
     def prepared_arrays(self) -> dict[str, torch.Tensor]:
         """The cut tables (:meth:`CellTables.to_arrays`) as tensors."""
         return {k: torch.from_numpy(np.array(v)) for k, v in self.prepared.to_arrays().items()}  # np.array: 0-d stays 0-d
+
+    @classmethod
+    def stored_tables(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor) -> list[Table]:
+        return CellTables.rules(arrays, plane.shape[0], plane.shape[1])
+
+    @classmethod
+    def table_relations(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor) -> str | None:
+        return CellTables.relations(arrays, plane.shape[0], plane.shape[1])
 
     @classmethod
     def prepared_from_arrays(cls, arrays: dict[str, torch.Tensor], device: torch.device | str = "cpu") -> CellTables:

@@ -33,7 +33,8 @@ from .base import register_synthesizer
 from .blending import LatticeBlending, LatticePlane
 from .histogram import Decorrelation
 from .kernels import MODE_HEX
-from .mip import area_pyramid
+from ..tables import Table
+from .mip import area_pyramid, level_shapes
 from .tileable import make_tileable
 
 __all__ = ["HexTiling", "contrast_gain"]
@@ -124,6 +125,12 @@ class HexTiling(LatticeBlending):
     @classmethod
     def extras_from_arrays(cls, arrays: dict[str, torch.Tensor]) -> dict[str, Any]:
         return {"luminance": arrays["luminance"].to(torch.float32).contiguous()}
+
+    @classmethod
+    def extra_tables(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor, read: tuple[int, int]) -> list[Table]:
+        """The per-texel luminance gain in ``[0, 1]`` and its pyramid."""
+        return [Table("luminance", torch.float32, read, 0.0, 1.0)] + [
+            Table(f"luminances.{i}", torch.float32, shape, 0.0, 1.0) for i, shape in enumerate(level_shapes(*read))]
 
     def filter_arrays(self, pyramid: dict[str, Any]) -> dict[str, torch.Tensor]:
         return {f"luminances.{i}": plane for i, plane in enumerate(pyramid["luminances"])}

@@ -42,9 +42,10 @@ import torch
 
 from ..errors import InputError, positive_number
 from .blending import LatticeBlending, LatticePlane
-from .base import register_synthesizer
+from .base import GAUSSIAN_BOUND, coefficient_bound, feature_bound, register_synthesizer
 from .histogram import Decorrelation, GaussianTransform, InverseLUT, blend_weights, variance_preserving_blend
-from .mip import prefiltered_inverse_tables
+from ..tables import Table
+from .mip import level_shapes, prefiltered_inverse_tables
 from .kernels import MODE_HIST
 
 __all__ = ["HistogramBlending", "DEFAULT_GAMMA"]
@@ -156,6 +157,38 @@ class HistogramBlending(LatticeBlending):
         lut = InverseLUT(arrays["lut.table"].to(torch.float64), float(arrays["lut.g_min"]), float(arrays["lut.step"]))
         return {"transform": GaussianTransform(arrays["transform.sorted_values"].to(torch.float64)),
                 "decorrelation": decorrelation, "lut": lut, "lut_table": arrays["lut_table"].to(torch.float32)}
+
+    @classmethod
+    def plane_bound(cls, plane: torch.Tensor) -> float:
+        return GAUSSIAN_BOUND  # the read plane holds Gaussianized values
+
+    @classmethod
+    def extra_tables(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor, read: tuple[int, int]) -> list[Table]:
+        """The Gaussian transform's sorted values and inverse tables (non-decreasing rows of decorrelated
+        coefficients), the tables' grid, the PCA (when decorrelated) and one inverse table per pyramid level."""
+        c = plane.shape[-1]
+        table = arrays.get("lut.table")
+        size = table.shape[1] if isinstance(table, torch.Tensor) and table.ndim == 2 else None
+        levels = len(level_shapes(*read))
+        coefficient = coefficient_bound(plane)
+        rules = [Table("transform.sorted_values", torch.float64, (c, None), -coefficient, coefficient, monotone=True),
+                 Table("lut.table", torch.float64, (c, size), -coefficient, coefficient, monotone=True),
+                 Table("lut_table", torch.float32, (c, size), -coefficient, coefficient, monotone=True),
+                 Table("luts", torch.float32, (levels, c, size), -coefficient, coefficient, monotone=True),
+                 Table("lut.g_min", torch.float64, (), -GAUSSIAN_BOUND, 0.0),
+                 Table("lut.step", torch.float64, (), 1e-9, 2 * GAUSSIAN_BOUND)]
+        if any(name.startswith("decorrelation.") for name in arrays):
+            feature = feature_bound(plane)
+            rules += [Table("decorrelation.mean", torch.float64, (c,), -feature, feature),
+                      Table("decorrelation.basis", torch.float64, (c, c), -1.0 - 1e-6, 1.0 + 1e-6),
+                      Table("decorrelation.variances", torch.float64, (c,), 0.0, coefficient ** 2)]
+        return rules
+
+    @classmethod
+    def table_relations(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor) -> str | None:
+        if arrays["lut.table"].shape[1] < 2:
+            return f"table 'lut.table': {arrays['lut.table'].shape[1]} entries per row, expected at least 2"
+        return super().table_relations(arrays, plane)
 
     def filter_arrays(self, pyramid: dict[str, Any]) -> dict[str, torch.Tensor]:
         return {"luts": pyramid["luts"]}

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["trilinear_fetch", "PlanePyramid", "area_pyramid", "area_matrix", "LevelOfDetail", "prefiltered_inverse_tables", "pyramid_storage_bytes", "BLEND_BAND"]
+__all__ = ["trilinear_fetch", "PlanePyramid", "area_pyramid", "level_shapes", "area_matrix", "LevelOfDetail", "prefiltered_inverse_tables", "pyramid_storage_bytes", "BLEND_BAND"]
 
 #: Default :attr:`LevelOfDetail.blend_band`: two levels are mixed in the middle 30% of each octave only.
 #: On the grazing plane of ``benchmarks/bench_filtering.py`` FLIP against the 256-spp reference was the same
@@ -58,6 +58,21 @@ def area_matrix(n: int, m: int, dtype=torch.float64, device=None) -> torch.Tenso
     return (overlap / (n / m)).to(dtype=dtype, device=device)
 
 
+def level_shapes(height: int, width: int) -> list[tuple[int, int]]:
+    """``(rows, columns)`` of every level of the area pyramid of a ``height x width`` plane
+    (:func:`area_pyramid`): level ``l`` is ``ceil(H / 2**l) x ceil(W / 2**l)`` (at least 1), down to ``1 x 1``.
+
+    >>> level_shapes(4, 3)
+    [(4, 3), (2, 2), (1, 1)]
+    """
+    shapes = [(int(height), int(width))]
+    level = 1
+    while shapes[-1] != (1, 1):
+        shapes.append((max(1, math.ceil(height / 2 ** level)), max(1, math.ceil(width / 2 ** level))))
+        level += 1
+    return shapes
+
+
 def area_pyramid(plane: torch.Tensor) -> list[torch.Tensor]:
     """Levels ``[plane, ..., 1 x 1 mean]`` of a periodic plane ``(H, W, C)`` (float32, plane's device).
 
@@ -69,14 +84,11 @@ def area_pyramid(plane: torch.Tensor) -> list[torch.Tensor]:
     h, w, _ = plane.shape
     levels = [plane.to(torch.float32).contiguous()]
     source = plane.to(torch.float64)
-    l = 1
-    while levels[-1].shape[0] > 1 or levels[-1].shape[1] > 1:
-        mh, mw = max(1, math.ceil(h / 2**l)), max(1, math.ceil(w / 2**l))
+    for mh, mw in level_shapes(h, w)[1:]:
         rows = area_matrix(h, mh, device=plane.device)
         cols = area_matrix(w, mw, device=plane.device)
         level = torch.einsum("ih,hwc,jw->ijc", rows, source, cols)
         levels.append(level.to(torch.float32).contiguous())
-        l += 1
     return levels
 
 

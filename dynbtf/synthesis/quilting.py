@@ -30,9 +30,14 @@ from ..texture import fetch_wrap
 from .base import Synthesizer, register_synthesizer, wrapped_texel_position
 from .histogram import Decorrelation
 from .lattice import split_uv
+from ..tables import Table
+from .base import feature_bound
 from .mip import LevelOfDetail, PlanePyramid
 
-__all__ = ["Quilting", "min_error_cut", "quilt", "overlap_errors", "quilted_storage_bytes"]
+__all__ = ["Quilting", "min_error_cut", "quilt", "overlap_errors", "quilted_storage_bytes", "MAX_QUILT_SIDE"]
+
+#: Largest side of a stored quilted plane, texels (the paper's 15 repeats of 400 texels are 6,000).
+MAX_QUILT_SIDE = 1 << 16
 
 
 def quilted_storage_bytes(height: int, width: int, channels: int, repeats: float, bytes_per_value: int = 4) -> int:
@@ -190,7 +195,8 @@ class Quilting(Synthesizer):
             raise InputError(f"block: expected 2 <= block <= min(H, W) = {min(h, w)} texels, got {self.block}")
         if not 1 <= self.overlap < self.block:
             raise InputError(f"overlap: expected 1 <= overlap < block = {self.block}, got {self.overlap}")
-        if not repeats > 0:
+        if isinstance(repeats, bool) or not isinstance(repeats, (int, float, np.integer, np.floating)) \
+                or not (math.isfinite(repeats) and repeats > 0):
             raise InputError(f"repeats: expected a positive number of exemplar repeats, got {repeats!r}")
         if not tolerance >= 1.0:
             raise InputError(f"tolerance: expected >= 1, got {tolerance!r}")
@@ -239,6 +245,23 @@ class Quilting(Synthesizer):
     @classmethod
     def prepared_from_arrays(cls, arrays: dict[str, torch.Tensor], device: torch.device | str = "cpu") -> torch.Tensor:
         return arrays["plane"].to(device, torch.float32).contiguous()
+
+    @classmethod
+    def stored_tables(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor) -> list[Table]:
+        """The quilted plane: the exemplar's texels, ``(H_q, W_q, C)``."""
+        bound = feature_bound(plane)
+        return [Table("plane", torch.float32, (None, None, plane.shape[-1]), -bound, bound)]
+
+    @classmethod
+    def pyramid_size(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor) -> tuple[int, int]:
+        return int(arrays["plane"].shape[0]), int(arrays["plane"].shape[1])  # the quilted plane's pyramid
+
+    @classmethod
+    def table_relations(cls, arrays: dict[str, torch.Tensor], plane: torch.Tensor) -> str | None:
+        h, w = arrays["plane"].shape[:2]
+        if max(h, w) > MAX_QUILT_SIDE:
+            return f"table 'plane': {h} x {w} texels, expected at most {MAX_QUILT_SIDE} on a side"
+        return None
 
     def storage_bytes(self) -> int:
         return self.prepared.numel() * self.prepared.element_size()

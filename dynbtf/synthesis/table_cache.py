@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import stat
 import warnings
 import zipfile
 from pathlib import Path
@@ -79,10 +80,13 @@ def _read(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray]:
 
 
 def cached_tables(method: str, parameters: dict, inputs: dict[str, np.ndarray | None], names: tuple[str, ...],
-                  build: Callable[[], dict[str, np.ndarray]]) -> tuple[dict[str, np.ndarray], str]:
+                  build: Callable[[], dict[str, np.ndarray]],
+                  check: Callable[[dict[str, np.ndarray]], None] | None = None) -> tuple[dict[str, np.ndarray], str]:
     """The tables ``build()`` returns for these inputs, from the cache when an intact entry exists.
 
-    ``names``: the arrays ``build()`` returns (an entry holding others is damaged).
+    ``names``: the arrays ``build()`` returns (an entry holding others is damaged). ``check``: raises
+    ``ValueError`` for tables a kernel must not read (shapes, bounds, indices): such an entry is rebuilt too,
+    since a checksum anyone can recompute proves nothing about the contents. Only regular files are read.
 
     Returns ``(arrays, how)`` with ``how`` one of ``"built"`` (no cache), ``"cached"`` (read),
     ``"stored"`` (built and written) or ``"rebuilt"`` (a damaged entry was replaced). A cache
@@ -93,9 +97,13 @@ def cached_tables(method: str, parameters: dict, inputs: dict[str, np.ndarray | 
         return build(), "built"
     path = folder / f"{method}-{cache_key(method, parameters, inputs)}.npz"
     how = "stored"
-    if path.exists():
+    if path.exists() or path.is_symlink():
         try:
+            if not stat.S_ISREG(path.stat().st_mode):  # a FIFO or device would block or never end
+                raise ValueError("not a regular file")
             arrays = _read(path, names)
+            if check is not None:
+                check(arrays)
             return arrays, "cached"
         except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as e:
             warnings.warn(f"synthesis table cache: {path} is damaged ({e}); building the tables again", stacklevel=3)

@@ -21,6 +21,7 @@ Example
 
 from __future__ import annotations
 
+import stat
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -204,12 +205,20 @@ def _cache_path(key: str) -> Path | None:
     return None if folder is None else folder / f"{key}{SUFFIX}"
 
 
-def _read_cached(path: Path | None, device) -> CompiledMaterial | None:
-    if path is None or not path.exists():
+def _read_cached(path: Path | None, device, digest: str) -> CompiledMaterial | None:
+    """The cache entry at ``path`` if it is a sound material of the model with ``digest`` stored under its own
+    key; anything else (damaged, not a regular file, another model's material copied under this key) costs a
+    warning and is compiled again (the new entry replaces it)."""
+    if path is None or not (path.exists() or path.is_symlink()):
         return None
     try:
-        return load_compiled(path, device=device)
-    except FormatError as e:
+        if not stat.S_ISREG(path.stat().st_mode):
+            raise FormatError(path, "not a regular file")
+        found = load_compiled(path, device=device)
+        if found.model_sha256 != digest or found.key != path.stem:
+            raise FormatError(path, "holds the material of another model or key")
+        return found
+    except (FormatError, OSError) as e:
         warnings.warn(f"compiled-material cache: {e}; compiling again", stacklevel=3)
         return None
 
@@ -244,11 +253,11 @@ def cached_material(model, method: str = "auto", seed: int = 0, *, footprints: b
     keys = {flag: material_key(digest, method, seed, _argument_key(arguments), footprint_settings(flag))
             for flag in (True, False)}
     for flag in ((True, False) if not footprints else (True,)):
-        found = _read_cached(_cache_path(keys[flag]), device)
+        found = _read_cached(_cache_path(keys[flag]), device, digest)
         if found is not None:
             found.model = model  # the caller's module (equal contents): no second copy
             return found, "cached"
-    base = None if not footprints else _read_cached(_cache_path(keys[False]), device)
+    base = None if not footprints else _read_cached(_cache_path(keys[False]), device, digest)
     if base is not None:
         base.model = model
     material = compile_material(model, method, seed, footprints=footprints, progress=progress, base=base, **arguments)
