@@ -55,7 +55,7 @@ from .io import atomic_path, user_cache_dir
 from .representations.model_file import read_checked_tensors, representation_from_state, tensor_digest
 from .tables import Table, TableError, check_tables
 
-__all__ = ["CompiledMaterial", "save_compiled", "load_compiled", "is_compiled_material", "material_key",
+__all__ = ["CompiledMaterial", "save_compiled", "load_compiled", "is_compiled_material", "open_model_file", "material_key",
            "compiled_cache_dir", "FORMAT_NAME", "FORMAT_VERSION", "SUFFIX"]
 
 FORMAT_NAME = "dynbtf-compiled-material"
@@ -236,6 +236,18 @@ def is_compiled_material(path) -> bool:
         return True
     except FormatError:
         return False
+
+
+def open_model_file(path, device: torch.device | str | None = None) -> tuple[Any, CompiledMaterial | None]:
+    """``(representation, material)`` of a file that is either a model file (``dynbtf fit``'s ``.dbtfm``:
+    ``material`` is None) or a compiled material (``dynbtf compile``'s ``.dbtfc``: its model and itself), each
+    read under its format's checks (:class:`~dynbtf.errors.FormatError` names the file)."""
+    from .representations.model_file import load_model
+
+    if is_compiled_material(path):
+        material = load_compiled(path, device=device)
+        return material.model, material
+    return load_model(path, device=device)[0], None
 
 
 def _section(tensors: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:

@@ -76,7 +76,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .compiled_material import CompiledMaterial, is_compiled_material, load_compiled
+from .compiled_material import CompiledMaterial, open_model_file
 from .conventions import check_directions, spherical_to_direction
 from .decoder.folded import DecodePath, FoldedDecoder
 from .errors import InputError, positive_number
@@ -185,12 +185,7 @@ def _open(model, device) -> tuple[Any, CompiledMaterial | None]:
     if isinstance(model, CompiledMaterial):
         return model.model, model
     if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
-        if is_compiled_material(model):
-            material = load_compiled(model, device=device)
-            return material.model, material
-        from .representations.model_file import load_model
-
-        return load_model(model, device=device)[0], None
+        return open_model_file(model, device=device)
     return model, None
 
 

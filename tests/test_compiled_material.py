@@ -140,3 +140,31 @@ def test_compile_command_writes_reads_back_and_reuses_the_cache(model, tmp_path,
     assert "cached in" in capsys.readouterr().out
     assert main(["compile", str(tmp_path / "m.dbtfm"), "-o", str(tmp_path / "m.png")]) == 2
     assert "expected a .dbtfc file name" in capsys.readouterr().err
+
+
+def test_synth_export_and_render_take_a_compiled_material(model, tmp_path, monkeypatch, capsys):
+    """The artifact `dynbtf compile -o` writes is used as compiled (its method and seed) by synth, export and render;
+    another seed is refused in one line; another method is built from the model inside it."""
+    from dynbtf.cli.main import main
+    from dynbtf.io import load_image
+
+    monkeypatch.setenv("DYNBTF_COMPILED_CACHE", "off")
+    material = compile_material(model, "hist", seed=3, footprints=False)
+    path = save_compiled(material, tmp_path / "m.dbtfc")
+    assert main(["synth", str(path), "-o", str(tmp_path / "a.exr"), "--resolution", "48"]) == 0
+    assert "hist" in capsys.readouterr().out
+    expected = SynthesizedBTF(material, scale=8.0).image(view=(0.0, 0.0), light=(30.0, 0.0), uv_rect=(0, 0, 1, 1),
+                                                         resolution=48)
+    np.testing.assert_allclose(load_image(tmp_path / "a.exr"), expected, rtol=1e-3, atol=1e-6)  # (EXR: half floats)
+    assert main(["synth", str(path), "-o", str(tmp_path / "b.png"), "--resolution", "48", "--seed", "4"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "fixes method 'hist' and seed 3" in err and len(err.splitlines()) == 1
+    assert main(["synth", str(path), "-o", str(tmp_path / "c.png"), "--resolution", "48", "--method", "tile"]) == 0
+    assert main(["export", str(path), "-o", str(tmp_path / "web"), "--no-viewer"]) == 0
+    manifest = json.loads((tmp_path / "web" / "manifest.json").read_text())
+    assert manifest["default_method"] == "hist" and manifest["methods"]["hist"]["seed"] == 3
+    pytest.importorskip("mitsuba")
+    assert main(["render", str(path), "-o", str(tmp_path / "r.png"), "--size", "16", "--spp", "1", "--point"]) == 0
+    assert "compiled material: method hist, seed 3" in capsys.readouterr().out
+    assert main(["render", str(path), "-o", str(tmp_path / "r.png"), "--size", "16", "--method", "tile"]) == 2
+    assert "fixes method 'hist' and seed 3" in capsys.readouterr().err

@@ -67,6 +67,8 @@ def test_parse_sim_spec():
         parse_sim_spec("sim:stone?size=big")
     with pytest.raises(InputError, match="sim:<material>"):
         parse_sim_spec("sim:")
+    with pytest.raises(InputError, match="option 'size' is given twice"):  # not the last one, silently
+        parse_sim_spec("sim:stone?size=64&size=8")
 
 
 def test_open_simulated_spec():

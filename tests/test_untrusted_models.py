@@ -463,6 +463,14 @@ def test_a_btf_decoding_to_absurd_values_stops_the_fit_naming_the_image(tmp_path
     code, out, err = cli(capsys, "info", btf, "--images", "225")
     assert code == 0 and "values" in out
     assert err.startswith(f"dynbtf: warning: {btf}: sampled values reach 1.") and "e+19" in err
+    if memory_mb is None:  # show refuses the image info warns about (one line), unless the limit is raised
+        shown = tmp_path / "shown.exr"
+        code, _, err = cli(capsys, "show", btf, "--view", str(pair[0]), "--light", str(pair[1]), "-o", shown)
+        assert code == 2 and err.count("\n") == 1 and "beyond any plausible reflectance" in err and "e+19" in err
+        assert not shown.exists()
+        code, _, err = cli(capsys, "show", btf, "--view", str(pair[0]), "--light", str(pair[1]), "-o", shown,
+                           "--max-reflectance", "1e30")
+        assert code == 0 and shown.exists(), err
     out_dir = tmp_path / "fit"
     extra = ["--memory-mb", memory_mb, "--texel-groups", "4"] if memory_mb else []
     code, _, err = cli(capsys, *fit_argv(btf, out_dir / "m.dbtfm", *extra))

@@ -197,6 +197,9 @@ def show(
                                    "writing (default 1)."),
     cosine: bool = typer.Option(False, "--cosine", help="Multiply by cos(theta_light), i.e. show the image as "
                                 "lit by a unit-irradiance directional light (values exclude it otherwise)."),
+    max_reflectance: float = typer.Option(1e4, "--max-reflectance", help="Largest |value| written without "
+                                          "complaint (as `dynbtf fit`'s option): an image beyond it (or with NaN) is "
+                                          "refused as the decode of a damaged file; raise it to write it anyway."),
 ) -> None:
     """Write one BTF image (one view and one light direction) as PNG or EXR.
 
@@ -204,14 +207,23 @@ def show(
     """
     from ..conventions import direction_to_spherical
     from ..data.open import open_btf
+    from ..errors import InputError
     from ..io import save_image
     from .arguments import check_exposure
 
     check_exposure(exposure)
+    if not (isinstance(max_reflectance, (int, float)) and max_reflectance > 0):
+        raise InputError(f"--max-reflectance: expected a positive number, got {max_reflectance}")
     with open_btf(btf) as source:
         v = parse_direction(view, source.views, "view")
         l = parse_direction(light, source.lights, "light")
-        img = source.image(v, l) * np.float32(exposure)
+        img = np.asarray(source.image(v, l), dtype=np.float32)
+        peak = float(np.abs(img).max()) if img.size else 0.0
+        if not peak <= max_reflectance:  # NaN too: what `dynbtf info` warns about and `dynbtf fit` refuses
+            raise InputError(f"{btf}: image (view {v}, light {l}) reaches {peak:.3g}, beyond any plausible "
+                             f"reflectance (--max-reflectance {max_reflectance:g}): the file probably decodes to "
+                             "garbage (damaged factors?); raise --max-reflectance to write it anyway")
+        img = img * np.float32(exposure)
         if cosine:
             img = img * np.float32(max(source.lights[l, 2], 0.0))
         save_image(output, img)

@@ -16,7 +16,8 @@ FORMATS = ("web",)
 
 @app.command("export")
 def export_command(
-    model: Path = typer.Argument(..., help="dynbtf model file of kind triple or triple-parallax (`dynbtf fit`)."),
+    model: Path = typer.Argument(..., help="dynbtf model file of kind triple or triple-parallax (`dynbtf fit`), "
+                                           "or a compiled material of one (`dynbtf compile`)."),
     output: Path = typer.Option(..., "-o", "--output", help="Directory to write (created; an earlier export's "
                                                               "files are replaced)."),
     export_format: str = typer.Option("web", "--format", help="web: textures, decoder weights, a GLSL ES 3.00 "
@@ -44,6 +45,7 @@ def export_command(
     from ..export.web.shader import LOCAL_REPEATS
     from ..io import check_writable
     from ..limits import check_scale
+    from ..compiled_material import is_compiled_material
     from ..representations.model_file import read_model_metadata
 
     check_writable(output, "-o/--output", directory=True)
@@ -54,7 +56,8 @@ def export_command(
         raise InputError(f"--format: expected one of {list(FORMATS)}, got {export_format!r}")
     if precision not in WEB_PRECISIONS:
         raise InputError(f"--precision: expected one of {sorted(WEB_PRECISIONS)}, got {precision!r}")
-    read_model_metadata(model)  # a missing or damaged file is named before anything is written
+    if not is_compiled_material(model):  # (a compiled material is read, and checked, by export_web)
+        read_model_metadata(model)  # a missing or damaged file is named before anything is written
     result = export_web(model, output, precision=precision, methods=tuple(method or DEFAULT_METHODS),
                         seed=seed, scale=scale, viewer=viewer)
     m = result.manifest

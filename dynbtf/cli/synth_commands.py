@@ -82,7 +82,9 @@ def _quilt_repeats(quilt_repeats: int | None, scale: float, plane_shape) -> int:
 
 @app.command()
 def synth(
-    model: Path = typer.Argument(..., help="dynbtf model file (a fitted representation with a positional plane)."),
+    model: Path = typer.Argument(..., help="dynbtf model file (a fitted representation with a positional plane), or "
+                                           "a compiled material (`dynbtf compile`: its method and seed, nothing "
+                                           "fitted or built again)."),
     output: Optional[Path] = typer.Option(None, "-o", "--output",
                                           help="Output image: .png (sRGB) or .exr (linear HDR)."),
     method: str = typer.Option("auto", help="Synthesis method: tile, linear, hist, hex, quilt, struct, or auto (struct "
@@ -91,7 +93,7 @@ def synth(
     view: str = typer.Option("0,0", help="View direction THETA,PHI in degrees (theta 0..90)."),
     light: str = typer.Option("30,0", help="Light direction THETA,PHI in degrees (theta 0..90)."),
     resolution: int = typer.Option(1024, help="Image width and height in pixels."),
-    seed: int = typer.Option(0, help="Synthesis seed."),
+    seed: Optional[int] = typer.Option(None, help="Synthesis seed (default 0; a compiled material's own)."),
     device: str = typer.Option("auto", help="auto (CUDA if available), cpu, cuda:0, ...: where the model is "
                                             "decoded and synthesized (the numba fast paths are the CPU's)."),
     spp: int = typer.Option(1, help="Supersampling: spp x spp samples per pixel (box filter) against aliasing "
@@ -141,7 +143,7 @@ def synth(
     """
     from ..device import resolve_device
     from ..limits import check_scale
-    from ..representations.model_file import load_model
+    from ..compiled_material import open_model_file
     from ..synthesis.base import check_uv
     from .arguments import check_exposure, parse_theta_phi
 
@@ -154,13 +156,15 @@ def synth(
     check_exposure(exposure)
     cu, cv = _pair(center, "center")
     check_uv([[cu - 0.5, cv - 0.5], [cu + 0.5, cv + 0.5]], "--center", scale=scale)  # before any work
-    rep, _ = load_model(model, device=where)
+    rep, material = open_model_file(model, device=where)
     methods = [m.strip() for m in report_methods.split(",") if m.strip()] if report else []
     quilt_size = _quilt_repeats(quilt_repeats, scale, tuple(rep.positional_plane().shape)) \
         if (output is not None and method == "quilt") or "quilt" in methods else None
 
     def build(name: str):
-        return _build(rep, name, scale=scale, seed=seed, quilt_size=quilt_size, gamma=gamma)
+        if material is not None and name in ("auto", material.method):  # the material as compiled
+            return _build(material, material.method, scale=scale, seed=seed, quilt_size=None, gamma=gamma)
+        return _build(rep, name, scale=scale, seed=0 if seed is None else seed, quilt_size=quilt_size, gamma=gamma)
 
     if output is not None:
         btf = build(method)
@@ -190,17 +194,23 @@ def _check_outputs(output: Path | None, report: bool, report_json: Path | None) 
         check_writable(_report_path(output, report_json), "--report-json")
 
 
-def _build(rep, name: str, *, scale: float, seed: int, quilt_size: int | None, gamma: float | None):
-    """The :class:`~dynbtf.infinite_btf.SynthesizedBTF` of method ``name``; prints auto's choice and the quilt's size."""
+def _build(rep, name: str, *, scale: float, seed: int | None, quilt_size: int | None, gamma: float | None):
+    """The :class:`~dynbtf.infinite_btf.SynthesizedBTF` of method ``name`` of ``rep`` (a representation, or a
+    compiled material of method ``name``, whose seed ``seed`` must be or None); prints auto's choice and the
+    quilt's size."""
+    from ..compiled_material import CompiledMaterial
     from ..infinite_btf import SynthesizedBTF
 
-    params = {"repeats": float(quilt_size), "progress": True} if name == "quilt" else {}
+    compiled = isinstance(rep, CompiledMaterial)
+    params = {"repeats": float(quilt_size), "progress": True} if name == "quilt" and not compiled else {}
     if name in ("hist", "auto") and gamma is not None:
         params["gamma"] = gamma  # auto: used if it chooses hist
-    btf = SynthesizedBTF(rep, name, scale=scale, seed=seed, **params)
+    btf = SynthesizedBTF(rep, name, scale=scale, seed=(rep.seed if compiled else 0) if seed is None else seed,
+                         **params)
+    rep = btf.model
     if btf.synthesizer.choice is not None:
         typer.echo(btf.synthesizer.choice.line)
-    if name == "quilt":
+    if name == "quilt" and quilt_size is not None:
         size = btf.synthesizer.size
         typer.echo(f"quilt: {quilt_size} x {quilt_size} exemplar repeats = {size[0]} x {size[1]} texels, "
                    f"storage {rep.storage_bytes() / 1e6:.3g} MB (model) + "

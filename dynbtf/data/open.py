@@ -38,9 +38,13 @@ def parse_sim_spec(spec: str) -> tuple[str, dict]:
     if not material:
         raise InputError(f"{spec!r}: expected 'sim:<material>[?size=128&grid=ubo2003&seed=0]'")
     options = dict(SIM_DEFAULTS)
+    given: set[str] = set()
     for key, value in parse_qsl(query, keep_blank_values=True, strict_parsing=False):
         if key not in SIM_DEFAULTS:
             raise InputError(f"{spec!r}: unknown option {key!r}; expected {sorted(SIM_DEFAULTS)}")
+        if key in given:
+            raise InputError(f"{spec!r}: option {key!r} is given twice; give each option once")
+        given.add(key)
         if key in ("size", "seed"):
             try:
                 options[key] = int(value)

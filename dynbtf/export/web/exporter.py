@@ -300,10 +300,12 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
 
     Parameters
     ----------
-    model : Representation, str or Path
+    model : Representation, CompiledMaterial, str or Path
         A fitted Triple Plane (kind ``triple``, or ``triple-parallax``: the shader then marches
-        the synthesized height field) or its model file. Other kinds raise
-        :class:`~dynbtf.errors.InputError` naming the supported ones.
+        the synthesized height field), its model file, or a compiled material (object or ``.dbtfc``
+        file: its method, exported from its tables and seed, stands for itself and for ``auto``; other
+        methods are built from its model). Other kinds raise :class:`~dynbtf.errors.InputError` naming
+        the supported ones.
     out_dir : path
         Directory to write (created; files of an earlier export are replaced).
     precision : {"fp16", "u8", "fp32"}
@@ -332,7 +334,7 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
     """
     # the viewer's meshes have uv in [0, 1]: uv x scale is the shader's float32 local uv
     scale = check_scale(scale, "scale", float32=True, limit=LOCAL_REPEATS, where="the shader's float32 local uv")
-    model, source = _resolve_model(model)
+    model, source, material = _resolve_model(model)
     kind = _check_kind(model)
     methods = _check_options(precision, methods)
     method_params = dict(method_params or {})
@@ -344,7 +346,7 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
         angular = {"f_H": _texture(writer, "f_H.bin", model.f_h.detach().numpy(), precision, layered=True),
                    "f_D": _texture(writer, "f_D.bin", model.f_d.detach().numpy(), precision, layered=True)}
     decoder_file, decoder_entries = _write_shared_decoder(writer, layout)
-    method_entries, auto = _export_methods(writer, model, layout, methods, method_params, seed, precision)
+    method_entries, auto = _export_methods(writer, model, layout, methods, method_params, seed, precision, material)
     shader = glsl_source(channels=layout.c_u, angular_channels=layout.c_a, hidden=layout.hidden, layers=layout.layers,
                          negative_slope=layout.negative_slope, angular_resolution=layout.res,
                          angular_weights=layout.angular_blocks, rest_weights=layout.rest_weights, relief=layout.relief)
@@ -357,14 +359,16 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
 
 
 def _resolve_model(model):
-    """``(model, source path or None)``: a model file is loaded, a model passes through."""
-    if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
-        from ...representations.model_file import load_model
+    """``(model, source path or None, compiled material or None)``: a model file or a compiled material file is
+    read, a model or a material passes through."""
+    from ...compiled_material import CompiledMaterial, open_model_file
 
-        source = Path(model)
-        model, _ = load_model(model)
-        return model, source
-    return model, None
+    if isinstance(model, CompiledMaterial):
+        return model.model, None, model
+    if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
+        representation, material = open_model_file(model)
+        return representation, Path(model), material
+    return model, None, None
 
 
 def _check_options(precision: str, methods) -> list[str]:
@@ -453,17 +457,24 @@ def _write_shared_decoder(writer: _Writer, layout: _DecoderLayout) -> tuple[str,
 
 
 def _export_methods(writer: _Writer, model, layout: _DecoderLayout, methods: list[str],
-                    method_params: dict[str, dict[str, Any]], seed: int, precision: str
+                    method_params: dict[str, dict[str, Any]], seed: int, precision: str, material=None
                     ) -> tuple[dict[str, Any], dict[str, Any] | None]:
     """Each method's plane, tables and folded layer 1: ``(method entries, the auto choice or None)``.
 
-    ``auto`` is exported under the chosen method's name; a method already exported is skipped.
+    ``auto`` is exported under the chosen method's name; a method already exported is skipped. With a
+    compiled ``material``, its method (and ``auto``) is the material itself, with its seed.
     """
     method_entries: dict[str, Any] = {}
     auto = None
     for requested in methods:
         params = dict(method_params.get(requested, {}))
-        if requested == AUTO:  # the model's choice, under the chosen method's name
+        if material is not None and requested in (AUTO, material.method):
+            btf = SynthesizedBTF(material)  # as compiled: its tables, its seed
+            choice = btf.synthesizer.choice
+            if requested == AUTO and choice is not None:
+                auto = {"method": choice.method, "line": choice.line, "structure_strength": choice.strength}
+            m = material.method
+        elif requested == AUTO:  # the model's choice, under the chosen method's name
             btf = SynthesizedBTF(model, AUTO, seed=seed, **params)
             choice = btf.synthesizer.choice
             auto = {"method": choice.method, "line": choice.line, "structure_strength": choice.strength}
@@ -475,7 +486,7 @@ def _export_methods(writer: _Writer, model, layout: _DecoderLayout, methods: lis
             btf = SynthesizedBTF(model, m, seed=seed, **params)
         if m in method_entries:  # auto chose a method exported before it
             continue
-        method_entries[m] = _method_entry(writer, m, btf, seed, precision, layout)
+        method_entries[m] = _method_entry(writer, m, btf, btf.seed, precision, layout)
     return method_entries, auto
 
 

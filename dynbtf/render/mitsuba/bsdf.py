@@ -374,8 +374,9 @@ class _DynBTFBSDFBody:
         parsed = read_parameters(props)  # every parameter converted and checked, before the model loads
         for parameter in PARAMETERS:
             setattr(self, parameter.attribute or parameter.name, parsed[parameter.name])
-        model = load_plugin_model(self.filename)
+        model = load_plugin_model(self.filename)  # a representation or a compiled material
         self.evaluator = DynBTFEvaluator(model, self.method, self.seed)
+        model = self.evaluator.btf.model
         #: the method the kernel runs (``auto``'s choice, else ``method``)
         self.synthesis = self.evaluator.method
         if self.evaluator.choice is not None:
@@ -733,7 +734,9 @@ def _store_table(btf, table) -> None:
 
 
 def load_plugin_model(filename):
-    """The representation in model file ``filename``, checked for the plugin.
+    """The representation in model file ``filename`` -- or the compiled material in it (``dynbtf compile``'s
+    ``.dbtfc``: a :class:`~dynbtf.compiled_material.CompiledMaterial`, whose method and seed the plugin then
+    uses) -- checked for the plugin.
 
     What the plugin's constructor loads; :func:`dynbtf.render.mitsuba.scene_render.render_scene`
     calls it before Mitsuba loads a scene, so that a mistake is a clear error and
@@ -746,11 +749,11 @@ def load_plugin_model(filename):
     InputError
         The model's kind is not one the plugin evaluates (PCA, SH).
     """
-    from ...representations.model_file import load_model
+    from ...compiled_material import open_model_file
 
-    model, _ = load_model(filename, device="cpu")
+    model, material = open_model_file(filename, device="cpu")
     drjit_ops.check_renderable(model, str(filename))
-    return model
+    return model if material is None else material
 
 
 def plugin_variants() -> list[str]:

@@ -160,6 +160,12 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     scale, spp, spp_per_pass = _check_request(scene, lighting, method, scale, resolution, spp, spp_per_pass,
                                               sampling, memory_mb)
     model = load_plugin_model(model_path)  # a missing/damaged file or an unsupported kind fails here, not in Mitsuba
+    from ...compiled_material import CompiledMaterial
+
+    if isinstance(model, CompiledMaterial):  # its method and seed, checked here rather than inside Mitsuba
+        if method not in ("auto", model.method) or seed not in (0, model.seed):
+            raise InputError(f"{model_path}: a compiled material fixes method {model.method!r} and seed {model.seed}; "
+                             "leave --method and --seed at their defaults, or render the model file")
     check_llvm(_wanted_variant(variant))  # an old LLVM aborts the process while compiling: refused before
     active = register_plugin(variant)
     choice_line = None
@@ -210,8 +216,12 @@ def resolve_auto(model, seed: int = 0) -> tuple[str, str]:
     The material is also cached under the chosen method's name (same tables, no choice), so that the
     plugin, which then gets the named method, reads it instead of compiling (decoding) the model again.
     """
+    from ...compiled_material import CompiledMaterial
     from ...training.compile import cached_material
 
+    if isinstance(model, CompiledMaterial):  # compiled: what it chose then, or the method it was compiled for
+        line = model.choice["line"] if model.choice else f"compiled material: method {model.method}, seed {model.seed}"
+        return model.method, str(line)
     material, _ = cached_material(model, "auto", seed, footprints=False, progress=False)
     _alias_material(model, material, seed)
     return material.method, str(material.choice["line"])
