@@ -30,7 +30,9 @@ Untrusted manifests: everything is checked before Ray starts or anything is writ
 problem of every source is reported together (one line each, nothing runs; fix them and run
 again), rather than running the good sources and skipping the bad. A manifest is UTF-8 TOML of at
 most :data:`MAX_MANIFEST_BYTES`; a ``name`` is :data:`NAME_RULE` (so a model is always written
-inside the output directory: ``"../x"``, ``"/tmp/x"``, ``"a/b"`` are refused, not resolved);
+inside the output directory: ``"../x"``, ``"/tmp/x"``, ``"a/b"`` are refused, not resolved); a
+``btf`` is opened as ``dynbtf fit`` opens it (a ``sim:`` spec with its options, an existing file by its
+content: any other file is refused; a missing one is left to its task, which then fails alone);
 numbers are finite and fit in 64 bits. The output directory must be writable, ``--cpus``,
 ``--cpus-per-task`` and ``--max-retries`` in range, a task must fit on one machine
 (``--cpus-per-task`` <= ``--cpus``, or the CPUs of the cluster's largest node), and an
@@ -324,6 +326,10 @@ def read_manifest(manifest, output_dir, *, cpus_per_task: int = 1) -> list[FitTa
         btf = table["btf"]
         if not btf.startswith("sim:") and not Path(btf).is_absolute():
             btf = os.path.abspath(path.parent / btf)
+        problem = _source_problem(btf)
+        if problem is not None:
+            problems.append(f"{path}:{lines.get('btf', where)}: [[source]] #{index + 1} btf {table['btf']!r}: {problem}")
+            continue
         if name in seen:
             problems.append(f"{path}:{lines.get('name', where)}: two sources are named {name!r} (also line "
                             f"{seen[name]}); give one a 'name'")
@@ -333,6 +339,23 @@ def read_manifest(manifest, output_dir, *, cpus_per_task: int = 1) -> list[FitTa
     if problems:
         raise _problems_error(path, problems)
     return tasks
+
+
+def _source_problem(btf: str) -> str | None:
+    """Why ``btf`` cannot be opened as ``dynbtf fit`` would open it, or None: a ``sim:`` spec is opened (its
+    options checked), an existing path must be a BTF (its format recognized from the content). A missing
+    file is left to the run, where its task fails and the others go on."""
+    from .data.open import open_btf, sniff_format
+    from .errors import FormatError
+
+    try:
+        if btf.startswith("sim:"):
+            open_btf(btf)
+        elif os.path.exists(btf):
+            sniff_format(btf)
+    except (InputError, FormatError) as e:
+        return str(e)
+    return None
 
 
 # ---------------------------------------------------------------------------- one task
