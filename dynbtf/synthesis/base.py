@@ -35,8 +35,8 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from .lattice import MAX_REPEATS
 from ..tables import Table, TableError, check_tables
+from .lattice import MAX_REPEATS
 
 __all__ = [
     "Synthesizer",

@@ -31,12 +31,11 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..tables import Table
 from ..texture import fetch_wrap
-from .base import Synthesizer, register_synthesizer, wrapped_texel_position
+from .base import Synthesizer, feature_bound, register_synthesizer, wrapped_texel_position
 from .hash import vertex_offsets
 from .lattice import split_uv, triangle_lattice
-from ..tables import Table
-from .base import feature_bound
 from .mip import LevelOfDetail, area_pyramid, level_shapes
 from .tileable import make_tileable, seam_discontinuity
 

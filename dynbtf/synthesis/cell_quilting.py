@@ -57,6 +57,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..tables import Table, TableError, check_tables
 from ..texture import fetch_wrap
 from .base import register_synthesizer
 from .hash import hash_vertex
@@ -64,7 +65,6 @@ from .lattice import split_uv
 from .quilting import min_error_cut
 from .structure import StructureAnalysis, analyze_structure
 from .table_cache import cached_tables
-from ..tables import Table, TableError, check_tables
 from .tiling import Tiling
 
 __all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "cached_cell_tables", "DEFAULT_OFFSETS", "MIN_CELL_TEXELS"]

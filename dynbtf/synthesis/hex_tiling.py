@@ -28,12 +28,12 @@ from typing import Any
 import torch
 
 from ..errors import InputError
+from ..tables import Table
 from ..texture import fetch_wrap
 from .base import register_synthesizer
 from .blending import LatticeBlending, LatticePlane
 from .histogram import Decorrelation
 from .kernels import MODE_HEX
-from ..tables import Table
 from .mip import area_pyramid, level_shapes
 from .tileable import make_tileable
 

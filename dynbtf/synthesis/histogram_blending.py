@@ -41,10 +41,10 @@ from typing import Any
 import torch
 
 from ..errors import InputError, positive_number
+from ..tables import Table
 from .blending import LatticeBlending, LatticePlane
 from .base import GAUSSIAN_BOUND, coefficient_bound, feature_bound, register_synthesizer
 from .histogram import Decorrelation, GaussianTransform, InverseLUT, blend_weights, variance_preserving_blend
-from ..tables import Table
 from .mip import level_shapes, prefiltered_inverse_tables
 from .kernels import MODE_HIST
 

@@ -26,12 +26,11 @@ import numpy as np
 import torch
 from ..progress import progress_bar
 from ..errors import InputError
+from ..tables import Table
 from ..texture import fetch_wrap
-from .base import Synthesizer, register_synthesizer, wrapped_texel_position
+from .base import Synthesizer, feature_bound, register_synthesizer, wrapped_texel_position
 from .histogram import Decorrelation
 from .lattice import split_uv
-from ..tables import Table
-from .base import feature_bound
 from .mip import LevelOfDetail, PlanePyramid
 
 __all__ = ["Quilting", "min_error_cut", "quilt", "overlap_errors", "quilted_storage_bytes", "MAX_QUILT_SIDE"]
