@@ -3,8 +3,13 @@
 ``DYNBTF_CPU_ISA=avx2 bash scripts/test.sh`` runs the whole suite on the AVX2 path (dynbtf's kernels, PyTorch's,
 MKL's and numba's) on a CPU that has more: dynbtf is imported first so that it sets the libraries' variables
 before they load (:mod:`dynbtf.cpu`).
+
+``DYNBTF_REQUIRE_BACKENDS=1`` (set by ``.ci/run``) turns a skipped one-truth test (``tests/test_one_truth.py``: a
+backend missing -- Mitsuba, Dr.Jit's LLVM, headless Chromium, the native kernel) into a failure: in CI every
+backend must be held to the float64 reference, not quietly left out.
 """
 
+import os
 import random
 
 import dynbtf  # noqa: F401  (first: DYNBTF_CPU_ISA reaches PyTorch, MKL and numba before they load)
@@ -20,6 +25,22 @@ def pytest_report_header(config):
     if problem:
         raise pytest.UsageError(problem)
     return f"dynbtf CPU level: {isa_description()}; PyTorch kernels: {torch.backends.cpu.get_cpu_capability()}"
+
+
+#: Test modules whose skips are failures under ``DYNBTF_REQUIRE_BACKENDS=1``.
+REQUIRED_BACKEND_MODULES = ("test_one_truth",)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    report = outcome.get_result()
+    if report.skipped and os.environ.get("DYNBTF_REQUIRE_BACKENDS") == "1" and \
+            getattr(item.module, "__name__", "").split(".")[-1] in REQUIRED_BACKEND_MODULES:
+        reason = report.longrepr[-1] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+        report.outcome = "failed"
+        report.longrepr = (f"skipped where every backend is required (DYNBTF_REQUIRE_BACKENDS=1): {reason}; "
+                           "install what scripts/install.sh --test installs")
 
 
 @pytest.fixture(autouse=True)
