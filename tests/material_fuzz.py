@@ -31,14 +31,18 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
-METHODS = ("tile", "linear", "hist", "hex", "struct", "quilt")
+METHODS = ("tile", "linear", "hist", "hex", "struct", "quilt", "relief")
+#: Materials of the campaign: a method of the Triple Plane, or ``relief`` (hist of a triple-parallax model: a height
+#: channel marched by the query).
 SECTIONS = ("synthesis", "decoder", "model", "sampling", "header")
 
 
 def base_materials(size: int = 32) -> dict:
     """One valid material per method of a random ``size x size`` Triple Plane (footprint decoders copied from
-    the point decoder on tile, hist and struct; a sampling table on hist)."""
+    the point decoder on tile, hist and struct; a sampling table on hist), and ``relief``: hist of a
+    triple-parallax model with a random height field."""
     from dynbtf.decoder.folded import MeanAppearance
+    from dynbtf.representations.parallax import ParallaxTriplePlane
     from dynbtf.representations.triple_plane import TriplePlane
     from dynbtf.synthesis.mip import level_shapes
     from dynbtf.synthesis.registry import synthesizer_class
@@ -46,7 +50,12 @@ def base_materials(size: int = 32) -> dict:
 
     model = TriplePlane(size, size, seed=0)
     materials = {}
+    relief = ParallaxTriplePlane(size, size, seed=0)
+    relief.set_height(0.01 * torch.rand(size, size, generator=torch.Generator().manual_seed(4)))
     for method in METHODS:
+        if method == "relief":
+            materials[method] = compile_material(relief, "hist", 0, footprints=False, progress=False)
+            continue
         material = compile_material(model, method, 0, footprints=False, progress=False)
         if method in ("tile", "hist", "struct"):
             plane = model.positional_plane().detach()
@@ -162,8 +171,10 @@ def mutate(parts: dict, rng: np.random.Generator, others: dict) -> str:
             h["model_sha256"] = others["digest"]
             return "header model_sha256 -> another model's"
         if field == "config":
-            key = ["hidden", "positional_channels", "height", "angular_resolution", "layers"][rng.integers(5)]
-            h["config"] = {**h["config"], key: [0, 1, 64, -3, 10 ** 6][rng.integers(5)]}
+            keys = ["hidden", "positional_channels", "height", "angular_resolution", "layers", "height_scale",
+                    "march_step_texels"]
+            key = keys[rng.integers(len(keys))]
+            h["config"] = {**h["config"], key: [0, 1, 64, -3, 10 ** 6, 1e-9, 4.0][rng.integers(7)]}
             return f"header config {key} -> {h['config'][key]}"
         if field == "choice":
             h["choice"] = [{"method": 5}, "x", {"method": "hist", "line": None, "strength": "high"}][rng.integers(3)]

@@ -157,3 +157,30 @@ def test_header_fields_are_under_the_checksum(models, tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert load_compiled(path).seed == 0
+
+
+@pytest.mark.parametrize("config", [{"height_scale": 1e6}, {"march_step_texels": 1e-9}])
+def test_a_relief_whose_march_would_not_end_is_refused_when_read(tmp_path, config):
+    """A relief's configuration within its own bounds (height scale up to 1e6 uv, march steps down to any positive
+    size) can make every query march for seconds or forever: the model file and a compiled material of it are refused
+    before they answer anything, in a fraction of a second."""
+    import time
+
+    from dynbtf.representations.model_file import save_model
+    from dynbtf.representations.parallax import ParallaxTriplePlane
+    from dynbtf.training.compile import compile_material
+
+    sound = ParallaxTriplePlane(16, 16, seed=0)
+    sound.set_height(0.01 * torch.rand(16, 16, generator=torch.Generator().manual_seed(0)))
+    assert sound.state_problem() is None
+    bad = ParallaxTriplePlane(16, 16, seed=0, **config)
+    bad.load_state_dict(sound.state_dict())
+    save_model(tmp_path / "bad.dbtfm", bad)
+    material = compile_material(sound, "hist", 0, footprints=False, progress=False)
+    material.model = bad
+    save_compiled(material, tmp_path / "bad.dbtfc")
+    for path in (tmp_path / "bad.dbtfm", tmp_path / "bad.dbtfc"):
+        start = time.perf_counter()
+        with pytest.raises(FormatError, match="march steps"):
+            SynthesizedBTF(path, "hist") if path.suffix == ".dbtfm" else SynthesizedBTF(path)
+        assert time.perf_counter() - start < 30

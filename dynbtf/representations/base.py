@@ -181,6 +181,12 @@ class Representation(nn.Module, abc.ABC):
         """
         return uv
 
+    def state_problem(self) -> str | None:
+        """Why this model's parameters (as read from a file) cannot be answered in bounded time or memory, or
+        None. Checked by :mod:`~dynbtf.representations.model_file` before the model answers anything; the
+        paper's representations have no such limit (a relief's march does: see its override)."""
+        return None
+
     def forward(self, uv: torch.Tensor, w_view: torch.Tensor, w_light: torch.Tensor) -> torch.Tensor:
         """BTF value ``(..., 3)`` at ``uv (..., 2)`` for directions ``(..., 3)``."""
         check_query_shapes(uv, w_view, w_light)

@@ -289,6 +289,15 @@ def _check_values(path: Path, tensors: dict[str, torch.Tensor]) -> None:
                                     f"model (at most {MAX_ABS_PARAMETER:.0e}): the model is damaged; refit it")
 
 
+def _check_state(path: Path, rep: Representation) -> None:
+    """:class:`FormatError` where the representation says its parameters cannot be answered in bounded time
+    (:meth:`~dynbtf.representations.base.Representation.state_problem`, e.g. a relief marched over millions of
+    steps): checked before the test queries, which would otherwise not return."""
+    problem = rep.state_problem()
+    if problem is not None:
+        raise FormatError(path, f"{problem}: the model is damaged; refit it")
+
+
 def _check_outputs(path: Path, rep: Representation, max_output: float) -> None:
     """Decode :data:`CHECK_QUERIES` fixed queries; :class:`FormatError` if an answer is non-finite or beyond
     ``max_output``, naming the tensor of largest magnitude (the likeliest culprit)."""
@@ -345,6 +354,7 @@ def load_model(path, device=None, *,
     rep = architecture
     rep.load_state_dict(tensors, strict=True, assign=True)  # the meta module takes the file's tensors
     rep.eval()
+    _check_state(path, rep)
     if device is not None:
         rep.to(resolve_device(device))
     _check_outputs(path, rep, max_output)
@@ -408,5 +418,6 @@ def representation_from_state(path, kind: str, config: dict[str, Any], tensors: 
     _check_values(path, tensors)
     architecture.load_state_dict(tensors, strict=True, assign=True)
     architecture.eval()
+    _check_state(path, architecture)
     _check_outputs(path, architecture, max_output)
     return architecture

@@ -52,6 +52,10 @@ __all__ = ["view_offsets", "march_visible_uv", "VisibleTexelCache", "ParallaxTri
 MARCH_STEP_TEXELS = 0.5
 #: The longest search step of a model's march in units of its resolution (``march_step_texels``).
 MARCH_SEARCH_FACTOR = 16
+#: Most march steps a model's height range may span (its plane's largest magnitude, both signs, in uv, over its
+#: march step): a fitted relief spans tens to a few thousand (a 4096-texel side); a file beyond it is refused
+#: before it answers (each query would march for seconds or never return).
+MAX_MARCH_SPAN = 1 << 15
 #: The slope the march's search step assumes the surface may rise at (height per horizontal distance): a step
 #: covers the gap under the ray as if the surface rose towards the ray at this slope (see :func:`march_visible_uv`).
 MARCH_SURFACE_SLOPE = 0.5
@@ -425,6 +429,17 @@ class ParallaxTriplePlane(TriplePlane):
         with its ``h_min`` and ``h_max``."""
         plane = channel.to(torch.float64) * self.height_scale
         return plane, float(plane.min()), float(plane.max())
+
+    def state_problem(self) -> str | None:
+        """A height range (the plane's largest magnitude, either sign, times ``height_scale``: what a synthesized
+        height may reach) spanning more than :data:`MAX_MARCH_SPAN` march steps, or None."""
+        plane = self.positional_plane().detach()
+        reach = 2.0 * float(plane.abs().max()) * self.height_scale if plane.numel() else 0.0
+        span = reach / self.march_parameters()["step"]
+        if not span <= MAX_MARCH_SPAN:
+            return (f"its height field spans {span:.3g} march steps ({reach:.3g} uv of height over steps of "
+                    f"{self.march_parameters()['step']:.3g} uv; a fitted relief spans at most {MAX_MARCH_SPAN})")
+        return None
 
     def march_parameters(self) -> dict[str, float]:
         """``step``, ``max_step`` (uv units), ``surface_slope`` and ``aspect`` of this model's march (:func:`march_visible_uv`):
