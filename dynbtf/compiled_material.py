@@ -4,7 +4,7 @@ A synthesized BTF is a fitted model, a synthesis method and a seed. Answering a 
 than the model file: the method's off-line tables (inverse histogram tables, hex luminance, cut
 tables, a quilted plane), the feature pyramid and its per-level tables, the decoder with the
 method's output map folded into layer 1, the per-level decoders and the mean appearance of
-footprint queries (fitted, ~20 s per model, method and seed), and the renderer's importance-sampling
+footprint queries (fitted once per model, method and seed), and the renderer's importance-sampling
 table. A :class:`CompiledMaterial` holds all of it; :func:`dynbtf.training.compile.compile_material`
 builds it once, and the library's evaluation (:class:`dynbtf.infinite_btf.SynthesizedBTF`), the
 Mitsuba plugin and the web export read it.

@@ -32,8 +32,8 @@ Training gets the budget the other stages leave and stops with a checkpoint if
 it has not converged; to train on, delete ``<output>/stages/fit.json`` and rerun
 (training continues from ``model.dbtfm.ckpt``, the later stages are redone).
 
-``quick=True`` shrinks every stage (a small decoder, ~10 s of training, tiny images, one small render)
-so that the whole demo runs in well under a minute: what the tests use.
+``quick=True`` shrinks every stage (a small decoder, seconds of training, tiny images, one small render):
+what the tests use.
 """
 
 from __future__ import annotations

@@ -43,8 +43,8 @@ positional weights, applied by one BLAS matmul; the angular features and their
 first-layer product come from a second numba kernel, vectorized across queries,
 that reads angular planes pre-multiplied by their layer-1 weights and applies
 the LeakyReLU (:mod:`dynbtf.decoder.fast_decode`); layers 2.. run in torch on blocks of
-16384 rows in ``precision`` (``"bf16"`` is ~2x faster on CPUs with bf16 matrix
-units and emulated, i.e. much slower, elsewhere; it differs from float32 by
+16384 rows in ``precision`` (``"bf16"`` pays on CPUs with bf16 matrix
+units and is emulated, i.e. much slower, elsewhere; it differs from float32 by
 < 0.01, bounded in the tests). Representations without a split first layer are
 decoded with their own ``decode``. Measured numbers: ``docs/synthesis.md``.
 
@@ -54,7 +54,7 @@ Everything a query reads besides the model -- the method's tables, the pyramid, 
 layer, the per-level decoders and the mean appearance -- comes from a compiled material
 (:mod:`dynbtf.compiled_material`), read from the cache keyed by the model's contents or compiled on
 first use (:func:`dynbtf.training.compile.cached_material`): the tables when the object is built,
-the footprint decoders (~20 s on 2 cores the first time) at the first footprint query. ``model`` may
+the footprint decoders (a fit per pyramid level, the first time) at the first footprint query. ``model`` may
 also be a compiled material file (``dynbtf compile``), which then holds everything.
 
 Devices
@@ -211,7 +211,7 @@ def _material(model, material, synthesizer, seed: int, params: dict) -> Compiled
 
 
 def _level_runs(levels: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
-    """The stable order that sorts queries by level (int8: numpy radix-sorts it, ~5x faster) and the runs
+    """The stable order that sorts queries by level (int8: numpy radix-sorts it) and the runs
     ``(start, stop, level)`` of the sorted queries."""
     order = np.argsort(levels.astype(np.int8), kind="stable")
     cuts = np.flatnonzero(np.diff(levels[order])) + 1
@@ -425,7 +425,7 @@ class SynthesizedBTF:
         fused = self.decode_path is not None and self.decode_path.fused
         if self.workers > 1 and len(chunks) > 1 and fused:
             # one chunk per Python thread, each with single-threaded torch and numba: no OpenMP pools handing
-            # over between numba kernels and torch matmuls (their spin-waiting made two threads ~8x slower)
+            # over between numba kernels and torch matmuls (their spin-waiting made two threads many times slower)
             from .decoder.fused_mlp import single_intra_op_thread
 
             with single_intra_op_thread():

@@ -23,7 +23,7 @@ def compile_command(
     gamma: Optional[float] = typer.Option(None, "--gamma", help="Blending exponent of hist (when hist is used)."),
     footprints: bool = typer.Option(True, "--footprints/--no-footprints",
                                     help="Also fit the per-level decoders and mean appearance of footprint "
-                                         "(filtered) queries: ~20 s per 64 x 64 model on 2 cores, done once."),
+                                         "(filtered) queries: a fit per pyramid level, the slow part, done once."),
 ) -> None:
     """Derive once what every backend reads for MODEL, METHOD and SEED, and save it.
 

@@ -3,9 +3,8 @@
 Quilting is not dynamic: its plane is generated and held in memory before the
 first query. Its size (``--quilt-repeats``, default ``ceil(--scale)`` so that the
 image shows no wrap-around) is bounded by :data:`QUILT_MAX_BYTES` of stored
-float32 plane; generating it takes ~9x that memory at its peak (float64 work
-arrays) and 4-10 ms per block on one core for a 128^2 x 16 exemplar (8 x 8 repeats
-in ~6 s; time grows with the square of the repeats).
+float32 plane; generating it takes several times that memory at its peak (float64
+work arrays), and its time grows with the square of the repeats.
 """
 
 from __future__ import annotations

@@ -332,8 +332,8 @@ class UBO2014BTF(BTFSource):
         The ``SxV`` factors (what every image decode reads in full) are
         converted once to float32 (float64 for double files) and kept in memory
         when they fit in this many bytes (default 1 GiB; ``0`` disables):
-        single-image decodes of half files were 3.4x faster in
-        ``benchmarks/btf_decode_speed.py``. Otherwise they are converted chunk
+        single-image decodes of half files are faster so
+        (``benchmarks/btf_decode_speed.py``). Otherwise they are converted chunk
         by chunk on every decode.
 
     Attributes
@@ -525,7 +525,7 @@ class UBO2014BTF(BTFSource):
             cos_l = np.maximum(self.lights[pairs[..., 1], 2], _MIN_COS_LIGHT)
             out = out / torch.as_tensor(cos_l, dtype=out.dtype, device=device)[..., None, None]
         out = out.to(torch.float32)
-        # a NaN or infinity anywhere makes the sum non-finite (1 ms); only then is every value checked
+        # a NaN or infinity anywhere makes the sum non-finite (one cheap pass); only then is every value checked
         if not bool(torch.isfinite(out.sum())) and not bool(torch.isfinite(out).all()):
             raise FormatError(self.path, "decoded values are not finite (overflow in the stored factors)")
         return out
@@ -541,7 +541,7 @@ class UBO2014BTF(BTFSource):
             cuts = np.flatnonzero(np.diff(texels) != 1) + 1
             if len(cuts) <= 2:  # one block, or one wrapping round the end of the image: slices, no copy
                 for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, n]):
-                    # in cache-sized pieces: one long product was 1.5x slower (measured at 160,000 texels)
+                    # in cache-sized pieces: one long product was slower (measured at full size)
                     for a in range(int(lo), int(hi), _TEXELS_PER_PRODUCT):
                         z = min(a + _TEXELS_PER_PRODUCT, int(hi))
                         start = int(texels[lo]) + a - int(lo)

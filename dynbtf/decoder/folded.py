@@ -34,8 +34,8 @@ from ..tables import Table
 
 __all__ = ["FoldedDecoder", "LevelDecoder", "MeanAppearance", "DecodePath", "mlp", "hidden_layers", "MLP_ROWS"]
 
-#: Rows per call of decoder layers 2..: torch's small (32-wide) linear layers ran ~3x faster per row
-#: at <= 16384 rows than at 32768+ (activations stay in cache; measured on a 2-core EPYC).
+#: Rows per call of decoder layers 2..: torch's small (32-wide) linear layers ran faster per row at
+#: <= 16384 rows than at 32768+ (the activations stay in cache).
 MLP_ROWS = 16384
 
 Layers = list[tuple[torch.Tensor, torch.Tensor]]

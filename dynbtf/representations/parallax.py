@@ -498,7 +498,7 @@ class ParallaxTriplePlane(TriplePlane):
         ``height_refresh_texels`` on average or by a texel anywhere (a learned height changes every
         optimizer step; between two marches :meth:`_visible_features` follows it by a Newton step)."""
         current = self.height_channel.detach()
-        if current.device.type == "cpu":  # (numpy: microseconds; torch's small reductions cost ~0.1 ms here)
+        if current.device.type == "cpu":  # (numpy: cheap; torch's small reductions cost more than the work here)
             moved = np.abs(current.numpy() - self.marched_height_channel.numpy())
             mean, largest = float(moved.mean()), float(moved.max())
         else:

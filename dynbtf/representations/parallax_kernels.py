@@ -69,7 +69,7 @@ def _height_at(plane, x, y):
 
 
 #: Rays below which :func:`march_plane` marches on the calling thread: waking the parallel workers costs more
-#: than it saves there (up to ~1 ms per call, measured in training while the decoder's threads held both cores).
+#: than it saves there (measured in training, while the decoder's threads hold both cores).
 PARALLEL_MARCH_RAYS = 1024
 
 

@@ -20,8 +20,8 @@ denominator is not differentiated).
 
 * **torch operations** (``grid_sample`` and autograd): the definition, on any device and dtype.
 * **compiled loops** (numba) for float32 CPU tensors: one loop over the points forward and one backward, in
-  place of some forty small torch operations and their autograd nodes (a 64 x 64 training step: 14.0 ms with
-  the torch form, 12.3 ms with the loops).
+  place of some forty small torch operations and their autograd nodes (faster per training step:
+  ``benchmarks/bench_parallax_training.py`` measures both forms).
 
 The compiled loops do **torch's float32 arithmetic operation for operation**, so that a fit takes the same
 trajectory whichever form runs (a fit is chaotic: loops that summed in another order led the default 64 x 64

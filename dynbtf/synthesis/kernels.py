@@ -6,7 +6,7 @@ runs the lattice, the vertex hashes and the texel addressing and issues a
 prefetch for each of the 12 texels a query reads; pass 2 reads them, blends in
 float32 and applies the inverse LUT. At random uv the reads are cache misses
 on a plane of megabytes; issuing a whole block's misses before using them
-overlaps their latency (~1.3x faster than one pass per query on the 2-core EPYC).
+overlaps their latency (faster than one pass per query: ``benchmarks/bench_synthesis_eval.py``).
 It computes what the torch reference path of :class:`~dynbtf.synthesis.blending.LatticeBlending`
 computes (same lattice arithmetic in float64/int64, same hash -- the functions
 of :mod:`dynbtf.synthesis.hash` compiled as they are; the blend itself in

@@ -4,7 +4,7 @@
 on the model's positional plane (``auto`` resolved, its off-line tables and pyramid), the decoder
 with the method's output map folded into layer 1 and, with ``footprints=True``, the per-level
 decoders and mean appearance of footprint queries (:mod:`dynbtf.training.footprint_decoders`, the
-expensive part: ~20 s for a 64 x 64 model on 2 cores). :func:`cached_material` does the same through
+expensive part: a fit per pyramid level, timed in ``docs/compiled_material.md``). :func:`cached_material` does the same through
 an on-disk cache keyed by the model's contents, so a second process (another ``dynbtf render`` of
 the same model, a Mitsuba scene load, a second ``dynbtf demo``) reads what the first one built.
 

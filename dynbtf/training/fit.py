@@ -14,8 +14,8 @@ out), each seen under its own 16 pairs: a step then covers ``16 G`` distinct
 of its texels each time. Group ``g`` is the ``g``-th block of ``n`` consecutive
 texels (row-major, wrapping) after a random start drawn per step, so a step's
 batch is gathered with contiguous reads; scattered random groups learned the same
-per step (measured: held-out PSNR equal to 0.01 dB over 800 steps) but cost
-~20 ms per step of random memory reads at 128 x 128. The angular planes and the
+per step (held-out PSNR equal to float noise) but cost a random memory read
+per texel. The angular planes and the
 decoder see many more directions per step, which makes each sample count more
 (``benchmarks/bench_training.py`` measures both).
 
@@ -665,7 +665,7 @@ class _TrainingRun:
         lights = torch.as_tensor(source.lights, dtype=torch.float32, device=device)
         with torch.no_grad():
             self.angular_taps = rep.direction_taps(views.repeat_interleave(len(lights), 0), lights.repeat(len(views), 1))
-        # fused: one kernel per step for all parameters (same update; ~0.2 ms less per step on the CPU)
+        # fused: one kernel per step for all parameters (same update, less time per step on the CPU)
         self.optimizer = torch.optim.AdamW(_param_groups(rep, config.lr_scale), fused=True)
         self.monitor = HeldOutMonitor(self.store, self.held_out, config.monitor_pairs, config.seed, device)
         self.schedule = make_schedule(config, self.sampler.steps_per_epoch)

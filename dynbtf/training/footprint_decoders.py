@@ -61,7 +61,7 @@ def random_direction_pairs(rng: np.random.Generator, n: int) -> np.ndarray:
 
 def _adam_steps(loss_of, parameters, steps: int, batches) -> None:
     """Adam (cosine schedule) on ``loss_of(rows)``, one step per row-index batch, on one torch thread: the small
-    layers' backward passes ran ~10x slower on two threads of a loaded 2-core machine (OpenMP spin-waiting).
+    layers' backward passes ran several times slower on two threads of a loaded machine (OpenMP spin-waiting).
 
     ``eps`` sits well above float noise: where a decoder is already exact (e.g. a constant plane) the gradients
     are rounding noise, which Adam's normalization would otherwise turn into full-size steps."""

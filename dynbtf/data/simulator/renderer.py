@@ -55,8 +55,8 @@ def _single_torch_thread():
 
     With the numba backend the heavy work runs in numba's own threads; the torch
     ops in between are small (one value per texel), and on a busy machine
-    waking torch's intra-op thread pool for each of them costs milliseconds
-    (measured: ``floor`` of 16k values 5-20 ms with 2 threads, 6 us with 1).
+    waking torch's intra-op thread pool for each of them costs far more than
+    the operation itself.
     """
     old = torch.get_num_threads()
     if old != 1:

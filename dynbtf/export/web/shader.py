@@ -147,7 +147,7 @@ def glsl_source(*, channels: int, angular_channels: int, hidden: int, layers: in
     ``angular_weights`` (layer 1's angular part) and ``rest_weights`` (layers 2.., each
     ``(mat4 blocks, vec4 biases)``), all flat float32 arrays in the order of
     :func:`dynbtf.export.web.exporter` 's ``decoder.bin`` (literals that parse to the same float32
-    values; as constants they run 2-4x faster in software GL than read from uniform blocks).
+    values; as constants they run faster in software GL than read from uniform blocks).
     The method's quantities (tables, parameters, layer 1's positional part with its output map
     folded in) are uniforms, a uniform block and textures, so one program serves every method.
     ``relief`` (models with a height field: ``h_min``, ``h_max``, ``step``, ``max_step``, ``surface_slope``, ``aspect``,

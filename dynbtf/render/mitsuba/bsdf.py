@@ -322,7 +322,7 @@ thread, so the change holds for the rest of the calling thread's life and for
 everything Dr.Jit runs in it, not only this BSDF: every later loop (e.g. any
 integrator's path loop) and virtual call is evaluated in wavefront mode. Why:
 in wavefront mode the unrolled decoder (thousands of fused multiply-adds) is
-fused into straight-line kernels, ~15x faster on the CPU than tracing it once as
+fused into straight-line kernels, many times faster on the CPU than tracing it once as
 a symbolic callee of the integrator's symbolic loop. Renders are the same
 either way; code that needs symbolic mode afterwards (e.g. to keep memory low
 on huge wavefronts) sets the flags back with ``drjit.set_flag``; another thread
@@ -344,7 +344,7 @@ def configure_jit() -> None:
 
     Symbolic loops and calls trace the integrator's loop body once and dispatch
     BSDF calls indirectly; with them off (wavefront mode), the plugin's code is
-    fused into straight-line kernels -- ~15x faster on the CPU for this BSDF.
+    fused into straight-line kernels -- many times faster on the CPU for this BSDF.
 
     The flags are Dr.Jit's per-thread state: this changes them for everything
     the calling thread runs afterwards (see "Dr.Jit flags" in :data:`PLUGIN_DOC`).

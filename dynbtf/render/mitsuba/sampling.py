@@ -50,9 +50,9 @@ __all__ = ["SAMPLING_MODES", "DEFAULT_TABLE_WEIGHT", "AUTO_MIN_COSINE_VARIANCE",
 #: Values of the plugin's ``sampling`` parameter.
 SAMPLING_MODES = ("auto", "mixture", "cosine")
 #: ``auto`` samples the table (``mixture``) when :func:`cosine_relative_variance` of the model's table is
-#: above this, else cosine-weighted. Measured (docs/rendering.md): the glossy lacquered wood scores ~32
-#: and renders 13-18x faster to equal error with the table; leather (~1.2) and stone (~0.05) gain nothing
-#: per sample and lose the table's ~10% cost per sample.
+#: above this, else cosine-weighted: the glossy materials that render faster to equal error with the table
+#: score far above it, the rough ones that gain nothing per sample (and lose the table's cost) far below
+#: (scores and renders in docs/rendering.md, ``benchmarks/bench_sampling.py``).
 AUTO_MIN_COSINE_VARIANCE = 4.0
 #: Probability of drawing from the table in ``mixture`` mode (the rest: cosine).
 DEFAULT_TABLE_WEIGHT = 0.75
