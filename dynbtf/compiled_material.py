@@ -48,8 +48,7 @@ from typing import Any
 
 import torch
 
-from .decoder.folded import FoldedDecoder
-from .decoder.folded import MAX_MEAN_NODES
+from .decoder.folded import MAX_MEAN_NODES, FoldedDecoder, stored_levels
 from .errors import FormatError, InputError
 from .io import atomic_path, user_cache_dir
 from .representations.model_file import read_checked_tensors, representation_from_state, tensor_digest
@@ -319,7 +318,7 @@ def _check_tables(path: Path, model, method: str, synthesis: dict[str, torch.Ten
         else:
             reference = FoldedDecoder.fold(fast.decoder, None, None)
             check_tables(decoder, FoldedDecoder.stored_tables(decoder, reference))
-            count = sum(1 for name in decoder if name.endswith(".weight") and name.count(".") == 2)
+            count = stored_levels(decoder)
             levels = len(level_shapes(*synthesizer.pyramid_size(synthesis, plane)))
             if count not in (1, levels):
                 raise TableError(f"{count} level decoders, expected 1 (the point decoder) or one per pyramid level "

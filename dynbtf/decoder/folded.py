@@ -32,7 +32,7 @@ import torch.nn.functional as F
 
 from ..tables import Table
 
-__all__ = ["FoldedDecoder", "LevelDecoder", "MeanAppearance", "DecodePath", "mlp", "hidden_layers", "MLP_ROWS"]
+__all__ = ["FoldedDecoder", "LevelDecoder", "MeanAppearance", "DecodePath", "mlp", "hidden_layers", "stored_levels", "MLP_ROWS"]
 
 #: Rows per call of decoder layers 2..: torch's small (32-wide) linear layers ran faster per row at
 #: <= 16384 rows than at 32768+ (the activations stay in cache).
@@ -45,6 +45,11 @@ Layers = list[tuple[torch.Tensor, torch.Tensor]]
 MAX_STORED_VALUE = 1e6
 #: Most quadrature nodes of a stored mean appearance.
 MAX_MEAN_NODES = 4096
+
+
+def stored_levels(arrays: dict[str, torch.Tensor]) -> int:
+    """How many level decoders :meth:`FoldedDecoder.to_tensors` tensors hold (``level.<i>.weight`` entries)."""
+    return sum(1 for name in arrays if re.fullmatch(r"level\.\d+\.weight", name))
 
 
 def hidden_layers(x: torch.Tensor, layers: Layers, slope: float) -> torch.Tensor:
@@ -197,8 +202,7 @@ class FoldedDecoder:
                  Table("positional_channels", torch.int64, (), reference.positional_channels,
                        reference.positional_channels),
                  Table("slope", torch.float64, (), reference.slope, reference.slope)]
-        count = sum(1 for name in arrays if re.fullmatch(r"level\.\d+\.weight", name))
-        for i in range(max(count, 1)):
+        for i in range(max(stored_levels(arrays), 1)):
             rules += [Table(f"level.{i}.weight", f32, tuple(point.weight.shape), -v, v),
                       Table(f"level.{i}.bias", f32, tuple(point.bias.shape), -v, v)]
             rules += layer_rules(f"level.{i}.rest", point.rest)
@@ -213,9 +217,8 @@ class FoldedDecoder:
     def from_tensors(cls, arrays: dict[str, torch.Tensor], device="cpu") -> "FoldedDecoder":
         """Inverse of :meth:`to_tensors` (raises ``KeyError`` naming a missing tensor)."""
         a = {k: v.to(device) for k, v in arrays.items()}
-        count = sum(1 for k in a if k.startswith("level.") and k.endswith(".weight") and k.count(".") == 2)
         levels = [LevelDecoder(a[f"level.{i}.weight"].float(), a[f"level.{i}.bias"].float(),
-                               _tensors_layers(a, f"level.{i}.rest")) for i in range(count)]
+                               _tensors_layers(a, f"level.{i}.rest")) for i in range(stored_levels(a))]
         mean = None
         if "mean.nodes" in a:
             mean = MeanAppearance(a["mean.nodes"].float(), a["mean.weights"].float(), _tensors_layers(a, "mean.rest"))
