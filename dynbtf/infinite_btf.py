@@ -27,7 +27,7 @@ Units and conventions
 * ``footprint`` (optional) -- the side of the square of surface a query stands for, in ``uv``
   units (a pixel's footprint): the answer approximates the BTF averaged over it (mip pyramid of
   the synthesized plane, per-level inverse tables and the compiled material's per-level decoders;
-  :mod:`dynbtf.synthesis.mip`, :mod:`dynbtf.training.footprint_decoders`). ``None``: the point query.
+  :mod:`dynbtf.synthesis.mip`, :mod:`dynbtf.material.footprint_decoders`). ``None``: the point query.
 * Output -- linear RGB ``(..., 3)`` float32, excluding ``cos(theta_light)``
   (``pi f_r``); NumPy in, NumPy out; torch in, torch out.
 
@@ -52,8 +52,8 @@ Compiled materials
 ------------------
 Everything a query reads besides the model -- the method's tables, the pyramid, the folded first
 layer, the per-level decoders and the mean appearance -- comes from a compiled material
-(:mod:`dynbtf.compiled_material`), read from the cache keyed by the model's contents or compiled on
-first use (:func:`dynbtf.training.compile.cached_material`): the tables when the object is built,
+(:mod:`dynbtf.material`), read from the cache keyed by the model's contents or compiled on
+first use (:func:`dynbtf.material.open_or_compile`): the tables when the object is built,
 the footprint decoders (a fit per pyramid level, the first time) at the first footprint query. ``model`` may
 also be a compiled material file (``dynbtf compile``), which then holds everything.
 
@@ -76,12 +76,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from .compiled_material import CompiledMaterial, open_model_file
 from .conventions import check_directions, spherical_to_direction
 from .decoder.folded import DecodePath, FoldedDecoder
 from .errors import InputError, positive_number
 from .synthesis.base import Synthesizer, check_footprint, check_uv
-from .training.compile import APPEARANCE_PAIRS, cached_material, compile_material, decoded_appearance
+from .material import APPEARANCE_PAIRS, CompiledMaterial, compile_material, decoded_appearance, open_model_file, open_or_compile
 
 __all__ = ["SynthesizedBTF", "PRECISIONS", "footprint_width", "flat_image", "auto_method", "decoded_appearance",
            "APPEARANCE_PAIRS"]
@@ -206,7 +205,7 @@ def _material(model, material, synthesizer, seed: int, params: dict) -> Compiled
                              f"{model.positional_plane().device}; build it on the model's device")
         return compile_material(model, synthesizer=synthesizer, footprints=False)
     if isinstance(synthesizer, str):
-        return cached_material(model, synthesizer, seed, footprints=False, **params)[0]
+        return open_or_compile(model, synthesizer, seed, footprints=False, **params)[0]
     raise InputError(f"synthesizer: expected a method name or a Synthesizer, got {type(synthesizer).__name__}")
 
 
@@ -270,7 +269,7 @@ class SynthesizedBTF:
         Default: where ``model`` is (a file: the CPU). The numba fast paths run on the CPU only.
     level_decoders : bool, default True
         Footprint queries decode each pyramid level with its own decoder (the decoder is nonlinear:
-        decoding filtered features is biased; :mod:`dynbtf.training.footprint_decoders`). False: the
+        decoding filtered features is biased; :mod:`dynbtf.material.footprint_decoders`). False: the
         point decoder for every level.
     **params
         Method parameters (see each synthesizer).
@@ -337,7 +336,7 @@ class SynthesizedBTF:
         if self.level_decoders and not self._footprints_ready:
             m = self.material
             if m.key and not self._given_tables:  # the resolved method's entry in the cache
-                full = cached_material(self.model, m.method, m.seed, footprints=True, **m.arguments)[0]
+                full = open_or_compile(self.model, m.method, m.seed, footprints=True, **m.arguments)[0]
                 self.material = replace(full, choice=m.choice, _synthesizers=full._synthesizers)
             else:  # tables from inputs the cache key does not cover: fitted here, not cached
                 self.material = compile_material(self.model, base=m, footprints=True)

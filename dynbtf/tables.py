@@ -1,6 +1,6 @@
 """Rules for stored tables, checked before any kernel reads them.
 
-A compiled material (:mod:`dynbtf.compiled_material`) carries a synthesis method's off-line tables
+A compiled material (:mod:`dynbtf.material`) carries a synthesis method's off-line tables
 and the folded decoders. A file may come from anyone, and its checksum proves only that it was not
 damaged on the way, not that its tables make sense: a NaN histogram bound or an offset index past the
 cut tables sends a compiled kernel outside its arrays. So whoever stores tables declares them

@@ -77,7 +77,7 @@ def small_level_decoder_fit():
     the default's size buys robustness of the benchmark's FLIP, not correctness, and would double the
     suite's time (a fit per model, method and seed). Subprocesses (CLI tests) use the defaults.
     """
-    import dynbtf.training.footprint_decoders as fits
+    import dynbtf.material.footprint_decoders as fits
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(fits, "LEVEL_FIT_QUERIES", 4096)

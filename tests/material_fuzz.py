@@ -1,5 +1,5 @@
 """Crafted compiled materials against the reader: a hostile user's files, written through the public
-:func:`dynbtf.compiled_material.save_compiled` (so every checksum is valid).
+:func:`dynbtf.material.format.save_compiled` (so every checksum is valid).
 
 Run by ``tests/test_material_fuzz.py`` in a child process (a crash must not take the test runner with
 it), or by hand for a longer campaign::
@@ -46,7 +46,7 @@ def base_materials(size: int = 32) -> dict:
     from dynbtf.representations.triple_plane import TriplePlane
     from dynbtf.synthesis.mip import level_shapes
     from dynbtf.synthesis.registry import synthesizer_class
-    from dynbtf.training.compile import compile_material
+    from dynbtf.material import compile_material
 
     model = TriplePlane(size, size, seed=0)
     materials = {}
@@ -218,7 +218,7 @@ def query(path: Path, footprints: bool) -> torch.Tensor:
 
 
 def run(cases: int, seed: int, workdir: Path) -> dict:
-    from dynbtf.compiled_material import save_compiled
+    from dynbtf.material import save_compiled
     from dynbtf.errors import FormatError, InputError
     from dynbtf.representations.model_file import tensor_digest
     from dynbtf.representations.triple_plane import TriplePlane

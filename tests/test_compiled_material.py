@@ -1,4 +1,4 @@
-"""Compiled materials: the saved artifact every backend reads (dynbtf.compiled_material, dynbtf.training.compile).
+"""Compiled materials: the saved artifact every backend reads (dynbtf.material, dynbtf.material).
 
 Round trips (every synthesis method's tables, the folded decoder, per-level decoders and mean appearance read back
 bit for bit), damaged and foreign files (clear errors naming the file), the cache keyed by model contents (a second
@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 import torch
 
-from dynbtf.compiled_material import FORMAT_VERSION, load_compiled, save_compiled
+from dynbtf.material import FORMAT_VERSION, load_compiled, save_compiled
 from dynbtf.errors import FormatError, InputError
 from dynbtf.infinite_btf import SynthesizedBTF
-from dynbtf.training.compile import cached_material, compile_material
+from dynbtf.material import open_or_compile, compile_material
 from test_one_truth import material_model, material_queries as queries
 
 METHODS = ["tile", "linear", "hist", "hex", "struct", "quilt"]
@@ -105,23 +105,23 @@ def test_damaged_foreign_and_newer_files_are_refused_naming_the_file(model, tmp_
 def test_the_cache_is_keyed_by_contents_and_a_damaged_entry_is_rebuilt(model, tmp_path, monkeypatch):
     import copy
 
-    import dynbtf.training.compile as compile_module
+    import dynbtf.material.cache as compile_module
 
     monkeypatch.setenv("DYNBTF_COMPILED_CACHE", str(tmp_path / "cache"))
     built = []
     real = compile_module.compile_material
     monkeypatch.setattr(compile_module, "compile_material", lambda *a, **k: built.append(a[1]) or real(*a, **k))
-    first, how = cached_material(model, "hex", 3, footprints=False)
+    first, how = open_or_compile(model, "hex", 3, footprints=False)
     assert how == "compiled" and built == ["hex"]
-    second, how = cached_material(copy.deepcopy(model), "hex", 3, footprints=False)
+    second, how = open_or_compile(copy.deepcopy(model), "hex", 3, footprints=False)
     assert how == "cached" and built == ["hex"]
     for name, tensor in first.synthesis.items():
         assert torch.equal(second.synthesis[name], tensor)
-    assert cached_material(model, "hex", 4, footprints=False)[1] == "compiled"  # another seed: another entry
+    assert open_or_compile(model, "hex", 4, footprints=False)[1] == "compiled"  # another seed: another entry
     entry = tmp_path / "cache" / f"{first.key}.dbtfc"
     entry.write_bytes(entry.read_bytes()[:-64])
     with pytest.warns(UserWarning, match="compiled-material cache: .* compiling again"):
-        third, how = cached_material(model, "hex", 3, footprints=False)
+        third, how = open_or_compile(model, "hex", 3, footprints=False)
     assert how == "compiled" and load_compiled(entry).key == first.key
 
 

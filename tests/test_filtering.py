@@ -251,7 +251,7 @@ def test_level_decoders_are_fitted_once_per_model_contents_and_seed(btf, tmp_pat
     BTF), so a seed's answers never depend on what ran before; other parameters get their own fit."""
     import copy
 
-    import dynbtf.training.compile as compile_module
+    import dynbtf.material.compiler as compile_module
     from dynbtf.infinite_btf import SynthesizedBTF
 
     monkeypatch.setenv("DYNBTF_COMPILED_CACHE", str(tmp_path / "cache"))

@@ -21,7 +21,7 @@ def lint(root: Path) -> subprocess.CompletedProcess:
 def test_the_package_keeps_its_layers():
     result = lint(REPO)
     assert result.returncode == 0, result.stdout + result.stderr
-    assert "4 kept, 0 broken" in result.stdout
+    assert "6 kept, 0 broken" in result.stdout
 
 
 def copy_package(tmp_path: Path) -> Path:
@@ -74,3 +74,22 @@ def test_a_new_representations_module_must_be_placed_in_a_layer(tmp_path):
     result = lint(tmp_path)
     assert result.returncode != 0
     assert "dynbtf.representations.unplaced" in result.stdout
+
+
+def test_a_renderer_that_imports_training_breaks_the_material_contract(tmp_path):
+    # a backend reaching into training (the compiler used to live there): even a deferred import is refused
+    bsdf = copy_package(tmp_path) / "render" / "mitsuba" / "bsdf.py"
+    bsdf.write_text(bsdf.read_text() + "\n\ndef _fit():\n    from ...training import fit  # noqa: F401\n")
+    result = lint(tmp_path)
+    assert result.returncode != 0
+    report = " ".join(result.stdout.split())
+    assert "dynbtf.render is not allowed to import dynbtf.training" in report
+    assert "dynbtf.render.mitsuba.bsdf -> dynbtf.training" in report
+
+
+def test_the_material_format_cannot_reach_up_to_its_compiler(tmp_path):
+    fmt = copy_package(tmp_path) / "material" / "format.py"
+    fmt.write_text(fmt.read_text() + "\n\ndef _build():\n    from .compiler import compile_material  # noqa: F401\n")
+    result = lint(tmp_path)
+    assert result.returncode != 0
+    assert "dynbtf.material.format is not allowed to import dynbtf.material.compiler" in " ".join(result.stdout.split())

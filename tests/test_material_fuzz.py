@@ -1,5 +1,5 @@
 """Compiled materials from strangers: crafted files with valid checksums never crash, hang, trace back, answer
-NaN or answer with another model (dynbtf.compiled_material's checks, the caches of dynbtf.training.compile
+NaN or answer with another model (dynbtf.material's checks, the caches of dynbtf.material
 and dynbtf.synthesis.table_cache).
 
 The seeded campaign runs in a child process (``tests/material_fuzz.py``): a crash or a hang there fails this test
@@ -21,11 +21,11 @@ import numpy as np
 import pytest
 import torch
 
-from dynbtf.compiled_material import FORMAT_VERSION, load_compiled, save_compiled
+from dynbtf.material import FORMAT_VERSION, load_compiled, save_compiled
 from dynbtf.errors import FormatError
 from dynbtf.infinite_btf import SynthesizedBTF
 from dynbtf.representations.triple_plane import TriplePlane
-from dynbtf.training.compile import cached_material
+from dynbtf.material import open_or_compile
 
 HERE = Path(__file__).resolve().parent
 #: Crafted materials per run of the suite (the campaign behind the release notes ran more: ``DYNBTF_FUZZ_CASES``).
@@ -67,14 +67,14 @@ def test_another_models_entry_under_this_key_is_rebuilt_not_used(models, tmp_pat
     """The cache holds B's material under A's key (checksums valid): A's query warns, compiles A and answers as A."""
     monkeypatch.setenv("DYNBTF_COMPILED_CACHE", str(tmp_path))
     a, b = models
-    material_a, how = cached_material(a, "linear", 0, footprints=False, progress=False)
+    material_a, how = open_or_compile(a, "linear", 0, footprints=False, progress=False)
     assert how == "compiled"
-    material_b, _ = cached_material(b, "linear", 0, footprints=False, progress=False)
+    material_b, _ = open_or_compile(b, "linear", 0, footprints=False, progress=False)
     entry_a, entry_b = tmp_path / f"{material_a.key}.dbtfc", tmp_path / f"{material_b.key}.dbtfc"
     entry_a.write_bytes(entry_b.read_bytes())  # B's file, intact, under A's key
     uv, w = _uv_directions()
     with pytest.warns(UserWarning, match="another model"):
-        again, how = cached_material(a, "linear", 0, footprints=False, progress=False)
+        again, how = open_or_compile(a, "linear", 0, footprints=False, progress=False)
     assert how == "compiled" and again.model_sha256 == material_a.model_sha256
     assert load_compiled(entry_a).model_sha256 == material_a.model_sha256  # the entry was replaced
     answer_a = SynthesizedBTF(entry_a, level_decoders=False).eval(uv, w, w)
@@ -89,12 +89,12 @@ def test_a_fifo_in_the_caches_is_never_opened(models, tmp_path, monkeypatch):
     monkeypatch.setenv("DYNBTF_COMPILED_CACHE", str(tmp_path / "compiled"))
     monkeypatch.setenv("DYNBTF_SYNTHESIS_CACHE", str(tmp_path / "synthesis"))
     a, _ = models
-    material, _ = cached_material(a, "struct", 0, footprints=False, progress=False)
+    material, _ = open_or_compile(a, "struct", 0, footprints=False, progress=False)
     entry = tmp_path / "compiled" / f"{material.key}.dbtfc"
     entry.unlink()
     os.mkfifo(entry)
     with pytest.warns(UserWarning, match="not a regular file"):
-        again, how = cached_material(a, "struct", 0, footprints=False, progress=False)
+        again, how = open_or_compile(a, "struct", 0, footprints=False, progress=False)
     assert how == "compiled" and entry.is_file()
     entry.unlink()
     os.mkfifo(entry)
@@ -141,7 +141,7 @@ def test_header_fields_are_under_the_checksum(models, tmp_path):
     from safetensors import safe_open
     from safetensors.torch import save_file
 
-    from dynbtf.training.compile import compile_material
+    from dynbtf.material import compile_material
 
     material = compile_material(models[0], "hist", 0, footprints=False, progress=False)
     path = save_compiled(material, tmp_path / "m.dbtfc")
@@ -168,7 +168,7 @@ def test_a_relief_whose_march_would_not_end_is_refused_when_read(tmp_path, confi
 
     from dynbtf.representations.model_file import save_model
     from dynbtf.representations.parallax import ParallaxTriplePlane
-    from dynbtf.training.compile import compile_material
+    from dynbtf.material import compile_material
 
     sound = ParallaxTriplePlane(16, 16, seed=0)
     sound.set_height(0.01 * torch.rand(16, 16, generator=torch.Generator().manual_seed(0)))

@@ -780,8 +780,8 @@ def reference_eval(material, uv: np.ndarray, wv: np.ndarray, wl: np.ndarray) -> 
 @pytest.fixture(scope="module")
 def compiled(tmp_path_factory):
     """One saved compiled material per method, read back (the backends below read these files' contents)."""
-    from dynbtf.compiled_material import load_compiled, save_compiled
-    from dynbtf.training.compile import compile_material
+    from dynbtf.material import load_compiled, save_compiled
+    from dynbtf.material import compile_material
 
     model = material_model()
     folder = tmp_path_factory.mktemp("compiled")
@@ -854,7 +854,7 @@ def test_relief_march_in_glsl_is_the_reference(relief_model, tmp_path):
     decode (:func:`reference_eval`) at :func:`reference_march`'s visible points. Tolerances as the compiled
     material's GLSL backend above (float32 shader: 99% within 2e-3 of the range, every query within 1%); the
     march moves the answer by far more than that (checked)."""
-    from dynbtf.training.compile import compile_material
+    from dynbtf.material import compile_material
 
     model = relief_model
     material = compile_material(model, "tile", seed=0, footprints=False)

@@ -554,7 +554,7 @@ def test_sampling_table_is_stored_in_the_compiled_material_and_read_back(variant
     from there without building, and samples the same densities."""
     import shutil
 
-    from dynbtf.compiled_material import load_compiled
+    from dynbtf.material import load_compiled
     from dynbtf.render.mitsuba import sampling
 
     monkeypatch.setenv("DYNBTF_COMPILED_CACHE", str(tmp_path / "cache"))
@@ -873,11 +873,11 @@ def test_render_auto_resolves_the_method_and_echoes_the_choice(variant, structur
     assert loaded[0]["surface"]["bsdf"]["method"] == "struct"
     assert len(echoed) == 1 and echoed[0].startswith("method auto -> struct: structured exemplar")
     # resolved through the compiled material, which the plugin (given struct) then finds in the cache
-    from dynbtf.training.compile import cached_material
+    from dynbtf.material import open_or_compile
 
-    found, how = cached_material(model, "struct", 0, footprints=False, progress=False)
+    found, how = open_or_compile(model, "struct", 0, footprints=False, progress=False)
     assert how == "cached" and found.method == "struct" and found.choice is None
-    assert echoed[0] == cached_material(model, "auto", 0, footprints=False, progress=False)[0].choice["line"]
+    assert echoed[0] == open_or_compile(model, "auto", 0, footprints=False, progress=False)[0].choice["line"]
     capsys.readouterr()
     assert main(["render", str(path), "-o", str(tmp_path / "x.png"), "--size", "8", "--spp", "1"]) == 2
     captured = capsys.readouterr()

@@ -1,4 +1,4 @@
-"""``dynbtf compile``: a model's compiled material for one synthesis method and seed (:mod:`dynbtf.compiled_material`)."""
+"""``dynbtf compile``: a model's compiled material for one synthesis method and seed (:mod:`dynbtf.material`)."""
 
 from __future__ import annotations
 
@@ -35,10 +35,10 @@ def compile_command(
 
     Example: dynbtf compile leather.dbtfm --method auto -o leather-auto.dbtfc
     """
-    from ..compiled_material import SUFFIX, save_compiled
+    from ..material import SUFFIX, save_compiled
     from ..io import check_writable
     from ..representations.model_file import load_model
-    from ..training.compile import cached_material
+    from ..material import open_or_compile
 
     if output is not None:
         if output.suffix != SUFFIX:
@@ -47,7 +47,7 @@ def compile_command(
     params = {} if gamma is None else {"gamma": gamma}
     rep, _ = load_model(model)
     start = time.perf_counter()
-    material, how = cached_material(rep, method, seed, footprints=footprints, **params)
+    material, how = open_or_compile(rep, method, seed, footprints=footprints, **params)
     if material.choice is not None:
         typer.echo(material.choice["line"])
     info = material.describe()

@@ -45,7 +45,7 @@ def export_command(
     from ..export.web.shader import LOCAL_REPEATS
     from ..io import check_writable
     from ..limits import check_scale
-    from ..compiled_material import is_compiled_material
+    from ..material import is_compiled_material
     from ..representations.model_file import read_model_metadata
 
     check_writable(output, "-o/--output", directory=True)

@@ -142,7 +142,7 @@ def synth(
     """
     from ..device import resolve_device
     from ..limits import check_scale
-    from ..compiled_material import open_model_file
+    from ..material import open_model_file
     from ..synthesis.base import check_uv
     from .arguments import check_exposure, parse_theta_phi
 
@@ -197,7 +197,7 @@ def _build(rep, name: str, *, scale: float, seed: int | None, quilt_size: int | 
     """The :class:`~dynbtf.infinite_btf.SynthesizedBTF` of method ``name`` of ``rep`` (a representation, or a
     compiled material of method ``name``, whose seed ``seed`` must be or None); prints auto's choice and the
     quilt's size."""
-    from ..compiled_material import CompiledMaterial
+    from ..material import CompiledMaterial
     from ..infinite_btf import SynthesizedBTF
 
     compiled = isinstance(rep, CompiledMaterial)

@@ -11,9 +11,9 @@ place that fold is computed; the library's evaluation (:class:`DecodePath`), the
 the web export all read its ``weight`` and ``bias``.
 
 Footprint queries decode each pyramid level with a decoder of its own (:class:`LevelDecoder`, fitted
-by :mod:`dynbtf.training.footprint_decoders`), and footprints wider than the exemplar answer the
+by :mod:`dynbtf.material.footprint_decoders`), and footprints wider than the exemplar answer the
 material's mean appearance (:class:`MeanAppearance`, a quadrature of a few decodes). All of it is
-stored in a compiled material (:mod:`dynbtf.compiled_material`).
+stored in a compiled material (:mod:`dynbtf.material`).
 
 Shapes: ``C`` latent channels, ``hidden`` the decoder's width, ``A`` angular input channels.
 Weights are ``(out, in)`` like ``torch.nn.Linear``'s, except the folded positional weight,

@@ -296,7 +296,7 @@ class Synthesizer(abc.ABC):
 
         Its ``prepared`` state (inverse tables, luminance, cut tables, a quilted plane) and the
         footprint pyramid with its per-level tables: what a compiled material stores
-        (:mod:`dynbtf.compiled_material`). :meth:`prepared_from_arrays` turns them back into the
+        (:mod:`dynbtf.material`). :meth:`prepared_from_arrays` turns them back into the
         ``prepared=`` argument, so a reader answers queries without rebuilding anything. Scalars
         are 0-d tensors. Methods without off-line work return ``{}``.
         """

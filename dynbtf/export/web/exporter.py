@@ -361,7 +361,7 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
 def _resolve_model(model):
     """``(model, source path or None, compiled material or None)``: a model file or a compiled material file is
     read, a model or a material passes through."""
-    from ...compiled_material import CompiledMaterial, open_model_file
+    from ...material import CompiledMaterial, open_model_file
 
     if isinstance(model, CompiledMaterial):
         return model.model, None, model

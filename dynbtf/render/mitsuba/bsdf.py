@@ -307,7 +307,7 @@ otherwise; ``pdf`` returns the mixture's density
 and ``sample``'s weight is ``eval / pdf`` (see :mod:`dynbtf.render.mitsuba.sampling`).
 The table costs a few seconds when a model is first loaded; so do the per-level
 decoders of ``filtered`` (fitted at load). Both are stored in the model's compiled
-material (:mod:`dynbtf.compiled_material`, in the cache shared with
+material (:mod:`dynbtf.material`, in the cache shared with
 :class:`~dynbtf.infinite_btf.SynthesizedBTF`), so later loads, in this process or
 another, read them.
 If the table cannot be built (the decoder returns NaN or inf, or a view has
@@ -728,14 +728,14 @@ def _store_table(btf, table) -> None:
         return
     btf.material = material = material.with_sampling(table.to_tensors())
     if material.key:
-        from ...training.compile import store_cached
+        from ...material import store_cached
 
         store_cached(material)
 
 
 def load_plugin_model(filename):
     """The representation in model file ``filename`` -- or the compiled material in it (``dynbtf compile``'s
-    ``.dbtfc``: a :class:`~dynbtf.compiled_material.CompiledMaterial`, whose method and seed the plugin then
+    ``.dbtfc``: a :class:`~dynbtf.material.format.CompiledMaterial`, whose method and seed the plugin then
     uses) -- checked for the plugin.
 
     What the plugin's constructor loads; :func:`dynbtf.render.mitsuba.scene_render.render_scene`
@@ -749,7 +749,7 @@ def load_plugin_model(filename):
     InputError
         The model's kind is not one the plugin evaluates (PCA, SH).
     """
-    from ...compiled_material import open_model_file
+    from ...material import open_model_file
 
     model, material = open_model_file(filename, device="cpu")
     drjit_ops.check_renderable(model, str(filename))

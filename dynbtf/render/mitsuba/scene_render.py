@@ -160,7 +160,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     scale, spp, spp_per_pass = _check_request(scene, lighting, method, scale, resolution, spp, spp_per_pass,
                                               sampling, memory_mb)
     model = load_plugin_model(model_path)  # a missing/damaged file or an unsupported kind fails here, not in Mitsuba
-    from ...compiled_material import CompiledMaterial
+    from ...material import CompiledMaterial
 
     if isinstance(model, CompiledMaterial):  # its method and seed, checked here rather than inside Mitsuba
         if method not in ("auto", model.method) or seed not in (0, model.seed):
@@ -211,37 +211,15 @@ def _check_request(scene, lighting, method, scale, resolution, spp, spp_per_pass
 
 def resolve_auto(model, seed: int = 0) -> tuple[str, str]:
     """``(method, choice line)`` of ``auto`` for ``model`` and ``seed``: what its compiled material chose
-    (:func:`dynbtf.training.compile.cached_material`: read from the cache, or compiled and stored).
-
-    The material is also cached under the chosen method's name (same tables, no choice), so that the
-    plugin, which then gets the named method, reads it instead of compiling (decoding) the model again.
-    """
-    from ...compiled_material import CompiledMaterial
-    from ...training.compile import cached_material
+    (:func:`dynbtf.material.open_or_compile`: read from the cache, or compiled and stored; the stage also stores
+    it under the chosen method's name, so that the plugin, which then gets that name, reads it)."""
+    from ...material import CompiledMaterial, open_or_compile
 
     if isinstance(model, CompiledMaterial):  # compiled: what it chose then, or the method it was compiled for
         line = model.choice["line"] if model.choice else f"compiled material: method {model.method}, seed {model.seed}"
         return model.method, str(line)
-    material, _ = cached_material(model, "auto", seed, footprints=False, progress=False)
-    _alias_material(model, material, seed)
+    material, _ = open_or_compile(model, "auto", seed, footprints=False, progress=False)
     return material.method, str(material.choice["line"])
-
-
-def _alias_material(model, material, seed: int) -> None:
-    """Store ``material`` (compiled for ``auto``) under the key of its chosen method, unless that entry exists."""
-    from dataclasses import replace
-
-    from ...compiled_material import SUFFIX, compiled_cache_dir, material_key
-    from ...training.compile import footprint_settings, model_digest, store_cached
-
-    folder = compiled_cache_dir()
-    if folder is None or not material.key:
-        return
-    digest = model_digest(model)
-    footprints = material.key == material_key(digest, "auto", seed, {}, footprint_settings(True))
-    key = material_key(digest, material.method, seed, {}, footprint_settings(footprints))
-    if not (folder / f"{key}{SUFFIX}").exists():
-        store_cached(replace(material, key=key, choice=None, _synthesizers=material._synthesizers))
 
 
 def _render_passes(scene_obj, spp: int, spp_per_pass: int, label: str, progress: bool) -> tuple[np.ndarray, dict]:

@@ -1,15 +1,11 @@
-"""Compile a fitted model for one synthesis method and seed: derive every table once, save, reuse.
+"""Compile a fitted model for one synthesis method and seed: derive every table once, off-line.
 
-:func:`compile_material` builds a :class:`~dynbtf.compiled_material.CompiledMaterial`: the synthesizer
-on the model's positional plane (``auto`` resolved, its off-line tables and pyramid), the decoder
-with the method's output map folded into layer 1 and, with ``footprints=True``, the per-level
-decoders and mean appearance of footprint queries (:mod:`dynbtf.training.footprint_decoders`, the
-expensive part: a fit per pyramid level, timed in ``docs/compiled_material.md``). :func:`cached_material` does the same through
-an on-disk cache keyed by the model's contents, so a second process (another ``dynbtf render`` of
-the same model, a Mitsuba scene load, a second ``dynbtf demo``) reads what the first one built.
-
-Cache: ``$DYNBTF_COMPILED_CACHE`` (``off`` disables it), else ``~/.cache/dynbtf/compiled``; entries
-are written atomically and a damaged entry (checksum, truncation) is warned about and rebuilt.
+:func:`compile_material` builds a :class:`~dynbtf.material.format.CompiledMaterial`: the synthesizer
+on the model's positional plane (``auto`` resolved here, once; its off-line tables and pyramid), the
+decoder with the method's output map folded into layer 1 and, with ``footprints=True``, the per-level
+decoders and mean appearance of footprint queries (:mod:`dynbtf.material.footprint_decoders`, the
+expensive part: a small fit per pyramid level, timed in ``docs/compiled_material.md``).
+:func:`dynbtf.material.cache.open_or_compile` does the same through the on-disk cache.
 
 Example
 -------
@@ -21,24 +17,22 @@ Example
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from ..compiled_material import SUFFIX, CompiledMaterial, compiled_cache_dir, load_compiled, material_key, save_compiled
 from ..conventions import spherical_to_direction
 from ..decoder.folded import DecodePath, FoldedDecoder
-from ..errors import FormatError, InputError
+from ..errors import InputError
 from ..synthesis.registry import make_synthesizer, synthesizer_class
 from ..representations.model_file import tensor_digest
 from .footprint_decoders import fit_footprint_decoders
+from .format import CompiledMaterial, material_key
 
-__all__ = ["compile_material", "cached_material", "decoded_appearance", "decoded_luminance", "APPEARANCE_PAIRS",
-           "model_digest"]
+__all__ = ["compile_material", "decoded_appearance", "decoded_luminance", "APPEARANCE_PAIRS", "model_digest",
+           "argument_key", "footprint_settings"]
 
 #: (view, light) pairs, (theta, phi) in degrees, under which ``struct`` and ``auto`` see the exemplar's
 #: structure (normal view and light, a slanted pair, a grazing-ish pair from other azimuths).
@@ -83,8 +77,8 @@ def model_digest(model) -> str:
     return tensor_digest(model.state_dict())
 
 
-def _argument_key(arguments: dict[str, Any]) -> dict[str, Any]:
-    """JSON-able form of ``arguments`` for the cache key: arrays by their digest."""
+def argument_key(arguments: dict[str, Any]) -> dict[str, Any]:
+    """JSON-able form of a method's ``arguments`` for the cache key: arrays by their digest."""
     out = {}
     for name, value in arguments.items():
         if isinstance(value, (torch.Tensor, np.ndarray)):
@@ -170,7 +164,7 @@ def compile_material(model, method: str = "auto", seed: int = 0, *, footprints: 
         raise InputError(f"model: expected a Representation with a positional plane, got {type(model).__name__}")
     digest = model_digest(model)
     cacheable = synthesizer is None and (base is None or bool(base.key))  # a ready synthesizer has no key
-    key = material_key(digest, method, seed, _argument_key(arguments), footprint_settings(footprints)) \
+    key = material_key(digest, method, seed, argument_key(arguments), footprint_settings(footprints)) \
         if cacheable else ""
     if base is None:
         with torch.no_grad():
@@ -197,68 +191,3 @@ def footprint_settings(footprints: bool) -> dict[str, Any] | bool:
     return {"queries": f.LEVEL_FIT_QUERIES, "grid": f.LEVEL_FIT_GRID, "steps": f.LEVEL_FIT_STEPS,
             "batch": f.LEVEL_FIT_BATCH, "lr": f.LEVEL_FIT_LR, "seed": f.LEVEL_FIT_SEED, "mean_nodes": f.MEAN_NODES,
             "mean_positions": f.MEAN_FIT_POSITIONS, "mean_pairs": f.MEAN_FIT_PAIRS, "mean_steps": f.MEAN_FIT_STEPS}
-
-
-def _cache_path(key: str) -> Path | None:
-    folder = compiled_cache_dir()
-    return None if folder is None else folder / f"{key}{SUFFIX}"
-
-
-def _read_cached(path: Path | None, device, digest: str) -> CompiledMaterial | None:
-    """The cache entry at ``path`` if it is a sound material of the model with ``digest`` stored under its own
-    key; anything else (damaged, not a regular file, another model's material copied under this key) costs a
-    warning and is compiled again (the new entry replaces it)."""
-    if path is None or not (path.exists() or path.is_symlink()):
-        return None
-    try:
-        found = load_compiled(path, device=device)  # (refuses anything but a regular file)
-        if found.model_sha256 != digest or found.key != path.stem:
-            raise FormatError(path, "holds the material of another model or key")
-        return found
-    except (FormatError, OSError) as e:
-        warnings.warn(f"compiled-material cache: {e}; compiling again", stacklevel=3)
-        return None
-
-
-def store_cached(material: CompiledMaterial) -> None:
-    """Write ``material`` to the cache under its key (a cache that cannot be written costs only a warning)."""
-    path = _cache_path(material.key)
-    if path is None:
-        return
-    try:
-        save_compiled(material, path)
-    except OSError as e:
-        warnings.warn(f"compiled-material cache: could not write {path} ({e}); the material is used unsaved",
-                      stacklevel=3)
-
-
-def cached_material(model, method: str = "auto", seed: int = 0, *, footprints: bool = True, progress: bool = True,
-                    **arguments) -> tuple[CompiledMaterial, str]:
-    """:func:`compile_material` through the cache: ``(material, how)``, ``how`` one of ``"cached"`` (read),
-    ``"compiled"`` (built and stored) or ``"uncached"`` (the cache is off).
-
-    Without ``footprints`` a cached material with footprint decoders is used as well (it holds the same
-    tables); with ``footprints``, a cached material without them is completed (tables reused) and stored.
-    ``auto`` with ``footprints`` is the material of the method it chooses (one fit per resolved method).
-    """
-    if method == "auto" and footprints:  # the footprint decoders are keyed by the method auto resolves to
-        chosen, _ = cached_material(model, "auto", seed, footprints=False, progress=progress, **arguments)
-        full, how = cached_material(model, chosen.method, seed, footprints=True, progress=progress, **chosen.arguments)
-        return replace(full, choice=chosen.choice, _synthesizers=full._synthesizers), how
-    device = model.positional_plane().device
-    digest = model_digest(model)
-    keys = {flag: material_key(digest, method, seed, _argument_key(arguments), footprint_settings(flag))
-            for flag in (True, False)}
-    for flag in ((True, False) if not footprints else (True,)):
-        found = _read_cached(_cache_path(keys[flag]), device, digest)
-        if found is not None:
-            found.model = model  # the caller's module (equal contents): no second copy
-            return found, "cached"
-    base = None if not footprints else _read_cached(_cache_path(keys[False]), device, digest)
-    if base is not None:
-        base.model = model
-    material = compile_material(model, method, seed, footprints=footprints, progress=progress, base=base, **arguments)
-    if compiled_cache_dir() is None:
-        return material, "uncached"
-    store_cached(material)
-    return material, "compiled"

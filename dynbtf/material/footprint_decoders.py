@@ -15,7 +15,7 @@ a quadrature of ``MEAN_NODES`` decodes (relative squared error) to the decoder's
 ``MEAN_FIT_POSITIONS`` synthesized positions.
 
 Both fits run once per model, method and seed when a material is compiled
-(:func:`dynbtf.training.compile.compile_material`) and are stored with it.
+(:func:`dynbtf.material.compile_material`) and are stored with it.
 """
 
 from __future__ import annotations

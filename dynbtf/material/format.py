@@ -5,7 +5,7 @@ than the model file: the method's off-line tables (inverse histogram tables, hex
 tables, a quilted plane), the feature pyramid and its per-level tables, the decoder with the
 method's output map folded into layer 1, the per-level decoders and the mean appearance of
 footprint queries (fitted once per model, method and seed), and the renderer's importance-sampling
-table. A :class:`CompiledMaterial` holds all of it; :func:`dynbtf.training.compile.compile_material`
+table. A :class:`CompiledMaterial` holds all of it; :func:`dynbtf.material.compiler.compile_material`
 builds it once, and the library's evaluation (:class:`dynbtf.infinite_btf.SynthesizedBTF`), the
 Mitsuba plugin and the web export read it.
 
@@ -48,14 +48,14 @@ from typing import Any
 
 import torch
 
-from .decoder.folded import MAX_MEAN_NODES, FoldedDecoder, stored_levels
-from .errors import FormatError, InputError
-from .io import atomic_path, user_cache_dir
-from .representations.model_file import read_checked_tensors, representation_from_state, tensor_digest
-from .tables import Table, TableError, check_tables
+from ..decoder.folded import MAX_MEAN_NODES, FoldedDecoder, stored_levels
+from ..errors import FormatError, InputError
+from ..io import atomic_path
+from ..representations.model_file import read_checked_tensors, representation_from_state, tensor_digest
+from ..tables import Table, TableError, check_tables
 
 __all__ = ["CompiledMaterial", "save_compiled", "load_compiled", "is_compiled_material", "open_model_file", "material_key",
-           "compiled_cache_dir", "FORMAT_NAME", "FORMAT_VERSION", "SUFFIX"]
+           "FORMAT_NAME", "FORMAT_VERSION", "SUFFIX"]
 
 FORMAT_NAME = "dynbtf-compiled-material"
 #: Bumped whenever a stored table changes meaning: older readers refuse newer files, old cache entries miss.
@@ -106,7 +106,7 @@ class CompiledMaterial:
 
     def synthesizer(self, device: torch.device | str | None = None):
         """The synthesizer rebuilt from the stored tables on ``device`` (default: the model's), built once."""
-        from .synthesis.registry import make_synthesizer, synthesizer_class
+        from ..synthesis.registry import make_synthesizer, synthesizer_class
 
         device = torch.device(device) if device is not None else self.model.positional_plane().device
         if str(device) not in self._synthesizers:
@@ -121,7 +121,7 @@ class CompiledMaterial:
                 raise InputError(f"the material's arguments {self.arguments} do not build method {self.method!r}: "
                                  f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
             if synth.choice is None and self.choice is not None:
-                from .synthesis.auto import RecordedChoice
+                from ..synthesis.auto import RecordedChoice
 
                 synth.choice = RecordedChoice(str(self.choice["method"]), str(self.choice["line"]),
                                               float(self.choice["strength"]))
@@ -158,15 +158,9 @@ class CompiledMaterial:
 def _accepted_arguments(method: str) -> list[str]:
     import inspect
 
-    from .synthesis.registry import synthesizer_class
+    from ..synthesis.registry import synthesizer_class
 
     return list(inspect.signature(synthesizer_class(method).__init__).parameters)
-
-
-def compiled_cache_dir() -> Path | None:
-    """Where compiled materials are cached: ``$DYNBTF_COMPILED_CACHE`` if set (``off`` disables the cache),
-    else ``$XDG_CACHE_HOME/dynbtf/compiled`` (``~/.cache/dynbtf/compiled``)."""
-    return user_cache_dir("DYNBTF_COMPILED_CACHE", "compiled")
 
 
 def material_key(model_sha256: str, method: str, seed: int, arguments: dict[str, Any], footprints) -> str:
@@ -241,7 +235,7 @@ def open_model_file(path, device: torch.device | str | None = None) -> tuple[Any
     """``(representation, material)`` of a file that is either a model file (``dynbtf fit``'s ``.dbtfm``:
     ``material`` is None) or a compiled material (``dynbtf compile``'s ``.dbtfc``: its model and itself), each
     read under its format's checks (:class:`~dynbtf.errors.FormatError` names the file)."""
-    from .representations.model_file import load_model
+    from ..representations.model_file import load_model
 
     if is_compiled_material(path):
         material = load_compiled(path, device=device)
@@ -300,8 +294,8 @@ def load_compiled(path, device: torch.device | str | None = None) -> CompiledMat
 def _check_tables(path: Path, model, method: str, synthesis: dict[str, torch.Tensor],
                   decoder: dict[str, torch.Tensor], sampling: dict[str, torch.Tensor]) -> None:
     """Hold the stored tables to their rules (module docstring); FormatError names the table."""
-    from .synthesis.mip import level_shapes
-    from .synthesis.registry import synthesizer_class
+    from ..synthesis.mip import level_shapes
+    from ..synthesis.registry import synthesizer_class
 
     try:
         synthesizer = synthesizer_class(method)
