@@ -274,3 +274,111 @@ def test_texel_blocks_convert_every_float16_exactly():
         ctypes.c_void_p(halves.ctypes.data), ctypes.c_int64(1), ctypes.c_int64(65536), ctypes.c_int32(1),
         ctypes.c_void_p(bad_row.ctypes.data), ctypes.c_int64(1), ctypes.c_int64(1),
         ctypes.c_void_p(starts.ctypes.data), ctypes.c_int64(16), ctypes.c_void_p(gathered.ctypes.data)) == 1
+
+
+def triple_plane_problem(seed=0, side=16, groups=4, images=3, texels_per_group=24):
+    """A perturbed Triple Plane, a step's texels (with repeats), its pairs' taps and targets 0.3 away from the
+    float64 prediction."""
+    from dynbtf.representations.triple_plane import TriplePlane
+
+    gen = torch.Generator().manual_seed(seed)
+    model = TriplePlane(side, side, seed=seed)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.1 * torch.randn(p.shape, generator=gen))
+    texels = torch.randint(0, side * side, (groups * texels_per_group,), generator=gen)
+    directions = [nn.functional.normalize(torch.rand(groups * images, 3, generator=gen) + torch.tensor([0, 0, 0.3]),
+                                          dim=-1) for _ in range(2)]
+    taps = model.direction_taps(*directions)
+    with torch.no_grad():
+        predicted = reference_triple_plane_prediction(model.double(), texels, taps, images)
+    model.float()
+    sign = torch.randint(0, 2, predicted.shape, generator=gen) * 2 - 1
+    return model, texels, taps, (predicted + 0.3 * sign).float()
+
+
+def reference_triple_plane_prediction(model, texels, taps, images):
+    """Written out independently in model's dtype: plane rows by advanced indexing, the taps' weighted sums, the
+    un-split decoder on the concatenated inputs -> (B, G * n, 3)."""
+    index, weight = taps
+    groups = index.shape[0] // images
+    angular_planes = torch.cat([model.f_h.reshape(-1, model.f_h.shape[-1]), model.f_d.reshape(-1, model.f_d.shape[-1])])
+    angular = (angular_planes[index] * weight.to(angular_planes.dtype)[..., None]).sum(2).reshape(index.shape[0], -1)
+    features = model.f_u.reshape(-1, model.f_u.shape[-1])[texels].view(groups, 1, -1, model.f_u.shape[-1])
+    n = features.shape[2]
+    angular = angular.view(groups, images, 1, -1)
+    x = torch.cat([features.expand(-1, images, -1, -1), angular.expand(-1, -1, n, -1)], -1)  # (G, B, n, in)
+    layers = [model.decoder.first, *model.decoder.rest]
+    for k, layer in enumerate(layers):
+        x = layer(x)
+        if k < len(layers) - 1:
+            x = nn.functional.leaky_relu(x, model.decoder.negative_slope)
+    return x.transpose(0, 1).reshape(images, -1, 3)
+
+
+@needs_native
+@pytest.mark.parametrize("workers", [1, 2])
+def test_triple_plane_loss_in_native_kernels_matches_float64_autograd(workers):
+    """The plane fetches and layer 1 in dynbtf_first_layer_forward / _backward, layers 2.. in the fused kernel: the loss and the gradient
+    of every parameter equal float64 autograd of the written-out model, repeated texels included."""
+    import copy
+
+    model, texels, taps, target = triple_plane_problem()
+    reference = copy.deepcopy(model).double()
+    loss = reference_triple_plane_prediction(reference, texels, taps, target.shape[0]).sub(target.double()).abs().mean()
+    loss.backward()
+    angular_planes = torch.cat([model.f_h.reshape(-1, 8), model.f_d.reshape(-1, 8)])
+    native_loss = fused_mlp.triple_plane_l1_loss(model.f_u.reshape(-1, 16), texels, angular_planes, taps,
+                                                 model.decoder.first, model.decoder.rest, 0.01, target,
+                                                 chunk_texels=8, workers=workers)
+    assert native_loss is not None, "the native kernels should take a CPU float32 Triple Plane"
+    native_loss.backward()
+    torch.testing.assert_close(native_loss.double(), loss.detach(), rtol=1e-5, atol=0)
+    for (name, p), (_, q) in zip(model.named_parameters(), reference.named_parameters()):
+        scale = float(q.grad.abs().max())
+        torch.testing.assert_close(p.grad.double(), q.grad, rtol=1e-4, atol=1e-5 * scale, msg=name)
+
+
+@needs_native
+def test_triple_plane_loss_takes_the_native_kernels_in_a_fit_step_and_equals_the_torch_path():
+    """TriplePlane.texel_image_l1_loss with taps (what the fit calls) goes through the native kernels, and its
+    gradients equal the torch path's (the fetched features and decoder_l1_loss) to float rounding."""
+    import copy
+
+    model, texels, taps, target = triple_plane_problem(seed=1)
+    torch_path = copy.deepcopy(model)
+    calls = []
+    real = fused_mlp._TriplePlaneL1.apply
+    w = torch.zeros(taps[0].shape[0], 3)  # (directions are not read when taps are given)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(fused_mlp._TriplePlaneL1, "apply", lambda *a: calls.append(1) or real(*a))
+        model.texel_image_l1_loss(w, w, target, texels, chunk_texels=8, workers=2, texel_groups=4,
+                                  angular_taps=taps).backward()
+    assert calls == [1]
+    features = torch_path.f_u.reshape(-1, 16)[texels]
+    torch_path.decoder.texel_image_l1_loss(features, torch_path.angular_features(w, w, taps), target, chunk_texels=8,
+                                           workers=2, texel_groups=4).backward()
+    for (name, p), (_, q) in zip(model.named_parameters(), torch_path.named_parameters()):
+        torch.testing.assert_close(p.grad, q.grad, rtol=1e-4, atol=1e-6 * float(q.grad.abs().max()), msg=name)
+
+
+@needs_native
+def test_triple_plane_loss_declines_or_refuses_what_its_kernels_do_not_take():
+    model, texels, taps, target = triple_plane_problem(seed=2)
+    angular_planes = torch.cat([model.f_h.reshape(-1, 8), model.f_d.reshape(-1, 8)])
+    args = (model.decoder.first, model.decoder.rest, 0.01)
+    double = copy_double(model)
+    assert fused_mlp.triple_plane_l1_loss(double.f_u.reshape(-1, 16), texels, angular_planes.double(), taps,
+                                          double.decoder.first, double.decoder.rest, 0.01, target.double()) is None
+    outside = texels.clone()
+    outside[5] = 16 * 16  # one past the plane's last texel
+    with pytest.raises(InputError, match="texel or angular tap index outside its plane"):
+        fused_mlp.triple_plane_l1_loss(model.f_u.reshape(-1, 16), outside, angular_planes, taps, *args, target)
+    with pytest.raises(InputError, match="first layer takes 32 inputs"):
+        fused_mlp.triple_plane_l1_loss(model.f_u.reshape(-1, 16)[:, :15], texels, angular_planes, taps, *args, target)
+
+
+def copy_double(model):
+    import copy
+
+    return copy.deepcopy(model).double()

@@ -58,7 +58,7 @@ from torch import nn
 from . import native
 from ..errors import InputError
 
-__all__ = ["split_mlp_l1_loss", "decoder_l1_loss", "native_mlp_forward", "native_affine_rows", "single_intra_op_thread", "native_precisions", "resolve_precision"]
+__all__ = ["split_mlp_l1_loss", "decoder_l1_loss", "triple_plane_l1_loss", "native_mlp_forward", "native_affine_rows", "single_intra_op_thread", "native_precisions", "resolve_precision"]
 
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 
@@ -144,6 +144,18 @@ class _NativeArgs(ctypes.Structure):
                 ("next_item", ctypes.c_void_p)]
 
 
+class _FirstLayerArgs(ctypes.Structure):
+    """``FirstLayerArgs`` of ``dynbtf/decoder/native/fused_mlp.cpp`` (same field order)."""
+
+    _fields_ = [("hidden", ctypes.c_int32), ("positional", ctypes.c_int32), ("angular", ctypes.c_int32),
+                ("plane_channels", ctypes.c_int32), ("taps", ctypes.c_int32), ("rows", ctypes.c_int64),
+                ("images", ctypes.c_int64), ("plane_rows", ctypes.c_int64), ("angular_rows", ctypes.c_int64),
+                ("weight", ctypes.c_void_p), ("bias", ctypes.c_void_p), ("plane", ctypes.c_void_p),
+                ("texels", ctypes.c_void_p), ("angular_planes", ctypes.c_void_p), ("tap_index", ctypes.c_void_p),
+                ("tap_weight", ctypes.c_void_p), ("positional_pre", ctypes.c_void_p),
+                ("angular_features", ctypes.c_void_p), ("image_pre", ctypes.c_void_p)]
+
+
 def _native_library():
     """The kernel built for the active instruction-set level (:func:`dynbtf.cpu.active_isa`), or None."""
     library = native.load_library("fused_mlp")
@@ -162,10 +174,19 @@ def _native_library():
         library.dynbtf_affine_rows_fp32.argtypes = [ctypes.c_int64, ctypes.c_int32, ctypes.c_int32] + \
             [ctypes.c_void_p] * 4
         library.dynbtf_affine_rows_fp32.restype = ctypes.c_int
-        native_size, mirror_size = library.dynbtf_fused_l1_args_size(), ctypes.sizeof(_NativeArgs)
-        if native_size != mirror_size:  # a field added on one side only: never call with a wrong layout
-            raise RuntimeError(f"dynbtf/decoder/native/fused_mlp.cpp: FusedL1Args is {native_size} bytes but its ctypes "
-                               f"mirror in {__name__} is {mirror_size}; update both field lists together")
+        library.dynbtf_first_layer_forward.argtypes = [ctypes.POINTER(_FirstLayerArgs)]
+        library.dynbtf_first_layer_forward.restype = ctypes.c_int
+        library.dynbtf_first_layer_backward.argtypes = [ctypes.POINTER(_FirstLayerArgs)] + [ctypes.c_void_p] * 6
+        library.dynbtf_first_layer_backward.restype = ctypes.c_int
+        library.dynbtf_first_layer_supports.argtypes = [ctypes.c_int32] * 3
+        library.dynbtf_first_layer_supports.restype = ctypes.c_int
+        library.dynbtf_first_layer_args_size.restype = ctypes.c_int
+        for name, native_size, mirror in (("FusedL1Args", library.dynbtf_fused_l1_args_size(), _NativeArgs),
+                                          ("FirstLayerArgs", library.dynbtf_first_layer_args_size(), _FirstLayerArgs)):
+            if native_size != ctypes.sizeof(mirror):  # a field added on one side only: never call with a wrong layout
+                raise RuntimeError(f"dynbtf/decoder/native/fused_mlp.cpp: {name} is {native_size} bytes but its "
+                                   f"ctypes mirror in {__name__} is {ctypes.sizeof(mirror)}; update both field lists "
+                                   "together")
         library._dynbtf_ready = True
     return library
 
@@ -413,6 +434,110 @@ class _DecoderL1(torch.autograd.Function):
         return (g_positional @ w_u if ctx.needs_input_grad[0] else None,
                 g_image @ w_a if ctx.needs_input_grad[1] else None,
                 g_first, g_image.sum(0), None, None, None, None, None, *g_params)
+
+
+class _TriplePlaneL1(torch.autograd.Function):
+    """The mean L1 loss from the planes themselves (:func:`triple_plane_l1_loss`): the plane fetches and layer 1
+    in ``dynbtf_first_layer_forward`` / ``_backward``, layers 2.. in the fused kernel; one autograd node, every gradient computed in the
+    forward pass (the kernels produce them together)."""
+
+    @staticmethod
+    def forward(ctx, plane, angular_planes, first_weight, first_bias, texels, tap_index, tap_weight, target, slope,
+                chunk, workers, precision, *weights_and_biases):
+        n_layers = len(weights_and_biases) // 2
+        weights = [w.detach().contiguous() for w in weights_and_biases[:n_layers]]
+        biases = [b.detach().contiguous() for b in weights_and_biases[n_layers:]]
+        plane, angular_planes = plane.detach().contiguous(), angular_planes.detach().contiguous()
+        first_weight, first_bias = first_weight.detach().contiguous(), first_bias.detach().contiguous()
+        hidden, positional = first_weight.shape[0], plane.shape[1]
+        images, planes, taps = tap_index.shape
+        rows = plane.shape[0] if texels is None else texels.shape[0]
+        positional_pre = torch.empty((rows, hidden), dtype=torch.float32)
+        angular = torch.empty((images, planes * angular_planes.shape[1]), dtype=torch.float32)
+        image_pre = torch.empty((images, hidden), dtype=torch.float32)
+        keep = (texels, tap_index, tap_weight)
+        args = _FirstLayerArgs(
+            hidden=hidden, positional=positional, angular=angular.shape[1], plane_channels=angular_planes.shape[1],
+            taps=taps, rows=rows, images=images, plane_rows=plane.shape[0], angular_rows=angular_planes.shape[0],
+            weight=first_weight.data_ptr(), bias=first_bias.data_ptr(), plane=plane.data_ptr(),
+            texels=None if texels is None else texels.data_ptr(), angular_planes=angular_planes.data_ptr(),
+            tap_index=tap_index.data_ptr(), tap_weight=tap_weight.data_ptr(), positional_pre=positional_pre.data_ptr(),
+            angular_features=angular.data_ptr(), image_pre=image_pre.data_ptr())
+        library = _native_library()
+        code = library.dynbtf_first_layer_forward(ctypes.byref(args))
+        if code:
+            raise InputError("triple_plane_l1_loss: a texel or angular tap index outside its plane" if code == 2
+                             else f"triple_plane_l1_loss: sizes the first-layer kernel does not take (code {code})")
+        groups = images // target.shape[0]
+        with single_intra_op_thread():
+            loss, g_positional, g_image, g_weights, g_biases = _native_loss(
+                precision, positional_pre, image_pre.view(groups, -1, hidden), weights, biases, slope,
+                target.contiguous(), chunk, workers, 1.0 / target.numel())
+        g_image = g_image.reshape(images, hidden).contiguous()
+        g_first_weight, g_first_bias = torch.empty_like(first_weight), torch.empty_like(first_bias)
+        g_plane, g_angular_planes = torch.zeros_like(plane), torch.zeros_like(angular_planes)
+        library.dynbtf_first_layer_backward(ctypes.byref(args), g_positional.data_ptr(), g_image.data_ptr(),
+                                            g_first_weight.data_ptr(), g_first_bias.data_ptr(), g_plane.data_ptr(),
+                                            g_angular_planes.data_ptr())
+        del keep
+        ctx.save_for_backward(g_plane, g_angular_planes, g_first_weight, g_first_bias, *g_weights, *g_biases)
+        return (loss / target.numel()).to(torch.float32)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_loss):
+        g_plane, g_angular_planes, g_first_weight, g_first_bias, *g_params = _times(ctx.saved_tensors, grad_loss)
+        return (g_plane, g_angular_planes, g_first_weight, g_first_bias, None, None, None, None, None, None, None,
+                None, *g_params)
+
+
+def triple_plane_l1_loss(plane: torch.Tensor, texels: torch.Tensor | None, angular_planes: torch.Tensor,
+                         taps: tuple[torch.Tensor, torch.Tensor], first: nn.Linear, layers: Sequence[nn.Linear],
+                         negative_slope: float, target: torch.Tensor, *, chunk_texels: int = 256, workers: int = 1,
+                         precision: str = "fp32") -> torch.Tensor | None:
+    """:func:`decoder_l1_loss` with the plane fetches included, all in native kernels: the mean L1 loss of a
+    Triple Plane decoder on ``plane[texels]`` (``plane (T, C_U)``, the positional plane flattened; ``texels``
+    int64 ``(N,)`` or None for all ``T``) and, per image, the angular features fetched from ``angular_planes``
+    (``(A, C)``: ``f_H`` and ``f_D`` flattened and stacked) at ``taps = (index, weight)``, each
+    ``(G * B, planes, K)`` (:meth:`dynbtf.representations.triple_plane.TriplePlane.direction_taps`); ``target``
+    ``(B, N, 3)``. Gradients flow to ``plane``, ``angular_planes`` and every layer; repeated texels and taps add
+    up. Equal to :func:`decoder_l1_loss` on the fetched features to float rounding.
+
+    Returns None where the native kernels do not take the call (another device or dtype, no compiler, a
+    precision or layer shape the fused kernel has no path for): the caller uses :func:`decoder_l1_loss`.
+    """
+    index, weight = taps
+    tensors = [plane, angular_planes, first.weight, first.bias, target, weight] + \
+        [t for layer in layers for t in (layer.weight, layer.bias)]
+    if not all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors):
+        return None
+    if index.dtype != torch.int64 or index.ndim != 3 or weight.shape != index.shape or \
+            (texels is not None and (texels.dtype != torch.int64 or texels.ndim != 1)):
+        return None
+    try:
+        precision = resolve_precision(precision, "cpu")
+    except InputError:
+        return None
+    hidden = first.weight.shape[0]
+    images, planes, _ = index.shape
+    if first.weight.shape[1] != plane.shape[1] + planes * angular_planes.shape[1]:
+        raise InputError(f"first layer takes {first.weight.shape[1]} inputs, but the positional plane "
+                         f"({plane.shape[1]}) and {planes} angular planes of {angular_planes.shape[1]} give "
+                         f"{plane.shape[1] + planes * angular_planes.shape[1]}")
+    library = _native_library()
+    if library is None or not _native_supports(torch.empty((0, hidden)), [layer.weight for layer in layers], precision) \
+            or not library.dynbtf_first_layer_supports(hidden, plane.shape[1], planes * angular_planes.shape[1]):
+        return None
+    rows = plane.shape[0] if texels is None else texels.shape[0]
+    b = target.shape[0]
+    if images % b or rows % (images // b):
+        raise InputError(f"taps: expected (G * {b}, planes, K) with G dividing the {rows} texels, "
+                         f"got {tuple(index.shape)}")
+    _check_split_shapes(rows, hidden, (images // b, b), target, chunk_texels, workers)
+    return _TriplePlaneL1.apply(plane, angular_planes, first.weight, first.bias,
+                                None if texels is None else texels.contiguous(), index.contiguous(),
+                                weight.contiguous(), target, float(negative_slope), int(chunk_texels), int(workers),
+                                precision, *[layer.weight for layer in layers], *[layer.bias for layer in layers])
 
 
 def _times(gradients, grad_loss):

@@ -45,7 +45,7 @@ from torch import nn
 from ..conventions import angular_plane_coords, half_diff_from_view_light
 from ..errors import InputError
 from ..texture import angular_taps, fetch_angular, fetch_taps
-from ..decoder.fused_mlp import decoder_l1_loss
+from ..decoder.fused_mlp import decoder_l1_loss, triple_plane_l1_loss
 from .base import (MAX_CHANNELS, MAX_LAYERS, MAX_SEED, MAX_SIDE, FoldableDecoder, Representation, config_int,
                    config_number, register)
 
@@ -303,6 +303,15 @@ class TriplePlane(Representation):
         ``angular_taps``: these pairs' rows of :meth:`direction_taps` (the fit passes them).
         """
         plane = self.f_u.reshape(-1, self.f_u.shape[-1])
+        if angular_taps is not None and type(self).extra_positional_channels == 0:
+            # the fetches and layer 1 in native kernels too (None where they do not run: torch below)
+            angular_planes = torch.cat([self.f_h.reshape(-1, self.f_h.shape[-1]),
+                                        self.f_d.reshape(-1, self.f_d.shape[-1])])
+            loss = triple_plane_l1_loss(plane, texels, angular_planes, angular_taps, self.decoder.first,
+                                        self.decoder.rest, self.decoder.negative_slope, target,
+                                        chunk_texels=chunk_texels, workers=workers, precision=precision)
+            if loss is not None:
+                return loss
         features = plane if texels is None else plane.index_select(0, texels)
         return self.decoder.texel_image_l1_loss(features, self.angular_features(w_view, w_light, angular_taps),
                                                 target, chunk_texels=chunk_texels, workers=workers,

@@ -27,6 +27,7 @@
 #include <cmath>
 #include <algorithm>
 #include <type_traits>
+#include <vector>
 #if defined(__AVX512BF16__) && defined(__AVX512BW__)
 #include <immintrin.h>
 #define DYNBTF_HAVE_BF16 1
@@ -94,6 +95,54 @@ int dynbtf_mlp_forward_fp32(MlpArgs* args);
 // MKL's AVX2 kernels on the calling thread, so evaluation's layer 1 comes here). Returns 1 for another out.
 int dynbtf_affine_rows_fp32(int64_t rows, int32_t in, int32_t out, const float* x, const float* w, const float* b,
                             float* y);
+
+// Layer 1 of a Triple Plane decoder in a training step, with the plane fetches it reads. The fused loss above
+// takes layer 1 split in two parts, one per texel and one per image:
+//
+//   P[r] = W_U f_U[texel[r]]                       (N rows: the step's texels; no bias)
+//   a[i] = sum_k weight[i, k] f_A[index[i, k]]     (image i's angular features: bilinear taps of the stacked
+//                                                   angular planes [f_H; f_D], per plane)
+//   Q[i] = W_A a[i] + b_1                          (one row per image)
+//
+// with [W_U | W_A] layer 1's (H, C_U + C_A) weight. dynbtf_first_layer_forward computes P, a and Q; given the
+// gradients dP and dQ the fused loss returns, dynbtf_first_layer_backward computes everything below them:
+//
+//   dW_U = sum_r dP[r] f_U[texel[r]]^T    dW_A = sum_i dQ[i] a[i]^T    db_1 = sum_i dQ[i]
+//   df_U[texel[r]] += W_U^T dP[r]         df_A[index[i, k]] += weight[i, k] W_A^T dQ[i]
+//
+// with the fp32 register blocks of the fused kernel, on the calling thread, every sum in one fixed order
+// (repeated texels and taps add up in row order, as torch's index_add_). Small products next to the fused
+// loss's; in torch they were a dozen operators of 50-100 us each. Mirrored by ctypes in
+// dynbtf/decoder/fused_mlp.py (triple_plane_l1_loss); keep the field order.
+struct FirstLayerArgs {
+    int32_t hidden;           // H
+    int32_t positional;       // C_U
+    int32_t angular;          // C_A: the angular planes' channels times the planes
+    int32_t plane_channels;   // channels of one angular plane
+    int32_t taps;             // taps per plane and image (4: bilinear)
+    int64_t rows;             // N: the step's texels
+    int64_t images;           // the step's images (G * B)
+    int64_t plane_rows;       // rows of `plane`: every texel index is checked against it
+    int64_t angular_rows;     // rows of `angular_planes`: every tap index is checked against it
+    const float* weight;      // (H, C_U + C_A): layer 1's weight, row-major (torch's nn.Linear layout)
+    const float* bias;        // (H,)
+    const float* plane;       // (plane_rows, C_U): f_U flattened
+    const int64_t* texels;    // (N,): rows of `plane` (null: rows 0 .. N-1)
+    const float* angular_planes;  // (angular_rows, plane_channels): [f_H; f_D] flattened
+    const int64_t* tap_index;     // (images, planes, taps): rows of angular_planes
+    const float* tap_weight;      // (images, planes, taps)
+    float* positional_pre;    // (N, H): P
+    float* angular_features;  // (images, C_A): a
+    float* image_pre;         // (images, H): Q
+};
+int dynbtf_first_layer_args_size(void);
+int dynbtf_first_layer_supports(int32_t hidden, int32_t positional, int32_t angular);  // 1 if a path exists
+// 0, or 1 (sizes without a path), 2 (a texel or tap index outside its plane)
+int dynbtf_first_layer_forward(const FirstLayerArgs* args);
+// grad_weight (H, C_U + C_A), grad_bias (H,) overwritten; grad_plane, grad_angular_planes added to (zero them)
+int dynbtf_first_layer_backward(const FirstLayerArgs* args, const float* grad_positional_pre,
+                                const float* grad_image_pre, float* grad_weight, float* grad_bias, float* grad_plane,
+                                float* grad_angular_planes);
 }
 
 namespace {
@@ -713,4 +762,179 @@ extern "C" int64_t dynbtf_fused_l1_item_floats(int32_t hidden, int32_t out_chann
                                                int32_t images) {
     const int64_t H = hidden, C = out_channels, L = n_layers;
     return (L - 1) * (H * H + H) + C * H + C + static_cast<int64_t>(images) * H;
+}
+
+// ------------------------------------------------------------------------------------------ layer 1
+namespace {
+
+bool first_layer_supported(int hidden, int positional, int angular) {
+    auto whole = [](int n) { return n == 16 || n == 32; };  // whole vectors at every level
+    return (hidden == 16 || hidden == 32 || hidden == 64) && whole(positional) && whole(angular);
+}
+
+// 0 when the sizes have a path and every texel and tap index reads inside its plane; else 1 (sizes), 2 (index)
+int first_layer_check(const FirstLayerArgs* a) {
+    if (!first_layer_supported(a->hidden, a->positional, a->angular) || a->plane_channels < 1 || a->taps < 1 ||
+        a->angular % a->plane_channels || a->rows < 0 || a->images < 0 || a->rows > (int64_t(1) << 24) ||
+        a->images > (int64_t(1) << 24))
+        return 1;
+    if (a->texels) {
+        for (int64_t r = 0; r < a->rows; ++r)
+            if (a->texels[r] < 0 || a->texels[r] >= a->plane_rows) return 2;
+    } else if (a->rows > a->plane_rows) {
+        return 2;
+    }
+    const int64_t n_taps = a->images * (a->angular / a->plane_channels) * a->taps;
+    for (int64_t j = 0; j < n_taps; ++j)
+        if (a->tap_index[j] < 0 || a->tap_index[j] >= a->angular_rows) return 2;
+    return 0;
+}
+
+// out (rows, VW NV) = x (rows, n) wt (n, VW NV) + init (null: 0), in blocks of rows (each row's sum in input order)
+template <int NV>
+void rows_times(int64_t rows, int n, const float* x, const float* wt, const float* init, float* out) {
+    constexpr int R = block_rows<NV>();
+    const int H = VW * NV;
+    in_blocks<R>(static_cast<int>(rows), [&](auto block, int s) {
+        constexpr int RB = decltype(block)::value;
+        vf acc[RB][NV];
+        for (int r = 0; r < RB; ++r)
+            for (int v = 0; v < NV; ++v) acc[r][v] = init ? loadv(init + VW * v) : vf{};
+        Fp32::accumulate_rows<NV, RB>(x + static_cast<int64_t>(s) * n, n, wt, n, acc);
+        for (int r = 0; r < RB; ++r)
+            for (int v = 0; v < NV; ++v) storev(out + (static_cast<int64_t>(s) + r) * H + VW * v, acc[r][v]);
+    });
+}
+
+// the gradients of y = x W^T (+ b) below dy (rows, H) for x (rows, VW NX): grad_w (H, VW NX) = dy^T x (overwritten)
+// and grad_x (rows, VW NX) = dy W, W (H, VW NX) row-major and contiguous
+template <int NX>
+void rows_times_backward(int64_t rows, int H, const float* x, const float* dy, const float* w, float* grad_w,
+                         float* grad_x) {
+    const int n = VW * NX;
+    std::fill(grad_w, grad_w + static_cast<int64_t>(H) * n, 0.f);
+    in_blocks<block_rows<NX>()>(H, [&](auto block, int o0) {
+        Fp32::weight_rows<NX, decltype(block)::value>(dy, o0, H, x, static_cast<int>(rows), grad_w);
+    });
+    in_blocks<block_rows<NX>()>(static_cast<int>(rows), [&](auto block, int s) {
+        constexpr int RB = decltype(block)::value;
+        vf acc[RB][NX];
+        for (int r = 0; r < RB; ++r)
+            for (int v = 0; v < NX; ++v) acc[r][v] = vf{};
+        Fp32::accumulate_rows<NX, RB>(dy + static_cast<int64_t>(s) * H, H, w, H, acc);
+        for (int r = 0; r < RB; ++r)
+            for (int v = 0; v < NX; ++v) storev(grad_x + (static_cast<int64_t>(s) + r) * n + VW * v, acc[r][v]);
+    });
+}
+
+// the step's positional rows f_U[texel[r]] as one contiguous (N, C_U) block
+void gather_positional(const FirstLayerArgs* a, std::vector<float>& x) {
+    const int CU = a->positional;
+    x.resize(static_cast<size_t>(a->rows) * CU);
+    for (int64_t r = 0; r < a->rows; ++r)
+        std::memcpy(x.data() + r * CU, a->plane + (a->texels ? a->texels[r] : r) * CU, sizeof(float) * CU);
+}
+
+// the columns [c0, c0 + n) of layer 1's weight: transposed (n, H) for the forward products, or as given (H, n)
+void weight_columns(const FirstLayerArgs* a, int c0, int n, bool transposed, std::vector<float>& w) {
+    const int H = a->hidden, in = a->positional + a->angular;
+    w.resize(static_cast<size_t>(n) * H);
+    for (int h = 0; h < H; ++h)
+        for (int c = 0; c < n; ++c)
+            w[transposed ? static_cast<size_t>(c) * H + h : static_cast<size_t>(h) * n + c] =
+                a->weight[static_cast<int64_t>(h) * in + c0 + c];
+}
+
+template <int NH>
+void first_layer_forward(const FirstLayerArgs* a) {
+    const int CU = a->positional, CA = a->angular, K = a->taps, CP = a->plane_channels, planes = CA / CP;
+    std::vector<float> x, wt;
+    gather_positional(a, x);
+    weight_columns(a, 0, CU, true, wt);
+    rows_times<NH>(a->rows, CU, x.data(), wt.data(), nullptr, a->positional_pre);
+    for (int64_t i = 0; i < a->images; ++i)
+        for (int q = 0; q < planes; ++q) {
+            const int64_t* idx = a->tap_index + (i * planes + q) * K;
+            const float* tw = a->tap_weight + (i * planes + q) * K;
+            float* f = a->angular_features + i * CA + q * CP;
+            for (int c = 0; c < CP; ++c) f[c] = 0.f;
+            for (int k = 0; k < K; ++k)
+                for (int c = 0; c < CP; ++c) f[c] += tw[k] * a->angular_planes[idx[k] * CP + c];
+        }
+    weight_columns(a, CU, CA, true, wt);
+    rows_times<NH>(a->images, CA, a->angular_features, wt.data(), a->bias, a->image_pre);
+}
+
+template <int NU, int NA>
+void first_layer_backward(const FirstLayerArgs* a, const float* dP, const float* dQ, float* grad_weight,
+                          float* grad_bias, float* grad_plane, float* grad_angular_planes) {
+    const int H = a->hidden, CU = a->positional, CA = a->angular, K = a->taps, CP = a->plane_channels;
+    const int in = CU + CA, planes = CA / CP;
+    std::vector<float> x, w, grad_w_u(static_cast<size_t>(H) * CU), grad_w_a(static_cast<size_t>(H) * CA);
+    std::vector<float> grad_x(static_cast<size_t>(std::max(a->rows * CU, a->images * CA)));
+    gather_positional(a, x);
+    weight_columns(a, 0, CU, false, w);
+    rows_times_backward<NU>(a->rows, H, x.data(), dP, w.data(), grad_w_u.data(), grad_x.data());
+    for (int64_t r = 0; r < a->rows; ++r) {  // in row order: repeated texels add up
+        float* g = grad_plane + (a->texels ? a->texels[r] : r) * CU;
+        for (int c = 0; c < CU; ++c) g[c] += grad_x[r * CU + c];
+    }
+    weight_columns(a, CU, CA, false, w);
+    rows_times_backward<NA>(a->images, H, a->angular_features, dQ, w.data(), grad_w_a.data(), grad_x.data());
+    for (int h = 0; h < H; ++h) grad_bias[h] = 0.f;
+    for (int64_t i = 0; i < a->images; ++i) {
+        for (int h = 0; h < H; ++h) grad_bias[h] += dQ[i * H + h];
+        for (int q = 0; q < planes; ++q) {
+            const int64_t* idx = a->tap_index + (i * planes + q) * K;
+            const float* tw = a->tap_weight + (i * planes + q) * K;
+            for (int k = 0; k < K; ++k) {
+                float* g = grad_angular_planes + idx[k] * CP;
+                for (int c = 0; c < CP; ++c) g[c] += tw[k] * grad_x[i * CA + q * CP + c];
+            }
+        }
+    }
+    for (int h = 0; h < H; ++h) {
+        std::memcpy(grad_weight + static_cast<int64_t>(h) * in, grad_w_u.data() + static_cast<size_t>(h) * CU,
+                    sizeof(float) * CU);
+        std::memcpy(grad_weight + static_cast<int64_t>(h) * in + CU, grad_w_a.data() + static_cast<size_t>(h) * CA,
+                    sizeof(float) * CA);
+    }
+}
+
+template <int NU>
+void first_layer_backward_u(const FirstLayerArgs* a, const float* dP, const float* dQ, float* gw, float* gb,
+                            float* gp, float* ga) {
+    if (a->angular == 16) first_layer_backward<NU, 16 / VW>(a, dP, dQ, gw, gb, gp, ga);
+    else first_layer_backward<NU, 32 / VW>(a, dP, dQ, gw, gb, gp, ga);
+}
+
+}  // namespace
+
+extern "C" int dynbtf_first_layer_args_size(void) { return static_cast<int>(sizeof(FirstLayerArgs)); }
+
+extern "C" int dynbtf_first_layer_supports(int32_t hidden, int32_t positional, int32_t angular) {
+    return first_layer_supported(hidden, positional, angular) ? 1 : 0;
+}
+
+extern "C" int dynbtf_first_layer_forward(const FirstLayerArgs* a) {
+    if (const int code = first_layer_check(a)) return code;
+    switch (a->hidden) {
+        case 16: first_layer_forward<16 / VW>(a); break;
+        case 32: first_layer_forward<32 / VW>(a); break;
+        default: first_layer_forward<64 / VW>(a); break;
+    }
+    return 0;
+}
+
+extern "C" int dynbtf_first_layer_backward(const FirstLayerArgs* a, const float* grad_positional_pre,
+                                           const float* grad_image_pre, float* grad_weight, float* grad_bias,
+                                           float* grad_plane, float* grad_angular_planes) {
+    if (const int code = first_layer_check(a)) return code;
+    if (a->positional == 16)
+        first_layer_backward_u<16 / VW>(a, grad_positional_pre, grad_image_pre, grad_weight, grad_bias, grad_plane,
+                                        grad_angular_planes);
+    else
+        first_layer_backward_u<32 / VW>(a, grad_positional_pre, grad_image_pre, grad_weight, grad_bias, grad_plane,
+                                        grad_angular_planes);
+    return 0;
 }
