@@ -319,8 +319,8 @@ def reference_triple_plane_prediction(model, texels, taps, images):
 @needs_native
 @pytest.mark.parametrize("workers", [1, 2])
 def test_triple_plane_loss_in_native_kernels_matches_float64_autograd(workers):
-    """The plane fetches and layer 1 in dynbtf_first_layer_forward / _backward, layers 2.. in the fused kernel: the loss and the gradient
-    of every parameter equal float64 autograd of the written-out model, repeated texels included."""
+    """The plane fetches and layer 1 in dynbtf_first_layer_forward / _backward, layers 2.. in the fused kernel: the
+    loss and the gradient of every parameter equal float64 autograd of the written-out model, repeated texels included."""
     import copy
 
     model, texels, taps, target = triple_plane_problem()

@@ -150,7 +150,8 @@ class _FirstLayerArgs(ctypes.Structure):
     _fields_ = [("hidden", ctypes.c_int32), ("positional", ctypes.c_int32), ("angular", ctypes.c_int32),
                 ("plane_channels", ctypes.c_int32), ("taps", ctypes.c_int32), ("rows", ctypes.c_int64),
                 ("images", ctypes.c_int64), ("plane_rows", ctypes.c_int64), ("angular_rows", ctypes.c_int64),
-                ("weight", ctypes.c_void_p), ("bias", ctypes.c_void_p), ("plane", ctypes.c_void_p),
+                ("positional_scale", ctypes.c_float), ("weight", ctypes.c_void_p), ("bias", ctypes.c_void_p),
+                ("plane", ctypes.c_void_p),
                 ("texels", ctypes.c_void_p), ("angular_planes", ctypes.c_void_p), ("tap_index", ctypes.c_void_p),
                 ("tap_weight", ctypes.c_void_p), ("positional_pre", ctypes.c_void_p),
                 ("angular_features", ctypes.c_void_p), ("image_pre", ctypes.c_void_p)]
@@ -291,7 +292,8 @@ def _work_items(groups: int, n: int, chunk: int) -> torch.Tensor:
                         dtype=torch.int64)
 
 
-def _native_loss(precision, positional_pre, image_pre, weights, biases, slope, target, chunk, workers, scale):
+def _native_loss(precision, positional_pre, image_pre, weights, biases, slope, target, chunk, workers, scale,
+                 scale_positional=True):
     """The native kernel over every ``(group, chunk of texels)`` item, on ``workers`` threads that take items
     from a shared counter. Returns the same sums as :func:`_chunk_range` over all items: ``(loss, g_positional,
     g_image, g_weights, g_biases)``, the gradients times ``scale``, each item's summed in item order
@@ -331,8 +333,10 @@ def _native_loss(precision, positional_pre, image_pre, weights, biases, slope, t
         g_image = parts.pop().reshape(1, b, hidden)
     else:  # dQ per group: the group's items summed; the weights over all items
         parts = list(item_grads[:, :-b * hidden].sum(0).mul_(scale).split(sizes[:-1]))
-        g_image = item_grads[:, -b * hidden:].reshape(groups, per_group, b, hidden).sum(1).mul_(scale)
-    g_positional.mul_(scale)
+        g_image = item_grads[:, -b * hidden:].reshape(groups, per_group, b, hidden)
+        g_image = (g_image.sum(1) if per_group > 1 else g_image[:, 0].clone()).mul_(scale)
+    if scale_positional:
+        g_positional.mul_(scale)
     g_weights = [p.view_as(w) for p, w in zip(parts[:len(weights)], weights)]
     g_biases = [p.view_as(x) for p, x in zip(parts[len(weights):], biases)]
     return item_loss.sum(), g_positional, g_image, g_weights, g_biases
@@ -438,8 +442,8 @@ class _DecoderL1(torch.autograd.Function):
 
 class _TriplePlaneL1(torch.autograd.Function):
     """The mean L1 loss from the planes themselves (:func:`triple_plane_l1_loss`): the plane fetches and layer 1
-    in ``dynbtf_first_layer_forward`` / ``_backward``, layers 2.. in the fused kernel; one autograd node, every gradient computed in the
-    forward pass (the kernels produce them together)."""
+    in ``dynbtf_first_layer_forward`` / ``_backward``, layers 2.. in the fused kernel; one autograd node, every
+    gradient computed in the forward pass (the kernels produce them together)."""
 
     @staticmethod
     def forward(ctx, plane, angular_planes, first_weight, first_bias, texels, tap_index, tap_weight, target, slope,
@@ -459,7 +463,8 @@ class _TriplePlaneL1(torch.autograd.Function):
         args = _FirstLayerArgs(
             hidden=hidden, positional=positional, angular=angular.shape[1], plane_channels=angular_planes.shape[1],
             taps=taps, rows=rows, images=images, plane_rows=plane.shape[0], angular_rows=angular_planes.shape[0],
-            weight=first_weight.data_ptr(), bias=first_bias.data_ptr(), plane=plane.data_ptr(),
+            positional_scale=1.0 / target.numel(), weight=first_weight.data_ptr(), bias=first_bias.data_ptr(),
+            plane=plane.data_ptr(),
             texels=None if texels is None else texels.data_ptr(), angular_planes=angular_planes.data_ptr(),
             tap_index=tap_index.data_ptr(), tap_weight=tap_weight.data_ptr(), positional_pre=positional_pre.data_ptr(),
             angular_features=angular.data_ptr(), image_pre=image_pre.data_ptr())
@@ -472,7 +477,7 @@ class _TriplePlaneL1(torch.autograd.Function):
         with single_intra_op_thread():
             loss, g_positional, g_image, g_weights, g_biases = _native_loss(
                 precision, positional_pre, image_pre.view(groups, -1, hidden), weights, biases, slope,
-                target.contiguous(), chunk, workers, 1.0 / target.numel())
+                target.contiguous(), chunk, workers, 1.0 / target.numel(), scale_positional=False)
         g_image = g_image.reshape(images, hidden).contiguous()
         g_first_weight, g_first_bias = torch.empty_like(first_weight), torch.empty_like(first_bias)
         g_plane, g_angular_planes = torch.zeros_like(plane), torch.zeros_like(angular_planes)
@@ -525,7 +530,8 @@ def triple_plane_l1_loss(plane: torch.Tensor, texels: torch.Tensor | None, angul
                          f"({plane.shape[1]}) and {planes} angular planes of {angular_planes.shape[1]} give "
                          f"{plane.shape[1] + planes * angular_planes.shape[1]}")
     library = _native_library()
-    if library is None or not _native_supports(torch.empty((0, hidden)), [layer.weight for layer in layers], precision) \
+    weights = [layer.weight for layer in layers]
+    if library is None or not _native_supports(torch.empty((0, hidden)), weights, precision) \
             or not library.dynbtf_first_layer_supports(hidden, plane.shape[1], planes * angular_planes.shape[1]):
         return None
     rows = plane.shape[0] if texels is None else texels.shape[0]

@@ -87,7 +87,8 @@ def open_or_compile(model, method: str = "auto", seed: int = 0, *, footprints: b
 
     Without ``footprints`` a cached material with footprint decoders is used as well (it holds the same
     tables); with ``footprints``, a cached material without them is completed (tables reused) and stored.
-    ``auto`` is compiled once and also stored under the key of the method it chose (same tables), so that asking for that method by name later reads it; with ``footprints`` the footprint decoders
+    ``auto`` is compiled once and also stored under the key of the method it chose (same tables), so that
+    asking for that method by name later reads it; with ``footprints`` the footprint decoders
     are those of the chosen method (one fit per resolved method).
     """
     if method == "auto":

@@ -124,6 +124,7 @@ struct FirstLayerArgs {
     int64_t images;           // the step's images (G * B)
     int64_t plane_rows;       // rows of `plane`: every texel index is checked against it
     int64_t angular_rows;     // rows of `angular_planes`: every tap index is checked against it
+    float positional_scale;   // backward: dP is taken times this factor (the fused loss leaves it unscaled)
     const float* weight;      // (H, C_U + C_A): layer 1's weight, row-major (torch's nn.Linear layout)
     const float* bias;        // (H,)
     const float* plane;       // (plane_rows, C_U): f_U flattened
@@ -877,7 +878,7 @@ void first_layer_backward(const FirstLayerArgs* a, const float* dP, const float*
     rows_times_backward<NU>(a->rows, H, x.data(), dP, w.data(), grad_w_u.data(), grad_x.data());
     for (int64_t r = 0; r < a->rows; ++r) {  // in row order: repeated texels add up
         float* g = grad_plane + (a->texels ? a->texels[r] : r) * CU;
-        for (int c = 0; c < CU; ++c) g[c] += grad_x[r * CU + c];
+        for (int c = 0; c < CU; ++c) g[c] += a->positional_scale * grad_x[r * CU + c];
     }
     weight_columns(a, CU, CA, false, w);
     rows_times_backward<NA>(a->images, H, a->angular_features, dQ, w.data(), grad_w_a.data(), grad_x.data());
@@ -894,8 +895,8 @@ void first_layer_backward(const FirstLayerArgs* a, const float* dP, const float*
         }
     }
     for (int h = 0; h < H; ++h) {
-        std::memcpy(grad_weight + static_cast<int64_t>(h) * in, grad_w_u.data() + static_cast<size_t>(h) * CU,
-                    sizeof(float) * CU);
+        for (int c = 0; c < CU; ++c)
+            grad_weight[static_cast<int64_t>(h) * in + c] = a->positional_scale * grad_w_u[static_cast<size_t>(h) * CU + c];
         std::memcpy(grad_weight + static_cast<int64_t>(h) * in + CU, grad_w_a.data() + static_cast<size_t>(h) * CA,
                     sizeof(float) * CA);
     }
