@@ -29,11 +29,13 @@ Two implementations compute the same thing:
   ``precision="fp32"`` it equals the PyTorch path to float rounding; in ``"bf16"`` (CPUs
   with AVX512-BF16) the products take bfloat16 inputs and accumulate in float32, everything
   else -- parameters, residuals, LeakyReLU gains, every gradient accumulator -- stays float32
-  (mixed precision). Measured at 128 x 128 (``benchmarks/bench_training.py``): 14-16x the
-  naive recipe's samples/s in bf16, 11x in fp32, and the same held-out PSNR per step as fp32.
+  (mixed precision). Speed per level: ``benchmarks/bench_training.py`` (docs/results.md).
 * the **PyTorch path** (:func:`_chunk_range`): chunks of 256 texels x 16 images through
   ordinary torch ops with a hand-written backward -- for other dtypes, GPUs, machines
   without a C++ compiler, and as the reference the native kernel is tested against.
+
+For a Triple Plane, :func:`triple_plane_l1_loss` also moves the plane fetches and layer 1 into native code
+(``dynbtf_first_layer_forward`` / ``_backward``): the whole decoder and its planes are one autograd node.
 
 Chunks are split across ``workers`` Python threads (torch and the native kernel release the
 GIL) with torch's own intra-op threading disabled for the duration: on a small shared CPU
