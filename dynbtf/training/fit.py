@@ -704,24 +704,33 @@ class _TrainingRun:
     def _next_position(self) -> tuple[int, int]:
         return (self.epoch, self.step + 1) if self.step + 1 < self.sampler.steps_per_epoch else (self.epoch + 1, 0)
 
-    def _optimizer_step(self, batch) -> float:
-        """One step of the optimizer on ``batch``; returns the loss."""
-        multiplier = self.schedule.lr_multiplier(self.epoch, self.done_steps, self.record)
-        for g in self.optimizer.param_groups:
-            g["lr"] = g["initial_lr"] * multiplier
+    def _step_inputs(self, epoch: int, step: int):
+        """``(batch, (w_view, w_light, texels, taps))``: step ``(epoch, step)``'s batch and the tensors the loss
+        reads besides its targets (directions, texel indices, the pairs' rows of the angular taps). Prepared by
+        the prefetch thread while the previous step trains."""
+        batch = self.sampler.batch(epoch, step)
         source, device = self.source, self.device
         wv = torch.as_tensor(source.views[batch.pairs[:, 0]], dtype=torch.float32, device=device)
         wl = torch.as_tensor(source.lights[batch.pairs[:, 1]], dtype=torch.float32, device=device)
         texels = None if batch.texels is None else torch.from_numpy(batch.texels).to(device)
+        taps = None
+        if self.angular_taps is not None and len(batch.pairs):
+            rows = torch.as_tensor(batch.pairs[:, 0] * source.n_lights + batch.pairs[:, 1], device=device)
+            taps = tuple(t.index_select(0, rows) for t in self.angular_taps)
+        return batch, (wv, wl, texels, taps)
+
+    def _optimizer_step(self, batch, inputs) -> float:
+        """One step of the optimizer on ``batch`` (``inputs``: :meth:`_step_inputs`); returns the loss."""
+        multiplier = self.schedule.lr_multiplier(self.epoch, self.done_steps, self.record)
+        for g in self.optimizer.param_groups:
+            g["lr"] = g["initial_lr"] * multiplier
+        source = self.source
+        wv, wl, texels, taps = inputs
         self.optimizer.zero_grad(set_to_none=True)
         parallel = self.parallel
         if len(batch.pairs) == 0:  # a data-parallel share of an epoch's short last step can be empty
             loss_value = 0.0
         else:
-            taps = None
-            if self.angular_taps is not None:
-                rows = torch.as_tensor(batch.pairs[:, 0] * source.n_lights + batch.pairs[:, 1], device=device)
-                taps = tuple(t.index_select(0, rows) for t in self.angular_taps)
             loss = texel_image_loss(self.rep, wv, wl, batch.target, (source.height, source.width), texels,
                                     chunk_texels=self.chunk_texels, workers=self.workers,
                                     texel_groups=batch.groups, precision=self.precision, angular_taps=taps)
@@ -841,16 +850,16 @@ class _TrainingRun:
         # ``workers`` Python threads instead: OpenMP barriers stall badly on a shared, oversubscribed machine.
         try:
             with _InterruptFlag() as interrupt, single_intra_op_thread(self.device.type == "cpu"):
-                pending = prefetch.submit(self.sampler.batch, self.epoch, self.step) if not self.finished else None
+                pending = prefetch.submit(self._step_inputs, self.epoch, self.step) if not self.finished else None
                 while not self.finished:
                     t0 = time.perf_counter()
-                    batch = pending.result()
+                    batch, inputs = pending.result()
                     nxt = self._next_position()
-                    pending = prefetch.submit(self.sampler.batch, *nxt) if nxt[0] < config.epochs else None
+                    pending = prefetch.submit(self._step_inputs, *nxt) if nxt[0] < config.epochs else None
                     self._check_targets(batch)
                     consistent = False
                     try:
-                        loss = self._optimizer_step(batch)
+                        loss = self._optimizer_step(batch, inputs)
                     except TrainingDiverged:
                         consistent = True  # raised before the update: the state is still that of (epoch, step)
                         raise
