@@ -63,6 +63,12 @@ _FRONT_DOOR = {
     # synthesis and recovery
     "SynthesizedBTF": "dynbtf.infinite_btf",
     "make_synthesizer": "dynbtf.synthesis.registry",
+    "LayeredBTF": "dynbtf.layered",
+    "ImageMask": "dynbtf.layered",
+    "NoiseMask": "dynbtf.layered",
+    # the material stage
+    "open_or_compile": "dynbtf.material",
+    "load_compiled": "dynbtf.material",
     # rendering (Mitsuba 3, optional) and real time (GLSL shader + WebGL2 viewer)
     "register_plugin": "dynbtf.render.mitsuba.bsdf",
     "export_web": "dynbtf.export.web.exporter",

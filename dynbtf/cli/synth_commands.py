@@ -126,6 +126,17 @@ def synth(
     repeats: int = typer.Option(8, help="Side of the area measured by --report, in exemplar repeats; reduced to "
                                         "fit 1024 texels per side (8 repeats of a 128-texel exemplar; the report "
                                         "prints the measured area)."),
+    layer: Optional[Path] = typer.Option(None, "--layer", help="A second material (model file or .dbtfc) layered "
+                                         "with MODEL: MODEL where --mask is below one half, this one above "
+                                         "(same method and scale; the boundary follows both materials' heights)."),
+    mask: str = typer.Option("noise", "--mask", help="With --layer: an image file (PNG/JPEG grey levels or EXR "
+                             "values in [0, 1]) or noise:SCALE[,CONTRAST[,SEED]] (value noise, cells of SCALE uv "
+                             "units)."),
+    mask_size: float = typer.Option(1.0, "--mask-size", help="uv units a mask image covers."),
+    mask_wrap: str = typer.Option("repeat", "--mask-wrap", help="A mask image repeats (repeat) or extends its "
+                                  "edges (clamp)."),
+    width: float = typer.Option(0.05, "--width", help="With --layer: half-width (uv units) of the band around "
+                                "the mask's contour where the materials' heights decide."),
     memory_mb: Optional[float] = typer.Option(None, "--memory-mb", help="Limit (MB) of the image's estimated "
                                                                         f"working memory (~{BYTES_PER_PIXEL} bytes "
                                                                         "per pixel); default half of this machine's "
@@ -155,6 +166,7 @@ def synth(
     check_exposure(exposure)
     cu, cv = _pair(center, "center")
     check_uv([[cu - 0.5, cv - 0.5], [cu + 0.5, cv + 0.5]], "--center", scale=scale)  # before any work
+    the_mask = _layer_mask(layer, mask, mask_size, mask_wrap, width, report, output)  # before any work
     rep, material = open_model_file(model, device=where)
     methods = [m.strip() for m in report_methods.split(",") if m.strip()] if report else []
     quilt_size = _quilt_repeats(quilt_repeats, scale, tuple(rep.positional_plane().shape)) \
@@ -165,6 +177,13 @@ def synth(
             return _build(material, material.method, scale=scale, seed=seed, quilt_size=None, gamma=gamma)
         return _build(rep, name, scale=scale, seed=0 if seed is None else seed, quilt_size=quilt_size, gamma=gamma)
 
+    if layer is not None:
+        btf = _layered(build(method), layer, method, where, scale=scale, seed=seed, gamma=gamma, mask=the_mask,
+                       width=width)
+        _write_image(btf, output, view_dir, light_dir, (cu, cv), resolution=resolution, spp=spp, filtered=filtered,
+                     cosine=cosine, exposure=exposure)
+        typer.echo(f"wrote {output} ({resolution}x{resolution}, {model} | {layer}, {scale:g}x, centre {cu:g},{cv:g})")
+        return
     if output is not None:
         btf = build(method)
         _write_image(btf, output, view_dir, light_dir, (cu, cv), resolution=resolution, spp=spp, filtered=filtered,
@@ -172,6 +191,32 @@ def synth(
         typer.echo(f"wrote {output} ({resolution}x{resolution}, {btf.synthesizer.name}, {scale:g}x, centre {cu:g},{cv:g})")
     if report:
         _write_report(build, methods, repeats, _report_path(output, report_json))
+
+
+
+def _layer_mask(layer: Path | None, mask: str, mask_size: float, mask_wrap: str, width: float, report: bool, output):
+    """``--layer``'s mask (None without ``--layer``), its options checked."""
+    from ..errors import positive_number
+    from ..layered import mask_from_spec
+
+    if layer is None:
+        return None
+    if report or output is None:
+        raise InputError("--layer: writes an image (-o); --report measures one material at a time")
+    positive_number("--width", width, "uv units")
+    return mask_from_spec(mask, size=mask_size, wrap=mask_wrap)
+
+
+def _layered(first, layer: Path, method: str, where, *, scale: float, seed, gamma, mask, width: float):
+    """``--layer``: the layered material of ``first`` and the material in ``layer`` under ``mask``."""
+    from ..layered import LayeredBTF
+    from ..material import open_model_file
+
+    rep, material = open_model_file(layer, device=where)
+    source = material if material is not None and method in ("auto", material.method) else rep
+    second = _build(source, material.method if source is material else method, scale=scale,
+                    seed=seed if source is not material else None, quilt_size=None, gamma=gamma)
+    return LayeredBTF([first, second], mask, width=width)
 
 
 def _report_path(output: Path | None, report_json: Path | None) -> Path:

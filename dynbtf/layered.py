@@ -1,0 +1,318 @@
+"""Layered materials: several synthesized BTFs on one surface, the one that shows chosen per point by a mask.
+
+``LayeredBTF([worn, new], mask, width=0.05).eval(uv, w_view, w_light)`` answers like a
+:class:`~dynbtf.infinite_btf.SynthesizedBTF`, at any ``uv`` and per point, with no pre-generated texture:
+layer 0 where the mask is below one half, layer 1 where it is above. Two layers, any two fitted materials
+(each with its own method, seed and scale).
+
+The boundary
+------------
+The boundary is not a cross-fade of the two materials. Within ``width`` (uv units) of the mask's 0.5
+contour, each point shows the layer that stands **higher** there once a bias that grows with the distance
+to the contour is added:
+
+    score = (h_1 - h_0) + d / width,   d the signed distance to the contour (positive on layer 1's side)
+
+so the raised parts of one material (a brick's face, the top of a fibre) reach into the other's side and its
+hollows give way first: the boundary follows the materials' own structure. ``h`` is each layer's
+**height** at the point, in ``[0, 1]``: the relief height where the model has one (``triple-parallax``),
+else the luminance of its synthesized features under normal view and light (a linear map of the features
+fitted to the decoded exemplar; the exemplar's 2nd and 98th percentiles are 0 and 1). The layer whose
+score sign wins is shown; ``softness`` (height units) blends the two linearly over ``|score| <
+softness`` (0: a hard edge, each point from one material). Beyond ``width`` from the contour only one layer
+is evaluated, so away from boundaries a query costs one material's evaluation (plus the mask).
+
+``d`` comes from the mask: ``(m - 0.5) / |grad m|``, the distance to the contour of a mask that is locally
+linear (exact for a linear ramp, and for any mask at the contour itself).
+
+Masks
+-----
+A mask is any object with ``value(uv) -> (N,) float64 in [0, 1]`` and ``gradient(uv) -> (N, 2)`` for
+``uv (N, 2)`` float64 (uv units):
+
+* :class:`ImageMask` -- an image over ``size`` x ``size`` uv units, bilinear, repeated or clamped;
+* :class:`NoiseMask` -- value noise with a ``scale`` (uv units per cell) and a ``contrast``, seeded, from an
+  integer lattice hash (:mod:`dynbtf.synthesis.hash`): the same value at any distance from the origin.
+
+Footprint queries (``footprint=``) evaluate each layer with its footprint; the choice between them is made at
+the footprint's centre.
+
+Conventions as everywhere in dynbtf: ``uv`` in the user's units (each layer's ``scale`` maps it to exemplar
+repeats), unit directions in the local frame, linear RGB excluding ``cos(theta_light)``.
+
+Example
+-------
+>>> import numpy as np
+>>> from dynbtf.infinite_btf import SynthesizedBTF
+>>> from dynbtf.representations.triple_plane import TriplePlane
+>>> a = SynthesizedBTF(TriplePlane(16, 16, seed=1), "hist", scale=4.0)
+>>> b = SynthesizedBTF(TriplePlane(16, 16, seed=2), "hist", scale=4.0)
+>>> half = ImageMask(np.array([[0.0, 1.0]]), size=2.0, wrap="clamp")   # left half layer 0, right half layer 1
+>>> layered = LayeredBTF([a, b], half, width=0.1)
+>>> uv = np.array([[0.2, 0.3], [1.8, 0.3]])
+>>> w = np.array([[0.0, 0.0, 1.0]] * 2)
+>>> np.allclose(layered.eval(uv, w, w), np.stack([a.eval(uv[:1], w[:1], w[:1])[0], b.eval(uv[1:], w[1:], w[1:])[0]]))
+True
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .conventions import spherical_to_direction
+from .errors import InputError, positive_number
+from .infinite_btf import SynthesizedBTF, flat_image
+from .synthesis.base import check_uv
+from .synthesis.hash import MASK32, hash_vertex
+
+__all__ = ["LayeredBTF", "ImageMask", "NoiseMask", "layer_height_map", "mask_from_spec"]
+
+
+# ------------------------------------------------------------------------------------------------ masks
+class ImageMask:
+    """A mask image ``(H, W)`` in ``[0, 1]`` over ``size`` x ``size`` uv units (row 0 at ``v = 0``, column 0 at
+    ``u = 0``; texel centres at half-texel offsets), fetched bilinearly; ``wrap``: ``"repeat"`` (the image tiles
+    the plane) or ``"clamp"`` (its edge texels extend it)."""
+
+    def __init__(self, image, size: float = 1.0, wrap: str = "repeat") -> None:
+        try:
+            image = np.array(image, dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise InputError(f"mask: expected an image of numbers (H, W), got {type(image).__name__} ({e})") from None
+        if image.ndim == 3 and image.shape[-1] in (1, 3, 4):
+            image = image[..., :3].mean(-1) if image.shape[-1] >= 3 else image[..., 0]
+        if image.ndim != 2 or image.size == 0:
+            raise InputError(f"mask: expected an image of shape (H, W) (or H x W x 1/3/4), got {image.shape}")
+        if not np.isfinite(image).all() or image.min() < 0.0 or image.max() > 1.0:
+            raise InputError("mask: expected values in [0, 1] (finite); scale the image first")
+        if wrap not in ("repeat", "clamp"):
+            raise InputError(f"mask wrap: expected 'repeat' or 'clamp', got {wrap!r}")
+        self.image, self.size, self.wrap = image, positive_number("mask size", size, "uv units"), wrap
+        self.cell = self.size / max(image.shape)
+
+    def _texel(self, uv: np.ndarray):
+        h, w = self.image.shape
+        if self.wrap == "repeat":
+            uv = np.mod(uv, self.size)  # exact (a remainder): the same texel coordinates at any distance
+        x = uv[:, 0] / self.size * w - 0.5
+        y = uv[:, 1] / self.size * h - 0.5
+        x0, y0 = np.floor(x), np.floor(y)
+        fx, fy = x - x0, y - y0
+        x0, y0 = x0.astype(np.int64), y0.astype(np.int64)
+        if self.wrap == "repeat":
+            cols, rows = (np.mod(x0, w), np.mod(x0 + 1, w)), (np.mod(y0, h), np.mod(y0 + 1, h))
+        else:
+            cols = (np.clip(x0, 0, w - 1), np.clip(x0 + 1, 0, w - 1))
+            rows = (np.clip(y0, 0, h - 1), np.clip(y0 + 1, 0, h - 1))
+        corners = [[self.image[r, c] for c in cols] for r in rows]  # [row][col]
+        return corners, fx, fy, w / self.size, h / self.size
+
+    def value(self, uv: np.ndarray) -> np.ndarray:
+        """The mask at ``uv (N, 2)`` float64: ``(N,)`` in ``[0, 1]``."""
+        ((a, b), (c, d)), fx, fy, _, _ = self._texel(uv)
+        return (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
+
+    def gradient(self, uv: np.ndarray) -> np.ndarray:
+        """``d value / d uv`` at ``uv (N, 2)``: ``(N, 2)`` per uv unit (of the bilinear interpolant)."""
+        ((a, b), (c, d)), fx, fy, sx, sy = self._texel(uv)
+        gx = ((b - a) * (1 - fy) + (d - c) * fy) * sx
+        gy = ((c - a) * (1 - fx) + (d - b) * fx) * sy
+        return np.stack([gx, gy], -1)
+
+
+class NoiseMask:
+    """Value noise in ``[0, 1]``: a random value per integer lattice vertex (hashed with ``seed``: the same at any
+    distance from the origin), smoothstep-interpolated over cells of ``scale`` uv units, then
+    ``0.5 + contrast * (n - 0.5)`` clipped to ``[0, 1]`` (``contrast`` > 1 sharpens the regions)."""
+
+    def __init__(self, scale: float = 1.0, contrast: float = 2.0, seed: int = 0) -> None:
+        self.scale = positive_number("mask scale", scale, "uv units per noise cell")
+        self.contrast = positive_number("mask contrast", contrast, "gain around 0.5")
+        if int(seed) != seed or seed < 0:
+            raise InputError(f"mask seed: expected a non-negative integer, got {seed!r}")
+        self.seed, self.cell = int(seed), self.scale
+
+    def _corners(self, uv: np.ndarray):
+        p = uv / self.scale
+        i = np.floor(p)
+        f = p - i
+        i = i.astype(np.int64)
+        vertex = [[hash_vertex(i[:, 0] + dx, i[:, 1] + dy, self.seed) / float(MASK32) for dx in (0, 1)]
+                  for dy in (0, 1)]
+        return vertex, f
+
+    def _noise(self, uv):
+        ((a, b), (c, d)), f = self._corners(uv)
+        s = f * f * (3 - 2 * f)
+        ds = 6 * f * (1 - f) / self.scale
+        n = (a * (1 - s[:, 0]) + b * s[:, 0]) * (1 - s[:, 1]) + (c * (1 - s[:, 0]) + d * s[:, 0]) * s[:, 1]
+        gx = ((b - a) * (1 - s[:, 1]) + (d - c) * s[:, 1]) * ds[:, 0]
+        gy = ((c - a) * (1 - s[:, 0]) + (d - b) * s[:, 0]) * ds[:, 1]
+        return n, np.stack([gx, gy], -1)
+
+    def value(self, uv: np.ndarray) -> np.ndarray:
+        n, _ = self._noise(uv)
+        return np.clip(0.5 + self.contrast * (n - 0.5), 0.0, 1.0)
+
+    def gradient(self, uv: np.ndarray) -> np.ndarray:
+        n, g = self._noise(uv)
+        inside = np.abs(self.contrast * (n - 0.5)) < 0.5  # where the clip is flat, so is the mask
+        return g * (self.contrast * inside)[:, None]
+
+
+def mask_from_spec(spec: str, size: float = 1.0, wrap: str = "repeat"):
+    """The mask a command line names: ``noise`` or ``noise:SCALE[,CONTRAST[,SEED]]`` (:class:`NoiseMask`), else an
+    image file (:class:`ImageMask` over ``size`` uv units). A PNG or JPEG is read as painted: its stored grey
+    levels over the maximum (a 50% grey is 0.5); an EXR's values as they are; colour images by their mean."""
+    if spec == "noise" or spec.startswith("noise:"):
+        fields = [x for x in spec[len("noise:"):].split(",") if x.strip()] if ":" in spec else []
+        if len(fields) > 3:
+            raise InputError(f"--mask {spec!r}: expected noise:SCALE[,CONTRAST[,SEED]]")
+        try:
+            scale = float(fields[0]) if fields else 1.0
+            contrast = float(fields[1]) if len(fields) > 1 else 2.0
+            seed = int(fields[2]) if len(fields) > 2 else 0
+        except ValueError:
+            raise InputError(f"--mask {spec!r}: expected noise:SCALE[,CONTRAST[,SEED]] with numbers") from None
+        return NoiseMask(scale, contrast, seed)
+    from .io import linear_to_srgb, load_image
+
+    image = load_image(spec)
+    if not str(spec).lower().endswith(".exr"):
+        image = linear_to_srgb(image)  # back to the stored levels: masks are painted, not photographed
+    return ImageMask(np.clip(np.asarray(image, dtype=np.float64), 0.0, 1.0) if not str(spec).lower().endswith(".exr")
+                     else image, size=size, wrap=wrap)
+
+
+# ------------------------------------------------------------------------------------------------ heights
+def layer_height_map(btf: SynthesizedBTF) -> tuple[np.ndarray, float, float]:
+    """How :class:`LayeredBTF` reads a layer's height from its synthesized features ``f (N, C)``:
+    ``(weights (C,), offset, span)`` with ``h = clip((f @ weights - offset) / span, 0, 1)``.
+
+    A relief model's height channel where it has one (its last positional channel); else the luminance of the
+    exemplar decoded under normal view and light, regressed linearly on the exemplar's features (least
+    squares). ``offset`` and ``span`` put the exemplar's 2nd and 98th percentiles at 0 and 1."""
+    model = btf.model
+    plane = model.positional_plane().detach().to("cpu", torch.float64)
+    rows = plane.reshape(-1, plane.shape[-1])
+    if getattr(model, "extra_positional_channels", 0):
+        weights = torch.zeros(rows.shape[1], dtype=torch.float64)
+        weights[-1] = 1.0
+    else:
+        with torch.no_grad():
+            w = torch.as_tensor(spherical_to_direction(np.array(0.0), np.array(0.0)), dtype=model.positional_plane().dtype)
+            w = w.expand(rows.shape[0], 3).to(model.positional_plane().device)
+            rgb = model.decode(model.positional_plane().detach().reshape(rows.shape[0], -1), w, w)
+        luminance = (rgb.double().cpu() @ torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64))
+        design = torch.cat([rows, torch.ones(rows.shape[0], 1, dtype=torch.float64)], 1)
+        solution = torch.linalg.lstsq(design, luminance[:, None]).solution[:, 0]
+        weights = solution[:-1]  # (the intercept drops out: the percentiles below set the offset)
+    heights = (rows @ weights).numpy()
+    low, high = np.percentile(heights, [2.0, 98.0])
+    return weights.numpy(), float(low), float(max(high - low, 1e-12))
+
+
+# ------------------------------------------------------------------------------------------------ layered BTF
+class LayeredBTF:
+    """Two synthesized BTFs on one surface, chosen per point by ``mask`` (see the module docstring).
+
+    Parameters
+    ----------
+    layers : sequence of two SynthesizedBTF
+        Layer 0 shows where the mask is below 0.5, layer 1 where it is above.
+    mask : ImageMask, NoiseMask or any object with ``value`` and ``gradient``
+        Over the user's ``uv``.
+    width : float, default 0.05
+        Half-width (uv units) of the band around the mask's 0.5 contour where the materials' heights decide.
+    softness : float, default 0.0
+        Height difference over which the two layers blend inside the band (0: each point from one layer).
+    """
+
+    def __init__(self, layers, mask, width: float = 0.05, softness: float = 0.0) -> None:
+        layers = list(layers)
+        if len(layers) != 2 or not all(isinstance(x, SynthesizedBTF) for x in layers):
+            raise InputError(f"layers: expected two SynthesizedBTF, got {[type(x).__name__ for x in layers]}")
+        if not (callable(getattr(mask, "value", None)) and callable(getattr(mask, "gradient", None))):
+            raise InputError(f"mask: expected an ImageMask, a NoiseMask or an object with value(uv) and "
+                             f"gradient(uv), got {type(mask).__name__}")
+        self.layers, self.mask = layers, mask
+        self.width = positive_number("width", width, "uv units")
+        softness = float(softness)
+        if not (math.isfinite(softness) and softness >= 0.0):
+            raise InputError(f"softness: expected a height difference >= 0, got {softness!r}")
+        self.softness = softness
+        self._heights = [layer_height_map(layer) for layer in layers]
+
+    @property
+    def scale(self) -> float:
+        """The larger of the layers' scales (exemplar repeats per uv unit): what bounds a valid ``uv``."""
+        return max(btf.scale for btf in self.layers)
+
+    def image(self, view=(0.0, 0.0), light=(0.0, 0.0), uv_rect=(0.0, 0.0, 1.0, 1.0), resolution=512,
+              spp: int = 1, filtered: bool = False) -> np.ndarray:
+        """A flat sample under one directional (view, light) pair (:func:`dynbtf.infinite_btf.flat_image`)."""
+        return flat_image(self, view, light, uv_rect, resolution, spp, filtered)
+
+    def heights(self, uv: torch.Tensor) -> torch.Tensor:
+        """Each layer's height in ``[0, 1]`` at ``uv (N, 2)`` float64: ``(N, 2)`` float64."""
+        out = []
+        for btf, (weights, offset, span) in zip(self.layers, self._heights):
+            f = btf.features(uv).double().cpu().numpy()
+            out.append(np.clip((f @ weights - offset) / span, 0.0, 1.0))
+        return torch.from_numpy(np.stack(out, -1))
+
+    def weight(self, uv) -> np.ndarray:
+        """Layer 1's weight in ``[0, 1]`` at ``uv (..., 2)``: ``(...)`` float64 (layer 0's is one minus it)."""
+        uv = check_uv(uv, scale=self.scale)
+        flat = uv.reshape(-1, 2).to(torch.float64).cpu()
+        return self._weight(flat).reshape(tuple(uv.shape[:-1]))
+
+    def _weight(self, flat: torch.Tensor) -> np.ndarray:
+        points = flat.numpy()
+        m = self.mask.value(points)
+        slope = np.linalg.norm(self.mask.gradient(points), axis=-1)
+        distance = (m - 0.5) / np.maximum(slope, 1e-300)          # signed, positive on layer 1's side
+        distance = np.where(m == 0.5, 0.0, distance)
+        weight = (distance > 0).astype(np.float64)
+        band = np.flatnonzero(np.abs(distance) < self.width)
+        if band.size:
+            h = self.heights(flat[band]).numpy()
+            score = h[:, 1] - h[:, 0] + distance[band] / self.width
+            if self.softness > 0:
+                weight[band] = np.clip(0.5 + score / (2 * self.softness), 0.0, 1.0)
+            else:
+                weight[band] = (score > 0).astype(np.float64)
+        return weight
+
+    def eval(self, uv, w_view, w_light, footprint=None):
+        """Linear RGB ``(..., 3)`` float32 (excluding cos(theta_light)), as :meth:`SynthesizedBTF.eval`, each layer
+        evaluated only where its weight is positive. NumPy in, NumPy out; torch in, torch out (on the CPU)."""
+        as_numpy = not isinstance(uv, torch.Tensor)
+        uv = check_uv(uv, scale=self.scale)
+        batch = tuple(uv.shape[:-1])
+        flat = uv.reshape(-1, 2).to(torch.float64).cpu()
+        wv = w_view if isinstance(w_view, torch.Tensor) else torch.from_numpy(np.array(w_view, dtype=np.float64))
+        wl = w_light if isinstance(w_light, torch.Tensor) else torch.from_numpy(np.array(w_light, dtype=np.float64))
+        for name, w in (("w_view", wv), ("w_light", wl)):
+            if tuple(w.shape) != batch + (3,):
+                raise InputError(f"{name}: expected shape {batch + (3,)}, got {tuple(w.shape)}")
+        wv, wl = wv.reshape(-1, 3), wl.reshape(-1, 3)
+        fp = None
+        if footprint is not None:
+            fp = torch.as_tensor(np.broadcast_to(np.asarray(footprint, dtype=np.float64), batch).copy()
+                                 if not isinstance(footprint, torch.Tensor) else footprint).reshape(-1)
+        weight = torch.from_numpy(self._weight(flat))
+        out = torch.zeros(flat.shape[0], 3, dtype=torch.float32)
+        for k, btf in enumerate(self.layers):
+            share = weight if k == 1 else 1.0 - weight
+            rows = torch.nonzero(share > 0)[:, 0]
+            if rows.numel() == 0:
+                continue
+            rgb = btf.eval(flat[rows], wv[rows], wl[rows], None if fp is None else fp[rows])
+            rgb = torch.as_tensor(rgb).float().cpu()
+            out[rows] += rgb if bool((share[rows] == 1).all()) else rgb * share[rows, None].float()
+        out = out.reshape(*batch, 3)
+        return out.numpy() if as_numpy else out
