@@ -112,15 +112,19 @@ class ImageMask:
 
     def value(self, uv: np.ndarray) -> np.ndarray:
         """The mask at ``uv (N, 2)`` float64: ``(N,)`` in ``[0, 1]``."""
-        ((a, b), (c, d)), fx, fy, _, _ = self._texel(uv)
-        return (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
+        return self.value_and_gradient(uv)[0]
 
     def gradient(self, uv: np.ndarray) -> np.ndarray:
         """``d value / d uv`` at ``uv (N, 2)``: ``(N, 2)`` per uv unit (of the bilinear interpolant)."""
+        return self.value_and_gradient(uv)[1]
+
+    def value_and_gradient(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`value` and :meth:`gradient` in one pass."""
         ((a, b), (c, d)), fx, fy, sx, sy = self._texel(uv)
+        value = (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
         gx = ((b - a) * (1 - fy) + (d - c) * fy) * sx
         gy = ((c - a) * (1 - fx) + (d - b) * fx) * sy
-        return np.stack([gx, gy], -1)
+        return value, np.stack([gx, gy], -1)
 
 
 class NoiseMask:
@@ -154,13 +158,18 @@ class NoiseMask:
         return n, np.stack([gx, gy], -1)
 
     def value(self, uv: np.ndarray) -> np.ndarray:
-        n, _ = self._noise(uv)
-        return np.clip(0.5 + self.contrast * (n - 0.5), 0.0, 1.0)
+        """The mask at ``uv (N, 2)`` float64: ``(N,)`` in ``[0, 1]``."""
+        return self.value_and_gradient(uv)[0]
 
     def gradient(self, uv: np.ndarray) -> np.ndarray:
+        """``d value / d uv`` at ``uv (N, 2)``: ``(N, 2)`` per uv unit."""
+        return self.value_and_gradient(uv)[1]
+
+    def value_and_gradient(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`value` and :meth:`gradient` in one pass."""
         n, g = self._noise(uv)
         inside = np.abs(self.contrast * (n - 0.5)) < 0.5  # where the clip is flat, so is the mask
-        return g * (self.contrast * inside)[:, None]
+        return np.clip(0.5 + self.contrast * (n - 0.5), 0.0, 1.0), g * (self.contrast * inside)[:, None]
 
 
 def mask_from_spec(spec: str, size: float = 1.0, wrap: str = "repeat"):
@@ -272,8 +281,11 @@ class LayeredBTF:
 
     def _weight(self, flat: torch.Tensor) -> np.ndarray:
         points = flat.numpy()
-        m = self.mask.value(points)
-        slope = np.linalg.norm(self.mask.gradient(points), axis=-1)
+        if hasattr(self.mask, "value_and_gradient"):
+            m, gradient = self.mask.value_and_gradient(points)
+        else:
+            m, gradient = self.mask.value(points), self.mask.gradient(points)
+        slope = np.hypot(gradient[:, 0], gradient[:, 1])
         distance = (m - 0.5) / np.maximum(slope, 1e-300)          # signed, positive on layer 1's side
         distance = np.where(m == 0.5, 0.0, distance)
         weight = (distance > 0).astype(np.float64)
@@ -308,6 +320,9 @@ class LayeredBTF:
         out = torch.zeros(flat.shape[0], 3, dtype=torch.float32)
         for k, btf in enumerate(self.layers):
             share = weight if k == 1 else 1.0 - weight
+            if bool((share == 1).all()):  # the whole batch from this layer: no gathers, no scaling
+                out = torch.as_tensor(btf.eval(flat, wv, wl, fp)).float().cpu()
+                break
             rows = torch.nonzero(share > 0)[:, 0]
             if rows.numel() == 0:
                 continue
