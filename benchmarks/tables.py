@@ -85,7 +85,21 @@ def gpu(data: dict) -> str:
     return "\n".join(rows)
 
 
-RENDERERS = {"training": training, "budget": budget, "evaluation": evaluation, "gpu": gpu}
+def guided(data: dict) -> str:
+    """bench_guided.py: a layered material's region statistics, band width and cost per query, per seed."""
+    lines = [f"Measured on {_machine(data)} by `{data['command']}`: `{data['layers'][0]}` | `{data['layers'][1]}`, "
+             f"hist at {data['scale']:g} repeats per uv unit, a half-plane mask; cost over {data['queries']:,} "
+             "queries.", "",
+             "| seed | W1/std left / right, whole halves | W1/std left / right, outside the band | band half-width "
+             "left / right (of `width`) | cost away from the band | cost in the band |", "|---|---|---|---|---|---|"]
+    for r in data["rows"]:
+        lines.append(f"| {r['seed']} | {r['w1_left']:.3f} / {r['w1_right']:.3f} | {r['w1_left_outside_band']:.3f} / "
+                     f"{r['w1_right_outside_band']:.3f} | {r['band_left'] / r['width']:.2f} / "
+                     f"{r['band_right'] / r['width']:.2f} | {r['cost_away']:.2f}x | {r['cost_band']:.2f}x |")
+    return "\n".join(lines)
+
+
+RENDERERS = {"training": training, "budget": budget, "evaluation": evaluation, "gpu": gpu, "guided": guided}
 _BLOCK = re.compile(r"<!-- table:(?P<name>[a-z_]+) -->\n(?P<body>.*?)\n?<!-- /table:(?P=name) -->", re.S)
 
 

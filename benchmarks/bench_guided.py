@@ -1,0 +1,165 @@
+"""Layered materials measured: region statistics, the width of the boundary band, cost per query.
+
+Run: ``python benchmarks/bench_guided.py`` (about 6 minutes, most of it fitting the two default materials once;
+``--layers A.dbtfm B.dbtfm`` takes fitted models instead). Two materials (default: ``sim:leather?size=64`` and
+``sim:stone?size=64``, fitted with ``dynbtf fit --minutes 2`` into ``~/.cache/dynbtf/bench_guided``), each
+synthesized with hist at ``--scale`` repeats per uv unit, are layered by a half-plane mask (layer 0 left of
+``u = 0.5``, layer 1 right of it; a linear ramp, so the signed distance to the contour is exactly ``u - 0.5``)
+with boundary half-width ``--width``. For each synthesis seed (``--seeds``, 3 by default), over the uv square
+``[0, 1]^2`` at ``--resolution`` pixels (view normal, light at 30 degrees):
+
+* **region statistics** -- per channel, W1 / std of the layered image's left (right) half against the same half
+  of layer 0's (layer 1's) own hist image; the largest channel's; over the whole half, and over the half without
+  the band's columns. Target (issue "synthesis the artist steers"): within 0.02;
+* **band width** -- the fraction of each pixel column that shows layer 1, against the column's distance to the
+  contour; the measured half-width of the band is the largest distance of a column where both layers show
+  (more than 0.5% and less than 99.5% of the column), per side, over ``--width``. Target: within 20% of it;
+* **cost per query** -- ``LayeredBTF.eval`` over ``--queries`` random queries away from the band and inside it,
+  against layer 0's own ``SynthesizedBTF.eval`` of the same queries, timed side by side (best of 3). Targets: at
+  most 1.1x away from boundaries, at most 2.2x inside them.
+
+The rows are written as JSON (``--json``, default ``benchmarks/results/guided.json``), from which the table in
+docs/layered.md is generated (``python benchmarks/tables.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+RESULTS = Path(__file__).resolve().parent / "results" / "guided.json"
+DEFAULT_LAYERS = ("sim:leather?size=64", "sim:stone?size=64")
+
+
+def fitted(spec: str) -> Path:
+    """A model of ``spec`` fitted once with ``dynbtf fit --minutes 2`` (kept in the user's cache)."""
+    from dynbtf.io import user_cache_dir
+
+    folder = (user_cache_dir("DYNBTF_BENCH_CACHE", "bench_guided") or Path(".")).resolve()
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / (spec.replace(":", "_").replace("?", "_").replace("=", "").replace("&", "_") + ".dbtfm")
+    if not path.exists():
+        subprocess.run([sys.executable, "-m", "dynbtf", "fit", spec, "-o", str(path), "--minutes", "2"], check=True)
+    return path
+
+
+def region_w1(image: np.ndarray, own: np.ndarray) -> float:
+    """The largest channel's W1 / std of ``image``'s pixels against ``own``'s (both ``(H, W, 3)``)."""
+    from dynbtf.synthesis.quality import w1_over_std
+
+    return float(w1_over_std(image.reshape(-1, 3), own.reshape(-1, 3)).max())
+
+
+def band_half_widths(layered, resolution: int) -> tuple[float, float]:
+    """The measured half-width of the boundary band on each side (uv units): the largest ``|u - 0.5|`` of a pixel
+    column where both layers show."""
+    u = (np.arange(resolution) + 0.5) / resolution
+    v = (np.arange(resolution * 4) + 0.5) / (resolution * 4)
+    uv = np.stack(np.meshgrid(u, v, indexing="xy"), -1).reshape(-1, 2)
+    share = layered.weight(uv).reshape(len(v), len(u)).mean(0)  # of layer 1, per column
+    both = (share > 0.005) & (share < 0.995)
+    distance = u - 0.5
+    left = distance[both & (distance < 0)]
+    right = distance[both & (distance > 0)]
+    return (float(-left.min()) if left.size else 0.0), (float(right.max()) if right.size else 0.0)
+
+
+def cost_ratios(layered, own, width: float, queries: int, seed: int) -> tuple[float, float]:
+    """Seconds of ``layered.eval`` over those of ``own.eval`` on the same queries: away from the band, inside it."""
+    rng = np.random.default_rng(seed)
+
+    def directions():
+        w = rng.normal(size=(queries, 3))
+        w[:, 2] = np.abs(w[:, 2]) + 0.3
+        return w / np.linalg.norm(w, axis=1, keepdims=True)
+
+    wv, wl = directions(), directions()
+    away = np.stack([rng.uniform(0.0, 0.5 - 2 * width, queries), rng.uniform(0, 50, queries)], 1)
+    band = np.stack([rng.uniform(0.5 - width, 0.5 + width, queries), rng.uniform(0, 50, queries)], 1)
+
+    def best(fn) -> float:
+        fn()
+        times = []
+        for _ in range(3):
+            t = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t)
+        return min(times)
+
+    t_own_away = best(lambda: own.eval(away, wv, wl))
+    t_away = best(lambda: layered.eval(away, wv, wl))
+    t_own_band = best(lambda: own.eval(band, wv, wl))
+    t_band = best(lambda: layered.eval(band, wv, wl))
+    return t_away / t_own_away, t_band / t_own_band
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--layers", nargs=2, default=None, help="two fitted models (default: fit the two "
+                                                                "simulated materials once)")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--scale", type=float, default=6.0)
+    parser.add_argument("--width", type=float, default=0.05)
+    parser.add_argument("--resolution", type=int, default=384)
+    parser.add_argument("--queries", type=int, default=200_000)
+    parser.add_argument("--json", type=Path, default=RESULTS)
+    args = parser.parse_args()
+
+    import dynbtf
+    from dynbtf.cpu import active_isa
+
+    paths = [Path(p) for p in args.layers] if args.layers else [fitted(spec) for spec in DEFAULT_LAYERS]
+    names = list(args.layers) if args.layers else list(DEFAULT_LAYERS)
+    mask = dynbtf.ImageMask(np.array([[0.0, 1.0]]), size=1.0, wrap="clamp")  # ramp over u in [0.25, 0.75]
+    view = dict(view=(0, 0), light=(30, 0), uv_rect=(0, 0, 1, 1), resolution=args.resolution)
+    half = args.resolution // 2
+    rows = []
+    for seed in args.seeds:
+        a = dynbtf.SynthesizedBTF(str(paths[0]), "hist", scale=args.scale, seed=seed)
+        b = dynbtf.SynthesizedBTF(str(paths[1]), "hist", scale=args.scale, seed=seed + 1000)
+        layered = dynbtf.LayeredBTF([a, b], mask, width=args.width)
+        image, own_a, own_b = layered.image(**view), a.image(**view), b.image(**view)
+        left, right = band_half_widths(layered, args.resolution)
+        away, band = cost_ratios(layered, a, args.width, args.queries, seed)
+        outside = int(np.ceil(args.width * args.resolution))  # pixel columns within the band on each side
+        row = {"seed": seed, "w1_left": region_w1(image[:, :half], own_a[:, :half]),
+               "w1_right": region_w1(image[:, half:], own_b[:, half:]),
+               "w1_left_outside_band": region_w1(image[:, :half - outside], own_a[:, :half - outside]),
+               "w1_right_outside_band": region_w1(image[:, half + outside:], own_b[:, half + outside:]),
+               "band_left": left, "band_right": right,
+               "width": args.width, "cost_away": away, "cost_band": band}
+        rows.append(row)
+        print(f"seed {seed}: W1/std left {row['w1_left']:.4f}, right {row['w1_right']:.4f}; band half-width "
+              f"{left:.4f} | {right:.4f} uv ({left / args.width:.2f}x | {right / args.width:.2f}x of {args.width:g}); "
+              f"cost {away:.2f}x away, {band:.2f}x in the band", file=sys.stderr, flush=True)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=Path(__file__).resolve().parent).stdout.strip()
+    command = "python benchmarks/bench_guided.py" + ("" if args.layers is None else " --layers A B")
+    data = {"benchmark": "guided", "command": command, "commit": commit, "cpu": _cpu_name(),
+            "cores": os.cpu_count(), "cpu_isa": active_isa(), "layers": names, "scale": args.scale,
+            "resolution": args.resolution, "queries": args.queries, "rows": rows}
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(data, indent=1) + "\n")
+    print(f"wrote {args.json}", file=sys.stderr)
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+if __name__ == "__main__":
+    main()
