@@ -31,33 +31,35 @@ def copy_package(tmp_path: Path) -> Path:
     return tmp_path / "dynbtf"
 
 
-def test_an_upward_import_breaks_the_contract(tmp_path):
-    base = copy_package(tmp_path) / "data" / "base.py"
-    base.write_text(base.read_text() + "\n\ndef _up():\n    from ..training import fit  # stage 1 data reaching up\n")
+def lint_with_import(tmp_path: Path, module: str, function: str) -> str:
+    """Lint a copy of the package in which ``module`` (a path under dynbtf/) ends with ``function`` (source of a
+    function holding a deferred import); the lint must fail. Returns its report, long lines unwrapped."""
+    path = copy_package(tmp_path) / module
+    path.write_text(path.read_text() + "\n\n" + function)
     result = lint(tmp_path)
     assert result.returncode != 0
-    assert "dynbtf.data is not allowed to import dynbtf.training" in result.stdout
-    assert "dynbtf.data.base -> dynbtf.training" in result.stdout
+    return " ".join(result.stdout.split())  # the report wraps long lines
+
+
+def test_an_upward_import_breaks_the_contract(tmp_path):
+    report = lint_with_import(tmp_path, "data/base.py",
+                              "def _up():\n    from ..training import fit  # stage 1 data reaching up\n")
+    assert "dynbtf.data is not allowed to import dynbtf.training" in report
+    assert "dynbtf.data.base -> dynbtf.training" in report
 
 
 def test_a_deferred_import_from_the_interface_to_a_kind_breaks_the_contract(tmp_path):
     # the cycle the registry used to close: base -> (deferred) kinds -> base
-    base = copy_package(tmp_path) / "representations" / "base.py"
-    base.write_text(base.read_text() + "\n\ndef _kinds():\n    from . import triple_plane  # noqa: F401\n")
-    result = lint(tmp_path)
-    assert result.returncode != 0
-    report = " ".join(result.stdout.split())  # the report wraps long lines
+    report = lint_with_import(tmp_path, "representations/base.py",
+                              "def _kinds():\n    from . import triple_plane  # noqa: F401\n")
     assert "dynbtf.representations.base is not allowed to import dynbtf.representations.triple_plane" in report
     assert "dynbtf.representations.base -> dynbtf.representations.triple_plane" in report
 
 
 def test_a_deferred_import_from_the_synthesis_interface_to_a_method_breaks_the_contract(tmp_path):
     # the cycle synthesizer_class used to close: base -> (deferred) methods -> base
-    base = copy_package(tmp_path) / "synthesis" / "base.py"
-    base.write_text(base.read_text() + "\n\ndef _methods():\n    from . import histogram_blending  # noqa: F401\n")
-    result = lint(tmp_path)
-    assert result.returncode != 0
-    report = " ".join(result.stdout.split())
+    report = lint_with_import(tmp_path, "synthesis/base.py",
+                              "def _methods():\n    from . import histogram_blending  # noqa: F401\n")
     assert "dynbtf.synthesis.base is not allowed to import dynbtf.synthesis.histogram_blending" in report
     assert "dynbtf.synthesis.base -> dynbtf.synthesis.histogram_blending" in report
 
@@ -78,18 +80,13 @@ def test_a_new_representations_module_must_be_placed_in_a_layer(tmp_path):
 
 def test_a_renderer_that_imports_training_breaks_the_material_contract(tmp_path):
     # a backend reaching into training (the compiler used to live there): even a deferred import is refused
-    bsdf = copy_package(tmp_path) / "render" / "mitsuba" / "bsdf.py"
-    bsdf.write_text(bsdf.read_text() + "\n\ndef _fit():\n    from ...training import fit  # noqa: F401\n")
-    result = lint(tmp_path)
-    assert result.returncode != 0
-    report = " ".join(result.stdout.split())
+    report = lint_with_import(tmp_path, "render/mitsuba/bsdf.py",
+                              "def _fit():\n    from ...training import fit  # noqa: F401\n")
     assert "dynbtf.render is not allowed to import dynbtf.training" in report
     assert "dynbtf.render.mitsuba.bsdf -> dynbtf.training" in report
 
 
 def test_the_material_format_cannot_reach_up_to_its_compiler(tmp_path):
-    fmt = copy_package(tmp_path) / "material" / "format.py"
-    fmt.write_text(fmt.read_text() + "\n\ndef _build():\n    from .compiler import compile_material  # noqa: F401\n")
-    result = lint(tmp_path)
-    assert result.returncode != 0
-    assert "dynbtf.material.format is not allowed to import dynbtf.material.compiler" in " ".join(result.stdout.split())
+    report = lint_with_import(tmp_path, "material/format.py",
+                              "def _build():\n    from .compiler import compile_material  # noqa: F401\n")
+    assert "dynbtf.material.format is not allowed to import dynbtf.material.compiler" in report
