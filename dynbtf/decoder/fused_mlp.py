@@ -461,7 +461,6 @@ class _TriplePlaneL1(torch.autograd.Function):
         positional_pre = torch.empty((rows, hidden), dtype=torch.float32)
         angular = torch.empty((images, planes * angular_planes.shape[1]), dtype=torch.float32)
         image_pre = torch.empty((images, hidden), dtype=torch.float32)
-        keep = (texels, tap_index, tap_weight)
         args = _FirstLayerArgs(
             hidden=hidden, positional=positional, angular=angular.shape[1], plane_channels=angular_planes.shape[1],
             taps=taps, rows=rows, images=images, plane_rows=plane.shape[0], angular_rows=angular_planes.shape[0],
@@ -486,7 +485,6 @@ class _TriplePlaneL1(torch.autograd.Function):
         library.dynbtf_first_layer_backward(ctypes.byref(args), g_positional.data_ptr(), g_image.data_ptr(),
                                             g_first_weight.data_ptr(), g_first_bias.data_ptr(), g_plane.data_ptr(),
                                             g_angular_planes.data_ptr())
-        del keep
         ctx.save_for_backward(g_plane, g_angular_planes, g_first_weight, g_first_bias, *g_weights, *g_biases)
         return (loss / target.numel()).to(torch.float32)
 
@@ -545,7 +543,7 @@ def triple_plane_l1_loss(plane: torch.Tensor, texels: torch.Tensor | None, angul
     return _TriplePlaneL1.apply(plane, angular_planes, first.weight, first.bias,
                                 None if texels is None else texels.contiguous(), index.contiguous(),
                                 weight.contiguous(), target, float(negative_slope), int(chunk_texels), int(workers),
-                                precision, *[layer.weight for layer in layers], *[layer.bias for layer in layers])
+                                precision, *weights, *[layer.bias for layer in layers])
 
 
 def _times(gradients, grad_loss):
