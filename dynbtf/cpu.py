@@ -65,7 +65,8 @@ _LIBRARY_SETTINGS = {
 }
 #: MKL's conditional numerical reproducibility, set unless the user set it: with MKL's AVX2 kernels a product's
 #: rounding otherwise depends on its operands' memory alignment and on the calling thread (measured: one ulp
-#: between two calls on the same data), which would make two runs of a fit differ. Costs ~5% of a large matmul.
+#: between two calls on the same data), which would make two runs of a fit differ. The price is some of a large
+#: matmul's speed: MKL forgoes the optimizations whose rounding depends on alignment and threads.
 MKL_REPRODUCIBLE = "AUTO,STRICT"
 
 

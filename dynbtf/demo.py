@@ -169,9 +169,9 @@ def _stage_data(ctx: _Context) -> dict[str, Any]:
 
 
 #: Minutes the stages after the fit take at the defaults on 2 cores of an AVX2 machine with empty kernel caches
-#: (measured with the AVX2 path forced: synthesis 2.9, of it 1.8 fitting the per-level footprint decoders of three
-#: methods and 0.4 compiling numba kernels; structured 0.4; render 4.7, of it 3.1 compiling the Mitsuba kernels;
-#: the rest 0.1), plus a margin.
+#: (synthesis, mostly fitting the per-level footprint decoders of three methods and compiling numba kernels;
+#: structured; render, mostly compiling the Mitsuba kernels; the rest), plus a margin. Each stage's time is
+#: measured by ``benchmarks/bench_demo.py``.
 OTHER_STAGES_MINUTES = 8.5
 
 

@@ -26,7 +26,8 @@ QUILT_MAX_BYTES = 512 * 2**20
 BYTES_PER_PIXEL = 100
 #: Most samples per pixel axis (--spp; spp x spp samples per pixel).
 MAX_SPP = 64
-#: Most queries of one image (pixels x spp^2): 2**32, about an hour at 1-2 million queries per second.
+#: Most queries of one image (pixels x spp^2): 2**32, a bound on one command's run time (the query rate is
+#: measured by ``benchmarks/bench_synthesis_eval.py``).
 MAX_QUERIES = 2**32
 
 

@@ -35,8 +35,8 @@ __all__ = ["trilinear_fetch", "PlanePyramid", "area_pyramid", "level_shapes", "a
 
 #: Default :attr:`LevelOfDetail.blend_band`: two levels are mixed in the middle 30% of each octave only.
 #: On the grazing plane of ``benchmarks/bench_filtering.py`` FLIP against the 256-spp reference was the same
-#: (0.0347 at 1 and 0.5, 0.0348 at 0.3) while the filtered query's cost fell from 2.3x to 1.0-1.1x the
-#: point query's (a single level needs half the texel reads and one inverse table).
+#: (0.0347 at 1 and 0.5, 0.0348 at 0.3), and a narrower band makes more filtered queries single-level ones, which
+#: need half the texel reads and one inverse table (the filtered / point cost per query: the same benchmark).
 BLEND_BAND = 0.3
 
 #: Gauss-Hermite nodes of the per-level inverse tables (the mean of ``T^-1(g + s z)`` over ``z ~ N(0, 1)``).

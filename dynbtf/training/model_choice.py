@@ -68,7 +68,7 @@ TRIAL_CHECKS = 3
 #: Under a time budget, the fraction of the budget left after the stereo estimate that the trials may take together.
 RACE_SHARE = 0.3
 #: A parallax step's cost in Triple Plane steps, for sizing the second trial from the first one's step time
-#: (benchmarks/bench_parallax_training.py: 1.1-1.2x; kept above it, the visible-point table grows during a trial).
+#: (kept above what benchmarks/bench_parallax_training.py measures: the visible-point table grows during a trial).
 RELIEF_STEP_COST = 1.5
 #: Timed steps of the first trial before a time budget sizes the trials.
 SIZING_STEPS = 10

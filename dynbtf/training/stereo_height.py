@@ -137,9 +137,9 @@ def _read_lights(source: BTFSource, view_set: np.ndarray, lights: np.ndarray) ->
 
 def _median_views(seen: torch.Tensor) -> torch.Tensor:
     """The median over the views of ``seen (V', n, C)`` -> ``(n, C)``: for an even ``V'`` the lower of the two
-    middle values (as ``torch.median``), found by a selection (``numpy.partition``, in place), which on the CPU
-    takes a third of ``torch.median``'s time. The views are brought last by :func:`_views_last` (a blocked
-    copy on every core; numpy's strided copy took as long as the selection)."""
+    middle values (as ``torch.median``), found by a selection (``numpy.partition``, in place), chosen over
+    ``torch.median`` for its speed on the CPU. The views are brought last by :func:`_views_last` (a blocked
+    copy on every core, in place of numpy's slower strided copy)."""
     k = (seen.shape[0] - 1) // 2
     by_view = seen.detach().cpu().permute(0, 2, 1).contiguous().numpy()  # (V', C, n): grid_sample's own layout
     by_texel = np.empty((by_view.shape[2], by_view.shape[1], by_view.shape[0]), dtype=by_view.dtype)

@@ -208,7 +208,8 @@ importance sampling), ``cosine`` (cosine-weighted only, the paper's), or
 ``auto``: ``mixture`` where the table's lobe is one cosine sampling misses
 (:func:`~dynbtf.render.mitsuba.sampling.cosine_relative_variance` of the table at
 least 4: glossy materials), else ``cosine`` (rough materials, where the
-table gains nothing per sample and costs ~10% per sample).
+table gains nothing per sample and its lookups only add to a sample's cost;
+``benchmarks/bench_sampling.py`` measures both).
 Any other value is an error naming the allowed ones.""",
         summary="`mixture` (the model's sampling table mixed with cosine sampling), `cosine` (the paper's), `auto` "
                 "(`mixture` for glossy models, `cosine` for rough ones)"),

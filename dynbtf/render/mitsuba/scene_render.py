@@ -24,7 +24,8 @@ __all__ = ["render_scene", "resolve_auto", "RenderResult", "render_memory_bytes"
 BYTES_PER_SAMPLE = 512
 #: Most samples per pixel ``dynbtf render`` takes (a converged reference needs ~1-4k).
 MAX_SPP = 65536
-#: Most samples in one render (pixels x spp): 2**32, about an hour of the CPU back end.
+#: Most samples in one render (pixels x spp): 2**32, a bound on one render's run time on the CPU back end (the
+#: plugin's query rate is measured by ``benchmarks/bench_render.py``).
 MAX_SAMPLES = 2**32
 #: What Mitsuba's uv arithmetic is, for the scale's limit (:func:`dynbtf.limits.check_scale`).
 UV_ARITHMETIC = "Mitsuba's float32 uv (mesh uv x scale, in float32)"
