@@ -34,15 +34,24 @@ both), and their ratios struct / hist. On a structured exemplar: MODEL's positio
 
 Run: ``python benchmarks/bench_render.py [MODEL] [--method hist] [--struct-only | --relief-only]`` (default: a random
 model of the paper's size, 128 x 128 texels).
+
+The throughput (``eval``) and relief (``relief``) parts are also written as JSON (``--json``, default
+``benchmarks/results/rendering.json``), each with the command, the commit and the CPU that measured it (a
+``--relief-only`` run replaces the relief part and keeps the other), from which docs/results.md's rendering tables
+and Speed rows are generated (``python benchmarks/tables.py``).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
+
+RESULTS = Path(__file__).resolve().parent / "results" / "rendering.json"
 
 
 def main() -> None:
@@ -55,6 +64,7 @@ def main() -> None:
                         help="peak-to-peak height of the random parallax model, in texels")
     parser.add_argument("--struct-only", action="store_true", help="only the struct vs hist comparison")
     parser.add_argument("--relief-only", action="store_true", help="only the relief (parallax vs flat) comparison")
+    parser.add_argument("--json", type=Path, default=RESULTS, help="where the eval and relief parts are written")
     args = parser.parse_args()
 
     from dynbtf.render.mitsuba.drjit_ops import mi_module
@@ -84,7 +94,7 @@ def main() -> None:
         bench_struct(model, args, uv, wv, wl)
         return
     if args.relief_only:
-        bench_relief(model, args, uv, wv, wl)
+        write_json(args, relief=bench_relief(model, args, uv, wv, wl))
         return
     uv64 = uv.astype(np.float64)
     t_eval = {}
@@ -115,8 +125,30 @@ def main() -> None:
     for precision, t in t_eval.items():
         print(f"{'ratio (b)/(a ' + precision + ')':<28}: {t / t_drjit:7.2f}x")
     print(f"max |difference|            : {np.abs(got - ref).max():.2e} (values up to {np.abs(ref).max():.2f})")
-    bench_relief(model, args, uv, wv, wl)
+    evaluation = {"model": args.model or "a random Triple Plane", "model_shape": list(model.positional_plane().shape),
+                  "method": args.method, "queries": n, "repeats": args.repeats,
+                  "eval_queries_per_second": {p: n / t for p, t in t_eval.items()},
+                  "plugin_queries_per_second": n / t_drjit, "plugin_first_call_seconds": t_first,
+                  "max_abs_difference": float(np.abs(got - ref).max()), "max_abs_value": float(np.abs(ref).max())}
+    relief = bench_relief(model, args, uv, wv, wl)
+    write_json(args, eval=evaluation, relief=relief)
     bench_struct(model, args, uv, wv, wl)
+
+
+def write_json(args, **parts) -> None:
+    """Write the measured ``parts`` (``eval``, ``relief``) to ``args.json``, each with the run's command, commit and
+    machine; the parts this run did not measure are kept from the file."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from results_io import header, write_result
+
+    data = json.loads(args.json.read_text()) if args.json.is_file() else {}
+    data["benchmark"] = "rendering"
+    for name, part in parts.items():
+        data[name] = header("rendering", "bench_render.py") | part
+        data[name].pop("benchmark")
+    write_result(args.json, data)
 
 
 def shifted_uv(uv, shift):
@@ -183,7 +215,8 @@ def parallax_model(model, relief_texels: float):
 def bench_relief(model, args, uv, wv, wl) -> None:
     """The parallax kernel vs the flat one (sorted by view elevation and in random order), and vs the same kernel
     with a dense march (fixed half-texel search steps: ``max_step = step``, the sampling of the march before its
-    variable steps), timed in the same run; the largest value difference between the two marches."""
+    variable steps), timed in the same run; the largest value difference between the two marches. Returns the
+    measured values (for the JSON)."""
     from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator
     from dynbtf.infinite_btf import SynthesizedBTF
 
@@ -217,6 +250,16 @@ def bench_relief(model, args, uv, wv, wl) -> None:
     ref = SynthesizedBTF(relief, args.method).eval(shifted, wv[:m], wl[:m])
     print(f"  max |difference| to SynthesizedBTF.eval: {np.abs(got[:m] - ref).max():.2e} "
           f"(value range {ref.max() - ref.min():.2f}; {m} queries)")
+    return {"model": args.model if relief is model else f"a random triple-parallax model of {args.relief_texels:g} "
+                                                           "texels of relief",
+            "model_shape": list(relief.positional_plane().shape), "relief_texels": float(texels),
+            "method": args.method, "queries": n, "repeats": args.repeats,
+            "ns_per_query": {name: {kind: min(results[name, kind][0]) / n * 1e9
+                                    for kind in ("flat", "parallax", "dense")}
+                             for name in ("random order", "sorted by view elevation")},
+            "max_abs_difference_to_dense": float(gap.max()), "dense_value_range": float(span),
+            "max_abs_difference_to_eval": float(np.abs(got[:m] - ref).max()),
+            "eval_value_range": float(ref.max() - ref.min()), "eval_queries_compared": m}
 
 
 def synthesis_seconds(evaluator, uv, shift):
