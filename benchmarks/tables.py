@@ -2,7 +2,13 @@
 
 A table in a document is the text between ``<!-- table:NAME -->`` and ``<!-- /table:NAME -->``; this module
 renders table ``NAME`` from ``benchmarks/results/NAME.json`` (written by the benchmark that measured it) and
-writes it there. Run: ``python benchmarks/tables.py`` (after a benchmark run) to rewrite every table,
+writes it there. ``speed.json`` (docs/results.md's Speed summary) is not a benchmark's output: it lists the
+summary's rows, each rendered from its benchmark's JSON or, where that benchmark writes none yet, from a
+measurement recorded in the file (its numbers, command and machine as the hand-typed table stated them). A part
+of a benchmark's file may be such a recorded measurement too (``"recorded_from"``) until the benchmark is re-run
+(``rendering.json``, from ``bench_render.py``).
+
+Run: ``python benchmarks/tables.py`` (after a benchmark run) to rewrite every table,
 ``python benchmarks/tables.py --check`` to list the tables that disagree with their data (exit status 1);
 ``tests/test_docs_tables.py`` runs the check, so a table is never re-typed by hand.
 """
@@ -99,7 +105,172 @@ def guided(data: dict) -> str:
     return "\n".join(lines)
 
 
-RENDERERS = {"training": training, "budget": budget, "evaluation": evaluation, "gpu": gpu, "guided": guided}
+def _load(name: str) -> dict:
+    return json.loads((RESULTS / f"{name}.json").read_text())
+
+
+def _sci(x: float, decimals: int = 1) -> str:
+    """``6.2e-4`` (``decimals`` decimals, no zero-padded exponent)."""
+    return re.sub(r"e([+-])0*(\d)", lambda m: f"e{m[1].lstrip('+')}{m[2]}", f"{x:.{decimals}e}")
+
+
+def _stated_machine(record: dict) -> str:
+    """The machine of a recorded measurement, as far as its text stated it."""
+    parts = [record["cpu"] or "CPU not recorded"] if record.get("cpu") or record.get("cores") else []
+    if record.get("cores"):
+        parts.append(f"{record['cores']} cores")
+    if record.get("cpu_isa"):
+        parts.append(f"level {record['cpu_isa']}")
+    return ", ".join(parts) or "machine not recorded"
+
+
+def _source(record: dict, file: str) -> str:
+    """Where a part's numbers come from: a benchmark run (its machine) or a recorded measurement."""
+    if record.get("recorded_from"):
+        return f"*recorded*: {_stated_machine(record)} (`{file}`)"
+    return f"`{file}`: {_machine(record)}, commit {record['commit']}"
+
+
+def _speed_training(row: dict, data: dict) -> tuple[str, str, str]:
+    fast = [r for r in data["rows"] if r["variant"] == row["recipe"]]
+    btfs = list(dict.fromkeys(r["btf"] for r in fast))
+    own = data["cpu_isa"]
+    naive = {(r["isa"], r["btf"]): r for r in data["rows"] if r["variant"] == "naive"}
+
+    def ratio(r):
+        text = f"{r['ratio_to_naive']:.1f}x ({r['isa']}"
+        if r["isa"] == own:
+            text = "**" + text.replace(" (", "** (", 1) + (f", {r['samples_per_second'] / 1e6:.2f} vs "
+                                                           f"{naive[own, r['btf']]['samples_per_second'] / 1e6:.2f} "
+                                                           "M samples/s")
+        return text + ")"
+
+    result = "; ".join(f"`{btf}`: " + ", ".join(ratio(r) for r in fast if r["btf"] == btf) for btf in btfs)
+    bf16 = [r for r in data["rows"] if r["variant"] == f"{row['recipe']}, bf16"]
+    if bf16:
+        result += "; with bfloat16 products " + ", ".join(f"{r['ratio_to_naive']:.1f}x" for r in bf16)
+    misses = [f"`{r['btf']}` on {r['isa']} ({r['ratio_to_naive']:.1f}x)" for r in fast
+              if r["isa"] in row["targets"] and r["ratio_to_naive"] < row["targets"][r["isa"]]]
+    target = (f"{row['recipe']} recipe: at least " + ", ".join(f"{x:g}x on {isa}" for isa, x in row["targets"].items())
+              + f" ({row['target_source']}'s targets): " + ("met" if not misses else "met except " + ", ".join(misses)))
+    what = (f"training, ours ({row['recipe']} recipe) vs the paper's recipe run naively, samples/s per level "
+            f"(`{data['command']}`; [per level](#training-speed))")
+    return what, result, target
+
+
+def _speed_evaluation(row: dict, data: dict) -> tuple[str, str, str]:
+    method, own = row["method"], data["cpu_isa"]
+    rows = [r for r in data["rows"] if r["method"] == method]
+    rows.sort(key=lambda r: r["isa"] != own)
+
+    def ratio(r):
+        x = r["ours_qps"] / r["naive_qps"]
+        if r["isa"] == own:
+            return (f"**{x:.1f}x** ({r['isa']}, ours {r['ours_qps'] / 1e6:.2f} vs {r['naive_qps'] / 1e6:.2f} "
+                    "M queries/s)")
+        return f"{x:.1f}x ({r['isa']})"
+
+    others = [r for r in data["rows"] if r["method"] != method and r["isa"] == own]
+    result = ", ".join(ratio(r) for r in rows) + ("; " + ", ".join(
+        f"{r['method']} {r['ours_qps'] / r['naive_qps']:.1f}x" for r in others) + f" on {own}" if others else "")
+    misses = [f"{r['isa']} ({r['ours_qps'] / r['naive_qps']:.1f}x)" for r in rows
+              if r["ours_qps"] / r["naive_qps"] < row["target_ratio"]]
+    target = f"{row['target_ratio']:g}x for `{method}` (" + (
+        "met on every level" if not misses else "missed on " + ", ".join(misses)) + ")"
+    frame = " (a 1080p frame)" if data["queries"] == 1920 * 1080 else ""
+    what = (f"{data['queries']:,} queries{frame}, `{method}` synthesis, ours vs naive PyTorch "
+            f"(`{data['command']}`; [per level](#synthesis-evaluation-speed))")
+    return what, result, target
+
+
+def _speed_rendering(row: dict, data: dict) -> tuple[str, str, str]:
+    part = data[row["part"]]
+    if row["part"] == "eval":
+        plugin, fp32 = part["plugin_queries_per_second"], part["eval_queries_per_second"]["fp32"]
+        what = (f"Mitsuba plugin kernel vs `SynthesizedBTF.eval`, the same {part['queries']:,} queries "
+                f"(`{part['command']}`)")
+        result = (f"{plugin / 1e6:.1f} vs {fp32 / 1e6:.1f} M queries/s ({plugin / fp32:.1f}x), max difference "
+                  f"{_sci(part['max_abs_difference'])} on values up to {part['max_abs_value']:.1f}")
+        return what, result, row["target"]
+    ns = part["ns_per_query"]
+    ratio = {order: v["parallax"] / v["flat"] for order, v in ns.items()}
+    met = part["max_abs_difference_to_eval"] <= row["max_difference_of_range"] * part["eval_value_range"]
+    what = f"the parallax march in the Mitsuba plugin (`{part['command']}`, {part['relief_texels']:g} texels of relief)"
+    result = (f"{ratio['sorted by view elevation']:.1f}x the flat kernel's cost per query with queries sorted by view "
+              f"elevation, {ratio['random order']:.1f}x in random order; max difference to `SynthesizedBTF.eval` "
+              f"{_sci(part['max_abs_difference_to_eval'])} on a range of {part['eval_value_range']:.1f}")
+    target = f"matches to {_sci(row['max_difference_of_range'], 0)} of the range ({'met' if met else 'missed'}; tested)"
+    return what, result, target
+
+
+_SPEED_FROM = {"training": _speed_training, "evaluation": _speed_evaluation, "rendering": _speed_rendering}
+
+
+def speed(data: dict) -> str:
+    """docs/results.md's Speed summary: a row per command, rendered from its benchmark's JSON (``"from"``) or, where
+    the benchmark writes none yet, from the measurement recorded in speed.json (``"recorded"``: the numbers, the
+    command and the machine as the hand-typed table stated them)."""
+    lines = ["Rows whose data column names a JSON file are generated from the benchmark's data; rows marked "
+             "*recorded* are earlier measurements kept as data in `benchmarks/results/speed.json` (numbers, command "
+             "and machine as the hand-typed table stated them), until their benchmark writes JSON.", "",
+             "| what (command) | result | target | data |", "|---|---|---|---|"]
+    for row in data["rows"]:
+        if "from" in row:
+            source = _load(row["from"])
+            what, result, target = _SPEED_FROM[row["from"]](row, source)
+            part = source[row["part"]] if "part" in row else source
+            origin = _source(part, f"{row['from']}.json")
+        else:
+            r = row["recorded"]
+            command = "`, then `".join(r["command"].split("; "))
+            what = f"{r['what']} (`{command}`" + (f", {r['conditions']}" if r.get("conditions") else "") + ")"
+            result, target = r["result"].format(**r["values"]), r["target"].format(**r["values"])
+            origin = f"*recorded*: {_stated_machine(r)}" + (f"; {r['note']}" if r.get("note") else "")
+        lines.append(f"| {what} | {result} | {target} | {origin} |")
+    return "\n".join(lines)
+
+
+def rendering(data: dict) -> str:
+    """bench_render.py: the plugin kernel's and ``SynthesizedBTF.eval``'s queries/s, and the parallax march's cost."""
+    e, r = data["eval"], data["relief"]
+
+    def caption(part):
+        if part.get("recorded_from"):
+            return (f"recorded measurement of `{part['command']}` ({_stated_machine(part)}; numbers from "
+                    f"{part['recorded_from']}, kept in `benchmarks/results/rendering.json`)")
+        return f"measured on {_machine(part)} by `{part['command']}`"
+
+    fp32, bf16 = e["eval_queries_per_second"]["fp32"], e["eval_queries_per_second"]["bf16"]
+    plugin = e["plugin_queries_per_second"]
+    first = f"first call {e['plugin_first_call_seconds']:.1f} s " + e.get(
+        "plugin_first_call_note", "(compiling, or from Dr.Jit's cache)")
+    workers = f", {e['workers']} workers" if e.get("workers") else ""
+    head = caption(e)
+    shape = f" ({r['model_shape'][0]} x {r['model_shape'][1]} texels)" if r.get("model_shape") else ""
+    lines = [f"{head[0].upper()}{head[1:]}: {e['queries']:,} random queries within 25 repeats, {e['model']}, "
+             f"{e['method']}; warmed up, fastest of {e['repeats']} ([rendering.md](rendering.md)):", "",
+             "| path | queries/s | notes |", "|---|---|---|",
+             f"| `SynthesizedBTF.eval`, fp32 decoder (default) | {fp32 / 1e6:.1f} M | numba synthesis + BLAS/torch "
+             f"decoder{workers} |",
+             f"| `SynthesizedBTF.eval`, `precision=\"bf16\"` | {bf16 / 1e6:.1f} M | |",
+             f"| plugin kernel (`DynBTFEvaluator.eval`, Dr.Jit LLVM) | {plugin / 1e6:.1f} M | {first} |",
+             f"| ratio plugin / eval | {plugin / fp32:.1f}x (fp32), {plugin / bf16:.1f}x (bf16) | max difference "
+             f"{_sci(e['max_abs_difference'])} on values up to {e['max_abs_value']:.1f} |", "",
+             f"The parallax march, plugin kernel per query ({caption(r)}; {r['queries']:,} queries, "
+             f"{r['model']}{shape}, {r['method']}):", "",
+             "| queries | flat kernel | with parallax march | ratio |", "|---|---|---|---|"]
+    for order, label in (("random order", "random order"),
+                         ("sorted by view elevation", "sorted by view elevation (a camera's coherent lanes)")):
+        ns = r["ns_per_query"][order]
+        lines.append(f"| {label} | {ns['flat']:,.0f} ns | {ns['parallax']:,.0f} ns | "
+                     f"{ns['parallax'] / ns['flat']:.1f}x |")
+    lines += ["", f"Max difference to `SynthesizedBTF.eval` {_sci(r['max_abs_difference_to_eval'])} on a range of "
+                  f"{r['eval_value_range']:.1f}."]
+    return "\n".join(lines)
+
+
+RENDERERS = {"training": training, "budget": budget, "evaluation": evaluation, "gpu": gpu, "guided": guided,
+             "speed": speed, "rendering": rendering}
 _BLOCK = re.compile(r"<!-- table:(?P<name>[a-z_]+) -->\n(?P<body>.*?)\n?<!-- /table:(?P=name) -->", re.S)
 
 
