@@ -322,6 +322,7 @@ class SynthesizedBTF:
         self.level_decoders = bool(level_decoders) and self.material.decoder is not None
         self._footprints_ready = self.material.decoder is not None and len(self.material.decoder.levels) > 1
         self.decode_path = self._decode_path()
+        self._latent_channels: int | None = None
 
     def _decode_path(self) -> DecodePath | None:
         if self.material.decoder is None:
@@ -356,6 +357,24 @@ class SynthesizedBTF:
         c = self.synthesizer.channels
         return (torch.cat(out) if out else torch.zeros(0, c, device=self.device)).reshape(*uv.shape[:-1], c)
 
+    def latent(self, uv) -> torch.Tensor:
+        """Synthesized latent values ``(..., C_latent)`` float32 at the user's ``uv (..., 2)``: what the decoder reads
+        (the synthesizer's :meth:`~dynbtf.synthesis.base.Synthesizer.output_map` is folded into it;
+        ``self.synthesizer.features_from_latent`` gives :meth:`features`). :meth:`eval` takes them back as
+        ``latent``, so a caller that needs both (:class:`dynbtf.layered.LayeredBTF`) synthesizes once."""
+        uv = check_uv(uv, scale=self.scale)
+        flat = uv.reshape(-1, 2).to(torch.float64)
+        out = [self.synthesizer.latent(chunk.to(self.device) * self.scale).to(self.device)
+               for chunk in flat.split(self.chunk_size)]
+        latent = torch.cat(out) if out else self.synthesizer.latent(flat[:0].to(self.device) * self.scale)
+        return latent.reshape(*uv.shape[:-1], latent.shape[-1])
+
+    @property
+    def takes_latent(self) -> bool:
+        """Whether :meth:`eval` takes ``latent``: the point query of a model without relief (a relief model reads at
+        the visible point, not at ``uv``) decoded by the compiled material's decoder."""
+        return not self._relief and self.decode_path is not None
+
     def texels_per_uv(self) -> float:
         """Texels of the exemplar per unit of the user's ``uv`` (``scale`` x the exemplar's side; the geometric
         mean of both sides for a non-square exemplar): converts a footprint to texels."""
@@ -374,7 +393,9 @@ class SynthesizedBTF:
         with torch.no_grad():
             return self.decode_path.mean_appearance(w_view, w_light)
 
-    def _decode_chunk(self, uv, wv, wl, footprint=None) -> torch.Tensor:
+    def _decode_chunk(self, uv, wv, wl, footprint=None, latent=None) -> torch.Tensor:
+        if latent is not None:
+            return self.decode_path.decode(latent.to(self.device), wv, wl)
         points = uv * self.scale  # exemplar repeats
         if self._relief:  # fetch at the visible point of the synthesized height field
             points = self.model.visible_uv(points, wv, self.synthesizer)
@@ -387,14 +408,16 @@ class SynthesizedBTF:
         latent = self.synthesizer.latent(points) if texels is None else self.synthesizer.filtered_latent(points, texels)
         return path.decode(latent.to(self.device), wv, wl)
 
-    def eval(self, uv, w_view, w_light, footprint=None):
+    def eval(self, uv, w_view, w_light, footprint=None, *, latent=None):
         """BTF value (linear RGB ``(..., 3)`` float32, excluding cos(theta_light)).
 
         ``uv (..., 2)``: any finite value with ``|uv| * scale < 2**52``; ``w_view, w_light (..., 3)``: unit
         directions, same batch shape (rows with either below the horizon return zero); ``footprint``
         (float or ``(...)``, optional): the side of the square of surface each query stands for, in
         ``uv`` units (:func:`footprint_width`): the answer approximates the BTF averaged over it (up to
-        one texel it is the point query; beyond the exemplar the mean appearance). Returns NumPy for
+        one texel it is the point query; beyond the exemplar the mean appearance). ``latent``
+        (``(..., C_latent)``, optional): :meth:`latent` at these ``uv``, already synthesized: the point query
+        decodes it instead of synthesizing again (only where :attr:`takes_latent`). Returns NumPy for
         NumPy ``uv``, else a tensor on the model's device.
         """
         as_numpy = not isinstance(uv, torch.Tensor)
@@ -404,6 +427,8 @@ class SynthesizedBTF:
         wl, up_l = _check_directions(w_light, "w_light", batch)
         flat = uv.reshape(-1, 2).to(torch.float64)
         fp = None if footprint is None else check_footprint(footprint, batch).reshape(-1)
+        if latent is not None:
+            latent = self._check_latent(latent, batch, footprint)
         if fp is not None and self.level_decoders:
             self.footprint_decoder()  # before the worker threads need it
         n = flat.shape[0]
@@ -417,7 +442,8 @@ class SynthesizedBTF:
                 return
             with torch.no_grad():
                 rgb = self._decode_chunk(flat[sl].to(self.device), wv[sl].to(self.device, dtype),
-                                         wl[sl].to(self.device, dtype), None if fp is None else fp[sl])
+                                         wl[sl].to(self.device, dtype), None if fp is None else fp[sl],
+                                         None if latent is None else latent[sl])
             out[sl] = rgb if bool(vis.all()) else torch.where(vis.to(self.device)[:, None], rgb, torch.zeros_like(rgb))
 
         chunks = [slice(start, min(start + self.chunk_size, n)) for start in range(0, n, self.chunk_size)]
@@ -442,6 +468,22 @@ class SynthesizedBTF:
         return out.cpu().numpy() if as_numpy else out
 
     __call__ = eval
+
+    def _check_latent(self, latent, batch, footprint) -> torch.Tensor:
+        if not self.takes_latent:
+            raise InputError("latent: this BTF synthesizes at the visible point of its relief (or has no compiled "
+                             "decoder), so it cannot decode latent values given at uv; call eval without latent")
+        if footprint is not None:
+            raise InputError("latent: given for point queries only; call eval without footprint, or without latent")
+        latent = torch.as_tensor(latent)
+        if self._latent_channels is None:  # what the synthesizer answers (one query)
+            self._latent_channels = int(self.synthesizer.latent(torch.zeros(1, 2, dtype=torch.float64,
+                                                                            device=self.device)).shape[-1])
+        expected = tuple(batch) + (self._latent_channels,)
+        if latent.dtype != torch.float32 or tuple(latent.shape) != expected:
+            raise InputError(f"latent: expected float32 values of shape {expected} (SynthesizedBTF.latent at the same "
+                             f"uv), got {latent.dtype} {tuple(latent.shape)}")
+        return latent.reshape(-1, latent.shape[-1])
 
     def image(self, view=(0.0, 0.0), light=(0.0, 0.0), uv_rect=(0.0, 0.0, 1.0, 1.0), resolution=512,
               spp: int = 1, filtered: bool = False) -> np.ndarray:

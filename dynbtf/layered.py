@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import torch
 
@@ -93,23 +94,6 @@ class ImageMask:
         self.image, self.size, self.wrap = image, positive_number("mask size", size, "uv units"), wrap
         self.cell = self.size / max(image.shape)
 
-    def _texel(self, uv: np.ndarray):
-        h, w = self.image.shape
-        if self.wrap == "repeat":
-            uv = np.mod(uv, self.size)  # exact (a remainder): the same texel coordinates at any distance
-        x = uv[:, 0] / self.size * w - 0.5
-        y = uv[:, 1] / self.size * h - 0.5
-        x0, y0 = np.floor(x), np.floor(y)
-        fx, fy = x - x0, y - y0
-        x0, y0 = x0.astype(np.int64), y0.astype(np.int64)
-        if self.wrap == "repeat":
-            cols, rows = (np.mod(x0, w), np.mod(x0 + 1, w)), (np.mod(y0, h), np.mod(y0 + 1, h))
-        else:
-            cols = (np.clip(x0, 0, w - 1), np.clip(x0 + 1, 0, w - 1))
-            rows = (np.clip(y0, 0, h - 1), np.clip(y0 + 1, 0, h - 1))
-        corners = [[self.image[r, c] for c in cols] for r in rows]  # [row][col]
-        return corners, fx, fy, w / self.size, h / self.size
-
     def value(self, uv: np.ndarray) -> np.ndarray:
         """The mask at ``uv (N, 2)`` float64: ``(N,)`` in ``[0, 1]``."""
         return self.value_and_gradient(uv)[0]
@@ -119,12 +103,39 @@ class ImageMask:
         return self.value_and_gradient(uv)[1]
 
     def value_and_gradient(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`value` and :meth:`gradient` in one pass."""
-        ((a, b), (c, d)), fx, fy, sx, sy = self._texel(uv)
-        value = (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
-        gx = ((b - a) * (1 - fy) + (d - c) * fy) * sx
-        gy = ((c - a) * (1 - fx) + (d - b) * fx) * sy
-        return value, np.stack([gx, gy], -1)
+        """:meth:`value` and :meth:`gradient` in one pass (one compiled loop over the points)."""
+        uv = np.ascontiguousarray(uv, dtype=np.float64)
+        value, gradient = np.empty(len(uv)), np.empty((len(uv), 2))
+        _image_mask_kernel(uv, self.image, float(self.size), self.wrap == "repeat", value, gradient)
+        return value, gradient
+
+
+@numba.njit(cache=True, nogil=True)
+def _image_mask_kernel(uv, image, size, repeat, value, gradient):
+    """Bilinear value and gradient of ``image`` over ``size`` uv units at each ``uv`` (see :class:`ImageMask`).
+
+    Repeat: ``uv mod size`` first (a remainder: exact, the same texel coordinates at any distance), texels
+    wrap; clamp: edge texels extend the image."""
+    h, w = image.shape
+    sx, sy = w / size, h / size
+    for i in range(uv.shape[0]):
+        u, v = uv[i, 0], uv[i, 1]
+        if repeat:
+            u, v = np.mod(u, size), np.mod(v, size)
+        x = u / size * w - 0.5
+        y = v / size * h - 0.5
+        xf, yf = math.floor(x), math.floor(y)
+        fx, fy = x - xf, y - yf
+        x0, y0 = np.int64(xf), np.int64(yf)
+        if repeat:
+            c0, c1, r0, r1 = x0 % w, (x0 + 1) % w, y0 % h, (y0 + 1) % h
+        else:
+            c0, c1 = min(max(x0, 0), w - 1), min(max(x0 + 1, 0), w - 1)
+            r0, r1 = min(max(y0, 0), h - 1), min(max(y0 + 1, 0), h - 1)
+        a, b, c, d = image[r0, c0], image[r0, c1], image[r1, c0], image[r1, c1]
+        value[i] = (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
+        gradient[i, 0] = ((b - a) * (1 - fy) + (d - c) * fy) * sx
+        gradient[i, 1] = ((c - a) * (1 - fx) + (d - b) * fx) * sy
 
 
 class NoiseMask:
@@ -267,19 +278,38 @@ class LayeredBTF:
 
     def heights(self, uv: torch.Tensor) -> torch.Tensor:
         """Each layer's height in ``[0, 1]`` at ``uv (N, 2)`` float64: ``(N, 2)`` float64."""
-        out = []
+        return self._heights_and_latents(uv)[0]
+
+    def _heights_and_latents(self, uv: torch.Tensor) -> tuple[torch.Tensor, list]:
+        """:meth:`heights` and, per layer, its latent values at ``uv`` where its ``eval`` takes them back (else None):
+        a layer's synthesis at a band point then serves both its height and its colour."""
+        out, latents = [], []
         for btf, (weights, offset, span) in zip(self.layers, self._heights):
-            f = btf.features(uv).double().cpu().numpy()
-            out.append(np.clip((f @ weights - offset) / span, 0.0, 1.0))
-        return torch.from_numpy(np.stack(out, -1))
+            latent = None
+            if np.count_nonzero(weights) == 1 and weights.max() == 1.0:  # one channel (a relief's height): only it
+                index = int(np.argmax(weights))
+                points = check_uv(uv, scale=btf.scale).to(torch.float64) * btf.scale
+                height = btf.synthesizer.channel(points.to(btf.device), index).double().cpu().numpy()
+            else:
+                if btf.takes_latent:  # kept: the colour of a band point decodes the values its height came from
+                    latent = btf.latent(uv)
+                    f = btf.synthesizer.features_from_latent(latent.to(btf.device))
+                else:
+                    f = btf.features(uv)
+                height = f.double().cpu().numpy() @ weights
+            out.append(np.clip((height - offset) / span, 0.0, 1.0))
+            latents.append(latent)
+        return torch.from_numpy(np.stack(out, -1)), latents
 
     def weight(self, uv) -> np.ndarray:
         """Layer 1's weight in ``[0, 1]`` at ``uv (..., 2)``: ``(...)`` float64 (layer 0's is one minus it)."""
         uv = check_uv(uv, scale=self.scale)
         flat = uv.reshape(-1, 2).to(torch.float64).cpu()
-        return self._weight(flat).reshape(tuple(uv.shape[:-1]))
+        return self._weight(flat)[0].reshape(tuple(uv.shape[:-1]))
 
-    def _weight(self, flat: torch.Tensor) -> np.ndarray:
+    def _weight(self, flat: torch.Tensor) -> tuple[np.ndarray, np.ndarray, list]:
+        """Layer 1's weight ``(N,)`` at ``flat (N, 2)``, the rows inside the band, and each layer's latent values at
+        those rows (:meth:`_heights_and_latents`)."""
         points = flat.numpy()
         if hasattr(self.mask, "value_and_gradient"):
             m, gradient = self.mask.value_and_gradient(points)
@@ -290,14 +320,16 @@ class LayeredBTF:
         distance = np.where(m == 0.5, 0.0, distance)
         weight = (distance > 0).astype(np.float64)
         band = np.flatnonzero(np.abs(distance) < self.width)
+        latents = [None] * len(self.layers)
         if band.size:
-            h = self.heights(flat[band]).numpy()
+            h, latents = self._heights_and_latents(flat[band])
+            h = h.numpy()
             score = h[:, 1] - h[:, 0] + distance[band] / self.width
             if self.softness > 0:
                 weight[band] = np.clip(0.5 + score / (2 * self.softness), 0.0, 1.0)
             else:
                 weight[band] = (score > 0).astype(np.float64)
-        return weight
+        return weight, band, latents
 
     def eval(self, uv, w_view, w_light, footprint=None):
         """Linear RGB ``(..., 3)`` float32 (excluding cos(theta_light)), as :meth:`SynthesizedBTF.eval`, each layer
@@ -316,18 +348,29 @@ class LayeredBTF:
         if footprint is not None:
             fp = torch.as_tensor(np.broadcast_to(np.asarray(footprint, dtype=np.float64), batch).copy()
                                  if not isinstance(footprint, torch.Tensor) else footprint).reshape(-1)
-        weight = torch.from_numpy(self._weight(flat))
+        weight, band, latents = self._weight(flat)
+        weight = torch.from_numpy(weight)
+        band_position = torch.full((flat.shape[0],), -1, dtype=torch.int64)  # a row's index among the band's rows
+        band_position[torch.from_numpy(band)] = torch.arange(len(band))
         out = torch.zeros(flat.shape[0], 3, dtype=torch.float32)
         for k, btf in enumerate(self.layers):
             share = weight if k == 1 else 1.0 - weight
-            if bool((share == 1).all()):  # the whole batch from this layer: no gathers, no scaling
+            if bool((share == 1).all()) and (latents[k] is None or fp is not None):  # the whole batch, nothing kept
                 out = torch.as_tensor(btf.eval(flat, wv, wl, fp)).float().cpu()
                 break
             rows = torch.nonzero(share > 0)[:, 0]
             if rows.numel() == 0:
                 continue
-            rgb = btf.eval(flat[rows], wv[rows], wl[rows], None if fp is None else fp[rows])
-            rgb = torch.as_tensor(rgb).float().cpu()
-            out[rows] += rgb if bool((share[rows] == 1).all()) else rgb * share[rows, None].float()
+            if latents[k] is None or fp is not None:
+                parts = [(rows, None)]
+            else:  # band rows decode the latent values their height was read from; the others synthesize
+                kept = band_position[rows] >= 0
+                parts = [(rows[~kept], None), (rows[kept], latents[k][band_position[rows[kept]]])]
+            for part, latent in parts:
+                if part.numel() == 0:
+                    continue
+                rgb = btf.eval(flat[part], wv[part], wl[part], None if fp is None else fp[part], latent=latent)
+                rgb = torch.as_tensor(rgb).float().cpu()
+                out[part] += rgb if bool((share[part] == 1).all()) else rgb * share[part, None].float()
         out = out.reshape(*batch, 3)
         return out.numpy() if as_numpy else out

@@ -128,6 +128,35 @@ def test_image_mask_repeats_exactly_far_from_the_origin_and_its_gradient_is_the_
     np.testing.assert_allclose(mask.gradient(uv), numeric, rtol=1e-4, atol=1e-4)
 
 
+def test_image_mask_is_the_bilinear_interpolant_of_its_texels():
+    """Against the interpolant written per point: texel centres at half-texel offsets, repeat wraps the texel
+    indices, clamp extends the edge texels."""
+    rng = np.random.default_rng(11)
+    image = rng.random((5, 7))
+    uv = np.concatenate([rng.uniform(-3, 3, (300, 2)), [[0.0, 0.0], [0.999, 0.5], [1.0, 1.0]]])
+    for wrap in ("repeat", "clamp"):
+        mask = ImageMask(image, size=1.5, wrap=wrap)
+        expected, slope = [], []
+        for u, v in uv:
+            x, y = u / 1.5 * 7 - 0.5, v / 1.5 * 5 - 0.5
+            if wrap == "repeat":
+                x, y = (u % 1.5) / 1.5 * 7 - 0.5, (v % 1.5) / 1.5 * 5 - 0.5
+            i, j = int(np.floor(x)), int(np.floor(y))
+            fx, fy = x - i, y - j
+
+            def texel(row, col):
+                if wrap == "repeat":
+                    return image[row % 5, col % 7]
+                return image[min(max(row, 0), 4), min(max(col, 0), 6)]
+
+            a, b, c, d = texel(j, i), texel(j, i + 1), texel(j + 1, i), texel(j + 1, i + 1)
+            expected.append(a * (1 - fx) * (1 - fy) + b * fx * (1 - fy) + c * (1 - fx) * fy + d * fx * fy)
+            slope.append([((b - a) * (1 - fy) + (d - c) * fy) * 7 / 1.5, ((c - a) * (1 - fx) + (d - b) * fx) * 5 / 1.5])
+        value, gradient = mask.value_and_gradient(uv)
+        np.testing.assert_allclose(value, expected, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(gradient, slope, rtol=0, atol=1e-12)
+
+
 def reference_noise(u, v, scale, seed):
     """Value noise written out per point with Python integers: lowbias32 of the salted seed, then per coordinate
     its low and high 32-bit words folded in (mix(mix(h ^ low) ^ high)), as dynbtf.synthesis.hash documents."""
@@ -224,3 +253,51 @@ def test_synth_writes_a_layered_image_whose_halves_are_the_two_materials(tmp_pat
                  "-o", str(tmp_path / "x.png")]) == 2
     assert "--mask 'noise:a,b'" in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
+
+
+def test_eval_of_given_latent_values_equals_eval_that_synthesizes(layers):
+    a, _ = layers
+    rng = np.random.default_rng(5)
+    uv = rng.uniform(-50, 50, (2000, 2))
+    wv, wl = directions(2000, 6), directions(2000, 7)
+    wv[:7, 2] = -0.2  # below the horizon: zero either way
+    wv = wv / np.linalg.norm(wv, axis=1, keepdims=True)
+    latent = a.latent(uv)
+    assert a.takes_latent and latent.dtype == torch.float32 and latent.shape[0] == 2000
+    # features are the latent values through the output map, as the synthesizer answers them
+    torch.testing.assert_close(a.synthesizer.features_from_latent(latent), a.features(uv), rtol=0, atol=0)
+    np.testing.assert_array_equal(a.eval(uv, wv, wl, latent=latent), a.eval(uv, wv, wl))
+    assert np.all(a.eval(uv, wv, wl, latent=latent)[:7] == 0)
+
+
+def test_latent_values_that_do_not_fit_are_refused(layers):
+    a, _ = layers
+    uv = np.zeros((4, 2))
+    w = directions(4)
+    latent = a.latent(uv)
+    with pytest.raises(InputError, match=r"latent: expected float32 values of shape \(4, "):
+        a.eval(uv, w, w, latent=latent[:3])
+    with pytest.raises(InputError, match="latent: expected float32"):
+        a.eval(uv, w, w, latent=latent.double())
+    with pytest.raises(InputError, match="latent: given for point queries only"):
+        a.eval(uv, w, w, 0.01, latent=latent)
+
+
+def test_band_points_are_synthesized_once_per_layer(layers, monkeypatch):
+    a, b = layers
+    layered = LayeredBTF([a, b], half_plane(), width=0.1)
+    rng = np.random.default_rng(8)
+    band = np.stack([rng.uniform(0.92, 1.08, 500), rng.uniform(-5, 5, 500)], 1)
+    wv, wl = directions(500, 9), directions(500, 10)
+    expected = layered.eval(band, wv, wl)
+    calls = []
+    for layer in (a, b):
+        original = layer.synthesizer.latent
+        monkeypatch.setattr(layer.synthesizer, "latent",
+                            lambda uv, *args, _f=original, **kw: (calls.append(len(uv)), _f(uv, *args, **kw))[1])
+    np.testing.assert_array_equal(layered.eval(band, wv, wl), expected)
+    assert sum(calls) == 2 * 500  # each layer once per band point: for the height, and its colour reused
+    # and the colour is each point's layer's own
+    choice = layered.weight(band) > 0.5
+    np.testing.assert_array_equal(expected[~choice], a.eval(band[~choice], wv[~choice], wl[~choice]))
+    np.testing.assert_array_equal(expected[choice], b.eval(band[choice], wv[choice], wl[choice]))

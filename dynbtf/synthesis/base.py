@@ -228,9 +228,13 @@ class Synthesizer(abc.ABC):
             latent = self.latent(flat)
         else:
             latent = self.filtered_latent(flat, check_footprint(footprint, batch).reshape(-1))
+        return self.features_from_latent(latent).reshape(*batch, self.channels)
+
+    def features_from_latent(self, latent: torch.Tensor) -> torch.Tensor:
+        """Features ``(N, C)`` of latent values ``(N, C_latent)`` (:meth:`latent`'s): the :meth:`output_map` applied,
+        as :meth:`__call__` applies it."""
         matrix, offset = self.output_map()
-        out = latent if matrix is None else latent @ matrix.to(latent.dtype) + offset.to(latent.dtype)
-        return out.reshape(*batch, self.channels)
+        return latent if matrix is None else latent @ matrix.to(latent.dtype) + offset.to(latent.dtype)
 
     def channel(self, uv, index: int) -> torch.Tensor:
         """Feature channel ``index`` ``(...)`` float32 at ``uv (..., 2)``: the values of ``self(uv)[..., index]``.
