@@ -23,6 +23,11 @@ evaluated by
 Both paths are timed alike: one warm-up run on the first 50,000 queries (kernel
 compilation/loading, allocator, caches), then the best of ``--repeats`` full runs.
 
+(c) with Mitsuba installed, the **Dr.Jit kernel** of the ``dynbtf`` Mitsuba plugin
+    (``DynBTFEvaluator.eval``: the same query traced into one kernel by Dr.Jit's LLVM back end, compiled for
+    the level), timed on the same queries: the measurement behind the choice of runtimes in
+    docs/architecture.md (``--no-drjit`` skips it).
+
 Printed per level and method: queries/s of each and the speed-up, and our share of the **FMA bound**: the
 decoder's FLOP per query times queries/s over the level's FMA peak on all threads
 (:func:`dynbtf.decoder.native.fma_peak_flops`, measured in the same process), and, on the CPU's own level, a
@@ -95,8 +100,9 @@ def naive_eval(model, synth, uv, w_view, w_light):
     return model.decode_with_angular(features.float(), model.angular_features(w_view, w_light).float())
 
 
-def measure(args) -> list[dict]:
-    """This process's level: a row per method (and the per-stage breakdown printed, on the CPU's own level)."""
+def measure(args) -> dict:
+    """This process's level: ``{"rows": a row per method, "breakdown": the per-stage breakdown on the CPU's own
+    level (else None)}``."""
     from dynbtf.cpu import active_isa, hardware_isa
     from dynbtf.decoder.native import fma_peak_flops
 
@@ -137,13 +143,40 @@ def measure(args) -> list[dict]:
                      "max_abs_difference": err, "decoder_flop_per_query": decoder_flops(model)})
         print(f"[{isa}] {method:<7} naive {n / t_naive:.3g} q/s, ours {n / t_ours:.3g} q/s ({t_naive / t_ours:.1f}x), "
               f"{bound / t_ours:.1%} of the FMA bound, max |ours - naive| {err:.2g}", file=sys.stderr, flush=True)
+        if args.drjit:
+            t_drjit = drjit_seconds(model, method, uv, w_view, w_light, args.repeats)
+            rows[-1]["drjit_qps"] = None if t_drjit is None else n / t_drjit
+            if t_drjit is not None:
+                print(f"[{isa}] {method:<7} Dr.Jit kernel {n / t_drjit:.3g} q/s ({t_ours / t_drjit:.2f}x ours), "
+                      f"{bound / t_drjit:.1%} of the FMA bound", file=sys.stderr, flush=True)
+    breakdown = None
     if isa == hardware_isa() and "hist" in args.methods.split(","):
-        stage_breakdown(model, uv, w_view, w_light, n)
-    return rows
+        breakdown = stage_breakdown(model, uv, w_view, w_light, n) | {"isa": isa}
+    return {"rows": rows, "breakdown": breakdown}
 
 
-def stage_breakdown(model, uv, w_view, w_light, n) -> None:
-    """Where our hist path's time goes: per-stage timings over the same chunks, on one thread as each worker runs."""
+def drjit_seconds(model, method, uv, w_view, w_light, repeats) -> float | None:
+    """Seconds of the Mitsuba plugin's Dr.Jit kernel (``DynBTFEvaluator.eval``, LLVM back end compiled for this
+    level) on the same queries (uv rounded to float32, the plugin's input): fastest of ``repeats`` calls on fresh
+    inputs after one that compiles; None without Mitsuba and its LLVM."""
+    try:
+        from bench_render import plugin_seconds
+        from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator, configure_jit
+        from dynbtf.render.mitsuba.drjit_ops import mi_module
+
+        mi_module()
+        configure_jit()
+    except Exception as e:  # noqa: BLE001 - any missing piece means no Dr.Jit row
+        print(f"no Dr.Jit row: {e}", file=sys.stderr)
+        return None
+    evaluator = DynBTFEvaluator(model, method, 0)
+    times, _ = plugin_seconds(evaluator, uv.numpy().astype(np.float32), w_view.numpy(), w_light.numpy(), repeats + 1)
+    return min(times[1:])
+
+
+def stage_breakdown(model, uv, w_view, w_light, n) -> dict:
+    """Where our hist path's time goes: per-stage timings over the same chunks, on one thread as each worker runs
+    (printed, and returned as ``{"queries_per_second_one_thread", "stages": {name: share}}``)."""
     btf = SynthesizedBTF(model, "hist", scale=1.0, workers=1)
     chunk = btf.chunk_size
     stages = {"synthesis kernel": 0.0, "layer 1 (BLAS + angular kernel)": 0.0, "layers 2.. (native forward)": 0.0}
@@ -178,6 +211,7 @@ def stage_breakdown(model, uv, w_view, w_light, n) -> None:
     print(f"\nour hist path on ONE thread, per stage ({n / t_one:.3g} q/s on one thread):", file=sys.stderr)
     for name, t in stages.items():
         print(f"  {name:<38} {t * 1e3:8.1f} ms  {t / total:6.1%}", file=sys.stderr)
+    return {"queries_per_second_one_thread": n / t_one, "stages": {name: t / total for name, t in stages.items()}}
 
 
 def main() -> None:
@@ -195,6 +229,8 @@ def main() -> None:
                                                                f"on {WARM_UP_QUERIES} queries (best is kept)")
     parser.add_argument("--isa", nargs="+", default=None, help="levels to measure (default: avx2 and up)")
     parser.add_argument("--json", type=Path, default=Path(__file__).resolve().parent / "results" / "evaluation.json")
+    parser.add_argument("--no-drjit", dest="drjit", action="store_false",
+                        help="skip the Dr.Jit kernel (the Mitsuba plugin's) measured beside ours on each level")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
@@ -206,17 +242,21 @@ def main() -> None:
 
     from dynbtf.cpu import isa_environment
 
-    rows = []
+    rows, breakdown = [], None
     for isa in levels_to_measure(args.isa):
         env = {k: v for k, v in os.environ.items() if k not in isa_environment(isa)} | isa_environment(isa)
         command = [sys.executable, __file__, "--worker", "--methods", args.methods, "--queries", str(args.queries),
-                   "--repeats", str(args.repeats)] + (["--model", args.model] if args.model else [])
+                   "--repeats", str(args.repeats)] + (["--model", args.model] if args.model else []) + \
+            ([] if args.drjit else ["--no-drjit"])
         done = subprocess.run(command, env=env, capture_output=True, text=True)
         sys.stderr.write(done.stderr)
         if done.returncode != 0:
             raise SystemExit(f"level {isa}: the measuring process failed")
-        rows += json.loads(done.stdout.strip().splitlines()[-1])
-    result = header("evaluation", "bench_synthesis_eval.py") | {"queries": args.queries, "rows": rows}
+        measured = json.loads(done.stdout.strip().splitlines()[-1])
+        rows += measured["rows"]
+        breakdown = measured["breakdown"] or breakdown
+    result = header("evaluation", "bench_synthesis_eval.py") | {"queries": args.queries, "rows": rows,
+                                                                  "breakdown": breakdown}
     from tables import evaluation
 
     print("\n" + evaluation(result))

@@ -61,13 +61,24 @@ def budget(data: dict) -> str:
 
 def evaluation(data: dict) -> str:
     """bench_synthesis_eval.py: queries/s per level and method, share of the FMA bound."""
+    drjit = any(r.get("drjit_qps") for r in data["rows"])
     lines = [f"Measured on {_machine(data)} by `{data['command']}` ({data['queries']:,} queries, a 1080p frame).",
-             "", "| level | method | naive M queries/s | ours M queries/s | x naive | share of the FMA bound |",
-             "|---|---|---|---|---|---|"]
+             "", "| level | method | naive M queries/s | ours M queries/s | x naive | share of the FMA bound |"
+             + (" Dr.Jit kernel M queries/s (x ours) |" if drjit else ""),
+             "|---|---|---|---|---|---|" + ("---|" if drjit else "")]
     for r in data["rows"]:
+        extra = ""
+        if drjit:
+            extra = (f" {r['drjit_qps'] / 1e6:.2f} ({r['drjit_qps'] / r['ours_qps']:.2f}x) |" if r.get("drjit_qps")
+                     else " |")
         lines.append(f"| {r['isa']} | {r['method']} | {r['naive_qps'] / 1e6:.2f} | {r['ours_qps'] / 1e6:.2f} | "
                      f"{r['ours_qps'] / r['naive_qps']:.1f}x | {100 * r['share_of_fma_bound']:.1f}% of "
-                     f"{r['fma_peak_gflops']:.0f} GFLOP/s |")
+                     f"{r['fma_peak_gflops']:.0f} GFLOP/s |{extra}")
+    b = data.get("breakdown")
+    if b:
+        shares = "; ".join(f"{name} {100 * share:.0f}%" for name, share in b["stages"].items())
+        lines += ["", f"Where one hist query's time goes on one thread (`{b['isa']}`, "
+                      f"{b['queries_per_second_one_thread'] / 1e6:.2f} M queries/s): {shares}."]
     return "\n".join(lines)
 
 
