@@ -427,6 +427,9 @@ class SynthesizedBTF:
         wl, up_l = _check_directions(w_light, "w_light", batch)
         flat = uv.reshape(-1, 2).to(torch.float64)
         fp = None if footprint is None else check_footprint(footprint, batch).reshape(-1)
+        if fp is not None and self.synthesizer.level_of_detail() is None:
+            raise InputError(f"footprint: synthesis method {self.synthesizer.name!r} has no footprint query; "
+                             "evaluate points (footprint=None; unfiltered images)")
         if latent is not None:
             latent = self._check_latent(latent, batch, footprint)
         if fp is not None and self.level_decoders:

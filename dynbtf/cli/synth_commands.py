@@ -138,6 +138,16 @@ def synth(
                                   "edges (clamp)."),
     width: float = typer.Option(0.05, "--width", help="With --layer: half-width (uv units) of the band around "
                                 "the mask's contour where the materials' heights decide."),
+    target: Optional[Path] = typer.Option(None, "--target", help="Guided synthesis (hist steered by labels): an image "
+                                          "painted over the surface (PNG/JPEG grey levels, or EXR values in [0, 1]), "
+                                          "cut into --classes equal bins; a point in bin k shows the material's "
+                                          "class k (k-means on its decoded appearance, 0 the darkest)."),
+    classes: int = typer.Option(2, "--classes", help="With --target: classes of the material's texels."),
+    target_size: float = typer.Option(1.0, "--target-size", help="uv units the --target image covers."),
+    target_wrap: str = typer.Option("repeat", "--target-wrap", help="The --target image repeats (repeat) or "
+                                    "extends its edges (clamp)."),
+    softness: float = typer.Option(0.0, "--softness", help="With --target: blend weight (0 to 1) of samples whose "
+                                   "content is not of the target's class (0: left out where another sample is)."),
     memory_mb: Optional[float] = typer.Option(None, "--memory-mb", help="Limit (MB) of the image's estimated "
                                                                         f"working memory (~{BYTES_PER_PIXEL} bytes "
                                                                         "per pixel); default half of this machine's "
@@ -168,7 +178,22 @@ def synth(
     cu, cv = _pair(center, "center")
     check_uv([[cu - 0.5, cv - 0.5], [cu + 0.5, cv + 0.5]], "--center", scale=scale)  # before any work
     the_mask = _layer_mask(layer, mask, mask_size, mask_wrap, width, report, output)  # before any work
+    painted = _target_image(target, method, layer, report, output, filtered, target_size, target_wrap)
     rep, material = open_model_file(model, device=where)
+    if painted is not None:
+        from ..guided import guided_btf
+
+        if material is not None:
+            raise InputError(f"--target: {model} is a compiled material, which fixes its method; guide the model "
+                             "file (.dbtfm) it was compiled from")
+        btf = guided_btf(rep, painted, classes=classes, target_size=target_size, target_wrap=target_wrap,
+                         scale=scale, seed=0 if seed is None else seed, softness=softness,
+                         **({} if gamma is None else {"gamma": gamma}))
+        _write_image(btf, output, view_dir, light_dir, (cu, cv), resolution=resolution, spp=spp, filtered=False,
+                     cosine=cosine, exposure=exposure)
+        typer.echo(f"wrote {output} ({resolution}x{resolution}, guided by {target}, {classes} classes, {scale:g}x, "
+                   f"centre {cu:g},{cv:g})")
+        return
     methods = [m.strip() for m in report_methods.split(",") if m.strip()] if report else []
     quilt_size = _quilt_repeats(quilt_repeats, scale, tuple(rep.positional_plane().shape)) \
         if (output is not None and method == "quilt") or "quilt" in methods else None
@@ -206,6 +231,26 @@ def _layer_mask(layer: Path | None, mask: str, mask_size: float, mask_wrap: str,
         raise InputError("--layer: writes an image (-o); --report measures one material at a time")
     positive_number("--width", width, "uv units")
     return mask_from_spec(mask, size=mask_size, wrap=mask_wrap)
+
+
+def _target_image(target: Path | None, method: str, layer, report: bool, output, filtered: bool, size: float,
+                  wrap: str):
+    """``--target``'s grey image ``(H, W)`` in [0, 1] (None without ``--target``), its options checked."""
+    from ..errors import positive_number
+    from ..layered import mask_from_spec
+
+    if target is None:
+        return None
+    if report or output is None or layer is not None:
+        raise InputError("--target: writes one guided image (-o), without --report or --layer")
+    if method not in ("auto", "hist"):
+        raise InputError(f"--target: guided synthesis builds on hist; leave --method at auto or hist, not {method!r}")
+    if filtered:
+        raise InputError("--target: guided synthesis has no footprint query yet; leave out --filtered")
+    positive_number("--target-size", size, "uv units")
+    if str(target).startswith("noise"):
+        raise InputError("--target: expected an image file (a painted target), not a noise spec")
+    return mask_from_spec(str(target), size=size, wrap=wrap).image
 
 
 def _layered(first, layer: Path, method: str, where, *, scale: float, seed, gamma, mask, width: float):

@@ -13,6 +13,7 @@ hist      histogram-preserving blending (Heitz & Neyret 2018)         yes
 hex       hex-tiling (Mikkelsen 2022), rotation off                   yes
 quilt     image quilting (Efros & Freeman 2001), pre-generated        no
 struct    lattice-aligned cell quilting (structured materials)        yes
+guided    hist steered by exemplar labels and a target label field    yes
 ========  ==========================================================  =======
 
 ``auto`` (:func:`~.auto.choose_method`) is not a method of its own: it measures how structured
@@ -30,6 +31,7 @@ tables), :mod:`.kernels` (fused numba kernels), :mod:`.quality` (report) and :mo
 from .base import SYNTHESIZERS, Synthesizer, register_synthesizer
 from .cell_quilting import CellQuilting
 from .blending import LatticeBlending, LinearBlending
+from .guided_blending import GuidedBlending, LabelField, exemplar_labels
 from .hex_tiling import HexTiling
 from .histogram_blending import HistogramBlending
 from .quilting import Quilting
@@ -37,4 +39,5 @@ from .tiling import Tiling
 from .registry import make_synthesizer, synthesizer_class
 
 __all__ = ["Synthesizer", "SYNTHESIZERS", "make_synthesizer", "register_synthesizer", "synthesizer_class",
-           "Tiling", "CellQuilting", "LatticeBlending", "LinearBlending", "HistogramBlending", "HexTiling", "Quilting"]
+           "Tiling", "CellQuilting", "LatticeBlending", "LinearBlending", "HistogramBlending", "HexTiling", "Quilting",
+           "GuidedBlending", "LabelField", "exemplar_labels"]

@@ -13,7 +13,7 @@ from __future__ import annotations
 import inspect
 
 from ..errors import InputError
-from . import blending, cell_quilting, hex_tiling, histogram_blending, quilting, tiling  # noqa: F401  (register)
+from . import blending, cell_quilting, guided_blending, hex_tiling, histogram_blending, quilting, tiling  # noqa: F401
 from .auto import choose_method
 from .base import SYNTHESIZERS, Synthesizer
 

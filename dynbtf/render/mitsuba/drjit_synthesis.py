@@ -729,6 +729,9 @@ def make_dr_synthesizer(synthesizer):
     def host(x):
         return x.detach().cpu().numpy() if hasattr(x, "detach") else x
 
+    if not getattr(synthesizer, "portable", True):
+        raise InputError(f"synthesis method {synthesizer.name!r} has no Dr.Jit form yet; render it with "
+                         "SynthesizedBTF (dynbtf synth) or choose another method")
     if isinstance(synthesizer, LatticeBlending):
         mode = {MODE_LINEAR: "linear", MODE_HIST: "hist", MODE_HEX: "hex"}[synthesizer.mode]
         kwargs = {k: host(v) for k, v in synthesizer.kernel_arguments().items()}

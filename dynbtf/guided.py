@@ -1,0 +1,97 @@
+"""Guided synthesis of a fitted material: its content placed where a target painted over the surface says.
+
+:func:`guided_btf` builds a :class:`~dynbtf.infinite_btf.SynthesizedBTF` whose synthesizer is
+:class:`~dynbtf.synthesis.guided_blending.GuidedBlending` (histogram-preserving blending whose samples come
+from exemplar content of the target's label):
+
+* the exemplar's labels are the model's own classes (:func:`exemplar_classes`): k-means on its positional
+  plane decoded under a few view/light pairs, numbered from the darkest class (0) to the brightest,
+  by their decoded luminance at normal view and light; or labels the caller gives;
+* the target is a label image over the surface, in ``uv`` units; or a grey image in ``[0, 1]``, whose
+  levels are cut into ``classes`` equal bins (:func:`target_labels`), so that a painted dark region
+  receives the material's darkest content.
+
+Example: the worn, dark parts of a leather along the bottom of a panel, the rest as it comes::
+
+    btf = guided_btf("leather.dbtfm", grey_image, classes=2, target_size=4.0, scale=8.0)
+    rgb = btf.eval(uv, w_view, w_light)
+
+Point queries only (no footprint query yet); the Mitsuba plugin and the web export do not run it yet.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .errors import InputError
+from .infinite_btf import SynthesizedBTF
+from .material import open_model_file
+from .material.compiler import decoded_appearance, decoded_luminance
+from .synthesis.guided_blending import GuidedBlending, LabelField, exemplar_labels
+
+__all__ = ["guided_btf", "exemplar_classes", "target_labels"]
+
+
+def exemplar_classes(model, classes: int, seed: int = 0) -> np.ndarray:
+    """A fitted model's texels in ``classes`` classes ``(H, W)`` int64: k-means on its decoded appearance
+    (:func:`dynbtf.material.compiler.decoded_appearance`), class 0 the darkest at normal view and light."""
+    plane = model.positional_plane().detach()
+    return exemplar_labels(decoded_appearance(model, plane).cpu(), classes, seed=seed,
+                           order_by=decoded_luminance(model).cpu())
+
+
+def target_labels(target, classes: int) -> np.ndarray:
+    """A target image as labels ``(H, W)`` int64: integer images as they are; float images (grey levels in
+    ``[0, 1]``, colour images by their mean) cut into ``classes`` equal bins, ``[0, 1/classes)`` -> 0."""
+    image = np.asarray(target.detach().cpu().numpy() if isinstance(target, torch.Tensor) else target)
+    if image.ndim == 3 and image.shape[-1] in (1, 3, 4):
+        image = image[..., :3].mean(-1) if image.shape[-1] >= 3 else image[..., 0]
+    if image.ndim != 2 or image.size == 0:
+        raise InputError(f"target: expected an image (H, W), got shape {image.shape}")
+    if np.issubdtype(image.dtype, np.integer):
+        if image.min() < 0 or image.max() >= classes:
+            raise InputError(f"target: labels must lie in [0, {classes}) for {classes} classes, got "
+                             f"{image.min()} to {image.max()}")
+        return image.astype(np.int64)
+    if not np.isfinite(image).all() or image.min() < 0.0 or image.max() > 1.0:
+        raise InputError("target: expected grey levels in [0, 1] (finite) or integer labels")
+    return np.minimum(np.floor(image * classes), classes - 1).astype(np.int64)
+
+
+def guided_btf(model, target, *, classes: int = 2, labels=None, target_size: float = 1.0,
+               target_wrap: str = "repeat", scale: float = 1.0, seed: int = 0, candidates: int = 16,
+               softness: float = 0.0, **hist) -> SynthesizedBTF:
+    """A synthesized BTF of ``model`` whose content follows ``target`` (see the module docstring).
+
+    Parameters
+    ----------
+    model : Representation or path of a model file
+    target : ``(H, W)`` image
+        Labels (integers in ``[0, classes)``) or grey levels in ``[0, 1]`` (:func:`target_labels`), laid over
+        ``target_size`` x ``target_size`` uv units, repeated or clamped (``target_wrap``).
+    classes : int, default 2
+        Classes of the exemplar (:func:`exemplar_classes`) when ``labels`` is not given.
+    labels : ``(H, W)`` integers, optional
+        The exemplar's labels (the positional plane's size).
+    scale, seed : as :class:`~dynbtf.infinite_btf.SynthesizedBTF`'s.
+    candidates, softness, **hist : :class:`~dynbtf.synthesis.guided_blending.GuidedBlending`'s.
+    """
+    if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
+        model, material = open_model_file(model)
+        if material is not None:
+            raise InputError("model: a compiled material fixes its method; guided synthesis needs the model file "
+                             "(.dbtfm) it was compiled from")
+    if not hasattr(model, "positional_plane"):
+        raise InputError(f"model: expected a Representation with a positional plane, got {type(model).__name__}")
+    from .errors import positive_number
+
+    scale = positive_number("scale", scale, "exemplar repeats per uv unit")
+    if getattr(model, "separate_channels", 0):  # a relief model's height: its own transform, as hist's
+        hist.setdefault("separate", int(model.separate_channels))
+    classes = int(classes)
+    exemplar = labels if labels is not None else exemplar_classes(model, classes, seed)
+    field = LabelField(target_labels(target, classes), size=float(target_size) * float(scale), wrap=target_wrap)
+    synth = GuidedBlending(model.positional_plane().detach(), seed, labels=exemplar, target=field,
+                           candidates=candidates, softness=softness, **hist)
+    return SynthesizedBTF(model, synth, scale=scale)

@@ -1,0 +1,264 @@
+"""Exemplar guidance: histogram-preserving blending that draws each point from exemplar content of a target label.
+
+The user gives a **label map over the exemplar** (``(H, W)`` integers, or derived by
+:func:`exemplar_labels`: k-means on a feature or appearance plane into ``classes`` classes) and a
+**target label field over the surface** (:class:`LabelField`: a label image laid over the plane, in
+exemplar repeats). Histogram-preserving blending (:class:`~dynbtf.synthesis.histogram_blending.HistogramBlending`)
+reads three samples per query, each at the query's texel position plus a whole-texel offset hashed from
+a lattice vertex. Guided, each sample tries ``candidates`` offsets for its vertex in turn:
+
+* candidate 0 is hist's own offset, candidate ``j`` hashes the vertex with the seed's ``j``-th stream
+  (:func:`candidate_seed`);
+* the sample takes the first candidate whose bilinear footprint under the query (its four texels) carries
+  the target label at the query, so that what it reads is content of that label alone;
+* if no candidate does, it keeps candidate 0 and counts as unmatched.
+
+Samples that match keep their blend weight. Unmatched samples have their barycentric weight multiplied by
+``softness`` (0: dropped, unless none of the three match; 1: kept as they are). Queries that share a
+vertex and a target label take the same candidate, so content stays coherent within a label's region;
+where the target changes, the samples change offset. Every choice is a function of the query's position
+and the integer hash, so the field is defined, and exact, at any ``uv``, as hist's is.
+
+This is the torch reference path (any device); there is no fused CPU kernel, Dr.Jit or GLSL form yet:
+the Mitsuba plugin and the web export refuse a guided synthesizer (:attr:`GuidedBlending.portable`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from .base import check_uv, register_synthesizer, wrapped_texel_position
+from .hash import MASK32, mix32, vertex_offsets
+from .histogram_blending import HistogramBlending
+from .lattice import split_uv, triangle_lattice
+from ..texture import fetch_wrap
+
+__all__ = ["GuidedBlending", "LabelField", "exemplar_labels", "candidate_seed", "source_labels"]
+
+#: Golden-ratio constant that separates the candidates' seed streams.
+_CANDIDATE_STREAM = 0x9E3779B9
+
+
+def candidate_seed(seed: int, j: int) -> int:
+    """The seed of candidate ``j`` of a guided sample: ``seed`` itself for ``j = 0`` (hist's offset), else the
+    lowbias32 mix of ``seed`` xor ``j`` times a golden-ratio constant (32 bits)."""
+    if j == 0:
+        return int(seed) & MASK32
+    return int(mix32((int(seed) ^ ((j * _CANDIDATE_STREAM) & MASK32)) & MASK32))
+
+
+def exemplar_labels(features, classes: int, seed: int = 0, order_by=None) -> np.ndarray:
+    """Labels ``(H, W)`` int64 in ``[0, classes)`` of a plane ``features (H, W, C)``: k-means clustering of its texels
+    (:func:`scipy.cluster.vq.kmeans2`, k-means++ initialisation seeded by ``seed``; Euclidean distance in the
+    plane's own units, so a channel weighs by its spread).
+
+    ``order_by`` (optional ``(H, W)``, e.g. the decoded luminance) numbers the classes by their mean of it,
+    increasing (class 0 the darkest); without it, by their mean of the first channel.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> plane = np.concatenate([np.zeros((4, 2, 1)), np.ones((4, 2, 1))], axis=1)
+    >>> exemplar_labels(plane, 2).tolist()[0]
+    [0, 0, 1, 1]
+    """
+    from scipy.cluster.vq import kmeans2
+
+    x = np.asarray(features.detach().cpu().numpy() if isinstance(features, torch.Tensor) else features, dtype=np.float64)
+    if x.ndim == 2:
+        x = x[..., None]
+    if x.ndim != 3 or x.shape[0] * x.shape[1] == 0:
+        raise InputError(f"features: expected a plane (H, W, C), got shape {x.shape}")
+    if not np.isfinite(x).all():
+        raise InputError("features: contains NaN or infinite values")
+    classes = int(classes)
+    h, w, c = x.shape
+    if not 2 <= classes <= min(h * w, 255):
+        raise InputError(f"classes: expected 2 to {min(h * w, 255)} classes for a {h} x {w} plane, got {classes}")
+    rows = x.reshape(-1, c)
+    rows = rows - rows.mean(0)
+    _, labels = kmeans2(rows, classes, minit="++", seed=np.random.default_rng(int(seed)))
+    key = (rows[:, 0] if order_by is None else np.asarray(
+        order_by.detach().cpu().numpy() if isinstance(order_by, torch.Tensor) else order_by, dtype=np.float64
+    ).reshape(-1))
+    if key.shape[0] != h * w:
+        raise InputError(f"order_by: expected ({h}, {w}) values, got {np.shape(order_by)}")
+    means = np.array([key[labels == k].mean() if np.any(labels == k) else np.inf for k in range(classes)])
+    rank = np.empty(classes, dtype=np.int64)
+    rank[np.argsort(means, kind="stable")] = np.arange(classes)
+    return rank[labels].reshape(h, w)
+
+
+class LabelField:
+    """A label image ``(H, W)`` of non-negative integers laid over the plane: ``size`` x ``size`` exemplar repeats
+    (row 0 at ``v = 0``, column 0 at ``u = 0``), each point taking its nearest texel's label; ``wrap``:
+    ``"repeat"`` (the image tiles the plane, addressed by an exact remainder: the same labels at any distance)
+    or ``"clamp"`` (its edge texels extend it)."""
+
+    def __init__(self, labels, size: float = 1.0, wrap: str = "repeat") -> None:
+        from ..errors import positive_number
+
+        try:
+            labels = np.array(labels)
+        except (TypeError, ValueError) as e:
+            raise InputError(f"target: expected a label image (H, W) of integers ({e})") from None
+        if labels.ndim != 2 or labels.size == 0:
+            raise InputError(f"target: expected a label image of shape (H, W), got shape {labels.shape}")
+        if not (np.issubdtype(labels.dtype, np.integer) or (np.issubdtype(labels.dtype, np.floating)
+                                                             and np.isfinite(labels).all()
+                                                             and np.all(labels == np.round(labels)))):
+            raise InputError(f"target: expected integer labels, got dtype {labels.dtype}")
+        if labels.min() < 0:
+            raise InputError(f"target: expected labels >= 0, got {labels.min()}")
+        if wrap not in ("repeat", "clamp"):
+            raise InputError(f"target wrap: expected 'repeat' or 'clamp', got {wrap!r}")
+        self.image = torch.from_numpy(labels.astype(np.int64))
+        self.size, self.wrap = positive_number("target size", size, "exemplar repeats"), wrap
+
+    def labels(self, points: torch.Tensor) -> torch.Tensor:
+        """The target label ``(N,)`` int64 at ``points (N, 2)`` float64 exemplar repeats."""
+        h, w = self.image.shape
+        p = points.to(torch.float64).cpu()
+        if self.wrap == "repeat":
+            p = torch.remainder(p, self.size)
+        col = torch.floor(p[:, 0] / self.size * w).to(torch.int64)
+        row = torch.floor(p[:, 1] / self.size * h).to(torch.int64)
+        if self.wrap == "repeat":
+            col, row = torch.remainder(col, w), torch.remainder(row, h)
+        else:
+            col, row = col.clamp(0, w - 1), row.clamp(0, h - 1)
+        return self.image[row, col].to(points.device)
+
+
+@register_synthesizer("guided")
+class GuidedBlending(HistogramBlending):
+    """Histogram-preserving blending steered by labels (see the module docstring).
+
+    Parameters
+    ----------
+    exemplar : ``(H, W, C)``
+    seed : int
+    labels : ``(H, W)`` integers
+        The exemplar's label per texel (:func:`exemplar_labels` derives one).
+    target : LabelField
+        The label each point of the plane should show (in exemplar repeats).
+    candidates : int, default 16
+        Offsets tried per sample (the first is hist's).
+    softness : float in [0, 1], default 0
+        Blend-weight factor of samples whose content does not carry the target label.
+    **hist
+        :class:`~dynbtf.synthesis.histogram_blending.HistogramBlending`'s parameters (``gamma``, ...).
+
+    Examples
+    --------
+    >>> import torch
+    >>> plane = torch.cat([torch.zeros(8, 4, 2), torch.ones(8, 4, 2)], 1) + 0.1 * torch.randn(8, 8, 2)
+    >>> labels = (torch.arange(8) >= 4).long().expand(8, 8)
+    >>> synth = GuidedBlending(plane, labels=labels, target=LabelField([[1]]), tileable=False)
+    >>> uv = torch.rand(500, 2, dtype=torch.float64) * 10
+    >>> bool((source_labels(synth, uv) == 1).float().mean() > 0.95)
+    True
+    """
+
+    #: No Dr.Jit or GLSL form: backends that translate synthesizers refuse it.
+    portable = False
+
+    def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, candidates: int = 16,
+                 softness: float = 0.0, **hist) -> None:
+        super().__init__(exemplar, seed, **hist)
+        h, w = self.exemplar.shape[:2]
+        labels = torch.as_tensor(np.asarray(labels.cpu() if isinstance(labels, torch.Tensor) else labels))
+        if tuple(labels.shape) != (h, w):
+            raise InputError(f"labels: expected the exemplar's shape ({h}, {w}), got {tuple(labels.shape)}")
+        if labels.is_floating_point() or labels.dtype == torch.bool or (labels.numel() and labels.min() < 0):
+            raise InputError("labels: expected non-negative integer labels")
+        if not isinstance(target, LabelField):
+            raise InputError(f"target: expected a LabelField, got {type(target).__name__}")
+        if int(candidates) < 1:
+            raise InputError(f"candidates: expected at least 1 offset per sample, got {candidates}")
+        softness = float(softness)
+        if not 0.0 <= softness <= 1.0:
+            raise InputError(f"softness: expected a weight factor in [0, 1], got {softness}")
+        ph, pw = self.prepared.plane.shape[:2]
+        self.labels = labels.to(torch.int64)[:ph, :pw].contiguous()  # the read plane (tileable crops)
+        self.target, self.candidates, self.softness = target, int(candidates), softness
+
+    def guided_positions(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Read positions ``(N, 3, 2)`` in ``[0, 1)``, barycentrics ``(N, 3)`` and whether each sample's content
+        carries the target label ``(N, 3)`` bool, for ``uv (N, 2)`` float64 exemplar repeats."""
+        plane = self.prepared.plane
+        ph, pw = plane.shape[:2]
+        whole, frac = split_uv(uv)
+        vertices, bary = triangle_lattice(uv)
+        dw, dh = self.density
+        x = wrapped_texel_position(whole[:, 0], frac[:, 0], dw, pw)[:, None]
+        y = wrapped_texel_position(whole[:, 1], frac[:, 1], dh, ph)[:, None]
+        target = self.target.labels(uv).to(uv.device)[:, None]
+        labels = self.labels.to(uv.device)
+        chosen_x = chosen_y = None
+        matched = torch.zeros(bary.shape, dtype=torch.bool, device=uv.device)
+        for j in range(self.candidates):
+            ox, oy = vertex_offsets(vertices[..., 0], vertices[..., 1], candidate_seed(self.seed, j), pw, ph)
+            cx, cy = torch.remainder(x + ox, pw), torch.remainder(y + oy, ph)
+            if chosen_x is None:
+                chosen_x, chosen_y = cx, cy
+            # the sample's bilinear footprint: texels floor(c - 1/2) and the next one, wrapped, along each axis
+            c0 = torch.remainder(torch.floor(cx - 0.5).long(), pw)
+            r0 = torch.remainder(torch.floor(cy - 0.5).long(), ph)
+            c1, r1 = torch.remainder(c0 + 1, pw), torch.remainder(r0 + 1, ph)
+            inside = ((labels[r0, c0] == target) & (labels[r0, c1] == target) & (labels[r1, c0] == target)
+                      & (labels[r1, c1] == target))
+            hit = inside & ~matched
+            chosen_x, chosen_y = torch.where(hit, cx, chosen_x), torch.where(hit, cy, chosen_y)
+            matched |= hit
+            if bool(matched.all()):
+                break
+        return torch.stack([chosen_x / pw, chosen_y / ph], dim=-1), bary, matched
+
+    def steered_barycentrics(self, bary: torch.Tensor, matched: torch.Tensor) -> torch.Tensor:
+        """Barycentrics with unmatched samples' weight times ``softness`` (unchanged where none matches)."""
+        steered = torch.where(matched, bary, bary * self.softness)
+        return torch.where(matched.any(-1, keepdim=True), steered, bary)
+
+    def latent(self, uv: torch.Tensor, out: np.ndarray | None = None) -> torch.Tensor:
+        """Blended values ``(N, C)`` float32 for ``uv (N, 2)`` float64 (the torch path)."""
+        uv_samples, bary, matched = self.guided_positions(uv)
+        samples = fetch_wrap(self.prepared.plane, uv_samples)
+        result = self.blend(samples, self.steered_barycentrics(bary, matched), uv_samples).to(torch.float32)
+        if out is not None:
+            out[...] = result.cpu().numpy()
+        return result
+
+    reference_latent = latent
+
+    def latent_channels(self, uv: torch.Tensor, rows: list[int]) -> torch.Tensor:
+        return self.latent(uv)[:, rows]
+
+    def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
+        raise InputError("guided synthesis has no footprint query yet: evaluate points (no footprint, filtered=False)")
+
+    def level_of_detail(self):
+        return None
+
+    def parameters(self):
+        return super().parameters() | {"candidates": self.candidates, "softness": self.softness,
+                                       "label_classes": int(self.labels.max()) + 1 if self.labels.numel() else 0}
+
+
+def source_labels(synth: GuidedBlending, uv) -> torch.Tensor:
+    """The exemplar label of the content each query shows ``(N,)`` int64: the label under its sample of largest
+    blend weight (what the guidance target counts: a point comes from content of its target label when this
+    equals the target)."""
+    uv = check_uv(uv).reshape(-1, 2).to(torch.float64)
+    uv_samples, bary, matched = synth.guided_positions(uv)
+    from .histogram import blend_weights
+
+    weights = blend_weights(synth.steered_barycentrics(bary, matched), synth.gamma)
+    k = torch.argmax(weights, dim=-1)
+    ph, pw = synth.prepared.plane.shape[:2]
+    pos = uv_samples[torch.arange(len(uv)), k]
+    col = torch.floor(pos[:, 0] * pw).long().clamp(0, pw - 1)
+    row = torch.floor(pos[:, 1] * ph).long().clamp(0, ph - 1)
+    return synth.labels.to(uv.device)[row, col]

@@ -1,0 +1,159 @@
+"""Exemplar guidance (dynbtf.synthesis.guided_blending): labels, the target's share, hist where unguided, errors."""
+
+import numpy as np
+import pytest
+import torch
+
+from dynbtf.errors import InputError
+from dynbtf.synthesis.guided_blending import GuidedBlending, LabelField, exemplar_labels, source_labels
+from dynbtf.synthesis.histogram_blending import HistogramBlending
+
+
+def two_content_plane(size=32, seed=0):
+    """Channel 0 is +1 on the texels labelled 1 (a checkerboard of 4 x 4 blocks) and -1 elsewhere, plus noise."""
+    g = torch.Generator().manual_seed(seed)
+    rows, cols = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
+    labels = ((rows // 4 + cols // 4) % 2).long()
+    plane = 0.2 * torch.randn(size, size, 4, generator=g)
+    plane[..., 0] += 2.0 * labels - 1.0
+    return plane, labels
+
+
+def test_kmeans_labels_find_the_two_contents_and_are_numbered_by_order_by():
+    plane, labels = two_content_plane()
+    found = exemplar_labels(plane, 2, seed=3)
+    assert np.array_equal(found, labels.numpy())  # channel 0's class means: -1 then +1
+    reversed_order = exemplar_labels(plane, 2, seed=3, order_by=-plane[..., 0])
+    assert np.array_equal(reversed_order, 1 - labels.numpy())
+    assert np.array_equal(exemplar_labels(plane, 3, seed=5), exemplar_labels(plane, 3, seed=5))  # seeded
+
+
+@pytest.mark.parametrize("target_label", [0, 1])
+def test_points_show_content_of_their_target_label(target_label):
+    plane, labels = two_content_plane()
+    synth = GuidedBlending(plane, 7, labels=labels, target=LabelField([[target_label]]), tileable=False)
+    rng = np.random.default_rng(0)
+    for offset in (0.0, 1e9):  # near the origin and far from it
+        uv = torch.from_numpy(rng.uniform(0, 20, (4000, 2)) + offset)
+        values = synth(uv)[:, 0].numpy()  # the content itself: +1 where label 1, -1 where label 0
+        sign = 1.0 if target_label == 1 else -1.0
+        assert np.mean(sign * values > 0) >= 0.95
+        assert float((source_labels(synth, uv) == target_label).float().mean()) >= 0.95
+
+
+def test_a_target_field_steers_each_region():
+    plane, labels = two_content_plane()
+    target = LabelField(np.array([[0, 1]]), size=4.0, wrap="repeat")  # u mod 4 < 2: label 0, else 1
+    synth = GuidedBlending(plane, 1, labels=labels, target=target, tileable=False)
+    uv = torch.from_numpy(np.random.default_rng(1).uniform(-50, 50, (6000, 2)))
+    expected = (torch.remainder(uv[:, 0], 4.0) >= 2.0).long()
+    assert torch.equal(target.labels(uv), expected)
+    agree = (synth(uv)[:, 0] > 0).long() == expected
+    assert float(agree.float().mean()) >= 0.95
+
+
+def test_where_hists_own_offsets_match_guided_is_hist():
+    plane, _ = two_content_plane()
+    uv = torch.from_numpy(np.random.default_rng(2).uniform(-30, 30, (3000, 2)))
+    hist = HistogramBlending(plane, 4, tileable=False)
+    guided = GuidedBlending(plane, 4, labels=torch.zeros(32, 32, dtype=torch.long), target=LabelField([[0]]),
+                            tileable=False)
+    assert torch.equal(guided.latent(uv), hist.reference_latent(uv))
+
+
+def test_softness_one_keeps_hists_weights_and_answers_are_per_point():
+    plane, labels = two_content_plane()
+    synth = GuidedBlending(plane, 2, labels=labels, target=LabelField([[1]]), softness=1.0, tileable=False)
+    uv = torch.from_numpy(np.random.default_rng(3).uniform(0, 10, (2000, 2)))
+    _, bary, matched = synth.guided_positions(uv)
+    assert torch.equal(synth.steered_barycentrics(bary, matched), bary)
+    order = torch.randperm(2000, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(synth(uv[order]), synth(uv)[order], rtol=0, atol=0)  # a function of the point
+
+
+def test_bad_guidance_is_named():
+    plane, labels = two_content_plane()
+    field = LabelField([[1]])
+    with pytest.raises(InputError, match=r"labels: expected the exemplar's shape \(32, 32\)"):
+        GuidedBlending(plane, labels=labels[:5], target=field)
+    with pytest.raises(InputError, match="labels: expected non-negative integer labels"):
+        GuidedBlending(plane, labels=labels.float(), target=field)
+    with pytest.raises(InputError, match="target: expected a LabelField"):
+        GuidedBlending(plane, labels=labels, target=[[1]])
+    with pytest.raises(InputError, match="softness: expected a weight factor in"):
+        GuidedBlending(plane, labels=labels, target=field, softness=2.0)
+    with pytest.raises(InputError, match="candidates: expected at least 1"):
+        GuidedBlending(plane, labels=labels, target=field, candidates=0)
+    with pytest.raises(InputError, match="target: expected labels >= 0"):
+        LabelField([[-1, 0]])
+    with pytest.raises(InputError, match="classes: expected 2 to"):
+        exemplar_labels(plane, 1)
+    synth = GuidedBlending(plane, labels=labels, target=field)
+    with pytest.raises(InputError, match="guided synthesis has no footprint query yet"):
+        synth(torch.zeros(3, 2, dtype=torch.float64), torch.full((3,), 4.0))
+
+
+def test_guided_btf_puts_the_dark_class_where_the_target_is_dark():
+    """A fitted-like model whose plane has two contents with different decoded brightness: the exemplar's classes
+    are numbered darkest first, and a grey target's dark half shows the dark content (its decoded luminance is
+    lower there than on the bright half, and each half's source labels are the target's)."""
+    from dynbtf.guided import exemplar_classes, guided_btf, target_labels
+    from dynbtf.representations.triple_plane import TriplePlane
+
+    model = TriplePlane(32, 32, seed=0)
+    plane, labels = two_content_plane()
+    with torch.no_grad():
+        model.positional_plane().copy_(torch.cat([plane, plane, plane, plane], -1) * 3.0)
+    classes = exemplar_classes(model, 2)
+    agreement = np.mean(classes == labels.numpy())
+    assert agreement >= 0.95 or agreement <= 0.05  # the two contents, in some order
+    grey = np.array([[0.1, 0.9]])  # left half dark, right half bright
+    assert target_labels(grey, 2).tolist() == [[0, 1]]
+    btf = guided_btf(model, grey, classes=2, target_size=2.0, scale=1.0)
+    rng = np.random.default_rng(4)
+    uv = rng.uniform(0, 1, (4000, 2)) + np.array([[0.0, 5.0]])
+    left, right = uv.copy(), uv.copy() + np.array([[1.0, 0.0]])
+    w = np.tile([0.0, 0.0, 1.0], (4000, 1))
+    lum = np.array([0.2126, 0.7152, 0.0722])
+    dark, bright = btf.eval(left, w, w) @ lum, btf.eval(right, w, w) @ lum
+    assert dark.mean() < bright.mean()
+    from dynbtf.synthesis.guided_blending import source_labels
+
+    assert float((source_labels(btf.synthesizer, torch.from_numpy(left)) == 0).float().mean()) >= 0.95
+    assert float((source_labels(btf.synthesizer, torch.from_numpy(right)) == 1).float().mean()) >= 0.95
+    with pytest.raises(InputError, match="footprint: synthesis method 'guided' has no footprint query"):
+        btf.eval(left[:4], w[:4], w[:4], footprint=0.01)
+
+
+def test_synth_target_writes_a_guided_image_and_refuses_what_it_cannot_do(tmp_path, monkeypatch, capsys):
+    from dynbtf.cli.main import main
+    from dynbtf.io import load_image, save_image
+    from dynbtf.representations.model_file import save_model
+    from dynbtf.representations.triple_plane import TriplePlane
+
+    monkeypatch.setenv("DYNBTF_COMPILED_CACHE", "off")
+    save_model(tmp_path / "a.dbtfm", TriplePlane(16, 16, seed=1))
+    painted = np.zeros((8, 8, 3))
+    painted[:, 4:] = 1.0
+    save_image(tmp_path / "target.png", painted)
+    assert main(["synth", str(tmp_path / "a.dbtfm"), "--target", str(tmp_path / "target.png"), "--classes", "2",
+                 "--scale", "4", "--resolution", "32", "-o", str(tmp_path / "g.exr")]) == 0
+    image = load_image(tmp_path / "g.exr")
+    assert image.shape == (32, 32, 3) and np.isfinite(image).all()
+    capsys.readouterr()
+    for extra, message in ((["--method", "hex"], "--target: guided synthesis builds on hist"),
+                           (["--filtered"], "--target: guided synthesis has no footprint query yet"),
+                           (["--classes", "1"], "classes: expected 2 to")):
+        assert main(["synth", str(tmp_path / "a.dbtfm"), "--target", str(tmp_path / "target.png"), *extra,
+                     "-o", str(tmp_path / "x.png")]) == 2
+        assert message in capsys.readouterr().err
+        assert not (tmp_path / "x.png").exists()
+
+
+def test_the_mitsuba_plugin_refuses_a_guided_synthesizer_by_name():
+    pytest.importorskip("drjit")
+    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
+
+    plane, labels = two_content_plane()
+    with pytest.raises(InputError, match="synthesis method 'guided' has no Dr.Jit form yet"):
+        make_dr_synthesizer(GuidedBlending(plane, labels=labels, target=LabelField([[1]])))
