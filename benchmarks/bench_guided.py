@@ -101,6 +101,59 @@ def cost_ratios(layered, own, width: float, queries: int, seed: int) -> tuple[fl
     return t_away / t_own_away, t_band / t_own_band
 
 
+def guidance_row(path: Path, seed: int, classes: int, repeats: int) -> dict:
+    """Exemplar guidance on one material: a target whose left half asks for class 0 and right half for class 1 over
+    ``repeats`` x ``repeats`` exemplar repeats, sampled at one query per texel. Measured: the share of points whose
+    content (the label under their sample of largest weight) is their target's, per half and overall; the
+    repetition score (:func:`dynbtf.synthesis.quality.repetition_score` of the synthesized features) of each half,
+    guided over hist with the same seed; the cost of a query, guided over hist's fast path."""
+    import torch
+
+    import dynbtf
+    from dynbtf.guided import exemplar_classes
+    from dynbtf.synthesis.guided_blending import GuidedBlending, LabelField, source_labels
+    from dynbtf.synthesis.quality import repetition_score
+
+    model, _ = dynbtf.load_model(str(path))
+    labels = exemplar_classes(model, classes, seed)
+    target = LabelField(np.array([[0, 1]]), size=float(repeats), wrap="clamp")
+    plane = model.positional_plane().detach()
+    separate = {"separate": int(model.separate_channels)} if getattr(model, "separate_channels", 0) else {}
+    guided = GuidedBlending(plane, seed, labels=labels, target=target, **separate)
+    hist = dynbtf.make_synthesizer("hist", plane, seed=seed, **separate)
+    h, w = plane.shape[:2]
+    side_u, side_v = repeats * w, repeats * h
+    u, v = np.meshgrid((np.arange(side_u) + 0.5) / w, (np.arange(side_v) + 0.5) / h)
+    uv = torch.from_numpy(np.stack([u.ravel(), v.ravel()], -1))
+    wanted = target.labels(uv)
+    got = source_labels(guided, uv)
+    left = wanted == 0
+    f_guided = guided(uv).numpy().reshape(side_v, side_u, -1)
+    f_hist = hist(uv).numpy().reshape(side_v, side_u, -1)
+    half = side_u // 2
+    repetition = [repetition_score(f[:, cols], (h, w))["score"] for f in (f_guided, f_hist)
+                  for cols in (slice(0, half), slice(half, None))]
+    sub = uv[: 50_000]
+    t_guided = min(_seconds(lambda: guided(sub)) for _ in range(3))
+    t_hist = min(_seconds(lambda: hist(sub)) for _ in range(3))
+    row = {"seed": seed, "on_target": float((got == wanted).float().mean()),
+           "on_target_left": float((got[left] == 0).float().mean()),
+           "on_target_right": float((got[~left] == 1).float().mean()),
+           "repetition_guided": repetition[:2], "repetition_hist": repetition[2:],
+           "repetition_ratio": max(repetition[0] / repetition[2], repetition[1] / repetition[3]),
+           "cost_vs_hist": t_guided / t_hist}
+    print(f"guidance seed {seed}: on target {row['on_target']:.3f} (left {row['on_target_left']:.3f}, right "
+          f"{row['on_target_right']:.3f}); repetition guided / hist {row['repetition_ratio']:.2f}x; cost "
+          f"{row['cost_vs_hist']:.1f}x hist", file=sys.stderr, flush=True)
+    return row
+
+
+def _seconds(fn) -> float:
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--layers", nargs=2, default=None, help="two fitted models (default: fit the two "
@@ -111,6 +164,8 @@ def main() -> None:
     parser.add_argument("--resolution", type=int, default=384)
     parser.add_argument("--queries", type=int, default=200_000)
     parser.add_argument("--json", type=Path, default=RESULTS)
+    parser.add_argument("--classes", type=int, default=2, help="guidance: classes of the first material")
+    parser.add_argument("--repeats", type=int, default=8, help="guidance: side of the measured area, exemplar repeats")
     args = parser.parse_args()
 
     import dynbtf
@@ -140,12 +195,14 @@ def main() -> None:
         print(f"seed {seed}: W1/std left {row['w1_left']:.4f}, right {row['w1_right']:.4f}; band half-width "
               f"{left:.4f} | {right:.4f} uv ({left / args.width:.2f}x | {right / args.width:.2f}x of {args.width:g}); "
               f"cost {away:.2f}x away, {band:.2f}x in the band", file=sys.stderr, flush=True)
+    guidance = [guidance_row(paths[0], seed, args.classes, args.repeats) for seed in args.seeds]
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=Path(__file__).resolve().parent).stdout.strip()
     command = "python benchmarks/bench_guided.py" + ("" if args.layers is None else " --layers A B")
     data = {"benchmark": "guided", "command": command, "commit": commit, "cpu": _cpu_name(),
             "cores": os.cpu_count(), "cpu_isa": active_isa(), "layers": names, "scale": args.scale,
-            "resolution": args.resolution, "queries": args.queries, "rows": rows}
+            "resolution": args.resolution, "queries": args.queries, "rows": rows,
+            "guidance": {"model": names[0], "classes": args.classes, "repeats": args.repeats, "rows": guidance}}
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(data, indent=1) + "\n")
     print(f"wrote {args.json}", file=sys.stderr)

@@ -116,6 +116,22 @@ def guided(data: dict) -> str:
     return "\n".join(lines)
 
 
+def guidance(data: dict) -> str:
+    """bench_guided.py's guidance part: content on target, repetition against hist's, cost, per seed."""
+    g = data["guidance"]
+    lines = [f"Measured on {_machine(data)} by `{data['command']}`: `{g['model']}` in {g['classes']} classes, a "
+             f"target asking for class 0 on the left half and class 1 on the right half of {g['repeats']} x "
+             f"{g['repeats']} exemplar repeats, one query per texel.", "",
+             "| seed | points on target (left / right) | repetition score guided / hist (left; right) | "
+             "repetition, guided over hist | cost per query, guided over hist's fast path |", "|---|---|---|---|---|"]
+    for r in g["rows"]:
+        lines.append(f"| {r['seed']} | {100 * r['on_target']:.2f}% ({100 * r['on_target_left']:.2f}% / "
+                     f"{100 * r['on_target_right']:.2f}%) | {r['repetition_guided'][0]:.4f} / "
+                     f"{r['repetition_hist'][0]:.4f}; {r['repetition_guided'][1]:.4f} / {r['repetition_hist'][1]:.4f} | "
+                     f"{r['repetition_ratio']:.2f}x | {r['cost_vs_hist']:.0f}x |")
+    return "\n".join(lines)
+
+
 def _load(name: str) -> dict:
     return json.loads((RESULTS / f"{name}.json").read_text())
 
@@ -281,12 +297,14 @@ def rendering(data: dict) -> str:
 
 
 RENDERERS = {"training": training, "budget": budget, "evaluation": evaluation, "gpu": gpu, "guided": guided,
-             "speed": speed, "rendering": rendering}
+             "guidance": guidance, "speed": speed, "rendering": rendering}
+#: Tables rendered from another table's data file (default: ``<name>.json``).
+SOURCES = {"guidance": "guided"}
 _BLOCK = re.compile(r"<!-- table:(?P<name>[a-z_]+) -->\n(?P<body>.*?)\n?<!-- /table:(?P=name) -->", re.S)
 
 
 def render(name: str) -> str:
-    return RENDERERS[name](json.loads((RESULTS / f"{name}.json").read_text()))
+    return RENDERERS[name](json.loads((RESULTS / f"{SOURCES.get(name, name)}.json").read_text()))
 
 
 def update(check: bool) -> list[str]:

@@ -66,6 +66,7 @@ _FRONT_DOOR = {
     "LayeredBTF": "dynbtf.layered",
     "ImageMask": "dynbtf.layered",
     "NoiseMask": "dynbtf.layered",
+    "guided_btf": "dynbtf.guided",
     # the material stage
     "open_or_compile": "dynbtf.material",
     "load_compiled": "dynbtf.material",

@@ -21,7 +21,8 @@ def test_every_table_block_names_data_that_exists():
     assert names, "no generated tables found in the docs"
     for name in names:
         assert name in tables.RENDERERS, f"no renderer for table {name!r}"
-        assert (tables.RESULTS / f"{name}.json").is_file(), f"table {name!r} has no data file"
+        source = tables.SOURCES.get(name, name)
+        assert (tables.RESULTS / f"{source}.json").is_file(), f"table {name!r} has no data file ({source}.json)"
 
 
 def test_docs_tables_agree_with_their_data():
