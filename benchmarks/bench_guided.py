@@ -106,7 +106,8 @@ def guidance_row(path: Path, seed: int, classes: int, repeats: int) -> dict:
     ``repeats`` x ``repeats`` exemplar repeats, sampled at one query per texel. Measured: the share of points whose
     content (the label under their sample of largest weight) is their target's, per half and overall; the
     repetition score (:func:`dynbtf.synthesis.quality.repetition_score` of the synthesized features) of each half,
-    guided over hist with the same seed; the cost of a query, guided over hist's fast path."""
+    guided over hist with the same seed; the synthesis cost of a query (no decoder), guided over hist, both on the
+    fused CPU kernel."""
     import torch
 
     import dynbtf

@@ -123,12 +123,12 @@ def guidance(data: dict) -> str:
              f"target asking for class 0 on the left half and class 1 on the right half of {g['repeats']} x "
              f"{g['repeats']} exemplar repeats, one query per texel.", "",
              "| seed | points on target (left / right) | repetition score guided / hist (left; right) | "
-             "repetition, guided over hist | cost per query, guided over hist's fast path |", "|---|---|---|---|---|"]
+             "repetition, guided over hist | synthesis cost per query, guided over hist |", "|---|---|---|---|---|"]
     for r in g["rows"]:
         lines.append(f"| {r['seed']} | {100 * r['on_target']:.2f}% ({100 * r['on_target_left']:.2f}% / "
                      f"{100 * r['on_target_right']:.2f}%) | {r['repetition_guided'][0]:.4f} / "
                      f"{r['repetition_hist'][0]:.4f}; {r['repetition_guided'][1]:.4f} / {r['repetition_hist'][1]:.4f} | "
-                     f"{r['repetition_ratio']:.2f}x | {r['cost_vs_hist']:.0f}x |")
+                     f"{r['repetition_ratio']:.2f}x | {r['cost_vs_hist']:.1f}x |")
     return "\n".join(lines)
 
 

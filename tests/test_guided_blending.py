@@ -58,7 +58,22 @@ def test_where_hists_own_offsets_match_guided_is_hist():
     hist = HistogramBlending(plane, 4, tileable=False)
     guided = GuidedBlending(plane, 4, labels=torch.zeros(32, 32, dtype=torch.long), target=LabelField([[0]]),
                             tileable=False)
-    assert torch.equal(guided.latent(uv), hist.reference_latent(uv))
+    assert torch.equal(guided.reference_latent(uv), hist.reference_latent(uv))
+    assert torch.equal(guided.latent(uv), hist.latent(uv))  # the fused kernels too
+
+
+@pytest.mark.parametrize("softness", [0.0, 0.4])
+def test_the_fused_kernel_chooses_what_the_torch_path_chooses(softness):
+    """The numba kernel's guided search against the torch reference path: the same offsets (a different choice
+    would move values by the contents' difference, ~2), the values within the inverse table's error."""
+    plane, labels = two_content_plane()
+    target = LabelField(np.array([[0, 1], [1, 0]]), size=3.0)
+    synth = GuidedBlending(plane, 7, labels=labels, target=target, softness=softness, tileable=False)
+    uv = torch.from_numpy(np.random.default_rng(6).uniform(-40, 40, (20000, 2)))
+    uv[:100] += 1e12  # far from the origin too
+    fast, reference = synth.latent(uv), synth.reference_latent(uv)
+    assert float((fast - reference).abs().max()) < 0.05
+    assert float((fast - reference).abs().mean()) < 1e-3
 
 
 def test_softness_one_keeps_hists_weights_and_answers_are_per_point():

@@ -19,8 +19,10 @@ vertex and a target label take the same candidate, so content stays coherent wit
 where the target changes, the samples change offset. Every choice is a function of the query's position
 and the integer hash, so the field is defined, and exact, at any ``uv``, as hist's is.
 
-This is the torch reference path (any device); there is no fused CPU kernel, Dr.Jit or GLSL form yet:
-the Mitsuba plugin and the web export refuse a guided synthesizer (:attr:`GuidedBlending.portable`).
+On the CPU the fused numba kernel of lattice blending runs the search (:func:`dynbtf.synthesis.kernels.lattice_blend`
+with ``guidance``); :meth:`GuidedBlending.reference_latent` is the torch path (any device), against which the tests
+hold it. There is no Dr.Jit or GLSL form yet: the Mitsuba plugin and the web export refuse a guided synthesizer
+(:attr:`GuidedBlending.portable`).
 """
 
 from __future__ import annotations
@@ -222,16 +224,33 @@ class GuidedBlending(HistogramBlending):
         steered = torch.where(matched, bary, bary * self.softness)
         return torch.where(matched.any(-1, keepdim=True), steered, bary)
 
-    def latent(self, uv: torch.Tensor, out: np.ndarray | None = None) -> torch.Tensor:
-        """Blended values ``(N, C)`` float32 for ``uv (N, 2)`` float64 (the torch path)."""
+    def reference_latent(self, uv: torch.Tensor) -> torch.Tensor:
+        """The torch reference path of :meth:`latent` (any device; the exact inverse transform)."""
         uv_samples, bary, matched = self.guided_positions(uv)
         samples = fetch_wrap(self.prepared.plane, uv_samples)
-        result = self.blend(samples, self.steered_barycentrics(bary, matched), uv_samples).to(torch.float32)
-        if out is not None:
-            out[...] = result.cpu().numpy()
-        return result
+        return self.blend(samples, self.steered_barycentrics(bary, matched), uv_samples).to(torch.float32)
 
-    reference_latent = latent
+    def latent(self, uv: torch.Tensor, out: np.ndarray | None = None) -> torch.Tensor:
+        """Blended values ``(N, C)`` float32 for ``uv (N, 2)`` float64: the fused CPU kernel with the guidance
+        (:func:`dynbtf.synthesis.kernels.lattice_blend`) when ``fast``, else :meth:`reference_latent`."""
+        if not self.fast:
+            result = self.reference_latent(uv)
+            if out is not None:
+                out[...] = result.cpu().numpy()
+            return result
+        from .hash import seed_state
+        from .kernels import lattice_blend
+
+        if "states" not in self._numpy_cache:
+            self._numpy_cache["states"] = np.array([int(seed_state(candidate_seed(self.seed, j)))
+                                                    for j in range(self.candidates)], dtype=np.int64)
+            self._numpy_cache["labels"] = np.ascontiguousarray(self.labels.cpu().numpy(), dtype=np.int32)
+        kwargs = {k: (self._numpy(k, v) if isinstance(v, torch.Tensor) else v)
+                  for k, v in self.kernel_arguments().items()}
+        target = self.target.labels(uv.cpu()).numpy().astype(np.int32)
+        guidance = (self._numpy_cache["states"], self._numpy_cache["labels"], target, self.softness)
+        return torch.from_numpy(lattice_blend(uv.detach().cpu().numpy(), self._numpy("plane", self.prepared.plane),
+                                              self.density, self.seed, self.mode, out=out, guidance=guidance, **kwargs))
 
     def latent_channels(self, uv: torch.Tensor, rows: list[int]) -> torch.Tensor:
         return self.latent(uv)[:, rows]

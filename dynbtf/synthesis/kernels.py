@@ -34,6 +34,7 @@ from llvmlite import ir
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from ..errors import InputError
 from .base import check_uv
 from .hash import SECOND_STREAM, MASK32, fold_coordinate, hash_vertex, mix32, seed_state
 from .lattice import LATTICE_SCALE_HI, LATTICE_SCALE_LO, LATTICE_SCALE, large_scaled_integer
@@ -180,7 +181,32 @@ def _lattice_hashes(u, v, state):
         h0, h1, h2 = (_fold_coordinate(h_b, base_y + 1), _fold_coordinate(h_b, base_y),
                       _fold_coordinate(h_a, base_y + 1))
         b0, b1, b2 = -z, 1.0 - fy, 1.0 - fx
-    return iu, iv, fu, fv, h0, h1, h2, b0, b1, b2
+    return iu, iv, fu, fv, h0, h1, h2, b0, b1, b2, base_x, base_y, z > 0
+
+
+@numba.njit(inline="always")
+def _vertex(k, base_x, base_y, lower):
+    """Coordinates of sample ``k``'s lattice vertex (the order of :func:`_lattice_hashes`)."""
+    if lower:  # b, b + (0, 1), b + (1, 0)
+        return base_x + (1 if k == 2 else 0), base_y + (1 if k == 1 else 0)
+    return base_x + (0 if k == 2 else 1), base_y + (0 if k == 1 else 1)  # b + (1, 1), b + (1, 0), b + (0, 1)
+
+
+@numba.njit(inline="always")
+def _guided_texels(k, h, xi, yi, pw, ph, base_x, base_y, lower, states, labels, target):
+    """Sample ``k``'s four texels under exemplar guidance (:mod:`dynbtf.synthesis.guided_blending`): the first of
+    the candidate offsets (candidate 0: hash ``h``, hist's; candidate ``j``: the vertex hashed from ``states[j]``)
+    whose four texels carry label ``target``; else candidate 0's. Returns the texels and whether one matched."""
+    c0, c1, r0, r1 = _sample_texels(h, xi, yi, pw, ph)
+    if labels[r0, c0] == target and labels[r0, c1] == target and labels[r1, c0] == target and labels[r1, c1] == target:
+        return c0, c1, r0, r1, True
+    vx, vy = _vertex(k, base_x, base_y, lower)
+    for j in range(1, states.shape[0]):
+        ca, cb, ra, rb = _sample_texels(_fold_coordinate(_fold_coordinate(states[j], vx), vy), xi, yi, pw, ph)
+        if labels[ra, ca] == target and labels[ra, cb] == target and labels[rb, ca] == target \
+                and labels[rb, cb] == target:
+            return ca, cb, ra, rb, True
+    return c0, c1, r0, r1, False
 
 
 @numba.njit(inline="always")
@@ -253,7 +279,8 @@ def _inverse_lut(row, lut, g_min, inv_step):
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_k, lut, g_min, inv_step, out):
+def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_k, lut, g_min, inv_step, out,
+            states, labels, target, softness):
     n_queries = uv.shape[0]
     ph, pw, nc = plane.shape
     flat = plane.reshape(ph * pw * nc)
@@ -261,6 +288,7 @@ def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_
     gamma_int = np.int64(gamma) if (gamma == math.floor(gamma) and 1.0 < gamma <= 64.0) else np.int64(0)
     density_w_mod = density_w % pw
     density_h_mod = density_h % ph
+    guided = states.shape[0] > 0
     for block in numba.prange((n_queries + BLOCK - 1) // BLOCK):
         first = block * BLOCK
         last = min(first + BLOCK, n_queries)
@@ -268,7 +296,7 @@ def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_
         weights = np.empty((BLOCK, TAPS), dtype=np.float32)
         # ---- pass 1: lattice, hashes, addresses and weights; prefetch the texels
         for n in range(first, last):
-            iu, iv, fu, fv, h0, h1, h2, b0, b1, b2 = _lattice_hashes(uv[n, 0], uv[n, 1], state)
+            iu, iv, fu, fv, h0, h1, h2, b0, b1, b2, base_x, base_y, lower = _lattice_hashes(uv[n, 0], uv[n, 1], state)
             # texel addressing shared by the three samples (whole-texel offsets):
             # (iu * density) mod period in int64 without overflow, plus the fraction's texels
             px = fu * density_w - 0.5
@@ -279,9 +307,18 @@ def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_
             ty = py - y0
             xi = ((iu % pw) * density_w_mod + np.int64(x0)) % pw
             yi = ((iv % ph) * density_h_mod + np.int64(y0)) % ph
-            ca0, cb0, ra0, rb0 = _sample_texels(h0, xi, yi, pw, ph)
-            ca1, cb1, ra1, rb1 = _sample_texels(h1, xi, yi, pw, ph)
-            ca2, cb2, ra2, rb2 = _sample_texels(h2, xi, yi, pw, ph)
+            if guided:  # each sample from content of the query's target label (guided_blending)
+                t = target[n]
+                ca0, cb0, ra0, rb0, m0 = _guided_texels(0, h0, xi, yi, pw, ph, base_x, base_y, lower, states, labels, t)
+                ca1, cb1, ra1, rb1, m1 = _guided_texels(1, h1, xi, yi, pw, ph, base_x, base_y, lower, states, labels, t)
+                ca2, cb2, ra2, rb2, m2 = _guided_texels(2, h2, xi, yi, pw, ph, base_x, base_y, lower, states, labels, t)
+                if m0 or m1 or m2:  # unmatched samples' barycentric weight times softness
+                    b0, b1, b2 = (b0 if m0 else b0 * softness), (b1 if m1 else b1 * softness), \
+                        (b2 if m2 else b2 * softness)
+            else:
+                ca0, cb0, ra0, rb0 = _sample_texels(h0, xi, yi, pw, ph)
+                ca1, cb1, ra1, rb1 = _sample_texels(h1, xi, yi, pw, ph)
+                ca2, cb2, ra2, rb2 = _sample_texels(h2, xi, yi, pw, ph)
             w00 = (1.0 - tx) * (1.0 - ty)
             w01 = tx * (1.0 - ty)
             w10 = (1.0 - tx) * ty
@@ -317,7 +354,7 @@ def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_
 def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], seed: int, mode: int, *,
                   gamma: float = 1.0, luminance: np.ndarray | None = None, beta: float = 0.0, gain_k: float = 1.0,
                   lut: np.ndarray | None = None, g_min: float = 0.0, step: float = 1.0,
-                  out: np.ndarray | None = None) -> np.ndarray:
+                  out: np.ndarray | None = None, guidance: tuple | None = None) -> np.ndarray:
     """Blend three hashed, whole-texel-offset exemplar samples per query (one fused pass).
 
     Parameters
@@ -342,6 +379,10 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
         Inverse histogram table ``(C, L)`` float32 and its grid (hist).
     out : float32 ``(N, C)``, optional
         Output buffer.
+    guidance : (states, labels, target, softness), optional
+        Exemplar guidance (:class:`~dynbtf.synthesis.guided_blending.GuidedBlending`): the candidates' hash
+        states int64 ``(K,)`` (``seed_state`` of each candidate seed, candidate 0 the synthesis seed's), the
+        read plane's labels int32 ``(H', W')``, the target label per query int32 ``(N,)`` and the softness.
 
     Returns
     -------
@@ -357,10 +398,19 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
         luminance = np.zeros((1, 1), dtype=np.float32)
     if lut is None:
         lut = np.zeros((c, 2), dtype=np.float32)
+    if guidance is None:
+        guided = (np.zeros(0, np.int64), np.zeros((1, 1), np.int32), np.zeros(1, np.int32), 1.0)
+    else:
+        states, labels, target, softness = guidance
+        if np.shape(labels) != plane.shape[:2] or np.shape(target) != (n,):
+            raise InputError(f"guidance: labels {np.shape(labels)} and target {np.shape(target)} do not fit a "
+                             f"{plane.shape[:2]} plane and {n} queries")
+        guided = (np.ascontiguousarray(states, dtype=np.int64), np.ascontiguousarray(labels, dtype=np.int32),
+                  np.ascontiguousarray(target, dtype=np.int32), float(softness))
     _kernel(uv, np.ascontiguousarray(plane, dtype=np.float32),
             np.ascontiguousarray(luminance, dtype=np.float32), int(density[0]), int(density[1]), int(seed) & 0xFFFFFFFF,
             int(mode), float(gamma), float(beta), float(gain_k), np.ascontiguousarray(lut, dtype=np.float32),
-            float(g_min), 1.0 / float(step), out)
+            float(g_min), 1.0 / float(step), out, *guided)
     return out
 
 
@@ -431,7 +481,7 @@ def _filtered_kernel(uv, level, upper_weight, levels, starts, heights, widths, l
     for block in numba.prange((n_queries + BLOCK - 1) // BLOCK):
         row = np.empty(nc, dtype=np.float32)
         for n in range(block * BLOCK, min(block * BLOCK + BLOCK, n_queries)):
-            iu, iv, fu, fv, h0, h1, h2, b0, b1, b2 = _lattice_hashes(uv[n, 0], uv[n, 1], state)
+            iu, iv, fu, fv, h0, h1, h2, b0, b1, b2, _, _, _ = _lattice_hashes(uv[n, 0], uv[n, 1], state)
             # level-0 texel positions of the three samples in the read plane (whole parts reduced exactly)
             xi = ((iu % pw) * density_w_mod) % pw
             yi = ((iv % ph) * density_h_mod) % ph
