@@ -18,13 +18,6 @@ import numpy as np
 OUT = Path(__file__).resolve().parent.parent / "docs" / "images" / "guided.png"
 
 
-def painted_target(side: int = 64) -> np.ndarray:
-    """A grey target ``(side, side)`` in [0, 1]: light ground, a dark diagonal band and a dark disc."""
-    y, x = (np.mgrid[0:side, 0:side] + 0.5) / side
-    dark = (np.abs(x - y) < 0.12) | ((x - 0.75) ** 2 + (y - 0.25) ** 2 < 0.15 ** 2)
-    return np.where(dark, 0.1, 0.9)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("model", help="a model file")
@@ -35,7 +28,9 @@ def main() -> None:
     import dynbtf
     from dynbtf.io import save_image
 
-    target = painted_target()
+    from dynbtf.guided import example_target
+
+    target = example_target()
     tile, hist = (dynbtf.SynthesizedBTF(args.model, m, scale=6.0) for m in ("tile", "hist"))
     guided = dynbtf.guided_btf(args.model, target, classes=2, target_size=1.0, target_wrap="clamp", scale=6.0)
     res = args.resolution

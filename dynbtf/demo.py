@@ -14,8 +14,9 @@ options skips finished stages, and the training stage resumes its checkpoint):
 4. ``features``  -- pictures of the feature planes (the paper's Fig. 2).
 5. ``synthesis`` -- the synthesized BTF by tiling, histogram-preserving blending and
                     hex-tiling at 1x, 8x, 25x, 45x the exemplar's area, a grazing
-                    preview of an infinite plane per method, and the synthesis
-                    quality numbers.
+                    preview of an infinite plane per method, the synthesis
+                    quality numbers, and the material guided by a painted target
+                    (:func:`dynbtf.guided.guided_btf`) at 8x.
 6. ``structured`` -- a structured material (simulated ceramic tiles, or the demo's own material when
                     that is structured) fitted briefly at 64 x 64 texels and synthesized at 8x and
                     25x by tiling, histogram-preserving blending and ``auto`` (which picks
@@ -297,8 +298,28 @@ def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
         img = render_preview(btf, cam, sun, resolution=pres, spp=1 if cfg.quick else 2, background=(0.55, 0.65, 0.8))
         previews[method] = ctx.rel(save_image(out_dir / f"grazing_{method}.png", img))
     quality = _synthesis_quality(ctx, rep)
+    t0 = time.perf_counter()
+    guided = _guided_panels(ctx, rep, view, light, res, scales[1])
+    timings[f"guided@{scales[1]}x"] = time.perf_counter() - t0
     return {"grid": grid, "filtered": filtered, "scales": list(scales), "resolution": res, "view": list(view), "light": list(light),
-            "timings": timings, "compile_seconds": compile_seconds, "previews": previews, "quality": quality}
+            "timings": timings, "compile_seconds": compile_seconds, "previews": previews, "quality": quality,
+            "guided": guided}
+
+
+def _guided_panels(ctx: _Context, rep, view, light, res: int, scale: int) -> dict[str, Any]:
+    """Exemplar guidance at ``scale`` x the exemplar's area: the painted target (:func:`dynbtf.guided.example_target`,
+    over the whole image) and the material guided by it in two classes (dark where the target is dark)."""
+    from .guided import example_target, guided_btf
+
+    target = example_target()
+    btf = guided_btf(rep, target, classes=2, target_size=float(scale), target_wrap="clamp", scale=1.0,
+                     seed=ctx.config.seed)
+    img = btf.image(view, light, (0.0, 0.0, float(scale), float(scale)), (res, res))
+    rows = np.arange(res) * target.shape[0] // res
+    shown = np.repeat(target[rows][:, rows][..., None], 3, -1).astype(np.float32)
+    out_dir = ctx.out / "synthesis"
+    return {"scale": scale, "classes": 2, "target": ctx.rel(save_image(out_dir / "guided_target.png", shown)),
+            "image": ctx.rel(save_image(out_dir / f"guided_{scale:02d}x.png", img))}
 
 
 def _synthesis_quality(ctx: _Context, rep) -> list[dict[str, Any]]:

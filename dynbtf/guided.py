@@ -30,7 +30,15 @@ from .material import open_model_file
 from .material.compiler import decoded_appearance, decoded_luminance
 from .synthesis.guided_blending import GuidedBlending, LabelField, exemplar_labels
 
-__all__ = ["guided_btf", "exemplar_classes", "target_labels"]
+__all__ = ["guided_btf", "exemplar_classes", "target_labels", "example_target"]
+
+
+def example_target(side: int = 64) -> np.ndarray:
+    """A painted grey target ``(side, side)`` in ``[0, 1]`` for demonstrations: a light ground with a dark
+    diagonal band and a dark disc (row 0 at ``v = 0``)."""
+    y, x = (np.mgrid[0:side, 0:side] + 0.5) / side
+    dark = (np.abs(x - y) < 0.12) | ((x - 0.75) ** 2 + (y - 0.25) ** 2 < 0.15 ** 2)
+    return np.where(dark, 0.1, 0.9)
 
 
 def exemplar_classes(model, classes: int, seed: int = 0) -> np.ndarray:

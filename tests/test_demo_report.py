@@ -48,6 +48,19 @@ def test_quick_demo_writes_every_stage_and_the_report(quick_demo):
     coherence = {row["method"]: row["coherence p90"] for row in st["quality"]}
     assert coherence["tile"] < 1e-9 and coherence["auto (struct)"] < coherence["hist"]
     assert "A structured material: tile | hist | auto" in html
+    # guided by a painted target: the dark-painted part of the image shows the darker content
+    import imageio.v3 as iio
+    import numpy as np
+
+    from dynbtf.guided import example_target
+
+    guided = results["synthesis"]["guided"]
+    assert "Guided by a painted target" in html and guided["image"] in html and guided["target"] in html
+    image = iio.imread(out / guided["image"]).astype(np.float64)[..., :3].mean(-1)
+    side = image.shape[0]
+    target = example_target()
+    dark = target[np.arange(side) * target.shape[0] // side][:, np.arange(side) * target.shape[0] // side] < 0.5
+    assert image[dark].mean() < image[~dark].mean()
     # words a reader understands: no raw keys, units, what finished, a command that works as typed
     import html as html_module
     import shlex

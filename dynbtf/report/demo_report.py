@@ -198,6 +198,20 @@ def _synthesis_section(r: HtmlReport, out: Path, syn: dict[str, Any]) -> None:
                      for p, kind in ((row[str(s)], "unfiltered (point query)"),
                                      (filtered[str(s)], "filtered (footprint query)"))]
             r.images(pairs, width=300)
+    g = syn.get("guided")
+    if g:
+        scale = str(g["scale"])
+        r.section("Guided by a painted target", level=3)
+        r.paragraph(f"The same material, its texels in {g['classes']} classes by k-means on their decoded "
+                    "appearance (class 0 the darker), and a target painted over the surface: each point draws only "
+                    "from content of the class its target asks for (dark where the target is dark). "
+                    f"{scale}x the exemplar's area; hist beside it for comparison (dynbtf.guided_btf, dynbtf synth "
+                    "--target).")
+        panels = [(out / g["target"], "target"), (out / g["image"], f"guided, {scale}x")]
+        hist = syn.get("grid", {}).get("hist", {}).get(scale)
+        if hist:
+            panels.insert(1, (out / hist, f"hist, {scale}x"))
+        r.images(panels, width=300)
     _synthesis_tables(r, syn, methods)
 
 
