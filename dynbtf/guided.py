@@ -28,7 +28,7 @@ from .errors import InputError
 from .infinite_btf import SynthesizedBTF
 from .material import open_model_file
 from .material.compiler import decoded_appearance, decoded_luminance
-from .synthesis.guided_blending import GuidedBlending, LabelField, exemplar_labels
+from .synthesis.guided_blending import GuidedBlending, GuidedHexTiling, LabelField, exemplar_labels
 
 __all__ = ["guided_btf", "exemplar_classes", "target_labels", "example_target"]
 
@@ -69,7 +69,7 @@ def target_labels(target, classes: int) -> np.ndarray:
 
 def guided_btf(model, target, *, classes: int = 2, labels=None, target_size: float = 1.0,
                target_wrap: str = "repeat", scale: float = 1.0, seed: int = 0, candidates: int = 16,
-               softness: float = 0.0, **hist) -> SynthesizedBTF:
+               softness: float = 0.0, method: str = "hist", **params) -> SynthesizedBTF:
     """A synthesized BTF of ``model`` whose content follows ``target`` (see the module docstring).
 
     Parameters
@@ -83,8 +83,14 @@ def guided_btf(model, target, *, classes: int = 2, labels=None, target_size: flo
     labels : ``(H, W)`` integers, optional
         The exemplar's labels (the positional plane's size).
     scale, seed : as :class:`~dynbtf.infinite_btf.SynthesizedBTF`'s.
-    candidates, softness, **hist : :class:`~dynbtf.synthesis.guided_blending.GuidedBlending`'s.
+    candidates, softness : :class:`~dynbtf.synthesis.guided_blending.GuidedBlending`'s.
+    method : {"hist", "hex"}, default "hist"
+        The blending that is guided (:class:`~dynbtf.synthesis.guided_blending.GuidedBlending` or
+        :class:`~dynbtf.synthesis.guided_blending.GuidedHexTiling`, with ``**params`` its parameters; hex's
+        ``luminance`` defaults to the model's decoded luminance, as for ``hex``).
     """
+    if method not in ("hist", "hex"):
+        raise InputError(f"method: guided synthesis steers hist or hex, got {method!r}")
     if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
         model, material = open_model_file(model)
         if material is not None:
@@ -95,11 +101,14 @@ def guided_btf(model, target, *, classes: int = 2, labels=None, target_size: flo
     from .errors import positive_number
 
     scale = positive_number("scale", scale, "exemplar repeats per uv unit")
-    if getattr(model, "separate_channels", 0):  # a relief model's height: its own transform, as hist's
-        hist.setdefault("separate", int(model.separate_channels))
+    if method == "hist" and getattr(model, "separate_channels", 0):  # a relief's height: its own transform
+        params.setdefault("separate", int(model.separate_channels))
+    if method == "hex":
+        params.setdefault("luminance", decoded_luminance(model))
     classes = int(classes)
     exemplar = labels if labels is not None else exemplar_classes(model, classes, seed)
     field = LabelField(target_labels(target, classes), size=float(target_size) * float(scale), wrap=target_wrap)
-    synth = GuidedBlending(model.positional_plane().detach(), seed, labels=exemplar, target=field,
-                           candidates=candidates, softness=softness, **hist)
+    kind = GuidedBlending if method == "hist" else GuidedHexTiling
+    synth = kind(model.positional_plane().detach(), seed, labels=exemplar, target=field, candidates=candidates,
+                 softness=softness, **params)
     return SynthesizedBTF(model, synth, scale=scale)

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from dynbtf.errors import InputError
-from dynbtf.synthesis.guided_blending import GuidedBlending, LabelField, exemplar_labels, source_labels
+from dynbtf.synthesis.guided_blending import GuidedBlending, GuidedHexTiling, LabelField, exemplar_labels, source_labels
 from dynbtf.synthesis.histogram_blending import HistogramBlending
 
 
@@ -155,8 +155,11 @@ def test_synth_target_writes_a_guided_image_and_refuses_what_it_cannot_do(tmp_pa
                  "--scale", "4", "--resolution", "32", "-o", str(tmp_path / "g.exr")]) == 0
     image = load_image(tmp_path / "g.exr")
     assert image.shape == (32, 32, 3) and np.isfinite(image).all()
+    assert main(["synth", str(tmp_path / "a.dbtfm"), "--target", str(tmp_path / "target.png"), "--method", "hex",
+                 "--scale", "4", "--resolution", "32", "-o", str(tmp_path / "h.exr")]) == 0
+    assert not np.array_equal(load_image(tmp_path / "h.exr"), image)  # hex's blend, not hist's
     capsys.readouterr()
-    for extra, message in ((["--method", "hex"], "--target: guided synthesis builds on hist"),
+    for extra, message in ((["--method", "struct"], "--target: guided synthesis steers hist or hex"),
                            (["--filtered"], "--target: guided synthesis has no footprint query yet"),
                            (["--classes", "1"], "classes: expected 2 to")):
         assert main(["synth", str(tmp_path / "a.dbtfm"), "--target", str(tmp_path / "target.png"), *extra,
@@ -172,3 +175,15 @@ def test_the_mitsuba_plugin_refuses_a_guided_synthesizer_by_name():
     plane, labels = two_content_plane()
     with pytest.raises(InputError, match="synthesis method 'guided' has no Dr.Jit form yet"):
         make_dr_synthesizer(GuidedBlending(plane, labels=labels, target=LabelField([[1]])))
+
+
+def test_guided_hex_tiling_draws_from_the_target_label_on_both_paths():
+    plane, labels = two_content_plane()
+    target = LabelField(np.array([[0, 1]]), size=4.0)
+    synth = GuidedHexTiling(plane, 3, labels=labels, target=target, tileable=False)
+    uv = torch.from_numpy(np.random.default_rng(9).uniform(-30, 30, (8000, 2)))
+    expected = target.labels(uv)
+    assert float((source_labels(synth, uv) == expected).float().mean()) >= 0.95
+    fast, reference = synth.latent(uv), synth.reference_latent(uv)
+    assert float((fast - reference).abs().max()) < 1e-3  # no inverse table in hex: float32 rounding only
+    assert float(((fast[:, 0] > 0).long() == expected).float().mean()) >= 0.95

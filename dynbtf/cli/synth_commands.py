@@ -138,7 +138,7 @@ def synth(
                                   "edges (clamp)."),
     width: float = typer.Option(0.05, "--width", help="With --layer: half-width (uv units) of the band around "
                                 "the mask's contour where the materials' heights decide."),
-    target: Optional[Path] = typer.Option(None, "--target", help="Guided synthesis (hist steered by labels): an image "
+    target: Optional[Path] = typer.Option(None, "--target", help="Guided synthesis (hist, or hex, steered by labels): an image "
                                           "painted over the surface (PNG/JPEG grey levels, or EXR values in [0, 1]), "
                                           "cut into --classes equal bins; a point in bin k shows the material's "
                                           "class k (k-means on its decoded appearance, 0 the darkest)."),
@@ -188,7 +188,8 @@ def synth(
                              "file (.dbtfm) it was compiled from")
         btf = guided_btf(rep, painted, classes=classes, target_size=target_size, target_wrap=target_wrap,
                          scale=scale, seed=0 if seed is None else seed, softness=softness,
-                         **({} if gamma is None else {"gamma": gamma}))
+                         method="hex" if method == "hex" else "hist",
+                         **({} if gamma is None or method == "hex" else {"gamma": gamma}))
         _write_image(btf, output, view_dir, light_dir, (cu, cv), resolution=resolution, spp=spp, filtered=False,
                      cosine=cosine, exposure=exposure)
         typer.echo(f"wrote {output} ({resolution}x{resolution}, guided by {target}, {classes} classes, {scale:g}x, "
@@ -243,8 +244,9 @@ def _target_image(target: Path | None, method: str, layer, report: bool, output,
         return None
     if report or output is None or layer is not None:
         raise InputError("--target: writes one guided image (-o), without --report or --layer")
-    if method not in ("auto", "hist"):
-        raise InputError(f"--target: guided synthesis builds on hist; leave --method at auto or hist, not {method!r}")
+    if method not in ("auto", "hist", "hex"):
+        raise InputError(f"--target: guided synthesis steers hist or hex; --method auto (hist), hist or hex, not "
+                         f"{method!r}")
     if filtered:
         raise InputError("--target: guided synthesis has no footprint query yet; leave out --filtered")
     positive_number("--target-size", size, "uv units")

@@ -1,11 +1,13 @@
-"""Exemplar guidance: histogram-preserving blending that draws each point from exemplar content of a target label.
+"""Exemplar guidance: lattice blending (hist, hex) that draws each point from exemplar content of a target label.
 
 The user gives a **label map over the exemplar** (``(H, W)`` integers, or derived by
 :func:`exemplar_labels`: k-means on a feature or appearance plane into ``classes`` classes) and a
 **target label field over the surface** (:class:`LabelField`: a label image laid over the plane, in
 exemplar repeats). Histogram-preserving blending (:class:`~dynbtf.synthesis.histogram_blending.HistogramBlending`)
-reads three samples per query, each at the query's texel position plus a whole-texel offset hashed from
-a lattice vertex. Guided, each sample tries ``candidates`` offsets for its vertex in turn:
+(and hex-tiling, :class:`~dynbtf.synthesis.hex_tiling.HexTiling`) reads three samples per query, each at the
+query's texel position plus a whole-texel offset hashed from a lattice vertex. Guided (:class:`GuidedBlending`,
+registry name ``guided``; :class:`GuidedHexTiling`, ``guided-hex``), each sample tries ``candidates`` offsets
+for its vertex in turn:
 
 * candidate 0 is hist's own offset, candidate ``j`` hashes the vertex with the seed's ``j``-th stream
   (:func:`candidate_seed`);
@@ -33,11 +35,12 @@ import torch
 from ..errors import InputError
 from .base import check_uv, register_synthesizer, wrapped_texel_position
 from .hash import MASK32, mix32, vertex_offsets
+from .hex_tiling import HexTiling
 from .histogram_blending import HistogramBlending
 from .lattice import split_uv, triangle_lattice
 from ..texture import fetch_wrap
 
-__all__ = ["GuidedBlending", "LabelField", "exemplar_labels", "candidate_seed", "source_labels"]
+__all__ = ["GuidedBlending", "GuidedHexTiling", "LabelField", "exemplar_labels", "candidate_seed", "source_labels"]
 
 #: Golden-ratio constant that separates the candidates' seed streams.
 _CANDIDATE_STREAM = 0x9E3779B9
@@ -134,42 +137,14 @@ class LabelField:
         return self.image[row, col].to(points.device)
 
 
-@register_synthesizer("guided")
-class GuidedBlending(HistogramBlending):
-    """Histogram-preserving blending steered by labels (see the module docstring).
-
-    Parameters
-    ----------
-    exemplar : ``(H, W, C)``
-    seed : int
-    labels : ``(H, W)`` integers
-        The exemplar's label per texel (:func:`exemplar_labels` derives one).
-    target : LabelField
-        The label each point of the plane should show (in exemplar repeats).
-    candidates : int, default 16
-        Offsets tried per sample (the first is hist's).
-    softness : float in [0, 1], default 0
-        Blend-weight factor of samples whose content does not carry the target label.
-    **hist
-        :class:`~dynbtf.synthesis.histogram_blending.HistogramBlending`'s parameters (``gamma``, ...).
-
-    Examples
-    --------
-    >>> import torch
-    >>> plane = torch.cat([torch.zeros(8, 4, 2), torch.ones(8, 4, 2)], 1) + 0.1 * torch.randn(8, 8, 2)
-    >>> labels = (torch.arange(8) >= 4).long().expand(8, 8)
-    >>> synth = GuidedBlending(plane, labels=labels, target=LabelField([[1]]), tileable=False)
-    >>> uv = torch.rand(500, 2, dtype=torch.float64) * 10
-    >>> bool((source_labels(synth, uv) == 1).float().mean() > 0.95)
-    True
-    """
+class _Guidance:
+    """What guidance adds to a lattice-blending method (hist, hex): the offset search, the steered weights, the
+    fused kernel's guidance arguments. Mixed in before the method's class."""
 
     #: No Dr.Jit or GLSL form: backends that translate synthesizers refuse it.
     portable = False
 
-    def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, candidates: int = 16,
-                 softness: float = 0.0, **hist) -> None:
-        super().__init__(exemplar, seed, **hist)
+    def _guide(self, labels, target, candidates: int, softness: float) -> None:
         h, w = self.exemplar.shape[:2]
         labels = torch.as_tensor(np.asarray(labels.cpu() if isinstance(labels, torch.Tensor) else labels))
         if tuple(labels.shape) != (h, w):
@@ -262,20 +237,70 @@ class GuidedBlending(HistogramBlending):
         return None
 
     def parameters(self):
-        return super().parameters() | {"candidates": self.candidates, "softness": self.softness,
+        return super().parameters() | {"base": self.base_method, "candidates": self.candidates, "softness": self.softness,
                                        "label_classes": int(self.labels.max()) + 1 if self.labels.numel() else 0}
 
 
-def source_labels(synth: GuidedBlending, uv) -> torch.Tensor:
+
+
+@register_synthesizer("guided")
+class GuidedBlending(_Guidance, HistogramBlending):
+    """Histogram-preserving blending steered by labels (see the module docstring).
+
+    Parameters
+    ----------
+    exemplar : ``(H, W, C)``
+    seed : int
+    labels : ``(H, W)`` integers
+        The exemplar's label per texel (:func:`exemplar_labels` derives one).
+    target : LabelField
+        The label each point of the plane should show (in exemplar repeats).
+    candidates : int, default 16
+        Offsets tried per sample (the first is hist's).
+    softness : float in [0, 1], default 0
+        Barycentric-weight factor of samples whose content does not carry the target label.
+    **hist
+        :class:`~dynbtf.synthesis.histogram_blending.HistogramBlending`'s parameters (``gamma``, ...).
+
+    Examples
+    --------
+    >>> import torch
+    >>> plane = torch.cat([torch.zeros(8, 4, 2), torch.ones(8, 4, 2)], 1) + 0.1 * torch.randn(8, 8, 2)
+    >>> labels = (torch.arange(8) >= 4).long().expand(8, 8)
+    >>> synth = GuidedBlending(plane, labels=labels, target=LabelField([[1]]), tileable=False)
+    >>> uv = torch.rand(500, 2, dtype=torch.float64) * 10
+    >>> bool((source_labels(synth, uv) == 1).float().mean() > 0.95)
+    True
+    """
+
+    base_method = "hist"
+
+    def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, candidates: int = 16,
+                 softness: float = 0.0, **hist) -> None:
+        HistogramBlending.__init__(self, exemplar, seed, **hist)
+        self._guide(labels, target, candidates, softness)
+
+
+@register_synthesizer("guided-hex")
+class GuidedHexTiling(_Guidance, HexTiling):
+    """Hex-tiling steered by labels: :class:`GuidedBlending`'s search with
+    :class:`~dynbtf.synthesis.hex_tiling.HexTiling`'s blend (its parameters in ``**hex``, e.g. ``luminance``)."""
+
+    base_method = "hex"
+
+    def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, candidates: int = 16,
+                 softness: float = 0.0, **hex) -> None:
+        HexTiling.__init__(self, exemplar, seed, **hex)
+        self._guide(labels, target, candidates, softness)
+
+
+def source_labels(synth: _Guidance, uv) -> torch.Tensor:
     """The exemplar label of the content each query shows ``(N,)`` int64: the label under its sample of largest
-    blend weight (what the guidance target counts: a point comes from content of its target label when this
-    equals the target)."""
+    steered barycentric weight (the largest blend weight for hist, whose weights grow with it) -- what the
+    guidance target counts: a point comes from content of its target label when this equals the target."""
     uv = check_uv(uv).reshape(-1, 2).to(torch.float64)
     uv_samples, bary, matched = synth.guided_positions(uv)
-    from .histogram import blend_weights
-
-    weights = blend_weights(synth.steered_barycentrics(bary, matched), synth.gamma)
-    k = torch.argmax(weights, dim=-1)
+    k = torch.argmax(synth.steered_barycentrics(bary, matched), dim=-1)
     ph, pw = synth.prepared.plane.shape[:2]
     pos = uv_samples[torch.arange(len(uv)), k]
     col = torch.floor(pos[:, 0] * pw).long().clamp(0, pw - 1)
