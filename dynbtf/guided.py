@@ -28,7 +28,8 @@ from .errors import InputError
 from .infinite_btf import SynthesizedBTF
 from .material import open_model_file
 from .material.compiler import decoded_appearance, decoded_luminance
-from .synthesis.guided_blending import GuidedBlending, GuidedHexTiling, LabelField, exemplar_labels
+from .synthesis.guided_blending import (GuidedBlending, GuidedCellQuilting, GuidedHexTiling, LabelField,
+                                       exemplar_labels)
 
 __all__ = ["guided_btf", "exemplar_classes", "target_labels", "example_target"]
 
@@ -84,13 +85,16 @@ def guided_btf(model, target, *, classes: int = 2, labels=None, target_size: flo
         The exemplar's labels (the positional plane's size).
     scale, seed : as :class:`~dynbtf.infinite_btf.SynthesizedBTF`'s.
     candidates, softness : :class:`~dynbtf.synthesis.guided_blending.GuidedBlending`'s.
-    method : {"hist", "hex"}, default "hist"
-        The blending that is guided (:class:`~dynbtf.synthesis.guided_blending.GuidedBlending` or
-        :class:`~dynbtf.synthesis.guided_blending.GuidedHexTiling`, with ``**params`` its parameters; hex's
-        ``luminance`` defaults to the model's decoded luminance, as for ``hex``).
+    method : {"hist", "hex", "struct"}, default "hist"
+        The synthesis that is guided (:class:`~dynbtf.synthesis.guided_blending.GuidedBlending`,
+        :class:`~dynbtf.synthesis.guided_blending.GuidedHexTiling` or
+        :class:`~dynbtf.synthesis.guided_blending.GuidedCellQuilting`, with ``**params`` its parameters; hex's
+        ``luminance`` and struct's ``guide`` default to the model's decoded appearance, as for ``hex`` and
+        ``struct``). struct chooses whole cells by label: give it ``cells`` of about one element
+        (``cells=8`` for eight elements per repeat), so that a cell's content is of one label.
     """
-    if method not in ("hist", "hex"):
-        raise InputError(f"method: guided synthesis steers hist or hex, got {method!r}")
+    if method not in ("hist", "hex", "struct"):
+        raise InputError(f"method: guided synthesis steers hist, hex or struct, got {method!r}")
     if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
         model, material = open_model_file(model)
         if material is not None:
@@ -105,10 +109,15 @@ def guided_btf(model, target, *, classes: int = 2, labels=None, target_size: flo
         params.setdefault("separate", int(model.separate_channels))
     if method == "hex":
         params.setdefault("luminance", decoded_luminance(model))
+    if method == "struct":
+        params.setdefault("guide", decoded_appearance(model, model.positional_plane().detach()))
     classes = int(classes)
     exemplar = labels if labels is not None else exemplar_classes(model, classes, seed)
     field = LabelField(target_labels(target, classes), size=float(target_size) * float(scale), wrap=target_wrap)
-    kind = GuidedBlending if method == "hist" else GuidedHexTiling
-    synth = kind(model.positional_plane().detach(), seed, labels=exemplar, target=field, candidates=candidates,
-                 softness=softness, **params)
+    plane = model.positional_plane().detach()
+    if method == "struct":  # whole cells: no per-sample search, no softness
+        synth = GuidedCellQuilting(plane, seed, labels=exemplar, target=field, **params)
+    else:
+        kind = GuidedBlending if method == "hist" else GuidedHexTiling
+        synth = kind(plane, seed, labels=exemplar, target=field, candidates=candidates, softness=softness, **params)
     return SynthesizedBTF(model, synth, scale=scale)

@@ -5,7 +5,9 @@ import pytest
 import torch
 
 from dynbtf.errors import InputError
-from dynbtf.synthesis.guided_blending import GuidedBlending, GuidedHexTiling, LabelField, exemplar_labels, source_labels
+from dynbtf.synthesis.guided_blending import (GuidedBlending, GuidedCellQuilting, GuidedHexTiling, LabelField,
+                                             exemplar_labels, source_labels)
+from dynbtf.synthesis.cell_quilting import CellQuilting
 from dynbtf.synthesis.histogram_blending import HistogramBlending
 
 
@@ -159,7 +161,7 @@ def test_synth_target_writes_a_guided_image_and_refuses_what_it_cannot_do(tmp_pa
                  "--scale", "4", "--resolution", "32", "-o", str(tmp_path / "h.exr")]) == 0
     assert not np.array_equal(load_image(tmp_path / "h.exr"), image)  # hex's blend, not hist's
     capsys.readouterr()
-    for extra, message in ((["--method", "struct"], "--target: guided synthesis steers hist or hex"),
+    for extra, message in ((["--method", "struct"], "--target: guided synthesis steers hist or hex here"),
                            (["--filtered"], "--target: guided synthesis has no footprint query yet"),
                            (["--classes", "1"], "classes: expected 2 to")):
         assert main(["synth", str(tmp_path / "a.dbtfm"), "--target", str(tmp_path / "target.png"), *extra,
@@ -187,3 +189,43 @@ def test_guided_hex_tiling_draws_from_the_target_label_on_both_paths():
     fast, reference = synth.latent(uv), synth.reference_latent(uv)
     assert float((fast - reference).abs().max()) < 1e-3  # no inverse table in hex: float32 rounding only
     assert float(((fast[:, 0] > 0).long() == expected).float().mean()) >= 0.95
+
+
+def element_plane(seed=1):
+    """64 x 64 texels of 8 x 8 elements, each dark (label 0, probability 0.35) or bright (label 1), at random."""
+    g = torch.Generator().manual_seed(0)
+    element = torch.rand(8, 8, 3, generator=g)
+    rng = np.random.default_rng(seed)
+    plane, labels = torch.zeros(64, 64, 3), np.zeros((64, 64), np.int64)
+    for by in range(8):
+        for bx in range(8):
+            dark = rng.random() < 0.35
+            block = (slice(by * 8, by * 8 + 8), slice(bx * 8, bx * 8 + 8))
+            plane[block] = element * (0.5 if dark else 1.0) + 0.02 * torch.rand(8, 8, 3, generator=g)
+            labels[block] = 0 if dark else 1
+    return plane, labels
+
+
+def test_guided_struct_chooses_whole_cells_by_label_on_both_paths():
+    plane, labels = element_plane()
+    target = LabelField(np.array([[0, 1]]), size=4.0)
+    synth = GuidedCellQuilting(plane, 1, labels=labels, target=target, cells=8)  # a cell per element
+    uv = torch.from_numpy(np.random.default_rng(0).uniform(-20, 20, (20000, 2)))
+    positions, _ = synth.read_positions(uv)
+    shown = torch.from_numpy(labels)[positions[:, 1].floor().long().clamp(0, 63), positions[:, 0].floor().long()
+                                     .clamp(0, 63)]
+    on_target = float((shown == target.labels(uv)).float().mean())
+    plain = CellQuilting(plane, 1, cells=8)
+    plain_positions, _ = plain.read_positions(uv)
+    plain_shown = torch.from_numpy(labels)[plain_positions[:, 1].floor().long().clamp(0, 63),
+                                           plain_positions[:, 0].floor().long().clamp(0, 63)]
+    assert on_target >= 0.85 and on_target > float((plain_shown == target.labels(uv)).float().mean()) + 0.2
+    assert float((synth.latent(uv) - synth.reference_latent(uv)).abs().max()) < 1e-4  # the fused kernel agrees
+    # every cell whose content could match does: its majority label under the chosen offset is its target's
+    cells = torch.arange(-50, 50, dtype=torch.int64)
+    for row in (torch.zeros_like(cells), cells.flip(0)):
+        k = synth.cell_choices(cells, row)
+        majority = synth.cell_labels[torch.remainder(cells, 8), torch.remainder(row, 8), k]
+        possible = (synth.cell_labels[torch.remainder(cells, 8), torch.remainder(row, 8)]
+                    == synth.cell_target(cells, row)[:, None]).any(1)
+        assert torch.equal(majority[possible], synth.cell_target(cells, row)[possible])

@@ -138,7 +138,7 @@ def synth(
                                   "edges (clamp)."),
     width: float = typer.Option(0.05, "--width", help="With --layer: half-width (uv units) of the band around "
                                 "the mask's contour where the materials' heights decide."),
-    target: Optional[Path] = typer.Option(None, "--target", help="Guided synthesis (hist, or hex, steered by labels): an image "
+    target: Optional[Path] = typer.Option(None, "--target", help="Guided synthesis (hist or hex steered by labels): an image "
                                           "painted over the surface (PNG/JPEG grey levels, or EXR values in [0, 1]), "
                                           "cut into --classes equal bins; a point in bin k shows the material's "
                                           "class k (k-means on its decoded appearance, 0 the darkest)."),
@@ -245,8 +245,9 @@ def _target_image(target: Path | None, method: str, layer, report: bool, output,
     if report or output is None or layer is not None:
         raise InputError("--target: writes one guided image (-o), without --report or --layer")
     if method not in ("auto", "hist", "hex"):
-        raise InputError(f"--target: guided synthesis steers hist or hex; --method auto (hist), hist or hex, not "
-                         f"{method!r}")
+        raise InputError(f"--target: guided synthesis steers hist or hex here (struct, whose cells must be about one "
+                         f"element, in Python: dynbtf.guided_btf(..., method='struct', cells=N)); --method auto "
+                         f"(hist), hist or hex, not {method!r}")
     if filtered:
         raise InputError("--target: guided synthesis has no footprint query yet; leave out --filtered")
     positive_number("--target-size", size, "uv units")

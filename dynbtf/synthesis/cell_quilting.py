@@ -399,27 +399,31 @@ class CellQuilting(Tiling):
         col, row = texel_x // tx, texel_y // ty
         local_x, local_y = texel_x - col * tx, texel_y - row * ty
         cell_x, cell_y = whole[:, 0] * nx + col, whole[:, 1] * ny + row
-        own = cell_choice(cell_x, cell_y, self.seed, k)
+        own = self.cell_choices(cell_x, cell_y)
         vertical = t.vertical_cuts.to(uv.device).to(torch.int64)
         horizontal = t.horizontal_cuts.to(uv.device).to(torch.int64)
         # vertical edges: the left one (point in the right cell) and the right one (point in the left cell)
-        left = cell_choice(cell_x - 1, cell_y, self.seed, k)
-        right = cell_choice(cell_x + 1, cell_y, self.seed, k)
+        left = self.cell_choices(cell_x - 1, cell_y)
+        right = self.cell_choices(cell_x + 1, cell_y)
         cut_left = vertical[col, row, left, own, local_y]
         cut_right = vertical[(col + 1) % nx, row, own, right, local_y]
         side_x = torch.where((local_x < mx) & (local_x < cut_left), -1,
                              torch.where((local_x >= tx - mx) & (local_x - tx >= cut_right), 1, 0))
-        lower = cell_choice(cell_x, cell_y - 1, self.seed, k)
-        upper = cell_choice(cell_x, cell_y + 1, self.seed, k)
+        lower = self.cell_choices(cell_x, cell_y - 1)
+        upper = self.cell_choices(cell_x, cell_y + 1)
         cut_lower = horizontal[col, row, lower, own, local_x]
         cut_upper = horizontal[col, (row + 1) % ny, own, upper, local_x]
         side_y = torch.where((local_y < my) & (local_y < cut_lower), -1,
                              torch.where((local_y >= ty - my) & (local_y - ty >= cut_upper), 1, 0))
-        chosen = cell_choice(cell_x + side_x, cell_y + side_y, self.seed, k)
+        chosen = self.cell_choices(cell_x + side_x, cell_y + side_y)
         offsets = t.offsets.to(uv.device)
         read_x = torch.remainder(pos_x + offsets[chosen, 0].to(torch.float64), float(w))
         read_y = torch.remainder(pos_y + offsets[chosen, 1].to(torch.float64), float(h))
         return torch.stack([read_x, read_y], -1), chosen
+
+    def cell_choices(self, cell_x: torch.Tensor, cell_y: torch.Tensor) -> torch.Tensor:
+        """Offset index ``(N,)`` int64 of int64 cells (:func:`cell_choice` with this synthesizer's seed)."""
+        return cell_choice(cell_x, cell_y, self.seed, self.prepared.count)
 
     def reference_latent(self, uv: torch.Tensor) -> torch.Tensor:
         """The torch reference path of :meth:`latent` (any device)."""
@@ -439,7 +443,12 @@ class CellQuilting(Tiling):
 
         plane, offsets, vertical, horizontal = self._tables_numpy()
         return torch.from_numpy(cell_quilt(uv.detach().cpu().numpy(), plane, offsets, vertical, horizontal,
-                                           self.prepared.cells, self.prepared.margin, self.seed))
+                                           self.prepared.cells, self.prepared.margin, self.seed,
+                                           guidance=self.kernel_guidance()))
+
+    def kernel_guidance(self) -> tuple | None:
+        """What the fused kernel's cell choice needs besides the hash (None: the hash alone)."""
+        return None
 
     # ------------------------------------------------------------ footprint queries (Tiling's, at read_uv)
     def read_uv(self, uv: torch.Tensor) -> torch.Tensor:

@@ -35,12 +35,13 @@ import torch
 from ..errors import InputError
 from .base import check_uv, register_synthesizer, wrapped_texel_position
 from .hash import MASK32, mix32, vertex_offsets
+from .cell_quilting import CellQuilting
 from .hex_tiling import HexTiling
 from .histogram_blending import HistogramBlending
 from .lattice import split_uv, triangle_lattice
 from ..texture import fetch_wrap
 
-__all__ = ["GuidedBlending", "GuidedHexTiling", "LabelField", "exemplar_labels", "candidate_seed", "source_labels"]
+__all__ = ["GuidedBlending", "GuidedHexTiling", "GuidedCellQuilting", "LabelField", "exemplar_labels", "candidate_seed", "source_labels"]
 
 #: Golden-ratio constant that separates the candidates' seed streams.
 _CANDIDATE_STREAM = 0x9E3779B9
@@ -292,6 +293,90 @@ class GuidedHexTiling(_Guidance, HexTiling):
                  softness: float = 0.0, **hex) -> None:
         HexTiling.__init__(self, exemplar, seed, **hex)
         self._guide(labels, target, candidates, softness)
+
+
+@register_synthesizer("guided-struct")
+class GuidedCellQuilting(CellQuilting):
+    """Cell quilting whose cells choose their lattice offset by label.
+
+    :class:`~dynbtf.synthesis.cell_quilting.CellQuilting` gives every cell one of ``K`` lattice offsets, by the
+    cell's hash. Guided, a cell takes, from the hashed offset on (``k, k + 1, ...`` mod ``K``), the first offset
+    whose content in the cell (the majority label of the cell's texels under that offset, :attr:`cell_labels`)
+    is the target's label at the cell's centre; if none is, the hashed one. Whole cells change, so the
+    elements stay whole and the cuts between cells are struct's own.
+
+    Parameters: ``labels`` ``(H, W)`` and ``target`` (:class:`LabelField`) as :class:`GuidedBlending`'s, and
+    :class:`~dynbtf.synthesis.cell_quilting.CellQuilting`'s in ``**struct``.
+    """
+
+    portable = False
+    base_method = "struct"
+
+    def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, **struct) -> None:
+        super().__init__(exemplar, seed, **struct)
+        h, w = self.exemplar.shape[:2]
+        labels = np.asarray(labels.cpu() if isinstance(labels, torch.Tensor) else labels)
+        if labels.shape != (h, w):
+            raise InputError(f"labels: expected the exemplar's shape ({h}, {w}), got {labels.shape}")
+        if not np.issubdtype(labels.dtype, np.integer) or (labels.size and labels.min() < 0):
+            raise InputError("labels: expected non-negative integer labels")
+        if not isinstance(target, LabelField):
+            raise InputError(f"target: expected a LabelField, got {type(target).__name__}")
+        self.labels, self.target = torch.from_numpy(labels.astype(np.int64)), target
+        self.cell_labels = torch.from_numpy(_cell_majorities(labels.astype(np.int64), self.prepared))
+
+    def cell_target(self, cell_x: torch.Tensor, cell_y: torch.Tensor) -> torch.Tensor:
+        """The target's label ``(N,)`` int64 at the centres of int64 cells (the fused kernel's arithmetic)."""
+        nx, ny = self.prepared.cells
+        size, image = self.target.size, self.target.image.to(cell_x.device)
+        th, tw = image.shape
+        u = (cell_x.to(torch.float64) + 0.5) / nx
+        v = (cell_y.to(torch.float64) + 0.5) / ny
+        repeat = self.target.wrap == "repeat"
+        if repeat:
+            u, v = u - torch.floor(u / size) * size, v - torch.floor(v / size) * size
+        col = torch.floor(u / size * tw).to(torch.int64)
+        row = torch.floor(v / size * th).to(torch.int64)
+        if repeat:
+            col, row = torch.remainder(col, tw), torch.remainder(row, th)
+        else:
+            col, row = col.clamp(0, tw - 1), row.clamp(0, th - 1)
+        return image[row, col]
+
+    def cell_choices(self, cell_x: torch.Tensor, cell_y: torch.Tensor) -> torch.Tensor:
+        own = super().cell_choices(cell_x, cell_y)
+        nx, ny = self.prepared.cells
+        count = self.prepared.count
+        candidates = torch.remainder(own[:, None] + torch.arange(count, device=own.device), count)  # (N, K)
+        i = torch.remainder(cell_x, nx)[:, None]
+        j = torch.remainder(cell_y, ny)[:, None]
+        hit = self.cell_labels.to(own.device)[i, j, candidates] == self.cell_target(cell_x, cell_y)[:, None]
+        first = candidates.gather(1, torch.argmax(hit.to(torch.int8), 1, keepdim=True))[:, 0]
+        return torch.where(hit.any(1), first, own)
+
+    def kernel_guidance(self) -> tuple:
+        return (self.cell_labels.numpy().astype(np.int32), self.target.image.numpy().astype(np.int32),
+                float(self.target.size), self.target.wrap == "repeat")
+
+    def parameters(self):
+        return super().parameters() | {"base": self.base_method,
+                                       "label_classes": int(self.labels.max()) + 1 if self.labels.numel() else 0}
+
+
+def _cell_majorities(labels: np.ndarray, tables) -> np.ndarray:
+    """``(nx, ny, K)`` int64: the majority label of each cell's texels under each lattice offset (ties: the
+    smallest label)."""
+    h, w = labels.shape
+    nx, ny = tables.cells
+    tx, ty = w // nx, h // ny
+    classes = int(labels.max()) + 1
+    out = np.zeros((nx, ny, tables.count), dtype=np.int64)
+    for k, (dx, dy) in enumerate(tables.offsets.numpy().astype(np.int64)):
+        shifted = np.roll(labels, (-int(dy), -int(dx)), axis=(0, 1))  # shifted[r, c] = labels[r + dy, c + dx]
+        blocks = shifted.reshape(ny, ty, nx, tx)
+        counts = np.stack([(blocks == c).sum((1, 3)) for c in range(classes)], -1)  # (ny, nx, classes)
+        out[:, :, k] = np.argmax(counts, -1).T
+    return out
 
 
 def source_labels(synth: _Guidance, uv) -> torch.Tensor:
