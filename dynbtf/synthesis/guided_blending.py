@@ -1,4 +1,4 @@
-"""Exemplar guidance: lattice blending (hist, hex) that draws each point from exemplar content of a target label.
+"""Exemplar guidance: synthesis (hist, hex, struct) that draws each point from exemplar content of a target label.
 
 The user gives a **label map over the exemplar** (``(H, W)`` integers, or derived by
 :func:`exemplar_labels`: k-means on a feature or appearance plane into ``classes`` classes) and a
@@ -21,6 +21,9 @@ vertex and a target label take the same candidate, so content stays coherent wit
 where the target changes, the samples change offset. Every choice is a function of the query's position
 and the integer hash, so the field is defined, and exact, at any ``uv``, as hist's is.
 
+Cell quilting (``struct``) is guided per cell instead (:class:`GuidedCellQuilting`, ``guided-struct``): a whole
+cell takes the first lattice offset, from its hashed one on, under which its content is of the target's label.
+
 On the CPU the fused numba kernel of lattice blending runs the search (:func:`dynbtf.synthesis.kernels.lattice_blend`
 with ``guidance``); :meth:`GuidedBlending.reference_latent` is the torch path (any device), against which the tests
 hold it. There is no Dr.Jit or GLSL form yet: the Mitsuba plugin and the web export refuse a guided synthesizer
@@ -34,14 +37,15 @@ import torch
 
 from ..errors import InputError
 from .base import check_uv, register_synthesizer, wrapped_texel_position
-from .hash import MASK32, mix32, vertex_offsets
 from .cell_quilting import CellQuilting
+from .hash import MASK32, mix32, vertex_offsets
 from .hex_tiling import HexTiling
 from .histogram_blending import HistogramBlending
 from .lattice import split_uv, triangle_lattice
 from ..texture import fetch_wrap
 
-__all__ = ["GuidedBlending", "GuidedHexTiling", "GuidedCellQuilting", "LabelField", "exemplar_labels", "candidate_seed", "source_labels"]
+__all__ = ["GuidedBlending", "GuidedHexTiling", "GuidedCellQuilting", "LabelField", "exemplar_labels",
+           "candidate_seed", "source_labels"]
 
 #: Golden-ratio constant that separates the candidates' seed streams.
 _CANDIDATE_STREAM = 0x9E3779B9
@@ -72,7 +76,8 @@ def exemplar_labels(features, classes: int, seed: int = 0, order_by=None) -> np.
     """
     from scipy.cluster.vq import kmeans2
 
-    x = np.asarray(features.detach().cpu().numpy() if isinstance(features, torch.Tensor) else features, dtype=np.float64)
+    x = features.detach().cpu().numpy() if isinstance(features, torch.Tensor) else features
+    x = np.asarray(x, dtype=np.float64)
     if x.ndim == 2:
         x = x[..., None]
     if x.ndim != 3 or x.shape[0] * x.shape[1] == 0:
@@ -238,7 +243,8 @@ class _Guidance:
         return None
 
     def parameters(self):
-        return super().parameters() | {"base": self.base_method, "candidates": self.candidates, "softness": self.softness,
+        return super().parameters() | {"base": self.base_method, "candidates": self.candidates,
+                                       "softness": self.softness,
                                        "label_classes": int(self.labels.max()) + 1 if self.labels.numel() else 0}
 
 
