@@ -286,8 +286,8 @@ class LayeredBTF:
         out, latents = [], []
         for btf, (weights, offset, span) in zip(self.layers, self._heights):
             latent = None
-            if np.count_nonzero(weights) == 1 and weights.max() == 1.0:  # one channel (a relief's height): only it
-                index = int(np.argmax(weights))
+            if getattr(btf.model, "extra_positional_channels", 0):  # a relief's height channel: that channel alone
+                index = int(np.argmax(weights))  # (layer_height_map's weights are one-hot on it)
                 points = check_uv(uv, scale=btf.scale).to(torch.float64) * btf.scale
                 height = btf.synthesizer.channel(points.to(btf.device), index).double().cpu().numpy()
             else:

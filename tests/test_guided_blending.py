@@ -163,7 +163,8 @@ def test_synth_target_writes_a_guided_image_and_refuses_what_it_cannot_do(tmp_pa
     capsys.readouterr()
     for extra, message in ((["--method", "struct"], "--target: guided synthesis steers hist or hex here"),
                            (["--filtered"], "--target: guided synthesis has no footprint query yet"),
-                           (["--classes", "1"], "classes: expected 2 to")):
+                           (["--classes", "1"], "--classes: expected 2 to 255"),
+                           (["--softness", "2"], "--softness: expected a weight factor in [0, 1]")):
         assert main(["synth", str(tmp_path / "a.dbtfm"), "--target", str(tmp_path / "target.png"), *extra,
                      "-o", str(tmp_path / "x.png")]) == 2
         assert message in capsys.readouterr().err

@@ -178,7 +178,8 @@ def synth(
     cu, cv = _pair(center, "center")
     check_uv([[cu - 0.5, cv - 0.5], [cu + 0.5, cv + 0.5]], "--center", scale=scale)  # before any work
     the_mask = _layer_mask(layer, mask, mask_size, mask_wrap, width, report, output)  # before any work
-    painted = _target_image(target, method, layer, report, output, filtered, target_size, target_wrap)
+    painted = _target_image(target, method, layer, report, output, filtered, target_size, target_wrap, classes,
+                            softness)
     rep, material = open_model_file(model, device=where)
     if painted is not None:
         from ..guided import guided_btf
@@ -235,8 +236,9 @@ def _layer_mask(layer: Path | None, mask: str, mask_size: float, mask_wrap: str,
 
 
 def _target_image(target: Path | None, method: str, layer, report: bool, output, filtered: bool, size: float,
-                  wrap: str):
-    """``--target``'s grey image ``(H, W)`` in [0, 1] (None without ``--target``), its options checked."""
+                  wrap: str, classes: int, softness: float):
+    """``--target``'s grey image ``(H, W)`` in [0, 1] (None without ``--target``), its options checked (before the
+    model loads)."""
     from ..errors import positive_number
     from ..layered import mask_from_spec
 
@@ -251,6 +253,10 @@ def _target_image(target: Path | None, method: str, layer, report: bool, output,
     if filtered:
         raise InputError("--target: guided synthesis has no footprint query yet; leave out --filtered")
     positive_number("--target-size", size, "uv units")
+    if not 2 <= classes <= 255:
+        raise InputError(f"--classes: expected 2 to 255 classes, got {classes}")
+    if not 0.0 <= softness <= 1.0:
+        raise InputError(f"--softness: expected a weight factor in [0, 1], got {softness}")
     if str(target).startswith("noise"):
         raise InputError("--target: expected an image file (a painted target), not a noise spec")
     return mask_from_spec(str(target), size=size, wrap=wrap).image
