@@ -161,7 +161,14 @@ def test_synth_target_writes_a_guided_image_and_refuses_what_it_cannot_do(tmp_pa
                  "--scale", "4", "--resolution", "32", "-o", str(tmp_path / "h.exr")]) == 0
     assert not np.array_equal(load_image(tmp_path / "h.exr"), image)  # hex's blend, not hist's
     capsys.readouterr()
-    for extra, message in ((["--method", "struct"], "--target: guided synthesis steers hist or hex here"),
+    assert main(["synth", str(tmp_path / "a.dbtfm"), "--target", str(tmp_path / "target.png"), "--method", "struct",
+                 "--cells", "2", "--scale", "4", "--resolution", "32", "-o", str(tmp_path / "s.exr")]) == 0
+    assert np.isfinite(load_image(tmp_path / "s.exr")).all()
+    capsys.readouterr()
+    for extra, message in ((["--method", "quilt"], "--target: guided synthesis steers hist, hex or struct"),
+                           (["--method", "struct"], "--target --method struct: chooses whole cells by label, so give "
+                                                    "--cells"),
+                           (["--cells", "4"], "--cells: sets struct's cells; give it with --method struct"),
                            (["--filtered"], "--target: guided synthesis has no footprint query yet"),
                            (["--classes", "1"], "--classes: expected 2 to 255"),
                            (["--softness", "2"], "--softness: expected a weight factor in [0, 1]")):

@@ -148,6 +148,9 @@ def synth(
                                     "extends its edges (clamp)."),
     softness: float = typer.Option(0.0, "--softness", help="With --target: blend weight (0 to 1) of samples whose "
                                    "content is not of the target's class (0: left out where another sample is)."),
+    cells: Optional[int] = typer.Option(None, "--cells", help="struct: cells per exemplar repeat along u and v "
+                                         "(must divide the exemplar's sides; default: 2 where a side allows it). "
+                                         "With --target --method struct, about one cell per element."),
     memory_mb: Optional[float] = typer.Option(None, "--memory-mb", help="Limit (MB) of the image's estimated "
                                                                         f"working memory (~{BYTES_PER_PIXEL} bytes "
                                                                         "per pixel); default half of this machine's "
@@ -179,7 +182,9 @@ def synth(
     check_uv([[cu - 0.5, cv - 0.5], [cu + 0.5, cv + 0.5]], "--center", scale=scale)  # before any work
     the_mask = _layer_mask(layer, mask, mask_size, mask_wrap, width, report, output)  # before any work
     painted = _target_image(target, method, layer, report, output, filtered, target_size, target_wrap, classes,
-                            softness)
+                            softness, cells)
+    if cells is not None and method != "struct":
+        raise InputError(f"--cells: sets struct's cells; give it with --method struct, not {method!r}")
     rep, material = open_model_file(model, device=where)
     if painted is not None:
         from ..guided import guided_btf
@@ -189,8 +194,9 @@ def synth(
                              "file (.dbtfm) it was compiled from")
         btf = guided_btf(rep, painted, classes=classes, target_size=target_size, target_wrap=target_wrap,
                          scale=scale, seed=0 if seed is None else seed, softness=softness,
-                         method="hex" if method == "hex" else "hist",
-                         **({} if gamma is None or method == "hex" else {"gamma": gamma}))
+                         method=method if method in ("hex", "struct") else "hist",
+                         **({"cells": cells} if method == "struct" else {} if gamma is None or method == "hex"
+                            else {"gamma": gamma}))
         _write_image(btf, output, view_dir, light_dir, (cu, cv), resolution=resolution, spp=spp, filtered=False,
                      cosine=cosine, exposure=exposure)
         typer.echo(f"wrote {output} ({resolution}x{resolution}, guided by {target}, {classes} classes, {scale:g}x, "
@@ -203,7 +209,8 @@ def synth(
     def build(name: str):
         if material is not None and name in ("auto", material.method):  # the material as compiled
             return _build(material, material.method, scale=scale, seed=seed, quilt_size=None, gamma=gamma)
-        return _build(rep, name, scale=scale, seed=0 if seed is None else seed, quilt_size=quilt_size, gamma=gamma)
+        return _build(rep, name, scale=scale, seed=0 if seed is None else seed, quilt_size=quilt_size, gamma=gamma,
+                      cells=cells)
 
     if layer is not None:
         btf = _layered(build(method), layer, method, where, scale=scale, seed=seed, gamma=gamma, mask=the_mask,
@@ -236,7 +243,7 @@ def _layer_mask(layer: Path | None, mask: str, mask_size: float, mask_wrap: str,
 
 
 def _target_image(target: Path | None, method: str, layer, report: bool, output, filtered: bool, size: float,
-                  wrap: str, classes: int, softness: float):
+                  wrap: str, classes: int, softness: float, cells: int | None):
     """``--target``'s grey image ``(H, W)`` in [0, 1] (None without ``--target``), its options checked (before the
     model loads)."""
     from ..errors import positive_number
@@ -246,10 +253,12 @@ def _target_image(target: Path | None, method: str, layer, report: bool, output,
         return None
     if report or output is None or layer is not None:
         raise InputError("--target: writes one guided image (-o), without --report or --layer")
-    if method not in ("auto", "hist", "hex"):
-        raise InputError(f"--target: guided synthesis steers hist or hex here (struct, whose cells must be about one "
-                         f"element, in Python: dynbtf.guided_btf(..., method='struct', cells=N)); --method auto "
-                         f"(hist), hist or hex, not {method!r}")
+    if method not in ("auto", "hist", "hex", "struct"):
+        raise InputError(f"--target: guided synthesis steers hist, hex or struct; --method auto (hist), hist, hex or "
+                         f"struct, not {method!r}")
+    if method == "struct" and cells is None:
+        raise InputError("--target --method struct: chooses whole cells by label, so give --cells, about one cell "
+                         "per element of the material (e.g. --cells 8 for eight bricks per repeat)")
     if filtered:
         raise InputError("--target: guided synthesis has no footprint query yet; leave out --filtered")
     positive_number("--target-size", size, "uv units")
@@ -293,7 +302,8 @@ def _check_outputs(output: Path | None, report: bool, report_json: Path | None) 
         check_writable(_report_path(output, report_json), "--report-json")
 
 
-def _build(rep, name: str, *, scale: float, seed: int | None, quilt_size: int | None, gamma: float | None):
+def _build(rep, name: str, *, scale: float, seed: int | None, quilt_size: int | None, gamma: float | None,
+           cells: int | None = None):
     """The :class:`~dynbtf.infinite_btf.SynthesizedBTF` of method ``name`` of ``rep`` (a representation, or a
     compiled material of method ``name``, whose seed ``seed`` must be or None); prints auto's choice and the
     quilt's size."""
@@ -304,6 +314,8 @@ def _build(rep, name: str, *, scale: float, seed: int | None, quilt_size: int | 
     params = {"repeats": float(quilt_size), "progress": True} if name == "quilt" and not compiled else {}
     if name in ("hist", "auto") and gamma is not None:
         params["gamma"] = gamma  # auto: used if it chooses hist
+    if name == "struct" and cells is not None and not compiled:
+        params["cells"] = int(cells)
     btf = SynthesizedBTF(rep, name, scale=scale, seed=(rep.seed if compiled else 0) if seed is None else seed,
                          **params)
     rep = btf.model
