@@ -352,10 +352,11 @@ class SynthesizedBTF:
     def features(self, uv) -> torch.Tensor:
         """Synthesized positional features ``(..., C)`` float32 at the user's ``uv (..., 2)``."""
         uv = check_uv(uv, scale=self.scale)
-        flat = uv.reshape(-1, 2).to(torch.float64)
-        out = [self.synthesizer(chunk.to(self.device) * self.scale) for chunk in flat.split(self.chunk_size)]
         c = self.synthesizer.channels
-        return (torch.cat(out) if out else torch.zeros(0, c, device=self.device)).reshape(*uv.shape[:-1], c)
+        if not uv.numel():
+            return torch.zeros(*uv.shape[:-1], c, device=self.device)
+        latent = self.latent(uv)
+        return self.synthesizer.features_from_latent(latent.reshape(-1, latent.shape[-1])).reshape(*uv.shape[:-1], c)
 
     def latent(self, uv) -> torch.Tensor:
         """Synthesized latent values ``(..., C_latent)`` float32 at the user's ``uv (..., 2)``: what the decoder reads

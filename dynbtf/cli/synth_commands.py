@@ -138,8 +138,8 @@ def synth(
                                   "edges (clamp)."),
     width: float = typer.Option(0.05, "--width", help="With --layer: half-width (uv units) of the band around "
                                 "the mask's contour where the materials' heights decide."),
-    target: Optional[Path] = typer.Option(None, "--target", help="Guided synthesis (hist or hex steered by labels): an image "
-                                          "painted over the surface (PNG/JPEG grey levels, or EXR values in [0, 1]), "
+    target: Optional[Path] = typer.Option(None, "--target", help="Guided synthesis (hist, hex or struct steered by "
+                                          "labels): an image painted over the surface (PNG/JPEG grey levels, or EXR values in [0, 1]), "
                                           "cut into --classes equal bins; a point in bin k shows the material's "
                                           "class k (k-means on its decoded appearance, 0 the darkest)."),
     classes: int = typer.Option(2, "--classes", help="With --target: classes of the material's texels."),

@@ -132,8 +132,8 @@ class LabelField:
         """The target label ``(N,)`` int64 at ``points (N, 2)`` float64 exemplar repeats."""
         h, w = self.image.shape
         p = points.to(torch.float64).cpu()
-        if self.wrap == "repeat":
-            p = torch.remainder(p, self.size)
+        if self.wrap == "repeat":  # written out as the fused kernels compute it
+            p = p - torch.floor(p / self.size) * self.size
         col = torch.floor(p[:, 0] / self.size * w).to(torch.int64)
         row = torch.floor(p[:, 1] / self.size * h).to(torch.int64)
         if self.wrap == "repeat":
@@ -143,6 +143,19 @@ class LabelField:
         return self.image[row, col].to(points.device)
 
 
+def _checked_labels(labels, target, shape: tuple[int, int]) -> torch.Tensor:
+    """An exemplar label map ``shape`` of non-negative integers as int64, and ``target`` a :class:`LabelField`
+    (an :class:`InputError` naming what is wrong otherwise)."""
+    labels = torch.as_tensor(np.asarray(labels.cpu() if isinstance(labels, torch.Tensor) else labels))
+    if tuple(labels.shape) != shape:
+        raise InputError(f"labels: expected the exemplar's shape {shape}, got {tuple(labels.shape)}")
+    if labels.is_floating_point() or labels.dtype == torch.bool or (labels.numel() and labels.min() < 0):
+        raise InputError("labels: expected non-negative integer labels")
+    if not isinstance(target, LabelField):
+        raise InputError(f"target: expected a LabelField, got {type(target).__name__}")
+    return labels.to(torch.int64)
+
+
 class _Guidance:
     """What guidance adds to a lattice-blending method (hist, hex): the offset search, the steered weights, the
     fused kernel's guidance arguments. Mixed in before the method's class."""
@@ -150,22 +163,17 @@ class _Guidance:
     #: No Dr.Jit or GLSL form: backends that translate synthesizers refuse it.
     portable = False
 
-    def _guide(self, labels, target, candidates: int, softness: float) -> None:
-        h, w = self.exemplar.shape[:2]
-        labels = torch.as_tensor(np.asarray(labels.cpu() if isinstance(labels, torch.Tensor) else labels))
-        if tuple(labels.shape) != (h, w):
-            raise InputError(f"labels: expected the exemplar's shape ({h}, {w}), got {tuple(labels.shape)}")
-        if labels.is_floating_point() or labels.dtype == torch.bool or (labels.numel() and labels.min() < 0):
-            raise InputError("labels: expected non-negative integer labels")
-        if not isinstance(target, LabelField):
-            raise InputError(f"target: expected a LabelField, got {type(target).__name__}")
+    def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, candidates: int = 16,
+                 softness: float = 0.0, **params) -> None:
+        super().__init__(exemplar, seed, **params)  # the method's own (hist, hex)
+        labels = _checked_labels(labels, target, tuple(self.exemplar.shape[:2]))
         if int(candidates) < 1:
             raise InputError(f"candidates: expected at least 1 offset per sample, got {candidates}")
         softness = float(softness)
         if not 0.0 <= softness <= 1.0:
             raise InputError(f"softness: expected a weight factor in [0, 1], got {softness}")
         ph, pw = self.prepared.plane.shape[:2]
-        self.labels = labels.to(torch.int64)[:ph, :pw].contiguous()  # the read plane (tileable crops)
+        self.labels = labels[:ph, :pw].contiguous()  # the read plane (tileable crops)
         self.target, self.candidates, self.softness = target, int(candidates), softness
 
     def guided_positions(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -266,7 +274,7 @@ class GuidedBlending(_Guidance, HistogramBlending):
         Offsets tried per sample (the first is hist's).
     softness : float in [0, 1], default 0
         Barycentric-weight factor of samples whose content does not carry the target label.
-    **hist
+    **params
         :class:`~dynbtf.synthesis.histogram_blending.HistogramBlending`'s parameters (``gamma``, ...).
 
     Examples
@@ -282,23 +290,13 @@ class GuidedBlending(_Guidance, HistogramBlending):
 
     base_method = "hist"
 
-    def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, candidates: int = 16,
-                 softness: float = 0.0, **hist) -> None:
-        HistogramBlending.__init__(self, exemplar, seed, **hist)
-        self._guide(labels, target, candidates, softness)
-
 
 @register_synthesizer("guided-hex")
 class GuidedHexTiling(_Guidance, HexTiling):
     """Hex-tiling steered by labels: :class:`GuidedBlending`'s search with
-    :class:`~dynbtf.synthesis.hex_tiling.HexTiling`'s blend (its parameters in ``**hex``, e.g. ``luminance``)."""
+    :class:`~dynbtf.synthesis.hex_tiling.HexTiling`'s blend (its parameters in ``**params``, e.g. ``luminance``)."""
 
     base_method = "hex"
-
-    def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, candidates: int = 16,
-                 softness: float = 0.0, **hex) -> None:
-        HexTiling.__init__(self, exemplar, seed, **hex)
-        self._guide(labels, target, candidates, softness)
 
 
 @register_synthesizer("guided-struct")
@@ -320,34 +318,15 @@ class GuidedCellQuilting(CellQuilting):
 
     def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, **struct) -> None:
         super().__init__(exemplar, seed, **struct)
-        h, w = self.exemplar.shape[:2]
-        labels = np.asarray(labels.cpu() if isinstance(labels, torch.Tensor) else labels)
-        if labels.shape != (h, w):
-            raise InputError(f"labels: expected the exemplar's shape ({h}, {w}), got {labels.shape}")
-        if not np.issubdtype(labels.dtype, np.integer) or (labels.size and labels.min() < 0):
-            raise InputError("labels: expected non-negative integer labels")
-        if not isinstance(target, LabelField):
-            raise InputError(f"target: expected a LabelField, got {type(target).__name__}")
-        self.labels, self.target = torch.from_numpy(labels.astype(np.int64)), target
-        self.cell_labels = torch.from_numpy(_cell_majorities(labels.astype(np.int64), self.prepared))
+        self.labels = _checked_labels(labels, target, tuple(self.exemplar.shape[:2]))
+        self.target = target
+        self.cell_labels = torch.from_numpy(_cell_majorities(self.labels.numpy(), self.prepared))
 
     def cell_target(self, cell_x: torch.Tensor, cell_y: torch.Tensor) -> torch.Tensor:
         """The target's label ``(N,)`` int64 at the centres of int64 cells (the fused kernel's arithmetic)."""
         nx, ny = self.prepared.cells
-        size, image = self.target.size, self.target.image.to(cell_x.device)
-        th, tw = image.shape
-        u = (cell_x.to(torch.float64) + 0.5) / nx
-        v = (cell_y.to(torch.float64) + 0.5) / ny
-        repeat = self.target.wrap == "repeat"
-        if repeat:
-            u, v = u - torch.floor(u / size) * size, v - torch.floor(v / size) * size
-        col = torch.floor(u / size * tw).to(torch.int64)
-        row = torch.floor(v / size * th).to(torch.int64)
-        if repeat:
-            col, row = torch.remainder(col, tw), torch.remainder(row, th)
-        else:
-            col, row = col.clamp(0, tw - 1), row.clamp(0, th - 1)
-        return image[row, col]
+        centres = torch.stack([(cell_x.to(torch.float64) + 0.5) / nx, (cell_y.to(torch.float64) + 0.5) / ny], -1)
+        return self.target.labels(centres)
 
     def cell_choices(self, cell_x: torch.Tensor, cell_y: torch.Tensor) -> torch.Tensor:
         own = super().cell_choices(cell_x, cell_y)
