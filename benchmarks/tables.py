@@ -155,7 +155,7 @@ def _source(record: dict, file: str) -> str:
     """Where a part's numbers come from: a benchmark run (its machine) or a recorded measurement."""
     if record.get("recorded_from"):
         return f"*recorded*: {_stated_machine(record)} (`{file}`)"
-    return f"`{file}`: {_machine(record)}, commit {record['commit']}"
+    return f"`{file}`: {_machine(record)}"  # the commit stays in the data: docs carry no hashes
 
 
 def _speed_training(row: dict, data: dict) -> tuple[str, str, str]:
