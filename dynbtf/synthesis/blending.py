@@ -175,7 +175,9 @@ class LatticeBlending(Synthesizer):
 
     def _numpy(self, name: str, tensor: torch.Tensor) -> np.ndarray:
         if name not in self._numpy_cache:
-            self._numpy_cache[name] = np.ascontiguousarray(tensor.detach().cpu().numpy(), dtype=np.float32)
+            from .kernels import cache_aligned
+
+            self._numpy_cache[name] = cache_aligned(tensor.detach().cpu().numpy())
         return self._numpy_cache[name]
 
     def latent(self, uv: torch.Tensor, out: np.ndarray | None = None) -> torch.Tensor:

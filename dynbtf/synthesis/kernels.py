@@ -1,12 +1,15 @@
 """Fused CPU kernel of lattice blending (numba): lattice + hash + 3 bilinear fetches + blend + inverse LUT.
 
-Parallel over blocks of :data:`BLOCK` queries, two passes per block: this is
-what a renderer pays per shading point for the positional features. Pass 1
-runs the lattice, the vertex hashes and the texel addressing and issues a
-prefetch for each of the 12 texels a query reads; pass 2 reads them, blends in
-float32 and applies the inverse LUT. At random uv the reads are cache misses
-on a plane of megabytes; issuing a whole block's misses before using them
-overlaps their latency (faster than one pass per query: ``benchmarks/bench_synthesis_eval.py``).
+Parallel over blocks of :data:`BLOCK` queries, in passes per block, each a loop
+over the block's queries reading and writing rows of a scratch (one query per
+column), with selects instead of branches, so that the compiler runs it in SIMD
+lanes across queries: this is what a renderer pays per shading point for the
+positional features. The passes: the lattice and the vertex hashes; the texel
+addressing; the blend weights and the 12 taps; a prefetch of every tap; the
+blended reads and the inverse LUT. At random uv the reads are cache misses on a
+plane of megabytes: issuing a whole block's misses before using them overlaps
+their latency, and a plane aligned to cache lines (:func:`cache_aligned`) makes
+a 16-channel texel one line, not two (``benchmarks/bench_synthesis_eval.py``).
 It computes what the torch reference path of :class:`~dynbtf.synthesis.blending.LatticeBlending`
 computes (same lattice arithmetic in float64/int64, same hash -- the functions
 of :mod:`dynbtf.synthesis.hash` compiled as they are; the blend itself in
@@ -43,8 +46,8 @@ __all__ = ["lattice_blend", "filtered_lattice_blend", "PackedPyramid", "tile_fet
 
 MODE_LINEAR, MODE_HIST, MODE_HEX = 0, 1, 2
 
-#: Queries per block: pass 1 computes a block's 12 texel addresses per query and prefetches
-#: them, pass 2 reads and blends them (the exemplar reads of a block overlap in memory).
+#: Queries per block: the passes' scratch of a block (about 28 KB) stays in the L1 cache, and the block's
+#: 12 texel reads per query are issued before the first is used (they overlap in memory).
 BLOCK = 64
 #: Bilinear taps per query: 3 samples x 2 x 2 texels.
 TAPS = 12
@@ -87,16 +90,26 @@ def _prefetch(typingctx, array, index):
     return sig, codegen
 
 
+#: Below this repeat index the lattice's ``2 sqrt(3) i`` is exact in two float64 products (:func:`_scaled_integer`).
+SMALL_REPEAT = 1 << 27
+
+
 @numba.njit(inline="always")
-def _scaled_integer(i):
-    """2 sqrt(3) * i as (int64 floor, float64 fraction): scalar twin of lattice._scaled_integer."""
-    if abs(i) >= (1 << 27):  # beyond 1.3e8 repeats: integer fixed point (lattice.large_scaled_integer)
-        return _large_scaled_integer(i)
+def _small_scaled_integer(i):
+    """2 sqrt(3) * i as (int64 floor, float64 fraction) for ``|i| < SMALL_REPEAT`` (branch-free)."""
     p_hi = np.float64(i) * LATTICE_SCALE_HI
     whole = math.floor(p_hi)
     frac = (p_hi - whole) + np.float64(i) * LATTICE_SCALE_LO
     carry = math.floor(frac)
     return np.int64(whole) + np.int64(carry), frac - carry
+
+
+@numba.njit(inline="always")
+def _scaled_integer(i):
+    """2 sqrt(3) * i as (int64 floor, float64 fraction): scalar twin of lattice._scaled_integer."""
+    if abs(i) >= SMALL_REPEAT:  # beyond 1.3e8 repeats: integer fixed point (lattice.large_scaled_integer)
+        return _large_scaled_integer(i)
+    return _small_scaled_integer(i)
 
 
 @numba.njit(inline="always")
@@ -110,25 +123,44 @@ def _wrap(i, period):
 
 
 @numba.njit(inline="always")
+def _modulo(i, period, inverse):
+    """``i mod period`` in ``[0, period)`` (Python's ``%``) for int64 ``|i| < 2**52``, ``inverse = 1 / period``.
+
+    A float64 quotient, off by at most one and corrected: exact, and unlike a 64-bit integer division it
+    runs in SIMD lanes, so the block loops below vectorize across queries."""
+    r = i - np.int64(math.floor(np.float64(i) * inverse)) * period
+    if r < 0:
+        r += period
+    if r >= period:
+        r -= period
+    return r
+
+
+@numba.njit(inline="always")
 def _sample_texels(h, xi, yi, pw, ph):
     """Columns/rows of the 2x2 bilinear footprint of a sample offset by hash ``h`` (wrapped)."""
-    ox = h % pw
-    oy = _mix32(h ^ SECOND_STREAM) % ph
+    ox = _modulo(h, pw, 1.0 / pw)
+    oy = _modulo(_mix32(h ^ SECOND_STREAM), ph, 1.0 / ph)
     c0 = _wrap(xi + ox, pw)
     r0 = _wrap(yi + oy, ph)
     return c0, _wrap(c0 + 1, pw), r0, _wrap(r0 + 1, ph)
 
 
+#: Bits of the largest integral histogram-blending exponent (64) taken by :func:`_int_power`.
+POWER_BITS = 7
+
+
 @numba.njit(inline="always")
 def _int_power(x, n):
-    """``max(x, 0) ** n`` for an integer ``n >= 1`` by repeated squaring (no ``pow`` call)."""
+    """``max(x, 0) ** n`` for an integer ``1 <= n < 2**POWER_BITS`` by repeated squaring (no ``pow`` call).
+
+    A fixed number of steps, each multiply taken or not by a select, so that a loop over queries vectorizes."""
     base = max(x, 0.0)
     result = 1.0
-    while n > 0:
-        if n & 1:
+    for bit in range(POWER_BITS):
+        if (n >> bit) & 1:
             result *= base
         base *= base
-        n >>= 1
     return result
 
 
@@ -151,42 +183,71 @@ def _split_repeat(u):
 
 
 @numba.njit(inline="always")
-def _lattice_hashes(u, v, state):
-    """Lattice triangle of a query (:func:`dynbtf.synthesis.lattice.triangle_lattice`) and its vertex hashes.
-
-    Returns the repeat index ``iu, iv`` (int64), the fraction ``fu, fv`` in ``[0, 1)``, the three
-    vertices' hashes ``h0, h1, h2`` and their barycentrics ``b0, b1, b2``.
-    """
-    iu, fu = _split_repeat(u)
-    iv, fv = _split_repeat(v)
-    # lattice (lattice.triangle_lattice)
-    iu_whole, iu_frac = _scaled_integer(iu)
+def _lattice_cell_of(iu, iv, fu, fv, iu_whole, iu_frac):
+    """:func:`_lattice_cell` from the repeat's split and ``2 sqrt(3) iu`` (:func:`_scaled_integer`)."""
     kx = iu_frac + LATTICE_SCALE * fu - 2.0 * fv
     ky = 4.0 * fv
     bx = math.floor(kx)
     by = math.floor(ky)
     fx = kx - bx
     fy = ky - by
-    base_x = np.int64(bx) + iu_whole - 2 * iv
-    base_y = np.int64(by) + 4 * iv
-    z = 1.0 - fx - fy
-    # vertex hashes (hash.hash_vertex): the two vertices with the same vx share its fold
+    return np.int64(bx) + iu_whole - 2 * iv, np.int64(by) + 4 * iv, fx, fy, 1.0 - fx - fy
+
+
+@numba.njit(inline="always")
+def _lattice_cell(u, v):
+    """Lattice triangle of a query (:func:`dynbtf.synthesis.lattice.triangle_lattice`).
+
+    Returns the repeat index ``iu, iv`` (int64), the fraction ``fu, fv`` in ``[0, 1)``, the cell's base vertex
+    ``base_x, base_y`` (int64), its fractions ``fx, fy`` and ``z = 1 - fx - fy`` (the lower triangle where
+    ``z > 0``).
+    """
+    iu, fu = _split_repeat(u)
+    iv, fv = _split_repeat(v)
+    iu_whole, iu_frac = _scaled_integer(iu)
+    base_x, base_y, fx, fy, z = _lattice_cell_of(iu, iv, fu, fv, iu_whole, iu_frac)
+    return iu, iv, fu, fv, base_x, base_y, fx, fy, z
+
+
+@numba.njit(inline="always")
+def _vertex_hashes(state, base_x, base_y, lower):
+    """Hashes (:func:`dynbtf.synthesis.hash.hash_vertex`) of the triangle's vertices, in the order
+    b, b + (0, 1), b + (1, 0) for the lower triangle and b + (1, 1), b + (1, 0), b + (0, 1) for the upper
+    (``b`` the base vertex); the two vertices with the same x share its fold. Selects, not branches."""
     h_a = _fold_coordinate(state, base_x)
     h_b = _fold_coordinate(state, base_x + 1)
-    if z > 0:  # b, b + (0, 1), b + (1, 0)
-        h0, h1, h2 = (_fold_coordinate(h_a, base_y), _fold_coordinate(h_a, base_y + 1),
-                      _fold_coordinate(h_b, base_y))
-        b0, b1, b2 = z, fy, fx
-    else:  # b + (1, 1), b + (1, 0), b + (0, 1)
-        h0, h1, h2 = (_fold_coordinate(h_b, base_y + 1), _fold_coordinate(h_b, base_y),
-                      _fold_coordinate(h_a, base_y + 1))
-        b0, b1, b2 = -z, 1.0 - fy, 1.0 - fx
-    return iu, iv, fu, fv, h0, h1, h2, b0, b1, b2, base_x, base_y, z > 0
+    first = h_a if lower else h_b
+    second = h_b if lower else h_a
+    y_near = base_y if lower else base_y + 1
+    y_far = base_y + 1 if lower else base_y
+    return _fold_coordinate(first, y_near), _fold_coordinate(first, y_far), _fold_coordinate(second, y_near)
+
+
+@numba.njit(inline="always")
+def _barycentrics(fx, fy, z, lower):
+    """Barycentrics of the three vertices of :func:`_vertex_hashes` (same order)."""
+    if lower:
+        return z, fy, fx
+    return -z, 1.0 - fy, 1.0 - fx
+
+
+@numba.njit(inline="always")
+def _lattice_hashes(u, v, state):
+    """Lattice triangle of a query, its vertex hashes and barycentrics.
+
+    Returns ``iu, iv, fu, fv`` (:func:`_lattice_cell`), the three vertices' hashes ``h0, h1, h2`` and their
+    barycentrics ``b0, b1, b2``, the base vertex and whether the triangle is the lower one.
+    """
+    iu, iv, fu, fv, base_x, base_y, fx, fy, z = _lattice_cell(u, v)
+    lower = z > 0
+    h0, h1, h2 = _vertex_hashes(state, base_x, base_y, lower)
+    b0, b1, b2 = _barycentrics(fx, fy, z, lower)
+    return iu, iv, fu, fv, h0, h1, h2, b0, b1, b2, base_x, base_y, lower
 
 
 @numba.njit(inline="always")
 def _vertex(k, base_x, base_y, lower):
-    """Coordinates of sample ``k``'s lattice vertex (the order of :func:`_lattice_hashes`)."""
+    """Coordinates of sample ``k``'s lattice vertex (the order of :func:`_vertex_hashes`)."""
     if lower:  # b, b + (0, 1), b + (1, 0)
         return base_x + (1 if k == 2 else 0), base_y + (1 if k == 1 else 0)
     return base_x + (0 if k == 2 else 1), base_y + (0 if k == 1 else 1)  # b + (1, 1), b + (1, 0), b + (0, 1)
@@ -242,16 +303,17 @@ def _sample_weights(mode, b0, b1, b2, l0, l1, l2, gamma, gamma_int, beta, gain_k
     return s0, s1, s2, 1.0
 
 @numba.njit(inline="always")
-def _blend_taps(flat, taps, weights, row):
-    """``row[c] = sum_k weights[k] flat[taps[k] + c]`` over the 12 taps (float32).
+def _blend_taps(flat, taps, weights, j, row):
+    """``row[c] = sum_k weights[k, j] flat[taps[k, j] + c]`` over the 12 taps of query ``j`` of a block (float32).
 
     Unsigned indices: numba then skips the negative-index wraparound and the loop vectorizes.
     """
-    t0, t1, t2, t3 = np.uint64(taps[0]), np.uint64(taps[1]), np.uint64(taps[2]), np.uint64(taps[3])
-    t4, t5, t6, t7 = np.uint64(taps[4]), np.uint64(taps[5]), np.uint64(taps[6]), np.uint64(taps[7])
-    t8, t9, t10, t11 = np.uint64(taps[8]), np.uint64(taps[9]), np.uint64(taps[10]), np.uint64(taps[11])
-    w0, w1, w2, w3, w4, w5 = weights[0], weights[1], weights[2], weights[3], weights[4], weights[5]
-    w6, w7, w8, w9, w10, w11 = weights[6], weights[7], weights[8], weights[9], weights[10], weights[11]
+    t0, t1, t2, t3 = np.uint64(taps[0, j]), np.uint64(taps[1, j]), np.uint64(taps[2, j]), np.uint64(taps[3, j])
+    t4, t5, t6, t7 = np.uint64(taps[4, j]), np.uint64(taps[5, j]), np.uint64(taps[6, j]), np.uint64(taps[7, j])
+    t8, t9, t10, t11 = np.uint64(taps[8, j]), np.uint64(taps[9, j]), np.uint64(taps[10, j]), np.uint64(taps[11, j])
+    w0, w1, w2, w3, w4, w5 = weights[0, j], weights[1, j], weights[2, j], weights[3, j], weights[4, j], weights[5, j]
+    w6, w7, w8, w9, w10, w11 = (weights[6, j], weights[7, j], weights[8, j], weights[9, j], weights[10, j],
+                                weights[11, j])
     for c in range(np.uint64(row.shape[0])):
         row[c] = (w0 * flat[t0 + c] + w1 * flat[t1 + c] + w2 * flat[t2 + c] + w3 * flat[t3 + c]
                   + w4 * flat[t4 + c] + w5 * flat[t5 + c] + w6 * flat[t6 + c] + w7 * flat[t7 + c]
@@ -278,77 +340,181 @@ def _inverse_lut(row, lut, g_min, inv_step):
         row[c] = x0 + t * (lut[c, np.uint64(lo) + np.uint64(1)] - x0)
 
 
+# Rows of a block's scratch (``(rows, BLOCK)``: one query per column). Each pass below is a loop over queries
+# reading and writing whole rows (1-D views), with selects instead of branches, so that it vectorizes across
+# queries (the loops that are not: the guided search and the rare large repeat index).
+# Integers: the repeat index, the base vertex, the vertex hashes, the texel position shared by the samples,
+# and each sample's columns and rows ``c0, c1, r0, r1``.
+_IU, _IV, _BASE_X, _BASE_Y, _HASH, _XI, _YI, _TEXELS = 0, 1, 2, 3, 4, 7, 8, 9
+_INT_ROWS = _TEXELS + 12
+# Reals: the fraction of the repeat, the cell's fractions and z, the barycentrics, the bilinear fractions,
+# the samples' luminances (hex), their blend weights and the variance correction.
+_FU, _FV, _FX, _FY, _Z, _BARY, _TX, _TY, _LUM, _WEIGHT, _SCALE = 0, 1, 2, 3, 4, 5, 8, 9, 10, 13, 16
+_REAL_ROWS = 17
+
+
+@numba.njit(inline="always")
+def _block_lattice(uv, first, count, state, ints, reals):
+    """Pass 1: the lattice cell, vertex hashes and barycentrics of queries ``first .. first + count``."""
+    iu_, iv_, base_x_, base_y_ = ints[_IU], ints[_IV], ints[_BASE_X], ints[_BASE_Y]
+    fu_, fv_, fx_, fy_, z_ = reals[_FU], reals[_FV], reals[_FX], reals[_FY], reals[_Z]
+    for j in range(count):
+        iu, fu = _split_repeat(uv[first + j, 0])
+        iv, fv = _split_repeat(uv[first + j, 1])
+        iu_whole, iu_frac = _small_scaled_integer(iu)
+        base_x_[j], base_y_[j], fx_[j], fy_[j], z_[j] = _lattice_cell_of(iu, iv, fu, fv, iu_whole, iu_frac)
+        iu_[j], iv_[j], fu_[j], fv_[j] = iu, iv, fu, fv
+    for j in range(count):
+        if abs(iu_[j]) >= SMALL_REPEAT:  # beyond 1.3e8 repeats (rare): the exact integer path
+            _, _, _, _, base_x_[j], base_y_[j], fx_[j], fy_[j], z_[j] = _lattice_cell(uv[first + j, 0],
+                                                                                    uv[first + j, 1])
+    h0_, h1_, h2_ = ints[_HASH], ints[_HASH + 1], ints[_HASH + 2]
+    b0_, b1_, b2_ = reals[_BARY], reals[_BARY + 1], reals[_BARY + 2]
+    for j in range(count):
+        lower = z_[j] > 0
+        h0_[j], h1_[j], h2_[j] = _vertex_hashes(state, base_x_[j], base_y_[j], lower)
+        b0_[j], b1_[j], b2_[j] = _barycentrics(fx_[j], fy_[j], z_[j], lower)
+
+
+@numba.njit(inline="always")
+def _block_texels(count, pw, ph, density_w, density_h, ints, reals):
+    """Pass 2: each query's bilinear texel position (whole-texel offsets shared by its samples: ``(iu * density)
+    mod period`` in int64 without overflow, plus the fraction's texels), then each sample's hashed offset."""
+    inv_pw = 1.0 / pw
+    inv_ph = 1.0 / ph
+    density_w_mod = density_w % pw
+    density_h_mod = density_h % ph
+    iu_, iv_, fu_, fv_, tx_, ty_ = ints[_IU], ints[_IV], reals[_FU], reals[_FV], reals[_TX], reals[_TY]
+    xi_, yi_ = ints[_XI], ints[_YI]
+    for j in range(count):
+        px = fu_[j] * density_w - 0.5
+        py = fv_[j] * density_h - 0.5
+        x0 = math.floor(px)
+        y0 = math.floor(py)
+        tx_[j] = px - x0
+        ty_[j] = py - y0
+        xi_[j] = _modulo(_modulo(iu_[j], pw, inv_pw) * density_w_mod + np.int64(x0), pw, inv_pw)
+        yi_[j] = _modulo(_modulo(iv_[j], ph, inv_ph) * density_h_mod + np.int64(y0), ph, inv_ph)
+    for k in range(3):
+        h_ = ints[_HASH + k]
+        c0_, c1_, r0_, r1_ = ints[_TEXELS + 4 * k], ints[_TEXELS + 4 * k + 1], ints[_TEXELS + 4 * k + 2], \
+            ints[_TEXELS + 4 * k + 3]
+        for j in range(count):
+            c0_[j], c1_[j], r0_[j], r1_[j] = _sample_texels(h_[j], xi_[j], yi_[j], pw, ph)
+
+
+@numba.njit(inline="always")
+def _block_guidance(first, count, pw, ph, ints, reals, states, labels, target, softness):
+    """Exemplar guidance (:mod:`dynbtf.synthesis.guided_blending`): each sample re-chosen from content of the
+    query's target label, and unmatched samples' barycentric weight times ``softness``."""
+    matched = np.zeros(3, dtype=np.bool_)
+    for j in range(count):
+        t = target[first + j]
+        lower = reals[_Z, j] > 0
+        for k in range(3):
+            row = _TEXELS + 4 * k
+            ints[row, j], ints[row + 1, j], ints[row + 2, j], ints[row + 3, j], matched[k] = _guided_texels(
+                k, ints[_HASH + k, j], ints[_XI, j], ints[_YI, j], pw, ph, ints[_BASE_X, j], ints[_BASE_Y, j], lower,
+                states, labels, t)
+        if matched[0] or matched[1] or matched[2]:
+            for k in range(3):
+                if not matched[k]:
+                    reals[_BARY + k, j] *= softness
+
+
+@numba.njit(inline="always")
+def _block_weights(count, pw, nc, mode, lum, gamma, gamma_int, beta, gain_k, ints, reals, taps, weights):
+    """Pass 3: the samples' blend weights, then each of the 12 taps' flat index and weight."""
+    tx_, ty_ = reals[_TX], reals[_TY]
+    l0_, l1_, l2_ = reals[_LUM], reals[_LUM + 1], reals[_LUM + 2]
+    if mode == MODE_HEX:  # the samples' bilinear luminances
+        for k in range(3):
+            l_ = reals[_LUM + k]
+            c0_, c1_, r0_, r1_ = ints[_TEXELS + 4 * k], ints[_TEXELS + 4 * k + 1], ints[_TEXELS + 4 * k + 2], \
+                ints[_TEXELS + 4 * k + 3]
+            for j in range(count):
+                tx, ty = tx_[j], ty_[j]
+                l_[j] = ((1.0 - tx) * (1.0 - ty) * lum[r0_[j], c0_[j]] + tx * (1.0 - ty) * lum[r0_[j], c1_[j]]
+                         + (1.0 - tx) * ty * lum[r1_[j], c0_[j]] + tx * ty * lum[r1_[j], c1_[j]])
+    b0_, b1_, b2_ = reals[_BARY], reals[_BARY + 1], reals[_BARY + 2]
+    s0_, s1_, s2_, scale_ = reals[_WEIGHT], reals[_WEIGHT + 1], reals[_WEIGHT + 2], reals[_SCALE]
+    for j in range(count):
+        s0_[j], s1_[j], s2_[j], scale_[j] = _sample_weights(mode, b0_[j], b1_[j], b2_[j], l0_[j], l1_[j], l2_[j],
+                                                            gamma, gamma_int, beta, gain_k)
+    for k in range(3):
+        s_ = reals[_WEIGHT + k]
+        c0_, c1_, r0_, r1_ = ints[_TEXELS + 4 * k], ints[_TEXELS + 4 * k + 1], ints[_TEXELS + 4 * k + 2], \
+            ints[_TEXELS + 4 * k + 3]
+        t00_, t01_, t10_, t11_ = taps[4 * k], taps[4 * k + 1], taps[4 * k + 2], taps[4 * k + 3]
+        w00_, w01_, w10_, w11_ = weights[4 * k], weights[4 * k + 1], weights[4 * k + 2], weights[4 * k + 3]
+        for j in range(count):
+            tx, ty = tx_[j], ty_[j]
+            ws = s_[j] * scale_[j]
+            t00_[j], w00_[j] = (r0_[j] * pw + c0_[j]) * nc, ws * ((1.0 - tx) * (1.0 - ty))
+            t01_[j], w01_[j] = (r0_[j] * pw + c1_[j]) * nc, ws * (tx * (1.0 - ty))
+            t10_[j], w10_[j] = (r1_[j] * pw + c0_[j]) * nc, ws * ((1.0 - tx) * ty)
+            t11_[j], w11_[j] = (r1_[j] * pw + c1_[j]) * nc, ws * (tx * ty)
+
+
+#: Bytes of a cache line (x86-64 and ARM64 alike).
+CACHE_LINE = 64
+
+
+def cache_aligned(array: np.ndarray) -> np.ndarray:
+    """``array`` as a C-contiguous float32 array whose first byte starts a cache line (itself if it already is).
+
+    The lattice kernel reads whole texels at random: with 16 channels a texel of an aligned plane is one cache
+    line, of an unaligned one two."""
+    array = np.asarray(array, dtype=np.float32)
+    if array.flags.c_contiguous and array.ctypes.data % CACHE_LINE == 0:
+        return array
+    buffer = np.empty(array.size + CACHE_LINE // 4, dtype=np.float32)
+    start = (-buffer.ctypes.data % CACHE_LINE) // 4
+    aligned = buffer[start:start + array.size].reshape(array.shape)
+    aligned[...] = array
+    return aligned
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_k, lut, g_min, inv_step, out,
-            states, labels, target, softness):
+            states, labels, target, softness, n_workers):
     n_queries = uv.shape[0]
     ph, pw, nc = plane.shape
     flat = plane.reshape(ph * pw * nc)
     state = _seed_state(seed)  # per-call constant part of every vertex hash
     gamma_int = np.int64(gamma) if (gamma == math.floor(gamma) and 1.0 < gamma <= 64.0) else np.int64(0)
-    density_w_mod = density_w % pw
-    density_h_mod = density_h % ph
     guided = states.shape[0] > 0
-    for block in numba.prange((n_queries + BLOCK - 1) // BLOCK):
-        first = block * BLOCK
-        last = min(first + BLOCK, n_queries)
-        taps = np.empty((BLOCK, TAPS), dtype=np.int64)  # flat index of each tap's texel
-        weights = np.empty((BLOCK, TAPS), dtype=np.float32)
-        # ---- pass 1: lattice, hashes, addresses and weights; prefetch the texels
-        for n in range(first, last):
-            iu, iv, fu, fv, h0, h1, h2, b0, b1, b2, base_x, base_y, lower = _lattice_hashes(uv[n, 0], uv[n, 1], state)
-            # texel addressing shared by the three samples (whole-texel offsets):
-            # (iu * density) mod period in int64 without overflow, plus the fraction's texels
-            px = fu * density_w - 0.5
-            py = fv * density_h - 0.5
-            x0 = math.floor(px)
-            y0 = math.floor(py)
-            tx = px - x0
-            ty = py - y0
-            xi = ((iu % pw) * density_w_mod + np.int64(x0)) % pw
-            yi = ((iv % ph) * density_h_mod + np.int64(y0)) % ph
-            if guided:  # each sample from content of the query's target label (guided_blending)
-                t = target[n]
-                ca0, cb0, ra0, rb0, m0 = _guided_texels(0, h0, xi, yi, pw, ph, base_x, base_y, lower, states, labels, t)
-                ca1, cb1, ra1, rb1, m1 = _guided_texels(1, h1, xi, yi, pw, ph, base_x, base_y, lower, states, labels, t)
-                ca2, cb2, ra2, rb2, m2 = _guided_texels(2, h2, xi, yi, pw, ph, base_x, base_y, lower, states, labels, t)
-                if m0 or m1 or m2:  # unmatched samples' barycentric weight times softness
-                    b0, b1, b2 = (b0 if m0 else b0 * softness), (b1 if m1 else b1 * softness), \
-                        (b2 if m2 else b2 * softness)
-            else:
-                ca0, cb0, ra0, rb0 = _sample_texels(h0, xi, yi, pw, ph)
-                ca1, cb1, ra1, rb1 = _sample_texels(h1, xi, yi, pw, ph)
-                ca2, cb2, ra2, rb2 = _sample_texels(h2, xi, yi, pw, ph)
-            w00 = (1.0 - tx) * (1.0 - ty)
-            w01 = tx * (1.0 - ty)
-            w10 = (1.0 - tx) * ty
-            w11 = tx * ty
-            # blend weights
-            l0 = l1 = l2 = 0.0
-            if mode == MODE_HEX:
-                l0 = w00 * lum[ra0, ca0] + w01 * lum[ra0, cb0] + w10 * lum[rb0, ca0] + w11 * lum[rb0, cb0]
-                l1 = w00 * lum[ra1, ca1] + w01 * lum[ra1, cb1] + w10 * lum[rb1, ca1] + w11 * lum[rb1, cb1]
-                l2 = w00 * lum[ra2, ca2] + w01 * lum[ra2, cb2] + w10 * lum[rb2, ca2] + w11 * lum[rb2, cb2]
-            s0, s1, s2, scale = _sample_weights(mode, b0, b1, b2, l0, l1, l2, gamma, gamma_int, beta, gain_k)
-            tap = taps[n - first]
-            weight = weights[n - first]
-            k = 0
-            for s, ca, cb, ra, rb in ((s0, ca0, cb0, ra0, rb0), (s1, ca1, cb1, ra1, rb1), (s2, ca2, cb2, ra2, rb2)):
-                ws = s * scale
-                tap[k], weight[k] = (ra * pw + ca) * nc, ws * w00
-                tap[k + 1], weight[k + 1] = (ra * pw + cb) * nc, ws * w01
-                tap[k + 2], weight[k + 2] = (rb * pw + ca) * nc, ws * w10
-                tap[k + 3], weight[k + 3] = (rb * pw + cb) * nc, ws * w11
-                for m in range(k, k + 4):
-                    _prefetch(flat, tap[m])
-                    _prefetch(flat, tap[m] + nc - 1)  # a texel may straddle two cache lines
-                k += 4
-        # ---- pass 2: the three bilinear fetches, blended (float32); then the block's inverse LUTs
-        for n in range(first, last):
-            _blend_taps(flat, taps[n - first], weights[n - first], out[n])
-        if mode == MODE_HIST:
-            for n in range(first, last):
-                _inverse_lut(out[n], lut, g_min, inv_step)
+    texel_bytes = 4 * nc  # a texel crosses no cache line of an aligned plane when its size divides a line's
+    one_line = (flat.ctypes.data % CACHE_LINE == 0) and (CACHE_LINE % texel_bytes == 0)
+    n_blocks = (n_queries + BLOCK - 1) // BLOCK
+    for worker in numba.prange(n_workers):  # each worker's scratch allocated once; blocks dealt round-robin
+        ints = np.empty((_INT_ROWS, BLOCK), dtype=np.int64)
+        reals = np.empty((_REAL_ROWS, BLOCK), dtype=np.float64)
+        taps = np.empty((TAPS, BLOCK), dtype=np.int64)  # flat index of each tap's texel
+        weights = np.empty((TAPS, BLOCK), dtype=np.float32)
+        for block in range(worker, n_blocks, n_workers):
+            first = block * BLOCK
+            count = min(BLOCK, n_queries - first)
+            _block_lattice(uv, first, count, state, ints, reals)
+            _block_texels(count, pw, ph, density_w, density_h, ints, reals)
+            if guided:
+                _block_guidance(first, count, pw, ph, ints, reals, states, labels, target, softness)
+            _block_weights(count, pw, nc, mode, lum, gamma, gamma_int, beta, gain_k, ints, reals, taps, weights)
+            # the block's reads issued before any is used: at random uv they are cache misses on a plane of
+            # megabytes, and their latencies overlap
+            for m in range(TAPS):
+                tap_ = taps[m]
+                for j in range(count):
+                    _prefetch(flat, tap_[j])
+                if not one_line:  # a texel may straddle two cache lines
+                    for j in range(count):
+                        _prefetch(flat, tap_[j] + nc - 1)
+            # pass 4: the three bilinear fetches, blended (float32); then the block's inverse LUTs
+            for j in range(count):
+                _blend_taps(flat, taps, weights, j, out[first + j])
+            if mode == MODE_HIST:
+                for j in range(count):
+                    _inverse_lut(out[first + j], lut, g_min, inv_step)
 
 
 def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], seed: int, mode: int, *,
@@ -407,10 +573,10 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
                              f"{plane.shape[:2]} plane and {n} queries")
         guided = (np.ascontiguousarray(states, dtype=np.int64), np.ascontiguousarray(labels, dtype=np.int32),
                   np.ascontiguousarray(target, dtype=np.int32), float(softness))
-    _kernel(uv, np.ascontiguousarray(plane, dtype=np.float32),
+    _kernel(uv, cache_aligned(plane),
             np.ascontiguousarray(luminance, dtype=np.float32), int(density[0]), int(density[1]), int(seed) & 0xFFFFFFFF,
             int(mode), float(gamma), float(beta), float(gain_k), np.ascontiguousarray(lut, dtype=np.float32),
-            float(g_min), 1.0 / float(step), out, *guided)
+            float(g_min), 1.0 / float(step), out, *guided, max(1, min(numba.get_num_threads(), -(-n // BLOCK))))
     return out
 
 
