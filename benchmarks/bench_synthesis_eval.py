@@ -187,6 +187,7 @@ def stage_breakdown(model, uv, w_view, w_light, n) -> dict:
     numba.set_num_threads(1)
     try:
         with torch.no_grad():
+            btf.eval(uv[:chunk], w_view[:chunk], w_light[:chunk])  # warm-up: kernels loaded, buffers allocated
             for start in range(0, n, chunk):
                 sl = slice(start, start + chunk)
                 t0 = time.perf_counter()
