@@ -12,7 +12,7 @@ for the parallax model):
   (:func:`~dynbtf.representations.parallax_kernels.visible_texel_points`), the Newton step and the fetch
   there with their backward in compiled loops (:func:`~dynbtf.representations.visible_fetch.fetch_visible`);
 * **parallax, torch ops** -- the same model with ``use_compiled_kernels = False``: the table, the Newton
-  step and the fetch in torch operations (the same values, bit for bit on x86), the marches still compiled
+  step and the fetch in torch operations (the same values to float32 rounding), the marches still compiled
   (:func:`~dynbtf.representations.parallax_kernels.march_plane`);
 * **parallax, torch ops and march** -- also the march run by the torch loop of
   :func:`~dynbtf.representations.parallax.march_visible_uv`: what any other device runs.
@@ -24,6 +24,12 @@ step and each variant's ratio to the Triple Plane.
 Run: ``python benchmarks/bench_parallax_training.py`` (about 2 minutes on 2 cores; ``--btf``
 any BTF path or spec, e.g. ``'sim:stone?size=64&grid=ubo2014&seed=7'`` for the 64 x 64 default-fit row of
 docs/choosing.md).
+
+``--quality`` measures instead what the two forms of the Newton step and fetch do to a fit: the compiled
+loops and the torch operations agree to float32 rounding, not bit for bit, and a fit is chaotic, so their
+trajectories part as two seeds' do. For each of ``--seeds`` it fits ``parallax`` and ``parallax, torch ops``
+for ``--quality-steps`` steps from the same start and prints their held-out PSNR (32 held-out images); the
+rows are written to ``benchmarks/results/parallax_quality.json`` (the table in docs/parallax.md).
 """
 
 from __future__ import annotations
@@ -61,11 +67,58 @@ def step_times(rep, source, steps: int, warmup: int) -> list[float]:
     return times
 
 
+def quality(args, source, parallax_model) -> None:
+    """Held-out PSNR after ``args.quality_steps`` steps of the two forms of the fetch, per seed (``--quality``)."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_training import held_out_psnr
+    from results_io import header, write_result
+
+    from dynbtf.training import ImageStore, TrainConfig, fit, held_out_split
+    from dynbtf.training.fit import StopTraining
+
+    store = ImageStore(source)
+    store.fill()
+    rows = []
+    for seed in args.seeds:
+        _, held_out = held_out_split(source.n_views, source.n_lights, 0.05, seed)
+        eval_pairs = held_out[np.linspace(0, len(held_out) - 1, min(32, len(held_out))).astype(int)]
+        row = {"seed": seed, "steps": args.quality_steps}
+        for name, compiled in (("compiled", True), ("torch_ops", False)):
+            rep = parallax_model(seed)
+            rep.use_compiled_kernels = compiled
+
+            def callback(info):
+                if info["global_step"] >= args.quality_steps:
+                    raise StopTraining("steps")
+
+            config = TrainConfig(epochs=1000, seed=seed, held_out_fraction=0.05, monitor_pairs=0,
+                                 checkpoint_every=10 ** 9, texel_groups=64, lr_scale=6.0)
+            with tempfile.TemporaryDirectory() as tmp:
+                fit(rep, source, config, Path(tmp) / "m.dbtfm", progress=False, callback=callback)
+            row[f"{name}_psnr_db"] = held_out_psnr(rep, source, store, eval_pairs)
+        rows.append(row)
+        print(f"seed {seed}: compiled {row['compiled_psnr_db']:.2f} dB, torch ops {row['torch_ops_psnr_db']:.2f} dB "
+              f"after {args.quality_steps} steps", flush=True)
+    difference = [r["compiled_psnr_db"] - r["torch_ops_psnr_db"] for r in rows]
+    spread = [max(r[f"{k}_psnr_db"] for r in rows) - min(r[f"{k}_psnr_db"] for r in rows)
+              for k in ("compiled", "torch_ops")]
+    print(f"compiled - torch ops: mean {np.mean(difference):+.2f} dB over {len(rows)} seeds; spread across seeds "
+          f"{spread[0]:.2f} dB (compiled), {spread[1]:.2f} dB (torch ops)")
+    write_result(Path(__file__).resolve().parent / "results" / "parallax_quality.json",
+                 header("parallax_quality", "bench_parallax_training.py") | {"btf": args.btf, "rows": rows})
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--btf", default="sim:stone?size=128", help="BTF path or spec (default %(default)s)")
     parser.add_argument("--steps", type=int, default=400, help="timed steps per variant")
     parser.add_argument("--warmup", type=int, default=20, help="untimed steps first")
+    parser.add_argument("--quality", action="store_true", help="fit with each form of the fetch over --seeds and "
+                                                              "compare held-out PSNR (no timing)")
+    parser.add_argument("--quality-steps", type=int, default=600, help="steps per fit of --quality")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds of --quality")
     args = parser.parse_args()
 
     from dynbtf.data.open import open_btf
@@ -81,10 +134,14 @@ def main() -> None:
     print(f"{args.btf}: stereo height in {time.perf_counter() - start:.0f} s; {args.steps} steps per variant "
           f"after {args.warmup}, {torch.get_num_threads()} threads")
 
-    def parallax_model():
-        rep = ParallaxTriplePlane(source.height, source.width, **parallax_size_options(source))
+    def parallax_model(seed=0):
+        rep = ParallaxTriplePlane(source.height, source.width, seed=seed, **parallax_size_options(source))
         rep.set_height(height)
         return rep
+
+    if args.quality:
+        quality(args, source, parallax_model)
+        return
 
     compiled = parallax.march_plane
 

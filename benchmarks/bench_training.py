@@ -177,15 +177,33 @@ def measure_level(btfs: list[str], seconds: float, naive_seconds: float, batch: 
 
 
 # ---------------------------------------------------------------------------------------------- convergence
+def held_out_psnr(rep, source, store, eval_pairs) -> float:
+    """PSNR (dB) of ``rep``'s images against the BTF's at the held-out ``eval_pairs (K, 2)`` (view, light) of
+    ``source``, read through ``store`` (an :class:`~dynbtf.training.ImageStore`)."""
+    import torch
+
+    from dynbtf.decoder.fused_mlp import single_intra_op_thread
+    from dynbtf.training import predict_images
+
+    se, count = 0.0, 0
+    with torch.no_grad(), single_intra_op_thread():
+        for k in range(0, len(eval_pairs), 8):
+            chunk = eval_pairs[k:k + 8]
+            target = torch.from_numpy(store.get(chunk))
+            wv = torch.as_tensor(source.views[chunk[:, 0]], dtype=torch.float32)
+            wl = torch.as_tensor(source.lights[chunk[:, 1]], dtype=torch.float32)
+            se += float(((predict_images(rep, wv, wl) - target) ** 2).sum(dtype=torch.float64))
+            count += target.numel()
+    return -10.0 * math.log10(se / count)
+
+
 def convergence(spec: str, naive_seconds: float, batch: int, seed: int) -> dict:
     """Naive for ``naive_seconds``; ours (fast) until naive's final held-out PSNR; the training time each needed."""
     import numpy as np
-    import torch
 
     from dynbtf.data.open import open_btf
-    from dynbtf.decoder.fused_mlp import single_intra_op_thread
     from dynbtf.representations.triple_plane import TriplePlane
-    from dynbtf.training import ImageStore, TrainConfig, fit, held_out_split, predict_images
+    from dynbtf.training import ImageStore, TrainConfig, fit, held_out_split
     from dynbtf.training.fit import StopTraining
 
     source = open_btf(spec)
@@ -195,16 +213,7 @@ def convergence(spec: str, naive_seconds: float, batch: int, seed: int) -> dict:
     store.fill()
 
     def psnr(rep) -> float:
-        se, count = 0.0, 0
-        with torch.no_grad(), single_intra_op_thread():
-            for k in range(0, len(eval_pairs), 8):
-                chunk = eval_pairs[k:k + 8]
-                target = torch.from_numpy(store.get(chunk))
-                wv = torch.as_tensor(source.views[chunk[:, 0]], dtype=torch.float32)
-                wl = torch.as_tensor(source.lights[chunk[:, 1]], dtype=torch.float32)
-                se += float(((predict_images(rep, wv, wl) - target) ** 2).sum(dtype=torch.float64))
-                count += target.numel()
-        return -10.0 * math.log10(se / count)
+        return held_out_psnr(rep, source, store, eval_pairs)
 
     rep, step = naive_recipe(source, store, train_pairs, batch, seed)
     trained = 0.0

@@ -132,6 +132,19 @@ def guidance(data: dict) -> str:
     return "\n".join(lines)
 
 
+def parallax_quality(data: dict) -> str:
+    """bench_parallax_training.py --quality: held-out PSNR of the two forms of the visible-point fetch, per seed."""
+    rows = data["rows"]
+    lines = [f"Measured on {_machine(data)} by `{data['command']}` (`{data['btf']}`, {rows[0]['steps']} steps per fit).",
+             "", "| seed | compiled loops (dB) | torch operations (dB) | difference (dB) |", "|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['seed']} | {r['compiled_psnr_db']:.2f} | {r['torch_ops_psnr_db']:.2f} | "
+                     f"{r['compiled_psnr_db'] - r['torch_ops_psnr_db']:+.2f} |")
+    mean = sum(r["compiled_psnr_db"] - r["torch_ops_psnr_db"] for r in rows) / len(rows)
+    lines.append(f"| mean | | | {mean:+.2f} |")
+    return "\n".join(lines)
+
+
 def _load(name: str) -> dict:
     return json.loads((RESULTS / f"{name}.json").read_text())
 
@@ -296,7 +309,7 @@ def rendering(data: dict) -> str:
     return "\n".join(lines)
 
 
-RENDERERS = {"training": training, "budget": budget, "evaluation": evaluation, "gpu": gpu, "guided": guided,
+RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget": budget, "evaluation": evaluation, "gpu": gpu, "guided": guided,
              "guidance": guidance, "speed": speed, "rendering": rendering}
 #: Tables rendered from another table's data file (default: ``<name>.json``).
 SOURCES = {"guidance": "guided"}

@@ -26,7 +26,9 @@ def views_and_lights(groups, per_group, seed):
 
 def test_training_loss_is_the_same_with_the_compiled_table_and_with_torch_ops():
     """The model's fused training loss and its gradients (after a first step, so that the Newton step moves the
-    points) are the same, bit for bit, whichever form of the table runs."""
+    points) are the same whichever form of the table and the fetch runs: the loss to float32 rounding, each
+    gradient to 64 float32 roundings of its largest entry (the two forms sum the points that share a texel in
+    another order; ``benchmarks/bench_parallax_training.py --quality`` compares whole fits over seeds)."""
 
     def run(compiled):
         model = parallax_model()
@@ -42,9 +44,12 @@ def test_training_loss_is_the_same_with_the_compiled_table_and_with_torch_ops():
         return loss.detach(), {name: p.grad for name, p in model.named_parameters()}
 
     (loss_kernel, grads_kernel), (loss_torch, grads_torch) = run(True), run(False)
-    assert torch.equal(loss_kernel, loss_torch)
+    eps = float(torch.finfo(torch.float32).eps)
+    torch.testing.assert_close(loss_kernel, loss_torch, atol=4 * eps * float(loss_torch.abs()), rtol=0)
     for name in grads_torch:
-        assert torch.equal(grads_kernel[name], grads_torch[name]), name
+        scale = float(grads_torch[name].abs().max())
+        assert scale > 0, name  # every parameter learns in this step
+        torch.testing.assert_close(grads_kernel[name], grads_torch[name], atol=64 * eps * scale, rtol=0, msg=name)
 
 
 def test_compiled_table_marches_the_same_rays_as_visible_uv():

@@ -23,20 +23,12 @@ denominator is not differentiated).
   place of some forty small torch operations and their autograd nodes (faster per training step:
   ``benchmarks/bench_parallax_training.py`` measures both forms).
 
-The compiled loops do **torch's float32 arithmetic operation for operation**, so that a fit takes the same
-trajectory whichever form runs (a fit is chaotic: loops that summed in another order led the default 64 x 64
-fit 0.26 dB lower). That means reproducing what the torch form computes, not just what it means:
-
-* the coordinate chain of :func:`~dynbtf.texture.fetch_wrap` (wrap, scale to padded texels, normalize to
-  ``[-1, 1]``) and ``grid_sample``'s un-normalization, each rounded to float32 where torch rounds it;
-* ``grid_sample``'s CPU kernel: its bilinear sum is a chain of fused multiply-adds
-  ``fma(se_v, se, fma(sw_v, sw, fma(ne_v, ne, nw_v * nw)))`` (the compiler contracts the kernel's expression),
-  its coordinate gradient likewise, and its backward adds into the plane's gradient vector by vector of
-  :data:`TORCH_GRID_SAMPLE_LANES` points, corner by corner within a vector;
-* the gradient of the circular padding: the wrapped rows are added before the wrapped columns.
-
-``tests/test_visible_fetch.py`` checks the features and both gradients bit for bit against the torch form
-where torch runs that kernel (x86 CPUs), and to float32 rounding everywhere.
+The compiled loops compute the definition directly -- a periodic bilinear fetch in texel coordinates, its
+coordinate gradient in closed form, the gradients added point by point -- not ``grid_sample``'s padded
+coordinate chain; so the two forms agree to float32 rounding, not bit for bit. A fit is chaotic, so the
+two forms' trajectories part as two seeds' do: ``benchmarks/bench_parallax_training.py --quality`` fits
+with each over three seeds and compares their held-out PSNR. ``tests/test_visible_fetch.py`` checks the
+features and both gradients against the torch form, against float64 and against a closed form.
 
 Conventions: uv units (one plane repeat = 1) for ``points`` and ``z``; ``slope`` in uv per unit of height
 (``v`` scaled by the plane's aspect, as :func:`~dynbtf.representations.parallax.view_offsets` does).
@@ -47,19 +39,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 import torch
-from llvmlite import ir
-from numba.core import cgutils, types
-from numba.extending import intrinsic
 
 from ..texture import fetch_wrap
 
-__all__ = ["fetch_visible", "TORCH_GRID_SAMPLE_LANES"]
-
-#: Points per vector of torch's CPU ``grid_sample`` kernel (float32, the AVX2 build x86 CPUs run): its backward
-#: adds a vector's gradient into the plane corner by corner, which orders the sums of points that share a texel.
-TORCH_GRID_SAMPLE_LANES = 8
-
-_ONE, _HALF, _ZERO = np.float32(1.0), np.float32(0.5), np.float32(0.0)
+__all__ = ["fetch_visible"]
 
 
 def fetch_visible(f_u: torch.Tensor, height_channel: torch.Tensor, points: torch.Tensor, z: torch.Tensor,
@@ -133,205 +116,131 @@ class _CompiledFetch(torch.autograd.Function):
         plane[:, :channels] = f_u.detach().reshape(rows * cols, channels).numpy()
         plane[:, channels] = height_channel.detach().reshape(-1).numpy()
         points_np, slope_np = _contiguous(points), _contiguous(slope)
-        constants = _constants(rows, cols, height_scale)
         n = len(points_np)
         out = np.empty((n, channels + 1), dtype=np.float32)
-        denominator = np.empty(n, dtype=np.float32)
-        footprints = (np.empty((n, 2), dtype=np.int64), np.empty((n, 4), dtype=np.int64),
-                      np.empty((n, 8), dtype=np.float32), np.empty((n, 4), dtype=np.float32))
-        _forward(plane, rows, cols, points_np, _contiguous(z), slope_np, *constants, out, denominator, *footprints)
+        footprints = (np.empty((n, 8), dtype=np.int64), np.empty((n, 4), dtype=np.float32),
+                      np.empty((n, 2), dtype=np.float32), np.empty(n, dtype=np.float32))
+        _forward(plane, rows, cols, points_np, _contiguous(z), slope_np, np.float32(_half_texel(rows, cols)),
+                 np.float32(height_scale), out, *footprints)
         ctx.shape = (rows, cols, channels)
-        ctx.arrays = (plane, slope_np, denominator, footprints, constants)
+        ctx.arrays = (plane, slope_np, footprints, np.float32(height_scale))
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad_out):
-        plane, slope, denominator, footprints, constants = ctx.arrays
+        plane, slope, footprints, height_scale = ctx.arrays
         rows, cols, channels = ctx.shape
-        grad_f_u = np.empty((rows, cols, channels), dtype=np.float32)
-        grad_height = np.empty((rows, cols), dtype=np.float32)
-        _backward(plane, rows, cols, slope, denominator, *footprints, *constants, _contiguous(grad_out),
-                  grad_f_u, grad_height)
-        return torch.from_numpy(grad_f_u), torch.from_numpy(grad_height), None, None, None, None
+        grad_plane = np.zeros((rows * cols, channels + 1), dtype=np.float32)
+        grad_along_height = np.zeros(rows * cols, dtype=np.float32)
+        _backward(plane, rows, cols, slope, *footprints, height_scale, _contiguous(grad_out), grad_plane,
+                  grad_along_height)
+        grad_f_u = torch.from_numpy(grad_plane[:, :channels].reshape(rows, cols, channels).copy())
+        grad_height = torch.from_numpy((grad_plane[:, channels] + grad_along_height).reshape(rows, cols))
+        return grad_f_u, grad_height, None, None, None, None
 
 
 def _contiguous(tensor: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(tensor.detach().numpy(), dtype=np.float32)
 
 
-def _constants(rows: int, cols: int, height_scale: float) -> tuple:
-    """The float32 constants torch rounds: per axis (u, then v) the scale from ``[0, 1)`` to padded texels,
-    ``fetch_wrap``'s normalization ``2 / (padded - 1)`` and ``grid_sample``'s ``(padded - 1) / 2``; then
-    ``eps``, ``2 eps`` and ``height_scale``."""
-    eps = _half_texel(rows, cols)
-    return (np.float32(cols), np.float32(2.0 / (cols + 1)), np.float32(cols + 1) / np.float32(2),
-            np.float32(rows), np.float32(2.0 / (rows + 1)), np.float32(rows + 1) / np.float32(2),
-            np.float32(eps), np.float32(2 * eps), np.float32(height_scale))
-
-
 # ---------------------------------------------------------------------------- compiled loops
-@intrinsic
-def _fma(typingctx, a, b, c):
-    """``a * b + c`` rounded once (float32), as the contracted ``grid_sample`` kernel computes it."""
-    signature = types.float32(types.float32, types.float32, types.float32)
-
-    def codegen(context, builder, sig, args):
-        function = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.FloatType(), [ir.FloatType()] * 3),
-                                                  "llvm.fma.f32")
-        return builder.call(function, args)
-
-    return signature, codegen
+_ONE, _HALF = np.float32(1.0), np.float32(0.5)
 
 
 @numba.njit(inline="always")
-def _axis(p, size, to_grid, half_span):
-    """One axis of ``fetch_wrap`` at ``p`` (float32) through ``grid_sample``: the padded texel ``index`` left of
-    the point (texel ``j`` of the plane is padded texel ``j + 1``), the fraction ``t`` past it, and the
-    gradient multiplier of ``grid_sample``'s clipped, un-normalized coordinate."""
-    wrapped = p - np.floor(p)  # wrap_uv
-    if wrapped >= _ONE:
+def _axis(p, count):
+    """One axis of the periodic bilinear fetch at ``p`` (float32, uv units; texel ``j``'s centre at
+    ``(j + 0.5) / count``): the texels left and right of the point (wrapped) and the fraction past the left."""
+    wrapped = p - np.floor(p)
+    if wrapped >= _ONE:  # a tiny negative p rounds to 1
         wrapped = wrapped - _ONE
-    grid = (wrapped * size + _HALF) * to_grid - _ONE  # padded texels, then [-1, 1] (each op rounded)
-    x = (grid + _ONE) * half_span  # grid_sample's un-normalization (align_corners), clipped to the border
-    low = max(x, _ZERO)
-    top = (half_span + half_span)
-    x = min(low, top)
-    multiplier = half_span if (low != _ZERO and x != top) else _ZERO
-    index = np.floor(x)
-    return int(index), x - index, multiplier
+    x = wrapped * np.float32(count) - _HALF  # texels, in [-0.5, count - 0.5)
+    left = np.floor(x)
+    low = int(left)
+    high = low + 1
+    if low < 0:
+        low += count
+    if high == count:
+        high = 0
+    return low, high, x - left
 
 
 @numba.njit(inline="always")
-def _bilinear(rows, cols, x, y, constants):
-    """``grid_sample``'s bilinear footprint at uv ``(x, y)``: the plane's four texels (flat indices
-    ``north_west, north_east, south_west, south_east``), their weights, the padded texel of the north-west
-    corner ``(iy, jx)``, the fractions ``(ty, tx)`` and the coordinate-gradient multipliers ``(my, mx)``."""
-    jx, tx, mx = _axis(x, constants[0], constants[1], constants[2])
-    iy, ty, my = _axis(y, constants[3], constants[4], constants[5])
-    j0, j1, i0, i1 = _texel(jx, cols), _texel(jx + 1, cols), _texel(iy, rows), _texel(iy + 1, rows)
-    east, south = _ONE - tx, _ONE - ty
-    texels = (i0 * cols + j0, i0 * cols + j1, i1 * cols + j0, i1 * cols + j1)
-    weights = (south * east, south * tx, ty * east, ty * tx)
-    return texels, weights, iy, jx, ty, tx, my, mx
+def _footprint(rows, cols, x, y):
+    """The bilinear footprint at uv ``(x, y)``: the four texels' flat indices (north-west, north-east,
+    south-west, south-east) and the fractions ``tx, ty``."""
+    j0, j1, tx = _axis(x, cols)
+    i0, i1, ty = _axis(y, rows)
+    return (i0 * cols + j0, i0 * cols + j1, i1 * cols + j0, i1 * cols + j1), tx, ty
 
 
 @numba.njit(inline="always")
-def _texel(padded, count):
-    """The plane's texel of padded texel ``padded`` (``0 .. count + 1``, wrapped)."""
-    index = padded - 1
-    if index < 0:
-        return count - 1
-    if index >= count:
-        return 0
-    return index
+def _weights(tx, ty):
+    return (_ONE - tx) * (_ONE - ty), tx * (_ONE - ty), (_ONE - tx) * ty, tx * ty
 
 
 @numba.njit(inline="always")
 def _interpolate(plane, texels, weights, channel):
-    """``grid_sample``'s bilinear sum of one channel (its fused multiply-adds, in its order)."""
-    return _fma(plane[texels[3], channel], weights[3],
-                _fma(plane[texels[2], channel], weights[2],
-                     _fma(plane[texels[1], channel], weights[1], plane[texels[0], channel] * weights[0])))
+    return (weights[0] * plane[texels[0], channel] + weights[1] * plane[texels[1], channel]
+            + weights[2] * plane[texels[2], channel] + weights[3] * plane[texels[3], channel])
 
 
 @numba.njit(inline="always")
-def _height(height, rows, cols, x, y, constants):
-    texels, weights, _, _, _, _, _, _ = _bilinear(rows, cols, x, y, constants)
-    return _interpolate(height, texels, weights, 0)
+def _height(plane, rows, cols, x, y, channel, height_scale):
+    texels, tx, ty = _footprint(rows, cols, x, y)
+    return _interpolate(plane, texels, _weights(tx, ty), channel) * height_scale
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _forward(plane, rows, cols, points, z, slope, size_u, to_grid_u, half_u, size_v, to_grid_v, half_v, eps, two_eps,
-             height_scale, out, denominator, cells, texels, weights, terms):  # pragma: no cover - compiled
+def _forward(plane, rows, cols, points, z, slope, eps, height_scale, out, texels, p_weights, q_fractions,
+             denominator):  # pragma: no cover - compiled
     """The features ``out (N, C)`` at the points after the Newton step, from ``plane (rows * cols, C)`` float32
-    (the height channel last). Writes for the backward the denominators and the footprints (:func:`_bilinear`) of
-    the fetch at ``q`` and of the height's at ``p``: ``cells (N, 2)`` their padded north-west cells (``q``, ``p``),
-    ``texels (N, 4)`` and ``weights[:, :4]`` ``q``'s, ``weights[:, 4:]`` ``p``'s, ``terms (N, 4)`` ``q``'s
-    ``(ty, tx, my, mx)``."""
-    constants = (size_u, to_grid_u, half_u, size_v, to_grid_v, half_v)
+    (the height channel last). Writes for the backward each point's footprints: ``texels (N, 8)`` the fetch's at
+    ``q`` then the height's at ``p``, ``p_weights (N, 4)``, ``q_fractions (N, 2)`` (``tx, ty``) and the Newton
+    step's ``denominator (N,)``."""
     last = plane.shape[1] - 1
-    height = np.empty((plane.shape[0], 1), dtype=np.float32)  # uv units: height_channel * height_scale
-    for r in range(plane.shape[0]):
-        height[r, 0] = plane[r, last] * height_scale
     for n in range(points.shape[0]):
         px, py, sx, sy = points[n, 0], points[n, 1], slope[n, 0], slope[n, 1]
         ex, ey = sx * eps, sy * eps
-        along = (_height(height, rows, cols, px + ex, py + ey, constants)
-                 - _height(height, rows, cols, px - ex, py - ey, constants))
-        d = max(_ONE - along / two_eps, np.float32(0.25))
-        at_p, p_weights, iy, jx, _, _, _, _ = _bilinear(rows, cols, px, py, constants)
-        dz = (_interpolate(height, at_p, p_weights, 0) - z[n]) / d
-        qx, qy = px + dz * sx, py + dz * sy
-        at_q, q_weights, qiy, qjx, ty, tx, my, mx = _bilinear(rows, cols, qx, qy, constants)
+        along = (_height(plane, rows, cols, px + ex, py + ey, last, height_scale)
+                 - _height(plane, rows, cols, px - ex, py - ey, last, height_scale))
+        d = max(_ONE - along / (eps + eps), np.float32(0.25))
+        at_p, tx, ty = _footprint(rows, cols, px, py)
+        weights_p = _weights(tx, ty)
+        dz = (_interpolate(plane, at_p, weights_p, last) * height_scale - z[n]) / d
+        at_q, tx, ty = _footprint(rows, cols, px + dz * sx, py + dz * sy)
+        weights_q = _weights(tx, ty)
         for k in range(last + 1):
-            out[n, k] = _interpolate(plane, at_q, q_weights, k)
+            out[n, k] = _interpolate(plane, at_q, weights_q, k)
+        for c in range(4):
+            texels[n, c], texels[n, 4 + c], p_weights[n, c] = at_q[c], at_p[c], weights_p[c]
+        q_fractions[n, 0], q_fractions[n, 1] = tx, ty
         denominator[n] = d
-        cells[n, 0], cells[n, 1] = qiy * (cols + 2) + qjx, iy * (cols + 2) + jx
-        for c in range(4):
-            texels[n, c], weights[n, c], weights[n, 4 + c] = at_q[c], q_weights[c], p_weights[c]
-        terms[n, 0], terms[n, 1], terms[n, 2], terms[n, 3] = ty, tx, my, mx
-
-
-@numba.njit(inline="always")
-def _scatter(grad, cols, cells, weights, grad_out):
-    """Add ``weights[n, c] * grad_out[n, k]`` into the padded gradient ``grad`` at each point's four corners, as
-    ``grid_sample``'s backward does: vector by vector of points, corner by corner within a vector."""
-    offsets = (0, 1, cols + 2, cols + 3)  # north-west, north-east, south-west, south-east
-    lanes = TORCH_GRID_SAMPLE_LANES
-    for start in range(0, cells.shape[0], lanes):
-        for c in range(4):
-            for n in range(start, min(start + lanes, cells.shape[0])):
-                cell, weight = cells[n] + offsets[c], weights[n, c]
-                for k in range(grad.shape[1]):
-                    grad[cell, k] += weight * grad_out[n, k]
-
-
-@numba.njit(inline="always")
-def _unpad(grad, rows, cols, k):
-    """The circular padding's gradient (channel ``k`` of ``grad ((rows + 2) * (cols + 2), C)``), in place: the
-    wrapped rows added first, then the wrapped columns; the plane's gradient is the interior."""
-    padded_cols = cols + 2
-    for j in range(padded_cols):
-        grad[padded_cols + j, k] += grad[(rows + 1) * padded_cols + j, k]
-        grad[rows * padded_cols + j, k] += grad[j, k]
-    for i in range(1, rows + 1):
-        grad[i * padded_cols + 1, k] += grad[i * padded_cols + cols + 1, k]
-        grad[i * padded_cols + cols, k] += grad[i * padded_cols, k]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _backward(plane, rows, cols, slope, denominator, cells, texels, weights, terms, size_u, to_grid_u, half_u, size_v,
-              to_grid_v, half_v, eps, two_eps, height_scale, grad_out, grad_f_u, grad_height):  # pragma: no cover
-    """The gradients of ``sum(grad_out * out)``: ``grad_f_u (rows, cols, C - 1)`` and ``grad_height (rows, cols)``
-    (channel units: through the fetch and through ``dz``), from :func:`_forward`'s footprints."""
+def _backward(plane, rows, cols, slope, texels, p_weights, q_fractions, denominator, height_scale, grad_out,
+              grad_plane, grad_along_height):  # pragma: no cover - compiled
+    """The gradients of ``sum(grad_out * out)``: into ``grad_plane (rows * cols, C)`` through the fetch at ``q``
+    and into ``grad_along_height (rows * cols,)`` (channel units) through ``dz``, from :func:`_forward`'s
+    footprints. ``q = p + dz s`` with ``dz = (h(p) - z) / denominator`` (the denominator held constant)."""
     channels = plane.shape[1]
-    n_points = slope.shape[0]
-    padded = (rows + 2) * (cols + 2)
-    grad_plane = np.zeros((padded, channels), dtype=np.float32)
-    grad_along_height = np.zeros((padded, 1), dtype=np.float32)
-    grad_h = np.empty((n_points, 1), dtype=np.float32)  # d loss / d h(p)
-    _scatter(grad_plane, cols, cells[:, 0], weights[:, :4], grad_out)
-    for n in range(n_points):  # grid_sample's coordinate gradient, then back through fetch_wrap and q = p + dz s
-        ty, tx, my, mx = terms[n, 0], terms[n, 1], terms[n, 2], terms[n, 3]
-        east, south = _ONE - tx, _ONE - ty
-        gx, gy = _ZERO, _ZERO
+    for n in range(slope.shape[0]):
+        tx, ty = q_fractions[n, 0], q_fractions[n, 1]
+        weights = _weights(tx, ty)
+        nw_, ne_, sw_, se_ = texels[n, 0], texels[n, 1], texels[n, 2], texels[n, 3]
+        gx = np.float32(0.0)  # d loss / d (q in texels)
+        gy = np.float32(0.0)
         for k in range(channels):
-            nw, ne = plane[texels[n, 0], k], plane[texels[n, 1], k]
-            sw, se = plane[texels[n, 2], k], plane[texels[n, 3], k]
             g = grad_out[n, k]
-            gx = _fma(_fma(se - sw, ty, (ne - nw) * south), g, gx)
-            gy = _fma(_fma(se - ne, tx, (sw - nw) * east), g, gy)
-        grad_u = ((gx * mx) * to_grid_u) * size_u
-        grad_v = ((gy * my) * to_grid_v) * size_v
-        grad_h[n, 0] = (grad_u * slope[n, 0] + grad_v * slope[n, 1]) / denominator[n]
-    _scatter(grad_along_height, cols, cells[:, 1], weights[:, 4:], grad_h)
-    for k in range(channels):
-        _unpad(grad_plane, rows, cols, k)
-    _unpad(grad_along_height, rows, cols, 0)
-    last = channels - 1
-    for i in range(rows):
-        for j in range(cols):
-            cell = (i + 1) * (cols + 2) + j + 1
-            for k in range(last):
-                grad_f_u[i, j, k] = grad_plane[cell, k]
-            grad_height[i, j] = grad_plane[cell, last] + grad_along_height[cell, 0] * height_scale
+            grad_plane[nw_, k] += weights[0] * g
+            grad_plane[ne_, k] += weights[1] * g
+            grad_plane[sw_, k] += weights[2] * g
+            grad_plane[se_, k] += weights[3] * g
+            nw, ne, sw, se = plane[nw_, k], plane[ne_, k], plane[sw_, k], plane[se_, k]
+            gx += g * ((ne - nw) * (_ONE - ty) + (se - sw) * ty)
+            gy += g * ((sw - nw) * (_ONE - tx) + (se - ne) * tx)
+        grad_dz = gx * np.float32(cols) * slope[n, 0] + gy * np.float32(rows) * slope[n, 1]  # texels per uv
+        grad_h = grad_dz / denominator[n] * height_scale  # d loss / d height channel at p
+        for c in range(4):
+            grad_along_height[texels[n, 4 + c]] += p_weights[n, c] * grad_h
