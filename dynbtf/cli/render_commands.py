@@ -39,8 +39,22 @@ def render(
                                                                         "squared x min(--spp, 4)); default half of "
                                                                         "this machine's memory. Larger requests are "
                                                                         "refused up front."),
+    layer: Optional[Path] = typer.Option(None, "--layer", help="A second material (model file or .dbtfc) layered "
+                                         "with MODEL: MODEL where --mask is below one half, this one above "
+                                         "(same method and scale; the boundary follows both materials' heights)."),
+    mask: str = typer.Option("noise", "--mask", help="With --layer: an image file (PNG/JPEG grey levels or EXR "
+                             "values in [0, 1]) over the mesh's uv, or noise:SCALE[,CONTRAST[,SEED]] (value noise, "
+                             "cells of SCALE uv units)."),
+    mask_size: float = typer.Option(1.0, "--mask-size", help="Mesh uv units a mask image covers."),
+    mask_wrap: str = typer.Option("repeat", "--mask-wrap", help="A mask image repeats (repeat) or extends its "
+                                  "edges (clamp)."),
+    width: float = typer.Option(0.05, "--width", help="With --layer: half-width (mesh uv units) of the band "
+                                "around the mask's contour where the materials' heights decide."),
 ) -> None:
     """Path-trace a scene covered by the synthesized BTF with Mitsuba 3 (decoder inside the kernel).
+
+    With --layer, two materials share the surface (the dynbtf_layered plugin): MODEL where --mask is below one
+    half, the --layer one above, the boundary following both materials' heights within --width.
 
     The first pass compiles the rendering kernel (up to a minute the first time a model, method and
     shape are rendered; Dr.Jit caches it): a status line says so, then a bar counts samples.
@@ -60,9 +74,17 @@ def render(
     if size < 1:
         raise InputError(f"--size: expected a positive number of pixels, got {size}")
     check_render_request(scale=scale, resolution=(size, size), spp=spp, memory_mb=memory_mb, size_name="size")
+    the_mask = None
+    if layer is not None:
+        from ..errors import positive_number
+        from ..layered import mask_from_spec
+
+        positive_number("--width", width, "uv units")
+        the_mask = mask_from_spec(mask, size=mask_size, wrap=mask_wrap)
     result = render_scene(model, scene=scene, method=method, scale=scale, seed=seed, lighting=lighting,
                           resolution=(size, size), spp=spp, variant=variant, progress=True, sampling=sampling,
-                          filtered=filtered, echo=typer.echo, memory_mb=memory_mb)
+                          filtered=filtered, echo=typer.echo, memory_mb=memory_mb, layer=layer, mask=the_mask,
+                          width=width)
     save_image(output, result.image, exposure=exposure)
     timing = (f"incl. {result.compile_seconds:.1f} s kernel compilation" if result.passes > 1
               else "one pass, kernel compilation included")

@@ -83,6 +83,8 @@ class PluginParameter:
         What a required parameter is, for the error naming it (empty: optional).
     shown_default : str
         The default as documented, where it is not the value itself (e.g. ``scale``, or ``0`` for ``0.0``).
+    plugin : str
+        The plugin the parameter belongs to, as its errors name it (``dynbtf``, ``dynbtf_layered``).
     """
 
     name: str
@@ -94,13 +96,14 @@ class PluginParameter:
     attribute: str = ""
     required: str = ""
     shown_default: str = ""
+    plugin: str = "dynbtf"
 
     def read(self, props, parsed: dict[str, Any]) -> Any:
         """The parameter's value in Mitsuba ``props`` (converted, checked), given the parameters ``parsed`` so far."""
         if props.has_property(self.name):
             value = _CONVERTERS[self.type](props[self.name])
         elif self.required:
-            raise InputError(f"dynbtf BSDF: parameter '{self.name}' ({self.required}) is required")
+            raise InputError(f"{self.plugin} BSDF: parameter '{self.name}' ({self.required}) is required")
         else:
             value = self.default(parsed) if callable(self.default) else self.default
         return self.check(self.name, value) if self.check is not None else value
@@ -253,9 +256,10 @@ def read_parameters(props) -> dict[str, Any]:
     return parsed
 
 
-def _rst_parameter_rows() -> str:
+def rst_parameter_rows(parameters) -> str:
+    """The rows of a plugin reference's parameter table (reStructuredText ``list-table``) for ``parameters``."""
     rows = []
-    for p in PARAMETERS:
+    for p in parameters:
         description = "\n       ".join(p.doc.splitlines())
         rows.append(f"   * - ``{p.name}``\n     - {p.type}\n     - {description}\n     - {p.default_text()}\n")
     return "".join(rows)
@@ -337,7 +341,7 @@ limitation, not a synthesis one).
 """
 
 #: The plugin's reference page (the class docstring of the BSDF); its parameter table comes from :data:`PARAMETERS`.
-PLUGIN_DOC = _DOC_HEAD + _rst_parameter_rows() + "\n" + _DOC_TAIL
+PLUGIN_DOC = _DOC_HEAD + rst_parameter_rows(PARAMETERS) + "\n" + _DOC_TAIL
 
 
 def configure_jit() -> None:
@@ -798,7 +802,8 @@ _REGISTERED: set[str] = set()
 
 
 def register_plugin(variant: str | None = None) -> str:
-    """Register the ``dynbtf`` BSDF with Mitsuba (idempotent per variant).
+    """Register the ``dynbtf`` BSDF and the ``dynbtf_layered`` one (:mod:`.layered_bsdf`) with Mitsuba
+    (idempotent per variant).
 
     Also calls :func:`configure_jit`, which changes Dr.Jit's flags for the
     calling thread (see "Dr.Jit flags" in :data:`PLUGIN_DOC`).
@@ -835,5 +840,10 @@ def register_plugin(variant: str | None = None) -> str:
     if active not in _REGISTERED:
         cls = _build_class(mi)
         mi.register_bsdf("dynbtf", lambda props: cls(props))
+        from .layered_bsdf import build_layered_class, build_noise_class
+
+        layered, noise = build_layered_class(mi), build_noise_class(mi)
+        mi.register_bsdf("dynbtf_layered", lambda props: layered(props))
+        mi.register_texture("dynbtf_noise", lambda props: noise(props))
         _REGISTERED.add(active)
     return active

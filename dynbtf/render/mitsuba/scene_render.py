@@ -69,8 +69,9 @@ class RenderResult:
     pass, which includes tracing and compiling the kernel (or loading it from
     Dr.Jit's cache). ``compile_seconds``: the first pass's extra time over the
     mean of the later passes, 0 when there is only one pass (nothing to compare).
-    ``method``: the synthesis method the plugin ran (``auto`` resolved); ``choice_line``:
-    what ``auto`` chose and why (:attr:`dynbtf.synthesis.auto.MethodChoice.line`), else None.
+    ``method``: the synthesis method the plugin ran (``auto`` resolved; a layered render's two, ``"a | b"``);
+    ``choice_line``: what ``auto`` chose and why (:attr:`dynbtf.synthesis.auto.MethodChoice.line`; a line per
+    material), else None.
     """
 
     image: np.ndarray
@@ -101,7 +102,8 @@ def _wanted_variant(variant: str | None) -> str:
 def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METHOD, scale: float = 25.0,
                  seed: int = 0, lighting: str = "sky", resolution=(512, 512), spp: int = 16, spp_per_pass: int = 4,
                  variant: str | None = None, progress: bool = True, sampling: str = "auto",
-                 filtered: bool = True, echo=None, memory_mb: float | None = None) -> RenderResult:
+                 filtered: bool = True, echo=None, memory_mb: float | None = None, layer=None, mask=None,
+                 width: float = 0.05, softness: float = 0.0) -> RenderResult:
     """Path-trace ``scene`` covered by the synthesized BTF of ``model_path``.
 
     Every argument is checked before Mitsuba loads anything, so a mistake raises
@@ -153,6 +155,16 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     memory_mb : float, optional
         Limit of the estimated working memory (:func:`render_memory_bytes`), MB; default half the
         machine's memory. Also: at most :data:`MAX_SPP` samples per pixel, :data:`MAX_SAMPLES` in all.
+    layer : path, optional
+        A second material layered with ``model_path`` (the ``dynbtf_layered`` plugin,
+        :mod:`dynbtf.render.mitsuba.layered_bsdf`, which evaluates :class:`dynbtf.layered.LayeredBTF`):
+        ``model_path`` where ``mask`` is below one half, ``layer`` above, both with ``method``, ``scale``
+        and ``seed`` (``auto`` resolved for each).
+    mask : ImageMask or NoiseMask, optional
+        With ``layer``: the mask over the mesh's uv (default :class:`~dynbtf.layered.NoiseMask` ``()``).
+    width, softness : float
+        With ``layer``: the boundary band's half-width (mesh uv units) and the height difference over which
+        the layers blend inside it (:class:`~dynbtf.layered.LayeredBTF`).
 
     Returns
     -------
@@ -160,26 +172,48 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     """
     scale, spp, spp_per_pass = _check_request(scene, lighting, method, scale, resolution, spp, spp_per_pass,
                                               sampling, memory_mb)
-    model = load_plugin_model(model_path)  # a missing/damaged file or an unsupported kind fails here, not in Mitsuba
-    from ...material import CompiledMaterial
+    if layer is not None:
+        _check_layering(width, softness)
+    elif mask is not None:
+        raise InputError("mask: layers two materials; give the second one (layer / --layer) too")
+    paths = [model_path] if layer is None else [model_path, layer]
+    models = []
+    for path in paths:
+        model = load_plugin_model(path)  # a missing/damaged file or an unsupported kind fails here, not in Mitsuba
+        from ...material import CompiledMaterial
 
-    if isinstance(model, CompiledMaterial):  # its method and seed, checked here rather than inside Mitsuba
-        if method not in ("auto", model.method) or seed not in (0, model.seed):
-            raise InputError(f"{model_path}: a compiled material fixes method {model.method!r} and seed {model.seed}; "
-                             "leave --method and --seed at their defaults, or render the model file")
+        if isinstance(model, CompiledMaterial):  # its method and seed, checked here rather than inside Mitsuba
+            if method not in ("auto", model.method) or seed not in (0, model.seed):
+                raise InputError(f"{path}: a compiled material fixes method {model.method!r} and seed {model.seed}; "
+                                 "leave --method and --seed at their defaults, or render the model file")
+        models.append(model)
     check_llvm(_wanted_variant(variant))  # an old LLVM aborts the process while compiling: refused before
     active = register_plugin(variant)
-    choice_line = None
-    if method == "auto":  # resolved here (the plugin then runs the named method and reports nothing)
-        method, choice_line = resolve_auto(model, seed)
-        if echo is not None:
-            echo(choice_line)
-        else:
-            _status(progress, choice_line)
+    methods, lines = [], []
+    for model in models:
+        chosen = method
+        if method == "auto":  # resolved here (the plugin then runs the named method and reports nothing)
+            chosen, line = resolve_auto(model, seed)
+            lines.append(line)
+            if echo is not None:
+                echo(line)
+            else:
+                _status(progress, line)
+        methods.append(chosen)
+    choice_line = "\n".join(lines) if lines else None
     from .drjit_ops import mi_module
 
-    material = {**bsdf_dict(model_path, method=method, scale=scale, seed=seed, sampling=sampling),
-                "filtered": bool(filtered)}
+    materials = [{**bsdf_dict(path, method=m, scale=scale, seed=seed, sampling=sampling), "filtered": bool(filtered)}
+                 for path, m in zip(paths, methods)]
+    material = materials[0]
+    if layer is not None:
+        from ...layered import NoiseMask
+        from .layered_bsdf import mask_texture_dict
+
+        material = {"type": "dynbtf_layered", "layer0": materials[0], "layer1": materials[1],
+                    "mask": mask_texture_dict(NoiseMask() if mask is None else mask), "width": float(width),
+                    "softness": float(softness)}
+    method = " | ".join(methods)
     scene_obj = mi_module().load_dict(scene_dict(scene, material, lighting=lighting, resolution=resolution,
                                                  spp=min(spp, spp_per_pass), footprint_spp=spp))
     image, timing = _render_passes(scene_obj, spp, spp_per_pass, f"render {scene}/{lighting}/{method}", progress)
@@ -208,6 +242,15 @@ def _check_request(scene, lighting, method, scale, resolution, spp, spp_per_pass
     if sampling not in SAMPLING_MODES:
         raise InputError(f"--sampling: expected one of {list(SAMPLING_MODES)}, got {sampling!r}")
     return scale, int(spp), int(spp_per_pass)
+
+
+def _check_layering(width, softness) -> None:
+    """A layered render's band (:class:`dynbtf.layered.LayeredBTF`'s parameters), checked before anything loads."""
+    from ...errors import positive_number
+
+    positive_number("--width", width, "uv units")
+    if not (math.isfinite(float(softness)) and float(softness) >= 0.0):
+        raise InputError(f"softness: expected a height difference >= 0, got {softness!r}")
 
 
 def resolve_auto(model, seed: int = 0) -> tuple[str, str]:

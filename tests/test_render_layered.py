@@ -1,0 +1,207 @@
+"""The ``dynbtf_layered`` Mitsuba plugin: LayeredBTF's numbers inside the kernel, sampling of the mix, the noise
+mask texture, and ``dynbtf render --layer``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+mi = pytest.importorskip("mitsuba")
+dr = pytest.importorskip("drjit")
+
+from test_render_mitsuba import _plugin_eval, _random_queries  # noqa: E402
+
+pytestmark = pytest.mark.mitsuba
+
+VARIANT = "llvm_ad_rgb"
+SCALE = 5.0
+
+
+@pytest.fixture(scope="module")
+def variant():
+    from dynbtf.render.mitsuba.bsdf import plugin_variants, register_plugin
+
+    if VARIANT not in plugin_variants():  # pragma: no cover - not built, or no LLVM on this machine
+        pytest.skip(f"Mitsuba variant {VARIANT} not usable here")
+    register_plugin(VARIANT)
+    return VARIANT
+
+
+@pytest.fixture(scope="module")
+def layer_files(tmp_path_factory):
+    """Two small random Triple Planes (one brighter than the other) saved to disk."""
+    from dynbtf.representations.model_file import save_model
+    from dynbtf.representations.triple_plane import TriplePlane
+
+    folder = tmp_path_factory.mktemp("layers")
+    out = []
+    for seed, lift in ((5, 0.6), (6, 0.2)):
+        model = TriplePlane(24, 20, positional_channels=6, angular_channels=3, hidden=12, seed=seed)
+        with torch.no_grad():
+            model.decoder.rest[-1].bias.add_(lift)
+        path = folder / f"layer{seed}.dbtfm"
+        save_model(path, model)
+        out.append((path, model))
+    return out
+
+
+def _layered_plugin(layer_files, mask, *, width=0.2, softness=0.0, methods=("hist", "hex"), sampling="cosine"):
+    from dynbtf.render.mitsuba.layered_bsdf import mask_texture_dict
+
+    layers = {f"layer{k}": {"type": "dynbtf", "filename": str(path), "method": method, "scale": SCALE,
+                            "sampling": sampling, "filtered": False}
+              for k, ((path, _), method) in enumerate(zip(layer_files, methods))}
+    return mi.load_dict({"type": "dynbtf_layered", "width": width, "softness": softness,
+                         "mask": mask_texture_dict(mask), **layers})
+
+
+def _layered_reference(layer_files, mask, *, width=0.2, softness=0.0, methods=("hist", "hex")):
+    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.layered import LayeredBTF
+
+    layers = [SynthesizedBTF(model, method, scale=SCALE) for (_, model), method in zip(layer_files, methods)]
+    return LayeredBTF(layers, mask, width=width, softness=softness)
+
+
+@pytest.mark.parametrize("softness", [0.0, 0.3])
+def test_layered_plugin_eval_is_layered_btf(variant, layer_files, softness):
+    """The plugin's eval equals LayeredBTF.eval / pi * cos at random queries over a random painted mask, with many
+    points inside the band (where the heights, not the mask alone, choose) and, with softness, blended ones."""
+    from dynbtf.layered import ImageMask
+
+    rng = np.random.default_rng(0)
+    mask = ImageMask(rng.random((6, 9)), size=3.0, wrap="repeat")
+    bsdf = _layered_plugin(layer_files, mask, softness=softness)
+    reference = _layered_reference(layer_files, mask, softness=softness)
+    uv, wv, wl = _random_queries(3000, seed=1, uv_range=8.0)
+    got = _plugin_eval(bsdf, uv, wv, wl, 1.0)
+    expected = reference.eval(uv.astype(np.float64), wv, wl) / np.pi * wl[:, 2:3]
+    weight = reference.weight(uv.astype(np.float64))
+    by_mask = (mask.value(uv.astype(np.float64)) > 0.5).astype(np.float64)
+    assert np.mean(weight != by_mask) > 0.05  # the heights decide at many points
+    if softness > 0:
+        assert np.mean((weight > 0) & (weight < 1)) > 0.02  # and some points blend the two
+    assert np.abs(expected).max() > 0.05
+    np.testing.assert_allclose(got, expected, rtol=0, atol=2e-4 * max(1.0, np.abs(expected).max()))
+
+
+def test_noise_mask_texture_is_noise_mask(variant):
+    """dynbtf_noise's value and gradient equal NoiseMask's, far from the origin too."""
+    from dynbtf.layered import NoiseMask
+    from dynbtf.render.mitsuba.layered_bsdf import mask_texture_dict
+
+    noise = NoiseMask(scale=0.7, contrast=2.5, seed=3)
+    texture = mi.load_dict(mask_texture_dict(noise))
+    rng = np.random.default_rng(2)
+    uv = np.concatenate([rng.random((2000, 2)) * 6 - 3, rng.random((500, 2)) * 4 + 3000.0]).astype(np.float32)
+    si = dr.zeros(mi.SurfaceInteraction3f, len(uv))
+    si.uv = mi.Point2f(mi.Float(uv[:, 0]), mi.Float(uv[:, 1]))
+    value, gradient = noise.value_and_gradient(uv.astype(np.float64))
+    np.testing.assert_allclose(np.array(texture.eval_1(si)), value, rtol=0, atol=2e-5)
+    got = np.array(texture.eval_1_grad(si))
+    got = got.T if got.shape[0] == 2 else got
+    np.testing.assert_allclose(got, gradient, rtol=0, atol=2e-4 * max(1.0, np.abs(gradient).max()))
+    assert 0.1 < np.mean(value > 0.5) < 0.9 and np.abs(gradient).max() > 0.5
+
+
+def test_layered_sampling_draws_the_mixture_and_weight_is_eval_over_pdf(variant, layer_files):
+    """Inside the band the pdf is the layers' mixture (chi-square test against it), and sample's weight is
+    eval / pdf."""
+    from mitsuba.chi2 import ChiSquareTest, SphericalDomain
+
+    from dynbtf.layered import ImageMask
+
+    mask = ImageMask(np.array([[0.0, 1.0]]), size=2.0, wrap="clamp")  # the contour at u = 1
+    bsdf = _layered_plugin(layer_files, mask, width=0.5, softness=0.5)
+    m = 4096
+    rng = np.random.default_rng(3)
+    si = dr.zeros(mi.SurfaceInteraction3f, m)
+    si.wi = dr.normalize(mi.Vector3f(0.3, -0.2, 0.9))
+    si.uv = mi.Point2f(mi.Float(0.9 + 0.2 * rng.random(m)), mi.Float(rng.random(m)))  # inside the band
+    si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
+    si.dp_du, si.dp_dv = mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0)
+    bs, weight = bsdf.sample(mi.BSDFContext(), si, mi.Float(rng.random(m)),
+                             mi.Point2f(mi.Float(rng.random(m)), mi.Float(rng.random(m))))
+    ev, pd = bsdf.eval_pdf(mi.BSDFContext(), si, bs.wo)
+    ev, pd, w = np.array(ev), np.array(pd), np.array(weight)
+    ev, w = (ev.T if ev.shape[0] == 3 else ev), (w.T if w.shape[0] == 3 else w)
+    np.testing.assert_allclose(np.array(bs.pdf), pd, rtol=1e-5, atol=1e-7)
+    ok = pd > 1e-3
+    assert ok.mean() > 0.9
+    np.testing.assert_allclose(w[ok], ev[ok] / pd[ok][:, None], rtol=1e-4, atol=1e-6)
+
+    # the density sample() draws is pdf(), at a point on the contour (layer 1's weight strictly between 0 and 1)
+    tiles = _layered_plugin(layer_files, mask, width=0.5, softness=0.5, methods=("tile", "tile"))
+    wi = dr.normalize(mi.ScalarVector3f(0.3, -0.2, 0.9))
+
+    def at_contour(n):
+        si = dr.zeros(mi.SurfaceInteraction3f, n)
+        si.wi, si.uv = wi, mi.Point2f(1.0, 0.5)
+        si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
+        si.dp_du, si.dp_dv = mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0)
+        return si
+
+    def sample_func(sample, *args):
+        bs, weight = tiles.sample(mi.BSDFContext(), at_contour(dr.width(sample)), sample[0],
+                                  mi.Vector2f(sample[1], sample[2]))
+        return bs.wo, dr.select(dr.all(weight == 0), 0.0, 1.0)
+
+    def pdf_func(wo, *args):
+        return tiles.pdf(mi.BSDFContext(), at_contour(dr.width(wo)), wo)
+
+    w_1 = float(np.array(tiles._weight(at_contour(1), True))[0])
+    assert 0.0 < w_1 < 1.0  # both layers' sampling are in the mix
+    test = ChiSquareTest(domain=SphericalDomain(), sample_func=sample_func, pdf_func=pdf_func,
+                         sample_dim=3, sample_count=100_000, res=16, ires=16)
+    assert test.run(), test.messages
+
+
+def test_layered_plugin_errors_name_the_parameter(variant, layer_files):
+    from dynbtf.errors import InputError
+    from dynbtf.layered import ImageMask
+    from dynbtf.render.mitsuba.layered_bsdf import mask_texture_dict
+
+    def mask():  # a fresh texture dict per scene: Mitsuba takes over the tensor it is given
+        return mask_texture_dict(ImageMask(np.array([[0.0, 1.0]]), size=2.0))
+
+    layer = {"type": "dynbtf", "filename": str(layer_files[0][0]), "method": "tile", "filtered": False}
+    cases = [({"layer0": layer, "layer1": layer}, "texture 'mask' is required"),
+             ({"layer0": layer, "mask": mask()}, "'layer1' is required"),
+             ({"layer0": layer, "layer1": {"type": "diffuse"}, "mask": mask()}, "'layer1' must be a dynbtf BSDF"),
+             ({"layer0": layer, "layer1": layer, "mask": mask(), "width": 0.0}, "parameter 'width' must be a positive"),
+             ({"layer0": layer, "layer1": layer, "mask": mask(), "softness": -1.0}, "parameter 'softness'")]
+    for properties, message in cases:
+        with pytest.raises((InputError, RuntimeError), match=message):
+            mi.load_dict({"type": "dynbtf_layered", **properties})
+
+
+def test_layered_parameter_table_is_the_documented_one():
+    from pathlib import Path
+
+    from dynbtf.render.mitsuba.layered_bsdf import layered_parameter_table_markdown
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "rendering.md").read_text()
+    assert layered_parameter_table_markdown() in text
+
+
+def test_render_cli_layers_two_materials(variant, layer_files, tmp_path, capsys):
+    """``dynbtf render MODEL --layer OTHER --mask IMAGE`` writes a finite, lit image; a bad band width is one error
+    line naming --width, before anything loads."""
+    from dynbtf.cli.main import main
+    from dynbtf.io import load_image, save_image
+
+    mask_path = tmp_path / "mask.png"
+    save_image(mask_path, np.repeat(np.repeat(np.array([[0.0, 1.0]], dtype=np.float32), 8, 0), 8, 1)[..., None]
+               .repeat(3, -1))
+    out = tmp_path / "layered.exr"
+    assert main(["render", str(layer_files[0][0]), "--layer", str(layer_files[1][0]), "--mask", str(mask_path),
+                 "--mask-wrap", "clamp", "--method", "tile", "--scene", "plane", "--lighting", "point", "--size", "32",
+                 "--spp", "4", "--scale", "4", "--point", "-o", str(out)]) == 0
+    assert "wrote" in capsys.readouterr().out
+    image = load_image(out)
+    assert image.shape == (32, 32, 3) and np.isfinite(image).all() and image.max() > 0
+    assert main(["render", str(layer_files[0][0]), "--layer", str(layer_files[1][0]), "--width", "0",
+                 "-o", str(tmp_path / "x.png")]) != 0
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and err[0].startswith("dynbtf: error: ") and "--width" in err[0], err
