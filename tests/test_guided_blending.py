@@ -178,13 +178,14 @@ def test_synth_target_writes_a_guided_image_and_refuses_what_it_cannot_do(tmp_pa
         assert not (tmp_path / "x.png").exists()
 
 
-def test_the_mitsuba_plugin_refuses_a_guided_synthesizer_by_name():
+def test_the_mitsuba_plugin_refuses_guided_struct_by_name():
     pytest.importorskip("drjit")
     from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
 
     plane, labels = two_content_plane()
-    with pytest.raises(InputError, match="synthesis method 'guided' has no Dr.Jit form yet"):
-        make_dr_synthesizer(GuidedBlending(plane, labels=labels, target=LabelField([[1]])))
+    struct = GuidedCellQuilting(plane, labels=labels, target=LabelField([[1]]), cells=(4, 4))
+    with pytest.raises(InputError, match="synthesis method 'guided-struct' has no Dr.Jit form yet"):
+        make_dr_synthesizer(struct)
 
 
 def test_guided_hex_tiling_draws_from_the_target_label_on_both_paths():

@@ -404,6 +404,36 @@ def test_every_synthesis_method_in_numba_and_drjit_is_the_torch_reference(mi, me
     np.testing.assert_allclose(as_numpy(twin.features(u, v)), want, atol=5e-5 * scale)
 
 
+@pytest.mark.parametrize("kind", ["guided", "guided-hex"])
+def test_guided_lattice_blending_in_drjit_is_the_torch_reference(mi, kind):
+    """Exemplar guidance: the Dr.Jit twin's candidate search (the first offset whose four texels carry the target
+    label) and steered weights give the torch reference's features, and the numba kernel's, with most points
+    steered off hist's own offsets."""
+    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
+    from dynbtf.synthesis.guided_blending import GuidedBlending, GuidedHexTiling, LabelField, source_labels
+
+    exemplar = smooth_lognormal(24, 20, 4, seed=4)
+    labels = (exemplar[..., 0] > exemplar[..., 0].median()).long()
+    target = LabelField(np.array([[0, 1, 1], [1, 0, 0]]), size=3.0, wrap="repeat")
+    kind_class = GuidedBlending if kind == "guided" else GuidedHexTiling
+    extra = {} if kind == "guided" else {"luminance": torch.rand(24, 20, generator=torch.Generator().manual_seed(1))}
+    synth = kind_class(exemplar, 9, labels=labels, target=target, softness=0.25, tileable=False, **extra)
+    uv = (RNG.random((600, 2)) - 0.5) * 60.0
+    points = torch.from_numpy(uv)
+    assert float((source_labels(synth, points) == target.labels(points)).float().mean()) > 0.9
+    want = synth.reference_latent(points).double().numpy()
+    matrix, offset = synth.output_map()
+    if matrix is not None:
+        want = want @ matrix.double().numpy() + offset.double().numpy()
+    scale = np.abs(want).max()
+    twin = make_dr_synthesizer(synth)
+    got = as_numpy(twin.features(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1])))
+    tolerance = 0.01 * np.abs(want).std() if kind == "guided" else 5e-5 * scale  # hist: the LUT's error bound
+    np.testing.assert_allclose(got, want, atol=tolerance)
+    fast = synth.features_from_latent(synth.latent(points)).double().numpy()
+    np.testing.assert_allclose(got, fast, atol=5e-5 * scale)
+
+
 @pytest.mark.parametrize("gamma", [1000.0, 1e10, 1e300])
 def test_hist_with_extreme_exponents_is_finite_and_one_sample_in_every_backend(mi, gamma):
     """``b^gamma`` underflows to 0 for all three barycentrics once gamma is large (0/0: NaN weights, and a NaN

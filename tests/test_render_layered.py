@@ -205,3 +205,29 @@ def test_render_cli_layers_two_materials(variant, layer_files, tmp_path, capsys)
                  "-o", str(tmp_path / "x.png")]) != 0
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(err) == 1 and err[0].startswith("dynbtf: error: ") and "--width" in err[0], err
+
+
+def test_render_cli_guided_by_a_target(variant, layer_files, tmp_path, capsys):
+    """``dynbtf render MODEL --target IMAGE``: a guided render (point queries) whose pixels differ from the
+    unguided render's (the plugin's values against guided_btf: test_render_mitsuba.py); bad guidance options are
+    one error line before anything loads."""
+    from dynbtf.cli.main import main
+    from dynbtf.io import load_image, save_image
+
+    target = tmp_path / "target.png"
+    save_image(target, np.zeros((4, 4, 3), np.float32))  # everywhere class 0: the darkest content
+    common = ["render", str(layer_files[0][0]), "--method", "hist", "--scene", "plane", "--lighting", "point",
+              "--size", "32", "--spp", "4", "--scale", "4", "--point"]
+    assert main(common + ["--target", str(target), "-o", str(tmp_path / "guided.exr")]) == 0
+    assert main(common + ["-o", str(tmp_path / "plain.exr")]) == 0
+    guided, plain = load_image(tmp_path / "guided.exr"), load_image(tmp_path / "plain.exr")
+    assert np.isfinite(guided).all() and guided.max() > 0
+    assert np.abs(guided - plain).max() > 1e-3  # the target changed the content (its values: the plugin's test)
+    capsys.readouterr()
+    for extra, message in ((["--classes", "1"], "--classes: expected 2 to 255"),
+                           (["--softness", "2"], "--softness: expected a weight factor in [0, 1]"),
+                           (["--method", "struct"], "steers hist or hex"),
+                           (["--layer", str(layer_files[1][0])], "does not combine with a layered one")):
+        assert main(common + ["--target", str(target), *extra, "-o", str(tmp_path / "x.png")]) != 0
+        err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert len(err) == 1 and message in err[0], err

@@ -666,7 +666,8 @@ def test_parameter_table_is_the_documented_one():
     for parameter in PARAMETERS:
         assert f"   * - ``{parameter.name}``\n     - {parameter.type}\n" in PLUGIN_DOC
     assert [p.name for p in PARAMETERS] == ["filename", "method", "scale", "scale_v", "seed", "sampling",
-                                            "sampling_weight", "filtered", "ray_cone_angle"]
+                                            "sampling_weight", "target", "classes", "target_size", "target_wrap",
+                                            "softness", "filtered", "ray_cone_angle"]
 
 
 def test_parameter_errors_name_the_parameter(variant, model_file, tmp_path):
@@ -883,3 +884,38 @@ def test_render_auto_resolves_the_method_and_echoes_the_choice(variant, structur
     captured = capsys.readouterr()
     assert echoed[0] in captured.out and "stopped before the render" in captured.err
     assert loaded[1]["surface"]["bsdf"]["method"] == "struct" and "dynbtf BSDF" not in captured.err
+
+
+@pytest.mark.parametrize("method", ["hist", "hex"])
+def test_plugin_guided_by_a_target_is_guided_btf(variant, model_file, tmp_path, method):
+    """``target``: the plugin evaluates what dynbtf.guided_btf's SynthesizedBTF does (the candidate search in
+    Dr.Jit), with the target laid over ``target_size`` mesh uv units; a footprint query or struct is refused."""
+    from dynbtf.errors import InputError
+    from dynbtf.guided import guided_btf
+    from dynbtf.io import load_image, save_image
+    from dynbtf.layered import mask_from_spec
+
+    path, model = model_file
+    grey = np.repeat(np.repeat(np.array([[0.0, 1.0], [1.0, 0.0]], dtype=np.float32), 4, 0), 4, 1)
+    target = tmp_path / "target.png"
+    save_image(target, np.repeat(grey[..., None], 3, -1))
+    scale, size = 7.0, 0.5
+    bsdf = mi.load_dict({"type": "dynbtf", "filename": str(path), "method": method, "scale": scale, "seed": 3,
+                         "target": str(target), "target_size": size, "softness": 0.2, "filtered": False})
+    uv, wv, wl = _random_queries(3000, seed=2)
+    uv = (uv / np.float32(scale)) * np.float32(scale)
+    got = _plugin_eval(bsdf, uv, wv, wl, scale)
+    image = mask_from_spec(str(target)).image
+    btf = guided_btf(model, image, classes=2, target_size=size * scale, seed=3, softness=0.2, method=method)
+    expected = np.asarray(btf.eval(torch.from_numpy(uv.astype(np.float64)), torch.from_numpy(wv),
+                                   torch.from_numpy(wl)), dtype=np.float64) / np.pi * wl[:, 2:3]
+    plain = _reference(model, method, 3, uv, wv, wl) / np.pi * wl[:, 2:3]
+    assert np.mean(np.abs(expected - plain).max(1) > 1e-3) > 0.2  # guidance changes many points
+    np.testing.assert_allclose(got, expected, rtol=0, atol=2e-4 * max(1.0, np.abs(expected).max()))
+    assert load_image(target).shape[:2] == (8, 8)
+    for extra, message in (({"filtered": True}, "no footprint query yet"), ({"method": "struct"}, "steers hist or hex"),
+                           ({"classes": 1}, "'classes' must be at least 2"), ({"softness": 2.0}, "'softness'")):
+        spec = {"type": "dynbtf", "filename": str(path), "method": method, "target": str(target), "filtered": False,
+                **extra}
+        with pytest.raises((InputError, RuntimeError), match=message):
+            mi.load_dict(spec)

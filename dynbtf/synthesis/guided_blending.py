@@ -26,8 +26,9 @@ cell takes the first lattice offset, from its hashed one on, under which its con
 
 On the CPU the fused numba kernel of lattice blending runs the search (:func:`dynbtf.synthesis.kernels.lattice_blend`
 with ``guidance``); :meth:`GuidedBlending.reference_latent` is the torch path (any device), against which the tests
-hold it. There is no Dr.Jit or GLSL form yet: the Mitsuba plugin and the web export refuse a guided synthesizer
-(:attr:`GuidedBlending.portable`).
+hold it. Guided hist and hex also run in the Mitsuba plugin (its ``target`` parameter; Dr.Jit, point queries);
+guided struct does not yet (:attr:`GuidedCellQuilting.portable`), and the web export refuses every guided
+synthesizer.
 """
 
 from __future__ import annotations
@@ -158,10 +159,9 @@ def _checked_labels(labels, target, shape: tuple[int, int]) -> torch.Tensor:
 
 class _Guidance:
     """What guidance adds to a lattice-blending method (hist, hex): the offset search, the steered weights, the
-    fused kernel's guidance arguments. Mixed in before the method's class."""
-
-    #: No Dr.Jit or GLSL form: backends that translate synthesizers refuse it.
-    portable = False
+    fused kernel's guidance arguments. Mixed in before the method's class. Its Dr.Jit form is
+    :class:`dynbtf.render.mitsuba.drjit_synthesis.DrGuidance` (point queries); it has no GLSL form (the web export
+    refuses it)."""
 
     def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, candidates: int = 16,
                  softness: float = 0.0, **params) -> None:

@@ -156,6 +156,18 @@ def _probability(name, value):
     return value
 
 
+def _at_least(name, value, low: int):
+    if value < low:
+        raise InputError(f"dynbtf BSDF: parameter '{name}' must be at least {low}, got {value}")
+    return value
+
+
+def _unit_interval(name, value):
+    if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+        raise InputError(f"dynbtf BSDF: parameter '{name}' must be in [0, 1], got {value}")
+    return value
+
+
 def _angle(name, value):
     if not (math.isfinite(value) and value >= 0.0):
         raise InputError(f"dynbtf BSDF: parameter '{name}' must be a non-negative angle in radians, got {value}")
@@ -221,6 +233,34 @@ Any other value is an error naming the allowed ones.""",
         doc="""In ``mixture`` mode, the probability of drawing from the table (the
 rest draws cosine-weighted directions), in ``(0, 1]``.""",
         summary="in `mixture`, the probability of drawing from the table, in (0, 1]"),
+    PluginParameter(
+        "target", "string", "", shown_default='""',
+        doc="""Guided synthesis (:func:`dynbtf.guided.guided_btf`): an image painted
+over the mesh's uv (PNG/JPEG grey levels, or EXR values in [0, 1]), cut
+into ``classes`` equal bins; a point in bin ``k`` shows the material's
+class ``k`` (k-means on its decoded appearance, 0 the darkest). Steers
+``hist`` (also what ``auto`` becomes) or ``hex``; point queries only
+(``filtered = false``). Empty: no guidance.""",
+        summary="guided synthesis: an image painted over the mesh's uv, cut into `classes` bins (class 0 the "
+                "darkest content); `hist` or `hex`, with `filtered` false; empty: none"),
+    PluginParameter(
+        "classes", "integer", 2, check=lambda name, value: _at_least(name, value, 2),
+        doc="With ``target``: classes of the material's texels (k-means), at least 2.",
+        summary="with `target`: classes of the material's texels (k-means), at least 2"),
+    PluginParameter(
+        "target_size", "float", 1.0, check=_repeats,
+        doc="""With ``target``: mesh uv units the target image covers (along ``u``;
+laid out in exemplar repeats through ``scale``).""",
+        summary="with `target`: mesh uv units the target image covers"),
+    PluginParameter(
+        "target_wrap", "string", "repeat", check=_one_of(("repeat", "clamp")),
+        doc="With ``target``: the image repeats (``repeat``) or extends its edges (``clamp``).",
+        summary="with `target`: the image repeats (`repeat`) or extends its edges (`clamp`)"),
+    PluginParameter(
+        "softness", "float", 0.0, check=lambda name, value: _unit_interval(name, value), shown_default="0",
+        doc="""With ``target``: weight factor in [0, 1] of the samples that found no
+content of the target's class (0: dropped where another sample found some).""",
+        summary="with `target`: weight factor in [0, 1] of samples that found no content of the target's class"),
     PluginParameter(
         "filtered", "boolean", True,
         doc="""Footprint queries: a shading point that stands for a footprint
@@ -380,7 +420,7 @@ class _DynBTFBSDFBody:
         for parameter in PARAMETERS:
             setattr(self, parameter.attribute or parameter.name, parsed[parameter.name])
         model = load_plugin_model(self.filename)  # a representation or a compiled material
-        self.evaluator = DynBTFEvaluator(model, self.method, self.seed)
+        self.evaluator = DynBTFEvaluator(model, self.method, self.seed, btf=self._guided_btf(model))
         model = self.evaluator.btf.model
         #: the method the kernel runs (``auto``'s choice, else ``method``)
         self.synthesis = self.evaluator.method
@@ -393,6 +433,28 @@ class _DynBTFBSDFBody:
         self.m_components = [self.m_flags]
         if self.filtered:
             self.m_flags = int(self.m_flags) | NEEDS_DIFFERENTIALS
+
+    def _guided_btf(self, model):
+        """The guided synthesized BTF of ``target`` (None without one), its request checked (one-line errors)."""
+        if not self.target:
+            return None
+        from ...guided import guided_btf
+        from ...layered import mask_from_spec
+
+        if self.filtered:
+            raise InputError("dynbtf BSDF: parameter 'target': guided synthesis has no footprint query yet; "
+                             "set filtered = false")
+        if self.method not in ("hist", "hex", "auto"):
+            raise InputError(f"dynbtf BSDF: parameter 'target' steers hist or hex (or auto: hist), "
+                             f"got method {self.method!r}")
+        painted = mask_from_spec(self.target, size=1.0, wrap=self.target_wrap)
+        if not hasattr(painted, "image"):
+            raise InputError(f"dynbtf BSDF: parameter 'target': expected an image file, got {self.target!r}")
+        image = painted.image
+        # the target over target_size mesh uv units = target_size * scale exemplar repeats (guided_btf's scale 1)
+        return guided_btf(model, image, classes=self.classes, target_size=self.target_size * self.scale,
+                          target_wrap=self.target_wrap, seed=self.seed, softness=self.softness,
+                          method="hex" if self.method == "hex" else "hist")
 
     def _choose_sampler(self, model):
         """The table sampler of ``sampling`` ``auto``/``mixture`` (None: cosine); resolves :attr:`sampling`."""
@@ -534,6 +596,9 @@ class DynBTFEvaluator:
         ``auto``: ``struct`` or ``hist``, see :attr:`choice`).
     seed : int
         Synthesis seed.
+    btf : SynthesizedBTF, optional
+        The synthesized BTF to translate (``scale`` 1) instead of the one ``method`` and ``seed`` build: e.g.
+        :func:`dynbtf.guided.guided_btf`'s.
 
     Attributes
     ----------
@@ -548,11 +613,12 @@ class DynBTFEvaluator:
     local frame) and returns ``mi.Color3f`` values (excluding cos(theta_light)).
     """
 
-    def __init__(self, model, method: str, seed: int) -> None:
+    def __init__(self, model, method: str, seed: int, btf=None) -> None:
         from ...infinite_btf import SynthesizedBTF
         from .drjit_synthesis import make_dr_synthesizer
 
-        self.btf = SynthesizedBTF(model, method, scale=1.0, seed=seed)  # its compiled material, from the cache
+        # its compiled material, from the cache; or a SynthesizedBTF given at scale 1 (e.g. a guided one)
+        self.btf = SynthesizedBTF(model, method, scale=1.0, seed=seed) if btf is None else btf
         self.method = self.btf.synthesizer.name
         self.choice = self.btf.synthesizer.choice
         self.synthesizer = make_dr_synthesizer(self.btf.synthesizer)

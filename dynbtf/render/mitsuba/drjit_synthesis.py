@@ -21,7 +21,7 @@ from ...synthesis import lattice as synthesis_lattice
 from .drjit_ops import drjit_module, fetch_wrap, flat_array, gather_channels, mi_module, wrap01
 
 __all__ = ["mix32", "fold_coordinate", "hash_vertex", "vertex_offsets", "triangle_lattice", "split_repeats",
-           "lut_lookup", "DrTiling", "DrCellQuilting", "DrLatticeBlending", "DrLevelOfDetail", "DrPyramid",
+           "lut_lookup", "DrTiling", "DrCellQuilting", "DrLatticeBlending", "DrGuidance", "DrLevelOfDetail", "DrPyramid",
            "make_dr_synthesizer"]
 
 
@@ -334,11 +334,14 @@ class DrLatticeBlending:
         Returns the synthesizer's pyramid (:meth:`dynbtf.synthesis.blending.LatticeBlending.pyramid`:
         ``levels``, ``lod``, and ``luts_numpy`` for hist, ``luminances`` for hex); called on the first
         footprint query (:meth:`filtered_latent`).
+    guidance : DrGuidance, optional
+        Exemplar guidance (:mod:`dynbtf.synthesis.guided_blending`): each sample takes the first candidate
+        offset whose four texels carry the query's target label (no footprint query then).
     """
 
     def __init__(self, plane, density, seed: int, mode: str, *, gamma: float = 1.0, beta: float = 0.0,
                  gain_k: float = 1.0, luminance=None, lut=None, g_min: float = 0.0, step: float = 1.0,
-                 matrix=None, offset=None, pyramid_source=None) -> None:
+                 matrix=None, offset=None, pyramid_source=None, guidance=None) -> None:
         import numpy as np
 
         mi = mi_module()
@@ -365,6 +368,7 @@ class DrLatticeBlending:
             self.g_min, self.step = float(g_min), float(step)
         self.matrix = None if matrix is None else np.asarray(matrix, dtype=np.float32)
         self.offset = None if offset is None else np.asarray(offset, dtype=np.float32)
+        self.guidance = guidance
 
     def _gain(self, x):
         dr = drjit_module()
@@ -400,9 +404,10 @@ class DrLatticeBlending:
     def _lattice(self, u, v):
         """The three samples of each query: barycentrics, their whole-texel offsets and the query's texel position.
 
-        Returns ``bary`` (3 ``mi.Float64``), ``offsets`` (3 pairs ``(ox, oy)`` of ``mi.Int32``) and the
+        Returns ``bary`` (3 ``mi.Float64``), ``offsets`` (3 pairs ``(ox, oy)`` of ``mi.Int32``), the
         position in the read plane before the offsets: whole texels ``(mu, mv)`` (``mi.Int32``,
-        ``(repeat x density) mod plane size``) plus ``(fu x W, fv x H)`` (``mi.Float64``).
+        ``(repeat x density) mod plane size``) plus ``(fu x W, fv x H)`` (``mi.Float64``), and the three
+        vertices (pairs of ``mi.Int32``).
         """
         mi = mi_module()
         u, v = mi.Float64(u), mi.Float64(v)
@@ -413,22 +418,27 @@ class DrLatticeBlending:
         # (iu * density) mod plane size, reduced before multiplying so nothing overflows
         mu = _mod(_mod(mi.Int32(wu), pw) * (dw % pw), pw)
         mv = _mod(_mod(mi.Int32(wv), ph) * (dh % ph), ph)
-        offsets = []
-        for vx, vy in verts:
-            h = hash_vertex(vx, vy, self.seed)
-            offsets.append((mi.Int32(h % pw), mi.Int32(mix32(h ^ synthesis_hash.SECOND_STREAM) % ph)))
-        return bary, offsets, (mu, mv), (fu * dw, fv * dh)
+        offsets = [self._offsets(vx, vy, self.seed) for vx, vy in verts]
+        return bary, offsets, (mu, mv), (fu * dw, fv * dh), verts
+
+    def _offsets(self, vx, vy, seed: int):
+        """Whole-texel offsets ``(ox, oy)`` (``mi.Int32``) of vertices ``(vx, vy)`` hashed with ``seed``."""
+        mi = mi_module()
+        h = hash_vertex(vx, vy, seed)
+        return mi.Int32(h % self.pw), mi.Int32(mix32(h ^ synthesis_hash.SECOND_STREAM) % self.ph)
 
     def latent(self, u, v, active=True, which=None):
         """Blended values before the output map: list of ``C`` mi.Float (only channels ``which``, if given)."""
         mi, dr = mi_module(), drjit_module()
-        bary, offsets, (mu, mv), (fx, fy) = self._lattice(u, v)
+        bary, offsets, (mu, mv), (fx, fy), verts = self._lattice(u, v)
         pw, ph = self.pw, self.ph
         px = mi.Float64(mu) + fx - 0.5
         py = mi.Float64(mv) + fy - 0.5
         x0, y0 = dr.floor(px), dr.floor(py)
         tx, ty = mi.Float(px - x0), mi.Float(py - y0)
         xi, yi = mi.Int32(x0), mi.Int32(y0)
+        if self.guidance is not None:
+            offsets, bary = self.guidance.steer(self, u, v, verts, bary, offsets, xi, yi, active)
         wts = ((1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty)
         taps_of_sample = []
         for ox, oy in offsets:
@@ -465,7 +475,9 @@ class DrLatticeBlending:
         """
         mi, dr = mi_module(), drjit_module()
         pyramid, lod, luts = self._pyramid()
-        bary, offsets, (mu, mv), (fx, fy) = self._lattice(u, v)
+        if self.guidance is not None:
+            raise InputError("guided synthesis has no footprint query yet: set the plugin's filtered = false")
+        bary, offsets, (mu, mv), (fx, fy), _ = self._lattice(u, v)
         pw, ph, c = self.pw, self.ph, self.channels
         positions = [(mi.Float64(_mod(mu + ox, pw)) + fx, mi.Float64(_mod(mv + oy, ph)) + fy) for ox, oy in offsets]
         out = None
@@ -522,6 +534,75 @@ class DrLatticeBlending:
         for x, i in zip(latent[1:], rows[1:]):
             acc = dr.fma(x, float(self.matrix[i, index]), acc)
         return acc
+
+
+class DrGuidance:
+    """Exemplar guidance of a lattice blend in Dr.Jit: :meth:`dynbtf.synthesis.guided_blending._Guidance` (and the
+    numba kernel's search), the candidates tried in the same order.
+
+    Parameters
+    ----------
+    seeds : list of int
+        The candidates' seeds (:func:`~dynbtf.synthesis.guided_blending.candidate_seed`; candidate 0 the synthesis
+        seed).
+    labels : int ``(H', W')``
+        The read plane's labels.
+    target : :class:`~dynbtf.synthesis.guided_blending.LabelField`
+        The label each point should show, over exemplar repeats.
+    softness : float
+        Barycentric-weight factor of samples that found no candidate of the target's label.
+    """
+
+    def __init__(self, seeds, labels, target, softness: float) -> None:
+        mi = mi_module()
+        labels = np.asarray(labels, dtype=np.int32)
+        self.seeds = [int(x) for x in seeds]
+        self.labels = mi.Int32(labels.reshape(-1))
+        image = np.asarray(target.image, dtype=np.int32)
+        self.target_h, self.target_w = (int(x) for x in image.shape)
+        self.target_image = mi.Int32(image.reshape(-1))
+        self.target_size, self.target_repeat = float(target.size), target.wrap == "repeat"
+        self.softness = float(softness)
+
+    def target_labels(self, u, v, active=True):
+        """The target label (``mi.Int32``) at ``(u, v)`` exemplar repeats: ``LabelField.labels``, nearest texel."""
+        mi, dr = mi_module(), drjit_module()
+        size, h, w = self.target_size, self.target_h, self.target_w
+        pu, pv = mi.Float64(u), mi.Float64(v)
+        if self.target_repeat:  # an exact remainder: the same labels at any distance
+            pu, pv = pu - dr.floor(pu / size) * size, pv - dr.floor(pv / size) * size
+        col, row = mi.Int32(dr.floor(pu / size * w)), mi.Int32(dr.floor(pv / size * h))
+        if self.target_repeat:
+            col, row = _mod(col, w), _mod(row, h)
+        else:
+            col, row = dr.clip(col, 0, w - 1), dr.clip(row, 0, h - 1)
+        return dr.gather(mi.Int32, self.target_image, mi.UInt32(row * w + col), active)
+
+    def steer(self, blend, u, v, verts, bary, offsets, xi, yi, active):
+        """Each sample's offset (the first candidate whose bilinear footprint carries the target label, else
+        candidate 0's) and the barycentrics with unmatched samples' weight times ``softness``."""
+        mi, dr = mi_module(), drjit_module()
+        pw, ph = blend.pw, blend.ph
+        target = self.target_labels(u, v, active)
+        chosen, matched = [], []
+        for (vx, vy), first in zip(verts, offsets):
+            ox, oy = first
+            found = dr.zeros(mi.Bool, dr.width(xi))
+            for j, seed in enumerate(self.seeds):
+                cx, cy = first if j == 0 else blend._offsets(vx, vy, seed)
+                ca, cb = _mod(xi + cx, pw), _mod(xi + cx + 1, pw)
+                ra, rb = _mod(yi + cy, ph), _mod(yi + cy + 1, ph)
+                inside = mi.Bool(active)  # a new mask: the in-place updates below must not touch the caller's
+                for r, c in ((ra, ca), (ra, cb), (rb, ca), (rb, cb)):
+                    inside = inside & (dr.gather(mi.Int32, self.labels, mi.UInt32(r * pw + c), active) == target)
+                hit = inside & ~found
+                ox, oy = dr.select(hit, cx, ox), dr.select(hit, cy, oy)
+                found = found | hit
+            chosen.append((ox, oy))
+            matched.append(found)
+        any_match = matched[0] | matched[1] | matched[2]
+        steered = [dr.select(m | ~any_match, b, b * self.softness) for b, m in zip(bary, matched)]
+        return chosen, steered
 
 
 def gather_one(buffer, taps, active=True):
@@ -736,10 +817,16 @@ def make_dr_synthesizer(synthesizer):
         mode = {MODE_LINEAR: "linear", MODE_HIST: "hist", MODE_HEX: "hex"}[synthesizer.mode]
         kwargs = {k: host(v) for k, v in synthesizer.kernel_arguments().items()}
         matrix, offset = synthesizer.output_map()
+        guidance = None
+        if getattr(synthesizer, "target", None) is not None:  # exemplar guidance (guided_blending)
+            from ...synthesis.guided_blending import candidate_seed
+
+            guidance = DrGuidance([candidate_seed(synthesizer.seed, j) for j in range(synthesizer.candidates)],
+                                  host(synthesizer.labels), synthesizer.target, synthesizer.softness)
         return DrLatticeBlending(host(synthesizer.prepared.plane), synthesizer.density, synthesizer.seed, mode,
                                  matrix=None if matrix is None else host(matrix),
                                  offset=None if offset is None else host(offset),
-                                 pyramid_source=synthesizer.pyramid, **kwargs)
+                                 pyramid_source=synthesizer.pyramid, guidance=guidance, **kwargs)
     if isinstance(synthesizer, CellQuilting):
         return DrCellQuilting.of(synthesizer)
     if getattr(synthesizer, "name", None) == "tile":

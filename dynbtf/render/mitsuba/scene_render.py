@@ -6,6 +6,7 @@ import math
 import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -103,7 +104,8 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
                  seed: int = 0, lighting: str = "sky", resolution=(512, 512), spp: int = 16, spp_per_pass: int = 4,
                  variant: str | None = None, progress: bool = True, sampling: str = "auto",
                  filtered: bool = True, echo=None, memory_mb: float | None = None, layer=None, mask=None,
-                 width: float = 0.05, softness: float = 0.0) -> RenderResult:
+                 width: float = 0.05, softness: float = 0.0, target=None, classes: int = 2,
+                 target_size: float = 1.0, target_wrap: str = "repeat", target_softness: float = 0.0) -> RenderResult:
     """Path-trace ``scene`` covered by the synthesized BTF of ``model_path``.
 
     Every argument is checked before Mitsuba loads anything, so a mistake raises
@@ -165,6 +167,10 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     width, softness : float
         With ``layer``: the boundary band's half-width (mesh uv units) and the height difference over which
         the layers blend inside it (:class:`~dynbtf.layered.LayeredBTF`).
+    target : path, optional
+        Guided synthesis (the plugin's ``target``, :func:`dynbtf.guided.guided_btf`): an image painted over
+        ``target_size`` x ``target_size`` mesh uv units (``target_wrap``), cut into ``classes`` bins, steering
+        ``hist`` (also ``auto``) or ``hex`` with ``target_softness``; point queries only (``filtered`` false).
 
     Returns
     -------
@@ -176,6 +182,25 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
         _check_layering(width, softness)
     elif mask is not None:
         raise InputError("mask: layers two materials; give the second one (layer / --layer) too")
+    if target is not None:
+        if layer is not None:
+            raise InputError("target: guides one material; it does not combine with a layered one (layer)")
+        if filtered:
+            raise InputError("target: guided synthesis has no footprint query yet; render point queries "
+                             "(filtered=False, --point)")
+        if method not in ("auto", "hist", "hex"):
+            raise InputError(f"target: guided synthesis steers hist or hex (or auto: hist), got method {method!r}")
+        if not Path(target).is_file():
+            raise InputError(f"target: {target}: no such image file")
+        from ...errors import positive_number
+
+        if int(classes) != classes or not 2 <= classes <= 255:
+            raise InputError(f"--classes: expected 2 to 255 classes, got {classes}")
+        positive_number("--target-size", target_size, "mesh uv units")
+        if target_wrap not in ("repeat", "clamp"):
+            raise InputError(f"--target-wrap: expected 'repeat' or 'clamp', got {target_wrap!r}")
+        if not (math.isfinite(float(target_softness)) and 0.0 <= float(target_softness) <= 1.0):
+            raise InputError(f"--softness: expected a weight factor in [0, 1], got {target_softness}")
     paths = [model_path] if layer is None else [model_path, layer]
     models = []
     for path in paths:
@@ -192,7 +217,9 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     methods, lines = [], []
     for model in models:
         chosen = method
-        if method == "auto":  # resolved here (the plugin then runs the named method and reports nothing)
+        if method == "auto" and target is not None:  # guided: hist's search (auto's struct is not guided in Dr.Jit)
+            chosen = "hist"
+        elif method == "auto":  # resolved here (the plugin then runs the named method and reports nothing)
             chosen, line = resolve_auto(model, seed)
             lines.append(line)
             if echo is not None:
@@ -206,6 +233,9 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     materials = [{**bsdf_dict(path, method=m, scale=scale, seed=seed, sampling=sampling), "filtered": bool(filtered)}
                  for path, m in zip(paths, methods)]
     material = materials[0]
+    if target is not None:
+        material.update({"target": str(target), "classes": int(classes), "target_size": float(target_size),
+                         "target_wrap": str(target_wrap), "softness": float(target_softness)})
     if layer is not None:
         from ...layered import NoiseMask
         from .layered_bsdf import mask_texture_dict
