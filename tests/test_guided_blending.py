@@ -178,16 +178,6 @@ def test_synth_target_writes_a_guided_image_and_refuses_what_it_cannot_do(tmp_pa
         assert not (tmp_path / "x.png").exists()
 
 
-def test_the_mitsuba_plugin_refuses_guided_struct_by_name():
-    pytest.importorskip("drjit")
-    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
-
-    plane, labels = two_content_plane()
-    struct = GuidedCellQuilting(plane, labels=labels, target=LabelField([[1]]), cells=(4, 4))
-    with pytest.raises(InputError, match="synthesis method 'guided-struct' has no Dr.Jit form yet"):
-        make_dr_synthesizer(struct)
-
-
 def test_guided_hex_tiling_draws_from_the_target_label_on_both_paths():
     plane, labels = two_content_plane()
     target = LabelField(np.array([[0, 1]]), size=4.0)

@@ -467,6 +467,37 @@ def test_hist_with_extreme_exponents_is_finite_and_one_sample_in_every_backend(m
 
 
 # ---------------------------------------------------------------------------- cell quilting (struct)
+def test_guided_cell_quilting_in_drjit_is_the_torch_reference(mi):
+    """Guided struct: the Dr.Jit twin's cell choices (from the hashed offset on, the first whose content carries
+    the target's label at the cell's centre) and read positions are the torch path's bit for bit, near the
+    origin and 2**45 repeats away; guidance moves many cells off their hashed offset."""
+    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
+    from dynbtf.synthesis.cell_quilting import cell_choice
+    from dynbtf.synthesis.guided_blending import GuidedCellQuilting, LabelField
+
+    rng = np.random.default_rng(46)
+    element = rng.random((8, 8, 4))
+    exemplar = torch.from_numpy(np.tile(element, (4, 4, 1)) + 0.1 * rng.random((32, 32, 4))).float()
+    labels = (exemplar[..., 0] > exemplar[..., 0].median()).long()
+    target = LabelField(np.array([[0, 1], [1, 0]]), size=3.0)
+    synth = GuidedCellQuilting(exemplar, 9, labels=labels, target=target, cells=(4, 4), fast=False)
+    twin = make_dr_synthesizer(synth)
+    k = synth.prepared.count
+    assert k > 4
+    for origin in (0.0, 2.0 ** 45):
+        uv = origin + (rng.random((3000, 2)) - 0.5) * (40.0 if origin == 0.0 else 6.0)
+        positions, chosen = synth.read_positions(torch.from_numpy(uv))
+        x, y, got = twin.read_positions(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1]))
+        np.testing.assert_array_equal(np.array(got, dtype=np.int64), chosen.numpy())
+        np.testing.assert_allclose(np.stack([np.array(x), np.array(y)], -1), positions.numpy(), rtol=0, atol=1e-9)
+    whole = np.floor(uv).astype(np.int64)
+    texel = np.minimum(np.floor((uv - np.floor(uv)) * 32).astype(np.int64), 31)
+    cx, cy = whole[:, 0] * 4 + texel[:, 0] // 8, whole[:, 1] * 4 + texel[:, 1] // 8
+    hashed = cell_choice(torch.from_numpy(cx), torch.from_numpy(cy), 9, k).numpy()
+    guided = synth.cell_choices(torch.from_numpy(cx), torch.from_numpy(cy)).numpy()
+    assert np.mean(hashed != guided) > 0.2
+
+
 @pytest.mark.parametrize("seed", [9, 2 ** 32 + 5])
 def test_cell_quilting_in_numba_and_drjit_is_the_torch_reference(mi, seed):
     """struct: torch path = numba kernel = Dr.Jit twin (values to float rounding); the twin's read positions and

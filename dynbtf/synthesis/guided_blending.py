@@ -26,9 +26,9 @@ cell takes the first lattice offset, from its hashed one on, under which its con
 
 On the CPU the fused numba kernel of lattice blending runs the search (:func:`dynbtf.synthesis.kernels.lattice_blend`
 with ``guidance``); :meth:`GuidedBlending.reference_latent` is the torch path (any device), against which the tests
-hold it. Guided hist and hex also run in the Mitsuba plugin (its ``target`` parameter; Dr.Jit, point queries);
-guided struct does not yet (:attr:`GuidedCellQuilting.portable`), and the web export refuses every guided
-synthesizer.
+hold it. The guided methods also run in the Mitsuba plugin (its ``target`` parameter; Dr.Jit, point queries:
+:class:`~dynbtf.render.mitsuba.drjit_synthesis.DrGuidance`, :class:`~dynbtf.render.mitsuba.drjit_synthesis.DrCellQuilting`);
+the web export refuses every guided synthesizer.
 """
 
 from __future__ import annotations
@@ -313,7 +313,6 @@ class GuidedCellQuilting(CellQuilting):
     :class:`~dynbtf.synthesis.cell_quilting.CellQuilting`'s in ``**struct``.
     """
 
-    portable = False
     base_method = "struct"
 
     def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, **struct) -> None:

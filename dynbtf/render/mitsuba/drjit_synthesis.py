@@ -11,8 +11,6 @@ lists of ``C`` ``mi.Float`` (one per feature channel).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from ...errors import InputError
@@ -21,7 +19,8 @@ from ...synthesis import lattice as synthesis_lattice
 from .drjit_ops import drjit_module, fetch_wrap, flat_array, gather_channels, mi_module, wrap01
 
 __all__ = ["mix32", "fold_coordinate", "hash_vertex", "vertex_offsets", "triangle_lattice", "split_repeats",
-           "lut_lookup", "DrTiling", "DrCellQuilting", "DrLatticeBlending", "DrGuidance", "DrLevelOfDetail", "DrPyramid",
+           "lut_lookup", "DrTiling", "DrCellQuilting", "DrLatticeBlending", "DrGuidance", "DrLabelField",
+           "DrLevelOfDetail", "DrPyramid",
            "make_dr_synthesizer"]
 
 
@@ -473,10 +472,10 @@ class DrLatticeBlending:
         ``filtered_lattice_blend``): every sample read from the footprint's two pyramid levels,
         blended per level (hex: the level's luminance; hist: the level's inverse table) and mixed.
         """
-        mi, dr = mi_module(), drjit_module()
-        pyramid, lod, luts = self._pyramid()
+        mi = mi_module()
         if self.guidance is not None:
             raise InputError("guided synthesis has no footprint query yet: set the plugin's filtered = false")
+        pyramid, lod, luts = self._pyramid()
         bary, offsets, (mu, mv), (fx, fy), _ = self._lattice(u, v)
         pw, ph, c = self.pw, self.ph, self.channels
         positions = [(mi.Float64(_mod(mu + ox, pw)) + fx, mi.Float64(_mod(mv + oy, ph)) + fy) for ox, oy in offsets]
@@ -536,6 +535,32 @@ class DrLatticeBlending:
         return acc
 
 
+class DrLabelField:
+    """:class:`dynbtf.synthesis.guided_blending.LabelField` in Dr.Jit: a label image over exemplar repeats, nearest
+    texel, repeated (an exact remainder: the same labels at any distance) or clamped."""
+
+    def __init__(self, field) -> None:
+        mi = mi_module()
+        image = np.asarray(field.image, dtype=np.int32)
+        self.h, self.w = (int(x) for x in image.shape)
+        self.image = mi.Int32(image.reshape(-1))
+        self.size, self.repeat = float(field.size), field.wrap == "repeat"
+
+    def __call__(self, u, v, active=True):
+        """The label (``mi.Int32``) at ``(u, v)`` exemplar repeats (``mi.Float64``)."""
+        mi, dr = mi_module(), drjit_module()
+        size, h, w = self.size, self.h, self.w
+        pu, pv = mi.Float64(u), mi.Float64(v)
+        if self.repeat:
+            pu, pv = pu - dr.floor(pu / size) * size, pv - dr.floor(pv / size) * size
+        col, row = mi.Int32(dr.floor(pu / size * w)), mi.Int32(dr.floor(pv / size * h))
+        if self.repeat:
+            col, row = _mod(col, w), _mod(row, h)
+        else:
+            col, row = dr.clip(col, 0, w - 1), dr.clip(row, 0, h - 1)
+        return dr.gather(mi.Int32, self.image, mi.UInt32(row * w + col), active)
+
+
 class DrGuidance:
     """Exemplar guidance of a lattice blend in Dr.Jit: :meth:`dynbtf.synthesis.guided_blending._Guidance` (and the
     numba kernel's search), the candidates tried in the same order.
@@ -558,32 +583,15 @@ class DrGuidance:
         labels = np.asarray(labels, dtype=np.int32)
         self.seeds = [int(x) for x in seeds]
         self.labels = mi.Int32(labels.reshape(-1))
-        image = np.asarray(target.image, dtype=np.int32)
-        self.target_h, self.target_w = (int(x) for x in image.shape)
-        self.target_image = mi.Int32(image.reshape(-1))
-        self.target_size, self.target_repeat = float(target.size), target.wrap == "repeat"
+        self.target = DrLabelField(target)
         self.softness = float(softness)
-
-    def target_labels(self, u, v, active=True):
-        """The target label (``mi.Int32``) at ``(u, v)`` exemplar repeats: ``LabelField.labels``, nearest texel."""
-        mi, dr = mi_module(), drjit_module()
-        size, h, w = self.target_size, self.target_h, self.target_w
-        pu, pv = mi.Float64(u), mi.Float64(v)
-        if self.target_repeat:  # an exact remainder: the same labels at any distance
-            pu, pv = pu - dr.floor(pu / size) * size, pv - dr.floor(pv / size) * size
-        col, row = mi.Int32(dr.floor(pu / size * w)), mi.Int32(dr.floor(pv / size * h))
-        if self.target_repeat:
-            col, row = _mod(col, w), _mod(row, h)
-        else:
-            col, row = dr.clip(col, 0, w - 1), dr.clip(row, 0, h - 1)
-        return dr.gather(mi.Int32, self.target_image, mi.UInt32(row * w + col), active)
 
     def steer(self, blend, u, v, verts, bary, offsets, xi, yi, active):
         """Each sample's offset (the first candidate whose bilinear footprint carries the target label, else
         candidate 0's) and the barycentrics with unmatched samples' weight times ``softness``."""
         mi, dr = mi_module(), drjit_module()
         pw, ph = blend.pw, blend.ph
-        target = self.target_labels(u, v, active)
+        target = self.target(u, v, active)
         chosen, matched = [], []
         for (vx, vy), first in zip(verts, offsets):
             ox, oy = first
@@ -694,10 +702,15 @@ class DrCellQuilting(DrTiling):
     seed : int
     pyramid_source : callable, optional
         As :class:`DrTiling`.
+    guidance : (cell_labels, target), optional
+        Guided struct (:class:`~dynbtf.synthesis.guided_blending.GuidedCellQuilting`): each cell's content label
+        under each offset ``(nx, ny, K)`` and the target :class:`~dynbtf.synthesis.guided_blending.LabelField`;
+        a cell takes, from its hashed offset on, the first whose content carries the target's label at the
+        cell's centre (point queries).
     """
 
     def __init__(self, plane, offsets, cells, margin, vertical_cuts, horizontal_cuts, seed: int,
-                 pyramid_source=None) -> None:
+                 pyramid_source=None, guidance=None) -> None:
         import numpy as np
 
         super().__init__(plane, pyramid_source)
@@ -725,13 +738,46 @@ class DrCellQuilting(DrTiling):
         self.offset_x = mi.Float64(offsets[:, 0].astype(np.float64))
         self.offset_y = mi.Float64(offsets[:, 1].astype(np.float64))
         self.state = _seed_state(int(seed) & 0xFFFFFFFF)
+        self.guidance = None
+        if guidance is not None:
+            cell_labels, target = guidance
+            cell_labels = np.asarray(cell_labels, dtype=np.int32)
+            if cell_labels.shape != (nx, ny, self.count):
+                raise InputError(f"cell quilting: cell labels of shape {cell_labels.shape}, expected "
+                                 f"{(nx, ny, self.count)}")
+            self.guidance = (mi.Int32(np.ascontiguousarray(cell_labels).ravel()), DrLabelField(target))
 
     @classmethod
     def of(cls, synthesizer) -> "DrCellQuilting":
-        """The twin of a :class:`~dynbtf.synthesis.cell_quilting.CellQuilting` (its exemplar and tables)."""
+        """The twin of a :class:`~dynbtf.synthesis.cell_quilting.CellQuilting` (its exemplar and tables; guided
+        struct's cell labels and target)."""
         t = synthesizer.prepared
+        guidance = None
+        if getattr(synthesizer, "target", None) is not None:
+            guidance = (synthesizer.cell_labels.cpu().numpy(), synthesizer.target)
         return cls(synthesizer.exemplar, t.offsets, t.cells, t.margin, t.vertical_cuts, t.horizontal_cuts,
-                   synthesizer.seed, pyramid_source=synthesizer.pyramid)
+                   synthesizer.seed, pyramid_source=synthesizer.pyramid, guidance=guidance)
+
+    def _guided(self, cell_x, cell_y, hashed, active):
+        """A cell's offset index under guidance: from the hashed one (``mi.UInt32``) on, the first whose content in
+        the cell carries the target's label at the cell's centre, else the hashed one (the numba kernel's
+        ``_guided_cell_choice``)."""
+        if self.guidance is None:
+            return hashed
+        mi, dr = mi_module(), drjit_module()
+        labels, target = self.guidance
+        nx, ny = self.cells
+        k = self.count
+        wanted = target((mi.Float64(cell_x) + 0.5) / nx, (mi.Float64(cell_y) + 0.5) / ny, active)
+        i, j = cell_x % nx, cell_y % ny
+        i, j = mi.UInt32(dr.select(i < 0, i + nx, i)), mi.UInt32(dr.select(j < 0, j + ny, j))
+        chosen, found = mi.UInt32(hashed), dr.zeros(mi.Bool, dr.width(hashed))
+        for step in range(k):
+            candidate = (hashed + step) % k
+            hit = (dr.gather(mi.Int32, labels, (i * ny + j) * k + candidate, active) == wanted) & ~found
+            chosen = dr.select(hit, candidate, chosen)
+            found = found | hit
+        return chosen
 
     def read_positions(self, u, v, active=True):
         """:meth:`dynbtf.synthesis.cell_quilting.CellQuilting.read_positions`: texel positions ``x, y``
@@ -758,10 +804,10 @@ class DrCellQuilting(DrTiling):
         near_x = cell_x + dr.select(left, mi.Int64(-1), mi.Int64(1))
         near_y = cell_y + dr.select(lower, mi.Int64(-1), mi.Int64(1))
         column, column_near = fold_coordinate(self.state, cell_x), fold_coordinate(self.state, near_x)
-        own = fold_coordinate(column, cell_y) % k
-        across_x = fold_coordinate(column_near, cell_y) % k
-        across_y = fold_coordinate(column, near_y) % k
-        diagonal = fold_coordinate(column_near, near_y) % k
+        own = self._guided(cell_x, cell_y, fold_coordinate(column, cell_y) % k, active)
+        across_x = self._guided(near_x, cell_y, fold_coordinate(column_near, cell_y) % k, active)
+        across_y = self._guided(cell_x, near_y, fold_coordinate(column, near_y) % k, active)
+        diagonal = self._guided(near_x, near_y, fold_coordinate(column_near, near_y) % k, active)
         # the cut of the edge between the lane's cell and that neighbour: [edge, row/column, first, second, texel]
         edge = dr.select(left, col, dr.select(col + 1 == nx, 0, col + 1))
         first, second = dr.select(left, across_x, own), dr.select(left, own, across_x)
