@@ -16,7 +16,8 @@ Example: the worn, dark parts of a leather along the bottom of a panel, the rest
     btf = guided_btf("leather.dbtfm", grey_image, classes=2, target_size=4.0, scale=8.0)
     rgb = btf.eval(uv, w_view, w_light)
 
-Point queries only (no footprint query yet); the Mitsuba plugin and the web export do not run it yet.
+Footprint queries read the pyramid at the guided samples (as hist's read it at its own). The Mitsuba plugin runs
+guided hist and hex (its ``target`` parameter); the web export does not run guided synthesis yet.
 """
 
 from __future__ import annotations

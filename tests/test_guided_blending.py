@@ -105,9 +105,6 @@ def test_bad_guidance_is_named():
         LabelField([[-1, 0]])
     with pytest.raises(InputError, match="classes: expected 2 to"):
         exemplar_labels(plane, 1)
-    synth = GuidedBlending(plane, labels=labels, target=field)
-    with pytest.raises(InputError, match="guided synthesis has no footprint query yet"):
-        synth(torch.zeros(3, 2, dtype=torch.float64), torch.full((3,), 4.0))
 
 
 def test_guided_btf_puts_the_dark_class_where_the_target_is_dark():
@@ -138,8 +135,6 @@ def test_guided_btf_puts_the_dark_class_where_the_target_is_dark():
 
     assert float((source_labels(btf.synthesizer, torch.from_numpy(left)) == 0).float().mean()) >= 0.95
     assert float((source_labels(btf.synthesizer, torch.from_numpy(right)) == 1).float().mean()) >= 0.95
-    with pytest.raises(InputError, match="footprint: synthesis method 'guided' has no footprint query"):
-        btf.eval(left[:4], w[:4], w[:4], footprint=0.01)
 
 
 def test_synth_target_writes_a_guided_image_and_refuses_what_it_cannot_do(tmp_path, monkeypatch, capsys):
@@ -169,7 +164,6 @@ def test_synth_target_writes_a_guided_image_and_refuses_what_it_cannot_do(tmp_pa
                            (["--method", "struct"], "--target --method struct: chooses whole cells by label, so give "
                                                     "--cells"),
                            (["--cells", "4"], "--cells: sets struct's cells; give it with --method struct"),
-                           (["--filtered"], "--target: guided synthesis has no footprint query yet"),
                            (["--classes", "1"], "--classes: expected 2 to 255"),
                            (["--softness", "2"], "--softness: expected a weight factor in [0, 1]")):
         assert main(["synth", str(tmp_path / "a.dbtfm"), "--target", str(tmp_path / "target.png"), *extra,
@@ -228,3 +222,28 @@ def test_guided_struct_chooses_whole_cells_by_label_on_both_paths():
         possible = (synth.cell_labels[torch.remainder(cells, 8), torch.remainder(row, 8)]
                     == synth.cell_target(cells, row)[:, None]).any(1)
         assert torch.equal(majority[possible], synth.cell_target(cells, row)[possible])
+
+
+@pytest.mark.parametrize("kind", [GuidedBlending, GuidedHexTiling])
+def test_guided_footprint_queries_read_the_pyramid_at_the_guided_samples(kind):
+    """Footprints of guided hist and hex: the numba kernel equals the torch reference (the pyramid read at the
+    guided samples' positions with their steered weights), a footprint of at most one texel is the point query,
+    and wide footprints move to the exemplar's mean."""
+    plane, labels = two_content_plane()
+    target = LabelField(np.array([[0, 1]]), size=4.0)
+    extra = {"luminance": torch.rand(32, 32, generator=torch.Generator().manual_seed(2))} if kind is GuidedHexTiling \
+        else {}
+    fast = kind(plane, 3, labels=labels, target=target, softness=0.3, tileable=False, **extra)
+    reference = kind(plane, 3, labels=labels, target=target, softness=0.3, tileable=False, fast=False,
+                     prepared=fast.prepared, **extra)
+    uv = torch.from_numpy(np.random.default_rng(5).uniform(-20, 20, (3000, 2)))
+    for texels in (0.5, 3.0, 11.0):
+        footprint = torch.full((len(uv),), texels, dtype=torch.float64)
+        got, want = fast.filtered_latent(uv, footprint), reference.filtered_latent(uv, footprint)
+        tolerance = 2e-2 if kind is GuidedBlending else 1e-4  # hist: the kernel's inverse tables vs the exact
+        assert float((got - want).abs().max()) < tolerance * float(want.abs().max()), texels
+    point = fast.latent(uv)
+    tiny = fast.filtered_latent(uv, torch.full((len(uv),), 0.5, dtype=torch.float64))
+    assert float((tiny - point).abs().max()) < 1e-4 * float(point.abs().max())
+    wide = fast.filtered_latent(uv, torch.full((len(uv),), 64.0, dtype=torch.float64))
+    assert float(wide.std(0).max()) < 0.2 * float(point.std(0).max())

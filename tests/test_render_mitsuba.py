@@ -913,9 +913,39 @@ def test_plugin_guided_by_a_target_is_guided_btf(variant, model_file, tmp_path, 
     assert np.mean(np.abs(expected - plain).max(1) > 1e-3) > 0.2  # guidance changes many points
     np.testing.assert_allclose(got, expected, rtol=0, atol=2e-4 * max(1.0, np.abs(expected).max()))
     assert load_image(target).shape[:2] == (8, 8)
-    for extra, message in (({"filtered": True}, "no footprint query yet"), ({"method": "struct"}, "steers hist or hex"),
+    for extra, message in (({"method": "struct"}, "steers hist or hex"),
                            ({"classes": 1}, "'classes' must be at least 2"), ({"softness": 2.0}, "'softness'")):
         spec = {"type": "dynbtf", "filename": str(path), "method": method, "target": str(target), "filtered": False,
                 **extra}
         with pytest.raises((InputError, RuntimeError), match=message):
             mi.load_dict(spec)
+
+
+def test_plugin_guided_footprints_are_the_librarys(variant, model_file, tmp_path):
+    """``target`` with footprint queries (``filtered``, uv partials): the plugin answers what its guided
+    SynthesizedBTF answers with that footprint (the pyramid read at the guided samples, per-level decoders)."""
+    from dynbtf.infinite_btf import footprint_width
+    from dynbtf.io import save_image
+
+    path, model = model_file
+    grey = np.repeat(np.repeat(np.array([[0.0, 1.0], [1.0, 0.0]], dtype=np.float32), 4, 0), 4, 1)
+    target = tmp_path / "target.png"
+    save_image(target, np.repeat(grey[..., None], 3, -1))
+    scale, n = 7.0, 2000
+    bsdf = mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "hist", "scale": scale, "seed": 3,
+                         "target": str(target), "target_size": 0.5})
+    uv, wv, wl = _random_queries(n, seed=11)
+    uv = (uv / np.float32(scale)) * np.float32(scale)
+    rng = np.random.default_rng(12)
+    duv_dx, duv_dy = ((rng.normal(size=(n, 2)) * np.exp(rng.uniform(-6.0, 1.0, (n, 1))) / scale).astype(np.float32)
+                      for _ in range(2))
+    got = _plugin_eval(bsdf, uv, wv, wl, scale, duv_dx=duv_dx, duv_dy=duv_dy)
+    footprint = footprint_width(duv_dx.astype(np.float64) * np.float32(scale),
+                                duv_dy.astype(np.float64) * np.float32(scale))
+    btf = bsdf.evaluator.btf  # the guided SynthesizedBTF the plugin translated (its per-level decoders fitted once)
+    assert btf.synthesizer.name == "guided"
+    ref = np.asarray(btf.eval(uv.astype(np.float64), wv, wl, footprint=footprint), dtype=np.float64)
+    ref = ref / np.pi * wl[:, 2:3]
+    point = np.asarray(btf.eval(uv.astype(np.float64), wv, wl), dtype=np.float64) / np.pi * wl[:, 2:3]
+    assert np.abs(point - ref).max() > 0.1 * np.abs(ref).max()  # the footprint changes the answer
+    np.testing.assert_allclose(got, ref, rtol=0, atol=2e-4 * max(1.0, np.abs(ref).max()))

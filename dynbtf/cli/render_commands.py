@@ -53,7 +53,7 @@ def render(
     target: Optional[Path] = typer.Option(None, "--target", help="Guided synthesis (hist or hex, auto: hist): an "
                                           "image painted over the mesh's uv (PNG/JPEG grey levels, or EXR values in "
                                           "[0, 1]), cut into --classes bins; a point in bin k shows the material's "
-                                          "class k (0 the darkest). Point queries (no footprints)."),
+                                          "class k (0 the darkest)."),
     classes: int = typer.Option(2, "--classes", help="With --target: classes of the material's texels."),
     target_size: float = typer.Option(1.0, "--target-size", help="Mesh uv units the --target image covers."),
     target_wrap: str = typer.Option("repeat", "--target-wrap", help="The --target image repeats (repeat) or "
@@ -65,7 +65,7 @@ def render(
 
     With --layer, two materials share the surface (the dynbtf_layered plugin): MODEL where --mask is below one
     half, the --layer one above, the boundary following both materials' heights within --width. With --target,
-    the material's content follows a painted target (guided synthesis, point queries).
+    the material's content follows a painted target (guided synthesis).
 
     The first pass compiles the rendering kernel (up to a minute the first time a model, method and
     shape are rendered; Dr.Jit caches it): a status line says so, then a bar counts samples.
@@ -94,7 +94,7 @@ def render(
         the_mask = mask_from_spec(mask, size=mask_size, wrap=mask_wrap)
     result = render_scene(model, scene=scene, method=method, scale=scale, seed=seed, lighting=lighting,
                           resolution=(size, size), spp=spp, variant=variant, progress=True, sampling=sampling,
-                          filtered=filtered and target is None, echo=typer.echo, memory_mb=memory_mb, layer=layer,
+                          filtered=filtered, echo=typer.echo, memory_mb=memory_mb, layer=layer,
                           mask=the_mask, width=width, target=target, classes=classes, target_size=target_size,
                           target_wrap=target_wrap, target_softness=softness)
     save_image(output, result.image, exposure=exposure)

@@ -259,8 +259,6 @@ def _target_image(target: Path | None, method: str, layer, report: bool, output,
     if method == "struct" and cells is None:
         raise InputError("--target --method struct: chooses whole cells by label, so give --cells, about one cell "
                          "per element of the material (e.g. --cells 8 for eight bricks per repeat)")
-    if filtered:
-        raise InputError("--target: guided synthesis has no footprint query yet; leave out --filtered")
     positive_number("--target-size", size, "uv units")
     if not 2 <= classes <= 255:
         raise InputError(f"--classes: expected 2 to 255 classes, got {classes}")

@@ -189,8 +189,13 @@ class LatticeBlending(Synthesizer):
         kwargs = {k: (self._numpy(k, v) if isinstance(v, torch.Tensor) else v)
                   for k, v in self.kernel_arguments().items()}
         result = lattice_blend(uv.detach().cpu().numpy(), self._numpy("plane", self.prepared.plane), self.density,
-                               self.seed, self.mode, out=out, **kwargs)
+                               self.seed, self.mode, out=out, guidance=self.kernel_guidance(uv), **kwargs)
         return torch.from_numpy(result)
+
+    def kernel_guidance(self, uv: torch.Tensor) -> tuple | None:
+        """Exemplar guidance for the fused kernels at queries ``uv (N, 2)`` (None: none; see
+        :mod:`dynbtf.synthesis.guided_blending`)."""
+        return None
 
     def latent_channels(self, uv: torch.Tensor, rows: list[int]) -> torch.Tensor:
         """:meth:`latent`'s channels ``rows`` ``(N, len(rows))`` float32 for ``uv (N, 2)`` float64: the fused kernel
@@ -206,7 +211,7 @@ class LatticeBlending(Synthesizer):
                   for k, v in self.kernel_arguments().items()}
         plane = self._numpy(f"plane[{key}]", self.prepared.plane[..., rows])
         return torch.from_numpy(lattice_blend(uv.detach().cpu().numpy(), plane, self.density, self.seed, self.mode,
-                                              **kwargs))
+                                              guidance=self.kernel_guidance(uv), **kwargs))
 
     # ------------------------------------------------------------ footprint queries
     def pyramid(self) -> dict[str, Any]:
@@ -245,7 +250,7 @@ class LatticeBlending(Synthesizer):
         if "luts" in pyr:
             kwargs["luts"] = pyr["luts_numpy"]
         result = filtered_lattice_blend(uv.detach().cpu().numpy(), level, upper, pyr["packed"], self.density,
-                                        self.seed, self.mode, **kwargs)
+                                        self.seed, self.mode, guidance=self.kernel_guidance(uv), **kwargs)
         return torch.from_numpy(result)
 
     def _reference_filtered_latent(self, uv, pyr, level, upper) -> torch.Tensor:

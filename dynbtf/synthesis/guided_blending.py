@@ -26,7 +26,9 @@ cell takes the first lattice offset, from its hashed one on, under which its con
 
 On the CPU the fused numba kernel of lattice blending runs the search (:func:`dynbtf.synthesis.kernels.lattice_blend`
 with ``guidance``); :meth:`GuidedBlending.reference_latent` is the torch path (any device), against which the tests
-hold it. The guided methods also run in the Mitsuba plugin (its ``target`` parameter; Dr.Jit, point queries:
+hold it; footprint queries read the pyramid at the guided samples, with their steered weights (the same
+:meth:`sample_positions` in every path). The guided methods also run in the Mitsuba plugin (its ``target``
+parameter; Dr.Jit:
 :class:`~dynbtf.render.mitsuba.drjit_synthesis.DrGuidance`, :class:`~dynbtf.render.mitsuba.drjit_synthesis.DrCellQuilting`);
 the web export refuses every guided synthesizer.
 """
@@ -43,7 +45,6 @@ from .hash import MASK32, mix32, vertex_offsets
 from .hex_tiling import HexTiling
 from .histogram_blending import HistogramBlending
 from .lattice import split_uv, triangle_lattice
-from ..texture import fetch_wrap
 
 __all__ = ["GuidedBlending", "GuidedHexTiling", "GuidedCellQuilting", "LabelField", "exemplar_labels",
            "candidate_seed", "source_labels"]
@@ -160,7 +161,7 @@ def _checked_labels(labels, target, shape: tuple[int, int]) -> torch.Tensor:
 class _Guidance:
     """What guidance adds to a lattice-blending method (hist, hex): the offset search, the steered weights, the
     fused kernel's guidance arguments. Mixed in before the method's class. Its Dr.Jit form is
-    :class:`dynbtf.render.mitsuba.drjit_synthesis.DrGuidance` (point queries); it has no GLSL form (the web export
+    :class:`dynbtf.render.mitsuba.drjit_synthesis.DrGuidance`; it has no GLSL form (the web export
     refuses it)."""
 
     def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, candidates: int = 16,
@@ -213,42 +214,23 @@ class _Guidance:
         steered = torch.where(matched, bary, bary * self.softness)
         return torch.where(matched.any(-1, keepdim=True), steered, bary)
 
-    def reference_latent(self, uv: torch.Tensor) -> torch.Tensor:
-        """The torch reference path of :meth:`latent` (any device; the exact inverse transform)."""
+    def sample_positions(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The guided samples' read positions ``(N, 3, 2)`` and their steered barycentrics ``(N, 3)``: what the
+        method's own reference paths (:meth:`reference_latent`, footprint queries) read and blend."""
         uv_samples, bary, matched = self.guided_positions(uv)
-        samples = fetch_wrap(self.prepared.plane, uv_samples)
-        return self.blend(samples, self.steered_barycentrics(bary, matched), uv_samples).to(torch.float32)
+        return uv_samples, self.steered_barycentrics(bary, matched)
 
-    def latent(self, uv: torch.Tensor, out: np.ndarray | None = None) -> torch.Tensor:
-        """Blended values ``(N, C)`` float32 for ``uv (N, 2)`` float64: the fused CPU kernel with the guidance
-        (:func:`dynbtf.synthesis.kernels.lattice_blend`) when ``fast``, else :meth:`reference_latent`."""
-        if not self.fast:
-            result = self.reference_latent(uv)
-            if out is not None:
-                out[...] = result.cpu().numpy()
-            return result
+    def kernel_guidance(self, uv: torch.Tensor) -> tuple:
+        """The fused kernels' guidance arguments for queries ``uv (N, 2)``: the candidates' hash states, the read
+        plane's labels, the target label per query and the softness."""
         from .hash import seed_state
-        from .kernels import lattice_blend
 
         if "states" not in self._numpy_cache:
             self._numpy_cache["states"] = np.array([int(seed_state(candidate_seed(self.seed, j)))
                                                     for j in range(self.candidates)], dtype=np.int64)
             self._numpy_cache["labels"] = np.ascontiguousarray(self.labels.cpu().numpy(), dtype=np.int32)
-        kwargs = {k: (self._numpy(k, v) if isinstance(v, torch.Tensor) else v)
-                  for k, v in self.kernel_arguments().items()}
         target = self.target.labels(uv.cpu()).numpy().astype(np.int32)
-        guidance = (self._numpy_cache["states"], self._numpy_cache["labels"], target, self.softness)
-        return torch.from_numpy(lattice_blend(uv.detach().cpu().numpy(), self._numpy("plane", self.prepared.plane),
-                                              self.density, self.seed, self.mode, out=out, guidance=guidance, **kwargs))
-
-    def latent_channels(self, uv: torch.Tensor, rows: list[int]) -> torch.Tensor:
-        return self.latent(uv)[:, rows]
-
-    def filtered_latent(self, uv: torch.Tensor, footprint: torch.Tensor) -> torch.Tensor:
-        raise InputError("guided synthesis has no footprint query yet: evaluate points (no footprint, filtered=False)")
-
-    def level_of_detail(self):
-        return None
+        return self._numpy_cache["states"], self._numpy_cache["labels"], target, self.softness
 
     def parameters(self):
         return super().parameters() | {"base": self.base_method, "candidates": self.candidates,

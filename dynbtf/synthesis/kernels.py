@@ -517,6 +517,18 @@ def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_
                     _inverse_lut(out[first + j], lut, g_min, inv_step)
 
 
+def _guidance_arguments(guidance: tuple | None, plane_shape: tuple[int, int], n: int) -> tuple:
+    """The kernels' guidance arguments ``(states, labels, target, softness)``, checked; empty ones for None."""
+    if guidance is None:
+        return np.zeros(0, np.int64), np.zeros((1, 1), np.int32), np.zeros(1, np.int32), 1.0
+    states, labels, target, softness = guidance
+    if np.shape(labels) != tuple(plane_shape) or np.shape(target) != (n,):
+        raise InputError(f"guidance: labels {np.shape(labels)} and target {np.shape(target)} do not fit a "
+                         f"{tuple(plane_shape)} plane and {n} queries")
+    return (np.ascontiguousarray(states, dtype=np.int64), np.ascontiguousarray(labels, dtype=np.int32),
+            np.ascontiguousarray(target, dtype=np.int32), float(softness))
+
+
 def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], seed: int, mode: int, *,
                   gamma: float = 1.0, luminance: np.ndarray | None = None, beta: float = 0.0, gain_k: float = 1.0,
                   lut: np.ndarray | None = None, g_min: float = 0.0, step: float = 1.0,
@@ -564,15 +576,7 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
         luminance = np.zeros((1, 1), dtype=np.float32)
     if lut is None:
         lut = np.zeros((c, 2), dtype=np.float32)
-    if guidance is None:
-        guided = (np.zeros(0, np.int64), np.zeros((1, 1), np.int32), np.zeros(1, np.int32), 1.0)
-    else:
-        states, labels, target, softness = guidance
-        if np.shape(labels) != plane.shape[:2] or np.shape(target) != (n,):
-            raise InputError(f"guidance: labels {np.shape(labels)} and target {np.shape(target)} do not fit a "
-                             f"{plane.shape[:2]} plane and {n} queries")
-        guided = (np.ascontiguousarray(states, dtype=np.int64), np.ascontiguousarray(labels, dtype=np.int32),
-                  np.ascontiguousarray(target, dtype=np.int32), float(softness))
+    guided = _guidance_arguments(guidance, plane.shape[:2], n)
     _kernel(uv, cache_aligned(plane),
             np.ascontiguousarray(luminance, dtype=np.float32), int(density[0]), int(density[1]), int(seed) & 0xFFFFFFFF,
             int(mode), float(gamma), float(beta), float(gain_k), np.ascontiguousarray(lut, dtype=np.float32),
@@ -636,7 +640,8 @@ def _add_level_sample(flat, start, mw, mh, x, y, ratio_w, ratio_h, weight, row):
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _filtered_kernel(uv, level, upper_weight, levels, starts, heights, widths, lums, lum_starts, pw, ph,
-                     density_w, density_h, seed, mode, gamma, beta, gain_k, luts, g_min, inv_step, out):
+                     density_w, density_h, seed, mode, gamma, beta, gain_k, luts, g_min, inv_step, out,
+                     states, labels, target, softness):
     n_queries = uv.shape[0]
     nc = out.shape[1]
     state = _seed_state(seed)
@@ -644,21 +649,38 @@ def _filtered_kernel(uv, level, upper_weight, levels, starts, heights, widths, l
     density_w_mod = density_w % pw
     density_h_mod = density_h % ph
     n_levels = starts.shape[0]
+    guided = states.shape[0] > 0
     for block in numba.prange((n_queries + BLOCK - 1) // BLOCK):
         row = np.empty(nc, dtype=np.float32)
         for n in range(block * BLOCK, min(block * BLOCK + BLOCK, n_queries)):
-            iu, iv, fu, fv, h0, h1, h2, b0, b1, b2, _, _, _ = _lattice_hashes(uv[n, 0], uv[n, 1], state)
+            iu, iv, fu, fv, h0, h1, h2, b0, b1, b2, base_x, base_y, lower = _lattice_hashes(uv[n, 0], uv[n, 1], state)
             # level-0 texel positions of the three samples in the read plane (whole parts reduced exactly)
             xi = ((iu % pw) * density_w_mod) % pw
             yi = ((iv % ph) * density_h_mod) % ph
             fx = fu * density_w
             fy = fv * density_h
-            x0 = _wrap(xi + h0 % pw, pw) + fx
-            y0 = _wrap(yi + _mix32(h0 ^ SECOND_STREAM) % ph, ph) + fy
-            x1 = _wrap(xi + h1 % pw, pw) + fx
-            y1 = _wrap(yi + _mix32(h1 ^ SECOND_STREAM) % ph, ph) + fy
-            x2 = _wrap(xi + h2 % pw, pw) + fx
-            y2 = _wrap(yi + _mix32(h2 ^ SECOND_STREAM) % ph, ph) + fy
+            ox0, oy0 = h0 % pw, _mix32(h0 ^ SECOND_STREAM) % ph
+            ox1, oy1 = h1 % pw, _mix32(h1 ^ SECOND_STREAM) % ph
+            ox2, oy2 = h2 % pw, _mix32(h2 ^ SECOND_STREAM) % ph
+            if guided:  # the point query's candidate search (lattice_blend), at its level-0 bilinear footprint
+                cx = _modulo(xi + np.int64(math.floor(fx - 0.5)), pw, 1.0 / pw)
+                cy = _modulo(yi + np.int64(math.floor(fy - 0.5)), ph, 1.0 / ph)
+                t = target[n]
+                c0, _, r0, _, m0 = _guided_texels(0, h0, cx, cy, pw, ph, base_x, base_y, lower, states, labels, t)
+                ox0, oy0 = _wrap(c0 - cx, pw), _wrap(r0 - cy, ph)
+                c0, _, r0, _, m1 = _guided_texels(1, h1, cx, cy, pw, ph, base_x, base_y, lower, states, labels, t)
+                ox1, oy1 = _wrap(c0 - cx, pw), _wrap(r0 - cy, ph)
+                c0, _, r0, _, m2 = _guided_texels(2, h2, cx, cy, pw, ph, base_x, base_y, lower, states, labels, t)
+                ox2, oy2 = _wrap(c0 - cx, pw), _wrap(r0 - cy, ph)
+                if m0 or m1 or m2:  # unmatched samples' barycentric weight times softness
+                    b0, b1, b2 = (b0 if m0 else b0 * softness), (b1 if m1 else b1 * softness), \
+                        (b2 if m2 else b2 * softness)
+            x0 = _wrap(xi + ox0, pw) + fx
+            y0 = _wrap(yi + oy0, ph) + fy
+            x1 = _wrap(xi + ox1, pw) + fx
+            y1 = _wrap(yi + oy1, ph) + fy
+            x2 = _wrap(xi + ox2, pw) + fx
+            y2 = _wrap(yi + oy2, ph) + fy
             for c in range(nc):
                 out[n, c] = 0.0
             t_up = upper_weight[n]
@@ -726,7 +748,7 @@ class PackedPyramid:
 def filtered_lattice_blend(uv: np.ndarray, level: np.ndarray, upper_weight: np.ndarray, pyramid: PackedPyramid,
                            density: tuple[int, int], seed: int, mode: int, *, gamma: float = 1.0, beta: float = 0.0,
                            gain_k: float = 1.0, luts: np.ndarray | None = None, g_min: float = 0.0,
-                           step: float = 1.0) -> np.ndarray:
+                           step: float = 1.0, guidance: tuple | None = None) -> np.ndarray:
     """:func:`lattice_blend` with every sample read from a pyramid (trilinear): the footprint query.
 
     Parameters
@@ -758,7 +780,8 @@ def filtered_lattice_blend(uv: np.ndarray, level: np.ndarray, upper_weight: np.n
     _filtered_kernel(uv, level, np.ascontiguousarray(upper_weight, dtype=np.float32), pyramid.flat, pyramid.starts,
                      pyramid.heights, pyramid.widths, pyramid.lums, pyramid.lum_starts, pw, ph, int(density[0]),
                      int(density[1]), int(seed) & 0xFFFFFFFF, int(mode), float(gamma), float(beta), float(gain_k),
-                     np.ascontiguousarray(luts, dtype=np.float32), float(g_min), 1.0 / float(step), out)
+                     np.ascontiguousarray(luts, dtype=np.float32), float(g_min), 1.0 / float(step), out,
+                     *_guidance_arguments(guidance, (ph, pw), uv.shape[0]))
     return out
 
 @numba.njit(inline="always")

@@ -239,10 +239,10 @@ rest draws cosine-weighted directions), in ``(0, 1]``.""",
 over the mesh's uv (PNG/JPEG grey levels, or EXR values in [0, 1]), cut
 into ``classes`` equal bins; a point in bin ``k`` shows the material's
 class ``k`` (k-means on its decoded appearance, 0 the darkest). Steers
-``hist`` (also what ``auto`` becomes) or ``hex``; point queries only
-(``filtered = false``). Empty: no guidance.""",
+``hist`` (also what ``auto`` becomes) or ``hex``, with footprint queries as
+unguided (``filtered``). Empty: no guidance.""",
         summary="guided synthesis: an image painted over the mesh's uv, cut into `classes` bins (class 0 the "
-                "darkest content); `hist` or `hex`, with `filtered` false; empty: none"),
+                "darkest content); steers `hist` or `hex`; empty: none"),
     PluginParameter(
         "classes", "integer", 2, check=lambda name, value: _at_least(name, value, 2),
         doc="With ``target``: classes of the material's texels (k-means), at least 2.",
@@ -441,9 +441,6 @@ class _DynBTFBSDFBody:
         from ...guided import guided_btf
         from ...layered import mask_from_spec
 
-        if self.filtered:
-            raise InputError("dynbtf BSDF: parameter 'target': guided synthesis has no footprint query yet; "
-                             "set filtered = false")
         if self.method not in ("hist", "hex", "auto"):
             raise InputError(f"dynbtf BSDF: parameter 'target' steers hist or hex (or auto: hist), "
                              f"got method {self.method!r}")

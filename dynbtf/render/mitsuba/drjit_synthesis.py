@@ -335,7 +335,8 @@ class DrLatticeBlending:
         footprint query (:meth:`filtered_latent`).
     guidance : DrGuidance, optional
         Exemplar guidance (:mod:`dynbtf.synthesis.guided_blending`): each sample takes the first candidate
-        offset whose four texels carry the query's target label (no footprint query then).
+        offset whose four texels (the point query's) carry the query's target label; footprint queries read the
+        pyramid at those samples.
     """
 
     def __init__(self, plane, density, seed: int, mode: str, *, gamma: float = 1.0, beta: float = 0.0,
@@ -420,6 +421,21 @@ class DrLatticeBlending:
         offsets = [self._offsets(vx, vy, self.seed) for vx, vy in verts]
         return bary, offsets, (mu, mv), (fu * dw, fv * dh), verts
 
+    def _samples(self, u, v, active=True):
+        """:meth:`_lattice`, with the point query's shared bilinear footprint ``(xi, yi)`` (``mi.Int32``, the texel
+        left of and below the position) and fractions ``(tx, ty)`` (``mi.Float``), and under guidance the chosen
+        offsets and steered barycentrics: ``(bary, offsets, ((mu, mv), (fx, fy)), (xi, yi, tx, ty))``."""
+        mi, dr = mi_module(), drjit_module()
+        bary, offsets, (mu, mv), (fx, fy), verts = self._lattice(u, v)
+        px = mi.Float64(mu) + fx - 0.5
+        py = mi.Float64(mv) + fy - 0.5
+        x0, y0 = dr.floor(px), dr.floor(py)
+        tx, ty = mi.Float(px - x0), mi.Float(py - y0)
+        xi, yi = mi.Int32(x0), mi.Int32(y0)
+        if self.guidance is not None:
+            offsets, bary = self.guidance.steer(self, u, v, verts, bary, offsets, xi, yi, active)
+        return bary, offsets, ((mu, mv), (fx, fy)), (xi, yi, tx, ty)
+
     def _offsets(self, vx, vy, seed: int):
         """Whole-texel offsets ``(ox, oy)`` (``mi.Int32``) of vertices ``(vx, vy)`` hashed with ``seed``."""
         mi = mi_module()
@@ -428,16 +444,9 @@ class DrLatticeBlending:
 
     def latent(self, u, v, active=True, which=None):
         """Blended values before the output map: list of ``C`` mi.Float (only channels ``which``, if given)."""
-        mi, dr = mi_module(), drjit_module()
-        bary, offsets, (mu, mv), (fx, fy), verts = self._lattice(u, v)
+        mi = mi_module()
+        bary, offsets, _, (xi, yi, tx, ty) = self._samples(u, v, active)
         pw, ph = self.pw, self.ph
-        px = mi.Float64(mu) + fx - 0.5
-        py = mi.Float64(mv) + fy - 0.5
-        x0, y0 = dr.floor(px), dr.floor(py)
-        tx, ty = mi.Float(px - x0), mi.Float(py - y0)
-        xi, yi = mi.Int32(x0), mi.Int32(y0)
-        if self.guidance is not None:
-            offsets, bary = self.guidance.steer(self, u, v, verts, bary, offsets, xi, yi, active)
         wts = ((1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty)
         taps_of_sample = []
         for ox, oy in offsets:
@@ -473,10 +482,8 @@ class DrLatticeBlending:
         blended per level (hex: the level's luminance; hist: the level's inverse table) and mixed.
         """
         mi = mi_module()
-        if self.guidance is not None:
-            raise InputError("guided synthesis has no footprint query yet: set the plugin's filtered = false")
         pyramid, lod, luts = self._pyramid()
-        bary, offsets, (mu, mv), (fx, fy), _ = self._lattice(u, v)
+        bary, offsets, ((mu, mv), (fx, fy)), _ = self._samples(u, v, active)
         pw, ph, c = self.pw, self.ph, self.channels
         positions = [(mi.Float64(_mod(mu + ox, pw)) + fx, mi.Float64(_mod(mv + oy, ph)) + fy) for ox, oy in offsets]
         out = None
@@ -706,7 +713,7 @@ class DrCellQuilting(DrTiling):
         Guided struct (:class:`~dynbtf.synthesis.guided_blending.GuidedCellQuilting`): each cell's content label
         under each offset ``(nx, ny, K)`` and the target :class:`~dynbtf.synthesis.guided_blending.LabelField`;
         a cell takes, from its hashed offset on, the first whose content carries the target's label at the
-        cell's centre (point queries).
+        cell's centre (footprint queries read the pyramid at the chosen cells' positions, as unguided).
     """
 
     def __init__(self, plane, offsets, cells, margin, vertical_cuts, horizontal_cuts, seed: int,

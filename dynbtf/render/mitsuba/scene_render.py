@@ -170,7 +170,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     target : path, optional
         Guided synthesis (the plugin's ``target``, :func:`dynbtf.guided.guided_btf`): an image painted over
         ``target_size`` x ``target_size`` mesh uv units (``target_wrap``), cut into ``classes`` bins, steering
-        ``hist`` (also ``auto``) or ``hex`` with ``target_softness``; point queries only (``filtered`` false).
+        ``hist`` (also ``auto``) or ``hex`` with ``target_softness``.
 
     Returns
     -------
@@ -185,9 +185,6 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     if target is not None:
         if layer is not None:
             raise InputError("target: guides one material; it does not combine with a layered one (layer)")
-        if filtered:
-            raise InputError("target: guided synthesis has no footprint query yet; render point queries "
-                             "(filtered=False, --point)")
         if method not in ("auto", "hist", "hex"):
             raise InputError(f"target: guided synthesis steers hist or hex (or auto: hist), got method {method!r}")
         if not Path(target).is_file():
