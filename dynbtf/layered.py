@@ -109,6 +109,14 @@ class ImageMask:
         _image_mask_kernel(uv, self.image, float(self.size), self.wrap == "repeat", value, gradient)
         return value, gradient
 
+    def signed_distance(self, uv: np.ndarray) -> np.ndarray:
+        """``(N,)`` float64: the distance (uv units) to the mask's 0.5 contour, positive where the mask is above one
+        half (:func:`contour_distance` of the value and gradient, in the same compiled loop)."""
+        uv = np.ascontiguousarray(uv, dtype=np.float64)
+        value, gradient = np.empty(len(uv)), np.empty((len(uv), 2))
+        _image_mask_kernel(uv, self.image, float(self.size), self.wrap == "repeat", value, gradient)
+        return _contour_distance_kernel(value, gradient)
+
 
 @numba.njit(cache=True, nogil=True)
 def _image_mask_kernel(uv, image, size, repeat, value, gradient):
@@ -136,6 +144,23 @@ def _image_mask_kernel(uv, image, size, repeat, value, gradient):
         value[i] = (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
         gradient[i, 0] = ((b - a) * (1 - fy) + (d - c) * fy) * sx
         gradient[i, 1] = ((c - a) * (1 - fx) + (d - b) * fx) * sy
+
+
+def contour_distance(value: np.ndarray, gradient: np.ndarray) -> np.ndarray:
+    """The signed distance ``(N,)`` (uv units) to a mask's 0.5 contour from its value ``(N,)`` and gradient ``(N, 2)``:
+    ``(m - 0.5) / |grad m|`` (exact for a locally linear mask), 0 on the contour, +-inf where the mask is flat."""
+    return _contour_distance_kernel(np.ascontiguousarray(value, dtype=np.float64),
+                                    np.ascontiguousarray(gradient, dtype=np.float64))
+
+
+@numba.njit(cache=True, nogil=True)
+def _contour_distance_kernel(value, gradient):
+    out = np.empty(value.shape[0])
+    for i in range(value.shape[0]):
+        m = value[i] - 0.5
+        slope = math.sqrt(gradient[i, 0] * gradient[i, 0] + gradient[i, 1] * gradient[i, 1])
+        out[i] = 0.0 if m == 0.0 else m / max(slope, 1e-300)
+    return out
 
 
 class NoiseMask:
@@ -311,14 +336,13 @@ class LayeredBTF:
         """Layer 1's weight ``(N,)`` at ``flat (N, 2)``, the rows inside the band, and each layer's latent values at
         those rows (:meth:`_heights_and_latents`)."""
         points = flat.numpy()
-        if hasattr(self.mask, "value_and_gradient"):
-            m, gradient = self.mask.value_and_gradient(points)
+        if hasattr(self.mask, "signed_distance"):  # value, gradient and distance in one compiled loop
+            distance = self.mask.signed_distance(points)
+        elif hasattr(self.mask, "value_and_gradient"):
+            distance = contour_distance(*self.mask.value_and_gradient(points))
         else:
-            m, gradient = self.mask.value(points), self.mask.gradient(points)
-        slope = np.hypot(gradient[:, 0], gradient[:, 1])
-        distance = (m - 0.5) / np.maximum(slope, 1e-300)          # signed, positive on layer 1's side
-        distance = np.where(m == 0.5, 0.0, distance)
-        weight = (distance > 0).astype(np.float64)
+            distance = contour_distance(self.mask.value(points), self.mask.gradient(points))
+        weight = (distance > 0).astype(np.float64)  # the distance is signed, positive on layer 1's side
         band = np.flatnonzero(np.abs(distance) < self.width)
         latents = [None] * len(self.layers)
         if band.size:

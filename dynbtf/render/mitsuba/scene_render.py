@@ -183,27 +183,13 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     elif mask is not None:
         raise InputError("mask: layers two materials; give the second one (layer / --layer) too")
     if target is not None:
-        if layer is not None:
-            raise InputError("target: guides one material; it does not combine with a layered one (layer)")
-        if method not in ("auto", "hist", "hex"):
-            raise InputError(f"target: guided synthesis steers hist or hex (or auto: hist), got method {method!r}")
-        if not Path(target).is_file():
-            raise InputError(f"target: {target}: no such image file")
-        from ...errors import positive_number
+        _check_guidance(target, classes, target_size, target_wrap, target_softness, method, layer)
+    from ...material import CompiledMaterial
 
-        if int(classes) != classes or not 2 <= classes <= 255:
-            raise InputError(f"--classes: expected 2 to 255 classes, got {classes}")
-        positive_number("--target-size", target_size, "mesh uv units")
-        if target_wrap not in ("repeat", "clamp"):
-            raise InputError(f"--target-wrap: expected 'repeat' or 'clamp', got {target_wrap!r}")
-        if not (math.isfinite(float(target_softness)) and 0.0 <= float(target_softness) <= 1.0):
-            raise InputError(f"--softness: expected a weight factor in [0, 1], got {target_softness}")
     paths = [model_path] if layer is None else [model_path, layer]
     models = []
     for path in paths:
         model = load_plugin_model(path)  # a missing/damaged file or an unsupported kind fails here, not in Mitsuba
-        from ...material import CompiledMaterial
-
         if isinstance(model, CompiledMaterial):  # its method and seed, checked here rather than inside Mitsuba
             if method not in ("auto", model.method) or seed not in (0, model.seed):
                 raise InputError(f"{path}: a compiled material fixes method {model.method!r} and seed {model.seed}; "
@@ -278,6 +264,25 @@ def _check_layering(width, softness) -> None:
     positive_number("--width", width, "uv units")
     if not (math.isfinite(float(softness)) and float(softness) >= 0.0):
         raise InputError(f"softness: expected a height difference >= 0, got {softness!r}")
+
+
+def _check_guidance(target, classes, target_size, target_wrap, softness, method, layer) -> None:
+    """A guided render's request (the plugin's ``target`` and its companions), checked before anything loads."""
+    from ...errors import positive_number
+
+    if layer is not None:
+        raise InputError("target: guides one material; it does not combine with a layered one (layer)")
+    if method not in ("auto", "hist", "hex"):
+        raise InputError(f"target: guided synthesis steers hist or hex (or auto: hist), got method {method!r}")
+    if not Path(target).is_file():
+        raise InputError(f"target: {target}: no such image file")
+    if int(classes) != classes or not 2 <= classes <= 255:
+        raise InputError(f"--classes: expected 2 to 255 classes, got {classes}")
+    positive_number("--target-size", target_size, "mesh uv units")
+    if target_wrap not in ("repeat", "clamp"):
+        raise InputError(f"--target-wrap: expected 'repeat' or 'clamp', got {target_wrap!r}")
+    if not (math.isfinite(float(softness)) and 0.0 <= float(softness) <= 1.0):
+        raise InputError(f"--softness: expected a weight factor in [0, 1], got {softness}")
 
 
 def resolve_auto(model, seed: int = 0) -> tuple[str, str]:
