@@ -28,7 +28,7 @@ import torch
 from .errors import InputError
 from .infinite_btf import SynthesizedBTF
 from .material import open_model_file
-from .material.compiler import decoded_appearance, decoded_luminance
+from .material.compiler import decoded_appearance, decoded_luminance, model_arguments
 from .synthesis.guided_blending import (GuidedBlending, GuidedCellQuilting, GuidedHexTiling, LabelField,
                                        exemplar_labels)
 
@@ -106,12 +106,7 @@ def guided_btf(model, target, *, classes: int = 2, labels=None, target_size: flo
     from .errors import positive_number
 
     scale = positive_number("scale", scale, "exemplar repeats per uv unit")
-    if method == "hist" and getattr(model, "separate_channels", 0):  # a relief's height: its own transform
-        params.setdefault("separate", int(model.separate_channels))
-    if method == "hex":
-        params.setdefault("luminance", decoded_luminance(model))
-    if method == "struct":
-        params.setdefault("guide", decoded_appearance(model, model.positional_plane().detach()))
+    params = model_arguments(model, method, params)  # hex's luminance, struct's guide, a relief's height channels
     classes = int(classes)
     exemplar = labels if labels is not None else exemplar_classes(model, classes, seed)
     field = LabelField(target_labels(target, classes), size=float(target_size) * float(scale), wrap=target_wrap)

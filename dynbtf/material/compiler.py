@@ -26,13 +26,13 @@ import torch
 from ..conventions import spherical_to_direction
 from ..decoder.folded import DecodePath, FoldedDecoder
 from ..errors import InputError
-from ..synthesis.registry import make_synthesizer, synthesizer_class
+from ..synthesis.registry import make_synthesizer, model_inputs, synthesizer_class
 from ..representations.model_file import tensor_digest
 from .footprint_decoders import fit_footprint_decoders
 from .format import CompiledMaterial, material_key
 
-__all__ = ["compile_material", "decoded_appearance", "decoded_luminance", "APPEARANCE_PAIRS", "model_digest",
-           "argument_key", "footprint_settings"]
+__all__ = ["compile_material", "decoded_appearance", "decoded_luminance", "model_arguments", "MODEL_INPUTS",
+           "APPEARANCE_PAIRS", "model_digest", "argument_key", "footprint_settings"]
 
 #: (view, light) pairs, (theta, phi) in degrees, under which ``struct`` and ``auto`` see the exemplar's
 #: structure (normal view and light, a slanted pair, a grazing-ish pair from other azimuths).
@@ -89,16 +89,31 @@ def argument_key(arguments: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _build_synthesizer(model, method: str, seed: int, arguments: dict[str, Any]):
-    plane = model.positional_plane().detach()
+#: The model inputs a method may take (:attr:`dynbtf.synthesis.base.Synthesizer.model_inputs`), each derived from a
+#: fitted model (None: the model has none to give).
+MODEL_INPUTS = {
+    "appearance": lambda model: decoded_appearance(model, model.positional_plane().detach()),
+    "luminance": lambda model: decoded_luminance(model),
+    "separate_channels": lambda model: int(getattr(model, "separate_channels", 0)) or None,
+}
+
+
+def model_arguments(model, method: str, arguments: dict[str, Any]) -> dict[str, Any]:
+    """``arguments`` completed with what ``method`` (or ``auto``'s candidates) takes from ``model`` and was not
+    given: the appearance struct cuts along, hex's luminance, a relief's height channels kept out of hist's
+    decorrelation (:func:`dynbtf.synthesis.registry.model_inputs`)."""
     arguments = dict(arguments)
-    if method in ("auto", "struct") and "guide" not in arguments:
-        arguments["guide"] = decoded_appearance(model, plane)
-    if method == "hex" and "luminance" not in arguments:
-        arguments["luminance"] = decoded_luminance(model)
-    if getattr(model, "separate_channels", 0) and "separate" not in arguments and method in ("auto", "hist"):
-        arguments["separate"] = int(model.separate_channels)  # a relief model's height: its own transform
-    return make_synthesizer(method, plane, seed=seed, **arguments)
+    for name, source in model_inputs(method).items():
+        if name not in arguments:
+            value = MODEL_INPUTS[source](model)
+            if value is not None:
+                arguments[name] = value
+    return arguments
+
+
+def _build_synthesizer(model, method: str, seed: int, arguments: dict[str, Any]):
+    return make_synthesizer(method, model.positional_plane().detach(), seed=seed,
+                            **model_arguments(model, method, arguments))
 
 
 def _stored_arguments(synthesizer, arguments: dict[str, Any]) -> dict[str, Any]:

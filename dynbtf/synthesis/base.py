@@ -179,6 +179,11 @@ class Synthesizer(abc.ABC):
 
     name: ClassVar[str] = "abstract"
     dynamic: ClassVar[bool] = True
+    #: What the method takes from a fitted model when its caller does not give it: parameter name -> the model
+    #: input that provides it (``"appearance"``: the plane decoded under a few lights; ``"luminance"``: decoded at
+    #: normal view and light; ``"separate_channels"``: a relief model's height channels). The material stage
+    #: derives them (:func:`dynbtf.material.compiler.model_arguments`); synthesis itself never decodes a model.
+    model_inputs: ClassVar[dict[str, str]] = {}
     #: The :class:`~dynbtf.synthesis.auto.MethodChoice` when built by ``make_synthesizer("auto", ...)``.
     choice = None
 

@@ -361,6 +361,8 @@ class CellQuilting(Tiling):
         The ``prepared`` attribute of an earlier synthesizer of the same exemplar and parameters.
     """
 
+    model_inputs = {"guide": "appearance"}
+
     def __init__(self, exemplar, seed: int = 0, *, offsets: int = DEFAULT_OFFSETS, cells="auto", margin: float = 0.25,
                  guide=None, fast: bool | None = None, prepared: CellTables | None = None) -> None:
         super().__init__(exemplar, seed, fast=fast)

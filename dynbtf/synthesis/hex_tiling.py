@@ -76,6 +76,7 @@ class HexTiling(LatticeBlending):
     """
 
     mode = MODE_HEX
+    model_inputs = {"luminance": "luminance"}
 
     def __init__(self, exemplar, seed: int = 0, *, contrast: float = 0.7, beta: float = 0.6, luminance=None,
                  tileable="auto", band: int | None = None, fast: bool | None = None,

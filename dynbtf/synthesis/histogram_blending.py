@@ -96,6 +96,7 @@ class HistogramBlending(LatticeBlending):
     """
 
     mode = MODE_HIST
+    model_inputs = {"separate": "separate_channels"}
 
     def __init__(self, exemplar, seed: int = 0, *, gamma: float = DEFAULT_GAMMA, decorrelate: bool = True,
                  separate: int = 0, lut_size: int = 4096, tileable="auto", band: int | None = None, fast: bool | None = None,

@@ -17,7 +17,10 @@ from . import blending, cell_quilting, guided_blending, hex_tiling, histogram_bl
 from .auto import choose_method
 from .base import SYNTHESIZERS, Synthesizer
 
-__all__ = ["SYNTHESIZERS", "synthesizer_class", "make_synthesizer"]
+__all__ = ["SYNTHESIZERS", "synthesizer_class", "make_synthesizer", "model_inputs", "AUTO_CANDIDATES"]
+
+#: The methods ``auto`` chooses between (:func:`dynbtf.synthesis.auto.choose_method`).
+AUTO_CANDIDATES = ("struct", "hist")
 
 
 def synthesizer_class(name: str) -> type[Synthesizer]:
@@ -26,6 +29,17 @@ def synthesizer_class(name: str) -> type[Synthesizer]:
         return SYNTHESIZERS[name]
     except KeyError:
         raise InputError(f"synthesis method {name!r} is unknown; expected one of {sorted(SYNTHESIZERS) + ['auto']}") from None
+
+
+def model_inputs(name: str) -> dict[str, str]:
+    """What method ``name`` takes from a fitted model (:attr:`~dynbtf.synthesis.base.Synthesizer.model_inputs`);
+    for ``auto``, what either candidate takes (the choice itself measures ``guide``)."""
+    if name == "auto":
+        merged: dict[str, str] = {}
+        for candidate in AUTO_CANDIDATES:
+            merged.update(synthesizer_class(candidate).model_inputs)
+        return merged
+    return dict(synthesizer_class(name).model_inputs)
 
 
 def _accepted(cls) -> list[str]:
@@ -46,7 +60,7 @@ def make_synthesizer(name: str, exemplar, seed: int = 0, **params) -> Synthesize
     choice = None
     if name == "auto":
         choice = choose_method(Synthesizer.check_exemplar(exemplar), params.get("guide"))
-        candidates = {m: _accepted(synthesizer_class(m)) for m in ("struct", "hist")}
+        candidates = {m: _accepted(synthesizer_class(m)) for m in AUTO_CANDIDATES}
         unknown = sorted(set(params) - set().union(*candidates.values()))
         if unknown:
             raise InputError(f"synthesis method 'auto': unknown parameter(s) {unknown}; accepted: "
