@@ -86,6 +86,38 @@ def test_layered_plugin_eval_is_layered_btf(variant, layer_files, softness):
     np.testing.assert_allclose(got, expected, rtol=0, atol=2e-4 * max(1.0, np.abs(expected).max()))
 
 
+def test_layered_plugin_with_a_relief_layer_is_layered_btf(variant, layer_files, tmp_path):
+    """A triple-parallax layer: its height in the band is its relief channel (read at uv, as LayeredBTF reads it)
+    and its colour is marched; the plugin equals LayeredBTF with the march's tolerance."""
+    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.layered import ImageMask, LayeredBTF
+    from dynbtf.render.mitsuba.layered_bsdf import mask_texture_dict
+    from dynbtf.representations.model_file import save_model
+    from dynbtf.representations.parallax import ParallaxTriplePlane
+
+    relief = ParallaxTriplePlane(24, 20, positional_channels=6, angular_channels=3, hidden=12, seed=5)
+    with torch.no_grad():
+        relief.decoder.rest[-1].bias.add_(0.4)
+        yy, xx = torch.meshgrid(torch.arange(24.0), torch.arange(20.0), indexing="ij")
+        relief.set_height(0.05 * torch.sin(2 * np.pi * xx / 10) * torch.cos(2 * np.pi * yy / 8))
+    path = tmp_path / "relief.dbtfm"
+    save_model(path, relief)
+    mask = ImageMask(np.random.default_rng(3).random((5, 7)), size=2.0)
+    bsdf = mi.load_dict({"type": "dynbtf_layered", "width": 0.2, "mask": mask_texture_dict(mask),
+                         "layer0": {"type": "dynbtf", "filename": str(layer_files[0][0]), "method": "hist",
+                                    "scale": SCALE, "sampling": "cosine", "filtered": False},
+                         "layer1": {"type": "dynbtf", "filename": str(path), "method": "hist", "scale": SCALE,
+                                    "sampling": "cosine", "filtered": False}})
+    reference = LayeredBTF([SynthesizedBTF(layer_files[0][1], "hist", scale=SCALE),
+                            SynthesizedBTF(relief, "hist", scale=SCALE)], mask, width=0.2)
+    uv, wv, wl = _random_queries(2000, seed=4, uv_range=6.0)
+    got = _plugin_eval(bsdf, uv, wv, wl, 1.0)
+    expected = reference.eval(uv.astype(np.float64), wv, wl) / np.pi * wl[:, 2:3]
+    weight = reference.weight(uv.astype(np.float64))
+    assert np.mean(weight != (mask.value(uv.astype(np.float64)) > 0.5)) > 0.03  # the relief's height decides
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-3 * max(0.5, np.abs(expected).max()))
+
+
 def test_noise_mask_texture_is_noise_mask(variant):
     """dynbtf_noise's value and gradient equal NoiseMask's, far from the origin too."""
     from dynbtf.layered import NoiseMask
