@@ -666,7 +666,8 @@ def test_parameter_table_is_the_documented_one():
     for parameter in PARAMETERS:
         assert f"   * - ``{parameter.name}``\n     - {parameter.type}\n" in PLUGIN_DOC
     assert [p.name for p in PARAMETERS] == ["filename", "method", "scale", "scale_v", "seed", "sampling",
-                                            "sampling_weight", "target", "classes", "target_size", "target_wrap",
+                                            "sampling_weight", "cells", "target", "classes", "target_size",
+                                            "target_wrap",
                                             "softness", "filtered", "ray_cone_angle"]
 
 
@@ -886,8 +887,29 @@ def test_render_auto_resolves_the_method_and_echoes_the_choice(variant, structur
     assert loaded[1]["surface"]["bsdf"]["method"] == "struct" and "dynbtf BSDF" not in captured.err
 
 
-@pytest.mark.parametrize("method", ["hist", "hex"])
-def test_plugin_guided_by_a_target_is_guided_btf(variant, model_file, tmp_path, method):
+@pytest.fixture(scope="module")
+def tinted_bricks_file(tmp_path_factory):
+    """A 32 x 32 Triple Plane of 8 x 8 elements of one shape, each dark or bright (random): struct's cells of one
+    element show either class depending on their offset, which guided struct chooses."""
+    from dynbtf.representations.model_file import save_model
+    from dynbtf.representations.triple_plane import TriplePlane
+
+    model = TriplePlane(32, 32, positional_channels=6, angular_channels=3, hidden=12, seed=5)
+    generator = torch.Generator().manual_seed(6)
+    with torch.no_grad():
+        model.decoder.rest[-1].bias.add_(0.6)
+        element = model.f_u[:8, :8].clone()
+        tint = np.kron(np.random.default_rng(2).choice([-1.0, 1.0], (4, 4)), np.ones((8, 8)))
+        spread = float(element.std())
+        model.f_u.copy_(element.repeat(4, 4, 1) + 0.6 * spread * torch.from_numpy(tint).float()[..., None]
+                        + 0.05 * spread * torch.randn(32, 32, 6, generator=generator))
+    path = tmp_path_factory.mktemp("bricks") / "bricks.dbtfm"
+    save_model(path, model)
+    return path, model
+
+
+@pytest.mark.parametrize("method", ["hist", "hex", "struct"])
+def test_plugin_guided_by_a_target_is_guided_btf(variant, model_file, tinted_bricks_file, tmp_path, method):
     """``target``: the plugin evaluates what dynbtf.guided_btf's SynthesizedBTF does (the candidate search in
     Dr.Jit), with the target laid over ``target_size`` mesh uv units; a footprint query or struct is refused."""
     from dynbtf.errors import InputError
@@ -895,25 +917,30 @@ def test_plugin_guided_by_a_target_is_guided_btf(variant, model_file, tmp_path, 
     from dynbtf.io import load_image, save_image
     from dynbtf.layered import mask_from_spec
 
-    path, model = model_file
+    # struct: tinted bricks (a lattice of offsets to choose from), one cell per 8 x 8 element
+    path, model = tinted_bricks_file if method == "struct" else model_file
     grey = np.repeat(np.repeat(np.array([[0.0, 1.0], [1.0, 0.0]], dtype=np.float32), 4, 0), 4, 1)
     target = tmp_path / "target.png"
     save_image(target, np.repeat(grey[..., None], 3, -1))
     scale, size = 7.0, 0.5
+    cells = {"cells": 4} if method == "struct" else {}
     bsdf = mi.load_dict({"type": "dynbtf", "filename": str(path), "method": method, "scale": scale, "seed": 3,
-                         "target": str(target), "target_size": size, "softness": 0.2, "filtered": False})
+                         "target": str(target), "target_size": size, "softness": 0.2, "filtered": False, **cells})
     uv, wv, wl = _random_queries(3000, seed=2)
     uv = (uv / np.float32(scale)) * np.float32(scale)
     got = _plugin_eval(bsdf, uv, wv, wl, scale)
     image = mask_from_spec(str(target)).image
-    btf = guided_btf(model, image, classes=2, target_size=size * scale, seed=3, softness=0.2, method=method)
+    btf = guided_btf(model, image, classes=2, target_size=size * scale, seed=3, softness=0.2, method=method, **cells)
     expected = np.asarray(btf.eval(torch.from_numpy(uv.astype(np.float64)), torch.from_numpy(wv),
                                    torch.from_numpy(wl)), dtype=np.float64) / np.pi * wl[:, 2:3]
-    plain = _reference(model, method, 3, uv, wv, wl) / np.pi * wl[:, 2:3]
+    from dynbtf.infinite_btf import SynthesizedBTF
+
+    plain = np.asarray(SynthesizedBTF(model, method, scale=1.0, seed=3, **cells).eval(uv.astype(np.float64), wv, wl),
+                       dtype=np.float64) / np.pi * wl[:, 2:3]
     assert np.mean(np.abs(expected - plain).max(1) > 1e-3) > 0.2  # guidance changes many points
     np.testing.assert_allclose(got, expected, rtol=0, atol=2e-4 * max(1.0, np.abs(expected).max()))
     assert load_image(target).shape[:2] == (8, 8)
-    for extra, message in (({"method": "struct"}, "steers hist or hex"),
+    for extra, message in (({"method": "struct"}, "set 'cells'"), ({"method": "tile"}, "steers hist, hex or struct"),
                            ({"classes": 1}, "'classes' must be at least 2"), ({"softness": 2.0}, "'softness'")):
         spec = {"type": "dynbtf", "filename": str(path), "method": method, "target": str(target), "filtered": False,
                 **extra}

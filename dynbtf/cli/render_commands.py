@@ -60,6 +60,8 @@ def render(
                                     "extends its edges (clamp)."),
     softness: float = typer.Option(0.0, "--softness", help="With --target: weight factor (0 to 1) of samples "
                                    "that found no content of the target's class."),
+    cells: int = typer.Option(0, "--cells", help="struct's cells per repeat along each side (0: its own choice); "
+                              "with --target, about one per element of the material."),
 ) -> None:
     """Path-trace a scene covered by the synthesized BTF with Mitsuba 3 (decoder inside the kernel).
 
@@ -96,7 +98,7 @@ def render(
                           resolution=(size, size), spp=spp, variant=variant, progress=True, sampling=sampling,
                           filtered=filtered, echo=typer.echo, memory_mb=memory_mb, layer=layer,
                           mask=the_mask, width=width, target=target, classes=classes, target_size=target_size,
-                          target_wrap=target_wrap, target_softness=softness)
+                          target_wrap=target_wrap, target_softness=softness, cells=cells)
     save_image(output, result.image, exposure=exposure)
     timing = (f"incl. {result.compile_seconds:.1f} s kernel compilation" if result.passes > 1
               else "one pass, kernel compilation included")

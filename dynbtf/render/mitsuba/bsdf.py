@@ -234,15 +234,22 @@ Any other value is an error naming the allowed ones.""",
 rest draws cosine-weighted directions), in ``(0, 1]``.""",
         summary="in `mixture`, the probability of drawing from the table, in (0, 1]"),
     PluginParameter(
+        "cells", "integer", 0, check=lambda name, value: _at_least(name, value, 0),
+        doc="""``struct``'s cells per exemplar repeat along each side (0: its own
+choice, 2 x 2 for most exemplars); with ``target``, give about one cell per
+element so that a cell's content is of one class.""",
+        summary="`struct`'s cells per repeat along each side (0: its own choice); with `target`, about one per "
+                "element"),
+    PluginParameter(
         "target", "string", "", shown_default='""',
         doc="""Guided synthesis (:func:`dynbtf.guided.guided_btf`): an image painted
 over the mesh's uv (PNG/JPEG grey levels, or EXR values in [0, 1]), cut
 into ``classes`` equal bins; a point in bin ``k`` shows the material's
 class ``k`` (k-means on its decoded appearance, 0 the darkest). Steers
-``hist`` (also what ``auto`` becomes) or ``hex``, with footprint queries as
-unguided (``filtered``). Empty: no guidance.""",
+``hist`` (also what ``auto`` becomes), ``hex`` or ``struct`` (with ``cells``),
+with footprint queries as unguided (``filtered``). Empty: no guidance.""",
         summary="guided synthesis: an image painted over the mesh's uv, cut into `classes` bins (class 0 the "
-                "darkest content); steers `hist` or `hex`; empty: none"),
+                "darkest content); steers `hist`, `hex` or `struct` (with `cells`); empty: none"),
     PluginParameter(
         "classes", "integer", 2, check=lambda name, value: _at_least(name, value, 2),
         doc="With ``target``: classes of the material's texels (k-means), at least 2.",
@@ -420,7 +427,10 @@ class _DynBTFBSDFBody:
         for parameter in PARAMETERS:
             setattr(self, parameter.attribute or parameter.name, parsed[parameter.name])
         model = load_plugin_model(self.filename)  # a representation or a compiled material
-        self.evaluator = DynBTFEvaluator(model, self.method, self.seed, btf=self._guided_btf(model))
+        params = {"cells": self.cells} if self.cells and self.method == "struct" else {}
+        if self.cells and self.method != "struct":
+            raise InputError(f"dynbtf BSDF: parameter 'cells' sets struct's cells; method is {self.method!r}")
+        self.evaluator = DynBTFEvaluator(model, self.method, self.seed, btf=self._guided_btf(model, params), **params)
         model = self.evaluator.btf.model
         #: the method the kernel runs (``auto``'s choice, else ``method``)
         self.synthesis = self.evaluator.method
@@ -434,16 +444,20 @@ class _DynBTFBSDFBody:
         if self.filtered:
             self.m_flags = int(self.m_flags) | NEEDS_DIFFERENTIALS
 
-    def _guided_btf(self, model):
-        """The guided synthesized BTF of ``target`` (None without one), its request checked (one-line errors)."""
+    def _guided_btf(self, model, params):
+        """The guided synthesized BTF of ``target`` (None without one), its request checked (one-line errors);
+        ``params``: the method's parameters (struct's ``cells``)."""
         if not self.target:
             return None
         from ...guided import guided_btf
         from ...layered import mask_from_spec
 
-        if self.method not in ("hist", "hex", "auto"):
-            raise InputError(f"dynbtf BSDF: parameter 'target' steers hist or hex (or auto: hist), "
+        if self.method not in ("hist", "hex", "struct", "auto"):
+            raise InputError(f"dynbtf BSDF: parameter 'target' steers hist, hex or struct (or auto: hist), "
                              f"got method {self.method!r}")
+        if self.method == "struct" and not self.cells:
+            raise InputError("dynbtf BSDF: parameter 'target' with struct chooses whole cells by class: set 'cells' "
+                             "to about one cell per element of the material")
         painted = mask_from_spec(self.target, size=1.0, wrap=self.target_wrap)
         if not hasattr(painted, "image"):
             raise InputError(f"dynbtf BSDF: parameter 'target': expected an image file, got {self.target!r}")
@@ -451,7 +465,7 @@ class _DynBTFBSDFBody:
         # the target over target_size mesh uv units = target_size * scale exemplar repeats (guided_btf's scale 1)
         return guided_btf(model, image, classes=self.classes, target_size=self.target_size * self.scale,
                           target_wrap=self.target_wrap, seed=self.seed, softness=self.softness,
-                          method="hex" if self.method == "hex" else "hist")
+                          method="hist" if self.method == "auto" else self.method, **params)
 
     def _choose_sampler(self, model):
         """The table sampler of ``sampling`` ``auto``/``mixture`` (None: cosine); resolves :attr:`sampling`."""
@@ -596,6 +610,8 @@ class DynBTFEvaluator:
     btf : SynthesizedBTF, optional
         The synthesized BTF to translate (``scale`` 1) instead of the one ``method`` and ``seed`` build: e.g.
         :func:`dynbtf.guided.guided_btf`'s.
+    **params
+        The method's parameters (e.g. struct's ``cells``).
 
     Attributes
     ----------
@@ -610,12 +626,12 @@ class DynBTFEvaluator:
     local frame) and returns ``mi.Color3f`` values (excluding cos(theta_light)).
     """
 
-    def __init__(self, model, method: str, seed: int, btf=None) -> None:
+    def __init__(self, model, method: str, seed: int, btf=None, **params) -> None:
         from ...infinite_btf import SynthesizedBTF
         from .drjit_synthesis import make_dr_synthesizer
 
         # its compiled material, from the cache; or a SynthesizedBTF given at scale 1 (e.g. a guided one)
-        self.btf = SynthesizedBTF(model, method, scale=1.0, seed=seed) if btf is None else btf
+        self.btf = SynthesizedBTF(model, method, scale=1.0, seed=seed, **params) if btf is None else btf
         self.method = self.btf.synthesizer.name
         self.choice = self.btf.synthesizer.choice
         self.synthesizer = make_dr_synthesizer(self.btf.synthesizer)

@@ -105,7 +105,8 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
                  variant: str | None = None, progress: bool = True, sampling: str = "auto",
                  filtered: bool = True, echo=None, memory_mb: float | None = None, layer=None, mask=None,
                  width: float = 0.05, softness: float = 0.0, target=None, classes: int = 2,
-                 target_size: float = 1.0, target_wrap: str = "repeat", target_softness: float = 0.0) -> RenderResult:
+                 target_size: float = 1.0, target_wrap: str = "repeat", target_softness: float = 0.0,
+                 cells: int = 0) -> RenderResult:
     """Path-trace ``scene`` covered by the synthesized BTF of ``model_path``.
 
     Every argument is checked before Mitsuba loads anything, so a mistake raises
@@ -170,7 +171,9 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     target : path, optional
         Guided synthesis (the plugin's ``target``, :func:`dynbtf.guided.guided_btf`): an image painted over
         ``target_size`` x ``target_size`` mesh uv units (``target_wrap``), cut into ``classes`` bins, steering
-        ``hist`` (also ``auto``) or ``hex`` with ``target_softness``.
+        ``hist`` (also ``auto``), ``hex`` or ``struct`` (with ``cells``) with ``target_softness``.
+    cells : int
+        ``struct``'s cells per repeat along each side (the plugin's ``cells``; 0: its own choice).
 
     Returns
     -------
@@ -183,7 +186,10 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     elif mask is not None:
         raise InputError("mask: layers two materials; give the second one (layer / --layer) too")
     if target is not None:
-        _check_guidance(target, classes, target_size, target_wrap, target_softness, method, layer)
+        _check_guidance(target, classes, target_size, target_wrap, target_softness, method, layer, cells)
+    if int(cells) != cells or cells < 0 or (cells and method != "struct"):
+        raise InputError(f"--cells: sets struct's cells per repeat (a positive integer, with --method struct), "
+                         f"got {cells} with method {method!r}")
     from ...material import CompiledMaterial
 
     paths = [model_path] if layer is None else [model_path, layer]
@@ -215,6 +221,9 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
 
     materials = [{**bsdf_dict(path, method=m, scale=scale, seed=seed, sampling=sampling), "filtered": bool(filtered)}
                  for path, m in zip(paths, methods)]
+    if cells:
+        for m in materials:
+            m["cells"] = int(cells)
     material = materials[0]
     if target is not None:
         material.update({"target": str(target), "classes": int(classes), "target_size": float(target_size),
@@ -266,14 +275,17 @@ def _check_layering(width, softness) -> None:
         raise InputError(f"softness: expected a height difference >= 0, got {softness!r}")
 
 
-def _check_guidance(target, classes, target_size, target_wrap, softness, method, layer) -> None:
+def _check_guidance(target, classes, target_size, target_wrap, softness, method, layer, cells) -> None:
     """A guided render's request (the plugin's ``target`` and its companions), checked before anything loads."""
     from ...errors import positive_number
 
     if layer is not None:
         raise InputError("target: guides one material; it does not combine with a layered one (layer)")
-    if method not in ("auto", "hist", "hex"):
-        raise InputError(f"target: guided synthesis steers hist or hex (or auto: hist), got method {method!r}")
+    if method not in ("auto", "hist", "hex", "struct"):
+        raise InputError(f"target: guided synthesis steers hist, hex or struct (or auto: hist), got method {method!r}")
+    if method == "struct" and not cells:
+        raise InputError("--target --method struct: chooses whole cells by class, so give --cells, about one cell "
+                         "per element of the material")
     if not Path(target).is_file():
         raise InputError(f"target: {target}: no such image file")
     if int(classes) != classes or not 2 <= classes <= 255:
