@@ -69,6 +69,24 @@ def target_labels(target, classes: int) -> np.ndarray:
     return np.minimum(np.floor(image * classes), classes - 1).astype(np.int64)
 
 
+#: The methods guided synthesis steers (``auto`` steers ``hist``).
+GUIDED_METHODS = ("hist", "hex", "struct")
+
+
+def guided_method(method: str, cells=None, *, where: str = "--target") -> str:
+    """The method a guided request runs (``auto``: ``hist``), or an :class:`InputError` that starts with ``where``:
+    a method guidance does not steer, or ``struct`` without ``cells`` (it chooses whole cells by class, so a cell
+    must be about one element of the material)."""
+    if method == "auto":
+        return "hist"
+    if method not in GUIDED_METHODS:
+        raise InputError(f"{where}: guided synthesis steers hist, hex or struct (auto: hist), got method {method!r}")
+    if method == "struct" and not cells:
+        raise InputError(f"{where}: guided struct chooses whole cells by class, so give its cells (--cells), about "
+                         "one cell per element of the material (e.g. 8 for eight bricks per repeat)")
+    return method
+
+
 def guided_btf(model, target, *, classes: int = 2, labels=None, target_size: float = 1.0,
                target_wrap: str = "repeat", scale: float = 1.0, seed: int = 0, candidates: int = 16,
                softness: float = 0.0, method: str = "hist", **params) -> SynthesizedBTF:
@@ -94,8 +112,7 @@ def guided_btf(model, target, *, classes: int = 2, labels=None, target_size: flo
         ``struct``). struct chooses whole cells by label: give it ``cells`` of about one element
         (``cells=8`` for eight elements per repeat), so that a cell's content is of one label.
     """
-    if method not in ("hist", "hex", "struct"):
-        raise InputError(f"method: guided synthesis steers hist, hex or struct, got {method!r}")
+    method = guided_method(method, params.get("cells"), where="method")
     if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
         model, material = open_model_file(model)
         if material is not None:

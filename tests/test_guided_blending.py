@@ -161,8 +161,8 @@ def test_synth_target_writes_a_guided_image_and_refuses_what_it_cannot_do(tmp_pa
     assert np.isfinite(load_image(tmp_path / "s.exr")).all()
     capsys.readouterr()
     for extra, message in ((["--method", "quilt"], "--target: guided synthesis steers hist, hex or struct"),
-                           (["--method", "struct"], "--target --method struct: chooses whole cells by label, so give "
-                                                    "--cells"),
+                           (["--method", "struct"], "--target: guided struct chooses whole cells by class, so give "
+                                                    "its cells"),
                            (["--cells", "4"], "--cells: sets struct's cells; give it with --method struct"),
                            (["--classes", "1"], "--classes: expected 2 to 255"),
                            (["--softness", "2"], "--softness: expected a weight factor in [0, 1]")):

@@ -258,7 +258,7 @@ def test_render_cli_guided_by_a_target(variant, layer_files, tmp_path, capsys):
     capsys.readouterr()
     for extra, message in ((["--classes", "1"], "--classes: expected 2 to 255"),
                            (["--softness", "2"], "--softness: expected a weight factor in [0, 1]"),
-                           (["--method", "struct"], "--target --method struct: chooses whole cells by class"),
+                           (["--method", "struct"], "--target: guided struct chooses whole cells by class"),
                            (["--method", "tile"], "steers hist, hex or struct"),
                            (["--cells", "4"], "--cells: sets struct's cells per repeat"),
                            (["--layer", str(layer_files[1][0])], "does not combine with a layered one")):

@@ -940,7 +940,7 @@ def test_plugin_guided_by_a_target_is_guided_btf(variant, model_file, tinted_bri
     assert np.mean(np.abs(expected - plain).max(1) > 1e-3) > 0.2  # guidance changes many points
     np.testing.assert_allclose(got, expected, rtol=0, atol=2e-4 * max(1.0, np.abs(expected).max()))
     assert load_image(target).shape[:2] == (8, 8)
-    for extra, message in (({"method": "struct"}, "set 'cells'"), ({"method": "tile"}, "steers hist, hex or struct"),
+    for extra, message in (({"method": "struct"}, "guided struct chooses whole cells by class"), ({"method": "tile"}, "steers hist, hex or struct"),
                            ({"classes": 1}, "'classes' must be at least 2"), ({"softness": 2.0}, "'softness'")):
         spec = {"type": "dynbtf", "filename": str(path), "method": method, "target": str(target), "filtered": False,
                 **extra}

@@ -253,12 +253,9 @@ def _target_image(target: Path | None, method: str, layer, report: bool, output,
         return None
     if report or output is None or layer is not None:
         raise InputError("--target: writes one guided image (-o), without --report or --layer")
-    if method not in ("auto", "hist", "hex", "struct"):
-        raise InputError(f"--target: guided synthesis steers hist, hex or struct; --method auto (hist), hist, hex or "
-                         f"struct, not {method!r}")
-    if method == "struct" and cells is None:
-        raise InputError("--target --method struct: chooses whole cells by label, so give --cells, about one cell "
-                         "per element of the material (e.g. --cells 8 for eight bricks per repeat)")
+    from ..guided import guided_method
+
+    guided_method(method, cells)
     positive_number("--target-size", size, "uv units")
     if not 2 <= classes <= 255:
         raise InputError(f"--classes: expected 2 to 255 classes, got {classes}")

@@ -452,12 +452,9 @@ class _DynBTFBSDFBody:
         from ...guided import guided_btf
         from ...layered import mask_from_spec
 
-        if self.method not in ("hist", "hex", "struct", "auto"):
-            raise InputError(f"dynbtf BSDF: parameter 'target' steers hist, hex or struct (or auto: hist), "
-                             f"got method {self.method!r}")
-        if self.method == "struct" and not self.cells:
-            raise InputError("dynbtf BSDF: parameter 'target' with struct chooses whole cells by class: set 'cells' "
-                             "to about one cell per element of the material")
+        from ...guided import guided_method
+
+        method = guided_method(self.method, self.cells, where="dynbtf BSDF: parameter 'target'")
         painted = mask_from_spec(self.target, size=1.0, wrap=self.target_wrap)
         if not hasattr(painted, "image"):
             raise InputError(f"dynbtf BSDF: parameter 'target': expected an image file, got {self.target!r}")
@@ -465,7 +462,7 @@ class _DynBTFBSDFBody:
         # the target over target_size mesh uv units = target_size * scale exemplar repeats (guided_btf's scale 1)
         return guided_btf(model, image, classes=self.classes, target_size=self.target_size * self.scale,
                           target_wrap=self.target_wrap, seed=self.seed, softness=self.softness,
-                          method="hist" if self.method == "auto" else self.method, **params)
+                          method=method, **params)
 
     def _choose_sampler(self, model):
         """The table sampler of ``sampling`` ``auto``/``mixture`` (None: cosine); resolves :attr:`sampling`."""

@@ -206,8 +206,10 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     methods, lines = [], []
     for model in models:
         chosen = method
-        if method == "auto" and target is not None:  # guided: hist's search (auto's struct is not guided in Dr.Jit)
-            chosen = "hist"
+        if target is not None:  # guided: the method guided_btf runs (auto: hist)
+            from ...guided import guided_method
+
+            chosen = guided_method(method, cells)
         elif method == "auto":  # resolved here (the plugin then runs the named method and reports nothing)
             chosen, line = resolve_auto(model, seed)
             lines.append(line)
@@ -281,11 +283,9 @@ def _check_guidance(target, classes, target_size, target_wrap, softness, method,
 
     if layer is not None:
         raise InputError("target: guides one material; it does not combine with a layered one (layer)")
-    if method not in ("auto", "hist", "hex", "struct"):
-        raise InputError(f"target: guided synthesis steers hist, hex or struct (or auto: hist), got method {method!r}")
-    if method == "struct" and not cells:
-        raise InputError("--target --method struct: chooses whole cells by class, so give --cells, about one cell "
-                         "per element of the material")
+    from ...guided import guided_method
+
+    guided_method(method, cells)
     if not Path(target).is_file():
         raise InputError(f"target: {target}: no such image file")
     if int(classes) != classes or not 2 <= classes <= 255:
