@@ -25,7 +25,7 @@ from . import drjit_ops
 from .sampling import AUTO_MIN_COSINE_VARIANCE, DEFAULT_TABLE_WEIGHT, SAMPLING_MODES
 
 __all__ = ["register_plugin", "plugin_variants", "load_plugin_model", "plugin_sampler", "PLUGIN_DOC", "METHODS",
-           "DEFAULT_METHOD", "configure_jit", "DynBTFEvaluator", "ray_cone_angle", "announce_choice", "PARAMETERS",
+           "DEFAULT_METHOD", "number_check", "configure_jit", "DynBTFEvaluator", "ray_cone_angle", "announce_choice", "PARAMETERS",
            "PluginParameter", "read_parameters", "parameter_table_markdown"]
 
 #: Mitsuba's ``BSDFFlags::NeedsDifferentials`` (not exported to Python): with it, integrators that trace ray
@@ -150,28 +150,25 @@ def _repeats(name, value):
     return check_scale(value, f"dynbtf BSDF: parameter '{name}'", float32=True, where="Mitsuba's float32 uv")
 
 
-def _probability(name, value):
-    if not (math.isfinite(value) and 0.0 < value <= 1.0):
-        raise InputError(f"dynbtf BSDF: parameter '{name}' must be a probability in (0, 1], got {value}")
-    return value
+def number_check(valid: Callable[[float], bool], expected: str, plugin: str = "dynbtf"):
+    """A :class:`PluginParameter` ``check``: keeps a value ``valid`` accepts, else raises ``{plugin} BSDF: parameter
+    'name' must be {expected}, got value``."""
+
+    def check(name, value):
+        if not valid(value):
+            raise InputError(f"{plugin} BSDF: parameter '{name}' must be {expected}, got {value}")
+        return value
+
+    return check
 
 
-def _at_least(name, value, low: int):
-    if value < low:
-        raise InputError(f"dynbtf BSDF: parameter '{name}' must be at least {low}, got {value}")
-    return value
+_probability = number_check(lambda v: math.isfinite(v) and 0.0 < v <= 1.0, "a probability in (0, 1]")
+_unit_interval = number_check(lambda v: math.isfinite(v) and 0.0 <= v <= 1.0, "in [0, 1]")
+_angle = number_check(lambda v: math.isfinite(v) and v >= 0.0, "a non-negative angle in radians")
 
 
-def _unit_interval(name, value):
-    if not (math.isfinite(value) and 0.0 <= value <= 1.0):
-        raise InputError(f"dynbtf BSDF: parameter '{name}' must be in [0, 1], got {value}")
-    return value
-
-
-def _angle(name, value):
-    if not (math.isfinite(value) and value >= 0.0):
-        raise InputError(f"dynbtf BSDF: parameter '{name}' must be a non-negative angle in radians, got {value}")
-    return value
+def _at_least(low: int):
+    return number_check(lambda v: v >= low, f"at least {low}")
 
 
 #: The plugin's parameters, in the order the constructor reads them and the references list them.
@@ -234,7 +231,7 @@ Any other value is an error naming the allowed ones.""",
 rest draws cosine-weighted directions), in ``(0, 1]``.""",
         summary="in `mixture`, the probability of drawing from the table, in (0, 1]"),
     PluginParameter(
-        "cells", "integer", 0, check=lambda name, value: _at_least(name, value, 0),
+        "cells", "integer", 0, check=_at_least(0),
         doc="""``struct``'s cells per exemplar repeat along each side (0: its own
 choice, 2 x 2 for most exemplars); with ``target``, give about one cell per
 element so that a cell's content is of one class.""",
@@ -251,7 +248,7 @@ with footprint queries as unguided (``filtered``). Empty: no guidance.""",
         summary="guided synthesis: an image painted over the mesh's uv, cut into `classes` bins (class 0 the "
                 "darkest content); steers `hist`, `hex` or `struct` (with `cells`); empty: none"),
     PluginParameter(
-        "classes", "integer", 2, check=lambda name, value: _at_least(name, value, 2),
+        "classes", "integer", 2, check=_at_least(2),
         doc="With ``target``: classes of the material's texels (k-means), at least 2.",
         summary="with `target`: classes of the material's texels (k-means), at least 2"),
     PluginParameter(
@@ -264,7 +261,7 @@ laid out in exemplar repeats through ``scale``).""",
         doc="With ``target``: the image repeats (``repeat``) or extends its edges (``clamp``).",
         summary="with `target`: the image repeats (`repeat`) or extends its edges (`clamp`)"),
     PluginParameter(
-        "softness", "float", 0.0, check=lambda name, value: _unit_interval(name, value), shown_default="0",
+        "softness", "float", 0.0, check=_unit_interval, shown_default="0",
         doc="""With ``target``: weight factor in [0, 1] of the samples that found no
 content of the target's class (0: dropped where another sample found some).""",
         summary="with `target`: weight factor in [0, 1] of samples that found no content of the target's class"),

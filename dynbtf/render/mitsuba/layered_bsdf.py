@@ -23,22 +23,14 @@ import numpy as np
 
 from ...errors import InputError
 from . import drjit_ops
-from .bsdf import PluginParameter, rst_parameter_rows
+from .bsdf import PluginParameter, number_check, rst_parameter_rows
 
 __all__ = ["LAYERED_PARAMETERS", "LAYERED_DOC", "build_layered_class", "build_noise_class",
            "layered_parameter_table_markdown", "mask_texture_dict"]
 
 
-def _width(name, value):
-    if not (math.isfinite(value) and value > 0.0):
-        raise InputError(f"dynbtf_layered BSDF: parameter '{name}' must be a positive width in uv units, got {value}")
-    return value
-
-
-def _softness(name, value):
-    if not (math.isfinite(value) and value >= 0.0):
-        raise InputError(f"dynbtf_layered BSDF: parameter '{name}' must be a height difference >= 0, got {value}")
-    return value
+_width = number_check(lambda v: math.isfinite(v) and v > 0.0, "a positive width in uv units", "dynbtf_layered")
+_softness = number_check(lambda v: math.isfinite(v) and v >= 0.0, "a height difference >= 0", "dynbtf_layered")
 
 
 #: The plugin's scalar parameters (the two layers and the mask are nested objects, documented in :data:`LAYERED_DOC`).
