@@ -104,6 +104,19 @@ def private_table_cache(tmp_path_factory):
             os.environ[name] = value
 
 
+@pytest.fixture(scope="module")
+def variant():
+    """The Mitsuba variant the plugin tests render with (``llvm_ad_rgb``), the dynbtf plugins registered on it;
+    the test is skipped where that variant is not usable."""
+    from dynbtf.render.mitsuba.bsdf import plugin_variants, register_plugin
+
+    wanted = "llvm_ad_rgb"
+    if wanted not in plugin_variants():  # pragma: no cover - not built, or no LLVM on this machine
+        pytest.skip(f"Mitsuba variant {wanted} not usable here")
+    register_plugin(wanted)
+    return wanted
+
+
 @pytest.fixture(scope="session")
 def small_model(tmp_path_factory):
     """A small Triple Plane model file (16 x 16 texels, 4 positional channels, a decoder of width 8) for command

@@ -14,18 +14,7 @@ from test_render_mitsuba import _plugin_eval, _random_queries  # noqa: E402
 
 pytestmark = pytest.mark.mitsuba
 
-VARIANT = "llvm_ad_rgb"
 SCALE = 5.0
-
-
-@pytest.fixture(scope="module")
-def variant():
-    from dynbtf.render.mitsuba.bsdf import plugin_variants, register_plugin
-
-    if VARIANT not in plugin_variants():  # pragma: no cover - not built, or no LLVM on this machine
-        pytest.skip(f"Mitsuba variant {VARIANT} not usable here")
-    register_plugin(VARIANT)
-    return VARIANT
 
 
 @pytest.fixture(scope="module")

@@ -11,20 +11,9 @@ dr = pytest.importorskip("drjit")
 
 pytestmark = pytest.mark.mitsuba
 
-VARIANT = "llvm_ad_rgb"
 #: Plugin vs SynthesizedBTF.eval with the paper-size decoder, times max(1, |value|)
 #: (measured max differences 0.9e-5 to 2.3e-5 on values up to 0.5, two seeds, tile/hist/hex)
 TOLERANCE_PAPER_SIZE = 1e-4
-
-
-@pytest.fixture(scope="module")
-def variant():
-    from dynbtf.render.mitsuba.bsdf import plugin_variants, register_plugin
-
-    if VARIANT not in plugin_variants():  # pragma: no cover - not built, or no LLVM on this machine
-        pytest.skip(f"Mitsuba variant {VARIANT} not usable here")
-    register_plugin(VARIANT)
-    return VARIANT
 
 
 @pytest.fixture(scope="module")
@@ -595,20 +584,27 @@ def test_plugin_footprint_from_uv_partials_matches_synthesized_btf(variant, mode
     _assert_footprints_match(path, model, method)
 
 
-def _assert_footprints_match(path, model, method, *, n=3000):
-    """The plugin with uv partials = ``SynthesizedBTF.eval`` with their footprint, at ``n`` random queries."""
+def _random_uv_partials(n, scale, seed=12):
+    """Random mesh-uv partials ``duv_dx, duv_dy (n, 2)`` float32 whose footprints (the third return, exemplar repeats:
+    :func:`dynbtf.infinite_btf.footprint_width` of them times ``scale``) run from 1/400 of a repeat (inside a texel:
+    the point query) to several repeats (the mean)."""
     from dynbtf.infinite_btf import footprint_width
 
+    rng = np.random.default_rng(seed)
+    duv_dx, duv_dy = ((rng.normal(size=(n, 2)) * np.exp(rng.uniform(-6.0, 1.0, (n, 1))) / scale).astype(np.float32)
+                      for _ in range(2))
+    footprint = footprint_width(duv_dx.astype(np.float64) * np.float32(scale), duv_dy.astype(np.float64) * np.float32(scale))
+    return duv_dx, duv_dy, footprint
+
+
+def _assert_footprints_match(path, model, method, *, n=3000):
+    """The plugin with uv partials = ``SynthesizedBTF.eval`` with their footprint, at ``n`` random queries."""
     scale, seed = 7.0, 3
     bsdf = mi.load_dict({"type": "dynbtf", "filename": str(path), "method": method, "scale": scale, "seed": seed})
     uv, wv, wl = _random_queries(n, seed=11)
     uv = (uv / np.float32(scale)) * np.float32(scale)
-    rng = np.random.default_rng(12)
-    # footprints from 1/400 of a repeat (inside a texel: the point query) to several repeats (the mean)
-    duv_dx, duv_dy = ((rng.normal(size=(n, 2)) * np.exp(rng.uniform(-6.0, 1.0, (n, 1))) / scale).astype(np.float32)
-                      for _ in range(2))
+    duv_dx, duv_dy, footprint = _random_uv_partials(n, scale)
     got = _plugin_eval(bsdf, uv, wv, wl, scale, duv_dx=duv_dx, duv_dy=duv_dy)
-    footprint = footprint_width(duv_dx.astype(np.float64) * np.float32(scale), duv_dy.astype(np.float64) * np.float32(scale))
     ref = _footprint_reference(model, method, seed, uv, wv, wl, footprint) / np.pi * wl[:, 2:3]
     point = _reference(model, method, seed, uv, wv, wl) / np.pi * wl[:, 2:3]
     assert np.abs(point - ref).max() > 0.1 * np.abs(ref).max()  # the footprint changes the answer
@@ -951,7 +947,6 @@ def test_plugin_guided_by_a_target_is_guided_btf(variant, model_file, tinted_bri
 def test_plugin_guided_footprints_are_the_librarys(variant, model_file, tmp_path):
     """``target`` with footprint queries (``filtered``, uv partials): the plugin answers what its guided
     SynthesizedBTF answers with that footprint (the pyramid read at the guided samples, per-level decoders)."""
-    from dynbtf.infinite_btf import footprint_width
     from dynbtf.io import save_image
 
     path, model = model_file
@@ -963,12 +958,8 @@ def test_plugin_guided_footprints_are_the_librarys(variant, model_file, tmp_path
                          "target": str(target), "target_size": 0.5})
     uv, wv, wl = _random_queries(n, seed=11)
     uv = (uv / np.float32(scale)) * np.float32(scale)
-    rng = np.random.default_rng(12)
-    duv_dx, duv_dy = ((rng.normal(size=(n, 2)) * np.exp(rng.uniform(-6.0, 1.0, (n, 1))) / scale).astype(np.float32)
-                      for _ in range(2))
+    duv_dx, duv_dy, footprint = _random_uv_partials(n, scale)
     got = _plugin_eval(bsdf, uv, wv, wl, scale, duv_dx=duv_dx, duv_dy=duv_dy)
-    footprint = footprint_width(duv_dx.astype(np.float64) * np.float32(scale),
-                                duv_dy.astype(np.float64) * np.float32(scale))
     btf = bsdf.evaluator.btf  # the guided SynthesizedBTF the plugin translated (its per-level decoders fitted once)
     assert btf.synthesizer.name == "guided"
     ref = np.asarray(btf.eval(uv.astype(np.float64), wv, wl, footprint=footprint), dtype=np.float64)
