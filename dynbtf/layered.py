@@ -109,13 +109,6 @@ class ImageMask:
         _image_mask_kernel(uv, self.image, float(self.size), self.wrap == "repeat", value, gradient)
         return value, gradient
 
-    def signed_distance(self, uv: np.ndarray) -> np.ndarray:
-        """``(N,)`` float64: the distance (uv units) to the mask's 0.5 contour, positive where the mask is above one
-        half (:func:`contour_distance` of the value and gradient, in the same compiled loop)."""
-        uv = np.ascontiguousarray(uv, dtype=np.float64)
-        value, gradient = np.empty(len(uv)), np.empty((len(uv), 2))
-        _image_mask_kernel(uv, self.image, float(self.size), self.wrap == "repeat", value, gradient)
-        return _contour_distance_kernel(value, gradient)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -336,9 +329,7 @@ class LayeredBTF:
         """Layer 1's weight ``(N,)`` at ``flat (N, 2)``, the rows inside the band, and each layer's latent values at
         those rows (:meth:`_heights_and_latents`)."""
         points = flat.numpy()
-        if hasattr(self.mask, "signed_distance"):  # value, gradient and distance in one compiled loop
-            distance = self.mask.signed_distance(points)
-        elif hasattr(self.mask, "value_and_gradient"):
+        if hasattr(self.mask, "value_and_gradient"):
             distance = contour_distance(*self.mask.value_and_gradient(points))
         else:
             distance = contour_distance(self.mask.value(points), self.mask.gradient(points))

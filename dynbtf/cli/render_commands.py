@@ -50,7 +50,7 @@ def render(
                                   "edges (clamp)."),
     width: float = typer.Option(0.05, "--width", help="With --layer: half-width (mesh uv units) of the band "
                                 "around the mask's contour where the materials' heights decide."),
-    target: Optional[Path] = typer.Option(None, "--target", help="Guided synthesis (hist or hex, auto: hist): an "
+    target: Optional[Path] = typer.Option(None, "--target", help="Guided synthesis (hist, hex or struct; auto: hist): an "
                                           "image painted over the mesh's uv (PNG/JPEG grey levels, or EXR values in "
                                           "[0, 1]), cut into --classes bins; a point in bin k shows the material's "
                                           "class k (0 the darkest)."),
@@ -88,11 +88,9 @@ def render(
         raise InputError(f"--size: expected a positive number of pixels, got {size}")
     check_render_request(scale=scale, resolution=(size, size), spp=spp, memory_mb=memory_mb, size_name="size")
     the_mask = None
-    if layer is not None:
-        from ..errors import positive_number
+    if layer is not None:  # (--width, with the rest, is checked by render_scene before anything loads)
         from ..layered import mask_from_spec
 
-        positive_number("--width", width, "uv units")
         the_mask = mask_from_spec(mask, size=mask_size, wrap=mask_wrap)
     result = render_scene(model, scene=scene, method=method, scale=scale, seed=seed, lighting=lighting,
                           resolution=(size, size), spp=spp, variant=variant, progress=True, sampling=sampling,

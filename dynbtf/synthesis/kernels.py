@@ -271,6 +271,15 @@ def _guided_texels(k, h, xi, yi, pw, ph, base_x, base_y, lower, states, labels, 
 
 
 @numba.njit(inline="always")
+def _steered_barycentrics(b0, b1, b2, m0, m1, m2, softness):
+    """Guided barycentrics: unmatched samples' weight times ``softness``, unless no sample matched (the torch
+    path's ``steered_barycentrics``)."""
+    if m0 or m1 or m2:
+        return (b0 if m0 else b0 * softness), (b1 if m1 else b1 * softness), (b2 if m2 else b2 * softness)
+    return b0, b1, b2
+
+
+@numba.njit(inline="always")
 def _sample_weights(mode, b0, b1, b2, l0, l1, l2, gamma, gamma_int, beta, gain_k):
     """Blend weights ``s0, s1, s2`` of the three samples and the blend's ``scale`` (variance correction).
 
@@ -416,10 +425,8 @@ def _block_guidance(first, count, pw, ph, ints, reals, states, labels, target, s
             ints[row, j], ints[row + 1, j], ints[row + 2, j], ints[row + 3, j], matched[k] = _guided_texels(
                 k, ints[_HASH + k, j], ints[_XI, j], ints[_YI, j], pw, ph, ints[_BASE_X, j], ints[_BASE_Y, j], lower,
                 states, labels, t)
-        if matched[0] or matched[1] or matched[2]:
-            for k in range(3):
-                if not matched[k]:
-                    reals[_BARY + k, j] *= softness
+        reals[_BARY, j], reals[_BARY + 1, j], reals[_BARY + 2, j] = _steered_barycentrics(
+            reals[_BARY, j], reals[_BARY + 1, j], reals[_BARY + 2, j], matched[0], matched[1], matched[2], softness)
 
 
 @numba.njit(inline="always")
@@ -672,9 +679,7 @@ def _filtered_kernel(uv, level, upper_weight, levels, starts, heights, widths, l
                 ox1, oy1 = _wrap(c0 - cx, pw), _wrap(r0 - cy, ph)
                 c0, _, r0, _, m2 = _guided_texels(2, h2, cx, cy, pw, ph, base_x, base_y, lower, states, labels, t)
                 ox2, oy2 = _wrap(c0 - cx, pw), _wrap(r0 - cy, ph)
-                if m0 or m1 or m2:  # unmatched samples' barycentric weight times softness
-                    b0, b1, b2 = (b0 if m0 else b0 * softness), (b1 if m1 else b1 * softness), \
-                        (b2 if m2 else b2 * softness)
+                b0, b1, b2 = _steered_barycentrics(b0, b1, b2, m0, m1, m2, softness)
             x0 = _wrap(xi + ox0, pw) + fx
             y0 = _wrap(yi + oy0, ph) + fy
             x1 = _wrap(xi + ox1, pw) + fx
