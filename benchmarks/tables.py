@@ -6,16 +6,20 @@ writes it there. ``speed.json`` (docs/results.md's Speed summary) is not a bench
 summary's rows, each rendered from its benchmark's JSON or, where that benchmark writes none yet, from a
 measurement recorded in the file (its numbers, command and machine as the hand-typed table stated them). A part
 of a benchmark's file may be such a recorded measurement too (``"recorded_from"``) until the benchmark is re-run
-(``rendering.json``, from ``bench_render.py``).
+(``rendering.json``, from ``bench_render.py``), and so may a whole file: the tables whose benchmark writes no JSON
+yet (quality.json, baselines.json, ... below "Recorded measurements"). Several tables of one benchmark share a file
+(``SOURCES``).
 
 Run: ``python benchmarks/tables.py`` (after a benchmark run) to rewrite every table,
 ``python benchmarks/tables.py --check`` to list the tables that disagree with their data (exit status 1);
-``tests/test_docs_tables.py`` runs the check, so a table is never re-typed by hand.
+``tests/test_docs_tables.py`` runs the check, so a table is never re-typed by hand, and fails on any table outside
+a block that is not on its list of tables that report no measurement.
 """
 
 from __future__ import annotations
 
 import argparse
+import decimal
 import json
 import re
 import sys
@@ -309,10 +313,463 @@ def rendering(data: dict) -> str:
     return "\n".join(lines)
 
 
-RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget": budget, "evaluation": evaluation, "gpu": gpu, "guided": guided,
-             "guidance": guidance, "speed": speed, "rendering": rendering}
+# --- Recorded measurements -------------------------------------------------------------------------------------
+# The tables below come from data files that no benchmark writes yet: each (``"recorded_from"``) holds the numbers
+# as the hand-typed table showed them, with the command and machine its text stated (null where it did not), until
+# a benchmark run replaces it. A row's ``"bold"`` lists the numbers the table emphasises (a cell of several numbers
+# by its first); a recorded cell of prose is a ``str.format`` template filled from the row's ``"values"``.
+
+
+def _line(*cells: str) -> str:
+    """A markdown table row; an empty cell is written ``| |``."""
+    return "|" + "|".join(f" {c} " if c else " " for c in cells) + "|"
+
+
+def _head(*headers: str, spaced: bool = False) -> list[str]:
+    """A table's header row and its rule (``| --- |`` when ``spaced``, else ``|---|``)."""
+    return [_line(*headers), _line(*["---"] * len(headers)) if spaced else "|" + "---|" * len(headers)]
+
+
+def _cells(row: dict):
+    """``c(key, spec)``: ``row[key]`` formatted (empty where it is null), written **bold** where the row's
+    ``"bold"`` lists ``key``; ``c(key, text=...)`` writes ``text`` (a cell of several numbers) the same way."""
+    marked = set(row.get("bold", ()))
+
+    def c(key: str, spec: str = "", text: str | None = None) -> str:
+        if text is None:
+            text = "" if row.get(key) is None else format(row[key], spec)
+        return f"**{text}**" if key in marked else text
+
+    return c
+
+
+def _note(text: str | None) -> str:
+    """`` (text)``, or nothing."""
+    return f" ({text})" if text else ""
+
+
+def _named(row: dict, key: str) -> str:
+    """``row[key]``, followed by the row's ``"note"`` in parentheses if it has one."""
+    return row[key] + _note(row.get("note"))
+
+
+def _grouped(rows: list[dict], label):
+    """(``label(row)``, row) per row, the label left blank where it repeats the previous row's."""
+    previous = None
+    for r in rows:
+        yield ("" if label(r) == previous else label(r)), r
+        previous = label(r)
+
+
+def _filled(row: dict, key: str) -> str:
+    """A recorded cell: the template ``row[key]`` filled from ``row["values"]``."""
+    return row[key].format(**row.get("values", {}))
+
+
+def _prose(part: dict, *columns: tuple[str, str], spaced: bool = False) -> str:
+    """A table of recorded prose rows; ``columns``: (header, the key of the rows' template for that column)."""
+    lines = _head(*(header for header, _ in columns), spaced=spaced)
+    return "\n".join(lines + [_line(*(_filled(r, key) for _, key in columns)) for r in part["rows"]])
+
+
+def _range(values: list, spec: str) -> str:
+    """``3,070 - 3,120``: the lowest and highest of several runs, or the one value."""
+    return " - ".join(format(v, spec) for v in values)
+
+
+def _storage(row: dict) -> str:
+    """A synthesis method's extra storage: ``0``, or megabytes with the row's ``"storage_note"``."""
+    mb = row["extra_storage_mb"]
+    text = _cells(row)("extra_storage_mb", text=f"{mb:g} MB" if mb else "0")
+    return text + _note(row.get("storage_note"))
+
+
+def _fewer_digits(value: float, digits: int) -> str:
+    """A recorded decimal written with fewer digits, a final 5 rounded up (0.1785 -> 0.179), as a text rounds."""
+    return str(decimal.Decimal(repr(value)).quantize(decimal.Decimal(1).scaleb(-digits), decimal.ROUND_HALF_UP))
+
+
+def _transposed(points: list[dict], *rows: tuple) -> str:
+    """A column per point: ``rows`` are (label, the cell of a point), the first of them the header row."""
+    (label, cell), *rest = rows
+    return "\n".join(_head(label, *map(cell, points)) + [_line(label, *map(cell, points)) for label, cell in rest])
+
+
+def measured(data: dict) -> str:
+    """README.md's Measured: a line per result, each pointing at its table in docs/results.md."""
+    return _prose(data, ("what", "what"), ("result", "result"), spaced=True)
+
+
+def _quality(part: dict) -> str:
+    lines = _head("material", "PSNR (dB)", "grazing / others", "PSNR, fixed peak 1", "DSSIM", "FLIP", "fit (min)")
+    for r in part["rows"]:
+        c = _cells(r)
+        lines.append(_line(_named(r, "material"), c("psnr", ".2f"),
+                           f"{r['psnr_grazing']:.2f} / {r['psnr_others']:.2f}", c("psnr_fixed1", ".2f"),
+                           c("dssim", ".3f"), c("flip", ".3f"), c("fit_minutes", ".1f")))
+    return "\n".join(lines)
+
+
+def quality_triple(data: dict) -> str:
+    """fit_materials.py: held-out quality of the Triple Plane per simulated material."""
+    return _quality(data["triple"])
+
+
+def quality_parallax(data: dict) -> str:
+    """fit_materials.py --repr triple-parallax: the same with parallax."""
+    return _quality(data["triple_parallax"])
+
+
+def quality_compared(data: dict) -> str:
+    """parallax.md: quality.json's two kinds side by side, the better PSNR bold, the materials parallax improves
+    first."""
+    flat = {r["material"]: r for r in data["triple"]["rows"]}
+
+    def scores(r: dict, other: dict) -> str:
+        psnr = f"**{r['psnr']:.2f}**" if r["psnr"] > other["psnr"] else f"{r['psnr']:.2f}"
+        return f"{psnr} ({r['psnr_grazing']:.2f} / {r['psnr_others']:.2f}) / {r['dssim']:.3f} / {r['flip']:.3f}"
+
+    lines = _head("material", "Triple Plane: PSNR (grazing / others) / DSSIM / FLIP",
+                  "triple-parallax: PSNR (grazing / others) / DSSIM / FLIP", "PSNR fixed peak 1: flat -> parallax")
+    for p in sorted(data["triple_parallax"]["rows"], key=lambda p: p["psnr"] < flat[p["material"]]["psnr"]):
+        t = flat[p["material"]]
+        lines.append(_line(p["material"], scores(t, p), scores(p, t),
+                           f"{t['psnr_fixed1']:.2f} -> {p['psnr_fixed1']:.2f}"))
+    return "\n".join(lines)
+
+
+def baselines(data: dict) -> str:
+    """dynbtf compare on the simulated materials: each representation's held-out quality."""
+    lines = _head("material", "kind", "PSNR dB", "grazing / others", "PSNR (fixed peak 1)", "DSSIM", "FLIP")
+    for material, r in _grouped(data["representations"]["rows"], lambda r: _named(r, "material")):
+        c = _cells(r)
+        lines.append(_line(material, r["kind"], c("psnr", ".2f"),
+                           c("psnr_grazing", text=f"{r['psnr_grazing']:.2f} / {r['psnr_others']:.2f}"),
+                           c("psnr_fixed1", ".2f"), c("dssim", ".4f"), c("flip", ".4f")))
+    return "\n".join(lines)
+
+
+def baselines_summary(data: dict) -> str:
+    """results.md: PSNR / FLIP per material and kind from the same runs, the best kind (its PSNR bold) bold, the
+    materials the Triple Plane wins first."""
+    rows = data["representations"]["rows"]
+    storage = {r["kind"]: r["positional_bytes"] for r in data["storage"]["rows"]}
+    best = {r["material"]: r["kind"] for r in rows if "psnr" in r.get("bold", ())}
+    kinds = ("triple", "neumip", "pca", "sh")
+    lines = _head("material", "Triple Plane", "NeuMIP", "PCA",
+                  f"SH ({storage['sh'] / storage['triple']:.0f}x the positional storage)")
+    for material in sorted(dict.fromkeys(r["material"] for r in rows), key=lambda m: best[m] != "triple"):
+        of = {r["kind"]: r for r in rows if r["material"] == material}
+        cells = (f"{of[k]['psnr']:.2f} / {_fewer_digits(of[k]['flip'], 3)}" for k in kinds)
+        lines.append(_line(material, *(f"**{text}**" if k == best[material] else text
+                                       for k, text in zip(kinds, cells))))
+    return "\n".join(lines)
+
+
+def baselines_storage(data: dict) -> str:
+    """The storage of each kind (float32): its positional plane and the whole model."""
+    lines = _head("kind", "positional plane", "whole model")
+    lines += [_line(_named(r, "kind"), f"{r['positional_bytes']:,} B", f"{r['model_bytes']:,} B")
+              for r in data["storage"]["rows"]]
+    return "\n".join(lines)
+
+
+def baselines_small(data: dict) -> str:
+    """dynbtf compare on sim:leather?size=64: quality, storage and fit time per kind."""
+    lines = _head("kind", "PSNR (fixed peak 1) dB", "DSSIM", "FLIP", "storage B", "positional B", "fit s")
+    for r in data["small"]["rows"]:
+        c = _cells(r)
+        lines.append(_line(r["kind"], c("psnr_fixed1", ".2f"), c("dssim", ".4f"), c("flip", ".4f"),
+                           c("model_bytes", ","), c("positional_bytes", ","), c("fit_seconds", "g")))
+    return "\n".join(lines)
+
+
+def neumip_variants(data: dict) -> str:
+    """NeuMIP's channels and learning rate against the Triple Plane: PSNR (fixed peak 1) / DSSIM / FLIP."""
+    part = data["neumip_variants"]
+    lines = _head("NeuMIP variant", *part["materials"])
+    for r in part["rows"]:
+        scores = (_cells(r["scores"][m]) for m in part["materials"])
+        lines.append(_line(_filled(r, "variant"),
+                           *(f"{c('psnr_fixed1', '.2f')} / {c('dssim', '.4f')} / {c('flip', '.4f')}" for c in scores)))
+    return "\n".join(lines)
+
+
+def baselines_synthesis(data: dict) -> str:
+    """dynbtf compare --synthesis on the same models (the paper's Fig. 9): synthesis quality per material and kind."""
+    lines = _head("material", "kind", "hist feature W1/std", "hist RGB W1/std (gamma 7)",
+                  "hist RGB W1/std (gamma 1, the paper's)", "hex RGB W1/std", "tile FLIP on the figure's pair")
+    for material, r in _grouped(data["synthesis"]["rows"], lambda r: r["material"]):
+        c = _cells(r)
+        lines.append(_line(material, r["kind"], c("hist_feature_w1", ".4f"), c("hist_rgb_w1", ".3f"),
+                           c("hist_rgb_w1_gamma1", ".3f"), c("hex_rgb_w1", ".3f"), c("tile_flip", ".3f")))
+    return "\n".join(lines)
+
+
+def synthesis_methods(data: dict) -> str:
+    """dynbtf compare --synthesis at 15x on the lacquered wood: each method's report and storage."""
+    lines = _head("method", "dynamic", "feature W1/std", "min std ratio", "RGB W1/std max", "repetition", "verbatim",
+                  "extra storage")
+    for r in data["synthesis_methods"]["rows"]:
+        c = _cells(r)
+        lines.append(_line(_named(r, "method"), "yes" if r["dynamic"] else "no", c("feature_w1", ".4f"),
+                           c("std_ratio_min", ".3f"), c("rgb_w1", ".3f"), c("repetition", ".3f"), c("verbatim", ".3f"),
+                           _storage(r)))
+    return "\n".join(lines)
+
+
+def synthesis_quality(data: dict) -> str:
+    """synthesis.md: dynbtf synth --report on the stone, a row per method."""
+    lines = _head("method", "W1/std feat mean / max", "sliced W1/std", "std ratio (min)", "W1/std RGB (max)",
+                  "repetition", "verbatim", "extra storage")
+    for r in data["rows"]:
+        c = _cells(r)
+        label = c("method") + _note(r.get("note"))
+        lines.append(_line(f"{label:<6}",  # the short names padded to "linear"'s width, as the table was typed
+                           c("feature_w1_mean", text=f"{r['feature_w1_mean']:.4f} / {r['feature_w1_max']:.4f}"),
+                           c("sliced_w1", ".4f"), c("std_ratio_min", ".3f"), c("rgb_w1_max", ".3f"),
+                           c("repetition", ".3f"), c("verbatim", ".3f"), _storage(r)))
+    return "\n".join(lines)
+
+
+def _fixed_peak(first: str, rows: list[dict], label, digits: int) -> str:
+    """Held-out PSNR (fixed peak 1), DSSIM and FLIP, a row per fit."""
+    lines = _head(first, "held-out PSNR, fixed peak 1 (dB)", "DSSIM", "FLIP")
+    for r in rows:
+        c = _cells(r)
+        lines.append(_line(label(r), c("psnr_fixed1", ".2f"), c("dssim", f".{digits}f"), c("flip", f".{digits}f")))
+    return "\n".join(lines)
+
+
+def stone_fetch(data: dict) -> str:
+    """parallax.md: the stone's quality by where the positional features are fetched."""
+    return _fixed_peak("positional fetch at", data["fetch"]["rows"], lambda r: r["fetch"], 3)
+
+
+def stone_relief(data: dict) -> str:
+    """triple_plane.md: the Triple Plane's quality against the simulator's relief scale."""
+    return _fixed_peak("`sim:stone?size=128&relief=...`", data["relief"]["rows"],
+                       lambda r: f"{r['relief']:g}" + _note(r.get("note")), 4)
+
+
+def stone_limits(data: dict) -> str:
+    """measure_stone_limits.py: data (an oracle), fit (training vs held-out) and model (view subsets) on the stone."""
+    lines = _head("measurement (stone, relief 1, 128^2)", "PSNR on training pairs", "PSNR on held-out pairs")
+    for r in data["limits"]["rows"]:
+        c = _cells(r)
+        alone = r.get("nearest_light_psnr_held_out")
+        lines.append(_line(r["measurement"], c("psnr_training", ".2f"), c("psnr_held_out", ".2f")
+                           + (f" (nearest light alone: {alone:.2f})" if alone is not None else "")))
+    return "\n".join(lines)
+
+
+def fullsize(data: dict) -> str:
+    """results.md's full-size table: a line per measurement, its command in the first column."""
+    return _prose(data["summary"], ("what", "what"), ("result", "result"), ("target", "target"))
+
+
+def fullsize_data_path(data: dict) -> str:
+    """bench_training_large.py: samples/s from the 400 x 400 DFMF file against a cached 128 x 128 BTF."""
+    lines = _head("recipe", "cached 128 x 128 (M samples/s)", "400 x 400 DFMF (M samples/s)", "ratio",
+                  "peak RSS at 400 x 400")
+    lines += [_line(_named(r, "recipe"), f"{r['cached_msps']:.2f}", f"{r['large_msps']:.2f}",
+                    f"**{r['large_msps'] / r['cached_msps']:.2f}**", f"{r['peak_rss_gb']:.2f} GB")
+              for r in data["data_path"]["rows"]]
+    return "\n".join(lines)
+
+
+def _minutes(p: dict) -> str:
+    return f"{p['minutes']:g}" + (" (end)" if p.get("end") else "")
+
+
+def fullsize_curve(data: dict) -> str:
+    """measure_fit_curves.py on the full-size file: held-out PSNR against training time."""
+    return _transposed(data["curve"]["points"], ("training time (min)", _minutes),
+                       ("held-out PSNR (dB)", lambda p: f"{p['psnr']:.2f}"))
+
+
+def fullsize_parallax_curve(data: dict) -> str:
+    """The same with --repr triple-parallax."""
+    return _transposed(data["parallax_curve"]["points"], ("training (min)", _minutes),
+                       ("step", lambda p: f"{p['step']:,}"), ("held-out PSNR (dB)", lambda p: f"{p['psnr']:.2f}"))
+
+
+def sampling(data: dict) -> str:
+    """bench_sampling.py: MSE of cosine and mixture (importance) sampling, at equal spp and equal time."""
+    lines = _head("model", "lighting", "MSE cosine", "MSE mixture", "equal spp: cosine / mixture",
+                  "s per render cosine / mixture", "equal time: cosine / mixture", "`auto` picks")
+    lines += [_line(_named(r, "model"), r["lighting"], f"{r['mse_cosine']:.3e}", f"{r['mse_mixture']:.3e}",
+                    f"**{r['equal_spp_ratio']:.2f}x**", f"{r['seconds_cosine']:.3f} / {r['seconds_mixture']:.3f}",
+                    f"**{r['equal_time_ratio']:.2f}x**", r["auto"]) for r in data["rows"]]
+    return "\n".join(lines)
+
+
+def web_struct(data: dict) -> str:
+    """bench_web.py on a structured stand-in model: frame time, cost, agreement and size per method."""
+    lines = _head("method", "ms / frame (1280 x 720, SwiftShader, loaded)", "texel fetches / pixel",
+                  "multiply-adds / pixel", "fp16 PSNR vs library", "u8 PSNR", "bytes for the method, fp16 / u8",
+                  spaced=True)
+    for r in data["struct"]["rows"]:
+        tables = f" (of which the int16 tables {r['tables_mb']:.2f} MB)" if r.get("tables_mb") else ""
+        lines.append(_line(r["method"], _range(r["ms_per_frame"], ","),
+                           f"{r['texel_fetches']}{_note(r.get('note'))}",
+                           f"{r['multiply_adds']:,}", _range(r["psnr_fp16_db"], ".1f") + " dB",
+                           _range(r["psnr_u8_db"], ".1f") + " dB", f"{r['fp16_mb']:.2f} / {r['u8_mb']:.2f} MB{tables}"))
+    return "\n".join(lines)
+
+
+def web_frame_time(data: dict) -> str:
+    """bench_web.py: frame time and cost per pixel per method, and the paper's."""
+    part = data["frame_time"]
+    lines = _head("method", "ms / frame", "ns / pixel", "vs the paper's ns / pixel", "texel fetches / pixel",
+                  "multiply-adds / pixel", spaced=True)
+    lines += [_line(r["method"], _range(r["ms_per_frame"], ","), _range(r["ns_per_pixel"], ","),
+                    _range(r["vs_paper"], ",") + "x", f"{r['texel_fetches']}", f"{r['multiply_adds']:,}")
+              for r in part["rows"]]
+    p = part["paper"]
+    lines.append(_line(f"the paper ({p['gpu']})",
+                       f"{p['ms_per_frame']:g} ({p['ms_per_frame_1080p']:.1f} ms at 1920 x 1080)",
+                       f"{p['ns_per_pixel']:g}", "1", "not given", f"{p['multiply_adds']:,} in its decoder"))
+    return "\n".join(lines)
+
+
+def web_agreement(data: dict) -> str:
+    """bench_web.py: PSNR of the shader against the library per method and texture precision."""
+    lines = _head("method", "fp16", "u8", spaced=True)
+    lines += [_line(r["method"], f"{r['psnr_fp16_db']:.1f}", f"{r['psnr_u8_db']:.1f}")
+              for r in data["agreement"]["rows"]]
+    return "\n".join(lines)
+
+
+def web_size(data: dict) -> str:
+    """bench_web.py: the export's bytes and its held-out PSNR per texture precision."""
+    s = data["size"]
+    mb, every, psnr = s["hist_mb"], s["all_methods_mb"], s["held_out_psnr_db"]
+    return "\n".join(_head("", "fp32 model", "fp16 export", "u8 export", spaced=True) + [
+        _line("bytes for `hist` (plane, tables, angular planes, decoder)", f"{s['model_mb']:.2f} MB (model file)",
+              f"{mb['fp16']:.2f} MB", f"**{mb['u8']:.2f} MB** ({s['u8_of_model']:.2f}x)"),
+        _line("all three methods", "", f"{every['fp16']:.2f} MB", f"{every['u8']:.2f} MB"),
+        _line("held-out PSNR", f"{psnr['fp32']:.3f} dB",
+              f"{psnr['fp16']:.3f} dB (loss < {s['fp16_loss_below_db']:g} dB)",
+              f"{psnr['u8']:.3f} dB (loss **{psnr['fp32'] - psnr['u8']:.3f} dB**)")])
+
+
+def web_checks(data: dict) -> str:
+    """realtime.md: what tests/test_web_export.py checks in the browser, and what it measured."""
+    return _prose(data["checks"], ("check", "check"), ("result", "result"), spaced=True)
+
+
+def filtering(data: dict) -> str:
+    """bench_filtering.py: FLIP and far-field colour error of each kind of query, 1 sample per pixel."""
+    lines = _head("1 sample per pixel", "FLIP vs reference", "far-field mean colour error")
+    for r in data["rows"]:
+        c = _cells(r)
+        lines.append(_line(c("query"), c("flip", ".4f"),
+                           c("far_field_error_percent", text=f"{r['far_field_error_percent']:.2f}%")))
+    return "\n".join(lines)
+
+
+def blend_exponent(data: dict) -> str:
+    """measure_blend_exponent.py: RGB W1/std per model and blending exponent, the default's column bold."""
+    gammas, default = data["gammas"], data["default_gamma"]
+
+    def row(label: str, tile: str, hist: list, hex_: float, fmt) -> str:
+        return _line(label, tile, *(f"**{fmt(v)}**" if g == default else fmt(v) for g, v in zip(gammas, hist)),
+                     fmt(hex_))
+
+    heads = (("hist " if i == 0 else "") + f"g{g}" for i, g in enumerate(gammas))
+    lines = _head("model", "tile", *(f"**{h} (default)**" if g == default else h for g, h in zip(gammas, heads)), "hex")
+    lines += [row(r["model"], f"{r['tile']:.3f}", r["hist"], r["hex"], lambda v: f"{v:.3f}") for r in data["rows"]]
+    area, verbatim = data["area_blended_percent"], data["verbatim"]
+    lines.append(row("area blended (largest weight < 0.9)", "", area["hist"], area["hex"], lambda v: f"{v:g}%"))
+    lines.append(row("verbatim texels (report)", "", verbatim["hist"], verbatim["hex"], lambda v: f"{v:.2f}"))
+    return "\n".join(lines)
+
+
+def structured(data: dict) -> str:
+    """bench_structured.py: coherence and identity at 8x / 25x, repetition, colour, cost and storage per method;
+    ``*`` marks auto's choice."""
+    lines = _head("material", "method", "coherence p90 8x / 25x", "identity 8x / 25x", "repetition", "RGB W1/std",
+                  "cost / hist", "storage")
+    for material, r in _grouped(data["rows"], lambda r: r["material"]):
+        c = _cells(r)
+
+        def scales(key: str) -> str:
+            return c(key, text=" / ".join(f"{v:.3f}" for v in r[key]))
+
+        cost, storage = r["cost_vs_hist"], r["storage_vs_plane"]
+        lines.append(_line(material, c("method", text=_named(r, "method") + ("*" if r.get("chosen") else "")),
+                           scales("coherence_p90"), scales("identity"), f"{r['repetition']:.3f}", f"{r['rgb_w1']:.3f}",
+                           "-" if cost is None else f"{cost:.2f}", f"{storage:g}x" if storage else "0"))
+    return "\n".join(lines)
+
+
+def decode_speed(data: dict) -> str:
+    """btf_decode_speed.py: milliseconds per image of each reader."""
+    lines = _head("", "per image", spaced=True)
+    return "\n".join(lines + [_line(_filled(r, "reader"), f"{r['ms_per_image']:g} ms") for r in data["rows"]])
+
+
+def fit_default(data: dict) -> str:
+    """choosing.md: what dynbtf fit chooses with no options, against the best of the two kinds, and its time."""
+    lines = _head("material", "chosen (trial PSNR: triple / parallax)", "default: PSNR / FLIP", "best: PSNR / FLIP",
+                  "steps (stopped)", "wall min (vs earlier)", "march cost")
+    for r in data["rows"]:
+        trial = f"{r['trial_psnr'][0]:.2f} / {r['trial_psnr'][1]:.2f}" if r.get("trial_psnr") else None
+        stereo = (f"stereo trusted on {r['stereo_trusted_percent']:g} %"
+                  if r.get("stereo_trusted_percent") is not None else None)
+        why = "; ".join(filter(None, (trial, stereo))) if trial else f"{stereo}: no trial"
+        best, other = r["best"], r.get("other")
+        versus = f" ({other['kind']} {other['psnr']:.2f} / {other['flip']:.3f})" if other else ""
+        if r.get("earlier_run_minutes") is not None:
+            wall = (f"{r['wall_minutes']:.2f} ({r['vs_earlier']:.2f}x the earlier default run itself, "
+                    f"{r['earlier_run_minutes']:.2f} min)")
+        else:
+            shared = f"; {r['conditions']}" if r.get("conditions") else ""
+            wall = f"{r['wall_minutes']:.1f} ({r['vs_earlier']:.2f}x{shared})"
+        lines.append(_line(r["material"], f"{r['chosen']} ({why})", f"**{r['psnr']:.2f}** / {r['flip']:.3f}",
+                           f"{best['kind']}: {best['psnr']:.2f} / {best['flip']:.3f}{versus}",
+                           f"{r['steps']:,} ({r['stopped']})", wall,
+                           f"{r['march_cost']:.1f}x flat" if r.get("march_cost") else "none (flat)"))
+    return "\n".join(lines)
+
+
+def fit_many(data: dict) -> str:
+    """bench_fit_many.py: the same fits one after another and on Ray; the ratio of materials per minute."""
+    runs = {r["run"]: r for r in data["rows"]}
+    lines = _head("run", "wall time", "materials per minute")
+    lines += [_line(r["label"], f"{r['wall_seconds']:.1f} s", f"{r['materials_per_minute']:.1f}") for r in data["rows"]]
+    ratio = runs["ray"]["materials_per_minute"] / runs["sequential"]["materials_per_minute"]
+    return "\n".join(lines + [_line("**ratio Ray / sequential**", "", f"**{ratio:.2f}x**")])
+
+
+def compiled_material(data: dict) -> str:
+    """compiled_material.md: what a compiled material saves, a line per command."""
+    return _prose(data, ("what", "what"), ("command", "how"), ("result", "result"), spaced=True)
+
+
+RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget": budget, "evaluation": evaluation,
+             "gpu": gpu, "guided": guided, "guidance": guidance, "speed": speed, "rendering": rendering,
+             "measured": measured, "quality_triple": quality_triple, "quality_parallax": quality_parallax,
+             "quality_compared": quality_compared, "baselines": baselines, "baselines_summary": baselines_summary,
+             "baselines_storage": baselines_storage, "baselines_small": baselines_small,
+             "neumip_variants": neumip_variants, "baselines_synthesis": baselines_synthesis,
+             "synthesis_methods": synthesis_methods, "synthesis_quality": synthesis_quality,
+             "stone_fetch": stone_fetch, "stone_relief": stone_relief, "stone_limits": stone_limits,
+             "fullsize": fullsize, "fullsize_data_path": fullsize_data_path, "fullsize_curve": fullsize_curve,
+             "fullsize_parallax_curve": fullsize_parallax_curve, "sampling": sampling, "web_struct": web_struct,
+             "web_frame_time": web_frame_time, "web_agreement": web_agreement, "web_size": web_size,
+             "web_checks": web_checks, "filtering": filtering, "blend_exponent": blend_exponent,
+             "structured": structured, "decode_speed": decode_speed, "fit_default": fit_default,
+             "fit_many": fit_many, "compiled_material": compiled_material}
 #: Tables rendered from another table's data file (default: ``<name>.json``).
-SOURCES = {"guidance": "guided"}
+SOURCES = {"guidance": "guided",
+           **dict.fromkeys(("quality_triple", "quality_parallax", "quality_compared"), "quality"),
+           **dict.fromkeys(("baselines_summary", "baselines_storage", "baselines_small", "neumip_variants",
+                            "baselines_synthesis", "synthesis_methods"), "baselines"),
+           **dict.fromkeys(("stone_fetch", "stone_relief", "stone_limits"), "stone"),
+           **dict.fromkeys(("fullsize_data_path", "fullsize_curve", "fullsize_parallax_curve"), "fullsize"),
+           **dict.fromkeys(("web_struct", "web_frame_time", "web_agreement", "web_size", "web_checks"), "web")}
 _BLOCK = re.compile(r"<!-- table:(?P<name>[a-z_]+) -->\n(?P<body>.*?)\n?<!-- /table:(?P=name) -->", re.S)
 
 
