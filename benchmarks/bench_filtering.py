@@ -57,9 +57,9 @@ def main() -> None:
     from dynbtf.metrics import flip
     from dynbtf.render.preview import DirectionalLight, grazing_camera, plane_footprint, render_preview
     from dynbtf.synthesis.mip import pyramid_storage_bytes
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
-    btf = SynthesizedBTF(args.model, args.method, scale=args.scale, seed=args.seed)
+    btf = synthesized_btf(args.model, args.method, scale=args.scale, seed=args.seed)
     t0 = time.perf_counter()
     if btf.level_decoders:
         btf.footprint_decoder()
@@ -72,7 +72,7 @@ def main() -> None:
     t_ref = time.perf_counter() - t0
     unfiltered = render_preview(btf, camera, light, resolution=res, spp=1)
     filtered = render_preview(btf, camera, light, resolution=res, spp=1, filtered=True)
-    plain = SynthesizedBTF(args.model, args.method, scale=args.scale, seed=args.seed, level_decoders=False)
+    plain = synthesized_btf(args.model, args.method, scale=args.scale, seed=args.seed, level_decoders=False)
     images = {"unfiltered (point query)": unfiltered,
               "stochastic (1 random point in the pixel)": render_preview(
                   btf, camera, light, resolution=res, spp=1, filtered=False, jitter_seed=args.seed),
@@ -179,9 +179,9 @@ def bench_plugin(args, btf, uv, w_view, w_light, footprint) -> None:
         times, got = plugin_seconds(evaluator, uv32, wv32, wl32, 1, fp32)
         best["filtered"] = min(best["filtered"], min(times))
     sub = slice(0, 200_000)
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
-    library = SynthesizedBTF(btf.model, args.method, scale=1.0, seed=args.seed)
+    library = synthesized_btf(btf.model, args.method, scale=1.0, seed=args.seed)
     ref = library.eval(uv32[sub].astype(np.float64), wv32[sub], wl32[sub], footprint=fp32[sub].astype(np.float64))
     per_query = {k: v / len(uv32) * 1e9 for k, v in best.items()}
     print(f"plugin cost per query ({len(uv32)} queries, best of {args.repeats}): point {per_query['point']:.0f} ns, "

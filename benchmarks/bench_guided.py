@@ -179,8 +179,8 @@ def main() -> None:
     half = args.resolution // 2
     rows = []
     for seed in args.seeds:
-        a = dynbtf.SynthesizedBTF(str(paths[0]), "hist", scale=args.scale, seed=seed)
-        b = dynbtf.SynthesizedBTF(str(paths[1]), "hist", scale=args.scale, seed=seed + 1000)
+        a = dynbtf.synthesized_btf(str(paths[0]), "hist", scale=args.scale, seed=seed)
+        b = dynbtf.synthesized_btf(str(paths[1]), "hist", scale=args.scale, seed=seed + 1000)
         layered = dynbtf.LayeredBTF([a, b], mask, width=args.width)
         image, own_a, own_b = layered.image(**view), a.image(**view), b.image(**view)
         left, right = band_half_widths(layered, args.resolution)

@@ -28,7 +28,7 @@ import torch
 from dynbtf.data.open import open_btf
 from dynbtf.representations.parallax import ParallaxTriplePlane
 from dynbtf.representations.triple_plane import TriplePlane
-from dynbtf.infinite_btf import SynthesizedBTF
+from dynbtf.synthesized import synthesized_btf
 
 
 def directions(n: int, rng: np.random.Generator, max_theta: float, fixed_theta: float | None = None) -> np.ndarray:
@@ -79,7 +79,7 @@ def main() -> None:
     print("\n| method | views | Triple Plane (M queries/s) | triple-parallax (M queries/s) | cost ratio |")
     print("|---|---|---|---|---|")
     for method in args.methods.split(","):
-        btfs = {name: SynthesizedBTF(model, method, scale=45.0, seed=0) for name, model in
+        btfs = {name: synthesized_btf(model, method, scale=45.0, seed=0) for name, model in
                 (("flat", flat), ("relief", relief))}
         for label, views in view_sets.items():
             rates = {}

@@ -70,7 +70,7 @@ def main() -> None:
     from dynbtf.render.mitsuba.drjit_ops import mi_module
     from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator, configure_jit
     from dynbtf.representations.triple_plane import TriplePlane
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
     if args.model:
         from dynbtf.representations.model_file import load_model
@@ -99,7 +99,7 @@ def main() -> None:
     uv64 = uv.astype(np.float64)
     t_eval = {}
     for precision in ("fp32", "bf16"):
-        synth = SynthesizedBTF(model, args.method, precision=precision)
+        synth = synthesized_btf(model, args.method, precision=precision)
         synth.eval(uv64[:50_000], wv[:50_000], wl[:50_000])  # warm-up (numba, torch allocators)
         best = float("inf")
         for _ in range(args.repeats):
@@ -107,7 +107,7 @@ def main() -> None:
             synth.eval(uv64, wv, wl)
             best = min(best, time.perf_counter() - t0)
         t_eval[precision] = best
-    btf = SynthesizedBTF(model, args.method)  # float32: the reference for the difference
+    btf = synthesized_btf(model, args.method)  # float32: the reference for the difference
 
     ev = DynBTFEvaluator(model, args.method, 0)
     # the first call compiles (inputs in Dr.Jit's own memory, jit_array: NumPy buffers' varying alignment used to
@@ -218,7 +218,7 @@ def bench_relief(model, args, uv, wv, wl) -> None:
     variable steps), timed in the same run; the largest value difference between the two marches. Returns the
     measured values (for the JSON)."""
     from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
     relief = parallax_model(model, args.relief_texels)
     lo, hi = relief.height_range()
@@ -247,7 +247,7 @@ def bench_relief(model, args, uv, wv, wl) -> None:
           f"{np.mean(gap > 1e-3 * span):.3%} of queries beyond 1e-3 of the range")
     m = min(n, 100_000)
     shifted = shifted_uv(uv[:m], args.repeats - 1)
-    ref = SynthesizedBTF(relief, args.method).eval(shifted, wv[:m], wl[:m])
+    ref = synthesized_btf(relief, args.method).eval(shifted, wv[:m], wl[:m])
     print(f"  max |difference| to SynthesizedBTF.eval: {np.abs(got[:m] - ref).max():.2e} "
           f"(value range {ref.max() - ref.min():.2f}; {m} queries)")
     return {"model": args.model if relief is model else f"a random triple-parallax model of {args.relief_texels:g} "
@@ -301,7 +301,7 @@ def bench_struct(model, args, uv, wv, wl) -> None:
     """struct vs hist: the plugin's synthesis and whole evaluation per query, side by side (see the module docstring)."""
     from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator
     from dynbtf.synthesis.auto import choose_method
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
     weave = structured_model(model)
     line = choose_method(weave.positional_plane().detach()).line
@@ -334,7 +334,7 @@ def bench_struct(model, args, uv, wv, wl) -> None:
     print(f"  first calls incl. compile: hist {compile_seconds['hist']:.1f} s, struct {compile_seconds['struct']:.1f} s")
     m = min(n, 100_000)
     shifted = shifted_uv(uv[:m], args.repeats - 1)
-    ref = SynthesizedBTF(weave, "struct").eval(shifted, wv[:m], wl[:m])
+    ref = synthesized_btf(weave, "struct").eval(shifted, wv[:m], wl[:m])
     print(f"  struct: max |difference| to SynthesizedBTF.eval: {np.abs(got['struct'][:m] - ref).max():.2e} "
           f"(values up to {np.abs(ref).max():.2f}; {m} queries)")
 

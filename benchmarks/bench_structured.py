@@ -98,14 +98,14 @@ def cost_per_query(btfs: dict, repeats: int) -> dict[str, float]:
 def comparison_image(model: Path, material: str, folder: Path, size: int = 512) -> Path:
     """``structured_<material>.png``: rows 8x and 25x, columns tile | hist | auto (view (0, 0), light (40, 30))."""
     from dynbtf.io import save_image
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
     rows = []
     gap = 6
     for scale in (8.0, 25.0):
         panels = []
         for method in ("tile", "hist", "auto"):
-            btf = SynthesizedBTF(model, method, scale=scale, seed=0)
+            btf = synthesized_btf(model, method, scale=scale, seed=0)
             c = FAR / scale
             image = btf.image(view=(0.0, 0.0), light=(40.0, 30.0), uv_rect=(c, c, c + 1.0, c + 1.0),
                               resolution=size, spp=3)
@@ -134,20 +134,20 @@ def main() -> None:
 
     from dynbtf.synthesis.cell_quilting import build_cell_tables
     from dynbtf.synthesis.quality import quality_report
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
     scales = [float(s) for s in args.scales.split(",")]
     results = []
     for material in [m.strip() for m in args.materials.split(",") if m.strip()]:
         model = ensure_model(Path(args.models), material, args.fit_minutes)
-        auto = SynthesizedBTF(model, "auto", scale=scales[0], seed=0)
+        auto = synthesized_btf(model, "auto", scale=scales[0], seed=0)
         print(f"\n== {material} ({model}): {auto.synthesizer.choice.line}", flush=True)
         plane_bytes = auto.synthesizer.exemplar.numel() * 4
         btfs = {}
         for method in METHODS:
             params = {"repeats": scales[0], "progress": False} if method == "quilt" else {}
             start = time.perf_counter()
-            btfs[method] = SynthesizedBTF(model, method, scale=scales[0], seed=0, **params)
+            btfs[method] = synthesized_btf(model, method, scale=scales[0], seed=0, **params)
             built = time.perf_counter() - start
             row = {"material": material, "method": method, "auto": auto.synthesizer.name == method,
                    "storage_ratio": btfs[method].synthesizer.storage_bytes() / plane_bytes,
@@ -156,7 +156,7 @@ def main() -> None:
                 if method == "quilt" and scale != scales[0]:
                     continue
                 runs = [coherence(btfs[method] if seed == 0 and scale == scales[0] else
-                                  SynthesizedBTF(model, method, scale=scale, seed=seed, **params), scale, seed)
+                                  synthesized_btf(model, method, scale=scale, seed=seed, **params), scale, seed)
                         for seed in range(args.seeds)]
                 row[f"p90@{scale:g}"] = [r["p90"] for r in runs]
                 row[f"identity@{scale:g}"] = [r["identity"] for r in runs]
@@ -195,7 +195,7 @@ def main() -> None:
     # off-line construction at full size: 400 x 400 x 16
     first = next((m for m in args.materials.split(",") if m in STRUCTURED), None)
     if first is not None:
-        btf = SynthesizedBTF(Path(args.models) / f"{first}.dbtfm", "tile")
+        btf = synthesized_btf(Path(args.models) / f"{first}.dbtfm", "tile")
         plane = btf.synthesizer.exemplar.permute(2, 0, 1)[None]
         guide = btf._decoded_appearance(btf.synthesizer.exemplar).permute(2, 0, 1)[None]
         big = torch.nn.functional.interpolate(plane, size=(400, 400), mode="bilinear")[0].permute(1, 2, 0)

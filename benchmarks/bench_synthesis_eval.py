@@ -52,7 +52,7 @@ from dynbtf.synthesis.blending import LatticeBlending
 from dynbtf.synthesis.histogram import variance_preserving_blend, blend_weights
 from dynbtf.synthesis.histogram_blending import HistogramBlending
 from dynbtf.decoder.folded import MLP_ROWS, mlp
-from dynbtf.infinite_btf import SynthesizedBTF
+from dynbtf.synthesized import synthesized_btf
 from dynbtf.texture import fetch_wrap
 
 
@@ -128,7 +128,7 @@ def measure(args) -> dict:
           f"{decoder_flops(model)} FLOP/query: bound {bound * 1e3:.1f} ms", file=sys.stderr)
     rows = []
     for method in args.methods.split(","):
-        ours = SynthesizedBTF(model, method, scale=1.0)
+        ours = synthesized_btf(model, method, scale=1.0)
         t_naive = warm_then_best(lambda sl: naive_eval(model, ours.synthesizer, uv[sl], w_view[sl], w_light[sl]),
                                  n, args.repeats)
         t_ours = warm_then_best(lambda sl: ours.eval(uv[sl], w_view[sl], w_light[sl]), n, args.repeats)
@@ -177,7 +177,7 @@ def drjit_seconds(model, method, uv, w_view, w_light, repeats) -> float | None:
 def stage_breakdown(model, uv, w_view, w_light, n) -> dict:
     """Where our hist path's time goes: per-stage timings over the same chunks, on one thread as each worker runs
     (printed, and returned as ``{"queries_per_second_one_thread", "stages": {name: share}}``)."""
-    btf = SynthesizedBTF(model, "hist", scale=1.0, workers=1)
+    btf = synthesized_btf(model, "hist", scale=1.0, workers=1)
     chunk = btf.chunk_size
     stages = {"synthesis kernel": 0.0, "layer 1 (BLAS + angular kernel)": 0.0, "layers 2.. (native forward)": 0.0}
     path = btf.decode_path

@@ -68,7 +68,7 @@ def main() -> None:
     from dynbtf.export.web.shader import shader_cost
     from dynbtf.representations.model_file import load_model, save_model
     from dynbtf.representations.triple_plane import TriplePlane
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
     work = Path(tempfile.mkdtemp(prefix="dynbtf-bench-web-"))
     if args.model:
@@ -108,7 +108,7 @@ def main() -> None:
     print(f"\nshader vs SynthesizedBTF.eval on {args.queries} random queries (half near 1e6 repeats): PSNR dB")
     print(f"{'method':<8}" + "".join(f"{p:>10}" for p in exports))
     for m in args.methods:
-        ref = SynthesizedBTF(model, m, seed=0).eval(points, wv.astype(np.float64), wl.astype(np.float64))
+        ref = synthesized_btf(model, m, seed=0).eval(points, wv.astype(np.float64), wl.astype(np.float64))
         row = [_psnr(eval_in_browser(ex.directory, m, points, wv, wl, gl=args.gl).rgb, ref) for ex in exports.values()]
         print(f"{m:<8}" + "".join(f"{x:>10.1f}" for x in row))
 

@@ -80,7 +80,7 @@ def evaluation_1080p(device: str, repeats: int = 3) -> dict:
     from dynbtf.representations.triple_plane import TriplePlane
 
     model = TriplePlane(400, 400, seed=0).eval()
-    synth = dynbtf.SynthesizedBTF(model, "hist", scale=1.0, seed=0, device=device)
+    synth = dynbtf.synthesized_btf(model, "hist", scale=1.0, seed=0, device=device)
     n = 1920 * 1080
     rng = np.random.default_rng(0)
     uv = torch.from_numpy(rng.random((n, 2)) * 45.0)

@@ -39,7 +39,7 @@ from dynbtf.data.open import open_btf
 from dynbtf.io import to_uint8_srgb
 from dynbtf.metrics import flip
 from dynbtf.representations.model_file import load_model
-from dynbtf.infinite_btf import SynthesizedBTF
+from dynbtf.synthesized import synthesized_btf
 
 REPEATS = 3  # exemplar repeats per panel side (tiling shows 3 x 3 copies)
 DETAIL_TEXELS = 64  # side of the centre detail, texels
@@ -86,7 +86,7 @@ def material_row(label: str, spec: str, cmp_dir: Path, hist_params: dict) -> tup
     images, captions = [reference], ["reference (measured, tiled)"]
     for method in ("tile", "hist"):
         for kind in ("neumip", "triple"):
-            btf = SynthesizedBTF(models[kind][0], method, scale=1.0, seed=0, device="cpu",
+            btf = synthesized_btf(models[kind][0], method, scale=1.0, seed=0, device="cpu",
                                  **(hist_params if method == "hist" else {}))
             image = btf.image(view, light, (0.0, 0.0, float(REPEATS), float(REPEATS)),
                               (REPEATS * height, REPEATS * width))

@@ -31,7 +31,7 @@ def main() -> None:
     from dynbtf.guided import example_target
 
     target = example_target()
-    tile, hist = (dynbtf.SynthesizedBTF(args.model, m, scale=6.0) for m in ("tile", "hist"))
+    tile, hist = (dynbtf.synthesized_btf(args.model, m, scale=6.0) for m in ("tile", "hist"))
     guided = dynbtf.guided_btf(args.model, target, classes=2, target_size=1.0, target_wrap="clamp", scale=6.0)
     res = args.resolution
     view = dict(view=(0, 0), light=(35, 60), uv_rect=(0, 0, 1, 1), resolution=res, spp=2)

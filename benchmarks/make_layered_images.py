@@ -33,7 +33,7 @@ def main() -> None:
     import dynbtf
     from dynbtf.io import save_image
 
-    a, b = (dynbtf.SynthesizedBTF(path, "hist", scale=6.0) for path in args.layers)
+    a, b = (dynbtf.synthesized_btf(path, "hist", scale=6.0) for path in args.layers)
     mask = dynbtf.NoiseMask(scale=0.35, contrast=3.0, seed=3)
     layered = dynbtf.LayeredBTF([a, b], mask, width=args.width)
     res = args.resolution

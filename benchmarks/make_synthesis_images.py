@@ -30,6 +30,7 @@ from dynbtf.io import save_image
 from dynbtf.representations.model_file import load_model
 from dynbtf.synthesis.quality import format_report, quality_report, save_report
 from dynbtf.infinite_btf import SynthesizedBTF
+from dynbtf.synthesized import synthesized_btf
 
 SCALES = (1.0, 8.0, 25.0, 45.0)
 VIEW, LIGHT = (0.0, 0.0), (40.0, 30.0)
@@ -48,7 +49,7 @@ def crops(rep, out: Path, cos_light: float) -> None:
     side = 3 * texels
     rows = []
     for method in ("tile", "linear", "hist", "hex", "quilt"):
-        btf = SynthesizedBTF(rep, method, scale=1.0, **({"repeats": 4.0} if method == "quilt" else {}))
+        btf = synthesized_btf(rep, method, scale=1.0, **({"repeats": 4.0} if method == "quilt" else {}))
         panels = [btf.image(VIEW, LIGHT, (c, c, c + 3.0, c + 3.0), side) * cos_light for c in (0.0, 1e6)]
         rows.append(np.concatenate([panels[0], np.ones((side, 4, 3), np.float32), panels[1]], axis=1))
     gap = np.ones((4, rows[0].shape[1], 3), dtype=np.float32)
@@ -90,7 +91,7 @@ def filtering(rep, out: Path, cos_light: float, panel: int) -> None:
     supersampled reference), ``panel`` px per side."""
     rows = []
     for scale in (25.0, 45.0):
-        btf = SynthesizedBTF(rep, "hist", scale=scale)
+        btf = synthesized_btf(rep, "hist", scale=scale)
         panels = [btf.image(VIEW, LIGHT, (0.0, 0.0, 1.0, 1.0), panel, **kw) * cos_light
                   for kw in ({}, {"filtered": True}, {"spp": 8})]
         gap = np.ones((panel, 4, 3), dtype=np.float32)
@@ -121,12 +122,12 @@ def main() -> None:
     synthesizers = {}
     bright = 1e3  # the outline: clamps to white after any exposure
     for method in ("tile", "linear", "hist", "hex", "quilt"):
-        synth = SynthesizedBTF(rep, method, **({"repeats": 4.0} if method == "quilt" else {})).synthesizer
+        synth = synthesized_btf(rep, method, **({"repeats": 4.0} if method == "quilt" else {})).synthesizer
         synthesizers[method] = synth
         texels = synth.exemplar.shape[1]
-        groups = [scale_panels(SynthesizedBTF(rep, synth, scale=scale), 0.0, args.panel, texels, bright)
+        groups = [scale_panels(synthesized_btf(rep, synth, scale=scale), 0.0, args.panel, texels, bright)
                   for scale in SCALES]
-        groups.append(scale_panels(SynthesizedBTF(rep, synth, scale=45.0), 1e6, args.panel, texels, bright))
+        groups.append(scale_panels(synthesized_btf(rep, synth, scale=45.0), 1e6, args.panel, texels, bright))
         height = max(p.shape[0] for g in groups for p in g)
         pieces = []
         for group in groups:  # 4 px between a full view and its detail, 12 px between scales
@@ -140,7 +141,7 @@ def main() -> None:
     gap = np.ones((4, rows[0].shape[1], 3), dtype=np.float32)
     grid = np.concatenate([x for r in rows for x in (r, gap)][:-1], axis=0)
     save_image(out / "synthesis_scales.png", grid, exposure=exposure)
-    reports = [quality_report(SynthesizedBTF(rep, synthesizers[m], scale=8.0))
+    reports = [quality_report(synthesized_btf(rep, synthesizers[m], scale=8.0))
                for m in ("tile", "linear", "hist", "hex", "quilt")]
     print(format_report(reports))
     save_report(reports, out / "synthesis_quality.json")
@@ -152,7 +153,7 @@ def main() -> None:
                          ("hist, tileable off", {"tileable": False}), ("hist, tileable on", {"tileable": True}),
                          ("hex, tileable off", {"tileable": False}), ("hex, tileable on", {"tileable": True})):
         method = name.split(",")[0]
-        r = quality_report(SynthesizedBTF(rep, method, scale=8.0, **params))
+        r = quality_report(synthesized_btf(rep, method, scale=8.0, **params))
         ablation[name] = {k: r[k] for k in ("feature_w1_over_std_mean", "feature_w1_over_std_max",
                                             "feature_sliced_w1_over_std", "rgb_w1_over_std_max")} \
             | {"seam": r["parameters"].get("seam_after")}

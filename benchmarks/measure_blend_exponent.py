@@ -36,6 +36,7 @@ from dynbtf.synthesis.blending import LatticeBlending
 from dynbtf.synthesis.histogram import Decorrelation, GaussianTransform, blend_weights
 from dynbtf.synthesis.quality import DEFAULT_PAIRS, quality_report, w1_over_std
 from dynbtf.infinite_btf import SynthesizedBTF
+from dynbtf.synthesized import synthesized_btf
 from dynbtf.texture import fetch_wrap
 
 GAMMAS = (1.0, 3.0, 5.0, 7.0, 10.0)
@@ -104,9 +105,9 @@ def measure(path: str) -> list[dict]:
     texels = tuple(rep.positional_plane().shape[:2])
     rows, tile_speckle = [], None
     for name, method, params in variants():
-        btf = SynthesizedBTF(rep, method, scale=8.0, **params)
+        btf = synthesized_btf(rep, method, scale=8.0, **params)
         r = quality_report(btf, repeats=8)
-        speckle = speckle_energy(SynthesizedBTF(rep, btf.synthesizer, scale=1.0), texels)
+        speckle = speckle_energy(synthesized_btf(rep, btf.synthesizer, scale=1.0), texels)
         tile_speckle = speckle if method == "tile" else tile_speckle
         row = {"model": Path(path).name, "variant": name,
                "feature_w1_mean": r["feature_w1_over_std_mean"], "feature_w1_max": r["feature_w1_over_std_max"],
@@ -236,7 +237,7 @@ def figure(paths: list[str], out: Path, side: int = 96, zoom: int = 2) -> None:
         h, w = rep.positional_plane().shape[:2]
         u0, v0 = round(0.6 * w) / w, round(0.6 * h) / h  # on texel boundaries: pixels at texel centres
         rect = (u0, v0, u0 + side / w, v0 + side / h)
-        images = [SynthesizedBTF(rep, method, scale=1.0, **params).image((0.0, 0.0), (40.0, 30.0), rect, side)
+        images = [synthesized_btf(rep, method, scale=1.0, **params).image((0.0, 0.0), (40.0, 30.0), rect, side)
                   * cos_light for _, method, params in FIGURE_COLUMNS]
         exposure = 0.8 / float(np.percentile(images[0], 99.5))  # per row, from the exemplar (tiling)
         rows.append([np.repeat(np.repeat(img * exposure, zoom, 0), zoom, 1) for img in images])

@@ -25,7 +25,7 @@ neither PyTorch nor Mitsuba nor numba):
 Fit, save and synthesize::
 
     result = dynbtf.fit(dynbtf.TriplePlane(btf.height, btf.width), btf, dynbtf.TrainConfig(epochs=30), "m.dbtfm")
-    synth = dynbtf.SynthesizedBTF("m.dbtfm", "hist", scale=25, seed=0)
+    synth = dynbtf.synthesized_btf("m.dbtfm", "hist", scale=25, seed=0)
     rgb = synth.eval(uv, w_view, w_light)    # (..., 3) linear RGB at any real uv
 
 Mitsuba 3 (optional, ``pip install dynbtf[render]``): ``dynbtf.register_plugin()`` after
@@ -61,6 +61,7 @@ _FRONT_DOOR = {
     "load_model": "dynbtf.representations.model_file",
     "evaluate_model": "dynbtf.training.evaluate",
     # synthesis and recovery
+    "synthesized_btf": "dynbtf.synthesized",
     "SynthesizedBTF": "dynbtf.infinite_btf",
     "make_synthesizer": "dynbtf.synthesis.registry",
     "LayeredBTF": "dynbtf.layered",

@@ -487,7 +487,7 @@ def compare_synthesis(model, output_dir, methods: Sequence[str] = DEFAULT_SYNTHE
         set-up time.
     """
     from .synthesis.quality import quality_report
-    from .infinite_btf import SynthesizedBTF
+    from .synthesized import synthesized_btf
 
     if isinstance(model, (str, Path)):
         model, _ = load_model(model)
@@ -506,7 +506,7 @@ def compare_synthesis(model, output_dir, methods: Sequence[str] = DEFAULT_SYNTHE
     for method in methods:
         params = {"repeats": float(scale)} if method == "quilt" else {}
         start = time.perf_counter()
-        btf = SynthesizedBTF(model, method, scale=float(scale), seed=seed, **params)
+        btf = synthesized_btf(model, method, scale=float(scale), seed=seed, **params)
         setup = time.perf_counter() - start
         quality = quality_report(btf, repeats=int(math.ceil(scale)), max_side=max(1024, side), seed=seed)
         image_path = output_dir / "images" / f"synthesis_{method}.png"

@@ -258,7 +258,7 @@ def _synth_resolution(cfg: DemoConfig) -> int:
 def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
     from .progress import progress_bar
     from .render.preview import DirectionalLight, grazing_camera, render_preview
-    from .infinite_btf import SynthesizedBTF
+    from .synthesized import synthesized_btf
 
     cfg = ctx.config
     rep = ctx.model()
@@ -273,10 +273,11 @@ def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
     compile_seconds = {}
     for method in METHODS:  # the first call compiles the method's kernels (numba, cached on disk): timed apart
         t0 = time.perf_counter()
-        SynthesizedBTF(rep, method, scale=1.0, seed=cfg.seed).image(view, light, (0.0, 0.0, 1.0, 1.0), (8, 8))
+        synthesized_btf(rep, method, scale=1.0, seed=cfg.seed).image(view, light, (0.0, 0.0, 1.0, 1.0), (8, 8))
         compile_seconds[method] = time.perf_counter() - t0
     for method, scale in progress_bar(jobs, desc="synthesis", unit="image", disable=not ctx.progress):
-        btf = SynthesizedBTF(rep, method, scale=1.0, seed=cfg.seed)
+        # the footprint decoders where a filtered image is made (fitted once per method, then cached)
+        btf = synthesized_btf(rep, method, scale=1.0, seed=cfg.seed, footprints=scale >= 25)
         t0 = time.perf_counter()  # one query per pixel, like the paper's figures (warm: kernels compiled above)
         img = btf.image(view, light, (0.0, 0.0, float(scale), float(scale)), (res, res))
         timings[f"{method}@{scale}x"] = time.perf_counter() - t0
@@ -285,7 +286,7 @@ def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
         if scale >= 25:  # many texels per pixel: the footprint query shows the filtered appearance
             t0 = time.perf_counter()
             img = btf.image(view, light, (0.0, 0.0, float(scale), float(scale)), (res, res), filtered=True)
-            timings[f"{method}@{scale}x filtered"] = time.perf_counter() - t0  # includes the one-off level fit
+            timings[f"{method}@{scale}x filtered"] = time.perf_counter() - t0
             p = save_image(out_dir / f"{method}_{scale:02d}x_filtered.png", img)
             filtered.setdefault(method, {})[str(scale)] = ctx.rel(p)
     # an infinite plane at a grazing angle, per method: repetition shows as a grid towards the horizon
@@ -294,7 +295,7 @@ def _stage_synthesis(ctx: _Context) -> dict[str, Any]:
     sun = DirectionalLight((-0.55, -0.35, 0.76), irradiance=1.0)  # from behind the camera: no mirror highlight
     pres = (72, 128) if cfg.quick else (288, 512)
     for method in progress_bar(METHODS, desc="grazing previews", unit="image", disable=not ctx.progress):
-        btf = SynthesizedBTF(rep, method, scale=1.0, seed=cfg.seed)
+        btf = synthesized_btf(rep, method, scale=1.0, seed=cfg.seed)
         img = render_preview(btf, cam, sun, resolution=pres, spp=1 if cfg.quick else 2, background=(0.55, 0.65, 0.8))
         previews[method] = ctx.rel(save_image(out_dir / f"grazing_{method}.png", img))
     quality = _synthesis_quality(ctx, rep)
@@ -325,11 +326,11 @@ def _guided_panels(ctx: _Context, rep, view, light, res: int, scale: int) -> dic
 def _synthesis_quality(ctx: _Context, rep) -> list[dict[str, Any]]:
     """One row of synthesis quality numbers per method (:func:`dynbtf.synthesis.quality.quality_report`)."""
     from .synthesis.quality import quality_report
-    from .infinite_btf import SynthesizedBTF
+    from .synthesized import synthesized_btf
 
     rows = []
     for method in METHODS:
-        q = quality_report(SynthesizedBTF(rep, method, seed=ctx.config.seed), repeats=4,
+        q = quality_report(synthesized_btf(rep, method, seed=ctx.config.seed), repeats=4,
                            max_side=256 if ctx.config.quick else 512, rgb_side=128 if ctx.config.quick else 256,
                            seed=ctx.config.seed)
         rows.append({"method": method,
@@ -347,7 +348,7 @@ def _stage_structured(ctx: _Context) -> dict[str, Any]:
     from .data.simulated import MATERIALS, simulated_btf
     from .representations.triple_plane import TriplePlane
     from .synthesis.coherence import synthesized_coherence
-    from .infinite_btf import SynthesizedBTF
+    from .synthesized import synthesized_btf
     from .training.fit import TrainConfig, fit
 
     cfg = ctx.config
@@ -375,7 +376,7 @@ def _stage_structured(ctx: _Context) -> dict[str, Any]:
     far = 1e6
     for method in STRUCTURED_METHODS:
         for scale in (8, 25):
-            btf = SynthesizedBTF(model_path, method, scale=float(scale), seed=cfg.seed)
+            btf = synthesized_btf(model_path, method, scale=float(scale), seed=cfg.seed)
             if btf.synthesizer.choice is not None:
                 choice = btf.synthesizer.choice.line
             c = far / scale  # far from the origin: exact at any uv

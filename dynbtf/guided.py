@@ -29,6 +29,7 @@ from .errors import InputError
 from .infinite_btf import SynthesizedBTF
 from .material import open_model_file
 from .material.compiler import decoded_appearance, decoded_luminance, model_arguments
+from .synthesized import synthesized_btf
 from .synthesis.guided_blending import (GuidedBlending, GuidedCellQuilting, GuidedHexTiling, LabelField,
                                        exemplar_labels)
 
@@ -89,7 +90,7 @@ def guided_method(method: str, cells=None, *, where: str = "--target") -> str:
 
 def guided_btf(model, target, *, classes: int = 2, labels=None, target_size: float = 1.0,
                target_wrap: str = "repeat", scale: float = 1.0, seed: int = 0, candidates: int = 16,
-               softness: float = 0.0, method: str = "hist", **params) -> SynthesizedBTF:
+               softness: float = 0.0, method: str = "hist", footprints: bool = False, **params) -> SynthesizedBTF:
     """A synthesized BTF of ``model`` whose content follows ``target`` (see the module docstring).
 
     Parameters
@@ -102,7 +103,7 @@ def guided_btf(model, target, *, classes: int = 2, labels=None, target_size: flo
         Classes of the exemplar (:func:`exemplar_classes`) when ``labels`` is not given.
     labels : ``(H, W)`` integers, optional
         The exemplar's labels (the positional plane's size).
-    scale, seed : as :class:`~dynbtf.infinite_btf.SynthesizedBTF`'s.
+    scale, seed : as :func:`~dynbtf.synthesized.synthesized_btf`'s.
     candidates, softness : :class:`~dynbtf.synthesis.guided_blending.GuidedBlending`'s.
     method : {"hist", "hex", "struct"}, default "hist"
         The synthesis that is guided (:class:`~dynbtf.synthesis.guided_blending.GuidedBlending`,
@@ -111,6 +112,8 @@ def guided_btf(model, target, *, classes: int = 2, labels=None, target_size: flo
         ``luminance`` and struct's ``guide`` default to the model's decoded appearance, as for ``hex`` and
         ``struct``). struct chooses whole cells by label: give it ``cells`` of about one element
         (``cells=8`` for eight elements per repeat), so that a cell's content is of one label.
+    footprints : bool, default False
+        Also fit the per-level decoders of footprint queries (not cached: the guidance is not in the cache's key).
     """
     method = guided_method(method, params.get("cells"), where="method")
     if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
@@ -133,4 +136,4 @@ def guided_btf(model, target, *, classes: int = 2, labels=None, target_size: flo
     else:
         kind = GuidedBlending if method == "hist" else GuidedHexTiling
         synth = kind(plane, seed, labels=exemplar, target=field, candidates=candidates, softness=softness, **params)
-    return SynthesizedBTF(model, synth, scale=scale)
+    return synthesized_btf(model, synth, scale=scale, footprints=footprints)

@@ -1,11 +1,16 @@
 """The synthesized BTF: representation o synthesizer, queryable at any uv (the one evaluation path).
 
-``SynthesizedBTF(model, "hist", scale=8, seed=0).eval(uv, w_view, w_light)`` is the
+``synthesized_btf(model, "hist", scale=8, seed=0).eval(uv, w_view, w_light)`` is the
 paper's pipeline end to end: the positional feature plane ``f_U`` of a fitted
 representation is synthesized at ``uv * scale`` (stage 2, :mod:`dynbtf.synthesis`)
 and decoded with the representation's angular features (stage 3). Every
 consumer -- the ``dynbtf synth`` command, the quality report, the preview
 renderer and the Mitsuba plugin's tests -- evaluates through this class.
+
+The query object answers from a **compiled material** (:mod:`dynbtf.material`) and never builds one:
+``SynthesizedBTF(material, scale)`` takes an opened material (or a ``.dbtfc`` file), and
+:func:`dynbtf.synthesized.synthesized_btf` is the application-level step that opens a model's material
+from the cache or compiles it first.
 
 Units and conventions
 ---------------------
@@ -51,11 +56,9 @@ decoded with their own ``decode``. Measured numbers: ``docs/synthesis.md``.
 Compiled materials
 ------------------
 Everything a query reads besides the model -- the method's tables, the pyramid, the folded first
-layer, the per-level decoders and the mean appearance -- comes from a compiled material
-(:mod:`dynbtf.material`), read from the cache keyed by the model's contents or compiled on
-first use (:func:`dynbtf.material.open_or_compile`): the tables when the object is built,
-the footprint decoders (a fit per pyramid level, the first time) at the first footprint query. ``model`` may
-also be a compiled material file (``dynbtf compile``), which then holds everything.
+layer, the per-level decoders and the mean appearance -- comes from the compiled material it is
+given. Footprint queries decode each pyramid level with the material's per-level decoders where it has
+them (compiled with footprints), else every level with the point decoder (a warning says so once).
 
 Devices
 -------
@@ -67,10 +70,9 @@ on CUDA the synthesizers use their torch paths and the decoder its torch layers.
 from __future__ import annotations
 
 import contextlib
+import warnings
 
-import copy
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -79,11 +81,10 @@ import torch
 from .conventions import check_directions, spherical_to_direction
 from .decoder.folded import DecodePath, FoldedDecoder
 from .errors import InputError, positive_number
-from .synthesis.base import Synthesizer, check_footprint, check_uv
-from .material import APPEARANCE_PAIRS, CompiledMaterial, compile_material, decoded_appearance, open_model_file, open_or_compile
+from .synthesis.base import check_footprint, check_uv
+from .material.format import CompiledMaterial, open_model_file
 
-__all__ = ["SynthesizedBTF", "PRECISIONS", "footprint_width", "flat_image", "auto_method", "decoded_appearance",
-           "APPEARANCE_PAIRS"]
+__all__ = ["SynthesizedBTF", "PRECISIONS", "footprint_width", "flat_image", "same_device"]
 
 #: Accepted ``precision`` values: dtype of decoder layers 2.. on the fast path.
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16}
@@ -136,15 +137,7 @@ def _single_numba_thread(fn, *args):
     return fn(*args)
 
 
-def auto_method(model):
-    """What ``synthesizer="auto"`` chooses for a fitted ``model``: a :class:`~dynbtf.synthesis.auto.MethodChoice`
-    measured on its :func:`decoded_appearance` (the same choice :class:`SynthesizedBTF` makes)."""
-    from .synthesis.auto import choose_method
-
-    return choose_method(model.positional_plane().detach(), decoded_appearance(model))
-
-
-def _same_device(a: torch.device, b: torch.device) -> bool:
+def same_device(a: torch.device, b: torch.device) -> bool:
     """Whether two devices are the same (``cuda`` without an index matches any ``cuda:N``)."""
     return a.type == b.type and (a.index is None or b.index is None or a.index == b.index)
 
@@ -179,36 +172,6 @@ def _check_directions(w, name: str, batch) -> tuple[torch.Tensor, torch.Tensor]:
     return flat, flat[:, 2] >= 0
 
 
-def _open(model, device) -> tuple[Any, CompiledMaterial | None]:
-    """``(representation, compiled material or None)`` of a representation, a material, or a file of either."""
-    if isinstance(model, CompiledMaterial):
-        return model.model, model
-    if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
-        return open_model_file(model, device=device)
-    return model, None
-
-
-def _material(model, material, synthesizer, seed: int, params: dict) -> CompiledMaterial:
-    """The compiled material of ``model`` for the requested synthesizer (checked against a given ``material``)."""
-    if material is not None:
-        if params or isinstance(synthesizer, Synthesizer) or synthesizer not in ("auto", material.method) \
-                or seed not in (0, material.seed):
-            raise InputError(f"a compiled material fixes method {material.method!r} and seed {material.seed}: "
-                             f"leave synthesizer, seed and method parameters at their defaults or compile again")
-        return material
-    if isinstance(synthesizer, Synthesizer):
-        if params:
-            raise InputError(f"parameters {sorted(params)} given with a ready synthesizer; "
-                             "pass them to the synthesizer instead")
-        if not _same_device(synthesizer.device, model.positional_plane().device):
-            raise InputError(f"synthesizer: its exemplar is on {synthesizer.device}, the model on "
-                             f"{model.positional_plane().device}; build it on the model's device")
-        return compile_material(model, synthesizer=synthesizer, footprints=False)
-    if isinstance(synthesizer, str):
-        return open_or_compile(model, synthesizer, seed, footprints=False, **params)[0]
-    raise InputError(f"synthesizer: expected a method name or a Synthesizer, got {type(synthesizer).__name__}")
-
-
 def _level_runs(levels: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
     """The stable order that sorts queries by level (int8: numpy radix-sorts it) and the runs
     ``(start, stop, level)`` of the sorted queries."""
@@ -241,22 +204,15 @@ def _decode_footprints(synthesizer, path: DecodePath, points, wv, wl, texels) ->
 
 
 class SynthesizedBTF:
-    """An infinite, non-repeating BTF: a fitted representation with a synthesized positional plane.
+    """An infinite, non-repeating BTF: a compiled material queried at any uv.
 
     Parameters
     ----------
-    model : Representation, CompiledMaterial or path
-        A fitted representation with a positional plane, a compiled material, or a file of either
-        (a model file, :func:`~dynbtf.representations.model_file.load_model`; a ``.dbtfc``).
-    synthesizer : str or Synthesizer, default "auto"
-        A method name (``tile``, ``linear``, ``hist``, ``hex``, ``quilt``, ``struct``) built on the
-        model's positional plane with ``seed`` and ``**params``, or ``auto``: ``struct`` for
-        structured materials, ``hist`` otherwise (:func:`dynbtf.synthesis.auto.choose_method`;
-        ``self.synthesizer.choice`` says why), or a ready synthesizer (then no ``params``).
+    material : CompiledMaterial or path
+        An opened compiled material (:mod:`dynbtf.material`) or a ``.dbtfc`` file. A fitted model is opened or
+        compiled first by :func:`dynbtf.synthesized.synthesized_btf`, which then returns this object.
     scale : float, default 1.0
         Exemplar repeats per unit of the user's ``uv`` (positive).
-    seed : int, default 0
-        Synthesis seed.
     chunk_size : int, default 32768
         Queries per chunk (bounds memory).
     workers : int, optional
@@ -266,38 +222,54 @@ class SynthesizedBTF:
         Dtype of decoder layers 2.. on the fast path.
     device : str or torch.device, optional
         ``"auto"`` (CUDA when present), ``"cpu"``, ``"cuda:0"``, ... (:func:`dynbtf.device.resolve_device`).
-        Default: where ``model`` is (a file: the CPU). The numba fast paths run on the CPU only.
+        Default: where the material's model is (a file: the CPU); elsewhere a copy of the material is moved
+        there. The numba fast paths run on the CPU only.
     level_decoders : bool, default True
-        Footprint queries decode each pyramid level with its own decoder (the decoder is nonlinear:
-        decoding filtered features is biased; :mod:`dynbtf.material.footprint_decoders`). False: the
-        point decoder for every level.
-    **params
-        Method parameters (see each synthesizer).
+        Footprint queries decode each pyramid level with the material's decoder of that level (the decoder is
+        nonlinear: decoding filtered features is biased; :mod:`dynbtf.material.footprint_decoders`), where the
+        material has them. False: the point decoder for every level.
+
+    Attributes
+    ----------
+    material : CompiledMaterial
+    model : Representation
+        The material's model.
+    synthesizer : Synthesizer
+        Rebuilt from the material's tables.
+    seed : int
+        The material's synthesis seed.
 
     Examples
     --------
     >>> import torch
+    >>> from dynbtf.material import open_or_compile
     >>> from dynbtf.representations.triple_plane import TriplePlane
-    >>> btf = SynthesizedBTF(TriplePlane(16, 16), "hist", scale=8.0)
+    >>> material, _ = open_or_compile(TriplePlane(16, 16), "hist", footprints=False)
+    >>> btf = SynthesizedBTF(material, scale=8.0)
     >>> w = torch.tensor([[0.0, 0.0, 1.0]] * 2)
     >>> btf.eval(torch.tensor([[0.1, 0.2], [1e6 + 0.1, 0.2]], dtype=torch.float64), w, w).shape
     torch.Size([2, 3])
     """
 
-    def __init__(self, model, synthesizer: str | Synthesizer = "auto", scale: float = 1.0, seed: int = 0, *,
-                 chunk_size: int = 32768, precision: str = "fp32", workers: int | None = None,
-                 device: str | torch.device | None = None, level_decoders: bool = True, **params) -> None:
+    def __init__(self, material: CompiledMaterial, scale: float = 1.0, *, chunk_size: int = 32768,
+                 precision: str = "fp32", workers: int | None = None, device: str | torch.device | None = None,
+                 level_decoders: bool = True) -> None:
         if device is not None:
             from .device import resolve_device
 
             device = resolve_device(device)
-        model, material = _open(model, device)
-        if not hasattr(model, "positional_plane") or not hasattr(model, "decode"):
-            raise InputError(f"model: expected a Representation with a positional plane, got {type(model).__name__}")
-        if device is not None and not _same_device(model.positional_plane().device, device):
-            # copies: the caller's model (or material) stays on its device
-            material = None if material is None else material.to(device)
-            model = copy.deepcopy(model).to(device) if material is None else material.model
+        if isinstance(material, (str, bytes)) or hasattr(material, "__fspath__"):
+            path = material
+            material = open_model_file(path, device=device)[1]
+            if material is None:
+                raise InputError(f"{path}: a model file, not a compiled material; open or compile its material with "
+                                 "dynbtf.synthesized_btf(path, method, ...) or `dynbtf compile`")
+        if not isinstance(material, CompiledMaterial):
+            raise InputError(f"material: expected a compiled material (CompiledMaterial or a .dbtfc file), got "
+                             f"{type(material).__name__}; dynbtf.synthesized_btf(model, method, ...) opens or "
+                             "compiles a fitted model's")
+        if device is not None and not same_device(material.model.positional_plane().device, device):
+            material = material.to(device)  # a copy: the caller's material stays on its device
         self.scale = positive_number("scale", scale, "number of exemplar repeats per uv unit")
         if precision not in PRECISIONS:
             raise InputError(f"precision: expected one of {sorted(PRECISIONS)}, got {precision!r}")
@@ -306,11 +278,10 @@ class SynthesizedBTF:
         if workers is not None and int(workers) < 1:
             raise InputError(f"workers: expected a positive number of threads, got {workers}")
         self.workers = torch.get_num_threads() if workers is None else int(workers)
+        model = material.model
         self.chunk_size, self.precision, self.model = int(chunk_size), precision, model.eval()
-        # tables built from arrays the caller gave (a guide, a luminance) are not in the cache's key
-        self._given_tables = bool({"guide", "luminance"} & set(params))
-        self.material = _material(model, material, synthesizer, seed, params)
-        self.synthesizer = self.material.synthesizer(model.positional_plane().device)
+        self.material = material
+        self.synthesizer = material.synthesizer(model.positional_plane().device)
         if self.synthesizer.channels != model.positional_plane().shape[-1]:
             raise InputError(f"synthesizer: synthesizes {self.synthesizer.channels} channels, the model's positional "
                              f"plane has {model.positional_plane().shape[-1]}")
@@ -319,8 +290,10 @@ class SynthesizedBTF:
 
         # representations with relief answer at the visible point, marched through the synthesized height
         self._relief = type(model).visible_uv is not Representation.visible_uv
-        self.level_decoders = bool(level_decoders) and self.material.decoder is not None
-        self._footprints_ready = self.material.decoder is not None and len(self.material.decoder.levels) > 1
+        decoder = material.decoder
+        self.level_decoders = bool(level_decoders) and decoder is not None and len(decoder.levels) > 1
+        # footprint queries of a material compiled without footprint decoders: the point decoder, said once
+        self._warn_point_decoder = bool(level_decoders) and decoder is not None and not self.level_decoders
         self.decode_path = self._decode_path()
         self._latent_channels: int | None = None
 
@@ -332,17 +305,10 @@ class SynthesizedBTF:
         return DecodePath(self.material.decoder, fast.angular_features, PRECISIONS[self.precision], planes)
 
     def footprint_decoder(self) -> FoldedDecoder:
-        """The folded decoder with its per-level decoders and mean appearance (read from the compiled-material
-        cache, or fitted and stored, on the first call)."""
-        if self.level_decoders and not self._footprints_ready:
-            m = self.material
-            if m.key and not self._given_tables:  # the resolved method's entry in the cache
-                full = open_or_compile(self.model, m.method, m.seed, footprints=True, **m.arguments)[0]
-                self.material = replace(full, choice=m.choice, _synthesizers=full._synthesizers)
-            else:  # tables from inputs the cache key does not cover: fitted here, not cached
-                self.material = compile_material(self.model, base=m, footprints=True)
-            self._footprints_ready = True
-            self.decode_path = self._decode_path()
+        """The material's folded decoder: its per-level decoders and mean appearance where it was compiled with
+        footprints (:func:`dynbtf.synthesized.synthesized_btf` with ``footprints=True``, ``dynbtf compile``)."""
+        if self.material.decoder is None:
+            raise InputError("this material's representation has no foldable decoder (it decodes with its own)")
         return self.material.decoder
 
     @property
@@ -390,7 +356,9 @@ class SynthesizedBTF:
     def mean_appearance(self, w_view: torch.Tensor, w_light: torch.Tensor) -> torch.Tensor:
         """The material's mean appearance ``(N, 3)`` float32 at unit directions ``(N, 3)``: what a footprint that
         reads only the top pyramid level answers (requires a foldable decoder and a multi-level pyramid)."""
-        self.footprint_decoder()
+        if self.footprint_decoder().mean is None:
+            raise InputError("mean_appearance: this material has no mean appearance; compile it with footprints "
+                             "(dynbtf.synthesized_btf(..., footprints=True), dynbtf compile)")
         with torch.no_grad():
             return self.decode_path.mean_appearance(w_view, w_light)
 
@@ -433,8 +401,11 @@ class SynthesizedBTF:
                              "evaluate points (footprint=None; unfiltered images)")
         if latent is not None:
             latent = self._check_latent(latent, batch, footprint)
-        if fp is not None and self.level_decoders:
-            self.footprint_decoder()  # before the worker threads need it
+        if fp is not None and self._warn_point_decoder:
+            self._warn_point_decoder = False
+            warnings.warn("footprint queries of a material compiled without footprint decoders: every pyramid level is "
+                          "decoded with the point decoder (biased for wide footprints); compile it with footprints "
+                          "(dynbtf.synthesized_btf(..., footprints=True), dynbtf compile)", stacklevel=2)
         n = flat.shape[0]
         out = torch.zeros(n, 3, dtype=torch.float32, device=self.device)
         visible = up_v & up_l
@@ -495,8 +466,9 @@ class SynthesizedBTF:
         return flat_image(self, view, light, uv_rect, resolution, spp, filtered)
 
     def tiled(self) -> "SynthesizedBTF":
-        """The same model and precision with plain tiling at scale 1 (what synthesis is measured against)."""
-        return SynthesizedBTF(self.model, "tile", scale=1.0, precision=self.precision)
+        """The exemplar itself, periodic, through the same evaluation path and precision at scale 1 (what synthesis
+        is measured against): :meth:`~dynbtf.material.CompiledMaterial.exemplar` of the material."""
+        return SynthesizedBTF(self.material.exemplar(), 1.0, precision=self.precision, workers=self.workers)
 
     def describe(self) -> dict[str, Any]:
         """Method, seed, scale and parameters (JSON-serializable)."""

@@ -44,9 +44,10 @@ Example
 -------
 >>> import numpy as np
 >>> from dynbtf.infinite_btf import SynthesizedBTF
+>>> from dynbtf.synthesized import synthesized_btf
 >>> from dynbtf.representations.triple_plane import TriplePlane
->>> a = SynthesizedBTF(TriplePlane(16, 16, seed=1), "hist", scale=4.0)
->>> b = SynthesizedBTF(TriplePlane(16, 16, seed=2), "hist", scale=4.0)
+>>> a = synthesized_btf(TriplePlane(16, 16, seed=1), "hist", scale=4.0)
+>>> b = synthesized_btf(TriplePlane(16, 16, seed=2), "hist", scale=4.0)
 >>> half = ImageMask(np.array([[0.0, 1.0]]), size=2.0, wrap="clamp")   # left half layer 0, right half layer 1
 >>> layered = LayeredBTF([a, b], half, width=0.1)
 >>> uv = np.array([[0.2, 0.3], [1.8, 0.3]])

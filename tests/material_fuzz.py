@@ -10,7 +10,7 @@ Each case takes one of six valid materials (tile, linear, hist, hex, struct, qui
 and a sampling table on some), changes one thing -- a table's values (NaN, infinity, 1e30, huge or
 negative indices, reversed rows), its shape or dtype, a table dropped or added, a header field (method,
 seed, arguments, model checksum, config), the model's tensors -- saves it, and opens and queries it as a
-user would (``SynthesizedBTF(path).eval``, point and footprint queries). The contract: every case ends in
+user would (``synthesized_btf(path).eval``, point and footprint queries). The contract: every case ends in
 a one-line :class:`~dynbtf.errors.FormatError` / :class:`~dynbtf.errors.InputError`, or in finite answers.
 Anything else (another exception, a non-finite answer) is recorded as a violation; a crash or a hang
 ends the child process, and the parent names the case from ``WORKDIR/current.txt``.
@@ -205,9 +205,9 @@ def mutate(parts: dict, rng: np.random.Generator, others: dict) -> str:
 # ---------------------------------------------------------------------------------------------- one case
 def query(path: Path, footprints: bool) -> torch.Tensor:
     """What a user does with a material: open it and ask for point (and footprint) answers."""
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
-    btf = SynthesizedBTF(path, level_decoders=footprints)
+    btf = synthesized_btf(path, level_decoders=footprints)
     g = torch.Generator().manual_seed(3)
     uv = (torch.rand(96, 2, generator=g, dtype=torch.float64) - 0.5) * 2e4
     w = torch.nn.functional.normalize(torch.rand(96, 3, generator=g) - torch.tensor([0.5, 0.5, -0.2]), dim=-1)

@@ -338,14 +338,14 @@ def test_neumip_trains_with_the_shared_trainer_and_round_trips(btf, tmp_path):
 
 @pytest.mark.parametrize("kind", ["neumip", "pca", "sh"])
 def test_each_baseline_through_the_synthesized_btf(btf, kind):
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
     model = fitted_baselines(btf)[kind]
     uv = torch.tensor(texel_centers_uv(btf.height, btf.width).reshape(-1, 2))
     wv, wl = (w.expand(len(uv), 3) for w in pair_directions(btf, [[4, 13]]))
     reference = model(uv, wv, wl)
-    tiled = SynthesizedBTF(model, "tile", scale=1.0).eval(uv + 7.0, wv, wl)  # plain repetition: the model itself
+    tiled = synthesized_btf(model, "tile", scale=1.0).eval(uv + 7.0, wv, wl)  # plain repetition: the model itself
     torch.testing.assert_close(tiled, reference, atol=1e-5, rtol=1e-5)
-    blended = SynthesizedBTF(model, "hist", scale=1.0, seed=3).eval(uv + 1e5, wv, wl)
+    blended = synthesized_btf(model, "hist", scale=1.0, seed=3).eval(uv + 1e5, wv, wl)
     assert blended.shape == reference.shape and torch.isfinite(blended).all()
     assert not torch.allclose(blended, reference)  # the plane was really synthesized

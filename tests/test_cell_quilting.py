@@ -242,21 +242,23 @@ def test_guide_finds_the_lattice_that_noisy_features_hide():
 
 
 def test_auto_method_of_a_model_is_synthesized_btfs_choice():
-    """auto_method (what `dynbtf render` resolves before Mitsuba loads) chooses what SynthesizedBTF("auto") builds:
+    """auto_method (what `dynbtf render` resolves before Mitsuba loads) chooses what synthesized_btf("auto") builds:
     both measure the decoded appearance, so a lattice the decoder shows is found even when half of the
     feature channels are noise."""
     from dynbtf.representations.triple_plane import TriplePlane
-    from dynbtf.infinite_btf import SynthesizedBTF, auto_method, decoded_appearance
+    from dynbtf.material import decoded_appearance
+    from dynbtf.synthesized import auto_method
+    from dynbtf.synthesized import synthesized_btf
 
     model = TriplePlane(32, 32, positional_channels=6, angular_channels=3, hidden=12, seed=5)
     with torch.no_grad():
         model.decoder.rest[-1].bias.add_(0.6)
         random_choice = auto_method(model)
-        assert random_choice.method == SynthesizedBTF(model, "auto").synthesizer.name == "hist"
+        assert random_choice.method == synthesized_btf(model, "auto").synthesizer.name == "hist"
         element = model.f_u[:8, :8].clone()
         model.f_u.copy_(element.repeat(4, 4, 1) + 0.05 * torch.randn(32, 32, 6, generator=torch.Generator().manual_seed(1)))
     choice = auto_method(model)
-    btf = SynthesizedBTF(model, "auto", seed=2)
+    btf = synthesized_btf(model, "auto", seed=2)
     assert choice.method == btf.synthesizer.name == "struct" and choice.line == btf.synthesizer.choice.line
     guide = decoded_appearance(model)
     assert guide.shape == (32, 32, 9)

@@ -14,7 +14,7 @@ from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.synthesis.coherence import (best_matches, default_patch_size, patch_coherence, synthesized_coherence,
                                         synthesized_images)
 from dynbtf.synthesis.quality import format_report, quality_report
-from dynbtf.infinite_btf import SynthesizedBTF
+from dynbtf.synthesized import synthesized_btf
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -181,7 +181,7 @@ def model():
 
 @pytest.mark.parametrize("scale", [4.0, 3.0])
 def test_synthesized_images_place_the_area_at_the_origin_in_exemplar_repeats(model, scale):
-    btf = SynthesizedBTF(model, "tile", scale=scale)
+    btf = synthesized_btf(model, "tile", scale=scale)
     im = synthesized_images(btf, side=40, origin=(1e6 + 0.25, 2e5 + 0.5 + 0.4 / 32))  # v rounds to row 16
     assert im["tiling_origin"] == (16, 8) and im["origin"] == [1e6 + 0.25, 2e5 + 0.5] and im["side"] == 40
     assert im["image"].shape == (40, 40, 3) and im["exemplar"].shape == (32, 32, 3)
@@ -197,19 +197,19 @@ def test_synthesized_images_place_the_area_at_the_origin_in_exemplar_repeats(mod
 
 
 def test_synthesized_coherence_of_tile_and_hist(model):
-    tile = synthesized_coherence(SynthesizedBTF(model, "tile", scale=4.0), patches=64)
+    tile = synthesized_coherence(synthesized_btf(model, "tile", scale=4.0), patches=64)
     assert tile["p90"] < 1e-9 and tile["identity"] == 1.0
     assert tile["view"] == [0.0, 0.0] and tile["light"] == [40.0, 30.0] and tile["side"] == 128
-    hist = synthesized_coherence(SynthesizedBTF(model, "hist", scale=4.0), patches=64)
+    hist = synthesized_coherence(synthesized_btf(model, "hist", scale=4.0), patches=64)
     assert hist["identity"] < 0.2 and hist["p90"] > 0.1
     with pytest.raises(InputError, match="side: expected an integer >= 1"):
-        synthesized_images(SynthesizedBTF(model, "tile"), side=0)
+        synthesized_images(synthesized_btf(model, "tile"), side=0)
     with pytest.raises(InputError, match="light: expected two numbers"):
-        synthesized_images(SynthesizedBTF(model, "tile"), light=(40.0,))
+        synthesized_images(synthesized_btf(model, "tile"), light=(40.0,))
 
 
 def test_quality_report_has_the_structure_entry(model):
-    reports = [quality_report(SynthesizedBTF(model, method, scale=4.0), repeats=2, rgb_side=64,
+    reports = [quality_report(synthesized_btf(model, method, scale=4.0), repeats=2, rgb_side=64,
                               pairs=(((0.0, 0.0), (40.0, 30.0)),)) for method in ("tile", "hist")]
     tile, hist = (r["structure"] for r in reports)
     assert set(tile) >= {"coherence_median", "coherence_p90", "identity"}

@@ -17,7 +17,7 @@ import torch
 
 from dynbtf.material import FORMAT_VERSION, load_compiled, save_compiled
 from dynbtf.errors import FormatError, InputError
-from dynbtf.infinite_btf import SynthesizedBTF
+from dynbtf.synthesized import synthesized_btf
 from dynbtf.material import open_or_compile, compile_material
 from test_one_truth import material_model, material_queries as queries
 
@@ -47,18 +47,18 @@ def test_every_methods_tables_read_back_bit_for_bit(model, method, tmp_path):
 
 
 def test_a_compiled_file_answers_as_the_model_point_and_footprint(model, tmp_path):
-    btf = SynthesizedBTF(model, "hist", scale=3.0, seed=2)
+    btf = synthesized_btf(model, "hist", scale=3.0, seed=2, footprints=True)
     uv, wv, wl = queries(2000)
     footprint = np.geomspace(1e-3, 30.0, 2000)
     point, filtered = btf.eval(uv, wv, wl), btf.eval(uv, wv, wl, footprint=footprint)
-    save_compiled(btf.material, tmp_path / "hist.dbtfc")  # with its footprint decoders (fitted by the eval above)
+    save_compiled(btf.material, tmp_path / "hist.dbtfc")  # with its footprint decoders
     loaded = load_compiled(tmp_path / "hist.dbtfc")
     assert len(loaded.decoder.levels) == len(btf.material.decoder.levels) > 1 and loaded.decoder.mean is not None
-    again = SynthesizedBTF(tmp_path / "hist.dbtfc", scale=3.0)
+    again = synthesized_btf(tmp_path / "hist.dbtfc", scale=3.0)
     np.testing.assert_array_equal(again.eval(uv, wv, wl), point)
     np.testing.assert_array_equal(again.eval(uv, wv, wl, footprint=footprint), filtered)
     with pytest.raises(InputError, match="compiled material fixes method 'hist' and seed 2"):
-        SynthesizedBTF(tmp_path / "hist.dbtfc", "hex")
+        synthesized_btf(tmp_path / "hist.dbtfc", "hex")
 
 
 def _rewrite_header(path, out, change):
@@ -153,7 +153,7 @@ def test_synth_export_and_render_take_a_compiled_material(model, tmp_path, monke
     path = save_compiled(material, tmp_path / "m.dbtfc")
     assert main(["synth", str(path), "-o", str(tmp_path / "a.exr"), "--resolution", "48"]) == 0
     assert "hist" in capsys.readouterr().out
-    expected = SynthesizedBTF(material, scale=8.0).image(view=(0.0, 0.0), light=(30.0, 0.0), uv_rect=(0, 0, 1, 1),
+    expected = synthesized_btf(material, scale=8.0).image(view=(0.0, 0.0), light=(30.0, 0.0), uv_rect=(0, 0, 1, 1),
                                                          resolution=48)
     np.testing.assert_allclose(load_image(tmp_path / "a.exr"), expected, rtol=1e-3, atol=1e-6)  # (EXR: half floats)
     assert main(["synth", str(path), "-o", str(tmp_path / "b.png"), "--resolution", "48", "--seed", "4"]) == 2

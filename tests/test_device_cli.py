@@ -1,4 +1,4 @@
-"""``--device`` of ``dynbtf synth`` and ``dynbtf demo`` and ``SynthesizedBTF(device=...)``: the resolver of ``fit``.
+"""``--device`` of ``dynbtf synth`` and ``dynbtf demo`` and ``synthesized_btf(device=...)``: the resolver of ``fit``.
 
 This machine has no GPU: ``--device cpu`` runs, ``--device cuda`` is refused with
 :func:`dynbtf.device.resolve_device`'s error before any work, ``auto`` is the CPU,
@@ -19,7 +19,7 @@ from dynbtf.device import resolve_device
 from dynbtf.errors import InputError
 from dynbtf.representations.model_file import save_model
 from dynbtf.representations.triple_plane import TriplePlane
-from dynbtf.infinite_btf import SynthesizedBTF
+from dynbtf.synthesized import synthesized_btf
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 no_cuda = pytest.mark.skipif(torch.cuda.is_available(), reason="checks the behaviour without CUDA")
@@ -39,17 +39,17 @@ def model_file(model, tmp_path_factory):
 @no_cuda
 def test_auto_is_the_cpu_here(model_file):
     assert resolve_device("auto") == torch.device("cpu")
-    btf = SynthesizedBTF(model_file, "hist", device="auto")
+    btf = synthesized_btf(model_file, "hist", device="auto")
     assert btf.device.type == "cpu" and btf.decode_path.fused  # the CPU's numba fast path
 
 
 def test_synthesized_btf_device_cpu(model, model_file):
     uv = np.array([[0.25, 0.5], [1e6 + 0.25, 0.5]])
     w = np.array([[0.0, 0.0, 1.0]] * 2)
-    on_cpu = SynthesizedBTF(model, "hist", scale=4.0, device="cpu")
+    on_cpu = synthesized_btf(model, "hist", scale=4.0, device="cpu")
     assert on_cpu.model is model  # already there: not copied
-    from_file = SynthesizedBTF(model_file, "hist", scale=4.0, device=torch.device("cpu"))
-    np.testing.assert_array_equal(on_cpu.eval(uv, w, w), SynthesizedBTF(model, "hist", scale=4.0).eval(uv, w, w))
+    from_file = synthesized_btf(model_file, "hist", scale=4.0, device=torch.device("cpu"))
+    np.testing.assert_array_equal(on_cpu.eval(uv, w, w), synthesized_btf(model, "hist", scale=4.0).eval(uv, w, w))
     np.testing.assert_array_equal(from_file.eval(uv, w, w), on_cpu.eval(uv, w, w))
 
 
@@ -57,9 +57,9 @@ def test_synthesized_btf_device_cpu(model, model_file):
 @pytest.mark.parametrize("where", ["model", "file"])
 def test_synthesized_btf_device_cuda_is_refused(model, model_file, where):
     with pytest.raises(InputError, match=CUDA_ABSENT):
-        SynthesizedBTF(model if where == "model" else model_file, "hist", device="cuda")
+        synthesized_btf(model if where == "model" else model_file, "hist", device="cuda")
     with pytest.raises(InputError, match="not a valid torch device"):
-        SynthesizedBTF(model, "hist", device="gpu")
+        synthesized_btf(model, "hist", device="gpu")
     assert model.positional_plane().device.type == "cpu"
 
 

@@ -96,16 +96,16 @@ def test_all_unit_vectors():
 
 def test_threaded_evaluation_equals_serial():
     from dynbtf.representations.triple_plane import TriplePlane
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
     rng = np.random.default_rng(5)
     model = TriplePlane(24, 24, seed=1)
     uv = rng.random((5000, 2)) * 7 + 1e6
     wv = spherical_to_direction(rng.random(5000) * 100, rng.random(5000) * 360)  # some below the horizon: 0
     wl = spherical_to_direction(rng.random(5000) * 80, rng.random(5000) * 360)
-    serial = SynthesizedBTF(model, "hist", scale=3.0, chunk_size=700, workers=1).eval(uv, wv, wl)
-    threaded = SynthesizedBTF(model, "hist", scale=3.0, chunk_size=700, workers=3).eval(uv, wv, wl)
+    serial = synthesized_btf(model, "hist", scale=3.0, chunk_size=700, workers=1).eval(uv, wv, wl)
+    threaded = synthesized_btf(model, "hist", scale=3.0, chunk_size=700, workers=3).eval(uv, wv, wl)
     np.testing.assert_array_equal(threaded, serial)
     assert (serial[wv[:, 2] < 0] == 0).all() and (serial[wv[:, 2] >= 0] != 0).any()
     with pytest.raises(InputError, match="workers"):
-        SynthesizedBTF(model, "hist", workers=0)
+        synthesized_btf(model, "hist", workers=0)

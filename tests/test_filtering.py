@@ -6,6 +6,8 @@ and the mean of many point queries over the footprint (brute force, computed her
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -17,6 +19,7 @@ from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.synthesis import make_synthesizer
 from dynbtf.synthesis.mip import LevelOfDetail, area_matrix, area_pyramid
 from dynbtf.infinite_btf import SynthesizedBTF, footprint_width
+from dynbtf.synthesized import synthesized_btf
 from synthesis_reference import smooth_lognormal
 
 METHODS = ("tile", "linear", "hist", "hex")
@@ -119,7 +122,7 @@ def test_filtered_features_converge_to_the_brute_force_mean(exemplar, method):
 # ---------------------------------------------------------------- the synthesized BTF
 @pytest.fixture(scope="module")
 def btf():
-    return SynthesizedBTF(TriplePlane(32, 32, seed=3), "hist", scale=4.0, seed=1)
+    return synthesized_btf(TriplePlane(32, 32, seed=3), "hist", scale=4.0, seed=1, footprints=True)
 
 
 def directions(n, seed):
@@ -145,7 +148,7 @@ def test_constant_model_filters_to_itself():
     uv = np.random.default_rng(6).random((400, 2)) * 3
     wv, wl = directions(400, 7)
     for level_decoders in (False, True):  # the plain decoder on filtered features, and the fitted level decoders
-        btf = SynthesizedBTF(model, "hist", scale=3.0, level_decoders=level_decoders)
+        btf = synthesized_btf(model, "hist", scale=3.0, footprints=level_decoders, level_decoders=level_decoders)
         point = btf.eval(uv, wv, wl)
         np.testing.assert_allclose(btf.eval(uv, wv, wl, footprint=np.full(400, 2.5)), point, atol=1e-5, rtol=1e-4)
 
@@ -153,7 +156,7 @@ def test_constant_model_filters_to_itself():
 def test_filtered_btf_converges_to_the_supersampled_mean(btf):
     """Decoded: the filtered query vs the brute-force mean of point queries over its square, averaged over
     three (view, light) pairs; the per-level decoders must beat the plain decoder on filtered features."""
-    plain = SynthesizedBTF(btf.model, "hist", scale=btf.scale, seed=btf.seed, level_decoders=False)
+    plain = synthesized_btf(btf.model, "hist", scale=btf.scale, seed=btf.seed, level_decoders=False)
     uv = np.random.default_rng(8).random((12, 2)) * 20
     errors = {True: np.zeros(3), False: np.zeros(3)}
     for pair in (9, 10, 11):
@@ -217,7 +220,7 @@ def test_plane_footprint_matches_finite_differences_of_hit_points():
 
 
 def test_filtered_preview_is_close_to_the_supersampled_one():
-    btf = SynthesizedBTF(TriplePlane(32, 32, seed=3), "hist", scale=20.0, seed=1)
+    btf = synthesized_btf(TriplePlane(32, 32, seed=3), "hist", scale=20.0, seed=1, footprints=True)
     camera = PinholeCamera(origin=(0.0, 0.0, 3.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov=40.0)
     light = DirectionalLight((0.2, 0.1, 0.9), 1.0)
     reference = render_preview(btf, camera, light, resolution=(24, 24), spp=64)
@@ -240,19 +243,19 @@ def test_synth_cli_filtered_matches_the_library(tmp_path):
     import OpenEXR  # noqa: F401  (written as linear float32)
     from dynbtf.io import load_image
 
-    expected = SynthesizedBTF(path, "hist", scale=30.0).image((0, 0), (30, 0), (0.0, 0.0, 1.0, 1.0), 12,
+    expected = synthesized_btf(path, "hist", scale=30.0, footprints=True).image((0, 0), (30, 0), (0.0, 0.0, 1.0, 1.0), 12,
                                                                filtered=True)
     np.testing.assert_allclose(load_image(out), expected, rtol=1e-4, atol=1e-5)
 
 
 def test_level_decoders_are_fitted_once_per_model_contents_and_seed(btf, tmp_path, monkeypatch):
-    """Per-level decoders are fitted once per model contents, method and seed, then read from the compiled-material
-    cache: a model loaded again shares the fit; another seed fits its own (its targets are that seed's synthesized
+    """Per-level decoders are fitted once per model contents, method and seed (when a material is compiled with
+    footprints, not by a query), then read from the compiled-material cache: a model loaded again shares the fit; another seed fits its own (its targets are that seed's synthesized
     BTF), so a seed's answers never depend on what ran before; other parameters get their own fit."""
     import copy
 
     import dynbtf.material.compiler as compile_module
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
     monkeypatch.setenv("DYNBTF_COMPILED_CACHE", str(tmp_path / "cache"))
     fits = []
@@ -261,15 +264,48 @@ def test_level_decoders_are_fitted_once_per_model_contents_and_seed(btf, tmp_pat
                         lambda decoder, synth, *a, **k: fits.append(synth.seed) or real(decoder, synth, *a, **k))
     uv = np.array([[0.3, 0.7]])
     w = np.array([[0.0, 0.0, 1.0]])
-    first = SynthesizedBTF(btf.model, "hist", scale=2.0, seed=5)
+    first = synthesized_btf(btf.model, "hist", scale=2.0, seed=5, footprints=True)
     a = first.eval(uv, w, w, footprint=0.3)
-    twin = SynthesizedBTF(copy.deepcopy(btf.model), "hist", scale=2.0, seed=5)  # equal parameters, another object
+    twin = synthesized_btf(copy.deepcopy(btf.model), "hist", scale=2.0, seed=5, footprints=True)  # equal parameters, another object
     np.testing.assert_array_equal(twin.eval(uv, w, w, footprint=0.3), a)
     assert fits == [5]
-    SynthesizedBTF(btf.model, "hist", scale=2.0, seed=6).eval(uv, w, w, footprint=0.3)
+    synthesized_btf(btf.model, "hist", scale=2.0, seed=6, footprints=True).eval(uv, w, w, footprint=0.3)
     assert fits == [5, 6]
     changed = copy.deepcopy(btf.model)
     with torch.no_grad():
         changed.decoder.rest[-1].bias.add_(0.1)
-    SynthesizedBTF(changed, "hist", scale=2.0, seed=5).eval(uv, w, w, footprint=0.3)
+    synthesized_btf(changed, "hist", scale=2.0, seed=5, footprints=True).eval(uv, w, w, footprint=0.3)
     assert fits == [5, 6, 5]  # other parameters: its own fit
+
+
+def test_a_query_never_fits_and_a_material_without_footprint_decoders_says_so(btf, monkeypatch):
+    """The query object answers from the material it is given: footprint queries of a material compiled without
+    footprint decoders decode every level with the point decoder (the same as ``level_decoders=False``), with one
+    warning, and fit nothing."""
+    import dynbtf.material.compiler as compile_module
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("a query fitted footprint decoders")
+
+    monkeypatch.setattr(compile_module, "fit_footprint_decoders", no_fit)
+    material = btf.material
+    point_only = replace(material, decoder=material.decoder.with_footprints(material.decoder.levels[:1], None))
+    bare = SynthesizedBTF(point_only, btf.scale)
+    plain = SynthesizedBTF(material, btf.scale, level_decoders=False)
+    uv = np.random.default_rng(14).random((200, 2)) * 9
+    wv, wl = directions(200, 15)
+    with pytest.warns(UserWarning, match="without footprint decoders.*point decoder"):
+        got = bare.eval(uv, wv, wl, footprint=np.full(200, 0.4))
+    np.testing.assert_array_equal(got, plain.eval(uv, wv, wl, footprint=np.full(200, 0.4)))
+    with pytest.raises(InputError, match="mean_appearance: this material has no mean appearance"):
+        bare.mean_appearance(torch.from_numpy(wv).float(), torch.from_numpy(wl).float())
+
+
+def test_the_query_object_takes_a_compiled_material_only(btf, tmp_path):
+    from dynbtf.representations.model_file import save_model
+
+    with pytest.raises(InputError, match="expected a compiled material .*synthesized_btf"):
+        SynthesizedBTF(btf.model, 4.0)
+    path = save_model(tmp_path / "m.dbtfm", btf.model)
+    with pytest.raises(InputError, match="m.dbtfm: a model file, not a compiled material"):
+        SynthesizedBTF(path)

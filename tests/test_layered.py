@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from dynbtf.errors import InputError
-from dynbtf.infinite_btf import SynthesizedBTF
+from dynbtf.synthesized import synthesized_btf
 from dynbtf.layered import ImageMask, LayeredBTF, NoiseMask
 from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.synthesis.hash import MASK32
@@ -13,8 +13,8 @@ from dynbtf.synthesis.hash import MASK32
 
 @pytest.fixture(scope="module")
 def layers():
-    a = SynthesizedBTF(TriplePlane(16, 16, seed=1), "hist", scale=4.0, seed=3)
-    b = SynthesizedBTF(TriplePlane(16, 16, seed=2), "hist", scale=4.0, seed=4)
+    a = synthesized_btf(TriplePlane(16, 16, seed=1), "hist", scale=4.0, seed=3)
+    b = synthesized_btf(TriplePlane(16, 16, seed=2), "hist", scale=4.0, seed=4)
     return a, b
 
 

@@ -23,7 +23,7 @@ import torch
 
 from dynbtf.material import FORMAT_VERSION, load_compiled, save_compiled
 from dynbtf.errors import FormatError
-from dynbtf.infinite_btf import SynthesizedBTF
+from dynbtf.synthesized import synthesized_btf
 from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.material import open_or_compile
 
@@ -77,10 +77,10 @@ def test_another_models_entry_under_this_key_is_rebuilt_not_used(models, tmp_pat
         again, how = open_or_compile(a, "linear", 0, footprints=False, progress=False)
     assert how == "compiled" and again.model_sha256 == material_a.model_sha256
     assert load_compiled(entry_a).model_sha256 == material_a.model_sha256  # the entry was replaced
-    answer_a = SynthesizedBTF(entry_a, level_decoders=False).eval(uv, w, w)
-    answer_b = SynthesizedBTF(entry_b, level_decoders=False).eval(uv, w, w)
+    answer_a = synthesized_btf(entry_a, level_decoders=False).eval(uv, w, w)
+    answer_b = synthesized_btf(entry_b, level_decoders=False).eval(uv, w, w)
     assert not torch.equal(answer_a, answer_b)
-    np.testing.assert_array_equal(answer_a, SynthesizedBTF(material_a, level_decoders=False).eval(uv, w, w))
+    np.testing.assert_array_equal(answer_a, synthesized_btf(material_a, level_decoders=False).eval(uv, w, w))
 
 
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs on this system")
@@ -182,5 +182,5 @@ def test_a_relief_whose_march_would_not_end_is_refused_when_read(tmp_path, confi
     for path in (tmp_path / "bad.dbtfm", tmp_path / "bad.dbtfc"):
         start = time.perf_counter()
         with pytest.raises(FormatError, match="march steps"):
-            SynthesizedBTF(path, "hist") if path.suffix == ".dbtfm" else SynthesizedBTF(path)
+            synthesized_btf(path, "hist") if path.suffix == ".dbtfm" else synthesized_btf(path)
         assert time.perf_counter() - start < 30

@@ -1126,13 +1126,13 @@ def test_mean_appearance_in_every_backend_is_its_quadrature_and_answers_the_brut
     (view, light) pair, in units of their spread around it -- the fitted quadrature far closer than the plain
     decoder on the mean features (measured: 0.07 vs 0.41 of the spread)."""
     from dynbtf.decoder.folded import DecodePath
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
     from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator
     from dynbtf.representations.triple_plane import TriplePlane
     from dynbtf.conventions import spherical_to_direction
 
-    btf = SynthesizedBTF(TriplePlane(16, 16, seed=3), "hist", scale=4.0, seed=1)  # 5 levels: 4 fits
-    plain = SynthesizedBTF(btf.model, "hist", scale=btf.scale, seed=btf.seed, level_decoders=False)
+    btf = synthesized_btf(TriplePlane(16, 16, seed=3), "hist", scale=4.0, seed=1, footprints=True)  # 5 levels: 4 fits
+    plain = synthesized_btf(btf.model, "hist", scale=btf.scale, seed=btf.seed, level_decoders=False)
     rng = np.random.default_rng(14)
     w = spherical_to_direction(rng.random((2, 24)) * 70.0, rng.random((2, 24)) * 360.0)
     wv, wl = (x.astype(np.float32).astype(np.float64) for x in w)
@@ -1143,7 +1143,7 @@ def test_mean_appearance_in_every_backend_is_its_quadrature_and_answers_the_brut
     scale = np.abs(want).max()
     uv = np.random.default_rng(16).random((24, 2)) * 1e4
     torch_path = DecodePath(folded, btf.model.fast_decoder().angular_features)  # no angular planes: torch layer 1
-    evaluator = DynBTFEvaluator(btf.model, "hist", btf.seed)
+    evaluator = DynBTFEvaluator(btf.model, "hist", btf.seed, footprints=True)
     rgb = evaluator.eval(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1]), vector3(mi, wv), vector3(mi, wl),
                          footprint=mi.Float(np.full(24, 1e4, np.float32)))
     got = {"fused": btf.mean_appearance(torch.from_numpy(wv).float(), torch.from_numpy(wl).float()).numpy(),

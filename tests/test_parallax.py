@@ -12,7 +12,7 @@ from dynbtf.data.simulator.geometry import trace_view
 from dynbtf.errors import InputError
 from dynbtf.representations.model_file import load_model, save_model
 from dynbtf.representations.parallax import ParallaxTriplePlane, march_visible_uv
-from dynbtf.infinite_btf import SynthesizedBTF
+from dynbtf.synthesized import synthesized_btf
 from dynbtf.texture import fetch_wrap
 from dynbtf.training import TrainConfig, checkpoint_path, fit, held_out_split
 from dynbtf.training.evaluate import evaluate_model
@@ -292,10 +292,10 @@ def test_synthesized_btf_marches_through_the_synthesized_height():
     uv = torch.rand(300, 2, dtype=torch.float64, generator=generator)
     wv, wl = random_views(300, generator).float(), random_views(300, generator).float()
     # plain tiling at scale 1 is the model itself: the march through the "synthesized" height is the model's
-    tiled = SynthesizedBTF(model, "tile", scale=1.0).eval(uv + 5.0, wv, wl)
+    tiled = synthesized_btf(model, "tile", scale=1.0).eval(uv + 5.0, wv, wl)
     torch.testing.assert_close(tiled, model(uv, wv, wl).detach(), atol=1e-4, rtol=0)
     # histogram-preserving blending: the value is the decode at the visible point of the synthesized field
-    btf = SynthesizedBTF(model, "hist", scale=4.0, seed=1)
+    btf = synthesized_btf(model, "hist", scale=4.0, seed=1)
     points = uv * 4.0
     visible = model.visible_uv(points, wv, btf.synthesizer)
     expected = model.decode(btf.synthesizer(visible), wv, wl)
@@ -328,7 +328,7 @@ def test_hist_synthesizes_the_height_on_its_own_with_its_histogram_and_the_featu
     where one lattice sample dominates the blend (weight > 1 - 1e-6) at a texel centre, height and features are
     the exemplar's at that sample's texel (within the inverse tables' error)."""
     model = pebble_model()
-    btf = SynthesizedBTF(model, "hist", seed=3)
+    btf = synthesized_btf(model, "hist", seed=3)
     synth = btf.synthesizer
     matrix, _ = synth.output_map()
     c = model.positional_plane().shape[-1]

@@ -46,10 +46,10 @@ def _layered_plugin(layer_files, mask, *, width=0.2, softness=0.0, methods=("his
 
 
 def _layered_reference(layer_files, mask, *, width=0.2, softness=0.0, methods=("hist", "hex")):
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
     from dynbtf.layered import LayeredBTF
 
-    layers = [SynthesizedBTF(model, method, scale=SCALE) for (_, model), method in zip(layer_files, methods)]
+    layers = [synthesized_btf(model, method, scale=SCALE) for (_, model), method in zip(layer_files, methods)]
     return LayeredBTF(layers, mask, width=width, softness=softness)
 
 
@@ -78,7 +78,7 @@ def test_layered_plugin_eval_is_layered_btf(variant, layer_files, softness):
 def test_layered_plugin_with_a_relief_layer_is_layered_btf(variant, layer_files, tmp_path):
     """A triple-parallax layer: its height in the band is its relief channel (read at uv, as LayeredBTF reads it)
     and its colour is marched; the plugin equals LayeredBTF with the march's tolerance."""
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
     from dynbtf.layered import ImageMask, LayeredBTF
     from dynbtf.render.mitsuba.layered_bsdf import mask_texture_dict
     from dynbtf.representations.model_file import save_model
@@ -97,8 +97,8 @@ def test_layered_plugin_with_a_relief_layer_is_layered_btf(variant, layer_files,
                                     "scale": SCALE, "sampling": "cosine", "filtered": False},
                          "layer1": {"type": "dynbtf", "filename": str(path), "method": "hist", "scale": SCALE,
                                     "sampling": "cosine", "filtered": False}})
-    reference = LayeredBTF([SynthesizedBTF(layer_files[0][1], "hist", scale=SCALE),
-                            SynthesizedBTF(relief, "hist", scale=SCALE)], mask, width=0.2)
+    reference = LayeredBTF([synthesized_btf(layer_files[0][1], "hist", scale=SCALE),
+                            synthesized_btf(relief, "hist", scale=SCALE)], mask, width=0.2)
     uv, wv, wl = _random_queries(2000, seed=4, uv_range=6.0)
     got = _plugin_eval(bsdf, uv, wv, wl, 1.0)
     expected = reference.eval(uv.astype(np.float64), wv, wl) / np.pi * wl[:, 2:3]

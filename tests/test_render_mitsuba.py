@@ -72,9 +72,9 @@ def _plugin_eval(bsdf, uv, wv, wl, scale, dp_dv=(0.0, 1.0, 0.0), duv_dx=None, du
 
 def _reference(model, method, seed, uv, wv, wl):
     """dynbtf's own evaluation: SynthesizedBTF.eval (plain model for tiling when synthesis is absent)."""
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
-    btf = SynthesizedBTF(model, method, scale=1.0, seed=seed)
+    btf = synthesized_btf(model, method, scale=1.0, seed=seed)
     out = btf.eval(torch.from_numpy(uv.astype(np.float64)), torch.from_numpy(wv), torch.from_numpy(wl))
     return np.asarray(out.detach().cpu().numpy() if hasattr(out, "detach") else out, dtype=np.float64)
 
@@ -147,14 +147,14 @@ def test_plugin_marches_parallax_like_synthesized_btf(variant, parallax_file, me
     Within 1e-3 of the value range (measured: ~2.5e-5); and the march matters: fetching the
     features at ``uv`` itself (no march) is off by far more.
     """
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
     path, model = parallax_file
     got, ref = _assert_plugin_matches(path, model, method, n=3000, tolerance=1e-3 * 0.5)
     assert np.abs(got - ref).max() < 1e-3 * (ref.max() - ref.min())
     uv, wv, wl = _random_queries(3000, seed=1)
     uv = (uv / np.float32(7.0)) * np.float32(7.0)
-    flat = SynthesizedBTF(model, method, scale=1.0, seed=3)
+    flat = synthesized_btf(model, method, scale=1.0, seed=3)
     flat._relief = False  # the same model answered at uv: no parallax
     no_march = flat.eval(uv.astype(np.float64), wv, wl) / np.pi * wl[:, 2:3]
     assert np.abs(no_march - ref).max() > 50 * np.abs(got - ref).max()
@@ -570,9 +570,9 @@ def test_sampling_table_is_stored_in_the_compiled_material_and_read_back(variant
 
 # ---------------------------------------------------------------- footprints (filtered queries)
 def _footprint_reference(model, method, seed, uv, wv, wl, footprint):
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
-    btf = SynthesizedBTF(model, method, scale=1.0, seed=seed)
+    btf = synthesized_btf(model, method, scale=1.0, seed=seed, footprints=True)
     return np.asarray(btf.eval(uv.astype(np.float64), wv, wl, footprint=footprint), dtype=np.float64)
 
 
@@ -796,13 +796,13 @@ def structured_file(tmp_path_factory):
 
 
 def test_plugin_struct_matches_synthesized_btf(variant, structured_file):
-    """struct in the plugin = ``SynthesizedBTF(model, "struct").eval`` to float rounding: near the origin through
+    """struct in the plugin = ``synthesized_btf(model, "struct").eval`` to float rounding: near the origin through
     the BSDF, and 2**45 repeats away through its evaluator (float64 uv, which mesh uv cannot carry)."""
     from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
     path, model = structured_file
-    btf = SynthesizedBTF(model, "struct", scale=1.0, seed=3)
+    btf = synthesized_btf(model, "struct", scale=1.0, seed=3)
     assert btf.synthesizer.prepared.count > 4  # cells choose among several lattice offsets
     _assert_plugin_matches(path, model, "struct", n=3000)
     evaluator = DynBTFEvaluator(model, "struct", 3)
@@ -929,9 +929,9 @@ def test_plugin_guided_by_a_target_is_guided_btf(variant, model_file, tinted_bri
     btf = guided_btf(model, image, classes=2, target_size=size * scale, seed=3, softness=0.2, method=method, **cells)
     expected = np.asarray(btf.eval(torch.from_numpy(uv.astype(np.float64)), torch.from_numpy(wv),
                                    torch.from_numpy(wl)), dtype=np.float64) / np.pi * wl[:, 2:3]
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
-    plain = np.asarray(SynthesizedBTF(model, method, scale=1.0, seed=3, **cells).eval(uv.astype(np.float64), wv, wl),
+    plain = np.asarray(synthesized_btf(model, method, scale=1.0, seed=3, **cells).eval(uv.astype(np.float64), wv, wl),
                        dtype=np.float64) / np.pi * wl[:, 2:3]
     assert np.mean(np.abs(expected - plain).max(1) > 1e-3) > 0.2  # guidance changes many points
     np.testing.assert_allclose(got, expected, rtol=0, atol=2e-4 * max(1.0, np.abs(expected).max()))

@@ -49,10 +49,10 @@ def _top_view_points(res, extent, center, distance):
 
 
 def test_lambertian_under_point_light_matches_inverse_square_cosine_law():
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
     albedo = [0.8, 0.5, 0.25]
-    btf = SynthesizedBTF(ConstantAlbedo(albedo), "tile")
+    btf = synthesized_btf(ConstantAlbedo(albedo), "tile")
     res, extent, center, distance = 33, 4.0, (0.3, -0.2), 5.0
     light = PointLight(position=(1.0, 0.5, 1.5), intensity=3.0)
     img = render_preview(btf, top_camera(extent, center, distance), light, resolution=(res, res))

@@ -21,7 +21,7 @@ from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.synthesis import make_synthesizer
 from dynbtf.synthesis.base import MAX_REPEATS
 from dynbtf.synthesis.quality import format_report, quality_report, save_report
-from dynbtf.infinite_btf import SynthesizedBTF
+from dynbtf.synthesized import synthesized_btf
 from synthesis_reference import brute_force_lattice_blend, smooth_lognormal
 
 DYNAMIC_BLENDS = ("linear", "hist", "hex")
@@ -110,7 +110,7 @@ def test_uv_beyond_the_limit_is_rejected_everywhere(exemplar, model, method):
                                              rf"repeats.*got {re.escape(repr(float(abs(bad))))} \(1 position"):
             synth(torch.tensor([[0.25, 0.5], [0.5, bad]], dtype=torch.float64))
     # the synthesized BTF checks |uv| * scale (what the synthesizer sees) in eval, features and image
-    btf = SynthesizedBTF(model, method, scale=8.0, **params)
+    btf = synthesized_btf(model, method, scale=8.0, **params)
     w = torch.tensor([[0.0, 0.0, 1.0]] * 2)
     ok = torch.tensor([[below / 8, 0.1], [0.2, -below / 8]], dtype=torch.float64)
     rgb = btf.eval(ok, w, w)
@@ -154,7 +154,7 @@ def test_decorrelation_and_tileable_options(exemplar):
 def reports(model):
     out = {}
     for method in ("tile", "linear", "hist", "hex"):
-        out[method] = quality_report(SynthesizedBTF(model, method, scale=4.0), repeats=8, rgb_side=128,
+        out[method] = quality_report(synthesized_btf(model, method, scale=4.0), repeats=8, rgb_side=128,
                                      pairs=(((0.0, 0.0), (0.0, 0.0)), ((40.0, 30.0), (50.0, 200.0))))
     return out
 
@@ -186,7 +186,7 @@ def fitted_stone(tmp_path_factory):
 def test_default_blending_exponent_keeps_decoded_colours_on_a_fitted_model(fitted_stone):
     """hist's default gamma = 7 vs Heitz & Neyret's gamma = 1 (docs/synthesis.md, "Why decoded colours drift")."""
     def report(method, **params):
-        return quality_report(SynthesizedBTF(fitted_stone, method, scale=4.0, workers=1, **params), repeats=8,
+        return quality_report(synthesized_btf(fitted_stone, method, scale=4.0, workers=1, **params), repeats=8,
                               rgb_side=128)
 
     def rgb_std_ratio(r):  # the largest mean-over-channels RGB std ratio over the (view, light) pairs
@@ -236,7 +236,7 @@ def test_repetition_and_verbatim_scores(reports, tmp_path):
 @pytest.mark.parametrize("method", ["tile", "hist", "hex"])
 def test_eval_equals_decoding_the_synthesized_features(model, method):
     rng = np.random.default_rng(1)
-    btf = SynthesizedBTF(model, method, scale=8.0, seed=4, chunk_size=777)
+    btf = synthesized_btf(model, method, scale=8.0, seed=4, chunk_size=777)
     uv = torch.from_numpy(rng.random((3000, 2)) * 5 + 1e6)
     wv, wl = random_directions(3000, rng), random_directions(3000, rng)
     # reference angular features from float64 directions: near the pole of h (theta_h ~ 1 deg) float32
@@ -253,15 +253,15 @@ def test_bf16_decoder_error_is_bounded(model):
     rng = np.random.default_rng(2)
     uv = torch.from_numpy(rng.random((20000, 2)) * 30)
     wv, wl = random_directions(20000, rng), random_directions(20000, rng)
-    full = SynthesizedBTF(model, "hist", scale=1.0).eval(uv, wv, wl)
-    half = SynthesizedBTF(model, "hist", scale=1.0, precision="bf16").eval(uv, wv, wl)
+    full = synthesized_btf(model, "hist", scale=1.0).eval(uv, wv, wl)
+    half = synthesized_btf(model, "hist", scale=1.0, precision="bf16").eval(uv, wv, wl)
     err = (half - full).abs()
     spread = float(full.std())
     assert float(err.max()) < 0.03 * spread + 0.01 and float(err.mean()) < 0.005 * spread + 0.002
 
 
 def test_batch_shapes_numpy_and_horizon(model):
-    btf = SynthesizedBTF(model, "hist", scale=2.0)
+    btf = synthesized_btf(model, "hist", scale=2.0)
     rng = np.random.default_rng(3)
     uv = rng.random((4, 5, 2))
     w = spherical_to_direction(rng.random((4, 5)) * 60, rng.random((4, 5)) * 360)
@@ -277,7 +277,7 @@ def test_batch_shapes_numpy_and_horizon(model):
 
 
 def test_image_matches_eval_at_pixel_centres(model):
-    btf = SynthesizedBTF(model, "hex", scale=25.0)
+    btf = synthesized_btf(model, "hex", scale=25.0)
     img = btf.image(view=(30, 40), light=(20, 200), uv_rect=(1e6, 1e6, 1e6 + 0.1, 1e6 + 0.05), resolution=(8, 16))
     assert img.shape == (8, 16, 3)
     wv = spherical_to_direction(np.array(30.0), np.array(40.0))
@@ -310,7 +310,7 @@ class _ScaledPlane(Representation):
 
 def test_generic_representation_path(exemplar):
     rep = _ScaledPlane(exemplar)
-    btf = SynthesizedBTF(rep, "hist", scale=3.0)
+    btf = synthesized_btf(rep, "hist", scale=3.0)
     uv = torch.rand(100, 2, dtype=torch.float64)
     w = torch.tensor([[0.0, 0.6, 0.8]]).expand(100, 3)
     expected = btf.features(uv).mean(-1, keepdim=True) * torch.tensor([1.0, 2.0, 3.0]) * 0.8
@@ -319,7 +319,7 @@ def test_generic_representation_path(exemplar):
 
 # ---------------------------------------------------------------- errors
 def test_bad_input_raises_clear_errors(model, exemplar):
-    btf = SynthesizedBTF(model, "hist")
+    btf = synthesized_btf(model, "hist")
     w = torch.tensor([[0.0, 0.0, 1.0]])
     with pytest.raises(InputError, match="uv.*NaN or infinite"):
         btf.eval(torch.tensor([[float("nan"), 0.0]]), w, w)
@@ -338,15 +338,15 @@ def test_bad_input_raises_clear_errors(model, exemplar):
     with pytest.raises(InputError, match="exemplar: contains NaN"):
         make_synthesizer("hex", torch.full((16, 16, 2), float("nan")))
     with pytest.raises(InputError, match="unknown; expected one of"):
-        SynthesizedBTF(model, "wang")
+        synthesized_btf(model, "wang")
     with pytest.raises(InputError, match="unknown parameter"):
         make_synthesizer("hist", exemplar, contrast=0.7)
     with pytest.raises(InputError, match="contrast"):
         make_synthesizer("hex", exemplar, contrast=1.5)
     with pytest.raises(InputError, match="scale"):
-        SynthesizedBTF(model, "hist", scale=0)
+        synthesized_btf(model, "hist", scale=0)
     with pytest.raises(InputError, match="precision"):
-        SynthesizedBTF(model, "hist", precision="fp8")
+        synthesized_btf(model, "hist", precision="fp8")
     with pytest.raises(InputError, match="resolution"):
         btf.image(resolution=0)
     with pytest.raises(InputError, match="view"):
@@ -490,7 +490,7 @@ def test_cli_synth_writes_btf_values_and_cosine_only_when_asked(tmp_path):
     from dynbtf.io import load_image
     from dynbtf.representations.model_file import save_model
     from dynbtf.representations.triple_plane import TriplePlane
-    from dynbtf.infinite_btf import SynthesizedBTF
+    from dynbtf.synthesized import synthesized_btf
 
     model = TriplePlane(16, 16, positional_channels=4, angular_channels=4, hidden=16, seed=2)
     with torch.no_grad():
@@ -500,7 +500,7 @@ def test_cli_synth_writes_btf_values_and_cosine_only_when_asked(tmp_path):
     common = ["synth", str(path), "--method", "tile", "--scale", "2", "--light", "60,90", "--resolution", "12"]
     assert main(common + ["-o", str(plain)]) == 0
     assert main(common + ["--cosine", "-o", str(shaded)]) == 0
-    want = SynthesizedBTF(model, "tile", scale=2.0).image(view=(0.0, 0.0), light=(60.0, 90.0),
+    want = synthesized_btf(model, "tile", scale=2.0).image(view=(0.0, 0.0), light=(60.0, 90.0),
                                                           uv_rect=(0.0, 0.0, 1.0, 1.0), resolution=12)
     np.testing.assert_allclose(load_image(plain), want, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(load_image(shaded), want * 0.5, rtol=1e-5, atol=1e-6)  # cos 60 deg

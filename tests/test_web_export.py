@@ -21,7 +21,7 @@ from dynbtf.export.web.exporter import dequantize, export_web, quantize
 from dynbtf.export.web.shader import repeat_origin
 from dynbtf.synthesis.hash import vertex_offsets
 from dynbtf.synthesis.lattice import triangle_lattice
-from dynbtf.infinite_btf import SynthesizedBTF
+from dynbtf.synthesized import synthesized_btf
 
 browser = pytest.mark.skipif(find_chromium() is None, reason="needs headless Chromium (scripts/test.sh installs it)")
 METHODS = ("hist", "hex", "tile", "linear")
@@ -74,7 +74,7 @@ def _psnr(got, ref):
 def test_shader_matches_synthesized_btf(exports, model, method):
     """fp32 textures: equal to float32 rounding; fp16: PSNR >= 40 dB (the issue's bar); u8: >= 30 dB."""
     points, shift, wv, wl = _queries(1024)
-    ref = SynthesizedBTF(model, method, seed=0).eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    ref = synthesized_btf(model, method, seed=0).eval(points, wv.astype(np.float64), wl.astype(np.float64))
     assert np.abs(ref).max() > 0.5 and ref.std() > 0.05  # the comparison is not between constants
     got = {p: eval_in_browser(exports[p].directory, method, points, wv, wl, local_shift=shift) for p in exports}
     peak = np.abs(ref).max()
@@ -86,7 +86,7 @@ def test_shader_matches_synthesized_btf(exports, model, method):
     assert _psnr(got["u8"].rgb, ref) >= 30.0
     # the export is not the identity of something trivial: another seed's synthesis differs
     if method != "tile":
-        other = SynthesizedBTF(model, method, seed=1).eval(points, wv.astype(np.float64), wl.astype(np.float64))
+        other = synthesized_btf(model, method, seed=1).eval(points, wv.astype(np.float64), wl.astype(np.float64))
         assert _psnr(got["fp32"].rgb, other) < 30.0
 
 
@@ -99,7 +99,7 @@ def test_hist_with_an_extreme_exponent_is_finite_and_the_librarys(model, tmp_pat
                         method_params={"hist": {"gamma": 1e10}})
     points, shift, wv, wl = _queries(256)
     exact = shift == 0
-    ref = SynthesizedBTF(model, "hist", seed=0, gamma=1e10).eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    ref = synthesized_btf(model, "hist", seed=0, gamma=1e10).eval(points, wv.astype(np.float64), wl.astype(np.float64))
     got = eval_in_browser(export.directory, "hist", points[exact], wv[exact], wl[exact])
     assert np.isfinite(got.rgb).all()
     np.testing.assert_allclose(got.rgb, ref[exact], rtol=0, atol=2e-4 * np.abs(ref).max())
@@ -127,7 +127,7 @@ def test_lattice_vertices_and_texel_offsets_agree_bit_for_bit(exports, model):
     # queries within 1e-5 of a triangle edge may fall on either side in float32: not a disagreement
     clear = (bary.min(-1).values > 1e-5).numpy()
     assert clear.mean() > 0.99
-    hist = SynthesizedBTF(model, "hist", seed=0).synthesizer
+    hist = synthesized_btf(model, "hist", seed=0).synthesizer
     ph, pw = hist.prepared.plane.shape[:2]
     ox, oy = vertex_offsets(vertices[..., 0], vertices[..., 1], 0, pw, ph)
     got = lattice_in_browser(exports["fp16"].directory, "hist", points, local_shift=shift)
@@ -402,13 +402,13 @@ def test_relief_model_marches_the_synthesized_height_like_the_library(relief_mod
     wv[8:40] = [0.9, 0.1, np.sqrt(1 - 0.82)]  # ~64 deg: long marches
     got = {p: eval_in_browser(export_web(relief_model, tmp_path / p, precision=p, methods=(method,)).directory, method,
                               points, wv, wl) for p in ("fp32", "fp16")}
-    ref = SynthesizedBTF(relief_model, method, seed=0).eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    ref = synthesized_btf(relief_model, method, seed=0).eval(points, wv.astype(np.float64), wl.astype(np.float64))
     assert _psnr(got["fp32"].rgb, ref) > 90.0
     assert _psnr(got["fp16"].rgb, ref) >= 40.0
     # the march matters: the same model without its relief (visible point = uv) gives other values
     flat = copy.deepcopy(relief_model)
     flat.set_height(torch.full((24, 20), float(relief_model.height_field().detach().mean())))
-    flat_values = SynthesizedBTF(flat, method, seed=0).eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    flat_values = synthesized_btf(flat, method, seed=0).eval(points, wv.astype(np.float64), wl.astype(np.float64))
     assert _psnr(got["fp32"].rgb, flat_values) < 40.0
 
 
@@ -437,14 +437,14 @@ def struct_exports(structured_model, tmp_path_factory):
 
 
 def test_export_of_auto_is_the_models_choice_exported_once(struct_exports, structured_model, model, tmp_path):
-    """auto exports the method SynthesizedBTF(model, "auto") chooses, under its name, first; never twice."""
+    """auto exports the method synthesized_btf(model, "auto") chooses, under its name, first; never twice."""
     manifest = struct_exports["u8"].manifest
-    choice = SynthesizedBTF(structured_model, "auto").synthesizer.choice
+    choice = synthesized_btf(structured_model, "auto").synthesizer.choice
     assert choice.method == "struct"
     assert manifest["auto"]["method"] == "struct" and manifest["auto"]["line"] == choice.line
     assert list(manifest["methods"]) == ["struct", "hist", "tile"] and manifest["default_method"] == "struct"
     entry = manifest["methods"]["struct"]
-    tables = SynthesizedBTF(structured_model, "struct").synthesizer.prepared
+    tables = synthesized_btf(structured_model, "struct").synthesizer.prepared
     assert entry["mode"] == 4 and entry["cells"] == [2, 1] and entry["margin"] == [6, 6] and entry["count"] == 16
     assert entry["tables"]["format"] == "R16I"  # integer texture: the int16 tables exactly, at every precision
     stored = np.fromfile(struct_exports["u8"].directory / entry["tables"]["file"], dtype="<i2")
@@ -503,7 +503,7 @@ def _texel_edge_distance(points, density):
 def test_struct_shader_matches_synthesized_btf(struct_exports, structured_model):
     """struct: fp32 equal to float32 rounding, fp16 >= 40 dB, u8 >= 30 dB; "auto" names it in the page too."""
     points, shift, wv, wl = _queries(1024, seed=4)
-    btf = SynthesizedBTF(structured_model, "struct", seed=0)
+    btf = synthesized_btf(structured_model, "struct", seed=0)
     ref = btf.eval(points, wv.astype(np.float64), wl.astype(np.float64))
     assert np.abs(ref).max() > 0.5 and ref.std() > 0.05
     # a query within float32 rounding of a texel boundary may fall into the neighbouring texel, and with it
@@ -519,9 +519,9 @@ def test_struct_shader_matches_synthesized_btf(struct_exports, structured_model)
     assert _psnr(got["fp16"][keep], ref[keep]) >= 40.0
     assert _psnr(got["u8"][keep], ref[keep]) >= 30.0
     # not a trivial export: another seed chooses other copies, and tiling differs
-    other = SynthesizedBTF(structured_model, "struct", seed=1).eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    other = synthesized_btf(structured_model, "struct", seed=1).eval(points, wv.astype(np.float64), wl.astype(np.float64))
     assert _psnr(got["fp32"][keep], other[keep]) < 30.0
-    tiled = SynthesizedBTF(structured_model, "tile").eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    tiled = synthesized_btf(structured_model, "tile").eval(points, wv.astype(np.float64), wl.astype(np.float64))
     assert _psnr(got["fp32"][keep], tiled[keep]) < 30.0
 
 
@@ -623,7 +623,7 @@ def test_struct_cells_offsets_and_texels_agree_bit_for_bit(struct_exports, struc
     def int64(lo, hi):
         return (lo | (hi << np.uint64(32))).view(np.int64)
 
-    synth = SynthesizedBTF(structured_model, "struct", seed=0).synthesizer
+    synth = synthesized_btf(structured_model, "struct", seed=0).synthesizer
     w, h = synth.density
     nx, ny = synth.prepared.cells
     positions, chosen = synth.read_positions(torch.from_numpy(points))

@@ -208,13 +208,14 @@ def synth(
 
     def build(name: str):
         if material is not None and name in ("auto", material.method):  # the material as compiled
-            return _build(material, material.method, scale=scale, seed=seed, quilt_size=None, gamma=gamma)
+            return _build(material, material.method, scale=scale, seed=seed, quilt_size=None, gamma=gamma,
+                          footprints=filtered)
         return _build(rep, name, scale=scale, seed=0 if seed is None else seed, quilt_size=quilt_size, gamma=gamma,
-                      cells=cells)
+                      cells=cells, footprints=filtered)
 
     if layer is not None:
         btf = _layered(build(method), layer, method, where, scale=scale, seed=seed, gamma=gamma, mask=the_mask,
-                       width=width)
+                       width=width, footprints=filtered)
         _write_image(btf, output, view_dir, light_dir, (cu, cv), resolution=resolution, spp=spp, filtered=filtered,
                      cosine=cosine, exposure=exposure)
         typer.echo(f"wrote {output} ({resolution}x{resolution}, {model} | {layer}, {scale:g}x, centre {cu:g},{cv:g})")
@@ -266,7 +267,8 @@ def _target_image(target: Path | None, method: str, layer, report: bool, output,
     return mask_from_spec(str(target), size=size, wrap=wrap).image
 
 
-def _layered(first, layer: Path, method: str, where, *, scale: float, seed, gamma, mask, width: float):
+def _layered(first, layer: Path, method: str, where, *, scale: float, seed, gamma, mask, width: float,
+             footprints: bool = False):
     """``--layer``: the layered material of ``first`` and the material in ``layer`` under ``mask``."""
     from ..layered import LayeredBTF
     from ..material import open_model_file
@@ -274,7 +276,7 @@ def _layered(first, layer: Path, method: str, where, *, scale: float, seed, gamm
     rep, material = open_model_file(layer, device=where)
     source = material if material is not None and method in ("auto", material.method) else rep
     second = _build(source, material.method if source is material else method, scale=scale,
-                    seed=seed if source is not material else None, quilt_size=None, gamma=gamma)
+                    seed=seed if source is not material else None, quilt_size=None, gamma=gamma, footprints=footprints)
     return LayeredBTF([first, second], mask, width=width)
 
 
@@ -298,12 +300,12 @@ def _check_outputs(output: Path | None, report: bool, report_json: Path | None) 
 
 
 def _build(rep, name: str, *, scale: float, seed: int | None, quilt_size: int | None, gamma: float | None,
-           cells: int | None = None):
+           cells: int | None = None, footprints: bool = False):
     """The :class:`~dynbtf.infinite_btf.SynthesizedBTF` of method ``name`` of ``rep`` (a representation, or a
-    compiled material of method ``name``, whose seed ``seed`` must be or None); prints auto's choice and the
-    quilt's size."""
+    compiled material of method ``name``, whose seed ``seed`` must be or None), with the footprint decoders if
+    ``footprints`` (``--filtered``); prints auto's choice and the quilt's size."""
     from ..material import CompiledMaterial
-    from ..infinite_btf import SynthesizedBTF
+    from ..synthesized import synthesized_btf
 
     compiled = isinstance(rep, CompiledMaterial)
     params = {"repeats": float(quilt_size), "progress": True} if name == "quilt" and not compiled else {}
@@ -311,8 +313,8 @@ def _build(rep, name: str, *, scale: float, seed: int | None, quilt_size: int | 
         params["gamma"] = gamma  # auto: used if it chooses hist
     if name == "struct" and cells is not None and not compiled:
         params["cells"] = int(cells)
-    btf = SynthesizedBTF(rep, name, scale=scale, seed=(rep.seed if compiled else 0) if seed is None else seed,
-                         **params)
+    btf = synthesized_btf(rep, name, scale=scale, seed=(rep.seed if compiled else 0) if seed is None else seed,
+                          footprints=footprints, **params)
     rep = btf.model
     if btf.synthesizer.choice is not None:
         typer.echo(btf.synthesizer.choice.line)

@@ -136,6 +136,17 @@ class CompiledMaterial:
         return replace(self, model=copy.deepcopy(self.model).to(torch.device(device)), decoder=decoder,
                        _synthesizers={})
 
+    def exemplar(self) -> "CompiledMaterial":
+        """The material of the exemplar itself: the same model, periodic (the registry's
+        :data:`~dynbtf.synthesis.registry.EXEMPLAR_METHOD`, which has no tables), its decoder folded with no output
+        map. Derived, not compiled: nothing is fitted or cached."""
+        from ..synthesis.registry import EXEMPLAR_METHOD
+
+        fast = self.model.fast_decoder()
+        decoder = None if fast is None else FoldedDecoder.fold(fast.decoder, None, None)
+        return CompiledMaterial(model=self.model, method=EXEMPLAR_METHOD, seed=0, arguments={}, synthesis={},
+                                decoder=decoder, model_sha256=self.model_sha256)
+
     def with_sampling(self, table: dict[str, torch.Tensor]) -> "CompiledMaterial":
         """The same material with an importance-sampling table."""
         return replace(self, sampling={k: v.detach().cpu().contiguous() for k, v in table.items()},

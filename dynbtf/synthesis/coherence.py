@@ -362,7 +362,8 @@ def synthesized_coherence(btf, *, side: int | None = None, view=DEFAULT_VIEW, li
     >>> import torch
     >>> from dynbtf.representations.triple_plane import TriplePlane
     >>> from dynbtf.infinite_btf import SynthesizedBTF
-    >>> r = synthesized_coherence(SynthesizedBTF(TriplePlane(32, 32, seed=1), "tile", scale=4.0), patches=32)
+    >>> from dynbtf.synthesized import synthesized_btf
+    >>> r = synthesized_coherence(synthesized_btf(TriplePlane(32, 32, seed=1), "tile", scale=4.0), patches=32)
     >>> r["patch"], r["side"], r["p90"] < 1e-9, r["identity"]
     (8, 128, True, 1.0)
     """

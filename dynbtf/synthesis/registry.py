@@ -17,10 +17,12 @@ from . import blending, cell_quilting, guided_blending, hex_tiling, histogram_bl
 from .auto import choose_method
 from .base import SYNTHESIZERS, Synthesizer
 
-__all__ = ["SYNTHESIZERS", "synthesizer_class", "make_synthesizer", "model_inputs", "AUTO_CANDIDATES"]
+__all__ = ["SYNTHESIZERS", "synthesizer_class", "make_synthesizer", "model_inputs", "AUTO_CANDIDATES", "EXEMPLAR_METHOD"]
 
 #: The methods ``auto`` chooses between (:func:`dynbtf.synthesis.auto.choose_method`).
 AUTO_CANDIDATES = ("struct", "hist")
+#: The method that answers the exemplar itself, periodic and without tables: what synthesis is measured against.
+EXEMPLAR_METHOD = "tile"
 
 
 def synthesizer_class(name: str) -> type[Synthesizer]:

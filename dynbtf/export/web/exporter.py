@@ -60,6 +60,7 @@ from ...limits import check_scale
 from ...synthesis.auto import AUTO
 from ...synthesis.hash import MASK32, seed_state
 from ...infinite_btf import SynthesizedBTF
+from ...synthesized import synthesized_btf
 from .shader import LOCAL_REPEATS, WEB_METHODS, glsl_source, lattice_constants
 
 __all__ = ["export_web", "WebExport", "quantize", "dequantize", "quantized_model", "SUPPORTED_KINDS",
@@ -312,12 +313,12 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
         Storage of the textures (see the module docstring).
     methods : sequence of {"auto", "tile", "linear", "hist", "hex", "struct"}
         Synthesis methods to export (each with its own plane and tables); the first is the
-        viewer's default. ``auto`` is the model's choice (``SynthesizedBTF(model, "auto")``:
+        viewer's default. ``auto`` is the model's choice (``synthesized_btf(model, "auto")``:
         ``struct`` for a structured positional plane, else ``hist``), exported under the chosen
         method's name; the manifest's ``auto`` entry names it and holds the choice's line. A method
         named twice (or chosen by ``auto`` and also listed) is exported once, where it first appears.
     seed : int
-        Synthesis seed (the same choices as ``SynthesizedBTF(model, method, seed=seed)``).
+        Synthesis seed (the same choices as ``synthesized_btf(model, method, seed=seed)``).
     scale : float
         The viewer's initial exemplar repeats per unit of the surface's uv: positive and below
         :data:`~dynbtf.export.web.shader.LOCAL_REPEATS` (``2**12``, what the shader's float32 local
@@ -475,7 +476,7 @@ def _export_methods(writer: _Writer, model, layout: _DecoderLayout, methods: lis
                 auto = {"method": choice.method, "line": choice.line, "structure_strength": choice.strength}
             m = material.method
         elif requested == AUTO:  # the model's choice, under the chosen method's name
-            btf = SynthesizedBTF(model, AUTO, seed=seed, **params)
+            btf = synthesized_btf(model, AUTO, seed=seed, **params)
             choice = btf.synthesizer.choice
             auto = {"method": choice.method, "line": choice.line, "structure_strength": choice.strength}
             m = choice.method
@@ -483,7 +484,7 @@ def _export_methods(writer: _Writer, model, layout: _DecoderLayout, methods: lis
             m = requested
             if m in method_entries:
                 continue
-            btf = SynthesizedBTF(model, m, seed=seed, **params)
+            btf = synthesized_btf(model, m, seed=seed, **params)
         if m in method_entries:  # auto chose a method exported before it
             continue
         method_entries[m] = _method_entry(writer, m, btf, btf.seed, precision, layout)

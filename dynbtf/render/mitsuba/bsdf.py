@@ -427,7 +427,8 @@ class _DynBTFBSDFBody:
         params = {"cells": self.cells} if self.cells and self.method == "struct" else {}
         if self.cells and self.method != "struct":
             raise InputError(f"dynbtf BSDF: parameter 'cells' sets struct's cells; method is {self.method!r}")
-        self.evaluator = DynBTFEvaluator(model, self.method, self.seed, btf=self._guided_btf(model, params), **params)
+        self.evaluator = DynBTFEvaluator(model, self.method, self.seed, btf=self._guided_btf(model, params),
+                                         footprints=self.filtered, **params)
         model = self.evaluator.btf.model
         #: the method the kernel runs (``auto``'s choice, else ``method``)
         self.synthesis = self.evaluator.method
@@ -459,7 +460,7 @@ class _DynBTFBSDFBody:
         # the target over target_size mesh uv units = target_size * scale exemplar repeats (guided_btf's scale 1)
         return guided_btf(model, image, classes=self.classes, target_size=self.target_size * self.scale,
                           target_wrap=self.target_wrap, seed=self.seed, softness=self.softness,
-                          method=method, **params)
+                          method=method, footprints=self.filtered, **params)
 
     def _choose_sampler(self, model):
         """The table sampler of ``sampling`` ``auto``/``mixture`` (None: cosine); resolves :attr:`sampling`."""
@@ -620,12 +621,14 @@ class DynBTFEvaluator:
     local frame) and returns ``mi.Color3f`` values (excluding cos(theta_light)).
     """
 
-    def __init__(self, model, method: str, seed: int, btf=None, **params) -> None:
-        from ...infinite_btf import SynthesizedBTF
+    def __init__(self, model, method: str, seed: int, btf=None, *, footprints: bool = False, **params) -> None:
+        from ...synthesized import synthesized_btf
         from .drjit_synthesis import make_dr_synthesizer
 
-        # its compiled material, from the cache; or a SynthesizedBTF given at scale 1 (e.g. a guided one)
-        self.btf = SynthesizedBTF(model, method, scale=1.0, seed=seed, **params) if btf is None else btf
+        # its compiled material, from the cache (with the footprint decoders if asked); or a SynthesizedBTF given
+        # at scale 1 (e.g. a guided one)
+        self.btf = synthesized_btf(model, method, scale=1.0, seed=seed, footprints=footprints, **params) \
+            if btf is None else btf
         self.method = self.btf.synthesizer.name
         self.choice = self.btf.synthesizer.choice
         self.synthesizer = make_dr_synthesizer(self.btf.synthesizer)
@@ -648,10 +651,10 @@ class DynBTFEvaluator:
     def level_decoders(self) -> list:
         """One :class:`~dynbtf.render.mitsuba.drjit_ops.DrDecoder` per pyramid level for footprint queries, or ``[]``.
 
-        The compiled material's per-level decoders (:meth:`dynbtf.infinite_btf.SynthesizedBTF.footprint_decoder`:
-        read from the cache, or fitted and stored on first use; level 0 is the point decoder) and its mean
-        appearance (one decoder of the angular inputs per quadrature node). ``[]`` where the library decodes
-        every level with the model's decoder.
+        The compiled material's per-level decoders (:meth:`dynbtf.infinite_btf.SynthesizedBTF.footprint_decoder`;
+        level 0 is the point decoder) and its mean appearance (one decoder of the angular inputs per quadrature
+        node). ``[]`` where the library decodes every level with the point decoder (a material compiled without
+        footprint decoders, or ``level_decoders=False``).
         """
         if self._level_decoders is None:
             self._level_decoders = []
