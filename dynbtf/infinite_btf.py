@@ -70,6 +70,7 @@ on CUDA the synthesizers use their torch paths and the decoder its torch layers.
 from __future__ import annotations
 
 import contextlib
+import os
 import warnings
 
 from concurrent.futures import ThreadPoolExecutor
@@ -82,7 +83,7 @@ from .conventions import check_directions, spherical_to_direction
 from .decoder.folded import DecodePath, FoldedDecoder
 from .errors import InputError, positive_number
 from .synthesis.base import check_footprint, check_uv
-from .material.format import CompiledMaterial, open_model_file
+from .material.format import CompiledMaterial, is_compiled_material, load_compiled
 
 __all__ = ["SynthesizedBTF", "PRECISIONS", "footprint_width", "flat_image", "same_device"]
 
@@ -260,10 +261,10 @@ class SynthesizedBTF:
             device = resolve_device(device)
         if isinstance(material, (str, bytes)) or hasattr(material, "__fspath__"):
             path = material
-            material = open_model_file(path, device=device)[1]
-            if material is None:
-                raise InputError(f"{path}: a model file, not a compiled material; open or compile its material with "
+            if os.path.isfile(path) and not is_compiled_material(path):  # else load_compiled names what is wrong
+                raise InputError(f"{path}: not a compiled material (a model file?); open or compile its material with "
                                  "dynbtf.synthesized_btf(path, method, ...) or `dynbtf compile`")
+            material = load_compiled(path, device=device)
         if not isinstance(material, CompiledMaterial):
             raise InputError(f"material: expected a compiled material (CompiledMaterial or a .dbtfc file), got "
                              f"{type(material).__name__}; dynbtf.synthesized_btf(model, method, ...) opens or "

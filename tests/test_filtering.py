@@ -307,5 +307,5 @@ def test_the_query_object_takes_a_compiled_material_only(btf, tmp_path):
     with pytest.raises(InputError, match="expected a compiled material .*synthesized_btf"):
         SynthesizedBTF(btf.model, 4.0)
     path = save_model(tmp_path / "m.dbtfm", btf.model)
-    with pytest.raises(InputError, match="m.dbtfm: a model file, not a compiled material"):
+    with pytest.raises(InputError, match="m.dbtfm: not a compiled material"):
         SynthesizedBTF(path)
