@@ -413,12 +413,12 @@ def _dr():
 
 
 class _DynBTFBSDFBody:
-    """The body of the ``dynbtf`` BSDF class: :func:`_build_class` copies it onto a subclass of the active
-    variant's ``mi.BSDF`` (nanobind classes take one base, so this cannot be a mix-in)."""
+    """The body of the ``dynbtf`` BSDF class: :func:`plugin_class` copies it onto a subclass of the active
+    variant's ``mi.BSDF``."""
 
     # ------------------------------------------------------------ construction
     def __init__(self, props):
-        self._bsdf_base.__init__(self, props)
+        self._base.__init__(self, props)
         mi = _mi()
         parsed = read_parameters(props)  # every parameter converted and checked, before the model loads
         for parameter in PARAMETERS:
@@ -583,12 +583,14 @@ class _DynBTFBSDFBody:
                 f"filtered={self.filtered}, ray_cone_angle={self.cone}]")
 
 
-def _build_class(mi):
-    """The ``dynbtf`` BSDF class of the active variant: :class:`_DynBTFBSDFBody`'s methods on ``mi.BSDF``."""
-    namespace = {name: value for name, value in vars(_DynBTFBSDFBody).items()
-                 if name not in ("__dict__", "__weakref__", "__doc__", "__module__", "__qualname__")}
-    namespace.update(__doc__=PLUGIN_DOC, __module__=__name__, __qualname__="DynBTFBSDF", _bsdf_base=mi.BSDF)
-    return type("DynBTFBSDF", (mi.BSDF,), namespace)
+def plugin_class(body: type, base: type, name: str, doc: str) -> type:
+    """A plugin class of the active variant: ``body``'s methods on ``base`` (``mi.BSDF``, ``mi.Texture``).
+
+    nanobind classes take one base, so a body cannot be a mix-in; its ``__init__`` calls ``self._base.__init__``."""
+    namespace = {key: value for key, value in vars(body).items()
+                 if key not in ("__dict__", "__weakref__", "__doc__", "__module__", "__qualname__")}
+    namespace.update(__doc__=doc, __module__=body.__module__, __qualname__=name, _base=base)
+    return type(name, (base,), namespace)
 
 class DynBTFEvaluator:
     """``SynthesizedBTF.eval`` re-expressed in Dr.Jit: the body of the plugin's ``eval``.
@@ -914,7 +916,7 @@ def register_plugin(variant: str | None = None) -> str:
     configure_jit()
     active = mi.variant()
     if active not in _REGISTERED:
-        cls = _build_class(mi)
+        cls = plugin_class(_DynBTFBSDFBody, mi.BSDF, "DynBTFBSDF", PLUGIN_DOC)
         mi.register_bsdf("dynbtf", lambda props: cls(props))
         from .layered_bsdf import build_layered_class, build_noise_class
 

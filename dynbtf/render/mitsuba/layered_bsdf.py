@@ -23,7 +23,7 @@ import numpy as np
 
 from ...errors import InputError
 from . import drjit_ops
-from .bsdf import PluginParameter, number_check, rst_parameter_rows
+from .bsdf import PluginParameter, number_check, plugin_class, rst_parameter_rows
 
 __all__ = ["LAYERED_PARAMETERS", "LAYERED_DOC", "build_layered_class", "build_noise_class",
            "layered_parameter_table_markdown", "mask_texture_dict"]
@@ -145,7 +145,7 @@ class _LayeredBSDFBody:
     ``dynbtf`` plugin's body is)."""
 
     def __init__(self, props):
-        self._bsdf_base.__init__(self, props)
+        self._base.__init__(self, props)
         from ...layered import layer_height_map
 
         mi = _mi()
@@ -238,10 +238,7 @@ class _LayeredBSDFBody:
 
 def build_layered_class(mi):
     """The ``dynbtf_layered`` BSDF class of the active variant: :class:`_LayeredBSDFBody`'s methods on ``mi.BSDF``."""
-    namespace = {name: value for name, value in vars(_LayeredBSDFBody).items()
-                 if name not in ("__dict__", "__weakref__", "__doc__", "__module__", "__qualname__")}
-    namespace.update(__doc__=LAYERED_DOC, __module__=__name__, __qualname__="DynBTFLayeredBSDF", _bsdf_base=mi.BSDF)
-    return type("DynBTFLayeredBSDF", (mi.BSDF,), namespace)
+    return plugin_class(_LayeredBSDFBody, mi.BSDF, "DynBTFLayeredBSDF", LAYERED_DOC)
 
 
 # ------------------------------------------------------------------------------------------------ noise mask texture
@@ -251,7 +248,7 @@ class _NoiseTextureBody:
     ``0.5 + contrast (n - 0.5)`` clipped to [0, 1]), with its gradient (``eval_1_grad``)."""
 
     def __init__(self, props):
-        self._texture_base.__init__(self, props)
+        self._base.__init__(self, props)
         from ...layered import NoiseMask
 
         read = {name: props[name] for name in ("scale", "contrast", "seed") if props.has_property(name)}
@@ -306,8 +303,4 @@ class _NoiseTextureBody:
 
 def build_noise_class(mi):
     """The ``dynbtf_noise`` texture class of the active variant."""
-    namespace = {name: value for name, value in vars(_NoiseTextureBody).items()
-                 if name not in ("__dict__", "__weakref__", "__doc__", "__module__", "__qualname__")}
-    namespace.update(__doc__=_NoiseTextureBody.__doc__, __module__=__name__, __qualname__="DynBTFNoise",
-                     _texture_base=mi.Texture)
-    return type("DynBTFNoise", (mi.Texture,), namespace)
+    return plugin_class(_NoiseTextureBody, mi.Texture, "DynBTFNoise", _NoiseTextureBody.__doc__)
