@@ -19,7 +19,6 @@ a block that is not on its list of tables that report no measurement.
 from __future__ import annotations
 
 import argparse
-import decimal
 import json
 import re
 import sys
@@ -384,11 +383,6 @@ def _storage(row: dict) -> str:
     return text + _note(row.get("storage_note"))
 
 
-def _fewer_digits(value: float, digits: int) -> str:
-    """A recorded decimal written with fewer digits, a final 5 rounded up (0.1785 -> 0.179), as a text rounds."""
-    return str(decimal.Decimal(repr(value)).quantize(decimal.Decimal(1).scaleb(-digits), decimal.ROUND_HALF_UP))
-
-
 def _transposed(points: list[dict], *rows: tuple) -> str:
     """A column per point: ``rows`` are (label, the cell of a point), the first of them the header row."""
     (label, cell), *rest = rows
@@ -460,7 +454,7 @@ def baselines_summary(data: dict) -> str:
                   f"SH ({storage['sh'] / storage['triple']:.0f}x the positional storage)")
     for material in sorted(dict.fromkeys(r["material"] for r in rows), key=lambda m: best[m] != "triple"):
         of = {r["kind"]: r for r in rows if r["material"] == material}
-        cells = (f"{of[k]['psnr']:.2f} / {_fewer_digits(of[k]['flip'], 3)}" for k in kinds)
+        cells = (f"{of[k]['psnr']:.2f} / {of[k]['flip']:.3f}" for k in kinds)
         lines.append(_line(material, *(f"**{text}**" if k == best[material] else text
                                        for k, text in zip(kinds, cells))))
     return "\n".join(lines)
