@@ -30,9 +30,6 @@ from .synthesis.base import Synthesizer
 
 __all__ = ["synthesized_btf", "auto_method"]
 
-#: Method parameters that are arrays the caller computed: the cache's key does not cover them.
-_GIVEN_TABLES = frozenset({"guide", "luminance"})
-
 
 def synthesized_btf(model, synthesizer: str | Synthesizer = "auto", scale: float = 1.0, seed: int = 0, *,
                     footprints: bool = False, chunk_size: int = 32768, precision: str = "fp32",
@@ -105,9 +102,7 @@ def _material(model, material, synthesizer, seed: int, footprints: bool, params:
         return compile_material(model, synthesizer=synthesizer, footprints=footprints)
     if not isinstance(synthesizer, str):
         raise InputError(f"synthesizer: expected a method name or a Synthesizer, got {type(synthesizer).__name__}")
-    if footprints and _GIVEN_TABLES & set(params):  # tables from the caller's arrays: fitted here, not cached
-        return compile_material(model, base=open_or_compile(model, synthesizer, seed, footprints=False, **params)[0],
-                                footprints=True)
+    # arrays among the parameters (a guide, a luminance) enter the cache's key by their digest
     return open_or_compile(model, synthesizer, seed, footprints=footprints, **params)[0]
 
 
