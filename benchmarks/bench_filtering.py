@@ -157,7 +157,7 @@ def bench_plugin(args, btf, uv, w_view, w_light, footprint) -> None:
     from bench_render import plugin_seconds
 
     from dynbtf.metrics import flip
-    from dynbtf.render.mitsuba.drjit_ops import mi_module
+    from dynbtf.jit import mi_module
     from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator, register_plugin
     from dynbtf.render.mitsuba.scenes import bsdf_dict, scene_dict
 

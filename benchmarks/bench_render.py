@@ -67,7 +67,7 @@ def main() -> None:
     parser.add_argument("--json", type=Path, default=RESULTS, help="where the eval and relief parts are written")
     args = parser.parse_args()
 
-    from dynbtf.render.mitsuba.drjit_ops import mi_module
+    from dynbtf.jit import mi_module
     from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator, configure_jit
     from dynbtf.representations.triple_plane import TriplePlane
     from dynbtf.synthesized import synthesized_btf
@@ -164,7 +164,7 @@ def jit_array(values):
     alignment, which Dr.Jit compiles into the kernel (aligned or unaligned loads), so inputs wrapped afresh per
     call would compile a new kernel whenever their alignment changes."""
     import drjit as dr
-    from dynbtf.render.mitsuba.drjit_ops import mi_module
+    from dynbtf.jit import mi_module
 
     mi = mi_module()
     out = mi.Float(np.ascontiguousarray(values, dtype=np.float32)) * dr.opaque(mi.Float, 1.0)  # exact, a new buffer
@@ -178,7 +178,7 @@ def plugin_seconds(evaluator, uv, wv, wl, repeats, footprint=None, start=0):
     ``footprint`` (optional, ``(N,)`` repeats): the evaluator's footprint queries; ``start``: the first shift.
     """
     import drjit as dr
-    from dynbtf.render.mitsuba.drjit_ops import mi_module
+    from dynbtf.jit import mi_module
 
     mi = mi_module()
     WV = mi.Vector3f(*(jit_array(wv[:, k]) for k in range(3)))

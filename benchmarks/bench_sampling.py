@@ -74,7 +74,7 @@ def main() -> None:
     parser.add_argument("--max-depth", type=int, default=3, help="path length (2: direct light only, 3: one bounce)")
     args = parser.parse_args()
 
-    from dynbtf.render.mitsuba.drjit_ops import mi_module
+    from dynbtf.jit import mi_module
     from dynbtf.render.mitsuba.bsdf import load_plugin_model, register_plugin
     from dynbtf.render.mitsuba.sampling import AUTO_MIN_COSINE_VARIANCE, build_sampling_table, cosine_relative_variance
     from dynbtf.render.mitsuba.scenes import bsdf_dict, scene_dict

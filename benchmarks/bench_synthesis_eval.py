@@ -162,7 +162,7 @@ def drjit_seconds(model, method, uv, w_view, w_light, repeats) -> float | None:
     try:
         from bench_render import plugin_seconds
         from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator, configure_jit
-        from dynbtf.render.mitsuba.drjit_ops import mi_module
+        from dynbtf.jit import mi_module
 
         mi_module()
         configure_jit()

@@ -32,7 +32,7 @@ def main() -> None:
     import drjit as dr
 
     from dynbtf.io import to_uint8_srgb
-    from dynbtf.render.mitsuba.drjit_ops import mi_module
+    from dynbtf.jit import mi_module
     from dynbtf.render.mitsuba.bsdf import load_plugin_model, register_plugin
     from dynbtf.render.mitsuba.scenes import bsdf_dict, scene_dict
 

@@ -4,7 +4,7 @@ from its definition, and every backend that computes it is held to that referenc
 Formulas and backends:
 
 * integer hash of lattice vertices -- numpy/torch (``synthesis.hash``), numba (``synthesis.kernels``),
-  Dr.Jit (``render.drjit_synthesis``);
+  Dr.Jit (each method package's ``drjit.py``);
 * triangle lattice (vertices and barycentrics) -- torch (``synthesis.lattice``), numba, Dr.Jit;
 * Rusinkiewicz half/difference vectors and angular-plane coordinates -- numpy and torch
   (``conventions``), numba (``fast_decode``, inside layer 1), Dr.Jit (``render.drjit_ops``);
@@ -160,17 +160,17 @@ def vector3(mi, w: np.ndarray):
 
 # ---------------------------------------------------------------------------- hash
 def test_hash_in_drjit_is_the_reference_hash(mi):
-    from dynbtf.render.mitsuba import drjit_synthesis
+    from dynbtf.synthesis import drjit_blocks
     from dynbtf.synthesis.hash import vertex_offsets
 
     vx = RNG.integers(-2 ** 31, 2 ** 31, 300)
     vy = RNG.integers(-2 ** 31, 2 ** 31, 300)
     vx[:4], vy[:4] = [0, -1, 2 ** 31 - 1, -2 ** 31], [0, 1, -2 ** 31, 7]
     for seed in (0, 12345, 2 ** 32 - 1):
-        got = np.array(drjit_synthesis.hash_vertex(mi.Int32(vx), mi.Int32(vy), seed), dtype=np.int64)
+        got = np.array(drjit_blocks.hash_vertex(mi.Int32(vx), mi.Int32(vy), seed), dtype=np.int64)
         want = np.array([reference_hash(int(a), int(b), seed) for a, b in zip(vx, vy)], dtype=np.int64)
         np.testing.assert_array_equal(got, want)
-        ox, oy = drjit_synthesis.vertex_offsets(mi.Int32(vx), mi.Int32(vy), seed, 37, 29)
+        ox, oy = drjit_blocks.vertex_offsets(mi.Int32(vx), mi.Int32(vy), seed, 37, 29)
         want_x, want_y = vertex_offsets(torch.from_numpy(vx), torch.from_numpy(vy), seed, 37, 29)
         np.testing.assert_array_equal(np.array(ox, dtype=np.int64), want_x.numpy())
         np.testing.assert_array_equal(np.array(oy, dtype=np.int64), want_y.numpy())
@@ -179,11 +179,11 @@ def test_hash_in_drjit_is_the_reference_hash(mi):
 # ---------------------------------------------------------------------------- lattice
 @pytest.mark.parametrize("offset", [0.0, -37.25, 1e6 + 0.5])
 def test_lattice_in_drjit_is_the_exact_lattice(mi, offset):
-    from dynbtf.render.mitsuba import drjit_synthesis
+    from dynbtf.synthesis import drjit_blocks
     from dynbtf.synthesis.lattice import triangle_lattice
 
     uv = RNG.random((200, 2)) * 3.0 + offset
-    verts, bary = drjit_synthesis.triangle_lattice(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1]))
+    verts, bary = drjit_blocks.triangle_lattice(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1]))
     got_vertices = np.stack([np.stack([np.array(x, np.int64), np.array(y, np.int64)], -1) for x, y in verts], 1)
     got_bary = as_numpy(bary)
     torch_vertices, torch_bary = triangle_lattice(torch.from_numpy(uv))
@@ -246,7 +246,7 @@ def float32_fetch_tolerance(plane: np.ndarray) -> float:
 
 
 def test_positional_fetch_torch_numba_drjit_are_the_bilinear_reference(mi):
-    from dynbtf.render.mitsuba.drjit_ops import fetch_wrap as drjit_fetch_wrap
+    from dynbtf.jit import fetch_wrap as drjit_fetch_wrap
     from dynbtf.synthesis.kernels import tile_fetch
     from dynbtf.texture import fetch_wrap
 
@@ -376,7 +376,6 @@ def test_every_synthesis_method_in_numba_and_drjit_is_the_torch_reference(mi, me
     definition for rendering); the reference then uses the same table, and the exact inverse is
     checked to be within the table's error bound (1% of a channel's spread).
     """
-    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
     from dynbtf.synthesis.registry import make_synthesizer
     from dynbtf.synthesis.histogram import blend_weights, variance_preserving_blend
 
@@ -397,7 +396,7 @@ def test_every_synthesis_method_in_numba_and_drjit_is_the_torch_reference(mi, me
         spread = exact.std(0)
         assert np.all(np.abs(want - exact).max(0) < 0.01 * spread)
     np.testing.assert_allclose(fast(torch.from_numpy(uv)).double().numpy(), want, atol=2e-5 * scale)
-    twin = make_dr_synthesizer(reference)
+    twin = reference.backend_form("drjit")
     precise = method != "tile"
     u = mi.Float64(uv[:, 0]) if precise else mi.Float(uv[:, 0].astype(np.float32))
     v = mi.Float64(uv[:, 1]) if precise else mi.Float(uv[:, 1].astype(np.float32))
@@ -409,7 +408,6 @@ def test_guided_lattice_blending_in_drjit_is_the_torch_reference(mi, kind):
     """Exemplar guidance: the Dr.Jit twin's candidate search (the first offset whose four texels carry the target
     label) and steered weights give the torch reference's features, and the numba kernel's, with most points
     steered off hist's own offsets."""
-    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
     from dynbtf.synthesis.guided_blending import GuidedBlending, GuidedHexTiling, LabelField, source_labels
 
     exemplar = smooth_lognormal(24, 20, 4, seed=4)
@@ -426,7 +424,7 @@ def test_guided_lattice_blending_in_drjit_is_the_torch_reference(mi, kind):
     if matrix is not None:
         want = want @ matrix.double().numpy() + offset.double().numpy()
     scale = np.abs(want).max()
-    twin = make_dr_synthesizer(synth)
+    twin = synth.backend_form("drjit")
     got = as_numpy(twin.features(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1])))
     tolerance = 0.01 * np.abs(want).std() if kind == "guided" else 5e-5 * scale  # hist: the LUT's error bound
     np.testing.assert_allclose(got, want, atol=tolerance)
@@ -439,7 +437,6 @@ def test_hist_with_extreme_exponents_is_finite_and_one_sample_in_every_backend(m
     """``b^gamma`` underflows to 0 for all three barycentrics once gamma is large (0/0: NaN weights, and a NaN
     index into the inverse table crashed the numba kernel). The weights are ``(b / max b)^gamma``: finite for
     any gamma, and for gamma -> inf one-hot on the dominant vertex, whose sample passes through unblended."""
-    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
     from dynbtf.synthesis.registry import make_synthesizer
 
     exemplar = smooth_lognormal(24, 20, 4, seed=4)
@@ -450,7 +447,7 @@ def test_hist_with_extreme_exponents_is_finite_and_one_sample_in_every_backend(m
     assert np.isfinite(want).all()
     scale = np.abs(want).max()
     np.testing.assert_allclose(fast(torch.from_numpy(uv)).double().numpy(), want, atol=0.01 * scale)
-    twin = make_dr_synthesizer(reference)
+    twin = reference.backend_form("drjit")
     got = as_numpy(twin.features(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1])))
     np.testing.assert_allclose(got, want, atol=0.01 * scale)
     if gamma == 1e300:  # closed form: the dominant sample's own value (transform and inverse cancel)
@@ -471,7 +468,6 @@ def test_guided_cell_quilting_in_drjit_is_the_torch_reference(mi):
     """Guided struct: the Dr.Jit twin's cell choices (from the hashed offset on, the first whose content carries
     the target's label at the cell's centre) and read positions are the torch path's bit for bit, near the
     origin and 2**45 repeats away; guidance moves many cells off their hashed offset."""
-    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
     from dynbtf.synthesis.cell_quilting import cell_choice
     from dynbtf.synthesis.guided_blending import GuidedCellQuilting, LabelField
 
@@ -481,7 +477,7 @@ def test_guided_cell_quilting_in_drjit_is_the_torch_reference(mi):
     labels = (exemplar[..., 0] > exemplar[..., 0].median()).long()
     target = LabelField(np.array([[0, 1], [1, 0]]), size=3.0)
     synth = GuidedCellQuilting(exemplar, 9, labels=labels, target=target, cells=(4, 4), fast=False)
-    twin = make_dr_synthesizer(synth)
+    twin = synth.backend_form("drjit")
     k = synth.prepared.count
     assert k > 4
     for origin in (0.0, 2.0 ** 45):
@@ -503,7 +499,6 @@ def test_cell_quilting_in_numba_and_drjit_is_the_torch_reference(mi, seed):
     """struct: torch path = numba kernel = Dr.Jit twin (values to float rounding); the twin's read positions and
     chosen offset indices are the torch path's bit for bit, near the origin and 2**45 repeats from it (int64
     cell indices beyond any int32), on both sides; near cell edges neighbours' and diagonal cells' offsets are taken."""
-    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
     from dynbtf.synthesis.registry import make_synthesizer
     from dynbtf.synthesis.cell_quilting import cell_choice
 
@@ -513,7 +508,7 @@ def test_cell_quilting_in_numba_and_drjit_is_the_torch_reference(mi, seed):
     fast = make_synthesizer("struct", exemplar, seed=seed, fast=True, prepared=reference.prepared)  # numba
     tables = reference.prepared
     assert tables.count > 4 and tables.cells == (2, 2)  # a lattice to choose from, two cells per repeat
-    twin = make_dr_synthesizer(reference)
+    twin = reference.backend_form("drjit")
     n = 4000
     for origin in (0.0, 2.0 ** 45, -(2.0 ** 45)):
         uv = origin + (rng.random((n, 2)) - 0.5) * (60.0 if origin == 0.0 else 6.0)
@@ -714,7 +709,6 @@ def test_relief_march_in_torch_numba_drjit_is_the_reference(mi, relief_model, me
     then below it again) the rounding may decide between the ridge and a surface further on: a jump by up to the
     march's reach. Such queries are rare (measured: none in these 240): at most 2% of them may jump."""
     from dynbtf.render.mitsuba.drjit_ops import DrParallaxTriplePlane
-    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
     from dynbtf.synthesis.registry import make_synthesizer
 
     model = relief_model
@@ -740,7 +734,7 @@ def test_relief_march_in_torch_numba_drjit_is_the_reference(mi, relief_model, me
 
     for name, synth in (("torch", reference), ("numba", fast)):
         check(model.visible_uv(torch.from_numpy(uv), torch.from_numpy(wv).float(), synth).numpy(), name)
-    twin = make_dr_synthesizer(reference)
+    twin = reference.backend_form("drjit")
     index = int(plane.shape[-1]) - 1
     u, v = DrParallaxTriplePlane(model).visible_uv(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1]), vector3(mi, wv),
                                                    lambda pu, pv, mask: twin.channel(pu, pv, index, mask))
@@ -887,7 +881,7 @@ def test_every_backend_reads_the_compiled_material_as_the_float64_reference(comp
     elif backend == "drjit":
         mi = pytest.importorskip("mitsuba")
         from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator
-        from dynbtf.render.mitsuba.drjit_ops import mi_module
+        from dynbtf.jit import mi_module
 
         mi = mi_module()
         evaluator = DynBTFEvaluator(material.model, method, material.seed)
@@ -1023,7 +1017,7 @@ def test_pyramid_levels_and_level_of_detail_are_the_brute_force_box_average(mi, 
     """Every level every backend reads (the read plane's pyramid; hex's luminance pyramid) = the brute-force box
     average (float32 storage of a float64 mean: 1e-6 of the plane's range); the level of detail of the library
     and of Dr.Jit = the documented rule (same level; weights to float32)."""
-    from dynbtf.render.mitsuba.drjit_synthesis import DrLevelOfDetail
+    from dynbtf.synthesis.drjit_blocks import DrLevelOfDetail
     from dynbtf.synthesis.registry import make_synthesizer
 
     synth = make_synthesizer(method, smooth_lognormal(24, 20, 4, seed=4), seed=9)
@@ -1062,7 +1056,6 @@ def test_filtered_read_in_torch_numba_drjit_is_the_reference(mi, method):
 
     Tolerance 5e-6 of the values' range: float32 levels, float32 bilinear weights (the torch fetch also at
     float32 texel positions); measured at most 1.2e-6 (torch path), 1.4e-7 (numba, Dr.Jit)."""
-    from dynbtf.render.mitsuba.drjit_synthesis import make_dr_synthesizer
     from dynbtf.synthesis.registry import make_synthesizer
 
     exemplar = smooth_lognormal(24, 20, 4, seed=4)
@@ -1088,7 +1081,7 @@ def test_filtered_read_in_torch_numba_drjit_is_the_reference(mi, method):
     if method != "tile":
         fast = make_synthesizer(method, exemplar, seed=9, fast=True, prepared=reference.prepared)
         got["numba"] = fast.filtered_latent(torch.from_numpy(uv), footprint).double().numpy()
-    twin = make_dr_synthesizer(reference)
+    twin = reference.backend_form("drjit")
     lower, t = twin.level_of_detail()(mi.Float64(texels))
     got["drjit"] = as_numpy(twin.filtered_latent(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1]), lower, t))
     for backend, values in got.items():

@@ -249,7 +249,7 @@ def test_render_cli_guided_by_a_target(variant, layer_files, tmp_path, capsys):
                            (["--softness", "2"], "--softness: expected a weight factor in [0, 1]"),
                            (["--method", "struct"], "--target: guided struct chooses whole cells by class"),
                            (["--method", "tile"], "steers hist, hex or struct"),
-                           (["--cells", "4"], "--cells: sets struct's cells per repeat"),
+                           (["--cells", "4"], "--cells: sets the cells per repeat of struct"),
                            (["--layer", str(layer_files[1][0])], "does not combine with a layered one")):
         assert main(common + ["--target", str(target), *extra, "-o", str(tmp_path / "x.png")]) != 0
         err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]

@@ -670,8 +670,8 @@ def test_parameter_table_is_the_documented_one():
 def test_parameter_errors_name_the_parameter(variant, model_file, tmp_path):
     """Every checked parameter's error: ``dynbtf BSDF: parameter 'name' ...``, before the model file is read."""
     path, _ = model_file
-    cases = [({"method": "quilt"}, "parameter 'method' must be one of ['tile', 'hist', 'hex', 'struct', 'auto'], "
-                                   "got 'quilt'"),
+    cases = [({"method": "quilt"}, "parameter 'method' must be one of ['hex', 'hist', 'linear', 'struct', 'tile', "
+                                   "'auto'], got 'quilt'"),
              ({"scale": 0.0}, "parameter 'scale': expected a positive, finite number of exemplar repeats, got 0.0"),
              ({"scale_v": -1.0}, "parameter 'scale_v': expected a positive, finite number"),
              ({"scale": 3e7}, "parameter 'scale': 3e+07 exemplar repeats across the uv range exceed the 16777216 "
@@ -689,9 +689,9 @@ def test_parameter_errors_name_the_parameter(variant, model_file, tmp_path):
 
 
 def test_register_plugin_checks_llvm_before_the_variant(variant, monkeypatch):
-    """register_plugin asks render.mitsuba.llvm.check_llvm about the variant it will set, before checking it."""
+    """register_plugin asks jit.llvm.check_llvm about the variant it will set, before checking it."""
     from dynbtf.errors import MissingDependencyError
-    from dynbtf.render.mitsuba import llvm
+    from dynbtf.jit import llvm
     from dynbtf.render.mitsuba.bsdf import register_plugin
 
     asked = []

@@ -41,7 +41,7 @@ def _chromium() -> str:
 
 
 def system_report() -> list[tuple[str, str]]:
-    """``(what, found)`` rows: Python, the packages, Mitsuba's LLVM (:mod:`dynbtf.render.mitsuba.llvm`), Chromium."""
+    """``(what, found)`` rows: Python, the packages, Mitsuba's LLVM (:mod:`dynbtf.jit.llvm`), Chromium."""
     from .._version import __version__
 
     rows = [("dynbtf", __version__), ("python", f"{platform.python_version()} ({sys.executable})"),
@@ -66,7 +66,7 @@ def system_report() -> list[tuple[str, str]]:
     for name in ("numpy", "numba", "ray"):
         rows.append((name, _version(name)[0]))
     from ..errors import DynBTFError
-    from ..render.mitsuba.llvm import MIN_LLVM, llvm_status
+    from ..jit.llvm import MIN_LLVM, llvm_status
 
     try:
         status = llvm_status()  # first: it imports Dr.Jit, which loads LLVM and says why it cannot

@@ -19,11 +19,18 @@ guided    hist steered by exemplar labels and a target label field    yes
 ``auto`` (:func:`~.auto.choose_method`) is not a method of its own: it measures how structured
 the exemplar is (:mod:`.structure`) and builds ``struct`` or ``hist``.
 
+Each dynamic method is a package (``tiling/``, ``blending/``, ``histogram_blending/``, ``hex_tiling/``,
+``cell_quilting/``, ``guided_blending/``): its synthesizer in ``__init__.py`` and, beside it, a module per
+backend it runs on (``drjit.py``: its Dr.Jit kernel for the renderer; ``web.py``: its branch of the web shader
+and its tables), named in the class's ``backends``. Backends reach them through
+:meth:`~.base.Synthesizer.backend_form` and name no method.
+
 Building blocks: :mod:`.lattice` (triangle grid, exact at any coordinate),
 :mod:`.hash` (integer vertex hash), :mod:`.histogram` (Gaussian transforms,
 PCA, variance-preserving blend), :mod:`.tileable` ("Avoiding Cuts"),
 :mod:`.structure` (autocorrelation peaks, structure strength), :mod:`.table_cache` (on-disk
-tables), :mod:`.kernels` (fused numba kernels), :mod:`.quality` (report) and :mod:`.coherence`
+tables), :mod:`.kernels` (fused numba kernels) and :mod:`.drjit_blocks` (their Dr.Jit twins), :mod:`.web_form`
+(what a method gives the web export), :mod:`.quality` (report) and :mod:`.coherence`
 (patch coherence and identity with tiling). :mod:`.registry` (``make_synthesizer``,
 ``synthesizer_class``) sits above the methods, :mod:`.base` below them.
 """

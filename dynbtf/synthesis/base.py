@@ -28,6 +28,7 @@ above them, does; the import-linter contract in ``pyproject.toml`` checks this).
 from __future__ import annotations
 
 import abc
+import importlib
 import math
 from typing import Any, ClassVar
 
@@ -184,8 +185,39 @@ class Synthesizer(abc.ABC):
     #: normal view and light; ``"separate_channels"``: a relief model's height channels). The material stage
     #: derives them (:func:`dynbtf.material.compiler.model_arguments`); synthesis itself never decodes a model.
     model_inputs: ClassVar[dict[str, str]] = {}
+    #: The backends the method runs on besides its torch reference and CPU kernel: backend name -> the module that
+    #: gives its form there, ``form(synthesizer)`` (``"drjit"``: the renderer's kernel; ``"web"``: the GLSL export's
+    #: mode, shader code and tables). A method package (``dynbtf/synthesis/<method>/``) holds its synthesizer in
+    #: ``__init__.py`` and these modules beside it; a subclass inherits its base's entries unless it sets its own.
+    #: Backends look methods up here (:meth:`backend_form`) and name none.
+    backends: ClassVar[dict[str, str]] = {}
     #: The :class:`~dynbtf.synthesis.auto.MethodChoice` when built by ``make_synthesizer("auto", ...)``.
     choice = None
+
+    @classmethod
+    def backend_module(cls, backend: str):
+        """The module that gives this method a ``backend`` form (its :attr:`backends` entry, imported), or None.
+
+        >>> from dynbtf.synthesis.registry import synthesizer_class
+        >>> synthesizer_class("struct").backend_module("drjit").__name__
+        'dynbtf.synthesis.cell_quilting.drjit'
+        >>> synthesizer_class("hist").backend_module("web").__name__
+        'dynbtf.synthesis.histogram_blending.web'
+        >>> synthesizer_class("quilt").backend_module("drjit") is None
+        True
+        """
+        module = cls.backends.get(backend)
+        return None if module is None else importlib.import_module(module)
+
+    def backend_form(self, backend: str):
+        """This synthesizer in ``backend``'s terms (:meth:`backend_module`'s ``form(self)``): e.g. its Dr.Jit kernel
+        for the renderer (``"drjit"``), its tables for the web export (``"web"``). A method without that backend
+        raises :class:`InputError` naming the methods that have it."""
+        module = self.backend_module(backend)
+        if module is None:
+            having = sorted(name for name, cls in SYNTHESIZERS.items() if cls.backend_module(backend) is not None)
+            raise InputError(f"synthesis method {self.name!r} has no {backend} form; methods with one: {having}")
+        return module.form(self)
 
     def __init__(self, exemplar, seed: int = 0) -> None:
         self.exemplar = self.check_exemplar(exemplar)

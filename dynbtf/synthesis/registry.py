@@ -17,12 +17,15 @@ from . import blending, cell_quilting, guided_blending, hex_tiling, histogram_bl
 from .auto import choose_method
 from .base import SYNTHESIZERS, Synthesizer
 
-__all__ = ["SYNTHESIZERS", "synthesizer_class", "make_synthesizer", "model_inputs", "AUTO_CANDIDATES", "EXEMPLAR_METHOD"]
+__all__ = ["SYNTHESIZERS", "synthesizer_class", "make_synthesizer", "model_inputs", "AUTO_CANDIDATES", "EXEMPLAR_METHOD", "PAPER_METHOD",
+           "takes_parameter", "methods_with"]
 
 #: The methods ``auto`` chooses between (:func:`dynbtf.synthesis.auto.choose_method`).
 AUTO_CANDIDATES = ("struct", "hist")
 #: The method that answers the exemplar itself, periodic and without tables: what synthesis is measured against.
 EXEMPLAR_METHOD = "tile"
+#: The paper's method (histogram-preserving blending): the one other methods and the automatic choice are shown next to.
+PAPER_METHOD = "hist"
 
 
 def synthesizer_class(name: str) -> type[Synthesizer]:
@@ -47,6 +50,33 @@ def model_inputs(name: str) -> dict[str, str]:
 def _accepted(cls) -> list[str]:
     """The method parameters of a synthesizer class (its constructor's keywords besides exemplar and seed)."""
     return [p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "exemplar", "seed")]
+
+
+def takes_parameter(name: str, parameter: str) -> bool:
+    """Whether method ``name`` takes ``parameter`` (a keyword of its constructor); ``auto`` takes none itself (its
+    parameters go to the method it chooses), and an unknown name takes nothing.
+
+    >>> takes_parameter("struct", "cells"), takes_parameter("hist", "cells"), takes_parameter("hist", "gamma")
+    (True, False, True)
+    """
+    cls = SYNTHESIZERS.get(name)
+    return cls is not None and parameter in _accepted(cls)
+
+
+def methods_with(backend: str) -> list[str]:
+    """The methods that run on ``backend`` (:attr:`~dynbtf.synthesis.base.Synthesizer.backends`) and build from an
+    exemplar alone (no required parameter, unlike the guided methods, which need labels and a target), sorted.
+
+    >>> methods_with("web")
+    ['hex', 'hist', 'linear', 'struct', 'tile']
+    """
+    def ready(cls) -> bool:
+        required = [p for p in inspect.signature(cls.__init__).parameters.values()
+                    if p.name not in ("self", "exemplar", "seed") and p.default is inspect.Parameter.empty
+                    and p.kind not in (inspect.Parameter.VAR_KEYWORD, inspect.Parameter.VAR_POSITIONAL)]
+        return not required
+
+    return sorted(name for name, cls in SYNTHESIZERS.items() if backend in cls.backends and ready(cls))
 
 
 def make_synthesizer(name: str, exemplar, seed: int = 0, **params) -> Synthesizer:

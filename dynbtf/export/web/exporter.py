@@ -61,13 +61,16 @@ from ...synthesis.auto import AUTO
 from ...synthesis.hash import MASK32, seed_state
 from ...infinite_btf import SynthesizedBTF
 from ...synthesized import synthesized_btf
-from .shader import LOCAL_REPEATS, WEB_METHODS, glsl_source, lattice_constants
+from ...synthesis.registry import EXEMPLAR_METHOD, PAPER_METHOD
+from ...synthesis.web_form import TABLE_KINDS, WebForm
+from .shader import LOCAL_REPEATS, glsl_source, lattice_constants, web_methods
 
 __all__ = ["export_web", "WebExport", "quantize", "dequantize", "quantized_model", "SUPPORTED_KINDS",
            "WEB_PRECISIONS", "FORMAT_VERSION", "DEFAULT_METHODS"]
 
-#: Methods exported by default: the model's automatic choice (the viewer's default), and hist and tile to compare.
-DEFAULT_METHODS = (AUTO, "hist", "tile")
+#: Methods exported by default: the model's automatic choice (the viewer's default), and the paper's method and
+#: plain tiling to compare.
+DEFAULT_METHODS = (AUTO, PAPER_METHOD, EXEMPLAR_METHOD)
 
 #: Model kinds the shader evaluates.
 SUPPORTED_KINDS = ("triple", "triple-parallax")
@@ -272,15 +275,14 @@ def _lut_texture(writer: _Writer, name: str, table: np.ndarray, precision: str) 
             "width": int(row), "size": int(size), "row": int(row), "scale": _pad4(scale, 0.0), "bias": _pad4(bias, 0.0)}
 
 
-def _cell_tables_texture(writer: _Writer, name: str, tables) -> dict[str, Any]:
-    """``struct``'s offsets ``(K, 2)``, vertical and horizontal cuts, flattened (C order) one after the other
-    into one ``R16I`` texture (exact: every value fits int16), ``row`` entries per texture row."""
-    parts = {"offsets": tables.offsets.cpu().numpy(), "vertical_cuts": tables.vertical_cuts.cpu().numpy(),
-             "horizontal_cuts": tables.horizontal_cuts.cpu().numpy()}
-    if int(np.abs(parts["offsets"]).max()) > np.iinfo(np.int16).max:
-        raise InputError(f"export: struct's lattice offsets {parts['offsets'].max()} exceed int16 (an exemplar "
-                         "wider than 32767 texels)")
-    flat = np.concatenate([v.astype(np.int16).reshape(-1) for v in parts.values()])
+def _int16_texture(writer: _Writer, name: str, parts: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Named integer arrays flattened (C order) one after the other into one ``R16I`` texture, ``row`` entries per
+    texture row: exact, so every value must fit int16 (an :class:`InputError` names the array that does not)."""
+    for key, values in parts.items():
+        if values.size and int(np.abs(values).max()) > np.iinfo(np.int16).max:
+            raise InputError(f"export: table {key} holds {int(np.abs(values).max())}, beyond int16 (e.g. offsets of "
+                             "an exemplar wider than 32767 texels)")
+    flat = np.concatenate([np.asarray(v).astype(np.int16).reshape(-1) for v in parts.values()])
     row = min(len(flat), _LUT_ROW)
     rows = (len(flat) + row - 1) // row
     data = np.zeros(rows * row, np.int16)
@@ -292,6 +294,17 @@ def _cell_tables_texture(writer: _Writer, name: str, tables) -> dict[str, Any]:
         entry[key] = {"start": start, "shape": [int(d) for d in values.shape]}
         start += int(values.size)
     return entry
+
+
+def _table_entry(writer: _Writer, name: str, table, precision: str) -> dict[str, Any]:
+    """One of a method's tables (:class:`~dynbtf.synthesis.web_form.WebTable`) written by its kind."""
+    if table.kind == "single":
+        return _texture(writer, name, np.asarray(table.values, dtype=np.float32), precision, layered=False)
+    if table.kind == "lut":
+        return _lut_texture(writer, name, np.asarray(table.values, dtype=np.float32), precision)
+    if table.kind == "int16":
+        return _int16_texture(writer, name, table.values)
+    raise InputError(f"export: table {name!r} of kind {table.kind!r}; expected one of {TABLE_KINDS}")
 
 
 def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHODS, seed: int = 0,
@@ -311,7 +324,7 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
         Directory to write (created; files of an earlier export are replaced).
     precision : {"fp16", "u8", "fp32"}
         Storage of the textures (see the module docstring).
-    methods : sequence of {"auto", "tile", "linear", "hist", "hex", "struct"}
+    methods : sequence of {"auto"} or the methods with a web form (:func:`~dynbtf.export.web.shader.web_methods`)
         Synthesis methods to export (each with its own plane and tables); the first is the
         viewer's default. ``auto`` is the model's choice (``synthesized_btf(model, "auto")``:
         ``struct`` for a structured positional plane, else ``hist``), exported under the chosen
@@ -378,13 +391,12 @@ def _check_options(precision: str, methods) -> list[str]:
         raise InputError(f"precision: expected one of {sorted(WEB_PRECISIONS)} (fp16: half floats, u8: 8 bits per "
                          f"channel with per-channel scale and bias, fp32: exact), got {precision!r}")
     methods = [methods] if isinstance(methods, str) else list(methods)
-    accepted = [AUTO, *WEB_METHODS]
+    accepted = [AUTO, *web_methods()]
     if not methods:
         raise InputError(f"methods: expected at least one of {accepted}")
     for m in methods:
         if m not in accepted:
-            raise InputError(f"method: {m!r} has no shader form; expected one of {accepted} "
-                             "(quilting is not dynamic)")
+            raise InputError(f"method: {m!r} has no shader form; expected one of {accepted}")
     return methods
 
 
@@ -493,33 +505,24 @@ def _export_methods(writer: _Writer, model, layout: _DecoderLayout, methods: lis
 
 def _method_entry(writer: _Writer, m: str, btf: SynthesizedBTF, seed: int, precision: str,
                   layout: _DecoderLayout) -> dict[str, Any]:
-    """Write one method's files (plane, its tables, layer 1 with its output map folded in): its manifest entry."""
+    """Write one method's files (plane, its tables, layer 1 with its output map folded in): its manifest entry.
+
+    What the method's shader branch reads comes from its ``web`` module (:mod:`dynbtf.synthesis.web_form`)."""
     synth = btf.synthesizer
+    web = synth.backend_module("web")
+    form: WebForm = synth.backend_form("web")
     files = []
-    entry: dict[str, Any] = {"mode": WEB_METHODS[m], "density": [int(synth.exemplar.shape[1]),
-                                                                 int(synth.exemplar.shape[0])],
+    entry: dict[str, Any] = {"mode": web.MODE, "density": [int(synth.exemplar.shape[1]), int(synth.exemplar.shape[0])],
                              "seed": int(seed), "seed_state": int(seed_state(int(seed) & MASK32)),
                              "parameters": synth.parameters()}
-    plane = (synth.exemplar if m in ("tile", "struct") else synth.prepared.plane).detach().cpu().numpy()
-    entry["plane"] = _texture(writer, f"plane_{m}.bin", plane, precision, layered=True)
+    entry["plane"] = _texture(writer, f"plane_{m}.bin", np.asarray(form.plane, dtype=np.float32), precision,
+                              layered=True)
     files.append(entry["plane"]["file"])
+    for name, table in form.tables.items():
+        entry[name] = _table_entry(writer, f"{name}_{m}.bin", table, precision)
+        files.append(entry[name]["file"])
+    entry.update(form.constants)
     matrix, out_offset = synth.output_map()
-    kernel = synth.kernel_arguments() if m not in ("tile", "struct") else {}  # what the fused CPU kernel is given
-    if m == "struct":
-        t = synth.prepared
-        entry["tables"] = _cell_tables_texture(writer, f"tables_{m}.bin", t)
-        entry.update(cells=[int(c) for c in t.cells], margin=[int(c) for c in t.margin], count=int(t.count))
-        files.append(entry["tables"]["file"])
-    if m == "hist":
-        entry["lut"] = _lut_texture(writer, f"lut_{m}.bin", kernel["lut"].cpu().numpy(), precision)
-        entry.update(gamma=float(kernel["gamma"]), g_min=float(kernel["g_min"]),
-                     inv_step=float(1.0 / kernel["step"]))
-        files.append(entry["lut"]["file"])
-    if m == "hex":
-        entry["luminance"] = _texture(writer, f"luminance_{m}.bin", kernel["luminance"].cpu().numpy(), precision,
-                                      layered=False)
-        entry.update(beta=float(kernel["beta"]), gain_k=float(kernel["gain_k"]))
-        files.append(entry["luminance"]["file"])
     # layer 1 with the method's output map folded in, as the compiled material holds it (FoldedDecoder.fold)
     folded = btf.material.decoder
     w_fold = folded.levels[0].weight.T.double().cpu().numpy()                 # (hidden, C)
@@ -558,8 +561,8 @@ def _manifest(kind: str, source: Path | None, precision: str, scale: float, layo
                         "towards the camera, w_light towards the light; (theta, phi) in degrees: theta from the "
                         "normal, phi from +u towards +v. Values: linear RGB, excluding cos(theta_light) (pi f_r). "
                         "uv: exemplar repeats = surface uv x scale; exact for |uv x scale| < 2**52 (split on the "
-                        "CPU into a repeat origin and a local uv of at most 2**12 repeats; struct's origin words "
-                        "are the int64 cell index of the repeat's first cell, I x cells)."),
+                        "CPU into a repeat origin and a local uv of at most 2**12 repeats; for a method with "
+                        "cells the origin words are the int64 cell index of the repeat's first cell, I x cells)."),
     }
 
 

@@ -25,14 +25,26 @@ from ...errors import InputError
 from ...synthesis.hash import MASK32, MIX_MULTIPLIER_1, MIX_MULTIPLIER_2, SECOND_STREAM
 from ...synthesis.lattice import (_C3, _N1, _N2, LATTICE_SCALE, LATTICE_SCALE_HI, LATTICE_SCALE_LO, MAX_REPEATS,
                                  _scaled_integer, split_uv)
+from ...synthesis.registry import SYNTHESIZERS
 
-__all__ = ["glsl_source", "shader_cost", "repeat_origin", "RepeatOrigin", "lattice_constants", "WEB_METHODS",
-           "LATTICE_METHODS", "LOCAL_REPEATS", "MAX_MARCH_STEPS"]
+__all__ = ["glsl_source", "shader_cost", "repeat_origin", "RepeatOrigin", "lattice_constants", "web_methods",
+           "web_module", "LOCAL_REPEATS", "MAX_MARCH_STEPS"]
 
-#: Synthesis methods the shader implements, with their mode numbers in ``dynbtf.glsl``.
-WEB_METHODS = {"tile": 0, "linear": 1, "hist": 2, "hex": 3, "struct": 4}
-#: Methods that read the triangle lattice (``struct`` reads a grid of cells instead).
-LATTICE_METHODS = ("tile", "linear", "hist", "hex")
+
+
+def web_methods() -> dict[str, Any]:
+    """The synthesis methods the shader implements: registry name -> the method's ``web`` module
+    (:mod:`dynbtf.synthesis.web_form`), in the order of their ``MODE`` numbers."""
+    found = {name: cls.backend_module("web") for name, cls in SYNTHESIZERS.items()}
+    return dict(sorted(((n, m) for n, m in found.items() if m is not None), key=lambda item: item[1].MODE))
+
+
+def web_module(method: str):
+    """The ``web`` module of ``method`` (a registry name); a method without one raises :class:`InputError`."""
+    methods = web_methods()
+    if method not in methods:
+        raise InputError(f"method: expected one of {list(methods)}, got {method!r}")
+    return methods[method]
 #: Repeats the shader's float32 local uv may span (beyond: the caller moves the origin).
 LOCAL_REPEATS = 2 ** 12
 #: Most samples of the relief ray march per pixel after the first (a march that needs more stops short of the library's).
@@ -92,9 +104,9 @@ class RepeatOrigin:
         return self._words(self.cell_x, self.cell_y)
 
     def shader_words(self, method: str) -> np.ndarray:
-        """What the shader's ``DynbtfOrigin.lattice`` holds for ``method``: :meth:`cell_words` for ``struct``,
-        else :meth:`words`."""
-        return self.cell_words() if method == "struct" else self.words()
+        """What the shader's ``DynbtfOrigin.lattice`` holds for ``method``: :meth:`cell_words` for a method whose
+        ``web`` module's ``ORIGIN`` is ``"cells"``, else :meth:`words`."""
+        return self.cell_words() if web_module(method).ORIGIN == "cells" else self.words()
 
 
 def repeat_origin(points, plane_size: tuple[int, int], density: tuple[int, int],
@@ -154,23 +166,24 @@ def glsl_source(*, channels: int, angular_channels: int, hidden: int, layers: in
     ``height_scale``) adds the ray march of
     :func:`dynbtf.representations.parallax.march_visible_uv` through the synthesized height.
 
-    The source is the concatenation, in this order, of: the header (sizes, uniforms, decoder
-    constants), the integer part of a position and the hash, the triangle lattice (``tile``,
-    ``linear``, ``hist``, ``hex``), the cells and cuts (``struct``), the texel fetches, the
-    per-method synthesis of the latent, the angular features, then the decoder (with the relief
-    march, if any) and ``dynbtf_eval``.
+    The source is the concatenation, in this order, of: the header (sizes, the uniforms shared and each
+    method's, decoder constants), the integer part of a position and the hash, the triangle lattice, the
+    texel fetches and the lattice samples' blend, each method's functions, ``dynbtf_latent`` (a branch per
+    method, :func:`web_methods`), the angular features, then the decoder (with the relief march, if any)
+    and ``dynbtf_eval``.
     """
     if len(rest_weights) != layers - 1:
         raise InputError(f"glsl_source: expected weights of {layers - 1} layers after the first, got {len(rest_weights)}")
     sizes = dict(channels=channels, angular_channels=angular_channels, hidden=hidden, layers=layers)
+    methods = web_methods()
     return "".join([
         _glsl_header(**sizes, angular_resolution=angular_resolution,
-                     constants=_glsl_decoder_constants(angular_weights, rest_weights)),
+                     constants=_glsl_decoder_constants(angular_weights, rest_weights), methods=methods),
         _glsl_integers(),
         _glsl_triangle(),
-        _glsl_cells(),
         _glsl_fetches(),
-        _glsl_latent(),
+        *(web.GLSL_FUNCTIONS for web in methods.values()),
+        _glsl_latent(methods),
         _glsl_angular(angular_resolution),
         _glsl_decoder_and_eval(**sizes, negative_slope=negative_slope, relief=relief),
     ])
@@ -192,14 +205,18 @@ def _glsl_decoder_constants(angular_weights: np.ndarray, rest_weights: list[tupl
 
 
 def _glsl_header(*, channels: int, angular_channels: int, hidden: int, layers: int, angular_resolution: int,
-                 constants: list[str]) -> str:
+                 constants: list[str], methods: dict[str, Any]) -> str:
     """The header: what the shader evaluates, its sizes (``DYNBTF_G``, ``DYNBTF_AG``, ``DYNBTF_HG``: RGBA
-    layers of the positional, angular and hidden channels), the per-method uniforms and textures, the
-    ``DynbtfLayer1`` uniform block (``hg * g`` mat4 and ``hg`` vec4) and the decoder ``constants``."""
+    layers of the positional, angular and hidden channels), the uniforms and textures every method reads, those of
+    each of ``methods`` (:func:`web_methods`), the ``DynbtfLayer1`` uniform block (``hg * g`` mat4 and ``hg``
+    vec4) and the decoder ``constants``."""
     g, ag, hg = _groups(channels), _groups(angular_channels), _groups(hidden)
+    names = ", ".join(methods)
+    modes = ", ".join(f"{web.MODE} {name}" for name, web in methods.items())
+    method_uniforms = "".join(web.GLSL_UNIFORMS for web in methods.values())
     return f"""// dynbtf real-time shader functions (GLSL ES 3.00), generated by dynbtf.export.web.shader.
-// Evaluates dynbtf.infinite_btf.SynthesizedBTF: synthesized positional features (tile, linear,
-// hist, hex, struct), Rusinkiewicz angular features and the decoder. Conventions (dynbtf README):
+// Evaluates dynbtf.infinite_btf.SynthesizedBTF: synthesized positional features ({names}),
+// Rusinkiewicz angular features and the decoder. Conventions (dynbtf README):
 // directions are unit vectors in the local frame (x along +u, y along +v, z = normal), both
 // pointing away from the surface; the value excludes cos(theta_light) (pi f_r), linear RGB.
 // Sizes: {channels} positional channels ({g} RGBA layers), {angular_channels} angular channels per plane
@@ -211,33 +228,15 @@ def _glsl_header(*, channels: int, angular_channels: int, hidden: int, layers: i
 
 // ---- per-method state (set by the host for the method in use)
 uniform highp sampler2DArray dynbtf_plane;   // the plane the method reads, RGBA layers
-uniform highp sampler2D dynbtf_lut;          // hist: inverse tables, channel c entry k at (k % row, c * rows + k / row)
-uniform highp sampler2D dynbtf_lum;          // hex: luminance in [0, 1]
 uniform highp sampler2DArray dynbtf_fh;      // angular planes: x = phi column, y = theta row
 uniform highp sampler2DArray dynbtf_fd;
-uniform highp isampler2D dynbtf_cells;       // struct: offsets, vertical cuts, horizontal cuts (int16), entry k at (k % row, k / row)
-uniform int dynbtf_mode;                     // 0 tile, 1 linear, 2 hist, 3 hex, 4 struct
+uniform int dynbtf_mode;                     // {modes}
 uniform ivec2 dynbtf_plane_size;             // (W', H') of the plane read
 uniform ivec2 dynbtf_density;                // (W, H): texels per repeat
 uniform uint dynbtf_seed_state;              // mix32((seed ^ 0x85EBCA6B)) (dynbtf.synthesis.hash.seed_state)
-uniform float dynbtf_gamma;                  // hist: barycentric exponent
-uniform float dynbtf_beta;                   // hex: luminance fall-off
-uniform float dynbtf_gain_k;                 // hex: contrast-gain exponent (1: none)
-uniform float dynbtf_g_min;                  // hist: Gaussian value of table entry 0
-uniform float dynbtf_inv_step;               // hist: table entries per Gaussian unit
-uniform int dynbtf_lut_size;                 // hist: entries per channel
-uniform int dynbtf_lut_row;                  // hist: entries per texture row
-uniform ivec2 dynbtf_cell_grid;              // struct: cells per repeat (n_x, n_y)
-uniform ivec2 dynbtf_cell_margin;            // struct: half-widths of the cut bands (m_x, m_y), texels
-uniform int dynbtf_cell_count;               // struct: K, the number of lattice offsets
-uniform int dynbtf_cell_row;                 // struct: table entries per texture row
-uniform ivec2 dynbtf_cut_start;              // struct: first entry of the vertical and of the horizontal cuts
 uniform vec4 dynbtf_plane_scale[DYNBTF_G];   // value = stored * scale + bias, per channel
 uniform vec4 dynbtf_plane_bias[DYNBTF_G];
-uniform vec4 dynbtf_lut_scale[DYNBTF_G];
-uniform vec4 dynbtf_lut_bias[DYNBTF_G];
-uniform vec4 dynbtf_lum_scale_bias;          // (scale, bias, 0, 0)
-uniform vec4 dynbtf_fh_scale[DYNBTF_AG];
+{method_uniforms}uniform vec4 dynbtf_fh_scale[DYNBTF_AG];
 uniform vec4 dynbtf_fh_bias[DYNBTF_AG];
 uniform vec4 dynbtf_fd_scale[DYNBTF_AG];
 uniform vec4 dynbtf_fd_bias[DYNBTF_AG];
@@ -349,78 +348,9 @@ DynbtfTriangle dynbtf_triangle(DynbtfOrigin o, vec2 local) {{
 """
 
 
-def _glsl_cells() -> str:
-    """``struct``'s cells (:mod:`dynbtf.synthesis.cell_quilting`): ``dynbtf_cell`` finds the query's cell,
-    the neighbour the vertical and horizontal cuts give the point to, that cell's hashed lattice offset and
-    the bilinear footprint on the exemplar."""
-    return """// ---- lattice-aligned cell quilting (dynbtf.synthesis.cell_quilting): the cell, its hashed offset, the cuts
-struct DynbtfCell {
-    uvec2 cx; uvec2 cy;   // the query's own cell, int64 (low, high) words: I n + w n + column (row)
-    ivec2 side;           // -1, 0 or 1 per axis: the point belongs to this neighbour of its cell (both: the diagonal one)
-    int chosen;           // offset index (hash of that cell mod K)
-    ivec2 offset;         // its lattice offset (dx, dy), texels
-    ivec2 texel;          // texel of the bilinear footprint's corner on the exemplar, offset applied
-    vec2 t;               // bilinear weights inside the footprint
-};
-
-int dynbtf_cell_entry(int k) { return texelFetch(dynbtf_cells, ivec2(k % dynbtf_cell_row, k / dynbtf_cell_row), 0).r; }
-int dynbtf_cell_choice(uvec2 cx, uvec2 cy) {
-    return int(dynbtf_fold(dynbtf_fold(dynbtf_seed_state, cx), cy) % uint(dynbtf_cell_count));
-}
-
-DynbtfCell dynbtf_cell(DynbtfOrigin o, vec2 local) {
-    DynbtfCell c;
-    vec2 wf, f;
-    dynbtf_split(local, wf, f);
-    ivec2 w = ivec2(wf);
-    ivec2 size = dynbtf_plane_size;   // the exemplar: W' = W, H' = H
-    ivec2 n = dynbtf_cell_grid;
-    ivec2 span = size / n;            // cell side (T_x, T_y)
-    ivec2 texel = min(ivec2(floor(f * vec2(size))), size - 1);
-    ivec2 cell = texel / span;        // column and row within the repeat
-    ivec2 l = texel - cell * span;    // texel within the cell
-    c.cx = dynbtf_add(o.lattice.xy, w.x * n.x + cell.x);
-    c.cy = dynbtf_add(o.lattice.zw, w.y * n.y + cell.y);
-    int k = dynbtf_cell_count;
-    int own = dynbtf_cell_choice(c.cx, c.cy);
-    ivec2 m = dynbtf_cell_margin;
-    c.side = ivec2(0);
-    if (l.x < m.x) {   // the cut of the edge at the cell's start: left cell a, this cell b, texel row l.y
-        int a = dynbtf_cell_choice(dynbtf_add(c.cx, -1), c.cy);
-        int cut = dynbtf_cell_entry(dynbtf_cut_start.x + (((cell.x * n.y + cell.y) * k + a) * k + own) * span.y + l.y);
-        if (l.x < cut) c.side.x = -1;
-    } else if (l.x >= span.x - m.x) {   // the edge at the cell's end: this cell a, right cell b
-        int b = dynbtf_cell_choice(dynbtf_add(c.cx, 1), c.cy);
-        int i = cell.x + 1 == n.x ? 0 : cell.x + 1;
-        int cut = dynbtf_cell_entry(dynbtf_cut_start.x + (((i * n.y + cell.y) * k + own) * k + b) * span.y + l.y);
-        if (l.x - span.x >= cut) c.side.x = 1;
-    }
-    if (l.y < m.y) {
-        int a = dynbtf_cell_choice(c.cx, dynbtf_add(c.cy, -1));
-        int cut = dynbtf_cell_entry(dynbtf_cut_start.y + (((cell.x * n.y + cell.y) * k + a) * k + own) * span.x + l.x);
-        if (l.y < cut) c.side.y = -1;
-    } else if (l.y >= span.y - m.y) {
-        int b = dynbtf_cell_choice(c.cx, dynbtf_add(c.cy, 1));
-        int j = cell.y + 1 == n.y ? 0 : cell.y + 1;
-        int cut = dynbtf_cell_entry(dynbtf_cut_start.y + (((cell.x * n.y + j) * k + own) * k + b) * span.x + l.x);
-        if (l.y - span.y >= cut) c.side.y = 1;
-    }
-    c.chosen = c.side == ivec2(0) ? own : dynbtf_cell_choice(dynbtf_add(c.cx, c.side.x), dynbtf_add(c.cy, c.side.y));
-    c.offset = ivec2(dynbtf_cell_entry(2 * c.chosen), dynbtf_cell_entry(2 * c.chosen + 1));
-    // one bilinear sample at the shifted position (texel centres at whole + 0.5), wrapped
-    vec2 p = f * vec2(size) - 0.5;
-    vec2 p0 = floor(p);
-    c.t = p - p0;
-    c.texel = ivec2(dynbtf_mod(int(p0.x) + c.offset.x, size.x), dynbtf_mod(int(p0.y) + c.offset.y, size.y));
-    return c;
-}
-
-"""
-
-
 def _glsl_fetches() -> str:
-    """Texel fetches: the bilinear footprint of the plane (every method), the luminance (``hex``), the
-    inverse histogram tables (``hist``) and ``hex``'s contrast gain."""
+    """Texel fetches: the bilinear footprint of the plane (every method), and the lattice methods' three samples:
+    their texels on the read plane (``dynbtf_sample_texels``) and their weighted blend (``dynbtf_blend3``)."""
     return """// ---- fetches
 void dynbtf_bilinear(ivec2 c, vec2 t, float weight, int g0, int g1, inout vec4 acc[DYNBTF_G]) {
     ivec2 size = dynbtf_plane_size;
@@ -434,85 +364,43 @@ void dynbtf_bilinear(ivec2 c, vec2 t, float weight, int g0, int g1, inout vec4 a
     }
 }
 
-float dynbtf_luminance(ivec2 c, vec2 t) {
+// the three samples of a lattice triangle: each vertex's hashed offset added to the shared footprint's texel
+void dynbtf_sample_texels(DynbtfTriangle tri, out ivec2 c[3]) {
     ivec2 size = dynbtf_plane_size;
-    int c1 = c.x + 1 == size.x ? 0 : c.x + 1;
-    int r1 = c.y + 1 == size.y ? 0 : c.y + 1;
-    float v = (1.0 - t.x) * (1.0 - t.y) * texelFetch(dynbtf_lum, c, 0).r + t.x * (1.0 - t.y) * texelFetch(dynbtf_lum, ivec2(c1, c.y), 0).r
-            + (1.0 - t.x) * t.y * texelFetch(dynbtf_lum, ivec2(c.x, r1), 0).r + t.x * t.y * texelFetch(dynbtf_lum, ivec2(c1, r1), 0).r;
-    return v * dynbtf_lum_scale_bias.x + dynbtf_lum_scale_bias.y;
+    for (int i = 0; i < 3; ++i) c[i] = ivec2((tri.texel.x + tri.offset[i].x) % size.x, (tri.texel.y + tri.offset[i].y) % size.y);
 }
 
-float dynbtf_inverse_table(int c, float g) {
-    float top = float(dynbtf_lut_size - 1);
-    float pos = clamp((g - dynbtf_g_min) * dynbtf_inv_step, 0.0, top);
-    int lo = min(int(pos), dynbtf_lut_size - 2);
-    float t = pos - float(lo);
-    int rows = (dynbtf_lut_size + dynbtf_lut_row - 1) / dynbtf_lut_row;
-    int hi = lo + 1;
-    float x0 = texelFetch(dynbtf_lut, ivec2(lo % dynbtf_lut_row, c * rows + lo / dynbtf_lut_row), 0).r;
-    float x1 = texelFetch(dynbtf_lut, ivec2(hi % dynbtf_lut_row, c * rows + hi / dynbtf_lut_row), 0).r;
-    return x0 + t * (x1 - x0);
-}
-
-float dynbtf_gain(float x) {
-    return x < 0.5 ? 0.5 * pow(2.0 * x, dynbtf_gain_k) : 1.0 - 0.5 * pow(max(2.0 - 2.0 * x, 0.0), dynbtf_gain_k);
+// the samples blended with weights s; returns the sum of the weights
+float dynbtf_blend3(DynbtfTriangle tri, ivec2 c[3], vec3 s, int g0, int g1, inout vec4 acc[DYNBTF_G]) {
+    for (int i = 0; i < 3; ++i) dynbtf_bilinear(c[i], tri.t, s[i], g0, g1, acc);
+    return s.x + s.y + s.z;
 }
 
 """
 
 
-def _glsl_latent() -> str:
-    """``dynbtf_latent``: the synthesized positional features before the output map, per method
-    (``dynbtf_mode``): one sample (``tile``, ``struct``), or three blended with barycentric (``linear``),
-    ``(b / max b)^gamma`` (``hist``, then its inverse tables) or luminance-weighted (``hex``) weights; only the
-    channel groups ``[g0, g1)`` (the others are 0: a relief march reads the height's group alone)."""
-    return """// ---- synthesized positional features before the output map (the "latent", DYNBTF_G vec4)
-void dynbtf_latent(DynbtfOrigin o, vec2 local, int g0, int g1, out vec4 latent[DYNBTF_G]) {
+def _indented(code: str, spaces: int) -> str:
+    """``code``'s lines indented by ``spaces``."""
+    return "".join(" " * spaces + line + "\n" for line in code.splitlines())
+
+
+def _glsl_latent(methods: dict[str, Any]) -> str:
+    """``dynbtf_latent``: the synthesized positional features before the output map, a branch per method
+    (``dynbtf_mode``: each ``web`` module's ``GLSL_SAMPLE``, then the plane's dequantization and its ``GLSL_AFTER``);
+    only the channel groups ``[g0, g1)`` (the others are 0: a relief march reads the height's group alone)."""
+    branches = " else ".join(f"if (dynbtf_mode == {web.MODE}) {{\n{_indented(web.GLSL_SAMPLE, 8)}    }}"
+                             for web in methods.values())
+    after = "".join(f"    if (dynbtf_mode == {web.MODE}) {{\n{_indented(web.GLSL_AFTER, 8)}    }}\n"
+                    for web in methods.values() if web.GLSL_AFTER)
+    return f"""// ---- synthesized positional features before the output map (the "latent", DYNBTF_G vec4)
+void dynbtf_latent(DynbtfOrigin o, vec2 local, int g0, int g1, out vec4 latent[DYNBTF_G]) {{
     vec4 acc[DYNBTF_G];
     for (int g = 0; g < DYNBTF_G; ++g) acc[g] = vec4(0.0);
     float total = 1.0;
-    if (dynbtf_mode == 4) {
-        DynbtfCell cell = dynbtf_cell(o, local);
-        dynbtf_bilinear(cell.texel, cell.t, 1.0, g0, g1, acc);
-    } else {
-        DynbtfTriangle tri = dynbtf_triangle(o, local);
-        if (dynbtf_mode == 0) {
-            dynbtf_bilinear(tri.texel, tri.t, 1.0, g0, g1, acc);
-        } else {
-            vec3 s = vec3(tri.b[0], tri.b[1], tri.b[2]);
-            ivec2 size = dynbtf_plane_size;
-            ivec2 c[3];
-            for (int i = 0; i < 3; ++i) c[i] = ivec2((tri.texel.x + tri.offset[i].x) % size.x, (tri.texel.y + tri.offset[i].y) % size.y);
-            if (dynbtf_mode == 2) {
-                // (b / max b)^gamma: the largest term is 1, no underflow to 0/0 (dynbtf.synthesis.histogram.blend_weights)
-                s = dynbtf_gamma == 1.0 ? s : pow(max(s, 0.0) / max(max(s.x, s.y), s.z), vec3(dynbtf_gamma));
-                s /= s.x + s.y + s.z;
-                s *= inversesqrt(dot(s, s));
-            } else if (dynbtf_mode == 3) {
-                vec3 lum = vec3(dynbtf_luminance(c[0], tri.t), dynbtf_luminance(c[1], tri.t), dynbtf_luminance(c[2], tri.t));
-                vec3 b = max(s, 0.0), b2 = b * b, b4 = b2 * b2;
-                s = (1.0 - dynbtf_beta + dynbtf_beta * lum) * (b4 * b2 * b);
-                s /= s.x + s.y + s.z;
-                if (dynbtf_gain_k != 1.0) {
-                    s = vec3(dynbtf_gain(s.x), dynbtf_gain(s.y), dynbtf_gain(s.z));
-                    s /= s.x + s.y + s.z;
-                }
-            }
-            for (int i = 0; i < 3; ++i) dynbtf_bilinear(c[i], tri.t, s[i], g0, g1, acc);
-            total = s.x + s.y + s.z;
-        }
-    }
+    {branches}
     for (int g = g0; g < g1; ++g) acc[g] = acc[g] * dynbtf_plane_scale[g] + total * dynbtf_plane_bias[g];
-    if (dynbtf_mode == 2) {
-        for (int g = g0; g < g1; ++g) {
-            vec4 v;
-            for (int k = 0; k < 4; ++k) v[k] = dynbtf_inverse_table(4 * g + k, acc[g][k]);
-            acc[g] = v * dynbtf_lut_scale[g] + dynbtf_lut_bias[g];
-        }
-    }
-    for (int g = 0; g < DYNBTF_G; ++g) latent[g] = acc[g];
-}
+{after}    for (int g = 0; g < DYNBTF_G; ++g) latent[g] = acc[g];
+}}
 
 """
 
@@ -575,7 +463,7 @@ uniform vec4 dynbtf_height_map[DYNBTF_G];   // height channel = latent . map + o
 uniform float dynbtf_height_offset;
 #define DYNBTF_MAX_MARCH {MAX_MARCH_STEPS}
 float dynbtf_height(DynbtfOrigin o, vec2 p) {{
-    // only the latent groups the height map mixes (one for hist's separately synthesized height)
+    // only the latent groups the height map mixes (one where the height is synthesized as a channel of its own)
     int g0 = DYNBTF_G, g1 = 0;
     for (int g = 0; g < DYNBTF_G; ++g) {{
         if (dynbtf_height_map[g] != vec4(0.0)) {{ g0 = min(g0, g); g1 = g + 1; }}
@@ -663,34 +551,22 @@ def shader_cost(method: str, *, channels: int = 16, angular_channels: int = 8, h
                 ) -> dict[str, int]:
     """Work per pixel of ``dynbtf_eval`` as ``dynbtf.glsl`` does it: texel fetches, multiply-adds, hashes.
 
-    Fetches are ``texelFetch`` calls of RGBA (or single-channel) texels: the three samples of a
-    blend read a 2 x 2 bilinear footprint of ``ceil(C / 4)`` RGBA layers each (tile and struct: one
-    sample), ``hist`` reads two table entries per channel, ``hex`` a 2 x 2 luminance footprint per
-    sample, ``struct`` the chosen offset's two table entries and, near a cell's edges, one entry of
-    the vertical and one of the horizontal cut table (counted: the most a pixel reads), and each
-    angular plane a 2 x 2 footprint of ``ceil(C_A / 4)`` layers. Multiply-adds count the bilinear
-    and blend weights applied to every channel, the per-channel dequantization and table
-    interpolation, and the decoder's layers as the shader runs them (``mat4 x vec4`` blocks: widths
-    padded to multiples of 4), not the integer hash or the lattice's few scalar operations.
-    ``hashes`` counts :func:`~dynbtf.synthesis.hash.hash_vertex` evaluations (four 32-bit
-    ``mix32`` each): the lattice methods hash their triangle's three vertices (tile too, unused),
-    ``struct`` its own cell and at most three more (the neighbours across the edges within the
-    cut bands, and the diagonal cell when both cuts claim the point).
+    Fetches are ``texelFetch`` calls of RGBA (or single-channel) texels: each of the method's ``SAMPLES`` reads a
+    2 x 2 bilinear footprint of ``ceil(C / 4)`` RGBA layers, each angular plane a 2 x 2 footprint of
+    ``ceil(C_A / 4)`` layers, and the method's own tables what its ``web`` module's ``cost`` says (e.g. the
+    inverse histogram tables, the cut tables; counted: the most a pixel reads). Multiply-adds count the bilinear
+    and blend weights applied to every channel, the per-channel dequantization, the method's table
+    interpolation, and the decoder's layers as the shader runs them (``mat4 x vec4`` blocks: widths padded to
+    multiples of 4), not the integer hash or the lattice's few scalar operations. ``hashes`` counts
+    :func:`~dynbtf.synthesis.hash.hash_vertex` evaluations (four 32-bit ``mix32`` each), the method's ``HASHES``.
+    ``method``: a registry name with a ``web`` form (:func:`web_methods`).
     """
-    if method not in WEB_METHODS:
-        raise InputError(f"method: expected one of {list(WEB_METHODS)}, got {method!r}")
+    web = web_module(method)
     g, ag, hg = (channels + 3) // 4, (angular_channels + 3) // 4, (hidden + 3) // 4
-    samples = 1 if method in ("tile", "struct") else 3
+    samples = web.SAMPLES
     fetches = samples * 4 * g + 2 * 4 * ag
     macs = samples * 4 * 4 * g + 4 * g + 2 * (4 * 4 * ag + 4 * ag)  # bilinear+blend weights, dequantization
-    if method == "hist":
-        fetches += 2 * 4 * g
-        macs += 2 * 4 * g  # interpolation and dequantization of the table values
-    if method == "hex":
-        fetches += samples * 4
-        macs += samples * 4
-    if method == "struct":
-        fetches += 2 + 2  # the offset (dx, dy); one vertical and one horizontal cut entry at most
+    table_fetches, table_macs = web.cost(g)  # the method's own tables
     decoder = 16 * hg * (g + 2 * ag) + 16 * hg * hg * (layers - 2) + 16 * hg
-    return {"texel_fetches": fetches, "macs": macs + decoder, "decoder_macs": decoder,
-            "hashes": 4 if method == "struct" else 3}
+    return {"texel_fetches": fetches + table_fetches, "macs": macs + table_macs + decoder, "decoder_macs": decoder,
+            "hashes": web.HASHES}

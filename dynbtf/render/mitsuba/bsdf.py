@@ -20,7 +20,10 @@ import math
 from dataclasses import dataclass
 from typing import Any, Callable
 
+from ... import jit
 from ...errors import InputError
+from ...synthesis.auto import AUTO
+from ...synthesis.registry import methods_with, takes_parameter
 from . import drjit_ops
 from .sampling import AUTO_MIN_COSINE_VARIANCE, DEFAULT_TABLE_WEIGHT, SAMPLING_MODES
 
@@ -49,10 +52,19 @@ def ray_cone_angle(fov: float, width: int, spp: int = 1) -> float:
         raise InputError(f"ray_cone_angle: fov must be below 180 degrees, got {fov}")
     return 2.0 * math.tan(math.radians(float(fov)) / 2.0) / float(width) / math.sqrt(float(spp))
 
-#: Synthesis methods the plugin evaluates in Dr.Jit, and ``auto`` (``struct`` or ``hist``, from the exemplar).
-METHODS = ("tile", "hist", "hex", "struct", "auto")
+#: Synthesis methods the plugin evaluates in Dr.Jit (those with a Dr.Jit form that build from the exemplar alone:
+#: :func:`~dynbtf.synthesis.registry.methods_with`; the guided ones come through ``target``), and ``auto``.
+METHODS = (*methods_with("drjit"), AUTO)
 #: The plugin's (and ``dynbtf render``'s) default method.
-DEFAULT_METHOD = "auto"
+DEFAULT_METHOD = AUTO
+
+
+def check_cells(cells: int, method: str, what: str) -> None:
+    """``cells`` (0: none) is only for a method that takes cells (:func:`~dynbtf.synthesis.registry.takes_parameter`):
+    an :class:`InputError` from ``what`` otherwise."""
+    if cells and not takes_parameter(method, "cells"):
+        having = [m for m in METHODS if takes_parameter(m, "cells")]
+        raise InputError(f"{what}: sets the cells per repeat of {', '.join(having)}; method is {method!r}")
 
 @dataclass(frozen=True)
 class PluginParameter:
@@ -185,7 +197,8 @@ and are refused.""",
     PluginParameter(
         "method", "string", DEFAULT_METHOD, check=_one_of(METHODS),
         doc="""Synthesis of the positional plane: ``tile`` (plain repetition, the
-reference point), ``hist`` (histogram-preserving blending on a triangle
+reference point), ``linear`` (the triangle lattice's three samples blended
+by their barycentrics), ``hist`` (histogram-preserving blending on a triangle
 lattice, the paper's method), ``hex`` (hex-tiling), ``struct``
 (lattice-aligned cell quilting: cells of the exemplar shifted by its own
 lattice vectors, cut along minimum-error seams; keeps weaves, tiles and
@@ -194,7 +207,8 @@ model's positional plane), else ``hist``
 (:func:`~dynbtf.synthesis.auto.choose_method`). With ``auto`` the
 plugin prints its choice and the evidence (one line, on standard error)
 once per model file and process.""",
-        summary="`tile`, `hist` (the paper's), `hex`, `struct` (cell quilting for structured materials) or `auto` "
+        summary="`tile`, `linear`, `hist` (the paper's), `hex`, `struct` (cell quilting for structured materials) or "
+                "`auto` "
                 "(`struct` for a structured exemplar, else `hist`; the choice is printed once per model file)"),
     PluginParameter(
         "scale", "float", 1.0, check=_repeats,
@@ -398,18 +412,18 @@ def configure_jit() -> None:
     The flags are Dr.Jit's per-thread state: this changes them for everything
     the calling thread runs afterwards (see "Dr.Jit flags" in :data:`PLUGIN_DOC`).
     """
-    dr = drjit_ops.drjit_module()
+    dr = jit.drjit_module()
 
     dr.set_flag(dr.JitFlag.SymbolicLoops, False)
     dr.set_flag(dr.JitFlag.SymbolicCalls, False)
 
 
 def _mi():
-    return drjit_ops.mitsuba_module()
+    return jit.mitsuba_module()
 
 
 def _dr():
-    return drjit_ops.drjit_module()
+    return jit.drjit_module()
 
 
 class _DynBTFBSDFBody:
@@ -424,9 +438,8 @@ class _DynBTFBSDFBody:
         for parameter in PARAMETERS:
             setattr(self, parameter.attribute or parameter.name, parsed[parameter.name])
         model = load_plugin_model(self.filename)  # a representation or a compiled material
-        params = {"cells": self.cells} if self.cells and self.method == "struct" else {}
-        if self.cells and self.method != "struct":
-            raise InputError(f"dynbtf BSDF: parameter 'cells' sets struct's cells; method is {self.method!r}")
+        check_cells(self.cells, self.method, "dynbtf BSDF: parameter 'cells'")
+        params = {"cells": self.cells} if self.cells else {}
         self.evaluator = DynBTFEvaluator(model, self.method, self.seed, btf=self._guided_btf(model, params),
                                          footprints=self.filtered, **params)
         model = self.evaluator.btf.model
@@ -599,7 +612,7 @@ class DynBTFEvaluator:
     ----------
     model : TriplePlane or NeuMIP
         The fitted representation (a kind of :data:`dynbtf.render.mitsuba.drjit_ops.DR_REPRESENTATIONS`).
-    method : {"tile", "hist", "hex", "struct", "auto"}
+    method : {"tile", "linear", "hist", "hex", "struct", "auto"}
         Synthesis method (the same synthesizer :class:`~dynbtf.infinite_btf.SynthesizedBTF` builds;
         ``auto``: ``struct`` or ``hist``, see :attr:`choice`).
     seed : int
@@ -625,7 +638,6 @@ class DynBTFEvaluator:
 
     def __init__(self, model, method: str, seed: int, btf=None, *, footprints: bool = False, **params) -> None:
         from ...synthesized import synthesized_btf
-        from .drjit_synthesis import make_dr_synthesizer
 
         # its compiled material, from the cache (with the footprint decoders if asked); or a SynthesizedBTF given
         # at scale 1 (e.g. a guided one)
@@ -633,7 +645,7 @@ class DynBTFEvaluator:
             if btf is None else btf
         self.method = self.btf.synthesizer.name
         self.choice = self.btf.synthesizer.choice
-        self.synthesizer = make_dr_synthesizer(self.btf.synthesizer)
+        self.synthesizer = self.btf.synthesizer.backend_form("drjit")  # its method package's Dr.Jit kernel
         # the compiled material's decoder: the synthesizer's output map (PCA un-projection) folded into layer 1,
         # as SynthesizedBTF's fast path reads it: 16 x 16 fewer multiply-adds per shading point
         self._latent = getattr(self.synthesizer, "matrix", None) is not None
@@ -698,7 +710,7 @@ class DynBTFEvaluator:
         return self.model.decode(self.features(u, v, active), w_view, w_light, active)
 
     def _filtered(self, u, v, w_view, w_light, footprint, active):
-        mi, dr = drjit_ops.mi_module(), drjit_ops.drjit_module()
+        mi, dr = jit.mi_module(), jit.drjit_module()
         lod = self.synthesizer.level_of_detail()
         lower, t = lod(footprint * self.btf.texels_per_uv())
         decoders = self.level_decoders()
@@ -778,7 +790,7 @@ def plugin_sampler(filename, model, *, build=None, btf=None):
 
     from .sampling import DrTableSampler, build_sampling_table, table_problem
 
-    mi = drjit_ops.mitsuba_module()
+    mi = jit.mitsuba_module()
     stat = os.stat(filename)
     key = (os.path.abspath(str(filename)), stat.st_size, stat.st_mtime_ns, mi.variant(), build)
     if key not in _SAMPLERS:
@@ -847,8 +859,8 @@ def plugin_variants() -> list[str]:
     ``cuda_*_rgb`` when it finds a CUDA device. Only variants built into the
     installed Mitsuba count.
     """
-    dr = drjit_ops.drjit_module()
-    mi = drjit_ops.mitsuba_module()
+    dr = jit.drjit_module()
+    mi = jit.mitsuba_module()
 
     backends = {"llvm": dr.JitBackend.LLVM, "cuda": dr.JitBackend.CUDA}
     usable = {name: bool(dr.has_backend(b)) for name, b in backends.items()}
@@ -858,7 +870,7 @@ def plugin_variants() -> list[str]:
 
 def _check_variant(variant: str, available: list[str]) -> None:
     """:class:`InputError` saying why ``variant`` cannot run the plugin, unless it is in ``available``."""
-    mi = drjit_ops.mitsuba_module()
+    mi = jit.mitsuba_module()
 
     if variant in available:
         return
@@ -904,10 +916,10 @@ def register_plugin(variant: str | None = None) -> str:
         LLVM library) or not one the plugin runs on (scalar, mono, spectral); the
         message lists the variants that are available.
     """
-    mi = drjit_ops.mitsuba_module()
+    mi = jit.mitsuba_module()
 
     wanted = variant if variant is not None else (mi.variant() or "llvm_ad_rgb")
-    from .llvm import check_llvm
+    from ...jit.llvm import check_llvm
 
     check_llvm(wanted)  # an old LLVM aborts the process while compiling: refused before the variant is set
     _check_variant(wanted, plugin_variants())

@@ -21,8 +21,8 @@ import math
 
 import numpy as np
 
+from ... import jit
 from ...errors import InputError
-from . import drjit_ops
 from .bsdf import PluginParameter, number_check, plugin_class, rst_parameter_rows
 
 __all__ = ["LAYERED_PARAMETERS", "LAYERED_DOC", "build_layered_class", "build_noise_class",
@@ -115,7 +115,7 @@ def mask_texture_dict(mask) -> dict:
                 "seed": int(mask.seed)}
     if not isinstance(mask, ImageMask):
         raise InputError(f"mask: Mitsuba renders an ImageMask or a NoiseMask, got {type(mask).__name__}")
-    mi = drjit_ops.mitsuba_module()
+    mi = jit.mitsuba_module()
     image = np.ascontiguousarray(np.asarray(mask.image, dtype=np.float32)[..., None])
     return {"type": "bitmap", "data": mi.TensorXf(image), "raw": True, "filter_type": "bilinear",
             "wrap_mode": "repeat" if mask.wrap == "repeat" else "clamp",
@@ -123,11 +123,11 @@ def mask_texture_dict(mask) -> dict:
 
 
 def _mi():
-    return drjit_ops.mitsuba_module()
+    return jit.mitsuba_module()
 
 
 def _dr():
-    return drjit_ops.drjit_module()
+    return jit.drjit_module()
 
 
 def _nested(props, name: str, kind: str, check):
@@ -257,7 +257,7 @@ class _NoiseTextureBody:
                                int(read.get("seed", 0)))
 
     def _noise(self, si, active):
-        from .drjit_synthesis import hash_vertex
+        from ...synthesis.drjit_blocks import hash_vertex
 
         mi, dr = _mi(), _dr()
         from ...synthesis.hash import MASK32

@@ -106,7 +106,7 @@ def _square_to_hemisphere(points: np.ndarray) -> np.ndarray:
 
 
 def _mi():
-    from .drjit_ops import mi_module
+    from ...jit import mi_module
 
     return mi_module()
 

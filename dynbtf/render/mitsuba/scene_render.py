@@ -12,8 +12,8 @@ import numpy as np
 
 from ...errors import InputError
 from ...limits import check_count, check_memory, check_scale
-from .bsdf import DEFAULT_METHOD, METHODS, load_plugin_model, register_plugin
-from .llvm import check_llvm
+from .bsdf import DEFAULT_METHOD, METHODS, check_cells, load_plugin_model, register_plugin
+from ...jit.llvm import check_llvm
 from .sampling import SAMPLING_MODES
 from .scenes import LIGHTINGS, SCENES, bsdf_dict, scene_dict
 
@@ -120,7 +120,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
         (:func:`dynbtf.render.mitsuba.bsdf.load_plugin_model`).
     scene : {"plane", "sphere", "cloth"}
         See :mod:`dynbtf.render.mitsuba.scenes`.
-    method : {"tile", "hist", "hex", "struct", "auto"}
+    method : {"tile", "linear", "hist", "hex", "struct", "auto"}
         Synthesis method of the plugin; ``auto`` (the default) is resolved here to ``struct`` for a
         structured material, else ``hist`` (:func:`resolve_auto`: the choice of the model's compiled
         material, which the plugin then reads from the cache), and the choice line is reported (``echo``)
@@ -187,9 +187,9 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
         raise InputError("mask: layers two materials; give the second one (layer / --layer) too")
     if target is not None:
         _check_guidance(target, classes, target_size, target_wrap, target_softness, method, layer, cells)
-    if int(cells) != cells or cells < 0 or (cells and method != "struct"):
-        raise InputError(f"--cells: sets struct's cells per repeat (a positive integer, with --method struct), "
-                         f"got {cells} with method {method!r}")
+    if int(cells) != cells or cells < 0:
+        raise InputError(f"--cells: the cells per repeat, a positive integer (0: the method's own), got {cells}")
+    check_cells(int(cells), method, "--cells")
     from ...material import CompiledMaterial
 
     paths = [model_path] if layer is None else [model_path, layer]
@@ -219,7 +219,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
                 _status(progress, line)
         methods.append(chosen)
     choice_line = "\n".join(lines) if lines else None
-    from .drjit_ops import mi_module
+    from ...jit import mi_module
 
     materials = [{**bsdf_dict(path, method=m, scale=scale, seed=seed, sampling=sampling), "filtered": bool(filtered)}
                  for path, m in zip(paths, methods)]
@@ -314,7 +314,7 @@ def _render_passes(scene_obj, spp: int, spp_per_pass: int, label: str, progress:
     """Render ``spp`` samples per pixel in passes of ``spp_per_pass`` and average them: ``(image, timing)``,
     ``timing`` the :class:`RenderResult` fields ``seconds``, ``compile_seconds``, ``first_pass_seconds``, ``passes``."""
     from ...progress import progress_bar
-    from .drjit_ops import drjit_module, mi_module
+    from ...jit import drjit_module, mi_module
 
     mi, dr = mi_module(), drjit_module()
     t0 = time.perf_counter()

@@ -27,7 +27,7 @@ import math
 import numpy as np
 
 from ...errors import InputError
-from .drjit_ops import mi_module
+from ...jit import mi_module
 
 __all__ = ["SCENES", "LIGHTINGS", "scene_dict", "bsdf_dict", "sky_bitmap", "cloth_mesh"]
 

@@ -27,15 +27,15 @@ from typing import Any
 
 import torch
 
-from ..errors import InputError
-from ..tables import Table
-from ..texture import fetch_wrap
-from .base import register_synthesizer
-from .blending import LatticeBlending, LatticePlane
-from .histogram import Decorrelation
-from .kernels import MODE_HEX
-from .mip import area_pyramid, level_shapes
-from .tileable import make_tileable
+from ...errors import InputError
+from ...tables import Table
+from ...texture import fetch_wrap
+from ..base import register_synthesizer
+from ..blending import LatticeBlending, LatticePlane
+from ..histogram import Decorrelation
+from ..kernels import MODE_HEX
+from ..mip import area_pyramid, level_shapes
+from ..tileable import make_tileable
 
 __all__ = ["HexTiling", "contrast_gain"]
 
@@ -74,6 +74,8 @@ class HexTiling(LatticeBlending):
     tileable, band, fast, prepared
         See :class:`~dynbtf.synthesis.blending.LatticeBlending`.
     """
+
+    backends = {**LatticeBlending.backends, "web": f"{__name__}.web"}
 
     mode = MODE_HEX
     model_inputs = {"luminance": "luminance"}

@@ -20,7 +20,7 @@ import re
 import sys
 import tempfile
 
-from ...errors import MissingDependencyError, optional_module
+from ..errors import MissingDependencyError, optional_module
 
 __all__ = ["MIN_LLVM", "llvm_status", "check_llvm", "LLVM_FIX", "apply_isa_target", "LLVM_TARGETS"]
 
@@ -153,7 +153,7 @@ def apply_isa_target() -> str | None:
     speed on an AVX2 machine can be measured on one with AVX-512. Returns the target set (``"haswell"``, ...),
     or None when nothing is forced (or this Dr.Jit has no such function: the kernels then use the CPU's own)."""
     global _TARGET_SET
-    from ...cpu import ISA_ENV, active_isa, hardware_isa
+    from ..cpu import ISA_ENV, active_isa, hardware_isa
 
     if _TARGET_SET is not None or not os.environ.get(ISA_ENV):
         return _TARGET_SET

@@ -56,16 +56,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..errors import InputError
-from ..tables import Table, TableError, check_tables
-from ..texture import fetch_wrap
-from .base import register_synthesizer
-from .hash import hash_vertex
-from .lattice import split_uv
-from .quilting import min_error_cut
-from .structure import StructureAnalysis, analyze_structure
-from .table_cache import cached_tables
-from .tiling import Tiling
+from ...errors import InputError
+from ...tables import Table, TableError, check_tables
+from ...texture import fetch_wrap
+from ..base import register_synthesizer
+from ..hash import hash_vertex
+from ..lattice import split_uv
+from ..quilting import min_error_cut
+from ..structure import StructureAnalysis, analyze_structure
+from ..table_cache import cached_tables
+from ..tiling import Tiling
 
 __all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "cached_cell_tables", "DEFAULT_OFFSETS", "MIN_CELL_TEXELS"]
 
@@ -361,6 +361,8 @@ class CellQuilting(Tiling):
         The ``prepared`` attribute of an earlier synthesizer of the same exemplar and parameters.
     """
 
+    backends = {"drjit": f"{__name__}.drjit", "web": f"{__name__}.web"}
+
     model_inputs = {"guide": "appearance"}
 
     def __init__(self, exemplar, seed: int = 0, *, offsets: int = DEFAULT_OFFSETS, cells="auto", margin: float = 0.25,
@@ -441,7 +443,7 @@ class CellQuilting(Tiling):
     def latent(self, uv: torch.Tensor) -> torch.Tensor:
         if not self.fast:
             return self.reference_latent(uv)
-        from .kernels import cell_quilt
+        from ..kernels import cell_quilt
 
         plane, offsets, vertical, horizontal = self._tables_numpy()
         return torch.from_numpy(cell_quilt(uv.detach().cpu().numpy(), plane, offsets, vertical, horizontal,

@@ -30,14 +30,14 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from ..errors import InputError
-from ..tables import Table
-from ..texture import fetch_wrap
-from .base import Synthesizer, feature_bound, register_synthesizer, wrapped_texel_position
-from .hash import vertex_offsets
-from .lattice import split_uv, triangle_lattice
-from .mip import LevelOfDetail, area_pyramid, level_shapes
-from .tileable import make_tileable, seam_discontinuity
+from ...errors import InputError
+from ...tables import Table
+from ...texture import fetch_wrap
+from ..base import Synthesizer, feature_bound, register_synthesizer, wrapped_texel_position
+from ..hash import vertex_offsets
+from ..lattice import split_uv, triangle_lattice
+from ..mip import LevelOfDetail, area_pyramid, level_shapes
+from ..tileable import make_tileable, seam_discontinuity
 
 __all__ = ["LatticeBlending", "LinearBlending", "LatticePlane", "SEAM_THRESHOLD"]
 
@@ -99,6 +99,8 @@ class LatticeBlending(Synthesizer):
         The ``prepared`` attribute of an earlier synthesizer of the same method
         and exemplar: skips the precomputation.
     """
+
+    backends = {"drjit": f"{__name__}.drjit", "web": f"{__name__}.web"}
 
     mode: ClassVar[int]
 
@@ -175,7 +177,7 @@ class LatticeBlending(Synthesizer):
 
     def _numpy(self, name: str, tensor: torch.Tensor) -> np.ndarray:
         if name not in self._numpy_cache:
-            from .kernels import cache_aligned
+            from ..kernels import cache_aligned
 
             self._numpy_cache[name] = cache_aligned(tensor.detach().cpu().numpy())
         return self._numpy_cache[name]
@@ -184,7 +186,7 @@ class LatticeBlending(Synthesizer):
         """Blended values ``(N, C)`` float32 for ``uv (N, 2)`` float64 (fused kernel when ``fast``)."""
         if not self.fast:
             return self.reference_latent(uv)
-        from .kernels import lattice_blend
+        from ..kernels import lattice_blend
 
         kwargs = {k: (self._numpy(k, v) if isinstance(v, torch.Tensor) else v)
                   for k, v in self.kernel_arguments().items()}
@@ -203,7 +205,7 @@ class LatticeBlending(Synthesizer):
         same weights on its own, so the values are those of :meth:`latent`."""
         if not self.fast or len(rows) == self.plane_channels():
             return self.latent(uv)[:, rows]
-        from .kernels import lattice_blend
+        from ..kernels import lattice_blend
 
         key = ",".join(map(str, rows))
         kwargs = {k: (self._numpy(f"{k}[{key}]", v[rows]) if k == "lut" else
@@ -240,7 +242,7 @@ class LatticeBlending(Synthesizer):
         level, upper = pyr["lod"](footprint.detach().cpu().numpy())
         if not self.fast:
             return self._reference_filtered_latent(uv, pyr, level, upper)
-        from .kernels import PackedPyramid, filtered_lattice_blend
+        from ..kernels import PackedPyramid, filtered_lattice_blend
 
         if "packed" not in pyr:
             lums = pyr.get("luminances")
@@ -362,4 +364,4 @@ class LinearBlending(LatticeBlending):
     exemplar's, down to 1/3) and new, averaged features appear.
     """
 
-    from .kernels import MODE_LINEAR as mode  # noqa: E402
+    from ..kernels import MODE_LINEAR as mode  # noqa: E402

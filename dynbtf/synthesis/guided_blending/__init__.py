@@ -29,7 +29,7 @@ with ``guidance``); :meth:`GuidedBlending.reference_latent` is the torch path (a
 hold it; footprint queries read the pyramid at the guided samples, with their steered weights (the same
 :meth:`sample_positions` in every path). The guided methods also run in the Mitsuba plugin (its ``target``
 parameter; Dr.Jit:
-:class:`~dynbtf.render.mitsuba.drjit_synthesis.DrGuidance`, :class:`~dynbtf.render.mitsuba.drjit_synthesis.DrCellQuilting`);
+:class:`~dynbtf.synthesis.guided_blending.drjit.DrGuidance`, :class:`~dynbtf.synthesis.cell_quilting.drjit.DrCellQuilting`);
 the web export refuses every guided synthesizer.
 """
 
@@ -38,13 +38,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..errors import InputError
-from .base import check_uv, register_synthesizer, wrapped_texel_position
-from .cell_quilting import CellQuilting
-from .hash import MASK32, mix32, vertex_offsets
-from .hex_tiling import HexTiling
-from .histogram_blending import HistogramBlending
-from .lattice import split_uv, triangle_lattice
+from ...errors import InputError
+from ..base import check_uv, register_synthesizer, wrapped_texel_position
+from ..cell_quilting import CellQuilting
+from ..hash import MASK32, mix32, vertex_offsets
+from ..hex_tiling import HexTiling
+from ..histogram_blending import HistogramBlending
+from ..lattice import split_uv, triangle_lattice
 
 __all__ = ["GuidedBlending", "GuidedHexTiling", "GuidedCellQuilting", "LabelField", "exemplar_labels",
            "candidate_seed", "source_labels"]
@@ -111,7 +111,7 @@ class LabelField:
     or ``"clamp"`` (its edge texels extend it)."""
 
     def __init__(self, labels, size: float = 1.0, wrap: str = "repeat") -> None:
-        from ..errors import positive_number
+        from ...errors import positive_number
 
         try:
             labels = np.array(labels)
@@ -161,7 +161,7 @@ def _checked_labels(labels, target, shape: tuple[int, int]) -> torch.Tensor:
 class _Guidance:
     """What guidance adds to a lattice-blending method (hist, hex): the offset search, the steered weights, the
     fused kernel's guidance arguments. Mixed in before the method's class. Its Dr.Jit form is
-    :class:`dynbtf.render.mitsuba.drjit_synthesis.DrGuidance`; it has no GLSL form (the web export
+    :class:`dynbtf.synthesis.guided_blending.drjit.DrGuidance`; it has no GLSL form (the web export
     refuses it)."""
 
     def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, candidates: int = 16,
@@ -223,7 +223,7 @@ class _Guidance:
     def kernel_guidance(self, uv: torch.Tensor) -> tuple:
         """The fused kernels' guidance arguments for queries ``uv (N, 2)``: the candidates' hash states, the read
         plane's labels, the target label per query and the softness."""
-        from .hash import seed_state
+        from ..hash import seed_state
 
         if "states" not in self._numpy_cache:
             self._numpy_cache["states"] = np.array([int(seed_state(candidate_seed(self.seed, j)))
@@ -270,6 +270,8 @@ class GuidedBlending(_Guidance, HistogramBlending):
     True
     """
 
+    backends = {"drjit": f"{__name__}.drjit"}  # no web form: the shader has no guidance
+
     base_method = "hist"
 
 
@@ -277,6 +279,8 @@ class GuidedBlending(_Guidance, HistogramBlending):
 class GuidedHexTiling(_Guidance, HexTiling):
     """Hex-tiling steered by labels: :class:`GuidedBlending`'s search with
     :class:`~dynbtf.synthesis.hex_tiling.HexTiling`'s blend (its parameters in ``**params``, e.g. ``luminance``)."""
+
+    backends = {"drjit": f"{__name__}.drjit"}  # no web form: the shader has no guidance
 
     base_method = "hex"
 
@@ -294,6 +298,8 @@ class GuidedCellQuilting(CellQuilting):
     Parameters: ``labels`` ``(H, W)`` and ``target`` (:class:`LabelField`) as :class:`GuidedBlending`'s, and
     :class:`~dynbtf.synthesis.cell_quilting.CellQuilting`'s in ``**struct``.
     """
+
+    backends = {"drjit": f"{__name__}.drjit"}  # no web form: the shader has no guidance
 
     base_method = "struct"
 

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import torch
 
-from ..texture import fetch_wrap
-from .base import Synthesizer, register_synthesizer
-from .mip import LevelOfDetail, PlanePyramid
+from ...texture import fetch_wrap
+from ..base import Synthesizer, register_synthesizer
+from ..mip import LevelOfDetail, PlanePyramid
 
 __all__ = ["Tiling"]
 
@@ -28,6 +28,8 @@ class Tiling(Synthesizer):
     (0.0, 0.0)
     """
 
+    backends = {"drjit": f"{__name__}.drjit", "web": f"{__name__}.web"}
+
     def __init__(self, exemplar, seed: int = 0, *, fast: bool | None = None) -> None:
         super().__init__(exemplar, seed)
         self.prepared = None
@@ -37,7 +39,7 @@ class Tiling(Synthesizer):
 
     def latent(self, uv: torch.Tensor) -> torch.Tensor:
         if self.fast:  # the fused numba twin of fetch_wrap
-            from .kernels import tile_fetch
+            from ..kernels import tile_fetch
 
             return torch.from_numpy(tile_fetch(uv.detach().cpu().numpy(), self._plane_numpy))
         return fetch_wrap(self.exemplar, uv)

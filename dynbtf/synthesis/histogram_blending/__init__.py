@@ -40,13 +40,13 @@ from typing import Any
 
 import torch
 
-from ..errors import InputError, positive_number
-from ..tables import Table
-from .blending import LatticeBlending, LatticePlane
-from .base import GAUSSIAN_BOUND, coefficient_bound, feature_bound, register_synthesizer
-from .histogram import Decorrelation, GaussianTransform, InverseLUT, blend_weights, variance_preserving_blend
-from .mip import level_shapes, prefiltered_inverse_tables
-from .kernels import MODE_HIST
+from ...errors import InputError, positive_number
+from ...tables import Table
+from ..blending import LatticeBlending, LatticePlane
+from ..base import GAUSSIAN_BOUND, coefficient_bound, feature_bound, register_synthesizer
+from ..histogram import Decorrelation, GaussianTransform, InverseLUT, blend_weights, variance_preserving_blend
+from ..mip import level_shapes, prefiltered_inverse_tables
+from ..kernels import MODE_HIST
 
 __all__ = ["HistogramBlending", "DEFAULT_GAMMA"]
 
@@ -94,6 +94,8 @@ class HistogramBlending(LatticeBlending):
     >>> synth(torch.tensor([[0.25, 0.5], [1e6 + 0.25, 0.5]], dtype=torch.float64)).shape
     torch.Size([2, 4])
     """
+
+    backends = {**LatticeBlending.backends, "web": f"{__name__}.web"}
 
     mode = MODE_HIST
     model_inputs = {"separate": "separate_channels"}

@@ -1,0 +1,28 @@
+"""Linear lattice blending in the web shader: three hashed samples weighted by their barycentrics
+(:mod:`dynbtf.synthesis.web_form`)."""
+
+from __future__ import annotations
+
+from ..web_form import WebForm, host
+
+MODE = 1
+ORIGIN = "lattice"
+SAMPLES = 3
+HASHES = 3
+GLSL_UNIFORMS = ""
+GLSL_FUNCTIONS = ""
+GLSL_SAMPLE = """DynbtfTriangle tri = dynbtf_triangle(o, local);
+ivec2 c[3];
+dynbtf_sample_texels(tri, c);
+total = dynbtf_blend3(tri, c, vec3(tri.b[0], tri.b[1], tri.b[2]), g0, g1, acc);"""
+GLSL_AFTER = ""
+
+
+def cost(groups: int) -> tuple[int, int]:
+    """No tables besides the plane."""
+    return 0, 0
+
+
+def form(synthesizer) -> WebForm:
+    """The read plane (after tileable preprocessing)."""
+    return WebForm(host(synthesizer.prepared.plane))

@@ -1,0 +1,100 @@
+"""Cell quilting (``struct``) in the web shader: the query's cell, the cuts that may give the point to a neighbour,
+that cell's hashed lattice offset and one bilinear sample of the exemplar (:mod:`dynbtf.synthesis.web_form`)."""
+
+from __future__ import annotations
+
+
+from ..web_form import WebForm, WebTable, host
+
+MODE = 4
+ORIGIN = "cells"
+SAMPLES = 1
+HASHES = 4  # its own cell and at most three more (the neighbours across the edges within the cut bands, the diagonal)
+GLSL_UNIFORMS = """uniform highp isampler2D dynbtf_cells;       // struct: offsets, vertical cuts, horizontal cuts (int16), entry k at (k % row, k / row)
+uniform ivec2 dynbtf_cell_grid;              // struct: cells per repeat (n_x, n_y)
+uniform ivec2 dynbtf_cell_margin;            // struct: half-widths of the cut bands (m_x, m_y), texels
+uniform int dynbtf_cell_count;               // struct: K, the number of lattice offsets
+uniform int dynbtf_cell_row;                 // struct: table entries per texture row
+uniform ivec2 dynbtf_cut_start;              // struct: first entry of the vertical and of the horizontal cuts
+"""
+GLSL_FUNCTIONS = """// ---- lattice-aligned cell quilting (dynbtf.synthesis.cell_quilting): the cell, its hashed offset, the cuts
+struct DynbtfCell {
+    uvec2 cx; uvec2 cy;   // the query's own cell, int64 (low, high) words: I n + w n + column (row)
+    ivec2 side;           // -1, 0 or 1 per axis: the point belongs to this neighbour of its cell (both: the diagonal one)
+    int chosen;           // offset index (hash of that cell mod K)
+    ivec2 offset;         // its lattice offset (dx, dy), texels
+    ivec2 texel;          // texel of the bilinear footprint's corner on the exemplar, offset applied
+    vec2 t;               // bilinear weights inside the footprint
+};
+
+int dynbtf_cell_entry(int k) { return texelFetch(dynbtf_cells, ivec2(k % dynbtf_cell_row, k / dynbtf_cell_row), 0).r; }
+int dynbtf_cell_choice(uvec2 cx, uvec2 cy) {
+    return int(dynbtf_fold(dynbtf_fold(dynbtf_seed_state, cx), cy) % uint(dynbtf_cell_count));
+}
+
+DynbtfCell dynbtf_cell(DynbtfOrigin o, vec2 local) {
+    DynbtfCell c;
+    vec2 wf, f;
+    dynbtf_split(local, wf, f);
+    ivec2 w = ivec2(wf);
+    ivec2 size = dynbtf_plane_size;   // the exemplar: W' = W, H' = H
+    ivec2 n = dynbtf_cell_grid;
+    ivec2 span = size / n;            // cell side (T_x, T_y)
+    ivec2 texel = min(ivec2(floor(f * vec2(size))), size - 1);
+    ivec2 cell = texel / span;        // column and row within the repeat
+    ivec2 l = texel - cell * span;    // texel within the cell
+    c.cx = dynbtf_add(o.lattice.xy, w.x * n.x + cell.x);
+    c.cy = dynbtf_add(o.lattice.zw, w.y * n.y + cell.y);
+    int k = dynbtf_cell_count;
+    int own = dynbtf_cell_choice(c.cx, c.cy);
+    ivec2 m = dynbtf_cell_margin;
+    c.side = ivec2(0);
+    if (l.x < m.x) {   // the cut of the edge at the cell's start: left cell a, this cell b, texel row l.y
+        int a = dynbtf_cell_choice(dynbtf_add(c.cx, -1), c.cy);
+        int cut = dynbtf_cell_entry(dynbtf_cut_start.x + (((cell.x * n.y + cell.y) * k + a) * k + own) * span.y + l.y);
+        if (l.x < cut) c.side.x = -1;
+    } else if (l.x >= span.x - m.x) {   // the edge at the cell's end: this cell a, right cell b
+        int b = dynbtf_cell_choice(dynbtf_add(c.cx, 1), c.cy);
+        int i = cell.x + 1 == n.x ? 0 : cell.x + 1;
+        int cut = dynbtf_cell_entry(dynbtf_cut_start.x + (((i * n.y + cell.y) * k + own) * k + b) * span.y + l.y);
+        if (l.x - span.x >= cut) c.side.x = 1;
+    }
+    if (l.y < m.y) {
+        int a = dynbtf_cell_choice(c.cx, dynbtf_add(c.cy, -1));
+        int cut = dynbtf_cell_entry(dynbtf_cut_start.y + (((cell.x * n.y + cell.y) * k + a) * k + own) * span.x + l.x);
+        if (l.y < cut) c.side.y = -1;
+    } else if (l.y >= span.y - m.y) {
+        int b = dynbtf_cell_choice(c.cx, dynbtf_add(c.cy, 1));
+        int j = cell.y + 1 == n.y ? 0 : cell.y + 1;
+        int cut = dynbtf_cell_entry(dynbtf_cut_start.y + (((cell.x * n.y + j) * k + own) * k + b) * span.x + l.x);
+        if (l.y - span.y >= cut) c.side.y = 1;
+    }
+    c.chosen = c.side == ivec2(0) ? own : dynbtf_cell_choice(dynbtf_add(c.cx, c.side.x), dynbtf_add(c.cy, c.side.y));
+    c.offset = ivec2(dynbtf_cell_entry(2 * c.chosen), dynbtf_cell_entry(2 * c.chosen + 1));
+    // one bilinear sample at the shifted position (texel centres at whole + 0.5), wrapped
+    vec2 p = f * vec2(size) - 0.5;
+    vec2 p0 = floor(p);
+    c.t = p - p0;
+    c.texel = ivec2(dynbtf_mod(int(p0.x) + c.offset.x, size.x), dynbtf_mod(int(p0.y) + c.offset.y, size.y));
+    return c;
+}
+
+"""
+GLSL_SAMPLE = """DynbtfCell cell = dynbtf_cell(o, local);
+dynbtf_bilinear(cell.texel, cell.t, 1.0, g0, g1, acc);"""
+GLSL_AFTER = ""
+
+
+def cost(groups: int) -> tuple[int, int]:
+    """The chosen offset's two table entries and, near a cell's edges, one entry of the vertical and one of the
+    horizontal cut table (the most a pixel reads)."""
+    return 2 + 2, 0
+
+
+def form(synthesizer) -> WebForm:
+    """The exemplar, the offsets and cut tables (``tables``) and ``cells``, ``margin``, ``count``."""
+    t = synthesizer.prepared
+    tables = {"offsets": host(t.offsets), "vertical_cuts": host(t.vertical_cuts),
+              "horizontal_cuts": host(t.horizontal_cuts)}
+    return WebForm(host(synthesizer.exemplar), {"tables": WebTable("int16", tables)},
+                   {"cells": [int(c) for c in t.cells], "margin": [int(c) for c in t.margin], "count": int(t.count)})
