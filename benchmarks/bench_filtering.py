@@ -160,10 +160,11 @@ def bench_plugin(args, btf, uv, w_view, w_light, footprint) -> None:
     from dynbtf.jit import mi_module
     from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator, register_plugin
     from dynbtf.render.mitsuba.scenes import bsdf_dict, scene_dict
+    from dynbtf.synthesized import synthesized_btf
 
     register_plugin("llvm_ad_rgb")
     mi = mi_module()
-    evaluator = DynBTFEvaluator(btf.model, args.method, args.seed)
+    evaluator = DynBTFEvaluator(synthesized_btf(btf.model, args.method, seed=args.seed))
     evaluator.prepare_footprints()
     # the evaluator works in exemplar repeats: uv and footprints times the scale
     uv32 = (uv * args.scale).astype(np.float32)

@@ -109,7 +109,7 @@ def main() -> None:
         t_eval[precision] = best
     btf = synthesized_btf(model, args.method)  # float32: the reference for the difference
 
-    ev = DynBTFEvaluator(model, args.method, 0)
+    ev = DynBTFEvaluator(synthesized_btf(model, args.method, seed=0))
     # the first call compiles (inputs in Dr.Jit's own memory, jit_array: NumPy buffers' varying alignment used to
     # compile a new kernel on some calls); time several calls on fresh inputs and report the first and the fastest
     times, got = plugin_seconds(ev, uv, wv, wl, args.repeats)
@@ -223,7 +223,7 @@ def bench_relief(model, args, uv, wv, wl) -> None:
     relief = parallax_model(model, args.relief_texels)
     lo, hi = relief.height_range()
     texels = (hi - lo) * max(relief.height_channel.shape)
-    ev = DynBTFEvaluator(relief, args.method, 0)
+    ev = DynBTFEvaluator(synthesized_btf(relief, args.method, seed=0))
     march = dict(ev.model.march)
     dense = {**march, "max_step": march["step"]}
     n = len(uv)
@@ -306,7 +306,7 @@ def bench_struct(model, args, uv, wv, wl) -> None:
     weave = structured_model(model)
     line = choose_method(weave.positional_plane().detach()).line
     methods = ("hist", "struct")
-    evaluators = {m: DynBTFEvaluator(weave, m, 0) for m in methods}
+    evaluators = {m: DynBTFEvaluator(synthesized_btf(weave, m, seed=0)) for m in methods}
     n = len(uv)
     compile_seconds = {}
     for m, ev in evaluators.items():  # the first calls compile (or load the kernels from Dr.Jit's cache)

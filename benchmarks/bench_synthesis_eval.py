@@ -169,7 +169,7 @@ def drjit_seconds(model, method, uv, w_view, w_light, repeats) -> float | None:
     except Exception as e:  # noqa: BLE001 - any missing piece means no Dr.Jit row
         print(f"no Dr.Jit row: {e}", file=sys.stderr)
         return None
-    evaluator = DynBTFEvaluator(model, method, 0)
+    evaluator = DynBTFEvaluator(synthesized_btf(model, method, seed=0))
     times, _ = plugin_seconds(evaluator, uv.numpy().astype(np.float32), w_view.numpy(), w_light.numpy(), repeats + 1)
     return min(times[1:])
 

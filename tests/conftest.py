@@ -87,12 +87,12 @@ def small_level_decoder_fit():
 
 
 @pytest.fixture(scope="session", autouse=True)
-def private_table_cache(tmp_path_factory):
-    """Synthesis tables (``struct``'s cut tables) and compiled materials are cached in directories of this test session,
-    not the user's."""
+def private_material_cache(tmp_path_factory):
+    """Compiled materials (and the synthesis tables they share between seeds) are cached in a directory of this test
+    session, not the user's."""
     import os
 
-    names = {"DYNBTF_SYNTHESIS_CACHE": "synthesis-cache", "DYNBTF_COMPILED_CACHE": "compiled-cache"}
+    names = {"DYNBTF_COMPILED_CACHE": "compiled-cache"}
     previous = {name: os.environ.get(name) for name in names}
     for name, folder in names.items():
         os.environ[name] = str(tmp_path_factory.mktemp(folder))

@@ -1,6 +1,6 @@
 """Compiled materials from strangers: crafted files with valid checksums never crash, hang, trace back, answer
-NaN or answer with another model (dynbtf.material's checks, the caches of dynbtf.material
-and dynbtf.synthesis.table_cache).
+NaN or answer with another model (dynbtf.material's checks and its one cache, whose entries include the tables
+shared between seeds).
 
 The seeded campaign runs in a child process (``tests/material_fuzz.py``): a crash or a hang there fails this test
 with the case that caused it instead of killing the runner. Against the reader before these checks, the same
@@ -84,10 +84,13 @@ def test_another_models_entry_under_this_key_is_rebuilt_not_used(models, tmp_pat
 
 
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs on this system")
-def test_a_fifo_in_the_caches_is_never_opened(models, tmp_path, monkeypatch):
-    """A FIFO where a cache entry belongs would block every reader: it is skipped (warning) and replaced."""
+def test_a_fifo_in_the_cache_is_never_opened(models, tmp_path, monkeypatch):
+    """A FIFO where a cache entry belongs (a material's, or the tables every seed shares) would block every reader:
+    it is skipped (warning) and replaced."""
+    from dynbtf.material.cache import tables_key
+    from dynbtf.material.compiler import model_digest
+
     monkeypatch.setenv("DYNBTF_COMPILED_CACHE", str(tmp_path / "compiled"))
-    monkeypatch.setenv("DYNBTF_SYNTHESIS_CACHE", str(tmp_path / "synthesis"))
     a, _ = models
     material, _ = open_or_compile(a, "struct", 0, footprints=False, progress=False)
     entry = tmp_path / "compiled" / f"{material.key}.dbtfc"
@@ -100,40 +103,74 @@ def test_a_fifo_in_the_caches_is_never_opened(models, tmp_path, monkeypatch):
     os.mkfifo(entry)
     with pytest.raises(FormatError, match="not a regular file"):
         load_compiled(entry)
-    from dynbtf.synthesis.cell_quilting import cached_cell_tables
-
-    for old in (tmp_path / "synthesis").glob("*.npz"):
-        old.unlink()
-    assert cached_cell_tables(a.positional_plane().detach()).source == "stored"
-    tables = next((tmp_path / "synthesis").glob("struct-*.npz"))
+    tables = tmp_path / "compiled" / f"{tables_key(model_digest(a), 'struct', {})}.dbtfc"
+    assert tables.is_file()  # kept by the first compile
     tables.unlink()
     os.mkfifo(tables)
     with pytest.warns(UserWarning, match="not a regular file"):
-        rebuilt = cached_cell_tables(a.positional_plane().detach())
-    assert rebuilt.source == "rebuilt" and tables.is_file()
+        other, how = open_or_compile(a, "struct", 1, footprints=False, progress=False)
+    assert how == "compiled" and other.seed == 1
 
 
-def test_an_edited_table_cache_entry_with_a_recomputed_checksum_is_rebuilt(models, tmp_path, monkeypatch):
-    """struct's cut tables edited (an offset past the exemplar, 100,000 offsets against cut tables for 16) and the
-    public checksum recomputed: the entry is rebuilt with a warning, the query answers from sound tables."""
-    from dynbtf.synthesis import table_cache
-    from dynbtf.synthesis.cell_quilting import cached_cell_tables
+def test_an_edited_tables_entry_with_a_valid_checksum_is_compiled_again(models, tmp_path, monkeypatch):
+    """The tables every seed shares, edited and saved through the public API (so with a valid checksum: an offset
+    past the exemplar, 100,000 offsets against cut tables for 16, cuts past their band): the next seed's material is
+    compiled from scratch with a warning, and answers as a fresh compile does."""
+    from dataclasses import replace
 
-    monkeypatch.setenv("DYNBTF_SYNTHESIS_CACHE", str(tmp_path))
-    plane = models[0].positional_plane().detach()
-    sound = cached_cell_tables(plane)
-    entry = next(tmp_path.glob("struct-*.npz"))
-    for edit in ({"offsets": np.full((3, 2), 10 ** 6, dtype=np.int64)},
-                 {"offsets": np.zeros((100000, 2), dtype=np.int64)},
-                 {"vertical_cuts": np.full_like(sound.vertical_cuts.numpy(), 30000)},
-                 {"cells": np.array([3, 1], dtype=np.int64)}):
-        arrays = {**sound.to_arrays(), **edit}
-        with open(entry, "wb") as f:
-            np.savez(f, checksum=np.array(table_cache._checksum(arrays)), **arrays)
-        with pytest.warns(UserWarning, match="damaged"):
-            tables = cached_cell_tables(plane)
-        assert tables.source == "rebuilt"
-        assert torch.equal(tables.offsets, sound.offsets) and torch.equal(tables.vertical_cuts, sound.vertical_cuts)
+    from dynbtf.material.cache import tables_key
+    from dynbtf.material.compiler import compile_material, model_digest
+
+    monkeypatch.setenv("DYNBTF_COMPILED_CACHE", str(tmp_path))
+    a = models[0]
+    sound, _ = open_or_compile(a, "struct", 0, footprints=False, progress=False)
+    entry = tmp_path / f"{tables_key(model_digest(a), 'struct', {})}.dbtfc"
+    kept = load_compiled(entry)
+    fresh = compile_material(a, "struct", 5, footprints=False, progress=False)
+    uv = np.random.default_rng(3).random((500, 2)) * 40.0
+    w = np.tile([[0.0, 0.0, 1.0]], (500, 1))
+    want = synthesized_btf(fresh, level_decoders=False).eval(uv, w, w)
+    for seed, edit in enumerate(({"offsets": torch.full((3, 2), 10 ** 6, dtype=torch.int64)},
+                                 {"offsets": torch.zeros((100000, 2), dtype=torch.int64)},
+                                 {"vertical_cuts": torch.full_like(kept.synthesis["vertical_cuts"], 30000)}), start=5):
+        save_compiled(replace(kept, synthesis={**kept.synthesis, **edit}), entry)
+        with pytest.warns(UserWarning, match="compiling again"):
+            material, how = open_or_compile(a, "struct", seed, footprints=False, progress=False)
+        assert how == "compiled" and material.seed == seed
+        assert torch.equal(load_compiled(entry).synthesis["offsets"], kept.synthesis["offsets"])  # replaced, sound
+        if seed == 5:
+            np.testing.assert_array_equal(synthesized_btf(material, level_decoders=False).eval(uv, w, w), want)
+    assert sound.seed == 0
+
+
+def test_another_seed_is_made_from_the_kept_tables_and_answers_as_a_fresh_compile(models, tmp_path, monkeypatch):
+    """The tables of the first seed serve the next (nothing rebuilt): the material equals a compile from scratch,
+    while quilt, whose texture is drawn with the seed, keeps no shared tables."""
+    from dynbtf.material.cache import tables_key
+    from dynbtf.material.compiler import compile_material, model_digest
+
+    monkeypatch.setenv("DYNBTF_COMPILED_CACHE", str(tmp_path))
+    a = models[0]
+    open_or_compile(a, "struct", 0, footprints=False, progress=False)
+    built = []
+    import dynbtf.synthesis.cell_quilting as cq
+
+    original = cq.build_cell_tables
+    monkeypatch.setattr(cq, "build_cell_tables", lambda *args, **kw: built.append(1) or original(*args, **kw))
+    material, how = open_or_compile(a, "struct", 9, footprints=False, progress=False)
+    assert how == "compiled" and not built  # the cut tables were not built again
+    fresh = compile_material(a, "struct", 9, footprints=False, progress=False)
+    assert built  # (a compile from scratch builds them)
+    assert material.key == fresh.key and material.seed == 9
+    for name, table in fresh.synthesis.items():
+        if name != "build_seconds":
+            assert torch.equal(material.synthesis[name], table), name
+    uv = np.random.default_rng(4).random((500, 2)) * 40.0
+    w = np.tile([[0.0, 0.0, 1.0]], (500, 1))
+    np.testing.assert_array_equal(synthesized_btf(material, level_decoders=False).eval(uv, w, w),
+                                  synthesized_btf(fresh, level_decoders=False).eval(uv, w, w))
+    open_or_compile(a, "quilt", 0, footprints=False, progress=False, repeats=2)
+    assert not (tmp_path / f"{tables_key(model_digest(a), 'quilt', {'repeats': 2})}.dbtfc").exists()
 
 
 def test_header_fields_are_under_the_checksum(models, tmp_path):

@@ -884,8 +884,7 @@ def test_every_backend_reads_the_compiled_material_as_the_float64_reference(comp
         from dynbtf.jit import mi_module
 
         mi = mi_module()
-        evaluator = DynBTFEvaluator(material.model, method, material.seed)
-        assert evaluator.btf.material.key == material.key  # the cached twin of the file's material
+        evaluator = DynBTFEvaluator(SynthesizedBTF(material))  # the file's material itself
         rgb = evaluator.eval(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1]), mi.Vector3f(*wv.T.astype(np.float32)),
                              mi.Vector3f(*wl.T.astype(np.float32)))
         got = np.stack([np.asarray(rgb.x), np.asarray(rgb.y), np.asarray(rgb.z)], axis=-1)
@@ -1136,7 +1135,7 @@ def test_mean_appearance_in_every_backend_is_its_quadrature_and_answers_the_brut
     scale = np.abs(want).max()
     uv = np.random.default_rng(16).random((24, 2)) * 1e4
     torch_path = DecodePath(folded, btf.model.fast_decoder().angular_features)  # no angular planes: torch layer 1
-    evaluator = DynBTFEvaluator(btf.model, "hist", btf.seed, footprints=True)
+    evaluator = DynBTFEvaluator(synthesized_btf(btf.model, "hist", seed=btf.seed, footprints=True))
     rgb = evaluator.eval(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1]), vector3(mi, wv), vector3(mi, wl),
                          footprint=mi.Float(np.full(24, 1e4, np.float32)))
     got = {"fused": btf.mean_appearance(torch.from_numpy(wv).float(), torch.from_numpy(wl).float()).numpy(),

@@ -805,7 +805,7 @@ def test_plugin_struct_matches_synthesized_btf(variant, structured_file):
     btf = synthesized_btf(model, "struct", scale=1.0, seed=3)
     assert btf.synthesizer.prepared.count > 4  # cells choose among several lattice offsets
     _assert_plugin_matches(path, model, "struct", n=3000)
-    evaluator = DynBTFEvaluator(model, "struct", 3)
+    evaluator = DynBTFEvaluator(synthesized_btf(model, "struct", seed=3))
     assert evaluator.method == "struct" and evaluator.choice is None
     rng = np.random.default_rng(7)
     uv = 2.0 ** 45 + rng.random((2000, 2)) * 4.0

@@ -5,6 +5,11 @@ model's tensors, the method, the seed, the method's arguments and the footprint-
 (:func:`~dynbtf.material.format.material_key`). A second process (another ``dynbtf render`` of the same
 model, a Mitsuba scene load, a second ``dynbtf demo``) reads what the first one compiled.
 
+Most methods' tables depend on the exemplar alone, not on the seed (the seed picks hashes at query time): the
+first material compiled for a model, method and arguments also keeps its tables under a key without the seed
+(:func:`tables_key`), and every other seed's material is made from them (only footprint decoders, where asked
+for, are fitted again). This is the one cache: the synthesis package keeps none of its own.
+
 Folder: ``$DYNBTF_COMPILED_CACHE`` (``off`` disables the cache), else ``~/.cache/dynbtf/compiled``.
 Entries are written atomically. An entry is read through :func:`~dynbtf.material.format.load_compiled`
 (every check of a file from anyone, regular files only) and must hold the material of the model asked
@@ -32,10 +37,11 @@ from pathlib import Path
 
 from ..errors import FormatError
 from ..io import user_cache_dir
+from ..synthesis.registry import synthesizer_class
 from .compiler import argument_key, compile_material, footprint_settings, model_digest
 from .format import SUFFIX, CompiledMaterial, load_compiled, material_key, save_compiled
 
-__all__ = ["open_or_compile", "store_cached", "compiled_cache_dir", "cache_path"]
+__all__ = ["open_or_compile", "store_cached", "compiled_cache_dir", "cache_path", "tables_key"]
 
 
 def compiled_cache_dir() -> Path | None:
@@ -125,10 +131,55 @@ def _open_or_compile(model, method: str, seed: int, *, footprints: bool, progres
             found.model = model  # the caller's module (equal contents): no second copy
             return found, "cached"
     base = None if not footprints else _read_cached(cache_path(keys[False]), device, digest)
+    refused = False
+    if base is None:  # another seed's tables, where they do not depend on the seed
+        base, refused = _tables_of_another_seed(model, method, seed, arguments, digest, device, keys[False])
     if base is not None:
         base.model = model
     material = compile_material(model, method, seed, footprints=footprints, progress=progress, base=base, **arguments)
     if compiled_cache_dir() is None:
         return material, "uncached"
     store_cached(material)
+    _store_tables(material, method, arguments, digest, replace_entry=refused)
     return material, "compiled"
+
+
+def tables_key(digest: str, method: str, arguments: dict) -> str:
+    """The cache key of the tables every seed of ``method`` shares on a model (its entry holds a material without
+    footprint decoders; :attr:`~dynbtf.synthesis.base.Synthesizer.seeded_tables` methods have none)."""
+    return material_key(digest, method, -1, argument_key(arguments), "tables of any seed")
+
+
+def _store_tables(material: CompiledMaterial, method: str, arguments: dict, digest: str, *,
+                  replace_entry: bool = False) -> None:
+    """Keep ``material``'s seed-independent tables (and point decoder) under :func:`tables_key`, unless kept
+    already; ``replace_entry``: the entry there was refused (damaged, edited, not a regular file) and is replaced."""
+    if not material.key or synthesizer_class(material.method).seeded_tables:
+        return
+    key = tables_key(digest, method, arguments)
+    path = cache_path(key)
+    if path.exists() and not replace_entry:
+        return
+    if path.is_symlink() or (path.exists() and not path.is_file()):  # e.g. a FIFO: not overwritten in place
+        path.unlink()
+    decoder = material.decoder
+    if decoder is not None and (len(decoder.levels) > 1 or decoder.mean is not None):  # another seed fits its own
+        decoder = replace(decoder, levels=decoder.levels[:1], mean=None)
+    store_cached(replace(material, key=key, decoder=decoder, sampling=None, _synthesizers={}))
+
+
+def _tables_of_another_seed(model, method: str, seed: int, arguments: dict, digest: str, device,
+                            key: str) -> tuple[CompiledMaterial | None, bool]:
+    """``(material, refused)``: the material of ``seed`` without footprint decoders, made from another seed's tables
+    (:func:`_store_tables`) under its own ``key``, or None where none are kept or the entry was refused (then
+    ``refused``: a warning was given, and the entry is to be replaced). The synthesizer is rebuilt from the
+    tables with ``seed``."""
+    path = cache_path(tables_key(digest, method, arguments))
+    if path is None or not (path.exists() or path.is_symlink()):
+        return None, False
+    found = _read_cached(path, device, digest)
+    if found is None:
+        return None, True
+    if synthesizer_class(found.method).seeded_tables:
+        return None, False
+    return replace(found, seed=int(seed), key=key, _synthesizers={}), False

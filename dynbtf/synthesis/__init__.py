@@ -28,9 +28,9 @@ and its tables), named in the class's ``backends``. Backends reach them through
 Building blocks: :mod:`.lattice` (triangle grid, exact at any coordinate),
 :mod:`.hash` (integer vertex hash), :mod:`.histogram` (Gaussian transforms,
 PCA, variance-preserving blend), :mod:`.tileable` ("Avoiding Cuts"),
-:mod:`.structure` (autocorrelation peaks, structure strength), :mod:`.table_cache` (on-disk
-tables), :mod:`.kernels` (fused numba kernels) and :mod:`.drjit_blocks` (their Dr.Jit twins), :mod:`.web_form`
-(what a method gives the web export), :mod:`.quality` (report) and :mod:`.coherence`
+:mod:`.structure` (autocorrelation peaks, structure strength), :mod:`.kernels` (fused numba
+kernels) and :mod:`.drjit_blocks` (their Dr.Jit twins), :mod:`.web_form` (what a method gives the
+web export), :mod:`.quality` (report) and :mod:`.coherence`
 (patch coherence and identity with tiling). :mod:`.registry` (``make_synthesizer``,
 ``synthesizer_class``) sits above the methods, :mod:`.base` below them.
 """

@@ -185,6 +185,10 @@ class Synthesizer(abc.ABC):
     #: normal view and light; ``"separate_channels"``: a relief model's height channels). The material stage
     #: derives them (:func:`dynbtf.material.compiler.model_arguments`); synthesis itself never decodes a model.
     model_inputs: ClassVar[dict[str, str]] = {}
+    #: Whether the method's tables (:meth:`prepared_arrays`) depend on the seed. Most are the exemplar's alone (the
+    #: seed only picks hashes at query time), and the material cache then shares them between seeds; a
+    #: pre-generated texture (``quilt``) is drawn with the seed.
+    seeded_tables: ClassVar[bool] = False
     #: The backends the method runs on besides its torch reference and CPU kernel: backend name -> the module that
     #: gives its form there, ``form(synthesizer)`` (``"drjit"``: the renderer's kernel; ``"web"``: the GLSL export's
     #: mode, shader code and tables). A method package (``dynbtf/synthesis/<method>/``) holds its synthesizer in

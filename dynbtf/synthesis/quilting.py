@@ -181,6 +181,8 @@ class Quilting(Synthesizer):
         A plane quilted earlier with the same parameters.
     """
 
+    seeded_tables = True  # the quilted texture is drawn with the seed
+
     dynamic = False
 
     def __init__(self, exemplar, seed: int = 0, *, repeats: float = 4.0, block: int | None = None,

@@ -440,8 +440,14 @@ class _DynBTFBSDFBody:
         model = load_plugin_model(self.filename)  # a representation or a compiled material
         check_cells(self.cells, self.method, "dynbtf BSDF: parameter 'cells'")
         params = {"cells": self.cells} if self.cells else {}
-        self.evaluator = DynBTFEvaluator(model, self.method, self.seed, btf=self._guided_btf(model, params),
-                                         footprints=self.filtered, **params)
+        # the app-level step: the material opened from the cache or compiled (with the footprint decoders if asked),
+        # or the guided one the target asks for; the evaluator only translates it
+        btf = self._guided_btf(model, params)
+        if btf is None:
+            from ...synthesized import synthesized_btf
+
+            btf = synthesized_btf(model, self.method, scale=1.0, seed=self.seed, footprints=self.filtered, **params)
+        self.evaluator = DynBTFEvaluator(btf)
         model = self.evaluator.btf.model
         #: the method the kernel runs (``auto``'s choice, else ``method``)
         self.synthesis = self.evaluator.method
@@ -610,23 +616,16 @@ class DynBTFEvaluator:
 
     Parameters
     ----------
-    model : TriplePlane or NeuMIP
-        The fitted representation (a kind of :data:`dynbtf.render.mitsuba.drjit_ops.DR_REPRESENTATIONS`).
-    method : {"tile", "linear", "hist", "hex", "struct", "auto"}
-        Synthesis method (the same synthesizer :class:`~dynbtf.infinite_btf.SynthesizedBTF` builds;
-        ``auto``: ``struct`` or ``hist``, see :attr:`choice`).
-    seed : int
-        Synthesis seed.
-    btf : SynthesizedBTF, optional
-        The synthesized BTF to translate (``scale`` 1) instead of the one ``method`` and ``seed`` build: e.g.
-        :func:`dynbtf.guided.guided_btf`'s.
-    **params
-        The method's parameters (e.g. struct's ``cells``).
+    btf : SynthesizedBTF
+        An opened material's query object at ``scale`` 1 (:func:`dynbtf.synthesized_btf` opens or compiles a model's;
+        :func:`dynbtf.guided.guided_btf` builds a guided one): the evaluator translates it and builds nothing.
+        Its representation must be a kind of :data:`dynbtf.render.mitsuba.drjit_ops.DR_REPRESENTATIONS`, its
+        method one with a Dr.Jit form.
 
     Attributes
     ----------
     method : str
-        The method the kernel runs (``auto`` resolved).
+        The method the kernel runs (``auto`` resolved when the material was compiled).
     choice : MethodChoice or None
         What ``auto`` chose and why (:class:`~dynbtf.synthesis.auto.MethodChoice`; its ``line`` is the report),
         ``None`` for a named method.
@@ -634,15 +633,22 @@ class DynBTFEvaluator:
     :meth:`eval` takes Dr.Jit arrays of the active Mitsuba variant: ``u, v``
     (``mi.Float``, in exemplar repeats), ``w_view, w_light`` (``mi.Vector3f``,
     local frame) and returns ``mi.Color3f`` values (excluding cos(theta_light)).
+
+    >>> from dynbtf import synthesized_btf
+    >>> from dynbtf.representations.triple_plane import TriplePlane
+    >>> evaluator = DynBTFEvaluator(synthesized_btf(TriplePlane(16, 16), "hist", seed=3))  # doctest: +SKIP
     """
 
-    def __init__(self, model, method: str, seed: int, btf=None, *, footprints: bool = False, **params) -> None:
-        from ...synthesized import synthesized_btf
+    def __init__(self, btf) -> None:
+        from ...infinite_btf import SynthesizedBTF
 
-        # its compiled material, from the cache (with the footprint decoders if asked); or a SynthesizedBTF given
-        # at scale 1 (e.g. a guided one)
-        self.btf = synthesized_btf(model, method, scale=1.0, seed=seed, footprints=footprints, **params) \
-            if btf is None else btf
+        if not isinstance(btf, SynthesizedBTF):
+            raise InputError(f"DynBTFEvaluator: expected an opened material's query object (dynbtf.synthesized_btf("
+                             f"model, method, seed=...)), got {type(btf).__name__}")
+        if btf.scale != 1.0:
+            raise InputError(f"DynBTFEvaluator: expected the query object at scale 1 (the plugin applies its own "
+                             f"scale to uv), got scale {btf.scale}")
+        self.btf = btf
         self.method = self.btf.synthesizer.name
         self.choice = self.btf.synthesizer.choice
         self.synthesizer = self.btf.synthesizer.backend_form("drjit")  # its method package's Dr.Jit kernel

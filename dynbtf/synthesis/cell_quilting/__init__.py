@@ -27,8 +27,8 @@ between yarns). A query needs its own cell's hash, and near an edge the neighbou
 one table entry; it reads one bilinear sample. Where the two cuts of a corner both claim
 a point, it takes the diagonal cell.
 
-Tables (built once per exemplar, guide and parameters, ``prepared``, and kept in the on-disk
-table cache of :mod:`.table_cache`): the offsets ``(K, 2)``,
+Tables (built once per exemplar, guide and parameters, ``prepared``; a compiled material stores them, and the
+material stage's one cache shares them between seeds): the offsets ``(K, 2)``,
 the vertical edges' cuts ``(nx, ny, K, K, T_y)`` and the horizontal edges' ``(nx, ny, K, K, T_x)``
 (int16, texels relative to the straight edge). Texel density is the exemplar's; any
 ``uv`` below ``2**52`` repeats is exact (the cell index is an int64 computed from the repeat
@@ -64,10 +64,9 @@ from ..hash import hash_vertex
 from ..lattice import split_uv
 from ..quilting import min_error_cut
 from ..structure import StructureAnalysis, analyze_structure
-from ..table_cache import cached_tables
 from ..tiling import Tiling
 
-__all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "cached_cell_tables", "DEFAULT_OFFSETS", "MIN_CELL_TEXELS"]
+__all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "DEFAULT_OFFSETS", "MIN_CELL_TEXELS"]
 
 #: Default number of lattice offsets a cell chooses from (``K``).
 DEFAULT_OFFSETS = 16
@@ -115,15 +114,15 @@ class CellTables:
     peak_values: np.ndarray
     build_seconds: float = 0.0
 
-    #: How these tables were obtained: "built", "cached" (read from the table cache), "stored" (built and
-    #: written to it) or "rebuilt" (a damaged cache entry replaced); see :mod:`.table_cache`.
+    #: How these tables were obtained: "built" (here) or "compiled" (read from a compiled material, which the
+    #: material stage's one cache also shares between seeds: :mod:`dynbtf.material.cache`).
     source: str = "built"
 
     ARRAYS = ("offsets", "cells", "margin", "vertical_cuts", "horizontal_cuts", "strength", "peak_values",
               "build_seconds")
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        """The tables as named numpy arrays (the table cache's entry)."""
+        """The tables as named numpy arrays (what a compiled material stores)."""
         return {"offsets": self.offsets.numpy(), "cells": np.array(self.cells, dtype=np.int64),
                 "margin": np.array(self.margin, dtype=np.int64), "vertical_cuts": self.vertical_cuts.numpy(),
                 "horizontal_cuts": self.horizontal_cuts.numpy(), "strength": np.array(self.strength),
@@ -310,29 +309,6 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
                       strength=analysis.strength, peak_values=values, build_seconds=time.perf_counter() - start)
 
 
-def cached_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS, cells="auto", margin: float = 0.25,
-                       guide=None) -> CellTables:
-    """:func:`build_cell_tables` through the on-disk table cache (:mod:`.table_cache`), keyed by the
-    exemplar's and the guide's contents and the parameters."""
-    guide_array = check_guide(guide, exemplar)
-    parameters = {"offsets": repr(offsets), "cells": repr(cells), "margin": repr(margin)}  # reprs: exact and stable
-    inputs = {"exemplar": exemplar.detach().cpu().numpy(),
-              "guide": None if guide_array is None else guide_array.astype(np.float32)}
-    built: list[CellTables] = []
-
-    def build() -> dict[str, np.ndarray]:
-        built.append(build_cell_tables(exemplar, offsets=offsets, cells=cells, margin=margin, guide=guide_array))
-        return built[0].to_arrays()
-
-    h, w = exemplar.shape[:2]
-    arrays, source = cached_tables("struct", parameters, inputs, CellTables.ARRAYS, build,
-                                   check=lambda stored: CellTables.check_arrays(stored, h, w))
-    if built:
-        built[0].source = source
-        return built[0]
-    return CellTables.from_arrays(arrays, source)
-
-
 def cell_choice(cell_x, cell_y, seed: int, count: int):
     """Offset index ``hash(cell_x, cell_y, seed) mod K`` of int64 cells (numpy, torch or numba scalars)."""
     return hash_vertex(cell_x, cell_y, seed) % count
@@ -371,7 +347,7 @@ class CellQuilting(Tiling):
         if fast and self.device.type != "cpu":
             raise InputError(f"fast: the fused kernel runs on the CPU; the exemplar is on {self.device}")
         if prepared is None:
-            prepared = cached_cell_tables(self.exemplar, offsets=offsets, cells=cells, margin=margin, guide=guide)
+            prepared = build_cell_tables(self.exemplar, offsets=offsets, cells=cells, margin=margin, guide=guide)
         elif not isinstance(prepared, CellTables):
             raise InputError(f"prepared: expected the CellTables of a 'struct' synthesizer, got {type(prepared).__name__}")
         h, w, _ = self.exemplar.shape
