@@ -9,7 +9,7 @@ Formulas and backends:
 * Rusinkiewicz half/difference vectors and angular-plane coordinates -- numpy and torch
   (``conventions``), numba (``fast_decode``, inside layer 1), Dr.Jit (``render.drjit_ops``);
 * bilinear taps (periodic positional fetch, clamped/wrapped angular fetch) -- torch (``texture``),
-  numba (``synthesis.kernels.tile_fetch``, ``fast_decode``), Dr.Jit;
+  numba (``synthesis.tiling.kernel.tile_fetch``, ``fast_decode``), Dr.Jit;
 * the decoder MLP -- torch, numba layer 1 + torch (the synthesized BTF's fast path), Dr.Jit, and the
   C++ training kernel (its loss);
 * every dynamic synthesis method (tile, linear, hist, hex) -- torch reference path, numba kernel, Dr.Jit;
@@ -247,7 +247,7 @@ def float32_fetch_tolerance(plane: np.ndarray) -> float:
 
 def test_positional_fetch_torch_numba_drjit_are_the_bilinear_reference(mi):
     from dynbtf.jit import fetch_wrap as drjit_fetch_wrap
-    from dynbtf.synthesis.kernels import tile_fetch
+    from dynbtf.synthesis.tiling.kernel import tile_fetch
     from dynbtf.texture import fetch_wrap
 
     plane = RNG.normal(size=(7, 5, 3)).astype(np.float32)

@@ -129,7 +129,8 @@ def test_uv_beyond_the_limit_is_rejected_everywhere(exemplar, model, method):
 
 
 def test_kernels_never_see_uv_beyond_the_limit(exemplar):
-    from dynbtf.synthesis.kernels import MODE_LINEAR, lattice_blend, tile_fetch
+    from dynbtf.synthesis.blending.kernel import MODE_LINEAR, lattice_blend
+    from dynbtf.synthesis.tiling.kernel import tile_fetch
 
     plane = exemplar.numpy()
     for bad in (np.nextafter(MAX_REPEATS, np.inf), 3e18, -1e300):

@@ -6,6 +6,7 @@
   (angular planes pre-multiplied by layer 1's weights) and direction checks;
 * :mod:`~dynbtf.decoder.native` -- the C++ kernel, compiled on first use.
 
-The synthesis kernels stay in :mod:`dynbtf.synthesis.kernels`: they share the synthesis lattice and
-hash, and moving them here would make the two packages import each other.
+The synthesis kernels stay with their methods (``dynbtf/synthesis/<method>/kernel.py``, on the building blocks of
+:mod:`dynbtf.synthesis.kernels`): they share the synthesis lattice and hash, and moving them here would make the
+two packages import each other.
 """

@@ -13,7 +13,7 @@ in what plane they read and how they blend:
 
 Two implementations compute the same thing: a torch reference path (any device;
 three :func:`dynbtf.texture.fetch_wrap` reads) and the fused numba kernel
-(:func:`dynbtf.synthesis.kernels.lattice_blend`, CPU), used on the CPU unless
+(:func:`dynbtf.synthesis.blending.kernel.lattice_blend`, CPU), used on the CPU unless
 ``fast=False``.
 
 Preprocessing ``tileable``: ``"auto"`` (default) makes the exemplar periodic with
@@ -141,7 +141,7 @@ class LatticeBlending(Synthesizer):
         return (barycentrics.to(samples.dtype)[..., None] * samples).sum(-2)
 
     def kernel_arguments(self) -> dict[str, Any]:
-        """Keyword arguments of :func:`dynbtf.synthesis.kernels.lattice_blend` besides uv/plane/density/seed."""
+        """Keyword arguments of :func:`dynbtf.synthesis.blending.kernel.lattice_blend` besides uv/plane/density/seed."""
         return {}
 
     def filter_tables(self, levels: list[torch.Tensor]) -> dict[str, Any]:
@@ -186,7 +186,7 @@ class LatticeBlending(Synthesizer):
         """Blended values ``(N, C)`` float32 for ``uv (N, 2)`` float64 (fused kernel when ``fast``)."""
         if not self.fast:
             return self.reference_latent(uv)
-        from ..kernels import lattice_blend
+        from .kernel import lattice_blend
 
         kwargs = {k: (self._numpy(k, v) if isinstance(v, torch.Tensor) else v)
                   for k, v in self.kernel_arguments().items()}
@@ -205,7 +205,7 @@ class LatticeBlending(Synthesizer):
         same weights on its own, so the values are those of :meth:`latent`."""
         if not self.fast or len(rows) == self.plane_channels():
             return self.latent(uv)[:, rows]
-        from ..kernels import lattice_blend
+        from .kernel import lattice_blend
 
         key = ",".join(map(str, rows))
         kwargs = {k: (self._numpy(f"{k}[{key}]", v[rows]) if k == "lut" else
@@ -242,7 +242,7 @@ class LatticeBlending(Synthesizer):
         level, upper = pyr["lod"](footprint.detach().cpu().numpy())
         if not self.fast:
             return self._reference_filtered_latent(uv, pyr, level, upper)
-        from ..kernels import PackedPyramid, filtered_lattice_blend
+        from .kernel import PackedPyramid, filtered_lattice_blend
 
         if "packed" not in pyr:
             lums = pyr.get("luminances")
@@ -364,4 +364,4 @@ class LinearBlending(LatticeBlending):
     exemplar's, down to 1/3) and new, averaged features appear.
     """
 
-    from ..kernels import MODE_LINEAR as mode  # noqa: E402
+    from .kernel import MODE_LINEAR as mode  # noqa: E402

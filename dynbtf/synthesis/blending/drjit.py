@@ -1,4 +1,4 @@
-"""Lattice blending in Dr.Jit: :func:`dynbtf.synthesis.kernels.lattice_blend` (``linear``, ``hist``, ``hex``) traced into the renderer's kernel.
+"""Lattice blending in Dr.Jit: :func:`dynbtf.synthesis.blending.kernel.lattice_blend` (``linear``, ``hist``, ``hex``) traced into the renderer's kernel.
 """
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ from ...jit import drjit_module, flat_array, gather_channels, mi_module
 from .. import hash as synthesis_hash
 from ..drjit_blocks import (DrLevelOfDetail, accumulate, filtering_tables, gather_one, hash_vertex, level_shares,
                             lut_lookup, mix32, positive_mod, split_repeats, triangle_lattice)
-from ..kernels import MODE_HEX, MODE_HIST, MODE_LINEAR
+from .kernel import MODE_HEX, MODE_HIST, MODE_LINEAR
 
 class DrLatticeBlending:
-    """Lattice blending of three hashed exemplar samples: :func:`dynbtf.synthesis.kernels.lattice_blend` in Dr.Jit.
+    """Lattice blending of three hashed exemplar samples: :func:`dynbtf.synthesis.blending.kernel.lattice_blend` in Dr.Jit.
 
     The same computation, step for step: the triangle lattice in float64, the
     vertices' integer hash, whole-texel offsets wrapped on the (preprocessed)
@@ -37,7 +37,7 @@ class DrLatticeBlending:
         Texels per repeat along ``u`` and ``v``.
     seed : int
     mode : int
-        The numba kernel's mode (:data:`~dynbtf.synthesis.kernels.MODE_LINEAR`, ``MODE_HIST``, ``MODE_HEX``): the
+        The numba kernel's mode (:data:`~dynbtf.synthesis.blending.kernel.MODE_LINEAR`, ``MODE_HIST``, ``MODE_HEX``): the
         method's ``mode`` attribute.
     gamma, beta, gain_k : float
     luminance : float32 ``(H', W')``, for hex

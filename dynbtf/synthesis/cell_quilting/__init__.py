@@ -419,7 +419,7 @@ class CellQuilting(Tiling):
     def latent(self, uv: torch.Tensor) -> torch.Tensor:
         if not self.fast:
             return self.reference_latent(uv)
-        from ..kernels import cell_quilt
+        from .kernel import cell_quilt
 
         plane, offsets, vertical, horizontal = self._tables_numpy()
         return torch.from_numpy(cell_quilt(uv.detach().cpu().numpy(), plane, offsets, vertical, horizontal,

@@ -1,4 +1,4 @@
-"""Cell quilting in Dr.Jit: :class:`~dynbtf.synthesis.cell_quilting.CellQuilting` (its numba kernel :func:`~dynbtf.synthesis.kernels.cell_quilt`) traced into the renderer's kernel.
+"""Cell quilting in Dr.Jit: :class:`~dynbtf.synthesis.cell_quilting.CellQuilting` (its numba kernel :func:`~dynbtf.synthesis.cell_quilting.kernel.cell_quilt`) traced into the renderer's kernel.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from ..tiling.drjit import DrTiling
 
 class DrCellQuilting(DrTiling):
     """Lattice-aligned cell quilting: :class:`dynbtf.synthesis.cell_quilting.CellQuilting` (its numba kernel
-    :func:`~dynbtf.synthesis.kernels.cell_quilt`) in Dr.Jit.
+    :func:`~dynbtf.synthesis.cell_quilting.kernel.cell_quilt`) in Dr.Jit.
 
     The same computation, step for step: ``u, v`` widened to float64 and split into whole repeats and
     fractions (:func:`split_repeats`), the texel and its cell within the repeat, the cell's index as an

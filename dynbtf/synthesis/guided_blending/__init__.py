@@ -24,7 +24,7 @@ and the integer hash, so the field is defined, and exact, at any ``uv``, as hist
 Cell quilting (``struct``) is guided per cell instead (:class:`GuidedCellQuilting`, ``guided-struct``): a whole
 cell takes the first lattice offset, from its hashed one on, under which its content is of the target's label.
 
-On the CPU the fused numba kernel of lattice blending runs the search (:func:`dynbtf.synthesis.kernels.lattice_blend`
+On the CPU the fused numba kernel of lattice blending runs the search (:func:`dynbtf.synthesis.blending.kernel.lattice_blend`
 with ``guidance``); :meth:`GuidedBlending.reference_latent` is the torch path (any device), against which the tests
 hold it; footprint queries read the pyramid at the guided samples, with their steered weights (the same
 :meth:`sample_positions` in every path). The guided methods also run in the Mitsuba plugin (its ``target``

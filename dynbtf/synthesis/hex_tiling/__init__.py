@@ -33,7 +33,7 @@ from ...texture import fetch_wrap
 from ..base import register_synthesizer
 from ..blending import LatticeBlending, LatticePlane
 from ..histogram import Decorrelation
-from ..kernels import MODE_HEX
+from ..blending.kernel import MODE_HEX
 from ..mip import area_pyramid, level_shapes
 from ..tileable import make_tileable
 

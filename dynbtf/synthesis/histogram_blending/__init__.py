@@ -46,7 +46,7 @@ from ..blending import LatticeBlending, LatticePlane
 from ..base import GAUSSIAN_BOUND, coefficient_bound, feature_bound, register_synthesizer
 from ..histogram import Decorrelation, GaussianTransform, InverseLUT, blend_weights, variance_preserving_blend
 from ..mip import level_shapes, prefiltered_inverse_tables
-from ..kernels import MODE_HIST
+from ..blending.kernel import MODE_HIST
 
 __all__ = ["HistogramBlending", "DEFAULT_GAMMA"]
 

@@ -39,7 +39,7 @@ class Tiling(Synthesizer):
 
     def latent(self, uv: torch.Tensor) -> torch.Tensor:
         if self.fast:  # the fused numba twin of fetch_wrap
-            from ..kernels import tile_fetch
+            from .kernel import tile_fetch
 
             return torch.from_numpy(tile_fetch(uv.detach().cpu().numpy(), self._plane_numpy))
         return fetch_wrap(self.exemplar, uv)
