@@ -90,3 +90,11 @@ def test_the_material_format_cannot_reach_up_to_its_compiler(tmp_path):
     report = lint_with_import(tmp_path, "material/format.py",
                               "def _build():\n    from .compiler import compile_material  # noqa: F401\n")
     assert "dynbtf.material.format is not allowed to import dynbtf.material.compiler" in report
+
+
+def test_a_backend_that_imports_a_method_package_breaks_the_method_contract(tmp_path):
+    # the web exporter reaching into hist's package instead of asking the registry for its web form
+    report = lint_with_import(tmp_path, "export/web/exporter.py",
+                              "def _lut():\n    from ...synthesis.histogram_blending import HistogramBlending  # noqa: F401\n")
+    assert "dynbtf.export is not allowed to import dynbtf.synthesis.histogram_blending" in report
+    assert "dynbtf.export.web.exporter -> dynbtf.synthesis.histogram_blending" in report
