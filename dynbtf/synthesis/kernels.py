@@ -21,7 +21,11 @@ from numba.extending import intrinsic
 from .hash import SECOND_STREAM, MASK32, fold_coordinate, hash_vertex, mix32, seed_state
 from .lattice import LATTICE_SCALE_HI, LATTICE_SCALE_LO, LATTICE_SCALE, large_scaled_integer
 
-__all__ = ['jit_with', 'mulmod32_native', 'jit_mix32', 'jit_seed_state', 'jit_fold_coordinate', 'jit_hash_vertex', 'jit_large_scaled_integer', 'prefetch', 'SMALL_REPEAT', 'small_scaled_integer', 'scaled_integer', 'wrap', 'modulo', 'sample_texels', 'POWER_BITS', 'int_power', 'gain', 'split_repeat', 'lattice_cell_of', 'lattice_cell', 'vertex_hashes', 'barycentrics', 'lattice_hashes', 'vertex', 'CACHE_LINE', 'cache_aligned', 'bilinear_periodic']
+__all__ = ["jit_with", "mulmod32_native", "jit_mix32", "jit_seed_state", "jit_fold_coordinate", "jit_hash_vertex",
+           "jit_large_scaled_integer", "prefetch", "SMALL_REPEAT", "small_scaled_integer", "scaled_integer", "wrap",
+           "modulo", "sample_texels", "POWER_BITS", "int_power", "gain", "split_repeat", "lattice_cell_of",
+           "lattice_cell", "vertex_hashes", "barycentrics", "lattice_hashes", "vertex", "CACHE_LINE", "cache_aligned",
+           "bilinear_periodic"]
 
 
 def jit_with(fn, **globals_):

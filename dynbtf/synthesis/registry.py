@@ -17,8 +17,8 @@ from . import blending, cell_quilting, guided_blending, hex_tiling, histogram_bl
 from .auto import choose_method
 from .base import SYNTHESIZERS, Synthesizer
 
-__all__ = ["SYNTHESIZERS", "synthesizer_class", "make_synthesizer", "model_inputs", "AUTO_CANDIDATES", "EXEMPLAR_METHOD", "PAPER_METHOD",
-           "takes_parameter", "methods_with"]
+__all__ = ["SYNTHESIZERS", "synthesizer_class", "make_synthesizer", "model_inputs", "AUTO_CANDIDATES",
+           "EXEMPLAR_METHOD", "PAPER_METHOD", "takes_parameter", "methods_with"]
 
 #: The methods ``auto`` chooses between (:func:`dynbtf.synthesis.auto.choose_method`).
 AUTO_CANDIDATES = ("struct", "hist")

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import InputError
+from ...jit.llvm import check_llvm
 from ...limits import check_count, check_memory, check_scale
 from .bsdf import DEFAULT_METHOD, METHODS, check_cells, load_plugin_model, register_plugin
-from ...jit.llvm import check_llvm
 from .sampling import SAMPLING_MODES
 from .scenes import LIGHTINGS, SCENES, bsdf_dict, scene_dict
 

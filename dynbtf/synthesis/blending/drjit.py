@@ -1,4 +1,5 @@
-"""Lattice blending in Dr.Jit: :func:`dynbtf.synthesis.blending.kernel.lattice_blend` (``linear``, ``hist``, ``hex``) traced into the renderer's kernel.
+"""Lattice blending in Dr.Jit: :func:`dynbtf.synthesis.blending.kernel.lattice_blend` (``linear``, ``hist``,
+``hex``, the guided blends) traced into the renderer's kernel.
 """
 
 from __future__ import annotations

@@ -40,7 +40,8 @@ from ..kernels import (jit_mix32, jit_seed_state, jit_fold_coordinate, prefetch,
                        wrap, modulo, sample_texels, int_power, gain, split_repeat, lattice_cell_of, lattice_cell,
                        vertex_hashes, barycentrics, lattice_hashes, vertex, CACHE_LINE, cache_aligned)
 
-__all__ = ['lattice_blend', 'filtered_lattice_blend', 'PackedPyramid', 'MODE_LINEAR', 'MODE_HIST', 'MODE_HEX', 'BLOCK', 'TAPS']
+__all__ = ["lattice_blend", "filtered_lattice_blend", "PackedPyramid", "MODE_LINEAR", "MODE_HIST", "MODE_HEX", "BLOCK",
+           "TAPS"]
 
 MODE_LINEAR, MODE_HIST, MODE_HEX = 0, 1, 2
 

@@ -1,4 +1,5 @@
-"""Cell quilting in Dr.Jit: :class:`~dynbtf.synthesis.cell_quilting.CellQuilting` (its numba kernel :func:`~dynbtf.synthesis.cell_quilting.kernel.cell_quilt`) traced into the renderer's kernel.
+"""Cell quilting in Dr.Jit: :class:`~dynbtf.synthesis.cell_quilting.CellQuilting` (its numba kernel
+:func:`~dynbtf.synthesis.cell_quilting.kernel.cell_quilt`) traced into the renderer's kernel.
 """
 
 from __future__ import annotations

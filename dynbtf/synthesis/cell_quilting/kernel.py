@@ -12,7 +12,7 @@ from ..base import check_uv
 from ..hash import MASK32, seed_state
 from ..kernels import jit_fold_coordinate, split_repeat, bilinear_periodic
 
-__all__ = ['cell_quilt']
+__all__ = ["cell_quilt"]
 
 
 # ---------------------------------------------------------------- cell quilting (dynbtf.synthesis.cell_quilting)

@@ -1,4 +1,5 @@
-"""Exemplar guidance in Dr.Jit: the guided lattice blends and guided cell quilting of :mod:`dynbtf.synthesis.guided_blending`.
+"""Exemplar guidance in Dr.Jit: the guided lattice blends and guided cell quilting of
+:mod:`dynbtf.synthesis.guided_blending`.
 """
 
 from __future__ import annotations

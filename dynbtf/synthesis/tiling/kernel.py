@@ -11,7 +11,7 @@ import torch
 from ..base import check_uv
 from ..kernels import bilinear_periodic
 
-__all__ = ['tile_fetch']
+__all__ = ["tile_fetch"]
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
