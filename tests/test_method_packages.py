@@ -166,3 +166,35 @@ def test_a_new_method_package_renders_in_the_browser_as_the_library_evaluates_it
     np.testing.assert_allclose(got, ref, rtol=0, atol=2e-4 * peak)
     assert np.abs(ref - tile).max() > 0.05 * peak  # the shift shows: not tiling's answer
     assert export.manifest["methods"][shifted_method]["mode"] == 9
+
+
+def test_a_new_method_package_renders_in_the_plugin_kernel_as_the_library_evaluates_it(shifted_method):
+    """The Dr.Jit backend takes the new method from its ``backends`` entry (tiling's kernel on its shifted exemplar):
+    the plugin's evaluator answers as ``SynthesizedBTF.eval`` to float32 rounding."""
+    pytest.importorskip("mitsuba")
+    from dynbtf.jit import mi_module
+    from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator, plugin_variants
+    from dynbtf.representations.triple_plane import TriplePlane
+    from dynbtf.synthesized import synthesized_btf
+
+    if "llvm_ad_rgb" not in plugin_variants():  # pragma: no cover - no LLVM on this machine
+        pytest.skip("Mitsuba variant llvm_ad_rgb not usable here")
+    mi = mi_module()
+    model = TriplePlane(24, 20, positional_channels=4, angular_channels=3, hidden=12, seed=5)
+    with torch.no_grad():
+        model.decoder.rest[-1].bias.add_(0.6)
+    btf = synthesized_btf(model, shifted_method, seed=0)
+    evaluator = DynBTFEvaluator(btf)
+    assert evaluator.method == shifted_method
+    rng = np.random.default_rng(1)
+    uv = (rng.random((512, 2)) - 0.5) * 20.0
+    w = rng.normal(size=(512, 3))
+    w[:, 2] = np.abs(w[:, 2]) + 0.2
+    w = (w / np.linalg.norm(w, axis=1, keepdims=True)).astype(np.float32)
+    want = btf.eval(uv, w.astype(np.float64), w.astype(np.float64))
+    rgb = evaluator.eval(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1]), mi.Vector3f(*w.T), mi.Vector3f(*w.T))
+    got = np.stack([np.asarray(rgb.x), np.asarray(rgb.y), np.asarray(rgb.z)], axis=-1)
+    peak = np.abs(want).max()
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-4 * peak)
+    tile = synthesized_btf(model, "tile", seed=0).eval(uv, w.astype(np.float64), w.astype(np.float64))
+    assert np.abs(want - tile).max() > 0.05 * peak  # the kernel read the shifted exemplar, not tiling's
