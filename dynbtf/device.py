@@ -1,10 +1,10 @@
-"""Run-time device choice: CUDA when present, else the CPU."""
+"""Run-time device choice: CUDA when present, else the CPU; and values brought back to the host."""
 
 from __future__ import annotations
 
 import torch
 
-__all__ = ["resolve_device"]
+__all__ = ["resolve_device", "to_host"]
 
 
 def resolve_device(device: str | torch.device | None = None) -> torch.device:
@@ -24,3 +24,12 @@ def resolve_device(device: str | torch.device | None = None) -> torch.device:
     if resolved.type == "cuda" and not torch.cuda.is_available():
         raise InputError(f"device: {device!r} requested but CUDA is not available here; use 'cpu' or 'auto'")
     return resolved
+
+
+def to_host(x):
+    """A tensor on any device as a NumPy array (detached, on the CPU); any other value as it is.
+
+    >>> to_host(torch.ones(2)), to_host(1.5)
+    (array([1., 1.], dtype=float32), 1.5)
+    """
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else x

@@ -133,7 +133,7 @@ def _open_or_compile(model, method: str, seed: int, *, footprints: bool, progres
     base = None if not footprints else _read_cached(cache_path(keys[False]), device, digest)
     refused = False
     if base is None:  # another seed's tables, where they do not depend on the seed
-        base, refused = _tables_of_another_seed(model, method, seed, arguments, digest, device, keys[False])
+        base, refused = _tables_of_another_seed(method, seed, arguments, digest, device, keys[False])
     if base is not None:
         base.model = model
     material = compile_material(model, method, seed, footprints=footprints, progress=progress, base=base, **arguments)
@@ -160,15 +160,13 @@ def _store_tables(material: CompiledMaterial, method: str, arguments: dict, dige
     path = cache_path(key)
     if path.exists() and not replace_entry:
         return
-    if path.is_symlink() or (path.exists() and not path.is_file()):  # e.g. a FIFO: not overwritten in place
-        path.unlink()
     decoder = material.decoder
     if decoder is not None and (len(decoder.levels) > 1 or decoder.mean is not None):  # another seed fits its own
         decoder = replace(decoder, levels=decoder.levels[:1], mean=None)
     store_cached(replace(material, key=key, decoder=decoder, sampling=None, _synthesizers={}))
 
 
-def _tables_of_another_seed(model, method: str, seed: int, arguments: dict, digest: str, device,
+def _tables_of_another_seed(method: str, seed: int, arguments: dict, digest: str, device,
                             key: str) -> tuple[CompiledMaterial | None, bool]:
     """``(material, refused)``: the material of ``seed`` without footprint decoders, made from another seed's tables
     (:func:`_store_tables`) under its own ``key``, or None where none are kept or the entry was refused (then

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..device import to_host
 from ..errors import InputError
 from ..jit import drjit_module, flat_array, gather_channels, mi_module
 from . import hash as synthesis_hash
@@ -282,11 +283,8 @@ def filtering_tables(pyramid_source, *, luminances: bool = False, inverse_tables
     if pyramid_source is None:
         raise InputError("footprint queries need the synthesizer's pyramid (pyramid_source)")
     pyr = pyramid_source()
-
-    def host(tensors):
-        return [t.detach().cpu().numpy() for t in tensors]
-
-    pyramid = DrPyramid(host(pyr["levels"]), host(pyr["luminances"]) if luminances else None)
+    pyramid = DrPyramid([to_host(t) for t in pyr["levels"]],
+                        [to_host(t) for t in pyr["luminances"]] if luminances else None)
     tables = flat_array(mi_module(), pyr["luts_numpy"]) if inverse_tables else None
     return pyramid, DrLevelOfDetail(pyr["lod"]), tables
 

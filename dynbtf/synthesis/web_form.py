@@ -26,17 +26,12 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["WebTable", "WebForm", "TABLE_KINDS", "host"]
+__all__ = ["WebTable", "WebForm", "TABLE_KINDS"]
 
 #: How a table is stored: ``"single"``, an ``(H, W)`` one-channel float texture (quantized like the plane);
 #: ``"lut"``, ``(C, L)`` float rows of a table per channel; ``"int16"``, named integer arrays packed one after
 #: another into one exact ``R16I`` texture.
 TABLE_KINDS = ("single", "lut", "int16")
-
-
-def host(x) -> np.ndarray:
-    """A tensor (any device) or array as a NumPy array."""
-    return x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
 
 
 @dataclass

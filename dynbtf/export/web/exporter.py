@@ -509,8 +509,8 @@ def _method_entry(writer: _Writer, m: str, btf: SynthesizedBTF, seed: int, preci
 
     What the method's shader branch reads comes from its ``web`` module (:mod:`dynbtf.synthesis.web_form`)."""
     synth = btf.synthesizer
+    form: WebForm = synth.backend_form("web")  # (a method without a web form: a one-line error here)
     web = synth.backend_module("web")
-    form: WebForm = synth.backend_form("web")
     files = []
     entry: dict[str, Any] = {"mode": web.MODE, "density": [int(synth.exemplar.shape[1]), int(synth.exemplar.shape[0])],
                              "seed": int(seed), "seed_state": int(seed_state(int(seed) & MASK32)),

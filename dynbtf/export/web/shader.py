@@ -25,7 +25,7 @@ from ...errors import InputError
 from ...synthesis.hash import MASK32, MIX_MULTIPLIER_1, MIX_MULTIPLIER_2, SECOND_STREAM
 from ...synthesis.lattice import (_C3, _N1, _N2, LATTICE_SCALE, LATTICE_SCALE_HI, LATTICE_SCALE_LO, MAX_REPEATS,
                                  _scaled_integer, split_uv)
-from ...synthesis.registry import SYNTHESIZERS
+from ...synthesis.registry import methods_with, synthesizer_class
 
 __all__ = ["glsl_source", "shader_cost", "repeat_origin", "RepeatOrigin", "lattice_constants", "web_methods",
            "web_module", "LOCAL_REPEATS", "MAX_MARCH_STEPS"]
@@ -33,10 +33,11 @@ __all__ = ["glsl_source", "shader_cost", "repeat_origin", "RepeatOrigin", "latti
 
 
 def web_methods() -> dict[str, Any]:
-    """The synthesis methods the shader implements: registry name -> the method's ``web`` module
-    (:mod:`dynbtf.synthesis.web_form`), in the order of their ``MODE`` numbers."""
-    found = {name: cls.backend_module("web") for name, cls in SYNTHESIZERS.items()}
-    return dict(sorted(((n, m) for n, m in found.items() if m is not None), key=lambda item: item[1].MODE))
+    """The synthesis methods the shader implements (:func:`~dynbtf.synthesis.registry.methods_with` ``"web"``):
+    registry name -> the method's ``web`` module (:mod:`dynbtf.synthesis.web_form`), in the order of their ``MODE``
+    numbers."""
+    found = {name: synthesizer_class(name).backend_module("web") for name in methods_with("web")}
+    return dict(sorted(found.items(), key=lambda item: item[1].MODE))
 
 
 def web_module(method: str):

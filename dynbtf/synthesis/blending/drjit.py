@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...device import to_host
 from ...errors import InputError
 from ...jit import drjit_module, flat_array, gather_channels, mi_module
 from .. import hash as synthesis_hash
@@ -256,18 +257,12 @@ class DrLatticeBlending:
         return acc
 
 
-
-
 def form(synthesizer, guidance=None) -> DrLatticeBlending:
     """The Dr.Jit kernel of a :class:`~dynbtf.synthesis.blending.LatticeBlending` (its read plane, kernel arguments,
     output map and pyramid; ``guidance``: a :class:`~dynbtf.synthesis.guided_blending.drjit.DrGuidance`)."""
-
-    def host(x):
-        return x.detach().cpu().numpy() if hasattr(x, "detach") else x
-
-    kwargs = {k: host(v) for k, v in synthesizer.kernel_arguments().items()}
+    kwargs = {k: to_host(v) for k, v in synthesizer.kernel_arguments().items()}
     matrix, offset = synthesizer.output_map()
-    return DrLatticeBlending(host(synthesizer.prepared.plane), synthesizer.density, synthesizer.seed, synthesizer.mode,
-                             matrix=None if matrix is None else host(matrix),
-                             offset=None if offset is None else host(offset),
+    return DrLatticeBlending(to_host(synthesizer.prepared.plane), synthesizer.density, synthesizer.seed, synthesizer.mode,
+                             matrix=None if matrix is None else to_host(matrix),
+                             offset=None if offset is None else to_host(offset),
                              pyramid_source=synthesizer.pyramid, guidance=guidance, **kwargs)

@@ -3,7 +3,8 @@
 
 from __future__ import annotations
 
-from ..web_form import WebForm, host
+from ...device import to_host
+from ..web_form import WebForm
 
 MODE = 1
 ORIGIN = "lattice"
@@ -25,4 +26,4 @@ def cost(groups: int) -> tuple[int, int]:
 
 def form(synthesizer) -> WebForm:
     """The read plane (after tileable preprocessing)."""
-    return WebForm(host(synthesizer.prepared.plane))
+    return WebForm(to_host(synthesizer.prepared.plane))

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...device import to_host
 from ...errors import InputError
 from ...jit import drjit_module, gather_channels, mi_module
 from ..drjit_blocks import DrLabelField, fold_coordinate, periodic_taps, seed_literal, split_repeats
@@ -55,11 +56,11 @@ class DrCellQuilting(DrTiling):
         self.margin = (int(margin[0]), int(margin[1]))
         nx, ny = self.cells
         self.cell_size = (w // nx, h // ny)
-        offsets = np.asarray(offsets.detach().cpu() if hasattr(offsets, "detach") else offsets, dtype=np.int64)
+        offsets = np.asarray(to_host(offsets), dtype=np.int64)
         self.count = int(offsets.shape[0])
 
         def table(t, last):
-            t = np.asarray(t.detach().cpu() if hasattr(t, "detach") else t, dtype=np.int32)
+            t = np.asarray(to_host(t), dtype=np.int32)
             if t.shape != (nx, ny, self.count, self.count, last):
                 raise InputError(f"cell quilting: a cut table of shape {t.shape}, expected "
                                  f"{(nx, ny, self.count, self.count, last)}")

@@ -4,7 +4,8 @@ that cell's hashed lattice offset and one bilinear sample of the exemplar (:mod:
 from __future__ import annotations
 
 
-from ..web_form import WebForm, WebTable, host
+from ...device import to_host
+from ..web_form import WebForm, WebTable
 
 MODE = 4
 ORIGIN = "cells"
@@ -94,7 +95,7 @@ def cost(groups: int) -> tuple[int, int]:
 def form(synthesizer) -> WebForm:
     """The exemplar, the offsets and cut tables (``tables``) and ``cells``, ``margin``, ``count``."""
     t = synthesizer.prepared
-    tables = {"offsets": host(t.offsets), "vertical_cuts": host(t.vertical_cuts),
-              "horizontal_cuts": host(t.horizontal_cuts)}
-    return WebForm(host(synthesizer.exemplar), {"tables": WebTable("int16", tables)},
+    tables = {"offsets": to_host(t.offsets), "vertical_cuts": to_host(t.vertical_cuts),
+              "horizontal_cuts": to_host(t.horizontal_cuts)}
+    return WebForm(to_host(synthesizer.exemplar), {"tables": WebTable("int16", tables)},
                    {"cells": [int(c) for c in t.cells], "margin": [int(c) for c in t.margin], "count": int(t.count)})

@@ -3,7 +3,8 @@
 
 from __future__ import annotations
 
-from ..web_form import WebForm, WebTable, host
+from ...device import to_host
+from ..web_form import WebForm, WebTable
 
 MODE = 3
 ORIGIN = "lattice"
@@ -53,5 +54,5 @@ def cost(groups: int) -> tuple[int, int]:
 def form(synthesizer) -> WebForm:
     """The read plane, the luminance plane (``luminance``) and ``beta``, ``gain_k``."""
     kernel = synthesizer.kernel_arguments()
-    return WebForm(host(synthesizer.prepared.plane), {"luminance": WebTable("single", host(kernel["luminance"]))},
+    return WebForm(to_host(synthesizer.prepared.plane), {"luminance": WebTable("single", to_host(kernel["luminance"]))},
                    {"beta": float(kernel["beta"]), "gain_k": float(kernel["gain_k"])})

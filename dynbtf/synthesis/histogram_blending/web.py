@@ -4,7 +4,8 @@
 
 from __future__ import annotations
 
-from ..web_form import WebForm, WebTable, host
+from ...device import to_host
+from ..web_form import WebForm, WebTable
 
 MODE = 2
 ORIGIN = "lattice"
@@ -57,6 +58,6 @@ def cost(groups: int) -> tuple[int, int]:
 def form(synthesizer) -> WebForm:
     """The Gaussianized plane, the inverse tables (``lut``) and ``gamma``, ``g_min``, ``inv_step``."""
     kernel = synthesizer.kernel_arguments()
-    return WebForm(host(synthesizer.prepared.plane), {"lut": WebTable("lut", host(kernel["lut"]))},
+    return WebForm(to_host(synthesizer.prepared.plane), {"lut": WebTable("lut", to_host(kernel["lut"]))},
                    {"gamma": float(kernel["gamma"]), "g_min": float(kernel["g_min"]),
                     "inv_step": float(1.0 / kernel["step"])})

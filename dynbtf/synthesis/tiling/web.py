@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from ..web_form import WebForm, host
+from ...device import to_host
+from ..web_form import WebForm
 
 MODE = 0
 ORIGIN = "lattice"
@@ -22,4 +23,4 @@ def cost(groups: int) -> tuple[int, int]:
 
 def form(synthesizer) -> WebForm:
     """The exemplar itself."""
-    return WebForm(host(synthesizer.exemplar))
+    return WebForm(to_host(synthesizer.exemplar))
