@@ -15,6 +15,7 @@ from dfmf_reference import dfmf_bytes, reference_decode
 from dynbtf.conventions import direction_to_spherical
 from dynbtf.data import ArrayBTF, UBO2014BTF, btf_extractor_angles, open_btf, write_ubo2014
 from dynbtf.data.directions import ubo2003_directions, ubo2014_directions
+from dynbtf.data.file_array import FileArray
 from dynbtf.errors import FormatError, InputError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -117,7 +118,7 @@ def test_btf_extractor_conventions(tmp_path):
         assert (round(tl, 1), round(pl, 1), round(tv, 1), round(pv, 1)) == (45.0, 300.0, 30.0, 90.0)
 
 
-def test_real_size_file_is_memory_mapped_not_materialized(tmp_path):
+def test_real_size_file_is_read_on_demand_not_materialized(tmp_path):
     """A 400 x 400 texel, 151 x 151 direction file (44 GB as float32) with one component per channel."""
     dirs, deg = ubo2014_directions()
     angles = np.radians(deg)
@@ -129,7 +130,7 @@ def test_real_size_file_is_memory_mapped_not_materialized(tmp_path):
     with UBO2014BTF(path) as btf:
         assert btf.shape == (151, 151, 400, 400) and btf.nbytes_float32 > 40e9
         np.testing.assert_allclose(btf.views, dirs, atol=1e-6)
-        assert all(isinstance(m, np.memmap) for m in btf._sxv + btf._u)
+        assert all(isinstance(m, FileArray) for m in btf._sxv + btf._u)
         img = btf.image(150, 77)
         assert img.shape == (400, 400, 3)
         ramp = np.linspace(0, 1, cols).astype(np.float16).astype(np.float32).reshape(400, 400)[::-1]

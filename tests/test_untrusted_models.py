@@ -530,7 +530,7 @@ from dynbtf.errors import FormatError
 path = sys.argv[1]
 with UBO2014BTF(path, factor_cache_bytes=int(sys.argv[2])) as btf:
     first = btf.read_texels(np.array([[0, 0], [14, 14]]), np.arange(64))
-    os.truncate(path, btf.header.channels[0].u_offset + 8)  # in place: the same inode, the mapping now too long
+    os.truncate(path, btf.header.channels[0].u_offset + 8)  # in place: the same inode, its factors now cut off
     try:
         btf.read_texels(np.array([[14, 14]]), np.arange(64))
     except FormatError as e:
@@ -538,7 +538,7 @@ with UBO2014BTF(path, factor_cache_bytes=int(sys.argv[2])) as btf:
 """
 
 
-@pytest.mark.parametrize("cache", [0, 1 << 30])  # factors read from the mapping, or only U rows
+@pytest.mark.parametrize("cache", [0, 1 << 30])  # factors read from the file, or only U rows
 def test_a_btf_truncated_between_reads_is_a_clear_error_not_sigbus(tmp_path, cache):
     import subprocess
     import sys

@@ -1,7 +1,7 @@
 """BTF sources: one interface (:class:`BTFSource`), every way a BTF gets into dynbtf.
 
 * :class:`ArrayBTF` -- in memory (small BTFs, tests).
-* :class:`UBO2014BTF` -- UBO2014 DFMF ``.btf`` files (memory-mapped SVD factors).
+* :class:`UBO2014BTF` -- UBO2014 DFMF ``.btf`` files (SVD factors read on demand).
 * :class:`UBO2003BTF` -- UBO2003 zips of angle-named sRGB images.
 * :class:`StoredBTF` -- dynbtf's own ``*.dbtf`` directories (meta.json + raw array).
 * ``sim:<material>`` -- simulated BTFs (:mod:`dynbtf.data.simulated`).

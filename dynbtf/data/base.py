@@ -76,7 +76,7 @@ class BTFSource(abc.ABC):
         """Decode one image ``(H, W, 3)`` float32; indices are already validated."""
 
     def close(self) -> None:
-        """Release files or memory maps (optional)."""
+        """Release open files (optional)."""
 
     # ---------------------------------------------------------------- derived
     @property
@@ -141,7 +141,7 @@ class BTFSource(abc.ABC):
         ``image(*pairs[g, b]).reshape(-1, 3)[texels[g, j]]``.
 
         Formats that can answer without decoding whole images (DFMF factors,
-        stored memory maps, the simulator) override :meth:`_read_texels`; the
+        stored values files, the simulator) override :meth:`_read_texels`; the
         default decodes each distinct image once per call.
 
         Examples

@@ -46,6 +46,7 @@ import numpy as np
 from ..conventions import check_directions, direction_to_spherical
 from ..errors import FormatError, InputError
 from .base import BTFSource
+from .file_array import FileArray, OpenFile
 
 __all__ = ["StoredBTF", "write_stored", "read_stored", "STORED_FORMAT", "STORED_VERSION", "STORED_DTYPES",
            "META_FILE", "DATA_FILE"]
@@ -305,7 +306,7 @@ def _directions(meta: dict, key: str, n: int, where: Path) -> np.ndarray:
 
 
 class StoredBTF(BTFSource):
-    """A stored BTF directory (see the module docstring), memory-mapped.
+    """A stored BTF directory (see the module docstring), its values read on demand.
 
     Parameters
     ----------
@@ -367,7 +368,9 @@ class StoredBTF(BTFSource):
         if actual != expected:
             raise FormatError(data_path, f"has {actual} bytes but meta.json's shape {shape} of {dtype} needs "
                                          f"{expected} bytes (truncated or mismatched file)")
-        self._values = np.memmap(data_path, dtype=self.dtype, mode="r", shape=shape)
+        self._file = OpenFile(data_path, expected_bytes=expected)
+        # one row per texel of image (v, l): rows (v * n_lights + l) * H * W ...; read on demand (file_array)
+        self._values: FileArray | None = self._file.array(0, (math.prod(shape[:4]), 3), self.dtype)
         self.name = str(meta.get("name", path.name))
         provenance = meta.get("provenance", {})
         self.metadata = {"format": "dynbtf-stored", "version": version, "dtype": dtype, "path": str(path),
@@ -376,7 +379,9 @@ class StoredBTF(BTFSource):
     def _read_image(self, view_index: int, light_index: int) -> np.ndarray:
         if self._values is None:
             raise InputError(f"{self.path}: the stored BTF was closed")
-        img = np.asarray(self._values[view_index, light_index], dtype=np.float32)
+        first = self._image_row(view_index, light_index)
+        img = self._values[first:first + self.height * self.width].astype(np.float32).reshape(self.height,
+                                                                                             self.width, 3)
         if not np.isfinite(img).all():
             raise FormatError(self.path, f"image (view {view_index}, light {light_index}) contains NaN or "
                                          f"infinite values")
@@ -390,31 +395,40 @@ class StoredBTF(BTFSource):
             self._check_pair(v, l)
         if self._values is None:
             raise InputError(f"{self.path}: the stored BTF was closed")
-        images = np.asarray(self._values[v][lights], dtype=np.float32)  # one read per light block
+        texels = self.height * self.width
+        images = np.empty((len(lights), self.height, self.width, 3), dtype=np.float32)
+        for i, first in enumerate(self._image_row(v, lights)):  # one read per image
+            images[i] = self._values[first:first + texels].reshape(self.height, self.width, 3)
         if not np.isfinite(images).all():
             bad = int(lights[np.flatnonzero(~np.isfinite(images).reshape(len(lights), -1).all(axis=1))[0]])
             raise FormatError(self.path, f"image (view {v}, light {bad}) contains NaN or infinite values")
         return images
 
     def _read_texels(self, pairs: np.ndarray, texels: np.ndarray, device=None) -> np.ndarray:
-        """Only the requested texels are read from the memory map (contiguous runs: sequential reads)."""
+        """Only the requested texels are read from the file (rows close together: one read)."""
         if self._values is None:
             raise InputError(f"{self.path}: the stored BTF was closed")
-        flat = self._values.reshape(self.n_views, self.n_lights, self.height * self.width, 3)
         out = np.empty(pairs.shape[:2] + (texels.shape[1], 3), dtype=np.float32)
+        first = self._image_row(pairs[..., 0], pairs[..., 1])  # (G, B)
         for g in range(pairs.shape[0]):
-            lo, hi = int(texels[g].min(initial=0)), int(texels[g].max(initial=-1)) + 1
+            lo, hi = (int(texels[g].min()), int(texels[g].max()) + 1) if texels.shape[1] else (0, 0)
             dense = hi - lo <= 2 * texels.shape[1]  # a block (or nearly): read the span, then select
-            for b, (v, l) in enumerate(pairs[g]):
-                out[g, b] = flat[v, l, lo:hi][texels[g] - lo] if dense else flat[v, l][texels[g]]
+            for b, start in enumerate(first[g]):
+                out[g, b] = (self._values[start + lo:start + hi][texels[g] - lo] if dense
+                             else self._values.take(start + texels[g]))
         if not np.isfinite(out).all():
             g, b = np.argwhere(~np.isfinite(out).reshape(*out.shape[:2], -1).all(axis=2))[0]
             raise FormatError(self.path, f"image (view {pairs[g, b, 0]}, light {pairs[g, b, 1]}) contains NaN or "
                                          f"infinite values")
         return out
 
+    def _image_row(self, view_index, light_index):
+        """The first row (texel) of image ``(view, light)`` in the values file (ints or arrays)."""
+        return (np.asarray(view_index, np.int64) * self.n_lights + light_index) * (self.height * self.width)
+
     def close(self) -> None:
         self._values = None
+        self._file.close()
 
 
 def read_stored(path) -> StoredBTF:

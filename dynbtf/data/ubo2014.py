@@ -4,8 +4,9 @@ A DFMF file stores a BTF as one truncated SVD per colour channel: a matrix of
 ``rows = n_views * n_lights`` (row ``view * n_lights + light``) by
 ``cols = W * H`` (texels) is factored as ``U (rows x C)`` times ``SxV (cols x C)^T``.
 One image is therefore one matrix product ``U[row] @ SxV.T`` per channel; the
-reader memory-maps the factors and decodes images on demand, so a 400 x 400
-texel, 151 x 151 direction file (44 GB as raw float32) is never materialized.
+reader reads the factors on demand (:mod:`dynbtf.data.file_array`: a file truncated
+while it is read is a clean error, not a crash) and decodes images from them, so a
+400 x 400 texel, 151 x 151 direction file (44 GB as raw float32) is never materialized.
 
 File layout (little endian)
 ---------------------------
@@ -78,6 +79,7 @@ from ..conventions import direction_to_spherical, spherical_to_direction
 from ..errors import DynBTFError, FormatError, InputError
 from ..io import atomic_path, require_file
 from .array import ArrayBTF
+from .file_array import OpenFile
 from .base import BTFSource
 
 __all__ = ["UBO2014BTF", "DFMFHeader", "read_ubo2014", "write_ubo2014", "write_dfmf_factors", "btf_extractor_angles",
@@ -318,7 +320,7 @@ def _angles_to_vectors(angles: np.ndarray) -> np.ndarray:
 
 
 class UBO2014BTF(BTFSource):
-    """A UBO2014 DFMF ``.btf`` file, memory-mapped and decoded image by image.
+    """A UBO2014 DFMF ``.btf`` file, its factors read on demand and decoded image by image.
 
     Parameters
     ----------
@@ -333,8 +335,9 @@ class UBO2014BTF(BTFSource):
         converted once to float32 (float64 for double files) and kept in memory
         when they fit in this many bytes (default 1 GiB; ``0`` disables):
         single-image decodes of half files are faster so
-        (``benchmarks/btf_decode_speed.py``). Otherwise they are converted chunk
-        by chunk on every decode.
+        (``benchmarks/btf_decode_speed.py``). Otherwise they are read and
+        converted chunk by chunk on every decode. The rows of ``U`` a decode
+        needs are read from the file each time.
 
     Attributes
     ----------
@@ -353,27 +356,24 @@ class UBO2014BTF(BTFSource):
     def __init__(self, path, *, check_payload: bool = True, factor_cache_bytes: int = 1 << 30):
         super().__init__()
         self.path = require_file(path, "a UBO2014 .btf file")
-        size = self.path.stat().st_size
+        self._file = OpenFile(self.path)
+        size = self._file.size
         if size == 0:
+            self._file.close()
             raise FormatError(self.path, "empty file (expected a UBO2014 .btf file)")
         try:
-            buf = np.memmap(self.path, dtype=np.uint8, mode="r")
-        except OSError as e:
-            raise FormatError(self.path, f"cannot open ({e.strerror or e})") from None
-        try:
-            self.header, _ = _parse_header(self.path, buf, size)
-        finally:
-            del buf
+            self.header, _ = _parse_header(self.path, self._file, size)
+        except BaseException:
+            self._file.close()
+            raise
         h = self.header
         self.height, self.width = h.height, h.width
         self.views = _angles_to_vectors(h.view_angles)
         self.lights = _angles_to_vectors(h.light_angles)
         self.name = self.path.name
-        stat = self.path.stat()
-        self._file_identity, self._file_bytes = (stat.st_dev, stat.st_ino), size
-        self._u = [np.memmap(self.path, SCALAR_TYPES[c.scalar_size], "r", c.u_offset, (c.rows, c.components))
+        self._u = [self._file.array(c.u_offset, (c.rows, c.components), SCALAR_TYPES[c.scalar_size])
                    for c in h.channels]
-        self._sxv = [np.memmap(self.path, SCALAR_TYPES[c.scalar_size], "r", c.sxv_offset, (c.cols, c.components))
+        self._sxv = [self._file.array(c.sxv_offset, (c.cols, c.components), SCALAR_TYPES[c.scalar_size])
                      for c in h.channels]
         if check_payload:
             self._check_payload()
@@ -399,49 +399,33 @@ class UBO2014BTF(BTFSource):
             "file_bytes": size,
         }
 
-    def _check_size(self) -> None:
-        """:class:`FormatError` when the file has become shorter than its header says since it was opened.
-
-        The factors are memory-mapped: reading a mapped page beyond the end of a file truncated in place
-        (while being rewritten, say) kills the process with SIGBUS, without a message. Every read of the
-        mapping is preceded by this check (a ``stat``, about a microsecond). A file replaced by another (a
-        new inode) or deleted leaves the mapping of the old one intact, so only a shorter file of the same
-        inode is an error.
-        """
-        try:
-            stat = self.path.stat()
-        except OSError:
-            return  # removed: the mapping keeps the old file alive
-        if (stat.st_dev, stat.st_ino) == self._file_identity and stat.st_size < self._file_bytes:
-            raise FormatError(self.path, f"the file shrank from {self._file_bytes} to {stat.st_size} bytes while it "
-                                         "was being read (truncated, or being rewritten?); reading on would crash. "
-                                         "Restore the file and run again (a fit continues from its checkpoint)")
-
     def _check_payload(self) -> None:
         for c, (u, sxv) in enumerate(zip(self._u, self._sxv)):
             for what, m in (("U", u), ("SxV", sxv)):
                 step = max(1, _CHUNK_BYTES // max(1, m.shape[1] * m.itemsize))
                 for a in range(0, len(m), step):
-                    self._check_size()
                     if not np.isfinite(m[a:a + step]).all():
                         raise FormatError(self.path, f"{what} matrix of channel {c} contains NaN or infinite "
                                                      f"values (rows {a}..{min(a + step, len(m)) - 1})")
 
     def close(self) -> None:
         self._u, self._sxv, self._sxv_cached, self._texel_factor_cache = [], [], None, {}
+        self._file.close()
+
+    def _u_rows(self, c: int, rows: np.ndarray) -> np.ndarray:
+        """Rows ``rows`` of channel ``c``'s ``U`` in the compute dtype ``(len(rows), C)``."""
+        return np.asarray(self._u[c][rows], dtype=self._compute[c])
 
     def _sxv_blocks(self, c: int):
         """``(start, block)`` pieces of channel ``c``'s SxV in the compute dtype."""
         if self._cache_sxv:
             if self._sxv_cached is None:
-                self._check_size()
                 self._sxv_cached = [np.asarray(m, dtype=t) for m, t in zip(self._sxv, self._compute)]
             yield 0, self._sxv_cached[c]
             return
         sxv = self._sxv[c]
         step = max(1, _CHUNK_BYTES // max(1, sxv.shape[1] * 4))
         for a in range(0, sxv.shape[0], step):
-            self._check_size()
             yield a, np.asarray(sxv[a:a + step], dtype=self._compute[c])
 
     # ------------------------------------------------------------------ decoding
@@ -450,11 +434,10 @@ class UBO2014BTF(BTFSource):
         if not self._u:
             raise InputError(f"{self.path}: the file was closed")
         k = len(rows)
-        self._check_size()
         with np.errstate(over="ignore", invalid="ignore"):  # corrupt factors: caught by the check below
             out = np.empty((k, self.height * self.width, 3), dtype=np.float32)
-            for c, u in enumerate(self._u):
-                coeff = np.asarray(u[rows], dtype=self._compute[c])  # (k, C)
+            for c in range(len(self._u)):
+                coeff = self._u_rows(c, rows)  # (k, C)
                 for a, block in self._sxv_blocks(c):  # block: (n, C)
                     out[:, a:a + len(block), c] = coeff @ block.T
             out = out.reshape(k, self.height, self.width, 3)[:, ::-1]  # file rows bottom-up -> ours top-down
@@ -479,7 +462,6 @@ class UBO2014BTF(BTFSource):
 
         key = str(device)
         if key not in self._texel_factor_cache:
-            self._check_size()
             h, w = self.height, self.width
             ours = []
             for m, t in zip(self._sxv, self._compute):
@@ -508,10 +490,9 @@ class UBO2014BTF(BTFSource):
         n = texels.shape[1]
         rows = (pairs[..., 0] * self.n_lights + pairs[..., 1]).reshape(-1)
         factors = self._texel_factors(device)
-        self._check_size()
         channels = []
-        for c, u in enumerate(self._u):
-            coeff = torch.from_numpy(np.asarray(u[rows], dtype=self._compute[c])).to(device)
+        for c in range(len(self._u)):
+            coeff = torch.from_numpy(self._u_rows(c, rows)).to(device)
             coeff = coeff.reshape(groups, b, -1)
             values = torch.empty((groups, b, n), dtype=coeff.dtype, device=device)
             for g in range(groups):
@@ -551,7 +532,6 @@ class UBO2014BTF(BTFSource):
             return
         step = max(1, _CHUNK_BYTES // max(1, self._sxv[c].shape[1] * 4))
         for lo in range(0, n, step):
-            self._check_size()
             file_rows = self._file_texels(texels[lo:lo + step])
             block = np.asarray(self._sxv[c][file_rows], dtype=self._compute[c])
             yield lo, lo + len(file_rows), torch.from_numpy(block).to(device)
