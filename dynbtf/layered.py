@@ -220,10 +220,12 @@ def mask_from_spec(spec: str, size: float = 1.0, wrap: str = "repeat"):
     from .io import linear_to_srgb, load_image
 
     image = load_image(spec)
-    if not str(spec).lower().endswith(".exr"):
-        image = linear_to_srgb(image)  # back to the stored levels: masks are painted, not photographed
-    return ImageMask(np.clip(np.asarray(image, dtype=np.float64), 0.0, 1.0) if not str(spec).lower().endswith(".exr")
-                     else image, size=size, wrap=wrap)
+    if str(spec).lower().endswith(".exr"):
+        return ImageMask(image, size=size, wrap=wrap)
+    # back to the stored levels (masks are painted, not photographed), on the grid of 16-bit levels (which holds
+    # every 8-bit level k / 255 = 257 k / 65535 exactly): a level saved as 255 reads back as exactly 1
+    levels = np.clip(np.asarray(linear_to_srgb(image), dtype=np.float64), 0.0, 1.0)
+    return ImageMask(np.round(levels * 65535.0) / 65535.0, size=size, wrap=wrap)
 
 
 # ------------------------------------------------------------------------------------------------ heights

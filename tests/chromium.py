@@ -29,7 +29,7 @@ import numpy as np
 from dynbtf.errors import InputError
 
 __all__ = ["find_chromium", "CHROMIUM_FLAGS", "PageRun", "run_page", "eval_in_browser", "lattice_in_browser",
-           "BrowserResult", "time_frames", "FrameTimes"]
+           "BrowserResult", "eval_layered_in_browser", "LayeredBrowserResult", "time_frames", "FrameTimes"]
 
 #: Flags for a quiet, offline, sandbox-free headless run (each run also gets a fresh profile dir).
 CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-quic", "--no-first-run",
@@ -309,6 +309,140 @@ def lattice_in_browser(export_dir, method: str, points, *, local_shift=None, gl:
     up = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (n, 1))
     return _run_queries(export_dir, method, points, up, up, local_shift=local_shift, lattice=True, gl=gl,
                         timeout=timeout)
+
+
+_LAYERED_PAGE = """<!DOCTYPE html>
+<html><head><meta charset="utf-8"><title>dynbtf layered queries</title></head><body>
+<pre id="dynbtf-result"></pre><pre id="dynbtf-error" hidden></pre>
+<script src="viewer.js"></script>
+<script>
+(function () {
+  var job = __JOB__;
+  function bytes(b64) { var s = atob(b64), a = new Uint8Array(s.length); for (var i = 0; i < s.length; ++i) a[i] = s.charCodeAt(i); return a.buffer; }
+  function b64(buffer) { var a = new Uint8Array(buffer), s = ''; for (var i = 0; i < a.length; i += 8192) s += String.fromCharCode.apply(null, a.subarray(i, i + 8192)); return btoa(s); }
+  function fail(e) { var p = document.getElementById('dynbtf-error'); p.textContent = String(e && e.message || e); p.hidden = false; }
+  DynBTF.loadLayered('').then(function (data) {
+    var n = job.n, w = job.width, h = Math.ceil(n / w), L = data.manifest;
+    var points = new Float64Array(bytes(job.points)), view = new Float32Array(bytes(job.view));
+    var light = new Float32Array(bytes(job.light));
+    var canvas = document.createElement('canvas');
+    var gl = canvas.getContext('webgl2');
+    if (!gl) throw new Error('no WebGL2');
+    if (!gl.getExtension('EXT_color_buffer_float')) throw new Error('no EXT_color_buffer_float');
+    var r = new DynBTF.LayeredRenderer(gl, data);
+    // per query: the mask's origin from the whole uv units (float64 here), its local uv the rest (float32 there)
+    var maskCell = new Uint32Array(4 * w * h), maskLocal = new Float32Array(4 * w * h);
+    var vv = new Float32Array(4 * w * h), ll = new Float32Array(4 * w * h);
+    for (var i = 0; i < n; ++i) {
+      var bu = Math.floor(points[2 * i]), bv = Math.floor(points[2 * i + 1]);
+      var mo = DynBTF.maskOrigin(r.mask, bu, bv);
+      maskCell.set(mo.cell, 4 * i);
+      maskLocal.set([mo.offset[0], mo.offset[1], points[2 * i] - bu, points[2 * i + 1] - bv], 4 * i);
+      for (var c = 0; c < 3; ++c) { vv[4 * i + c] = view[3 * i + c]; ll[4 * i + c] = light[3 * i + c]; }
+    }
+    function tex(unit, internal, format, type, values) {
+      var t = gl.createTexture();
+      gl.activeTexture(gl.TEXTURE0 + unit);
+      gl.bindTexture(gl.TEXTURE_2D, t);
+      gl.texImage2D(gl.TEXTURE_2D, 0, internal, w, h, 0, format, type, values);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+      return t;
+    }
+    var main = 'uniform highp usampler2D q_lattice; uniform highp isampler2D q_texel; uniform highp sampler2D q_local;\\n' +
+      'uniform highp sampler2D q_view; uniform highp sampler2D q_light; uniform highp usampler2D q_mask_cell;\\n' +
+      'uniform highp sampler2D q_mask_local; uniform highp sampler2D u_previous;\\n' +
+      'layout(location = 0) out vec4 result;\\n' +
+      'void main() { ivec2 p = ivec2(gl_FragCoord.xy);\\n' +
+      '  DynbtfOrigin o; o.lattice = texelFetch(q_lattice, p, 0); o.phase = texelFetch(q_local, p, 0).x;\\n' +
+      '  o.texel = texelFetch(q_texel, p, 0).xy;\\n' +
+      '  vec4 m = texelFetch(q_mask_local, p, 0);\\n' +
+      '  DynbtfMaskOrigin mo; mo.cell = texelFetch(q_mask_cell, p, 0); mo.offset = m.xy;\\n' +
+      '  vec4 previous = dynbtf_layer_index == 1 ? texelFetch(u_previous, p, 0) : vec4(0.0);\\n' +
+      '  result = dynbtf_layer_pass(o, texelFetch(q_local, p, 0).yz, mo, m.zw, texelFetch(q_view, p, 0).xyz,\\n' +
+      '                             texelFetch(q_light, p, 0).xyz, previous); }\\n';
+    var targets = [0, 1].map(function () {
+      var t = gl.createTexture();
+      gl.bindTexture(gl.TEXTURE_2D, t);
+      gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, w, h, 0, gl.RGBA, gl.FLOAT, null);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+      var fb = gl.createFramebuffer();
+      gl.bindFramebuffer(gl.FRAMEBUFFER, fb);
+      gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, t, 0);
+      if (gl.checkFramebufferStatus(gl.FRAMEBUFFER) !== gl.FRAMEBUFFER_COMPLETE) throw new Error('float target incomplete');
+      return {texture: t, fb: fb};
+    });
+    var results = {passes: []};
+    for (var k = 0; k < 2; ++k) {
+      var layer = L.layers[k], m = data.layers[k].manifest, program = r.program(k, main);
+      var lattice = new Uint32Array(4 * w * h), texel = new Int32Array(4 * w * h), local = new Float32Array(4 * w * h);
+      for (i = 0; i < n; ++i) {
+        var o = DynBTF.origin(m, layer.method, points[2 * i] * layer.scale, points[2 * i + 1] * layer.scale);
+        lattice.set(o.lattice, 4 * i);
+        texel[4 * i] = o.texel[0]; texel[4 * i + 1] = o.texel[1];
+        local[4 * i] = o.phase; local[4 * i + 1] = o.fraction[0]; local[4 * i + 2] = o.fraction[1];
+      }
+      r.use(program, k);
+      if (k === 1) r.bindPrevious(targets[0].texture);
+      var units = [5, 6, 7, 8, 9, 13, 14];
+      tex(units[0], gl.RGBA32UI, gl.RGBA_INTEGER, gl.UNSIGNED_INT, lattice);
+      tex(units[1], gl.RGBA32I, gl.RGBA_INTEGER, gl.INT, texel);
+      tex(units[2], gl.RGBA32F, gl.RGBA, gl.FLOAT, local);
+      tex(units[3], gl.RGBA32F, gl.RGBA, gl.FLOAT, vv);
+      tex(units[4], gl.RGBA32F, gl.RGBA, gl.FLOAT, ll);
+      tex(units[5], gl.RGBA32UI, gl.RGBA_INTEGER, gl.UNSIGNED_INT, maskCell);
+      tex(units[6], gl.RGBA32F, gl.RGBA, gl.FLOAT, maskLocal);
+      ['q_lattice', 'q_texel', 'q_local', 'q_view', 'q_light', 'q_mask_cell', 'q_mask_local'].forEach(function (name, j) {
+        gl.uniform1i(gl.getUniformLocation(program, name), units[j]);
+      });
+      gl.bindFramebuffer(gl.FRAMEBUFFER, targets[k].fb);
+      gl.viewport(0, 0, w, h);
+      gl.drawArrays(gl.TRIANGLES, 0, 3);
+      var out = new Float32Array(4 * w * h);
+      gl.readPixels(0, 0, w, h, gl.RGBA, gl.FLOAT, out);
+      results.passes.push(b64(out.buffer));
+    }
+    var err = gl.getError();
+    if (err !== gl.NO_ERROR) throw new Error('WebGL error ' + err);
+    document.getElementById('dynbtf-result').textContent = JSON.stringify(results);
+  }).catch(fail);
+})();
+</script></body></html>
+"""
+
+
+@dataclass
+class LayeredBrowserResult:
+    """What a layered export's shader computed: ``rgb (N, 3)`` (the mix), layer 0's pass ``first (N, 4)`` (its value
+    and height, zero where it cannot show) and ``weight (N,)`` (layer 1's)."""
+
+    rgb: np.ndarray
+    first: np.ndarray
+    weight: np.ndarray
+
+
+def eval_layered_in_browser(export_dir, uv, w_view, w_light, *, gl: str = "swiftshader",
+                            timeout: float = 600.0) -> LayeredBrowserResult:
+    """Values of a layered export (:func:`dynbtf.export.web.layered.export_layered_web`) in Chromium.
+
+    ``uv (N, 2)`` float64 in the surface's units (the library's ``LayeredBTF.eval`` input): each layer's
+    position is ``uv x scale`` split by ``DynBTF.origin``; the mask's origin is the whole uv units (split by
+    ``DynBTF.maskOrigin``) and its float32 local uv the rest, so the shader's own addition is exercised.
+    """
+    export_dir = Path(export_dir)
+    if not (export_dir / "layered.js").is_file():
+        raise InputError(f"{export_dir}: not a layered web export with its viewer files (layered.js missing)")
+    uv = np.ascontiguousarray(np.asarray(uv, dtype=np.float64).reshape(-1, 2))
+    n = len(uv)
+    wv = np.ascontiguousarray(np.asarray(w_view, dtype=np.float32).reshape(n, 3))
+    wl = np.ascontiguousarray(np.asarray(w_light, dtype=np.float32).reshape(n, 3))
+    job = {"n": n, "width": min(max(n, 1), 256), "points": _b64(uv), "view": _b64(wv), "light": _b64(wl)}
+    text = _page_result(export_dir, "layered", "layered query", _LAYERED_PAGE.replace("__JOB__", json.dumps(job)),
+                        gl=gl, timeout=timeout, budget_ms=600000)
+    passes = [np.frombuffer(base64.b64decode(x), dtype=np.float32).reshape(-1, 4)[:n].copy()
+              for x in json.loads(text)["passes"]]
+    return LayeredBrowserResult(passes[1][:, :3], passes[0], passes[1][:, 3])
 
 
 _FRAME_PAGE = """<!DOCTYPE html>

@@ -346,6 +346,14 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
     -------
     WebExport
     """
+    return _export_web(model, out_dir, precision=precision, methods=methods, seed=seed, scale=scale, scripts=viewer,
+                       page=viewer, method_params=method_params)
+
+
+def _export_web(model, out_dir, *, precision: str, methods, seed: int, scale: float, scripts: bool, page: bool,
+                method_params: dict[str, dict[str, Any]] | None) -> WebExport:
+    """:func:`export_web`; ``scripts``: write the ``.js`` twins of the files (what a page loads), ``page``: the
+    viewer page itself (a layered export's layers have the twins without a page of their own)."""
     # the viewer's meshes have uv in [0, 1]: uv x scale is the shader's float32 local uv
     scale = check_scale(scale, "scale", float32=True, limit=LOCAL_REPEATS, where="the shader's float32 local uv")
     model, source, material = _resolve_model(model)
@@ -354,7 +362,7 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
     method_params = dict(method_params or {})
     model = model.cpu().eval()
     out_dir = _output_directory(out_dir)
-    writer = _Writer(out_dir, scripts=viewer)
+    writer = _Writer(out_dir, scripts=scripts)
     layout = _DecoderLayout.of(model, kind)
     with torch.no_grad():
         angular = {"f_H": _texture(writer, "f_H.bin", model.f_h.detach().numpy(), precision, layered=True),
@@ -368,7 +376,7 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
         tmp.write_text(shader, encoding="utf-8")
     manifest = _manifest(kind, source, precision, scale, layout, angular, decoder_file, decoder_entries,
                          method_entries, auto, writer.files)
-    _write_manifest_and_viewer(out_dir, manifest, shader, viewer)
+    _write_manifest_and_viewer(out_dir, manifest, shader, scripts=scripts, page=page)
     return WebExport(out_dir, manifest)
 
 
@@ -387,9 +395,7 @@ def _resolve_model(model):
 
 def _check_options(precision: str, methods) -> list[str]:
     """Check ``precision`` and ``methods`` (an :class:`InputError` naming the accepted ones); the methods as a list."""
-    if precision not in WEB_PRECISIONS:
-        raise InputError(f"precision: expected one of {sorted(WEB_PRECISIONS)} (fp16: half floats, u8: 8 bits per "
-                         f"channel with per-channel scale and bias, fp32: exact), got {precision!r}")
+    check_precision(precision)
     methods = [methods] if isinstance(methods, str) else list(methods)
     accepted = [AUTO, *web_methods()]
     if not methods:
@@ -398,6 +404,13 @@ def _check_options(precision: str, methods) -> list[str]:
         if m not in accepted:
             raise InputError(f"method: {m!r} has no shader form; expected one of {accepted}")
     return methods
+
+
+def check_precision(precision: str) -> None:
+    """An :class:`InputError` naming the texture precisions unless ``precision`` is one of them."""
+    if precision not in WEB_PRECISIONS:
+        raise InputError(f"precision: expected one of {sorted(WEB_PRECISIONS)} (fp16: half floats, u8: 8 bits per "
+                         f"channel with per-channel scale and bias, fp32: exact), got {precision!r}")
 
 
 def _output_directory(out_dir) -> Path:
@@ -566,14 +579,26 @@ def _manifest(kind: str, source: Path | None, precision: str, scale: float, layo
     }
 
 
-def _write_manifest_and_viewer(out_dir: Path, manifest: dict[str, Any], shader: str, viewer: bool) -> None:
-    """Write ``manifest.json`` and, with ``viewer``, ``manifest.js`` and the viewer page."""
+def _write_manifest_and_viewer(out_dir: Path, manifest: dict[str, Any], shader: str, *, scripts: bool,
+                               page: bool) -> None:
+    """Write ``manifest.json`` and, with ``scripts``, ``manifest.js``; with ``page``, the viewer page."""
     with atomic_path(out_dir / "manifest.json") as tmp:
         tmp.write_text(json.dumps(manifest, indent=1), encoding="utf-8")
-    if viewer:
+    if scripts:
         with atomic_path(out_dir / "manifest.js") as tmp:
             tmp.write_text(f"DynBTF.manifest({json.dumps(manifest)}, {json.dumps(shader)});\n", encoding="utf-8")
-        here = Path(__file__).parent / "assets"
-        for name in _VIEWER_FILES:
-            with atomic_path(out_dir / name) as tmp:
+    if page:
+        write_viewer_page(out_dir)
+
+
+def write_viewer_page(out_dir: Path, *, layered: bool = False) -> None:
+    """Write the viewer's page and script (``index.html``, ``viewer.js``) into ``out_dir``; ``layered``: the page
+    opens a layered export (``layered.js``, :mod:`dynbtf.export.web.layered`) instead of ``manifest.js``."""
+    here = Path(__file__).parent / "assets"
+    for name in _VIEWER_FILES:
+        with atomic_path(out_dir / name) as tmp:
+            if name == "index.html" and layered:
+                page = (here / name).read_text(encoding="utf-8")
+                tmp.write_text(page.replace("data-viewer>", 'data-viewer="layered">'), encoding="utf-8")
+            else:
                 shutil.copyfile(here / name, tmp)

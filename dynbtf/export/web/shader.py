@@ -457,6 +457,7 @@ def _glsl_relief(relief: dict[str, float] | None) -> str:
     if not relief:
         return ""
     return f"""
+#define DYNBTF_RELIEF 1
 // ---- relief (dynbtf.representations.parallax): features are read where the camera ray meets the
 // synthesized height field, searched from h_max down to h_min in steps of {_float(relief["step"])} to
 // {_float(relief["max_step"])} repeats, the hit's bracket halved down to {_float(relief["step"])}
@@ -532,11 +533,8 @@ def _glsl_decoder_and_eval(*, channels: int, angular_channels: int, hidden: int,
 vec4 dynbtf_leaky(vec4 x) {{ return max(x, 0.0) + {_float(negative_slope)} * min(x, 0.0); }}
 
 {relief_code}
-// ---- the BTF value: linear RGB, excluding cos(theta_light); zero below either horizon
-vec3 dynbtf_eval(DynbtfOrigin o, vec2 local, vec3 w_view, vec3 w_light) {{
-    if (w_view.z < 0.0 || w_light.z < 0.0) return vec3(0.0);
-    vec4 x[DYNBTF_G];
-    dynbtf_latent(o, {"dynbtf_visible(o, local, w_view)" if relief else "local"}, 0, DYNBTF_G, x);
+// ---- the decoder on synthesized features x (dynbtf_latent's): linear RGB, excluding cos(theta_light)
+vec3 dynbtf_decode(vec4 x[DYNBTF_G], vec3 w_view, vec3 w_light) {{
     vec3 sum = w_view + w_light;
     vec3 h = dot(sum, sum) < 1e-24 ? vec3(0.0, 0.0, 1.0) : normalize(sum);
     vec4 fh[DYNBTF_AG], fd[DYNBTF_AG];
@@ -544,6 +542,14 @@ vec3 dynbtf_eval(DynbtfOrigin o, vec2 local, vec3 w_view, vec3 w_light) {{
     dynbtf_angular_fetch(dynbtf_fd, dynbtf_difference(h, w_light), dynbtf_fd_scale, dynbtf_fd_bias, fd);
 {chr(10).join(decoder_code)}
     return y{layers}_0.rgb;
+}}
+
+// ---- the BTF value: linear RGB, excluding cos(theta_light); zero below either horizon
+vec3 dynbtf_eval(DynbtfOrigin o, vec2 local, vec3 w_view, vec3 w_light) {{
+    if (w_view.z < 0.0 || w_light.z < 0.0) return vec3(0.0);
+    vec4 x[DYNBTF_G];
+    dynbtf_latent(o, {"dynbtf_visible(o, local, w_view)" if relief else "local"}, 0, DYNBTF_G, x);
+    return dynbtf_decode(x, w_view, w_light);
 }}
 """
 
