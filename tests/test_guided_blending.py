@@ -208,6 +208,7 @@ def test_guided_struct_chooses_whole_cells_by_label_on_both_paths():
     shown = torch.from_numpy(labels)[positions[:, 1].floor().long().clamp(0, 63), positions[:, 0].floor().long()
                                      .clamp(0, 63)]
     on_target = float((shown == target.labels(uv)).float().mean())
+    assert torch.equal(source_labels(synth, uv), shown)  # what the benchmark counts: the label of the texel read
     plain = CellQuilting(plane, 1, cells=8)
     plain_positions, _ = plain.read_positions(uv)
     plain_shown = torch.from_numpy(labels)[plain_positions[:, 1].floor().long().clamp(0, 63),

@@ -235,3 +235,37 @@ def test_viewer_paints_the_mask_and_shows_the_other_layer_there(layers, tmp_path
     assert np.abs(zeros[inner] - ones[inner]).mean() > 0.02  # the two materials differ there
     np.testing.assert_allclose(after[inner], ones[inner], atol=2 / 255)
     np.testing.assert_allclose(after[outer], zeros[outer], atol=2 / 255)
+
+
+def test_cli_export_with_a_layer_writes_a_layered_viewer(layers, tmp_path):
+    from test_web_export import _cli
+
+    from dynbtf.representations.model_file import save_model
+
+    first = save_model(tmp_path / "a.dbtfm", layers[0].model)
+    second = save_model(tmp_path / "b.dbtfm", layers[1].model)
+    result = _cli("export", first, "--layer", second, "--mask", "noise:0.5,3,2", "--method", "hist", "--width", "0.1",
+                  "--scale", "4", "-o", tmp_path / "out")
+    assert result.exit_code == 0, result.text
+    assert "a layered material, layer 0 a.dbtfm (hist), layer 1 b.dbtfm (hist)" in result.output
+    manifest = json.loads((tmp_path / "out" / "layered.json").read_text())
+    assert manifest["mask"] == {"kind": "noise", "scale": 0.5, "contrast": 3.0, "seed": 2,
+                                "seed_state": manifest["mask"]["seed_state"]}
+    assert manifest["width"] == 0.1 and [layer["scale"] for layer in manifest["layers"]] == [4.0, 4.0]
+    assert (tmp_path / "out" / "index.html").is_file()
+    # the export is the library's layered material: the same layers, mask and band
+    cli_layers = [synthesized_btf(path, "hist", scale=4.0) for path in (first, second)]
+    expected = export_layered_web(LayeredBTF(cli_layers, NoiseMask(0.5, 3.0, 2), width=0.1), tmp_path / "api")
+    for ours, theirs in zip(expected.manifest["layers"], manifest["layers"]):
+        heights = ours.pop("height"), theirs.pop("height")
+        assert ours == theirs
+        for key in ("map", "offset", "span"):  # a least-squares fit: equal to float64 rounding
+            np.testing.assert_allclose(heights[0][key], heights[1][key], rtol=1e-9, atol=1e-12)
+    for args, message in (((), "give at most one --method"), (("--width", "0"), "--width"),
+                          (("--mask", "noise:a"), "expected noise:SCALE[,CONTRAST[,SEED]] with numbers")):
+        extra = ("--method", "hist", "--method", "tile") if not args else args
+        refused = _cli("export", first, "--layer", second, *extra, "-o", tmp_path / "bad")
+        assert refused.exit_code != 0 and message in refused.text, refused.text
+    missing = _cli("export", first, "--layer", tmp_path / "nothere.dbtfm", "-o", tmp_path / "bad")
+    assert missing.exit_code != 0 and "nothere.dbtfm: model file not found" in missing.text
+    assert not (tmp_path / "bad").exists()

@@ -35,11 +35,24 @@ def export_command(
                                           "2**12 repeats)."),
     viewer: bool = typer.Option(True, "--viewer/--no-viewer", help="Also write the viewer page (index.html, viewer.js "
                                                                    "and .js copies of the binary files)."),
+    layer: Optional[Path] = typer.Option(None, "--layer", help="A second material (model file or .dbtfc) layered "
+                                         "with MODEL: MODEL where --mask is below one half, this one above (a "
+                                         "layered export: the viewer paints the mask; docs/layered.md)."),
+    mask: str = typer.Option("noise", "--mask", help="With --layer: an image file (PNG/JPEG grey levels or EXR "
+                             "values in [0, 1]) or noise:SCALE[,CONTRAST[,SEED]] (value noise)."),
+    mask_size: float = typer.Option(1.0, "--mask-size", help="uv units a mask image covers."),
+    mask_wrap: str = typer.Option("repeat", "--mask-wrap", help="A mask image repeats (repeat) or extends its "
+                                  "edges (clamp)."),
+    width: float = typer.Option(0.05, "--width", help="With --layer: half-width (uv units) of the band around the "
+                                "mask's contour where the materials' heights decide."),
 ) -> None:
     """Export a synthesized BTF for real-time rendering: GPU textures, decoder weights and a shader (docs/realtime.md).
 
     Example: dynbtf export leather.dbtfm -o leather-web --precision u8, then open leather-web/index.html
-    (methods auto, hist, tile: auto prints its choice, struct for a structured material, else hist)
+    (methods auto, hist, tile: auto prints its choice, struct for a structured material, else hist).
+    With --layer: both materials, their mask and the boundary rule in one viewer (each layer's --method, default
+    auto; --scale is each layer's repeats per uv unit), e.g. dynbtf export new.dbtfm --layer worn.dbtfm --mask
+    noise:0.5,3 -o floor-web
     """
     from ..export.web.exporter import DEFAULT_METHODS, WEB_PRECISIONS, export_web
     from ..export.web.shader import LOCAL_REPEATS
@@ -56,8 +69,13 @@ def export_command(
         raise InputError(f"--format: expected one of {list(FORMATS)}, got {export_format!r}")
     if precision not in WEB_PRECISIONS:
         raise InputError(f"--precision: expected one of {sorted(WEB_PRECISIONS)}, got {precision!r}")
-    if not is_compiled_material(model):  # (a compiled material is read, and checked, by export_web)
-        read_model_metadata(model)  # a missing or damaged file is named before anything is written
+    for path in (model, layer):
+        if path is not None and not is_compiled_material(path):  # (a compiled material is read, and checked, later)
+            read_model_metadata(path)  # a missing or damaged file is named before anything is written
+    if layer is not None:
+        _export_layered(model, layer, output, method=method, seed=seed, scale=scale, precision=precision,
+                        viewer=viewer, mask=mask, mask_size=mask_size, mask_wrap=mask_wrap, width=width)
+        return
     result = export_web(model, output, precision=precision, methods=tuple(method or DEFAULT_METHODS),
                         seed=seed, scale=scale, viewer=viewer)
     m = result.manifest
@@ -68,3 +86,29 @@ def export_command(
                f"the {first} method alone needs {result.method_bytes(first) / 1e6:.2f} MB vs the model file's "
                f"{model.stat().st_size / 1e6:.2f} MB), the shader dynbtf.glsl"
                + (f" and the viewer {result.index} (open it in a browser with WebGL2)" if viewer else ""))
+
+
+def _export_layered(model: Path, layer: Path, output: Path, *, method, seed: int, scale: float, precision: str,
+                    viewer: bool, mask: str, mask_size: float, mask_wrap: str, width: float) -> None:
+    """``--layer``: the layered material of ``model`` and ``layer`` under ``mask``, exported."""
+    from ..errors import positive_number
+    from ..export.web.layered import export_layered_web
+    from ..layered import LayeredBTF, mask_from_spec
+    from ..synthesized import synthesized_btf
+
+    methods = list(method or ["auto"])
+    if len(methods) != 1:
+        raise InputError(f"--layer: each layer is exported with one method; give at most one --method, got {methods}")
+    positive_number("--width", width, "uv units")
+    the_mask = mask_from_spec(mask, size=mask_size, wrap=mask_wrap)
+    layers = [synthesized_btf(path, methods[0], scale=scale, seed=seed) for path in (model, layer)]
+    for path, btf in zip((model, layer), layers):
+        choice = btf.synthesizer.choice
+        if choice is not None:
+            typer.echo(f"{path.name}: {choice.line}")
+    result = export_layered_web(LayeredBTF(layers, the_mask, width=width), output, precision=precision, viewer=viewer)
+    names = ", ".join(f"layer {k} {path.name} ({entry['method']})"
+                      for k, (path, entry) in enumerate(zip((model, layer), result.manifest["layers"])))
+    typer.echo(f"wrote {output}: a layered material, {names}, mask {mask}"
+               + (f"; the viewer {result.index} (open it in a browser with WebGL2; paint the mask there)"
+                  if viewer else ""))

@@ -351,11 +351,18 @@ def _cell_majorities(labels: np.ndarray, tables) -> np.ndarray:
     return out
 
 
-def source_labels(synth: _Guidance, uv) -> torch.Tensor:
-    """The exemplar label of the content each query shows ``(N,)`` int64: the label under its sample of largest
-    steered barycentric weight (the largest blend weight for hist, whose weights grow with it) -- what the
-    guidance target counts: a point comes from content of its target label when this equals the target."""
+def source_labels(synth, uv) -> torch.Tensor:
+    """The exemplar label of the content each query shows ``(N,)`` int64 -- what the guidance target counts: a point
+    comes from content of its target label when this equals the target. Guided hist and hex: the label under the
+    sample of largest steered barycentric weight (the largest blend weight for hist, whose weights grow with it);
+    guided struct: the label of the texel the point reads (after its cell's offset and the cuts)."""
     uv = check_uv(uv).reshape(-1, 2).to(torch.float64)
+    if isinstance(synth, GuidedCellQuilting):
+        read, _ = synth.read_positions(uv)
+        h, w = synth.labels.shape
+        col = torch.floor(read[:, 0]).long().clamp(0, w - 1)
+        row = torch.floor(read[:, 1]).long().clamp(0, h - 1)
+        return synth.labels.to(uv.device)[row, col]
     uv_samples, bary, matched = synth.guided_positions(uv)
     k = torch.argmax(synth.steered_barycentrics(bary, matched), dim=-1)
     ph, pw = synth.prepared.plane.shape[:2]
