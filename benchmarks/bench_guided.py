@@ -1,6 +1,6 @@
 """Layered materials measured: region statistics, the width of the boundary band, cost per query.
 
-Run: ``python benchmarks/bench_guided.py`` (about 6 minutes, most of it fitting the two default materials once;
+Run: ``python benchmarks/bench_guided.py`` (about 8 minutes, most of it fitting the three default materials once;
 ``--layers A.dbtfm B.dbtfm`` takes fitted models instead). Two materials (default: ``sim:leather?size=64`` and
 ``sim:stone?size=64``, fitted with ``dynbtf fit --minutes 2`` into ``~/.cache/dynbtf/bench_guided``), each
 synthesized with hist at ``--scale`` repeats per uv unit, are layered by a half-plane mask (layer 0 left of
@@ -17,6 +17,10 @@ with boundary half-width ``--width``. For each synthesis seed (``--seeds``, 3 by
 * **cost per query** -- ``LayeredBTF.eval`` over ``--queries`` random queries away from the band and inside it,
   against layer 0's own ``SynthesizedBTF.eval`` of the same queries, timed side by side (best of 3). Targets: at
   most 1.1x away from boundaries, at most 2.2x inside them.
+
+Guidance (:func:`guidance_row`) is measured with hist on the first material and with struct on a structured one
+(``--struct-model``, default the simulated brick wall), where whole cells are guided: there the share of cells
+whose content is the target's label counts, besides the texels'.
 
 The rows are written as JSON (``--json``, default ``benchmarks/results/guided.json``), from which the table in
 docs/layered.md is generated (``python benchmarks/tables.py``).
@@ -101,27 +105,32 @@ def cost_ratios(layered, own, width: float, queries: int, seed: int) -> tuple[fl
     return t_away / t_own_away, t_band / t_own_band
 
 
-def guidance_row(path: Path, seed: int, classes: int, repeats: int) -> dict:
+def guidance_row(path: Path, seed: int, classes: int, repeats: int, method: str = "hist") -> dict:
     """Exemplar guidance on one material: a target whose left half asks for class 0 and right half for class 1 over
     ``repeats`` x ``repeats`` exemplar repeats, sampled at one query per texel. Measured: the share of points whose
-    content (the label under their sample of largest weight) is their target's, per half and overall; the
-    repetition score (:func:`dynbtf.synthesis.quality.repetition_score` of the synthesized features) of each half,
-    guided over hist with the same seed; the synthesis cost of a query (no decoder), guided over hist, both on the
-    fused CPU kernel."""
+    content (:func:`~dynbtf.synthesis.guided_blending.source_labels`: the label under their sample of largest weight,
+    or for struct the label of the texel read) is their target's, per half and overall; the repetition score
+    (:func:`dynbtf.synthesis.quality.repetition_score` of the synthesized features) of each half, guided over the
+    unguided ``method`` (hist or struct, with its automatic cells) with the same seed; the synthesis cost of a
+    query (no decoder), guided over unguided, both on the fused CPU kernel."""
     import torch
 
     import dynbtf
     from dynbtf.guided import exemplar_classes
-    from dynbtf.synthesis.guided_blending import GuidedBlending, LabelField, source_labels
+    from dynbtf.synthesis.guided_blending import GuidedBlending, GuidedCellQuilting, LabelField, source_labels
     from dynbtf.synthesis.quality import repetition_score
 
     model, _ = dynbtf.load_model(str(path))
-    labels = exemplar_classes(model, classes, seed)
+    labels = exemplar_classes(model, classes, 0)  # the material's classes (fixed); the seed varies the synthesis
     target = LabelField(np.array([[0, 1]]), size=float(repeats), wrap="clamp")
     plane = model.positional_plane().detach()
     separate = {"separate": int(model.separate_channels)} if getattr(model, "separate_channels", 0) else {}
-    guided = GuidedBlending(plane, seed, labels=labels, target=target, **separate)
-    hist = dynbtf.make_synthesizer("hist", plane, seed=seed, **separate)
+    if method == "struct":
+        hist = dynbtf.make_synthesizer("struct", plane, seed=seed)  # (the unguided method, under hist's name)
+        guided = GuidedCellQuilting(plane, seed, labels=labels, target=target, prepared=hist.prepared)
+    else:
+        guided = GuidedBlending(plane, seed, labels=labels, target=target, **separate)
+        hist = dynbtf.make_synthesizer("hist", plane, seed=seed, **separate)
     h, w = plane.shape[:2]
     side_u, side_v = repeats * w, repeats * h
     u, v = np.meshgrid((np.arange(side_u) + 0.5) / w, (np.arange(side_v) + 0.5) / h)
@@ -137,15 +146,27 @@ def guidance_row(path: Path, seed: int, classes: int, repeats: int) -> dict:
     sub = uv[: 50_000]
     t_guided = min(_seconds(lambda: guided(sub)) for _ in range(3))
     t_hist = min(_seconds(lambda: hist(sub)) for _ in range(3))
-    row = {"seed": seed, "on_target": float((got == wanted).float().mean()),
+    cells = {}
+    if method == "struct":  # struct guides whole cells: each cell's content (its majority label) against the target
+        nx, ny = guided.prepared.cells
+        cx, cy = np.meshgrid(np.arange(repeats * nx), np.arange(repeats * ny))
+        cx, cy = torch.from_numpy(cx.ravel()), torch.from_numpy(cy.ravel())
+        i, j = torch.remainder(cx, nx), torch.remainder(cy, ny)
+        content = guided.cell_labels[i, j, guided.cell_choices(cx, cy)]
+        asked = guided.cell_target(cx, cy)
+        cells = {"cells": [int(nx), int(ny)], "cells_on_target": float((content == asked).float().mean()),
+                 "cells_possible": float((guided.cell_labels[i, j] == asked[:, None]).any(1).float().mean()),
+                 "cells_on_target_unguided": float((guided.cell_labels[i, j, hist.cell_choices(cx, cy)] == asked)
+                                                   .float().mean())}
+    row = {"seed": seed, **cells, "on_target": float((got == wanted).float().mean()),
            "on_target_left": float((got[left] == 0).float().mean()),
            "on_target_right": float((got[~left] == 1).float().mean()),
            "repetition_guided": repetition[:2], "repetition_hist": repetition[2:],
            "repetition_ratio": max(repetition[0] / repetition[2], repetition[1] / repetition[3]),
            "cost_vs_hist": t_guided / t_hist}
-    print(f"guidance seed {seed}: on target {row['on_target']:.3f} (left {row['on_target_left']:.3f}, right "
-          f"{row['on_target_right']:.3f}); repetition guided / hist {row['repetition_ratio']:.2f}x; cost "
-          f"{row['cost_vs_hist']:.1f}x hist", file=sys.stderr, flush=True)
+    print(f"guidance ({method}) seed {seed}: on target {row['on_target']:.3f} (left {row['on_target_left']:.3f}, "
+          f"right {row['on_target_right']:.3f}); repetition guided / {method} {row['repetition_ratio']:.2f}x; cost "
+          f"{row['cost_vs_hist']:.1f}x {method}", file=sys.stderr, flush=True)
     return row
 
 
@@ -167,6 +188,11 @@ def main() -> None:
     parser.add_argument("--json", type=Path, default=RESULTS)
     parser.add_argument("--classes", type=int, default=2, help="guidance: classes of the first material")
     parser.add_argument("--repeats", type=int, default=8, help="guidance: side of the measured area, exemplar repeats")
+    parser.add_argument("--struct-model", default="sim:brick_wall?size=64",
+                        help="guided struct: a structured material (a spec fitted once, or a model file)")
+    parser.add_argument("--struct-classes", type=int, default=3,
+                        help="guided struct: classes of its texels (the brick wall's 3: dark bricks, light bricks, "
+                             "mortar; the target asks for classes 0 and 1)")
     args = parser.parse_args()
 
     import dynbtf
@@ -197,13 +223,18 @@ def main() -> None:
               f"{left:.4f} | {right:.4f} uv ({left / args.width:.2f}x | {right / args.width:.2f}x of {args.width:g}); "
               f"cost {away:.2f}x away, {band:.2f}x in the band", file=sys.stderr, flush=True)
     guidance = [guidance_row(paths[0], seed, args.classes, args.repeats) for seed in args.seeds]
+    struct_path = Path(args.struct_model) if Path(args.struct_model).is_file() else fitted(args.struct_model)
+    guidance_struct = [guidance_row(struct_path, seed, args.struct_classes, args.repeats, "struct")
+                       for seed in args.seeds]
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=Path(__file__).resolve().parent).stdout.strip()
     command = "python benchmarks/bench_guided.py" + ("" if args.layers is None else " --layers A B")
     data = {"benchmark": "guided", "command": command, "commit": commit, "cpu": _cpu_name(),
             "cores": os.cpu_count(), "cpu_isa": active_isa(), "layers": names, "scale": args.scale,
             "resolution": args.resolution, "queries": args.queries, "rows": rows,
-            "guidance": {"model": names[0], "classes": args.classes, "repeats": args.repeats, "rows": guidance}}
+            "guidance": {"model": names[0], "classes": args.classes, "repeats": args.repeats, "rows": guidance},
+            "guidance_struct": {"model": args.struct_model, "classes": args.struct_classes, "repeats": args.repeats,
+                                "rows": guidance_struct}}
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(data, indent=1) + "\n")
     print(f"wrote {args.json}", file=sys.stderr)

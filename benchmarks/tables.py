@@ -119,6 +119,22 @@ def guided(data: dict) -> str:
     return "\n".join(lines)
 
 
+def guidance_struct(data: dict) -> str:
+    """bench_guided.py's guided struct: cells and texels on target, repetition against struct's, cost, per seed."""
+    g = data["guidance_struct"]
+    lines = [f"Measured on {_machine(data)} by `{data['command']}`: `{g['model']}` in {g['classes']} classes, a "
+             f"target asking for class 0 on the left half and class 1 on the right half of {g['repeats']} x "
+             f"{g['repeats']} exemplar repeats; struct's cells per repeat as it chooses them "
+             f"({g['rows'][0]['cells'][0]} x {g['rows'][0]['cells'][1]}).", "",
+             "| seed | cells whose content is the target's (unguided struct) | texels on target (left / right) | "
+             "repetition, guided over struct | synthesis cost per query, guided over struct |", "|---|---|---|---|---|"]
+    for r in g["rows"]:
+        lines.append(f"| {r['seed']} | {100 * r['cells_on_target']:.1f}% ({100 * r['cells_on_target_unguided']:.1f}%) | "
+                     f"{100 * r['on_target']:.1f}% ({100 * r['on_target_left']:.1f}% / {100 * r['on_target_right']:.1f}%) "
+                     f"| {r['repetition_ratio']:.2f}x | {r['cost_vs_hist']:.1f}x |")
+    return "\n".join(lines)
+
+
 def guidance(data: dict) -> str:
     """bench_guided.py's guidance part: content on target, repetition against hist's, cost, per seed."""
     g = data["guidance"]
@@ -743,7 +759,7 @@ def compiled_material(data: dict) -> str:
 
 
 RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget": budget, "evaluation": evaluation,
-             "gpu": gpu, "guided": guided, "guidance": guidance, "speed": speed, "rendering": rendering,
+             "gpu": gpu, "guided": guided, "guidance": guidance, "guidance_struct": guidance_struct, "speed": speed, "rendering": rendering,
              "measured": measured, "quality_triple": quality_triple, "quality_parallax": quality_parallax,
              "quality_compared": quality_compared, "baselines": baselines, "baselines_summary": baselines_summary,
              "baselines_storage": baselines_storage, "baselines_small": baselines_small,
@@ -757,7 +773,7 @@ RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget
              "structured": structured, "decode_speed": decode_speed, "fit_default": fit_default,
              "fit_many": fit_many, "compiled_material": compiled_material}
 #: Tables rendered from another table's data file (default: ``<name>.json``).
-SOURCES = {"guidance": "guided",
+SOURCES = {"guidance": "guided", "guidance_struct": "guided",
            **dict.fromkeys(("quality_triple", "quality_parallax", "quality_compared"), "quality"),
            **dict.fromkeys(("baselines_summary", "baselines_storage", "baselines_small", "neumip_variants",
                             "baselines_synthesis", "synthesis_methods"), "baselines"),

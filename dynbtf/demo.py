@@ -20,13 +20,15 @@ options skips finished stages, and the training stage resumes its checkpoint):
 6. ``structured`` -- a structured material (simulated ceramic tiles, or the demo's own material when
                     that is structured) fitted briefly at 64 x 64 texels and synthesized at 8x and
                     25x by tiling, histogram-preserving blending and ``auto`` (which picks
-                    lattice-aligned cell quilting for it), with the structure measures.
+                    lattice-aligned cell quilting for it), with the structure measures; and the two
+                    materials layered under a value-noise mask (:class:`dynbtf.layered.LayeredBTF`).
 7. ``render``    -- Mitsuba 3 renders with the ``dynbtf`` plugin: plane, sphere and
                     cloth under two lighting conditions (the paper's teaser), and
                     the grazing plane per synthesis method.
 8. ``viewer``    -- the real-time export (:func:`dynbtf.export.web.exporter.export_web`, fp16):
                     ``viewer/index.html``, a WebGL2 page that synthesizes and decodes the
-                    material per pixel in the browser.
+                    material per pixel in the browser; and ``layered-viewer/index.html``, the
+                    layered material, whose mask the user paints there.
 9. ``report``    -- ``report.html`` with every image and table, linking the viewer.
 
 Training gets the budget the other stages leave and stops with a checkpoint if
@@ -389,8 +391,47 @@ def _stage_structured(ctx: _Context) -> dict[str, Any]:
                      "coherence p90": round(r["p90"], 4), "coherence median": round(r["median"], 4),
                      "identity with tiling": round(r["identity"], 4),
                      "tables (KB)": btf.synthesizer.storage_bytes() / 1024})
+    layered = _layered_panels(ctx, view, light, res)
     return {"material": material, "size": size, "choice": choice, "images": images, "quality": rows,
-            "view": list(view), "light": list(light), "resolution": res}
+            "view": list(view), "light": list(light), "resolution": res, "layered": layered}
+
+
+#: The demo's layered material: value noise of this many uv units per cell, contrast, and the band's half-width.
+LAYERED_MASK = (0.35, 3.0)
+LAYERED_WIDTH = 0.03
+
+
+def _demo_layered(ctx: _Context, scale: float = 8.0):
+    """The demo's material (hist) and the structured one (auto) on one surface under value noise
+    (:class:`dynbtf.layered.LayeredBTF`), each at ``scale`` repeats per uv unit."""
+    from .layered import LayeredBTF, NoiseMask
+    from .synthesized import synthesized_btf
+
+    seed = ctx.config.seed
+    layers = [synthesized_btf(ctx.out / "model.dbtfm", "hist", scale=scale, seed=seed),
+              synthesized_btf(ctx.out / "structured" / "model.dbtfm", "auto", scale=scale, seed=seed)]
+    return LayeredBTF(layers, NoiseMask(*LAYERED_MASK, seed=seed), width=LAYERED_WIDTH)
+
+
+def _layered_panels(ctx: _Context, view, light, res: int) -> dict[str, Any]:
+    """The layered material over one uv unit: its mask, the image, and which layer each pixel shows."""
+    layered = _demo_layered(ctx)
+    folder = ctx.out / "structured"
+    img = layered.image(view, light, (0.0, 0.0, 1.0, 1.0), (res, res))
+    centres = (np.arange(res) + 0.5) / res
+    u, v = np.meshgrid(centres, centres)
+    uv = np.stack([u.ravel(), v.ravel()], -1)
+    mask = layered.mask.value(uv).reshape(res, res)
+    shown = layered.weight(uv).reshape(res, res)
+
+    def grey(a):
+        return np.repeat(a[..., None], 3, -1).astype(np.float32)
+
+    return {"mask": ctx.rel(save_image(folder / "layered_mask.png", grey(mask))),
+            "image": ctx.rel(save_image(folder / "layered_08x.png", img)),
+            "shown": ctx.rel(save_image(folder / "layered_shown.png", grey(0.25 + 0.5 * shown))),
+            "noise": list(LAYERED_MASK), "width": LAYERED_WIDTH,
+            "methods": [btf.synthesizer.name for btf in layered.layers]}
 
 
 def _render_jobs(cfg: DemoConfig) -> list[dict[str, Any]]:
@@ -427,8 +468,14 @@ def _stage_viewer(ctx: _Context) -> dict[str, Any]:
 
     result = export_web(ctx.out / "model.dbtfm", ctx.out / "viewer", precision="fp16", methods=("auto", "hist", "tile"),
                         seed=ctx.config.seed, scale=8.0)
-    return {"index": ctx.rel(result.index), "precision": "fp16", "hist_bytes": result.method_bytes("hist"),
-            "total_bytes": result.total_bytes(), "model_bytes": (ctx.out / "model.dbtfm").stat().st_size}
+    out = {"index": ctx.rel(result.index), "precision": "fp16", "hist_bytes": result.method_bytes("hist"),
+           "total_bytes": result.total_bytes(), "model_bytes": (ctx.out / "model.dbtfm").stat().st_size}
+    if (ctx.out / "structured" / "model.dbtfm").is_file():  # the layered material, its mask painted in the page
+        from .export.web.layered import export_layered_web
+
+        layered = export_layered_web(_demo_layered(ctx), ctx.out / "layered-viewer", precision="fp16")
+        out["layered_index"] = ctx.rel(layered.index)
+    return out
 
 
 def _stage_report(ctx: _Context) -> dict[str, Any]:

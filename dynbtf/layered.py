@@ -112,7 +112,7 @@ class ImageMask:
 
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _image_mask_kernel(uv, image, size, repeat, value, gradient):
     """Bilinear value and gradient of ``image`` over ``size`` uv units at each ``uv`` (see :class:`ImageMask`).
 
@@ -120,7 +120,7 @@ def _image_mask_kernel(uv, image, size, repeat, value, gradient):
     wrap; clamp: edge texels extend the image."""
     h, w = image.shape
     sx, sy = w / size, h / size
-    for i in range(uv.shape[0]):
+    for i in numba.prange(uv.shape[0]):
         u, v = uv[i, 0], uv[i, 1]
         if repeat:
             u, v = np.mod(u, size), np.mod(v, size)
@@ -147,10 +147,10 @@ def contour_distance(value: np.ndarray, gradient: np.ndarray) -> np.ndarray:
                                     np.ascontiguousarray(gradient, dtype=np.float64))
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _contour_distance_kernel(value, gradient):
     out = np.empty(value.shape[0])
-    for i in range(value.shape[0]):
+    for i in numba.prange(value.shape[0]):
         m = value[i] - 0.5
         slope = math.sqrt(gradient[i, 0] * gradient[i, 0] + gradient[i, 1] * gradient[i, 1])
         out[i] = 0.0 if m == 0.0 else m / max(slope, 1e-300)
@@ -356,8 +356,8 @@ class LayeredBTF:
         uv = check_uv(uv, scale=self.scale)
         batch = tuple(uv.shape[:-1])
         flat = uv.reshape(-1, 2).to(torch.float64).cpu()
-        wv = w_view if isinstance(w_view, torch.Tensor) else torch.from_numpy(np.array(w_view, dtype=np.float64))
-        wl = w_light if isinstance(w_light, torch.Tensor) else torch.from_numpy(np.array(w_light, dtype=np.float64))
+        wv = w_view if isinstance(w_view, torch.Tensor) else torch.from_numpy(np.require(w_view, np.float64, "W"))
+        wl = w_light if isinstance(w_light, torch.Tensor) else torch.from_numpy(np.require(w_light, np.float64, "W"))
         for name, w in (("w_view", wv), ("w_light", wl)):
             if tuple(w.shape) != batch + (3,):
                 raise InputError(f"{name}: expected shape {batch + (3,)}, got {tuple(w.shape)}")

@@ -48,11 +48,24 @@ def test_quick_demo_writes_every_stage_and_the_report(quick_demo):
     coherence = {row["method"]: row["coherence p90"] for row in st["quality"]}
     assert coherence["tile"] < 1e-9 and coherence["auto (struct)"] < coherence["hist"]
     assert "A structured material: tile | hist | auto" in html
+    # the two materials layered: the image shows the structured one exactly where the "shown" map says so, and the
+    # layered viewer is written and linked
+    lay = st["layered"]
+    assert "a layered material" in html and all(lay[k] in html for k in ("mask", "image", "shown"))
+    assert "layered-viewer/index.html" in re.findall(r"href='([^']+)'", html)
+    assert (out / "layered-viewer" / "layered.js").is_file() and (out / "layered-viewer" / "layer1" / "manifest.js").is_file()
+    from dynbtf.demo import _Context, _demo_layered
+
+    layered = _demo_layered(_Context(DemoConfig(output=str(out), size=16, quick=True), out, False, print))
+    assert [b.synthesizer.name for b in layered.layers] == lay["methods"] == ["hist", "struct"]
     # guided by a painted target: the dark-painted part of the image shows the darker content
     import imageio.v3 as iio
     import numpy as np
 
     from dynbtf.guided import example_target
+
+    shown = iio.imread(out / lay["shown"]).astype(np.float64)[..., :3].mean(-1)
+    assert 0.05 < (shown > 180).mean() < 0.95  # both materials show (sRGB levels 137 and 225)
 
     guided = results["synthesis"]["guided"]
     assert "Guided by a painted target" in html and guided["image"] in html and guided["target"] in html

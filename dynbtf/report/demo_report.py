@@ -260,6 +260,17 @@ def _structured_section(r: HtmlReport, out: Path, st: dict[str, Any]) -> None:
                 "exemplar over the typical difference of two exemplar patches (0: every patch exists in the "
                 "exemplar); identity with tiling, the share of patches whose best match is where tiling would "
                 "copy from (1 for tiling)")
+    lay = st.get("layered")
+    if lay:
+        r.section("Two materials on one surface: a layered material", level=3)
+        r.paragraph(f"The demo's material ({lay['methods'][0]}) and the structured one ({lay['methods'][1]}) under a "
+                    f"mask of value noise ({lay['noise'][0]:g} uv units per cell, contrast {lay['noise'][1]:g}), at 8 "
+                    "repeats per uv unit. Within "
+                    f"{lay['width']:g} uv units of the mask's contour the material that stands higher there shows, "
+                    "so the boundary follows the materials' own structure instead of cross-fading them "
+                    "(dynbtf.LayeredBTF, dynbtf synth --layer; docs/layered.md).")
+        r.images([(out / lay["mask"], "mask"), (out / lay["image"], "layered, 8x"),
+                  (out / lay["shown"], "which material shows (light: the structured one)")], width=300)
 
 
 def _renders_section(r: HtmlReport, out: Path, ren: list[dict[str, Any]]) -> None:
@@ -290,6 +301,10 @@ def _viewer_section(r: HtmlReport, out: Path, viewer: dict[str, Any] | None) -> 
            f"Its {viewer['precision']} textures, tables and decoder weights for histogram-preserving blending take "
            f"{_human_bytes(viewer['hist_bytes'])} (the model file: {_human_bytes(viewer['model_bytes'])}); "
            "`dynbtf export` writes the same for your own engine (docs/realtime.md).")
+    if viewer.get("layered_index"):
+        r.link("The layered material in the same way: ", out / viewer["layered_index"], "open the layered viewer",
+               ". Tick \"Paint the mask\" and drag on the shape to move the boundary; save the mask as a PNG for "
+               "dynbtf synth --layer ... --mask (dynbtf export --layer).")
 
 
 def _timings_section(r: HtmlReport, out: Path, config, results: dict[str, Any]) -> None:
