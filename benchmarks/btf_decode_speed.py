@@ -15,7 +15,9 @@ shape truncated to one view, then prints per-image times of
   ``scripts/install_btf_extractor.sh``): its load time (it reads the whole file
   into memory) and per-image decode (a C++ loop with OpenMP over rows).
 
-Timings on a shared machine move by tens of percent: compare ratios within a run.
+Timings on a shared machine move by tens of percent: compare ratios within a run. The rows are written
+as JSON (``--json``, default ``benchmarks/results/decode_speed.json``), from which the table in
+docs/results.md is generated (``python benchmarks/tables.py``).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from dynbtf.data import StoredBTF, UBO2014BTF, write_stored
 from dynbtf.data.array import ArrayBTF
 from dynbtf.data.directions import ubo2014_directions
 from dynbtf.data.ubo2014 import write_dfmf_factors
+from results_io import RESULTS, header, write_result
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -60,6 +63,7 @@ def main() -> None:
     ap.add_argument("--components", type=int, default=32)
     ap.add_argument("--size", type=int, default=400)
     ap.add_argument("--images", type=int, default=40)
+    ap.add_argument("--json", type=Path, default=RESULTS / "decode_speed.json")
     args = ap.parse_args()
     dirs, _ = ubo2014_directions()
     rng = np.random.default_rng(0)
@@ -92,7 +96,19 @@ def main() -> None:
             print(f"ratio image: ours / btf-extractor = {t_image / t_btfx:.2f}; "
                   f"view_images / btf-extractor = {t_view / t_btfx:.2f}")
         else:
+            load = t_btfx = None
             print("btf-extractor: not installed (bash scripts/install_btf_extractor.sh)")
+    rows = [{"reader": "`UBO2014BTF.image` (random access)", "ms_per_image": round(t_image * 1e3, 2)},
+            {"reader": "`UBO2014BTF.view_images` (151 lights in one product)", "ms_per_image": round(t_view * 1e3, 2)}]
+    if t_btfx is not None:
+        rows.append({"reader": "btf-extractor `Ubo2014` image (after a {load_seconds:g} s load of the whole file "
+                               "into memory)", "values": {"load_seconds": round(load, 2)},
+                     "ms_per_image": round(t_btfx * 1e3, 2)})
+    rows.append({"reader": "`StoredBTF.image`, float16", "ms_per_image": round(t_stored * 1e3, 2)})
+    write_result(args.json, {**header("decode_speed", "btf_decode_speed.py"),
+                             "conditions": f"{args.size} x {args.size} texels, 151 x 151 directions, C = {c} half "
+                                           f"components per channel, {n} images per reader",
+                             "rows": rows})
 
 
 if __name__ == "__main__":

@@ -716,7 +716,8 @@ def structured(data: dict) -> str:
 
 def decode_speed(data: dict) -> str:
     """btf_decode_speed.py: milliseconds per image of each reader."""
-    lines = _head("", "per image", spaced=True)
+    lines = [f"Measured on {_machine(data)} by `{data['command']}`: {data['conditions']}.", ""]
+    lines += _head("", "per image", spaced=True)
     return "\n".join(lines + [_line(_filled(r, "reader"), f"{r['ms_per_image']:g} ms") for r in data["rows"]])
 
 

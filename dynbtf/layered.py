@@ -15,9 +15,10 @@ to the contour is added:
 
 so the raised parts of one material (a brick's face, the top of a fibre) reach into the other's side and its
 hollows give way first: the boundary follows the materials' own structure. ``h`` is each layer's
-**height** at the point, in ``[0, 1]``: the relief height where the model has one (``triple-parallax``),
-else the luminance of its synthesized features under normal view and light (a linear map of the features
-fitted to the decoded exemplar; the exemplar's 2nd and 98th percentiles are 0 and 1). The layer whose
+**height** at the point, in ``[0, 1]``: the rank, among the exemplar's texels, of the relief height where the
+model has one (``triple-parallax``), else of the luminance of its synthesized features under normal view and
+light (a linear map of the features fitted to the decoded exemplar); :class:`LayerHeight`. Ranks make the band
+the same for any two materials: the other layer reaches exactly ``width`` into a side. The layer whose
 score sign wins is shown; ``softness`` (height units) blends the two linearly over ``|score| <
 softness`` (0: a hard edge, each point from one material). Beyond ``width`` from the contour only one layer
 is evaluated, so away from boundaries a query costs one material's evaluation (plus the mask).
@@ -59,6 +60,7 @@ True
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -70,7 +72,7 @@ from .infinite_btf import SynthesizedBTF, flat_image
 from .synthesis.base import check_uv
 from .synthesis.hash import MASK32, hash_vertex
 
-__all__ = ["LayeredBTF", "ImageMask", "NoiseMask", "layer_height_map", "mask_from_spec"]
+__all__ = ["LayeredBTF", "ImageMask", "NoiseMask", "LayerHeight", "layer_height_map", "mask_from_spec", "HEIGHT_TABLE"]
 
 
 # ------------------------------------------------------------------------------------------------ masks
@@ -229,13 +231,43 @@ def mask_from_spec(spec: str, size: float = 1.0, wrap: str = "repeat"):
 
 
 # ------------------------------------------------------------------------------------------------ heights
-def layer_height_map(btf: SynthesizedBTF) -> tuple[np.ndarray, float, float]:
-    """How :class:`LayeredBTF` reads a layer's height from its synthesized features ``f (N, C)``:
-    ``(weights (C,), offset, span)`` with ``h = clip((f @ weights - offset) / span, 0, 1)``.
+#: Entries of a layer's height table (:class:`LayerHeight`).
+HEIGHT_TABLE = 256
 
-    A relief model's height channel where it has one (its last positional channel); else the luminance of the
-    exemplar decoded under normal view and light, regressed linearly on the exemplar's features (least
-    squares). ``offset`` and ``span`` put the exemplar's 2nd and 98th percentiles at 0 and 1."""
+
+@dataclass(frozen=True)
+class LayerHeight:
+    """How :class:`LayeredBTF` reads a layer's height from its synthesized features ``f (N, C)``.
+
+    The raw height is ``f @ weights``; the height is its **rank** among the exemplar's texels, in ``[0, 1]``:
+    the share of the exemplar lower than it (its empirical CDF, linear between the exemplar's distinct values),
+    tabulated at :data:`HEIGHT_TABLE` raw heights evenly spaced from the exemplar's lowest (``low``) to its
+    highest (``high``) and read linearly (:meth:`__call__`; every backend reads the same table the same way).
+    Ranks make ``width`` mean the same for any two materials: where the two layers' heights are independent,
+    the other layer shows at a distance ``d`` into one side with probability ``(1 - |d| / width)^2 / 2``,
+    reaching 0 at the band's edge.
+    """
+
+    weights: np.ndarray  # (C,) float64
+    low: float
+    high: float
+    table: np.ndarray  # (HEIGHT_TABLE,) float64, non-decreasing, in [0, 1]
+
+    def __call__(self, raw) -> np.ndarray:
+        """Heights in ``[0, 1]`` of raw heights ``f @ weights`` (any shape, float64)."""
+        last = len(self.table) - 1
+        pos = np.clip((np.asarray(raw, dtype=np.float64) - self.low) * (last / (self.high - self.low)), 0.0, last)
+        i = np.minimum(np.floor(pos), last - 1).astype(np.int64)
+        t = pos - i
+        return self.table[i] + t * (self.table[i + 1] - self.table[i])
+
+
+def layer_height_map(btf: SynthesizedBTF) -> LayerHeight:
+    """How :class:`LayeredBTF` reads a layer's height (:class:`LayerHeight`).
+
+    The raw height: a relief model's height channel where it has one (its last positional channel); else the
+    luminance of the exemplar decoded under normal view and light, regressed linearly on the exemplar's features
+    (least squares). The height is the raw height's rank among the exemplar's texels."""
     model = btf.model
     plane = model.positional_plane().detach().to("cpu", torch.float64)
     rows = plane.reshape(-1, plane.shape[-1])
@@ -250,10 +282,15 @@ def layer_height_map(btf: SynthesizedBTF) -> tuple[np.ndarray, float, float]:
         luminance = (rgb.double().cpu() @ torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64))
         design = torch.cat([rows, torch.ones(rows.shape[0], 1, dtype=torch.float64)], 1)
         solution = torch.linalg.lstsq(design, luminance[:, None]).solution[:, 0]
-        weights = solution[:-1]  # (the intercept drops out: the percentiles below set the offset)
+        weights = solution[:-1]  # (the intercept drops out: ranks do not depend on it)
     heights = (rows @ weights).numpy()
-    low, high = np.percentile(heights, [2.0, 98.0])
-    return weights.numpy(), float(low), float(max(high - low, 1e-12))
+    values, counts = np.unique(heights, return_counts=True)
+    low, high = float(values[0]), float(values[-1])
+    if not high > low:  # a flat exemplar: every point at the middle rank
+        return LayerHeight(weights.numpy(), low, low + 1.0, np.full(HEIGHT_TABLE, 0.5))
+    ranks = (np.cumsum(counts) - 0.5 * counts) / len(heights)  # mid-ranks of the distinct values
+    grid = np.linspace(low, high, HEIGHT_TABLE)
+    return LayerHeight(weights.numpy(), low, high, np.interp(grid, values, ranks))
 
 
 # ------------------------------------------------------------------------------------------------ layered BTF
@@ -305,7 +342,8 @@ class LayeredBTF:
         """:meth:`heights` and, per layer, its latent values at ``uv`` where its ``eval`` takes them back (else None):
         a layer's synthesis at a band point then serves both its height and its colour."""
         out, latents = [], []
-        for btf, (weights, offset, span) in zip(self.layers, self._heights):
+        for btf, height_of in zip(self.layers, self._heights):
+            weights = height_of.weights
             latent = None
             if getattr(btf.model, "extra_positional_channels", 0):  # a relief's height channel: that channel alone
                 index = int(np.argmax(weights))  # (layer_height_map's weights are one-hot on it)
@@ -318,7 +356,7 @@ class LayeredBTF:
                 else:
                     f = btf.features(uv)
                 height = f.double().cpu().numpy() @ weights
-            out.append(np.clip((height - offset) / span, 0.0, 1.0))
+            out.append(height_of(height))
             latents.append(latent)
         return torch.from_numpy(np.stack(out, -1)), latents
 

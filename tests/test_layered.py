@@ -31,6 +31,24 @@ def directions(n, seed=0):
     return w / np.linalg.norm(w, axis=1, keepdims=True)
 
 
+def test_layer_height_is_the_rank_among_the_exemplars_texels(layers):
+    """Against a brute-force count: the height of a raw value is the share of the exemplar's texels below it (to the
+    table's resolution); the exemplar's own texels spread evenly over [0, 1]; beyond its range, 0 and 1."""
+    from dynbtf.layered import HEIGHT_TABLE, layer_height_map
+
+    for btf in layers:
+        height = layer_height_map(btf)
+        plane = btf.model.positional_plane().detach().double().reshape(-1, len(height.weights)).numpy()
+        raw = plane @ height.weights
+        probes = np.quantile(raw, np.linspace(0.02, 0.98, 49))
+        brute = np.array([(raw < x).mean() + 0.5 * (raw == x).mean() for x in probes])
+        np.testing.assert_allclose(height(probes), brute, atol=1.5 / len(raw) + 2.0 / HEIGHT_TABLE)
+        ranks = height(raw)
+        assert abs(ranks.mean() - 0.5) < 0.01 and abs(np.median(ranks) - 0.5) < 0.02
+        assert height(raw.min() - 1.0) < 0.01 and height(raw.max() + 1.0) > 0.99
+        assert np.all(np.diff(height.table) >= 0) and len(height.table) == HEIGHT_TABLE
+
+
 def test_away_from_the_boundary_each_region_is_its_layer_exactly(layers):
     a, b = layers
     layered = LayeredBTF([a, b], half_plane(), width=0.1)

@@ -8,7 +8,6 @@ from typing import Optional
 
 import typer
 
-from ..errors import InputError
 from ..training.model_choice import DEFAULT_KIND, stereo_fitter_options
 from .app import app
 

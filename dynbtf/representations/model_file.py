@@ -340,8 +340,6 @@ def load_model(path, device=None, *,
         unknown, of the wrong type or out of range, tensors that do not match the config, non-finite or
         absurd values or answers. The message starts with the path and names the field or tensor.
     """
-    from safetensors.torch import load_file
-
     from ..device import resolve_device
 
     path = Path(path)

@@ -35,6 +35,7 @@ import numpy as np
 from ...errors import InputError
 from ...io import atomic_path
 from ...limits import check_scale
+from ...layered import HEIGHT_TABLE
 from ...synthesis.hash import MASK32, seed_state
 from .exporter import WebExport, _export_web, _output_directory, _pad4, _Writer, check_precision, write_viewer_page
 from .shader import LOCAL_REPEATS, RepeatOrigin, _float, lattice_constants
@@ -119,9 +120,10 @@ uniform float dynbtf_mask_contrast;
 uniform uint dynbtf_mask_seed_state;        // noise: seed_state(seed)
 uniform int dynbtf_layer_index;             // 0 or 1: which layer this program evaluates
 uniform float dynbtf_layer_width;           // half-width of the band around the contour (uv units)
-uniform vec4 dynbtf_layer_height_map[DYNBTF_G];   // height = clamp((latent . map + offset) / span, 0, 1)
+uniform vec4 dynbtf_layer_height_map[DYNBTF_G];   // raw height = latent . map + offset
 uniform float dynbtf_layer_height_offset;
-uniform float dynbtf_layer_height_span;
+uniform vec2 dynbtf_layer_height_range;     // the exemplar's lowest and highest raw height
+uniform vec4 dynbtf_layer_height_table[{HEIGHT_TABLE // 4}];   // the raw height's rank at evenly spaced raw heights
 
 struct DynbtfMaskOrigin {{
     uvec4 cell;      // noise: (low, high) words of the int64 cell of the origin, x then y
@@ -186,10 +188,14 @@ vec4 dynbtf_layer_pass(DynbtfOrigin o, vec2 local, DynbtfMaskOrigin mo, vec2 mas
     vec4 x[DYNBTF_G];
     dynbtf_latent(o, local, 0, DYNBTF_G, x);
     float height = 0.0;
-    if (band) {{
-        height = dynbtf_layer_height_offset;
-        for (int g = 0; g < DYNBTF_G; ++g) height += dot(x[g], dynbtf_layer_height_map[g]);
-        height = clamp(height / dynbtf_layer_height_span, 0.0, 1.0);
+    if (band) {{   // the raw height's rank (dynbtf.layered.LayerHeight), read linearly from the table
+        float raw = dynbtf_layer_height_offset;
+        for (int g = 0; g < DYNBTF_G; ++g) raw += dot(x[g], dynbtf_layer_height_map[g]);
+        vec2 range = dynbtf_layer_height_range;
+        float pos = clamp((raw - range.x) * ({float(HEIGHT_TABLE - 1)} / (range.y - range.x)), 0.0, {float(HEIGHT_TABLE - 1)});
+        int i = min(int(pos), {HEIGHT_TABLE - 2});
+        float lo = dynbtf_layer_height_table[i / 4][i % 4], hi = dynbtf_layer_height_table[(i + 1) / 4][(i + 1) % 4];
+        height = lo + (pos - float(i)) * (hi - lo);
     }}
     float weight = 1.0;
     if (dynbtf_layer_index == 1 && band) {{
@@ -227,16 +233,17 @@ def _mask_entry(mask, writer: _Writer) -> dict[str, Any]:
 
 
 def _height_entry(btf) -> dict[str, Any]:
-    """How the shader reads a layer's height from its latent values: ``layer_height_map`` with the method's output
-    map folded in (``features = latent @ M + o``)."""
+    """How the shader reads a layer's height from its latent values: :func:`~dynbtf.layered.layer_height_map`'s
+    weights with the method's output map folded in (``features = latent @ M + o``), and its rank table."""
     from ...layered import layer_height_map
 
-    weights, low, span = layer_height_map(btf)
+    height = layer_height_map(btf)
     matrix, offset = btf.synthesizer.output_map()
-    weights = np.asarray(weights, dtype=np.float64)
+    weights = np.asarray(height.weights, dtype=np.float64)
     mapped = weights if matrix is None else matrix.double().cpu().numpy() @ weights
     shift = 0.0 if offset is None else float(offset.double().cpu().numpy() @ weights)
-    return {"map": _pad4(mapped, 0.0), "offset": shift - float(low), "span": float(span)}
+    return {"map": _pad4(mapped, 0.0), "offset": shift, "low": float(height.low), "high": float(height.high),
+            "table": [float(v) for v in height.table]}
 
 
 def export_layered_web(layered, out_dir, *, precision: str = "fp16", viewer: bool = True, span: float = 1.0

@@ -53,8 +53,9 @@ Two ``dynbtf`` BSDFs on one surface: ``layer0`` where the ``mask`` texture is be
 one half, ``layer1`` where it is above, with the boundary synthesized, not
 cross-faded: within ``width`` of the mask's 0.5 contour a point shows the layer that
 stands higher there once a bias growing with the distance ``d`` to the contour is added,
-``score = (h_1 - h_0) + d / width`` (``h``: each layer's height in [0, 1], its relief
-where the model has one, else the luminance of its synthesized features; ``d``:
+``score = (h_1 - h_0) + d / width`` (``h``: each layer's height in [0, 1], the rank among the
+exemplar's texels of its relief where the model has one, else of the luminance of its synthesized
+features, :class:`dynbtf.layered.LayerHeight`; ``d``:
 ``(m - 0.5) / |grad m|`` from the mask's value and gradient). It evaluates what
 :class:`dynbtf.layered.LayeredBTF` evaluates, with the mask a Mitsuba texture:
 ``bitmap`` with ``raw = true``, ``filter_type = "bilinear"`` and ``to_uv`` scaled by
@@ -154,8 +155,9 @@ class _LayeredBSDFBody:
         self.layers = [_nested(props, name, "dynbtf BSDF", lambda v: hasattr(v, "evaluator"))
                        for name in ("layer0", "layer1")]
         self.mask = _nested(props, "mask", "texture", lambda v: isinstance(v, mi.Texture))
-        # each layer's height from its synthesized features, as LayeredBTF reads it (weights, offset, span)
+        # each layer's height from its synthesized features, as LayeredBTF reads it (a rank, by its table)
         self.heights = [layer_height_map(layer.evaluator.btf) for layer in self.layers]
+        self.height_tables = [mi.Float(np.asarray(h.table, dtype=np.float32)) for h in self.heights]
         self.m_flags = int(self.layers[0].m_flags) | int(self.layers[1].m_flags)  # footprints if either layer
         self.m_components = [int(mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide)]
 
@@ -164,7 +166,7 @@ class _LayeredBSDFBody:
         """Layer ``k``'s height in [0, 1] at the shading point (LayeredBTF's definition)."""
         dr = _dr()
         layer = self.layers[k]
-        weights, offset, span = self.heights[k]
+        weights = self.heights[k].weights
         u = si.uv.x * dr.opaque(_mi().Float, layer.scale)
         v = si.uv.y * dr.opaque(_mi().Float, layer.scale_v)
         synthesizer = layer.evaluator.synthesizer
@@ -174,7 +176,19 @@ class _LayeredBSDFBody:
         else:
             features = synthesizer.features(u, v, active)
             height = sum(f * float(w) for f, w in zip(features, weights) if w != 0.0)
-        return dr.clip((height - float(offset)) / float(span), 0.0, 1.0)
+        return self._rank(k, height, active)
+
+    def _rank(self, k, height, active):
+        """Layer ``k``'s raw height read through its table (:meth:`dynbtf.layered.LayerHeight.__call__`)."""
+        mi, dr = _mi(), _dr()
+        h = self.heights[k]
+        last = len(h.table) - 1
+        pos = dr.clip((height - float(h.low)) * float(last / (h.high - h.low)), 0.0, float(last))
+        i = dr.minimum(mi.UInt32(dr.floor(pos)), last - 1)
+        t = pos - mi.Float(i)
+        lo = dr.gather(mi.Float, self.height_tables[k], i, active)
+        hi = dr.gather(mi.Float, self.height_tables[k], i + 1, active)
+        return lo + t * (hi - lo)
 
     def _weight(self, si, active):
         """Layer 1's weight at the shading point, in [0, 1]."""

@@ -371,7 +371,6 @@ class CellQuilting(Tiling):
         nx, ny = t.cells
         tx, ty = w // nx, h // ny
         mx, my = t.margin
-        k = t.count
         whole, frac = split_uv(uv)
         pos_x, pos_y = frac[:, 0] * w, frac[:, 1] * h
         texel_x = torch.clamp(torch.floor(pos_x).to(torch.int64), max=w - 1)

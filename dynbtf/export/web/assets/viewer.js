@@ -409,7 +409,8 @@
     gl.uniform1f(u('dynbtf_layer_width'), this.width);
     gl.uniform4fv(u('dynbtf_layer_height_map'), layer.height.map);
     gl.uniform1f(u('dynbtf_layer_height_offset'), layer.height.offset);
-    gl.uniform1f(u('dynbtf_layer_height_span'), layer.height.span);
+    gl.uniform2f(u('dynbtf_layer_height_range'), layer.height.low, layer.height.high);
+    gl.uniform4fv(u('dynbtf_layer_height_table'), layer.height.table);
     gl.uniform1i(u('u_previous'), LAYER_UNITS.previous);
     if (k === 0) this.bindPrevious(null);  // layer 0 renders into the texture layer 1 reads: no feedback loop
   };
