@@ -115,6 +115,24 @@ def _b64(array: np.ndarray) -> str:
     return base64.b64encode(np.ascontiguousarray(array).tobytes()).decode("ascii")
 
 
+#: JavaScript the query pages share: base64 in and out, the error box, and ``texture(gl, w, h)``, which returns
+#: ``tex(unit, internal, format, type, values)`` (a ``w`` x ``h`` nearest-filtered texture bound to ``unit``).
+_PAGE_HELPERS = """  function bytes(b64) { var s = atob(b64), a = new Uint8Array(s.length); for (var i = 0; i < s.length; ++i) a[i] = s.charCodeAt(i); return a.buffer; }
+  function b64(buffer) { var a = new Uint8Array(buffer), s = ''; for (var i = 0; i < a.length; i += 8192) s += String.fromCharCode.apply(null, a.subarray(i, i + 8192)); return btoa(s); }
+  function fail(e) { var p = document.getElementById('dynbtf-error'); p.textContent = String(e && e.message || e); p.hidden = false; }
+  function texture(gl, w, h) {
+    return function (unit, internal, format, type, values) {
+      var t = gl.createTexture();
+      gl.activeTexture(gl.TEXTURE0 + unit);
+      gl.bindTexture(gl.TEXTURE_2D, t);
+      gl.texImage2D(gl.TEXTURE_2D, 0, internal, w, h, 0, format, type, values);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+      return t;
+    };
+  }"""
+
+
 _QUERY_PAGE = """<!DOCTYPE html>
 <html><head><meta charset="utf-8"><title>dynbtf queries</title></head><body>
 <pre id="dynbtf-result"></pre><pre id="dynbtf-error" hidden></pre>
@@ -122,9 +140,7 @@ _QUERY_PAGE = """<!DOCTYPE html>
 <script>
 (function () {
   var job = __JOB__;
-  function bytes(b64) { var s = atob(b64), a = new Uint8Array(s.length); for (var i = 0; i < s.length; ++i) a[i] = s.charCodeAt(i); return a.buffer; }
-  function b64(buffer) { var a = new Uint8Array(buffer), s = ''; for (var i = 0; i < a.length; i += 8192) s += String.fromCharCode.apply(null, a.subarray(i, i + 8192)); return btoa(s); }
-  function fail(e) { var p = document.getElementById('dynbtf-error'); p.textContent = String(e && e.message || e); p.hidden = false; }
+__HELPERS__
   DynBTF.load('').then(function (data) {
     var n = job.n, w = job.width, h = Math.ceil(n / w);
     var points = new Float64Array(bytes(job.points)), shift = new Int32Array(bytes(job.shift));
@@ -146,15 +162,7 @@ _QUERY_PAGE = """<!DOCTYPE html>
       local[4 * i] = o.phase; local[4 * i + 1] = o.fraction[0] + k; local[4 * i + 2] = o.fraction[1] + k;
       for (var c = 0; c < 3; ++c) { vv[4 * i + c] = view[3 * i + c]; ll[4 * i + c] = light[3 * i + c]; }
     }
-    function tex(unit, internal, format, type, data) {
-      var t = gl.createTexture();
-      gl.activeTexture(gl.TEXTURE0 + unit);
-      gl.bindTexture(gl.TEXTURE_2D, t);
-      gl.texImage2D(gl.TEXTURE_2D, 0, internal, w, h, 0, format, type, data);
-      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
-      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
-      return t;
-    }
+    var tex = texture(gl, w, h);
     var inputs = 'uniform highp usampler2D q_lattice; uniform highp isampler2D q_texel; uniform highp sampler2D q_local;\\n' +
       'uniform highp sampler2D q_view; uniform highp sampler2D q_light;\\n' +
       'DynbtfOrigin q_origin(ivec2 p) { DynbtfOrigin o; o.lattice = texelFetch(q_lattice, p, 0);\\n' +
@@ -259,7 +267,8 @@ def _run_queries(export_dir, method: str, points, w_view, w_light, *, local_shif
     width = min(max(n, 1), 256)
     job = {"n": n, "width": width, "method": method, "lattice": bool(lattice), "points": _b64(points),
            "shift": _b64(shift), "view": _b64(wv), "light": _b64(wl)}
-    text = _page_result(export_dir, "queries", "query", _QUERY_PAGE.replace("__JOB__", json.dumps(job)),
+    page = _QUERY_PAGE.replace("__HELPERS__", _PAGE_HELPERS).replace("__JOB__", json.dumps(job))
+    text = _page_result(export_dir, "queries", "query", page,
                         gl=gl, timeout=timeout, budget_ms=600000)
     res = json.loads(text)
     rgb = np.frombuffer(base64.b64decode(res["rgb"]), dtype=np.float32).reshape(-1, 4)[:n, :3].copy()
@@ -318,9 +327,7 @@ _LAYERED_PAGE = """<!DOCTYPE html>
 <script>
 (function () {
   var job = __JOB__;
-  function bytes(b64) { var s = atob(b64), a = new Uint8Array(s.length); for (var i = 0; i < s.length; ++i) a[i] = s.charCodeAt(i); return a.buffer; }
-  function b64(buffer) { var a = new Uint8Array(buffer), s = ''; for (var i = 0; i < a.length; i += 8192) s += String.fromCharCode.apply(null, a.subarray(i, i + 8192)); return btoa(s); }
-  function fail(e) { var p = document.getElementById('dynbtf-error'); p.textContent = String(e && e.message || e); p.hidden = false; }
+__HELPERS__
   DynBTF.loadLayered('').then(function (data) {
     var n = job.n, w = job.width, h = Math.ceil(n / w), L = data.manifest;
     var points = new Float64Array(bytes(job.points)), view = new Float32Array(bytes(job.view));
@@ -340,15 +347,7 @@ _LAYERED_PAGE = """<!DOCTYPE html>
       maskLocal.set([mo.offset[0], mo.offset[1], points[2 * i] - bu, points[2 * i + 1] - bv], 4 * i);
       for (var c = 0; c < 3; ++c) { vv[4 * i + c] = view[3 * i + c]; ll[4 * i + c] = light[3 * i + c]; }
     }
-    function tex(unit, internal, format, type, values) {
-      var t = gl.createTexture();
-      gl.activeTexture(gl.TEXTURE0 + unit);
-      gl.bindTexture(gl.TEXTURE_2D, t);
-      gl.texImage2D(gl.TEXTURE_2D, 0, internal, w, h, 0, format, type, values);
-      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
-      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
-      return t;
-    }
+    var tex = texture(gl, w, h);
     var main = 'uniform highp usampler2D q_lattice; uniform highp isampler2D q_texel; uniform highp sampler2D q_local;\\n' +
       'uniform highp sampler2D q_view; uniform highp sampler2D q_light; uniform highp usampler2D q_mask_cell;\\n' +
       'uniform highp sampler2D q_mask_local; uniform highp sampler2D u_previous;\\n' +
@@ -438,7 +437,8 @@ def eval_layered_in_browser(export_dir, uv, w_view, w_light, *, gl: str = "swift
     wv = np.ascontiguousarray(np.asarray(w_view, dtype=np.float32).reshape(n, 3))
     wl = np.ascontiguousarray(np.asarray(w_light, dtype=np.float32).reshape(n, 3))
     job = {"n": n, "width": min(max(n, 1), 256), "points": _b64(uv), "view": _b64(wv), "light": _b64(wl)}
-    text = _page_result(export_dir, "layered", "layered query", _LAYERED_PAGE.replace("__JOB__", json.dumps(job)),
+    page = _LAYERED_PAGE.replace("__HELPERS__", _PAGE_HELPERS).replace("__JOB__", json.dumps(job))
+    text = _page_result(export_dir, "layered", "layered query", page,
                         gl=gl, timeout=timeout, budget_ms=600000)
     passes = [np.frombuffer(base64.b64decode(x), dtype=np.float32).reshape(-1, 4)[:n].copy()
               for x in json.loads(text)["passes"]]
