@@ -135,6 +135,20 @@ def guidance_struct(data: dict) -> str:
     return "\n".join(lines)
 
 
+def web_layered(data: dict) -> str:
+    """bench_web_layered.py: the layered viewer's frame time against each layer alone, per mask."""
+    w, h = data["size"]
+    lines = [f"Measured on {_machine(data)} by `{data['command']}`: `{data['layers'][0]}` | `{data['layers'][1]}`, hist "
+             f"at {data['scale']:g} repeats per uv unit, band half-width {data['width']:g}, {data['span']:g} uv units "
+             f"across a {w} x {h} frame; median of {data['frames']} frames; GL: {data['renderer']}.", "",
+             "| mask | layer 0 alone | layer 1 alone | layered | layered over the sum of the two |",
+             "|---|---|---|---|---|"]
+    for r in data["rows"]:
+        lines.append(f"| {r['mask']} | {r['ms_layer0']:.0f} ms | {r['ms_layer1']:.0f} ms | {r['ms_layered']:.0f} ms | "
+                     f"{r['ms_layered'] / (r['ms_layer0'] + r['ms_layer1']):.2f} |")
+    return "\n".join(lines)
+
+
 def guidance(data: dict) -> str:
     """bench_guided.py's guidance part: content on target, repetition against hist's, cost, per seed."""
     g = data["guidance"]
@@ -760,7 +774,7 @@ def compiled_material(data: dict) -> str:
 
 
 RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget": budget, "evaluation": evaluation,
-             "gpu": gpu, "guided": guided, "guidance": guidance, "guidance_struct": guidance_struct, "speed": speed, "rendering": rendering,
+             "gpu": gpu, "guided": guided, "guidance": guidance, "guidance_struct": guidance_struct, "web_layered": web_layered, "speed": speed, "rendering": rendering,
              "measured": measured, "quality_triple": quality_triple, "quality_parallax": quality_parallax,
              "quality_compared": quality_compared, "baselines": baselines, "baselines_summary": baselines_summary,
              "baselines_storage": baselines_storage, "baselines_small": baselines_small,

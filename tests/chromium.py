@@ -29,7 +29,8 @@ import numpy as np
 from dynbtf.errors import InputError
 
 __all__ = ["find_chromium", "CHROMIUM_FLAGS", "PageRun", "run_page", "eval_in_browser", "lattice_in_browser",
-           "BrowserResult", "eval_layered_in_browser", "LayeredBrowserResult", "time_frames", "FrameTimes"]
+           "BrowserResult", "eval_layered_in_browser", "LayeredBrowserResult", "time_frames", "time_layered_frames",
+           "FrameTimes"]
 
 #: Flags for a quiet, offline, sandbox-free headless run (each run also gets a fresh profile dir).
 CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-quic", "--no-first-run",
@@ -504,6 +505,116 @@ __SCRIPTS__
 })();
 </script></body></html>
 """
+
+
+_LAYERED_FRAME_PAGE = """<!DOCTYPE html>
+<html><head><meta charset="utf-8"><title>dynbtf layered frame time</title></head><body>
+<pre id="dynbtf-result"></pre><pre id="dynbtf-error"></pre>
+<script src="viewer.js"></script>
+<script>
+(function () {
+  var job = __JOB__;
+  DynBTF.loadLayered('').then(function (data) {
+    var L = data.manifest, w = job.width, h = job.height;
+    var canvas = document.createElement('canvas');
+    canvas.width = w; canvas.height = h;
+    var gl = canvas.getContext('webgl2', {antialias: false});
+    if (!gl) throw new Error('no WebGL2');
+    if (!gl.getExtension('EXT_color_buffer_float')) throw new Error('no EXT_color_buffer_float');
+    var dbg = gl.getExtension('WEBGL_debug_renderer_info');
+    var out = {renderer: dbg ? gl.getParameter(dbg.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER),
+               width: w, height: h, frame_ms: {}};
+    var r = new DynBTF.LayeredRenderer(gl, data);
+    // the plane seen from above, span uv units across the frame's height; the mask's origin at 0
+    var frame = 'uniform uvec4 u_lattice; uniform float u_phase; uniform ivec2 u_texel; uniform vec2 u_fraction;\\n' +
+      'uniform vec2 u_size; uniform float u_scale; uniform float u_span; uniform vec3 u_light;\\n' +
+      'uniform highp sampler2D u_previous; out vec4 color;\\n' +
+      'void setup(out DynbtfOrigin o, out vec2 local, out vec2 mask, out vec3 wv) { vec2 s = gl_FragCoord.xy / u_size;\\n' +
+      '  vec2 a = vec2(s.x * u_size.x / u_size.y, s.y); o.lattice = u_lattice; o.phase = u_phase; o.texel = u_texel;\\n' +
+      '  local = u_fraction + a * u_scale; mask = a * u_span;\\n' +
+      '  wv = normalize(vec3((s - 0.5) * vec2(u_size.x / u_size.y, 1.0) * 1.15, 1.0)); }\\n';
+    var alone = frame + 'void main() { DynbtfOrigin o; vec2 local, mask; vec3 wv; setup(o, local, mask, wv);\\n' +
+      '  color = vec4(dynbtf_eval(o, local, wv, u_light), 1.0); }\\n';
+    var pass = frame + 'void main() { DynbtfOrigin o; vec2 local, mask; vec3 wv; setup(o, local, mask, wv);\\n' +
+      '  DynbtfMaskOrigin mo; mo.cell = uvec4(0u); mo.offset = vec2(0.0);\\n' +
+      '  vec4 previous = dynbtf_layer_index == 1 ? texelFetch(u_previous, ivec2(gl_FragCoord.xy), 0) : vec4(0.0);\\n' +
+      '  color = dynbtf_layer_pass(o, local, mo, mask, wv, u_light, previous); }\\n';
+    var light = [0.45, 0.2, Math.sqrt(1 - 0.45 * 0.45 - 0.2 * 0.2)];
+    var target = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D, target);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, w, h, 0, gl.RGBA, gl.FLOAT, null);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+    var fb = gl.createFramebuffer();
+    gl.bindFramebuffer(gl.FRAMEBUFFER, fb);
+    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, target, 0);
+    gl.viewport(0, 0, w, h);
+    function set(program, k) {
+      var layer = L.layers[k], m = data.layers[k].manifest;
+      var o = DynBTF.origin(m, layer.method, 0, 0);
+      function u(n) { return gl.getUniformLocation(program, n); }
+      gl.uniform4ui(u('u_lattice'), o.lattice[0], o.lattice[1], o.lattice[2], o.lattice[3]);
+      gl.uniform1f(u('u_phase'), o.phase);
+      gl.uniform2i(u('u_texel'), o.texel[0], o.texel[1]);
+      gl.uniform2f(u('u_fraction'), o.fraction[0], o.fraction[1]);
+      gl.uniform2f(u('u_size'), w, h);
+      gl.uniform1f(u('u_scale'), job.span * layer.scale);
+      gl.uniform1f(u('u_span'), job.span);
+      gl.uniform3f(u('u_light'), light[0], light[1], light[2]);
+    }
+    var pixel = new Float32Array(4), bytes = new Uint8Array(4);
+    function time(draw, read) {  // frames + 1 frames, the first (warm-up) not counted; each waits for its pixels
+      var times = [];
+      for (var f = 0; f < job.frames + 1; ++f) {
+        var start = performance.now();
+        draw();
+        read();
+        if (f > 0) times.push(performance.now() - start);
+      }
+      return times;
+    }
+    [0, 1].forEach(function (k) {  // each layer alone, one pass as the single viewer draws it
+      var program = r.layers[k].program(alone);
+      r.layers[k].use(program, L.layers[k].method);
+      set(program, k);
+      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+      out.frame_ms['layer ' + k + ' alone'] = time(function () { gl.drawArrays(gl.TRIANGLES, 0, 3); },
+        function () { gl.readPixels(w >> 1, h >> 1, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, bytes); });
+    });
+    var programs = [r.program(0, pass), r.program(1, pass)];
+    out.frame_ms.layered = time(function () {  // as the viewer draws it: layer 0 into a float target, then layer 1
+      for (var k = 0; k < 2; ++k) {
+        gl.bindFramebuffer(gl.FRAMEBUFFER, k === 0 ? fb : null);
+        r.use(programs[k], k);
+        if (k === 1) r.bindPrevious(target);
+        set(programs[k], k);
+        gl.drawArrays(gl.TRIANGLES, 0, 3);
+      }
+    }, function () { gl.readPixels(w >> 1, h >> 1, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, bytes); });
+    if (gl.getError() !== gl.NO_ERROR) throw new Error('WebGL error ' + gl.getError());
+    document.getElementById('dynbtf-result').textContent = JSON.stringify(out);
+  }).catch(function (e) { document.getElementById('dynbtf-error').textContent = String(e && e.message || e); });
+})();
+</script></body></html>
+"""
+
+
+def time_layered_frames(export_dir, *, width: int = 1280, height: int = 720, frames: int = 3, span: float = 1.0,
+                        gl: str = "gpu", timeout: float = 1800.0) -> FrameTimes:
+    """Frame times of a layered export (:func:`dynbtf.export.web.layered.export_layered_web`) in headless Chromium:
+    each layer alone (one full-screen pass of its ``dynbtf_eval``) and the layered material as the viewer draws it
+    (layer 0's pass into a float target, then layer 1's), the plane seen from above with ``span`` uv units across the frame's height and the
+    export's mask. ``frame_ms`` keys: ``"layer 0 alone"``, ``"layer 1 alone"``, ``"layered"``."""
+    export_dir = Path(export_dir)
+    if not (export_dir / "layered.js").is_file():
+        raise InputError(f"{export_dir}: not a layered web export with its viewer files (layered.js missing)")
+    job = {"width": int(width), "height": int(height), "frames": int(frames), "span": float(span)}
+    res = json.loads(_page_result(export_dir, "layered-frames", "layered frame-time",
+                                  _LAYERED_FRAME_PAGE.replace("__JOB__", json.dumps(job)), gl=gl, timeout=timeout,
+                                  budget_ms=None, window=(width, height)) or "{}")
+    if not res:
+        raise RuntimeError("the layered frame-time page left an empty result")
+    return FrameTimes(res["renderer"], res["width"], res["height"], res["frame_ms"], 0.0)
 
 
 @dataclass

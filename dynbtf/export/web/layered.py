@@ -186,7 +186,11 @@ vec4 dynbtf_layer_pass(DynbtfOrigin o, vec2 local, DynbtfMaskOrigin mo, vec2 mas
     bool own_side = dynbtf_layer_index == 1 ? distance > 0.0 : distance <= 0.0;
     if (!band && !own_side) return dynbtf_layer_index == 1 ? vec4(previous.rgb, 0.0) : vec4(0.0);
     vec4 x[DYNBTF_G];
-    dynbtf_latent(o, local, 0, DYNBTF_G, x);
+#ifdef DYNBTF_RELIEF
+    if (band) dynbtf_latent(o, local, 0, DYNBTF_G, x);   // for the height only: the colour marches on its own
+#else
+    dynbtf_latent(o, local, 0, DYNBTF_G, x);             // for the height and the colour
+#endif
     float height = 0.0;
     if (band) {{   // the raw height's rank (dynbtf.layered.LayerHeight), read linearly from the table
         float raw = dynbtf_layer_height_offset;
