@@ -264,3 +264,17 @@ def test_cli_export_with_a_layer_writes_a_layered_viewer(layers, tmp_path):
     missing = _cli("export", first, "--layer", tmp_path / "nothere.dbtfm", "-o", tmp_path / "bad")
     assert missing.exit_code != 0 and "nothere.dbtfm: model file not found" in missing.text
     assert not (tmp_path / "bad").exists()
+
+
+@browser
+@pytest.mark.browser
+def test_layered_frame_timing_page_times_both_layers_and_the_mix(layers, tmp_path):
+    """The page bench_web_layered.py uses draws each layer alone and the layered material, and times each frame."""
+    from chromium import time_layered_frames
+
+    export = export_layered_web(LayeredBTF(layers, NoiseMask(0.3, 3.0, 1), width=0.05), tmp_path / "web")
+    frames = time_layered_frames(export.directory, width=64, height=36, frames=2, gl="swiftshader")
+    assert set(frames.frame_ms) == {"layer 0 alone", "layer 1 alone", "layered"} and frames.software
+    assert all(len(times) == 2 and min(times) > 0 for times in frames.frame_ms.values())
+    with pytest.raises(InputError, match="not a layered web export"):
+        time_layered_frames(tmp_path)
