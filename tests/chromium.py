@@ -116,11 +116,43 @@ def _b64(array: np.ndarray) -> str:
     return base64.b64encode(np.ascontiguousarray(array).tobytes()).decode("ascii")
 
 
-#: JavaScript the query pages share: base64 in and out, the error box, and ``texture(gl, w, h)``, which returns
+#: JavaScript the query pages share: base64 in and out, the error box, a float-target context, the queries' origins
+#: and directions as texture rows, the result, and ``texture(gl, w, h)``, which returns
 #: ``tex(unit, internal, format, type, values)`` (a ``w`` x ``h`` nearest-filtered texture bound to ``unit``).
 _PAGE_HELPERS = """  function bytes(b64) { var s = atob(b64), a = new Uint8Array(s.length); for (var i = 0; i < s.length; ++i) a[i] = s.charCodeAt(i); return a.buffer; }
   function b64(buffer) { var a = new Uint8Array(buffer), s = ''; for (var i = 0; i < a.length; i += 8192) s += String.fromCharCode.apply(null, a.subarray(i, i + 8192)); return btoa(s); }
   function fail(e) { var p = document.getElementById('dynbtf-error'); p.textContent = String(e && e.message || e); p.hidden = false; }
+  // a WebGL2 context that renders into float32 targets (the query pages read their results back as floats)
+  function floatContext() {
+    var gl = document.createElement('canvas').getContext('webgl2');
+    if (!gl) throw new Error('no WebGL2');
+    if (!gl.getExtension('EXT_color_buffer_float')) throw new Error('no EXT_color_buffer_float');
+    return gl;
+  }
+  // per query i, DynBTF.origin of at(i) = [u, v, shift] (exemplar repeats, whole repeats moved into the local uv) as
+  // the textures' RGBA rows: lattice words, texel, (phase, local u, local v)
+  function origins(m, method, n, size, at) {
+    var lattice = new Uint32Array(4 * size), texel = new Int32Array(4 * size), local = new Float32Array(4 * size);
+    for (var i = 0; i < n; ++i) {
+      var p = at(i), o = DynBTF.origin(m, method, p[0], p[1]);
+      lattice.set(o.lattice, 4 * i);
+      texel[4 * i] = o.texel[0]; texel[4 * i + 1] = o.texel[1];
+      local[4 * i] = o.phase; local[4 * i + 1] = o.fraction[0] + p[2]; local[4 * i + 2] = o.fraction[1] + p[2];
+    }
+    return {lattice: lattice, texel: texel, local: local};
+  }
+  // (n, 3) directions as RGBA rows
+  function rows(values, n, size) {
+    var out = new Float32Array(4 * size);
+    for (var i = 0; i < n; ++i) for (var c = 0; c < 3; ++c) out[4 * i + c] = values[3 * i + c];
+    return out;
+  }
+  // the page's result, once WebGL reports no error
+  function finish(gl, results) {
+    var err = gl.getError();
+    if (err !== gl.NO_ERROR) throw new Error('WebGL error ' + err);
+    document.getElementById('dynbtf-result').textContent = JSON.stringify(results);
+  }
   function texture(gl, w, h) {
     return function (unit, internal, format, type, values) {
       var t = gl.createTexture();
@@ -146,23 +178,14 @@ __HELPERS__
     var n = job.n, w = job.width, h = Math.ceil(n / w);
     var points = new Float64Array(bytes(job.points)), shift = new Int32Array(bytes(job.shift));
     var view = new Float32Array(bytes(job.view)), light = new Float32Array(bytes(job.light));
-    var canvas = document.createElement('canvas');
-    var gl = canvas.getContext('webgl2');
-    if (!gl) throw new Error('no WebGL2');
-    if (!gl.getExtension('EXT_color_buffer_float')) throw new Error('no EXT_color_buffer_float');
+    var gl = floatContext();
     var dbg = gl.getExtension('WEBGL_debug_renderer_info');
     var rendererName = dbg ? gl.getParameter(dbg.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER);
     var r = new DynBTF.Renderer(gl, data), m = data.manifest;
-    var lattice = new Uint32Array(4 * w * h), texel = new Int32Array(4 * w * h), local = new Float32Array(4 * w * h);
-    var vv = new Float32Array(4 * w * h), ll = new Float32Array(4 * w * h);
-    for (var i = 0; i < n; ++i) {
-      var k = shift[i];
-      var o = DynBTF.origin(m, job.method, points[2 * i] - k, points[2 * i + 1] - k);
-      lattice.set(o.lattice, 4 * i);
-      texel[4 * i] = o.texel[0]; texel[4 * i + 1] = o.texel[1];
-      local[4 * i] = o.phase; local[4 * i + 1] = o.fraction[0] + k; local[4 * i + 2] = o.fraction[1] + k;
-      for (var c = 0; c < 3; ++c) { vv[4 * i + c] = view[3 * i + c]; ll[4 * i + c] = light[3 * i + c]; }
-    }
+    var q = origins(m, job.method, n, w * h, function (i) {
+      return [points[2 * i] - shift[i], points[2 * i + 1] - shift[i], shift[i]];
+    });
+    var vv = rows(view, n, w * h), ll = rows(light, n, w * h);
     var tex = texture(gl, w, h);
     var inputs = 'uniform highp usampler2D q_lattice; uniform highp isampler2D q_texel; uniform highp sampler2D q_local;\\n' +
       'uniform highp sampler2D q_view; uniform highp sampler2D q_light;\\n' +
@@ -185,9 +208,9 @@ __HELPERS__
       var program = programs[kind];
       r.use(program, job.method);
       var units = [5, 6, 7, 8, 9];
-      tex(units[0], gl.RGBA32UI, gl.RGBA_INTEGER, gl.UNSIGNED_INT, lattice);
-      tex(units[1], gl.RGBA32I, gl.RGBA_INTEGER, gl.INT, texel);
-      tex(units[2], gl.RGBA32F, gl.RGBA, gl.FLOAT, local);
+      tex(units[0], gl.RGBA32UI, gl.RGBA_INTEGER, gl.UNSIGNED_INT, q.lattice);
+      tex(units[1], gl.RGBA32I, gl.RGBA_INTEGER, gl.INT, q.texel);
+      tex(units[2], gl.RGBA32F, gl.RGBA, gl.FLOAT, q.local);
       tex(units[3], gl.RGBA32F, gl.RGBA, gl.FLOAT, vv);
       tex(units[4], gl.RGBA32F, gl.RGBA, gl.FLOAT, ll);
       ['q_lattice', 'q_texel', 'q_local', 'q_view', 'q_light'].forEach(function (name, j) {
@@ -211,9 +234,7 @@ __HELPERS__
         if (integer) results.debug.push(b64(out.buffer)); else results.rgb = b64(out.buffer);
       }
     });
-    var err = gl.getError();
-    if (err !== gl.NO_ERROR) throw new Error('WebGL error ' + err);
-    document.getElementById('dynbtf-result').textContent = JSON.stringify(results);
+    finish(gl, results);
   }).catch(fail);
 })();
 </script></body></html>
@@ -333,21 +354,17 @@ __HELPERS__
     var n = job.n, w = job.width, h = Math.ceil(n / w), L = data.manifest;
     var points = new Float64Array(bytes(job.points)), view = new Float32Array(bytes(job.view));
     var light = new Float32Array(bytes(job.light));
-    var canvas = document.createElement('canvas');
-    var gl = canvas.getContext('webgl2');
-    if (!gl) throw new Error('no WebGL2');
-    if (!gl.getExtension('EXT_color_buffer_float')) throw new Error('no EXT_color_buffer_float');
+    var gl = floatContext();
     var r = new DynBTF.LayeredRenderer(gl, data);
     // per query: the mask's origin from the whole uv units (float64 here), its local uv the rest (float32 there)
     var maskCell = new Uint32Array(4 * w * h), maskLocal = new Float32Array(4 * w * h);
-    var vv = new Float32Array(4 * w * h), ll = new Float32Array(4 * w * h);
     for (var i = 0; i < n; ++i) {
       var bu = Math.floor(points[2 * i]), bv = Math.floor(points[2 * i + 1]);
       var mo = DynBTF.maskOrigin(r.mask, bu, bv);
       maskCell.set(mo.cell, 4 * i);
       maskLocal.set([mo.offset[0], mo.offset[1], points[2 * i] - bu, points[2 * i + 1] - bv], 4 * i);
-      for (var c = 0; c < 3; ++c) { vv[4 * i + c] = view[3 * i + c]; ll[4 * i + c] = light[3 * i + c]; }
     }
+    var vv = rows(view, n, w * h), ll = rows(light, n, w * h);
     var tex = texture(gl, w, h);
     var main = 'uniform highp usampler2D q_lattice; uniform highp isampler2D q_texel; uniform highp sampler2D q_local;\\n' +
       'uniform highp sampler2D q_view; uniform highp sampler2D q_light; uniform highp usampler2D q_mask_cell;\\n' +
@@ -376,19 +393,15 @@ __HELPERS__
     var results = {passes: []};
     for (var k = 0; k < 2; ++k) {
       var layer = L.layers[k], m = data.layers[k].manifest, program = r.program(k, main);
-      var lattice = new Uint32Array(4 * w * h), texel = new Int32Array(4 * w * h), local = new Float32Array(4 * w * h);
-      for (i = 0; i < n; ++i) {
-        var o = DynBTF.origin(m, layer.method, points[2 * i] * layer.scale, points[2 * i + 1] * layer.scale);
-        lattice.set(o.lattice, 4 * i);
-        texel[4 * i] = o.texel[0]; texel[4 * i + 1] = o.texel[1];
-        local[4 * i] = o.phase; local[4 * i + 1] = o.fraction[0]; local[4 * i + 2] = o.fraction[1];
-      }
+      var q = origins(m, layer.method, n, w * h, function (i) {
+        return [points[2 * i] * layer.scale, points[2 * i + 1] * layer.scale, 0];
+      });
       r.use(program, k);
       if (k === 1) r.bindPrevious(targets[0].texture);
       var units = [5, 6, 7, 8, 9, 13, 14];
-      tex(units[0], gl.RGBA32UI, gl.RGBA_INTEGER, gl.UNSIGNED_INT, lattice);
-      tex(units[1], gl.RGBA32I, gl.RGBA_INTEGER, gl.INT, texel);
-      tex(units[2], gl.RGBA32F, gl.RGBA, gl.FLOAT, local);
+      tex(units[0], gl.RGBA32UI, gl.RGBA_INTEGER, gl.UNSIGNED_INT, q.lattice);
+      tex(units[1], gl.RGBA32I, gl.RGBA_INTEGER, gl.INT, q.texel);
+      tex(units[2], gl.RGBA32F, gl.RGBA, gl.FLOAT, q.local);
       tex(units[3], gl.RGBA32F, gl.RGBA, gl.FLOAT, vv);
       tex(units[4], gl.RGBA32F, gl.RGBA, gl.FLOAT, ll);
       tex(units[5], gl.RGBA32UI, gl.RGBA_INTEGER, gl.UNSIGNED_INT, maskCell);
@@ -403,9 +416,7 @@ __HELPERS__
       gl.readPixels(0, 0, w, h, gl.RGBA, gl.FLOAT, out);
       results.passes.push(b64(out.buffer));
     }
-    var err = gl.getError();
-    if (err !== gl.NO_ERROR) throw new Error('WebGL error ' + err);
-    document.getElementById('dynbtf-result').textContent = JSON.stringify(results);
+    finish(gl, results);
   }).catch(fail);
 })();
 </script></body></html>
