@@ -119,12 +119,17 @@ def guided(data: dict) -> str:
     return "\n".join(lines)
 
 
+def _guidance_caption(data: dict, g: dict) -> str:
+    """The start of a guidance table's caption: machine, command, material, classes and the half-and-half target."""
+    return (f"Measured on {_machine(data)} by `{data['command']}`: `{g['model']}` in {g['classes']} classes, a target "
+            f"asking for class 0 on the left half and class 1 on the right half of {g['repeats']} x {g['repeats']} "
+            "exemplar repeats")
+
+
 def guidance_struct(data: dict) -> str:
     """bench_guided.py's guided struct: cells and texels on target, repetition against struct's, cost, per seed."""
     g = data["guidance_struct"]
-    lines = [f"Measured on {_machine(data)} by `{data['command']}`: `{g['model']}` in {g['classes']} classes, a "
-             f"target asking for class 0 on the left half and class 1 on the right half of {g['repeats']} x "
-             f"{g['repeats']} exemplar repeats; struct's cells per repeat as it chooses them "
+    lines = [_guidance_caption(data, g) + f"; struct's cells per repeat as it chooses them "
              f"({g['rows'][0]['cells'][0]} x {g['rows'][0]['cells'][1]}).", "",
              "| seed | cells whose content is the target's (unguided struct) | texels on target (left / right) | "
              "repetition, guided over struct | synthesis cost per query, guided over struct |", "|---|---|---|---|---|"]
@@ -152,9 +157,7 @@ def web_layered(data: dict) -> str:
 def guidance(data: dict) -> str:
     """bench_guided.py's guidance part: content on target, repetition against hist's, cost, per seed."""
     g = data["guidance"]
-    lines = [f"Measured on {_machine(data)} by `{data['command']}`: `{g['model']}` in {g['classes']} classes, a "
-             f"target asking for class 0 on the left half and class 1 on the right half of {g['repeats']} x "
-             f"{g['repeats']} exemplar repeats, one query per texel.", "",
+    lines = [_guidance_caption(data, g) + ", one query per texel.", "",
              "| seed | points on target (left / right) | repetition score guided / hist (left; right) | "
              "repetition, guided over hist | synthesis cost per query, guided over hist |", "|---|---|---|---|---|"]
     for r in g["rows"]:
