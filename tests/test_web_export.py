@@ -373,18 +373,25 @@ def test_shader_cost_counts_the_decoder_as_the_exported_weights_hold_it(exports,
     assert cost["tile"]["texel_fetches"] < cost["hex"]["texel_fetches"] < cost["hist"]["texel_fetches"]
 
 
+def random_relief_model(height: int, width: int, positional_channels: int, seed: int, bias: float):
+    """A random Triple Plane with parallax (untrained: every weight matters), a smooth random height field up to 0.03
+    repeats, and ``bias`` added to its last layer (mostly positive values, like a material)."""
+    from dynbtf.representations.parallax import ParallaxTriplePlane
+
+    m = ParallaxTriplePlane(height, width, positional_channels=positional_channels, angular_channels=3, hidden=12,
+                            seed=seed)
+    g = torch.Generator().manual_seed(1)
+    h = torch.nn.functional.avg_pool2d(torch.rand(1, 1, height, width, generator=g), 3, 1, 1, count_include_pad=False)
+    m.set_height(0.03 * h[0, 0])
+    with torch.no_grad():
+        m.decoder.rest[-1].bias.add_(bias)
+    return m
+
+
 @pytest.fixture(scope="module")
 def relief_model():
     """A random Triple Plane with parallax and a smooth random height field up to 0.03 repeats."""
-    from dynbtf.representations.parallax import ParallaxTriplePlane
-
-    m = ParallaxTriplePlane(24, 20, positional_channels=6, angular_channels=3, hidden=12, seed=5)
-    g = torch.Generator().manual_seed(1)
-    h = torch.nn.functional.avg_pool2d(torch.rand(1, 1, 24, 20, generator=g), 3, 1, 1, count_include_pad=False)
-    m.set_height(0.03 * h[0, 0])
-    with torch.no_grad():
-        m.decoder.rest[-1].bias.add_(0.6)
-    return m
+    return random_relief_model(24, 20, 6, seed=5, bias=0.6)
 
 
 @browser

@@ -29,17 +29,14 @@ browser = pytest.mark.skipif(find_chromium() is None, reason="needs headless Chr
 def layers():
     """Layer 0: a random Triple Plane under hist; layer 1: a random relief model (its height channel decides) under
     tile, at another scale. Untrained: every weight matters; biased to positive values, like materials."""
-    from dynbtf.representations.parallax import ParallaxTriplePlane
+    from test_web_export import random_relief_model
+
     from dynbtf.representations.triple_plane import TriplePlane
 
     flat = TriplePlane(24, 20, positional_channels=6, angular_channels=3, hidden=12, seed=5)
-    relief = ParallaxTriplePlane(20, 16, positional_channels=5, angular_channels=3, hidden=12, seed=6)
-    g = torch.Generator().manual_seed(1)
-    height = torch.nn.functional.avg_pool2d(torch.rand(1, 1, 20, 16, generator=g), 3, 1, 1, count_include_pad=False)
-    relief.set_height(0.03 * height[0, 0])
+    relief = random_relief_model(20, 16, 5, seed=6, bias=0.3)
     with torch.no_grad():
         flat.decoder.rest[-1].bias.add_(0.6)
-        relief.decoder.rest[-1].bias.add_(0.3)
     return [synthesized_btf(flat, "hist", scale=4.0), synthesized_btf(relief, "tile", scale=3.0)]
 
 
