@@ -307,6 +307,11 @@ class LayeredBTF:
         Half-width (uv units) of the band around the mask's 0.5 contour where the materials' heights decide.
     softness : float, default 0.0
         Height difference over which the two layers blend inside the band (0: each point from one layer).
+
+    Attributes
+    ----------
+    height_maps : list of LayerHeight
+        How each layer's height is read (:func:`layer_height_map`); the backends read the same.
     """
 
     def __init__(self, layers, mask, width: float = 0.05, softness: float = 0.0) -> None:
@@ -322,7 +327,7 @@ class LayeredBTF:
         if not (math.isfinite(softness) and softness >= 0.0):
             raise InputError(f"softness: expected a height difference >= 0, got {softness!r}")
         self.softness = softness
-        self._heights = [layer_height_map(layer) for layer in layers]
+        self.height_maps = [layer_height_map(layer) for layer in layers]
 
     @property
     def scale(self) -> float:
@@ -342,7 +347,7 @@ class LayeredBTF:
         """:meth:`heights` and, per layer, its latent values at ``uv`` where its ``eval`` takes them back (else None):
         a layer's synthesis at a band point then serves both its height and its colour."""
         out, latents = [], []
-        for btf, height_of in zip(self.layers, self._heights):
+        for btf, height_of in zip(self.layers, self.height_maps):
             weights = height_of.weights
             latent = None
             if getattr(btf.model, "extra_positional_channels", 0):  # a relief's height channel: that channel alone

@@ -236,12 +236,9 @@ def _mask_entry(mask, writer: _Writer) -> dict[str, Any]:
     raise InputError(f"export: the shader evaluates an ImageMask or a NoiseMask, not a {type(mask).__name__}")
 
 
-def _height_entry(btf) -> dict[str, Any]:
-    """How the shader reads a layer's height from its latent values: :func:`~dynbtf.layered.layer_height_map`'s
+def _height_entry(btf, height) -> dict[str, Any]:
+    """How the shader reads a layer's height from its latent values: the layer's :class:`~dynbtf.layered.LayerHeight`
     weights with the method's output map folded in (``features = latent @ M + o``), and its rank table."""
-    from ...layered import layer_height_map
-
-    height = layer_height_map(btf)
     matrix, offset = btf.synthesizer.output_map()
     weights = np.asarray(height.weights, dtype=np.float64)
     mapped = weights if matrix is None else matrix.double().cpu().numpy() @ weights
@@ -282,14 +279,14 @@ def export_layered_web(layered, out_dir, *, precision: str = "fp16", viewer: boo
     writer = _Writer(out_dir, scripts=viewer)
     mask = _mask_entry(layered.mask, writer)  # (refuses a mask the shader has no form of before anything is big)
     exports, entries = [], []
-    for k, btf in enumerate(layered.layers):
+    for k, (btf, height) in enumerate(zip(layered.layers, layered.height_maps)):
         directory = f"layer{k}"
         method = btf.material.method
         export = _export_web(btf.material, out_dir / directory, precision=precision, methods=(method,), seed=btf.seed,
                              scale=btf.scale, scripts=viewer, page=False, method_params=None)
         exports.append(export)
         entries.append({"directory": directory + "/", "method": method, "scale": float(btf.scale),
-                        "kind": export.manifest["kind"], "height": _height_entry(btf)})
+                        "kind": export.manifest["kind"], "height": _height_entry(btf, height)})
     manifest = {
         "format": LAYERED_FORMAT, "version": LAYERED_VERSION, "layers": entries, "mask": mask,
         "width": float(layered.width), "softness": float(layered.softness), "span": float(span),
