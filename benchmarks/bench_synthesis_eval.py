@@ -23,11 +23,6 @@ evaluated by
 Both paths are timed alike: one warm-up run on the first 50,000 queries (kernel
 compilation/loading, allocator, caches), then the best of ``--repeats`` full runs.
 
-(c) with Mitsuba installed, the **Dr.Jit kernel** of the ``dynbtf`` Mitsuba plugin
-    (``DynBTFEvaluator.eval``: the same query traced into one kernel by Dr.Jit's LLVM back end, compiled for
-    the level), timed on the same queries: the measurement behind the choice of runtimes in
-    docs/architecture.md (``--no-drjit`` skips it).
-
 Printed per level and method: queries/s of each and the speed-up, and our share of the **FMA bound**: the
 decoder's FLOP per query times queries/s over the level's FMA peak on all threads
 (:func:`dynbtf.decoder.native.fma_peak_flops`, measured in the same process), and, on the CPU's own level, a
@@ -143,35 +138,10 @@ def measure(args) -> dict:
                      "max_abs_difference": err, "decoder_flop_per_query": decoder_flops(model)})
         print(f"[{isa}] {method:<7} naive {n / t_naive:.3g} q/s, ours {n / t_ours:.3g} q/s ({t_naive / t_ours:.1f}x), "
               f"{bound / t_ours:.1%} of the FMA bound, max |ours - naive| {err:.2g}", file=sys.stderr, flush=True)
-        if args.drjit:
-            t_drjit = drjit_seconds(model, method, uv, w_view, w_light, args.repeats)
-            rows[-1]["drjit_qps"] = None if t_drjit is None else n / t_drjit
-            if t_drjit is not None:
-                print(f"[{isa}] {method:<7} Dr.Jit kernel {n / t_drjit:.3g} q/s ({t_ours / t_drjit:.2f}x ours), "
-                      f"{bound / t_drjit:.1%} of the FMA bound", file=sys.stderr, flush=True)
     breakdown = None
     if isa == hardware_isa() and "hist" in args.methods.split(","):
         breakdown = stage_breakdown(model, uv, w_view, w_light, n) | {"isa": isa}
     return {"rows": rows, "breakdown": breakdown}
-
-
-def drjit_seconds(model, method, uv, w_view, w_light, repeats) -> float | None:
-    """Seconds of the Mitsuba plugin's Dr.Jit kernel (``DynBTFEvaluator.eval``, LLVM back end compiled for this
-    level) on the same queries (uv rounded to float32, the plugin's input): fastest of ``repeats`` calls on fresh
-    inputs after one that compiles; None without Mitsuba and its LLVM."""
-    try:
-        from bench_render import plugin_seconds
-        from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator, configure_jit
-        from dynbtf.jit import mi_module
-
-        mi_module()
-        configure_jit()
-    except Exception as e:  # noqa: BLE001 - any missing piece means no Dr.Jit row
-        print(f"no Dr.Jit row: {e}", file=sys.stderr)
-        return None
-    evaluator = DynBTFEvaluator(synthesized_btf(model, method, seed=0))
-    times, _ = plugin_seconds(evaluator, uv.numpy().astype(np.float32), w_view.numpy(), w_light.numpy(), repeats + 1)
-    return min(times[1:])
 
 
 def stage_breakdown(model, uv, w_view, w_light, n) -> dict:
@@ -230,8 +200,6 @@ def main() -> None:
                                                                f"on {WARM_UP_QUERIES} queries (best is kept)")
     parser.add_argument("--isa", nargs="+", default=None, help="levels to measure (default: avx2 and up)")
     parser.add_argument("--json", type=Path, default=Path(__file__).resolve().parent / "results" / "evaluation.json")
-    parser.add_argument("--no-drjit", dest="drjit", action="store_false",
-                        help="skip the Dr.Jit kernel (the Mitsuba plugin's) measured beside ours on each level")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
@@ -247,8 +215,7 @@ def main() -> None:
     for isa in levels_to_measure(args.isa):
         env = {k: v for k, v in os.environ.items() if k not in isa_environment(isa)} | isa_environment(isa)
         command = [sys.executable, __file__, "--worker", "--methods", args.methods, "--queries", str(args.queries),
-                   "--repeats", str(args.repeats)] + (["--model", args.model] if args.model else []) + \
-            ([] if args.drjit else ["--no-drjit"])
+                   "--repeats", str(args.repeats)] + (["--model", args.model] if args.model else [])
         done = subprocess.run(command, env=env, capture_output=True, text=True)
         sys.stderr.write(done.stderr)
         if done.returncode != 0:

@@ -48,13 +48,13 @@ def main() -> None:
         bsdf = next(s.bsdf() for s in scene.shapes() if s.id() == "surface")
         row = []
         for march in (False, True):
-            bsdf.evaluator.relief = march
+            bsdf.evaluator.btf.relief = march
             t0 = time.perf_counter()
             img = mi.render(scene, spp=args.spp, seed=0)
             dr.eval(img)
             image = np.asarray(img, dtype=np.float32)
             print(f"{scene_name}, march {'on' if march else 'off'}: {time.perf_counter() - t0:.1f} s "
-                  f"({args.size}^2, {args.spp} spp, incl. kernel compilation)")
+                  f"({args.size}^2, {args.spp} spp, incl. Mitsuba's kernel compilation)")
             row.append(Image.fromarray(to_uint8_srgb(image)))
         rows.append(row)
     w, h = rows[0][0].size

@@ -5,8 +5,8 @@ renders table ``NAME`` from ``benchmarks/results/NAME.json`` (written by the ben
 writes it there. ``speed.json`` (docs/results.md's Speed summary) is not a benchmark's output: it lists the
 summary's rows, each rendered from its benchmark's JSON or, where that benchmark writes none yet, from a
 measurement recorded in the file (its numbers, command and machine as the hand-typed table stated them). A part
-of a benchmark's file may be such a recorded measurement too (``"recorded_from"``) until the benchmark is re-run
-(``rendering.json``, from ``bench_render.py``), and so may a whole file: the tables whose benchmark writes no JSON
+of a benchmark's file may be such a recorded measurement too (``"recorded_from"``) until the benchmark is re-run,
+and so may a whole file: the tables whose benchmark writes no JSON
 yet (quality.json, baselines.json, ... below "Recorded measurements"). Several tables of one benchmark share a file
 (``SOURCES``).
 
@@ -64,19 +64,13 @@ def budget(data: dict) -> str:
 
 def evaluation(data: dict) -> str:
     """bench_synthesis_eval.py: queries/s per level and method, share of the FMA bound."""
-    drjit = any(r.get("drjit_qps") for r in data["rows"])
     lines = [f"Measured on {_machine(data)} by `{data['command']}` ({data['queries']:,} queries, a 1080p frame).",
-             "", "| level | method | naive M queries/s | ours M queries/s | x naive | share of the FMA bound |"
-             + (" Dr.Jit kernel M queries/s (x ours) |" if drjit else ""),
-             "|---|---|---|---|---|---|" + ("---|" if drjit else "")]
+             "", "| level | method | naive M queries/s | ours M queries/s | x naive | share of the FMA bound |",
+             "|---|---|---|---|---|---|"]
     for r in data["rows"]:
-        extra = ""
-        if drjit:
-            extra = (f" {r['drjit_qps'] / 1e6:.2f} ({r['drjit_qps'] / r['ours_qps']:.2f}x) |" if r.get("drjit_qps")
-                     else " |")
         lines.append(f"| {r['isa']} | {r['method']} | {r['naive_qps'] / 1e6:.2f} | {r['ours_qps'] / 1e6:.2f} | "
                      f"{r['ours_qps'] / r['naive_qps']:.1f}x | {100 * r['share_of_fma_bound']:.1f}% of "
-                     f"{r['fma_peak_gflops']:.0f} GFLOP/s |{extra}")
+                     f"{r['fma_peak_gflops']:.0f} GFLOP/s |")
     b = data.get("breakdown")
     if b:
         shares = "; ".join(f"{name} {100 * share:.0f}%" for name, share in b["stages"].items())
@@ -261,22 +255,13 @@ def _speed_evaluation(row: dict, data: dict) -> tuple[str, str, str]:
 
 def _speed_rendering(row: dict, data: dict) -> tuple[str, str, str]:
     part = data[row["part"]]
-    if row["part"] == "eval":
-        plugin, fp32 = part["plugin_queries_per_second"], part["eval_queries_per_second"]["fp32"]
-        what = (f"Mitsuba plugin kernel vs `SynthesizedBTF.eval`, the same {part['queries']:,} queries "
-                f"(`{part['command']}`)")
-        result = (f"{plugin / 1e6:.1f} vs {fp32 / 1e6:.1f} M queries/s ({plugin / fp32:.1f}x), max difference "
-                  f"{_sci(part['max_abs_difference'])} on values up to {part['max_abs_value']:.1f}")
-        return what, result, row["target"]
-    ns = part["ns_per_query"]
-    ratio = {order: v["parallax"] / v["flat"] for order, v in ns.items()}
-    met = part["max_abs_difference_to_eval"] <= row["max_difference_of_range"] * part["eval_value_range"]
-    what = f"the parallax march in the Mitsuba plugin (`{part['command']}`, {part['relief_texels']:g} texels of relief)"
-    result = (f"{ratio['sorted by view elevation']:.1f}x the flat kernel's cost per query with queries sorted by view "
-              f"elevation, {ratio['random order']:.1f}x in random order; max difference to `SynthesizedBTF.eval` "
-              f"{_sci(part['max_abs_difference_to_eval'])} on a range of {part['eval_value_range']:.1f}")
-    target = f"matches to {_sci(row['max_difference_of_range'], 0)} of the range ({'met' if met else 'missed'}; tested)"
-    return what, result, target
+    plugin, fp32 = part["plugin_queries_per_second"], part["eval_queries_per_second"]["fp32"]
+    what = (f"Mitsuba plugin's query vs `SynthesizedBTF.eval`, the same {part['queries']:,} queries "
+            f"(`{part['command']}`)")
+    result = (f"{plugin / 1e6:.1f} vs {fp32 / 1e6:.1f} M queries/s ({plugin / fp32:.2f}x), max difference "
+              f"{_sci(part['max_abs_difference']) if part['max_abs_difference'] else '0'} on values up to "
+              f"{part['max_abs_value']:.1f}")
+    return what, result, row["target"]
 
 
 _SPEED_FROM = {"training": _speed_training, "evaluation": _speed_evaluation, "rendering": _speed_rendering}
@@ -307,41 +292,35 @@ def speed(data: dict) -> str:
 
 
 def rendering(data: dict) -> str:
-    """bench_render.py: the plugin kernel's and ``SynthesizedBTF.eval``'s queries/s, and the parallax march's cost."""
-    e, r = data["eval"], data["relief"]
-
-    def caption(part):
-        if part.get("recorded_from"):
-            return (f"recorded measurement of `{part['command']}` ({_stated_machine(part)}; numbers from "
-                    f"{part['recorded_from']}, kept in `benchmarks/results/rendering.json`)")
-        return f"measured on {_machine(part)} by `{part['command']}`"
-
+    """bench_render.py: ``SynthesizedBTF.eval``'s queries/s and the Mitsuba plugin's (the same query, handed over)."""
+    e = data["eval"]
     fp32, bf16 = e["eval_queries_per_second"]["fp32"], e["eval_queries_per_second"]["bf16"]
     plugin = e["plugin_queries_per_second"]
-    first = f"first call {e['plugin_first_call_seconds']:.1f} s " + e.get(
-        "plugin_first_call_note", "(compiling, or from Dr.Jit's cache)")
     workers = f", {e['workers']} workers" if e.get("workers") else ""
-    head = caption(e)
-    shape = f" ({r['model_shape'][0]} x {r['model_shape'][1]} texels)" if r.get("model_shape") else ""
-    lines = [f"{head[0].upper()}{head[1:]}: {e['queries']:,} random queries within 25 repeats, {e['model']}, "
-             f"{e['method']}; warmed up, fastest of {e['repeats']} ([rendering.md](rendering.md)):", "",
-             "| path | queries/s | notes |", "|---|---|---|",
-             f"| `SynthesizedBTF.eval`, fp32 decoder (default) | {fp32 / 1e6:.1f} M | numba synthesis + BLAS/torch "
-             f"decoder{workers} |",
-             f"| `SynthesizedBTF.eval`, `precision=\"bf16\"` | {bf16 / 1e6:.1f} M | |",
-             f"| plugin kernel (`DynBTFEvaluator.eval`, Dr.Jit LLVM) | {plugin / 1e6:.1f} M | {first} |",
-             f"| ratio plugin / eval | {plugin / fp32:.1f}x (fp32), {plugin / bf16:.1f}x (bf16) | max difference "
-             f"{_sci(e['max_abs_difference'])} on values up to {e['max_abs_value']:.1f} |", "",
-             f"The parallax march, plugin kernel per query ({caption(r)}; {r['queries']:,} queries, "
-             f"{r['model']}{shape}, {r['method']}):", "",
-             "| queries | flat kernel | with parallax march | ratio |", "|---|---|---|---|"]
-    for order, label in (("random order", "random order"),
-                         ("sorted by view elevation", "sorted by view elevation (a camera's coherent lanes)")):
-        ns = r["ns_per_query"][order]
-        lines.append(f"| {label} | {ns['flat']:,.0f} ns | {ns['parallax']:,.0f} ns | "
-                     f"{ns['parallax'] / ns['flat']:.1f}x |")
-    lines += ["", f"Max difference to `SynthesizedBTF.eval` {_sci(r['max_abs_difference_to_eval'])} on a range of "
-                  f"{r['eval_value_range']:.1f}."]
+    difference = _sci(e["max_abs_difference"]) if e["max_abs_difference"] else "0"
+    return "\n".join([
+        f"Measured on {_machine(e)} by `{e['command']}`: {e['queries']:,} random queries within 25 repeats, "
+        f"{e['model']}, {e['method']}; warmed up, fastest of {e['repeats']} ([rendering.md](rendering.md)):", "",
+        "| path | queries/s | notes |", "|---|---|---|",
+        f"| `SynthesizedBTF.eval`, fp32 decoder (default) | {fp32 / 1e6:.1f} M | numba synthesis + BLAS/native "
+        f"decoder{workers} |",
+        f"| `SynthesizedBTF.eval`, `precision=\"bf16\"` | {bf16 / 1e6:.1f} M | |",
+        f"| the plugin's query (`DynBTFEvaluator.eval`: the wavefront handed to `SynthesizedBTF.eval` and back) | "
+        f"{plugin / 1e6:.1f} M | first call {e['plugin_first_call_seconds']:.2f} s |",
+        f"| ratio plugin / eval | {plugin / fp32:.2f}x (fp32), {plugin / bf16:.2f}x (bf16) | max difference "
+        f"{difference} on values up to {e['max_abs_value']:.1f} |"])
+
+
+def runtimes(data: dict) -> str:
+    """The measurement behind the choice of runtimes (docs/architecture.md): the plugin's former Dr.Jit kernel beside
+    the library's CPU path, per level and method."""
+    lines = [f"Measured on {_machine(data)} by `{data['command']}` at commit `{data['commit']}` "
+             f"({data['queries']:,} queries, a 1080p frame), the last run with the Dr.Jit kernel:", "",
+             "| level | method | library (numba + native decoder) M queries/s | Dr.Jit kernel M queries/s | "
+             "Dr.Jit / library |", "|---|---|---|---|---|"]
+    for r in data["rows"]:
+        lines.append(f"| {r['isa']} | {r['method']} | {r['library_qps'] / 1e6:.2f} | {r['drjit_qps'] / 1e6:.2f} | "
+                     f"{r['drjit_qps'] / r['library_qps']:.2f}x |")
     return "\n".join(lines)
 
 
@@ -777,7 +756,7 @@ def compiled_material(data: dict) -> str:
 
 
 RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget": budget, "evaluation": evaluation,
-             "gpu": gpu, "guided": guided, "guidance": guidance, "guidance_struct": guidance_struct, "web_layered": web_layered, "speed": speed, "rendering": rendering,
+             "gpu": gpu, "guided": guided, "guidance": guidance, "guidance_struct": guidance_struct, "web_layered": web_layered, "speed": speed, "rendering": rendering, "runtimes": runtimes,
              "measured": measured, "quality_triple": quality_triple, "quality_parallax": quality_parallax,
              "quality_compared": quality_compared, "baselines": baselines, "baselines_summary": baselines_summary,
              "baselines_storage": baselines_storage, "baselines_small": baselines_small,

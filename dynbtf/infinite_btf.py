@@ -239,6 +239,9 @@ class SynthesizedBTF:
         Rebuilt from the material's tables.
     seed : int
         The material's synthesis seed.
+    relief : bool
+        Whether point queries are answered at the visible point of the synthesized height field (True for a model
+        with relief; set it False to fetch at ``uv`` instead, e.g. to show what the march changes).
 
     Examples
     --------
@@ -290,7 +293,7 @@ class SynthesizedBTF:
         from .representations.base import Representation
 
         # representations with relief answer at the visible point, marched through the synthesized height
-        self._relief = type(model).visible_uv is not Representation.visible_uv
+        self.relief = type(model).visible_uv is not Representation.visible_uv
         decoder = material.decoder
         self.level_decoders = bool(level_decoders) and decoder is not None and len(decoder.levels) > 1
         # footprint queries of a material compiled without footprint decoders: the point decoder, said once
@@ -341,7 +344,7 @@ class SynthesizedBTF:
     def takes_latent(self) -> bool:
         """Whether :meth:`eval` takes ``latent``: the point query of a model without relief (a relief model reads at
         the visible point, not at ``uv``) decoded by the compiled material's decoder."""
-        return not self._relief and self.decode_path is not None
+        return not self.relief and self.decode_path is not None
 
     def texels_per_uv(self) -> float:
         """Texels of the exemplar per unit of the user's ``uv`` (``scale`` x the exemplar's side; the geometric
@@ -367,7 +370,7 @@ class SynthesizedBTF:
         if latent is not None:
             return self.decode_path.decode(latent.to(self.device), wv, wl)
         points = uv * self.scale  # exemplar repeats
-        if self._relief:  # fetch at the visible point of the synthesized height field
+        if self.relief:  # fetch at the visible point of the synthesized height field
             points = self.model.visible_uv(points, wv, self.synthesizer)
         texels = None if footprint is None else footprint * self.texels_per_uv()
         path = self.decode_path

@@ -72,7 +72,7 @@ from .infinite_btf import SynthesizedBTF, flat_image
 from .synthesis.base import check_uv
 from .synthesis.hash import MASK32, hash_vertex
 
-__all__ = ["LayeredBTF", "ImageMask", "NoiseMask", "LayerHeight", "layer_height_map", "mask_from_spec", "HEIGHT_TABLE"]
+__all__ = ["LayeredBTF", "ImageMask", "NoiseMask", "LayerHeight", "layer_height_map", "layer_height", "mask_from_spec", "HEIGHT_TABLE"]
 
 
 # ------------------------------------------------------------------------------------------------ masks
@@ -262,6 +262,28 @@ class LayerHeight:
         return self.table[i] + t * (self.table[i + 1] - self.table[i])
 
 
+def layer_height(btf: SynthesizedBTF, height_of: LayerHeight, uv: torch.Tensor) -> tuple[np.ndarray, torch.Tensor | None]:
+    """A layer's height (``(N,)`` float64 in ``[0, 1]``, :class:`LayerHeight`) at ``uv (N, 2)`` (the layer's ``uv``
+    units, float64), and its latent values there where its ``eval`` takes them back (else None).
+
+    The height is read from the layer's synthesized features: a relief's height channel alone where the model has
+    one (``height_of.weights`` is one-hot on it), else ``features @ height_of.weights``."""
+    weights = height_of.weights
+    latent = None
+    if getattr(btf.model, "extra_positional_channels", 0):  # a relief's height channel: that channel alone
+        index = int(np.argmax(weights))  # (layer_height_map's weights are one-hot on it)
+        points = check_uv(uv, scale=btf.scale).to(torch.float64) * btf.scale
+        height = btf.synthesizer.channel(points.to(btf.device), index).double().cpu().numpy()
+    else:
+        if btf.takes_latent:  # kept: the colour of a band point decodes the values its height came from
+            latent = btf.latent(uv)
+            f = btf.synthesizer.features_from_latent(latent.to(btf.device))
+        else:
+            f = btf.features(uv)
+        height = f.double().cpu().numpy() @ weights
+    return height_of(height), latent
+
+
 def layer_height_map(btf: SynthesizedBTF) -> LayerHeight:
     """How :class:`LayeredBTF` reads a layer's height (:class:`LayerHeight`).
 
@@ -348,20 +370,8 @@ class LayeredBTF:
         a layer's synthesis at a band point then serves both its height and its colour."""
         out, latents = [], []
         for btf, height_of in zip(self.layers, self.height_maps):
-            weights = height_of.weights
-            latent = None
-            if getattr(btf.model, "extra_positional_channels", 0):  # a relief's height channel: that channel alone
-                index = int(np.argmax(weights))  # (layer_height_map's weights are one-hot on it)
-                points = check_uv(uv, scale=btf.scale).to(torch.float64) * btf.scale
-                height = btf.synthesizer.channel(points.to(btf.device), index).double().cpu().numpy()
-            else:
-                if btf.takes_latent:  # kept: the colour of a band point decodes the values its height came from
-                    latent = btf.latent(uv)
-                    f = btf.synthesizer.features_from_latent(latent.to(btf.device))
-                else:
-                    f = btf.features(uv)
-                height = f.double().cpu().numpy() @ weights
-            out.append(height_of(height))
+            height, latent = layer_height(btf, height_of, uv)
+            out.append(height)
             latents.append(latent)
         return torch.from_numpy(np.stack(out, -1)), latents
 

@@ -48,7 +48,7 @@ def _one_error_line(capsys, message):
 @pytest.mark.parametrize("args, message", [
     (["--scene", "teapot"], "--scene: expected one of"),
     (["--lighting", "moon"], "--lighting: expected one of"),
-    (["--method", "quilt"], "--method: expected one of"),
+    (["--method", "voronoi"], "--method: expected one of"),
     (["--scale", "-1"], "--scale"),
     (["--size", "0"], "--size: expected a positive number of pixels, got 0"),
     (["--size", "-16"], "--size: expected a positive number of pixels, got -16"),
@@ -154,8 +154,8 @@ def test_render_progress_says_when_the_kernel_compiles(small_model, capsys):
     result = render_scene(small_model, scene="plane", lighting="point", method="tile", scale=2.0,
                           resolution=(8, 8), spp=6, spp_per_pass=2, progress=True)
     err = capsys.readouterr().err
-    before = err.index("render plane/point/tile: compiling the rendering kernel and running the first pass (2 spp")
-    after = err.index(f"render plane/point/tile: kernel ready, first pass done in {result.first_pass_seconds:.1f} s "
+    before = err.index("render plane/point/tile: compiling Mitsuba's kernels and running the first pass (2 spp")
+    after = err.index(f"render plane/point/tile: kernels ready, first pass done in {result.first_pass_seconds:.1f} s "
                       f"(2/6 spp)")
     bar = err.index("6/6")
     assert before < after < bar
@@ -165,7 +165,7 @@ def test_render_progress_says_when_the_kernel_compiles(small_model, capsys):
     render_scene(small_model, scene="plane", lighting="point", method="tile", resolution=(8, 8), spp=2,
                  spp_per_pass=2, progress=True)
     err = capsys.readouterr().err
-    assert "kernel ready, first pass done in" in err and "2/2 [" not in err  # one pass: no bar
+    assert "kernels ready, first pass done in" in err and "2/2 [" not in err  # one pass: no bar
 
     render_scene(small_model, scene="plane", lighting="point", method="tile", resolution=(8, 8), spp=2,
                  progress=False)

@@ -155,7 +155,7 @@ def test_plugin_marches_parallax_like_synthesized_btf(variant, parallax_file, me
     uv, wv, wl = _random_queries(3000, seed=1)
     uv = (uv / np.float32(7.0)) * np.float32(7.0)
     flat = synthesized_btf(model, method, scale=1.0, seed=3)
-    flat._relief = False  # the same model answered at uv: no parallax
+    flat.relief = False  # the same model answered at uv: no parallax
     no_march = flat.eval(uv.astype(np.float64), wv, wl) / np.pi * wl[:, 2:3]
     assert np.abs(no_march - ref).max() > 50 * np.abs(got - ref).max()
 
@@ -221,6 +221,30 @@ def test_plugin_is_zero_below_either_horizon(variant, model_file):
     assert np.all(_plugin_eval(bsdf, uv, below, wl, 1.0) == 0.0)
 
 
+def test_plugin_query_hands_over_only_the_active_lanes(variant, model_file):
+    """The plugin's query (``DynBTFEvaluator.eval``) is ``SynthesizedBTF.eval`` on the active lanes, bit for bit,
+    point and footprint queries alike, and zero on the others; a wavefront with no active lane answers zeros."""
+    from dynbtf.render.mitsuba.evaluator import DynBTFEvaluator
+    from dynbtf.synthesized import synthesized_btf
+
+    _, model = model_file
+    btf = synthesized_btf(model, "hist", seed=4, footprints=True)
+    evaluator = DynBTFEvaluator(btf)
+    uv, wv, wl = _random_queries(500, seed=6)
+    active = np.random.default_rng(7).random(500) < 0.4
+    footprint = np.random.default_rng(8).random(500).astype(np.float32) * 0.3
+    args = (mi.Float(uv[:, 0]), mi.Float(uv[:, 1]), mi.Vector3f(*wv.T), mi.Vector3f(*wl.T))
+    for width in (None, footprint):
+        got = evaluator.eval(*args, mi.Bool(active), footprint=None if width is None else mi.Float(width))
+        got = np.stack([np.asarray(got[k]) for k in range(3)], -1)
+        want = btf.eval(uv[active].astype(np.float64), wv[active], wl[active],
+                        None if width is None else width[active].astype(np.float64))
+        np.testing.assert_array_equal(got[active], want)
+        assert np.all(got[~active] == 0.0) and np.abs(want).max() > 0.1
+    none = evaluator.eval(*args, mi.Bool(np.zeros(500, bool)))
+    assert np.all(np.stack([np.asarray(none[k]) for k in range(3)]) == 0.0)
+
+
 def test_plugin_sampling_passes_chi2_and_weight_is_value(variant, model_file):
     from mitsuba.chi2 import BSDFAdapter, ChiSquareTest, SphericalDomain
 
@@ -258,7 +282,7 @@ def test_plugin_sampling_passes_chi2_and_weight_is_value(variant, model_file):
 def test_bad_parameters_are_clear_errors(variant, model_file, tmp_path):
     path, _ = model_file
     with pytest.raises(Exception, match="method"):
-        mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "quilt"})
+        mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "voronoi"})
     with pytest.raises(Exception, match="scale"):
         mi.load_dict({"type": "dynbtf", "filename": str(path), "scale": -2.0})
     with pytest.raises(Exception, match="not found"):
@@ -670,8 +694,10 @@ def test_parameter_table_is_the_documented_one():
 def test_parameter_errors_name_the_parameter(variant, model_file, tmp_path):
     """Every checked parameter's error: ``dynbtf BSDF: parameter 'name' ...``, before the model file is read."""
     path, _ = model_file
-    cases = [({"method": "quilt"}, "parameter 'method' must be one of ['hex', 'hist', 'linear', 'struct', 'tile', "
-                                   "'auto'], got 'quilt'"),
+    from dynbtf.render.mitsuba.bsdf import METHODS
+
+    assert {"hex", "hist", "linear", "quilt", "struct", "tile", "auto"} <= set(METHODS)
+    cases = [({"method": "voronoi"}, f"parameter 'method' must be one of {list(METHODS)}, got 'voronoi'"),
              ({"scale": 0.0}, "parameter 'scale': expected a positive, finite number of exemplar repeats, got 0.0"),
              ({"scale_v": -1.0}, "parameter 'scale_v': expected a positive, finite number"),
              ({"scale": 3e7}, "parameter 'scale': 3e+07 exemplar repeats across the uv range exceed the 16777216 "

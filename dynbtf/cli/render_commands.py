@@ -63,14 +63,14 @@ def render(
     cells: int = typer.Option(0, "--cells", help="struct's cells per repeat along each side (0: its own choice); "
                               "with --target, about one per element of the material."),
 ) -> None:
-    """Path-trace a scene covered by the synthesized BTF with Mitsuba 3 (decoder inside the kernel).
+    """Path-trace a scene covered by the synthesized BTF with Mitsuba 3 (dynbtf's query at every shading point).
 
     With --layer, two materials share the surface (the dynbtf_layered plugin): MODEL where --mask is below one
     half, the --layer one above, the boundary following both materials' heights within --width. With --target,
     the material's content follows a painted target (guided synthesis).
 
-    The first pass compiles the rendering kernel (up to a minute the first time a model, method and
-    shape are rendered; Dr.Jit caches it): a status line says so, then a bar counts samples.
+    The first pass compiles Mitsuba's kernels (up to a minute the first time a scene is rendered;
+    Dr.Jit caches them): a status line says so, then a bar counts samples.
 
     Limits, checked before anything loads: --scale below 2**24 repeats (Mitsuba's uv is float32),
     --spp at most 65536 and --size^2 x --spp at most 2**32 samples, the estimated memory within

@@ -100,7 +100,7 @@ def _at_a_glance(r: HtmlReport, out: Path, syn: dict[str, Any], ren: list[dict[s
         r.images([(out / syn["previews"][m], METHOD_TITLES.get(m, m)) for m in syn["previews"]], width=420)
     teaser = [x for x in ren if x["method"] == "hist"]
     if teaser:
-        r.paragraph("Path-traced in Mitsuba 3 with the dynbtf BSDF plugin (decoder inside the rendering kernel), "
+        r.paragraph("Path-traced in Mitsuba 3 with the dynbtf BSDF plugin (the library's query at every shading point), "
                     "histogram-preserving blending, two lighting conditions:")
         r.images([(out / x["path"], f"{x['scene']}, {x['lighting']} light, {x['scale']:g} repeats")
                   for x in teaser], width=300)

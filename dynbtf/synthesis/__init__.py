@@ -21,15 +21,15 @@ the exemplar is (:mod:`.structure`) and builds ``struct`` or ``hist``.
 
 Each dynamic method is a package (``tiling/``, ``blending/``, ``histogram_blending/``, ``hex_tiling/``,
 ``cell_quilting/``, ``guided_blending/``): its synthesizer in ``__init__.py`` and, beside it, a module per
-backend it runs on (``drjit.py``: its Dr.Jit kernel for the renderer; ``web.py``: its branch of the web shader
-and its tables), named in the class's ``backends``. Backends reach them through
-:meth:`~.base.Synthesizer.backend_form` and name no method.
+backend it runs on besides the CPU (``web.py``: its branch of the web shader and its tables), named in the
+class's ``backends``. Backends reach them through :meth:`~.base.Synthesizer.backend_form` and name no method.
+(The Mitsuba plugin needs no form: it calls the library's query, :mod:`dynbtf.render.mitsuba.evaluator`.)
 
 Building blocks: :mod:`.lattice` (triangle grid, exact at any coordinate),
 :mod:`.hash` (integer vertex hash), :mod:`.histogram` (Gaussian transforms,
 PCA, variance-preserving blend), :mod:`.tileable` ("Avoiding Cuts"),
-:mod:`.structure` (autocorrelation peaks, structure strength), :mod:`.kernels` (fused numba
-kernels) and :mod:`.drjit_blocks` (their Dr.Jit twins), :mod:`.web_form` (what a method gives the
+:mod:`.structure` (autocorrelation peaks, structure strength), :mod:`.kernels` (the numba building
+blocks of the methods' CPU kernels), :mod:`.web_form` (what a method gives the
 web export), :mod:`.quality` (report) and :mod:`.coherence`
 (patch coherence and identity with tiling). :mod:`.registry` (``make_synthesizer``,
 ``synthesizer_class``) sits above the methods, :mod:`.base` below them.

@@ -190,7 +190,7 @@ class Synthesizer(abc.ABC):
     #: pre-generated texture (``quilt``) is drawn with the seed.
     seeded_tables: ClassVar[bool] = False
     #: The backends the method runs on besides its torch reference and CPU kernel: backend name -> the module that
-    #: gives its form there, ``form(synthesizer)`` (``"drjit"``: the renderer's kernel; ``"web"``: the GLSL export's
+    #: gives its form there, ``form(synthesizer)`` (``"web"``: the GLSL export's
     #: mode, shader code and tables). A method package (``dynbtf/synthesis/<method>/``) holds its synthesizer in
     #: ``__init__.py`` and these modules beside it; a subclass inherits its base's entries unless it sets its own.
     #: Backends look methods up here (:meth:`backend_form`) and name none.
@@ -203,19 +203,19 @@ class Synthesizer(abc.ABC):
         """The module that gives this method a ``backend`` form (its :attr:`backends` entry, imported), or None.
 
         >>> from dynbtf.synthesis.registry import synthesizer_class
-        >>> synthesizer_class("struct").backend_module("drjit").__name__
-        'dynbtf.synthesis.cell_quilting.drjit'
+        >>> synthesizer_class("struct").backend_module("web").__name__
+        'dynbtf.synthesis.cell_quilting.web'
         >>> synthesizer_class("hist").backend_module("web").__name__
         'dynbtf.synthesis.histogram_blending.web'
-        >>> synthesizer_class("quilt").backend_module("drjit") is None
+        >>> synthesizer_class("quilt").backend_module("web") is None
         True
         """
         module = cls.backends.get(backend)
         return None if module is None else importlib.import_module(module)
 
     def backend_form(self, backend: str):
-        """This synthesizer in ``backend``'s terms (:meth:`backend_module`'s ``form(self)``): e.g. its Dr.Jit kernel
-        for the renderer (``"drjit"``), its tables for the web export (``"web"``). A method without that backend
+        """This synthesizer in ``backend``'s terms (:meth:`backend_module`'s ``form(self)``): e.g. its tables and
+        shader branch for the web export (``"web"``). A method without that backend
         raises :class:`InputError` naming the methods that have it."""
         module = self.backend_module(backend)
         if module is None:

@@ -63,12 +63,15 @@ def takes_parameter(name: str, parameter: str) -> bool:
     return cls is not None and parameter in _accepted(cls)
 
 
-def methods_with(backend: str) -> list[str]:
-    """The methods that run on ``backend`` (:attr:`~dynbtf.synthesis.base.Synthesizer.backends`) and build from an
-    exemplar alone (no required parameter, unlike the guided methods, which need labels and a target), sorted.
+def methods_with(backend: str | None = None) -> list[str]:
+    """The methods that run on ``backend`` (:attr:`~dynbtf.synthesis.base.Synthesizer.backends`; ``None``: every
+    method, on the CPU and torch) and build from an exemplar alone (no required parameter, unlike the guided methods,
+    which need labels and a target), sorted.
 
     >>> methods_with("web")
     ['hex', 'hist', 'linear', 'struct', 'tile']
+    >>> methods_with()
+    ['hex', 'hist', 'linear', 'quilt', 'struct', 'tile']
     """
     def ready(cls) -> bool:
         required = [p for p in inspect.signature(cls.__init__).parameters.values()
@@ -76,7 +79,8 @@ def methods_with(backend: str) -> list[str]:
                     and p.kind not in (inspect.Parameter.VAR_KEYWORD, inspect.Parameter.VAR_POSITIONAL)]
         return not required
 
-    return sorted(name for name, cls in SYNTHESIZERS.items() if backend in cls.backends and ready(cls))
+    return sorted(name for name, cls in SYNTHESIZERS.items()
+                  if (backend is None or backend in cls.backends) and ready(cls))
 
 
 def make_synthesizer(name: str, exemplar, seed: int = 0, **params) -> Synthesizer:

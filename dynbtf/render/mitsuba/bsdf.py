@@ -1,4 +1,4 @@
-"""The ``dynbtf`` BSDF plugin for Mitsuba 3: a synthesized BTF evaluated inside the rendering kernel.
+"""The ``dynbtf`` BSDF plugin for Mitsuba 3: a synthesized BTF evaluated at every shading point.
 
 Call :func:`register_plugin` once and Mitsuba knows a BSDF of type ``"dynbtf"``::
 
@@ -24,7 +24,7 @@ from ... import jit
 from ...errors import InputError
 from ...synthesis.auto import AUTO
 from ...synthesis.registry import methods_with, takes_parameter
-from . import drjit_ops
+from .evaluator import DynBTFEvaluator, check_renderable
 from .sampling import AUTO_MIN_COSINE_VARIANCE, DEFAULT_TABLE_WEIGHT, SAMPLING_MODES
 
 __all__ = ["register_plugin", "plugin_variants", "load_plugin_model", "plugin_sampler", "PLUGIN_DOC", "METHODS",
@@ -52,9 +52,9 @@ def ray_cone_angle(fov: float, width: int, spp: int = 1) -> float:
         raise InputError(f"ray_cone_angle: fov must be below 180 degrees, got {fov}")
     return 2.0 * math.tan(math.radians(float(fov)) / 2.0) / float(width) / math.sqrt(float(spp))
 
-#: Synthesis methods the plugin evaluates in Dr.Jit (those with a Dr.Jit form that build from the exemplar alone:
+#: Synthesis methods the plugin evaluates (every method that builds from the exemplar alone:
 #: :func:`~dynbtf.synthesis.registry.methods_with`; the guided ones come through ``target``), and ``auto``.
-METHODS = (*methods_with("drjit"), AUTO)
+METHODS = (*methods_with(), AUTO)
 #: The plugin's (and ``dynbtf render``'s) default method.
 DEFAULT_METHOD = AUTO
 
@@ -188,12 +188,12 @@ PARAMETERS: tuple[PluginParameter, ...] = (
     PluginParameter(
         "filename", "string", None, required="a dynbtf model file",
         doc="""Path of a dynbtf model file: a Triple Plane (``dynbtf fit``), one
-with relief (``--repr triple-parallax``: the kernel marches the view
+with relief (``--repr triple-parallax``: the query marches the view
 ray through the synthesized height first) or a NeuMIP (``dynbtf fit
---repr neumip``); PCA and SH models have no decoder to run in a kernel
-and are refused.""",
-        summary="model file: Triple Plane (also `triple-parallax`) or NeuMIP; PCA and SH are refused (no decoder "
-                "to run in a kernel)"),
+--repr neumip``); PCA and SH models have no positional plane to
+synthesize and are refused.""",
+        summary="model file: Triple Plane (also `triple-parallax`) or NeuMIP; PCA and SH are refused (no positional "
+                "plane to synthesize)"),
     PluginParameter(
         "method", "string", DEFAULT_METHOD, check=_one_of(METHODS),
         doc="""Synthesis of the positional plane: ``tile`` (plain repetition, the
@@ -202,13 +202,14 @@ by their barycentrics), ``hist`` (histogram-preserving blending on a triangle
 lattice, the paper's method), ``hex`` (hex-tiling), ``struct``
 (lattice-aligned cell quilting: cells of the exemplar shifted by its own
 lattice vectors, cut along minimum-error seams; keeps weaves, tiles and
-bricks intact) or ``auto``: ``struct`` for a structured exemplar (the
+bricks intact), ``quilt`` (off-line image quilting: a pre-generated texture,
+for comparison) or ``auto``: ``struct`` for a structured exemplar (the
 model's positional plane), else ``hist``
 (:func:`~dynbtf.synthesis.auto.choose_method`). With ``auto`` the
 plugin prints its choice and the evidence (one line, on standard error)
 once per model file and process.""",
-        summary="`tile`, `linear`, `hist` (the paper's), `hex`, `struct` (cell quilting for structured materials) or "
-                "`auto` "
+        summary="`tile`, `linear`, `hist` (the paper's), `hex`, `struct` (cell quilting for structured materials), "
+                "`quilt` (off-line, pre-generated: for comparison) or `auto` "
                 "(`struct` for a structured exemplar, else `hist`; the choice is printed once per model file)"),
     PluginParameter(
         "scale", "float", 1.0, check=_repeats,
@@ -335,9 +336,11 @@ _DOC_HEAD = """Synthesized BTF material (``dynbtf``)
 Evaluates an infinite, non-repeating BTF -- a fitted Triple Plane (or NeuMIP)
 model whose positional feature plane is synthesized on the fly -- at every
 shading point.
-The whole chain (lattice, integer hash, histogram-preserving blend, inverse
-transform -- or for ``struct`` the cell's hash, its cut and one fetch --, decoder
-MLP) is traced into the rendering kernel; nothing is pre-generated, so any
+Each wavefront's shading points are answered by the library's own query,
+:meth:`dynbtf.infinite_btf.SynthesizedBTF.eval` (lattice, integer hash,
+histogram-preserving blend, inverse transform -- or for ``struct`` the cell's
+hash, its cut and one fetch --, decoder MLP), handed the points and back
+(:mod:`dynbtf.render.mitsuba.evaluator`); nothing is pre-generated, so any
 ``scale`` costs the same.
 
 .. list-table::
@@ -384,15 +387,13 @@ Dr.Jit flags: :func:`register_plugin` turns Dr.Jit's ``SymbolicLoops`` and
 thread, so the change holds for the rest of the calling thread's life and for
 everything Dr.Jit runs in it, not only this BSDF: every later loop (e.g. any
 integrator's path loop) and virtual call is evaluated in wavefront mode. Why:
-in wavefront mode the unrolled decoder (thousands of fused multiply-adds) is
-fused into straight-line kernels, many times faster on the CPU than tracing it once as
-a symbolic callee of the integrator's symbolic loop. Renders are the same
-either way; code that needs symbolic mode afterwards (e.g. to keep memory low
-on huge wavefronts) sets the flags back with ``drjit.set_flag``; another thread
-that renders with the plugin calls :func:`configure_jit` itself.
+the plugin hands each wavefront to the library, which a symbolic loop (its
+body traced once) cannot call out to. Code that needs symbolic mode afterwards
+(without this plugin) sets the flags back with ``drjit.set_flag``; another
+thread that renders with the plugin calls :func:`configure_jit` itself.
 
 Precision: Mitsuba's mesh uv and the product ``scale * u`` are float32; from
-there on the lattice runs in float64 exactly as dynbtf does, so the plugin agrees
+there on the query is dynbtf's (the lattice in float64), so the plugin agrees
 with :class:`~dynbtf.infinite_btf.SynthesizedBTF` at the same float32 ``uv``. Repeat
 counts beyond ~1e4 per mesh make float32 uv coarser than a texel (a mesh
 limitation, not a synthesis one).
@@ -403,11 +404,12 @@ PLUGIN_DOC = _DOC_HEAD + rst_parameter_rows(PARAMETERS) + "\n" + _DOC_TAIL
 
 
 def configure_jit() -> None:
-    """Dr.Jit flags under which the unrolled decoder compiles into one fast kernel.
+    """Dr.Jit flags under which the plugin can hand a wavefront to the library.
 
     Symbolic loops and calls trace the integrator's loop body once and dispatch
-    BSDF calls indirectly; with them off (wavefront mode), the plugin's code is
-    fused into straight-line kernels -- many times faster on the CPU for this BSDF.
+    BSDF calls indirectly, inside one kernel; with them off (wavefront mode), each
+    BSDF call sees its wavefront as evaluated arrays, which
+    :mod:`~dynbtf.render.mitsuba.evaluator` hands to ``SynthesizedBTF.eval``.
 
     The flags are Dr.Jit's per-thread state: this changes them for everything
     the calling thread runs afterwards (see "Dr.Jit flags" in :data:`PLUGIN_DOC`).
@@ -449,11 +451,11 @@ class _DynBTFBSDFBody:
             btf = synthesized_btf(model, self.method, scale=1.0, seed=self.seed, footprints=self.filtered, **params)
         self.evaluator = DynBTFEvaluator(btf)
         model = self.evaluator.btf.model
-        #: the method the kernel runs (``auto``'s choice, else ``method``)
+        #: the method the query runs (``auto``'s choice, else ``method``)
         self.synthesis = self.evaluator.method
         if self.evaluator.choice is not None:
             announce_choice(self.filename, self.evaluator.choice)
-        if self.filtered:  # the pyramid and per-level decoders, before any kernel is traced
+        if self.filtered:  # the pyramid and per-level decoders, before the first shading point
             self.evaluator.prepare_footprints()
         self.sampler = self._choose_sampler(model)
         self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
@@ -511,7 +513,7 @@ class _DynBTFBSDFBody:
     def _value(self, si, wo, active):
         mi, dr = _mi(), _dr()
         # opaque: the scale is a kernel parameter, not a literal, so scenes that differ
-        # only in scale share one compiled kernel
+        # only in scale share Mitsuba's compiled kernels
         scale_u, scale_v = dr.opaque(mi.Float, self.scale), dr.opaque(mi.Float, self.scale_v)
         u = si.uv.x * scale_u
         v = si.uv.y * scale_v
@@ -611,150 +613,6 @@ def plugin_class(body: type, base: type, name: str, doc: str) -> type:
     namespace.update(__doc__=doc, __module__=body.__module__, __qualname__=name, _base=base)
     return type(name, (base,), namespace)
 
-class DynBTFEvaluator:
-    """``SynthesizedBTF.eval`` re-expressed in Dr.Jit: the body of the plugin's ``eval``.
-
-    Parameters
-    ----------
-    btf : SynthesizedBTF
-        An opened material's query object at ``scale`` 1 (:func:`dynbtf.synthesized_btf` opens or compiles a model's;
-        :func:`dynbtf.guided.guided_btf` builds a guided one): the evaluator translates it and builds nothing.
-        Its representation must be a kind of :data:`dynbtf.render.mitsuba.drjit_ops.DR_REPRESENTATIONS`, its
-        method one with a Dr.Jit form.
-
-    Attributes
-    ----------
-    method : str
-        The method the kernel runs (``auto`` resolved when the material was compiled).
-    choice : MethodChoice or None
-        What ``auto`` chose and why (:class:`~dynbtf.synthesis.auto.MethodChoice`; its ``line`` is the report),
-        ``None`` for a named method.
-
-    :meth:`eval` takes Dr.Jit arrays of the active Mitsuba variant: ``u, v``
-    (``mi.Float``, in exemplar repeats), ``w_view, w_light`` (``mi.Vector3f``,
-    local frame) and returns ``mi.Color3f`` values (excluding cos(theta_light)).
-
-    >>> from dynbtf import synthesized_btf
-    >>> from dynbtf.representations.triple_plane import TriplePlane
-    >>> evaluator = DynBTFEvaluator(synthesized_btf(TriplePlane(16, 16), "hist", seed=3))  # doctest: +SKIP
-    """
-
-    def __init__(self, btf) -> None:
-        from ...infinite_btf import SynthesizedBTF
-
-        if not isinstance(btf, SynthesizedBTF):
-            raise InputError(f"DynBTFEvaluator: expected an opened material's query object (dynbtf.synthesized_btf("
-                             f"model, method, seed=...)), got {type(btf).__name__}")
-        if btf.scale != 1.0:
-            raise InputError(f"DynBTFEvaluator: expected the query object at scale 1 (the plugin applies its own "
-                             f"scale to uv), got scale {btf.scale}")
-        self.btf = btf
-        self.method = self.btf.synthesizer.name
-        self.choice = self.btf.synthesizer.choice
-        self.synthesizer = self.btf.synthesizer.backend_form("drjit")  # its method package's Dr.Jit kernel
-        # the compiled material's decoder: the synthesizer's output map (PCA un-projection) folded into layer 1,
-        # as SynthesizedBTF's fast path reads it: 16 x 16 fewer multiply-adds per shading point
-        self._latent = getattr(self.synthesizer, "matrix", None) is not None
-        self.model = drjit_ops.dr_representation(self.btf.model, self.btf.material.decoder)
-        # representations with relief answer at the visible point, marched through the synthesized height
-        # (the positional plane's last channel), as SynthesizedBTF.eval does
-        self.relief = hasattr(self.model, "visible_uv")
-        self._height_index = int(self.btf.model.positional_plane().shape[-1]) - 1
-        self._level_decoders = None
-        self._mean_appearance = None
-
-    def prepare_footprints(self) -> None:
-        """Build what footprint queries read (the synthesizer's pyramid, the per-level decoders) now, not mid-trace."""
-        self.synthesizer.level_of_detail()
-        self.level_decoders()
-
-    def level_decoders(self) -> list:
-        """One :class:`~dynbtf.render.mitsuba.drjit_ops.DrDecoder` per pyramid level for footprint queries, or ``[]``.
-
-        The compiled material's per-level decoders (:meth:`dynbtf.infinite_btf.SynthesizedBTF.footprint_decoder`;
-        level 0 is the point decoder) and its mean appearance (one decoder of the angular inputs per quadrature
-        node). ``[]`` where the library decodes every level with the point decoder (a material compiled without
-        footprint decoders, or ``level_decoders=False``).
-        """
-        if self._level_decoders is None:
-            self._level_decoders = []
-            if self.btf.level_decoders:
-                folded = self.btf.footprint_decoder()
-                self._level_decoders = [drjit_ops.DrDecoder.of_folded(folded, level)
-                                        for level in range(len(folded.levels))]
-                if folded.mean is not None:  # the top level's quadrature: one decoder (angular inputs only) per node
-                    mean = folded.mean
-                    self._mean_appearance = [
-                        (float(weight), drjit_ops.DrDecoder.from_layers(
-                            [(folded.angular_weight, node + folded.first_bias), *mean.rest], 0, folded.slope))
-                        for weight, node in zip(mean.weights.tolist(), mean.nodes)]
-        return self._level_decoders
-
-    def features(self, u, v, active=True):
-        """Synthesized positional features at ``(u, v)``: list of ``C_U`` mi.Float."""
-        return self.synthesizer.features(u, v, active)
-
-    def eval(self, u, v, w_view, w_light, active=True, footprint=None):
-        """RGB value (``mi.Color3f``) of the synthesized BTF, excluding cos(theta_light).
-
-        ``footprint`` (optional, ``mi.Float``): the side of the square each query stands for, in
-        exemplar repeats, as :meth:`dynbtf.infinite_btf.SynthesizedBTF.eval`'s ``footprint`` (at
-        ``scale`` 1): the synthesized samples are read from the footprint's pyramid levels and
-        decoded with the nearest level's decoder (:meth:`level_decoders`). ``None``: the point query.
-        """
-        if self.relief:
-            index = self._height_index
-
-            def height_channel(pu, pv, mask):
-                return self.synthesizer.channel(pu, pv, index, mask)
-
-            u, v = self.model.visible_uv(u, v, w_view, height_channel, active)
-        if footprint is not None:
-            return self._filtered(u, v, w_view, w_light, footprint, active)
-        if self._latent:  # the output map is folded into the decoder
-            return self.model.decode(self.synthesizer.latent(u, v, active), w_view, w_light, active)
-        return self.model.decode(self.features(u, v, active), w_view, w_light, active)
-
-    def _filtered(self, u, v, w_view, w_light, footprint, active):
-        mi, dr = jit.mi_module(), jit.drjit_module()
-        lod = self.synthesizer.level_of_detail()
-        lower, t = lod(footprint * self.btf.texels_per_uv())
-        decoders = self.level_decoders()
-        # one target per (nearest level, two levels mixed or not): the lanes whose footprint reads one level (most
-        # of them: levels mix only in a band of each octave) skip the second level's reads, and each level's
-        # decoder keeps its weights as literals. An evaluated call in wavefront mode: one kernel per target
-        # over the lanes that need it.
-        targets = []
-        for level in range(lod.top + 1):
-            for mixed in (False, True):
-                targets.append(self._filtered_target(level, mixed, decoders[level] if decoders else None))
-        if self._mean_appearance is not None:  # lanes reading the top level alone: the mean appearance
-            targets[2 * lod.top] = self._mean_target
-        index = lod.nearest(lower, t) * 2 + dr.select(t > 0.0, 1, 0)
-        return dr.switch(mi.UInt32(index), targets, u, v, w_view, w_light, lower, t, active)
-
-    def _mean_target(self, u, v, w_view, w_light, lower, t, active):
-        """The material's mean appearance (:meth:`dynbtf.infinite_btf.SynthesizedBTF.mean_appearance`): no synthesis."""
-        angular = self.model.angular_features(w_view, w_light, active)
-        value = None
-        for weight, decoder in self._mean_appearance:
-            term = decoder([], angular) * weight
-            value = term if value is None else value + term
-        return value
-
-    def _filtered_target(self, level: int, mixed: bool, decoder):
-        """The value of lanes whose nearest level is ``level`` and that mix two levels (``mixed``) or read one."""
-        def target(u, v, w_view, w_light, lower, t, active):
-            # lanes reading one level read their nearest level (their next level's weight is 0)
-            latent = (self.synthesizer.filtered_latent(u, v, lower, t, active) if mixed
-                      else self.synthesizer.filtered_latent(u, v, level, None, active))
-            if decoder is None:  # the latent (the output map is folded into the decoder) or the features
-                return self.model.decode(latent, w_view, w_light, active)
-            return decoder(latent, self.model.angular_features(w_view, w_light, active))
-
-        return target
-
-
 _SAMPLERS: dict = {}
 _TABLES: dict = {}  # the tables of _SAMPLERS' samplers (None: not sampleable)
 _ANNOUNCED: set = set()
@@ -853,7 +711,7 @@ def load_plugin_model(filename):
     from ...material import open_model_file
 
     model, material = open_model_file(filename, device="cpu")
-    drjit_ops.check_renderable(model, str(filename))
+    check_renderable(model, str(filename))
     return model if material is None else material
 
 

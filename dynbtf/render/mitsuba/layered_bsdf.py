@@ -1,6 +1,6 @@
 """The ``dynbtf_layered`` BSDF plugin for Mitsuba 3: two synthesized BTFs on one surface, chosen per point by a mask.
 
-It is :class:`dynbtf.layered.LayeredBTF` inside the rendering kernel. Its two layers are ``dynbtf`` BSDFs
+It is :class:`dynbtf.layered.LayeredBTF` at every shading point. Its two layers are ``dynbtf`` BSDFs
 (:mod:`dynbtf.render.mitsuba.bsdf`, each with its model file, method, scale and seed) and its mask is any
 Mitsuba texture over the mesh's uv (a ``bitmap`` for a painted mask, ``dynbtf_noise`` for
 :class:`~dynbtf.layered.NoiseMask`'s value noise)::
@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 
 from ... import jit
 from ...errors import InputError
@@ -157,38 +158,26 @@ class _LayeredBSDFBody:
         self.mask = _nested(props, "mask", "texture", lambda v: isinstance(v, mi.Texture))
         # each layer's height from its synthesized features, as LayeredBTF reads it (a rank, by its table)
         self.heights = [layer_height_map(layer.evaluator.btf) for layer in self.layers]
-        self.height_tables = [mi.Float(np.asarray(h.table, dtype=np.float32)) for h in self.heights]
         self.m_flags = int(self.layers[0].m_flags) | int(self.layers[1].m_flags)  # footprints if either layer
         self.m_components = [int(mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide)]
 
     # ------------------------------------------------------------ layer 1's weight
     def _height(self, k, si, active):
-        """Layer ``k``'s height in [0, 1] at the shading point (LayeredBTF's definition)."""
-        dr = _dr()
-        layer = self.layers[k]
-        weights = self.heights[k].weights
-        u = si.uv.x * dr.opaque(_mi().Float, layer.scale)
-        v = si.uv.y * dr.opaque(_mi().Float, layer.scale_v)
-        synthesizer = layer.evaluator.synthesizer
-        nonzero = np.flatnonzero(weights)
-        if getattr(layer.evaluator.btf.model, "extra_positional_channels", 0) and len(nonzero) == 1:
-            height = synthesizer.channel(u, v, int(nonzero[0]), active) * float(weights[nonzero[0]])
-        else:
-            features = synthesizer.features(u, v, active)
-            height = sum(f * float(w) for f, w in zip(features, weights) if w != 0.0)
-        return self._rank(k, height, active)
+        """Layer ``k``'s height in [0, 1] at the shading point: :func:`dynbtf.layered.layer_height`, the library's."""
+        from ...layered import layer_height
+        from .evaluator import library_call
 
-    def _rank(self, k, height, active):
-        """Layer ``k``'s raw height read through its table (:meth:`dynbtf.layered.LayerHeight.__call__`)."""
         mi, dr = _mi(), _dr()
-        h = self.heights[k]
-        last = len(h.table) - 1
-        pos = dr.clip((height - float(h.low)) * float(last / (h.high - h.low)), 0.0, float(last))
-        i = dr.minimum(mi.UInt32(dr.floor(pos)), last - 1)
-        t = pos - mi.Float(i)
-        lo = dr.gather(mi.Float, self.height_tables[k], i, active)
-        hi = dr.gather(mi.Float, self.height_tables[k], i + 1, active)
-        return lo + t * (hi - lo)
+        layer = self.layers[k]
+        btf, height_of = layer.evaluator.btf, self.heights[k]
+        u = si.uv.x * dr.opaque(mi.Float, layer.scale)
+        v = si.uv.y * dr.opaque(mi.Float, layer.scale_v)
+
+        def query(u, v):
+            height, _ = layer_height(btf, height_of, torch.stack([u, v], -1).to(torch.float64).cpu())
+            return (torch.from_numpy(height),)
+
+        return library_call(query, [u, v], 1, active)[0]
 
     def _weight(self, si, active):
         """Layer 1's weight at the shading point, in [0, 1]."""
@@ -257,7 +246,7 @@ def build_layered_class(mi):
 
 # ------------------------------------------------------------------------------------------------ noise mask texture
 class _NoiseTextureBody:
-    """The body of the ``dynbtf_noise`` texture: :class:`dynbtf.layered.NoiseMask` in Dr.Jit (value noise over
+    """The body of the ``dynbtf_noise`` texture: :class:`dynbtf.layered.NoiseMask` at the shading points (value noise over
     integer lattice vertices hashed with ``seed``, smoothstep-interpolated over cells of ``scale`` uv units, then
     ``0.5 + contrast (n - 0.5)`` clipped to [0, 1]), with its gradient (``eval_1_grad``)."""
 
@@ -271,29 +260,19 @@ class _NoiseTextureBody:
                                int(read.get("seed", 0)))
 
     def _noise(self, si, active):
-        from ...synthesis.drjit_blocks import hash_vertex
+        """The mask's value and gradient at the shading points: :meth:`dynbtf.layered.NoiseMask.value_and_gradient`
+        (float64 cell coordinates: exact far from the origin), the library's."""
+        from .evaluator import library_call
 
-        mi, dr = _mi(), _dr()
-        from ...synthesis.hash import MASK32
-
+        mi = _mi()
         noise = self.noise
-        # float64 cell coordinates, as NoiseMask computes them: the fraction stays exact far from the origin
-        px, py = mi.Float64(si.uv.x) / noise.scale, mi.Float64(si.uv.y) / noise.scale
-        ix, iy = dr.floor(px), dr.floor(py)
-        fx, fy = mi.Float(px - ix), mi.Float(py - iy)
-        ix, iy = mi.Int64(ix), mi.Int64(iy)
-        corner = [[mi.Float(hash_vertex(ix + dx, iy + dy, noise.seed)) * (1.0 / float(MASK32)) for dx in (0, 1)]
-                  for dy in (0, 1)]
-        (a, b), (c, d) = corner
-        sx, sy = fx * fx * (3.0 - 2.0 * fx), fy * fy * (3.0 - 2.0 * fy)
-        dsx, dsy = 6.0 * fx * (1.0 - fx) / noise.scale, 6.0 * fy * (1.0 - fy) / noise.scale
-        n = (a * (1.0 - sx) + b * sx) * (1.0 - sy) + (c * (1.0 - sx) + d * sx) * sy
-        gx = ((b - a) * (1.0 - sy) + (d - c) * sy) * dsx
-        gy = ((c - a) * (1.0 - sx) + (d - b) * sx) * dsy
-        inside = dr.abs(noise.contrast * (n - 0.5)) < 0.5  # where the clip is flat, so is the mask
-        value = dr.clip(0.5 + noise.contrast * (n - 0.5), 0.0, 1.0)
-        scale = dr.select(inside, noise.contrast, 0.0)
-        return value, mi.Vector2f(gx * scale, gy * scale)
+
+        def query(u, v):
+            value, gradient = noise.value_and_gradient(torch.stack([u, v], -1).to(torch.float64).cpu().numpy())
+            return tuple(torch.from_numpy(np.ascontiguousarray(x)) for x in (value, gradient[:, 0], gradient[:, 1]))
+
+        value, gx, gy = library_call(query, [si.uv.x, si.uv.y], 3, active)
+        return value, mi.Vector2f(gx, gy)
 
     def eval_1(self, si, active=True):
         return self._noise(si, active)[0]

@@ -67,7 +67,7 @@ class RenderResult:
     """A rendered image ``(H, W, 3)`` linear RGB float32 (radiance) and how long it took.
 
     ``seconds``: total wall time. ``first_pass_seconds``: the first ``mi.render``
-    pass, which includes tracing and compiling the kernel (or loading it from
+    pass, which includes tracing and compiling Mitsuba's kernels (or loading them from
     Dr.Jit's cache). ``compile_seconds``: the first pass's extra time over the
     mean of the later passes, 0 when there is only one pass (nothing to compare).
     ``method``: the synthesis method the plugin ran (``auto`` resolved; a layered render's two, ``"a | b"``);
@@ -150,7 +150,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
         cone for ``spp`` samples per pixel: distant surfaces show their filtered appearance.
     progress : bool
         Report on standard error: a status line before the first pass (which
-        traces and compiles the kernel: up to a minute the first time a model, method and
+        traces and compiles Mitsuba's kernels: up to a minute the first time a model, method and
         shape are rendered, during which no sample completes), its time after it,
         then a tqdm bar over the remaining passes' samples.
     echo : callable, optional
@@ -326,7 +326,7 @@ def _render_passes(scene_obj, spp: int, spp_per_pass: int, label: str, progress:
     for k in range(n_passes):
         n = min(spp_per_pass, spp - total)
         if k == 0:
-            _status(progress, f"{label}: compiling the rendering kernel and running the first pass ({n} spp; up to "
+            _status(progress, f"{label}: compiling Mitsuba's kernels and running the first pass ({n} spp; up to "
                               f"a minute the first time this model, method and shape are rendered, then cached)...")
         tp = time.perf_counter()
         img = mi.render(scene_obj, spp=n, seed=k)
@@ -336,7 +336,7 @@ def _render_passes(scene_obj, spp: int, spp_per_pass: int, label: str, progress:
         total += n
         if k == 0:
             first = time.perf_counter() - tp
-            _status(progress, f"{label}: kernel ready, first pass done in {first:.1f} s ({total}/{spp} spp)")
+            _status(progress, f"{label}: kernels ready, first pass done in {first:.1f} s ({total}/{spp} spp)")
             if n_passes > 1:
                 bar = progress_bar(total=spp, initial=total, desc=label, unit="spp", disable=not progress)
         else:

@@ -100,7 +100,7 @@ class LatticeBlending(Synthesizer):
         and exemplar: skips the precomputation.
     """
 
-    backends = {"drjit": f"{__name__}.drjit", "web": f"{__name__}.web"}
+    backends = {"web": f"{__name__}.web"}
 
     mode: ClassVar[int]
 

@@ -337,7 +337,7 @@ class CellQuilting(Tiling):
         The ``prepared`` attribute of an earlier synthesizer of the same exemplar and parameters.
     """
 
-    backends = {"drjit": f"{__name__}.drjit", "web": f"{__name__}.web"}
+    backends = {"web": f"{__name__}.web"}
 
     model_inputs = {"guide": "appearance"}
 

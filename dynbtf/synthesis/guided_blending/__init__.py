@@ -28,9 +28,7 @@ On the CPU the fused numba kernel of lattice blending runs the search (:func:`dy
 with ``guidance``); :meth:`GuidedBlending.reference_latent` is the torch path (any device), against which the tests
 hold it; footprint queries read the pyramid at the guided samples, with their steered weights (the same
 :meth:`sample_positions` in every path). The guided methods also run in the Mitsuba plugin (its ``target``
-parameter; Dr.Jit:
-:class:`~dynbtf.synthesis.guided_blending.drjit.DrGuidance`, :class:`~dynbtf.synthesis.cell_quilting.drjit.DrCellQuilting`);
-the web export refuses every guided synthesizer.
+parameter: the plugin calls this query); the web export refuses every guided synthesizer.
 """
 
 from __future__ import annotations
@@ -160,9 +158,8 @@ def _checked_labels(labels, target, shape: tuple[int, int]) -> torch.Tensor:
 
 class _Guidance:
     """What guidance adds to a lattice-blending method (hist, hex): the offset search, the steered weights, the
-    fused kernel's guidance arguments. Mixed in before the method's class. Its Dr.Jit form is
-    :class:`dynbtf.synthesis.guided_blending.drjit.DrGuidance`; it has no GLSL form (the web export
-    refuses it)."""
+    fused kernel's guidance arguments. Mixed in before the method's class. It has no GLSL form (the web
+    export refuses it)."""
 
     def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, candidates: int = 16,
                  softness: float = 0.0, **params) -> None:
@@ -270,7 +267,7 @@ class GuidedBlending(_Guidance, HistogramBlending):
     True
     """
 
-    backends = {"drjit": f"{__name__}.drjit"}  # no web form: the shader has no guidance
+    backends: dict = {}  # no web form: the shader has no guidance
 
     base_method = "hist"
 
@@ -280,7 +277,7 @@ class GuidedHexTiling(_Guidance, HexTiling):
     """Hex-tiling steered by labels: :class:`GuidedBlending`'s search with
     :class:`~dynbtf.synthesis.hex_tiling.HexTiling`'s blend (its parameters in ``**params``, e.g. ``luminance``)."""
 
-    backends = {"drjit": f"{__name__}.drjit"}  # no web form: the shader has no guidance
+    backends: dict = {}  # no web form: the shader has no guidance
 
     base_method = "hex"
 
@@ -299,7 +296,7 @@ class GuidedCellQuilting(CellQuilting):
     :class:`~dynbtf.synthesis.cell_quilting.CellQuilting`'s in ``**struct``.
     """
 
-    backends = {"drjit": f"{__name__}.drjit"}  # no web form: the shader has no guidance
+    backends: dict = {}  # no web form: the shader has no guidance
 
     base_method = "struct"
 

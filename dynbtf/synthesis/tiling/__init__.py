@@ -28,7 +28,7 @@ class Tiling(Synthesizer):
     (0.0, 0.0)
     """
 
-    backends = {"drjit": f"{__name__}.drjit", "web": f"{__name__}.web"}
+    backends = {"web": f"{__name__}.web"}
 
     def __init__(self, exemplar, seed: int = 0, *, fast: bool | None = None) -> None:
         super().__init__(exemplar, seed)
