@@ -667,11 +667,41 @@ def web_checks(data: dict) -> str:
 
 def filtering(data: dict) -> str:
     """bench_filtering.py: FLIP and far-field colour error of each kind of query, 1 sample per pixel."""
-    lines = _head("1 sample per pixel", "FLIP vs reference", "far-field mean colour error")
+    seeds = data.get("seeds")
+    spread = f" (mean of {len(seeds)} seeds; min-max)" if seeds else ""
+    lines = _head("1 sample per pixel", "FLIP vs reference" + spread, "far-field mean colour error" + spread)
     for r in data["rows"]:
         c = _cells(r)
-        lines.append(_line(c("query"), c("flip", ".4f"),
-                           c("far_field_error_percent", text=f"{r['far_field_error_percent']:.2f}%")))
+        flip_range = f" ({r['flip_range'][0]:.4f}-{r['flip_range'][1]:.4f})" if "flip_range" in r else ""
+        error_range = (f" ({r['far_field_error_range'][0]:.2f}-{r['far_field_error_range'][1]:.2f}%)"
+                       if "far_field_error_range" in r else "")
+        lines.append(_line(c("query"), c("flip", ".4f") + flip_range,
+                           c("far_field_error_percent", text=f"{r['far_field_error_percent']:.2f}%") + error_range))
+    cost = data.get("cost")
+    if cost:
+        point, default = data["rows"][0], data["rows"][-1]
+        ratio = default["flip"] / point["flip"]
+        ns = cost["eval_ns_per_query"]
+        text = (f"Measured on {_machine(data)} by `{data['command']}`. The default's FLIP is {ratio:.3f} of the point "
+                f"query's (target at most 0.5: {'met' if ratio <= 0.5 else 'missed'}; at most 0.05: "
+                f"{'met' if default['flip'] <= 0.05 else 'missed'}), its far-field error "
+                f"{default['far_field_error_percent']:.2f}% (target 2%: "
+                f"{'met' if default['far_field_error_percent'] <= 2 else 'missed'}). Cost per query (seed "
+                f"{cost['seed']}, {cost['queries']:,} queries, best of {cost['repeats']}): "
+                f"{ns['filtered']:.0f} vs {ns['point']:.0f} ns in `SynthesizedBTF.eval` "
+                f"({ns['filtered'] / ns['point']:.2f}x; target at most 1.5x)")
+        plugin = cost.get("plugin")
+        if plugin:
+            pns, scene = plugin["ns_per_query"], plugin["scene_flip"]
+            text += (f", {pns['filtered']:.0f} vs {pns['point']:.0f} ns in the Mitsuba plugin "
+                     f"({pns['filtered'] / pns['point']:.2f}x), which matches `SynthesizedBTF.eval` with the same "
+                     f"footprints to {_sci(plugin['max_abs_difference']) if plugin['max_abs_difference'] else '0'}; "
+                     f"in Mitsuba's own grazing `plane` scene ({plugin['scene_pixels'][0]} x "
+                     f"{plugin['scene_pixels'][1]} pixels, 1 spp vs {plugin['scene_reference_spp']} spp, point light) "
+                     f"FLIP falls from {scene['unfiltered (point query)']:.3f} to {scene['filtered (ray cone)']:.3f}")
+        text += (f". Nothing is added to the model file ({cost['model_file_bytes'] / 1e6:.2f} MB); the pyramid and "
+                 f"per-level tables take {cost['memory_bytes'] / 1e6:.2f} MB in memory.")
+        lines += ["", text]
     return "\n".join(lines)
 
 
