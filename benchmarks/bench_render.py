@@ -11,7 +11,10 @@ view and light) through
     fastest of several calls on fresh inputs (the first one warms up),
 
 and prints queries/s of each, their ratio, the first call's time and the largest difference (zero: one
-query). The relief march's cost is the library's (``benchmarks/bench_parallax_eval.py``), and so is the
+query). Then ``dynbtf render``'s scenes at their defaults (512 x 512, 16 spp, in passes of 4): plane / sky /
+hist and sphere / sky / hex with the same model, each rendered twice in this process (the first time compiles
+Mitsuba's kernels or loads them from Dr.Jit's cache): wall time, first pass, compile time. The relief march's
+cost is the library's (``benchmarks/bench_parallax_eval.py``), and so is the
 cost of each synthesis method (``benchmarks/bench_synthesis_eval.py``).
 
 Run: ``python benchmarks/bench_render.py [MODEL] [--method hist]`` (default: a random model of the paper's
@@ -39,6 +42,7 @@ def main() -> None:
     parser.add_argument("--queries", type=int, default=1920 * 1080)
     parser.add_argument("--repeats", type=int, default=5, help="timed calls of each path (plugin: fresh inputs each)")
     parser.add_argument("--json", type=Path, default=RESULTS, help="where the measurement is written")
+    parser.add_argument("--no-scenes", dest="scenes", action="store_false", help="skip the scene renders")
     args = parser.parse_args()
 
     from dynbtf.jit import mi_module
@@ -98,11 +102,36 @@ def main() -> None:
                   "eval_queries_per_second": {p: n / t for p, t in t_eval.items()},
                   "plugin_queries_per_second": n / t_plugin, "plugin_first_call_seconds": t_first,
                   "max_abs_difference": float(np.abs(got - ref).max()), "max_abs_value": float(np.abs(ref).max())}
-    write_json(args, eval=evaluation)
+    parts = {"eval": evaluation}
+    if args.scenes:
+        parts["scenes"] = bench_scenes(model, args)
+    write_json(args, **parts)
+
+
+def bench_scenes(model, args) -> dict:
+    """``render_scene`` (what ``dynbtf render`` runs) of two scenes at its defaults, twice each: seconds."""
+    import tempfile
+
+    from dynbtf.render.mitsuba.scene_render import render_scene
+    from dynbtf.representations.model_file import save_model
+
+    path = Path(args.model) if args.model else save_model(Path(tempfile.mkdtemp()) / "model.dbtfm", model)
+    rows = []
+    for scene, lighting, method in (("plane", "sky", "hist"), ("sphere", "sky", "hex")):
+        for run in (1, 2):
+            result = render_scene(path, scene=scene, lighting=lighting, method=method, progress=False)
+            rows.append({"scene": scene, "lighting": lighting, "method": method, "run": run,
+                         "seconds": result.seconds, "first_pass_seconds": result.first_pass_seconds,
+                         "compile_seconds": result.compile_seconds, "passes": result.passes})
+            print(f"render {scene}/{lighting}/{method}, run {run}: {result.seconds:.1f} s (first pass "
+                  f"{result.first_pass_seconds:.1f} s, compile {result.compile_seconds:.1f} s)")
+    return {"model": args.model or "a random Triple Plane", "model_shape": list(model.positional_plane().shape),
+            "resolution": [512, 512], "spp": 16, "spp_per_pass": 4, "rows": rows}
 
 
 def write_json(args, **parts) -> None:
-    """Write the measured ``parts`` (``eval``) to ``args.json``, each with the run's command, commit and machine."""
+    """Write the measured ``parts`` (``eval``, ``scenes``) to ``args.json``, each with the run's command, commit and
+    machine."""
     import sys
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -61,6 +61,18 @@ def test_a_compiled_file_answers_as_the_model_point_and_footprint(model, tmp_pat
         synthesized_btf(tmp_path / "hist.dbtfc", "hex")
 
 
+def test_footprint_decoders_fit_inside_torch_no_grad(model):
+    """Compiling with footprints fits per-level decoders with gradients whatever the caller's autograd mode: inside
+    ``torch.no_grad()`` (an inference caller, a benchmark) it fits the same decoders as outside."""
+    outside = compile_material(model, "hex", seed=5, footprints=True)
+    with torch.no_grad():
+        inside = compile_material(model, "hex", seed=5, footprints=True)
+    assert len(inside.decoder.levels) == len(outside.decoder.levels) > 1
+    for a, b in zip(inside.decoder.levels, outside.decoder.levels):
+        assert torch.equal(a.weight, b.weight) and all(torch.equal(x, y) for pair in zip(a.rest, b.rest)
+                                                       for x, y in zip(*pair))
+
+
 def _rewrite_header(path, out, change):
     data = path.read_bytes()
     size = struct.unpack("<Q", data[:8])[0]

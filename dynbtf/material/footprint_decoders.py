@@ -64,12 +64,13 @@ def _adam_steps(loss_of, parameters, steps: int, batches) -> None:
     layers' backward passes ran several times slower on two threads of a loaded machine (OpenMP spin-waiting).
 
     ``eps`` sits well above float noise: where a decoder is already exact (e.g. a constant plane) the gradients
-    are rounding noise, which Adam's normalization would otherwise turn into full-size steps."""
+    are rounding noise, which Adam's normalization would otherwise turn into full-size steps. Gradients are on
+    here whatever the caller's mode (a material compiled from inside ``torch.no_grad()`` still fits)."""
     from ..decoder.fused_mlp import single_intra_op_thread
 
     optimizer = torch.optim.Adam(parameters, lr=LEVEL_FIT_LR, eps=1e-6)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps)
-    with single_intra_op_thread():
+    with single_intra_op_thread(), torch.enable_grad():
         for rows in batches:
             loss = loss_of(rows)
             optimizer.zero_grad()
