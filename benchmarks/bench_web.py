@@ -181,7 +181,9 @@ def main() -> None:
                                 "texel_fetches": rows[m]["texel_fetches"], "multiply_adds": rows[m]["multiply_adds"],
                                 "psnr_fp16_db": [r["psnr_fp16_db"]], "psnr_u8_db": [r["psnr_u8_db"]],
                                 "fp16_mb": round(fp16.method_bytes(m) / 1e6, 2), "u8_mb": round(u8.method_bytes(m) / 1e6, 2),
-                                **({"tables_mb": round(only(fp16, m) / 1e6, 2)} if m == "struct" and only(fp16, m) else {})})
+                                **({"tables_mb": round(only(fp16, m) / 1e6, 2),
+                                    "note": "one bilinear footprint, the offset, at most two cut entries"}
+                                   if m == "struct" and only(fp16, m) else {})})
         parts = {"struct": record | {"conditions": "a random paper-size Triple Plane whose plane repeats an element of "
                                                    "1/8 of its side plus noise; " + conditions, "rows": struct_rows}}
     else:
