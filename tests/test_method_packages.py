@@ -1,10 +1,11 @@
 """One package per synthesis method: backends find each method's forms in the registry and name no method.
 
-A method package holds its synthesizer and a module per backend it runs on (``drjit.py``, ``web.py``), declared in
-the class's ``backends``; the renderer, the web export, the query object and the material stage look them up
-(:meth:`dynbtf.synthesis.base.Synthesizer.backend_form`). These tests hold that contract: no backend's code
-names a method, and a method written as one new package (outside the repository) is exported and evaluated by
-the web shader like the built-in ones, with no backend changed.
+A method package holds its synthesizer and a module per backend it runs on besides the CPU (``web.py``), declared in
+the class's ``backends``; the web export, the query object and the material stage look them up
+(:meth:`dynbtf.synthesis.base.Synthesizer.backend_form`), and the Mitsuba plugin calls the query object. These tests
+hold that contract: no backend's code names a method, and a method written as one new package (outside the
+repository) is exported and evaluated by the web shader, and rendered by the plugin, like the built-in ones, with no
+backend changed.
 """
 
 from __future__ import annotations
@@ -68,8 +69,8 @@ def test_every_method_declares_backends_that_exist_and_build():
             assert callable(module.form), f"{name}: {module.__name__} has no form()"
         form = cls(exemplar, seed=1).backend_form("web")
         assert form.plane.ndim == 3 and form.plane.shape[-1] == 3
-    with pytest.raises(InputError, match=r"synthesis method 'quilt' has no drjit form; methods with one: \["):
-        synthesizer_class("quilt")(exemplar, seed=0).backend_form("drjit")
+    with pytest.raises(InputError, match=r"synthesis method 'quilt' has no web form; methods with one: \[.*'struct'"):
+        synthesizer_class("quilt")(exemplar, seed=0).backend_form("web")
 
 
 SHIFTED_PACKAGE = '''
@@ -85,7 +86,7 @@ from dynbtf.synthesis.tiling import Tiling
 class ShiftedTiling(Tiling):
     """Tiling of the exemplar rolled by half its width."""
 
-    backends = {"drjit": "dynbtf.synthesis.tiling.drjit", "web": f"{__name__}.web"}
+    backends = {"web": f"{__name__}.web"}
 
     def __init__(self, exemplar, seed: int = 0) -> None:
         exemplar = torch.as_tensor(exemplar)
@@ -168,12 +169,14 @@ def test_a_new_method_package_renders_in_the_browser_as_the_library_evaluates_it
     assert export.manifest["methods"][shifted_method]["mode"] == 9
 
 
-def test_a_new_method_package_renders_in_the_plugin_kernel_as_the_library_evaluates_it(shifted_method):
-    """The Dr.Jit backend takes the new method from its ``backends`` entry (tiling's kernel on its shifted exemplar):
-    the plugin's evaluator answers as ``SynthesizedBTF.eval`` to float32 rounding."""
+def test_a_new_method_package_renders_in_the_plugin_as_the_library_evaluates_it(shifted_method):
+    """The Mitsuba plugin renders the new method with no form of its own (it calls the query object): its evaluator
+    answers as ``SynthesizedBTF.eval``, and the method is one of the plugin's."""
     pytest.importorskip("mitsuba")
     from dynbtf.jit import mi_module
-    from dynbtf.render.mitsuba.bsdf import DynBTFEvaluator, plugin_variants
+    from dynbtf.render.mitsuba.bsdf import plugin_variants
+    from dynbtf.render.mitsuba.evaluator import DynBTFEvaluator
+    from dynbtf.synthesis.registry import methods_with
     from dynbtf.representations.triple_plane import TriplePlane
     from dynbtf.synthesized import synthesized_btf
 
@@ -195,6 +198,7 @@ def test_a_new_method_package_renders_in_the_plugin_kernel_as_the_library_evalua
     rgb = evaluator.eval(mi.Float64(uv[:, 0]), mi.Float64(uv[:, 1]), mi.Vector3f(*w.T), mi.Vector3f(*w.T))
     got = np.stack([np.asarray(rgb.x), np.asarray(rgb.y), np.asarray(rgb.z)], axis=-1)
     peak = np.abs(want).max()
-    np.testing.assert_allclose(got, want, rtol=0, atol=1e-4 * peak)
+    np.testing.assert_array_equal(got, want)
+    assert shifted_method in methods_with()
     tile = synthesized_btf(model, "tile", seed=0).eval(uv, w.astype(np.float64), w.astype(np.float64))
-    assert np.abs(want - tile).max() > 0.05 * peak  # the kernel read the shifted exemplar, not tiling's
+    assert np.abs(want - tile).max() > 0.05 * peak  # the shifted exemplar was read, not tiling's

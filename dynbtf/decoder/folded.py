@@ -160,7 +160,7 @@ class FoldedDecoder:
 
     def first_layer(self, level: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
         """Level ``level``'s whole layer 1 over ``concat(latent, angular)``: ``(hidden, C + A)``, ``(hidden,)``
-        (layer 1's bias included): what a backend with a plain MLP (Dr.Jit, GLSL) loads."""
+        (layer 1's bias included): what a backend with a plain MLP (GLSL) loads."""
         entry = self.levels[level]
         return torch.cat([entry.weight.T, self.angular_weight], 1), entry.bias + self.first_bias
 

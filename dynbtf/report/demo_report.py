@@ -278,8 +278,8 @@ def _renders_section(r: HtmlReport, out: Path, ren: list[dict[str, Any]]) -> Non
     if not ren:
         return
     r.section("Renders (Mitsuba 3, dynbtf BSDF plugin)",
-              "Every shading point evaluates lattice, hash, blending, inverse transform and decoder MLP in "
-              "the Dr.Jit kernel. Compile time is paid once per kernel and cached by Dr.Jit. Each camera "
+              "Every shading point is answered by dynbtf's own query (lattice, hash, blending, inverse transform "
+              "and decoder MLP), the same code as the synthesized images above. Each camera "
               "sample answers for its footprint on the surface (the camera's ray cone; the plugin's "
               "'filtered' parameter): distant ground shows the material's filtered look, not sparkling "
               "point samples.")

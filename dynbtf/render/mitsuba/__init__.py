@@ -1,2 +1,2 @@
-"""Physically based rendering in Mitsuba 3: the ``dynbtf`` BSDF plugin (Dr.Jit kernels of the synthesized BTF,
-footprints, importance sampling) and scene rendering. Needs the ``render`` extra (``mitsuba``, ``drjit``)."""
+"""Physically based rendering in Mitsuba 3: the ``dynbtf`` BSDF plugin (the synthesized BTF's query at every shading
+point, footprints, importance sampling) and scene rendering. Needs the ``render`` extra (``mitsuba``, ``drjit``)."""

@@ -718,8 +718,8 @@ def load_plugin_model(filename):
 def plugin_variants() -> list[str]:
     """Mitsuba variants the plugin runs on here, best first (e.g. ``["llvm_ad_rgb"]`` on a CPU).
 
-    The plugin needs an RGB variant (it returns RGB colours) of a JIT back end (its
-    tables are Dr.Jit buffers): ``llvm_*_rgb`` when Dr.Jit finds the LLVM library,
+    The plugin needs an RGB variant (it returns RGB colours) of a JIT back end (it hands
+    whole wavefronts to the library): ``llvm_*_rgb`` when Dr.Jit finds the LLVM library,
     ``cuda_*_rgb`` when it finds a CUDA device. Only variants built into the
     installed Mitsuba count.
     """

@@ -86,9 +86,9 @@ _DOC_TAIL = """``eval`` is ``(1 - w) eval_0 + w eval_1`` with ``w`` layer 1's we
 or 1 away from the band, and inside it with ``softness = 0``). Sampling accounts for
 the mix: a direction is drawn from layer 1 with probability ``w``, else from layer 0
 (each with its own sampling), ``pdf`` is the mixture ``(1 - w) pdf_0 + w pdf_1`` and
-``sample``'s weight is ``eval / pdf``. Both layers are evaluated at every point (Dr.Jit
-runs every lane), so a shading point costs about two ``dynbtf`` evaluations plus the
-layers' heights.
+``sample``'s weight is ``eval / pdf``. Each layer is evaluated on the lanes where it shows
+and the heights inside the band only (the plugin's query hands over active lanes alone), so away
+from the boundary a shading point costs one ``dynbtf`` evaluation plus the mask.
 """
 
 
