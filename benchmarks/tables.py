@@ -355,8 +355,8 @@ def render_scenes(data: dict) -> str:
 def runtimes(data: dict) -> str:
     """The measurement behind the choice of runtimes (docs/architecture.md): the plugin's former Dr.Jit kernel beside
     the library's CPU path, per level and method."""
-    lines = [f"Measured on {_machine(data)} by `{data['command']}` at commit `{data['commit']}` "
-             f"({data['queries']:,} queries, a 1080p frame), the last run with the Dr.Jit kernel:", "",
+    lines = [f"Measured on {_machine(data)} by `{data['command']}` ({data['queries']:,} queries, a 1080p frame), the "
+             f"last run with the Dr.Jit kernel (its commit is in `benchmarks/results/runtimes.json`):", "",
              "| level | method | library (numba + native decoder) M queries/s | Dr.Jit kernel M queries/s | "
              "Dr.Jit / library |", "|---|---|---|---|---|"]
     for r in data["rows"]:
