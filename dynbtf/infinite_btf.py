@@ -411,13 +411,14 @@ class SynthesizedBTF:
                           "decoded with the point decoder (biased for wide footprints); compile it with footprints "
                           "(dynbtf.synthesized_btf(..., footprints=True), dynbtf compile)", stacklevel=2)
         n = flat.shape[0]
-        out = torch.zeros(n, 3, dtype=torch.float32, device=self.device)
+        out = torch.empty(n, 3, dtype=torch.float32, device=self.device)  # every chunk writes its rows
         visible = up_v & up_l
         dtype = self.model.positional_plane().dtype
 
         def run(sl: slice) -> None:
             vis = visible[sl]
             if not bool(vis.any()):
+                out[sl] = 0.0
                 return
             with torch.no_grad():
                 rgb = self._decode_chunk(flat[sl].to(self.device), wv[sl].to(self.device, dtype),

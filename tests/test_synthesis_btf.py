@@ -272,6 +272,13 @@ def test_batch_shapes_numpy_and_horizon(model):
     below[0, 0] = [0.6, 0.0, -0.8]
     out2 = btf.eval(uv, below, w)
     assert np.all(out2[0, 0] == 0) and np.array_equal(out2[1:], out[1:])
+    # whole chunks below the horizon are zero too (they are never decoded); the others as before
+    chunked = synthesized_btf(model, "hist", scale=2.0, chunk_size=3)
+    below[1:3] = [0.6, 0.0, -0.8]  # rows 5..14: the chunks of rows 6..8, 9..11 and 12..14 decode nothing
+    for _ in range(2):  # twice: the output buffer of the first call must not show through
+        out3 = chunked.eval(uv, below, w)
+        assert np.all(out3[0, 0] == 0) and np.all(out3[1:3] == 0)
+        assert np.array_equal(out3[0, 1:], out[0, 1:]) and np.array_equal(out3[3:], out[3:])
     feats = btf.features(torch.from_numpy(uv))
     assert feats.shape == (4, 5, 16)
     assert btf.eval(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros((0, 3))).shape == (0, 3)

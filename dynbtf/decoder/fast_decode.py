@@ -245,13 +245,16 @@ def first_layer_preactivation(latent: np.ndarray, w_pos: np.ndarray, bias: np.nd
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _all_unit_vectors(w, atol):
+    # |norm - 1| <= atol as bounds on the squared norm, counted without an early exit: the loop vectorizes
+    low, high = max(1.0 - atol, 0.0) ** 2, (1.0 + atol) ** 2
+    bad = 0
     for q in range(w.shape[0]):
         x, y, z = np.float64(w[q, 0]), np.float64(w[q, 1]), np.float64(w[q, 2])
-        if not abs(math.sqrt(x * x + y * y + z * z) - 1.0) <= atol:  # NaN and inf fail too
-            return False
-    return True
+        squared = x * x + y * y + z * z
+        bad += np.int64(not ((squared >= low) & (squared <= high)))  # NaN and inf fail too
+    return bad == 0
 
 
 def all_unit_vectors(w: np.ndarray, atol: float = 1e-3) -> bool:

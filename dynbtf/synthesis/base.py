@@ -111,7 +111,8 @@ def check_uv(uv, name: str = "uv", scale: float = 1.0) -> torch.Tensor:
     if not uv.numel():
         return uv
     scale = float(scale)
-    largest = float(uv.abs().max())  # NaN if any value is NaN; exact (float32 widens exactly)
+    low, high = torch.aminmax(uv)  # one pass, no copy; NaN if any value is NaN
+    largest = max(-float(low), float(high))  # |uv|'s largest, exactly (float32 widens exactly)
     if largest * scale < MAX_REPEATS:  # the product rounds as uv * scale does (monotone): same decision
         return uv
     if not np.isfinite(largest):
