@@ -35,8 +35,11 @@ A mask is any object with ``value(uv) -> (N,) float64 in [0, 1]`` and ``gradient
 * :class:`NoiseMask` -- value noise with a ``scale`` (uv units per cell) and a ``contrast``, seeded, from an
   integer lattice hash (:mod:`dynbtf.synthesis.hash`): the same value at any distance from the origin.
 
-Footprint queries (``footprint=``) evaluate each layer with its footprint; the choice between them is made at
-the footprint's centre.
+Footprint queries (``footprint=``) evaluate each layer with its footprint and weigh them by the share of the
+footprint each layer covers (:func:`footprint_weight`): the point query's choice for a footprint within one texel,
+the expected share of layer 1 over a footprint of many texels (the heights of two materials are independent ranks,
+so their difference follows a known law), and a mix of the two in between. A distant boundary is then a filtered
+transition, not the aliased pattern of a choice made at each pixel's centre.
 
 Conventions as everywhere in dynbtf: ``uv`` in the user's units (each layer's ``scale`` maps it to exemplar
 repeats), unit directions in the local frame, linear RGB excluding ``cos(theta_light)``.
@@ -69,10 +72,11 @@ import torch
 from .conventions import spherical_to_direction
 from .errors import InputError, positive_number
 from .infinite_btf import SynthesizedBTF, flat_image
-from .synthesis.base import check_uv
+from .synthesis.base import check_footprint, check_uv
 from .synthesis.hash import MASK32, hash_vertex
 
-__all__ = ["LayeredBTF", "ImageMask", "NoiseMask", "LayerHeight", "layer_height_map", "layer_height", "mask_from_spec", "HEIGHT_TABLE"]
+__all__ = ["LayeredBTF", "ImageMask", "NoiseMask", "LayerHeight", "layer_height_map", "layer_height", "mask_from_spec",
+           "HEIGHT_TABLE", "point_weight", "area_weight", "footprint_weight"]
 
 
 # ------------------------------------------------------------------------------------------------ masks
@@ -315,6 +319,85 @@ def layer_height_map(btf: SynthesizedBTF) -> LayerHeight:
     return LayerHeight(weights.numpy(), low, high, np.interp(grid, values, ranks))
 
 
+# ------------------------------------------------------------------------------------------------ layer 1's weight
+def point_weight(score: np.ndarray, softness: float) -> np.ndarray:
+    """Layer 1's weight at a point from its score ``(h_1 - h_0) + d / width`` (any shape, float64): 1 where the score
+    is positive, 0 where it is negative, a linear ramp over ``|score| < softness`` if ``softness > 0``."""
+    if softness > 0:
+        return np.clip(0.5 + score / (2 * softness), 0.0, 1.0)
+    return (score > 0).astype(np.float64)
+
+
+def _difference_cdf(x: np.ndarray) -> np.ndarray:
+    """``P(h_1 - h_0 <= x)`` for independent heights uniform in ``[0, 1]`` (ranks): the triangular law on [-1, 1]."""
+    c = np.clip(x, -1.0, 1.0)
+    return np.where(c < 0.0, 0.5 * (c + 1.0) ** 2, 1.0 - 0.5 * (1.0 - c) ** 2)
+
+
+def _difference_cdf_integral(x: np.ndarray) -> np.ndarray:
+    """The integral of :func:`_difference_cdf` from ``-inf`` to ``x``."""
+    c = np.clip(x, -1.0, 1.0)
+    return np.where(c < 0.0, (c + 1.0) ** 3 / 6.0, c + (1.0 - c) ** 3 / 6.0) + np.maximum(x - 1.0, 0.0)
+
+
+#: Midpoint nodes of the average over the softness ramp in :func:`area_weight`.
+SOFTNESS_NODES = 16
+
+
+def area_weight(distance: np.ndarray, width: float, softness: float, footprint: np.ndarray) -> np.ndarray:
+    """Layer 1's expected weight over a footprint of many texels, ``(N,)`` float64.
+
+    The two layers' heights are independent ranks (:class:`LayerHeight`), so over many texels their difference
+    ``h_1 - h_0`` follows the triangular law on [-1, 1]; the signed distance to the contour varies across the
+    footprint (side ``footprint``, uv units, centred at ``distance``), taken as uniform over
+    ``distance +- footprint / 2``; :func:`point_weight` averaged over both: for ``softness = 0`` the chance that
+    ``h_1 - h_0 + d / width > 0``, in closed form. ``distance (N,)`` must be finite (rows near the contour)."""
+    x0 = np.asarray(distance, dtype=np.float64) / width
+    half = 0.5 * np.asarray(footprint, dtype=np.float64) / width
+    wide = half > 1e-9  # below: the footprint is a point along the distance
+    span = np.where(wide, 2.0 * half, 1.0)
+    # the softness ramp is the average of hard choices over score offsets uniform in [-softness, softness]
+    offsets = [0.0] if softness <= 0 else softness * ((np.arange(SOFTNESS_NODES) + 0.5) * (2.0 / SOFTNESS_NODES) - 1.0)
+    total = np.zeros_like(x0)
+    for offset in offsets:
+        x = x0 + offset
+        total += np.where(wide, (_difference_cdf_integral(x + half) - _difference_cdf_integral(x - half)) / span,
+                          _difference_cdf(x))
+    return total / len(offsets)
+
+
+def footprint_weight(point: np.ndarray, distance: np.ndarray, width: float, softness: float, footprint: np.ndarray,
+                     texels: np.ndarray) -> np.ndarray:
+    """Layer 1's weight ``(N,)`` for footprint queries: the point query's weight ``point`` within one texel,
+    :func:`area_weight` over many, mixed by ``a = 1 - 1 / texels^2`` (the share of the footprint's texels other than
+    its centre's) between.
+
+    ``distance``: the signed distance to the contour (uv units); ``footprint``: each query's side (uv units);
+    ``texels``: the footprint in texels of the coarser layer (whose heights vary slowest). Rows farther from the
+    contour than ``width`` (plus the softness' reach and half the footprint) keep ``point``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> d = np.array([-0.2, 0.0, 0.05, 0.2])
+    >>> footprint_weight(np.array([0.0, 1.0, 0.0, 1.0]), d, 0.1, 0.0, np.full(4, 1e-3), np.full(4, 0.5)).tolist()
+    [0.0, 1.0, 0.0, 1.0]
+    >>> np.round(footprint_weight(np.array([0.0, 1.0, 0.0, 1.0]), d, 0.1, 0.0, np.full(4, 1e-3), np.full(4, 1e3)), 3).tolist()
+    [0.0, 0.5, 0.875, 1.0]
+    """
+    point = np.asarray(point, dtype=np.float64)
+    distance = np.asarray(distance, dtype=np.float64)
+    footprint = np.asarray(footprint, dtype=np.float64)
+    mix = np.clip(1.0 - 1.0 / np.maximum(np.asarray(texels, dtype=np.float64), 1.0) ** 2, 0.0, 1.0)
+    near = np.abs(distance) < width * (1.0 + softness) + 0.5 * footprint
+    rows = np.flatnonzero(near & (mix > 0))
+    out = point.copy()
+    if rows.size:
+        area = area_weight(distance[rows], width, softness, footprint[rows])
+        out[rows] = (1.0 - mix[rows]) * point[rows] + mix[rows] * area
+    return out
+
+
 # ------------------------------------------------------------------------------------------------ layered BTF
 class LayeredBTF:
     """Two synthesized BTFs on one surface, chosen per point by ``mask`` (see the module docstring).
@@ -375,15 +458,24 @@ class LayeredBTF:
             latents.append(latent)
         return torch.from_numpy(np.stack(out, -1)), latents
 
-    def weight(self, uv) -> np.ndarray:
-        """Layer 1's weight in ``[0, 1]`` at ``uv (..., 2)``: ``(...)`` float64 (layer 0's is one minus it)."""
+    def weight(self, uv, footprint=None) -> np.ndarray:
+        """Layer 1's weight in ``[0, 1]`` at ``uv (..., 2)``: ``(...)`` float64 (layer 0's is one minus it); with
+        ``footprint`` (float or ``(...)``, uv units, as :meth:`eval` takes it) the share of each footprint
+        (:func:`footprint_weight`)."""
         uv = check_uv(uv, scale=self.scale)
+        batch = tuple(uv.shape[:-1])
         flat = uv.reshape(-1, 2).to(torch.float64).cpu()
-        return self._weight(flat)[0].reshape(tuple(uv.shape[:-1]))
+        fp = None if footprint is None else check_footprint(footprint, batch).reshape(-1).numpy()
+        return self._weight(flat, fp)[0].reshape(batch)
 
-    def _weight(self, flat: torch.Tensor) -> tuple[np.ndarray, np.ndarray, list]:
-        """Layer 1's weight ``(N,)`` at ``flat (N, 2)``, the rows inside the band, and each layer's latent values at
-        those rows (:meth:`_heights_and_latents`)."""
+    def texels_per_uv(self) -> float:
+        """Texels per uv unit of the coarser layer (:meth:`SynthesizedBTF.texels_per_uv`): converts a footprint to
+        the texels over which the slower-varying layer's height varies."""
+        return min(btf.texels_per_uv() for btf in self.layers)
+
+    def _weight(self, flat: torch.Tensor, footprint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list]:
+        """Layer 1's weight ``(N,)`` at ``flat (N, 2)`` (with ``footprint (N,)``, uv units: :func:`footprint_weight`),
+        the rows inside the band, and each layer's latent values at those rows (:meth:`_heights_and_latents`)."""
         points = flat.numpy()
         if hasattr(self.mask, "value_and_gradient"):
             distance = contour_distance(*self.mask.value_and_gradient(points))
@@ -395,11 +487,10 @@ class LayeredBTF:
         if band.size:
             h, latents = self._heights_and_latents(flat[band])
             h = h.numpy()
-            score = h[:, 1] - h[:, 0] + distance[band] / self.width
-            if self.softness > 0:
-                weight[band] = np.clip(0.5 + score / (2 * self.softness), 0.0, 1.0)
-            else:
-                weight[band] = (score > 0).astype(np.float64)
+            weight[band] = point_weight(h[:, 1] - h[:, 0] + distance[band] / self.width, self.softness)
+        if footprint is not None:
+            weight = footprint_weight(weight, distance, self.width, self.softness, footprint,
+                                      footprint * self.texels_per_uv())
         return weight, band, latents
 
     def eval(self, uv, w_view, w_light, footprint=None):
@@ -415,11 +506,8 @@ class LayeredBTF:
             if tuple(w.shape) != batch + (3,):
                 raise InputError(f"{name}: expected shape {batch + (3,)}, got {tuple(w.shape)}")
         wv, wl = wv.reshape(-1, 3), wl.reshape(-1, 3)
-        fp = None
-        if footprint is not None:
-            fp = torch.as_tensor(np.broadcast_to(np.asarray(footprint, dtype=np.float64), batch).copy()
-                                 if not isinstance(footprint, torch.Tensor) else footprint).reshape(-1)
-        weight, band, latents = self._weight(flat)
+        fp = None if footprint is None else check_footprint(footprint, batch).reshape(-1).cpu()
+        weight, band, latents = self._weight(flat, None if fp is None else fp.to(torch.float64).cpu().numpy())
         weight = torch.from_numpy(weight)
         band_position = torch.full((flat.shape[0],), -1, dtype=torch.int64)  # a row's index among the band's rows
         band_position[torch.from_numpy(band)] = torch.arange(len(band))

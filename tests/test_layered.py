@@ -319,3 +319,61 @@ def test_band_points_are_synthesized_once_per_layer(layers, monkeypatch):
     choice = layered.weight(band) > 0.5
     np.testing.assert_array_equal(expected[~choice], a.eval(band[~choice], wv[~choice], wl[~choice]))
     np.testing.assert_array_equal(expected[choice], b.eval(band[choice], wv[choice], wl[choice]))
+
+
+# ---------------------------------------------------------------- footprints: the share of each footprint
+def test_footprint_weight_is_the_point_weight_within_a_texel_and_the_covered_share_over_many(layers):
+    """Against brute force: layer 1's share of a footprint is the mean of the point weights over the footprint's
+    square; the footprint weight gets it (over many centres), and is closer to each centre's share than the
+    point weight at its centre (the choice a footprint query made before: a distant boundary aliased)."""
+    a, b = layers
+    width = 0.1
+    layered = LayeredBTF([a, b], half_plane(), width=width)
+    rng = np.random.default_rng(5)
+    centres = np.stack([1.0 + rng.uniform(-0.15, 0.15, 300), rng.uniform(-20, 20, 300)], 1)
+    # within a texel (1/64 uv): the point weight, bit for bit
+    np.testing.assert_array_equal(layered.weight(centres, footprint=0.2 / 64), layered.weight(centres))
+    side = 0.1  # 6.4 texels of the 16 x 16 exemplars repeated 4 times per uv
+    grid = (np.arange(24) + 0.5) / 24 - 0.5
+    offsets = np.stack(np.meshgrid(grid, grid), -1).reshape(-1, 2) * side
+    brute = layered.weight((centres[:, None, :] + offsets[None]).reshape(-1, 2)).reshape(len(centres), -1).mean(1)
+    ours = layered.weight(centres, footprint=side)
+    at_centre = layered.weight(centres)
+    assert abs(ours.mean() - brute.mean()) < 0.02  # the expectation over many footprints
+    for near in (np.abs(centres[:, 0] - 1.0) < 0.05, np.abs(centres[:, 0] - 1.0) >= 0.05):  # near and at the edges
+        assert abs(ours[near].mean() - brute[near].mean()) < 0.04
+    assert np.abs(ours - brute).mean() < 0.5 * np.abs(at_centre - brute).mean()
+    assert ((ours > 0) & (ours < 1)).mean() > 0.5  # a transition, not a choice
+    # far from the contour (beyond the band and half the footprint) each region is its layer
+    far = np.stack([np.array([0.5, 1.5]), np.array([0.3, 0.3])], 1)
+    np.testing.assert_array_equal(layered.weight(far, footprint=side), [0.0, 1.0])
+
+
+def test_footprint_weight_with_softness_is_the_ramp_averaged_over_the_footprint():
+    """:func:`area_weight` against a brute-force average of the point rule over independent uniform heights and the
+    footprint's distances, with and without softness."""
+    from dynbtf.layered import area_weight, point_weight
+
+    rng = np.random.default_rng(6)
+    h = rng.random((2, 400_000))
+    for softness in (0.0, 0.3):
+        for distance, side in ((-0.07, 0.02), (0.0, 0.3), (0.04, 0.0), (0.12, 0.05)):
+            d = distance + (rng.random(h.shape[1]) - 0.5) * side
+            brute = point_weight(h[1] - h[0] + d / 0.1, softness).mean()
+            ours = area_weight(np.array([distance]), 0.1, softness, np.array([side]))[0]
+            assert abs(ours - brute) < 4e-3, (softness, distance, side, ours, brute)
+
+
+@pytest.mark.filterwarnings("ignore:footprint queries of a material compiled without footprint decoders")
+def test_footprint_eval_blends_the_layers_footprint_answers_by_the_footprint_weight(layers):
+    a, b = layers
+    layered = LayeredBTF([a, b], half_plane(), width=0.1)
+    uv = np.stack([np.linspace(0.85, 1.15, 61), np.full(61, 2.7)], 1)
+    footprint = np.full(61, 0.08)
+    wv, wl = directions(61, 7), directions(61, 8)
+    weight = layered.weight(uv, footprint)
+    assert ((weight > 0) & (weight < 1)).any() and (weight == 0).any() and (weight == 1).any()
+    expected = (1 - weight[:, None]) * a.eval(uv, wv, wl, footprint) + weight[:, None] * b.eval(uv, wv, wl, footprint)
+    np.testing.assert_allclose(layered.eval(uv, wv, wl, footprint), expected, rtol=1e-5, atol=1e-6)
+    with pytest.raises(InputError, match="footprint"):
+        layered.eval(uv, wv, wl, np.full(61, -1.0))

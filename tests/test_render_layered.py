@@ -35,21 +35,23 @@ def layer_files(tmp_path_factory):
     return out
 
 
-def _layered_plugin(layer_files, mask, *, width=0.2, softness=0.0, methods=("hist", "hex"), sampling="cosine"):
+def _layered_plugin(layer_files, mask, *, width=0.2, softness=0.0, methods=("hist", "hex"), sampling="cosine",
+                    filtered=False):
     from dynbtf.render.mitsuba.layered_bsdf import mask_texture_dict
 
     layers = {f"layer{k}": {"type": "dynbtf", "filename": str(path), "method": method, "scale": SCALE,
-                            "sampling": sampling, "filtered": False}
+                            "sampling": sampling, "filtered": filtered}
               for k, ((path, _), method) in enumerate(zip(layer_files, methods))}
     return mi.load_dict({"type": "dynbtf_layered", "width": width, "softness": softness,
                          "mask": mask_texture_dict(mask), **layers})
 
 
-def _layered_reference(layer_files, mask, *, width=0.2, softness=0.0, methods=("hist", "hex")):
+def _layered_reference(layer_files, mask, *, width=0.2, softness=0.0, methods=("hist", "hex"), footprints=False):
     from dynbtf.synthesized import synthesized_btf
     from dynbtf.layered import LayeredBTF
 
-    layers = [synthesized_btf(model, method, scale=SCALE) for (_, model), method in zip(layer_files, methods)]
+    layers = [synthesized_btf(model, method, scale=SCALE, footprints=footprints)
+              for (_, model), method in zip(layer_files, methods)]
     return LayeredBTF(layers, mask, width=width, softness=softness)
 
 
@@ -73,6 +75,29 @@ def test_layered_plugin_eval_is_layered_btf(variant, layer_files, softness):
         assert np.mean((weight > 0) & (weight < 1)) > 0.02  # and some points blend the two
     assert np.abs(expected).max() > 0.05
     np.testing.assert_allclose(got, expected, rtol=0, atol=2e-4 * max(1.0, np.abs(expected).max()))
+
+
+def test_layered_plugin_footprints_are_layered_btf_footprints(variant, layer_files):
+    """With uv partials, the plugin's layered eval equals LayeredBTF.eval with their footprint: each layer's
+    footprint answer, weighed by the share of the footprint it covers (the library's rule)."""
+    from dynbtf.infinite_btf import footprint_width
+    from dynbtf.layered import ImageMask
+
+    rng = np.random.default_rng(4)
+    mask = ImageMask(rng.random((6, 9)), size=3.0, wrap="repeat")
+    bsdf = _layered_plugin(layer_files, mask, filtered=True)
+    reference = _layered_reference(layer_files, mask, footprints=True)
+    uv, wv, wl = _random_queries(3000, seed=2, uv_range=8.0)
+    duv_dx, duv_dy = ((rng.normal(size=(3000, 2)) * np.exp(rng.uniform(-7.0, -1.0, (3000, 1))) / SCALE)
+                      .astype(np.float32) for _ in range(2))
+    got = _plugin_eval(bsdf, uv, wv, wl, 1.0, duv_dx=duv_dx, duv_dy=duv_dy)
+    footprint = footprint_width(duv_dx.astype(np.float64), duv_dy.astype(np.float64))
+    expected = reference.eval(uv.astype(np.float64), wv, wl, footprint) / np.pi * wl[:, 2:3]
+    weight = reference.weight(uv.astype(np.float64), footprint)
+    assert np.mean((weight > 0) & (weight < 1)) > 0.02  # footprints that cover both layers
+    # a lane whose footprint straddles a pyramid level boundary (float32 partials) may take the other level
+    close = np.abs(got - expected).max(1) <= 2e-4 * max(1.0, np.abs(expected).max())
+    assert close.mean() > 0.99, close.mean()
 
 
 def test_layered_plugin_with_a_relief_layer_is_layered_btf(variant, layer_files, tmp_path):

@@ -179,19 +179,45 @@ class _LayeredBSDFBody:
 
         return library_call(query, [u, v], 1, active)[0]
 
+    def _footprint(self, si):
+        """Each lane's footprint (side of a square, uv units) as the first filtered layer sees it, or None."""
+        mi, dr = _mi(), _dr()
+        for layer in self.layers:
+            if layer.filtered:
+                return layer._footprint(si, dr.opaque(mi.Float, 1.0), dr.opaque(mi.Float, 1.0))
+        return None
+
     def _weight(self, si, active):
-        """Layer 1's weight at the shading point, in [0, 1]."""
+        """Layer 1's weight at the shading point, in [0, 1]: the library's rules (:func:`dynbtf.layered.point_weight`
+        and, with a footprint, :func:`dynbtf.layered.footprint_weight`) on the mask texture's contour distance."""
+        from ...layered import footprint_weight, point_weight
+        from .evaluator import library_call
+
         mi, dr = _mi(), _dr()
         m = self.mask.eval_1(si, active)
         gradient = self.mask.eval_1_grad(si, active)
         slope = dr.norm(mi.Vector2f(gradient.x, gradient.y))
         distance = dr.select(m == 0.5, 0.0, (m - 0.5) / dr.maximum(slope, 1e-30))
         band = active & (dr.abs(distance) < self.width)
-        weight = dr.select(distance > 0.0, 1.0, 0.0)
-        score = self._height(1, si, band) - self._height(0, si, band) + distance / self.width
-        inside = dr.clip(0.5 + score / (2.0 * self.softness), 0.0, 1.0) if self.softness > 0.0 else \
-            dr.select(score > 0.0, 1.0, 0.0)
-        return dr.select(band, inside, weight)
+        difference = self._height(1, si, band) - self._height(0, si, band)
+        footprint = self._footprint(si)
+        # texels per uv unit of the coarser layer (the layers' own scales: their BTFs are at scale 1)
+        texels = min(layer.evaluator.btf.texels_per_uv() * math.sqrt(layer.scale * layer.scale_v)
+                     for layer in self.layers)
+        width, softness = self.width, self.softness
+
+        def query(distance, difference, *footprint):
+            distance, difference = distance.double().numpy(), difference.double().numpy()
+            inside = np.abs(distance) < width
+            weight = (distance > 0).astype(np.float64)
+            weight[inside] = point_weight(difference[inside] + distance[inside] / width, softness)
+            if footprint:
+                side = footprint[0].double().numpy()
+                weight = footprint_weight(weight, distance, width, softness, side, side * texels)
+            return (torch.from_numpy(weight),)
+
+        inputs = [distance, difference] + ([] if footprint is None else [footprint])
+        return library_call(query, inputs, 1, active)[0]
 
     # ------------------------------------------------------------ BSDF API
     def _eval_pdf(self, ctx, si, wo, weight, active):
