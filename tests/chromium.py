@@ -130,13 +130,15 @@ _PAGE_HELPERS = """  function bytes(b64) { var s = atob(b64), a = new Uint8Array
     return gl;
   }
   // per query i, DynBTF.origin of at(i) = [u, v, shift] (exemplar repeats, whole repeats moved into the local uv) as
-  // the textures' RGBA rows: lattice words, texel, (phase, local u, local v)
+  // the textures' RGBA rows: lattice words, (texel, the label field's origin as float32 bits), (phase, local u, local v)
   function origins(m, method, n, size, at) {
     var lattice = new Uint32Array(4 * size), texel = new Int32Array(4 * size), local = new Float32Array(4 * size);
+    var fieldBits = new Float32Array(texel.buffer);
     for (var i = 0; i < n; ++i) {
       var p = at(i), o = DynBTF.origin(m, method, p[0], p[1]);
       lattice.set(o.lattice, 4 * i);
       texel[4 * i] = o.texel[0]; texel[4 * i + 1] = o.texel[1];
+      fieldBits[4 * i + 2] = o.field[0]; fieldBits[4 * i + 3] = o.field[1];
       local[4 * i] = o.phase; local[4 * i + 1] = o.fraction[0] + p[2]; local[4 * i + 2] = o.fraction[1] + p[2];
     }
     return {lattice: lattice, texel: texel, local: local};
@@ -190,7 +192,8 @@ __HELPERS__
     var inputs = 'uniform highp usampler2D q_lattice; uniform highp isampler2D q_texel; uniform highp sampler2D q_local;\\n' +
       'uniform highp sampler2D q_view; uniform highp sampler2D q_light;\\n' +
       'DynbtfOrigin q_origin(ivec2 p) { DynbtfOrigin o; o.lattice = texelFetch(q_lattice, p, 0);\\n' +
-      '  o.phase = texelFetch(q_local, p, 0).x; o.texel = texelFetch(q_texel, p, 0).xy; return o; }\\n';
+      '  o.phase = texelFetch(q_local, p, 0).x; ivec4 t = texelFetch(q_texel, p, 0); o.texel = t.xy;\\n' +
+      '  o.field = intBitsToFloat(t.zw); return o; }\\n';
     var programs = {
       rgb: r.program(inputs + 'layout(location = 0) out vec4 result;\\nvoid main() { ivec2 p = ivec2(gl_FragCoord.xy);\\n' +
         '  result = vec4(dynbtf_eval(q_origin(p), texelFetch(q_local, p, 0).yz, texelFetch(q_view, p, 0).xyz,' +
@@ -372,7 +375,7 @@ __HELPERS__
       'layout(location = 0) out vec4 result;\\n' +
       'void main() { ivec2 p = ivec2(gl_FragCoord.xy);\\n' +
       '  DynbtfOrigin o; o.lattice = texelFetch(q_lattice, p, 0); o.phase = texelFetch(q_local, p, 0).x;\\n' +
-      '  o.texel = texelFetch(q_texel, p, 0).xy;\\n' +
+      '  o.texel = texelFetch(q_texel, p, 0).xy; o.field = intBitsToFloat(texelFetch(q_texel, p, 0).zw);\\n' +
       '  vec4 m = texelFetch(q_mask_local, p, 0);\\n' +
       '  DynbtfMaskOrigin mo; mo.cell = texelFetch(q_mask_cell, p, 0); mo.offset = m.xy;\\n' +
       '  vec4 previous = dynbtf_layer_index == 1 ? texelFetch(u_previous, p, 0) : vec4(0.0);\\n' +
@@ -479,9 +482,9 @@ __SCRIPTS__
     var t0 = performance.now();
     var program = r.program(
       'uniform uvec4 u_lattice; uniform float u_phase; uniform ivec2 u_texel; uniform vec2 u_fraction;\\n' +
-      'uniform vec2 u_size; uniform float u_scale; uniform vec3 u_light; out vec4 color;\\n' +
+      'uniform vec2 u_field; uniform vec2 u_size; uniform float u_scale; uniform vec3 u_light; out vec4 color;\\n' +
       'void main() { vec2 s = gl_FragCoord.xy / u_size; DynbtfOrigin o; o.lattice = u_lattice; o.phase = u_phase;\\n' +
-      '  o.texel = u_texel; vec2 local = u_fraction + vec2(s.x * u_size.x / u_size.y, s.y) * u_scale;\\n' +
+      '  o.texel = u_texel; o.field = u_field; vec2 local = u_fraction + vec2(s.x * u_size.x / u_size.y, s.y) * u_scale;\\n' +
       '  vec3 wv = normalize(vec3((s - 0.5) * vec2(u_size.x / u_size.y, 1.0) * 1.15, 1.0));\\n' +
       '  vec3 v = dynbtf_eval(o, local, wv, u_light) * u_light.z;\\n' +
       '  color = vec4(pow(clamp(v, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0); }\\n');
@@ -495,6 +498,7 @@ __SCRIPTS__
       gl.uniform1f(u('u_phase'), o.phase);
       gl.uniform2i(u('u_texel'), o.texel[0], o.texel[1]);
       gl.uniform2f(u('u_fraction'), o.fraction[0], o.fraction[1]);
+      gl.uniform2f(u('u_field'), o.field[0], o.field[1]);
       gl.uniform2f(u('u_size'), job.width, job.height);
       gl.uniform1f(u('u_scale'), job.scale);
       gl.uniform3f(u('u_light'), 0.45, 0.2, Math.sqrt(1 - 0.45 * 0.45 - 0.2 * 0.2));

@@ -677,3 +677,81 @@ def test_shader_cost_of_struct_is_one_fetch_and_the_cell_hashes(model):
     assert struct["texel_fetches"] == 4 * 2 + 2 + 2 + 2 * 4 * 1 == tile["texel_fetches"] + 4
     assert struct["macs"] == tile["macs"] and struct["decoder_macs"] == hist["decoder_macs"]
     assert struct["hashes"] == 4 and tile["hashes"] == hist["hashes"] == 3
+
+
+# ---------------------------------------------------------------- guided synthesis (dynbtf.synthesis.guided_blending)
+def _guided_btf(model, method, wrap, softness=0.0):
+    """Guided hist or hex on ``model`` (seed 0): the plane's labels in 5 x 6 blocks (two classes), the target a 3 x 2
+    image over 3 repeats (``wrap``) that also asks for a label the plane lacks (7: never matched)."""
+    from dynbtf.material.compiler import model_arguments
+    from dynbtf.synthesis.guided_blending import GuidedBlending, GuidedHexTiling, LabelField
+
+    h, w = model.positional_plane().shape[:2]
+    rows, cols = np.mgrid[0:h, 0:w]
+    labels = (cols // 5 + rows // 6) % 2
+    target = LabelField(np.array([[0, 1, 1], [1, 0, 7]]), size=3.0, wrap=wrap)
+    plane = model.positional_plane().detach()
+    if method == "guided":
+        synth = GuidedBlending(plane, 0, labels=labels, target=target, softness=softness)
+    else:
+        synth = GuidedHexTiling(plane, 0, labels=labels, target=target, softness=softness,
+                                **model_arguments(model, "hex", {}))
+    return synthesized_btf(model, synth)
+
+
+@browser
+@pytest.mark.browser
+@pytest.mark.parametrize("method, wrap, softness", [("guided", "repeat", 0.3), ("guided-hex", "clamp", 0.0)])
+def test_guided_shader_matches_synthesized_btf(model, tmp_path, method, wrap, softness):
+    """Guided hist and hex in the shader: the target's label per query, each sample's candidate search, the steered
+    barycentrics and the method's blend, as the library answers them (near the origin and up to 7e12 repeats)."""
+    btf = _guided_btf(model, method, wrap, softness)
+    points, shift, wv, wl = _queries(1024)
+    ref = btf.eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    base = synthesized_btf(model, btf.synthesizer.base_method, seed=0).eval(points, wv.astype(np.float64),
+                                                                             wl.astype(np.float64))
+    peak = np.abs(ref).max()
+    assert np.abs(ref - base).max() > 0.2 * peak  # the guidance shows: not the unguided method's answer
+    got = eval_in_browser(export_web(btf.material, tmp_path / "fp32", precision="fp32", methods=(method,)).directory,
+                          method, points, wv, wl, local_shift=shift).rgb
+    exact = shift == 0
+    np.testing.assert_allclose(got[exact], ref[exact], rtol=0, atol=2e-4 * peak)
+    # up to 300 repeats in the float32 local uv (positions within ~2e-5 repeats): a query that close to a texel's
+    # edge may see another footprint's labels and choose another candidate
+    close = np.abs(got[~exact] - ref[~exact]).max(-1) <= 5e-3 * peak
+    assert close.mean() >= 0.99, close.mean()
+    if method == "guided":
+        half = export_web(btf.material, tmp_path / "fp16", precision="fp16", methods=(method,))
+        assert _psnr(eval_in_browser(half.directory, method, points[exact], wv[exact], wl[exact]).rgb,
+                     ref[exact]) >= 40.0
+
+
+def test_guided_export_carries_the_guidance(model, tmp_path):
+    """The manifest entry of a guided method: its mode, the labels of the read plane and the target image (exact
+    int16, renumbered; a target label the plane lacks is -1), the candidates' hash states (the fused kernel's), the
+    softness and the target as a label field; guided struct and a guided method without its labels are refused."""
+    from dynbtf.export.web.shader import field_origin, web_module
+
+    btf = _guided_btf(model, "guided", "repeat", 0.3)
+    synth = btf.synthesizer
+    export = export_web(btf.material, tmp_path / "web", precision="u8", methods=("guided",))
+    entry = export.manifest["methods"]["guided"]
+    assert entry["mode"] == web_module("guided").MODE and entry["lut"]["size"] == synth.parameters()["lut_size"]
+    states, labels, _, softness = synth.kernel_guidance(torch.zeros((0, 2), dtype=torch.float64))
+    assert entry["states"] == [int(s) for s in states] and entry["candidates"] == 16
+    assert entry["softness"] == softness == 0.3
+    assert entry["field"] == {"width": 3, "height": 2, "size": 3.0, "wrap": "repeat"}
+    table = entry["guidance"]
+    stored = np.fromfile(export.directory / table["file"], dtype="<i2")
+    ph, pw = labels.shape
+    assert table["labels"] == {"start": 0, "shape": [ph, pw]} and table["target"]["shape"] == [2, 3]
+    np.testing.assert_array_equal(stored[:ph * pw].reshape(ph, pw), labels)  # labels 0 and 1 stay themselves
+    start = table["target"]["start"]
+    np.testing.assert_array_equal(stored[start:start + 6].reshape(2, 3), [[0, 1, 1], [1, 0, -1]])
+    assert table["file"] in entry["files"]
+    # the repeat origin's place on the field: (I mod 3) / 3 texels per repeat, as LabelField reduces a position
+    np.testing.assert_allclose(field_origin(np.array([[4.0, -1.0]]), entry["field"]), [[1.0, 4.0 / 3.0]])
+    with pytest.raises(InputError, match="'guided-struct' has no shader form"):
+        export_web(model, tmp_path / "struct", methods=("guided-struct",))
+    with pytest.raises(InputError, match=r"'guided' needs parameter\(s\) \['labels', 'target'\]"):
+        export_web(model, tmp_path / "bare", methods=("guided",))

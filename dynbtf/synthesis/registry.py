@@ -52,6 +52,13 @@ def _accepted(cls) -> list[str]:
     return [p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "exemplar", "seed")]
 
 
+def _required(cls) -> list[str]:
+    """The method parameters of a synthesizer class without a default (e.g. the guided methods' labels and target)."""
+    return [p.name for p in inspect.signature(cls.__init__).parameters.values()
+            if p.name not in ("self", "exemplar", "seed") and p.default is inspect.Parameter.empty
+            and p.kind not in (inspect.Parameter.VAR_KEYWORD, inspect.Parameter.VAR_POSITIONAL)]
+
+
 def takes_parameter(name: str, parameter: str) -> bool:
     """Whether method ``name`` takes ``parameter`` (a keyword of its constructor); ``auto`` takes none itself (its
     parameters go to the method it chooses), and an unknown name takes nothing.
@@ -63,24 +70,21 @@ def takes_parameter(name: str, parameter: str) -> bool:
     return cls is not None and parameter in _accepted(cls)
 
 
-def methods_with(backend: str | None = None) -> list[str]:
+def methods_with(backend: str | None = None, *, with_required: bool = False) -> list[str]:
     """The methods that run on ``backend`` (:attr:`~dynbtf.synthesis.base.Synthesizer.backends`; ``None``: every
     method, on the CPU and torch) and build from an exemplar alone (no required parameter, unlike the guided methods,
-    which need labels and a target), sorted.
+    which need labels and a target), sorted; ``with_required``: also those that need parameters besides the exemplar
+    (what a backend implements, e.g. the web shader's branches).
 
     >>> methods_with("web")
     ['hex', 'hist', 'linear', 'struct', 'tile']
     >>> methods_with()
     ['hex', 'hist', 'linear', 'quilt', 'struct', 'tile']
+    >>> methods_with("web", with_required=True)
+    ['guided', 'guided-hex', 'hex', 'hist', 'linear', 'struct', 'tile']
     """
-    def ready(cls) -> bool:
-        required = [p for p in inspect.signature(cls.__init__).parameters.values()
-                    if p.name not in ("self", "exemplar", "seed") and p.default is inspect.Parameter.empty
-                    and p.kind not in (inspect.Parameter.VAR_KEYWORD, inspect.Parameter.VAR_POSITIONAL)]
-        return not required
-
     return sorted(name for name, cls in SYNTHESIZERS.items()
-                  if (backend is None or backend in cls.backends) and ready(cls))
+                  if (backend is None or backend in cls.backends) and (with_required or not _required(cls)))
 
 
 def make_synthesizer(name: str, exemplar, seed: int = 0, **params) -> Synthesizer:
@@ -108,6 +112,10 @@ def make_synthesizer(name: str, exemplar, seed: int = 0, **params) -> Synthesize
     unknown = sorted(set(params) - set(accepted))
     if unknown:
         raise InputError(f"synthesis method {name!r}: unknown parameter(s) {unknown}; accepted: {accepted}")
+    missing = [p for p in _required(cls) if p not in params]
+    if missing:
+        raise InputError(f"synthesis method {name!r} needs parameter(s) {missing}; give them (e.g. as method "
+                         "parameters), or build the synthesizer and pass it")
     synth = cls(exemplar, seed=seed, **params)
     synth.choice = choice
     return synth

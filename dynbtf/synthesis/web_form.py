@@ -17,6 +17,13 @@ A method that runs in the web shader has a ``web`` module in its package (its
 * ``form(synthesizer) -> WebForm``: the synthesizer's plane, tables and constants.
 
 The exporter (:mod:`dynbtf.export.web`) writes every table by its kind and names no method.
+
+A method that reads a **label field laid over the plane** per query (e.g. guided synthesis's target labels) gives
+it as the constant ``"field"``: ``{"width", "height", "size", "wrap"}``, a grid of ``width`` x ``height`` texels over
+``size`` x ``size`` exemplar repeats from the origin, ``"repeat"`` (tiled) or ``"clamp"``. The repeat origin then
+holds where the repeat starts on it (:func:`dynbtf.export.web.shader.field_origin`, ``DynbtfOrigin.field``; the
+viewer's ``DynBTF.origin`` too), and the shader's ``dynbtf_field_texel(o, local)`` gives the field's texel under a
+query, wrapped or clamped; the method's own tables hold what the texels mean.
 """
 
 from __future__ import annotations

@@ -7,7 +7,8 @@ bit, in ``uint`` arithmetic), the blends of ``tile``, ``linear``, ``hist`` and `
 histogram tables, the cells, cuts and lattice offsets of ``struct``
 (:mod:`dynbtf.synthesis.cell_quilting`), the Rusinkiewicz angular fetches (:mod:`dynbtf.conventions`),
 the relief march of ``triple-parallax`` models and the decoder. :func:`repeat_origin` is the CPU half of its large-uv
-contract (``viewer.js``'s ``DynBTF.origin`` is the same function in JavaScript), and
+contract (``viewer.js``'s ``DynBTF.origin`` is the same function in JavaScript; with :func:`field_origin` for a
+method that reads a label field laid over the plane, e.g. guided synthesis's target), and
 :func:`shader_cost` counts what a pixel costs. The files and formats the shader reads are
 :mod:`dynbtf.export.web.exporter`'s.
 """
@@ -27,16 +28,17 @@ from ...synthesis.lattice import (_C3, _N1, _N2, LATTICE_SCALE, LATTICE_SCALE_HI
                                  _scaled_integer, split_uv)
 from ...synthesis.registry import methods_with, synthesizer_class
 
-__all__ = ["glsl_source", "shader_cost", "repeat_origin", "RepeatOrigin", "lattice_constants", "web_methods",
-           "web_module", "LOCAL_REPEATS", "MAX_MARCH_STEPS"]
+__all__ = ["glsl_source", "shader_cost", "repeat_origin", "RepeatOrigin", "field_origin", "lattice_constants",
+           "web_methods", "web_module", "LOCAL_REPEATS", "MAX_MARCH_STEPS"]
 
 
 
 def web_methods() -> dict[str, Any]:
-    """The synthesis methods the shader implements (:func:`~dynbtf.synthesis.registry.methods_with` ``"web"``):
-    registry name -> the method's ``web`` module (:mod:`dynbtf.synthesis.web_form`), in the order of their ``MODE``
-    numbers."""
-    found = {name: synthesizer_class(name).backend_module("web") for name in methods_with("web")}
+    """The synthesis methods the shader implements (:func:`~dynbtf.synthesis.registry.methods_with` ``"web"``, those
+    that need parameters besides the exemplar included): registry name -> the method's ``web`` module
+    (:mod:`dynbtf.synthesis.web_form`), in the order of their ``MODE`` numbers."""
+    found = {name: synthesizer_class(name).backend_module("web")
+             for name in methods_with("web", with_required=True)}
     return dict(sorted(found.items(), key=lambda item: item[1].MODE))
 
 
@@ -79,6 +81,9 @@ class RepeatOrigin:
         ``I_u n_x`` and ``I_v n_y``: the ``struct`` cell index of the repeat's first cell
         (:class:`~dynbtf.synthesis.cell_quilting.CellQuilting`, ``cells = (n_x, n_y)`` per repeat;
         ``I`` itself when no cells were given).
+    field : float64 ``(..., 2)``
+        Where the repeat ``I`` starts on the method's label field (:func:`field_origin`), in the field's texels;
+        zeros when no field was given.
     """
 
     lattice_x: np.ndarray
@@ -89,6 +94,7 @@ class RepeatOrigin:
     fraction: np.ndarray
     cell_x: np.ndarray
     cell_y: np.ndarray
+    field: np.ndarray
 
     @staticmethod
     def _words(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -110,12 +116,33 @@ class RepeatOrigin:
         return self.cell_words() if web_module(method).ORIGIN == "cells" else self.words()
 
 
+def field_origin(whole, field: dict[str, Any]) -> np.ndarray:
+    """Where whole repeats ``whole (..., 2)`` (float64 integers) lie on a label field laid over the plane, in the
+    field's texels ``(..., 2)`` float64: the CPU half of the shader's ``dynbtf_field_texel``.
+
+    ``field`` (a method's manifest entry ``"field"``, :mod:`dynbtf.synthesis.web_form`): ``width`` x ``height``
+    texels over ``size`` x ``size`` exemplar repeats from the origin, ``wrap`` ``"repeat"`` (tiled: the repeat is
+    first reduced modulo ``size`` as :class:`~dynbtf.synthesis.guided_blending.LabelField` reduces a position, so
+    the result lies in ``[0, width) x [0, height)``) or ``"clamp"`` (the position itself, bounded to a range the
+    local uv cannot leave the field's edge texels from). The shader adds the local uv times ``(width, height) /
+    size`` in float32 and takes the texel, wrapped or clamped.
+    """
+    whole = np.asarray(whole, dtype=np.float64)
+    size = float(field["size"])
+    dims = np.array([field["width"], field["height"]], dtype=np.float64)
+    if field["wrap"] == "repeat":
+        return (whole - np.floor(whole / size) * size) / size * dims
+    bound = (LOCAL_REPEATS + 1) / size * dims + dims + 1.0
+    return np.clip(whole / size * dims, -bound, bound)
+
+
 def repeat_origin(points, plane_size: tuple[int, int], density: tuple[int, int],
-                  cells: tuple[int, int] = (1, 1)) -> RepeatOrigin:
+                  cells: tuple[int, int] = (1, 1), field: dict[str, Any] | None = None) -> RepeatOrigin:
     """Split positions ``points (..., 2)`` (exemplar repeats, float64) for the shader.
 
     ``plane_size = (W', H')`` of the plane read, ``density = (W, H)`` texels per repeat, ``cells =
-    (n_x, n_y)`` the ``struct`` cells per repeat. The arithmetic is
+    (n_x, n_y)`` the ``struct`` cells per repeat, ``field`` the method's label field if it has one
+    (:func:`field_origin`). The arithmetic is
     :func:`dynbtf.synthesis.lattice.triangle_lattice`'s (same float64 and int64 operations), so the
     shader's vertices are the library's; the cell index ``I n`` is
     :meth:`~dynbtf.synthesis.cell_quilting.CellQuilting.read_positions`'s (int64). ``|points| < 2**52``
@@ -134,7 +161,8 @@ def repeat_origin(points, plane_size: tuple[int, int], density: tuple[int, int],
         phase=iu_frac.numpy(),
         texel_x=torch.remainder(torch.remainder(whole[..., 0], pw) * (dw % pw), pw).numpy(),
         texel_y=torch.remainder(torch.remainder(whole[..., 1], ph) * (dh % ph), ph).numpy(),
-        fraction=frac.numpy(), cell_x=(whole[..., 0] * nx).numpy(), cell_y=(whole[..., 1] * ny).numpy())
+        fraction=frac.numpy(), cell_x=(whole[..., 0] * nx).numpy(), cell_y=(whole[..., 1] * ny).numpy(),
+        field=np.zeros(frac.shape) if field is None else field_origin(whole.numpy(), field))
 
 
 # ---------------------------------------------------------------- the shader
@@ -183,11 +211,16 @@ def glsl_source(*, channels: int, angular_channels: int, hidden: int, layers: in
         _glsl_integers(),
         _glsl_triangle(),
         _glsl_fetches(),
-        *(web.GLSL_FUNCTIONS for web in methods.values()),
+        *_once(web.GLSL_FUNCTIONS for web in methods.values()),
         _glsl_latent(methods),
         _glsl_angular(angular_resolution),
         _glsl_decoder_and_eval(**sizes, negative_slope=negative_slope, relief=relief),
     ])
+
+
+def _once(blocks) -> list[str]:
+    """``blocks`` of GLSL with repeats left out (methods that share uniforms or functions declare them once)."""
+    return list(dict.fromkeys(blocks))
 
 
 def _groups(n: int) -> int:
@@ -214,7 +247,7 @@ def _glsl_header(*, channels: int, angular_channels: int, hidden: int, layers: i
     g, ag, hg = _groups(channels), _groups(angular_channels), _groups(hidden)
     names = ", ".join(methods)
     modes = ", ".join(f"{web.MODE} {name}" for name, web in methods.items())
-    method_uniforms = "".join(web.GLSL_UNIFORMS for web in methods.values())
+    method_uniforms = "".join(_once(web.GLSL_UNIFORMS for web in methods.values()))
     return f"""// dynbtf real-time shader functions (GLSL ES 3.00), generated by dynbtf.export.web.shader.
 // Evaluates dynbtf.infinite_btf.SynthesizedBTF: synthesized positional features ({names}),
 // Rusinkiewicz angular features and the decoder. Conventions (dynbtf README):
@@ -237,6 +270,9 @@ uniform ivec2 dynbtf_density;                // (W, H): texels per repeat
 uniform uint dynbtf_seed_state;              // mix32((seed ^ 0x85EBCA6B)) (dynbtf.synthesis.hash.seed_state)
 uniform vec4 dynbtf_plane_scale[DYNBTF_G];   // value = stored * scale + bias, per channel
 uniform vec4 dynbtf_plane_bias[DYNBTF_G];
+uniform ivec2 dynbtf_field_size;             // the method's label field, if any ("field"): (width, height) texels
+uniform vec2 dynbtf_field_scale;             // its texels per exemplar repeat: (width, height) / size
+uniform int dynbtf_field_wrap;               // 1: it repeats every size repeats, 0: its edge texels extend it
 {method_uniforms}uniform vec4 dynbtf_fh_scale[DYNBTF_AG];
 uniform vec4 dynbtf_fh_bias[DYNBTF_AG];
 uniform vec4 dynbtf_fd_scale[DYNBTF_AG];
@@ -252,12 +288,14 @@ layout(std140) uniform DynbtfLayer1 {{ mat4 dynbtf_w1p[{hg * g}]; vec4 dynbtf_b1
 
 def _glsl_integers() -> str:
     """``DynbtfOrigin`` (a position's integer part, from :func:`repeat_origin`), the uint hash
-    (:mod:`dynbtf.synthesis.hash`), 64-bit (low, high) word addition and a non-negative ``mod``."""
+    (:mod:`dynbtf.synthesis.hash`), 64-bit (low, high) word addition, a non-negative ``mod`` and the texel of a
+    method's label field under a query (``dynbtf_field_texel``, :func:`field_origin`)."""
     return f"""// ---- the integer part of a position (computed on the CPU in float64: dynbtf.export.web.shader.repeat_origin)
 struct DynbtfOrigin {{
     uvec4 lattice;   // (low, high) words of the int64 lattice x, then of lattice y; struct: of the cell I_u n_x, I_v n_y
     float phase;     // 2 sqrt(3) I_u mod 1
     ivec2 texel;     // (I_u W mod W', I_v H mod H')
+    vec2 field;      // where the repeat starts on the method's label field, in its texels (methods with a field only)
 }};
 
 // ---- integer hash (dynbtf.synthesis.hash): lowbias32, uint arithmetic wraps modulo 2^32
@@ -271,6 +309,15 @@ uvec2 dynbtf_add(uvec2 a, int d) {{
     return uvec2(lo, a.y + (d < 0 ? 0xFFFFFFFFu : 0u) + (lo < a.x ? 1u : 0u));
 }}
 int dynbtf_mod(int a, int n) {{ return a >= 0 ? a % n : (n - 1) - ((-a - 1) % n); }}
+
+// the label field's texel under a query (dynbtf.export.web.shader.field_origin): the repeat's position on the
+// field plus the local uv's, wrapped or clamped
+ivec2 dynbtf_field_texel(DynbtfOrigin o, vec2 local) {{
+    ivec2 n = dynbtf_field_size;
+    vec2 p = floor(o.field + local * dynbtf_field_scale);
+    if (dynbtf_field_wrap == 1) return ivec2(dynbtf_mod(int(p.x), n.x), dynbtf_mod(int(p.y), n.y));
+    return ivec2(clamp(p, vec2(0.0), vec2(n - 1)));
+}}
 
 """
 

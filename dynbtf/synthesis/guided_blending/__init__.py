@@ -28,7 +28,10 @@ On the CPU the fused numba kernel of lattice blending runs the search (:func:`dy
 with ``guidance``); :meth:`GuidedBlending.reference_latent` is the torch path (any device), against which the tests
 hold it; footprint queries read the pyramid at the guided samples, with their steered weights (the same
 :meth:`sample_positions` in every path). The guided methods also run in the Mitsuba plugin (its ``target``
-parameter: the plugin calls this query); the web export refuses every guided synthesizer.
+parameter: the plugin calls this query). The web export runs guided hist and hex in the shader (the package's
+``web`` and ``web_hex`` modules: the read plane's labels and the target image as an integer table, the target laid
+over the plane as a label field of the repeat origin, the candidates' hash states and the softness as uniforms);
+it refuses guided struct (its cells' choice by label has no shader form).
 """
 
 from __future__ import annotations
@@ -158,8 +161,8 @@ def _checked_labels(labels, target, shape: tuple[int, int]) -> torch.Tensor:
 
 class _Guidance:
     """What guidance adds to a lattice-blending method (hist, hex): the offset search, the steered weights, the
-    fused kernel's guidance arguments. Mixed in before the method's class. It has no GLSL form (the web
-    export refuses it)."""
+    fused kernel's guidance arguments. Mixed in before the method's class. Its GLSL form is the package's ``web``
+    module (hist) and ``web_hex`` (hex)."""
 
     def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, candidates: int = 16,
                  softness: float = 0.0, **params) -> None:
@@ -267,7 +270,7 @@ class GuidedBlending(_Guidance, HistogramBlending):
     True
     """
 
-    backends: dict = {}  # no web form: the shader has no guidance
+    backends = {"web": f"{__name__}.web"}
 
     base_method = "hist"
 
@@ -277,7 +280,7 @@ class GuidedHexTiling(_Guidance, HexTiling):
     """Hex-tiling steered by labels: :class:`GuidedBlending`'s search with
     :class:`~dynbtf.synthesis.hex_tiling.HexTiling`'s blend (its parameters in ``**params``, e.g. ``luminance``)."""
 
-    backends: dict = {}  # no web form: the shader has no guidance
+    backends = {"web": f"{__name__}.web_hex"}
 
     base_method = "hex"
 
@@ -296,7 +299,7 @@ class GuidedCellQuilting(CellQuilting):
     :class:`~dynbtf.synthesis.cell_quilting.CellQuilting`'s in ``**struct``.
     """
 
-    backends: dict = {}  # no web form: the shader has no guidance
+    backends: dict = {}  # no web form: the shader does not choose cells by label
 
     base_method = "struct"
 

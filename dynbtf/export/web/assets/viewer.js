@@ -100,8 +100,18 @@
     if (e.cells) { x = words(BigInt(wu) * BigInt(e.cells[0])); y = words(BigInt(wv) * BigInt(e.cells[1])); }
     return {lattice: [x[0], x[1], y[0], y[1]], phase: s.frac,
             texel: [mod(mod(wu, pw) * (e.density[0] % pw), pw), mod(mod(wv, ph) * (e.density[1] % ph), ph)],
-            fraction: [fu, fv]};
+            fraction: [fu, fv], field: e.field ? fieldOrigin(lat, e.field, [wu, wv]) : [0, 0]};
   };
+
+  // dynbtf.export.web.shader.field_origin: where the repeat starts on the entry's label field, in its texels
+  function fieldOrigin(lat, f, whole) {
+    var dims = [f.width, f.height];
+    return whole.map(function (w, k) {
+      if (f.wrap === 'repeat') return (w - Math.floor(w / f.size) * f.size) / f.size * dims[k];
+      var bound = (lat.local_repeats + 1) / f.size * dims[k] + dims[k] + 1;
+      return Math.min(Math.max(w / f.size * dims[k], -bound), bound);
+    });
+  }
 
   // ------------------------------------------------------------------ GL resources
   var FORMATS = {
@@ -110,8 +120,8 @@
     R16F: ['R16F', 'RED', 'HALF_FLOAT', Uint16Array], R8: ['R8', 'RED', 'UNSIGNED_BYTE', Uint8Array],
     R16I: ['R16I', 'RED_INTEGER', 'SHORT', Int16Array]
   };
-  // texture units of the export's samplers (5..9 are left to the caller, e.g. dynbtf's query pages)
-  var UNITS = {plane: 0, lut: 1, lum: 2, fh: 3, fd: 4, cells: 10};
+  // texture units of the export's samplers (5..9 are left to the caller, e.g. dynbtf's query pages; 11, 12 the layered programs')
+  var UNITS = {plane: 0, lut: 1, lum: 2, fh: 3, fd: 4, cells: 10, guide: 15};
 
   function texture(gl, entry, buffer) {
     var f = FORMATS[entry.format];
@@ -173,6 +183,7 @@
       if (e.lut) r.lut = texture(gl, e.lut, data.files[e.lut.file]);
       if (e.luminance) r.lum = texture(gl, e.luminance, data.files[e.luminance.file]);
       if (e.tables) r.cells = texture(gl, e.tables, data.files[e.tables.file]);
+      if (e.guidance) r.guide = texture(gl, e.guidance, data.files[e.guidance.file]);
       r.layer1 = ubo(gl, data.files[e.layer1.file], 0, e.layer1.floats);
       self.methods[name] = r;
     });
@@ -216,6 +227,7 @@
     bind(UNITS.fh, gl.TEXTURE_2D_ARRAY, this.angular.fh, 'dynbtf_fh');
     bind(UNITS.fd, gl.TEXTURE_2D_ARRAY, this.angular.fd, 'dynbtf_fd');
     bind(UNITS.cells, gl.TEXTURE_2D, r.cells || this.dummyInt, 'dynbtf_cells');
+    bind(UNITS.guide, gl.TEXTURE_2D, r.guide || this.dummyInt, 'dynbtf_guide');
     gl.uniform1i(u('dynbtf_mode'), e.mode);
     gl.uniform2i(u('dynbtf_plane_size'), e.plane.width, e.plane.height);
     gl.uniform2i(u('dynbtf_density'), e.density[0], e.density[1]);
@@ -233,6 +245,17 @@
     gl.uniform1i(u('dynbtf_cell_count'), t ? e.count : 1);
     gl.uniform1i(u('dynbtf_cell_row'), t ? t.row : 1);
     gl.uniform2i(u('dynbtf_cut_start'), t ? t.vertical_cuts.start : 0, t ? t.horizontal_cuts.start : 0);
+    var f = e.field;  // a label field laid over the plane (guided synthesis's target)
+    gl.uniform2i(u('dynbtf_field_size'), f ? f.width : 1, f ? f.height : 1);
+    gl.uniform2f(u('dynbtf_field_scale'), f ? f.width / f.size : 0.0, f ? f.height / f.size : 0.0);
+    gl.uniform1i(u('dynbtf_field_wrap'), f && f.wrap === 'repeat' ? 1 : 0);
+    var g = e.guidance, states = new Uint32Array(64);  // guided: labels and target, the candidates' hash states
+    if (e.states) states.set(e.states.slice(0, 64));
+    gl.uniform1i(u('dynbtf_guide_row'), g ? g.row : 1);
+    gl.uniform1i(u('dynbtf_guide_target_start'), g ? g.target.start : 0);
+    gl.uniform1i(u('dynbtf_guide_candidates'), g ? e.candidates : 1);
+    gl.uniform4uiv(u('dynbtf_guide_states'), states);
+    gl.uniform1f(u('dynbtf_guide_softness'), g ? e.softness : 1.0);
     var ones = e.plane.scale.map(function () { return 1.0; }), zeros = e.plane.scale.map(function () { return 0.0; });
     gl.uniform4fv(u('dynbtf_plane_scale'), e.plane.scale);
     gl.uniform4fv(u('dynbtf_plane_bias'), e.plane.bias);
@@ -438,7 +461,7 @@
     '}'].join('\n');
   var FRAME = [  // the local frame at a fragment: w_view and w_light in it (shared by both fragment programs)
     'in vec3 v_position; in vec3 v_normal; in vec3 v_tangent; in vec2 v_local; in vec2 v_mask;',
-    'uniform uvec4 u_lattice; uniform float u_phase; uniform ivec2 u_texel;',
+    'uniform uvec4 u_lattice; uniform float u_phase; uniform ivec2 u_texel; uniform vec2 u_field;',
     'uniform vec3 u_camera; uniform vec3 u_light; uniform float u_intensity;',
     'out vec4 color;',
     'vec3 srgb(vec3 c) { c = clamp(c, 0.0, 1.0);',
@@ -451,7 +474,8 @@
     '  wv_local = vec3(dot(wv, t), dot(wv, b), dot(wv, n));',
     '  wl_local = vec3(dot(u_light, t), dot(u_light, b), dot(u_light, n));',
     '}',
-    'DynbtfOrigin origin() { DynbtfOrigin o; o.lattice = u_lattice; o.phase = u_phase; o.texel = u_texel; return o; }',
+    'DynbtfOrigin origin() { DynbtfOrigin o; o.lattice = u_lattice; o.phase = u_phase; o.texel = u_texel;',
+    '  o.field = u_field; return o; }',
     ''].join('\n');
   var SHADE = FRAME + [
     'void main() {',
@@ -610,6 +634,7 @@
     gl.uniform4ui(u('u_lattice'), o.lattice[0], o.lattice[1], o.lattice[2], o.lattice[3]);
     gl.uniform1f(u('u_phase'), o.phase);
     gl.uniform2i(u('u_texel'), o.texel[0], o.texel[1]);
+    gl.uniform2f(u('u_field'), o.field[0], o.field[1]);
   }
 
   function drawMesh(gl, shape) {
