@@ -23,6 +23,9 @@ guided hist and hex (its ``target`` parameter); the web export runs guided hist 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
+
 import numpy as np
 import torch
 
@@ -34,7 +37,8 @@ from .synthesized import synthesized_btf
 from .synthesis.guided_blending import (GuidedBlending, GuidedCellQuilting, GuidedHexTiling, LabelField,
                                        exemplar_labels)
 
-__all__ = ["guided_btf", "exemplar_classes", "target_labels", "example_target"]
+__all__ = ["guided_btf", "exemplar_classes", "target_labels", "example_target", "guidance_options",
+           "GuidanceOptions", "guided_synthesizer"]
 
 
 def example_target(side: int = 64) -> np.ndarray:
@@ -89,6 +93,17 @@ def guided_method(method: str, cells=None, *, where: str = "--target") -> str:
     return method
 
 
+def guided_synthesizer(method: str) -> str:
+    """The registry name of the guided synthesizer of ``method`` (``hist`` -> ``guided``, ``hex`` -> ``guided-hex``,
+    ``struct`` -> ``guided-struct``: the class whose ``base_method`` it is)."""
+    from .synthesis.registry import SYNTHESIZERS
+
+    names = [name for name, cls in SYNTHESIZERS.items() if getattr(cls, "base_method", None) == method]
+    if len(names) != 1:
+        raise InputError(f"method: guided synthesis steers hist, hex or struct, got {method!r}")
+    return names[0]
+
+
 def guided_btf(model, target, *, classes: int = 2, labels=None, target_size: float = 1.0,
                target_wrap: str = "repeat", scale: float = 1.0, seed: int = 0, candidates: int = 16,
                softness: float = 0.0, method: str = "hist", footprints: bool = False, **params) -> SynthesizedBTF:
@@ -138,3 +153,58 @@ def guided_btf(model, target, *, classes: int = 2, labels=None, target_size: flo
         kind = GuidedBlending if method == "hist" else GuidedHexTiling
         synth = kind(plane, seed, labels=exemplar, target=field, candidates=candidates, softness=softness, **params)
     return synthesized_btf(model, synth, scale=scale, footprints=footprints)
+
+
+@dataclass(frozen=True)
+class GuidanceOptions:
+    """A guided request as a command line gives it (``--target IMAGE`` and its companions), checked by
+    :func:`guidance_options`: what ``dynbtf synth``, ``dynbtf render`` and ``dynbtf export`` build from."""
+
+    #: the painted grey image ``(H, W)`` in ``[0, 1]`` (:func:`dynbtf.layered.mask_from_spec`'s reading)
+    image: np.ndarray
+    #: the method guided (``hist``, ``hex`` or ``struct``; ``auto`` asked for ``hist``)
+    method: str
+    classes: int
+    #: uv units the image covers
+    target_size: float
+    target_wrap: str
+    softness: float
+    #: struct's cells per repeat (None for hist and hex)
+    cells: int | None
+
+    def build(self, model, *, scale: float, seed: int = 0, footprints: bool = False, **params) -> SynthesizedBTF:
+        """The guided synthesized BTF of ``model`` (:func:`guided_btf`) at ``scale`` exemplar repeats per uv unit;
+        ``params``: the method's further parameters (e.g. hist's ``gamma``)."""
+        if self.method == "struct":
+            params["cells"] = self.cells
+        return guided_btf(model, self.image, classes=self.classes, target_size=self.target_size,
+                          target_wrap=self.target_wrap, scale=scale, seed=seed, softness=self.softness,
+                          method=self.method, footprints=footprints, **params)
+
+
+def guidance_options(target, *, method: str = "auto", classes: int = 2, target_size: float = 1.0,
+                     target_wrap: str = "repeat", softness: float = 0.0, cells=None,
+                     units: str = "uv units") -> GuidanceOptions:
+    """The command line's guidance (``--target`` an image file, ``--method``, ``--classes``, ``--target-size`` in
+    ``units``, ``--target-wrap``, ``--softness``, ``--cells``) checked, each error one :class:`InputError` line
+    naming its option, and the target image read: before any model loads."""
+    from .errors import positive_number
+    from .layered import mask_from_spec
+
+    method = guided_method(method, cells)
+    spec = str(target)
+    if spec == "noise" or spec.startswith("noise:"):
+        raise InputError("--target: expected an image file (a painted target), not a noise spec")
+    if not Path(spec).is_file():
+        raise InputError(f"--target: {spec}: no such image file")
+    if isinstance(classes, bool) or int(classes) != classes or not 2 <= classes <= 255:
+        raise InputError(f"--classes: expected 2 to 255 classes, got {classes}")
+    target_size = positive_number("--target-size", target_size, units)
+    if target_wrap not in ("repeat", "clamp"):
+        raise InputError(f"--target-wrap: expected 'repeat' or 'clamp', got {target_wrap!r}")
+    if not (np.isfinite(float(softness)) and 0.0 <= float(softness) <= 1.0):
+        raise InputError(f"--softness: expected a weight factor in [0, 1], got {softness}")
+    image = mask_from_spec(spec, size=target_size, wrap=target_wrap).image
+    return GuidanceOptions(image=image, method=method, classes=int(classes), target_size=float(target_size),
+                           target_wrap=target_wrap, softness=float(softness),
+                           cells=int(cells) if method == "struct" else None)

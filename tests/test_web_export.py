@@ -755,3 +755,68 @@ def test_guided_export_carries_the_guidance(model, tmp_path):
         export_web(model, tmp_path / "struct", methods=("guided-struct",))
     with pytest.raises(InputError, match=r"'guided' needs parameter\(s\) \['labels', 'target'\]"):
         export_web(model, tmp_path / "bare", methods=("guided",))
+
+
+def test_cli_export_target_exports_the_guided_material(model, tmp_path):
+    """``dynbtf export --target``: the guided material guided_btf builds from the same options, exported as its guided
+    method (hist for auto, hex when asked): the manifest carries the guidance (the target as a label field over
+    --target-size x --scale repeats, the softness, the labels table), byte for byte the Python export's."""
+    from dynbtf.guided import guided_btf
+    from dynbtf.io import save_image
+    from dynbtf.representations.model_file import save_model
+
+    path = save_model(tmp_path / "m.dbtfm", model)
+    painted = np.zeros((4, 6, 3), np.float32)
+    painted[:, 3:] = 1.0  # left half class 0 (the darkest), right half class 1
+    save_image(tmp_path / "target.png", painted)
+    result = _cli("export", path, "-o", tmp_path / "out", "--precision", "u8", "--no-viewer", "--target",
+                  tmp_path / "target.png", "--target-size", "0.5", "--target-wrap", "clamp", "--softness", "0.25",
+                  "--scale", "6", "--seed", "3")
+    assert result.exit_code == 0, result.text
+    assert "guided, guided by" in result.output and "2 classes" in result.output
+    manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    assert list(manifest["methods"]) == ["guided"] and manifest["default_method"] == "guided"
+    entry = manifest["methods"]["guided"]
+    assert entry["field"] == {"width": 6, "height": 4, "size": 3.0, "wrap": "clamp"}  # 0.5 uv units x 6 repeats
+    assert entry["softness"] == 0.25 and entry["candidates"] == 16
+    target = np.fromfile(tmp_path / "out" / entry["guidance"]["file"], dtype="<i2")
+    start = entry["guidance"]["target"]["start"]
+    np.testing.assert_array_equal(target[start:start + 24].reshape(4, 6), np.repeat([[0, 0, 0, 1, 1, 1]], 4, 0))
+    # the same as the library's guided material, exported from Python
+    btf = guided_btf(model, painted.mean(-1), classes=2, target_size=0.5, target_wrap="clamp", scale=6.0, seed=3,
+                     softness=0.25)
+    python = export_web(btf.material, tmp_path / "py", precision="u8", methods=("guided",), scale=6.0, viewer=False)
+    reference = python.manifest["methods"]["guided"]
+    assert entry["states"] == reference["states"] and entry["field"] == reference["field"]
+    assert (tmp_path / "out" / entry["guidance"]["file"]).read_bytes() == \
+        (python.directory / reference["guidance"]["file"]).read_bytes()
+    hexed = _cli("export", path, "-o", tmp_path / "hex", "--no-viewer", "--target", tmp_path / "target.png",
+                 "--method", "hex")
+    assert hexed.exit_code == 0, hexed.text
+    assert list(json.loads((tmp_path / "hex" / "manifest.json").read_text())["methods"]) == ["guided-hex"]
+
+
+def test_cli_export_target_refuses_bad_guidance_in_one_line(model, tmp_path, capsys):
+    """Bad guidance options are one error line naming the option, before anything is written."""
+    from dynbtf.cli.main import main
+    from dynbtf.io import save_image
+    from dynbtf.representations.model_file import save_model
+
+    path = save_model(tmp_path / "m.dbtfm", model)
+    save_image(tmp_path / "target.png", np.zeros((4, 4, 3), np.float32))
+    target = ["--target", tmp_path / "target.png"]
+    for extra, message in (
+            (["--target", tmp_path / "nothere.png"], "--target: " + str(tmp_path / "nothere.png")
+             + ": no such image file"),
+            (target + ["--method", "tile"], "--target: guided synthesis steers hist, hex or struct"),
+            (target + ["--method", "hist", "--method", "hex"], "--target: exports one guided method"),
+            (target + ["--classes", "1"], "--classes: expected 2 to 255 classes, got 1"),
+            (target + ["--softness", "2"], "--softness: expected a weight factor in [0, 1], got 2.0"),
+            (target + ["--target-size", "0"], "--target-size: expected a positive, finite uv units"),
+            (target + ["--target-wrap", "mirror"], "--target-wrap: expected 'repeat' or 'clamp', got 'mirror'"),
+            (target + ["--layer", path], "--target: guides one material; it does not combine with a layered export")):
+        capsys.readouterr()
+        assert main([str(a) for a in ["export", path, "-o", tmp_path / "bad", *extra]]) == 2
+        err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert len(err) == 1 and err[0].startswith("dynbtf: error: ") and message in err[0], (extra, err)
+        assert not (tmp_path / "bad").exists()

@@ -45,6 +45,18 @@ def export_command(
                                   "edges (clamp)."),
     width: float = typer.Option(0.05, "--width", help="With --layer: half-width (uv units) of the band around the "
                                 "mask's contour where the materials' heights decide."),
+    target: Optional[Path] = typer.Option(None, "--target", help="Guided synthesis (hist or hex steered by labels; "
+                                          "auto: hist): an image painted over the surface's uv (PNG/JPEG grey "
+                                          "levels, or EXR values in [0, 1]), cut into --classes equal bins; a point "
+                                          "in bin k shows the material's class k (k-means on its decoded "
+                                          "appearance, 0 the darkest). The shader runs the guided method."),
+    classes: int = typer.Option(2, "--classes", help="With --target: classes of the material's texels."),
+    target_size: float = typer.Option(1.0, "--target-size", help="uv units the --target image covers (at --scale "
+                                      "repeats per uv unit: the target is laid over the exemplar repeats)."),
+    target_wrap: str = typer.Option("repeat", "--target-wrap", help="The --target image repeats (repeat) or "
+                                    "extends its edges (clamp)."),
+    softness: float = typer.Option(0.0, "--softness", help="With --target: blend weight (0 to 1) of samples whose "
+                                   "content is not of the target's class (0: left out where another sample is)."),
 ) -> None:
     """Export a synthesized BTF for real-time rendering: GPU textures, decoder weights and a shader (docs/realtime.md).
 
@@ -53,6 +65,8 @@ def export_command(
     With --layer: both materials, their mask and the boundary rule in one viewer (each layer's --method, default
     auto; --scale is each layer's repeats per uv unit), e.g. dynbtf export new.dbtfm --layer worn.dbtfm --mask
     noise:0.5,3 -o floor-web
+    With --target: one guided method whose content follows a painted image, e.g. dynbtf export leather.dbtfm
+    --target worn.png --target-size 2 -o leather-worn-web
     """
     from ..export.web.exporter import DEFAULT_METHODS, WEB_PRECISIONS, export_web
     from ..export.web.shader import LOCAL_REPEATS
@@ -72,6 +86,13 @@ def export_command(
     for path in (model, layer):
         if path is not None and not is_compiled_material(path):  # (a compiled material is read, and checked, later)
             read_model_metadata(path)  # a missing or damaged file is named before anything is written
+    if target is not None:
+        if layer is not None:
+            raise InputError("--target: guides one material; it does not combine with a layered export (--layer)")
+        _export_guided(model, output, method=method, seed=seed, scale=scale, precision=precision, viewer=viewer,
+                       target=target, classes=classes, target_size=target_size, target_wrap=target_wrap,
+                       softness=softness)
+        return
     if layer is not None:
         _export_layered(model, layer, output, method=method, seed=seed, scale=scale, precision=precision,
                         viewer=viewer, mask=mask, mask_size=mask_size, mask_wrap=mask_wrap, width=width)
@@ -81,11 +102,47 @@ def export_command(
     m = result.manifest
     if m.get("auto"):
         typer.echo(m["auto"]["line"])
+    _echo_written(result, model, output, precision, viewer)
+
+
+def _echo_written(result, model: Path, output: Path, precision: str, viewer: bool, what: str = "") -> None:
+    """The line that says what was written (``what``: said after the sizes, e.g. the guidance)."""
+    m = result.manifest
     first = m["default_method"]
     typer.echo(f"wrote {output}: {len(m['files'])} binary files ({result.total_bytes() / 1e6:.2f} MB, {precision}; "
                f"the {first} method alone needs {result.method_bytes(first) / 1e6:.2f} MB vs the model file's "
-               f"{model.stat().st_size / 1e6:.2f} MB), the shader dynbtf.glsl"
+               f"{model.stat().st_size / 1e6:.2f} MB){what}, the shader dynbtf.glsl"
                + (f" and the viewer {result.index} (open it in a browser with WebGL2)" if viewer else ""))
+
+
+def _export_guided(model: Path, output: Path, *, method, seed: int, scale: float, precision: str, viewer: bool,
+                   target: Path, classes: int, target_size: float, target_wrap: str, softness: float) -> None:
+    """``--target``: the guided material of ``model`` (:func:`dynbtf.guided.guidance_options`, as ``dynbtf synth``
+    and ``dynbtf render`` build theirs), exported as its guided method."""
+    from ..export.web.exporter import export_web
+    from ..export.web.shader import web_methods
+    from ..guided import GUIDED_METHODS, guidance_options, guided_synthesizer
+    from ..material import is_compiled_material
+
+    methods = list(method or ["auto"])
+    if len(methods) != 1:
+        raise InputError(f"--target: exports one guided method; give at most one --method, got {methods}")
+    asked = "hist" if methods[0] == "auto" else methods[0]
+    if asked in GUIDED_METHODS and guided_synthesizer(asked) not in web_methods():
+        guided = sorted(m for m in web_methods() if m.startswith("guided"))
+        raise InputError(f"--target: the web shader has no form of guided {asked} ({guided_synthesizer(asked)!r}); "
+                         f"it runs {guided}")
+    guidance = guidance_options(target, method=methods[0], classes=classes, target_size=target_size,
+                                target_wrap=target_wrap, softness=softness)
+    name = guided_synthesizer(guidance.method)
+    if is_compiled_material(model):
+        raise InputError(f"--target: {model} is a compiled material, which fixes its method; guide the model file "
+                         "(.dbtfm) it was compiled from")
+    btf = guidance.build(model, scale=scale, seed=seed)
+    result = export_web(btf.material, output, precision=precision, methods=(btf.material.method,), seed=seed,
+                        scale=scale, viewer=viewer)
+    _echo_written(result, model, output, precision, viewer,
+                  f"; {name}, guided by {target}, {guidance.classes} classes over {guidance.target_size:g} uv units")
 
 
 def _export_layered(model: Path, layer: Path, output: Path, *, method, seed: int, scale: float, precision: str,

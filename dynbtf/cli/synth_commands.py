@@ -181,22 +181,16 @@ def synth(
     cu, cv = _pair(center, "center")
     check_uv([[cu - 0.5, cv - 0.5], [cu + 0.5, cv + 0.5]], "--center", scale=scale)  # before any work
     the_mask = _layer_mask(layer, mask, mask_size, mask_wrap, width, report, output)  # before any work
-    painted = _target_image(target, method, layer, report, output, filtered, target_size, target_wrap, classes,
-                            softness, cells)
+    guidance = _guidance(target, method, layer, report, output, target_size, target_wrap, classes, softness, cells)
     if cells is not None and method != "struct":
         raise InputError(f"--cells: sets struct's cells; give it with --method struct, not {method!r}")
     rep, material = open_model_file(model, device=where)
-    if painted is not None:
-        from ..guided import guided_btf
-
+    if guidance is not None:
         if material is not None:
             raise InputError(f"--target: {model} is a compiled material, which fixes its method; guide the model "
                              "file (.dbtfm) it was compiled from")
-        btf = guided_btf(rep, painted, classes=classes, target_size=target_size, target_wrap=target_wrap,
-                         scale=scale, seed=0 if seed is None else seed, softness=softness,
-                         method=method if method in ("hex", "struct") else "hist",
-                         **({"cells": cells} if method == "struct" else {} if gamma is None or method == "hex"
-                            else {"gamma": gamma}))
+        btf = guidance.build(rep, scale=scale, seed=0 if seed is None else seed,
+                             **({"gamma": gamma} if gamma is not None and guidance.method == "hist" else {}))
         _write_image(btf, output, view_dir, light_dir, (cu, cv), resolution=resolution, spp=spp, filtered=False,
                      cosine=cosine, exposure=exposure)
         typer.echo(f"wrote {output} ({resolution}x{resolution}, guided by {target}, {classes} classes, {scale:g}x, "
@@ -243,28 +237,18 @@ def _layer_mask(layer: Path | None, mask: str, mask_size: float, mask_wrap: str,
     return mask_from_spec(mask, size=mask_size, wrap=mask_wrap)
 
 
-def _target_image(target: Path | None, method: str, layer, report: bool, output, filtered: bool, size: float,
-                  wrap: str, classes: int, softness: float, cells: int | None):
-    """``--target``'s grey image ``(H, W)`` in [0, 1] (None without ``--target``), its options checked (before the
-    model loads)."""
-    from ..errors import positive_number
-    from ..layered import mask_from_spec
-
+def _guidance(target: Path | None, method: str, layer, report: bool, output, size: float, wrap: str, classes: int,
+              softness: float, cells: int | None):
+    """``--target`` and its companions checked and the image read (None without ``--target``), before the model
+    loads (:func:`dynbtf.guided.guidance_options`)."""
     if target is None:
         return None
     if report or output is None or layer is not None:
         raise InputError("--target: writes one guided image (-o), without --report or --layer")
-    from ..guided import guided_method
+    from ..guided import guidance_options
 
-    guided_method(method, cells)
-    positive_number("--target-size", size, "uv units")
-    if not 2 <= classes <= 255:
-        raise InputError(f"--classes: expected 2 to 255 classes, got {classes}")
-    if not 0.0 <= softness <= 1.0:
-        raise InputError(f"--softness: expected a weight factor in [0, 1], got {softness}")
-    if str(target).startswith("noise"):
-        raise InputError("--target: expected an image file (a painted target), not a noise spec")
-    return mask_from_spec(str(target), size=size, wrap=wrap).image
+    return guidance_options(target, method=method, classes=classes, target_size=size, target_wrap=wrap,
+                            softness=softness, cells=cells)
 
 
 def _layered(first, layer: Path, method: str, where, *, scale: float, seed, gamma, mask, width: float,

@@ -6,7 +6,6 @@ import math
 import sys
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -278,23 +277,14 @@ def _check_layering(width, softness) -> None:
 
 
 def _check_guidance(target, classes, target_size, target_wrap, softness, method, layer, cells) -> None:
-    """A guided render's request (the plugin's ``target`` and its companions), checked before anything loads."""
-    from ...errors import positive_number
-
+    """A guided render's request (the plugin's ``target`` and its companions), checked before anything loads
+    (:func:`dynbtf.guided.guidance_options`, as ``dynbtf synth`` and ``dynbtf export`` check theirs)."""
     if layer is not None:
         raise InputError("target: guides one material; it does not combine with a layered one (layer)")
-    from ...guided import guided_method
+    from ...guided import guidance_options
 
-    guided_method(method, cells)
-    if not Path(target).is_file():
-        raise InputError(f"target: {target}: no such image file")
-    if int(classes) != classes or not 2 <= classes <= 255:
-        raise InputError(f"--classes: expected 2 to 255 classes, got {classes}")
-    positive_number("--target-size", target_size, "mesh uv units")
-    if target_wrap not in ("repeat", "clamp"):
-        raise InputError(f"--target-wrap: expected 'repeat' or 'clamp', got {target_wrap!r}")
-    if not (math.isfinite(float(softness)) and 0.0 <= float(softness) <= 1.0):
-        raise InputError(f"--softness: expected a weight factor in [0, 1], got {softness}")
+    guidance_options(target, method=method, classes=classes, target_size=target_size, target_wrap=target_wrap,
+                     softness=softness, cells=cells, units="mesh uv units")
 
 
 def resolve_auto(model, seed: int = 0) -> tuple[str, str]:
