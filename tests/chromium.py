@@ -165,6 +165,19 @@ _PAGE_HELPERS = """  function bytes(b64) { var s = atob(b64), a = new Uint8Array
       gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
       return t;
     };
+  }
+  // a w x h float32 RGBA texture, nearest-filtered, bound as its framebuffer's colour: {texture, fb}
+  function floatTarget(gl, w, h) {
+    var t = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D, t);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, w, h, 0, gl.RGBA, gl.FLOAT, null);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+    var fb = gl.createFramebuffer();
+    gl.bindFramebuffer(gl.FRAMEBUFFER, fb);
+    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, t, 0);
+    if (gl.checkFramebufferStatus(gl.FRAMEBUFFER) !== gl.FRAMEBUFFER_COMPLETE) throw new Error('float target incomplete');
+    return {texture: t, fb: fb};
   }"""
 
 
@@ -381,18 +394,7 @@ __HELPERS__
       '  vec4 previous = dynbtf_layer_index == 1 ? texelFetch(u_previous, p, 0) : vec4(0.0);\\n' +
       '  result = dynbtf_layer_pass(o, texelFetch(q_local, p, 0).yz, mo, m.zw, texelFetch(q_view, p, 0).xyz,\\n' +
       '                             texelFetch(q_light, p, 0).xyz, previous); }\\n';
-    var targets = [0, 1].map(function () {
-      var t = gl.createTexture();
-      gl.bindTexture(gl.TEXTURE_2D, t);
-      gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, w, h, 0, gl.RGBA, gl.FLOAT, null);
-      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
-      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
-      var fb = gl.createFramebuffer();
-      gl.bindFramebuffer(gl.FRAMEBUFFER, fb);
-      gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, t, 0);
-      if (gl.checkFramebufferStatus(gl.FRAMEBUFFER) !== gl.FRAMEBUFFER_COMPLETE) throw new Error('float target incomplete');
-      return {texture: t, fb: fb};
-    });
+    var targets = [0, 1].map(function () { return floatTarget(gl, w, h); });
     var results = {passes: []};
     for (var k = 0; k < 2; ++k) {
       var layer = L.layers[k], m = data.layers[k].manifest, program = r.program(k, main);
@@ -528,6 +530,7 @@ _LAYERED_FRAME_PAGE = """<!DOCTYPE html>
 <script src="viewer.js"></script>
 <script>
 (function () {
+__HELPERS__
   var job = __JOB__;
   DynBTF.loadLayered('').then(function (data) {
     var L = data.manifest, w = job.width, h = job.height;
@@ -555,14 +558,7 @@ _LAYERED_FRAME_PAGE = """<!DOCTYPE html>
       '  vec4 previous = dynbtf_layer_index == 1 ? texelFetch(u_previous, ivec2(gl_FragCoord.xy), 0) : vec4(0.0);\\n' +
       '  color = dynbtf_layer_pass(o, local, mo, mask, wv, u_light, previous); }\\n';
     var light = [0.45, 0.2, Math.sqrt(1 - 0.45 * 0.45 - 0.2 * 0.2)];
-    var target = gl.createTexture();
-    gl.bindTexture(gl.TEXTURE_2D, target);
-    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, w, h, 0, gl.RGBA, gl.FLOAT, null);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
-    var fb = gl.createFramebuffer();
-    gl.bindFramebuffer(gl.FRAMEBUFFER, fb);
-    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, target, 0);
+    var layer0 = floatTarget(gl, w, h), target = layer0.texture, fb = layer0.fb;  // layer 0's pass draws here
     gl.viewport(0, 0, w, h);
     function set(program, k) {
       var layer = L.layers[k], m = data.layers[k].manifest;
@@ -625,7 +621,7 @@ def time_layered_frames(export_dir, *, width: int = 1280, height: int = 720, fra
         raise InputError(f"{export_dir}: not a layered web export with its viewer files (layered.js missing)")
     job = {"width": int(width), "height": int(height), "frames": int(frames), "span": float(span)}
     res = json.loads(_page_result(export_dir, "layered-frames", "layered frame-time",
-                                  _LAYERED_FRAME_PAGE.replace("__JOB__", json.dumps(job)), gl=gl, timeout=timeout,
+                                  _LAYERED_FRAME_PAGE.replace("__HELPERS__", _PAGE_HELPERS).replace("__JOB__", json.dumps(job)), gl=gl, timeout=timeout,
                                   budget_ms=None, window=(width, height)) or "{}")
     if not res:
         raise RuntimeError("the layered frame-time page left an empty result")
