@@ -17,8 +17,8 @@ Example: the worn, dark parts of a leather along the bottom of a panel, the rest
     rgb = btf.eval(uv, w_view, w_light)
 
 Footprint queries read the pyramid at the guided samples (as hist's read it at its own). The Mitsuba plugin runs
-guided hist and hex (its ``target`` parameter); the web export runs guided hist and hex in the shader
-(``export_web(btf.material, out_dir, methods=(btf.material.method,))``), not guided struct.
+guided hist, hex and struct (its ``target`` parameter); the web export runs them in the shader
+(``export_web(btf.material, out_dir, methods=(btf.material.method,))``, or ``dynbtf export --target``).
 """
 
 from __future__ import annotations

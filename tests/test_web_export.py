@@ -729,7 +729,7 @@ def test_guided_shader_matches_synthesized_btf(model, tmp_path, method, wrap, so
 def test_guided_export_carries_the_guidance(model, tmp_path):
     """The manifest entry of a guided method: its mode, the labels of the read plane and the target image (exact
     int16, renumbered; a target label the plane lacks is -1), the candidates' hash states (the fused kernel's), the
-    softness and the target as a label field; guided struct and a guided method without its labels are refused."""
+    softness and the target as a label field; a guided method without its labels is refused."""
     from dynbtf.export.web.shader import field_origin, web_module
 
     btf = _guided_btf(model, "guided", "repeat", 0.3)
@@ -751,13 +751,13 @@ def test_guided_export_carries_the_guidance(model, tmp_path):
     assert table["file"] in entry["files"]
     # the repeat origin's place on the field: (I mod 3) / 3 texels per repeat, as LabelField reduces a position
     np.testing.assert_allclose(field_origin(np.array([[4.0, -1.0]]), entry["field"]), [[1.0, 4.0 / 3.0]])
-    with pytest.raises(InputError, match="'guided-struct' has no shader form"):
+    with pytest.raises(InputError, match=r"'guided-struct' needs parameter\(s\) \['labels', 'target'\]"):
         export_web(model, tmp_path / "struct", methods=("guided-struct",))
     with pytest.raises(InputError, match=r"'guided' needs parameter\(s\) \['labels', 'target'\]"):
         export_web(model, tmp_path / "bare", methods=("guided",))
 
 
-def test_cli_export_target_exports_the_guided_material(model, tmp_path):
+def test_cli_export_target_exports_the_guided_material(model, structured_model, tmp_path):
     """``dynbtf export --target``: the guided material guided_btf builds from the same options, exported as its guided
     method (hist for auto, hex when asked): the manifest carries the guidance (the target as a label field over
     --target-size x --scale repeats, the softness, the labels table), byte for byte the Python export's."""
@@ -794,6 +794,12 @@ def test_cli_export_target_exports_the_guided_material(model, tmp_path):
                  "--method", "hex")
     assert hexed.exit_code == 0, hexed.text
     assert list(json.loads((tmp_path / "hex" / "manifest.json").read_text())["methods"]) == ["guided-hex"]
+    weave = save_model(tmp_path / "weave.dbtfm", structured_model)
+    struct = _cli("export", weave, "-o", tmp_path / "struct", "--no-viewer", "--target", tmp_path / "target.png",
+                  "--method", "struct", "--cells", "2", "--target-size", "0.25")
+    assert struct.exit_code == 0, struct.text
+    entry = json.loads((tmp_path / "struct" / "manifest.json").read_text())["methods"]["guided-struct"]
+    assert entry["cells"] == [2, 2] and entry["field"] == {"width": 6, "height": 4, "size": 2.0, "wrap": "repeat"}
 
 
 def test_cli_export_target_refuses_bad_guidance_in_one_line(model, tmp_path, capsys):
@@ -810,6 +816,8 @@ def test_cli_export_target_refuses_bad_guidance_in_one_line(model, tmp_path, cap
              + ": no such image file"),
             (target + ["--method", "tile"], "--target: guided synthesis steers hist, hex or struct"),
             (target + ["--method", "hist", "--method", "hex"], "--target: exports one guided method"),
+            (target + ["--method", "struct"], "--target: guided struct chooses whole cells by class, so give its cells"),
+            (target + ["--cells", "2"], "--cells: sets struct's cells; give it with --method struct"),
             (target + ["--classes", "1"], "--classes: expected 2 to 255 classes, got 1"),
             (target + ["--softness", "2"], "--softness: expected a weight factor in [0, 1], got 2.0"),
             (target + ["--target-size", "0"], "--target-size: expected a positive, finite uv units"),
@@ -820,3 +828,75 @@ def test_cli_export_target_refuses_bad_guidance_in_one_line(model, tmp_path, cap
         err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
         assert len(err) == 1 and err[0].startswith("dynbtf: error: ") and message in err[0], (extra, err)
         assert not (tmp_path / "bad").exists()
+
+
+def _guided_struct_btf(structured_model, wrap):
+    """Guided struct on the structured model (seed 0, struct's 2 x 1 cells): the texels labelled by the 8-texel
+    columns of the element (so a cell's majority label depends on its offset), the target a 3 x 2 image over 2.4
+    repeats (``wrap``: no cell centre lies on a target texel's edge) that also asks for a label no cell has (7)."""
+    from dynbtf.material.compiler import model_arguments
+    from dynbtf.synthesis.guided_blending import GuidedCellQuilting, LabelField
+
+    h, w = structured_model.positional_plane().shape[:2]
+    labels = (np.mgrid[0:h, 0:w][1] // 8) % 2
+    target = LabelField(np.array([[0, 1, 1], [1, 0, 7]]), size=2.4, wrap=wrap)
+    synth = GuidedCellQuilting(structured_model.positional_plane().detach(), 0, labels=labels, target=target,
+                               **model_arguments(structured_model, "struct", {}))
+    return synthesized_btf(structured_model, synth)
+
+
+@browser
+@pytest.mark.browser
+@pytest.mark.parametrize("wrap", ["repeat", "clamp"])
+def test_guided_struct_shader_matches_synthesized_btf(structured_model, tmp_path, wrap):
+    """Guided struct in the shader: every cell's offset chosen by label (its own and the neighbours' whose cuts it
+    consults), the cuts and the read texel, as the library answers them (near the origin and up to 7e12 repeats)."""
+    btf = _guided_struct_btf(structured_model, wrap)
+    points, shift, wv, wl = _queries(1024, seed=4)
+    ref = btf.eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    base = synthesized_btf(structured_model, "struct", seed=0).eval(points, wv.astype(np.float64),
+                                                                     wl.astype(np.float64))
+    peak = np.abs(ref).max()
+    assert np.abs(ref - base).max() > 0.2 * peak  # the guidance shows: not struct's own choices
+    keep = _texel_edge_distance(points, btf.synthesizer.density) > np.where(shift == 0, 1e-5, 2e-3)
+    assert keep.mean() > 0.95
+    export = export_web(btf.material, tmp_path / "fp32", precision="fp32", methods=("guided-struct",))
+    entry = export.manifest["methods"]["guided-struct"]
+    assert entry["field"] == {"width": 3, "height": 2, "size": 2.4, "wrap": wrap} and "tables" in entry
+    got = eval_in_browser(export.directory, "guided-struct", points, wv, wl, local_shift=shift).rgb
+    exact = keep & (shift == 0)
+    np.testing.assert_allclose(got[exact], ref[exact], rtol=0, atol=2e-4 * peak)
+    np.testing.assert_allclose(got[keep & ~exact], ref[keep & ~exact], rtol=0, atol=5e-3 * peak)
+    if wrap == "repeat":
+        half = export_web(btf.material, tmp_path / "fp16", precision="fp16", methods=("guided-struct",))
+        assert _psnr(eval_in_browser(half.directory, "guided-struct", points[exact], wv[exact], wl[exact]).rgb,
+                     ref[exact]) >= 40.0
+
+
+def test_guided_struct_export_carries_the_cell_labels(structured_model, tmp_path):
+    """The manifest entry of guided struct: its mode, struct's tables, the cells' majority labels per offset and the
+    target image (exact int16, renumbered; a label no cell has is -1) and the target as a label field; the same when
+    the export builds it from the model with its labels and target as method parameters."""
+    from dynbtf.export.web.shader import web_module
+
+    btf = _guided_struct_btf(structured_model, "repeat")
+    synth = btf.synthesizer
+    export = export_web(btf.material, tmp_path / "web", precision="u8", methods=("guided-struct",))
+    entry = export.manifest["methods"]["guided-struct"]
+    assert entry["mode"] == web_module("guided-struct").MODE != web_module("struct").MODE
+    assert entry["cells"] == list(synth.prepared.cells) and entry["count"] == synth.prepared.count
+    assert entry["field"] == {"width": 3, "height": 2, "size": 2.4, "wrap": "repeat"}
+    table = entry["guidance"]
+    stored = np.fromfile(export.directory / table["file"], dtype="<i2")
+    nx, ny = synth.prepared.cells
+    k = synth.prepared.count
+    assert table["cell_labels"] == {"start": 0, "shape": [nx, ny, k]}
+    np.testing.assert_array_equal(stored[:nx * ny * k].reshape(nx, ny, k), synth.cell_labels.numpy())  # 0 and 1
+    assert {0, 1} <= set(np.unique(synth.cell_labels.numpy()))  # the offsets' content differs: a choice to make
+    start = table["target"]["start"]
+    np.testing.assert_array_equal(stored[start:start + 6].reshape(2, 3), [[0, 1, 1], [1, 0, -1]])
+    built = export_web(structured_model, tmp_path / "built", precision="u8", methods=("guided-struct",),
+                       method_params={"guided-struct": {"labels": synth.labels, "target": synth.target}})
+    other = built.manifest["methods"]["guided-struct"]
+    assert (built.directory / other["guidance"]["file"]).read_bytes() == \
+        (export.directory / table["file"]).read_bytes()

@@ -45,8 +45,8 @@ def export_command(
                                   "edges (clamp)."),
     width: float = typer.Option(0.05, "--width", help="With --layer: half-width (uv units) of the band around the "
                                 "mask's contour where the materials' heights decide."),
-    target: Optional[Path] = typer.Option(None, "--target", help="Guided synthesis (hist or hex steered by labels; "
-                                          "auto: hist): an image painted over the surface's uv (PNG/JPEG grey "
+    target: Optional[Path] = typer.Option(None, "--target", help="Guided synthesis (hist, hex or struct steered by "
+                                          "labels; auto: hist): an image painted over the surface's uv (PNG/JPEG grey "
                                           "levels, or EXR values in [0, 1]), cut into --classes equal bins; a point "
                                           "in bin k shows the material's class k (k-means on its decoded "
                                           "appearance, 0 the darkest). The shader runs the guided method."),
@@ -57,6 +57,9 @@ def export_command(
                                     "extends its edges (clamp)."),
     softness: float = typer.Option(0.0, "--softness", help="With --target: blend weight (0 to 1) of samples whose "
                                    "content is not of the target's class (0: left out where another sample is)."),
+    cells: Optional[int] = typer.Option(None, "--cells", help="struct: cells per exemplar repeat along u and v "
+                                         "(must divide the exemplar's sides; default: 2 where a side allows it). "
+                                         "With --target --method struct, about one cell per element."),
 ) -> None:
     """Export a synthesized BTF for real-time rendering: GPU textures, decoder weights and a shader (docs/realtime.md).
 
@@ -66,7 +69,7 @@ def export_command(
     auto; --scale is each layer's repeats per uv unit), e.g. dynbtf export new.dbtfm --layer worn.dbtfm --mask
     noise:0.5,3 -o floor-web
     With --target: one guided method whose content follows a painted image, e.g. dynbtf export leather.dbtfm
-    --target worn.png --target-size 2 -o leather-worn-web
+    --target worn.png --target-size 2 -o leather-worn-web (or --method struct --cells 8 for bricks)
     """
     from ..export.web.exporter import DEFAULT_METHODS, WEB_PRECISIONS, export_web
     from ..export.web.shader import LOCAL_REPEATS
@@ -86,19 +89,23 @@ def export_command(
     for path in (model, layer):
         if path is not None and not is_compiled_material(path):  # (a compiled material is read, and checked, later)
             read_model_metadata(path)  # a missing or damaged file is named before anything is written
+    if cells is not None and ("struct" not in (method or []) or layer is not None):
+        raise InputError("--cells: sets struct's cells; give it with --method struct (without --layer), not "
+                         f"{list(method or ['auto'])}" + (" with --layer" if layer is not None else ""))
     if target is not None:
         if layer is not None:
             raise InputError("--target: guides one material; it does not combine with a layered export (--layer)")
         _export_guided(model, output, method=method, seed=seed, scale=scale, precision=precision, viewer=viewer,
                        target=target, classes=classes, target_size=target_size, target_wrap=target_wrap,
-                       softness=softness)
+                       softness=softness, cells=cells)
         return
     if layer is not None:
         _export_layered(model, layer, output, method=method, seed=seed, scale=scale, precision=precision,
                         viewer=viewer, mask=mask, mask_size=mask_size, mask_wrap=mask_wrap, width=width)
         return
     result = export_web(model, output, precision=precision, methods=tuple(method or DEFAULT_METHODS),
-                        seed=seed, scale=scale, viewer=viewer)
+                        seed=seed, scale=scale, viewer=viewer,
+                        method_params=None if cells is None else {"struct": {"cells": int(cells)}})
     m = result.manifest
     if m.get("auto"):
         typer.echo(m["auto"]["line"])
@@ -116,7 +123,8 @@ def _echo_written(result, model: Path, output: Path, precision: str, viewer: boo
 
 
 def _export_guided(model: Path, output: Path, *, method, seed: int, scale: float, precision: str, viewer: bool,
-                   target: Path, classes: int, target_size: float, target_wrap: str, softness: float) -> None:
+                   target: Path, classes: int, target_size: float, target_wrap: str, softness: float,
+                   cells: int | None) -> None:
     """``--target``: the guided material of ``model`` (:func:`dynbtf.guided.guidance_options`, as ``dynbtf synth``
     and ``dynbtf render`` build theirs), exported as its guided method."""
     from ..export.web.exporter import export_web
@@ -129,11 +137,11 @@ def _export_guided(model: Path, output: Path, *, method, seed: int, scale: float
         raise InputError(f"--target: exports one guided method; give at most one --method, got {methods}")
     asked = "hist" if methods[0] == "auto" else methods[0]
     if asked in GUIDED_METHODS and guided_synthesizer(asked) not in web_methods():
-        guided = sorted(m for m in web_methods() if m.startswith("guided"))
+        guided = [guided_synthesizer(m) for m in GUIDED_METHODS if guided_synthesizer(m) in web_methods()]
         raise InputError(f"--target: the web shader has no form of guided {asked} ({guided_synthesizer(asked)!r}); "
                          f"it runs {guided}")
     guidance = guidance_options(target, method=methods[0], classes=classes, target_size=target_size,
-                                target_wrap=target_wrap, softness=softness)
+                                target_wrap=target_wrap, softness=softness, cells=cells)
     name = guided_synthesizer(guidance.method)
     if is_compiled_material(model):
         raise InputError(f"--target: {model} is a compiled material, which fixes its method; guide the model file "

@@ -48,8 +48,19 @@ def model_inputs(name: str) -> dict[str, str]:
 
 
 def _accepted(cls) -> list[str]:
-    """The method parameters of a synthesizer class (its constructor's keywords besides exemplar and seed)."""
-    return [p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "exemplar", "seed")]
+    """The method parameters of a synthesizer class (its constructor's keywords besides exemplar and seed; a
+    constructor that passes ``**params`` on takes those of the synthesizer class it builds on, e.g. guided struct
+    struct's)."""
+    names: list[str] = []
+    for p in inspect.signature(cls.__init__).parameters.values():
+        if p.name in ("self", "exemplar", "seed") or p.kind == inspect.Parameter.VAR_POSITIONAL:
+            continue
+        if p.kind == inspect.Parameter.VAR_KEYWORD:
+            base = next((b for b in cls.__mro__[1:] if issubclass(b, Synthesizer) and "__init__" in vars(b)), None)
+            names += [n for n in (_accepted(base) if base is not None else []) if n not in names]
+        elif p.name not in names:
+            names.append(p.name)
+    return names
 
 
 def _required(cls) -> list[str]:
@@ -81,7 +92,7 @@ def methods_with(backend: str | None = None, *, with_required: bool = False) -> 
     >>> methods_with()
     ['hex', 'hist', 'linear', 'quilt', 'struct', 'tile']
     >>> methods_with("web", with_required=True)
-    ['guided', 'guided-hex', 'hex', 'hist', 'linear', 'struct', 'tile']
+    ['guided', 'guided-hex', 'guided-struct', 'hex', 'hist', 'linear', 'struct', 'tile']
     """
     return sorted(name for name, cls in SYNTHESIZERS.items()
                   if (backend is None or backend in cls.backends) and (with_required or not _required(cls)))

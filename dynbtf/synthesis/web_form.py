@@ -7,7 +7,9 @@ A method that runs in the web shader has a ``web`` module in its package (its
 * ``ORIGIN``: what the shader's ``DynbtfOrigin.lattice`` holds for it, ``"lattice"`` (the triangle lattice's
   int64 vertex of the repeat) or ``"cells"`` (the int64 index of the repeat's first cell);
 * ``SAMPLES`` and ``HASHES``: bilinear samples of the plane and vertex hashes per pixel;
-* ``GLSL_UNIFORMS``, ``GLSL_FUNCTIONS``: its uniforms and functions (GLSL ES 3.00), added to the shader;
+* ``GLSL_UNIFORMS``, ``GLSL_FUNCTIONS``: its uniforms and functions (GLSL ES 3.00), added to the shader, each a
+  block of text or a tuple of blocks (a method built on others lists theirs and its own); a block two methods
+  share is emitted once;
 * ``GLSL_SAMPLE``: the body of its branch, which adds its weighted samples to ``acc`` (and sets ``total``, the sum
   of their weights) with the shader's building blocks (``dynbtf_triangle``, ``dynbtf_bilinear``,
   ``dynbtf_sample_texels``, ``dynbtf_blend3``); ``GLSL_AFTER``: what it does to ``acc`` after the plane's

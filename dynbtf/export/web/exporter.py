@@ -12,8 +12,9 @@ viewer page (``index.html``, no build step, no network):
   exemplar for ``linear``/``hex``, its Gaussianized PCA coefficients for ``hist``) as ``ceil(C / 4)``
   RGBA layers; the per-channel inverse transform tables of ``hist``; the luminance plane of ``hex``;
   the lattice offsets and cut tables of ``struct`` (one ``R16I`` integer texture, exact); the labels of the read
-  plane and of the target image of guided hist and hex (also one exact ``R16I`` texture; the target is laid over
-  the plane as the entry's label ``field``, whose place the repeat origin carries); the
+  plane (guided hist and hex) or the cells' majority labels per offset (guided struct, beside struct's tables) and
+  of the target image (also one exact ``R16I`` texture; the target is laid over the plane as the entry's label
+  ``field``, whose place the repeat origin carries); the
   angular planes ``f_H``, ``f_D`` (RGBA layers, rows = theta, columns = phi); and the decoder's
   weights (float32, already in std140 uniform-block order).
 * ``dynbtf.glsl`` -- the shader functions (GLSL ES 3.00): the triangle lattice, the integer
@@ -328,7 +329,7 @@ def export_web(model, out_dir, *, precision: str = "fp16", methods=DEFAULT_METHO
         Storage of the textures (see the module docstring).
     methods : sequence of {"auto"} or the methods with a web form (:func:`~dynbtf.export.web.shader.web_methods`)
         Synthesis methods to export (each with its own plane and tables); the first is the
-        viewer's default. A method that needs parameters besides the exemplar (guided hist and hex: labels and a
+        viewer's default. A method that needs parameters besides the exemplar (the guided methods: labels and a
         target) takes them from ``method_params``, or is exported as the compiled material built with them
         (``model``). ``auto`` is the model's choice (``synthesized_btf(model, "auto")``:
         ``struct`` for a structured positional plane, else ``hist``), exported under the chosen

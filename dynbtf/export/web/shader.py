@@ -219,8 +219,10 @@ def glsl_source(*, channels: int, angular_channels: int, hidden: int, layers: in
 
 
 def _once(blocks) -> list[str]:
-    """``blocks`` of GLSL with repeats left out (methods that share uniforms or functions declare them once)."""
-    return list(dict.fromkeys(blocks))
+    """``blocks`` of GLSL with repeats left out (methods that share uniforms or functions declare them once); a
+    method's blocks may be a tuple of blocks (e.g. another method's and its own), each kept once."""
+    flat = [b for block in blocks for b in ((block,) if isinstance(block, str) else block)]
+    return list(dict.fromkeys(flat))
 
 
 def _groups(n: int) -> int:

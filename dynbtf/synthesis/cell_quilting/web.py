@@ -18,7 +18,7 @@ uniform int dynbtf_cell_count;               // struct: K, the number of lattice
 uniform int dynbtf_cell_row;                 // struct: table entries per texture row
 uniform ivec2 dynbtf_cut_start;              // struct: first entry of the vertical and of the horizontal cuts
 """
-GLSL_FUNCTIONS = """// ---- lattice-aligned cell quilting (dynbtf.synthesis.cell_quilting): the cell, its hashed offset, the cuts
+GLSL_CELL_TYPES = """// ---- lattice-aligned cell quilting (dynbtf.synthesis.cell_quilting): the cell, its hashed offset, the cuts
 struct DynbtfCell {
     uvec2 cx; uvec2 cy;   // the query's own cell, int64 (low, high) words: I n + w n + column (row)
     ivec2 side;           // -1, 0 or 1 per axis: the point belongs to this neighbour of its cell (both: the diagonal one)
@@ -33,7 +33,10 @@ int dynbtf_cell_choice(uvec2 cx, uvec2 cy) {
     return int(dynbtf_fold(dynbtf_fold(dynbtf_seed_state, cx), cy) % uint(dynbtf_cell_count));
 }
 
-DynbtfCell dynbtf_cell(DynbtfOrigin o, vec2 local) {
+"""
+#: The function that answers a query's cell (its choice, the cuts, the read texel); every choice it makes is a call
+#: ``dynbtf_cell_choice(cx, cy)`` of a cell's int64 words (a variant replaces the calls: guided struct).
+GLSL_CELL = """DynbtfCell dynbtf_cell(DynbtfOrigin o, vec2 local) {
     DynbtfCell c;
     vec2 wf, f;
     dynbtf_split(local, wf, f);
@@ -81,6 +84,7 @@ DynbtfCell dynbtf_cell(DynbtfOrigin o, vec2 local) {
 }
 
 """
+GLSL_FUNCTIONS = (GLSL_CELL_TYPES, GLSL_CELL)  # the types apart: guided struct shares them, not the cell's choices
 GLSL_SAMPLE = """DynbtfCell cell = dynbtf_cell(o, local);
 dynbtf_bilinear(cell.texel, cell.t, 1.0, g0, g1, acc);"""
 GLSL_AFTER = ""

@@ -28,10 +28,10 @@ On the CPU the fused numba kernel of lattice blending runs the search (:func:`dy
 with ``guidance``); :meth:`GuidedBlending.reference_latent` is the torch path (any device), against which the tests
 hold it; footprint queries read the pyramid at the guided samples, with their steered weights (the same
 :meth:`sample_positions` in every path). The guided methods also run in the Mitsuba plugin (its ``target``
-parameter: the plugin calls this query). The web export runs guided hist and hex in the shader (the package's
-``web`` and ``web_hex`` modules: the read plane's labels and the target image as an integer table, the target laid
-over the plane as a label field of the repeat origin, the candidates' hash states and the softness as uniforms);
-it refuses guided struct (its cells' choice by label has no shader form).
+parameter: the plugin calls this query). The web export runs all three in the shader (the package's ``web``,
+``web_hex`` and ``web_struct`` modules: the read plane's labels, or the cells' majority labels per offset, and the
+target image as an integer table, the target laid over the plane as a label field of the repeat origin, the
+candidates' hash states and the softness as uniforms).
 """
 
 from __future__ import annotations
@@ -299,7 +299,7 @@ class GuidedCellQuilting(CellQuilting):
     :class:`~dynbtf.synthesis.cell_quilting.CellQuilting`'s in ``**struct``.
     """
 
-    backends: dict = {}  # no web form: the shader does not choose cells by label
+    backends = {"web": f"{__name__}.web_struct"}
 
     base_method = "struct"
 

@@ -116,17 +116,29 @@ def guidance(synthesizer) -> tuple[dict[str, WebTable], dict]:
                          f"candidates={synthesizer.candidates}")
     # the fused kernel's own arguments: the candidates' hash states, the read plane's labels, the softness
     states, labels, _, softness = synthesizer.kernel_guidance(torch.zeros((0, 2), dtype=torch.float64))
+    dense_labels, dense_target = renumbered(labels, synthesizer.target.image)
+    table = WebTable("int16", {"labels": dense_labels, "target": dense_target})
+    return {"guidance": table}, {"candidates": int(len(states)), "states": [int(s) & 0xFFFFFFFF for s in states],
+                                 "softness": float(softness), "field": target_field(synthesizer.target)}
+
+
+def renumbered(labels, target) -> tuple[np.ndarray, np.ndarray]:
+    """``labels`` (what the read content carries) and a ``target`` image as small integers that compare as they do:
+    the distinct labels in increasing order ``0, 1, ...``, a target label no content carries ``-1`` (what the
+    ``R16I`` table holds, whatever the labels' range)."""
     labels = np.asarray(labels, dtype=np.int64)
-    target = synthesizer.target.image.cpu().numpy().astype(np.int64)
+    target = np.asarray(target.cpu().numpy() if isinstance(target, torch.Tensor) else target).astype(np.int64)
     present = np.unique(labels)
     index = np.searchsorted(present, target).clip(0, max(len(present) - 1, 0))
     dense_target = np.where(present[index] == target, index, -1) if len(present) else np.full_like(target, -1)
-    dense_labels = np.searchsorted(present, labels)
-    field = {"width": int(target.shape[1]), "height": int(target.shape[0]), "size": float(synthesizer.target.size),
-             "wrap": synthesizer.target.wrap}
-    table = WebTable("int16", {"labels": dense_labels, "target": dense_target})
-    return {"guidance": table}, {"candidates": int(len(states)), "states": [int(s) & 0xFFFFFFFF for s in states],
-                                 "softness": float(softness), "field": field}
+    return np.searchsorted(present, labels), dense_target
+
+
+def target_field(target) -> dict:
+    """A :class:`~dynbtf.synthesis.guided_blending.LabelField` as the shader's label ``field`` constant
+    (:mod:`dynbtf.synthesis.web_form`)."""
+    return {"width": int(target.image.shape[1]), "height": int(target.image.shape[0]), "size": float(target.size),
+            "wrap": target.wrap}
 
 
 def form(synthesizer) -> WebForm:
