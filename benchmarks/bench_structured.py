@@ -2,30 +2,33 @@
 
 For each material (``--materials``: the structured woven_fabric, ceramic_tiles and brick_wall, the stochastic
 leather and stone; 128 x 128 simulated BTFs), a fitted Triple Plane is read from ``--models DIR/<material>.dbtfm``
-or, when missing, simulated and fitted there (``dynbtf fit`` with ``--fit-minutes`` as its time budget; the
-default recipe when not given). Then, for each method (tile, hist, hex, quilt, struct, and what ``auto``
-picks, printed with its measurement) it measures:
+or, when missing, fitted there (``dynbtf fit 'sim:<material>?size=128' --repr triple``, with ``--fit-minutes`` as
+the whole command's time budget; the default recipe, until converged, when not given). Then, for each method (tile,
+hist, hex, quilt, struct, and what ``auto`` picks, printed with its measurement) and each synthesis seed of
+``--seeds`` (three by default; tile draws nothing random and is measured once) it measures:
 
 * **coherence p90 / identity** (:mod:`dynbtf.synthesis.coherence`): the synthesized area at one pixel per
   texel, decoded at view (0, 0) and light (40, 30), ``scale`` repeats on a side (``--scales``, 8 and 25)
   far from the origin (1e6 repeats) -- its central window of at most 1024 x 1024 texels (8 x 8 repeats of
   a 128-texel exemplar; the synthesis is stationary, so a window's patches are distributed as the whole
   area's) -- 256 random 16 x 16 patches against every periodic position of the exemplar decoded the same
-  way; medians over ``--seeds`` synthesis seeds (the spread is printed too).
-  Quilting is measured at the first scale only (its plane is generated up front: 25 x 25 repeats of a
+  way. Quilting is measured at the first scale only (its plane is generated up front: 25 x 25 repeats of a
   128-texel plane are 655 MB);
 * **repetition** and **RGB W1/std** (max over three (view, light) pairs) from the quality report
-  (:func:`dynbtf.synthesis.quality.quality_report`, 8 x 8 repeats, seed 0);
+  (:func:`dynbtf.synthesis.quality.quality_report`, 8 x 8 repeats, the synthesis at the first scale);
 * **cost**: ``SynthesizedBTF.eval`` per query on the same 2^20 random far-away queries, best of
-  ``--repeats`` interleaved calls, as a ratio to hist's;
+  ``--repeats`` interleaved calls, as a ratio to hist's (seed 0);
 * **storage**: the synthesizer's tables over the positional plane's bytes; **build**: the off-line
   construction's seconds (struct's cut tables, cache off).
 
+Each quality number is kept per seed, with the mean over the seeds and their min-max range.
 Finally struct's off-line construction on a 400 x 400 x 16 plane (the first structured model's plane
 and appearance resampled to 400 x 400).
 
-With ``--images DIR`` it writes ``structured_<material>.png`` for each structured material: rows 8x and 25x
-(the unit uv square far from the origin, 512 px, 3 x 3 samples per pixel), columns tile | hist | auto.
+It writes ``--json`` (default ``benchmarks/results/structured.json``, the data of docs/results.md's table, rendered
+by ``benchmarks/tables.py``). With ``--images DIR`` it writes ``structured_<material>.png`` for each structured
+material: rows 8x and 25x (the unit uv square far from the origin, 512 px, 3 x 3 samples per pixel), columns
+tile | hist | auto.
 
 Run: ``python benchmarks/bench_structured.py --models bench-models [--fit-minutes 5] [--images docs/images]``.
 """
@@ -33,7 +36,6 @@ Run: ``python benchmarks/bench_structured.py --models bench-models [--fit-minute
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 import time
@@ -50,17 +52,15 @@ WINDOW = 1024
 
 
 def ensure_model(folder: Path, material: str, minutes: float | None) -> Path:
-    """``folder/<material>.dbtfm``, simulated and fitted (by the dynbtf command) when missing."""
+    """``folder/<material>.dbtfm``, a Triple Plane of ``sim:<material>?size=128`` fitted (by the dynbtf command,
+    ``minutes`` its whole time budget) when missing."""
     model = folder / f"{material}.dbtfm"
     if model.exists():
         return model
     folder.mkdir(parents=True, exist_ok=True)
-    source = folder / f"{material}.dbtf"
-    if not source.exists():
-        subprocess.run([sys.executable, "-m", "dynbtf", "simulate", material, "-o", str(source)], check=True)
-    command = [sys.executable, "-m", "dynbtf", "fit", str(source), "-o", str(model)]
+    command = [sys.executable, "-m", "dynbtf", "fit", f"sim:{material}?size=128", "-o", str(model), "--repr", "triple"]
     if minutes is not None:
-        command += ["--max-minutes", str(minutes)]
+        command += ["--minutes", str(minutes)]
     subprocess.run(command, check=True)
     return model
 
@@ -116,97 +116,159 @@ def comparison_image(model: Path, material: str, folder: Path, size: int = 512) 
     return path
 
 
+def _spread(values: list[float]) -> dict:
+    """``{"mean", "range", "per_seed"}`` of one number measured per seed."""
+    return {"mean": float(np.mean(values)), "range": [float(min(values)), float(max(values))],
+            "per_seed": [float(v) for v in values]}
+
+
+def measure_material(model: Path, material: str, scales: list[float], seeds: list[int], repeats: int
+                     ) -> tuple[list[dict], dict]:
+    """A row per method: coherence and identity per scale, repetition and RGB W1/std, each per seed (mean, range),
+    cost per query against hist's, storage and build time (printed as a table); and auto's choice."""
+    from dynbtf.synthesis.quality import quality_report
+    from dynbtf.synthesized import synthesized_btf
+
+    auto = synthesized_btf(model, "auto", scale=scales[0], seed=0)
+    choice = auto.synthesizer.choice
+    print(f"\n== {material} ({model}): {choice.line}", flush=True)
+    plane_bytes = auto.synthesizer.exemplar.numel() * 4
+    rows, first = [], {}
+    for method in METHODS:
+        params = {"repeats": scales[0], "progress": False} if method == "quilt" else {}
+        method_seeds = seeds[:1] if method == "tile" else seeds  # tiling draws nothing random
+        per_scale: dict[float, list[dict]] = {}
+        quality = []
+        for seed in method_seeds:
+            start = time.perf_counter()
+            btf = synthesized_btf(model, method, scale=scales[0], seed=seed, **params)
+            built = time.perf_counter() - start
+            if seed == method_seeds[0]:
+                first[method] = (btf, built)
+            for scale in scales:
+                if method == "quilt" and scale != scales[0]:
+                    continue
+                b = btf if scale == scales[0] else synthesized_btf(model, method, scale=scale, seed=seed, **params)
+                per_scale.setdefault(scale, []).append(coherence(b, scale, seed))
+            quality.append(quality_report(btf, repeats=8, seed=seed))
+        btf, built = first[method]
+        measured = sorted(per_scale)
+        row = {"material": material, "method": method, "chosen": choice.method == method,
+               "seeds": list(method_seeds), "scales": measured,
+               "coherence_p90": [_spread([r["p90"] for r in per_scale[s]]) for s in measured],
+               "identity": [_spread([r["identity"] for r in per_scale[s]]) for s in measured],
+               "repetition": _spread([q["repetition"]["score"] for q in quality]),
+               "rgb_w1": _spread([q["rgb_w1_over_std_max"] for q in quality]),
+               "storage_vs_plane": btf.synthesizer.storage_bytes() / plane_bytes,
+               "build_seconds": btf.synthesizer.prepared.build_seconds if method == "struct" else built}
+        if measured != sorted(scales):
+            row["note"] = " and ".join(f"{s:g}x" for s in measured) + " only"
+        if row["chosen"]:
+            row["bold"] = ["method", "coherence_p90", "identity"] if method == "struct" else ["method"]
+        rows.append(row)
+        print(f"   measured {method}", flush=True)
+    costs = cost_per_query({m: b for m, (b, _) in first.items() if m != "quilt"}, repeats)
+    for row in rows:
+        cost = costs.get(row["method"])
+        row["cost_vs_hist"] = None if cost is None else cost / costs["hist"]
+        row["ns_per_query"] = None if cost is None else cost * 1e9
+
+    def cell(spread: dict) -> str:
+        return f"{spread['mean']:.3f} ({spread['range'][0]:.3f}-{spread['range'][1]:.3f})"
+
+    print(f"{'method':<8} " + " ".join(f"{'coh p90 @' + format(s, 'g'):>21} {'ident @' + format(s, 'g'):>21}"
+                                       for s in scales)
+          + f" {'repetition':>21} {'W1/std RGB':>21} {'cost/hist':>9} {'ns/query':>8} {'storage':>8} {'build s':>8}")
+    for row in rows:
+        cells = []
+        for s in scales:
+            if s in row["scales"]:
+                k = row["scales"].index(s)
+                cells.append(f"{cell(row['coherence_p90'][k]):>21} {cell(row['identity'][k]):>21}")
+            else:
+                cells.append(f"{'-':>21} {'-':>21}")
+        cost = (f"{row['cost_vs_hist']:>9.2f} {row['ns_per_query']:>8.0f}" if row["cost_vs_hist"] is not None
+                else f"{'-':>9} {'-':>8}")
+        name = row["method"] + ("*" if row["chosen"] else "")
+        print(f"{name:<8} " + " ".join(cells) + f" {cell(row['repetition']):>21} {cell(row['rgb_w1']):>21} {cost} "
+              f"{row['storage_vs_plane']:>7.2f}x {row['build_seconds']:>8.2f}")
+    print("(* = auto's choice; each cell: mean over the seeds (min-max))")
+    return rows, {"method": choice.method, "strength": choice.strength, "line": choice.line}
+
+
+def large_build(model: Path, material: str) -> dict:
+    """struct's off-line construction on the model's plane and appearance resampled to 400 x 400 x C."""
+    import torch
+
+    from dynbtf.material.compiler import decoded_appearance
+    from dynbtf.representations.model_file import load_model
+    from dynbtf.synthesis.cell_quilting import build_cell_tables
+
+    rep, _ = load_model(model)
+    exemplar = rep.positional_plane().detach()
+    plane = exemplar.permute(2, 0, 1)[None]
+    guide = decoded_appearance(rep, exemplar).permute(2, 0, 1)[None]  # what struct cuts along (its model input)
+    big = torch.nn.functional.interpolate(plane, size=(400, 400), mode="bilinear")[0].permute(1, 2, 0)
+    big_guide = torch.nn.functional.interpolate(guide, size=(400, 400), mode="bilinear")[0].permute(1, 2, 0)
+    start = time.perf_counter()
+    tables = build_cell_tables(big.contiguous(), guide=big_guide.contiguous())
+    seconds = time.perf_counter() - start
+    channels = int(big.shape[-1])
+    ratio = tables.storage_bytes() / (400 * 400 * channels * 4)
+    print(f"\nstruct tables at 400 x 400 x {channels}: {seconds:.1f} s, {tables.storage_bytes() / 1e6:.2f} MB "
+          f"({ratio:.2f}x the plane)")
+    return {"material": material, "method": "struct", "size": [400, 400, channels], "build_seconds": seconds,
+            "storage_vs_plane": ratio}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", default="bench-models", help="folder of <material>.dbtfm (fitted when missing)")
     parser.add_argument("--materials", default=",".join(STRUCTURED + STOCHASTIC))
-    parser.add_argument("--fit-minutes", type=float, default=None, help="time budget of each missing fit")
+    parser.add_argument("--fit-minutes", type=float, default=None,
+                        help="time budget of each missing fit (the whole dynbtf fit command)")
     parser.add_argument("--scales", default="8,25")
-    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--seeds", type=int, default=3, help="synthesis seeds 0..N-1 (each quality number per seed)")
     parser.add_argument("--repeats", type=int, default=3, help="timed calls per method (the best is kept)")
-    parser.add_argument("--json", default=None, help="also write every number to this JSON file")
+    parser.add_argument("--json", type=Path, default=Path(__file__).resolve().parent / "results" / "structured.json",
+                        help="where to write every number (the docs' table data)")
     parser.add_argument("--images", default=None, help="folder for structured_<material>.png (tile | hist | auto)")
     args = parser.parse_args()
 
-    import torch
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from results_io import header, model_record, write_result
 
-    from dynbtf.synthesis.cell_quilting import build_cell_tables
-    from dynbtf.synthesis.quality import quality_report
-    from dynbtf.synthesized import synthesized_btf
+    from dynbtf.synthesis.structure import STRUCTURE_THRESHOLD
 
     scales = [float(s) for s in args.scales.split(",")]
-    results = []
-    for material in [m.strip() for m in args.materials.split(",") if m.strip()]:
+    seeds = list(range(args.seeds))
+    materials = [m.strip() for m in args.materials.split(",") if m.strip()]
+    rows, choices, models = [], {}, {}
+    for material in materials:
         model = ensure_model(Path(args.models), material, args.fit_minutes)
-        auto = synthesized_btf(model, "auto", scale=scales[0], seed=0)
-        print(f"\n== {material} ({model}): {auto.synthesizer.choice.line}", flush=True)
-        plane_bytes = auto.synthesizer.exemplar.numel() * 4
-        btfs = {}
-        for method in METHODS:
-            params = {"repeats": scales[0], "progress": False} if method == "quilt" else {}
-            start = time.perf_counter()
-            btfs[method] = synthesized_btf(model, method, scale=scales[0], seed=0, **params)
-            built = time.perf_counter() - start
-            row = {"material": material, "method": method, "auto": auto.synthesizer.name == method,
-                   "storage_ratio": btfs[method].synthesizer.storage_bytes() / plane_bytes,
-                   "build_seconds": (btfs[method].synthesizer.prepared.build_seconds if method == "struct" else built)}
-            for scale in scales:
-                if method == "quilt" and scale != scales[0]:
-                    continue
-                runs = [coherence(btfs[method] if seed == 0 and scale == scales[0] else
-                                  synthesized_btf(model, method, scale=scale, seed=seed, **params), scale, seed)
-                        for seed in range(args.seeds)]
-                row[f"p90@{scale:g}"] = [r["p90"] for r in runs]
-                row[f"identity@{scale:g}"] = [r["identity"] for r in runs]
-            q = quality_report(btfs[method], repeats=8)
-            row["repetition"] = q["repetition"]["score"]
-            row["rgb_w1"] = q["rgb_w1_over_std_max"]
-            results.append(row)
-            print(f"   measured {method}", flush=True)
-        costs = cost_per_query({m: b for m, b in btfs.items() if m != "quilt"}, args.repeats)
-        for row in results:
-            if row["material"] == material:
-                row["cost_vs_hist"] = costs[row["method"]] / costs["hist"] if row["method"] in costs else None
-                row["ns_per_query"] = costs[row["method"]] * 1e9 if row["method"] in costs else None
-
-        head = (f"{'method':<8} " + " ".join(f"{'coh p90 @' + format(s, 'g'):>13} {'ident @' + format(s, 'g'):>9}"
-                                             for s in scales)
-                + f" {'repetition':>10} {'W1/std RGB':>10} {'cost/hist':>9} {'ns/query':>8} {'storage':>8} {'build s':>8}")
-        print(head)
-        for row in results:
-            if row["material"] != material:
-                continue
-            cells = []
-            for s in scales:
-                p = row.get(f"p90@{s:g}")
-                i = row.get(f"identity@{s:g}")
-                cells.append(f"{np.median(p):>6.3f}±{np.ptp(p) / 2:<6.3f} {np.median(i):>9.3f}" if p else f"{'-':>13} {'-':>9}")
-            cost = f"{row['cost_vs_hist']:>9.2f} {row['ns_per_query']:>8.0f}" if row["cost_vs_hist"] is not None \
-                else f"{'-':>9} {'-':>8}"
-            name = row["method"] + ("*" if row["auto"] else "")
-            print(f"{name:<8} " + " ".join(cells) + f" {row['repetition']:>10.3f} {row['rgb_w1']:>10.4f} {cost} "
-                  f"{row['storage_ratio']:>7.2f}x {row['build_seconds']:>8.2f}")
-        print("(* = auto's choice; coherence: median over seeds ± half the range)")
+        models[material] = model_record(model)
+        material_rows, choices[material] = measure_material(model, material, scales, seeds, args.repeats)
+        rows += material_rows
         if args.images and material in STRUCTURED:
             print(f"   wrote {comparison_image(model, material, Path(args.images))}")
+    first = next((m for m in materials if m in STRUCTURED), None)
+    large = large_build(Path(args.models) / f"{first}.dbtfm", first) if first is not None else None
 
-    # off-line construction at full size: 400 x 400 x 16
-    first = next((m for m in args.materials.split(",") if m in STRUCTURED), None)
-    if first is not None:
-        btf = synthesized_btf(Path(args.models) / f"{first}.dbtfm", "tile")
-        plane = btf.synthesizer.exemplar.permute(2, 0, 1)[None]
-        guide = btf._decoded_appearance(btf.synthesizer.exemplar).permute(2, 0, 1)[None]
-        big = torch.nn.functional.interpolate(plane, size=(400, 400), mode="bilinear")[0].permute(1, 2, 0)
-        big_guide = torch.nn.functional.interpolate(guide, size=(400, 400), mode="bilinear")[0].permute(1, 2, 0)
-        start = time.perf_counter()
-        tables = build_cell_tables(big.contiguous(), guide=big_guide.contiguous())
-        seconds = time.perf_counter() - start
-        print(f"\nstruct tables at 400 x 400 x 16: {seconds:.1f} s, {tables.storage_bytes() / 1e6:.2f} MB "
-              f"({tables.storage_bytes() / (400 * 400 * 16 * 4):.2f}x the plane)")
-        results.append({"material": first, "method": "struct", "size": 400, "build_seconds": seconds,
-                        "storage_ratio": tables.storage_bytes() / (400 * 400 * 16 * 4)})
-    if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=1, default=float))
+    fits = (f"a Triple Plane fitted by `dynbtf fit 'sim:<material>?size=128' --repr triple --minutes "
+            f"{args.fit_minutes:g}`" if args.fit_minutes is not None else "a Triple Plane fitted by `dynbtf fit "
+            "'sim:<material>?size=128' --repr triple` (until converged)")
+    psnr = [m["held_out_psnr"] for m in models.values() if m.get("held_out_psnr") is not None]
+    fits += f" (held-out PSNR {min(psnr):.1f}-{max(psnr):.1f} dB)" if psnr else ""
+    write_result(args.json, header("structured", "bench_structured.py") | {
+        "conditions": f"128 x 128 simulated BTFs, each {fits}; synthesized far from the origin at "
+                      f"{' and '.join(f'{s:g}x' for s in scales)}, {len(seeds)} synthesis seeds (tile: one, it draws "
+                      "nothing random); each quality number the mean over the seeds (min-max); coherence and "
+                      "identity at view (0, 0), light (40, 30), repetition and RGB W1/std from the quality report "
+                      f"(8 x 8 repeats at {scales[0]:g}x); cost per query in `SynthesizedBTF.eval` relative to "
+                      "hist's in the same run (seed 0); storage relative to the positional plane",
+        "scales": scales, "seeds": seeds, "structured": [m for m in materials if m in STRUCTURED],
+        "structure_threshold": STRUCTURE_THRESHOLD, "models": models, "choices": choices, "rows": rows,
+        "large_build": large})
 
 
 if __name__ == "__main__":

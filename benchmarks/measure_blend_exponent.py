@@ -2,28 +2,33 @@
 
 Usage::
 
-    python benchmarks/measure_blend_exponent.py MODEL.dbtfm [MODEL2.dbtfm ...] [--out exponent.json] [--diagnose]
+    python benchmarks/measure_blend_exponent.py MODEL.dbtfm [MODEL2.dbtfm ...] [--seeds 3] [--diagnose]
 
 Per model, for tile, hex, hist with ``gamma`` in :data:`GAMMAS` (and without decorrelation at
-gamma 1 and 7) and a *dithered selection* prototype (defined here, not in the library): the
-quality report's numbers (feature W1/std, RGB W1/std, RGB std ratio, repetition, verbatim
-fraction) plus a **speckle** score: the variance of the 4-neighbour Laplacian of the decoded
-luminance over 4 x 4 repeats at texel centres, divided by plain tiling's (1 = the exemplar's
-own fine detail; blended features that decode to noise raise it), mean over two (view, light)
-pairs. ``--diagnose`` adds the point-wise analysis behind the cause (first model only):
+gamma 1 and 7) and a *dithered selection* prototype (defined here, not in the library), and for
+each synthesis seed of ``--seeds`` (three by default; tile draws nothing random and is measured
+once): the quality report's numbers (feature W1/std, RGB W1/std, RGB std ratio, repetition,
+verbatim fraction; 8 x 8 repeats at 8x), the **area blended** (the share of texel centres, over
+4 x 4 repeats, whose largest blending weight is below 0.9) plus a **speckle** score: the variance
+of the 4-neighbour Laplacian of the decoded luminance over 4 x 4 repeats at texel centres, divided
+by plain tiling's (1 = the exemplar's own fine detail; blended features that decode to noise raise
+it), mean over two (view, light) pairs. Each number is kept per seed with the mean over the seeds
+and their min-max range; the models are described from their files (kind, source, training,
+held-out PSNR). It writes ``--json`` (default ``benchmarks/results/blend_exponent.json``, the data
+of docs/results.md's table, rendered by ``benchmarks/tables.py``). ``--diagnose`` adds the point-wise analysis behind the cause (first model only):
 decoded RGB std of blends of random texels per range of the variance-preserving factor,
 of the exemplar's features plus Gaussian noise, and of fresh samples with the exemplar's
 marginals and covariance, and of the remedies that did not work (partial variance
 normalization, blending whitened coefficients without the transforms, a Gaussianized joint
 distribution) or are not dynamic (snapping to the nearest exemplar vector). ``--figure PNG`` draws the comparison image of docs/synthesis.md
 (rows: the models; columns: :data:`FIGURE_COLUMNS`). About 1 min per model (one core) plus 1 min
-for ``--diagnose``.
+for ``--diagnose``, times the seeds.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -65,9 +70,10 @@ class DitheredSelection(LatticeBlending):
 
     mode = 0
 
-    def __init__(self, exemplar, seed: int = 0, *, gamma: float = 7.0, **kw) -> None:
+    def __init__(self, exemplar, seed: int = 0, *, gamma: float = 7.0, tileable="auto", band: int | None = None,
+                 fast: bool | None = None, prepared=None) -> None:
         self.gamma = float(gamma)
-        super().__init__(exemplar, seed, fast=False, **kw)
+        super().__init__(exemplar, seed, tileable=tileable, band=band, fast=False, prepared=prepared)
 
     def reference_latent(self, uv):
         uv_samples, bary = self.sample_positions(uv)
@@ -80,9 +86,13 @@ class DitheredSelection(LatticeBlending):
         return {"gamma": self.gamma, **super().parameters()}
 
 
-def variants():
+def variants(table_only: bool = False):
+    """(name, method, parameters) of each variant measured; ``table_only``: those of the docs' table (tile, hex,
+    hist at each exponent of :data:`GAMMAS`)."""
     out = [("tile", "tile", {}), ("hex", "hex", {})]
     out += [(f"hist gamma={g:g}", "hist", {"gamma": g}) for g in GAMMAS]
+    if table_only:
+        return out
     out += [(f"hist gamma={g:g}, no decorrelation", "hist", {"gamma": g, "decorrelate": False}) for g in (1.0, 7.0)]
     out += [(f"dithered selection gamma={g:g} (prototype)", "dither_prototype", {"gamma": g}) for g in (7.0, 15.0)]
     return out
@@ -100,25 +110,58 @@ def speckle_energy(btf: SynthesizedBTF, texels: tuple[int, int]) -> list[float]:
             for v, l in SPECKLE_PAIRS]
 
 
-def measure(path: str) -> list[dict]:
+def blended_area(synth, texels: tuple[int, int], side: int = 4, threshold: float = 0.9) -> float:
+    """The share of texel centres over ``side x side`` repeats whose largest blending weight is below
+    ``threshold`` (0 for a synthesizer that does not blend three samples)."""
+    if not isinstance(synth, LatticeBlending):
+        return 0.0
+    h, w = texels
+    v, u = (np.arange(side * h) + 0.5) / h, (np.arange(side * w) + 0.5) / w
+    uu, vv = np.meshgrid(u, v)
+    uv = torch.from_numpy(np.stack([uu.ravel(), vv.ravel()], -1))
+    uv_samples, bary = synth.sample_positions(uv)
+    if hasattr(synth, "gamma"):  # hist (its blend is not linear in the samples) and the dithered prototype
+        weights = blend_weights(bary, synth.gamma)
+    else:  # a linear blend: blending the unit vectors gives the weights
+        weights = synth.blend(torch.eye(3, dtype=torch.float64).expand(len(bary), 3, 3), bary, uv_samples)
+    return float((weights.max(-1).values < threshold).double().mean())
+
+
+def _spread(values: list[float]) -> dict:
+    """``{"mean", "range", "per_seed"}`` of one number measured per seed."""
+    return {"mean": float(np.mean(values)), "range": [float(min(values)), float(max(values))],
+            "per_seed": [float(v) for v in values]}
+
+
+def measure(path: str, seeds: list[int], label: str | None = None, table_only: bool = False) -> list[dict]:
+    """A row per variant: the quality report's numbers, the area blended and the speckle, each per seed."""
     rep, _ = load_model(path)
     texels = tuple(rep.positional_plane().shape[:2])
     rows, tile_speckle = [], None
-    for name, method, params in variants():
-        btf = synthesized_btf(rep, method, scale=8.0, **params)
-        r = quality_report(btf, repeats=8)
-        speckle = speckle_energy(synthesized_btf(rep, btf.synthesizer, scale=1.0), texels)
-        tile_speckle = speckle if method == "tile" else tile_speckle
-        row = {"model": Path(path).name, "variant": name,
-               "feature_w1_mean": r["feature_w1_over_std_mean"], "feature_w1_max": r["feature_w1_over_std_max"],
-               "sliced": r["feature_sliced_w1_over_std"], "rgb_w1_max": r["rgb_w1_over_std_max"],
-               "rgb_std_ratio": [float(np.mean(p["std_ratio"])) for p in r["rgb"]],
-               "repetition": r["repetition"]["score"], "verbatim": r["verbatim_fraction"],
-               "speckle": float(np.mean([s / t for s, t in zip(speckle, tile_speckle)]))}
+    for name, method, params in variants(table_only):
+        per_seed = []
+        for seed in (seeds[:1] if method == "tile" else seeds):
+            btf = synthesized_btf(rep, method, scale=8.0, seed=seed, **params)
+            r = quality_report(btf, repeats=8, seed=seed)
+            speckle = speckle_energy(synthesized_btf(rep, btf.synthesizer, scale=1.0), texels)
+            tile_speckle = speckle if method == "tile" else tile_speckle
+            per_seed.append({
+                "feature_w1_mean": r["feature_w1_over_std_mean"], "feature_w1_max": r["feature_w1_over_std_max"],
+                "sliced": r["feature_sliced_w1_over_std"], "rgb_w1_max": r["rgb_w1_over_std_max"],
+                "rgb_std_ratio": float(np.mean([np.mean(p["std_ratio"]) for p in r["rgb"]])),
+                "repetition": r["repetition"]["score"], "verbatim": r["verbatim_fraction"],
+                "area_blended": blended_area(btf.synthesizer, texels),
+                "speckle": float(np.mean([s / t for s, t in zip(speckle, tile_speckle)]))})
+        row = {"model": label or Path(path).stem.replace("_", " "), "variant": name, "method": method,
+               "gamma": params.get("gamma"), "decorrelate": params.get("decorrelate", True),
+               "seeds": list(seeds[:1] if method == "tile" else seeds),
+               **{key: _spread([s[key] for s in per_seed]) for key in per_seed[0]}}
         rows.append(row)
-        print(f"{row['model']:<34} {name:<44} feat {row['feature_w1_mean']:.4f}/{row['feature_w1_max']:.4f} "
-              f"RGB {row['rgb_w1_max']:.4f} (std x{min(row['rgb_std_ratio']):.2f}-{max(row['rgb_std_ratio']):.2f}) "
-              f"rep {row['repetition']:.3f} verbatim {row['verbatim']:.2f} speckle {row['speckle']:.2f}", flush=True)
+        m = {key: value["mean"] for key, value in row.items() if isinstance(value, dict)}
+        print(f"{row['model']:<24} {name:<44} feat {m['feature_w1_mean']:.4f}/{m['feature_w1_max']:.4f} "
+              f"RGB {m['rgb_w1_max']:.4f} ({row['rgb_w1_max']['range'][0]:.4f}-{row['rgb_w1_max']['range'][1]:.4f}) "
+              f"std x{m['rgb_std_ratio']:.2f} rep {m['repetition']:.3f} verbatim {m['verbatim']:.2f} "
+              f"blended {100 * m['area_blended']:.0f}% speckle {m['speckle']:.2f}", flush=True)
     return rows
 
 
@@ -251,19 +294,46 @@ def figure(paths: list[str], out: Path, side: int = 96, zoom: int = 2) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("models", nargs="+")
-    parser.add_argument("--out", default="exponent.json")
+    parser.add_argument("--labels", default=None, help="comma-separated model names for the table (default: the "
+                                                       "file names, underscores as spaces)")
+    parser.add_argument("--seeds", type=int, default=3, help="synthesis seeds 0..N-1 (each number per seed)")
+    parser.add_argument("--json", type=Path,
+                        default=Path(__file__).resolve().parent / "results" / "blend_exponent.json",
+                        help="where to write every number (the docs' table data)")
+    parser.add_argument("--table-only", action="store_true",
+                        help="only the docs' table's variants (no undecorrelated hist, no dithered prototype)")
     parser.add_argument("--diagnose", action="store_true")
     parser.add_argument("--figure", default=None, help="also write a comparison PNG (rows: models) here")
     parser.add_argument("--no-sweep", action="store_true", help="skip the per-model table (e.g. only --figure)")
     args = parser.parse_args()
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from results_io import header, model_record, write_result
+
+    from dynbtf.synthesis.histogram_blending import DEFAULT_GAMMA
+
+    labels = args.labels.split(",") if args.labels else [None] * len(args.models)
+    if len(labels) != len(args.models):
+        parser.error(f"--labels: {len(labels)} names for {len(args.models)} models")
     if args.figure:
         figure(args.models, Path(args.figure))
-    result = {"rows": [] if args.no_sweep else [row for path in args.models for row in measure(path)]}
+    seeds = list(range(args.seeds))
+    rows = [] if args.no_sweep else [row for path, label in zip(args.models, labels)
+                                     for row in measure(path, seeds, label, args.table_only)]
+    if not rows and not args.diagnose:
+        return
+    result = header("blend_exponent", "measure_blend_exponent.py") | {
+        "conditions": f"hist, hex and tile at 8x, {len(seeds)} synthesis seeds (tile: one, it draws nothing random); "
+                      "RGB W1/std: the quality report's, max over three (view, light) pairs, 8 x 8 repeats; each "
+                      "number the mean over the seeds (min-max); area blended: texel centres over 4 x 4 repeats "
+                      "whose largest blending weight is below 0.9",
+        "gammas": list(GAMMAS), "default_gamma": DEFAULT_GAMMA, "seeds": seeds,
+        "models": [dict(model_record(path), label=row_label)
+                   for path, row_label in zip(args.models, [l or Path(p).stem.replace("_", " ")
+                                                            for l, p in zip(labels, args.models)])],
+        "rows": rows}
     if args.diagnose:
         result["diagnosis"] = diagnose(args.models[0])
-    if result["rows"] or args.diagnose:
-        Path(args.out).write_text(json.dumps(result, indent=1))
-        print(f"wrote {args.out}")
+    write_result(args.json, result)
 
 
 if __name__ == "__main__":

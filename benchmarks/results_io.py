@@ -41,6 +41,25 @@ def header(benchmark: str, script: str) -> dict:
             "commit": commit(), "cpu": cpu_model(), "cpu_isa": hardware_isa(), "cores": os.cpu_count()}
 
 
+def model_record(path: str | Path) -> dict:
+    """What a benchmark records of a fitted model it read: its file name, kind, source, training and held-out PSNR
+    (from the model file's provenance; null where it does not say)."""
+    from dynbtf.representations.model_file import read_model_metadata
+
+    meta = read_model_metadata(path)
+    prov = meta.get("provenance") or {}
+    history = prov.get("history") or []
+    psnr = prov.get("held_out_psnr_monitor")
+    if psnr is None and history:
+        psnr = history[-1].get("held_out_psnr")
+    seconds = prov.get("training_seconds")
+    source = prov.get("source") or {}
+    size = [source["height"], source["width"]] if "height" in source and "width" in source else None
+    return {"file": Path(path).name, "kind": meta.get("kind"), "source": source.get("name"), "size": size,
+            "epochs": prov.get("epochs_completed"), "training_minutes": None if seconds is None else seconds / 60,
+            "held_out_psnr": psnr}
+
+
 def write_result(path: Path, result: dict) -> None:
     """Write ``result`` as JSON to ``path`` (atomically: a temporary file renamed)."""
     path.parent.mkdir(parents=True, exist_ok=True)

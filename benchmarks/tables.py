@@ -442,9 +442,18 @@ def _transposed(points: list[dict], *rows: tuple) -> str:
     return "\n".join(_head(label, *map(cell, points)) + [_line(label, *map(cell, points)) for label, cell in rest])
 
 
+#: Measured rows whose result comes from a benchmark's data (``"from"``: the data file, rendered by the function).
+_MEASURED_FROM = {"structured": "structured_summary"}
+
+
 def measured(data: dict) -> str:
-    """README.md's Measured: a line per result, each pointing at its table in docs/results.md."""
-    return _prose(data, ("what", "what"), ("result", "result"), spaced=True)
+    """README.md's Measured: a line per result, each pointing at its table in docs/results.md; a row with
+    ``"from"`` takes its result from that benchmark's data (:data:`_MEASURED_FROM`), the others are recorded."""
+    lines = _head("what", "result", spaced=True)
+    for r in data["rows"]:
+        result = (globals()[_MEASURED_FROM[r["from"]]](_load(r["from"])) if "from" in r else _filled(r, "result"))
+        lines.append(_line(_filled(r, "what"), result))
+    return "\n".join(lines)
 
 
 def _quality(part: dict) -> str:
@@ -747,39 +756,233 @@ def filtering(data: dict) -> str:
     return "\n".join(lines)
 
 
+def _spread(spread: dict, spec: str, unit: str = "", scale: float = 1.0) -> str:
+    """A number measured per seed: ``0.049 (0.047-0.051)``, the mean and the min-max (the mean alone where the
+    range rounds to one value)."""
+    mean, (lo, hi) = (format(scale * spread["mean"], spec), [format(scale * v, spec) for v in spread["range"]])
+    return f"{mean}{unit}" if lo == hi else f"{mean}{unit} ({lo}-{hi}{unit})"
+
+
+def _exponent_table(data: dict) -> dict:
+    """measure_blend_exponent.py's rows by model: ``{label: {"tile": spread, "hex": spread, gamma: spread, ...}}``
+    (RGB W1/std; hist with decorrelation), with ``"area"`` and ``"verbatim"`` the same per column."""
+    table: dict = {}
+    for r in data["rows"]:
+        if r["method"] in ("tile", "hex") or (r["method"] == "hist" and r["decorrelate"]):
+            column = r["gamma"] if r["method"] == "hist" else r["method"]
+            table.setdefault(r["model"], {})[column] = r
+    return table
+
+
+def _pooled(rows: list[dict], key: str) -> dict:
+    """The mean of the rows' means of ``key``, and the min-max of every row's per-seed values."""
+    values = [v for r in rows for v in r[key]["per_seed"]]
+    return {"mean": sum(r[key]["mean"] for r in rows) / len(rows), "range": [min(values), max(values)]}
+
+
+def _exponent_findings(data: dict) -> dict:
+    """What the exponent table shows: gamma 1 over the default per model, the default against hex and the largest
+    exponent, the area blended."""
+    table, gammas, default = _exponent_table(data), data["gammas"], data["default_gamma"]
+    w1 = {m: {c: r["rgb_w1_max"]["mean"] for c, r in cols.items()} for m, cols in table.items()}
+    top = max(gammas)
+    area = {c: _pooled([cols[c] for cols in table.values()], "area_blended")["mean"] for c in (*gammas, "hex")}
+    return {"models": len(w1), "gain": [min(v[1.0] / v[default] for v in w1.values()),
+                                        max(v[1.0] / v[default] for v in w1.values())],
+            "below_hex": [m for m, v in w1.items() if v[default] < v["hex"]],
+            "top": top, "top_lower": [m for m, v in w1.items() if v[top] < v[default]],
+            "best": {m: min(gammas, key=lambda g: v[g]) for m, v in w1.items()}, "area": area}
+
+
+def _count(names: list, total: int) -> str:
+    """``all seven``, or ``4 of 7 (leather, stone, ...)``."""
+    words = {2: "both", 3: "all three", 4: "all four", 5: "all five", 6: "all six", 7: "all seven", 8: "all eight"}
+    if len(names) == total:
+        return words.get(total, f"all {total}")
+    return f"{len(names)} of {total}" + (f" ({', '.join(names)})" if names else "")
+
+
 def blend_exponent(data: dict) -> str:
-    """measure_blend_exponent.py: RGB W1/std per model and blending exponent, the default's column bold."""
+    """measure_blend_exponent.py: RGB W1/std per model and blending exponent (mean over the seeds, min-max), the
+    default's column bold; then what the table shows."""
     gammas, default = data["gammas"], data["default_gamma"]
+    table = _exponent_table(data)
+    models = {m["label"]: m for m in data["models"]}
 
-    def row(label: str, tile: str, hist: list, hex_: float, fmt) -> str:
-        return _line(label, tile, *(f"**{fmt(v)}**" if g == default else fmt(v) for g, v in zip(gammas, hist)),
-                     fmt(hex_))
+    def row(label: str, cells: dict, fmt) -> str:
+        return _line(label, fmt(cells["tile"]) if "tile" in cells else "",
+                     *(f"**{fmt(cells[g])}**" if g == default else fmt(cells[g]) for g in gammas), fmt(cells["hex"]))
 
-    heads = (("hist " if i == 0 else "") + f"g{g}" for i, g in enumerate(gammas))
-    lines = _head("model", "tile", *(f"**{h} (default)**" if g == default else h for g, h in zip(gammas, heads)), "hex")
-    lines += [row(r["model"], f"{r['tile']:.3f}", r["hist"], r["hex"], lambda v: f"{v:.3f}") for r in data["rows"]]
-    area, verbatim = data["area_blended_percent"], data["verbatim"]
-    lines.append(row("area blended (largest weight < 0.9)", "", area["hist"], area["hex"], lambda v: f"{v:g}%"))
-    lines.append(row("verbatim texels (report)", "", verbatim["hist"], verbatim["hex"], lambda v: f"{v:.2f}"))
+    def fitted(label: str) -> str:
+        m = models.get(label)
+        if not m:
+            return label
+        size = f"{m['size'][0]} x {m['size'][1]}, " if m.get("size") else ""
+        return (f"{label} ({size}{m['epochs']:.1f} epochs in {m['training_minutes']:.1f} min, "
+                f"{m['held_out_psnr']:.1f} dB)")
+
+    heads = (("hist " if i == 0 else "") + f"g{g:g}" for i, g in enumerate(gammas))
+    kinds = ", ".join(f"`{k}`" for k in sorted({m["kind"] for m in data["models"]}))
+    lines = [f"Measured on {_machine(data)} by `{data['command']}` ({data['conditions']}). The models ({kinds}): "
+             "their size, training and held-out PSNR after their names.", ""]
+    lines += _head("model", "tile",
+                   *(f"**{h} (default)**" if g == default else h for g, h in zip(gammas, heads)), "hex")
+    lines += [row(fitted(m), {c: r["rgb_w1_max"] for c, r in cols.items()}, lambda v: _spread(v, ".3f"))
+              for m, cols in table.items()]
+    columns = {c: [cols[c] for cols in table.values()] for c in (*gammas, "hex")}
+    lines.append(row("area blended (largest weight < 0.9), mean over the models",
+                     {c: _pooled(rs, "area_blended") for c, rs in columns.items()},
+                     lambda v: _spread(v, ".0f", "%", 100)))
+    lines.append(row("verbatim texels (report), mean over the models",
+                     {c: _pooled(rs, "verbatim") for c, rs in columns.items()}, lambda v: _spread(v, ".2f")))
+    f = _exponent_findings(data)
+    n = f["models"]
+    best = sorted(set(f["best"].values()))
+    lines += ["", f"gamma {default:g} is {f['gain'][0]:.1f}-{f['gain'][1]:.1f}x below gamma 1 and below hex on "
+                  f"{_count(f['below_hex'], n)} models, with {100 * f['area'][default]:.0f}% of the surface still "
+                  f"blended; `--gamma {f['top']:g}` is lower still on {_count(f['top_lower'], n)} "
+                  f"({100 * f['area'][f['top']]:.0f}% blended, hex {100 * f['area']['hex']:.0f}%: hex-like "
+                  "transitions). The lowest of the exponents measured: "
+                  + "; ".join(f"gamma {g:g} on {_count([m for m, b in f['best'].items() if b == g], n)}"
+                              for g in best) + "."]
     return "\n".join(lines)
+
+
+def blend_exponent_summary(data: dict) -> str:
+    """synthesis.md's sentence on the blending exponent, from measure_blend_exponent.py's data."""
+    default, f = data["default_gamma"], _exponent_findings(data)
+    n = f["models"]
+    words = dict(enumerate(("no", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten")))
+    return (f"On {words.get(n, n)} fitted models (`python benchmarks/measure_blend_exponent.py MODEL...`; table in "
+            f"[results.md](results.md#blending-exponent-per-model)) gamma {default:g} gives "
+            f"{f['gain'][0]:.1f}-{f['gain'][1]:.1f}x lower RGB W1/std than gamma 1 and is below hex on "
+            f"{_count(f['below_hex'], n)}, with {100 * f['area'][default]:.0f}% of the surface still blended (gamma 1: "
+            f"{100 * f['area'][1.0]:.0f}%); `--gamma {f['top']:g}` is lower still on {_count(f['top_lower'], n)}, "
+            "with hex-like transitions.")
+
+
+def _structured_ranges(data: dict, materials, method: str, key: str) -> list[float]:
+    """The lowest and highest per-seed value of ``key`` (every scale) over ``method``'s rows of ``materials``."""
+    values = []
+    for r in data["rows"]:
+        if r["material"] in materials and r["method"] == method:
+            spreads = r[key] if isinstance(r[key], list) else [r[key]]
+            values += [v for s in spreads for v in s["per_seed"]]
+    return [min(values), max(values)]
+
+
+def _rows_of(data: dict, materials, method: str, key: str) -> list:
+    """``key`` of ``method``'s rows of ``materials``."""
+    return [r[key] for r in data["rows"] if r["material"] in materials and r["method"] == method]
+
+
+def _times(x: float) -> str:
+    """A ratio: two decimals below 10 (``0.25``, ``1.06``), else whole (``64``)."""
+    return f"{x:.2f}" if x < 10 else f"{x:.0f}"
+
+
+def _span(values: list[float], spec: str) -> str:
+    """``0.92-0.97``: the lowest and highest of ``values``, or one number where they format alike."""
+    lo, hi = format(min(values), spec), format(max(values), spec)
+    return lo if lo == hi else f"{lo}-{hi}"
 
 
 def structured(data: dict) -> str:
-    """bench_structured.py: coherence and identity at 8x / 25x, repetition, colour, cost and storage per method;
-    ``*`` marks auto's choice."""
-    lines = _head("material", "method", "coherence p90 8x / 25x", "identity 8x / 25x", "repetition", "RGB W1/std",
-                  "cost / hist", "storage")
+    """bench_structured.py: coherence and identity per scale, repetition, colour (each the mean over the seeds,
+    min-max), cost and storage per method; ``*`` marks auto's choice; then the targets, met or missed."""
+    scales = " / ".join(f"{s:g}x" for s in data["scales"])
+    lines = [f"Measured on {_machine(data)} by `{data['command']}` ({data['conditions']}). `*` marks `auto`'s "
+             "choice.", ""]
+    lines += _head("material", "method", f"coherence p90 {scales}", f"identity {scales}", "repetition",
+                   "RGB W1/std", "cost / hist", "storage")
     for material, r in _grouped(data["rows"], lambda r: r["material"]):
         c = _cells(r)
 
-        def scales(key: str) -> str:
-            return c(key, text=" / ".join(f"{v:.3f}" for v in r[key]))
+        def scaled(key: str) -> str:
+            return c(key, text=" / ".join(_spread(v, ".3f") for v in r[key]))
 
         cost, storage = r["cost_vs_hist"], r["storage_vs_plane"]
         lines.append(_line(material, c("method", text=_named(r, "method") + ("*" if r.get("chosen") else "")),
-                           scales("coherence_p90"), scales("identity"), f"{r['repetition']:.3f}", f"{r['rgb_w1']:.3f}",
-                           "-" if cost is None else f"{cost:.2f}", f"{storage:g}x" if storage else "0"))
-    return "\n".join(lines)
+                           scaled("coherence_p90"), scaled("identity"), _spread(r["repetition"], ".3f"),
+                           _spread(r["rgb_w1"], ".3f"), "-" if cost is None else f"{cost:.2f}",
+                           f"{_times(storage)}x" if storage else "0"))
+    structured_ = data["structured"]
+    stochastic = [m for m in data["choices"] if m not in structured_]
+    coh = _structured_ranges(data, structured_, "struct", "coherence_p90")
+    ident = _structured_ranges(data, structured_, "struct", "identity")
+    choices, threshold = data["choices"], data["structure_threshold"]
+    picks_struct = all(choices[m]["method"] == "struct" for m in structured_)
+    picks_hist = all(choices[m]["method"] == "hist" for m in stochastic)
+    cost = [r["cost_vs_hist"] for r in data["rows"] if r["method"] == "struct" and r["cost_vs_hist"] is not None]
+    storage = _rows_of(data, structured_, "struct", "storage_vs_plane")
+    build = _rows_of(data, data["choices"], "struct", "build_seconds")
+    large = data.get("large_build")
+    rep_struct = _structured_ranges(data, structured_, "struct", "repetition")
+    rep_stoch = _structured_ranges(data, stochastic, "struct", "repetition")
+    rep_hist = _structured_ranges(data, stochastic, "hist", "repetition")
+
+    def met(ok: bool) -> str:
+        return "met" if ok else "missed"
+
+    text = (f"Targets: on the structured materials coherence p90 at most 0.10 and identity at most 0.35 (struct: "
+            f"{_span(coh, '.3f')} and {_span(ident, '.2f')} over every scale and seed: "
+            f"{met(coh[1] <= 0.10 and ident[1] <= 0.35)}; `auto` picks struct there: {met(picks_struct)}); on "
+            f"{' and '.join(stochastic)} `auto` picks hist ({met(picks_hist)}; structure strength "
+            f"{' and '.join(format(choices[m]['strength'], '.2f') for m in stochastic)} against the threshold "
+            f"{threshold:.2f}, the structured materials "
+            f"{_span([choices[m]['strength'] for m in structured_], '.2f')}); struct's cost per query "
+            f"{_span(cost, '.2f')}x hist's in `SynthesizedBTF.eval` (at most 1.5x: {met(max(cost) <= 1.5)}; "
+            "the Mitsuba plugin's kernel: `python benchmarks/bench_render.py --method struct`); storage "
+            f"{_span(storage, '.2f')}x the positional plane on the structured materials (at most 4x: "
+            f"{met(max(storage) <= 4)}); off-line construction {_span(build, '.2f')} s at 128 x 128")
+    if large:
+        text += (f" and {large['build_seconds']:.1f} s at {' x '.join(map(str, large['size']))} (at most 1 and 10 "
+                 f"minutes: {met(max(build) <= 60 and large['build_seconds'] <= 600)})")
+    else:
+        text += f" (at most 1 minute: {met(max(build) <= 60)})"
+    text += (f". A structured material repeats its own lattice, so struct's repetition score there "
+             f"({_span(rep_struct, '.2f')}) measures the structure kept, not a repeated exemplar; on the "
+             f"stochastic materials it reshuffles coarse cells and scores {_span(rep_stoch, '.2f')} "
+             f"against hist's {_span(rep_hist, '.3f')}"
+             + (", which is why `auto` does not choose it there." if rep_stoch[0] > rep_hist[1] else "."))
+    return "\n".join(lines + ["", text])
+
+
+def structured_construction(data: dict) -> str:
+    """synthesis.md's sentences on auto's structure strengths and struct's cut tables, from bench_structured.py."""
+    choices, structured_ = data["choices"], data["structured"]
+    size = next((m["size"] for m in data["models"].values() if m.get("size")), None)
+    fits = f" ({size[0]}^2 fits)" if size and size[0] == size[1] else " (the benchmark's fits)"
+    strengths = "; ".join(", ".join(f"{m} {choices[m]['strength']:.2f}" for m in group) for group in
+                          (structured_, [m for m in choices if m not in structured_]) if group)
+    build = _rows_of(data, choices, "struct", "build_seconds")
+    storage = _rows_of(data, structured_, "struct", "storage_vs_plane")
+    large = data.get("large_build")
+    at = f" at {size[0]}^2 x {large['size'][2]}" if size and large else " on those fits"
+    text = (f"Strengths{fits}: {strengths}. Cut tables: {_span(build, '.2g')} s to build{at}"
+            + (f", {large['build_seconds']:.1f} s at {large['size'][0]}^2 x {large['size'][2]}" if large else "")
+            + f"; {_span(storage, '.2f')}x the positional "
+              "plane on the structured materials" + (f" and {large['storage_vs_plane']:.2g}x at "
+                                                      f"{large['size'][0]}^2" if large else "") + ".")
+    return text
+
+
+def structured_summary(data: dict) -> str:
+    """README.md's Measured row on structured materials (the cell after its description), from bench_structured.py."""
+    structured_ = data["structured"]
+
+    def span(method: str, key: str, spec: str) -> str:
+        return _span(_structured_ranges(data, structured_, method, key), spec)
+
+    chosen = {data["choices"][m]["method"] for m in structured_}
+    cost = [r["cost_vs_hist"] for r in data["rows"]
+            if r["material"] in structured_ and r["method"] == "struct" and r["cost_vs_hist"] is not None]
+    storage = _rows_of(data, structured_, "struct", "storage_vs_plane")
+    return (f"`auto` ({', '.join(sorted(chosen))}) {span('struct', 'coherence_p90', '.2f')} / "
+            f"{span('struct', 'identity', '.2f')}; hist {span('hist', 'coherence_p90', '.2f')} / "
+            f"{span('hist', 'identity', '.2g')}; quilt {span('quilt', 'coherence_p90', '.2f')} / "
+            f"{span('quilt', 'identity', '.2g')}; at {_span(cost, '.2f')}x hist's cost per query, "
+            f"{_span(storage, '.2f')}x the plane's storage")
 
 
 def decode_speed(data: dict) -> str:
@@ -843,10 +1046,12 @@ RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget
              "fullsize_parallax_curve": fullsize_parallax_curve, "sampling": sampling, "web_struct": web_struct,
              "web_frame_time": web_frame_time, "web_agreement": web_agreement, "web_size": web_size,
              "web_checks": web_checks, "filtering": filtering, "blend_exponent": blend_exponent,
+             "blend_exponent_summary": blend_exponent_summary, "structured_construction": structured_construction,
              "structured": structured, "decode_speed": decode_speed, "fit_default": fit_default,
              "fit_many": fit_many, "compiled_material": compiled_material}
 #: Tables rendered from another table's data file (default: ``<name>.json``).
 SOURCES = {"guidance": "guided", "guidance_struct": "guided", "render_scenes": "rendering",
+           "blend_exponent_summary": "blend_exponent", "structured_construction": "structured",
            **dict.fromkeys(("quality_triple", "quality_parallax", "quality_compared"), "quality"),
            **dict.fromkeys(("baselines_summary", "baselines_storage", "baselines_small", "neumip_variants",
                             "baselines_synthesis", "synthesis_methods"), "baselines"),
