@@ -28,10 +28,10 @@ the exemplar's own feature vectors: a *new* vector -- a blend of three
 unrelated texels' codes -- decodes to over-contrasted, speckled colours even
 when its marginals and covariance are right (decoded RGB std up to 2x the
 exemplar's with ``gamma = 1``). Sharper weights keep each point closer to one
-sample, so less of the surface is a blend: RGB W1/std 1.8-5.8x lower than with
-``gamma = 1`` on the seven fitted models measured, feature W1/std lower too, no
-repetition. Measurements and images: ``docs/synthesis.md`` ("Why decoded colours
-drift: the blending exponent").
+sample, so less of the surface is a blend: RGB W1/std several times lower than
+with ``gamma = 1`` on every fitted model measured, feature W1/std lower too, no
+repetition. Measurements (``benchmarks/measure_blend_exponent.py``, 3 seeds) and
+images: ``docs/synthesis.md`` ("Why decoded colours drift: the blending exponent").
 """
 
 from __future__ import annotations
