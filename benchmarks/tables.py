@@ -575,17 +575,50 @@ def synthesis_methods(data: dict) -> str:
 
 
 def synthesis_quality(data: dict) -> str:
-    """synthesis.md: dynbtf synth --report on the stone, a row per method."""
-    lines = _head("method", "W1/std feat mean / max", "sliced W1/std", "std ratio (min)", "W1/std RGB (max)",
-                  "repetition", "verbatim", "extra storage")
+    """bench_synthesis_quality.py: the quality report per method on one fitted model (each number the mean over the
+    synthesis seeds, min-max)."""
+    lines = [f"Measured on {_machine(data)} by `{data['command']}` ({data['conditions']}):", ""]
+    lines += _head("method", "W1/std feat mean / max", "sliced W1/std", "std ratio (min)", "W1/std RGB (max)",
+                   "repetition", "verbatim", "extra storage")
     for r in data["rows"]:
         c = _cells(r)
-        label = c("method") + _note(r.get("note"))
-        lines.append(_line(f"{label:<6}",  # the short names padded to "linear"'s width, as the table was typed
-                           c("feature_w1_mean", text=f"{r['feature_w1_mean']:.4f} / {r['feature_w1_max']:.4f}"),
-                           c("sliced_w1", ".4f"), c("std_ratio_min", ".3f"), c("rgb_w1_max", ".3f"),
-                           c("repetition", ".3f"), c("verbatim", ".3f"), _storage(r)))
+        lines.append(_line(c("method", text=r["method"]) + _note(r.get("note")),
+                           c("feature_w1_mean", text=f"{_spread(r['feature_w1_mean'], '.4f')} / "
+                                                     f"{_spread(r['feature_w1_max'], '.4f')}"),
+                           c("sliced_w1", text=_spread(r["sliced_w1"], ".4f")),
+                           c("std_ratio_min", text=_spread(r["std_ratio_min"], ".3f")),
+                           c("rgb_w1_max", text=_spread(r["rgb_w1_max"], ".3f")),
+                           c("repetition", text=_spread(r["repetition"], ".3f")),
+                           c("verbatim", text=_spread(r["verbatim"], ".3f")),
+                           c("extra_storage_mb", text=f"{r['extra_storage_mb']:.3g} MB" if r["extra_storage_mb"]
+                             else "0")))
     return "\n".join(lines)
+
+
+def synthesis_quality_summary(data: dict) -> str:
+    """results.md's sentence on synthesis quality, from bench_synthesis_quality.py's data (means over the seeds)."""
+    rows = {r["method"]: r for r in data["rows"]}
+    default = next(r for r in data["rows"] if r.get("default"))
+    tile, linear, hex_ = rows["tile"], rows["linear"], rows["hex"]
+
+    def m(row: dict, key: str) -> float:
+        return row[key]["mean"]
+
+    w1_met = max(m(default, "feature_w1_mean"), m(default, "rgb_w1_max")) < 0.05
+    rep_met = m(default, "repetition") <= m(tile, "repetition") / 5
+    targets = "met" if w1_met and rep_met else ("missed" if not (w1_met or rep_met) else
+                                                 "W1/std " + ("met" if w1_met else "missed") + ", repetition "
+                                                 + ("met" if rep_met else "missed"))
+    model = data["model"]
+    return (f"`python benchmarks/bench_synthesis_quality.py` (the quality report of `dynbtf synth MODEL --report`) on "
+            f"the stone ({model['size'][0]} x {model['size'][1]} `{model['kind']}`, {model['held_out_psnr']:.1f} dB "
+            f"held-out), {default['method']} (gamma {default['gamma']:g}), mean of {len(default['seeds'])} seeds: "
+            f"feature W1/std {m(default, 'feature_w1_mean'):.4f} (max {m(default, 'feature_w1_max'):.4f}), RGB "
+            f"W1/std {m(default, 'rgb_w1_max'):.3f}, repetition score {m(default, 'repetition'):.3f} (tiling: "
+            f"{m(tile, 'repetition'):.1f}); linear blending {m(linear, 'feature_w1_mean'):.2f} / "
+            f"{m(linear, 'rgb_w1_max'):.2f}, hex-tiling {m(hex_, 'feature_w1_mean'):.3f} / "
+            f"{m(hex_, 'rgb_w1_max'):.3f} (targets feature and RGB W1/std < 0.05 and repetition at most 1/5 of "
+            f"tiling's: {targets}).")
 
 
 def _fixed_peak(first: str, rows: list[dict], label, digits: int) -> str:
@@ -1041,6 +1074,7 @@ RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget
              "baselines_storage": baselines_storage, "baselines_small": baselines_small,
              "neumip_variants": neumip_variants, "baselines_synthesis": baselines_synthesis,
              "synthesis_methods": synthesis_methods, "synthesis_quality": synthesis_quality,
+             "synthesis_quality_summary": synthesis_quality_summary,
              "stone_fetch": stone_fetch, "stone_relief": stone_relief, "stone_limits": stone_limits,
              "fullsize": fullsize, "fullsize_data_path": fullsize_data_path, "fullsize_curve": fullsize_curve,
              "fullsize_parallax_curve": fullsize_parallax_curve, "sampling": sampling, "web_struct": web_struct,
@@ -1051,7 +1085,8 @@ RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget
              "fit_many": fit_many, "compiled_material": compiled_material}
 #: Tables rendered from another table's data file (default: ``<name>.json``).
 SOURCES = {"guidance": "guided", "guidance_struct": "guided", "render_scenes": "rendering",
-           "blend_exponent_summary": "blend_exponent", "structured_construction": "structured",
+           "blend_exponent_summary": "blend_exponent",
+           "synthesis_quality_summary": "synthesis_quality", "structured_construction": "structured",
            **dict.fromkeys(("quality_triple", "quality_parallax", "quality_compared"), "quality"),
            **dict.fromkeys(("baselines_summary", "baselines_storage", "baselines_small", "neumip_variants",
                             "baselines_synthesis", "synthesis_methods"), "baselines"),
