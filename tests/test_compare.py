@@ -7,7 +7,6 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
 from dynbtf.compare import compare_representations, example_images, fit_or_load
 from dynbtf.errors import InputError

@@ -13,7 +13,6 @@ from typer.testing import CliRunner
 
 from dynbtf.cli.main import app
 from dynbtf.data import UBO2014BTF, write_ubo2014
-from dynbtf.data.directions import ubo2003_directions
 from dynbtf.errors import InputError
 from dynbtf.representations.model_file import load_model
 from dynbtf.representations.triple_plane import TriplePlane

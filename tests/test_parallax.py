@@ -1,6 +1,5 @@
 """Parallax (kind triple-parallax): the ray march, stereo height, the model, its training and synthesis."""
 
-import math
 import sys
 
 import numpy as np

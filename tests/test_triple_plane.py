@@ -1,6 +1,5 @@
 """Triple Plane: shapes, paper defaults, gradients, and the fast whole-image path vs the plain forward."""
 
-import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F

@@ -22,7 +22,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from dynbtf.cli.main import main
-from dynbtf.errors import DynBTFError, FormatError
+from dynbtf.errors import FormatError
 from dynbtf.representations.model_file import (tensor_digest, load_model, read_model_metadata, save_model)
 from dynbtf.representations.parallax import ParallaxTriplePlane
 from dynbtf.representations.triple_plane import TriplePlane

@@ -30,7 +30,6 @@ float64 and any real value (the height is periodic).
 
 from __future__ import annotations
 
-import math
 from typing import Any, Callable
 
 import numpy as np
@@ -134,7 +133,7 @@ def march_visible_uv(uv: torch.Tensor, w_view: torch.Tensor,
     --------
     A flat field at height 0.1 seen at 45 degrees along +x: the visible point is 0.1 further along x.
 
-    >>> import torch
+    >>> import math, torch
     >>> w = torch.tensor([[math.sqrt(0.5), 0.0, math.sqrt(0.5)]], dtype=torch.float64)
     >>> march_visible_uv(torch.tensor([[0.2, 0.3]], dtype=torch.float64), w,
     ...                  lambda p: torch.full(p.shape[:1], 0.1, dtype=torch.float64), h_min=0.0, h_max=0.2,
