@@ -15,6 +15,7 @@ from typing import Optional
 
 import typer
 
+from . import guidance_options
 from ..errors import InputError
 from .app import app
 
@@ -142,15 +143,11 @@ def synth(
                                           "labels): an image painted over the surface (PNG/JPEG grey levels, or EXR values in [0, 1]), "
                                           "cut into --classes equal bins; a point in bin k shows the material's "
                                           "class k (k-means on its decoded appearance, 0 the darkest)."),
-    classes: int = typer.Option(2, "--classes", help="With --target: classes of the material's texels."),
+    classes: int = guidance_options.CLASSES,
     target_size: float = typer.Option(1.0, "--target-size", help="uv units the --target image covers."),
-    target_wrap: str = typer.Option("repeat", "--target-wrap", help="The --target image repeats (repeat) or "
-                                    "extends its edges (clamp)."),
-    softness: float = typer.Option(0.0, "--softness", help="With --target: blend weight (0 to 1) of samples whose "
-                                   "content is not of the target's class (0: left out where another sample is)."),
-    cells: Optional[int] = typer.Option(None, "--cells", help="struct: cells per exemplar repeat along u and v "
-                                         "(must divide the exemplar's sides; default: 2 where a side allows it). "
-                                         "With --target --method struct, about one cell per element."),
+    target_wrap: str = guidance_options.TARGET_WRAP,
+    softness: float = guidance_options.SOFTNESS,
+    cells: Optional[int] = guidance_options.CELLS,
     memory_mb: Optional[float] = typer.Option(None, "--memory-mb", help="Limit (MB) of the image's estimated "
                                                                         f"working memory (~{BYTES_PER_PIXEL} bytes "
                                                                         "per pixel); default half of this machine's "

@@ -1,0 +1,22 @@
+"""The guided-synthesis options that ``dynbtf synth`` and ``dynbtf export`` share (one declaration each).
+
+``dynbtf render`` declares its own: its sizes are in mesh uv units and struct's cells default to the method's own
+choice. :func:`dynbtf.guided.guidance_options` checks the values for all three commands.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import typer
+
+__all__ = ["CLASSES", "TARGET_WRAP", "SOFTNESS", "CELLS"]
+
+CLASSES: int = typer.Option(2, "--classes", help="With --target: classes of the material's texels.")
+TARGET_WRAP: str = typer.Option("repeat", "--target-wrap", help="The --target image repeats (repeat) or extends its "
+                                "edges (clamp).")
+SOFTNESS: float = typer.Option(0.0, "--softness", help="With --target: blend weight (0 to 1) of samples whose "
+                               "content is not of the target's class (0: left out where another sample is).")
+CELLS: Optional[int] = typer.Option(None, "--cells", help="struct: cells per exemplar repeat along u and v (must "
+                                    "divide the exemplar's sides; default: 2 where a side allows it). With --target "
+                                    "--method struct, about one cell per element.")
