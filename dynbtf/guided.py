@@ -160,7 +160,7 @@ class GuidanceOptions:
     """A guided request as a command line gives it (``--target IMAGE`` and its companions), checked by
     :func:`guidance_options`: what ``dynbtf synth``, ``dynbtf render`` and ``dynbtf export`` build from."""
 
-    #: the painted grey image ``(H, W)`` in ``[0, 1]`` (:func:`dynbtf.layered.mask_from_spec`'s reading)
+    #: the painted grey image ``(H, W)`` in ``[0, 1]`` (:func:`dynbtf.io.load_painted_image`)
     image: np.ndarray
     #: the method guided (``hist``, ``hex`` or ``struct``; ``auto`` asked for ``hist``)
     method: str
@@ -189,7 +189,7 @@ def guidance_options(target, *, method: str = "auto", classes: int = 2, target_s
     ``units``, ``--target-wrap``, ``--softness``, ``--cells``) checked, each error one :class:`InputError` line
     naming its option, and the target image read: before any model loads."""
     from .errors import positive_number
-    from .layered import mask_from_spec
+    from .io import load_painted_image
 
     method = guided_method(method, cells)
     spec = str(target)
@@ -204,7 +204,7 @@ def guidance_options(target, *, method: str = "auto", classes: int = 2, target_s
         raise InputError(f"--target-wrap: expected 'repeat' or 'clamp', got {target_wrap!r}")
     if not (np.isfinite(float(softness)) and 0.0 <= float(softness) <= 1.0):
         raise InputError(f"--softness: expected a weight factor in [0, 1], got {softness}")
-    image = mask_from_spec(spec, size=target_size, wrap=target_wrap).image
+    image = load_painted_image(spec, "--target")
     return GuidanceOptions(image=image, method=method, classes=int(classes), target_size=float(target_size),
                            target_wrap=target_wrap, softness=float(softness),
                            cells=int(cells) if method == "struct" else None)

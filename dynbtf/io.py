@@ -19,6 +19,7 @@ import numpy as np
 from .errors import FormatError, InputError
 
 __all__ = [
+    "load_painted_image",
     "atomic_path",
     "check_writable",
     "os_error_message",
@@ -288,3 +289,19 @@ def load_image(path) -> np.ndarray:
     img = _check_image(img, str(path))
     scale = 65535.0 if np.asarray(img).max() > 255 else 255.0
     return srgb_to_linear(img / scale)
+
+
+
+def load_painted_image(path, name: str = "image") -> np.ndarray:
+    """A painted grey image (a layered material's mask, a guided synthesis' target) as ``(H, W)`` float64 in
+    ``[0, 1]``: a PNG or JPEG as painted, its stored grey levels over the maximum (a 50% grey is 0.5, a level saved
+    as 255 exactly 1); an EXR's values as they are; colour images by the mean of R, G and B. ``name`` (e.g.
+    ``"--mask"``) is named in the error for values outside ``[0, 1]``."""
+    image = np.asarray(load_image(path), dtype=np.float64)
+    if not str(path).lower().endswith(".exr"):
+        # back to the stored levels, on the grid of 16-bit levels (which holds every 8-bit level k / 255 exactly)
+        image = np.round(np.clip(np.asarray(linear_to_srgb(image), dtype=np.float64), 0.0, 1.0) * 65535.0) / 65535.0
+    image = image[..., :3].mean(-1)
+    if not np.isfinite(image).all() or image.min() < 0.0 or image.max() > 1.0:
+        raise InputError(f"{name} {path}: expected grey values in [0, 1] (finite); scale the image first")
+    return image

@@ -223,15 +223,9 @@ def mask_from_spec(spec: str, size: float = 1.0, wrap: str = "repeat"):
         except ValueError:
             raise InputError(f"--mask {spec!r}: expected noise:SCALE[,CONTRAST[,SEED]] with numbers") from None
         return NoiseMask(scale, contrast, seed)
-    from .io import linear_to_srgb, load_image
+    from .io import load_painted_image
 
-    image = load_image(spec)
-    if str(spec).lower().endswith(".exr"):
-        return ImageMask(image, size=size, wrap=wrap)
-    # back to the stored levels (masks are painted, not photographed), on the grid of 16-bit levels (which holds
-    # every 8-bit level k / 255 = 257 k / 65535 exactly): a level saved as 255 reads back as exactly 1
-    levels = np.clip(np.asarray(linear_to_srgb(image), dtype=np.float64), 0.0, 1.0)
-    return ImageMask(np.round(levels * 65535.0) / 65535.0, size=size, wrap=wrap)
+    return ImageMask(load_painted_image(spec, "--mask"), size=size, wrap=wrap)
 
 
 # ------------------------------------------------------------------------------------------------ heights
