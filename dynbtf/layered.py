@@ -76,7 +76,7 @@ from .synthesis.base import check_footprint, check_uv
 from .synthesis.hash import MASK32, hash_vertex
 
 __all__ = ["LayeredBTF", "ImageMask", "NoiseMask", "LayerHeight", "layer_height_map", "layer_height", "mask_from_spec",
-           "HEIGHT_TABLE", "point_weight", "area_weight", "footprint_weight"]
+           "HEIGHT_TABLE", "point_weight", "area_weight", "footprint_weight", "layer_weight"]
 
 
 # ------------------------------------------------------------------------------------------------ masks
@@ -392,6 +392,21 @@ def footprint_weight(point: np.ndarray, distance: np.ndarray, width: float, soft
     return out
 
 
+def layer_weight(distance: np.ndarray, difference: np.ndarray, width: float, softness: float,
+                 footprint: np.ndarray | None = None, texels: np.ndarray | None = None) -> np.ndarray:
+    """Layer 1's weight ``(N,)`` float64 from each query's signed distance to the mask's contour ``distance (N,)``
+    (uv units, positive on layer 1's side) and the layers' height difference ``h_1 - h_0`` ``difference (N,)``
+    (read only where ``|distance| < width``): beyond ``width`` the side's layer, inside :func:`point_weight` of
+    ``difference + distance / width``; with ``footprint`` and ``texels`` (each ``(N,)``) :func:`footprint_weight`.
+    The one rule :class:`LayeredBTF` and the Mitsuba layered BSDF apply."""
+    weight = (distance > 0).astype(np.float64)
+    inside = np.abs(distance) < width
+    weight[inside] = point_weight(difference[inside] + distance[inside] / width, softness)
+    if footprint is not None:
+        weight = footprint_weight(weight, distance, width, softness, footprint, texels)
+    return weight
+
+
 # ------------------------------------------------------------------------------------------------ layered BTF
 class LayeredBTF:
     """Two synthesized BTFs on one surface, chosen per point by ``mask`` (see the module docstring).
@@ -475,16 +490,15 @@ class LayeredBTF:
             distance = contour_distance(*self.mask.value_and_gradient(points))
         else:
             distance = contour_distance(self.mask.value(points), self.mask.gradient(points))
-        weight = (distance > 0).astype(np.float64)  # the distance is signed, positive on layer 1's side
         band = np.flatnonzero(np.abs(distance) < self.width)
+        difference = np.zeros_like(distance)  # h_1 - h_0, read inside the band only
         latents = [None] * len(self.layers)
         if band.size:
             h, latents = self._heights_and_latents(flat[band])
             h = h.numpy()
-            weight[band] = point_weight(h[:, 1] - h[:, 0] + distance[band] / self.width, self.softness)
-        if footprint is not None:
-            weight = footprint_weight(weight, distance, self.width, self.softness, footprint,
-                                      footprint * self.texels_per_uv())
+            difference[band] = h[:, 1] - h[:, 0]
+        weight = layer_weight(distance, difference, self.width, self.softness, footprint,
+                              None if footprint is None else footprint * self.texels_per_uv())
         return weight, band, latents
 
     def eval(self, uv, w_view, w_light, footprint=None):
@@ -500,8 +514,8 @@ class LayeredBTF:
             if tuple(w.shape) != batch + (3,):
                 raise InputError(f"{name}: expected shape {batch + (3,)}, got {tuple(w.shape)}")
         wv, wl = wv.reshape(-1, 3), wl.reshape(-1, 3)
-        fp = None if footprint is None else check_footprint(footprint, batch).reshape(-1).cpu()
-        weight, band, latents = self._weight(flat, None if fp is None else fp.to(torch.float64).cpu().numpy())
+        fp = None if footprint is None else check_footprint(footprint, batch).reshape(-1)  # float64, on the CPU
+        weight, band, latents = self._weight(flat, None if fp is None else fp.numpy())
         weight = torch.from_numpy(weight)
         band_position = torch.full((flat.shape[0],), -1, dtype=torch.int64)  # a row's index among the band's rows
         band_position[torch.from_numpy(band)] = torch.arange(len(band))

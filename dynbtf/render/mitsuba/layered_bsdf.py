@@ -188,9 +188,9 @@ class _LayeredBSDFBody:
         return None
 
     def _weight(self, si, active):
-        """Layer 1's weight at the shading point, in [0, 1]: the library's rules (:func:`dynbtf.layered.point_weight`
-        and, with a footprint, :func:`dynbtf.layered.footprint_weight`) on the mask texture's contour distance."""
-        from ...layered import footprint_weight, point_weight
+        """Layer 1's weight at the shading point, in [0, 1]: the library's rule (:func:`dynbtf.layered.layer_weight`)
+        on the mask texture's contour distance."""
+        from ...layered import layer_weight
         from .evaluator import library_call
 
         mi, dr = _mi(), _dr()
@@ -207,14 +207,9 @@ class _LayeredBSDFBody:
         width, softness = self.width, self.softness
 
         def query(distance, difference, *footprint):
-            distance, difference = distance.double().numpy(), difference.double().numpy()
-            inside = np.abs(distance) < width
-            weight = (distance > 0).astype(np.float64)
-            weight[inside] = point_weight(difference[inside] + distance[inside] / width, softness)
-            if footprint:
-                side = footprint[0].double().numpy()
-                weight = footprint_weight(weight, distance, width, softness, side, side * texels)
-            return (torch.from_numpy(weight),)
+            side = footprint[0].double().numpy() if footprint else None
+            return (torch.from_numpy(layer_weight(distance.double().numpy(), difference.double().numpy(), width,
+                                                  softness, side, None if side is None else side * texels)),)
 
         inputs = [distance, difference] + ([] if footprint is None else [footprint])
         return library_call(query, inputs, 1, active)[0]
