@@ -21,7 +21,7 @@ from dynbtf.synthesis import hash as H
 from dynbtf.synthesis.histogram import (Decorrelation, GaussianTransform, blend_weights,
                                         variance_preserving_blend)
 from dynbtf.synthesis.lattice import LATTICE_SCALE, TRIANGLE_EDGE, triangle_lattice, vertex_uv
-from dynbtf.synthesis.quilting import Quilting, min_error_cut, overlap_errors, quilt, quilted_storage_bytes
+from dynbtf.synthesis.quilting import Quilting, min_error_cut, min_error_seam, overlap_errors, quilt, quilted_storage_bytes
 from dynbtf.synthesis.tileable import make_tileable, seam_discontinuity
 from synthesis_reference import exact_lattice, reference_hash, smooth_lognormal
 
@@ -216,6 +216,30 @@ def test_min_error_cut_matches_brute_force():
         cut = min_error_cut(e)
         assert np.all(np.abs(np.diff(cut)) <= 1)
         assert sum(e[i, p] for i, p in enumerate(cut)) == pytest.approx(best)
+
+
+def test_min_error_seam_matches_brute_force_over_every_path():
+    """Every column sequence is a seam; its cost: each row's cut texel, plus min of the two rows' errors at every
+    column strictly between consecutive cuts. Batched problems equal the same problems solved one by one."""
+    rng = np.random.default_rng(7)
+    for _ in range(40):
+        rows, cols = int(rng.integers(1, 5)), int(rng.integers(1, 6))
+        e = rng.random((rows, cols)) ** 3
+
+        def cost(path):
+            total = sum(e[r, c] for r, c in enumerate(path))
+            for r in range(1, rows):
+                low, high = sorted((path[r - 1], path[r]))
+                total += sum(min(e[r - 1, k], e[r, k]) for k in range(low + 1, high))
+            return total
+
+        best = min(cost(path) for path in itertools.product(range(cols), repeat=rows))
+        cut = min_error_seam(e)
+        assert cut.shape == (rows,) and cost(list(cut)) == pytest.approx(best, rel=1e-12, abs=1e-12)
+    batch = rng.random((3, 2, 6, 7))
+    cuts = min_error_seam(batch)
+    for i, j in itertools.product(range(3), range(2)):
+        assert (cuts[i, j] == min_error_seam(batch[i, j])).all()
 
 
 def test_overlap_errors_match_direct_ssd():

@@ -1,7 +1,8 @@
 """The one on-disk cache of compiled materials, and "open or compile" on top of it.
 
 An entry is a ``.dbtfc`` file (:mod:`dynbtf.material.format`) named by its cache key: the digest of the
-model's tensors, the method, the seed, the method's arguments and the footprint-fit settings
+model's tensors, the method (and the version of its table construction), the seed, the method's arguments and
+the footprint-fit settings
 (:func:`~dynbtf.material.format.material_key`). A second process (another ``dynbtf render`` of the same
 model, a Mitsuba scene load, a second ``dynbtf demo``) reads what the first one compiled.
 

@@ -176,9 +176,16 @@ def _accepted_arguments(method: str) -> list[str]:
 
 def material_key(model_sha256: str, method: str, seed: int, arguments: dict[str, Any], footprints) -> str:
     """The cache key of a compiled material: SHA-256 of the format version, the model's digest, the method as
-    asked for (``auto`` included), its arguments (JSON), the seed and the footprint fits' settings (or False)."""
+    asked for (``auto`` included), the version of the method's table construction
+    (:attr:`~dynbtf.synthesis.base.Synthesizer.tables_version`; for ``auto``, its candidates'), its arguments
+    (JSON), the seed and the footprint fits' settings (or False)."""
+    from ..synthesis.registry import AUTO_CANDIDATES, SYNTHESIZERS
+
+    versions = {name: SYNTHESIZERS[name].tables_version for name in (AUTO_CANDIDATES if method == "auto" else (method,))
+                if name in SYNTHESIZERS}
     text = json.dumps({"format_version": FORMAT_VERSION, "model": model_sha256, "method": method, "seed": int(seed),
-                       "arguments": arguments, "footprints": footprints}, sort_keys=True, default=str)
+                       "tables_versions": versions, "arguments": arguments, "footprints": footprints},
+                      sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
 
 

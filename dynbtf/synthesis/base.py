@@ -190,6 +190,9 @@ class Synthesizer(abc.ABC):
     #: seed only picks hashes at query time), and the material cache then shares them between seeds; a
     #: pre-generated texture (``quilt``) is drawn with the seed.
     seeded_tables: ClassVar[bool] = False
+    #: Version of the method's off-line table construction: raised when the same exemplar and arguments build
+    #: different tables, so that the material cache's entries of the older construction are compiled again.
+    tables_version: ClassVar[int] = 1
     #: The backends the method runs on besides its torch reference and CPU kernel: backend name -> the module that
     #: gives its form there, ``form(synthesizer)`` (``"web"``: the GLSL export's
     #: mode, shader code and tables). A method package (``dynbtf/synthesis/<method>/``) holds its synthesizer in

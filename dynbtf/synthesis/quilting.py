@@ -33,7 +33,7 @@ from .histogram import Decorrelation
 from .lattice import split_uv
 from .mip import LevelOfDetail, PlanePyramid
 
-__all__ = ["Quilting", "min_error_cut", "quilt", "overlap_errors", "quilted_storage_bytes", "MAX_QUILT_SIDE"]
+__all__ = ["Quilting", "min_error_cut", "min_error_seam", "quilt", "overlap_errors", "quilted_storage_bytes", "MAX_QUILT_SIDE"]
 
 #: Largest side of a stored quilted plane, texels (the paper's 15 repeats of 400 texels are 6,000).
 MAX_QUILT_SIDE = 1 << 16
@@ -75,6 +75,59 @@ def min_error_cut(errors: np.ndarray) -> np.ndarray:
         j = cut[..., i + 1]  # candidates j-1, j, j+1 are padded columns j, j+1, j+2
         window = np.stack([np.take_along_axis(padded[..., i, :], (j + k)[..., None], -1)[..., 0] for k in range(3)], -1)
         cut[..., i] = j - 1 + np.argmin(window, -1)
+    return cut
+
+
+def min_error_seam(errors: np.ndarray) -> np.ndarray:
+    """Minimum-error seam through ``errors (..., rows, cols)`` that may also run along a row: a cut that follows joints.
+
+    Returns ``cut (..., rows)`` int64 with :func:`min_error_cut`'s meaning (texels left of ``cut[r]`` keep the old
+    content, the others take the new), but between two rows the cut may move by any number of columns. A move
+    from column ``a`` to ``b`` lays the seam along the boundary between the two rows, so it costs what the seam
+    meets there: ``min(errors[r - 1, c], errors[r, c])`` for every column ``c`` strictly between ``a`` and ``b``
+    (a seam between two texels is invisible where either of them agrees in both copies; a move by one column
+    costs nothing extra, as in :func:`min_error_cut`). So the seam can follow a
+    running bond's staggered joints (down a head joint, along the bed joint, down the next head joint), where
+    :func:`min_error_cut`, one column per row at most, crosses the bricks diagonally.
+
+    Minimized exactly by dynamic programming with running minima over the columns (prefix sums of the move
+    costs), ``O(rows x cols)`` per problem; leading axes are independent problems solved at once (ties go to
+    the leftmost column).
+
+    >>> joints = np.array([[0, 9, 9, 9, 9], [0, 9, 9, 9, 9], [0, 0, 0, 0, 0], [9, 9, 9, 9, 0], [9, 9, 9, 9, 0]])
+    >>> min_error_seam(joints).tolist(), min_error_cut(joints).tolist()
+    ([0, 0, 0, 4, 4], [0, 0, 0, 0, 0])
+    """
+    errors = np.asarray(errors, dtype=np.float64)
+    rows, cols = errors.shape[-2:]
+    lead = errors.shape[:-2]
+    inf = np.full(lead + (1,), np.inf)
+    cost = np.empty_like(errors)
+    cost[..., 0, :] = errors[..., 0, :]
+    zero = np.zeros(lead + (1,))
+
+    def move_costs(i):
+        """``Q (..., cols + 1)``: ``Q[k]`` the cost of the row boundary above row ``i`` over columns ``< k``."""
+        return np.concatenate([zero, np.cumsum(np.minimum(errors[..., i - 1, :], errors[..., i, :]), -1)], -1)
+
+    for i in range(1, rows):
+        prev = cost[..., i - 1, :]
+        q = move_costs(i)
+        # from a < b: prev[a] - Q[a + 1] + Q[b]; from a > b: prev[a] + Q[a] - Q[b + 1]
+        from_left = np.concatenate([inf, np.minimum.accumulate(prev - q[..., 1:], -1)[..., :-1]], -1) + q[..., :-1]
+        right_min = np.flip(np.minimum.accumulate(np.flip(prev + q[..., :-1], -1), -1), -1)
+        from_right = np.concatenate([right_min[..., 1:], inf], -1) - q[..., 1:]
+        cost[..., i, :] = errors[..., i, :] + np.minimum(prev, np.minimum(from_left, from_right))
+    cut = np.empty(lead + (rows,), dtype=np.int64)
+    cut[..., -1] = np.argmin(cost[..., -1, :], -1)
+    columns = np.arange(cols)
+    for i in range(rows - 1, 0, -1):
+        b = cut[..., i][..., None]
+        q = move_costs(i)
+        low, high = np.minimum(columns, b), np.maximum(columns, b)
+        # the move a -> b costs Q[max] - Q[min + 1] (nothing for |a - b| <= 1)
+        move = np.where(high - low >= 2, np.take_along_axis(q, high, -1) - np.take_along_axis(q, low + 1, -1), 0.0)
+        cut[..., i - 1] = np.argmin(cost[..., i - 1, :] + move, -1)
     return cut
 
 

@@ -19,11 +19,12 @@ vector puts every yarn, joint and tile edge where the unshifted copy has one, so
 cells continue each other's structure and differ only in the elements' own variation
 (each tile's tint, each brick's colour, each thread's twist).
 
-Where two cells meet, the border is a **minimum-error cut** (Efros & Freeman 2001; the
-cut code of :mod:`.quilting`) through a band of ``margin`` texels on either side of the
-straight cell edge, found off-line for every pair of offsets and every position of the edge
-within the repeat, so the seam runs where the two copies agree (along a grout line,
-between yarns). A query needs its own cell's hash, and near an edge the neighbour's hash and
+Where two cells meet, the border is a **minimum-error seam** (Efros & Freeman 2001's cut, here
+free to run along a row as well: :func:`~dynbtf.synthesis.quilting.min_error_seam`) through a band of
+``margin`` texels on either side of the straight cell edge, found off-line for every pair of offsets and
+every position of the edge within the repeat, so the seam runs where the two copies agree: along a grout
+line, between yarns, and down a running bond's staggered head joints and along its bed joints, so that every
+brick comes whole from one copy. A query needs its own cell's hash, and near an edge the neighbour's hash and
 one table entry; it reads one bilinear sample. Where the two cuts of a corner both claim
 a point, it takes the diagonal cell.
 
@@ -62,7 +63,7 @@ from ...texture import fetch_wrap
 from ..base import register_synthesizer
 from ..hash import hash_vertex
 from ..lattice import split_uv
-from ..quilting import min_error_cut
+from ..quilting import min_error_seam
 from ..structure import StructureAnalysis, analyze_structure
 from ..tiling import Tiling
 
@@ -300,10 +301,10 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
         for j in range(ny):
             # vertical edge at x = i T_x, rows of cell row j; band columns i T_x - mx ... i T_x + mx - 1
             err = band_errors(np.arange(j * ty, (j + 1) * ty), np.arange(i * tx - mx, i * tx + mx))
-            vertical[i, j] = min_error_cut(err) - mx
+            vertical[i, j] = min_error_seam(err) - mx
             # horizontal edge at y = j T_y, columns of cell column i: the transposed problem
             err = band_errors(np.arange(j * ty - my, j * ty + my), np.arange(i * tx, (i + 1) * tx))
-            horizontal[i, j] = min_error_cut(np.swapaxes(err, -1, -2)) - my
+            horizontal[i, j] = min_error_seam(np.swapaxes(err, -1, -2)) - my
     return CellTables(offsets=torch.from_numpy(chosen), cells=(nx, ny), margin=(mx, my),
                       vertical_cuts=torch.from_numpy(vertical), horizontal_cuts=torch.from_numpy(horizontal),
                       strength=analysis.strength, peak_values=values, build_seconds=time.perf_counter() - start)
@@ -340,6 +341,10 @@ class CellQuilting(Tiling):
     backends = {"web": f"{__name__}.web"}
 
     model_inputs = {"guide": "appearance"}
+
+    #: 2: seams that may run along a row or column (:func:`~dynbtf.synthesis.quilting.min_error_seam`), so that
+    #: they follow a running bond's staggered joints.
+    tables_version = 2
 
     def __init__(self, exemplar, seed: int = 0, *, offsets: int = DEFAULT_OFFSETS, cells="auto", margin: float = 0.25,
                  guide=None, fast: bool | None = None, prepared: CellTables | None = None) -> None:
