@@ -920,6 +920,27 @@ def _span(values: list[float], spec: str) -> str:
     return lo if lo == hi else f"{lo}-{hi}"
 
 
+def whole_elements(data: dict) -> str:
+    """bench_whole_elements.py: broken bricks, coherence p90 and identity per held-out wall and method (mean over the
+    seeds, min-max); then the targets, met or missed per wall."""
+    lines = [f"Measured on {_machine(data)} by `{data['command']}` ({len(data['seeds'])} seeds, {data['scale']:g} "
+             f"repeats, {data['size']} x {data['size']} walls).", ""]
+    lines += _head("wall", "method", "broken bricks", "coherence p90", "identity")
+    for row in data["rows"]:
+        bricks = row["broken_bricks"]
+        lines.append(_line(row["material"], row["method"], "-" if bricks is None else _spread(bricks, ".1%"),
+                           _spread(row["coherence_p90"], ".3f"), _spread(row["identity"], ".3f")))
+    verdicts = []
+    for row in data["rows"]:
+        if row["method"] == "struct":
+            p90, identity = row["coherence_p90"]["range"][1], row["identity"]["range"][1]
+            verdicts.append(f"{row['material']} {'met' if p90 <= 0.10 and identity <= 0.35 else 'missed'} "
+                            f"(p90 at most {p90:.3f}, identity at most {identity:.3f})")
+    lines += ["", "Targets (struct: coherence p90 at most 0.10 with identity at most 0.35, every seed): "
+              + "; ".join(verdicts) + "."]
+    return "\n".join(lines)
+
+
 def structured(data: dict) -> str:
     """bench_structured.py: coherence and identity per scale, repetition, colour (each the mean over the seeds,
     min-max), cost and storage per method; ``*`` marks auto's choice; then the targets, met or missed."""
@@ -1082,7 +1103,7 @@ RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget
              "web_checks": web_checks, "filtering": filtering, "blend_exponent": blend_exponent,
              "blend_exponent_summary": blend_exponent_summary, "structured_construction": structured_construction,
              "structured": structured, "decode_speed": decode_speed, "fit_default": fit_default,
-             "fit_many": fit_many, "compiled_material": compiled_material}
+             "fit_many": fit_many, "compiled_material": compiled_material, "whole_elements": whole_elements}
 #: Tables rendered from another table's data file (default: ``<name>.json``).
 SOURCES = {"guidance": "guided", "guidance_struct": "guided", "render_scenes": "rendering",
            "blend_exponent_summary": "blend_exponent",

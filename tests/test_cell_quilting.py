@@ -11,7 +11,7 @@ import torch
 from dynbtf.errors import InputError
 from dynbtf.synthesis import make_synthesizer
 from dynbtf.synthesis.auto import choose_method
-from dynbtf.synthesis.cell_quilting import CellQuilting, build_cell_tables
+from dynbtf.synthesis.cell_quilting import SPREAD_WEIGHT, CellQuilting, build_cell_tables
 from dynbtf.synthesis.hash import hash_vertex
 from dynbtf.synthesis.structure import STRUCTURE_THRESHOLD, analyze_structure, autocorrelation
 
@@ -109,15 +109,16 @@ def test_offsets_are_lattice_vectors_and_cuts_are_minimal_seams():
     offsets = tables.offsets.numpy()
     assert tuple(offsets[0]) == (0, 0) and tables.count == 6
     assert ((offsets % 8) == 0).all()  # every copy is shifted by whole elements
-    # one vertical edge's cut against the cheapest seam found by relaxing every move between rows in plain Python
+    # one vertical edge's cut against the cheapest seam found by relaxing every move between rows in plain Python;
+    # a seam texel costs the two copies' squared difference plus SPREAD_WEIGHT times the spread of all copies there
     x = exemplar.numpy().astype(np.float64)
     z = (x - x.mean((0, 1))) / x.std((0, 1))
     mx = tables.margin[0]
+    rows, cols = np.arange(0, 16), np.arange(16 - mx, 16 + mx)  # the edge at x = 16 (cell column 1), cell row 0
+    copies = np.stack([z[(rows[:, None] + dy) % 32, (cols[None] + dx) % 32] for dx, dy in offsets])
+    spread = copies.var(0).sum(-1)  # every copy's spread at each band texel
     for a, b in ((1, 2), (0, 5), (4, 3)):
-        rows, cols = np.arange(0, 16), np.arange(16 - mx, 16 + mx)  # the edge at x = 16 (cell column 1), cell row 0
-        ea = z[(rows[:, None] + offsets[a, 1]) % 32, (cols[None] + offsets[a, 0]) % 32]
-        eb = z[(rows[:, None] + offsets[b, 1]) % 32, (cols[None] + offsets[b, 0]) % 32]
-        err = ((ea - eb) ** 2).sum(-1)
+        err = ((copies[a] - copies[b]) ** 2).sum(-1) + SPREAD_WEIGHT * spread
         cut = tables.vertical_cuts[1, 0, a, b].numpy().astype(int) + mx
         costs = {c: float(err[0, c]) for c in range(2 * mx)}
         for r in range(1, err.shape[0]):

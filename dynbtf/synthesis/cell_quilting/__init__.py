@@ -67,7 +67,8 @@ from ..quilting import min_error_seam
 from ..structure import StructureAnalysis, analyze_structure
 from ..tiling import Tiling
 
-__all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "DEFAULT_OFFSETS", "MIN_CELL_TEXELS"]
+__all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "copy_spread", "DEFAULT_OFFSETS",
+           "MIN_CELL_TEXELS", "SPREAD_WEIGHT"]
 
 #: Default number of lattice offsets a cell chooses from (``K``).
 DEFAULT_OFFSETS = 16
@@ -240,6 +241,33 @@ def _standardized(plane: np.ndarray) -> np.ndarray:
     return z / np.sqrt(plane.shape[-1])
 
 
+#: Weight of the copies' spread (:func:`copy_spread`) in a seam's cost: two random copies differ by twice the
+#: spread on average, so a seam weighs what all copies do there as much as what its own two copies do.
+SPREAD_WEIGHT = 2.0
+
+
+def copy_spread(z: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """``(H, W)``: at each texel, the variance of ``z (H, W, C)`` over its copies shifted by every offset
+    ``(K, 2)`` (whole texels; summed over channels): low where every copy agrees (the joints the lattice shares:
+    mortar, grout, the gaps between yarns), high inside the elements, which vary from copy to copy.
+
+    Two copies that happen to agree inside an element (two bricks of one colour) still differ from the rest
+    there: a seam that also pays this spread crosses an element only where no joint is near.
+
+    >>> z = np.zeros((4, 4, 1)); z[1:3, 1:3] = 1.0  # one element on a plain ground
+    >>> copy_spread(z, np.array([[0, 0], [2, 0]]))[1].tolist()
+    [0.25, 0.25, 0.25, 0.25]
+    """
+    total = np.zeros(z.shape, dtype=np.float64)
+    squares = np.zeros(z.shape[:2], dtype=np.float64)
+    for dx, dy in offsets:
+        copy = np.roll(z, (-int(dy), -int(dx)), axis=(0, 1))  # copy[r, c] = z[r + dy, c + dx]
+        total += copy
+        squares += (copy * copy).sum(-1)
+    k = len(offsets)
+    return np.maximum(squares / k - ((total / k) ** 2).sum(-1), 0.0)
+
+
 def check_guide(guide, exemplar: torch.Tensor) -> np.ndarray | None:
     """Validate a guide plane: None, or a finite ``(H, W, G)`` array/tensor of the exemplar's size -> float64."""
     if guide is None:
@@ -263,8 +291,9 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
     ``offsets``: most copies ``K`` (2..64); ``cells``: cells per repeat, an int or ``(nx, ny)`` or
     ``"auto"`` (2 per axis where the side is even and at least 32 texels, else 1); ``margin``: half-width
     of the cut bands as a fraction of the cell side (0 < margin <= 0.5); ``guide``: optional ``(H, W, G)``
-    appearance of the exemplar: the lattice is found on it, and the cuts weigh its differences equally
-    with the exemplar's.
+    appearance of the exemplar: the lattice is found on it, and the seams weigh its differences equally
+    with the exemplar's. A seam between two copies costs their difference plus the spread of all copies
+    (:func:`copy_spread`), so that it runs along the joints every copy shares.
     """
     start = time.perf_counter()
     if isinstance(offsets, bool) or not isinstance(offsets, (int, np.integer)) or not 1 <= int(offsets) <= 64:
@@ -288,12 +317,16 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
     if guide is not None:
         z = np.concatenate([z, _standardized(guide)], -1)
 
+    spread = SPREAD_WEIGHT * copy_spread(z, chosen)
+
     def band_errors(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """Squared differences ``(K, K, len(rows), len(cols))`` between every two copies over a band."""
+        """Seam costs ``(K, K, len(rows), len(cols))`` of every two copies over a band: their squared difference
+        plus :data:`SPREAD_WEIGHT` times the spread of all copies there (:func:`copy_spread`)."""
         copies = np.stack([z[(rows[:, None] + dy) % h, (cols[None, :] + dx) % w] for dx, dy in chosen])
         norms = (copies * copies).sum(-1)
         cross = np.einsum("arsc,brsc->abrs", copies, copies, optimize=True)
-        return np.maximum(norms[:, None] + norms[None, :] - 2.0 * cross, 0.0)
+        return (np.maximum(norms[:, None] + norms[None, :] - 2.0 * cross, 0.0)
+                + spread[rows[:, None] % h, cols[None, :] % w])
 
     vertical = np.zeros((nx, ny, k, k, ty), dtype=np.int16)
     horizontal = np.zeros((nx, ny, k, k, tx), dtype=np.int16)
@@ -342,8 +375,8 @@ class CellQuilting(Tiling):
 
     model_inputs = {"guide": "appearance"}
 
-    #: 2: seams that may run along a row or column (:func:`~dynbtf.synthesis.quilting.min_error_seam`), so that
-    #: they follow a running bond's staggered joints.
+    #: 2: seams that may run along a row or column (:func:`~dynbtf.synthesis.quilting.min_error_seam`) and pay the
+    #: copies' spread (:func:`copy_spread`), so that they follow a running bond's staggered joints.
     tables_version = 2
 
     def __init__(self, exemplar, seed: int = 0, *, offsets: int = DEFAULT_OFFSETS, cells="auto", margin: float = 0.25,
