@@ -367,12 +367,18 @@ class SynthesizedBTF:
             return self.decode_path.mean_appearance(w_view, w_light)
 
     def _decode_chunk(self, uv, wv, wl, footprint=None, latent=None) -> torch.Tensor:
-        if latent is not None:
-            return self.decode_path.decode(latent.to(self.device), wv, wl)
         points = uv * self.scale  # exemplar repeats
         if self.relief:  # fetch at the visible point of the synthesized height field
             points = self.model.visible_uv(points, wv, self.synthesizer)
         texels = None if footprint is None else footprint * self.texels_per_uv()
+        rgb = self._decoded(points, wv, wl, texels, latent)
+        gain = self.synthesizer.variation_gain(points, texels)  # the method's variation controls, if on
+        return rgb if gain is None else rgb * gain.to(rgb.device)
+
+    def _decoded(self, points, wv, wl, texels, latent) -> torch.Tensor:
+        """The decoded reflectance ``(N, 3)`` at ``points`` (exemplar repeats; ``texels``: footprints in texels)."""
+        if latent is not None:
+            return self.decode_path.decode(latent.to(self.device), wv, wl)
         path = self.decode_path
         if path is None:
             return self.model.decode(self.synthesizer(points, texels), wv, wl).float()

@@ -686,7 +686,8 @@ def test_parameter_table_is_the_documented_one():
     for parameter in PARAMETERS:
         assert f"   * - ``{parameter.name}``\n     - {parameter.type}\n" in PLUGIN_DOC
     assert [p.name for p in PARAMETERS] == ["filename", "method", "scale", "scale_v", "seed", "sampling",
-                                            "sampling_weight", "cells", "target", "classes", "target_size",
+                                            "sampling_weight", "cells", "brightness", "tint", "target", "classes",
+                                            "target_size",
                                             "target_wrap",
                                             "softness", "filtered", "ray_cone_angle"]
 
@@ -704,6 +705,8 @@ def test_parameter_errors_name_the_parameter(variant, model_file, tmp_path):
                               "(2**24) that Mitsuba's float32 uv resolves"),
              ({"sampling_weight": 0.0}, "parameter 'sampling_weight' must be a probability in (0, 1], got 0.0"),
              ({"ray_cone_angle": float("inf")}, "parameter 'ray_cone_angle' must be a non-negative angle in radians"),
+             ({"brightness": 1.5}, "parameter 'brightness' must be the standard deviation of a log gain in [0, 1]"),
+             ({"tint": -0.1}, "parameter 'tint' must be the standard deviation of a log gain in [0, 1]"),
              ({"filename": None}, "parameter 'filename' (a dynbtf model file) is required")]
     for extra, message in cases:
         props = {"type": "dynbtf", "filename": str(tmp_path / "never-read.dbtfm"), **extra}
@@ -842,6 +845,27 @@ def test_plugin_struct_matches_synthesized_btf(variant, structured_file):
     got = np.stack([np.array(got[k], dtype=np.float64) for k in range(3)], -1)
     ref = np.asarray(btf.eval(torch.from_numpy(uv), torch.from_numpy(wv), torch.from_numpy(wl)), dtype=np.float64)
     np.testing.assert_allclose(got, ref, rtol=0, atol=2e-4 * max(1.0, np.abs(ref).max()))
+
+
+def test_plugin_struct_variation_matches_synthesized_btf(variant, structured_file):
+    """struct with per-element brightness and tint in the plugin = ``synthesized_btf(model, "struct", brightness=...,
+    tint=...).eval`` to float rounding, and not the plain struct's values."""
+    from dynbtf.synthesized import synthesized_btf
+
+    path, model = structured_file
+    bsdf = mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "struct", "scale": 7.0, "seed": 3,
+                         "brightness": 0.3, "tint": 0.2})
+    uv, wv, wl = _random_queries(3000, seed=4)
+    uv = (uv / np.float32(7.0)) * np.float32(7.0)
+    got = _plugin_eval(bsdf, uv, wv, wl, 7.0)
+    btf = synthesized_btf(model, "struct", scale=1.0, seed=3, brightness=0.3, tint=0.2)
+    ref = np.asarray(btf.eval(torch.from_numpy(uv.astype(np.float64)), torch.from_numpy(wv), torch.from_numpy(wl)),
+                     dtype=np.float64) / np.pi * wl[:, 2:3]
+    plain = _reference(model, "struct", 3, uv, wv, wl) / np.pi * wl[:, 2:3]
+    np.testing.assert_allclose(got, ref, rtol=0, atol=2e-4 * max(1.0, np.abs(ref).max()))
+    assert np.abs(ref - plain).max() > 0.05 * np.abs(plain).max()
+    with pytest.raises(Exception, match="per-element variation is drawn by struct"):
+        mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "hist", "brightness": 0.3})
 
 
 def test_plugin_struct_footprints_match_synthesized_btf(variant, structured_file):

@@ -10,7 +10,7 @@ from typing import Optional
 
 import typer
 
-__all__ = ["CLASSES", "TARGET_WRAP", "SOFTNESS", "CELLS"]
+__all__ = ["CLASSES", "TARGET_WRAP", "SOFTNESS", "CELLS", "BRIGHTNESS", "TINT"]
 
 CLASSES: int = typer.Option(2, "--classes", help="With --target: classes of the material's texels.")
 TARGET_WRAP: str = typer.Option("repeat", "--target-wrap", help="The --target image repeats (repeat) or extends its "
@@ -20,3 +20,8 @@ SOFTNESS: float = typer.Option(0.0, "--softness", help="With --target: blend wei
 CELLS: Optional[int] = typer.Option(None, "--cells", help="struct: cells per exemplar repeat along u and v (must "
                                     "divide the exemplar's sides; default: 2 where a side allows it). With --target "
                                     "--method struct, about one cell per element.")
+BRIGHTNESS: float = typer.Option(0.0, "--brightness", help="struct: per-element variation, the standard deviation "
+                                 "of each element's log-brightness (each brick or tile its own factor, drawn from "
+                                 "--seed; joints none), in [0, 1]; 0: off.")
+TINT: float = typer.Option(0.0, "--tint", help="struct: per-element variation, the standard deviation of each "
+                           "element's colour tint (its channels' log gains against each other), in [0, 1]; 0: off.")

@@ -8,6 +8,7 @@ from typing import Optional
 import typer
 
 from ..errors import InputError
+from . import guidance_options
 from .app import app
 
 
@@ -62,6 +63,8 @@ def render(
                                    "that found no content of the target's class."),
     cells: int = typer.Option(0, "--cells", help="struct's cells per repeat along each side (0: its own choice); "
                               "with --target, about one per element of the material."),
+    brightness: float = guidance_options.BRIGHTNESS,
+    tint: float = guidance_options.TINT,
 ) -> None:
     """Path-trace a scene covered by the synthesized BTF with Mitsuba 3 (dynbtf's query at every shading point).
 
@@ -96,7 +99,8 @@ def render(
                           resolution=(size, size), spp=spp, variant=variant, progress=True, sampling=sampling,
                           filtered=filtered, echo=typer.echo, memory_mb=memory_mb, layer=layer,
                           mask=the_mask, width=width, target=target, classes=classes, target_size=target_size,
-                          target_wrap=target_wrap, target_softness=softness, cells=cells)
+                          target_wrap=target_wrap, target_softness=softness, cells=cells, brightness=brightness,
+                          tint=tint)
     save_image(output, result.image, exposure=exposure)
     timing = (f"incl. {result.compile_seconds:.1f} s kernel compilation" if result.passes > 1
               else "one pass, kernel compilation included")

@@ -148,6 +148,8 @@ def synth(
     target_wrap: str = guidance_options.TARGET_WRAP,
     softness: float = guidance_options.SOFTNESS,
     cells: Optional[int] = guidance_options.CELLS,
+    brightness: float = guidance_options.BRIGHTNESS,
+    tint: float = guidance_options.TINT,
     memory_mb: Optional[float] = typer.Option(None, "--memory-mb", help="Limit (MB) of the image's estimated "
                                                                         f"working memory (~{BYTES_PER_PIXEL} bytes "
                                                                         "per pixel); default half of this machine's "
@@ -181,7 +183,11 @@ def synth(
     guidance = _guidance(target, method, layer, report, output, target_size, target_wrap, classes, softness, cells)
     if cells is not None and method != "struct":
         raise InputError(f"--cells: sets struct's cells; give it with --method struct, not {method!r}")
+    variation = _variation(brightness, tint, method, guidance, layer)
     rep, material = open_model_file(model, device=where)
+    if variation and material is not None:
+        raise InputError(f"--brightness, --tint: {model} is a compiled material, which fixes its method's "
+                         "parameters; compile it with them, or give the model file (.dbtfm)")
     if guidance is not None:
         if material is not None:
             raise InputError(f"--target: {model} is a compiled material, which fixes its method; guide the model "
@@ -202,7 +208,7 @@ def synth(
             return _build(material, material.method, scale=scale, seed=seed, quilt_size=None, gamma=gamma,
                           footprints=filtered)
         return _build(rep, name, scale=scale, seed=0 if seed is None else seed, quilt_size=quilt_size, gamma=gamma,
-                      cells=cells, footprints=filtered)
+                      cells=cells, footprints=filtered, variation=variation if name == method else {})
 
     if layer is not None:
         btf = _layered(build(method), layer, method, where, scale=scale, seed=seed, gamma=gamma, mask=the_mask,
@@ -280,8 +286,20 @@ def _check_outputs(output: Path | None, report: bool, report_json: Path | None) 
         check_writable(_report_path(output, report_json), "--report-json")
 
 
+def _variation(brightness: float, tint: float, method: str, guidance, layer) -> dict[str, float]:
+    """struct's per-element variation parameters that were given (``{}``: none), checked: one-line errors."""
+    from ..synthesis.elements import check_variation
+
+    given = {name: check_variation(f"--{name}", value) for name, value in (("brightness", brightness), ("tint", tint))}
+    given = {name: value for name, value in given.items() if value}
+    if given and (method != "struct" or guidance is not None or layer is not None):
+        raise InputError(f"--{next(iter(given))}: per-element variation is struct's; give it with --method struct "
+                         f"(without --target or --layer), not {method!r}")
+    return given
+
+
 def _build(rep, name: str, *, scale: float, seed: int | None, quilt_size: int | None, gamma: float | None,
-           cells: int | None = None, footprints: bool = False):
+           cells: int | None = None, footprints: bool = False, variation: dict | None = None):
     """The :class:`~dynbtf.infinite_btf.SynthesizedBTF` of method ``name`` of ``rep`` (a representation, or a
     compiled material of method ``name``, whose seed ``seed`` must be or None), with the footprint decoders if
     ``footprints`` (``--filtered``); prints auto's choice and the quilt's size."""
@@ -294,6 +312,8 @@ def _build(rep, name: str, *, scale: float, seed: int | None, quilt_size: int | 
         params["gamma"] = gamma  # auto: used if it chooses hist
     if name == "struct" and cells is not None and not compiled:
         params["cells"] = int(cells)
+    if name == "struct" and not compiled:
+        params.update(variation or {})
     btf = synthesized_btf(rep, name, scale=scale, seed=(rep.seed if compiled else 0) if seed is None else seed,
                           footprints=footprints, **params)
     rep = btf.model

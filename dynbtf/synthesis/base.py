@@ -202,6 +202,12 @@ class Synthesizer(abc.ABC):
     #: The :class:`~dynbtf.synthesis.auto.MethodChoice` when built by ``make_synthesizer("auto", ...)``.
     choice = None
 
+    def variation_gain(self, points: torch.Tensor, footprint_texels: torch.Tensor | None = None) -> torch.Tensor | None:
+        """RGB factors ``(N, 3)`` float32 that multiply the decoded reflectance at ``points (N, 2)`` (exemplar
+        repeats; ``footprint_texels (N,)``, optional: each footprint's side in texels), or None: the method's
+        variation controls (``struct``'s per-element brightness and tint). None unless a method has them on."""
+        return None
+
     @classmethod
     def backend_module(cls, backend: str):
         """The module that gives this method a ``backend`` form (its :attr:`backends` entry, imported), or None.

@@ -59,6 +59,14 @@ METHODS = (*methods_with(), AUTO)
 DEFAULT_METHOD = AUTO
 
 
+def check_variation_method(method: str, what: str) -> None:
+    """Per-element variation (``brightness``, ``tint``) is only for a method that takes it (``struct``): else a
+    one-line error naming ``what``."""
+    if not takes_parameter(method, "brightness"):
+        having = [m for m in METHODS if takes_parameter(m, "brightness")]
+        raise InputError(f"{what}: per-element variation is drawn by {', '.join(having)}; method is {method!r}")
+
+
 def check_cells(cells: int, method: str, what: str) -> None:
     """``cells`` (0: none) is only for a method that takes cells (:func:`~dynbtf.synthesis.registry.takes_parameter`):
     an :class:`InputError` from ``what`` otherwise."""
@@ -183,6 +191,10 @@ def _at_least(low: int):
     return number_check(lambda v: v >= low, f"at least {low}")
 
 
+_variation = number_check(lambda v: math.isfinite(v) and 0.0 <= v <= 1.0,
+                          "the standard deviation of a log gain in [0, 1] (0: off)")
+
+
 #: The plugin's parameters, in the order the constructor reads them and the references list them.
 PARAMETERS: tuple[PluginParameter, ...] = (
     PluginParameter(
@@ -252,6 +264,19 @@ choice, 2 x 2 for most exemplars); with ``target``, give about one cell per
 element so that a cell's content is of one class.""",
         summary="`struct`'s cells per repeat along each side (0: its own choice); with `target`, about one per "
                 "element"),
+    PluginParameter(
+        "brightness", "float", 0.0, check=_variation,
+        doc="""``struct``'s per-element variation (:mod:`dynbtf.synthesis.elements`):
+the standard deviation of each element's log-brightness (each brick, tile or
+weave element of the surface its own factor, drawn from ``seed``; joints
+none), in [0, 1]. 0: off.""",
+        summary="`struct`: standard deviation of each element's log-brightness, in [0, 1] (0: off)"),
+    PluginParameter(
+        "tint", "float", 0.0, check=_variation,
+        doc="""``struct``'s per-element variation: the standard deviation of the
+element's channels' log gains against each other, in [0, 1]. 0: off.""",
+        summary="`struct`: standard deviation of each element's colour tint (log gains of the channels against "
+                "each other), in [0, 1] (0: off)"),
     PluginParameter(
         "target", "string", "", shown_default='""',
         doc="""Guided synthesis (:func:`dynbtf.guided.guided_btf`): an image painted
@@ -442,6 +467,10 @@ class _DynBTFBSDFBody:
         model = load_plugin_model(self.filename)  # a representation or a compiled material
         check_cells(self.cells, self.method, "dynbtf BSDF: parameter 'cells'")
         params = {"cells": self.cells} if self.cells else {}
+        for name in ("brightness", "tint"):
+            if getattr(self, name):
+                check_variation_method(self.method, f"dynbtf BSDF: parameter '{name}'")
+                params[name] = float(getattr(self, name))
         # the app-level step: the material opened from the cache or compiled (with the footprint decoders if asked),
         # or the guided one the target asks for; the evaluator only translates it
         btf = self._guided_btf(model, params)

@@ -64,6 +64,7 @@ from ..base import register_synthesizer
 from ..hash import hash_vertex
 from ..lattice import split_uv
 from ..quilting import min_error_seam
+from ..elements import check_element_grid, check_variation, element_gain, element_grid
 from ..structure import StructureAnalysis, analyze_structure
 from ..tiling import Tiling
 
@@ -105,6 +106,10 @@ class CellTables:
         The autocorrelation at each offset (1 for ``(0, 0)``).
     build_seconds : float
         Wall time of the construction.
+    element_grid : float64 ``(6,)`` or None
+        The elements' rows, columns, row shift and placement, and ``joints``, int8 ``(H, W)``, 1 on the joints
+        (:func:`~dynbtf.synthesis.elements.element_grid` of the offsets and the copies' spread): what the
+        per-element variation reads. None in materials compiled before elements were tabulated.
     """
 
     offsets: torch.Tensor
@@ -115,20 +120,24 @@ class CellTables:
     strength: float
     peak_values: np.ndarray
     build_seconds: float = 0.0
+    element_grid: torch.Tensor | None = None
+    joints: torch.Tensor | None = None
 
     #: How these tables were obtained: "built" (here) or "compiled" (read from a compiled material, which the
     #: material stage's one cache also shares between seeds: :mod:`dynbtf.material.cache`).
     source: str = "built"
 
     ARRAYS = ("offsets", "cells", "margin", "vertical_cuts", "horizontal_cuts", "strength", "peak_values",
-              "build_seconds")
+              "build_seconds", "element_grid", "joints")
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """The tables as named numpy arrays (what a compiled material stores)."""
         return {"offsets": self.offsets.numpy(), "cells": np.array(self.cells, dtype=np.int64),
                 "margin": np.array(self.margin, dtype=np.int64), "vertical_cuts": self.vertical_cuts.numpy(),
                 "horizontal_cuts": self.horizontal_cuts.numpy(), "strength": np.array(self.strength),
-                "peak_values": np.asarray(self.peak_values, dtype=np.float64), "build_seconds": np.array(self.build_seconds)}
+                "peak_values": np.asarray(self.peak_values, dtype=np.float64), "build_seconds": np.array(self.build_seconds)} \
+            | ({} if self.element_grid is None else {"element_grid": self.element_grid.numpy(),
+                                                      "joints": self.joints.numpy()})
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], source: str) -> "CellTables":
@@ -137,7 +146,10 @@ class CellTables:
                    vertical_cuts=torch.from_numpy(arrays["vertical_cuts"].astype(np.int16)),
                    horizontal_cuts=torch.from_numpy(arrays["horizontal_cuts"].astype(np.int16)),
                    strength=float(arrays["strength"]), peak_values=arrays["peak_values"],
-                   build_seconds=float(arrays["build_seconds"]), source=source)
+                   build_seconds=float(arrays["build_seconds"]), source=source,
+                   element_grid=None if "element_grid" not in arrays
+                   else torch.from_numpy(arrays["element_grid"].astype(np.float64)),
+                   joints=None if "joints" not in arrays else torch.from_numpy(arrays["joints"].astype(np.int8)))
 
     @classmethod
     def rules(cls, arrays: dict[str, torch.Tensor], height: int, width: int) -> list[Table]:
@@ -160,7 +172,10 @@ class CellTables:
                 Table("vertical_cuts", torch.int16, (nx, ny, k, k, ty), -mx, mx - 1),
                 Table("horizontal_cuts", torch.int16, (nx, ny, k, k, tx), -my, my - 1),
                 Table("strength", torch.float64, ()), Table("peak_values", torch.float64, (k,)),
-                Table("build_seconds", torch.float64, (), 0.0)]
+                Table("build_seconds", torch.float64, (), 0.0)] + \
+            ([] if "element_grid" not in arrays and "joints" not in arrays else  # (materials before them lack both)
+             [Table("element_grid", torch.float64, (6,), 0.0, float(max(height, width))),
+              Table("joints", torch.int8, (height, width), 0, 1)])
 
     @classmethod
     def relations(cls, arrays: dict[str, torch.Tensor], height: int, width: int) -> str | None:
@@ -179,6 +194,8 @@ class CellTables:
             return f"table 'offsets': an offset outside the {width} x {height} exemplar"
         if offsets[0].tolist() != [0, 0]:
             return f"table 'offsets': the first offset is {offsets[0].tolist()}, expected [0, 0]"
+        if "element_grid" in arrays:
+            return check_element_grid(arrays["element_grid"], height, width)
         return None
 
     @classmethod
@@ -317,7 +334,9 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
     if guide is not None:
         z = np.concatenate([z, _standardized(guide)], -1)
 
-    spread = SPREAD_WEIGHT * copy_spread(z, chosen)
+    spread = copy_spread(z, chosen)
+    grid, joints = element_grid(chosen, z)
+    spread = SPREAD_WEIGHT * spread
 
     def band_errors(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Seam costs ``(K, K, len(rows), len(cols))`` of every two copies over a band: their squared difference
@@ -340,7 +359,8 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
             horizontal[i, j] = min_error_seam(np.swapaxes(err, -1, -2)) - my
     return CellTables(offsets=torch.from_numpy(chosen), cells=(nx, ny), margin=(mx, my),
                       vertical_cuts=torch.from_numpy(vertical), horizontal_cuts=torch.from_numpy(horizontal),
-                      strength=analysis.strength, peak_values=values, build_seconds=time.perf_counter() - start)
+                      strength=analysis.strength, peak_values=values, build_seconds=time.perf_counter() - start,
+                      element_grid=torch.from_numpy(grid), joints=torch.from_numpy(joints.astype(np.int8)))
 
 
 def cell_choice(cell_x, cell_y, seed: int, count: int):
@@ -365,6 +385,10 @@ class CellQuilting(Tiling):
         Half-width of the cut bands, as a fraction of the cell side.
     guide : array ``(H, W, G)``, optional
         The exemplar's appearance (e.g. decoded colours): finds the lattice and guides the cuts.
+    brightness, tint : float, default 0
+        Per-element variation (:mod:`dynbtf.synthesis.elements`): the standard deviation of each element's
+        log-brightness, and of its channels' log gains against each other (0: off). Drawn from the seed; every
+        texel of one element (one brick, one tile) on the surface gets the same factor; joints none.
     fast : bool, optional
         Use the fused numba kernel (default: when the exemplar is on the CPU).
     prepared : CellTables, optional
@@ -380,8 +404,10 @@ class CellQuilting(Tiling):
     tables_version = 2
 
     def __init__(self, exemplar, seed: int = 0, *, offsets: int = DEFAULT_OFFSETS, cells="auto", margin: float = 0.25,
-                 guide=None, fast: bool | None = None, prepared: CellTables | None = None) -> None:
+                 guide=None, brightness: float = 0.0, tint: float = 0.0, fast: bool | None = None,
+                 prepared: CellTables | None = None) -> None:
         super().__init__(exemplar, seed, fast=fast)
+        self.brightness, self.tint = check_variation("brightness", brightness), check_variation("tint", tint)
         if fast and self.device.type != "cpu":
             raise InputError(f"fast: the fused kernel runs on the CPU; the exemplar is on {self.device}")
         if prepared is None:
@@ -392,6 +418,9 @@ class CellQuilting(Tiling):
         nx, ny = prepared.cells
         if w % nx or h % ny or prepared.vertical_cuts.shape[-1] != h // ny or prepared.horizontal_cuts.shape[-1] != w // nx:
             raise InputError(f"prepared: its cut tables do not fit this {h}x{w} exemplar")
+        if (self.brightness or self.tint) and prepared.element_grid is None:
+            raise InputError("brightness, tint: these struct tables have no element map (a material compiled by an "
+                             "earlier dynbtf); compile the material again")
         self.prepared = prepared
         self._numpy: tuple | None = None
 
@@ -437,6 +466,15 @@ class CellQuilting(Tiling):
         read_x = torch.remainder(pos_x + offsets[chosen, 0].to(torch.float64), float(w))
         read_y = torch.remainder(pos_y + offsets[chosen, 1].to(torch.float64), float(h))
         return torch.stack([read_x, read_y], -1), chosen
+
+    def variation_gain(self, points: torch.Tensor, footprint_texels: torch.Tensor | None = None) -> torch.Tensor | None:
+        """The per-element RGB factors ``(N, 3)`` at ``points (N, 2)`` (exemplar repeats), or None when
+        ``brightness`` and ``tint`` are 0 (:func:`~dynbtf.synthesis.elements.element_gain`)."""
+        if not (self.brightness or self.tint):
+            return None
+        t = self.prepared
+        return element_gain(points, t.element_grid.tolist(), t.joints, self.seed, self.brightness, self.tint,
+                            footprint_texels)
 
     def cell_choices(self, cell_x: torch.Tensor, cell_y: torch.Tensor) -> torch.Tensor:
         """Offset index ``(N,)`` int64 of int64 cells (:func:`cell_choice` with this synthesizer's seed)."""
@@ -488,11 +526,13 @@ class CellQuilting(Tiling):
 
     @classmethod
     def prepared_from_arrays(cls, arrays: dict[str, torch.Tensor], device: torch.device | str = "cpu") -> CellTables:
-        return CellTables.from_arrays({k: arrays[k].cpu().numpy() for k in CellTables.ARRAYS}, source="compiled")
+        return CellTables.from_arrays({k: arrays[k].cpu().numpy() for k in CellTables.ARRAYS if k in arrays},
+                                      source="compiled")
 
     def parameters(self) -> dict[str, Any]:
         t = self.prepared
         return {"offsets": t.count, "cells": list(t.cells), "margin": list(t.margin), "fast": self.fast,
+                "brightness": self.brightness, "tint": self.tint,
                 "structure_strength": round(t.strength, 4), "build_seconds": round(t.build_seconds, 3),
                 "tables": t.source}
 

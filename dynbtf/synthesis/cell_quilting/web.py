@@ -5,6 +5,7 @@ from __future__ import annotations
 
 
 from ...device import to_host
+from ...errors import InputError
 from ..web_form import WebForm, WebTable
 
 MODE = 4
@@ -97,7 +98,11 @@ def cost(groups: int) -> tuple[int, int]:
 
 
 def form(synthesizer) -> WebForm:
-    """The exemplar, the offsets and cut tables (``tables``) and ``cells``, ``margin``, ``count``."""
+    """The exemplar, the offsets and cut tables (``tables``) and ``cells``, ``margin``, ``count``. The viewer draws
+    no per-element variation: a struct with ``brightness`` or ``tint`` is refused (one-line error)."""
+    if synthesizer.brightness or synthesizer.tint:
+        raise InputError("export: the web viewer does not draw struct's per-element variation (brightness, tint); "
+                         "export the material without it")
     t = synthesizer.prepared
     tables = {"offsets": to_host(t.offsets), "vertical_cuts": to_host(t.vertical_cuts),
               "horizontal_cuts": to_host(t.horizontal_cuts)}
