@@ -340,48 +340,6 @@ def test_triple_plane_loss_in_native_kernels_matches_float64_autograd(workers):
 
 
 @needs_native
-@pytest.mark.parametrize("all_texels", [False, True])
-def test_triple_plane_loss_on_several_workers_equals_one_worker_and_float64_autograd(all_texels):
-    """Layer 1's kernels share fixed pieces of their outputs among the workers (ranges of P's rows, of the plane
-    gradients' rows with repeated texels and taps adding in row order, of grad_weight's rows): the loss and every
-    gradient with 2 and 3 workers equal 1 worker's, and float64 autograd of the written-out model. More than
-    one piece of P's rows (512 each) in both cases."""
-    import copy
-
-    side = 32 if all_texels else 16
-    model, texels, taps, target = triple_plane_problem(seed=3, side=side, texels_per_group=side * side // 4 if
-                                                       all_texels else 160)
-    if all_texels:  # texels None: every row of the plane, in order
-        texels = None
-    else:
-        assert texels.unique().numel() < texels.numel(), "the problem should repeat texels"
-    reference = copy.deepcopy(model).double()
-    rows = torch.arange(side * side) if texels is None else texels
-    expected = reference_triple_plane_prediction(reference, rows, taps, target.shape[0])
-    expected = expected.sub(target.double()).abs().mean()
-    expected.backward()
-    runs = {}
-    for workers in (1, 2, 3):
-        run = copy.deepcopy(model)
-        angular_planes = torch.cat([run.f_h.reshape(-1, 8), run.f_d.reshape(-1, 8)])
-        loss = fused_mlp.triple_plane_l1_loss(run.f_u.reshape(-1, 16), texels, angular_planes, taps,
-                                              run.decoder.first, run.decoder.rest, 0.01, target, chunk_texels=64,
-                                              workers=workers)
-        assert loss is not None, "the native kernels should take a CPU float32 Triple Plane"
-        loss.backward()
-        runs[workers] = (loss.detach(), [(name, p.grad.clone()) for name, p in run.named_parameters()])
-    one_loss, one_grads = runs[1]
-    for workers in (2, 3):
-        loss, grads = runs[workers]
-        torch.testing.assert_close(loss, one_loss, rtol=1e-5, atol=0)
-        for (name, g), (_, g1) in zip(grads, one_grads):
-            torch.testing.assert_close(g, g1, rtol=1e-5, atol=1e-7 * float(g1.abs().max()), msg=f"{name} {workers}")
-    torch.testing.assert_close(one_loss.double(), expected.detach(), rtol=1e-5, atol=0)
-    for (name, g), (_, q) in zip(one_grads, reference.named_parameters()):
-        torch.testing.assert_close(g.double(), q.grad, rtol=1e-4, atol=1e-5 * float(q.grad.abs().max()), msg=name)
-
-
-@needs_native
 def test_triple_plane_loss_takes_the_native_kernels_in_a_fit_step_and_equals_the_torch_path():
     """TriplePlane.texel_image_l1_loss with taps (what the fit calls) goes through the native kernels, and its
     gradients equal the torch path's (the fetched features and decoder_l1_loss) to float rounding."""

@@ -35,9 +35,7 @@ Two implementations compute the same thing:
   without a C++ compiler, and as the reference the native kernel is tested against.
 
 For a Triple Plane, :func:`triple_plane_l1_loss` also moves the plane fetches and layer 1 into native code
-(``dynbtf_first_layer_forward`` / ``_backward``): the whole decoder and its planes are one autograd node. Those
-two kernels share their work, fixed pieces of their outputs, among the same ``workers`` threads, each element
-computed by one piece in one fixed order, so their results do not depend on ``workers`` at all.
+(``dynbtf_first_layer_forward`` / ``_backward``): the whole decoder and its planes are one autograd node.
 
 Chunks are split across ``workers`` Python threads (torch and the native kernel release the
 GIL) with torch's own intra-op threading disabled for the duration: on a small shared CPU
@@ -179,9 +177,9 @@ def _native_library():
         library.dynbtf_affine_rows_fp32.argtypes = [ctypes.c_int64, ctypes.c_int32, ctypes.c_int32] + \
             [ctypes.c_void_p] * 4
         library.dynbtf_affine_rows_fp32.restype = ctypes.c_int
-        library.dynbtf_first_layer_forward.argtypes = [ctypes.POINTER(_FirstLayerArgs), ctypes.c_void_p]
+        library.dynbtf_first_layer_forward.argtypes = [ctypes.POINTER(_FirstLayerArgs)]
         library.dynbtf_first_layer_forward.restype = ctypes.c_int
-        library.dynbtf_first_layer_backward.argtypes = [ctypes.POINTER(_FirstLayerArgs)] + [ctypes.c_void_p] * 7
+        library.dynbtf_first_layer_backward.argtypes = [ctypes.POINTER(_FirstLayerArgs)] + [ctypes.c_void_p] * 6
         library.dynbtf_first_layer_backward.restype = ctypes.c_int
         library.dynbtf_first_layer_supports.argtypes = [ctypes.c_int32] * 3
         library.dynbtf_first_layer_supports.restype = ctypes.c_int
@@ -444,24 +442,10 @@ class _DecoderL1(torch.autograd.Function):
                 g_first, g_image.sum(0), None, None, None, None, None, *g_params)
 
 
-def _on_workers(fn, workers: int, args, *outputs) -> list[int]:
-    """``fn(args, next_piece, *outputs)`` of a first-layer kernel (``dynbtf_first_layer_forward`` / ``_backward``)
-    on ``workers`` threads, the calling one and ``workers - 1`` of the pool (ctypes releases the GIL during the
-    calls), which take the call's pieces of work from the shared counter ``next_piece``; returns their codes. The
-    pieces are fixed ranges of the outputs, each computed the same way by whichever thread takes it."""
-    next_piece = torch.zeros(1, dtype=torch.int32)
-    counter = ctypes.c_void_p(next_piece.data_ptr())
-    if workers == 1:
-        return [fn(args, counter, *outputs)]
-    futures = [_pool(workers - 1).submit(fn, args, counter, *outputs) for _ in range(workers - 1)]
-    return [fn(args, counter, *outputs)] + [f.result() for f in futures]
-
-
 class _TriplePlaneL1(torch.autograd.Function):
     """The mean L1 loss from the planes themselves (:func:`triple_plane_l1_loss`): the plane fetches and layer 1
     in ``dynbtf_first_layer_forward`` / ``_backward``, layers 2.. in the fused kernel; one autograd node, every
-    gradient computed in the forward pass (the kernels produce them together). Layer 1 runs on ``workers``
-    threads as well (:func:`_on_workers`): its results equal one thread's, bit for bit."""
+    gradient computed in the forward pass (the kernels produce them together)."""
 
     @staticmethod
     def forward(ctx, plane, angular_planes, first_weight, first_bias, texels, tap_index, tap_weight, target, slope,
@@ -486,7 +470,7 @@ class _TriplePlaneL1(torch.autograd.Function):
             tap_index=tap_index.data_ptr(), tap_weight=tap_weight.data_ptr(), positional_pre=positional_pre.data_ptr(),
             angular_features=angular.data_ptr(), image_pre=image_pre.data_ptr())
         library = _native_library()
-        code = max(_on_workers(library.dynbtf_first_layer_forward, workers, ctypes.byref(args)))
+        code = library.dynbtf_first_layer_forward(ctypes.byref(args))
         if code:
             raise InputError("triple_plane_l1_loss: a texel or angular tap index outside its plane" if code == 2
                              else f"triple_plane_l1_loss: sizes the first-layer kernel does not take (code {code})")
@@ -497,12 +481,10 @@ class _TriplePlaneL1(torch.autograd.Function):
                 target.contiguous(), chunk, workers, 1.0 / target.numel(), scale_positional=False)
         g_image = g_image.reshape(images, hidden).contiguous()
         g_first_weight, g_first_bias = torch.empty_like(first_weight), torch.empty_like(first_bias)
-        g_plane, g_angular_planes = torch.empty_like(plane), torch.empty_like(angular_planes)
-        codes = _on_workers(library.dynbtf_first_layer_backward, workers, ctypes.byref(args), g_positional.data_ptr(),
-                            g_image.data_ptr(), g_first_weight.data_ptr(), g_first_bias.data_ptr(), g_plane.data_ptr(),
-                            g_angular_planes.data_ptr())
-        if any(codes):
-            raise RuntimeError(f"native first-layer backward refused its arguments (codes {codes})")
+        g_plane, g_angular_planes = torch.zeros_like(plane), torch.zeros_like(angular_planes)
+        library.dynbtf_first_layer_backward(ctypes.byref(args), g_positional.data_ptr(), g_image.data_ptr(),
+                                            g_first_weight.data_ptr(), g_first_bias.data_ptr(), g_plane.data_ptr(),
+                                            g_angular_planes.data_ptr())
         ctx.save_for_backward(g_plane, g_angular_planes, g_first_weight, g_first_bias, *g_weights, *g_biases)
         return (loss / target.numel()).to(torch.float32)
 

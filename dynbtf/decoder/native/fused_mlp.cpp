@@ -110,9 +110,9 @@ int dynbtf_affine_rows_fp32(int64_t rows, int32_t in, int32_t out, const float* 
 //   dW_U = sum_r dP[r] f_U[texel[r]]^T    dW_A = sum_i dQ[i] a[i]^T    db_1 = sum_i dQ[i]
 //   df_U[texel[r]] += W_U^T dP[r]         df_A[index[i, k]] += weight[i, k] W_A^T dQ[i]
 //
-// with the fp32 register blocks of the fused kernel, in pieces for the caller's threads (below), every sum
-// in one fixed order (repeated texels and taps add up in row order, as torch's index_add_). Small products next
-// to the fused loss's; in torch they were a dozen operators of 50-100 us each. Mirrored by ctypes in
+// with the fp32 register blocks of the fused kernel, on the calling thread, every sum in one fixed order
+// (repeated texels and taps add up in row order, as torch's index_add_). Small products next to the fused
+// loss's; in torch they were a dozen operators of 50-100 us each. Mirrored by ctypes in
 // dynbtf/decoder/fused_mlp.py (triple_plane_l1_loss); keep the field order.
 struct FirstLayerArgs {
     int32_t hidden;           // H
@@ -138,19 +138,12 @@ struct FirstLayerArgs {
 };
 int dynbtf_first_layer_args_size(void);
 int dynbtf_first_layer_supports(int32_t hidden, int32_t positional, int32_t angular);  // 1 if a path exists
-// Several threads may call either with the same arguments: each takes the next piece of the work (fixed ranges of
-// the outputs, see ROW_PIECE below) from the shared counter `next_piece` (zeroed by the caller, one per call)
-// until none is left, so a thread the OS delays does less. Every output element is computed by one piece, its
-// sums in the same order whatever the number of threads: the results do not depend on it. Every call of the
-// forward must return before the backward starts.
-// Forward: P, a, Q. Returns 0, or 1 (sizes without a path), 2 (a texel or tap index of the calling thread's
-// pieces outside its plane).
-int dynbtf_first_layer_forward(const FirstLayerArgs* args, int32_t* next_piece);
-// Backward: grad_weight (H, C_U + C_A), grad_bias (H,), grad_plane (plane_rows, C_U) and grad_angular_planes
-// (angular_rows, plane_channels), all overwritten. Returns 0, 1 or 2 as the forward.
-int dynbtf_first_layer_backward(const FirstLayerArgs* args, int32_t* next_piece,
-                                const float* grad_positional_pre, const float* grad_image_pre, float* grad_weight,
-                                float* grad_bias, float* grad_plane, float* grad_angular_planes);
+// 0, or 1 (sizes without a path), 2 (a texel or tap index outside its plane)
+int dynbtf_first_layer_forward(const FirstLayerArgs* args);
+// grad_weight (H, C_U + C_A), grad_bias (H,) overwritten; grad_plane, grad_angular_planes added to (zero them)
+int dynbtf_first_layer_backward(const FirstLayerArgs* args, const float* grad_positional_pre,
+                                const float* grad_image_pre, float* grad_weight, float* grad_bias, float* grad_plane,
+                                float* grad_angular_planes);
 }
 
 namespace {
@@ -780,14 +773,12 @@ bool first_layer_supported(int hidden, int positional, int angular) {
     return (hidden == 16 || hidden == 32 || hidden == 64) && whole(positional) && whole(angular);
 }
 
-// 0 when the sizes have a path and (with `indices`) every texel and tap index reads inside its plane; else 1
-// (sizes), 2 (index)
-int first_layer_check(const FirstLayerArgs* a, bool indices) {
+// 0 when the sizes have a path and every texel and tap index reads inside its plane; else 1 (sizes), 2 (index)
+int first_layer_check(const FirstLayerArgs* a) {
     if (!first_layer_supported(a->hidden, a->positional, a->angular) || a->plane_channels < 1 || a->taps < 1 ||
-        a->angular % a->plane_channels || a->rows < 0 || a->images < 0 || a->plane_rows < 0 || a->angular_rows < 0 ||
-        a->rows > (int64_t(1) << 24) || a->images > (int64_t(1) << 24))
+        a->angular % a->plane_channels || a->rows < 0 || a->images < 0 || a->rows > (int64_t(1) << 24) ||
+        a->images > (int64_t(1) << 24))
         return 1;
-    if (!indices) return 0;
     if (a->texels) {
         for (int64_t r = 0; r < a->rows; ++r)
             if (a->texels[r] < 0 || a->texels[r] >= a->plane_rows) return 2;
@@ -816,73 +807,33 @@ void rows_times(int64_t rows, int n, const float* x, const float* wt, const floa
     });
 }
 
-// row r of the step's positional features: f_U[texel[r]]
-inline const float* positional_row(const FirstLayerArgs* a, int64_t r) {
-    return a->plane + (a->texels ? a->texels[r] : r) * a->positional;
-}
-
-// The work of a call in pieces, fixed ranges of its outputs that do not depend on the number of threads: the
-// forward's rows of P, ROW_PIECE at a time, then its images (a, Q), IMAGE_PIECE at a time; the backward's
-// grad_angular_planes (one piece), PLANE_PIECES equal ranges of grad_plane's rows, then its rows of grad_weight and
-// grad_bias, WEIGHT_PIECE at a time (the larger pieces first: the threads end closer together).
-constexpr int64_t ROW_PIECE = 512, IMAGE_PIECE = 256;
-constexpr int WEIGHT_PIECE = 8, PLANE_PIECES = 4;
-
-inline int64_t ceil_div(int64_t n, int64_t d) { return (n + d - 1) / d; }
-int64_t forward_pieces(const FirstLayerArgs* a) {
-    return ceil_div(a->rows, ROW_PIECE) + ceil_div(a->images, IMAGE_PIECE);
-}
-int64_t backward_pieces(const FirstLayerArgs* a) {
-    return 1 + PLANE_PIECES + ceil_div(a->hidden, WEIGHT_PIECE);
-}
-
-// body(piece) for the pieces [0, n) this thread takes from the shared counter `next_piece`, until none is left or a
-// piece returns a nonzero code (returned)
-template <class Body>
-int take_pieces(int32_t* next_piece, int64_t n, Body&& body) {
-    for (;;) {
-        const int64_t piece = __atomic_fetch_add(next_piece, 1, __ATOMIC_RELAXED);
-        if (piece >= n) return 0;
-        if (const int code = body(piece)) return code;
-    }
-}
-
-// acc[r][v] += sum over i < n of rows[r][i] * w[i * VW NV + VW v .. + VW]: Fp32::accumulate_rows with one pointer
-// per row (the same sums in the same order)
-template <int NV, int R>
-__attribute__((always_inline)) inline void accumulate_pointed_rows(const float* const* rows, int n, const float* w,
-                                                                   vf (&acc)[R][NV]) {
-    for (int i = 0; i < n; ++i) {
-        vf x[R];
-        for (int r = 0; r < R; ++r) x[r] = splat(rows[r][i]);
-        for (int v = 0; v < NV; ++v) {
-            const vf wv = loadv(w + (i * NV + v) * VW);
-            for (int r = 0; r < R; ++r) acc[r][v] += x[r] * wv;
-        }
-    }
-}
-
-// grad_w[o - o0, :] = sum over s < S of dy[s, o] x_s for o in [o0, o1), in sample order, x_s = row(s) of VW NX
-// floats, dy rows H apart: the output rows in register blocks (Fp32::weight_rows with a row function)
-template <int NX, class Row>
-void weight_rows_range(int64_t S, int H, int o0, int o1, const float* dy, Row&& row, float* grad_w) {
-    in_blocks<block_rows<NX>()>(o1 - o0, [&](auto block, int o) {
+// the gradients of y = x W^T (+ b) below dy (rows, H) for x (rows, VW NX): grad_w (H, VW NX) = dy^T x (overwritten)
+// and grad_x (rows, VW NX) = dy W, W (H, VW NX) row-major and contiguous
+template <int NX>
+void rows_times_backward(int64_t rows, int H, const float* x, const float* dy, const float* w, float* grad_w,
+                         float* grad_x) {
+    const int n = VW * NX;
+    std::fill(grad_w, grad_w + static_cast<int64_t>(H) * n, 0.f);
+    in_blocks<block_rows<NX>()>(H, [&](auto block, int o0) {
+        Fp32::weight_rows<NX, decltype(block)::value>(dy, o0, H, x, static_cast<int>(rows), grad_w);
+    });
+    in_blocks<block_rows<NX>()>(static_cast<int>(rows), [&](auto block, int s) {
         constexpr int RB = decltype(block)::value;
         vf acc[RB][NX];
         for (int r = 0; r < RB; ++r)
             for (int v = 0; v < NX; ++v) acc[r][v] = vf{};
-        for (int64_t s = 0; s < S; ++s) {
-            vf g[RB];
-            for (int r = 0; r < RB; ++r) g[r] = splat(dy[s * H + o0 + o + r]);
-            const float* x = row(s);
-            for (int v = 0; v < NX; ++v) {
-                const vf xv = loadv(x + VW * v);
-                for (int r = 0; r < RB; ++r) acc[r][v] += g[r] * xv;
-            }
-        }
+        Fp32::accumulate_rows<NX, RB>(dy + static_cast<int64_t>(s) * H, H, w, H, acc);
         for (int r = 0; r < RB; ++r)
-            for (int v = 0; v < NX; ++v) storev(grad_w + static_cast<int64_t>(o + r) * VW * NX + VW * v, acc[r][v]);
+            for (int v = 0; v < NX; ++v) storev(grad_x + (static_cast<int64_t>(s) + r) * n + VW * v, acc[r][v]);
     });
+}
+
+// the step's positional rows f_U[texel[r]] as one contiguous (N, C_U) block
+void gather_positional(const FirstLayerArgs* a, std::vector<float>& x) {
+    const int CU = a->positional;
+    x.resize(static_cast<size_t>(a->rows) * CU);
+    for (int64_t r = 0; r < a->rows; ++r)
+        std::memcpy(x.data() + r * CU, a->plane + (a->texels ? a->texels[r] : r) * CU, sizeof(float) * CU);
 }
 
 // the columns [c0, c0 + n) of layer 1's weight: transposed (n, H) for the forward products, or as given (H, n)
@@ -895,36 +846,14 @@ void weight_columns(const FirstLayerArgs* a, int c0, int n, bool transposed, std
                 a->weight[static_cast<int64_t>(h) * in + c0 + c];
 }
 
-// the forward's piece `piece`: P for a range of rows, or a and Q for a range of images (each row's sums do not
-// depend on the ranges); 2 where one of its texel or tap indices is outside its plane
 template <int NH>
-int first_layer_forward(const FirstLayerArgs* a, int64_t piece) {
+void first_layer_forward(const FirstLayerArgs* a) {
     const int CU = a->positional, CA = a->angular, K = a->taps, CP = a->plane_channels, planes = CA / CP;
-    const int H = VW * NH;
-    std::vector<float> wt;
-    const int64_t row_pieces = ceil_div(a->rows, ROW_PIECE);
-    if (piece < row_pieces) {
-        const int64_t r0 = piece * ROW_PIECE, r1 = std::min(a->rows, r0 + ROW_PIECE);
-        for (int64_t r = r0; r < r1; ++r)
-            if (a->texels ? a->texels[r] < 0 || a->texels[r] >= a->plane_rows : r >= a->plane_rows) return 2;
-        weight_columns(a, 0, CU, true, wt);
-        in_blocks<block_rows<NH>()>(static_cast<int>(r1 - r0), [&](auto block, int s) {
-            constexpr int RB = decltype(block)::value;
-            const float* x[RB];
-            for (int r = 0; r < RB; ++r) x[r] = positional_row(a, r0 + s + r);
-            vf acc[RB][NH];
-            for (int r = 0; r < RB; ++r)
-                for (int v = 0; v < NH; ++v) acc[r][v] = vf{};
-            accumulate_pointed_rows<NH, RB>(x, CU, wt.data(), acc);
-            for (int r = 0; r < RB; ++r)
-                for (int v = 0; v < NH; ++v) storev(a->positional_pre + (r0 + s + r) * H + VW * v, acc[r][v]);
-        });
-        return 0;
-    }
-    const int64_t i0 = (piece - row_pieces) * IMAGE_PIECE, i1 = std::min(a->images, i0 + IMAGE_PIECE);
-    for (int64_t j = i0 * planes * K; j < i1 * planes * K; ++j)
-        if (a->tap_index[j] < 0 || a->tap_index[j] >= a->angular_rows) return 2;
-    for (int64_t i = i0; i < i1; ++i)
+    std::vector<float> x, wt;
+    gather_positional(a, x);
+    weight_columns(a, 0, CU, true, wt);
+    rows_times<NH>(a->rows, CU, x.data(), wt.data(), nullptr, a->positional_pre);
+    for (int64_t i = 0; i < a->images; ++i)
         for (int q = 0; q < planes; ++q) {
             const int64_t* idx = a->tap_index + (i * planes + q) * K;
             const float* tw = a->tap_weight + (i * planes + q) * K;
@@ -934,118 +863,50 @@ int first_layer_forward(const FirstLayerArgs* a, int64_t piece) {
                 for (int c = 0; c < CP; ++c) f[c] += tw[k] * a->angular_planes[idx[k] * CP + c];
         }
     weight_columns(a, CU, CA, true, wt);
-    rows_times<NH>(i1 - i0, CA, a->angular_features + i0 * CA, wt.data(), a->bias, a->image_pre + i0 * H);
-    return 0;
+    rows_times<NH>(a->images, CA, a->angular_features, wt.data(), a->bias, a->image_pre);
 }
 
-// The backward's pieces. Each writes its own range of one output, every element's sum in the same order whatever
-// the pieces around it: the rows [h0, h1) of grad_weight and grad_bias (sums over every row and image) ...
 template <int NU, int NA>
-void backward_weight_rows(const FirstLayerArgs* a, int h0, int h1, const float* dP, const float* dQ,
-                          float* grad_weight, float* grad_bias) {
-    const int H = a->hidden, CU = a->positional, CA = a->angular, in = CU + CA;
-    std::vector<float> grad_w_u(static_cast<size_t>(h1 - h0) * CU), grad_w_a(static_cast<size_t>(h1 - h0) * CA);
-    weight_rows_range<NU>(a->rows, H, h0, h1, dP, [&](int64_t r) { return positional_row(a, r); }, grad_w_u.data());
-    weight_rows_range<NA>(a->images, H, h0, h1, dQ, [&](int64_t i) { return a->angular_features + i * CA; },
-                          grad_w_a.data());
-    for (int h = h0; h < h1; ++h) {
-        float* g = grad_weight + static_cast<int64_t>(h) * in;
-        for (int c = 0; c < CU; ++c) g[c] = a->positional_scale * grad_w_u[static_cast<size_t>(h - h0) * CU + c];
-        std::memcpy(g + CU, grad_w_a.data() + static_cast<size_t>(h - h0) * CA, sizeof(float) * CA);
-        grad_bias[h] = 0.f;
-    }
-    for (int64_t i = 0; i < a->images; ++i)
-        for (int h = h0; h < h1; ++h) grad_bias[h] += dQ[i * H + h];
-}
-
-// ... the positional plane's rows [p0, p1): W_U^T dP[r] of the rows whose texel lies there, in row order, in
-// register blocks of such rows (repeated texels add up in row order, as torch's index_add_) ...
-template <int NU>
-void backward_plane_rows(const FirstLayerArgs* a, int64_t p0, int64_t p1, const float* dP, float* grad_plane) {
-    const int H = a->hidden, CU = a->positional;
-    const float scale = a->positional_scale;
-    std::vector<float> w;
-    weight_columns(a, 0, CU, false, w);
-    std::fill(grad_plane + p0 * CU, grad_plane + p1 * CU, 0.f);
-    constexpr int RU = block_rows<NU>();
-    int64_t pending[RU];
-    int n_pending = 0;
-    auto flush = [&](auto block) {
-        constexpr int RB = decltype(block)::value;
-        const float* dy[RB];
-        for (int r = 0; r < RB; ++r) dy[r] = dP + pending[r] * H;
-        vf acc[RB][NU];
-        for (int r = 0; r < RB; ++r)
-            for (int v = 0; v < NU; ++v) acc[r][v] = vf{};
-        accumulate_pointed_rows<NU, RB>(dy, H, w.data(), acc);
-        for (int r = 0; r < RB; ++r) {
-            float* g = grad_plane + (a->texels ? a->texels[pending[r]] : pending[r]) * CU;
-            float grad_x[VW * NU];
-            for (int v = 0; v < NU; ++v) storev(grad_x + VW * v, acc[r][v]);
-            for (int c = 0; c < CU; ++c) g[c] += scale * grad_x[c];
-        }
-    };
-    for (int64_t r = 0; r < a->rows; ++r) {
-        const int64_t t = a->texels ? a->texels[r] : r;
-        if (t < p0 || t >= p1) continue;
-        pending[n_pending++] = r;
-        if (n_pending == RU) { flush(std::integral_constant<int, RU>{}); n_pending = 0; }
-    }
-    for (int r = 0; r < n_pending; ++r) {  // the rest one at a time: the same sums
-        pending[0] = pending[r];
-        flush(std::integral_constant<int, 1>{});
-    }
-}
-
-// ... and the angular planes: weight[i, k] W_A^T dQ[i] of every tap, in image order
-template <int NA>
-void backward_angular_planes(const FirstLayerArgs* a, const float* dQ, float* grad_angular_planes) {
+void first_layer_backward(const FirstLayerArgs* a, const float* dP, const float* dQ, float* grad_weight,
+                          float* grad_bias, float* grad_plane, float* grad_angular_planes) {
     const int H = a->hidden, CU = a->positional, CA = a->angular, K = a->taps, CP = a->plane_channels;
-    const int planes = CA / CP;
-    std::vector<float> w;
+    const int in = CU + CA, planes = CA / CP;
+    std::vector<float> x, w, grad_w_u(static_cast<size_t>(H) * CU), grad_w_a(static_cast<size_t>(H) * CA);
+    std::vector<float> grad_x(static_cast<size_t>(std::max(a->rows * CU, a->images * CA)));
+    gather_positional(a, x);
+    weight_columns(a, 0, CU, false, w);
+    rows_times_backward<NU>(a->rows, H, x.data(), dP, w.data(), grad_w_u.data(), grad_x.data());
+    for (int64_t r = 0; r < a->rows; ++r) {  // in row order: repeated texels add up
+        float* g = grad_plane + (a->texels ? a->texels[r] : r) * CU;
+        for (int c = 0; c < CU; ++c) g[c] += a->positional_scale * grad_x[r * CU + c];
+    }
     weight_columns(a, CU, CA, false, w);
-    std::fill(grad_angular_planes, grad_angular_planes + a->angular_rows * CP, 0.f);
-    in_blocks<block_rows<NA>()>(static_cast<int>(a->images), [&](auto block, int i0) {
-        constexpr int RB = decltype(block)::value;
-        vf acc[RB][NA];
-        for (int r = 0; r < RB; ++r)
-            for (int v = 0; v < NA; ++v) acc[r][v] = vf{};
-        Fp32::accumulate_rows<NA, RB>(dQ + static_cast<int64_t>(i0) * H, H, w.data(), H, acc);
-        float grad_x[RB][VW * NA];
-        for (int r = 0; r < RB; ++r)
-            for (int v = 0; v < NA; ++v) storev(grad_x[r] + VW * v, acc[r][v]);
-        for (int r = 0; r < RB; ++r)
-            for (int q = 0; q < planes; ++q) {
-                const int64_t* idx = a->tap_index + ((static_cast<int64_t>(i0) + r) * planes + q) * K;
-                const float* tw = a->tap_weight + ((static_cast<int64_t>(i0) + r) * planes + q) * K;
-                for (int k = 0; k < K; ++k) {
-                    float* g = grad_angular_planes + idx[k] * CP;
-                    for (int c = 0; c < CP; ++c) g[c] += tw[k] * grad_x[r][q * CP + c];
-                }
+    rows_times_backward<NA>(a->images, H, a->angular_features, dQ, w.data(), grad_w_a.data(), grad_x.data());
+    for (int h = 0; h < H; ++h) grad_bias[h] = 0.f;
+    for (int64_t i = 0; i < a->images; ++i) {
+        for (int h = 0; h < H; ++h) grad_bias[h] += dQ[i * H + h];
+        for (int q = 0; q < planes; ++q) {
+            const int64_t* idx = a->tap_index + (i * planes + q) * K;
+            const float* tw = a->tap_weight + (i * planes + q) * K;
+            for (int k = 0; k < K; ++k) {
+                float* g = grad_angular_planes + idx[k] * CP;
+                for (int c = 0; c < CP; ++c) g[c] += tw[k] * grad_x[i * CA + q * CP + c];
             }
-    });
-}
-
-// the backward's piece `piece` (backward_pieces)
-template <int NU, int NA>
-void first_layer_backward(const FirstLayerArgs* a, int64_t piece, const float* dP, const float* dQ,
-                          float* grad_weight, float* grad_bias, float* grad_plane, float* grad_angular_planes) {
-    if (piece == 0) {
-        backward_angular_planes<NA>(a, dQ, grad_angular_planes);
-    } else if (piece <= PLANE_PIECES) {
-        backward_plane_rows<NU>(a, a->plane_rows * (piece - 1) / PLANE_PIECES, a->plane_rows * piece / PLANE_PIECES,
-                                dP, grad_plane);
-    } else {
-        const int h0 = static_cast<int>(piece - 1 - PLANE_PIECES) * WEIGHT_PIECE;
-        backward_weight_rows<NU, NA>(a, h0, std::min(a->hidden, h0 + WEIGHT_PIECE), dP, dQ, grad_weight, grad_bias);
+        }
+    }
+    for (int h = 0; h < H; ++h) {
+        for (int c = 0; c < CU; ++c)
+            grad_weight[static_cast<int64_t>(h) * in + c] = a->positional_scale * grad_w_u[static_cast<size_t>(h) * CU + c];
+        std::memcpy(grad_weight + static_cast<int64_t>(h) * in + CU, grad_w_a.data() + static_cast<size_t>(h) * CA,
+                    sizeof(float) * CA);
     }
 }
 
 template <int NU>
-void first_layer_backward_u(const FirstLayerArgs* a, int64_t piece, const float* dP, const float* dQ, float* gw,
-                            float* gb, float* gp, float* ga) {
-    if (a->angular == 16) first_layer_backward<NU, 16 / VW>(a, piece, dP, dQ, gw, gb, gp, ga);
-    else first_layer_backward<NU, 32 / VW>(a, piece, dP, dQ, gw, gb, gp, ga);
+void first_layer_backward_u(const FirstLayerArgs* a, const float* dP, const float* dQ, float* gw, float* gb,
+                            float* gp, float* ga) {
+    if (a->angular == 16) first_layer_backward<NU, 16 / VW>(a, dP, dQ, gw, gb, gp, ga);
+    else first_layer_backward<NU, 32 / VW>(a, dP, dQ, gw, gb, gp, ga);
 }
 
 }  // namespace
@@ -1056,29 +917,25 @@ extern "C" int dynbtf_first_layer_supports(int32_t hidden, int32_t positional, i
     return first_layer_supported(hidden, positional, angular) ? 1 : 0;
 }
 
-extern "C" int dynbtf_first_layer_forward(const FirstLayerArgs* a, int32_t* next_piece) {
-    if (const int code = first_layer_check(a, false)) return code;
-    return take_pieces(next_piece, forward_pieces(a), [&](int64_t piece) {
-        switch (a->hidden) {
-            case 16: return first_layer_forward<16 / VW>(a, piece);
-            case 32: return first_layer_forward<32 / VW>(a, piece);
-            default: return first_layer_forward<64 / VW>(a, piece);
-        }
-    });
+extern "C" int dynbtf_first_layer_forward(const FirstLayerArgs* a) {
+    if (const int code = first_layer_check(a)) return code;
+    switch (a->hidden) {
+        case 16: first_layer_forward<16 / VW>(a); break;
+        case 32: first_layer_forward<32 / VW>(a); break;
+        default: first_layer_forward<64 / VW>(a); break;
+    }
+    return 0;
 }
 
-extern "C" int dynbtf_first_layer_backward(const FirstLayerArgs* a, int32_t* next_piece,
-                                           const float* grad_positional_pre, const float* grad_image_pre,
-                                           float* grad_weight, float* grad_bias, float* grad_plane,
-                                           float* grad_angular_planes) {
-    if (const int code = first_layer_check(a, true)) return code;
-    return take_pieces(next_piece, backward_pieces(a), [&](int64_t piece) {
-        if (a->positional == 16)
-            first_layer_backward_u<16 / VW>(a, piece, grad_positional_pre, grad_image_pre, grad_weight, grad_bias,
-                                            grad_plane, grad_angular_planes);
-        else
-            first_layer_backward_u<32 / VW>(a, piece, grad_positional_pre, grad_image_pre, grad_weight, grad_bias,
-                                            grad_plane, grad_angular_planes);
-        return 0;
-    });
+extern "C" int dynbtf_first_layer_backward(const FirstLayerArgs* a, const float* grad_positional_pre,
+                                           const float* grad_image_pre, float* grad_weight, float* grad_bias,
+                                           float* grad_plane, float* grad_angular_planes) {
+    if (const int code = first_layer_check(a)) return code;
+    if (a->positional == 16)
+        first_layer_backward_u<16 / VW>(a, grad_positional_pre, grad_image_pre, grad_weight, grad_bias, grad_plane,
+                                        grad_angular_planes);
+    else
+        first_layer_backward_u<32 / VW>(a, grad_positional_pre, grad_image_pre, grad_weight, grad_bias, grad_plane,
+                                        grad_angular_planes);
+    return 0;
 }
