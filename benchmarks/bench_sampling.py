@@ -27,11 +27,15 @@ the MSE at equal time compares ``MSE x seconds`` (the inverse of the efficiency)
 Run (models from ``dynbtf fit``; small sizes so that it finishes in minutes on 2 cores)::
 
     python benchmarks/bench_sampling.py wood.dbtfm leather.dbtfm stone.dbtfm --size 64 --spp 16
+
+The rows are written to ``--json`` (default ``benchmarks/results/sampling.json``; docs/results.md's sampling table
+and its Speed row are generated from it).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -72,6 +76,7 @@ def main() -> None:
     parser.add_argument("--mix", type=float, default=0.75, help="sampling_weight of the mixture")
     parser.add_argument("--scale", type=float, default=6.0, help="exemplar repeats around the sphere")
     parser.add_argument("--max-depth", type=int, default=3, help="path length (2: direct light only, 3: one bounce)")
+    parser.add_argument("--json", type=Path, default=Path(__file__).resolve().parent / "results" / "sampling.json")
     args = parser.parse_args()
 
     from dynbtf.jit import mi_module
@@ -130,6 +135,17 @@ def main() -> None:
     for name, lighting, m_c, m_m, t_c, t_m in rows:
         print(f"| {name} | {lighting} | {m_c:.3e} | {m_m:.3e} | **{m_c / m_m:.2f}x** | {t_c:.3f} / {t_m:.3f} | "
               f"**{m_c * t_c / (m_m * t_m):.2f}x** | {auto[name]} |")
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from results_io import header, write_result
+
+    records = [{"model": name.replace("_", " "), **({"note": "glossy"} if auto[name] == "mixture" else {}),
+                "lighting": lighting, "mse_cosine": m_c, "mse_mixture": m_m, "equal_spp_ratio": m_c / m_m,
+                "seconds_cosine": t_c, "seconds_mixture": t_m, "equal_time_ratio": m_c * t_c / (m_m * t_m),
+                "auto": auto[name]} for name, lighting, m_c, m_m, t_c, t_m in rows]
+    conditions = (f"the sphere scene (path, depth {args.max_depth}), hist, {args.size} x {args.size} px; MSE over the "
+                  f"sphere's pixels of {args.spp}-spp renders (mean of {args.seeds} seeds) against {args.ref_spp} spp; "
+                  f"seconds per render the median of {args.repeats}, interleaved; equal time compares MSE x seconds")
+    write_result(args.json, header("sampling", "bench_sampling.py") | {"conditions": conditions, "rows": records})
 
 
 if __name__ == "__main__":

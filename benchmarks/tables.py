@@ -291,8 +291,49 @@ def _speed_compiled_material(row: dict, data: dict) -> tuple[str, str, str]:
     return what, result, f"at most {row['target_seconds']:g} s ({'met' if v['wall_seconds'] <= row['target_seconds'] else 'missed'})"
 
 
+def _speed_demo(row: dict, data: dict) -> tuple[str, str, str]:
+    what = f"`dynbtf demo` with defaults (`{data['command']}`: {data['conditions']})"
+    parts, met = [], True
+    for r in data["rows"]:
+        minutes = r["total_seconds"] / 60
+        met = met and minutes <= row["target_minutes"]
+        stages = ", ".join(f"{name} {r['stages'][name] / 60:.1f}" for name in ("fit", "synthesis", "structured",
+                                                                              "render"))
+        parts.append(f"{r['isa']}{' (forced)' if r['forced'] else ''}: **{minutes:.1f} min** ({stages}); held-out "
+                     f"PSNR {r['held_out_psnr']:.2f} dB")
+    return what, "; ".join(parts), f"at most {row['target_minutes']:g} min ({'met' if met else 'missed'})"
+
+
+def _speed_simulator(row: dict, data: dict) -> tuple[str, str, str]:
+    seconds = [r["seconds"] for r in data["rows"]]
+    what = (f"simulating a {data['size']} x {data['size']} material, {data['grid'].upper()} grid "
+            f"(`{data['command']}`, {len(seconds)} materials)")
+    met = max(seconds) <= row["target_seconds"]
+    return what, f"{_span(seconds, '.1f')} s", f"well under a minute ({'met' if met else 'missed'})"
+
+
+def _speed_sampling(row: dict, data: dict) -> tuple[str, str, str]:
+    what = f"importance sampling vs cosine sampling (`{data['command']}`: {data['conditions']})"
+    glossy = [r for r in data["rows"] if r["auto"] == "mixture"]
+    rough = [r for r in data["rows"] if r["auto"] != "mixture"]
+    parts = [f"{r['model']}, {r['lighting']}: **{r['equal_spp_ratio']:.1f}x** lower MSE at equal spp "
+             f"({r['equal_time_ratio']:.1f}x at equal time)" for r in glossy]
+    if rough:
+        names = ", ".join(dict.fromkeys(r["model"] for r in rough))
+        parts.append(f"{names}: {_span([r['equal_spp_ratio'] for r in rough], '.2f')}x at equal spp, "
+                     f"{_span([r['equal_time_ratio'] for r in rough], '.2f')}x at equal time")
+    # what the plugin's default picks is cosine where auto says so (ratio 1 by definition), else the mixture
+    picked = [r["equal_time_ratio"] if r["auto"] == "mixture" else 1.0 for r in data["rows"]]
+    glossy_met = bool(glossy) and all(r["equal_spp_ratio"] >= row["target_equal_spp"] for r in glossy)
+    target = (f"{row['target_equal_spp']:g}x at equal spp on the glossy material ({'met' if glossy_met else 'missed'}); "
+              f"the default `auto` never more than 5% worse than cosine at equal time "
+              f"({'met' if min(picked) >= 0.95 else 'missed'})")
+    return what, "; ".join(parts), target
+
+
 _SPEED_FROM = {"training": _speed_training, "evaluation": _speed_evaluation, "rendering": _speed_rendering,
-               "web": _speed_web, "compiled_material": _speed_compiled_material}
+               "web": _speed_web, "compiled_material": _speed_compiled_material, "demo": _speed_demo,
+               "simulator": _speed_simulator, "sampling": _speed_sampling}
 
 
 def speed(data: dict) -> str:
@@ -443,7 +484,23 @@ def _transposed(points: list[dict], *rows: tuple) -> str:
 
 
 #: Measured rows whose result comes from a benchmark's data (``"from"``: the data file, rendered by the function).
-_MEASURED_FROM = {"structured": "structured_summary"}
+_MEASURED_FROM = {"structured": "structured_summary", "demo": "demo_summary", "sampling": "sampling_summary"}
+
+
+def demo_summary(data: dict) -> str:
+    """README.md's Measured line of bench_demo.py: the demo's minutes per level and its report's held-out PSNR."""
+    parts = [f"{r['total_seconds'] / 60:.1f} min on the {r['isa']} path{' (forced)' if r['forced'] else ''}"
+             for r in data["rows"]]
+    psnr = _span([r["held_out_psnr"] for r in data["rows"]], ".2f")
+    return f"{', '.join(parts)}, {data['conditions'].split(';')[0]}; the report's model at {psnr} dB held-out PSNR"
+
+
+def sampling_summary(data: dict) -> str:
+    """README.md's Measured line of bench_sampling.py: the glossy model's MSE ratios, and what auto does elsewhere."""
+    glossy = [r for r in data["rows"] if r["auto"] == "mixture"]
+    parts = [f"{r['model']} {r['equal_spp_ratio']:.1f}x lower MSE under the {r['lighting']} light" for r in glossy]
+    return ("; ".join(parts) + "; the default (`auto`) samples rough materials cosine-weighted, where the table gains "
+            "nothing")
 
 
 def measured(data: dict) -> str:
