@@ -23,6 +23,7 @@ from typing import Any, Callable
 from ... import jit
 from ...errors import InputError
 from ...synthesis.auto import AUTO
+from ...synthesis.elements import MAX_VARIATION
 from ...synthesis.registry import methods_with, takes_parameter
 from .evaluator import DynBTFEvaluator, check_renderable
 from .sampling import AUTO_MIN_COSINE_VARIANCE, DEFAULT_TABLE_WEIGHT, SAMPLING_MODES
@@ -191,8 +192,8 @@ def _at_least(low: int):
     return number_check(lambda v: v >= low, f"at least {low}")
 
 
-_variation = number_check(lambda v: math.isfinite(v) and 0.0 <= v <= 1.0,
-                          "the standard deviation of a log gain in [0, 1] (0: off)")
+_variation = number_check(lambda v: math.isfinite(v) and 0.0 <= v <= MAX_VARIATION,
+                          f"the standard deviation of a log gain in [0, {MAX_VARIATION:g}] (0: off)")
 
 
 #: The plugin's parameters, in the order the constructor reads them and the references list them.

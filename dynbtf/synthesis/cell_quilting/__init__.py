@@ -108,7 +108,7 @@ class CellTables:
         Wall time of the construction.
     element_grid : float64 ``(6,)`` or None
         The elements' rows, columns, row shift and placement, and ``joints``, int8 ``(H, W)``, 1 on the joints
-        (:func:`~dynbtf.synthesis.elements.element_grid` of the offsets and the copies' spread): what the
+        (:func:`~dynbtf.synthesis.elements.element_grid` of the offsets and the exemplar's appearance): what the
         per-element variation reads. None in materials compiled before elements were tabulated.
     """
 
@@ -334,9 +334,8 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
     if guide is not None:
         z = np.concatenate([z, _standardized(guide)], -1)
 
-    spread = copy_spread(z, chosen)
+    spread = SPREAD_WEIGHT * copy_spread(z, chosen)
     grid, joints = element_grid(chosen, z)
-    spread = SPREAD_WEIGHT * spread
 
     def band_errors(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Seam costs ``(K, K, len(rows), len(cols))`` of every two copies over a band: their squared difference
