@@ -72,6 +72,7 @@ __all__ = [
     "angular_plane_coords_to_direction",
     "texel_centers_uv",
     "check_directions",
+    "turn_about_normal",
     "HORIZON_EPS",
 ]
 
@@ -154,6 +155,21 @@ def _rotate_z(v, cos_a, sin_a):
     """Rotate vectors ``v`` (..., 3) about z by angle a (given as cos, sin)."""
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
     return _stack([cos_a * x - sin_a * y, sin_a * x + cos_a * y, z], v)
+
+
+def turn_about_normal(w, angle):
+    """Directions ``w (..., 3)`` turned about the normal (z) by ``angle (...)`` radians, counter-clockwise seen from
+    above: ``(x cos a - y sin a, x sin a + y cos a, z)``, in ``w``'s dtype (the angle's sine and cosine in its own).
+
+    >>> import numpy as np
+    >>> np.round(turn_about_normal(np.array([1.0, 0.0, 0.5]), np.pi / 2), 6).tolist()
+    [0.0, 1.0, 0.5]
+    """
+    xp = _xp(w)
+    cos_a, sin_a = xp.cos(angle), xp.sin(angle)
+    if _is_torch(w):
+        cos_a, sin_a = cos_a.to(w.dtype), sin_a.to(w.dtype)
+    return _rotate_z(w, cos_a, sin_a)
 
 
 def _rotate_y(v, cos_a, sin_a):

@@ -79,7 +79,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .conventions import check_directions, spherical_to_direction
+from .conventions import check_directions, spherical_to_direction, turn_about_normal
 from .decoder.folded import DecodePath, FoldedDecoder
 from .errors import InputError, positive_number
 from .synthesis.base import check_footprint, check_uv
@@ -371,6 +371,10 @@ class SynthesizedBTF:
         if self.relief:  # fetch at the visible point of the synthesized height field
             points = self.model.visible_uv(points, wv, self.synthesizer)
         texels = None if footprint is None else footprint * self.texels_per_uv()
+        frame = self.synthesizer.frame_rotation(points)  # turned samples: the directions into their frame
+        if frame is not None:
+            frame = frame.to(wv.device)
+            wv, wl = turn_about_normal(wv, frame), turn_about_normal(wl, frame)
         rgb = self._decoded(points, wv, wl, texels, latent)
         gain = self.synthesizer.variation_gain(points, texels)  # the method's variation controls, if on
         return rgb if gain is None else rgb * gain.to(rgb.device)

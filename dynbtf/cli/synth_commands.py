@@ -150,6 +150,8 @@ def synth(
     cells: Optional[int] = guidance_options.CELLS,
     brightness: float = guidance_options.BRIGHTNESS,
     tint: float = guidance_options.TINT,
+    rotation: float = guidance_options.ROTATION,
+    scale_jitter: float = guidance_options.SCALE_JITTER,
     memory_mb: Optional[float] = typer.Option(None, "--memory-mb", help="Limit (MB) of the image's estimated "
                                                                         f"working memory (~{BYTES_PER_PIXEL} bytes "
                                                                         "per pixel); default half of this machine's "
@@ -183,11 +185,12 @@ def synth(
     guidance = _guidance(target, method, layer, report, output, target_size, target_wrap, classes, softness, cells)
     if cells is not None and method != "struct":
         raise InputError(f"--cells: sets struct's cells; give it with --method struct, not {method!r}")
-    variation = _variation(brightness, tint, method, guidance, layer)
+    variation = _variation({"brightness": brightness, "tint": tint, "rotation": rotation, "scale_jitter": scale_jitter},
+                           method, guidance, layer)
     rep, material = open_model_file(model, device=where)
     if variation and material is not None:
-        raise InputError(f"--brightness, --tint: {model} is a compiled material, which fixes its method's "
-                         "parameters; compile it with them, or give the model file (.dbtfm)")
+        raise InputError(f"{', '.join(_flag(name) for name in variation)}: {model} is a compiled material, which fixes "
+                         "its method's parameters; compile it with them, or give the model file (.dbtfm)")
     if guidance is not None:
         if material is not None:
             raise InputError(f"--target: {model} is a compiled material, which fixes its method; guide the model "
@@ -286,15 +289,31 @@ def _check_outputs(output: Path | None, report: bool, report_json: Path | None) 
         check_writable(_report_path(output, report_json), "--report-json")
 
 
-def _variation(brightness: float, tint: float, method: str, guidance, layer) -> dict[str, float]:
-    """struct's per-element variation parameters that were given (``{}``: none), checked: one-line errors."""
-    from ..synthesis.elements import check_variation
+_WHAT = {"brightness": "per-element variation", "tint": "per-element variation", "rotation": "turning the samples",
+         "scale_jitter": "scaling the samples"}
 
-    given = {name: check_variation(f"--{name}", value) for name, value in (("brightness", brightness), ("tint", tint))}
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _variation(values: dict[str, float], method: str, guidance, layer) -> dict[str, float]:
+    """The variation parameters that were given (``{}``: none; struct's ``brightness``, ``tint``; lattice
+    blending's ``rotation``, ``scale_jitter``), checked: one-line errors, naming the methods that take each."""
+    from ..synthesis.elements import check_variation
+    from ..synthesis.registry import methods_with, takes_parameter
+    from ..synthesis.sample_transform import check_rotation, check_scale_jitter
+
+    checks = {"brightness": check_variation, "tint": check_variation, "rotation": check_rotation,
+              "scale_jitter": check_scale_jitter}
+    given = {name: checks[name](_flag(name), value) for name, value in values.items()}
     given = {name: value for name, value in given.items() if value}
-    if given and (method != "struct" or guidance is not None or layer is not None):
-        raise InputError(f"--{next(iter(given))}: per-element variation is struct's; give it with --method struct "
-                         f"(without --target or --layer), not {method!r}")
+    for name in given:
+        if not takes_parameter(method, name) or guidance is not None or layer is not None:
+            having = [m for m in methods_with() if takes_parameter(m, name)]
+            whose = f"{having[0]}'s" if len(having) == 1 else f"for {', '.join(having)}"
+            raise InputError(f"{_flag(name)}: {_WHAT[name]} is {whose}; give it with --method {having[0]} (without "
+                             f"--target or --layer), not {method!r}")
     return given
 
 
@@ -312,7 +331,7 @@ def _build(rep, name: str, *, scale: float, seed: int | None, quilt_size: int | 
         params["gamma"] = gamma  # auto: used if it chooses hist
     if name == "struct" and cells is not None and not compiled:
         params["cells"] = int(cells)
-    if name == "struct" and not compiled:
+    if not compiled:
         params.update(variation or {})
     btf = synthesized_btf(rep, name, scale=scale, seed=(rep.seed if compiled else 0) if seed is None else seed,
                           footprints=footprints, **params)

@@ -208,6 +208,13 @@ class Synthesizer(abc.ABC):
         variation controls (``struct``'s per-element brightness and tint). None unless a method has them on."""
         return None
 
+    def frame_rotation(self, points: torch.Tensor) -> torch.Tensor | None:
+        """The angle ``(N,)`` float64 (radians, about the normal) by which the view and the light are turned into
+        the frame of the content synthesized at ``points (N, 2)`` (exemplar repeats), or None: the method's samples
+        keep the exemplar's orientation (lattice blending's ``rotation``, :mod:`~dynbtf.synthesis.sample_transform`,
+        turns them)."""
+        return None
+
     @classmethod
     def backend_module(cls, backend: str):
         """The module that gives this method a ``backend`` form (its :attr:`backends` entry, imported), or None.

@@ -20,12 +20,13 @@ from numba.extending import intrinsic
 
 from .hash import SECOND_STREAM, MASK32, fold_coordinate, hash_vertex, mix32, seed_state
 from .lattice import LATTICE_SCALE_HI, LATTICE_SCALE_LO, LATTICE_SCALE, large_scaled_integer
+from .sample_transform import displacement, vertex_transform
 
 __all__ = ["jit_with", "mulmod32_native", "jit_mix32", "jit_seed_state", "jit_fold_coordinate", "jit_hash_vertex",
            "jit_large_scaled_integer", "prefetch", "SMALL_REPEAT", "small_scaled_integer", "scaled_integer", "wrap",
            "modulo", "sample_texels", "POWER_BITS", "int_power", "gain", "split_repeat", "lattice_cell_of",
            "lattice_cell", "vertex_hashes", "barycentrics", "lattice_hashes", "vertex", "CACHE_LINE", "cache_aligned",
-           "bilinear_periodic"]
+           "bilinear_periodic", "jit_vertex_transform", "sample_displacement"]
 
 
 def jit_with(fn, **globals_):
@@ -44,6 +45,8 @@ jit_seed_state = jit_with(seed_state, mix32=jit_mix32)
 jit_fold_coordinate = jit_with(fold_coordinate, mix32=jit_mix32)
 jit_hash_vertex = jit_with(hash_vertex, fold_coordinate=jit_fold_coordinate, seed_state=jit_seed_state)
 jit_large_scaled_integer = jit_with(large_scaled_integer, _floor=math.floor, _to_float64=np.float64, _to_int64=np.int64)
+jit_vertex_transform = jit_with(vertex_transform, mix32=jit_mix32, _to_float64=np.float64, _exp=math.exp)
+jit_displacement = jit_with(displacement)
 
 
 @intrinsic
@@ -226,6 +229,23 @@ def vertex(k, base_x, base_y, lower):
     if lower:  # b, b + (0, 1), b + (1, 0)
         return base_x + (1 if k == 2 else 0), base_y + (1 if k == 1 else 0)
     return base_x + (0 if k == 2 else 1), base_y + (0 if k == 1 else 1)  # b + (1, 1), b + (1, 0), b + (0, 1)
+
+
+@numba.njit(inline="always")
+def sample_displacement(k, b0, b1, b2, lower, h, density_w, density_h, max_angle, log_scale):
+    """How far (texels, ``(ex, ey)`` float64) sample ``k`` (order of :func:`vertex_hashes`, hash ``h``) of a query with
+    barycentrics ``b0, b1, b2`` moves when turned and scaled about its vertex: the scalar twin of
+    :func:`dynbtf.synthesis.sample_transform.lattice_displacements` and ``displacement``."""
+    kx, ky = vertex(k, 0, 0, lower)
+    x0, y0 = vertex(0, 0, 0, lower)
+    x1, y1 = vertex(1, 0, 0, lower)
+    x2, y2 = vertex(2, 0, 0, lower)
+    lx = b0 * np.float64(x0 - kx) + b1 * np.float64(x1 - kx) + b2 * np.float64(x2 - kx)
+    ly = b0 * np.float64(y0 - ky) + b1 * np.float64(y1 - ky) + b2 * np.float64(y2 - ky)
+    dx = (lx + 0.5 * ly) / LATTICE_SCALE * density_w
+    dy = 0.25 * ly * density_h
+    angle, scale = jit_vertex_transform(h, max_angle, log_scale)
+    return jit_displacement(dx, dy, scale * math.cos(angle), scale * math.sin(angle))
 
 
 #: Bytes of a cache line (x86-64 and ARM64 alike).

@@ -13,6 +13,7 @@ from ...errors import InputError
 from ...jit.llvm import check_llvm
 from ...limits import check_count, check_memory, check_scale
 from ...synthesis.elements import check_variation
+from ...synthesis.sample_transform import check_rotation, check_scale_jitter
 from .bsdf import DEFAULT_METHOD, METHODS, check_cells, check_variation_method, load_plugin_model, register_plugin
 from .sampling import SAMPLING_MODES
 from .scenes import LIGHTINGS, SCENES, bsdf_dict, scene_dict
@@ -106,7 +107,8 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
                  filtered: bool = True, echo=None, memory_mb: float | None = None, layer=None, mask=None,
                  width: float = 0.05, softness: float = 0.0, target=None, classes: int = 2,
                  target_size: float = 1.0, target_wrap: str = "repeat", target_softness: float = 0.0,
-                 cells: int = 0, brightness: float = 0.0, tint: float = 0.0) -> RenderResult:
+                 cells: int = 0, brightness: float = 0.0, tint: float = 0.0, rotation: float = 0.0,
+                 scale_jitter: float = 0.0) -> RenderResult:
     """Path-trace ``scene`` covered by the synthesized BTF of ``model_path``.
 
     Every argument is checked before Mitsuba loads anything, so a mistake raises
@@ -176,6 +178,9 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
         ``struct``'s cells per repeat along each side (the plugin's ``cells``; 0: its own choice).
     brightness, tint : float
         ``struct``'s per-element variation (the plugin's ``brightness`` and ``tint``; 0: off).
+    rotation, scale_jitter : float
+        Lattice blending's sample rotation (largest angle, degrees) and scale jitter (the plugin's parameters of the
+        same names; :mod:`dynbtf.synthesis.sample_transform`; 0: off).
 
     Returns
     -------
@@ -192,10 +197,12 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     if int(cells) != cells or cells < 0:
         raise InputError(f"--cells: the cells per repeat, a positive integer (0: the method's own), got {cells}")
     check_cells(int(cells), method, "--cells")
-    for name, value in (("--brightness", brightness), ("--tint", tint)):
-        check_variation(name, value)
+    variation = {"brightness": check_variation("--brightness", brightness), "tint": check_variation("--tint", tint),
+                 "rotation": check_rotation("--rotation", rotation),
+                 "scale_jitter": check_scale_jitter("--scale-jitter", scale_jitter)}
+    for name, value in variation.items():
         if value and method != "auto":  # (auto's choice is checked by the plugin, once resolved)
-            check_variation_method(method, name)
+            check_variation_method(method, "--" + name.replace("_", "-"), name)
     from ...material import CompiledMaterial
 
     paths = [model_path] if layer is None else [model_path, layer]
@@ -232,7 +239,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     if cells:
         for m in materials:
             m["cells"] = int(cells)
-    for name, value in (("brightness", brightness), ("tint", tint)):
+    for name, value in variation.items():
         if value:
             for m in materials:
                 m[name] = float(value)

@@ -24,6 +24,7 @@ i.e. when :func:`~dynbtf.synthesis.tileable.seam_discontinuity` exceeds
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -36,7 +37,10 @@ from ...texture import fetch_wrap
 from ..base import Synthesizer, feature_bound, register_synthesizer, wrapped_texel_position
 from ..hash import vertex_offsets
 from ..lattice import split_uv, triangle_lattice
+from ..hash import hash_vertex
 from ..mip import LevelOfDetail, area_pyramid, level_shapes
+from ..sample_transform import (check_rotation, check_scale_jitter, displacement, frame_angle, lattice_displacements,
+                                vertex_transform)
 from ..tileable import make_tileable, seam_discontinuity
 
 __all__ = ["LatticeBlending", "LinearBlending", "LatticePlane", "SEAM_THRESHOLD"]
@@ -98,6 +102,13 @@ class LatticeBlending(Synthesizer):
     prepared : LatticePlane, optional
         The ``prepared`` attribute of an earlier synthesizer of the same method
         and exemplar: skips the precomputation.
+    rotation : float, default 0
+        Largest angle (degrees, at most 180) by which each vertex's sample is turned about the vertex, drawn from
+        its hash; the view and the light are turned into the query's frame
+        (:mod:`~dynbtf.synthesis.sample_transform`). For isotropic materials. 0: off.
+    scale_jitter : float, default 0
+        Each vertex's sample scaled by a factor drawn log-uniformly in ``[1 / (1 + j), 1 + j]`` (``j`` at most
+        1). 0: off.
     """
 
     backends = {"web": f"{__name__}.web"}
@@ -105,8 +116,10 @@ class LatticeBlending(Synthesizer):
     mode: ClassVar[int]
 
     def __init__(self, exemplar, seed: int = 0, *, tileable="auto", band: int | None = None, fast: bool | None = None,
-                 prepared: LatticePlane | None = None) -> None:
+                 prepared: LatticePlane | None = None, rotation: float = 0.0, scale_jitter: float = 0.0) -> None:
         super().__init__(exemplar, seed)
+        self.rotation = check_rotation("rotation", rotation)
+        self.scale_jitter = check_scale_jitter("scale_jitter", scale_jitter)
         self.tileable_option = tileable
         self.band = band
         self.fast = self.device.type == "cpu" if fast is None else bool(fast)
@@ -141,8 +154,15 @@ class LatticeBlending(Synthesizer):
         return (barycentrics.to(samples.dtype)[..., None] * samples).sum(-2)
 
     def kernel_arguments(self) -> dict[str, Any]:
-        """Keyword arguments of :func:`dynbtf.synthesis.blending.kernel.lattice_blend` besides uv/plane/density/seed."""
+        """Keyword arguments of :func:`dynbtf.synthesis.blending.kernel.lattice_blend` besides uv/plane/density/seed
+        and the samples' transform."""
         return {}
+
+    def frame_weights(self, barycentrics: torch.Tensor) -> torch.Tensor:
+        """The lattice weights ``(N, 3)`` of the samples, from ``barycentrics (N, 3)`` float64, that set a query's
+        frame angle (:func:`~dynbtf.synthesis.sample_transform.frame_angle`): the barycentrics here; a method with
+        sharper weights gives them."""
+        return barycentrics
 
     def filter_tables(self, levels: list[torch.Tensor]) -> dict[str, Any]:
         """Method-specific per-level tables of the footprint query, built once from the read plane's pyramid."""
@@ -153,6 +173,27 @@ class LatticeBlending(Synthesizer):
     def density(self) -> tuple[int, int]:
         """Texels per repeat ``(W, H)`` of the original exemplar."""
         return int(self.exemplar.shape[1]), int(self.exemplar.shape[0])
+
+    @property
+    def transformed(self) -> bool:
+        """Whether the samples are turned or scaled (``rotation`` or ``scale_jitter`` on)."""
+        return self.rotation > 0.0 or self.scale_jitter > 0.0
+
+    def transform_arguments(self) -> tuple[float, float]:
+        """``(max_angle, log_scale)`` of :func:`~dynbtf.synthesis.sample_transform.vertex_transform`: radians and
+        ``log(1 + scale_jitter)``."""
+        return math.radians(self.rotation), math.log1p(self.scale_jitter)
+
+    def _vertex_transforms(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Angle and scale ``(N, 3)`` float64 of the samples of lattice ``vertices (N, 3, 2)``."""
+        return vertex_transform(hash_vertex(vertices[..., 0], vertices[..., 1], self.seed), *self.transform_arguments())
+
+    def frame_rotation(self, points: torch.Tensor) -> torch.Tensor | None:
+        if self.rotation == 0.0:
+            return None
+        vertices, bary = triangle_lattice(points)
+        angles, _ = self._vertex_transforms(vertices)
+        return frame_angle(angles, self.frame_weights(bary))
 
     def sample_positions(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Read positions and barycentrics of the three samples of each query.
@@ -167,6 +208,11 @@ class LatticeBlending(Synthesizer):
         dw, dh = self.density
         x = wrapped_texel_position(whole[:, 0], frac[:, 0], dw, pw)[:, None] + ox
         y = wrapped_texel_position(whole[:, 1], frac[:, 1], dh, ph)[:, None] + oy
+        if self.transformed:  # each sample turned and scaled about its vertex
+            angle, scale = self._vertex_transforms(vertices)
+            dx, dy = lattice_displacements(vertices, bary, (dw, dh))
+            ex, ey = displacement(dx, dy, scale * torch.cos(angle), scale * torch.sin(angle))
+            x, y = x + ex, y + ey
         return torch.stack([torch.remainder(x, pw) / pw, torch.remainder(y, ph) / ph], dim=-1), bary
 
     def reference_latent(self, uv: torch.Tensor) -> torch.Tensor:
@@ -191,7 +237,8 @@ class LatticeBlending(Synthesizer):
         kwargs = {k: (self._numpy(k, v) if isinstance(v, torch.Tensor) else v)
                   for k, v in self.kernel_arguments().items()}
         result = lattice_blend(uv.detach().cpu().numpy(), self._numpy("plane", self.prepared.plane), self.density,
-                               self.seed, self.mode, out=out, guidance=self.kernel_guidance(uv), **kwargs)
+                               self.seed, self.mode, out=out, guidance=self.kernel_guidance(uv),
+                               transform=self.transform_arguments(), **kwargs)
         return torch.from_numpy(result)
 
     def kernel_guidance(self, uv: torch.Tensor) -> tuple | None:
@@ -213,7 +260,8 @@ class LatticeBlending(Synthesizer):
                   for k, v in self.kernel_arguments().items()}
         plane = self._numpy(f"plane[{key}]", self.prepared.plane[..., rows])
         return torch.from_numpy(lattice_blend(uv.detach().cpu().numpy(), plane, self.density, self.seed, self.mode,
-                                              guidance=self.kernel_guidance(uv), **kwargs))
+                                              guidance=self.kernel_guidance(uv), transform=self.transform_arguments(),
+                                              **kwargs))
 
     # ------------------------------------------------------------ footprint queries
     def pyramid(self) -> dict[str, Any]:
@@ -252,7 +300,8 @@ class LatticeBlending(Synthesizer):
         if "luts" in pyr:
             kwargs["luts"] = pyr["luts_numpy"]
         result = filtered_lattice_blend(uv.detach().cpu().numpy(), level, upper, pyr["packed"], self.density,
-                                        self.seed, self.mode, guidance=self.kernel_guidance(uv), **kwargs)
+                                        self.seed, self.mode, guidance=self.kernel_guidance(uv),
+                                        transform=self.transform_arguments(), **kwargs)
         return torch.from_numpy(result)
 
     def _reference_filtered_latent(self, uv, pyr, level, upper) -> torch.Tensor:
@@ -347,7 +396,8 @@ class LatticeBlending(Synthesizer):
         return {}
 
     def parameters(self) -> dict[str, Any]:
-        return {"tileable": self.prepared.tileable, "band": self.band, "fast": self.fast,
+        return {"tileable": self.prepared.tileable, "band": self.band, "fast": self.fast, "rotation": self.rotation,
+                "scale_jitter": self.scale_jitter,
                 "seam_before": round(self.prepared.seam_before, 4), "seam_after": round(self.prepared.seam_after, 4)}
 
     def storage_bytes(self) -> int:

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from ...device import to_host
+from ...errors import InputError
 from ..web_form import WebForm
 
 MODE = 1
@@ -24,6 +25,15 @@ def cost(groups: int) -> tuple[int, int]:
     return 0, 0
 
 
+def check_untransformed(synthesizer) -> None:
+    """The web shader reads the samples unturned and unscaled: a lattice blend with ``rotation`` or ``scale_jitter``
+    is refused (one-line error)."""
+    if synthesizer.transformed:
+        raise InputError("export: the web viewer does not turn or scale lattice blending's samples (rotation "
+                         f"{synthesizer.rotation:g}, scale_jitter {synthesizer.scale_jitter:g}); export with both 0")
+
+
 def form(synthesizer) -> WebForm:
     """The read plane (after tileable preprocessing)."""
+    check_untransformed(synthesizer)
     return WebForm(to_host(synthesizer.prepared.plane))

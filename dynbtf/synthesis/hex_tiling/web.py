@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from ...device import to_host
+from ..blending.web import check_untransformed
 from ..web_form import WebForm, WebTable
 
 MODE = 3
@@ -53,6 +54,7 @@ def cost(groups: int) -> tuple[int, int]:
 
 def form(synthesizer) -> WebForm:
     """The read plane, the luminance plane (``luminance``) and ``beta``, ``gain_k``."""
+    check_untransformed(synthesizer)
     kernel = synthesizer.kernel_arguments()
     return WebForm(to_host(synthesizer.prepared.plane), {"luminance": WebTable("single", to_host(kernel["luminance"]))},
                    {"beta": float(kernel["beta"]), "gain_k": float(kernel["gain_k"])})
