@@ -687,7 +687,7 @@ def test_parameter_table_is_the_documented_one():
         assert f"   * - ``{parameter.name}``\n     - {parameter.type}\n" in PLUGIN_DOC
     assert [p.name for p in PARAMETERS] == ["filename", "method", "scale", "scale_v", "seed", "sampling",
                                             "sampling_weight", "cells", "brightness", "tint", "rotation",
-                                            "scale_jitter", "target", "classes",
+                                            "target", "classes",
                                             "target_size",
                                             "target_wrap",
                                             "softness", "filtered", "ray_cone_angle"]
@@ -870,24 +870,24 @@ def test_plugin_struct_variation_matches_synthesized_btf(variant, structured_fil
 
 
 def test_plugin_sample_rotation_matches_synthesized_btf(variant, model_file):
-    """hist with turned and scaled samples in the plugin = ``synthesized_btf(model, "hist", rotation=...,
-    scale_jitter=...).eval`` to float rounding, and not the plain hist's values; struct refuses them."""
+    """hist with quarter-turned samples in the plugin = ``synthesized_btf(model, "hist", rotation=True).eval`` to
+    float rounding, and not the plain hist's values; tile refuses the parameter."""
     from dynbtf.synthesized import synthesized_btf
 
     path, model = model_file
     bsdf = mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "hist", "scale": 7.0, "seed": 3,
-                         "rotation": 180.0, "scale_jitter": 0.4})
+                         "rotation": True})
     uv, wv, wl = _random_queries(3000, seed=4)
     uv = (uv / np.float32(7.0)) * np.float32(7.0)
     got = _plugin_eval(bsdf, uv, wv, wl, 7.0)
-    btf = synthesized_btf(model, "hist", scale=1.0, seed=3, rotation=180.0, scale_jitter=0.4)
+    btf = synthesized_btf(model, "hist", scale=1.0, seed=3, rotation=True)
     ref = np.asarray(btf.eval(torch.from_numpy(uv.astype(np.float64)), torch.from_numpy(wv), torch.from_numpy(wl)),
                      dtype=np.float64) / np.pi * wl[:, 2:3]
     plain = _reference(model, "hist", 3, uv, wv, wl) / np.pi * wl[:, 2:3]
     np.testing.assert_allclose(got, ref, rtol=0, atol=2e-4 * max(1.0, np.abs(ref).max()))
     assert np.abs(ref - plain).max() > 0.05 * np.abs(plain).max()
     with pytest.raises(Exception, match="the samples' rotation is drawn by hex, hist, linear"):
-        mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "tile", "rotation": 30.0})
+        mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "tile", "rotation": True})
 
 
 def test_plugin_struct_footprints_match_synthesized_btf(variant, structured_file):

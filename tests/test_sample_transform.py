@@ -1,4 +1,4 @@
-"""Lattice blending's turned and scaled samples (dynbtf.synthesis.sample_transform), against brute force."""
+"""Lattice blending's quarter-turned samples (dynbtf.synthesis.sample_transform), against brute force."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from dynbtf.errors import InputError
 from dynbtf.synthesis.hash import hash_vertex, vertex_offsets
 from dynbtf.synthesis.lattice import triangle_lattice, vertex_uv
 from dynbtf.synthesis.registry import make_synthesizer
-from dynbtf.synthesis.sample_transform import vertex_transform
+from dynbtf.synthesis.sample_transform import PIVOT_SHIFT, quarter_turns
 
 
 def _bilinear(plane: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -28,20 +28,19 @@ def _bilinear(plane: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
             + tx * ty * plane[r1, c1])
 
 
-def _brute_force_linear(exemplar: torch.Tensor, uv: torch.Tensor, seed: int, rotation: float, jitter: float):
-    """``linear`` blending with turned and scaled samples, from the definition: sample ``k`` reads the exemplar at
-    ``V_k + o_k + A_k (q - V_k)`` (texels; ``V_k`` the vertex's position, ``o_k`` its offset, ``q`` the query's,
-    ``A_k = s R(angle)``), weighted by the barycentrics."""
+def _brute_force_linear(exemplar: torch.Tensor, uv: torch.Tensor, seed: int):
+    """``linear`` blending with turned samples, from the definition: sample ``k`` reads the exemplar at
+    ``c_k + A_k (q - c_k) + o_k`` (texels; ``c_k`` the vertex's pivot, a texel centre next to it, ``o_k`` its offset,
+    ``q`` the query, ``A_k`` its quarter turns), weighted by the barycentrics."""
     plane = exemplar.double().numpy()
     h, w, _ = plane.shape
     vertices, bary = triangle_lattice(uv)
     ox, oy = vertex_offsets(vertices[..., 0], vertices[..., 1], seed, w, h)
-    angle, scale = vertex_transform(hash_vertex(vertices[..., 0], vertices[..., 1], seed), math.radians(rotation),
-                                    math.log1p(jitter))
-    centre = vertex_uv(vertices).numpy() * np.array([w, h])  # (N, 3, 2) texels
+    angle = quarter_turns(hash_vertex(vertices[..., 0], vertices[..., 1], seed)).numpy() * (np.pi / 2)
+    centre = np.floor(vertex_uv(vertices).numpy() * np.array([w, h]) + PIVOT_SHIFT) + 0.5  # (N, 3, 2) texels
     q = uv.numpy()[:, None, :] * np.array([w, h])
     d = q - centre
-    c, s = (scale * torch.cos(angle)).numpy(), (scale * torch.sin(angle)).numpy()
+    c, s = np.round(np.cos(angle)), np.round(np.sin(angle))
     x = centre[..., 0] + ox.numpy() + c * d[..., 0] - s * d[..., 1]
     y = centre[..., 1] + oy.numpy() + s * d[..., 0] + c * d[..., 1]
     out = 0.0
@@ -56,17 +55,30 @@ def exemplar():
     return torch.randn(40, 48, 5)
 
 
-@pytest.mark.parametrize("rotation, jitter", [(180.0, 0.0), (35.0, 0.6), (0.0, 1.0)])
-def test_turned_samples_read_where_the_definition_says(exemplar, rotation, jitter):
+def test_turned_samples_read_where_the_definition_says(exemplar):
     """The fused kernel and the torch reference of ``linear`` = the brute-force definition (float32 blend)."""
     uv = torch.rand(4000, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(1)) * 6.0 - 2.0
-    synth = make_synthesizer("linear", exemplar, seed=7, tileable=False, rotation=rotation, scale_jitter=jitter)
-    expected = _brute_force_linear(exemplar, uv, 7, rotation, jitter)
+    synth = make_synthesizer("linear", exemplar, seed=7, tileable=False, rotation=True)
+    expected = _brute_force_linear(exemplar, uv, 7)
     # float32 blends, and the reference's float32 read positions (~1e-6 texel on 48 texels)
     np.testing.assert_allclose(synth.latent(uv).numpy(), expected, atol=5e-5)
     np.testing.assert_allclose(synth.reference_latent(uv).numpy(), expected, atol=5e-5)
     plain = make_synthesizer("linear", exemplar, seed=7, tileable=False)
-    assert np.abs(plain.latent(uv).numpy() - expected).max() > 0.5  # the transform changes what is read
+    assert np.abs(plain.latent(uv).numpy() - expected).max() > 0.5  # the turns change what is read
+
+
+def test_a_texel_centre_reads_whole_texels(exemplar):
+    """At every texel centre, near the origin and at 1e9 repeats, each turned sample reads exactly one exemplar
+    texel (its read point is a texel centre): quarter turns resample nothing."""
+    h, w, _ = exemplar.shape
+    centres = (torch.stack(torch.meshgrid(torch.arange(3 * w), torch.arange(3 * h), indexing="xy"), -1)
+               .reshape(-1, 2).double() + 0.5) / torch.tensor([w, h], dtype=torch.float64)
+    synth = make_synthesizer("linear", exemplar, seed=2, tileable=False, rotation=True)
+    # (at 1e9 repeats float64 holds uv to 1.2e-7 repeats: 6e-6 texel here)
+    for origin, tolerance in ((0.0, 1e-9), (1e9, 1e-5)):
+        positions, _ = synth.sample_positions(centres + origin)
+        texels = positions * torch.tensor([w, h], dtype=torch.float64) - 0.5
+        assert float((texels - torch.round(texels)).abs().max()) < tolerance
 
 
 @pytest.mark.parametrize("method", ["linear", "hist", "hex"])
@@ -75,7 +87,7 @@ def test_kernels_equal_the_reference_far_from_the_origin(exemplar, method):
     g = torch.Generator().manual_seed(2)
     uv = torch.rand(3000, 2, dtype=torch.float64, generator=g) * 5.0
     uv[1500:] += torch.tensor([1e9, -3e8], dtype=torch.float64)
-    synth = make_synthesizer(method, exemplar, seed=4, tileable=False, rotation=120.0, scale_jitter=0.3)
+    synth = make_synthesizer(method, exemplar, seed=4, tileable=False, rotation=True)
     reference = synth.reference_latent(uv)
     tolerance = 2e-2 if method == "hist" else 1e-4  # hist: the kernel's tabulated inverse (its own test bounds it)
     np.testing.assert_allclose(synth.latent(uv).numpy(), reference.numpy(), atol=tolerance)
@@ -88,31 +100,28 @@ def test_kernels_equal_the_reference_far_from_the_origin(exemplar, method):
 def test_off_is_the_plain_method_bit_for_bit(exemplar):
     uv = torch.rand(2000, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(3)) * 9.0
     plain = make_synthesizer("hist", exemplar, seed=1)
-    off = make_synthesizer("hist", exemplar, seed=1, rotation=0.0, scale_jitter=0.0)
+    off = make_synthesizer("hist", exemplar, seed=1, rotation=False)
     assert torch.equal(plain.latent(uv), off.latent(uv))
     assert off.frame_rotation(uv) is None
 
 
-def test_numba_twin_draws_the_same_angles_and_scales():
-    from dynbtf.synthesis.kernels import jit_vertex_transform
+def test_numba_twin_draws_the_same_turns():
+    from dynbtf.synthesis.kernels import jit_quarter_turns
 
     import numba
 
     @numba.njit
-    def draw(h, a, b):
-        angles, scales = np.empty(h.shape[0]), np.empty(h.shape[0])
+    def draw(h):
+        turns = np.empty(h.shape[0], dtype=np.int64)
         for i in range(h.shape[0]):
-            angles[i], scales[i] = jit_vertex_transform(h[i], a, b)
-        return angles, scales
+            turns[i] = jit_quarter_turns(h[i])
+        return turns
 
     h = torch.randint(0, 1 << 32, (20000,), dtype=torch.int64, generator=torch.Generator().manual_seed(0))
-    angle, scale = vertex_transform(h, math.radians(40.0), math.log1p(0.5))
-    a_jit, s_jit = draw(h.numpy(), math.radians(40.0), math.log1p(0.5))
-    np.testing.assert_array_equal(angle.numpy(), a_jit)
-    np.testing.assert_allclose(scale.numpy(), s_jit, rtol=1e-15)
-    assert angle.abs().max() <= math.radians(40.0) and angle.abs().max() > math.radians(39.5)
-    assert scale.min() >= 1 / 1.5 and scale.max() <= 1.5
-    assert abs(float(torch.log(scale).mean())) < 0.01 and abs(float(angle.mean())) < 0.01  # symmetric draws
+    turns = quarter_turns(h)
+    np.testing.assert_array_equal(turns.numpy(), draw(h.numpy()))
+    counts = np.bincount(turns.numpy(), minlength=4)
+    assert counts.shape == (4,) and counts.min() > 4700  # each of the four turns about a quarter of the time
 
 
 def _orientation_coherence(image: np.ndarray) -> float:
@@ -132,29 +141,30 @@ def test_rotation_turns_an_oriented_pattern():
     grid = (np.stack(np.meshgrid(np.arange(256), np.arange(256)), -1).reshape(-1, 2) + 0.5) / 64.0 + 5.0
     uv = torch.from_numpy(grid)
     coherence = {}
-    for rotation in (0.0, 180.0):
+    for rotation in (False, True):
         coherences = []
         for seed in range(3):
             synth = make_synthesizer("hist", exemplar, seed=seed, tileable=False, rotation=rotation)
             image = synth.latent(uv).numpy()[:, 0].reshape(256, 256)
             coherences.append(_orientation_coherence(image))
         coherence[rotation] = max(coherences) if rotation else min(coherences)
-    assert coherence[0.0] > 0.75  # (measured 0.81-0.82 over the seeds; the blends' transitions take the rest)
-    assert coherence[180.0] < 0.2  # (measured 0.03-0.08)
+    assert coherence[False] > 0.75  # (measured 0.81-0.82 over the seeds; the blends' transitions take the rest)
+    assert coherence[True] < 0.2
 
 
 def test_hist_frame_follows_the_dominant_sample(exemplar):
     """Where one sample has nearly all of hist's weight, the query's frame angle is that sample's angle."""
     uv = torch.rand(20000, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(5)) * 4.0
-    synth = make_synthesizer("hist", exemplar, seed=2, rotation=90.0)
+    synth = make_synthesizer("hist", exemplar, seed=2, rotation=True)
     vertices, bary = triangle_lattice(uv)
-    angle, _ = vertex_transform(hash_vertex(vertices[..., 0], vertices[..., 1], 2), math.radians(90.0), 0.0)
+    angle = quarter_turns(hash_vertex(vertices[..., 0], vertices[..., 1], 2)).double() * (math.pi / 2)
     weights = bary ** 7 / (bary ** 7).sum(-1, keepdim=True)
     top, k = weights.max(-1)
     dominant = top > 0.999
     assert int(dominant.sum()) > 1000
     frame = synth.frame_rotation(uv)
-    np.testing.assert_allclose(frame[dominant].numpy(), angle[dominant, k[dominant]].numpy(), atol=2e-3)
+    turned = torch.remainder(frame[dominant] - angle[dominant, k[dominant]] + math.pi, 2 * math.pi) - math.pi
+    assert float(turned.abs().max()) < 2e-3
 
 
 def test_synthesized_btf_turns_the_directions_into_the_frame():
@@ -165,7 +175,7 @@ def test_synthesized_btf_turns_the_directions_into_the_frame():
     from dynbtf.synthesized import synthesized_btf
 
     model = TriplePlane(24, 20, positional_channels=6, angular_channels=3, hidden=12, seed=5)
-    btf = synthesized_btf(model, "hist", seed=3, rotation=180.0)
+    btf = synthesized_btf(model, "hist", seed=3, rotation=True)
     rng = np.random.default_rng(0)
     n = 3000
     uv = torch.from_numpy(rng.random((n, 2)) * 10.0)
@@ -183,23 +193,18 @@ def test_synthesized_btf_turns_the_directions_into_the_frame():
     assert (got - btf.decode_path.decode(latent, wv, wl)).abs().max() > 1e-3
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"rotation": -5.0}, "rotation: expected a number of degrees in [0, 180]"),
-    ({"rotation": float("nan")}, "rotation: expected a number of degrees in [0, 180]"),
-    ({"rotation": "a lot"}, "rotation: expected a number of degrees in [0, 180], got 'a lot'"),
-    ({"scale_jitter": 1.5}, "scale_jitter: expected a number in [0, 1]"),
-])
-def test_bad_values_are_refused_by_name(exemplar, kwargs, message):
-    with pytest.raises(InputError, match=message.replace("[", r"\[").replace("]", r"\]")):
-        make_synthesizer("hist", exemplar, **kwargs)
+@pytest.mark.parametrize("value", [-5.0, 2, "yes", None])
+def test_bad_values_are_refused_by_name(exemplar, value):
+    with pytest.raises(InputError, match=r"rotation: expected true or false \(each sample turned by a random quarter"):
+        make_synthesizer("hist", exemplar, rotation=value)
 
 
 def test_guidance_refuses_turned_samples(exemplar):
     from dynbtf.synthesis.guided_blending import LabelField
 
     labels = torch.zeros(40, 48, dtype=torch.long)
-    with pytest.raises(InputError, match="rotation, scale_jitter: the guided methods"):
-        make_synthesizer("guided", exemplar, labels=labels, target=LabelField([[0]]), rotation=20.0)
+    with pytest.raises(InputError, match="rotation: the guided methods read their candidates' content unturned"):
+        make_synthesizer("guided", exemplar, labels=labels, target=LabelField([[0]]), rotation=True)
 
 
 def test_cli_synth_takes_rotation(tmp_path, capsys):
@@ -211,13 +216,14 @@ def test_cli_synth_takes_rotation(tmp_path, capsys):
     save_model(tmp_path / "m.dbtfm", TriplePlane(24, 24, seed=1))
     common = [str(tmp_path / "m.dbtfm"), "--method", "hist", "--scale", "4", "--resolution", "48"]
     assert main(["synth", *common, "-o", str(tmp_path / "plain.exr")]) == 0
-    assert main(["synth", *common, "--rotation", "180", "--scale-jitter", "0.3", "-o", str(tmp_path / "t.exr")]) == 0
+    assert main(["synth", *common, "--rotation", "-o", str(tmp_path / "t.exr")]) == 0
     plain, turned = load_image(tmp_path / "plain.exr"), load_image(tmp_path / "t.exr")
     assert np.isfinite(turned).all() and np.abs(turned - plain).max() > 1e-3
     capsys.readouterr()
-    for extra, message in ((["--method", "tile", "--rotation", "30"], "--rotation: turning the samples is for hex, "
-                                                                     "hist, linear; give it with --method hex"),
-                           (["--method", "hist", "--scale-jitter", "2"], "--scale-jitter: expected a number in [0, 1]")):
+    for extra, message in ((["--method", "tile", "--rotation"], "--rotation: turning the samples is for hex, hist, "
+                                                                "linear; give it with --method hex"),
+                           (["--method", "hist", "--rotation", "--layer", str(tmp_path / "m.dbtfm")],
+                            "--rotation: turning the samples is for hex")):
         assert main(["synth", str(tmp_path / "m.dbtfm"), *extra, "-o", str(tmp_path / "x.png")]) == 2
         assert message in capsys.readouterr().err
         assert not (tmp_path / "x.png").exists()

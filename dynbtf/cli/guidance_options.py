@@ -10,7 +10,7 @@ from typing import Optional
 
 import typer
 
-__all__ = ["CLASSES", "TARGET_WRAP", "SOFTNESS", "CELLS", "BRIGHTNESS", "TINT", "ROTATION", "SCALE_JITTER"]
+__all__ = ["CLASSES", "TARGET_WRAP", "SOFTNESS", "CELLS", "BRIGHTNESS", "TINT", "ROTATION"]
 
 CLASSES: int = typer.Option(2, "--classes", help="With --target: classes of the material's texels.")
 TARGET_WRAP: str = typer.Option("repeat", "--target-wrap", help="The --target image repeats (repeat) or extends its "
@@ -25,9 +25,6 @@ BRIGHTNESS: float = typer.Option(0.0, "--brightness", help="struct: per-element 
                                  "--seed; joints none), in [0, 1]; 0: off.")
 TINT: float = typer.Option(0.0, "--tint", help="struct: per-element variation, the standard deviation of each "
                            "element's colour tint (its channels' log gains against each other), in [0, 1]; 0: off.")
-ROTATION: float = typer.Option(0.0, "--rotation", help="hist, hex, linear: turn each lattice vertex's sample by an "
-                               "angle drawn from --seed in [-R, R] degrees (R at most 180), the view and light "
-                               "turned with it; for isotropic materials. 0: off.")
-SCALE_JITTER: float = typer.Option(0.0, "--scale-jitter", help="hist, hex, linear: scale each lattice vertex's "
-                                   "sample by a factor drawn from --seed between 1/(1+J) and 1+J (J at most 1). "
-                                   "0: off.")
+ROTATION: bool = typer.Option(False, "--rotation", help="hist, hex, linear: turn each lattice vertex's sample by "
+                              "random quarter turns (drawn from --seed), the view and light turned with it; for "
+                              "isotropic materials.")

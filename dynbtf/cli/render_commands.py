@@ -65,8 +65,7 @@ def render(
                               "with --target, about one per element of the material."),
     brightness: float = guidance_options.BRIGHTNESS,
     tint: float = guidance_options.TINT,
-    rotation: float = guidance_options.ROTATION,
-    scale_jitter: float = guidance_options.SCALE_JITTER,
+    rotation: bool = guidance_options.ROTATION,
 ) -> None:
     """Path-trace a scene covered by the synthesized BTF with Mitsuba 3 (dynbtf's query at every shading point).
 
@@ -102,7 +101,7 @@ def render(
                           filtered=filtered, echo=typer.echo, memory_mb=memory_mb, layer=layer,
                           mask=the_mask, width=width, target=target, classes=classes, target_size=target_size,
                           target_wrap=target_wrap, target_softness=softness, cells=cells, brightness=brightness,
-                          rotation=rotation, scale_jitter=scale_jitter,
+                          rotation=rotation,
                           tint=tint)
     save_image(output, result.image, exposure=exposure)
     timing = (f"incl. {result.compile_seconds:.1f} s kernel compilation" if result.passes > 1

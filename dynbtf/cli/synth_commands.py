@@ -150,8 +150,7 @@ def synth(
     cells: Optional[int] = guidance_options.CELLS,
     brightness: float = guidance_options.BRIGHTNESS,
     tint: float = guidance_options.TINT,
-    rotation: float = guidance_options.ROTATION,
-    scale_jitter: float = guidance_options.SCALE_JITTER,
+    rotation: bool = guidance_options.ROTATION,
     memory_mb: Optional[float] = typer.Option(None, "--memory-mb", help="Limit (MB) of the image's estimated "
                                                                         f"working memory (~{BYTES_PER_PIXEL} bytes "
                                                                         "per pixel); default half of this machine's "
@@ -185,8 +184,7 @@ def synth(
     guidance = _guidance(target, method, layer, report, output, target_size, target_wrap, classes, softness, cells)
     if cells is not None and method != "struct":
         raise InputError(f"--cells: sets struct's cells; give it with --method struct, not {method!r}")
-    variation = _variation({"brightness": brightness, "tint": tint, "rotation": rotation, "scale_jitter": scale_jitter},
-                           method, guidance, layer)
+    variation = _variation({"brightness": brightness, "tint": tint, "rotation": rotation}, method, guidance, layer)
     rep, material = open_model_file(model, device=where)
     if variation and material is not None:
         raise InputError(f"{', '.join(_flag(name) for name in variation)}: {model} is a compiled material, which fixes "
@@ -289,8 +287,7 @@ def _check_outputs(output: Path | None, report: bool, report_json: Path | None) 
         check_writable(_report_path(output, report_json), "--report-json")
 
 
-_WHAT = {"brightness": "per-element variation", "tint": "per-element variation", "rotation": "turning the samples",
-         "scale_jitter": "scaling the samples"}
+_WHAT = {"brightness": "per-element variation", "tint": "per-element variation", "rotation": "turning the samples"}
 
 
 def _flag(name: str) -> str:
@@ -299,13 +296,12 @@ def _flag(name: str) -> str:
 
 def _variation(values: dict[str, float], method: str, guidance, layer) -> dict[str, float]:
     """The variation parameters that were given (``{}``: none; struct's ``brightness``, ``tint``; lattice
-    blending's ``rotation``, ``scale_jitter``), checked: one-line errors, naming the methods that take each."""
+    blending's ``rotation``), checked: one-line errors, naming the methods that take each."""
     from ..synthesis.elements import check_variation
     from ..synthesis.registry import methods_with, takes_parameter
-    from ..synthesis.sample_transform import check_rotation, check_scale_jitter
+    from ..synthesis.sample_transform import check_rotation
 
-    checks = {"brightness": check_variation, "tint": check_variation, "rotation": check_rotation,
-              "scale_jitter": check_scale_jitter}
+    checks = {"brightness": check_variation, "tint": check_variation, "rotation": check_rotation}
     given = {name: checks[name](_flag(name), value) for name, value in values.items()}
     given = {name: value for name, value in given.items() if value}
     for name in given:

@@ -24,7 +24,6 @@ from ... import jit
 from ...errors import InputError
 from ...synthesis.auto import AUTO
 from ...synthesis.elements import MAX_VARIATION
-from ...synthesis.sample_transform import MAX_ROTATION, MAX_SCALE_JITTER
 from ...synthesis.registry import methods_with, takes_parameter
 from .evaluator import DynBTFEvaluator, check_renderable
 from .sampling import AUTO_MIN_COSINE_VARIANCE, DEFAULT_TABLE_WEIGHT, SAMPLING_MODES
@@ -63,12 +62,12 @@ DEFAULT_METHOD = AUTO
 
 #: The variation parameters (plugin name -> what they vary), each for the methods that take it.
 VARIATION_PARAMETERS = {"brightness": "per-element variation", "tint": "per-element variation",
-                        "rotation": "the samples' rotation", "scale_jitter": "the samples' scale"}
+                        "rotation": "the samples' rotation"}
 
 
 def check_variation_method(method: str, what: str, parameter: str = "brightness") -> None:
     """A variation parameter (:data:`VARIATION_PARAMETERS`: struct's ``brightness``, ``tint``, lattice blending's
-    ``rotation``, ``scale_jitter``) is only for a method that takes it: else a one-line error naming ``what``."""
+    ``rotation``) is only for a method that takes it: else a one-line error naming ``what``."""
     if not takes_parameter(method, parameter):
         having = [m for m in METHODS if takes_parameter(m, parameter)]
         raise InputError(f"{what}: {VARIATION_PARAMETERS[parameter]} is drawn by {', '.join(having)}; "
@@ -201,10 +200,7 @@ def _at_least(low: int):
 
 _variation = number_check(lambda v: math.isfinite(v) and 0.0 <= v <= MAX_VARIATION,
                           f"the standard deviation of a log gain in [0, {MAX_VARIATION:g}] (0: off)")
-_rotation = number_check(lambda v: math.isfinite(v) and 0.0 <= v <= MAX_ROTATION,
-                         f"a largest angle in [0, {MAX_ROTATION:g}] degrees (0: off)")
-_scale_jitter = number_check(lambda v: math.isfinite(v) and 0.0 <= v <= MAX_SCALE_JITTER,
-                             f"in [0, {MAX_SCALE_JITTER:g}] (0: off)")
+
 
 
 #: The plugin's parameters, in the order the constructor reads them and the references list them.
@@ -290,19 +286,13 @@ element's channels' log gains against each other, in [0, 1]. 0: off.""",
         summary="`struct`: standard deviation of each element's colour tint (log gains of the channels against "
                 "each other), in [0, 1] (0: off)"),
     PluginParameter(
-        "rotation", "float", 0.0, check=_rotation,
+        "rotation", "boolean", False,
         doc="""Lattice blending's (``hist``, ``hex``, ``linear``) sample rotation
 (:mod:`dynbtf.synthesis.sample_transform`): each lattice vertex's sample
-turned about the vertex by an angle drawn from ``seed`` in ``[-rotation,
-rotation]`` degrees (at most 180), the view and the light turned into the
-query's frame. For isotropic materials. 0: off.""",
-        summary="`hist`, `hex`, `linear`: largest angle (degrees, at most 180) each sample is turned by (0: off)"),
-    PluginParameter(
-        "scale_jitter", "float", 0.0, check=_scale_jitter,
-        doc="""Lattice blending's sample scale: each lattice vertex's sample scaled
-by a factor drawn from ``seed`` between ``1 / (1 + scale_jitter)`` and
-``1 + scale_jitter`` (at most 1). 0: off.""",
-        summary="`hist`, `hex`, `linear`: samples scaled between 1/(1+j) and 1+j (j at most 1; 0: off)"),
+turned by random quarter turns (drawn from ``seed``) about a texel
+centre next to the vertex, the view and the light turned into the
+query's frame. For isotropic materials.""",
+        summary="`hist`, `hex`, `linear`: turn each sample by random quarter turns (for isotropic materials)"),
     PluginParameter(
         "target", "string", "", shown_default='""',
         doc="""Guided synthesis (:func:`dynbtf.guided.guided_btf`): an image painted
@@ -496,7 +486,8 @@ class _DynBTFBSDFBody:
         for name in VARIATION_PARAMETERS:
             if getattr(self, name):
                 check_variation_method(self.method, f"dynbtf BSDF: parameter '{name}'", name)
-                params[name] = float(getattr(self, name))
+                value = getattr(self, name)
+                params[name] = value if isinstance(value, bool) else float(value)
         # the app-level step: the material opened from the cache or compiled (with the footprint decoders if asked),
         # or the guided one the target asks for; the evaluator only translates it
         btf = self._guided_btf(model, params)

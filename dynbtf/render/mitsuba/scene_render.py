@@ -13,7 +13,7 @@ from ...errors import InputError
 from ...jit.llvm import check_llvm
 from ...limits import check_count, check_memory, check_scale
 from ...synthesis.elements import check_variation
-from ...synthesis.sample_transform import check_rotation, check_scale_jitter
+from ...synthesis.sample_transform import check_rotation
 from .bsdf import DEFAULT_METHOD, METHODS, check_cells, check_variation_method, load_plugin_model, register_plugin
 from .sampling import SAMPLING_MODES
 from .scenes import LIGHTINGS, SCENES, bsdf_dict, scene_dict
@@ -107,8 +107,8 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
                  filtered: bool = True, echo=None, memory_mb: float | None = None, layer=None, mask=None,
                  width: float = 0.05, softness: float = 0.0, target=None, classes: int = 2,
                  target_size: float = 1.0, target_wrap: str = "repeat", target_softness: float = 0.0,
-                 cells: int = 0, brightness: float = 0.0, tint: float = 0.0, rotation: float = 0.0,
-                 scale_jitter: float = 0.0) -> RenderResult:
+                 cells: int = 0, brightness: float = 0.0, tint: float = 0.0,
+                 rotation: bool = False) -> RenderResult:
     """Path-trace ``scene`` covered by the synthesized BTF of ``model_path``.
 
     Every argument is checked before Mitsuba loads anything, so a mistake raises
@@ -178,9 +178,9 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
         ``struct``'s cells per repeat along each side (the plugin's ``cells``; 0: its own choice).
     brightness, tint : float
         ``struct``'s per-element variation (the plugin's ``brightness`` and ``tint``; 0: off).
-    rotation, scale_jitter : float
-        Lattice blending's sample rotation (largest angle, degrees) and scale jitter (the plugin's parameters of the
-        same names; :mod:`dynbtf.synthesis.sample_transform`; 0: off).
+    rotation : bool
+        Lattice blending's quarter turns of the samples (the plugin's ``rotation``;
+        :mod:`dynbtf.synthesis.sample_transform`).
 
     Returns
     -------
@@ -198,8 +198,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
         raise InputError(f"--cells: the cells per repeat, a positive integer (0: the method's own), got {cells}")
     check_cells(int(cells), method, "--cells")
     variation = {"brightness": check_variation("--brightness", brightness), "tint": check_variation("--tint", tint),
-                 "rotation": check_rotation("--rotation", rotation),
-                 "scale_jitter": check_scale_jitter("--scale-jitter", scale_jitter)}
+                 "rotation": check_rotation("--rotation", rotation)}
     for name, value in variation.items():
         if value and method != "auto":  # (auto's choice is checked by the plugin, once resolved)
             check_variation_method(method, "--" + name.replace("_", "-"), name)
@@ -242,7 +241,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     for name, value in variation.items():
         if value:
             for m in materials:
-                m[name] = float(value)
+                m[name] = value if isinstance(value, bool) else float(value)
     material = materials[0]
     if target is not None:
         material.update({"target": str(target), "classes": int(classes), "target_size": float(target_size),

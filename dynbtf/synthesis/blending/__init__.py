@@ -24,7 +24,6 @@ i.e. when :func:`~dynbtf.synthesis.tileable.seam_discontinuity` exceeds
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -39,8 +38,8 @@ from ..hash import vertex_offsets
 from ..lattice import split_uv, triangle_lattice
 from ..hash import hash_vertex
 from ..mip import LevelOfDetail, area_pyramid, level_shapes
-from ..sample_transform import (check_rotation, check_scale_jitter, displacement, frame_angle, lattice_displacements,
-                                vertex_transform)
+from ..sample_transform import (check_rotation, displacement, frame_angle, lattice_displacements, quarter_turns,
+                                turn_cos_sin)
 from ..tileable import make_tileable, seam_discontinuity
 
 __all__ = ["LatticeBlending", "LinearBlending", "LatticePlane", "SEAM_THRESHOLD"]
@@ -102,13 +101,10 @@ class LatticeBlending(Synthesizer):
     prepared : LatticePlane, optional
         The ``prepared`` attribute of an earlier synthesizer of the same method
         and exemplar: skips the precomputation.
-    rotation : float, default 0
-        Largest angle (degrees, at most 180) by which each vertex's sample is turned about the vertex, drawn from
-        its hash; the view and the light are turned into the query's frame
-        (:mod:`~dynbtf.synthesis.sample_transform`). For isotropic materials. 0: off.
-    scale_jitter : float, default 0
-        Each vertex's sample scaled by a factor drawn log-uniformly in ``[1 / (1 + j), 1 + j]`` (``j`` at most
-        1). 0: off.
+    rotation : bool, default False
+        Turn each vertex's sample by a random number of quarter turns (from its hash) about a texel centre next
+        to the vertex, and the view and the light into the query's frame
+        (:mod:`~dynbtf.synthesis.sample_transform`). For isotropic materials.
     """
 
     backends = {"web": f"{__name__}.web"}
@@ -116,10 +112,9 @@ class LatticeBlending(Synthesizer):
     mode: ClassVar[int]
 
     def __init__(self, exemplar, seed: int = 0, *, tileable="auto", band: int | None = None, fast: bool | None = None,
-                 prepared: LatticePlane | None = None, rotation: float = 0.0, scale_jitter: float = 0.0) -> None:
+                 prepared: LatticePlane | None = None, rotation: bool = False) -> None:
         super().__init__(exemplar, seed)
         self.rotation = check_rotation("rotation", rotation)
-        self.scale_jitter = check_scale_jitter("scale_jitter", scale_jitter)
         self.tileable_option = tileable
         self.band = band
         self.fast = self.device.type == "cpu" if fast is None else bool(fast)
@@ -174,26 +169,15 @@ class LatticeBlending(Synthesizer):
         """Texels per repeat ``(W, H)`` of the original exemplar."""
         return int(self.exemplar.shape[1]), int(self.exemplar.shape[0])
 
-    @property
-    def transformed(self) -> bool:
-        """Whether the samples are turned or scaled (``rotation`` or ``scale_jitter`` on)."""
-        return self.rotation > 0.0 or self.scale_jitter > 0.0
-
-    def transform_arguments(self) -> tuple[float, float]:
-        """``(max_angle, log_scale)`` of :func:`~dynbtf.synthesis.sample_transform.vertex_transform`: radians and
-        ``log(1 + scale_jitter)``."""
-        return math.radians(self.rotation), math.log1p(self.scale_jitter)
-
-    def _vertex_transforms(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Angle and scale ``(N, 3)`` float64 of the samples of lattice ``vertices (N, 3, 2)``."""
-        return vertex_transform(hash_vertex(vertices[..., 0], vertices[..., 1], self.seed), *self.transform_arguments())
+    def _turns(self, vertices: torch.Tensor) -> torch.Tensor:
+        """Quarter turns ``(N, 3)`` int64 of the samples of lattice ``vertices (N, 3, 2)``."""
+        return quarter_turns(hash_vertex(vertices[..., 0], vertices[..., 1], self.seed))
 
     def frame_rotation(self, points: torch.Tensor) -> torch.Tensor | None:
-        if self.rotation == 0.0:
+        if not self.rotation:
             return None
         vertices, bary = triangle_lattice(points)
-        angles, _ = self._vertex_transforms(vertices)
-        return frame_angle(angles, self.frame_weights(bary))
+        return frame_angle(self._turns(vertices), self.frame_weights(bary))
 
     def sample_positions(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Read positions and barycentrics of the three samples of each query.
@@ -208,10 +192,11 @@ class LatticeBlending(Synthesizer):
         dw, dh = self.density
         x = wrapped_texel_position(whole[:, 0], frac[:, 0], dw, pw)[:, None] + ox
         y = wrapped_texel_position(whole[:, 1], frac[:, 1], dh, ph)[:, None] + oy
-        if self.transformed:  # each sample turned and scaled about its vertex
-            angle, scale = self._vertex_transforms(vertices)
+        if self.rotation:  # each sample turned about its vertex's pivot, a texel centre next to it
+            cos_a, sin_a = turn_cos_sin(self._turns(vertices))
             dx, dy = lattice_displacements(vertices, bary, (dw, dh))
-            ex, ey = displacement(dx, dy, scale * torch.cos(angle), scale * torch.sin(angle))
+            tx, ty = x - 0.5 - torch.floor(x - 0.5), y - 0.5 - torch.floor(y - 0.5)  # fractions from the texel centre
+            ex, ey = displacement(tx, ty, dx, dy, cos_a.to(torch.float64), sin_a.to(torch.float64))
             x, y = x + ex, y + ey
         return torch.stack([torch.remainder(x, pw) / pw, torch.remainder(y, ph) / ph], dim=-1), bary
 
@@ -238,7 +223,7 @@ class LatticeBlending(Synthesizer):
                   for k, v in self.kernel_arguments().items()}
         result = lattice_blend(uv.detach().cpu().numpy(), self._numpy("plane", self.prepared.plane), self.density,
                                self.seed, self.mode, out=out, guidance=self.kernel_guidance(uv),
-                               transform=self.transform_arguments(), **kwargs)
+                               rotation=self.rotation, **kwargs)
         return torch.from_numpy(result)
 
     def kernel_guidance(self, uv: torch.Tensor) -> tuple | None:
@@ -260,7 +245,7 @@ class LatticeBlending(Synthesizer):
                   for k, v in self.kernel_arguments().items()}
         plane = self._numpy(f"plane[{key}]", self.prepared.plane[..., rows])
         return torch.from_numpy(lattice_blend(uv.detach().cpu().numpy(), plane, self.density, self.seed, self.mode,
-                                              guidance=self.kernel_guidance(uv), transform=self.transform_arguments(),
+                                              guidance=self.kernel_guidance(uv), rotation=self.rotation,
                                               **kwargs))
 
     # ------------------------------------------------------------ footprint queries
@@ -301,7 +286,7 @@ class LatticeBlending(Synthesizer):
             kwargs["luts"] = pyr["luts_numpy"]
         result = filtered_lattice_blend(uv.detach().cpu().numpy(), level, upper, pyr["packed"], self.density,
                                         self.seed, self.mode, guidance=self.kernel_guidance(uv),
-                                        transform=self.transform_arguments(), **kwargs)
+                                        rotation=self.rotation, **kwargs)
         return torch.from_numpy(result)
 
     def _reference_filtered_latent(self, uv, pyr, level, upper) -> torch.Tensor:
@@ -397,7 +382,6 @@ class LatticeBlending(Synthesizer):
 
     def parameters(self) -> dict[str, Any]:
         return {"tileable": self.prepared.tileable, "band": self.band, "fast": self.fast, "rotation": self.rotation,
-                "scale_jitter": self.scale_jitter,
                 "seam_before": round(self.prepared.seam_before, 4), "seam_after": round(self.prepared.seam_after, 4)}
 
     def storage_bytes(self) -> int:

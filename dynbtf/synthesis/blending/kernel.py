@@ -158,7 +158,7 @@ _IU, _IV, _BASE_X, _BASE_Y, _HASH, _XI, _YI, _TEXELS = 0, 1, 2, 3, 4, 7, 8, 9
 _INT_ROWS = _TEXELS + 12
 # Reals: the fraction of the repeat, the cell's fractions and z, the barycentrics, the bilinear fractions,
 # the samples' luminances (hex), their blend weights and the variance correction, and each sample's own bilinear
-# fractions when the samples are turned or scaled (sample_transform).
+# fractions when the samples are turned (sample_transform).
 _FU, _FV, _FX, _FY, _Z, _BARY, _TX, _TY, _LUM, _WEIGHT, _SCALE, _TXK, _TYK = 0, 1, 2, 3, 4, 5, 8, 9, 10, 13, 16, 17, 20
 _REAL_ROWS = 23
 
@@ -187,11 +187,11 @@ def _block_lattice(uv, first, count, state, ints, reals):
 
 
 @numba.njit(inline="always")
-def _block_texels(count, pw, ph, density_w, density_h, ints, reals, max_angle, log_scale):
+def _block_texels(count, pw, ph, density_w, density_h, ints, reals, rotation):
     """Pass 2: each query's bilinear texel position (whole-texel offsets shared by its samples: ``(iu * density)
     mod period`` in int64 without overflow, plus the fraction's texels), then each sample's hashed offset; with
-    the samples turned or scaled (``max_angle`` or ``log_scale`` not 0), each sample's own displacement and
-    bilinear fractions (rows ``_TXK``, ``_TYK``)."""
+    the samples turned (``rotation``), each sample's own displacement and bilinear fractions (rows ``_TXK``,
+    ``_TYK``)."""
     inv_pw = 1.0 / pw
     inv_ph = 1.0 / ph
     density_w_mod = density_w % pw
@@ -207,20 +207,19 @@ def _block_texels(count, pw, ph, density_w, density_h, ints, reals, max_angle, l
         ty_[j] = py - y0
         xi_[j] = modulo(modulo(iu_[j], pw, inv_pw) * density_w_mod + np.int64(x0), pw, inv_pw)
         yi_[j] = modulo(modulo(iv_[j], ph, inv_ph) * density_h_mod + np.int64(y0), ph, inv_ph)
-    transformed = max_angle != 0.0 or log_scale != 0.0
     z_, b0_, b1_, b2_ = reals[_Z], reals[_BARY], reals[_BARY + 1], reals[_BARY + 2]
     for k in range(3):
         h_ = ints[_HASH + k]
         c0_, c1_, r0_, r1_ = ints[_TEXELS + 4 * k], ints[_TEXELS + 4 * k + 1], ints[_TEXELS + 4 * k + 2], \
             ints[_TEXELS + 4 * k + 3]
-        if not transformed:
+        if not rotation:
             for j in range(count):
                 c0_[j], c1_[j], r0_[j], r1_[j] = sample_texels(h_[j], xi_[j], yi_[j], pw, ph)
             continue
         txk_, tyk_ = reals[_TXK + k], reals[_TYK + k]
         for j in range(count):
-            ex, ey = sample_displacement(k, b0_[j], b1_[j], b2_[j], z_[j] > 0, h_[j], density_w, density_h,
-                                         max_angle, log_scale)
+            ex, ey = sample_displacement(k, b0_[j], b1_[j], b2_[j], z_[j] > 0, h_[j], density_w, density_h, tx_[j],
+                                         ty_[j])
             px = tx_[j] + ex
             py = ty_[j] + ey
             sx = math.floor(px)
@@ -250,14 +249,14 @@ def _block_guidance(first, count, pw, ph, ints, reals, states, labels, target, s
 
 
 @numba.njit(inline="always")
-def _block_weights(count, pw, nc, mode, lum, gamma, gamma_int, beta, gain_k, ints, reals, taps, weights, transformed):
+def _block_weights(count, pw, nc, mode, lum, gamma, gamma_int, beta, gain_k, ints, reals, taps, weights, rotation):
     """Pass 3: the samples' blend weights, then each of the 12 taps' flat index and weight (bilinear fractions
-    shared by the samples, or each sample's own when ``transformed``)."""
+    shared by the samples, or each sample's own when ``rotation``)."""
     l0_, l1_, l2_ = reals[_LUM], reals[_LUM + 1], reals[_LUM + 2]
     if mode == MODE_HEX:  # the samples' bilinear luminances
         for k in range(3):
-            tx_ = reals[_TXK + k] if transformed else reals[_TX]
-            ty_ = reals[_TYK + k] if transformed else reals[_TY]
+            tx_ = reals[_TXK + k] if rotation else reals[_TX]
+            ty_ = reals[_TYK + k] if rotation else reals[_TY]
             l_ = reals[_LUM + k]
             c0_, c1_, r0_, r1_ = ints[_TEXELS + 4 * k], ints[_TEXELS + 4 * k + 1], ints[_TEXELS + 4 * k + 2], \
                 ints[_TEXELS + 4 * k + 3]
@@ -271,8 +270,8 @@ def _block_weights(count, pw, nc, mode, lum, gamma, gamma_int, beta, gain_k, int
         s0_[j], s1_[j], s2_[j], scale_[j] = _sample_weights(mode, b0_[j], b1_[j], b2_[j], l0_[j], l1_[j], l2_[j],
                                                             gamma, gamma_int, beta, gain_k)
     for k in range(3):
-        tx_ = reals[_TXK + k] if transformed else reals[_TX]
-        ty_ = reals[_TYK + k] if transformed else reals[_TY]
+        tx_ = reals[_TXK + k] if rotation else reals[_TX]
+        ty_ = reals[_TYK + k] if rotation else reals[_TY]
         s_ = reals[_WEIGHT + k]
         c0_, c1_, r0_, r1_ = ints[_TEXELS + 4 * k], ints[_TEXELS + 4 * k + 1], ints[_TEXELS + 4 * k + 2], \
             ints[_TEXELS + 4 * k + 3]
@@ -289,14 +288,13 @@ def _block_weights(count, pw, nc, mode, lum, gamma, gamma_int, beta, gain_k, int
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_k, lut, g_min, inv_step, out,
-            states, labels, target, softness, max_angle, log_scale, n_workers):
+            states, labels, target, softness, rotation, n_workers):
     n_queries = uv.shape[0]
     ph, pw, nc = plane.shape
     flat = plane.reshape(ph * pw * nc)
     state = jit_seed_state(seed)  # per-call constant part of every vertex hash
     gamma_int = np.int64(gamma) if (gamma == math.floor(gamma) and 1.0 < gamma <= 64.0) else np.int64(0)
     guided = states.shape[0] > 0
-    transformed = max_angle != 0.0 or log_scale != 0.0
     texel_bytes = 4 * nc  # a texel crosses no cache line of an aligned plane when its size divides a line's
     one_line = (flat.ctypes.data % CACHE_LINE == 0) and (CACHE_LINE % texel_bytes == 0)
     n_blocks = (n_queries + BLOCK - 1) // BLOCK
@@ -309,11 +307,11 @@ def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_
             first = block * BLOCK
             count = min(BLOCK, n_queries - first)
             _block_lattice(uv, first, count, state, ints, reals)
-            _block_texels(count, pw, ph, density_w, density_h, ints, reals, max_angle, log_scale)
+            _block_texels(count, pw, ph, density_w, density_h, ints, reals, rotation)
             if guided:
                 _block_guidance(first, count, pw, ph, ints, reals, states, labels, target, softness)
             _block_weights(count, pw, nc, mode, lum, gamma, gamma_int, beta, gain_k, ints, reals, taps, weights,
-                           transformed)
+                           rotation)
             # the block's reads issued before any is used: at random uv they are cache misses on a plane of
             # megabytes, and their latencies overlap
             for m in range(TAPS):
@@ -346,8 +344,7 @@ def _guidance_arguments(guidance: tuple | None, plane_shape: tuple[int, int], n:
 def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], seed: int, mode: int, *,
                   gamma: float = 1.0, luminance: np.ndarray | None = None, beta: float = 0.0, gain_k: float = 1.0,
                   lut: np.ndarray | None = None, g_min: float = 0.0, step: float = 1.0,
-                  out: np.ndarray | None = None, guidance: tuple | None = None,
-                  transform: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+                  out: np.ndarray | None = None, guidance: tuple | None = None, rotation: bool = False) -> np.ndarray:
     """Blend three hashed, whole-texel-offset exemplar samples per query (one fused pass).
 
     Parameters
@@ -376,9 +373,8 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
         Exemplar guidance (:class:`~dynbtf.synthesis.guided_blending.GuidedBlending`): the candidates' hash
         states int64 ``(K,)`` (``seed_state`` of each candidate seed, candidate 0 the synthesis seed's), the
         read plane's labels int32 ``(H', W')``, the target label per query int32 ``(N,)`` and the softness.
-    transform : (max_angle, log_scale)
-        The samples' rotation and scale (:func:`~dynbtf.synthesis.sample_transform.vertex_transform`'s
-        arguments: radians, ``log(1 + scale_jitter)``); ``(0, 0)``: off.
+    rotation : bool
+        Turn each sample by its vertex's quarter turns (:mod:`~dynbtf.synthesis.sample_transform`).
 
     Returns
     -------
@@ -398,7 +394,7 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
     _kernel(uv, cache_aligned(plane),
             np.ascontiguousarray(luminance, dtype=np.float32), int(density[0]), int(density[1]), int(seed) & 0xFFFFFFFF,
             int(mode), float(gamma), float(beta), float(gain_k), np.ascontiguousarray(lut, dtype=np.float32),
-            float(g_min), 1.0 / float(step), out, *guided, float(transform[0]), float(transform[1]),
+            float(g_min), 1.0 / float(step), out, *guided, bool(rotation),
             max(1, min(numba.get_num_threads(), -(-n // BLOCK))))
     return out
 
@@ -467,7 +463,7 @@ def _add_level_sample(flat, start, mw, mh, x, y, ratio_w, ratio_h, weight, row):
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _filtered_kernel(uv, level, upper_weight, levels, starts, heights, widths, lums, lum_starts, pw, ph,
                      density_w, density_h, seed, mode, gamma, beta, gain_k, luts, g_min, inv_step, out,
-                     states, labels, target, softness, max_angle, log_scale):
+                     states, labels, target, softness, rotation):
     n_queries = uv.shape[0]
     nc = out.shape[1]
     state = jit_seed_state(seed)
@@ -476,7 +472,6 @@ def _filtered_kernel(uv, level, upper_weight, levels, starts, heights, widths, l
     density_h_mod = density_h % ph
     n_levels = starts.shape[0]
     guided = states.shape[0] > 0
-    transformed = max_angle != 0.0 or log_scale != 0.0
     for block in numba.prange((n_queries + BLOCK - 1) // BLOCK):
         row = np.empty(nc, dtype=np.float32)
         for n in range(block * BLOCK, min(block * BLOCK + BLOCK, n_queries)):
@@ -506,12 +501,14 @@ def _filtered_kernel(uv, level, upper_weight, levels, starts, heights, widths, l
             y1 = wrap(yi + oy1, ph) + fy
             x2 = wrap(xi + ox2, pw) + fx
             y2 = wrap(yi + oy2, ph) + fy
-            if transformed:  # each sample turned and scaled about its vertex, its position wrapped into the plane
-                ex, ey = sample_displacement(0, b0, b1, b2, lower, h0, density_w, density_h, max_angle, log_scale)
+            if rotation:  # each sample turned about its vertex's pivot (a texel centre), wrapped into the plane
+                t_x = (fx - 0.5) - math.floor(fx - 0.5)  # the query's fractions from its texel centre
+                t_y = (fy - 0.5) - math.floor(fy - 0.5)
+                ex, ey = sample_displacement(0, b0, b1, b2, lower, h0, density_w, density_h, t_x, t_y)
                 x0, y0 = _wrapped(x0 + ex, pw), _wrapped(y0 + ey, ph)
-                ex, ey = sample_displacement(1, b0, b1, b2, lower, h1, density_w, density_h, max_angle, log_scale)
+                ex, ey = sample_displacement(1, b0, b1, b2, lower, h1, density_w, density_h, t_x, t_y)
                 x1, y1 = _wrapped(x1 + ex, pw), _wrapped(y1 + ey, ph)
-                ex, ey = sample_displacement(2, b0, b1, b2, lower, h2, density_w, density_h, max_angle, log_scale)
+                ex, ey = sample_displacement(2, b0, b1, b2, lower, h2, density_w, density_h, t_x, t_y)
                 x2, y2 = _wrapped(x2 + ex, pw), _wrapped(y2 + ey, ph)
             for c in range(nc):
                 out[n, c] = 0.0
@@ -580,8 +577,7 @@ class PackedPyramid:
 def filtered_lattice_blend(uv: np.ndarray, level: np.ndarray, upper_weight: np.ndarray, pyramid: PackedPyramid,
                            density: tuple[int, int], seed: int, mode: int, *, gamma: float = 1.0, beta: float = 0.0,
                            gain_k: float = 1.0, luts: np.ndarray | None = None, g_min: float = 0.0,
-                           step: float = 1.0, guidance: tuple | None = None,
-                           transform: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+                           step: float = 1.0, guidance: tuple | None = None, rotation: bool = False) -> np.ndarray:
     """:func:`lattice_blend` with every sample read from a pyramid (trilinear): the footprint query.
 
     Parameters
@@ -596,9 +592,8 @@ def filtered_lattice_blend(uv: np.ndarray, level: np.ndarray, upper_weight: np.n
     luts : float32 ``(L, C, S)``
         Per-level inverse tables on the grid ``g_min + k step`` (hist;
         :func:`dynbtf.synthesis.mip.prefiltered_inverse_tables`).
-    transform : (max_angle, log_scale)
-        The samples' rotation and scale, as :func:`lattice_blend`'s (the level is the query's: a scaled
-        sample's footprint is not rescaled).
+    rotation : bool
+        The samples' quarter turns, as :func:`lattice_blend`'s.
 
     Each of the three samples sits where the point query reads it (same lattice, hashes and
     whole-texel offsets); at level ``l`` it is a bilinear fetch of level ``l`` at that position.
@@ -617,5 +612,5 @@ def filtered_lattice_blend(uv: np.ndarray, level: np.ndarray, upper_weight: np.n
                      pyramid.heights, pyramid.widths, pyramid.lums, pyramid.lum_starts, pw, ph, int(density[0]),
                      int(density[1]), int(seed) & 0xFFFFFFFF, int(mode), float(gamma), float(beta), float(gain_k),
                      np.ascontiguousarray(luts, dtype=np.float32), float(g_min), 1.0 / float(step), out,
-                     *_guidance_arguments(guidance, (ph, pw), uv.shape[0]), float(transform[0]), float(transform[1]))
+                     *_guidance_arguments(guidance, (ph, pw), uv.shape[0]), bool(rotation))
     return out

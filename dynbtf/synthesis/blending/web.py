@@ -26,11 +26,10 @@ def cost(groups: int) -> tuple[int, int]:
 
 
 def check_untransformed(synthesizer) -> None:
-    """The web shader reads the samples unturned and unscaled: a lattice blend with ``rotation`` or ``scale_jitter``
-    is refused (one-line error)."""
-    if synthesizer.transformed:
-        raise InputError("export: the web viewer does not turn or scale lattice blending's samples (rotation "
-                         f"{synthesizer.rotation:g}, scale_jitter {synthesizer.scale_jitter:g}); export with both 0")
+    """The web shader reads the samples unturned: a lattice blend with ``rotation`` is refused (one-line error)."""
+    if synthesizer.rotation:
+        raise InputError("export: the web viewer does not turn lattice blending's samples (rotation); export the "
+                         "material without it")
 
 
 def form(synthesizer) -> WebForm:

@@ -167,9 +167,9 @@ class _Guidance:
     def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, candidates: int = 16,
                  softness: float = 0.0, **params) -> None:
         super().__init__(exemplar, seed, **params)  # the method's own (hist, hex)
-        if self.transformed:
-            raise InputError("rotation, scale_jitter: the guided methods read their candidates' content unturned; "
-                             f"set both to 0 for {self.base_method!r} with guidance")
+        if self.rotation:
+            raise InputError("rotation: the guided methods read their candidates' content unturned; leave it off "
+                             f"for {self.base_method!r} with guidance")
         labels = _checked_labels(labels, target, tuple(self.exemplar.shape[:2]))
         if int(candidates) < 1:
             raise InputError(f"candidates: expected at least 1 offset per sample, got {candidates}")

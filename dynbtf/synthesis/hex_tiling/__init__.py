@@ -15,10 +15,10 @@ latent plane "luminance" is the first principal component of the exemplar
 (min-max normalized) unless a per-texel ``luminance`` plane is given (e.g. the
 decoded brightness, as :class:`dynbtf.infinite_btf.SynthesizedBTF` does).
 
-Per-tile rotation and scale (Mikkelsen's variation) are off by default: ``rotation`` and
-``scale_jitter`` turn and scale each tile's sample about its centre, and the view and light
-are turned into the query's frame (:mod:`~dynbtf.synthesis.sample_transform`). No variance
-correction: some contrast is lost in the (narrow) transition zones.
+Per-tile rotation (Mikkelsen's variation) is off by default: ``rotation`` turns each tile's
+sample by random quarter turns about a texel centre next to the tile's centre, and the view and light into the
+query's frame (:mod:`~dynbtf.synthesis.sample_transform`; free angles would read between texels
+everywhere). No variance correction: some contrast is lost in the (narrow) transition zones.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ def _normalized(x: torch.Tensor) -> torch.Tensor:
 
 @register_synthesizer("hex")
 class HexTiling(LatticeBlending):
-    """Hex-tiling of an exemplar plane (Mikkelsen's rotation and scale variation: ``rotation``, ``scale_jitter``).
+    """Hex-tiling of an exemplar plane (Mikkelsen's rotation variation, in quarter turns: ``rotation``).
 
     Parameters
     ----------
@@ -72,7 +72,7 @@ class HexTiling(LatticeBlending):
     luminance : tensor ``(H, W)``, optional
         Per-texel luminance-like values (any range; min-max normalized). Default:
         the first principal component of the exemplar's channels.
-    tileable, band, fast, prepared, rotation, scale_jitter
+    tileable, band, fast, prepared, rotation
         See :class:`~dynbtf.synthesis.blending.LatticeBlending`.
     """
 
@@ -83,7 +83,7 @@ class HexTiling(LatticeBlending):
 
     def __init__(self, exemplar, seed: int = 0, *, contrast: float = 0.7, beta: float = 0.6, luminance=None,
                  tileable="auto", band: int | None = None, fast: bool | None = None,
-                 prepared: LatticePlane | None = None, rotation: float = 0.0, scale_jitter: float = 0.0) -> None:
+                 prepared: LatticePlane | None = None, rotation: bool = False) -> None:
         if not 0.0 < contrast < 1.0:
             raise InputError(f"contrast: expected r in (0, 1) (0.5 = no gain), got {contrast!r}")
         if not 0.0 <= beta <= 1.0:
@@ -98,8 +98,7 @@ class HexTiling(LatticeBlending):
                 raise InputError(f"luminance: expected a finite (H, W) = {shape} plane, got shape "
                                  f"{tuple(luminance.shape)}")
             self.luminance_input = luminance
-        super().__init__(exemplar, seed, tileable=tileable, band=band, fast=fast, prepared=prepared, rotation=rotation,
-                         scale_jitter=scale_jitter)
+        super().__init__(exemplar, seed, tileable=tileable, band=band, fast=fast, prepared=prepared, rotation=rotation)
 
     def frame_weights(self, barycentrics: torch.Tensor) -> torch.Tensor:
         """The blend's lattice part ``b^7`` normalized (its luminance factor depends on the content read)."""
