@@ -227,3 +227,12 @@ def test_cli_synth_takes_rotation(tmp_path, capsys):
         assert main(["synth", str(tmp_path / "m.dbtfm"), *extra, "-o", str(tmp_path / "x.png")]) == 2
         assert message in capsys.readouterr().err
         assert not (tmp_path / "x.png").exists()
+
+
+def test_web_export_refuses_turned_samples(exemplar):
+    """The web shader reads samples unturned: a turned lattice blend's web form is a one-line error."""
+    for method in ("linear", "hist", "hex"):
+        synth = make_synthesizer(method, exemplar, rotation=True)
+        with pytest.raises(InputError, match="export: the web viewer does not turn lattice blending's samples"):
+            synth.backend_form("web")
+        assert make_synthesizer(method, exemplar).backend_form("web") is not None
