@@ -236,3 +236,16 @@ def test_web_export_refuses_turned_samples(exemplar):
         with pytest.raises(InputError, match="export: the web viewer does not turn lattice blending's samples"):
             synth.backend_form("web")
         assert make_synthesizer(method, exemplar).backend_form("web") is not None
+
+
+@pytest.mark.parametrize("method", ["linear", "hist", "hex"])
+def test_frame_kernel_equals_the_reference(exemplar, method):
+    """The compiled frame angles (``lattice_frames``) = the torch definition, near the origin and at 1e9 repeats."""
+    uv = torch.rand(5000, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(6)) * 8.0
+    uv[2500:] += 1e9
+    synth = make_synthesizer(method, exemplar, seed=5, rotation=True)
+    fast = synth.frame_rotation(uv)
+    synth.fast = False
+    reference = synth.frame_rotation(uv)
+    difference = torch.remainder(fast - reference + math.pi, 2 * math.pi) - math.pi
+    assert float(difference.abs().max()) < 1e-9

@@ -37,6 +37,7 @@ from ..base import Synthesizer, feature_bound, register_synthesizer, wrapped_tex
 from ..hash import vertex_offsets
 from ..lattice import split_uv, triangle_lattice
 from ..hash import hash_vertex
+from ..histogram import blend_weights
 from ..mip import LevelOfDetail, area_pyramid, level_shapes
 from ..sample_transform import (check_rotation, displacement, frame_angle, lattice_displacements, quarter_turns,
                                 turn_cos_sin)
@@ -153,11 +154,10 @@ class LatticeBlending(Synthesizer):
         and the samples' transform."""
         return {}
 
-    def frame_weights(self, barycentrics: torch.Tensor) -> torch.Tensor:
-        """The lattice weights ``(N, 3)`` of the samples, from ``barycentrics (N, 3)`` float64, that set a query's
-        frame angle (:func:`~dynbtf.synthesis.sample_transform.frame_angle`): the barycentrics here; a method with
-        sharper weights gives them."""
-        return barycentrics
+    #: The exponent ``p`` of the lattice weights ``b^p`` (normalized) that set a query's frame angle
+    #: (:func:`~dynbtf.synthesis.sample_transform.frame_angle`): 1, the barycentrics, here; a method with sharper
+    #: weights gives its own.
+    frame_exponent: float = 1.0
 
     def filter_tables(self, levels: list[torch.Tensor]) -> dict[str, Any]:
         """Method-specific per-level tables of the footprint query, built once from the read plane's pyramid."""
@@ -176,8 +176,12 @@ class LatticeBlending(Synthesizer):
     def frame_rotation(self, points: torch.Tensor) -> torch.Tensor | None:
         if not self.rotation:
             return None
+        if self.fast:
+            from .kernel import lattice_frames
+
+            return torch.from_numpy(lattice_frames(points.detach().cpu().numpy(), self.seed, self.frame_exponent))
         vertices, bary = triangle_lattice(points)
-        return frame_angle(self._turns(vertices), self.frame_weights(bary))
+        return frame_angle(self._turns(vertices), blend_weights(bary, self.frame_exponent))
 
     def sample_positions(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Read positions and barycentrics of the three samples of each query.

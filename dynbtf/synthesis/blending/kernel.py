@@ -39,9 +39,9 @@ from ..hash import SECOND_STREAM
 from ..kernels import (jit_mix32, jit_seed_state, jit_fold_coordinate, prefetch, SMALL_REPEAT, small_scaled_integer,
                        wrap, modulo, sample_texels, int_power, gain, split_repeat, lattice_cell_of, lattice_cell,
                        vertex_hashes, barycentrics, lattice_hashes, vertex, CACHE_LINE, cache_aligned,
-                       sample_displacement)
+                       sample_displacement, jit_quarter_turns, jit_turn_cos_sin)
 
-__all__ = ["lattice_blend", "filtered_lattice_blend", "PackedPyramid", "MODE_LINEAR", "MODE_HIST", "MODE_HEX", "BLOCK",
+__all__ = ["lattice_blend", "filtered_lattice_blend", "lattice_frames", "PackedPyramid", "MODE_LINEAR", "MODE_HIST", "MODE_HEX", "BLOCK",
            "TAPS"]
 
 MODE_LINEAR, MODE_HIST, MODE_HEX = 0, 1, 2
@@ -396,6 +396,32 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
             int(mode), float(gamma), float(beta), float(gain_k), np.ascontiguousarray(lut, dtype=np.float32),
             float(g_min), 1.0 / float(step), out, *guided, bool(rotation),
             max(1, min(numba.get_num_threads(), -(-n // BLOCK))))
+    return out
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _frame_kernel(uv, seed, exponent, out):
+    n_queries = uv.shape[0]
+    state = jit_seed_state(seed)
+    exponent_int = np.int64(exponent) if (exponent == math.floor(exponent) and 1.0 < exponent <= 64.0) else np.int64(0)
+    for block in numba.prange((n_queries + BLOCK - 1) // BLOCK):
+        for n in range(block * BLOCK, min(block * BLOCK + BLOCK, n_queries)):
+            _, _, _, _, h0, h1, h2, b0, b1, b2, _, _, _ = lattice_hashes(uv[n, 0], uv[n, 1], state)
+            s0, s1, s2, _ = _sample_weights(MODE_HIST, b0, b1, b2, 0.0, 0.0, 0.0, exponent, exponent_int, 0.0, 1.0)
+            c0, n0 = jit_turn_cos_sin(jit_quarter_turns(h0))
+            c1, n1 = jit_turn_cos_sin(jit_quarter_turns(h1))
+            c2, n2 = jit_turn_cos_sin(jit_quarter_turns(h2))
+            out[n] = math.atan2(s0 * n0 + s1 * n1 + s2 * n2, s0 * c0 + s1 * c1 + s2 * c2)
+
+
+def lattice_frames(uv: np.ndarray, seed: int, exponent: float) -> np.ndarray:
+    """The frame angle (radians, float64 ``(N,)``) of turned lattice samples at ``uv (N, 2)`` float64: the
+    circular mean of the three samples' quarter turns weighted by ``b^exponent`` normalized
+    (:func:`dynbtf.synthesis.sample_transform.frame_angle`, compiled; uv checked like :func:`lattice_blend`'s)."""
+    uv = np.ascontiguousarray(uv, dtype=np.float64)
+    check_uv(torch.from_numpy(uv))
+    out = np.empty(uv.shape[0], dtype=np.float64)
+    _frame_kernel(uv, int(seed) & 0xFFFFFFFF, float(exponent), out)
     return out
 
 

@@ -100,10 +100,8 @@ class HexTiling(LatticeBlending):
             self.luminance_input = luminance
         super().__init__(exemplar, seed, tileable=tileable, band=band, fast=fast, prepared=prepared, rotation=rotation)
 
-    def frame_weights(self, barycentrics: torch.Tensor) -> torch.Tensor:
-        """The blend's lattice part ``b^7`` normalized (its luminance factor depends on the content read)."""
-        w = barycentrics.clamp_min(0.0) ** 7
-        return w / w.sum(-1, keepdim=True)
+    #: The blend's lattice part ``b^7`` (its luminance factor depends on the content read).
+    frame_exponent = 7.0
 
     def prepare(self, source: torch.Tensor) -> LatticePlane:
         h, w, c = source.shape

@@ -132,9 +132,10 @@ class HistogramBlending(LatticeBlending):
         table = self.pyramid()["luts"][level].to(torch.float64)
         return InverseLUT(table, lut.g_min, lut.step)(g).to(torch.float32)
 
-    def frame_weights(self, barycentrics: torch.Tensor) -> torch.Tensor:
-        """The blend's weights ``b^gamma`` normalized."""
-        return blend_weights(barycentrics, self.gamma)
+    @property
+    def frame_exponent(self) -> float:
+        """The blend's own weights ``b^gamma``."""
+        return self.gamma
 
     def filter_tables(self, levels):
         """Per-level inverse tables (:func:`~dynbtf.synthesis.mip.prefiltered_inverse_tables`), level 0 the point table."""
