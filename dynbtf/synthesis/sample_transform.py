@@ -36,7 +36,7 @@ Examples
 --------
 >>> import torch
 >>> quarter_turns(torch.tensor([0, 1, 2, 12345], dtype=torch.int64)).tolist()
-[1, 2, 2, 3]
+[0, 2, 1, 2]
 """
 
 from __future__ import annotations
