@@ -157,18 +157,17 @@ def _rotate_z(v, cos_a, sin_a):
     return _stack([cos_a * x - sin_a * y, sin_a * x + cos_a * y, z], v)
 
 
-def turn_about_normal(w, angle):
-    """Directions ``w (..., 3)`` turned about the normal (z) by ``angle (...)`` radians, counter-clockwise seen from
-    above: ``(x cos a - y sin a, x sin a + y cos a, z)``, in ``w``'s dtype (the angle's sine and cosine in its own).
+def turn_about_normal(w, cos_a, sin_a):
+    """Directions ``w (..., 3)`` turned about the normal (z) by the angle ``a`` whose cosine and sine are given
+    (``(...)`` each), counter-clockwise seen from above: ``(x cos a - y sin a, x sin a + y cos a, z)``, in ``w``'s
+    dtype.
 
     >>> import numpy as np
-    >>> np.round(turn_about_normal(np.array([1.0, 0.0, 0.5]), np.pi / 2), 6).tolist()
+    >>> turn_about_normal(np.array([1.0, 0.0, 0.5]), 0.0, 1.0).tolist()
     [0.0, 1.0, 0.5]
     """
-    xp = _xp(w)
-    cos_a, sin_a = xp.cos(angle), xp.sin(angle)
     if _is_torch(w):
-        cos_a, sin_a = cos_a.to(w.dtype), sin_a.to(w.dtype)
+        cos_a, sin_a = torch.as_tensor(cos_a).to(w), torch.as_tensor(sin_a).to(w)
     return _rotate_z(w, cos_a, sin_a)
 
 

@@ -373,8 +373,8 @@ class SynthesizedBTF:
         texels = None if footprint is None else footprint * self.texels_per_uv()
         frame = self.synthesizer.frame_rotation(points)  # turned samples: the directions into their frame
         if frame is not None:
-            frame = frame.to(wv.device)
-            wv, wl = turn_about_normal(wv, frame), turn_about_normal(wl, frame)
+            cos_a, sin_a = frame.to(wv.device).unbind(-1)
+            wv, wl = turn_about_normal(wv, cos_a, sin_a), turn_about_normal(wl, cos_a, sin_a)
         rgb = self._decoded(points, wv, wl, texels, latent)
         gain = self.synthesizer.variation_gain(points, texels)  # the method's variation controls, if on
         return rgb if gain is None else rgb * gain.to(rgb.device)

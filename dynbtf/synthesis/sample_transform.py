@@ -26,7 +26,7 @@ a whole number of texels at a texel centre.
 **Directions.** Turning a BTF's surface turns its directions too: the exemplar point under directions ``A w`` is
 the synthesized point under ``w`` (a ridge turned with its lighting). One decode per query needs one frame, so
 the view and the light are turned by the query's **frame angle**: the circular mean of its samples' angles weighted
-by the method's lattice weights (:func:`frame_angle`; ``hist``: ``b^gamma`` normalized), so that wherever one sample
+by the method's lattice weights (:func:`frame_direction`; ``hist``: ``b^gamma`` normalized), so that wherever one sample
 shows, its own frame is used, and between samples the frame turns continuously.
 
 The functions below use only arithmetic, ``mix32`` and the replaceable ``_floor``, so the same code runs on torch
@@ -41,8 +41,6 @@ Examples
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from ..errors import InputError
@@ -50,7 +48,7 @@ from .hash import mix32
 from .lattice import LATTICE_SCALE
 
 __all__ = ["ROTATION_STREAM", "PIVOT_SHIFT", "check_rotation", "quarter_turns", "turn_cos_sin", "displacement",
-           "lattice_displacements", "frame_angle"]
+           "lattice_displacements", "frame_direction"]
 
 #: Constant xor-ed into a vertex's hash for its turn (a stream apart from its offset's).
 ROTATION_STREAM = 0x27D4EB2F
@@ -104,8 +102,13 @@ def lattice_displacements(vertices: torch.Tensor, barycentrics: torch.Tensor, de
     return du * density[0], dv * density[1]
 
 
-def frame_angle(turns: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """The frame angle ``(N,)`` (radians) of queries whose samples have ``turns (N, 3)`` quarter turns and lattice
-    weights ``weights (N, 3)``: ``atan2(sum w sin, sum w cos)``, the weighted circular mean."""
-    angles = turns.to(torch.float64) * (0.5 * math.pi)
-    return torch.atan2((weights * torch.sin(angles)).sum(-1), (weights * torch.cos(angles)).sum(-1))
+def frame_direction(turns: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """``(cos, sin)`` ``(N, 2)`` float64 of the frame angle of queries whose samples have ``turns (N, 3)`` quarter
+    turns and lattice weights ``weights (N, 3)``: the weighted circular mean, ``sum_k w_k (cos, sin)(turn_k)``
+    normalized (``(1, 0)`` where it vanishes: two opposite turns of equal weight)."""
+    cos_a, sin_a = turn_cos_sin(turns)
+    x, y = (weights * cos_a).sum(-1), (weights * sin_a).sum(-1)
+    length = torch.sqrt(x * x + y * y)
+    zero = length == 0.0
+    length = torch.where(zero, torch.ones_like(length), length)
+    return torch.stack([torch.where(zero, torch.ones_like(x), x / length), y / length], -1)

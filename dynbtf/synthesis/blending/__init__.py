@@ -39,7 +39,7 @@ from ..lattice import split_uv, triangle_lattice
 from ..hash import hash_vertex
 from ..histogram import blend_weights
 from ..mip import LevelOfDetail, area_pyramid, level_shapes
-from ..sample_transform import (check_rotation, displacement, frame_angle, lattice_displacements, quarter_turns,
+from ..sample_transform import (check_rotation, displacement, frame_direction, lattice_displacements, quarter_turns,
                                 turn_cos_sin)
 from ..tileable import make_tileable, seam_discontinuity
 
@@ -155,7 +155,7 @@ class LatticeBlending(Synthesizer):
         return {}
 
     #: The exponent ``p`` of the lattice weights ``b^p`` (normalized) that set a query's frame angle
-    #: (:func:`~dynbtf.synthesis.sample_transform.frame_angle`): 1, the barycentrics, here; a method with sharper
+    #: (:func:`~dynbtf.synthesis.sample_transform.frame_direction`): 1, the barycentrics, here; a method with sharper
     #: weights gives its own.
     frame_exponent: float = 1.0
 
@@ -181,7 +181,7 @@ class LatticeBlending(Synthesizer):
 
             return torch.from_numpy(lattice_frames(points.detach().cpu().numpy(), self.seed, self.frame_exponent))
         vertices, bary = triangle_lattice(points)
-        return frame_angle(self._turns(vertices), blend_weights(bary, self.frame_exponent))
+        return frame_direction(self._turns(vertices), blend_weights(bary, self.frame_exponent))
 
     def sample_positions(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Read positions and barycentrics of the three samples of each query.

@@ -400,28 +400,45 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _frame_kernel(uv, seed, exponent, out):
+def _frame_kernel(uv, seed, exponent, out, n_workers):
     n_queries = uv.shape[0]
     state = jit_seed_state(seed)
     exponent_int = np.int64(exponent) if (exponent == math.floor(exponent) and 1.0 < exponent <= 64.0) else np.int64(0)
-    for block in numba.prange((n_queries + BLOCK - 1) // BLOCK):
-        for n in range(block * BLOCK, min(block * BLOCK + BLOCK, n_queries)):
-            _, _, _, _, h0, h1, h2, b0, b1, b2, _, _, _ = lattice_hashes(uv[n, 0], uv[n, 1], state)
-            s0, s1, s2, _ = _sample_weights(MODE_HIST, b0, b1, b2, 0.0, 0.0, 0.0, exponent, exponent_int, 0.0, 1.0)
-            c0, n0 = jit_turn_cos_sin(jit_quarter_turns(h0))
-            c1, n1 = jit_turn_cos_sin(jit_quarter_turns(h1))
-            c2, n2 = jit_turn_cos_sin(jit_quarter_turns(h2))
-            out[n] = math.atan2(s0 * n0 + s1 * n1 + s2 * n2, s0 * c0 + s1 * c1 + s2 * c2)
+    n_blocks = (n_queries + BLOCK - 1) // BLOCK
+    for worker in numba.prange(n_workers):  # the lattice pass of lattice_blend, then the frame, vectorized
+        ints = np.empty((_INT_ROWS, BLOCK), dtype=np.int64)
+        reals = np.empty((_REAL_ROWS, BLOCK), dtype=np.float64)
+        for block in range(worker, n_blocks, n_workers):
+            first = block * BLOCK
+            count = min(BLOCK, n_queries - first)
+            _block_lattice(uv, first, count, state, ints, reals)
+            h0_, h1_, h2_ = ints[_HASH], ints[_HASH + 1], ints[_HASH + 2]
+            b0_, b1_, b2_ = reals[_BARY], reals[_BARY + 1], reals[_BARY + 2]
+            for j in range(count):
+                s0, s1, s2, _ = _sample_weights(MODE_HIST, b0_[j], b1_[j], b2_[j], 0.0, 0.0, 0.0, exponent,
+                                                exponent_int, 0.0, 1.0)
+                c0, n0 = jit_turn_cos_sin(jit_quarter_turns(h0_[j]))
+                c1, n1 = jit_turn_cos_sin(jit_quarter_turns(h1_[j]))
+                c2, n2 = jit_turn_cos_sin(jit_quarter_turns(h2_[j]))
+                x = s0 * c0 + s1 * c1 + s2 * c2
+                y = s0 * n0 + s1 * n1 + s2 * n2
+                length = math.sqrt(x * x + y * y)
+                zero = length == 0.0
+                inverse = 1.0 / (1.0 if zero else length)
+                out[first + j, 0] = 1.0 if zero else x * inverse
+                out[first + j, 1] = y * inverse
 
 
 def lattice_frames(uv: np.ndarray, seed: int, exponent: float) -> np.ndarray:
-    """The frame angle (radians, float64 ``(N,)``) of turned lattice samples at ``uv (N, 2)`` float64: the
-    circular mean of the three samples' quarter turns weighted by ``b^exponent`` normalized
-    (:func:`dynbtf.synthesis.sample_transform.frame_angle`, compiled; uv checked like :func:`lattice_blend`'s)."""
+    """``(cos, sin)`` (float64 ``(N, 2)``) of the frame angle of turned lattice samples at ``uv (N, 2)`` float64:
+    the circular mean of the three samples' quarter turns weighted by ``b^exponent`` normalized
+    (:func:`dynbtf.synthesis.sample_transform.frame_direction`, compiled; uv checked like :func:`lattice_blend`'s)."""
     uv = np.ascontiguousarray(uv, dtype=np.float64)
     check_uv(torch.from_numpy(uv))
-    out = np.empty(uv.shape[0], dtype=np.float64)
-    _frame_kernel(uv, int(seed) & 0xFFFFFFFF, float(exponent), out)
+    n = uv.shape[0]
+    out = np.empty((n, 2), dtype=np.float64)
+    _frame_kernel(uv, int(seed) & 0xFFFFFFFF, float(exponent), out,
+                  max(1, min(numba.get_num_threads(), -(-n // BLOCK))))
     return out
 
 
