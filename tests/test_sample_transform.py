@@ -230,21 +230,45 @@ def test_cli_synth_takes_rotation(tmp_path, capsys):
         assert not (tmp_path / "x.png").exists()
 
 
-def test_web_export_refuses_turned_samples(exemplar):
-    """The web shader reads samples unturned: a turned lattice blend's web form is a one-line error."""
-    for method in ("linear", "hist", "hex"):
-        synth = make_synthesizer(method, exemplar, rotation=True)
-        with pytest.raises(InputError, match="export: the web viewer does not turn lattice blending's samples"):
-            synth.backend_form("web")
-        assert make_synthesizer(method, exemplar).backend_form("web") is not None
+def test_cli_export_turns_the_lattice_methods(tmp_path, capsys):
+    """``dynbtf export --rotation`` writes the lattice methods' turns into the manifest, and refuses where no
+    exported method takes them."""
+    import json
+
+    from dynbtf.cli.main import main
+    from dynbtf.representations.model_file import save_model
+    from dynbtf.representations.triple_plane import TriplePlane
+
+    save_model(tmp_path / "m.dbtfm", TriplePlane(24, 24, seed=1))
+    out = tmp_path / "web"
+    assert main(["export", str(tmp_path / "m.dbtfm"), "-o", str(out), "--method", "hist", "--method", "tile",
+                 "--rotation", "--no-viewer"]) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    methods = manifest["methods"]
+    assert methods["hist"]["rotation"] is True and methods["hist"]["frame_exponent"] == 7.0
+    assert not methods["tile"].get("rotation")
+    capsys.readouterr()
+    assert main(["export", str(tmp_path / "m.dbtfm"), "-o", str(tmp_path / "x"), "--method", "tile",
+                 "--rotation"]) == 2
+    assert "--rotation: turns the samples of hist, hex and linear" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("method", ["linear", "hist", "hex"])
-def test_frame_kernel_equals_the_reference(exemplar, method):
-    """The compiled frames (``lattice_frames``) = the torch definition, near the origin and at 1e9 repeats."""
-    uv = torch.rand(5000, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(6)) * 8.0
-    uv[2500:] += 1e9
-    synth = make_synthesizer(method, exemplar, seed=5, rotation=True)
-    fast = synth.frame_rotation(uv)
-    synth.fast = False
-    np.testing.assert_allclose(fast.numpy(), synth.frame_rotation(uv).numpy(), atol=1e-12)
+def test_cli_compile_keeps_the_turns_and_synth_uses_them(tmp_path, capsys):
+    """``dynbtf compile --rotation`` stores the turns in the material; ``synth`` of the .dbtfc draws them (the image
+    equals synth of the model file with --rotation), and compile refuses them for a method without turns."""
+    from dynbtf.cli.main import main
+    from dynbtf.io import load_image
+    from dynbtf.representations.model_file import save_model
+    from dynbtf.representations.triple_plane import TriplePlane
+
+    save_model(tmp_path / "m.dbtfm", TriplePlane(24, 24, seed=1))
+    assert main(["compile", str(tmp_path / "m.dbtfm"), "--method", "hex", "--rotation", "--no-footprints", "-o",
+                 str(tmp_path / "m.dbtfc")]) == 0
+    common = ["--scale", "4", "--resolution", "32"]
+    assert main(["synth", str(tmp_path / "m.dbtfc"), *common, "-o", str(tmp_path / "a.exr")]) == 0
+    assert main(["synth", str(tmp_path / "m.dbtfm"), "--method", "hex", "--rotation", *common, "-o",
+                 str(tmp_path / "b.exr")]) == 0
+    np.testing.assert_array_equal(load_image(tmp_path / "a.exr"), load_image(tmp_path / "b.exr"))
+    capsys.readouterr()
+    assert main(["compile", str(tmp_path / "m.dbtfm"), "--method", "struct", "--rotation"]) == 2
+    assert "--rotation: turning the samples is for hex, hist, linear" in capsys.readouterr().err

@@ -92,6 +92,28 @@ def test_shader_matches_synthesized_btf(exports, model, method):
 
 @browser
 @pytest.mark.browser
+def test_turned_samples_in_the_shader_match_synthesized_btf(model, tmp_path):
+    """``rotation=True`` (quarter turns about each vertex's pivot, the directions turned into the frame) in the
+    shader = ``synthesized_btf(model, method, rotation=True)`` for linear, hist and hex, and not the unturned
+    method's values."""
+    turned = ("linear", "hist", "hex")
+    export = export_web(model, tmp_path / "turned", precision="fp32", methods=turned,
+                        method_params={m: {"rotation": True} for m in turned})
+    points, shift, wv, wl = _queries(1024, seed=3)
+    for method in turned:
+        ref = synthesized_btf(model, method, seed=0, rotation=True).eval(points, wv.astype(np.float64),
+                                                                           wl.astype(np.float64))
+        got = eval_in_browser(export.directory, method, points, wv, wl, local_shift=shift).rgb
+        peak = np.abs(ref).max()
+        exact = shift == 0
+        np.testing.assert_allclose(got[exact], ref[exact], rtol=0, atol=2e-4 * peak)
+        np.testing.assert_allclose(got[~exact], ref[~exact], rtol=0, atol=5e-3 * peak)
+        plain = synthesized_btf(model, method, seed=0).eval(points, wv.astype(np.float64), wl.astype(np.float64))
+        assert _psnr(got, plain) < 30.0
+
+
+@browser
+@pytest.mark.browser
 def test_hist_with_an_extreme_exponent_is_finite_and_the_librarys(model, tmp_path):
     """gamma = 1e10: b^gamma underflows to 0 for every barycentric; the shader's (b / max b)^gamma does not
     (NaN weights would reach the inverse table's index)."""

@@ -21,6 +21,8 @@ def compile_command(
                                             "(struct for structured materials, else hist; the choice is printed)."),
     seed: int = typer.Option(0, help="Synthesis seed."),
     gamma: Optional[float] = typer.Option(None, "--gamma", help="Blending exponent of hist (when hist is used)."),
+    rotation: bool = typer.Option(False, "--rotation", help="hist, hex, linear: turn each sample by random quarter "
+                                  "turns, the view and light with it (for isotropic materials)."),
     footprints: bool = typer.Option(True, "--footprints/--no-footprints",
                                     help="Also fit the per-level decoders and mean appearance of footprint "
                                          "(filtered) queries: a fit per pyramid level, the slow part, done once."),
@@ -45,6 +47,14 @@ def compile_command(
             raise InputError(f"-o/--output: expected a {SUFFIX} file name, got {output}")
         check_writable(output, "-o/--output")
     params = {} if gamma is None else {"gamma": gamma}
+    if rotation:
+        from ..synthesis.registry import methods_with, takes_parameter
+
+        if not takes_parameter(method, "rotation"):
+            having = [m for m in methods_with() if takes_parameter(m, "rotation")]
+            raise InputError(f"--rotation: turning the samples is for {', '.join(having)}; give it with --method "
+                             f"{having[0]}, not {method!r}")
+        params["rotation"] = True
     rep, _ = load_model(model)
     start = time.perf_counter()
     material, how = open_or_compile(rep, method, seed, footprints=footprints, **params)

@@ -57,6 +57,9 @@ def export_command(
     target_wrap: str = guidance_options.TARGET_WRAP,
     softness: float = guidance_options.SOFTNESS,
     cells: Optional[int] = guidance_options.CELLS,
+    rotation: bool = typer.Option(False, "--rotation", help="Turn the exported hist, hex and linear materials' "
+                                  "samples by random quarter turns (drawn from --seed), the view and light with "
+                                  "them (auto and the other methods as they are)."),
 ) -> None:
     """Export a synthesized BTF for real-time rendering: GPU textures, decoder weights and a shader (docs/realtime.md).
 
@@ -89,6 +92,15 @@ def export_command(
     if cells is not None and ("struct" not in (method or []) or layer is not None):
         raise InputError("--cells: sets struct's cells; give it with --method struct (without --layer), not "
                          f"{list(method or ['auto'])}" + (" with --layer" if layer is not None else ""))
+    params = {} if cells is None else {"struct": {"cells": int(cells)}}
+    if rotation:
+        from ..synthesis.registry import takes_parameter
+
+        turned = [m for m in (method or DEFAULT_METHODS) if takes_parameter(m, "rotation")]
+        if not turned or layer is not None or target is not None:
+            raise InputError("--rotation: turns the samples of hist, hex and linear; export one of them with "
+                             f"--method (without --layer or --target), not {list(method or DEFAULT_METHODS)}")
+        params.update({m: {"rotation": True} for m in turned})
     if target is not None:
         if layer is not None:
             raise InputError("--target: guides one material; it does not combine with a layered export (--layer)")
@@ -102,7 +114,7 @@ def export_command(
         return
     result = export_web(model, output, precision=precision, methods=tuple(method or DEFAULT_METHODS),
                         seed=seed, scale=scale, viewer=viewer,
-                        method_params=None if cells is None else {"struct": {"cells": int(cells)}})
+                        method_params=params or None)
     m = result.manifest
     if m.get("auto"):
         typer.echo(m["auto"]["line"])

@@ -27,6 +27,7 @@ from ...synthesis.hash import MASK32, MIX_MULTIPLIER_1, MIX_MULTIPLIER_2, SECOND
 from ...synthesis.lattice import (_C3, _N1, _N2, LATTICE_SCALE, LATTICE_SCALE_HI, LATTICE_SCALE_LO, MAX_REPEATS,
                                  _scaled_integer, split_uv)
 from ...synthesis.registry import methods_with, synthesizer_class
+from ...synthesis.sample_transform import PIVOT_SHIFT, ROTATION_STREAM
 
 __all__ = ["glsl_source", "shader_cost", "repeat_origin", "RepeatOrigin", "field_origin", "lattice_constants",
            "web_methods", "web_module", "LOCAL_REPEATS", "MAX_MARCH_STEPS"]
@@ -275,6 +276,8 @@ uniform vec4 dynbtf_plane_bias[DYNBTF_G];
 uniform ivec2 dynbtf_field_size;             // the method's label field, if any ("field"): (width, height) texels
 uniform vec2 dynbtf_field_scale;             // its texels per exemplar repeat: (width, height) / size
 uniform int dynbtf_field_wrap;               // 1: it repeats every size repeats, 0: its edge texels extend it
+uniform int dynbtf_rotation;                 // lattice methods: 1: samples turned by quarter turns (sample_transform)
+uniform float dynbtf_frame_exponent;         // ... and the frame's lattice weights b^p (hist: gamma, hex: 7, linear: 1)
 {method_uniforms}uniform vec4 dynbtf_fh_scale[DYNBTF_AG];
 uniform vec4 dynbtf_fh_bias[DYNBTF_AG];
 uniform vec4 dynbtf_fd_scale[DYNBTF_AG];
@@ -339,7 +342,13 @@ struct DynbtfTriangle {{
     ivec2 offset[3];           // (ox, oy) of each vertex
     ivec2 texel;               // texel of the bilinear footprint's corner (before offsets), on the read plane
     vec2 t;                    // bilinear weights inside the footprint
+    ivec2 shift[3];            // turned samples: each one's whole texels moved (0 unturned) ...
+    vec2 ts[3];                // ... and its own bilinear weights (t unturned)
 }};
+
+// the frame (cos, sin) of the content the last dynbtf_latent synthesized: its turned samples' circular mean
+// (dynbtf.synthesis.sample_transform.frame_direction); dynbtf_decode turns the view and the light into it
+vec2 dynbtf_frame = vec2(1.0, 0.0);
 
 // whole repeats and fraction in [0, 1) of the local uv (dynbtf.synthesis.lattice.split_uv)
 void dynbtf_split(vec2 local, out vec2 whole, out vec2 f) {{
@@ -380,8 +389,10 @@ DynbtfTriangle dynbtf_triangle(DynbtfOrigin o, vec2 local) {{
         tri.vx[2] = base_x;  tri.vy[2] = base_y1; tri.b[2] = 1.0 - fx;
     }}
     uint pw = uint(dynbtf_plane_size.x), ph = uint(dynbtf_plane_size.y);
+    uint hashes[3];
     for (int i = 0; i < 3; ++i) {{
         uint h = dynbtf_fold(dynbtf_fold(dynbtf_seed_state, tri.vx[i]), tri.vy[i]);
+        hashes[i] = h;
         tri.offset[i] = ivec2(int(h % pw), int(dynbtf_mix32(h ^ {SECOND_STREAM:#010x}u) % ph));
     }}
     // texel addressing shared by the three samples: (I W) mod W' + the fraction's texel
@@ -392,6 +403,33 @@ DynbtfTriangle dynbtf_triangle(DynbtfOrigin o, vec2 local) {{
     tri.texel = ivec2(
         dynbtf_mod(o.texel.x + dynbtf_mod(w.x, size.x) * (dynbtf_density.x % size.x) + int(p0.x), size.x),
         dynbtf_mod(o.texel.y + dynbtf_mod(w.y, size.y) * (dynbtf_density.y % size.y) + int(p0.y), size.y));
+    for (int i = 0; i < 3; ++i) {{ tri.shift[i] = ivec2(0); tri.ts[i] = tri.t; }}
+    if (dynbtf_rotation == 1) {{   // quarter turns about each vertex's pivot (dynbtf.synthesis.sample_transform)
+        vec2 steps[3];   // the vertices, from the triangle's base vertex
+        if (z > 0.0) {{ steps[0] = vec2(0.0); steps[1] = vec2(0.0, 1.0); steps[2] = vec2(1.0, 0.0); }}
+        else {{ steps[0] = vec2(1.0); steps[1] = vec2(1.0, 0.0); steps[2] = vec2(0.0, 1.0); }}
+        vec3 b = vec3(tri.b[0], tri.b[1], tri.b[2]);
+        vec3 s = dynbtf_frame_exponent == 1.0 ? b
+                 : pow(max(b, 0.0) / max(max(b.x, b.y), b.z), vec3(dynbtf_frame_exponent));
+        s /= s.x + s.y + s.z;
+        vec2 frame = vec2(0.0);
+        for (int i = 0; i < 3; ++i) {{
+            uint turns = dynbtf_mix32(hashes[i] ^ {ROTATION_STREAM:#010x}u) & 3u;
+            vec2 cs = turns == 0u ? vec2(1.0, 0.0) : turns == 1u ? vec2(0.0, 1.0) : turns == 2u ? vec2(-1.0, 0.0)
+                                                                                             : vec2(0.0, -1.0);
+            vec2 l = b.x * (steps[0] - steps[i]) + b.y * (steps[1] - steps[i]) + b.z * (steps[2] - steps[i]);
+            vec2 d = vec2((l.x + 0.5 * l.y) * {_float(1.0 / LATTICE_SCALE)} * float(dynbtf_density.x),
+                          0.25 * l.y * float(dynbtf_density.y));
+            vec2 m = tri.t - floor(tri.t - d + {_float(0.5 + PIVOT_SHIFT)});
+            vec2 q = tri.t + vec2((cs.x - 1.0) * m.x - cs.y * m.y, cs.y * m.x + (cs.x - 1.0) * m.y);
+            vec2 whole = floor(q);
+            tri.shift[i] = ivec2(whole);
+            tri.ts[i] = q - whole;
+            frame += s[i] * cs;
+        }}
+        float len = length(frame);
+        dynbtf_frame = len > 0.0 ? frame / len : vec2(1.0, 0.0);
+    }}
     return tri;
 }}
 
@@ -414,15 +452,17 @@ void dynbtf_bilinear(ivec2 c, vec2 t, float weight, int g0, int g1, inout vec4 a
     }
 }
 
-// the three samples of a lattice triangle: each vertex's hashed offset added to the shared footprint's texel
+// the three samples of a lattice triangle: each vertex's hashed offset (and a turned sample's shift) added to the
+// shared footprint's texel
 void dynbtf_sample_texels(DynbtfTriangle tri, out ivec2 c[3]) {
     ivec2 size = dynbtf_plane_size;
-    for (int i = 0; i < 3; ++i) c[i] = ivec2((tri.texel.x + tri.offset[i].x) % size.x, (tri.texel.y + tri.offset[i].y) % size.y);
+    for (int i = 0; i < 3; ++i) c[i] = ivec2(dynbtf_mod(tri.texel.x + tri.offset[i].x + tri.shift[i].x, size.x),
+                                             dynbtf_mod(tri.texel.y + tri.offset[i].y + tri.shift[i].y, size.y));
 }
 
 // the samples blended with weights s; returns the sum of the weights
 float dynbtf_blend3(DynbtfTriangle tri, ivec2 c[3], vec3 s, int g0, int g1, inout vec4 acc[DYNBTF_G]) {
-    for (int i = 0; i < 3; ++i) dynbtf_bilinear(c[i], tri.t, s[i], g0, g1, acc);
+    for (int i = 0; i < 3; ++i) dynbtf_bilinear(c[i], tri.ts[i], s[i], g0, g1, acc);
     return s.x + s.y + s.z;
 }
 
@@ -447,6 +487,7 @@ void dynbtf_latent(DynbtfOrigin o, vec2 local, int g0, int g1, out vec4 latent[D
     vec4 acc[DYNBTF_G];
     for (int g = 0; g < DYNBTF_G; ++g) acc[g] = vec4(0.0);
     float total = 1.0;
+    dynbtf_frame = vec2(1.0, 0.0);   // (a turned lattice method's dynbtf_triangle sets it)
     {branches}
     for (int g = g0; g < g1; ++g) acc[g] = acc[g] * dynbtf_plane_scale[g] + total * dynbtf_plane_bias[g];
 {after}    for (int g = 0; g < DYNBTF_G; ++g) latent[g] = acc[g];
@@ -584,6 +625,9 @@ vec4 dynbtf_leaky(vec4 x) {{ return max(x, 0.0) + {_float(negative_slope)} * min
 {relief_code}
 // ---- the decoder on synthesized features x (dynbtf_latent's): linear RGB, excluding cos(theta_light)
 vec3 dynbtf_decode(vec4 x[DYNBTF_G], vec3 w_view, vec3 w_light) {{
+    vec2 f = dynbtf_frame;   // the frame of the features x (dynbtf_latent's): view and light turned into it
+    w_view = vec3(f.x * w_view.x - f.y * w_view.y, f.y * w_view.x + f.x * w_view.y, w_view.z);
+    w_light = vec3(f.x * w_light.x - f.y * w_light.y, f.y * w_light.x + f.x * w_light.y, w_light.z);
     vec3 sum = w_view + w_light;
     vec3 h = dot(sum, sum) < 1e-24 ? vec3(0.0, 0.0, 1.0) : normalize(sum);
     vec4 fh[DYNBTF_AG], fd[DYNBTF_AG];

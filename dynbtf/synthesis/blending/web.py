@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 from ...device import to_host
-from ...errors import InputError
 from ..web_form import WebForm
 
 MODE = 1
@@ -25,14 +24,12 @@ def cost(groups: int) -> tuple[int, int]:
     return 0, 0
 
 
-def check_untransformed(synthesizer) -> None:
-    """The web shader reads the samples unturned: a lattice blend with ``rotation`` is refused (one-line error)."""
-    if synthesizer.rotation:
-        raise InputError("export: the web viewer does not turn lattice blending's samples (rotation); export the "
-                         "material without it")
+def turn_constants(synthesizer) -> dict:
+    """The samples' quarter turns (``rotation``, :mod:`~dynbtf.synthesis.sample_transform`) as the shader's
+    constants: whether they are on and the exponent of the frame's lattice weights."""
+    return {"rotation": bool(synthesizer.rotation), "frame_exponent": float(synthesizer.frame_exponent)}
 
 
 def form(synthesizer) -> WebForm:
-    """The read plane (after tileable preprocessing)."""
-    check_untransformed(synthesizer)
-    return WebForm(to_host(synthesizer.prepared.plane))
+    """The read plane (after tileable preprocessing) and the turns."""
+    return WebForm(to_host(synthesizer.prepared.plane), constants=turn_constants(synthesizer))

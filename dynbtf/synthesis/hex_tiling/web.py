@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 from ...device import to_host
-from ..blending.web import check_untransformed
+from ..blending.web import turn_constants
 from ..web_form import WebForm, WebTable
 
 MODE = 3
@@ -35,7 +35,7 @@ GLSL_SAMPLE = """DynbtfTriangle tri = dynbtf_triangle(o, local);
 ivec2 c[3];
 dynbtf_sample_texels(tri, c);
 vec3 s = vec3(tri.b[0], tri.b[1], tri.b[2]);
-vec3 lum = vec3(dynbtf_luminance(c[0], tri.t), dynbtf_luminance(c[1], tri.t), dynbtf_luminance(c[2], tri.t));
+vec3 lum = vec3(dynbtf_luminance(c[0], tri.ts[0]), dynbtf_luminance(c[1], tri.ts[1]), dynbtf_luminance(c[2], tri.ts[2]));
 vec3 b = max(s, 0.0), b2 = b * b, b4 = b2 * b2;
 s = (1.0 - dynbtf_beta + dynbtf_beta * lum) * (b4 * b2 * b);
 s /= s.x + s.y + s.z;
@@ -54,7 +54,6 @@ def cost(groups: int) -> tuple[int, int]:
 
 def form(synthesizer) -> WebForm:
     """The read plane, the luminance plane (``luminance``) and ``beta``, ``gain_k``."""
-    check_untransformed(synthesizer)
     kernel = synthesizer.kernel_arguments()
     return WebForm(to_host(synthesizer.prepared.plane), {"luminance": WebTable("single", to_host(kernel["luminance"]))},
-                   {"beta": float(kernel["beta"]), "gain_k": float(kernel["gain_k"])})
+                   {**turn_constants(synthesizer), "beta": float(kernel["beta"]), "gain_k": float(kernel["gain_k"])})

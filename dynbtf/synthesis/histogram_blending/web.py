@@ -5,7 +5,7 @@
 from __future__ import annotations
 
 from ...device import to_host
-from ..blending.web import check_untransformed
+from ..blending.web import turn_constants
 from ..web_form import WebForm, WebTable
 
 MODE = 2
@@ -58,8 +58,7 @@ def cost(groups: int) -> tuple[int, int]:
 
 def form(synthesizer) -> WebForm:
     """The Gaussianized plane, the inverse tables (``lut``) and ``gamma``, ``g_min``, ``inv_step``."""
-    check_untransformed(synthesizer)
     kernel = synthesizer.kernel_arguments()
     return WebForm(to_host(synthesizer.prepared.plane), {"lut": WebTable("lut", to_host(kernel["lut"]))},
-                   {"gamma": float(kernel["gamma"]), "g_min": float(kernel["g_min"]),
+                   {**turn_constants(synthesizer), "gamma": float(kernel["gamma"]), "g_min": float(kernel["g_min"]),
                     "inv_step": float(1.0 / kernel["step"])})
