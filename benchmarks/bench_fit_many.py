@@ -17,15 +17,19 @@ On a 2-core machine expect about 1-2x: the fused kernel already uses both cores,
 start-up (~5 s) and each worker's first import count against it. The point is that the same
 manifest runs unchanged on a cluster (``dynbtf fit-many --address ...``).
 
-Run: ``python benchmarks/bench_fit_many.py`` (about 5 minutes; ``--help`` for options).
+Run: ``python benchmarks/bench_fit_many.py`` (about 5 minutes; ``--help`` for options). Writes
+``benchmarks/results/fit_many.json`` (docs/cluster.md's table and docs/results.md's Speed row).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def main() -> None:
@@ -34,7 +38,9 @@ def main() -> None:
     parser.add_argument("--epochs", type=int, default=4)
     parser.add_argument("--workers", type=int, default=2, help="single-thread Ray workers")
     parser.add_argument("--materials", default="leather,stone,lacquered_wood,woven_fabric")
+    parser.add_argument("--json", type=Path, default=Path(__file__).parent / "results" / "fit_many.json")
     args = parser.parse_args()
+    from results_io import header, write_result
 
     import torch
 
@@ -74,6 +80,16 @@ def main() -> None:
     for s, p in zip(sequential, parallel):
         print(f"  {s['name']:<16} {s.get('psnr', float('nan')):6.2f} | {p.get('psnr', float('nan')):6.2f}  "
               f"({s['status']} | {p['status']})")
+    n = len(materials)
+    write_result(args.json, header("fit_many", "bench_fit_many.py") | {
+        "conditions": f"{n} simulated materials of {args.size} x {args.size} texels (81 x 81 directions), "
+                      f"{args.epochs} epochs each, fitted and evaluated twice in one run",
+        "rows": [{"run": "sequential", "label": f"one after the other, {threads} threads per fit",
+                  "wall_seconds": t_sequential, "materials_per_minute": 60 * n / t_sequential},
+                 {"run": "ray", "label": f"`fit_many` on a local Ray instance, {args.workers} single-thread workers",
+                  "wall_seconds": t_ray, "materials_per_minute": 60 * n / t_ray}],
+        "held_out_psnr": [{"material": s["name"], "sequential": s.get("psnr"), "ray": p.get("psnr")}
+                          for s, p in zip(sequential, parallel)]})
 
 
 if __name__ == "__main__":

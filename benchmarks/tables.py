@@ -333,7 +333,8 @@ def _speed_sampling(row: dict, data: dict) -> tuple[str, str, str]:
 
 _SPEED_FROM = {"training": _speed_training, "evaluation": _speed_evaluation, "rendering": _speed_rendering,
                "web": _speed_web, "compiled_material": _speed_compiled_material, "demo": _speed_demo,
-               "simulator": _speed_simulator, "sampling": _speed_sampling}
+               "simulator": _speed_simulator, "sampling": _speed_sampling,
+               "fit_many": lambda row, data: _speed_fit_many(row, data)}  # (defined beside fit_many below)
 
 
 def speed(data: dict) -> str:
@@ -1128,12 +1129,29 @@ def fit_default(data: dict) -> str:
 
 
 def fit_many(data: dict) -> str:
-    """bench_fit_many.py: the same fits one after another and on Ray; the ratio of materials per minute."""
+    """bench_fit_many.py: the same fits one after another and on Ray; the ratio of materials per minute; then each
+    material's held-out PSNR in both runs."""
     runs = {r["run"]: r for r in data["rows"]}
-    lines = _head("run", "wall time", "materials per minute")
+    lines = [] if data.get("recorded_from") else [f"Measured on {_machine(data)} by `{data['command']}` "
+                                                  f"({data['conditions']}):", ""]
+    lines += _head("run", "wall time", "materials per minute")
     lines += [_line(r["label"], f"{r['wall_seconds']:.1f} s", f"{r['materials_per_minute']:.1f}") for r in data["rows"]]
     ratio = runs["ray"]["materials_per_minute"] / runs["sequential"]["materials_per_minute"]
-    return "\n".join(lines + [_line("**ratio Ray / sequential**", "", f"**{ratio:.2f}x**")])
+    lines.append(_line("**ratio Ray / sequential**", "", f"**{ratio:.2f}x**"))
+    if data.get("held_out_psnr"):
+        pairs = [(r["material"].replace("_", " "), r["sequential"], r["ray"]) for r in data["held_out_psnr"]]
+        gap = max(abs(a - b) for _, a, b in pairs)
+        lines += ["", f"Held-out PSNR (per-image peak), sequential / Ray: "
+                  + ", ".join(f"{m} {a:.2f} / {b:.2f}" for m, a, b in pairs) + f" dB (at most {gap:.2f} dB apart)."]
+    return "\n".join(lines)
+
+
+def _speed_fit_many(row: dict, data: dict) -> tuple[str, str, str]:
+    runs = {r["run"]: r for r in data["rows"]}
+    ratio = runs["ray"]["materials_per_minute"] / runs["sequential"]["materials_per_minute"]
+    what = f"many materials on Ray vs one after another (`{data['command']}`, {data['conditions']})"
+    return (what, f"**{ratio:.2f}x** the materials per minute ([cluster.md](cluster.md#measured))",
+            f"about 1-2x on {data['cores']} cores ({'met' if ratio >= 0.9 else 'missed'})")
 
 
 def compiled_material(data: dict) -> str:
