@@ -1,6 +1,7 @@
 """Quarter-turned samples (``rotation``): what they change in quality and cost, on fitted models.
 
-For each model and setting, three seeds: ``hist``; ``hist`` with ``rotation=True``. Measured by :func:`dynbtf.synthesis.quality.quality_report` (8 repeats):
+For each model and setting, three seeds: ``hist``; ``hist`` with ``rotation=True``. Measured by
+:func:`dynbtf.synthesis.quality.quality_report` (8 repeats):
 the **repetition** score (autocorrelation at the exemplar period and lattice steps; lower: less repetition), the
 **RGB W1/std** (decoded colours against the exemplar's, the largest over the report's view/light pairs; lower:
 closer), the **orientation coherence** of the decoded luminance under a grazing light (structure-tensor

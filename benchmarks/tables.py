@@ -999,6 +999,21 @@ def whole_elements(data: dict) -> str:
     return "\n".join(lines)
 
 
+def rotation(data: dict) -> str:
+    """bench_rotation.py: repetition, colour, orientation coherence under a grazing light and cost per model and
+    setting (the mean over the seeds, min-max)."""
+    lines = [f"Measured on {_machine(data)} by `{data['command']}` ({len(data['seeds'])} seeds, {data['repeats']} "
+             f"repeats; light at theta {data['light'][0]:g} deg for the orientation; cost: "
+             f"{data['queries']:,} random queries side by side):", ""]
+    lines += _head("material", "setting", "repetition", "RGB W1/std", "orientation coherence", "cost / hist")
+    for row in data["rows"]:
+        lines.append(_line(row["material"].replace("_", " "), row["setting"], _spread(row["repetition"], ".4f"),
+                           _spread(row["rgb_w1"], ".3f"),
+                           f"{_spread(row['orientation_coherence'], '.3f')}; exemplar "
+                           f"{row['exemplar_orientation_coherence']:.3f}", f"{row['cost_vs_hist']:.2f}x"))
+    return "\n".join(lines)
+
+
 def structured(data: dict) -> str:
     """bench_structured.py: coherence and identity per scale, repetition, colour (each the mean over the seeds,
     min-max), cost and storage per method; ``*`` marks auto's choice; then the targets, met or missed."""
@@ -1178,7 +1193,8 @@ RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget
              "web_checks": web_checks, "filtering": filtering, "blend_exponent": blend_exponent,
              "blend_exponent_summary": blend_exponent_summary, "structured_construction": structured_construction,
              "structured": structured, "decode_speed": decode_speed, "fit_default": fit_default,
-             "fit_many": fit_many, "compiled_material": compiled_material, "whole_elements": whole_elements}
+             "fit_many": fit_many, "compiled_material": compiled_material, "whole_elements": whole_elements,
+             "rotation": rotation}
 #: Tables rendered from another table's data file (default: ``<name>.json``).
 SOURCES = {"guidance": "guided", "guidance_struct": "guided", "render_scenes": "rendering",
            "blend_exponent_summary": "blend_exponent",

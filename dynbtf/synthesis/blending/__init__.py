@@ -34,10 +34,9 @@ from ...errors import InputError
 from ...tables import Table
 from ...texture import fetch_wrap
 from ..base import Synthesizer, feature_bound, register_synthesizer, wrapped_texel_position
-from ..hash import vertex_offsets
-from ..lattice import split_uv, triangle_lattice
-from ..hash import hash_vertex
+from ..hash import hash_vertex, vertex_offsets
 from ..histogram import blend_weights
+from ..lattice import split_uv, triangle_lattice
 from ..mip import LevelOfDetail, area_pyramid, level_shapes
 from ..sample_transform import (check_rotation, displacement, frame_direction, lattice_displacements, quarter_turns,
                                 turn_cos_sin)
@@ -151,7 +150,7 @@ class LatticeBlending(Synthesizer):
 
     def kernel_arguments(self) -> dict[str, Any]:
         """Keyword arguments of :func:`dynbtf.synthesis.blending.kernel.lattice_blend` besides uv/plane/density/seed
-        and the samples' transform."""
+        and the turns."""
         return {}
 
     #: The exponent ``p`` of the lattice weights ``b^p`` (normalized) that set a query's frame angle

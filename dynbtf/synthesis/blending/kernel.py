@@ -22,6 +22,10 @@ Blend modes: ``MODE_LINEAR`` (weights ``b``), ``MODE_HIST`` (weights
 ``gamma = 1``; other values by ``pow`` -- variance-preserving, then the LUT), ``MODE_HEX``
 (weights ``delta_i b_i^7`` with ``delta_i = 1 - beta + beta lum_i``, then the contrast
 gain with exponent ``k``).
+
+With ``rotation`` each sample is turned by its vertex's quarter turns about the vertex's pivot
+(:mod:`~dynbtf.synthesis.sample_transform`): each then has its own bilinear fractions, in rows of the
+scratch of their own. :func:`lattice_frames` gives the turned queries' frames from the same lattice pass.
 """
 
 from __future__ import annotations
@@ -41,8 +45,8 @@ from ..kernels import (jit_mix32, jit_seed_state, jit_fold_coordinate, prefetch,
                        vertex_hashes, barycentrics, lattice_hashes, vertex, CACHE_LINE, cache_aligned,
                        sample_displacement, jit_quarter_turns, jit_turn_cos_sin)
 
-__all__ = ["lattice_blend", "filtered_lattice_blend", "lattice_frames", "PackedPyramid", "MODE_LINEAR", "MODE_HIST", "MODE_HEX", "BLOCK",
-           "TAPS"]
+__all__ = ["lattice_blend", "filtered_lattice_blend", "lattice_frames", "PackedPyramid", "MODE_LINEAR", "MODE_HIST",
+           "MODE_HEX", "BLOCK", "TAPS"]
 
 MODE_LINEAR, MODE_HIST, MODE_HEX = 0, 1, 2
 
