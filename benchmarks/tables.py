@@ -1156,7 +1156,7 @@ def fit_many(data: dict) -> str:
     if data.get("held_out_psnr"):
         pairs = [(r["material"].replace("_", " "), r["sequential"], r["ray"]) for r in data["held_out_psnr"]]
         gap = max(abs(a - b) for _, a, b in pairs)
-        lines += ["", f"Held-out PSNR (per-image peak), sequential / Ray: "
+        lines += ["", "Held-out PSNR (per-image peak), sequential / Ray: "
                   + ", ".join(f"{m} {a:.2f} / {b:.2f}" for m, a, b in pairs) + f" dB (at most {gap:.2f} dB apart)."]
     return "\n".join(lines)
 
