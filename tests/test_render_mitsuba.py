@@ -848,44 +848,38 @@ def test_plugin_struct_matches_synthesized_btf(variant, structured_file):
     np.testing.assert_allclose(got, ref, rtol=0, atol=2e-4 * max(1.0, np.abs(ref).max()))
 
 
-def test_plugin_struct_variation_matches_synthesized_btf(variant, structured_file):
-    """struct with per-element brightness and tint in the plugin = ``synthesized_btf(model, "struct", brightness=...,
-    tint=...).eval`` to float rounding, and not the plain struct's values."""
+def _assert_plugin_parameters_match(path, model, method, parameters):
+    """The plugin with method ``parameters`` (variation controls) = ``synthesized_btf(model, method, **parameters)
+    .eval`` to float rounding, and not the plain method's values (3000 random queries, scale 7, seed 3)."""
     from dynbtf.synthesized import synthesized_btf
 
-    path, model = structured_file
-    bsdf = mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "struct", "scale": 7.0, "seed": 3,
-                         "brightness": 0.3, "tint": 0.2})
+    bsdf = mi.load_dict({"type": "dynbtf", "filename": str(path), "method": method, "scale": 7.0, "seed": 3,
+                         **parameters})
     uv, wv, wl = _random_queries(3000, seed=4)
     uv = (uv / np.float32(7.0)) * np.float32(7.0)
     got = _plugin_eval(bsdf, uv, wv, wl, 7.0)
-    btf = synthesized_btf(model, "struct", scale=1.0, seed=3, brightness=0.3, tint=0.2)
+    btf = synthesized_btf(model, method, scale=1.0, seed=3, **parameters)
     ref = np.asarray(btf.eval(torch.from_numpy(uv.astype(np.float64)), torch.from_numpy(wv), torch.from_numpy(wl)),
                      dtype=np.float64) / np.pi * wl[:, 2:3]
-    plain = _reference(model, "struct", 3, uv, wv, wl) / np.pi * wl[:, 2:3]
+    plain = _reference(model, method, 3, uv, wv, wl) / np.pi * wl[:, 2:3]
     np.testing.assert_allclose(got, ref, rtol=0, atol=2e-4 * max(1.0, np.abs(ref).max()))
     assert np.abs(ref - plain).max() > 0.05 * np.abs(plain).max()
+
+
+def test_plugin_struct_variation_matches_synthesized_btf(variant, structured_file):
+    """struct with per-element brightness and tint in the plugin = the library's, and not the plain struct's; hist
+    refuses them."""
+    path, model = structured_file
+    _assert_plugin_parameters_match(path, model, "struct", {"brightness": 0.3, "tint": 0.2})
     with pytest.raises(Exception, match="per-element variation is drawn by struct"):
         mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "hist", "brightness": 0.3})
 
 
 def test_plugin_sample_rotation_matches_synthesized_btf(variant, model_file):
-    """hist with quarter-turned samples in the plugin = ``synthesized_btf(model, "hist", rotation=True).eval`` to
-    float rounding, and not the plain hist's values; tile refuses the parameter."""
-    from dynbtf.synthesized import synthesized_btf
-
+    """hist with quarter-turned samples in the plugin = the library's, and not the plain hist's; tile refuses the
+    parameter."""
     path, model = model_file
-    bsdf = mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "hist", "scale": 7.0, "seed": 3,
-                         "rotation": True})
-    uv, wv, wl = _random_queries(3000, seed=4)
-    uv = (uv / np.float32(7.0)) * np.float32(7.0)
-    got = _plugin_eval(bsdf, uv, wv, wl, 7.0)
-    btf = synthesized_btf(model, "hist", scale=1.0, seed=3, rotation=True)
-    ref = np.asarray(btf.eval(torch.from_numpy(uv.astype(np.float64)), torch.from_numpy(wv), torch.from_numpy(wl)),
-                     dtype=np.float64) / np.pi * wl[:, 2:3]
-    plain = _reference(model, "hist", 3, uv, wv, wl) / np.pi * wl[:, 2:3]
-    np.testing.assert_allclose(got, ref, rtol=0, atol=2e-4 * max(1.0, np.abs(ref).max()))
-    assert np.abs(ref - plain).max() > 0.05 * np.abs(plain).max()
+    _assert_plugin_parameters_match(path, model, "hist", {"rotation": True})
     with pytest.raises(Exception, match="the samples' rotation is drawn by hex, hist, linear"):
         mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "tile", "rotation": True})
 
