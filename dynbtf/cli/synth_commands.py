@@ -187,7 +187,7 @@ def synth(
     variation = _variation({"brightness": brightness, "tint": tint, "rotation": rotation}, method, guidance, layer)
     rep, material = open_model_file(model, device=where)
     if variation and material is not None:
-        raise InputError(f"{', '.join(_flag(name) for name in variation)}: {model} is a compiled material, which fixes "
+        raise InputError(f"{', '.join(f'--{name}' for name in variation)}: {model} is a compiled material, which fixes "
                          "its method's parameters; compile it with them, or give the model file (.dbtfm)")
     if guidance is not None:
         if material is not None:
@@ -290,10 +290,6 @@ def _check_outputs(output: Path | None, report: bool, report_json: Path | None) 
 _WHAT = {"brightness": "per-element variation", "tint": "per-element variation", "rotation": "turning the samples"}
 
 
-def _flag(name: str) -> str:
-    return "--" + name.replace("_", "-")
-
-
 def _variation(values: dict[str, float], method: str, guidance, layer) -> dict[str, float]:
     """The variation parameters that were given (``{}``: none; struct's ``brightness``, ``tint``; lattice
     blending's ``rotation``), checked: one-line errors, naming the methods that take each."""
@@ -302,13 +298,13 @@ def _variation(values: dict[str, float], method: str, guidance, layer) -> dict[s
     from ..synthesis.sample_transform import check_rotation
 
     checks = {"brightness": check_variation, "tint": check_variation, "rotation": check_rotation}
-    given = {name: checks[name](_flag(name), value) for name, value in values.items()}
+    given = {name: checks[name](f"--{name}", value) for name, value in values.items()}
     given = {name: value for name, value in given.items() if value}
     for name in given:
         if not takes_parameter(method, name) or guidance is not None or layer is not None:
             having = [m for m in methods_with() if takes_parameter(m, name)]
             whose = f"{having[0]}'s" if len(having) == 1 else f"for {', '.join(having)}"
-            raise InputError(f"{_flag(name)}: {_WHAT[name]} is {whose}; give it with --method {having[0]} (without "
+            raise InputError(f"--{name}: {_WHAT[name]} is {whose}; give it with --method {having[0]} (without "
                              f"--target or --layer), not {method!r}")
     return given
 

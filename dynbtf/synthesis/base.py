@@ -211,8 +211,8 @@ class Synthesizer(abc.ABC):
     def frame_rotation(self, points: torch.Tensor) -> torch.Tensor | None:
         """``(cos a, sin a)`` ``(N, 2)`` float64 of the angle ``a`` (about the normal) by which the view and the light
         are turned into the frame of the content synthesized at ``points (N, 2)`` (exemplar repeats), or None: the
-        method's samples keep the exemplar's orientation (lattice blending's ``rotation``, :mod:`~dynbtf.synthesis.sample_transform`,
-        turns them)."""
+        method's samples keep the exemplar's orientation (lattice blending's ``rotation``,
+        :mod:`~dynbtf.synthesis.sample_transform`, turns them)."""
         return None
 
     @classmethod

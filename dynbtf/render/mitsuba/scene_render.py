@@ -201,7 +201,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
                  "rotation": check_rotation("--rotation", rotation)}
     for name, value in variation.items():
         if value and method != "auto":  # (auto's choice is checked by the plugin, once resolved)
-            check_variation_method(method, "--" + name.replace("_", "-"), name)
+            check_variation_method(method, f"--{name}", name)
     from ...material import CompiledMaterial
 
     paths = [model_path] if layer is None else [model_path, layer]
