@@ -133,15 +133,16 @@ _PAGE_HELPERS = """  function bytes(b64) { var s = atob(b64), a = new Uint8Array
   // the textures' RGBA rows: lattice words, (texel, the label field's origin as float32 bits), (phase, local u, local v)
   function origins(m, method, n, size, at) {
     var lattice = new Uint32Array(4 * size), texel = new Int32Array(4 * size), local = new Float32Array(4 * size);
-    var fieldBits = new Float32Array(texel.buffer);
+    var fieldBits = new Float32Array(texel.buffer), element = new Uint32Array(4 * size);
     for (var i = 0; i < n; ++i) {
       var p = at(i), o = DynBTF.origin(m, method, p[0], p[1]);
       lattice.set(o.lattice, 4 * i);
+      element.set(o.element, 4 * i);
       texel[4 * i] = o.texel[0]; texel[4 * i + 1] = o.texel[1];
       fieldBits[4 * i + 2] = o.field[0]; fieldBits[4 * i + 3] = o.field[1];
       local[4 * i] = o.phase; local[4 * i + 1] = o.fraction[0] + p[2]; local[4 * i + 2] = o.fraction[1] + p[2];
     }
-    return {lattice: lattice, texel: texel, local: local};
+    return {lattice: lattice, texel: texel, local: local, element: element};
   }
   // (n, 3) directions as RGBA rows
   function rows(values, n, size) {
@@ -203,10 +204,10 @@ __HELPERS__
     var vv = rows(view, n, w * h), ll = rows(light, n, w * h);
     var tex = texture(gl, w, h);
     var inputs = 'uniform highp usampler2D q_lattice; uniform highp isampler2D q_texel; uniform highp sampler2D q_local;\\n' +
-      'uniform highp sampler2D q_view; uniform highp sampler2D q_light;\\n' +
+      'uniform highp sampler2D q_view; uniform highp sampler2D q_light; uniform highp usampler2D q_element;\\n' +
       'DynbtfOrigin q_origin(ivec2 p) { DynbtfOrigin o; o.lattice = texelFetch(q_lattice, p, 0);\\n' +
       '  o.phase = texelFetch(q_local, p, 0).x; ivec4 t = texelFetch(q_texel, p, 0); o.texel = t.xy;\\n' +
-      '  o.field = intBitsToFloat(t.zw); return o; }\\n';
+      '  o.field = intBitsToFloat(t.zw); o.element = texelFetch(q_element, p, 0); return o; }\\n';
     var programs = {
       rgb: r.program(inputs + 'layout(location = 0) out vec4 result;\\nvoid main() { ivec2 p = ivec2(gl_FragCoord.xy);\\n' +
         '  result = vec4(dynbtf_eval(q_origin(p), texelFetch(q_local, p, 0).yz, texelFetch(q_view, p, 0).xyz,' +
@@ -223,13 +224,14 @@ __HELPERS__
       if (kind === 'lattice' && !job.lattice) return;
       var program = programs[kind];
       r.use(program, job.method);
-      var units = [5, 6, 7, 8, 9];
+      var units = [5, 6, 7, 8, 9, 13];
       tex(units[0], gl.RGBA32UI, gl.RGBA_INTEGER, gl.UNSIGNED_INT, q.lattice);
       tex(units[1], gl.RGBA32I, gl.RGBA_INTEGER, gl.INT, q.texel);
       tex(units[2], gl.RGBA32F, gl.RGBA, gl.FLOAT, q.local);
       tex(units[3], gl.RGBA32F, gl.RGBA, gl.FLOAT, vv);
       tex(units[4], gl.RGBA32F, gl.RGBA, gl.FLOAT, ll);
-      ['q_lattice', 'q_texel', 'q_local', 'q_view', 'q_light'].forEach(function (name, j) {
+      tex(units[5], gl.RGBA32UI, gl.RGBA_INTEGER, gl.UNSIGNED_INT, q.element);
+      ['q_lattice', 'q_texel', 'q_local', 'q_view', 'q_light', 'q_element'].forEach(function (name, j) {
         gl.uniform1i(gl.getUniformLocation(program, name), units[j]);
       });
       var integer = kind === 'lattice';

@@ -239,7 +239,7 @@ def run(cases: int, seed: int, workdir: Path) -> dict:
         path = workdir / f"case{case % 4}.dbtfc"
         try:
             save_compiled(crafted(parts), path)
-        except Exception as e:  # the writer itself refused (e.g. a tensor safetensors cannot store)
+        except Exception:  # the writer itself refused (e.g. a tensor safetensors cannot store)
             outcomes["not writable"] += 1
             continue
         footprints = method in ("tile", "hist", "struct")

@@ -12,7 +12,7 @@ import torch
 
 from dynbtf.errors import InputError
 from dynbtf.synthesis.cell_quilting import CellQuilting
-from dynbtf.synthesis.elements import element_gain, element_grid, element_instances
+from dynbtf.synthesis.elements import VARIATION_SALT, element_gain, element_grid, element_instances
 
 H = W = 64
 BRICK_W, BRICK_H, JOINT = 16, 8, 2
@@ -133,13 +133,23 @@ def test_bad_variation_and_tables_without_elements_are_one_line_errors():
     assert CellQuilting(plane, fast=False, prepared=old).variation_gain(torch.zeros(3, 2, dtype=torch.float64)) is None
 
 
-def test_the_web_export_refuses_variation_it_does_not_draw():
+def test_the_web_form_carries_the_variation_it_draws():
+    """With brightness or tint, the web form adds the joints table and the element grid, strengths and hash state."""
     from dynbtf.synthesis.cell_quilting.web import form
+    from dynbtf.synthesis.hash import seed_state
 
     plane, _, _ = _wall()
-    with pytest.raises(InputError, match="does not draw struct's per-element variation"):
-        form(CellQuilting(plane, fast=False, brightness=0.1))
-    assert form(CellQuilting(plane, fast=False)).tables
+    plain = form(CellQuilting(plane, fast=False))
+    assert "elements" not in plain.constants and "joints" not in plain.tables["tables"].values
+    varied = CellQuilting(plane, fast=False, brightness=0.25, tint=0.125, seed=9)
+    f = form(varied)
+    t = varied.prepared
+    np.testing.assert_array_equal(f.tables["tables"].values["joints"], t.joints.numpy().astype(np.int16))
+    e = f.constants["elements"]
+    assert e["grid"] == t.element_grid.tolist() and (e["brightness"], e["tint"]) == (0.25, 0.125)
+    columns, rows, p, q = (int(v) for v in e["grid"][:4])
+    assert (e["columns"], e["rows"], e["shift"]) == (columns, rows, rows * p // q) and (rows * p) % q == 0
+    assert e["state"] == int(seed_state(9 ^ VARIATION_SALT))
 
 
 def test_element_gain_on_a_grid_without_elements_is_one_row_per_repeat():
@@ -178,3 +188,20 @@ def test_synth_draws_the_variation_and_refuses_it_where_it_does_not_apply(tmp_pa
         assert main(["synth", str(tmp_path / "wall.dbtfm"), *extra, "-o", str(tmp_path / "x.png")]) == 2
         assert message in capsys.readouterr().err
         assert not (tmp_path / "x.png").exists()
+    # export draws it for struct (the viewer's shader: tests/test_web_export.py), and refuses it where no exported
+    # method takes it
+    import json
+
+    assert main(["export", str(tmp_path / "wall.dbtfm"), "-o", str(tmp_path / "web"), "--method", "struct",
+                 "--method", "hist", "--brightness", "0.3", "--tint", "0.2", "--no-viewer"]) == 0
+    methods = json.loads((tmp_path / "web" / "manifest.json").read_text())["methods"]
+    assert (methods["struct"]["elements"]["brightness"], methods["struct"]["elements"]["tint"]) == (0.3, 0.2)
+    assert "elements" not in methods["hist"]
+    capsys.readouterr()
+    for extra, message in ((["--brightness", "0.1"], "--brightness: per-element variation is for struct; export it "
+                                                     "with --method (without --layer or --target), not ['auto', "
+                                                     "'hist', 'tile']"),
+                           (["--method", "struct", "--tint", "2"], "--tint: expected the standard deviation")):
+        assert main(["export", str(tmp_path / "wall.dbtfm"), *extra, "-o", str(tmp_path / "x")]) == 2
+        assert message in capsys.readouterr().err
+        assert not (tmp_path / "x").exists()

@@ -871,7 +871,7 @@ def test_plugin_struct_variation_matches_synthesized_btf(variant, structured_fil
     refuses them."""
     path, model = structured_file
     _assert_plugin_parameters_match(path, model, "struct", {"brightness": 0.3, "tint": 0.2})
-    with pytest.raises(Exception, match="per-element variation is drawn by struct"):
+    with pytest.raises(Exception, match="per-element variation is for struct"):
         mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "hist", "brightness": 0.3})
 
 
@@ -880,7 +880,7 @@ def test_plugin_sample_rotation_matches_synthesized_btf(variant, model_file):
     parameter."""
     path, model = model_file
     _assert_plugin_parameters_match(path, model, "hist", {"rotation": True})
-    with pytest.raises(Exception, match="the samples' rotation is drawn by hex, hist, linear"):
+    with pytest.raises(Exception, match="turning the samples is for hex, hist, linear"):
         mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "tile", "rotation": True})
 
 

@@ -250,7 +250,8 @@ def test_cli_export_turns_the_lattice_methods(tmp_path, capsys):
     capsys.readouterr()
     assert main(["export", str(tmp_path / "m.dbtfm"), "-o", str(tmp_path / "x"), "--method", "tile",
                  "--rotation"]) == 2
-    assert "--rotation: turns the samples of hist, hex and linear" in capsys.readouterr().err
+    assert ("--rotation: turning the samples is for hex, hist, linear; export one of them with --method (without "
+            "--layer or --target), not ['tile']") in capsys.readouterr().err
 
 
 def test_cli_compile_keeps_the_turns_and_synth_uses_them(tmp_path, capsys):

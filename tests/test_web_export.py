@@ -521,6 +521,35 @@ def test_repeat_origin_gives_structs_int64_cell_words():
     np.testing.assert_array_equal(o.shader_words("hist"), o.words())
 
 
+@pytest.mark.parametrize("grid", [[4, 8, 1, 2, 0.5, 1.0], [3, 6, 1, 3, 2.25, 0.0], [5, 4, 0, 1, 0.0, 3.5]])
+def test_repeat_origin_and_the_shaders_local_part_give_the_element_instances(grid):
+    """The element words of the repeat origin (I_u columns - I_v shift, I_v rows) plus the shader's arithmetic on the
+    local uv (whole repeats w and fraction f of it, redone here in float64 and int64) are element_instances'."""
+    from dynbtf.synthesis.elements import element_instances, repeat_elements
+
+    h, w = 24, 48
+    rng = np.random.default_rng(5)
+    points = (rng.random((3000, 2)) - 0.5) * 200.0
+    points[1000:2000] += np.array([2.0 ** 40, -(2.0 ** 41)])
+    shift = rng.integers(-40, 40, 3000)  # the local uv spans a few repeats
+    o = repeat_origin(points - shift[:, None], (w, h), (w, h), elements=repeat_elements(grid))
+    words = o.element_words().astype(np.uint64)
+    np.testing.assert_array_equal((words[:, 0] | (words[:, 1] << np.uint64(32))).view(np.int64), o.element_x)
+    np.testing.assert_array_equal((words[:, 2] | (words[:, 3] << np.uint64(32))).view(np.int64), o.element_y)
+    local = o.fraction + shift[:, None]
+    whole = np.floor(local).astype(np.int64)
+    f = local - whole
+    columns, rows, p, q = (int(v) for v in grid[:4])
+    r = np.floor((f[:, 1] * h - grid[5]) / (h / rows)).astype(np.int64)
+    carry = (r * p) // q
+    column = np.floor(((f[:, 0] * w - grid[4]) / (w / columns) * q - (r * p - carry * q)) / q).astype(np.int64)
+    got_column = o.element_x + whole[:, 0] * columns - whole[:, 1] * (rows * p // q) - carry + column
+    got_row = o.element_y + whole[:, 1] * rows + r
+    want_column, want_row = element_instances(torch.from_numpy(points), grid, h, w)
+    np.testing.assert_array_equal(got_row, want_row.numpy())
+    np.testing.assert_array_equal(got_column, want_column.numpy())
+
+
 def _texel_edge_distance(points, density):
     """Distance (texels) of each query's position to the nearest texel boundary (either axis), in float64."""
     pos = (points - np.floor(points)) * np.asarray(density, np.float64)
@@ -552,6 +581,31 @@ def test_struct_shader_matches_synthesized_btf(struct_exports, structured_model)
     assert _psnr(got["fp32"][keep], other[keep]) < 30.0
     tiled = synthesized_btf(structured_model, "tile").eval(points, wv.astype(np.float64), wl.astype(np.float64))
     assert _psnr(got["fp32"][keep], tiled[keep]) < 30.0
+
+
+@browser
+@pytest.mark.browser
+def test_structs_per_element_variation_in_the_shader_matches_synthesized_btf(structured_model, tmp_path):
+    """struct with brightness and tint: each element's factor (its int64 instance from the repeat origin's element
+    words and the local uv, hashed; 1 on the joints) in the shader = synthesized_btf's, far from the origin too."""
+    params = {"brightness": 0.5, "tint": 0.25}
+    export = export_web(structured_model, tmp_path / "varied", precision="fp32", methods=("struct",),
+                        method_params={"struct": params})
+    entry = export.manifest["methods"]["struct"]
+    assert entry["elements"]["brightness"] == 0.5 and "joints" in entry["tables"]
+    points, shift, wv, wl = _queries(1024, seed=6)
+    btf = synthesized_btf(structured_model, "struct", seed=0, **params)
+    ref = btf.eval(points, wv.astype(np.float64), wl.astype(np.float64))
+    keep = _texel_edge_distance(points, btf.synthesizer.density) > np.where(shift == 0, 1e-5, 2e-3)
+    got = eval_in_browser(export.directory, "struct", points, wv, wl, local_shift=shift).rgb
+    peak = np.abs(ref).max()
+    exact = keep & (shift == 0)
+    np.testing.assert_allclose(got[exact], ref[exact], rtol=0, atol=2e-4 * peak)
+    np.testing.assert_allclose(got[keep & ~exact], ref[keep & ~exact], rtol=0, atol=5e-3 * peak)
+    plain = synthesized_btf(structured_model, "struct", seed=0).eval(points, wv.astype(np.float64),
+                                                                      wl.astype(np.float64))
+    gain = btf.synthesizer.variation_gain(torch.from_numpy(points)).numpy()
+    assert (gain == 1.0).all(-1).mean() < 0.9 and _psnr(got[keep], plain[keep]) < 30.0
 
 
 _CELL_PAGE = """<!DOCTYPE html>

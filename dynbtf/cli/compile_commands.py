@@ -48,10 +48,10 @@ def compile_command(
         check_writable(output, "-o/--output")
     params = {} if gamma is None else {"gamma": gamma}
     if rotation:
-        from ..synthesis.registry import methods_with, takes_parameter
+        from ..synthesis.registry import methods_taking, takes_parameter
 
         if not takes_parameter(method, "rotation"):
-            having = [m for m in methods_with() if takes_parameter(m, "rotation")]
+            having = methods_taking("rotation")
             raise InputError(f"--rotation: turning the samples is for {', '.join(having)}; give it with --method "
                              f"{having[0]}, not {method!r}")
         params["rotation"] = True

@@ -60,6 +60,11 @@ def export_command(
     rotation: bool = typer.Option(False, "--rotation", help="Turn the exported hist, hex and linear materials' "
                                   "samples by random quarter turns (drawn from --seed), the view and light with "
                                   "them (auto and the other methods as they are)."),
+    brightness: float = typer.Option(0.0, "--brightness", help="struct (give it with --method struct): per-element "
+                                     "variation, the standard deviation of each element's log-brightness (drawn "
+                                     "from --seed; joints none), in [0, 1]; 0: off."),
+    tint: float = typer.Option(0.0, "--tint", help="struct (give it with --method struct): the standard deviation "
+                               "of each element's colour tint, in [0, 1]; 0: off."),
 ) -> None:
     """Export a synthesized BTF for real-time rendering: GPU textures, decoder weights and a shader (docs/realtime.md).
 
@@ -93,14 +98,20 @@ def export_command(
         raise InputError("--cells: sets struct's cells; give it with --method struct (without --layer), not "
                          f"{list(method or ['auto'])}" + (" with --layer" if layer is not None else ""))
     params = {} if cells is None else {"struct": {"cells": int(cells)}}
-    if rotation:
-        from ..synthesis.registry import takes_parameter
+    from ..synthesis.registry import VARIATIONS, given_variations, methods_taking, takes_parameter
 
-        turned = [m for m in (method or DEFAULT_METHODS) if takes_parameter(m, "rotation")]
-        if not turned or layer is not None or target is not None:
-            raise InputError("--rotation: turns the samples of hist, hex and linear; export one of them with "
-                             f"--method (without --layer or --target), not {list(method or DEFAULT_METHODS)}")
-        params.update({m: {"rotation": True} for m in turned})
+    for name, value in given_variations({"rotation": rotation, "brightness": brightness, "tint": tint},
+                                        lambda name: f"--{name}").items():
+        # each exported method that takes it draws it; auto and the others are exported as they are
+        exported = list(method or DEFAULT_METHODS)
+        varied = [m for m in exported if takes_parameter(m, name)]
+        if not varied or layer is not None or target is not None:
+            having = methods_taking(name)
+            raise InputError(f"--{name}: {VARIATIONS[name]} is for {', '.join(having)}; export "
+                             f"{'it' if len(having) == 1 else 'one of them'} with --method (without --layer or "
+                             f"--target), not {exported}")
+        for m in varied:
+            params.setdefault(m, {})[name] = value
     if target is not None:
         if layer is not None:
             raise InputError("--target: guides one material; it does not combine with a layered export (--layer)")

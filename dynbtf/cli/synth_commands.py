@@ -287,24 +287,17 @@ def _check_outputs(output: Path | None, report: bool, report_json: Path | None) 
         check_writable(_report_path(output, report_json), "--report-json")
 
 
-_WHAT = {"brightness": "per-element variation", "tint": "per-element variation", "rotation": "turning the samples"}
-
-
 def _variation(values: dict[str, float], method: str, guidance, layer) -> dict[str, float]:
     """The variation parameters that were given (``{}``: none; struct's ``brightness``, ``tint``; lattice
     blending's ``rotation``), checked: one-line errors, naming the methods that take each."""
-    from ..synthesis.elements import check_variation
-    from ..synthesis.registry import methods_with, takes_parameter
-    from ..synthesis.sample_transform import check_rotation
+    from ..synthesis.registry import VARIATIONS, given_variations, methods_taking, takes_parameter
 
-    checks = {"brightness": check_variation, "tint": check_variation, "rotation": check_rotation}
-    given = {name: checks[name](f"--{name}", value) for name, value in values.items()}
-    given = {name: value for name, value in given.items() if value}
+    given = given_variations(values, lambda name: f"--{name}")
     for name in given:
         if not takes_parameter(method, name) or guidance is not None or layer is not None:
-            having = [m for m in methods_with() if takes_parameter(m, name)]
+            having = methods_taking(name)
             whose = f"{having[0]}'s" if len(having) == 1 else f"for {', '.join(having)}"
-            raise InputError(f"--{name}: {_WHAT[name]} is {whose}; give it with --method {having[0]} (without "
+            raise InputError(f"--{name}: {VARIATIONS[name]} is {whose}; give it with --method {having[0]} (without "
                              f"--target or --layer), not {method!r}")
     return given
 

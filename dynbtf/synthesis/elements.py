@@ -39,8 +39,8 @@ import torch
 from ..errors import InputError
 from .hash import MASK32, SECOND_STREAM, hash_vertex, mix32
 
-__all__ = ["element_grid", "element_instances", "element_gain", "check_variation", "check_element_grid",
-           "VARIATION_SALT", "MAX_VARIATION", "MAX_SHIFT_DENOMINATOR"]
+__all__ = ["element_grid", "element_instances", "element_gain", "repeat_elements", "check_variation",
+           "check_element_grid", "VARIATION_SALT", "MAX_VARIATION", "MAX_SHIFT_DENOMINATOR"]
 
 #: Xor-ed into the seed of the variation's hashes (a stream apart from the synthesis's own choices).
 VARIATION_SALT = 0x5BD1E995
@@ -141,8 +141,9 @@ def check_element_grid(grid, height: int, width: int) -> str | None:
     columns, rows, p, q, phase_x, phase_y = (float(v) for v in grid)
     if not all(v == int(v) for v in (columns, rows, p, q)) or not (1 <= columns <= width and 1 <= rows <= height):
         return f"table 'element_grid': columns {columns:g} and rows {rows:g} must be whole, in [1, {width}] and [1, {height}]"
-    if not (1 <= q <= MAX_SHIFT_DENOMINATOR and 0 <= p < q):
-        return f"table 'element_grid': row shift {p:g}/{q:g}, expected p/q with 0 <= p < q <= {MAX_SHIFT_DENOMINATOR}"
+    if not (1 <= q <= MAX_SHIFT_DENOMINATOR and 0 <= p < q) or (rows * p) % q:
+        return (f"table 'element_grid': row shift {p:g}/{q:g}, expected p/q with 0 <= p < q <= "
+                f"{MAX_SHIFT_DENOMINATOR} and rows x p a multiple of q")
     if not (0 <= phase_x < width / columns and 0 <= phase_y < height / rows):
         return "table 'element_grid': its phase lies outside one element"
     return None
@@ -165,6 +166,20 @@ def element_instances(points: torch.Tensor, grid, height: int, width: int) -> tu
     column = whole[:, 0] * columns - carry + torch.floor(
         ((frac[:, 0] * width - phase_x) / a * q - rest) / q).to(torch.int64)
     return column, row
+
+
+def repeat_elements(grid) -> tuple[int, int, int]:
+    """``(columns, rows, shift)`` of an element ``grid`` (:func:`element_grid`): the repeat ``I`` starts at element
+    instance ``(I_u columns - I_v shift, I_v rows)``, with ``shift = rows p / q`` whole (a stored grid's rows
+    come back to the same shift after one repeat, :func:`check_element_grid`). The integer part a renderer's CPU
+    computes once per repeat (the web export's repeat origin); :func:`element_instances` adds the point's place in
+    the repeat.
+
+    >>> repeat_elements([4.0, 4.0, 1.0, 2.0, 0.0, 0.0])
+    (4, 4, 2)
+    """
+    columns, rows, p, q = (int(v) for v in grid[:4])
+    return columns, rows, rows * p // q
 
 
 def element_gain(points: torch.Tensor, grid, joints: torch.Tensor, seed: int, brightness: float, tint: float,

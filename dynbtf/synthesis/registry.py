@@ -11,14 +11,17 @@ above it (the import-linter contract in ``pyproject.toml`` checks this).
 from __future__ import annotations
 
 import inspect
+from typing import Any
 
 from ..errors import InputError
 from . import blending, cell_quilting, guided_blending, hex_tiling, histogram_blending, quilting, tiling  # noqa: F401
 from .auto import choose_method
 from .base import SYNTHESIZERS, Synthesizer
+from .elements import check_variation
+from .sample_transform import check_rotation
 
 __all__ = ["SYNTHESIZERS", "synthesizer_class", "make_synthesizer", "model_inputs", "AUTO_CANDIDATES",
-           "EXEMPLAR_METHOD", "PAPER_METHOD", "takes_parameter", "methods_with"]
+           "EXEMPLAR_METHOD", "PAPER_METHOD", "VARIATIONS", "takes_parameter", "methods_taking", "methods_with", "given_variations"]
 
 #: The methods ``auto`` chooses between (:func:`dynbtf.synthesis.auto.choose_method`).
 AUTO_CANDIDATES = ("struct", "hist")
@@ -26,6 +29,10 @@ AUTO_CANDIDATES = ("struct", "hist")
 EXEMPLAR_METHOD = "tile"
 #: The paper's method (histogram-preserving blending): the one other methods and the automatic choice are shown next to.
 PAPER_METHOD = "hist"
+#: The variation controls a method may take, each off by default and drawn from the seed: parameter -> what it does
+#: (for messages). ``struct``'s per-element ``brightness`` and ``tint`` (:mod:`.elements`), lattice blending's
+#: ``rotation`` (:mod:`.sample_transform`).
+VARIATIONS = {"brightness": "per-element variation", "tint": "per-element variation", "rotation": "turning the samples"}
 
 
 def synthesizer_class(name: str) -> type[Synthesizer]:
@@ -79,6 +86,28 @@ def takes_parameter(name: str, parameter: str) -> bool:
     """
     cls = SYNTHESIZERS.get(name)
     return cls is not None and parameter in _accepted(cls)
+
+
+def given_variations(values: dict[str, Any], option=lambda name: name) -> dict[str, Any]:
+    """The variation controls (:data:`VARIATIONS`) among ``values`` that are on, each checked: an
+    :class:`InputError` naming ``option(name)`` (e.g. the command-line flag) for a bad value.
+
+    >>> given_variations({"brightness": 0.1, "tint": 0.0, "rotation": False})
+    {'brightness': 0.1}
+    """
+    checks = {"brightness": check_variation, "tint": check_variation, "rotation": check_rotation}
+    given = {name: checks[name](option(name), value) for name, value in values.items()}
+    return {name: value for name, value in given.items() if value}
+
+
+def methods_taking(parameter: str) -> list[str]:
+    """The methods built from an exemplar alone (:func:`methods_with`) that take ``parameter``, sorted: what a
+    message names when a method that does not take it was given.
+
+    >>> methods_taking("rotation"), methods_taking("brightness")
+    (['hex', 'hist', 'linear'], ['struct'])
+    """
+    return [m for m in methods_with() if takes_parameter(m, parameter)]
 
 
 def methods_with(backend: str | None = None, *, with_required: bool = False) -> list[str]:

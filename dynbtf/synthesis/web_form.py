@@ -14,6 +14,8 @@ A method that runs in the web shader has a ``web`` module in its package (its
   of their weights) with the shader's building blocks (``dynbtf_triangle``, ``dynbtf_bilinear``,
   ``dynbtf_sample_texels``, ``dynbtf_blend3``); ``GLSL_AFTER``: what it does to ``acc`` after the plane's
   dequantization (e.g. the inverse histogram tables), or ``""``;
+* ``GLSL_GAIN`` (optional): the body of its branch of ``dynbtf_gain(o, local)``, which returns the RGB factor it
+  applies to the decoded value (``struct``'s per-element variation), or ``""``;
 * ``cost(groups) -> (texel fetches, multiply-adds)``: what its own tables add per pixel, ``groups`` RGBA layers of
   the plane (:func:`dynbtf.export.web.shader.shader_cost` counts the rest);
 * ``form(synthesizer) -> WebForm``: the synthesizer's plane, tables and constants.
@@ -26,6 +28,12 @@ it as the constant ``"field"``: ``{"width", "height", "size", "wrap"}``, a grid 
 holds where the repeat starts on it (:func:`dynbtf.export.web.shader.field_origin`, ``DynbtfOrigin.field``; the
 viewer's ``DynBTF.origin`` too), and the shader's ``dynbtf_field_texel(o, local)`` gives the field's texel under a
 query, wrapped or clamped; the method's own tables hold what the texels mean.
+
+A method whose **elements vary** (``struct`` with ``brightness`` or ``tint``) gives the constant ``"elements"``
+with ``columns``, ``rows`` and ``shift`` (:func:`dynbtf.synthesis.elements.repeat_elements`): the repeat origin
+then holds the repeat's first element instance, ``(I_u columns - I_v shift, I_v rows)`` as int64 words
+(``DynbtfOrigin.element``; :meth:`dynbtf.export.web.shader.RepeatOrigin.element_words`, the viewer's
+``DynBTF.origin`` too).
 """
 
 from __future__ import annotations

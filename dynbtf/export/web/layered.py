@@ -211,7 +211,7 @@ vec4 dynbtf_layer_pass(DynbtfOrigin o, vec2 local, DynbtfMaskOrigin mo, vec2 mas
 #ifdef DYNBTF_RELIEF
         value = dynbtf_eval(o, local, w_view, w_light);   // the colour where the view ray meets the relief
 #else
-        value = dynbtf_decode(x, w_view, w_light);        // the features the height was read from
+        value = dynbtf_decode(x, w_view, w_light) * dynbtf_gain(o, local);   // the features the height was read from
 #endif
     }}
     if (dynbtf_layer_index == 0) return vec4(value, height);

@@ -8,7 +8,8 @@ histogram tables, the cells, cuts and lattice offsets of ``struct``
 (:mod:`dynbtf.synthesis.cell_quilting`), the Rusinkiewicz angular fetches (:mod:`dynbtf.conventions`),
 the relief march of ``triple-parallax`` models and the decoder. :func:`repeat_origin` is the CPU half of its large-uv
 contract (``viewer.js``'s ``DynBTF.origin`` is the same function in JavaScript; with :func:`field_origin` for a
-method that reads a label field laid over the plane, e.g. guided synthesis's target), and
+method that reads a label field laid over the plane, e.g. guided synthesis's target; the repeat's first element
+for a method whose elements vary, e.g. ``struct`` with ``brightness`` or ``tint``), and
 :func:`shader_cost` counts what a pixel costs. The files and formats the shader reads are
 :mod:`dynbtf.export.web.exporter`'s.
 """
@@ -85,6 +86,9 @@ class RepeatOrigin:
     field : float64 ``(..., 2)``
         Where the repeat ``I`` starts on the method's label field (:func:`field_origin`), in the field's texels;
         zeros when no field was given.
+    element_x, element_y : int64
+        The repeat's first element instance, ``I_u columns - I_v shift`` and ``I_v rows``
+        (:func:`~dynbtf.synthesis.elements.repeat_elements`; ``I`` itself when no elements were given).
     """
 
     lattice_x: np.ndarray
@@ -96,6 +100,8 @@ class RepeatOrigin:
     cell_x: np.ndarray
     cell_y: np.ndarray
     field: np.ndarray
+    element_x: np.ndarray
+    element_y: np.ndarray
 
     @staticmethod
     def _words(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -110,6 +116,10 @@ class RepeatOrigin:
     def cell_words(self) -> np.ndarray:
         """``(..., 4)`` uint32: low and high words of ``cell_x`` and ``cell_y`` (two's complement)."""
         return self._words(self.cell_x, self.cell_y)
+
+    def element_words(self) -> np.ndarray:
+        """``(..., 4)`` uint32: low and high words of ``element_x`` and ``element_y`` (two's complement)."""
+        return self._words(self.element_x, self.element_y)
 
     def shader_words(self, method: str) -> np.ndarray:
         """What the shader's ``DynbtfOrigin.lattice`` holds for ``method``: :meth:`cell_words` for a method whose
@@ -138,12 +148,14 @@ def field_origin(whole, field: dict[str, Any]) -> np.ndarray:
 
 
 def repeat_origin(points, plane_size: tuple[int, int], density: tuple[int, int],
-                  cells: tuple[int, int] = (1, 1), field: dict[str, Any] | None = None) -> RepeatOrigin:
+                  cells: tuple[int, int] = (1, 1), field: dict[str, Any] | None = None,
+                  elements: tuple[int, int, int] = (1, 1, 0)) -> RepeatOrigin:
     """Split positions ``points (..., 2)`` (exemplar repeats, float64) for the shader.
 
     ``plane_size = (W', H')`` of the plane read, ``density = (W, H)`` texels per repeat, ``cells =
     (n_x, n_y)`` the ``struct`` cells per repeat, ``field`` the method's label field if it has one
-    (:func:`field_origin`). The arithmetic is
+    (:func:`field_origin`), ``elements = (columns, rows, shift)`` its element grid if its elements vary
+    (:func:`~dynbtf.synthesis.elements.repeat_elements`). The arithmetic is
     :func:`dynbtf.synthesis.lattice.triangle_lattice`'s (same float64 and int64 operations), so the
     shader's vertices are the library's; the cell index ``I n`` is
     :meth:`~dynbtf.synthesis.cell_quilting.CellQuilting.read_positions`'s (int64). ``|points| < 2**52``
@@ -157,13 +169,15 @@ def repeat_origin(points, plane_size: tuple[int, int], density: tuple[int, int],
     pw, ph = plane_size
     dw, dh = density
     nx, ny = (int(c) for c in cells)
+    columns, rows, shift = (int(e) for e in elements)
     return RepeatOrigin(
         lattice_x=(iu_whole - 2 * whole[..., 1]).numpy(), lattice_y=(4 * whole[..., 1]).numpy(),
         phase=iu_frac.numpy(),
         texel_x=torch.remainder(torch.remainder(whole[..., 0], pw) * (dw % pw), pw).numpy(),
         texel_y=torch.remainder(torch.remainder(whole[..., 1], ph) * (dh % ph), ph).numpy(),
         fraction=frac.numpy(), cell_x=(whole[..., 0] * nx).numpy(), cell_y=(whole[..., 1] * ny).numpy(),
-        field=np.zeros(frac.shape) if field is None else field_origin(whole.numpy(), field))
+        field=np.zeros(frac.shape) if field is None else field_origin(whole.numpy(), field),
+        element_x=(whole[..., 0] * columns - whole[..., 1] * shift).numpy(), element_y=(whole[..., 1] * rows).numpy())
 
 
 # ---------------------------------------------------------------- the shader
@@ -199,7 +213,8 @@ def glsl_source(*, channels: int, angular_channels: int, hidden: int, layers: in
     The source is the concatenation, in this order, of: the header (sizes, the uniforms shared and each
     method's, decoder constants), the integer part of a position and the hash, the triangle lattice, the
     texel fetches and the lattice samples' blend, each method's functions, ``dynbtf_latent`` (a branch per
-    method, :func:`web_methods`), the angular features, then the decoder (with the relief march, if any)
+    method, :func:`web_methods`), ``dynbtf_gain`` (the factor of a method whose elements vary), the angular
+    features, then the decoder (with the relief march, if any)
     and ``dynbtf_eval``.
     """
     if len(rest_weights) != layers - 1:
@@ -214,6 +229,7 @@ def glsl_source(*, channels: int, angular_channels: int, hidden: int, layers: in
         _glsl_fetches(),
         *_once(web.GLSL_FUNCTIONS for web in methods.values()),
         _glsl_latent(methods),
+        _glsl_gain(methods),
         _glsl_angular(angular_resolution),
         _glsl_decoder_and_eval(**sizes, negative_slope=negative_slope, relief=relief),
     ])
@@ -301,6 +317,7 @@ struct DynbtfOrigin {{
     float phase;     // 2 sqrt(3) I_u mod 1
     ivec2 texel;     // (I_u W mod W', I_v H mod H')
     vec2 field;      // where the repeat starts on the method's label field, in its texels (methods with a field only)
+    uvec4 element;   // (low, high) words of the repeat's first element instance (column, row) (methods whose elements vary)
 }};
 
 // ---- integer hash (dynbtf.synthesis.hash): lowbias32, uint arithmetic wraps modulo 2^32
@@ -496,6 +513,19 @@ void dynbtf_latent(DynbtfOrigin o, vec2 local, int g0, int g1, out vec4 latent[D
 """
 
 
+def _glsl_gain(methods: dict[str, Any]) -> str:
+    """``dynbtf_gain``: the RGB factor a method applies to the decoded value at a point (its ``web`` module's
+    ``GLSL_GAIN``, e.g. ``struct``'s per-element variation), 1 for the others."""
+    branches = "".join(f"    if (dynbtf_mode == {web.MODE}) {{\n{_indented(web.GLSL_GAIN, 8)}    }}\n"
+                       for web in methods.values() if getattr(web, "GLSL_GAIN", ""))
+    return f"""// ---- the method's factor on the decoded value (1 unless its elements vary)
+vec3 dynbtf_gain(DynbtfOrigin o, vec2 local) {{
+{branches}    return vec3(1.0);
+}}
+
+"""
+
+
 def _glsl_angular(angular_resolution: int) -> str:
     """The angular features: Rusinkiewicz difference vector and the bilinear fetch of an
     ``R x R`` angular plane (``R = angular_resolution``) at ``(theta / 90 deg, phi / 360 deg)``."""
@@ -641,8 +671,9 @@ vec3 dynbtf_decode(vec4 x[DYNBTF_G], vec3 w_view, vec3 w_light) {{
 vec3 dynbtf_eval(DynbtfOrigin o, vec2 local, vec3 w_view, vec3 w_light) {{
     if (w_view.z < 0.0 || w_light.z < 0.0) return vec3(0.0);
     vec4 x[DYNBTF_G];
-    dynbtf_latent(o, {"dynbtf_visible(o, local, w_view)" if relief else "local"}, 0, DYNBTF_G, x);
-    return dynbtf_decode(x, w_view, w_light);
+    vec2 p = {"dynbtf_visible(o, local, w_view)" if relief else "local"};
+    dynbtf_latent(o, p, 0, DYNBTF_G, x);
+    return dynbtf_decode(x, w_view, w_light) * dynbtf_gain(o, p);
 }}
 """
 

@@ -24,7 +24,7 @@ from ... import jit
 from ...errors import InputError
 from ...synthesis.auto import AUTO
 from ...synthesis.elements import MAX_VARIATION
-from ...synthesis.registry import methods_with, takes_parameter
+from ...synthesis.registry import VARIATIONS, methods_taking, methods_with, takes_parameter
 from .evaluator import DynBTFEvaluator, check_renderable
 from .sampling import AUTO_MIN_COSINE_VARIANCE, DEFAULT_TABLE_WEIGHT, SAMPLING_MODES
 
@@ -60,17 +60,12 @@ METHODS = (*methods_with(), AUTO)
 DEFAULT_METHOD = AUTO
 
 
-#: The variation parameters (plugin name -> what they vary), each for the methods that take it.
-VARIATION_PARAMETERS = {"brightness": "per-element variation", "tint": "per-element variation",
-                        "rotation": "the samples' rotation"}
-
-
 def check_variation_method(method: str, what: str, parameter: str = "brightness") -> None:
-    """A variation parameter (:data:`VARIATION_PARAMETERS`: struct's ``brightness``, ``tint``, lattice blending's
-    ``rotation``) is only for a method that takes it: else a one-line error naming ``what``."""
+    """A variation parameter (:data:`~dynbtf.synthesis.registry.VARIATIONS`: struct's ``brightness``, ``tint``,
+    lattice blending's ``rotation``) is only for a method that takes it: else a one-line error naming ``what``."""
     if not takes_parameter(method, parameter):
-        having = [m for m in METHODS if takes_parameter(m, parameter)]
-        raise InputError(f"{what}: {VARIATION_PARAMETERS[parameter]} is drawn by {', '.join(having)}; "
+        having = methods_taking(parameter)
+        raise InputError(f"{what}: {VARIATIONS[parameter]} is for {', '.join(having)}; "
                          f"method is {method!r}")
 
 
@@ -78,7 +73,7 @@ def check_cells(cells: int, method: str, what: str) -> None:
     """``cells`` (0: none) is only for a method that takes cells (:func:`~dynbtf.synthesis.registry.takes_parameter`):
     an :class:`InputError` from ``what`` otherwise."""
     if cells and not takes_parameter(method, "cells"):
-        having = [m for m in METHODS if takes_parameter(m, "cells")]
+        having = methods_taking("cells")
         raise InputError(f"{what}: sets the cells per repeat of {', '.join(having)}; method is {method!r}")
 
 @dataclass(frozen=True)
@@ -483,7 +478,7 @@ class _DynBTFBSDFBody:
         model = load_plugin_model(self.filename)  # a representation or a compiled material
         check_cells(self.cells, self.method, "dynbtf BSDF: parameter 'cells'")
         params = {"cells": self.cells} if self.cells else {}
-        for name in VARIATION_PARAMETERS:
+        for name in VARIATIONS:
             if getattr(self, name):
                 check_variation_method(self.method, f"dynbtf BSDF: parameter '{name}'", name)
                 value = getattr(self, name)

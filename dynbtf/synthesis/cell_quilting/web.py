@@ -1,11 +1,14 @@
 """Cell quilting (``struct``) in the web shader: the query's cell, the cuts that may give the point to a neighbour,
-that cell's hashed lattice offset and one bilinear sample of the exemplar (:mod:`dynbtf.synthesis.web_form`)."""
+that cell's hashed lattice offset and one bilinear sample of the exemplar (:mod:`dynbtf.synthesis.web_form`); with
+``brightness`` or ``tint``, each element's factor on the decoded value (``GLSL_GAIN``)."""
 
 from __future__ import annotations
 
+import numpy as np
 
 from ...device import to_host
-from ...errors import InputError
+from ..elements import VARIATION_SALT, repeat_elements
+from ..hash import MASK32, SECOND_STREAM, seed_state
 from ..web_form import WebForm, WebTable
 
 MODE = 4
@@ -18,6 +21,11 @@ uniform ivec2 dynbtf_cell_margin;            // struct: half-widths of the cut b
 uniform int dynbtf_cell_count;               // struct: K, the number of lattice offsets
 uniform int dynbtf_cell_row;                 // struct: table entries per texture row
 uniform ivec2 dynbtf_cut_start;              // struct: first entry of the vertical and of the horizontal cuts
+uniform ivec4 dynbtf_element_grid;           // struct's elements: columns, rows per repeat, row shift p / q of an element
+uniform vec2 dynbtf_element_phase;           // ... their placement on the exemplar (phase_x, phase_y), texels
+uniform vec2 dynbtf_variation;               // ... per-element variation (brightness, tint); (0, 0): off
+uniform uint dynbtf_variation_state;         // ... its hash state: seed_state((seed ^ VARIATION_SALT) mod 2^32)
+uniform int dynbtf_joint_start;              // ... first entry of the joints (H x W, 1 on a joint) in dynbtf_cells
 """
 GLSL_CELL_TYPES = """// ---- lattice-aligned cell quilting (dynbtf.synthesis.cell_quilting): the cell, its hashed offset, the cuts
 struct DynbtfCell {
@@ -85,10 +93,41 @@ GLSL_CELL = """DynbtfCell dynbtf_cell(DynbtfOrigin o, vec2 local) {
 }
 
 """
-GLSL_FUNCTIONS = (GLSL_CELL_TYPES, GLSL_CELL)  # the types apart: guided struct shares them, not the cell's choices
+GLSL_ELEMENT_GAIN = f"""// ---- per-element variation (dynbtf.synthesis.elements.element_gain): the element instance under a point as int64
+// words (the repeat's first, DynbtfOrigin.element, plus the point's place in its repeat), its hashed RGB factor
+// exp(brightness a_0 + tint (a_c - mean a)); 1 on the joints
+vec3 dynbtf_element_gain(DynbtfOrigin o, vec2 local) {{
+    if (dynbtf_variation == vec2(0.0)) return vec3(1.0);
+    vec2 wf, f;
+    dynbtf_split(local, wf, f);
+    ivec2 w = ivec2(wf);
+    ivec2 size = dynbtf_plane_size;
+    ivec2 texel = min(ivec2(floor(f * vec2(size))), size - 1);
+    if (dynbtf_cell_entry(dynbtf_joint_start + texel.y * size.x + texel.x) != 0) return vec3(1.0);
+    ivec4 e = dynbtf_element_grid;                                       // columns, rows, p, q
+    vec2 span = vec2(size) / vec2(e.xy);                                 // an element's width and row height, texels
+    int r = int(floor((f.y * float(size.y) - dynbtf_element_phase.y) / span.y));   // the row in the repeat (from -1)
+    int shifted = r * e.z;
+    int carry = shifted >= 0 ? shifted / e.w : -((e.w - 1 - shifted) / e.w);      // floor(r p / q)
+    float along = (f.x * float(size.x) - dynbtf_element_phase.x) / span.x * float(e.w) - float(shifted - carry * e.w);
+    int column = int(floor(along / float(e.w)));
+    uvec2 cx = dynbtf_add(o.element.xy, w.x * e.x - w.y * (e.y * e.z / e.w) - carry + column);
+    uvec2 cy = dynbtf_add(o.element.zw, w.y * e.y + r);
+    uint key = dynbtf_fold(dynbtf_fold(dynbtf_variation_state, cx), cy);
+    vec4 a;   // four uniforms of unit variance, one stream each
+    for (int k = 0; k < 4; ++k) {{
+        a[k] = (float(dynbtf_mix32(key ^ (uint(k) * {SECOND_STREAM:#010x}u))) * {2.0 ** -32!r} - 0.5) * {12 ** 0.5!r};
+    }}
+    return exp(dynbtf_variation.x * a.x + dynbtf_variation.y * (a.yzw - (a.y + a.z + a.w) / 3.0));
+}}
+
+"""
+# the types apart: guided struct shares them, not the cell's choices
+GLSL_FUNCTIONS = (GLSL_CELL_TYPES, GLSL_CELL, GLSL_ELEMENT_GAIN)
 GLSL_SAMPLE = """DynbtfCell cell = dynbtf_cell(o, local);
 dynbtf_bilinear(cell.texel, cell.t, 1.0, g0, g1, acc);"""
 GLSL_AFTER = ""
+GLSL_GAIN = "return dynbtf_element_gain(o, local);"
 
 
 def cost(groups: int) -> tuple[int, int]:
@@ -98,13 +137,20 @@ def cost(groups: int) -> tuple[int, int]:
 
 
 def form(synthesizer) -> WebForm:
-    """The exemplar, the offsets and cut tables (``tables``) and ``cells``, ``margin``, ``count``. The viewer draws
-    no per-element variation: a struct with ``brightness`` or ``tint`` is refused (one-line error)."""
-    if synthesizer.brightness or synthesizer.tint:
-        raise InputError("export: the web viewer does not draw struct's per-element variation (brightness, tint); "
-                         "export the material without it")
+    """The exemplar, the offsets and cut tables (``tables``) and ``cells``, ``margin``, ``count``; with per-element
+    variation, also the joints (in ``tables``) and ``elements``: the element grid (``grid``, ``columns``, ``rows``,
+    ``shift``: :func:`~dynbtf.synthesis.elements.repeat_elements`), ``brightness``, ``tint`` and the hash
+    ``state``."""
     t = synthesizer.prepared
     tables = {"offsets": to_host(t.offsets), "vertical_cuts": to_host(t.vertical_cuts),
               "horizontal_cuts": to_host(t.horizontal_cuts)}
-    return WebForm(to_host(synthesizer.exemplar), {"tables": WebTable("int16", tables)},
-                   {"cells": [int(c) for c in t.cells], "margin": [int(c) for c in t.margin], "count": int(t.count)})
+    constants = {"cells": [int(c) for c in t.cells], "margin": [int(c) for c in t.margin], "count": int(t.count)}
+    if synthesizer.brightness or synthesizer.tint:
+        grid = [float(v) for v in to_host(t.element_grid).tolist()]
+        columns, rows, shift = repeat_elements(grid)
+        tables["joints"] = np.asarray(to_host(t.joints), dtype=np.int16)
+        constants["elements"] = {
+            "grid": grid, "columns": columns, "rows": rows, "shift": shift,
+            "brightness": float(synthesizer.brightness), "tint": float(synthesizer.tint),
+            "state": int(seed_state((int(synthesizer.seed) ^ VARIATION_SALT) & MASK32))}
+    return WebForm(to_host(synthesizer.exemplar), {"tables": WebTable("int16", tables)}, constants)

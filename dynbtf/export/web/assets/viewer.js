@@ -83,7 +83,8 @@
 
   // Split a position (pu, pv) in exemplar repeats for method entry `method` of manifest `m`.
   // `lattice` holds the int64 lattice vertex of the repeat; for struct (an entry with cells) the int64
-  // index of the repeat's first cell, I x cells (the library's cell index is I n + column).
+  // index of the repeat's first cell, I x cells (the library's cell index is I n + column). `element`: for an
+  // entry whose elements vary, the repeat's first element (I_u columns - I_v shift, I_v rows), int64 words.
   DynBTF.origin = function (m, method, pu, pv) {
     var lat = m.lattice;
     if (!(Math.abs(pu) < lat.max_repeats && Math.abs(pv) < lat.max_repeats)) {
@@ -98,7 +99,9 @@
     if (!e) throw new Error('method ' + method + ' is not in this export (it has ' + Object.keys(m.methods).join(', ') + ')');
     var pw = e.plane.width, ph = e.plane.height;
     if (e.cells) { x = words(BigInt(wu) * BigInt(e.cells[0])); y = words(BigInt(wv) * BigInt(e.cells[1])); }
-    return {lattice: [x[0], x[1], y[0], y[1]], phase: s.frac,
+    var g = e.elements, ex = [0, 0], ey = [0, 0];
+    if (g) { ex = words(BigInt(wu) * BigInt(g.columns) - BigInt(wv) * BigInt(g.shift)); ey = words(BigInt(wv) * BigInt(g.rows)); }
+    return {lattice: [x[0], x[1], y[0], y[1]], phase: s.frac, element: [ex[0], ex[1], ey[0], ey[1]],
             texel: [mod(mod(wu, pw) * (e.density[0] % pw), pw), mod(mod(wv, ph) * (e.density[1] % ph), ph)],
             fraction: [fu, fv], field: e.field ? fieldOrigin(lat, e.field, [wu, wv]) : [0, 0]};
   };
@@ -247,6 +250,12 @@
     gl.uniform1i(u('dynbtf_cell_count'), t ? e.count : 1);
     gl.uniform1i(u('dynbtf_cell_row'), t ? t.row : 1);
     gl.uniform2i(u('dynbtf_cut_start'), t ? t.vertical_cuts.start : 0, t ? t.horizontal_cuts.start : 0);
+    var el = e.elements;  // struct's per-element variation: the element grid, its strengths and hash state, the joints
+    gl.uniform4i(u('dynbtf_element_grid'), el ? el.grid[0] : 1, el ? el.grid[1] : 1, el ? el.grid[2] : 0, el ? el.grid[3] : 1);
+    gl.uniform2f(u('dynbtf_element_phase'), el ? el.grid[4] : 0.0, el ? el.grid[5] : 0.0);
+    gl.uniform2f(u('dynbtf_variation'), el ? el.brightness : 0.0, el ? el.tint : 0.0);
+    gl.uniform1ui(u('dynbtf_variation_state'), el ? el.state : 0);
+    gl.uniform1i(u('dynbtf_joint_start'), el ? t.joints.start : 0);
     var f = e.field;  // a label field laid over the plane (guided synthesis's target)
     gl.uniform2i(u('dynbtf_field_size'), f ? f.width : 1, f ? f.height : 1);
     gl.uniform2f(u('dynbtf_field_scale'), f ? f.width / f.size : 0.0, f ? f.height / f.size : 0.0);
@@ -463,7 +472,7 @@
     '}'].join('\n');
   var FRAME = [  // the local frame at a fragment: w_view and w_light in it (shared by both fragment programs)
     'in vec3 v_position; in vec3 v_normal; in vec3 v_tangent; in vec2 v_local; in vec2 v_mask;',
-    'uniform uvec4 u_lattice; uniform float u_phase; uniform ivec2 u_texel; uniform vec2 u_field;',
+    'uniform uvec4 u_lattice; uniform float u_phase; uniform ivec2 u_texel; uniform vec2 u_field; uniform uvec4 u_element;',
     'uniform vec3 u_camera; uniform vec3 u_light; uniform float u_intensity;',
     'out vec4 color;',
     'vec3 srgb(vec3 c) { c = clamp(c, 0.0, 1.0);',
@@ -477,7 +486,7 @@
     '  wl_local = vec3(dot(u_light, t), dot(u_light, b), dot(u_light, n));',
     '}',
     'DynbtfOrigin origin() { DynbtfOrigin o; o.lattice = u_lattice; o.phase = u_phase; o.texel = u_texel;',
-    '  o.field = u_field; return o; }',
+    '  o.field = u_field; o.element = u_element; return o; }',
     ''].join('\n');
   var SHADE = FRAME + [
     'void main() {',
@@ -637,6 +646,7 @@
     gl.uniform1f(u('u_phase'), o.phase);
     gl.uniform2i(u('u_texel'), o.texel[0], o.texel[1]);
     gl.uniform2f(u('u_field'), o.field[0], o.field[1]);
+    gl.uniform4ui(u('u_element'), o.element[0], o.element[1], o.element[2], o.element[3]);
   }
 
   function drawMesh(gl, shape) {
