@@ -228,6 +228,29 @@ def _speed_training(row: dict, data: dict) -> tuple[str, str, str]:
     return what, result, target
 
 
+def _speed_convergence(row: dict, data: dict) -> tuple[str, str, str]:
+    """training.json's ``convergence`` (``bench_training.py --convergence``): the training time to naive's final
+    held-out PSNR, ours (each precision) vs naive."""
+    parts, misses = [], []
+    for c in data["convergence"]:
+        ours = []
+        for precision, o in c["ours"].items():
+            if o["speedup"] is None:
+                ours.append(f"{precision}: not reached in as long")
+                misses.append(f"`{c['btf']}` {precision}")
+                continue
+            ours.append(f"{precision} **{o['speedup']:.1f}x** sooner ({o['seconds_to_reach']:.1f} s)")
+            if o["speedup"] < row["target_ratio"]:
+                misses.append(f"`{c['btf']}` {precision} ({o['speedup']:.1f}x)")
+        parts.append(f"`{c['btf']}` ({c['isa']}): naive {c['naive_final_psnr']:.2f} dB after "
+                     f"{c['naive_seconds']:g} s; ours " + ", ".join(ours))
+    what = (f"training to naive's final held-out PSNR, ours (fast recipe) vs the paper's recipe run naively "
+            f"(`{data['command']}`)")
+    target = (f"naive's PSNR in at most 1/{row['target_ratio']:g} of its time: "
+              + ("met" if not misses else "missed for " + ", ".join(misses)))
+    return what, "; ".join(parts), target
+
+
 def _speed_evaluation(row: dict, data: dict) -> tuple[str, str, str]:
     method, own = row["method"], data["cpu_isa"]
     rows = [r for r in data["rows"] if r["method"] == method]
@@ -331,24 +354,28 @@ def _speed_sampling(row: dict, data: dict) -> tuple[str, str, str]:
     return what, "; ".join(parts), target
 
 
-_SPEED_FROM = {"training": _speed_training, "evaluation": _speed_evaluation, "rendering": _speed_rendering,
+_SPEED_FROM = {"training": _speed_training, "training_convergence": _speed_convergence, "evaluation": _speed_evaluation, "rendering": _speed_rendering,
                "web": _speed_web, "compiled_material": _speed_compiled_material, "demo": _speed_demo,
                "simulator": _speed_simulator, "sampling": _speed_sampling,
                "fit_many": lambda row, data: _speed_fit_many(row, data)}  # (defined beside fit_many below)
 
 
 def speed(data: dict) -> str:
-    """docs/results.md's Speed summary: a row per command, rendered from its benchmark's JSON (``"from"``) or, where
-    the benchmark writes none yet, from the measurement recorded in speed.json (``"recorded"``: the numbers, the
-    command and the machine as the hand-typed table stated them)."""
+    """docs/results.md's Speed summary: a row per command, rendered from its benchmark's JSON (``"from"``; ``"view"``:
+    which of that file's summaries, default the one named like it) or, where the benchmark writes none yet, from the
+    measurement recorded in speed.json (``"recorded"``: the numbers, the command and the machine as the hand-typed
+    table stated them)."""
+    recorded = any("recorded" in row for row in data["rows"])
     lines = ["Rows whose data column names a JSON file are generated from the benchmark's data; rows marked "
              "*recorded* are earlier measurements kept as data in `benchmarks/results/speed.json` (numbers, command "
-             "and machine as the hand-typed table stated them), until their benchmark writes JSON.", "",
+             "and machine as the hand-typed table stated them), until their benchmark writes JSON." if recorded else
+             "Every row is generated from its benchmark's data (the JSON file its data column names; "
+             "`benchmarks/results/speed.json` lists the rows and their targets).", "",
              "| what (command) | result | target | data |", "|---|---|---|---|"]
     for row in data["rows"]:
         if "from" in row:
             source = _load(row["from"])
-            what, result, target = _SPEED_FROM[row["from"]](row, source)
+            what, result, target = _SPEED_FROM[row.get("view", row["from"])](row, source)
             part = source[row["part"]] if "part" in row else source
             origin = _source(part, f"{row['from']}.json")
         else:
