@@ -175,7 +175,7 @@ def _stage_data(ctx: _Context) -> dict[str, Any]:
 #: (synthesis, mostly fitting the per-level footprint decoders of three methods and compiling numba kernels;
 #: structured; render, mostly compiling the Mitsuba kernels; the rest), plus a margin. Each stage's time is
 #: measured by ``benchmarks/bench_demo.py``.
-OTHER_STAGES_MINUTES = 8.5
+OTHER_STAGES_MINUTES = 8.0
 
 
 def _fit_minutes(cfg: DemoConfig) -> float:

@@ -230,13 +230,21 @@ def _finished_run_options(output) -> dict | None:
     return {k: v for k, v in training.items() if k in fields}
 
 
+#: Seconds of warm-up steps before :func:`measure_step_seconds` times any (at least two steps).
+WARM_UP_SECONDS = 0.25
+#: Seconds of steps :func:`measure_step_seconds` times (at least its ``steps``), and the most steps of either phase.
+TIMED_SECONDS = 0.5
+MAX_TIMED_STEPS = 40
+
+
 def measure_step_seconds(source: BTFSource, config: TrainConfig, representation: Representation | None = None,
                          steps: int = 5) -> float:
     """Seconds per optimizer step of ``config`` on this machine (kernel on random targets + a real batch read).
 
-    The kernel is timed on a copy of ``representation`` (default: a Triple Plane) for ``steps`` steps after two
-    warm-ups; when the BTF is too large for the image cache one real batch is read too and its time added
-    (the prefetch thread shares the cores).
+    The kernel is timed on a copy of ``representation`` (default: a Triple Plane): warm-up steps (at least two, and
+    :data:`WARM_UP_SECONDS`: a process's first steps after loading a kernel run slower), then the median of at least
+    ``steps`` steps and :data:`TIMED_SECONDS` (at most :data:`MAX_TIMED_STEPS`); when the BTF is too large for the
+    image cache one real batch is read too and its time added (the prefetch thread shares the cores).
     """
     from ..representations.triple_plane import TriplePlane
 
@@ -261,16 +269,22 @@ def measure_step_seconds(source: BTFSource, config: TrainConfig, representation:
     chunk = config.chunk_texels if device.type == "cpu" else n
     with torch.no_grad():
         taps = rep.direction_taps(wv, wl)  # as the fit reads them (once per pair, before training)
-    times = []
+    def step() -> float:
+        t0 = time.perf_counter()
+        loss = texel_image_loss(rep, wv, wl, target, (source.height, source.width), texel_t, chunk_texels=chunk,
+                                workers=workers, texel_groups=sampler.n_groups, precision=precision,
+                                angular_taps=taps)
+        loss.backward()
+        return time.perf_counter() - t0
+
     with single_intra_op_thread(device.type == "cpu"):
-        for _ in range(steps + 2):
-            t0 = time.perf_counter()
-            loss = texel_image_loss(rep, wv, wl, target, (source.height, source.width), texel_t, chunk_texels=chunk,
-                                    workers=workers, texel_groups=sampler.n_groups, precision=precision,
-                                    angular_taps=taps)
-            loss.backward()
-            times.append(time.perf_counter() - t0)
-    seconds = float(np.median(times[2:]))  # after two warm-up steps
+        warm = [step(), step()]
+        while sum(warm) < WARM_UP_SECONDS and len(warm) < MAX_TIMED_STEPS:
+            warm.append(step())
+        times = [step() for _ in range(steps)]
+        while sum(times) < TIMED_SECONDS and len(times) < MAX_TIMED_STEPS:
+            times.append(step())
+    seconds = float(np.median(times))
     if not store.cached:
         t0 = time.perf_counter()
         sampler.batch(0, 0)
