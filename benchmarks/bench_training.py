@@ -202,6 +202,7 @@ def convergence(spec: str, naive_seconds: float, batch: int, seed: int) -> dict:
     naive's final held-out PSNR (checked every 20 steps on 32 held-out pairs); the training time each needed."""
     import numpy as np
 
+    from dynbtf.cpu import active_isa
     from dynbtf.data.open import open_btf
     from dynbtf.decoder.fused_mlp import native_precisions
     from dynbtf.representations.triple_plane import TriplePlane
@@ -245,8 +246,6 @@ def convergence(spec: str, naive_seconds: float, batch: int, seed: int) -> dict:
                 Path(workdir) / "m.dbtfm", progress=False, callback=callback)
         ours[precision] = {"seconds_to_reach": clock["reached"], "steps": clock["steps"],
                            "speedup": naive_seconds / clock["reached"] if clock["reached"] else None}
-    from dynbtf.cpu import active_isa
-
     return {"btf": spec, "isa": active_isa(), "naive_seconds": naive_seconds, "naive_final_psnr": target,
             "held_out_pairs_checked": len(eval_pairs), "ours": ours}
 

@@ -354,7 +354,8 @@ def _speed_sampling(row: dict, data: dict) -> tuple[str, str, str]:
     return what, "; ".join(parts), target
 
 
-_SPEED_FROM = {"training": _speed_training, "training_convergence": _speed_convergence, "evaluation": _speed_evaluation, "rendering": _speed_rendering,
+_SPEED_FROM = {"training": _speed_training, "training_convergence": _speed_convergence,
+               "evaluation": _speed_evaluation, "rendering": _speed_rendering,
                "web": _speed_web, "compiled_material": _speed_compiled_material, "demo": _speed_demo,
                "simulator": _speed_simulator, "sampling": _speed_sampling,
                "fit_many": lambda row, data: _speed_fit_many(row, data)}  # (defined beside fit_many below)
