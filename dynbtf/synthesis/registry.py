@@ -21,7 +21,8 @@ from .elements import check_variation
 from .sample_transform import check_rotation
 
 __all__ = ["SYNTHESIZERS", "synthesizer_class", "make_synthesizer", "model_inputs", "AUTO_CANDIDATES",
-           "EXEMPLAR_METHOD", "PAPER_METHOD", "VARIATIONS", "takes_parameter", "methods_taking", "methods_with", "given_variations"]
+           "EXEMPLAR_METHOD", "PAPER_METHOD", "VARIATIONS", "takes_parameter", "methods_taking", "methods_with",
+           "given_variations"]
 
 #: The methods ``auto`` chooses between (:func:`dynbtf.synthesis.auto.choose_method`).
 AUTO_CANDIDATES = ("struct", "hist")
@@ -32,7 +33,8 @@ PAPER_METHOD = "hist"
 #: The variation controls a method may take, each off by default and drawn from the seed: parameter -> what it does
 #: (for messages). ``struct``'s per-element ``brightness`` and ``tint`` (:mod:`.elements`), lattice blending's
 #: ``rotation`` (:mod:`.sample_transform`).
-VARIATIONS = {"brightness": "per-element variation", "tint": "per-element variation", "rotation": "turning the samples"}
+VARIATIONS = {"brightness": "per-element variation", "tint": "per-element variation",
+              "rotation": "turning the samples"}
 
 
 def synthesizer_class(name: str) -> type[Synthesizer]:
