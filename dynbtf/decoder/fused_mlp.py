@@ -264,10 +264,11 @@ def native_precisions() -> tuple[str, ...]:
 def resolve_precision(precision: str, device: torch.device | str = "cpu") -> str:
     """The arithmetic of the fused loss: ``"fp32"`` or ``"bf16"``.
 
-    ``"auto"`` is ``"fp32"`` on every machine: the float32 kernel, register-blocked for each level's vectors,
-    trains as fast as the bfloat16 one or faster where both were measured (``benchmarks/bench_training.py``,
-    docs/results.md), and its results agree across levels to float32 rounding. ``"bf16"`` (bfloat16 products,
-    float32 accumulation) is there to ask for on CPUs with AVX512-BF16; on a machine without it, an error.
+    ``"auto"`` is ``"fp32"`` on every machine: the float32 kernel, register-blocked for each level's vectors, gives
+    results that agree across levels to float32 rounding (a seed fits the same model on every CPU, to rounding).
+    ``"bf16"`` (bfloat16 products, float32 accumulation) is there to ask for on CPUs with AVX512-BF16, where it
+    may train faster (docs/results.md's training table measures both, ``benchmarks/bench_training.py``); on a
+    machine without it, an error.
     """
     device = torch.device(device)
     if precision not in ("auto", "fp32", "bf16"):

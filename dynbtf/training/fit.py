@@ -323,7 +323,8 @@ class TrainConfig:
     device: str = _option("auto", "auto", "auto (CUDA if available), cpu, cuda:0, ...")
     precision: str = _option("auto", "auto", "Arithmetic of the decoder's training kernel: fp32, bf16 (bfloat16 "
                              "products, float32 accumulation and parameters; CPUs with AVX512-BF16), or auto "
-                             "(fp32: as fast or faster where both were measured).")
+                             "(fp32: the same model on every CPU to float32 rounding; bf16 may train faster "
+                             "where it runs, docs/results.md).")
     max_reflectance: float = _option(MAX_REFLECTANCE, None, "Largest |value| a training image may hold "
                                      "(reflectance pi f_r, linear RGB; default 1e4): beyond it the BTF decodes to "
                                      "garbage and the fit stops naming the image. Raise it for data that really is "
