@@ -125,6 +125,28 @@ def test_measured_step_time_is_positive_and_real():
     assert 0 < recipe_module.measure_step_seconds(src, config, steps=2) < 5
 
 
+@pytest.mark.parametrize("step_seconds, warm, timed", [(0.001, 40, 40), (0.02, 13, 25), (0.3, 2, 5)])
+def test_step_timing_warms_up_then_times_at_least_its_seconds(monkeypatch, step_seconds, warm, timed):
+    """measure_step_seconds on a fake clock where every step takes ``step_seconds``: at least two warm-up steps and
+    WARM_UP_SECONDS of them, then at least ``steps`` steps and TIMED_SECONDS of them, each phase at most
+    MAX_TIMED_STEPS; the median (x 1.05 for the update) is what it returns."""
+    import torch
+
+    clock = {"now": 0.0, "steps": 0}
+
+    def fake_loss(*args, **kwargs):
+        clock["now"] += step_seconds
+        clock["steps"] += 1
+        return torch.zeros((), requires_grad=True)
+
+    monkeypatch.setattr(recipe_module, "texel_image_loss", fake_loss)
+    monkeypatch.setattr(recipe_module.time, "perf_counter", lambda: clock["now"])
+    src = synthetic_btf(8, thetas=(0.0, 30.0, 60.0), counts=(1, 6, 8))
+    seconds = recipe_module.measure_step_seconds(src, TrainConfig(texel_groups=2, workers=1, device="cpu"), steps=5)
+    assert clock["steps"] == warm + timed
+    assert seconds == pytest.approx(step_seconds * 1.05)
+
+
 def test_cli_fit_states_the_recipe_and_a_rerun_continues_with_it(tmp_path, dfmf, monkeypatch):
     import importlib
     import itertools
