@@ -513,7 +513,41 @@ def _transposed(points: list[dict], *rows: tuple) -> str:
 
 
 #: Measured rows whose result comes from a benchmark's data (``"from"``: the data file, rendered by the function).
-_MEASURED_FROM = {"structured": "structured_summary", "demo": "demo_summary", "sampling": "sampling_summary"}
+_MEASURED_FROM = {"structured": "structured_summary", "demo": "demo_summary", "sampling": "sampling_summary",
+                  "rendering": "rendering_summary", "compiled_material": "compiled_material_summary",
+                  "web": "web_summary", "filtering": "filtering_summary"}
+
+
+def rendering_summary(data: dict) -> str:
+    """README.md's Measured line of bench_render.py: the plugin's queries/s against ``SynthesizedBTF.eval``'s."""
+    e = data["eval"]
+    difference = _sci(e["max_abs_difference"]) if e["max_abs_difference"] else "0"
+    return (f"{e['plugin_queries_per_second'] / e['eval_queries_per_second']['fp32']:.2f}x the queries/s (the plugin "
+            f"hands each wavefront to it), max difference {difference}")
+
+
+def compiled_material_summary(data: dict) -> str:
+    """README.md's Measured line of bench_compiled_material.py: a second process's render of a compiled model."""
+    v = data["rows"][0]["values"]
+    return (f"{v['wall_seconds']:.1f} s, {v['render_seconds']:.1f} s of it the render (compiled materials cached: "
+            f"nothing fitted again; the compile before it {v['compile_seconds']:.0f} s)")
+
+
+def web_summary(data: dict) -> str:
+    """README.md's Measured line of bench_web.py: the shader's agreement with the library per precision."""
+    rows = data["agreement"]["rows"]
+    fp16, u8 = _span([r["psnr_fp16_db"] for r in rows], ".0f"), _span([r["psnr_u8_db"] for r in rows], ".0f")
+    return (f"{fp16} dB (fp16), {u8} dB (u8) over {', '.join(r['method'] for r in rows)}; same texels at every "
+            "lattice vertex up to 2^45 repeats")
+
+
+def filtering_summary(data: dict) -> str:
+    """README.md's Measured line of bench_filtering.py: the default footprint query against the point query."""
+    point, default = data["rows"][0], data["rows"][-1]
+    ns, plugin = data["cost"]["eval_ns_per_query"], data["cost"]["plugin"]["ns_per_query"]
+    return (f"FLIP {default['flip']:.3f} vs point queries' {point['flip']:.3f}; far-field colour within "
+            f"{default['far_field_error_percent']:.1f}%; {ns['filtered'] / ns['point']:.1f}x the cost of a point query "
+            f"({plugin['filtered'] / plugin['point']:.1f}x in the Mitsuba plugin)")
 
 
 def demo_summary(data: dict) -> str:
