@@ -180,7 +180,9 @@ def _load(name: str) -> dict:
 
 
 def _sci(x: float, decimals: int = 1) -> str:
-    """``6.2e-4`` (``decimals`` decimals, no zero-padded exponent)."""
+    """``6.2e-4`` (``decimals`` decimals, no zero-padded exponent); ``0`` for zero."""
+    if x == 0:
+        return "0"
     return re.sub(r"e([+-])0*(\d)", lambda m: f"e{m[1].lstrip('+')}{m[2]}", f"{x:.{decimals}e}")
 
 
@@ -282,7 +284,7 @@ def _speed_rendering(row: dict, data: dict) -> tuple[str, str, str]:
     what = (f"Mitsuba plugin's query vs `SynthesizedBTF.eval`, the same {part['queries']:,} queries "
             f"(`{part['command']}`)")
     result = (f"{plugin / 1e6:.1f} vs {fp32 / 1e6:.1f} M queries/s ({plugin / fp32:.2f}x), max difference "
-              f"{_sci(part['max_abs_difference']) if part['max_abs_difference'] else '0'} on values up to "
+              f"{_sci(part['max_abs_difference'])} on values up to "
               f"{part['max_abs_value']:.1f}")
     return what, result, row["target"]
 
@@ -395,7 +397,7 @@ def rendering(data: dict) -> str:
     fp32, bf16 = e["eval_queries_per_second"]["fp32"], e["eval_queries_per_second"]["bf16"]
     plugin = e["plugin_queries_per_second"]
     workers = f", {e['workers']} workers" if e.get("workers") else ""
-    difference = _sci(e["max_abs_difference"]) if e["max_abs_difference"] else "0"
+    difference = _sci(e["max_abs_difference"])
     return "\n".join([
         f"Measured on {_machine(e)} by `{e['command']}`: {e['queries']:,} random queries within 25 repeats, "
         f"{e['model']}, {e['method']}; warmed up, fastest of {e['repeats']} ([rendering.md](rendering.md)):", "",
@@ -521,7 +523,7 @@ _MEASURED_FROM = {"structured": "structured_summary", "demo": "demo_summary", "s
 def rendering_summary(data: dict) -> str:
     """README.md's Measured line of bench_render.py: the plugin's queries/s against ``SynthesizedBTF.eval``'s."""
     e = data["eval"]
-    difference = _sci(e["max_abs_difference"]) if e["max_abs_difference"] else "0"
+    difference = _sci(e["max_abs_difference"])
     return (f"{e['plugin_queries_per_second'] / e['eval_queries_per_second']['fp32']:.2f}x the queries/s (the plugin "
             f"hands each wavefront to it), max difference {difference}")
 
@@ -899,7 +901,7 @@ def filtering(data: dict) -> str:
             pns, scene = plugin["ns_per_query"], plugin["scene_flip"]
             text += (f", {pns['filtered']:.0f} vs {pns['point']:.0f} ns in the Mitsuba plugin "
                      f"({pns['filtered'] / pns['point']:.2f}x), which matches `SynthesizedBTF.eval` with the same "
-                     f"footprints to {_sci(plugin['max_abs_difference']) if plugin['max_abs_difference'] else '0'}; "
+                     f"footprints to {_sci(plugin['max_abs_difference'])}; "
                      f"in Mitsuba's own grazing `plane` scene ({plugin['scene_pixels'][0]} x "
                      f"{plugin['scene_pixels'][1]} pixels, 1 spp vs {plugin['scene_reference_spp']} spp, point light) "
                      f"FLIP falls from {scene['unfiltered (point query)']:.3f} to {scene['filtered (ray cone)']:.3f}")

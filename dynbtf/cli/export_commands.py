@@ -100,10 +100,9 @@ def export_command(
     params = {} if cells is None else {"struct": {"cells": int(cells)}}
     from ..synthesis.registry import VARIATIONS, given_variations, methods_taking, takes_parameter
 
-    for name, value in given_variations({"rotation": rotation, "brightness": brightness, "tint": tint},
-                                        lambda name: f"--{name}").items():
+    exported = list(method or DEFAULT_METHODS)
+    for name, value in given_variations({"rotation": rotation, "brightness": brightness, "tint": tint}, "--").items():
         # each exported method that takes it draws it; auto and the others are exported as they are
-        exported = list(method or DEFAULT_METHODS)
         varied = [m for m in exported if takes_parameter(m, name)]
         if not varied or layer is not None or target is not None:
             having = methods_taking(name)

@@ -292,7 +292,7 @@ def _variation(values: dict[str, float], method: str, guidance, layer) -> dict[s
     blending's ``rotation``), checked: one-line errors, naming the methods that take each."""
     from ..synthesis.registry import VARIATIONS, given_variations, methods_taking, takes_parameter
 
-    given = given_variations(values, lambda name: f"--{name}")
+    given = given_variations(values, "--")
     for name in given:
         if not takes_parameter(method, name) or guidance is not None or layer is not None:
             having = methods_taking(name)

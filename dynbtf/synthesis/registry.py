@@ -90,15 +90,15 @@ def takes_parameter(name: str, parameter: str) -> bool:
     return cls is not None and parameter in _accepted(cls)
 
 
-def given_variations(values: dict[str, Any], option=lambda name: name) -> dict[str, Any]:
+def given_variations(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     """The variation controls (:data:`VARIATIONS`) among ``values`` that are on, each checked: an
-    :class:`InputError` naming ``option(name)`` (e.g. the command-line flag) for a bad value.
+    :class:`InputError` naming ``prefix + name`` (``prefix="--"``: the command-line flag) for a bad value.
 
     >>> given_variations({"brightness": 0.1, "tint": 0.0, "rotation": False})
     {'brightness': 0.1}
     """
     checks = {"brightness": check_variation, "tint": check_variation, "rotation": check_rotation}
-    given = {name: checks[name](option(name), value) for name, value in values.items()}
+    given = {name: checks[name](prefix + name, value) for name, value in values.items()}
     return {name: value for name, value in given.items() if value}
 
 

@@ -12,8 +12,7 @@ import numpy as np
 from ...errors import InputError
 from ...jit.llvm import check_llvm
 from ...limits import check_count, check_memory, check_scale
-from ...synthesis.elements import check_variation
-from ...synthesis.sample_transform import check_rotation
+from ...synthesis.registry import given_variations
 from .bsdf import DEFAULT_METHOD, METHODS, check_cells, check_variation_method, load_plugin_model, register_plugin
 from .sampling import SAMPLING_MODES
 from .scenes import LIGHTINGS, SCENES, bsdf_dict, scene_dict
@@ -197,10 +196,9 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     if int(cells) != cells or cells < 0:
         raise InputError(f"--cells: the cells per repeat, a positive integer (0: the method's own), got {cells}")
     check_cells(int(cells), method, "--cells")
-    variation = {"brightness": check_variation("--brightness", brightness), "tint": check_variation("--tint", tint),
-                 "rotation": check_rotation("--rotation", rotation)}
-    for name, value in variation.items():
-        if value and method != "auto":  # (auto's choice is checked by the plugin, once resolved)
+    variation = given_variations({"brightness": brightness, "tint": tint, "rotation": rotation}, "--")
+    for name in variation:
+        if method != "auto":  # (auto's choice is checked by the plugin, once resolved)
             check_variation_method(method, f"--{name}", name)
     from ...material import CompiledMaterial
 
@@ -239,9 +237,8 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
         for m in materials:
             m["cells"] = int(cells)
     for name, value in variation.items():
-        if value:
-            for m in materials:
-                m[name] = value if isinstance(value, bool) else float(value)
+        for m in materials:
+            m[name] = value if isinstance(value, bool) else float(value)
     material = materials[0]
     if target is not None:
         material.update({"target": str(target), "classes": int(classes), "target_size": float(target_size),
