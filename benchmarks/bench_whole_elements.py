@@ -11,6 +11,8 @@ from the origin (1e6 repeats) with, for three seeds each:
   and pay the copies' spread (:func:`dynbtf.synthesis.cell_quilting.copy_spread`);
 * ``struct, straight cuts``: the same cells with the previous seam rule, one column per row at most
   (:func:`~dynbtf.synthesis.quilting.min_error_cut`) and no spread: what ``struct`` was before whole elements;
+* ``struct, --texels whole``: ``struct`` on the wall fitted at the size at which its bricks are whole texels
+  (``dynbtf fit --texels whole``: 66 x 66 for the ``3 x 6`` bond; the ``4 x 8`` bond keeps its 64 x 64);
 * ``hist``: the paper's method, for scale.
 
 Measured: the share of **broken bricks** (bricks of an 8 x 8-repeat window, of the known geometry, whose texels
@@ -40,6 +42,8 @@ BRICKS = {"bond_whole_texels": (4, 8, 0.022, ([0.22, 0.20, 0.25], [0.45, 0.30, 0
           "bond_third_texels": (3, 6, 0.024, ([0.50, 0.18, 0.10], [0.35, 0.30, 0.22]))}
 SIZE = 64
 SEEDS = (0, 1, 2)
+#: The row of ``struct`` on the wall fitted with ``dynbtf fit --texels whole``.
+WHOLE_LABEL = "struct, --texels whole"
 SCALE = 8.0
 FAR = 1e6
 
@@ -79,17 +83,18 @@ def register() -> None:
         m.MATERIALS[name] = "held-out running-bond brick wall (benchmarks/bench_whole_elements.py)"
 
 
-def brick_of(name: str, x: np.ndarray, y: np.ndarray):
-    """The brick ``(course, column)`` (ints, any repeat) of texel-space points ``(x, y)`` of a 64-texel repeat, and
-    whether each lies at least one texel inside its brick's face (away from the joint and its worn edge)."""
+def brick_of(name: str, x: np.ndarray, y: np.ndarray, size: int):
+    """The brick ``(course, column)`` (ints, any repeat) of texel-space points ``(x, y)`` of a ``size``-texel
+    repeat, and whether each lies at least one texel inside its brick's face (away from the joint and its worn
+    edge)."""
     n_u, n_v, joint, _ = BRICKS[name]
-    u, v = x / SIZE, y / SIZE
+    u, v = x / size, y / size
     course = np.floor(v * n_v).astype(np.int64)
     along = u * n_u + 0.5 * (course % 2)
     column = np.floor(along).astype(np.int64)
     fa, fb = along - column, v * n_v - course
     border = np.minimum(np.minimum(fa, 1 - fa) / n_u, np.minimum(fb, 1 - fb) / n_v)
-    return course, column, border > joint / 2 + 0.008 + 1.0 / SIZE
+    return course, column, border > joint / 2 + 0.008 + 1.0 / size
 
 
 def broken_bricks(name: str, btf) -> float:
@@ -98,12 +103,13 @@ def broken_bricks(name: str, btf) -> float:
     import torch
 
     n_u, n_v, _, _ = BRICKS[name]
-    side = int(SCALE * SIZE)
+    size = int(btf.synthesizer.exemplar.shape[1])  # square walls: 64, or 66 when resampled
+    side = int(SCALE * size)
     gy, gx = np.mgrid[0:side, 0:side].reshape(2, -1) + 0.5
-    uv = torch.from_numpy(np.stack([FAR + gx / SIZE, FAR + gy / SIZE], -1))
+    uv = torch.from_numpy(np.stack([FAR + gx / size, FAR + gy / size], -1))
     read, _ = btf.synthesizer.read_positions(uv)
-    course, column, inner = brick_of(name, gx, gy)
-    src_course, src_column, src_inner = brick_of(name, read[:, 0].numpy(), read[:, 1].numpy())
+    course, column, inner = brick_of(name, gx, gy, size)
+    src_course, src_column, src_inner = brick_of(name, read[:, 0].numpy(), read[:, 1].numpy(), size)
     keep = inner & src_inner
     target = course[keep] * (4 * side) + column[keep]
     source = (src_course[keep] % n_v) * n_u + src_column[keep] % n_u
@@ -112,24 +118,32 @@ def broken_bricks(name: str, btf) -> float:
     return float((sources_per_brick > 1).mean())
 
 
-def fit_model(name: str, folder: Path, minutes: float) -> Path:
-    """``folder/<name>.dbtfm``, fitted here (a Triple Plane, the auto recipe within ``minutes``) when missing."""
+def fit_model(name: str, folder: Path, minutes: float, texels: str | None = None) -> Path | None:
+    """``folder/<name>.dbtfm`` (``<name>_whole.dbtfm`` with ``texels="whole"``), fitted here (a Triple Plane, the
+    auto recipe within ``minutes``) when missing, to the wall resampled as ``dynbtf fit --texels`` would; None when
+    ``texels`` leaves the wall's size as it is (its model is the plain one)."""
     from dynbtf.data.open import open_btf
     from dynbtf.training import get_fitter
+    from dynbtf.training.exemplar_texels import resample_for_fit
     from dynbtf.training.recipe import choose_config
 
-    path = folder / f"{name}.dbtfm"
+    path = folder / (f"{name}_{texels}.dbtfm" if texels else f"{name}.dbtfm")
+    source, sentence = resample_for_fit(open_btf(f"sim:{name}?size={SIZE}"), texels)
+    if sentence:
+        print(sentence, file=sys.stderr)
+    if texels and source.height == SIZE and source.width == SIZE:
+        return None
     if not path.exists():
         folder.mkdir(parents=True, exist_ok=True)
-        source = open_btf(f"sim:{name}?size={SIZE}")
         config, summary = choose_config(source, path, recipe="auto", minutes=minutes)
         print(summary, file=sys.stderr)
         get_fitter("triple")(source, path, config, progress=sys.stderr.isatty())
     return path
 
 
-def measure(name: str, model: Path) -> list[dict]:
-    """A row per method of :func:`methods` on ``model``: each measure per seed, with mean and range."""
+def measure(name: str, model: Path, whole: Path | None) -> list[dict]:
+    """A row per method on ``model`` (and ``struct`` on ``whole``, the wall fitted with ``--texels whole``, where
+    that resampled it): each measure per seed, with mean and range."""
     from bench_structured import _spread, coherence
     from results_io import model_record
 
@@ -138,14 +152,17 @@ def measure(name: str, model: Path) -> list[dict]:
     from dynbtf.synthesized import synthesized_btf
 
     rows = []
-    for label, method, rule in (("struct", "struct", None), ("struct, straight cuts", "struct", "straight"),
-                                ("hist", "hist", None)):
+    runs = [("struct", "struct", None, model), ("struct, straight cuts", "struct", "straight", model),
+            ("hist", "hist", None, model)]
+    if whole is not None:
+        runs.insert(1, (WHOLE_LABEL, "struct", None, whole))
+    for label, method, rule, fitted in runs:
         per_seed = {"broken_bricks": [], "coherence_p90": [], "identity": []}
         for seed in SEEDS:
             if rule == "straight":  # the previous seams: one column per row, no spread (cache off: see main)
                 cell_quilting.min_error_seam, cell_quilting.SPREAD_WEIGHT = min_error_cut, 0.0
             try:
-                btf = synthesized_btf(model, method, seed=seed)
+                btf = synthesized_btf(fitted, method, seed=seed)
             finally:
                 cell_quilting.min_error_seam, cell_quilting.SPREAD_WEIGHT = min_error_seam, 2.0
             if method == "struct":
@@ -153,7 +170,7 @@ def measure(name: str, model: Path) -> list[dict]:
             r = coherence(btf, SCALE, seed)
             per_seed["coherence_p90"].append(float(r["p90"]))
             per_seed["identity"].append(float(r["identity"]))
-        row = {"material": name, "method": label, "model": model_record(model)}
+        row = {"material": name, "method": label, "model": model_record(fitted)}
         row.update({key: _spread(values) if values else None for key, values in per_seed.items()})
         rows.append(row)
         print(f"{name:<18} {label:<22} " + "  ".join(f"{k} {row[k]['mean']:.3f}" for k in per_seed if row[k]),
@@ -176,7 +193,8 @@ def main() -> None:
         folder = args.models or Path(scratch)
         rows = []
         for name in BRICKS:
-            rows += measure(name, fit_model(name, folder, args.fit_minutes))
+            rows += measure(name, fit_model(name, folder, args.fit_minutes),
+                            fit_model(name, folder, args.fit_minutes, texels="whole"))
     result = header("whole_elements", "bench_whole_elements.py") | {
         "size": SIZE, "scale": SCALE, "seeds": list(SEEDS), "bricks": {k: v[:3] for k, v in BRICKS.items()},
         "rows": rows}

@@ -17,7 +17,7 @@ import numpy as np
 from .data.base import BTFSource
 from .errors import InputError
 
-__all__ = ["source_fingerprint", "check_model_source", "DIRECTION_TOLERANCE"]
+__all__ = ["source_fingerprint", "check_model_source", "source_as_fitted", "DIRECTION_TOLERANCE"]
 
 #: Largest difference of a direction's components (unit vectors) still counted as the same direction
 #: (~0.006 degrees: directions survive format conversions, e.g. float32 storage, within it).
@@ -51,6 +51,20 @@ def _same_directions(recorded, actual: np.ndarray) -> bool:
     except (TypeError, ValueError):
         return False
     return recorded.shape == actual.shape and bool(np.all(np.abs(recorded - actual) <= DIRECTION_TOLERANCE))
+
+
+def source_as_fitted(metadata: dict[str, Any], source: BTFSource) -> BTFSource:
+    """``source`` as the model (its file's ``metadata``) saw it: resampled to the recorded size when the model was
+    fitted to the BTF resampled (``dynbtf fit --texels``) and ``source`` has the size it had before; else
+    ``source`` itself (:func:`check_model_source` then judges it)."""
+    record = (metadata.get("provenance") or {}).get("source")
+    before = record.get("resampled_from") if isinstance(record, dict) else None
+    if (isinstance(before, list) and [source.height, source.width] == before
+            and (record.get("height"), record.get("width")) != (source.height, source.width)):
+        from .data.resampled import ResampledBTF
+
+        return ResampledBTF(source, int(record["height"]), int(record["width"]))
+    return source
 
 
 def check_model_source(metadata: dict[str, Any], source: BTFSource, model: str = "the model") -> list[str]:

@@ -44,6 +44,12 @@ def fit(
                                             "auto recipe times a few steps and shortens its schedule to fit, the "
                                             "trials are sized to it, and the model trained so far is written when "
                                             "it runs out (checkpointed: the same command again continues)."),
+    texels: Optional[str] = typer.Option(None, "--texels", help="Fit the BTF resampled to this many texels over "
+                                         "the same repeat: HxW (rows x columns) or N; 'whole': the nearest size at "
+                                         "which a structured material's elements (bricks, tiles) are whole texels, "
+                                         "so that `synth --method struct` can keep each one whole (stated in one "
+                                         "line; a BTF without elements keeps its size). `dynbtf eval` resamples the "
+                                         "BTF the same way."),
     stereo_max_height: Optional[float] = typer.Option(None, "--stereo-max-height", help="triple-parallax only: "
                                                       "largest relief height the stereo estimate searches, in uv "
                                                       "units (default 0.08: +-10 texels at 128 texels)."),
@@ -57,6 +63,7 @@ def fit(
     from ..errors import positive_number
     from ..io import check_writable
     from ..training import get_fitter
+    from ..training.exemplar_texels import parse_texels, resample_for_fit
     from ..training.fit import budget_left, check_options
     from ..training.recipe import choose_config
 
@@ -72,7 +79,11 @@ def fit(
     if stereo_max_height is not None:
         positive_number("--stereo-max-height", stereo_max_height, "height in uv units")
     fitter = get_fitter(repr)
-    source = _open_source(btf)
+    if texels is not None:
+        parse_texels(texels)  # a malformed value fails before the BTF is opened
+    source, resampled = resample_for_fit(_open_source(btf), texels)
+    if resampled and not quiet:
+        typer.echo(resampled)
     config, summary = choose_config(source, output, recipe=recipe, minutes=minutes, **given)
     if not quiet:
         typer.echo(summary)
@@ -133,12 +144,12 @@ def eval_command(
     copy), or other content under the same name (the BTF changed since the fit, or a lossy
     copy), is a warning. --force skips the check.
     """
-    from ..provenance import check_model_source
+    from ..provenance import check_model_source, source_as_fitted
     from ..representations.model_file import load_model
     from ..training.evaluate import evaluate_model, resolve_eval_pairs
 
     rep, meta = load_model(model, device=device)
-    source = _open_source(btf)
+    source = source_as_fitted(meta, _open_source(btf))
     if not force:
         for warning in check_model_source(meta, source, model=str(model)):
             typer.echo(f"dynbtf: warning: {warning}", err=True)

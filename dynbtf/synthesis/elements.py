@@ -3,8 +3,8 @@
 A structured exemplar repeats an element on a lattice (:mod:`dynbtf.synthesis.structure`). Its elements lie in
 **rows**: ``rows`` rows per repeat, each of ``columns`` elements, row ``k`` shifted by ``k p / q`` of an element
 (running bond: ``p / q = 1 / 2``; stack bond and square tiles: 0). :func:`element_grid` reads that grid off the
-lattice offsets -- the shortest horizontal one gives the element's width, the one of the shortest row step gives
-the row height and the shift -- and places it on the joints: the row borders on the texel rows least like the
+lattice offsets -- the shortest horizontal one gives the element's width, the shortest row step the row height,
+and the shift is the simple fraction that puts every offset on the lattice best -- and places it on the joints: the row borders on the texel rows least like the
 typical row (joints are thin, the few rows unlike the rest), the head borders where the exemplar looks most like
 those bed joints. The joints themselves are the texels that look more like the bed joints than like the
 elements' middles (two means, refined).
@@ -40,7 +40,7 @@ from ..errors import InputError
 from .hash import MASK32, SECOND_STREAM, hash_vertex, mix32
 
 __all__ = ["element_grid", "element_instances", "element_gain", "repeat_elements", "check_variation",
-           "check_element_grid", "VARIATION_SALT", "MAX_VARIATION", "MAX_SHIFT_DENOMINATOR"]
+           "check_element_grid", "whole_element_size", "VARIATION_SALT", "MAX_VARIATION", "MAX_SHIFT_DENOMINATOR"]
 
 #: Xor-ed into the seed of the variation's hashes (a stream apart from the synthesis's own choices).
 VARIATION_SALT = 0x5BD1E995
@@ -65,14 +65,22 @@ def check_variation(name: str, value) -> float:
     return v
 
 
-def _row_shift(fraction: float) -> tuple[int, int]:
-    """``(p, q)``, ``q <= MAX_SHIFT_DENOMINATOR``: the simplest fraction nearest ``fraction`` in ``[0, 1)``."""
-    best = (0, 1, abs(fraction - round(fraction)))
-    for q in range(2, MAX_SHIFT_DENOMINATOR + 1):
-        p = round(fraction * q)
-        if abs(fraction - p / q) < best[2] - 1e-9:
-            best = (p % q, q, abs(fraction - p / q))
-    return best[0], best[1]
+def _row_shift(offsets: np.ndarray, rows: int, a: float, c: float) -> tuple[int, int]:
+    """``(p, q)``, ``q <= MAX_SHIFT_DENOMINATOR`` and ``rows p`` a multiple of ``q``: the row shift (in elements of
+    ``a`` texels; rows ``c`` texels high) that best explains the lattice ``offsets (K, 2)`` (whole texels): an offset
+    ``k`` rows up (``k = round(dy / c)``) lies ``k p / q`` elements across, up to whole elements. The sum of the
+    offsets' distances from that, in texels, decides; the simplest fraction wins a tie (within half a texel).
+    Every offset takes part, so that the rounding of one short step to whole texels (10 for 10.67) does not."""
+    fractions = [(p, q) for q in range(1, MAX_SHIFT_DENOMINATOR + 1) for p in range(q)
+                 if math.gcd(p, q) == 1 and (rows * p) % q == 0]
+    best, best_error = (0, 1), math.inf
+    for p, q in fractions:
+        k = np.round(offsets[:, 1] / c)
+        miss = np.mod(offsets[:, 0] - k * p / q * a + a / 2, a) - a / 2
+        error = float(np.abs(miss).sum())
+        if error < best_error - 0.5:
+            best, best_error = (p, q), error
+    return best
 
 
 def element_grid(offsets: np.ndarray, appearance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -97,15 +105,11 @@ def element_grid(offsets: np.ndarray, appearance: np.ndarray) -> tuple[np.ndarra
                                      (offsets[:, None] - offsets[None]).reshape(-1, 2)]), [w, h])
     across = [min(int(dx), w - int(dx)) for dx, dy in offsets if dy == 0 and dx != 0]
     columns = max(1, round(w / min(across))) if across else 1
-    steps = [(min(int(dy), h - int(dy)), int(dx) if dy <= h // 2 else -int(dx)) for dx, dy in offsets if dy != 0]
+    steps = [min(int(dy), h - int(dy)) for dx, dy in offsets if dy != 0]
     rows, p, q = 1, 0, 1
     if steps:
-        step, dx = min(steps)
-        rows = max(1, round(h / step))
-        a = w / columns
-        p, q = _row_shift((dx * (h / rows) / step) % a / a)
-        if (rows * p) % q:  # the rows would not come back to the same shift after one repeat: no shift
-            p, q = 0, 1
+        rows = max(1, round(h / min(steps)))
+        p, q = _row_shift(offsets, rows, w / columns, h / rows)
     a, c = w / columns, h / rows
     # the placement: row borders on the rows least like the typical row, then head borders where, in every row's
     # own shifted coordinate, the exemplar looks most like those rows
@@ -147,6 +151,22 @@ def check_element_grid(grid, height: int, width: int) -> str | None:
     if not (0 <= phase_x < width / columns and 0 <= phase_y < height / rows):
         return "table 'element_grid': its phase lies outside one element"
     return None
+
+
+def whole_element_size(grid, height: int, width: int) -> tuple[int, int]:
+    """The texel size ``(height', width')`` nearest ``height x width`` at which the elements of ``grid``
+    (:func:`element_grid`) are whole texels: each row ``round(height / rows)`` texels high, each element a
+    multiple of ``q`` texels wide (so that the row shift ``p / q`` of an element is whole too), nearest
+    ``width / columns``. Lattice copies shifted by whole texels then move whole elements onto whole elements.
+
+    >>> whole_element_size([3.0, 6.0, 1.0, 2.0, 0.0, 0.0], 64, 64)  # 21.33 x 10.67-texel bricks, half bond
+    (66, 66)
+    >>> whole_element_size([4.0, 8.0, 1.0, 2.0, 0.0, 0.0], 64, 64)  # 16 x 8: whole already
+    (64, 64)
+    """
+    columns, rows, _, q = (int(v) for v in grid[:4])
+    element = q * max(1, round(width / columns / q))
+    return rows * max(1, round(height / rows)), columns * element
 
 
 def element_instances(points: torch.Tensor, grid, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:

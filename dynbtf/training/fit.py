@@ -395,7 +395,9 @@ def training_provenance(source: BTFSource, held_out: np.ndarray, **extra) -> dic
 
     ``source`` records the BTF's name, size, directions and content fingerprint
     (:func:`dynbtf.provenance.source_fingerprint`), which ``dynbtf eval`` checks
-    (:func:`dynbtf.provenance.check_model_source`).
+    (:func:`dynbtf.provenance.check_model_source`), and for a BTF resampled before the fit
+    (:class:`~dynbtf.data.resampled.ResampledBTF`) its size before (``resampled_from``: rows, columns), so that
+    the BTF given to ``dynbtf eval`` is resampled the same way (:func:`dynbtf.provenance.source_as_fitted`).
     """
     from ..provenance import source_fingerprint
 
@@ -403,7 +405,10 @@ def training_provenance(source: BTFSource, held_out: np.ndarray, **extra) -> dic
         "source": {"name": source.name, "height": source.height, "width": source.width,
                    "n_views": source.n_views, "n_lights": source.n_lights,
                    "views": np.asarray(source.views).tolist(), "lights": np.asarray(source.lights).tolist(),
-                   "raw_float32_bytes": source.nbytes_float32, "fingerprint": source_fingerprint(source)},
+                   "raw_float32_bytes": source.nbytes_float32, "fingerprint": source_fingerprint(source),
+                   **({"resampled_from": [source.metadata["resampled_from_height"],
+                                          source.metadata["resampled_from_width"]]}
+                      if "resampled_from_height" in source.metadata else {})},
         "held_out_pairs": np.asarray(held_out, dtype=np.int64).tolist(),
         **extra,
     }

@@ -68,7 +68,7 @@ from ..elements import check_element_grid, check_variation, element_gain, elemen
 from ..structure import StructureAnalysis, analyze_structure
 from ..tiling import Tiling
 
-__all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "copy_spread", "DEFAULT_OFFSETS",
+__all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "copy_spread", "elements_of", "DEFAULT_OFFSETS",
            "MIN_CELL_TEXELS", "SPREAD_WEIGHT"]
 
 #: Default number of lattice offsets a cell chooses from (``K``).
@@ -256,6 +256,18 @@ def _standardized(plane: np.ndarray) -> np.ndarray:
     """Channels minus their mean over their standard deviation, all divided by ``sqrt(channels)``."""
     z = (plane - plane.mean((0, 1))) / np.maximum(plane.std((0, 1)), 1e-12)
     return z / np.sqrt(plane.shape[-1])
+
+
+def elements_of(appearance: np.ndarray, offsets: int = DEFAULT_OFFSETS) -> tuple[np.ndarray, float]:
+    """The element grid (:func:`~dynbtf.synthesis.elements.element_grid`) that ``struct`` finds in an exemplar of
+    appearance ``appearance (H, W, C)`` (its feature plane, or images of a BTF as channels), and the exemplar's
+    structure strength (:func:`~dynbtf.synthesis.structure.analyze_structure`): the same lattice, from the same
+    ``offsets`` strongest peaks, as :func:`build_cell_tables`."""
+    appearance = np.asarray(appearance, dtype=np.float64)
+    analysis = analyze_structure(appearance)
+    chosen, _ = lattice_offsets(analysis, int(offsets))
+    grid, _ = element_grid(chosen, _standardized(appearance))
+    return grid, float(analysis.strength)
 
 
 #: Weight of the copies' spread (:func:`copy_spread`) in a seam's cost: two random copies differ by twice the
