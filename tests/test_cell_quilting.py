@@ -293,3 +293,34 @@ def test_auto_method_of_a_model_is_synthesized_btfs_choice():
     assert guide.shape == (32, 32, 9)
     w = torch.tensor([[0.0, 0.0, 1.0]])
     torch.testing.assert_close(guide[3, 5, :3], model.decode(model.f_u[3, 5][None], w, w)[0].float())
+
+
+@pytest.mark.parametrize("grid, side, n, axis, reaches", [
+    ([4, 8, 1, 2, 0.0, 0.0], 64, 2, "u", False),  # 16-texel bricks, half bond: odd rows' head joints 8 away, reach 7
+    ([4, 8, 1, 2, 0.0, 0.0], 64, 1, "u", True),   # one cell: 16-texel bands
+    ([4, 8, 1, 2, 0.0, 0.0], 64, 2, "v", True),   # bed joints every 8 texels: one on each edge
+    ([4, 8, 1, 2, 0.0, 4.0], 64, 2, "v", True),   # ... or 4 texels off them
+    ([4, 2, 0, 1, 0.0, 12.0], 64, 2, "v", False), # 32-texel rows whose bed joints lie 12 texels off the edges
+    ([4, 4, 0, 1, 3.0, 3.0], 64, 2, "u", True),   # square tiles, stack bond: the joints 3 texels off every edge
+    ([3, 6, 1, 2, 0.0, 0.0], 66, 2, "u", False),  # 22-texel bricks, 33-texel cells: even rows' joints 11 away
+    ([1, 1, 0, 1, 5.0, 5.0], 64, 2, "u", True),   # no elements: nothing to follow
+])
+def test_cell_bands_reach_every_rows_joints(grid, side, n, axis, reaches):
+    from dynbtf.synthesis.cell_quilting import _bands_reach_joints
+
+    assert _bands_reach_joints(np.array(grid, dtype=np.float64), side, n, 0.25, axis) is reaches
+
+
+def test_auto_cells_are_one_across_a_running_bond_and_two_over_square_tiles():
+    """The running bond of the test above: two 32-texel cells would leave alternate rows' head joints one texel out
+    of the seams' reach, so ``auto`` takes one cell across (two up); square tiles keep two by two."""
+    y, x = np.mgrid[0:64, 0:64]
+    course = y // 8
+    bond = ((x + 8 * (course % 2)) % 16 < 2) | (y % 8 < 2)
+    colour = np.random.default_rng(2).random((8, 4, 3))[course, ((x + 8 * (course % 2)) // 16) % 4]
+    wall = torch.from_numpy(np.where(bond[..., None], 0.0, colour).astype(np.float32))
+    assert build_cell_tables(wall).cells == (1, 2)
+    assert build_cell_tables(wall, cells=2).cells == (2, 2)  # a number is kept as given
+    tiles = ((x % 16) < 2) | ((y % 16) < 2)
+    colour = np.random.default_rng(3).random((4, 4, 3))[y // 16, x // 16]
+    assert build_cell_tables(torch.from_numpy(np.where(tiles[..., None], 0.0, colour).astype(np.float32))).cells == (2, 2)

@@ -236,6 +236,31 @@ def _cells_per_repeat(side: int, cells, axis: str) -> int:
     return n
 
 
+def _bands_reach_joints(grid: np.ndarray, side: int, n: int, margin: float, axis: str) -> bool:
+    """Whether ``n`` cells per repeat along ``axis`` (``side`` texels) let every seam follow a joint: each cell
+    edge's band (``margin`` of the cell on either side, one texel spare) holds, in every row of the element
+    ``grid`` (:func:`~dynbtf.synthesis.elements.element_grid`), a head joint (``u``: the rows' own shifts) or a
+    bed joint (``v``). An axis without elements (one per repeat) passes: there are no joints to follow.
+
+    A running bond of 16-texel bricks has head joints 8 texels apart in alternate rows: two 32-texel cells (8-texel
+    bands) leave the seams one texel short of half the rows' joints, where they must cross a brick; one cell
+    (16-texel bands) does not."""
+    columns, rows, p, q, phase_x, phase_y = (float(v) for v in grid)
+    count = columns if axis == "u" else rows
+    if count <= 1:
+        return True
+    period = side / count  # an element's width (u) or a row's height (v)
+    shifts = [(r * p / q) % 1.0 for r in range(int(rows))] if axis == "u" else [0.0]
+    phase = phase_x if axis == "u" else phase_y
+    reach = max(1, int(margin * side / n)) - 1
+    for edge in np.arange(n) * side / n:
+        for shift in shifts:  # this row's joints: phase + (shift + k) period
+            offset = (edge - phase - shift * period) % period
+            if min(offset, period - offset) > reach:
+                return False
+    return True
+
+
 def lattice_offsets(analysis: StructureAnalysis, count: int) -> tuple[np.ndarray, np.ndarray]:
     """``(K, 2)`` int64 offsets ``(dx, dy)``: ``(0, 0)`` and up to ``count - 1`` strongest peaks, and their values.
 
@@ -318,7 +343,8 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
     """The offsets and cut tables of cell quilting for ``exemplar (H, W, C)`` (see the module docstring).
 
     ``offsets``: most copies ``K`` (2..64); ``cells``: cells per repeat, an int or ``(nx, ny)`` or
-    ``"auto"`` (2 per axis where the side is even and at least 32 texels, else 1); ``margin``: half-width
+    ``"auto"`` (2 per axis where the side is even and at least 32 texels and the bands then reach every row's
+    joints, else 1); ``margin``: half-width
     of the cut bands as a fraction of the cell side (0 < margin <= 0.5); ``guide``: optional ``(H, W, G)``
     appearance of the exemplar: the lattice is found on it, and the seams weigh its differences equally
     with the exemplar's. A seam between two copies costs their difference plus the spread of all copies
@@ -336,8 +362,6 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
     h, w, _ = exemplar.shape
     cx, cy = cells if isinstance(cells, (tuple, list)) else (cells, cells)
     nx, ny = _cells_per_repeat(w, cx, "u"), _cells_per_repeat(h, cy, "v")
-    tx, ty = w // nx, h // ny
-    mx, my = max(1, int(margin * tx)), max(1, int(margin * ty))
     guide = check_guide(guide, exemplar)
     analysis = analyze_structure(exemplar if guide is None else guide)
     chosen, values = lattice_offsets(analysis, int(offsets))
@@ -348,6 +372,12 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
 
     spread = SPREAD_WEIGHT * copy_spread(z, chosen)
     grid, joints = element_grid(chosen, z)
+    if cx == "auto" and nx > 1 and not _bands_reach_joints(grid, w, nx, margin, "u"):
+        nx = 1
+    if cy == "auto" and ny > 1 and not _bands_reach_joints(grid, h, ny, margin, "v"):
+        ny = 1
+    tx, ty = w // nx, h // ny
+    mx, my = max(1, int(margin * tx)), max(1, int(margin * ty))
 
     def band_errors(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Seam costs ``(K, K, len(rows), len(cols))`` of every two copies over a band: their squared difference
@@ -391,7 +421,8 @@ class CellQuilting(Tiling):
         Most lattice offsets a cell chooses from (fewer when the exemplar has fewer strong peaks).
     cells : int, (int, int) or "auto", default "auto"
         Cells per exemplar repeat along u and v (must divide the exemplar's sides); "auto": 2 where
-        the side is even and at least 32 texels, else 1.
+        the side is even and at least 32 texels and the seams' bands then reach a joint of every row of the
+        elements (:func:`_bands_reach_joints`), else 1.
     margin : float, default 0.25
         Half-width of the cut bands, as a fraction of the cell side.
     guide : array ``(H, W, G)``, optional
@@ -411,8 +442,10 @@ class CellQuilting(Tiling):
     model_inputs = {"guide": "appearance"}
 
     #: 2: seams that may run along a row or column (:func:`~dynbtf.synthesis.quilting.min_error_seam`) and pay the
-    #: copies' spread (:func:`copy_spread`), so that they follow a running bond's staggered joints.
-    tables_version = 2
+    #: copies' spread (:func:`copy_spread`), so that they follow a running bond's staggered joints. 3: the row shift
+    #: fitted to every lattice offset, and ``cells="auto"`` one cell along an axis where two would leave the seams'
+    #: bands short of some row's joints (:func:`_bands_reach_joints`).
+    tables_version = 3
 
     def __init__(self, exemplar, seed: int = 0, *, offsets: int = DEFAULT_OFFSETS, cells="auto", margin: float = 0.25,
                  guide=None, brightness: float = 0.0, tint: float = 0.0, fast: bool | None = None,
