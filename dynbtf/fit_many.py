@@ -68,7 +68,7 @@ MANIFEST_OPTIONS: dict[str, type | tuple[type, ...]] = {
     "repr": str, "recipe": str, "minutes": (int, float), "epochs": int, "max_minutes": (int, float),
     "seed": int, "held_out_fraction": (int, float), "images_per_step": int, "lr_scale": (int, float),
     "lr_decay": (int, float), "texels_per_image": int, "texel_groups": int, "memory_mb": (int, float),
-    "precision": str, "device": str, "stereo_max_height": (int, float),
+    "precision": str, "device": str, "stereo_max_height": (int, float), "texels": str,
 }
 #: Keys of a ``[[source]]`` table besides the options.
 SOURCE_KEYS = {"btf": str, "name": str}
@@ -193,6 +193,7 @@ def _short(value, limit: int = 60) -> str:
 
 def _check_options(path: Path, options: dict[str, Any], lines: dict[str, int]) -> None:
     """Values a fit would refuse, found before any task starts (the line of the offending key)."""
+    from .training.exemplar_texels import parse_texels
     from .training.fit import TrainConfig
     from .training.fitters import get_fitter
     from .training.model_choice import DEFAULT_KIND
@@ -211,6 +212,11 @@ def _check_options(path: Path, options: dict[str, Any], lines: dict[str, int]) -
         fail("minutes", f"expected a positive time budget, got {options['minutes']!r}")
     if "stereo_max_height" in options and options.get("repr", DEFAULT_KIND) not in ("triple-parallax", "auto"):
         fail("stereo_max_height", "applies to repr = 'triple-parallax' (or 'auto') only")
+    if "texels" in options:
+        try:
+            parse_texels(options["texels"])
+        except InputError as e:
+            fail("texels", str(e).removeprefix("--texels: "))
     fields = {_TRAIN_FIELD.get(k, k): v for k, v in options.items() if _TRAIN_FIELD.get(k, k) in
               {f.name for f in dataclasses.fields(TrainConfig)}}
     try:
@@ -369,6 +375,7 @@ def fit_one(task: FitTask, callback: Callable[[dict[str, Any]], None] | None = N
 
     from .data.open import open_btf
     from .training.evaluate import evaluate_model, resolve_eval_pairs
+    from .training.exemplar_texels import resample_for_fit
     from .training.fitters import get_fitter
     from .training.model_choice import DEFAULT_KIND, stereo_fitter_options
     from .training.recipe import choose_config
@@ -382,9 +389,10 @@ def fit_one(task: FitTask, callback: Callable[[dict[str, Any]], None] | None = N
         recipe = options.pop("recipe", "auto")
         minutes = options.pop("minutes", None)
         stereo = options.pop("stereo_max_height", None)
+        texels = options.pop("texels", None)
         train = {_TRAIN_FIELD.get(k, k): v for k, v in options.items()}
         train.setdefault("workers", max(1, task.cpus))
-        source = open_btf(task.btf)
+        source, _ = resample_for_fit(open_btf(task.btf), texels)
         Path(task.output_dir).mkdir(parents=True, exist_ok=True)
         config, summary = choose_config(source, task.model_path, recipe=recipe, minutes=minutes, **train)
         extra = stereo_fitter_options(repr_kind, stereo, "stereo_max_height")

@@ -59,11 +59,12 @@ def source_as_fitted(metadata: dict[str, Any], source: BTFSource) -> BTFSource:
     ``source`` itself (:func:`check_model_source` then judges it)."""
     record = (metadata.get("provenance") or {}).get("source")
     before = record.get("resampled_from") if isinstance(record, dict) else None
-    if (isinstance(before, list) and [source.height, source.width] == before
-            and (record.get("height"), record.get("width")) != (source.height, source.width)):
+    after = (record.get("height"), record.get("width")) if isinstance(record, dict) else None
+    if (isinstance(before, list) and [source.height, source.width] == before and after != tuple(before)
+            and all(isinstance(n, int) and not isinstance(n, bool) for n in after)):
         from .data.resampled import ResampledBTF
 
-        return ResampledBTF(source, int(record["height"]), int(record["width"]))
+        return ResampledBTF(source, *after)  # an implausible size is an InputError naming height or width
     return source
 
 

@@ -160,3 +160,16 @@ def test_fit_refuses_bad_texels_before_opening_the_btf(tmp_path, capsys):
     assert main(["fit", str(tmp_path / "missing.btf"), "--texels", "66y66", "-o", str(tmp_path / "m.dbtfm")]) != 0
     err = capsys.readouterr().err
     assert "--texels: expected 'whole'" in err and "Traceback" not in err
+
+
+def test_a_fit_many_task_with_texels_fits_the_resampled_btf(tmp_path):
+    from dynbtf.fit_many import FitTask, fit_one
+
+    btf = tmp_path / "wall.dbtf"
+    write_stored(btf, _bond(3, 6), dtype="float32", progress=False)
+    task = FitTask(name="wall", btf=str(btf), options={"repr": "sh", "texels": "whole", "held_out_fraction": 0.5},
+                   output_dir=str(tmp_path / "out"))
+    row = fit_one(task)
+    assert row["status"] == "done", row.get("error")
+    record = read_model_metadata(task.model_path)["provenance"]["source"]
+    assert (record["height"], record["width"], record["resampled_from"]) == (66, 66, [64, 64])

@@ -111,6 +111,7 @@ def test_a_worker_killed_mid_fit_is_retried_and_the_model_is_unchanged(library, 
     ('[[source]]\nbtf = "m.toml"\n', r"m.toml:2: \[\[source\]\] #1 btf 'm.toml': .*unrecognized format"),  # not a BTF
     ('[[source]]\nbtf = "sim:leather?size=0"\n', r"m.toml:2: .*size: expected an integer number of texels per side"),
     ('[[source]]\nbtf = "sim:leather?size=16&size=8"\n', r"m.toml:2: .*option 'size' is given twice"),
+    ('[[source]]\nbtf = "a.dbtf"\ntexels = "66y66"\n', r"m.toml:3: 'texels': expected 'whole', a texel count"),
 ])
 def test_manifest_mistakes_name_the_line_and_key_before_anything_runs(tmp_path, text, message):
     path = tmp_path / "m.toml"
