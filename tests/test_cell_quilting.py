@@ -323,4 +323,5 @@ def test_auto_cells_are_one_across_a_running_bond_and_two_over_square_tiles():
     assert build_cell_tables(wall, cells=2).cells == (2, 2)  # a number is kept as given
     tiles = ((x % 16) < 2) | ((y % 16) < 2)
     colour = np.random.default_rng(3).random((4, 4, 3))[y // 16, x // 16]
-    assert build_cell_tables(torch.from_numpy(np.where(tiles[..., None], 0.0, colour).astype(np.float32))).cells == (2, 2)
+    tiled = torch.from_numpy(np.where(tiles[..., None], 0.0, colour).astype(np.float32))
+    assert build_cell_tables(tiled).cells == (2, 2)

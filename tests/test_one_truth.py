@@ -443,7 +443,8 @@ def test_cell_quilting_in_numba_is_the_torch_reference(seed):
 
     rng = np.random.default_rng(45)
     exemplar = torch.from_numpy(np.tile(rng.random((8, 8, 4)), (4, 4, 1)) + 0.1 * rng.random((32, 32, 4))).float()
-    reference = make_synthesizer("struct", exemplar, seed=seed, fast=False, cells=2)  # the torch path, float64 positions
+    # the torch path, float64 positions; two cells per repeat
+    reference = make_synthesizer("struct", exemplar, seed=seed, fast=False, cells=2)
     fast = make_synthesizer("struct", exemplar, seed=seed, fast=True, prepared=reference.prepared)  # numba
     tables = reference.prepared
     assert tables.count > 4 and tables.cells == (2, 2)  # a lattice to choose from, two cells per repeat

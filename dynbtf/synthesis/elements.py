@@ -3,11 +3,11 @@
 A structured exemplar repeats an element on a lattice (:mod:`dynbtf.synthesis.structure`). Its elements lie in
 **rows**: ``rows`` rows per repeat, each of ``columns`` elements, row ``k`` shifted by ``k p / q`` of an element
 (running bond: ``p / q = 1 / 2``; stack bond and square tiles: 0). :func:`element_grid` reads that grid off the
-lattice offsets -- the shortest horizontal one gives the element's width, the shortest row step the row height,
-and the shift is the simple fraction that puts every offset on the lattice best -- and places it on the joints: the row borders on the texel rows least like the
-typical row (joints are thin, the few rows unlike the rest), the head borders where the exemplar looks most like
-those bed joints. The joints themselves are the texels that look more like the bed joints than like the
-elements' middles (two means, refined).
+lattice offsets -- the shortest horizontal one gives the element's width, the shortest row step the row height, and
+the shift is the simple fraction that puts every offset on the lattice best -- and places it on the joints: the row
+borders on the texel rows least like the typical row (joints are thin, the few rows unlike the rest), the head
+borders where the exemplar looks most like those bed joints. The joints themselves are the texels that look more
+like the bed joints than like the elements' middles (two means, refined).
 
 The lattice copies of a structured synthesis (``struct``) line their elements up with the exemplar's tiled grid,
 so the element a surface point shows is the grid's element at that point, whichever copy it reads: an element
@@ -74,8 +74,8 @@ def _row_shift(offsets: np.ndarray, rows: int, a: float, c: float) -> tuple[int,
     fractions = [(p, q) for q in range(1, MAX_SHIFT_DENOMINATOR + 1) for p in range(q)
                  if math.gcd(p, q) == 1 and (rows * p) % q == 0]
     best, best_error = (0, 1), math.inf
+    k = np.round(offsets[:, 1] / c)  # rows up
     for p, q in fractions:
-        k = np.round(offsets[:, 1] / c)
         miss = np.mod(offsets[:, 0] - k * p / q * a + a / 2, a) - a / 2
         error = float(np.abs(miss).sum())
         if error < best_error - 0.5:

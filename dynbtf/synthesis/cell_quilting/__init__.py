@@ -68,8 +68,8 @@ from ..elements import check_element_grid, check_variation, element_gain, elemen
 from ..structure import StructureAnalysis, analyze_structure
 from ..tiling import Tiling
 
-__all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "copy_spread", "elements_of", "DEFAULT_OFFSETS",
-           "MIN_CELL_TEXELS", "SPREAD_WEIGHT"]
+__all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "copy_spread", "elements_of",
+           "DEFAULT_OFFSETS", "MIN_CELL_TEXELS", "SPREAD_WEIGHT"]
 
 #: Default number of lattice offsets a cell chooses from (``K``).
 DEFAULT_OFFSETS = 16
@@ -344,11 +344,10 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
 
     ``offsets``: most copies ``K`` (2..64); ``cells``: cells per repeat, an int or ``(nx, ny)`` or
     ``"auto"`` (2 per axis where the side is even and at least 32 texels and the bands then reach every row's
-    joints, else 1); ``margin``: half-width
-    of the cut bands as a fraction of the cell side (0 < margin <= 0.5); ``guide``: optional ``(H, W, G)``
-    appearance of the exemplar: the lattice is found on it, and the seams weigh its differences equally
-    with the exemplar's. A seam between two copies costs their difference plus the spread of all copies
-    (:func:`copy_spread`), so that it runs along the joints every copy shares.
+    joints, else 1); ``margin``: half-width of the cut bands as a fraction of the cell side (0 < margin <= 0.5);
+    ``guide``: optional ``(H, W, G)`` appearance of the exemplar: the lattice is found on it, and the seams weigh
+    its differences equally with the exemplar's. A seam between two copies costs their difference plus the spread
+    of all copies (:func:`copy_spread`), so that it runs along the joints every copy shares.
     """
     start = time.perf_counter()
     if isinstance(offsets, bool) or not isinstance(offsets, (int, np.integer)) or not 1 <= int(offsets) <= 64:
