@@ -517,7 +517,34 @@ def _transposed(points: list[dict], *rows: tuple) -> str:
 #: Measured rows whose result comes from a benchmark's data (``"from"``: the data file, rendered by the function).
 _MEASURED_FROM = {"structured": "structured_summary", "demo": "demo_summary", "sampling": "sampling_summary",
                   "rendering": "rendering_summary", "compiled_material": "compiled_material_summary",
-                  "web": "web_summary", "filtering": "filtering_summary"}
+                  "web": "web_summary", "filtering": "filtering_summary", "training": "training_summary",
+                  "evaluation": "evaluation_summary"}
+
+
+def training_summary(data: dict) -> str:
+    """README.md's Measured line of bench_training.py: the fast recipe's samples/s over the naive recipe's, per
+    level and BTF (with bf16 products where the level has them)."""
+    btfs = list(dict.fromkeys(r["btf"] for r in data["rows"]))
+    per_level = []
+    for isa in dict.fromkeys(r["isa"] for r in data["rows"]):
+        for variant, label in (("fast", ""), ("fast, bf16", ", bf16 products")):
+            ratios = {r["btf"]: r["ratio_to_naive"] for r in data["rows"] if r["isa"] == isa and r["variant"] == variant}
+            if ratios:
+                forced = " (forced)" if isa != data["cpu_isa"] else ""
+                per_level.append(f"{isa}{forced}{label} " + " / ".join(f"{ratios[b]:.1f}x" for b in btfs if b in ratios))
+    return (f"ours over the naive recipe's samples/s ({' / '.join(f'`{b}`' for b in btfs)}): " + "; ".join(per_level)
+            + "; [per level](docs/results.md#training-speed)")
+
+
+def evaluation_summary(data: dict) -> str:
+    """README.md's Measured line of bench_synthesis_eval.py: hist's queries/s over naive PyTorch's, per level, and
+    the share of the FMA bound."""
+    rows = [r for r in data["rows"] if r["method"] == "hist"]
+    return ("ours over naive PyTorch: " + "; ".join(
+        f"{r['isa']}{' (forced)' if r['isa'] != data['cpu_isa'] else ''} {r['ours_qps'] / r['naive_qps']:.1f}x "
+        f"({r['ours_qps'] / 1e6:.2f} M queries/s, "
+        f"{r['share_of_fma_bound']:.0%} of the FMA bound)" for r in rows)
+        + "; [per level](docs/results.md#synthesis-evaluation-speed)")
 
 
 def rendering_summary(data: dict) -> str:
