@@ -21,8 +21,9 @@ coherence p90** and **identity with tiling** (:mod:`dynbtf.synthesis.coherence`,
 repeats, 16-texel patches). Targets (issue "synthesis the artist steers"): coherence p90 at most 0.10 with
 identity at most 0.35.
 
-Run: ``python benchmarks/bench_whole_elements.py [--models DIR] [--fit-minutes 3]`` (about 4 minutes per fit,
-then a minute per material). Writes ``benchmarks/results/whole_elements.json`` (docs/synthesis.md's table).
+Run: ``python benchmarks/bench_whole_elements.py [--models DIR] [--fit-minutes 3] [--images docs/images]`` (about
+4 minutes per fit, then a minute per material; ``--images``: ``whole_elements.png``, a row per wall, tile | struct |
+struct on the wall fitted with ``--texels whole``). Writes ``benchmarks/results/whole_elements.json`` (docs/synthesis.md's table).
 """
 
 from __future__ import annotations
@@ -178,12 +179,39 @@ def measure(name: str, model: Path, whole: Path | None) -> list[dict]:
     return rows
 
 
+def comparison_image(models: dict, folder: Path, size: int = 512, scale: float = 4.0) -> Path:
+    """``whole_elements.png``: a row per wall, columns tile | struct | struct on the wall fitted with ``--texels
+    whole`` (where it was resampled), ``scale x scale`` repeats far from the origin (view (0, 0), light (40, 30))."""
+    from dynbtf.io import save_image
+    from dynbtf.synthesized import synthesized_btf
+
+    gap, rows = 6, []
+    for name, (model, whole) in models.items():
+        panels = []
+        for fitted, method in ((model, "tile"), (model, "struct"), (whole, "struct")):
+            if fitted is None:
+                image = np.ones((size, size, 3), np.float32)
+            else:
+                btf = synthesized_btf(fitted, method, scale=scale, seed=0)
+                c = FAR / scale
+                image = btf.image(view=(0.0, 0.0), light=(40.0, 30.0), uv_rect=(c, c, c + 1.0, c + 1.0),
+                                  resolution=size, spp=3)
+            panels += [image, np.ones((size, gap, 3), np.float32)]
+        rows += [np.concatenate(panels[:-1], 1), np.ones((gap, 3 * size + 2 * gap, 3), np.float32)]
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "whole_elements.png"
+    save_image(path, np.concatenate(rows[:-1], 0))
+    return path
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--models", type=Path, default=None, help="folder of the fitted walls (default: a temporary "
                                                                    "one, fitted here)")
     parser.add_argument("--fit-minutes", type=float, default=3.0, help="time budget of each fit (default 3)")
     parser.add_argument("--json", type=Path, default=Path(__file__).resolve().parent / "results" / "whole_elements.json")
+    parser.add_argument("--images", type=Path, default=None, help="folder for whole_elements.png (a row per wall: "
+                                                                   "tile | struct | struct, --texels whole)")
     args = parser.parse_args()
     os.environ["DYNBTF_COMPILED_CACHE"] = "off"  # every material built here, with the seam rule it names
     from results_io import header, write_result
@@ -191,10 +219,13 @@ def main() -> None:
     register()
     with tempfile.TemporaryDirectory() as scratch:
         folder = args.models or Path(scratch)
-        rows = []
+        rows, models = [], {}
         for name in BRICKS:
-            rows += measure(name, fit_model(name, folder, args.fit_minutes),
+            models[name] = (fit_model(name, folder, args.fit_minutes),
                             fit_model(name, folder, args.fit_minutes, texels="whole"))
+            rows += measure(name, *models[name])
+        if args.images is not None:
+            print(f"wrote {comparison_image(models, args.images)}", file=sys.stderr)
     result = header("whole_elements", "bench_whole_elements.py") | {
         "size": SIZE, "scale": SCALE, "seeds": list(SEEDS), "bricks": {k: v[:3] for k, v in BRICKS.items()},
         "rows": rows}

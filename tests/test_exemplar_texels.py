@@ -173,3 +173,18 @@ def test_a_fit_many_task_with_texels_fits_the_resampled_btf(tmp_path):
     assert row["status"] == "done", row.get("error")
     record = read_model_metadata(task.model_path)["provenance"]["source"]
     assert (record["height"], record["width"], record["resampled_from"]) == (66, 66, [64, 64])
+
+
+def test_struct_advises_whole_texels_only_where_its_elements_are_not():
+    import torch
+
+    from dynbtf.synthesis.cell_quilting import CellQuilting
+
+    def plane(btf):
+        return torch.from_numpy(np.asarray(btf.image(0, 0)))
+
+    third = CellQuilting(plane(_bond(3, 6)), seed=0, fast=False).advice()
+    assert len(third) == 1 and "the elements are 21.33 x 10.67 texels, not whole texels" in third[0]
+    assert "--texels whole` (66 x 66 texels)" in third[0]
+    assert CellQuilting(plane(_bond(4, 8)), seed=0, fast=False).advice() == []
+    assert CellQuilting(plane(ResampledBTF(_bond(3, 6), 66, 66)), seed=0, fast=False).advice() == []

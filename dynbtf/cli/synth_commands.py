@@ -323,6 +323,8 @@ def _build(rep, name: str, *, scale: float, seed: int | None, quilt_size: int | 
     rep = btf.model
     if btf.synthesizer.choice is not None:
         typer.echo(btf.synthesizer.choice.line)
+    for line in btf.synthesizer.advice():
+        typer.echo(line)
     if name == "quilt" and quilt_size is not None:
         size = btf.synthesizer.size
         typer.echo(f"quilt: {quilt_size} x {quilt_size} exemplar repeats = {size[0]} x {size[1]} texels, "

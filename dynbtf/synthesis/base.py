@@ -208,6 +208,11 @@ class Synthesizer(abc.ABC):
         variation controls (``struct``'s per-element brightness and tint). None unless a method has them on."""
         return None
 
+    def advice(self) -> list[str]:
+        """Lines for the person who chose this synthesis: what would make it better for this exemplar (``struct``:
+        a model fitted at a size where its elements are whole texels). None by default; the CLI prints them."""
+        return []
+
     def frame_rotation(self, points: torch.Tensor) -> torch.Tensor | None:
         """``(cos a, sin a)`` ``(N, 2)`` float64 of the angle ``a`` (about the normal) by which the view and the light
         are turned into the frame of the content synthesized at ``points (N, 2)`` (exemplar repeats), or None: the

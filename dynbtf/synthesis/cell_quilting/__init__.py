@@ -64,7 +64,7 @@ from ..base import register_synthesizer
 from ..hash import hash_vertex
 from ..lattice import split_uv
 from ..quilting import min_error_seam
-from ..elements import check_element_grid, check_variation, element_gain, element_grid
+from ..elements import check_element_grid, check_variation, element_gain, element_grid, whole_element_size
 from ..structure import StructureAnalysis, analyze_structure
 from ..tiling import Tiling
 
@@ -466,6 +466,22 @@ class CellQuilting(Tiling):
                              "earlier dynbtf); compile the material again")
         self.prepared = prepared
         self._numpy: tuple | None = None
+
+    def advice(self) -> list[str]:
+        """A line when the elements are not whole texels (:func:`~dynbtf.synthesis.elements.whole_element_size`):
+        lattice copies shifted by whole texels then cannot line their joints up, and a model fitted with
+        ``dynbtf fit --texels whole`` can."""
+        grid = self.prepared.element_grid
+        if grid is None:
+            return []
+        h, w, _ = self.exemplar.shape
+        size = whole_element_size(grid, h, w)
+        if size == (h, w):
+            return []
+        columns, rows = int(grid[0]), int(grid[1])
+        return [f"struct: the elements are {w / columns:.4g} x {h / rows:.4g} texels, not whole texels, so the seams "
+                f"cannot follow every joint; a model fitted with `dynbtf fit ... --texels whole` ({size[0]} x "
+                f"{size[1]} texels) keeps the elements whole"]
 
     # ------------------------------------------------------------ evaluation
     @property
