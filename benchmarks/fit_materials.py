@@ -11,6 +11,10 @@ stereo estimate, then unless it decides a trial of each kind, the winner's fit c
 held-out monitor stops improving), and adds the chosen kind, the stereo's trusted fraction, the trial scores and the
 whole command's wall time (stereo and trials included) to each row ("vs earlier default" needs the Triple Plane's
 trial: "-" where the stereo decided alone).
+With ``--seeds N`` each material is fitted with seeds 0..N-1; ``--json FILE`` writes the rows (each number's mean
+and min-max over the seeds) as one part of FILE: ``python benchmarks/fit_materials.py --materials
+stone,leather,lacquered_wood,woven_fabric --seeds 3 --precision bf16 --json benchmarks/results/quality.json`` makes
+docs/results.md's Triple Plane quality table.
 Each material is fitted with :func:`dynbtf.training.fit` (resumable: re-running
 with the same ``--out`` continues unfinished fits), evaluated on its held-out
 pairs with :func:`dynbtf.training.evaluate.evaluate_model` (tables and
@@ -52,23 +56,32 @@ def main() -> None:
     parser.add_argument("--converge", action="store_true", help="fit --repr as `dynbtf fit BTF --repr KIND -o M` "
                         "does (the auto recipe: until the held-out monitor stops improving); --epochs, --lr-scale, "
                         "--texel-groups are ignored")
+    parser.add_argument("--seeds", type=int, default=1, help="fit each material with seeds 0..N-1 (the training "
+                        "seed: initialization, batches and the held-out split)")
+    parser.add_argument("--precision", default=None, help="training precision (fp32, bf16; default: the recipe's)")
+    parser.add_argument("--json", type=Path, default=None, help="write the rows (each number's mean and min-max "
+                        "over the seeds) as part --part of this JSON file (e.g. benchmarks/results/quality.json, "
+                        "docs/results.md's quality tables); its other parts are kept")
+    parser.add_argument("--part", default=None, help="the part of --json (default: the kind, '-' written '_')")
     args = parser.parse_args()
     out = Path(args.out)
     rows = []
     specs = args.specs.split(",") if args.specs else [f"sim:{m}?size={args.size}" for m in args.materials.split(",")]
-    for spec in specs:
+    for spec, seed in ((spec, seed) for spec in specs for seed in range(args.seeds)):
         source = open_btf(spec)
         material = re.sub(r"[^A-Za-z0-9_.-]+", "_", spec.replace("sim:", "")).strip("_")
-        model = out / f"{material}.dbtfm"
+        model = out / (f"{material}.dbtfm" if seed == 0 else f"{material}_seed{seed}.dbtfm")
         start = time.perf_counter()
+        precision = {} if args.precision is None else {"precision": args.precision}
         if args.default or args.converge:
             out.mkdir(parents=True, exist_ok=True)
-            config, summary = choose_config(source, model, recipe="auto", minutes=args.minutes)
+            config, summary = choose_config(source, model, recipe="auto", minutes=args.minutes, seed=seed,
+                                            **precision)
             print(summary)
             get_fitter("auto" if args.default else args.repr)(source, model, config)
         else:
             config = TrainConfig(epochs=args.epochs, max_minutes=args.minutes, lr_scale=args.lr_scale,
-                                 texel_groups=args.texel_groups)
+                                 texel_groups=args.texel_groups, seed=seed, **precision)
             get_fitter(args.repr)(source, model, config)
         wall = time.perf_counter() - start
         rep, meta = load_model(model)
@@ -76,7 +89,7 @@ def main() -> None:
                             images=4)
         prov = meta["provenance"]
         by_angle = ev.by_angle or {}
-        rows.append({"material": material, **ev.mean,
+        rows.append({"material": material, "seed": seed, "spec": spec, **ev.mean,
                      "psnr_grazing": by_angle.get("grazing", {}).get("psnr", float("nan")),
                      "psnr_others": by_angle.get("others", {}).get("psnr", float("nan")),
                      "n_grazing": by_angle.get("grazing", {}).get("n", 0), "epochs": prov["epochs_completed"],
@@ -98,6 +111,46 @@ def main() -> None:
         print(f"| {r['material']} | {r['kind']} | {r['psnr']:.2f} | {r['psnr_grazing']:.2f} / {r['psnr_others']:.2f} | "
               f"{r['psnr_fixed1']:.2f} | {r['dssim']:.4f} | {r['flip']:.4f} | {r['epochs']:.2f} | {r['minutes']:.1f} | "
               f"{r['wall_minutes']:.1f} | {today} |")
+    if args.json is not None:
+        write_part(args.json, args.part or args.repr.replace("-", "_"), rows, args)
+
+
+#: The kind of each simulated material, as the quality tables name it.
+MATERIAL_NOTES = {"stone": "stochastic, deep relief", "leather": "stochastic", "lacquered_wood": "glossy",
+                  "woven_fabric": "structured", "ceramic_tiles": "structured", "brick_wall": "structured"}
+#: The numbers of a quality row, each kept per seed with its mean and min-max.
+QUALITY_KEYS = ("psnr", "psnr_grazing", "psnr_others", "psnr_fixed1", "dssim", "flip")
+
+
+def write_part(path: Path, part: str, rows: list[dict], args) -> None:
+    """Part ``part`` of the JSON file ``path`` (created, or its other parts kept): the command and machine, and a row
+    per material with each number of :data:`QUALITY_KEYS` and the fit's minutes as ``{"mean", "range",
+    "per_seed"}`` over the seeds."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from results_io import header, write_result
+
+    data = json.loads(path.read_text()) if path.exists() else {"benchmark": path.stem}
+    run = header(path.stem, "fit_materials.py")
+    seeds = sorted({r["seed"] for r in rows})
+    table = []
+    for material in dict.fromkeys(r["material"] for r in rows):
+        mine = [r for r in rows if r["material"] == material]
+        name = material.split("_size")[0] if material.startswith(tuple(MATERIAL_NOTES)) else material
+        entry = {"material": name.replace("_", " "), "note": MATERIAL_NOTES.get(name)}
+        for key, values in [(k, [r[k] for r in mine]) for k in QUALITY_KEYS] + [("fit_minutes",
+                                                                                  [r["minutes"] for r in mine])]:
+            entry[key] = {"mean": float(sum(values) / len(values)), "range": [float(min(values)), float(max(values))],
+                          "per_seed": [float(v) for v in values]}
+        table.append(entry)
+    data[part] = {key: run[key] for key in ("command", "commit", "cpu", "cpu_isa", "cores")} | {
+        "seeds": seeds, "conditions": f"{args.size} x {args.size} simulated BTFs; "
+        + (f"{args.epochs} epochs, learning rates x{args.lr_scale:g}, {args.texel_groups} texel groups"
+           if not (args.default or args.converge) else "the auto recipe")
+        + (f", precision {args.precision}" if args.precision else "") + "; each number the mean over the seeds "
+        "(min-max); the held-out split is the seed's", "rows": table}
+    write_result(path, data)
 
 
 def earlier_default_minutes(source, provenance: dict) -> float | None:
