@@ -518,7 +518,15 @@ def _transposed(points: list[dict], *rows: tuple) -> str:
 _MEASURED_FROM = {"structured": "structured_summary", "demo": "demo_summary", "sampling": "sampling_summary",
                   "rendering": "rendering_summary", "compiled_material": "compiled_material_summary",
                   "web": "web_summary", "filtering": "filtering_summary", "training": "training_summary",
-                  "evaluation": "evaluation_summary"}
+                  "evaluation": "evaluation_summary", "quality": "quality_summary"}
+
+
+def quality_summary(data: dict) -> str:
+    """README.md's Measured line of fit_materials.py's Triple Plane part: held-out PSNR / FLIP per material (the
+    mean over the seeds)."""
+    part = data["triple"]
+    seeds = f" (mean of {len(part['seeds'])} seeds)" if part.get("seeds") else ""
+    return ", ".join(f"{r['material']} {r['psnr']:.1f} dB / {r['flip']:.3f}" for r in map(_means, part["rows"])) + seeds
 
 
 def training_summary(data: dict) -> str:
@@ -606,13 +614,26 @@ def measured(data: dict) -> str:
 
 
 def _quality(part: dict) -> str:
-    lines = _head("material", "PSNR (dB)", "grazing / others", "PSNR, fixed peak 1", "DSSIM", "FLIP", "fit (min)")
+    """A quality table: a row per material. A measured part (fit_materials.py ``--json``) holds each number per seed
+    (the mean, with the min-max of PSNR); a recorded part, the hand-typed numbers."""
+    if part.get("recorded_from"):
+        lines = []
+    else:
+        lines = [f"Measured on {_machine(part)} by `{part['command']}` ({len(part['seeds'])} seeds; {part['conditions']}).",
+                 ""]
+    lines += _head("material", "PSNR (dB)", "grazing / others", "PSNR, fixed peak 1", "DSSIM", "FLIP", "fit (min)")
     for r in part["rows"]:
-        c = _cells(r)
-        lines.append(_line(_named(r, "material"), c("psnr", ".2f"),
-                           f"{r['psnr_grazing']:.2f} / {r['psnr_others']:.2f}", c("psnr_fixed1", ".2f"),
-                           c("dssim", ".3f"), c("flip", ".3f"), c("fit_minutes", ".1f")))
+        c = _cells(_means(r))
+        psnr = _spread(r["psnr"], ".2f") if isinstance(r["psnr"], dict) else c("psnr", ".2f")
+        m = _means(r)
+        lines.append(_line(_named(r, "material"), psnr, f"{m['psnr_grazing']:.2f} / {m['psnr_others']:.2f}",
+                           c("psnr_fixed1", ".2f"), c("dssim", ".3f"), c("flip", ".3f"), c("fit_minutes", ".1f")))
     return "\n".join(lines)
+
+
+def _means(row: dict) -> dict:
+    """``row`` with each number measured per seed (``{"mean", "range", "per_seed"}``) replaced by its mean."""
+    return {k: v["mean"] if isinstance(v, dict) and "mean" in v else v for k, v in row.items()}
 
 
 def quality_triple(data: dict) -> str:
@@ -628,7 +649,7 @@ def quality_parallax(data: dict) -> str:
 def quality_compared(data: dict) -> str:
     """parallax.md: quality.json's two kinds side by side, the better PSNR bold, the materials parallax improves
     first."""
-    flat = {r["material"]: r for r in data["triple"]["rows"]}
+    flat = {r["material"]: _means(r) for r in data["triple"]["rows"]}
 
     def scores(r: dict, other: dict) -> str:
         psnr = f"**{r['psnr']:.2f}**" if r["psnr"] > other["psnr"] else f"{r['psnr']:.2f}"
@@ -636,7 +657,7 @@ def quality_compared(data: dict) -> str:
 
     lines = _head("material", "Triple Plane: PSNR (grazing / others) / DSSIM / FLIP",
                   "triple-parallax: PSNR (grazing / others) / DSSIM / FLIP", "PSNR fixed peak 1: flat -> parallax")
-    for p in sorted(data["triple_parallax"]["rows"], key=lambda p: p["psnr"] < flat[p["material"]]["psnr"]):
+    for p in sorted(map(_means, data["triple_parallax"]["rows"]), key=lambda p: p["psnr"] < flat[p["material"]]["psnr"]):
         t = flat[p["material"]]
         lines.append(_line(p["material"], scores(t, p), scores(p, t),
                            f"{t['psnr_fixed1']:.2f} -> {p['psnr_fixed1']:.2f}"))
