@@ -94,21 +94,26 @@ def cost_per_query(btfs: dict, repeats: int) -> dict[str, float]:
     return best
 
 
-def comparison_image(model: Path, material: str, folder: Path, size: int = 512) -> Path:
-    """``structured_<material>.png``: rows 8x and 25x, columns tile | hist | auto (view (0, 0), light (40, 30))."""
-    from dynbtf.io import save_image
+def far_panel(model: Path, method: str, scale: float, size: int) -> np.ndarray:
+    """``(size, size, 3)``: ``model`` synthesized with ``method`` (seed 0) at ``scale``, the unit uv square far from
+    the origin (view (0, 0), light (40, 30), 3 x 3 samples per pixel)."""
     from dynbtf.synthesized import synthesized_btf
+
+    btf = synthesized_btf(model, method, scale=scale, seed=0)
+    c = FAR / scale
+    return btf.image(view=(0.0, 0.0), light=(40.0, 30.0), uv_rect=(c, c, c + 1.0, c + 1.0), resolution=size, spp=3)
+
+
+def comparison_image(model: Path, material: str, folder: Path, size: int = 512) -> Path:
+    """``structured_<material>.png``: rows 8x and 25x, columns tile | hist | auto (:func:`far_panel`)."""
+    from dynbtf.io import save_image
 
     rows = []
     gap = 6
     for scale in (8.0, 25.0):
         panels = []
         for method in ("tile", "hist", "auto"):
-            btf = synthesized_btf(model, method, scale=scale, seed=0)
-            c = FAR / scale
-            image = btf.image(view=(0.0, 0.0), light=(40.0, 30.0), uv_rect=(c, c, c + 1.0, c + 1.0),
-                              resolution=size, spp=3)
-            panels += [image, np.ones((size, gap, 3), np.float32)]
+            panels += [far_panel(model, method, scale, size), np.ones((size, gap, 3), np.float32)]
         rows += [np.concatenate(panels[:-1], 1), np.ones((gap, 3 * size + 2 * gap, 3), np.float32)]
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"structured_{material}.png"

@@ -182,20 +182,15 @@ def measure(name: str, model: Path, whole: Path | None) -> list[dict]:
 def comparison_image(models: dict, folder: Path, size: int = 512, scale: float = 4.0) -> Path:
     """``whole_elements.png``: a row per wall, columns tile | struct | struct on the wall fitted with ``--texels
     whole`` (where it was resampled), ``scale x scale`` repeats far from the origin (view (0, 0), light (40, 30))."""
+    from bench_structured import far_panel
+
     from dynbtf.io import save_image
-    from dynbtf.synthesized import synthesized_btf
 
     gap, rows = 6, []
     for name, (model, whole) in models.items():
         panels = []
         for fitted, method in ((model, "tile"), (model, "struct"), (whole, "struct")):
-            if fitted is None:
-                image = np.ones((size, size, 3), np.float32)
-            else:
-                btf = synthesized_btf(fitted, method, scale=scale, seed=0)
-                c = FAR / scale
-                image = btf.image(view=(0.0, 0.0), light=(40.0, 30.0), uv_rect=(c, c, c + 1.0, c + 1.0),
-                                  resolution=size, spp=3)
+            image = np.ones((size, size, 3), np.float32) if fitted is None else far_panel(fitted, method, scale, size)
             panels += [image, np.ones((size, gap, 3), np.float32)]
         rows += [np.concatenate(panels[:-1], 1), np.ones((gap, 3 * size + 2 * gap, 3), np.float32)]
     folder.mkdir(parents=True, exist_ok=True)
