@@ -23,7 +23,8 @@ identity at most 0.35.
 
 Run: ``python benchmarks/bench_whole_elements.py [--models DIR] [--fit-minutes 3] [--images docs/images]`` (about
 4 minutes per fit, then a minute per material; ``--images``: ``whole_elements.png``, a row per wall, tile | struct |
-struct on the wall fitted with ``--texels whole``). Writes ``benchmarks/results/whole_elements.json`` (docs/synthesis.md's table).
+struct on the wall fitted with ``--texels whole``). Writes ``benchmarks/results/whole_elements.json``
+(docs/synthesis.md's table).
 """
 
 from __future__ import annotations

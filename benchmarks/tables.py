@@ -536,10 +536,12 @@ def training_summary(data: dict) -> str:
     per_level = []
     for isa in dict.fromkeys(r["isa"] for r in data["rows"]):
         for variant, label in (("fast", ""), ("fast, bf16", ", bf16 products")):
-            ratios = {r["btf"]: r["ratio_to_naive"] for r in data["rows"] if r["isa"] == isa and r["variant"] == variant}
+            ratios = {r["btf"]: r["ratio_to_naive"] for r in data["rows"]
+                      if r["isa"] == isa and r["variant"] == variant}
             if ratios:
                 forced = " (forced)" if isa != data["cpu_isa"] else ""
-                per_level.append(f"{isa}{forced}{label} " + " / ".join(f"{ratios[b]:.1f}x" for b in btfs if b in ratios))
+                per_level.append(f"{isa}{forced}{label} "
+                                 + " / ".join(f"{ratios[b]:.1f}x" for b in btfs if b in ratios))
     return (f"ours over the naive recipe's samples/s ({' / '.join(f'`{b}`' for b in btfs)}): " + "; ".join(per_level)
             + "; [per level](docs/results.md#training-speed)")
 
@@ -619,13 +621,13 @@ def _quality(part: dict) -> str:
     if part.get("recorded_from"):
         lines = []
     else:
-        lines = [f"Measured on {_machine(part)} by `{part['command']}` ({len(part['seeds'])} seeds; {part['conditions']}).",
-                 ""]
+        lines = [f"Measured on {_machine(part)} by `{part['command']}` ({len(part['seeds'])} seeds; "
+                 f"{part['conditions']}).", ""]
     lines += _head("material", "PSNR (dB)", "grazing / others", "PSNR, fixed peak 1", "DSSIM", "FLIP", "fit (min)")
     for r in part["rows"]:
-        c = _cells(_means(r))
-        psnr = _spread(r["psnr"], ".2f") if isinstance(r["psnr"], dict) else c("psnr", ".2f")
         m = _means(r)
+        c = _cells(m)
+        psnr = _spread(r["psnr"], ".2f") if isinstance(r["psnr"], dict) else c("psnr", ".2f")
         lines.append(_line(_named(r, "material"), psnr, f"{m['psnr_grazing']:.2f} / {m['psnr_others']:.2f}",
                            c("psnr_fixed1", ".2f"), c("dssim", ".3f"), c("flip", ".3f"), c("fit_minutes", ".1f")))
     return "\n".join(lines)
@@ -657,7 +659,8 @@ def quality_compared(data: dict) -> str:
 
     lines = _head("material", "Triple Plane: PSNR (grazing / others) / DSSIM / FLIP",
                   "triple-parallax: PSNR (grazing / others) / DSSIM / FLIP", "PSNR fixed peak 1: flat -> parallax")
-    for p in sorted(map(_means, data["triple_parallax"]["rows"]), key=lambda p: p["psnr"] < flat[p["material"]]["psnr"]):
+    parallax = map(_means, data["triple_parallax"]["rows"])
+    for p in sorted(parallax, key=lambda p: p["psnr"] < flat[p["material"]]["psnr"]):
         t = flat[p["material"]]
         lines.append(_line(p["material"], scores(t, p), scores(p, t),
                            f"{t['psnr_fixed1']:.2f} -> {p['psnr_fixed1']:.2f}"))
