@@ -25,8 +25,9 @@ compilation/loading, allocator, caches), then the best of ``--repeats`` full run
 
 Printed per level and method: queries/s of each and the speed-up, and our share of the **FMA bound**: the
 decoder's FLOP per query times queries/s over the level's FMA peak on all threads
-(:func:`dynbtf.decoder.native.fma_peak_flops`, measured in the same process), and, on the CPU's own level, a
-per-stage breakdown of our path on one thread. The rows are written as JSON (docs/results.md's table is
+(:func:`dynbtf.decoder.native.fma_peak_flops`, measured in the same process), and, on every level, a
+per-stage breakdown of our hist path on one thread, in nanoseconds per query, beside the time per query one
+thread would take at a given share of its FMA peak. The rows are written as JSON (docs/results.md's table is
 generated from it). Timings on shared machines move 10-50% between runs: compare the ratios of one run.
 """
 
@@ -96,9 +97,9 @@ def naive_eval(model, synth, uv, w_view, w_light):
 
 
 def measure(args) -> dict:
-    """This process's level: ``{"rows": a row per method, "breakdown": the per-stage breakdown on the CPU's own
-    level (else None)}``."""
-    from dynbtf.cpu import active_isa, hardware_isa
+    """This process's level: ``{"rows": a row per method, "breakdown": the per-stage breakdown of hist on one thread
+    (None without hist)}``."""
+    from dynbtf.cpu import active_isa
     from dynbtf.decoder.native import fma_peak_flops
 
     torch.manual_seed(0)
@@ -139,8 +140,12 @@ def measure(args) -> dict:
         print(f"[{isa}] {method:<7} naive {n / t_naive:.3g} q/s, ours {n / t_ours:.3g} q/s ({t_naive / t_ours:.1f}x), "
               f"{bound / t_ours:.1%} of the FMA bound, max |ours - naive| {err:.2g}", file=sys.stderr, flush=True)
     breakdown = None
-    if isa == hardware_isa() and "hist" in args.methods.split(","):
-        breakdown = stage_breakdown(model, uv, w_view, w_light, n) | {"isa": isa}
+    if "hist" in args.methods.split(","):
+        breakdown = stage_breakdown(model, uv, w_view, w_light, n) | {
+            "isa": isa, "fma_peak_gflops_one_thread": fma_peak_flops(isa, threads=1, seconds=1.0) / 1e9,
+            "decoder_flop_per_query": decoder_flops(model),
+            "layers_2_on_flop_per_query": sum(2 * layer.in_features * layer.out_features
+                                              for layer in model.decoder.rest)}
     return {"rows": rows, "breakdown": breakdown}
 
 
@@ -211,7 +216,7 @@ def main() -> None:
 
     from dynbtf.cpu import isa_environment
 
-    rows, breakdown = [], None
+    rows, breakdowns = [], []
     for isa in levels_to_measure(args.isa):
         env = {k: v for k, v in os.environ.items() if k not in isa_environment(isa)} | isa_environment(isa)
         command = [sys.executable, __file__, "--worker", "--methods", args.methods, "--queries", str(args.queries),
@@ -222,9 +227,9 @@ def main() -> None:
             raise SystemExit(f"level {isa}: the measuring process failed")
         measured = json.loads(done.stdout.strip().splitlines()[-1])
         rows += measured["rows"]
-        breakdown = measured["breakdown"] or breakdown
+        breakdowns += [measured["breakdown"]] if measured["breakdown"] else []
     result = header("evaluation", "bench_synthesis_eval.py") | {"queries": args.queries, "rows": rows,
-                                                                  "breakdown": breakdown}
+                                                                  "breakdowns": breakdowns}
     from tables import evaluation
 
     print("\n" + evaluation(result))

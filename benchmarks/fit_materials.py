@@ -138,7 +138,7 @@ def write_part(path: Path, part: str, rows: list[dict], args) -> None:
     for material in dict.fromkeys(r["material"] for r in rows):
         mine = [r for r in rows if r["material"] == material]
         name = material.split("_size")[0] if material.startswith(tuple(MATERIAL_NOTES)) else material
-        entry = {"material": name.replace("_", " "), "note": MATERIAL_NOTES.get(name)}
+        entry = {"material": name.replace("_", " "), "note": MATERIAL_NOTES.get(name), "spec": mine[0]["spec"]}
         for key, values in [(k, [r[k] for r in mine]) for k in QUALITY_KEYS] + [("fit_minutes",
                                                                                   [r["minutes"] for r in mine])]:
             entry[key] = {"mean": float(sum(values) / len(values)), "range": [float(min(values)), float(max(values))],

@@ -71,11 +71,24 @@ def evaluation(data: dict) -> str:
         lines.append(f"| {r['isa']} | {r['method']} | {r['naive_qps'] / 1e6:.2f} | {r['ours_qps'] / 1e6:.2f} | "
                      f"{r['ours_qps'] / r['naive_qps']:.1f}x | {100 * r['share_of_fma_bound']:.1f}% of "
                      f"{r['fma_peak_gflops']:.0f} GFLOP/s |")
-    b = data.get("breakdown")
-    if b:
-        shares = "; ".join(f"{name} {100 * share:.0f}%" for name, share in b["stages"].items())
-        lines += ["", f"Where one hist query's time goes on one thread (`{b['isa']}`, "
-                      f"{b['queries_per_second_one_thread'] / 1e6:.2f} M queries/s): {shares}."]
+    breakdowns = data.get("breakdowns", [])
+    if breakdowns:
+        stages = list(breakdowns[0]["stages"])
+        lines += ["", "Where one hist query's time goes on one thread, in nanoseconds per query; then what a query may "
+                      "take at 30% of that thread's FMA peak (the decoder's FLOP per query over 30% of the peak), and "
+                      "what that leaves the synthesis kernel when the other stages keep their time:", "",
+                  "| level | M queries/s | " + " | ".join(stages) + " | all | layers 2..: share of the thread's FMA "
+                  "peak | at 30%: the query | at 30%: left for the synthesis |",
+                  "|---|---|" + "---|" * (len(stages) + 4)]
+        for b in breakdowns:
+            ns = 1e9 / b["queries_per_second_one_thread"]
+            target = b["decoder_flop_per_query"] / (0.3 * b["fma_peak_gflops_one_thread"])
+            synthesis = ns * b["stages"][stages[0]]
+            rest = b["layers_2_on_flop_per_query"] / (ns * b["stages"]["layers 2.. (native forward)"])
+            lines.append(f"| {b['isa']} | {b['queries_per_second_one_thread'] / 1e6:.2f} | "
+                         + " | ".join(f"{ns * b['stages'][name]:.0f}" for name in stages)
+                         + f" | {ns:.0f} | {100 * rest / b['fma_peak_gflops_one_thread']:.0f}% | {target:.0f} | "
+                         f"{target - (ns - synthesis):.0f} |")
     return "\n".join(lines)
 
 
@@ -704,12 +717,22 @@ def baselines_storage(data: dict) -> str:
 
 
 def baselines_small(data: dict) -> str:
-    """dynbtf compare on sim:leather?size=64: quality, storage and fit time per kind."""
-    lines = _head("kind", "PSNR (fixed peak 1) dB", "DSSIM", "FLIP", "storage B", "positional B", "fit s")
-    for r in data["small"]["rows"]:
+    """dynbtf compare on sim:leather?size=64: quality, storage and fit time per kind. A measured part
+    (bench_baselines.py) holds each number per seed (the mean and its min-max); a recorded one, the hand-typed
+    numbers."""
+    part = data["small"]
+    lines = [] if part.get("recorded_from") else [
+        f"Measured on {_machine(part)} by `{part['command']}` (`{part['btf']}`, {len(part['seeds'])} seeds; "
+        f"{part['conditions']}):", ""]
+    lines += _head("kind", "PSNR (fixed peak 1) dB", "DSSIM", "FLIP", "storage B", "positional B", "fit s")
+    for r in part["rows"]:
         c = _cells(r)
-        lines.append(_line(r["kind"], c("psnr_fixed1", ".2f"), c("dssim", ".4f"), c("flip", ".4f"),
-                           c("model_bytes", ","), c("positional_bytes", ","), c("fit_seconds", "g")))
+
+        def number(key: str, spec: str) -> str:
+            return c(key, text=_spread(r[key], spec)) if isinstance(r[key], dict) else c(key, spec)
+
+        lines.append(_line(r["kind"], number("psnr_fixed1", ".2f"), number("dssim", ".4f"), number("flip", ".4f"),
+                           c("model_bytes", ","), c("positional_bytes", ","), number("fit_seconds", ".0f")))
     return "\n".join(lines)
 
 
@@ -795,11 +818,17 @@ def synthesis_quality_summary(data: dict) -> str:
 
 
 def _fixed_peak(first: str, rows: list[dict], label, digits: int) -> str:
-    """Held-out PSNR (fixed peak 1), DSSIM and FLIP, a row per fit."""
+    """Held-out PSNR (fixed peak 1), DSSIM and FLIP, a row per fit; a number measured per seed as its mean and
+    min-max."""
     lines = _head(first, "held-out PSNR, fixed peak 1 (dB)", "DSSIM", "FLIP")
     for r in rows:
         c = _cells(r)
-        lines.append(_line(label(r), c("psnr_fixed1", ".2f"), c("dssim", f".{digits}f"), c("flip", f".{digits}f")))
+
+        def number(key: str, spec: str) -> str:
+            return c(key, text=_spread(r[key], spec)) if isinstance(r[key], dict) else c(key, spec)
+
+        lines.append(_line(label(r), number("psnr_fixed1", ".2f"), number("dssim", f".{digits}f"),
+                           number("flip", f".{digits}f")))
     return "\n".join(lines)
 
 
@@ -808,10 +837,33 @@ def stone_fetch(data: dict) -> str:
     return _fixed_peak("positional fetch at", data["fetch"]["rows"], lambda r: r["fetch"], 3)
 
 
+#: What the relief scales of the stone table are (the simulator's ``relief`` option).
+_RELIEF_NOTES = {0.0: "flat: spatially varying BRDF only", 1.0: "the material as designed"}
+
+
+def _relief(row: dict) -> float:
+    """The relief scale of a stone table's row: recorded as ``relief``, or the ``relief=`` of a measured row's spec
+    (the simulator's default, 1, where the spec gives none)."""
+    if "relief" in row:
+        return float(row["relief"])
+    found = re.search(r"[?&]relief=([0-9.]+)", row["spec"])
+    return float(found.group(1)) if found else 1.0
+
+
 def stone_relief(data: dict) -> str:
-    """triple_plane.md: the Triple Plane's quality against the simulator's relief scale."""
-    return _fixed_peak("`sim:stone?size=128&relief=...`", data["relief"]["rows"],
-                       lambda r: f"{r['relief']:g}" + _note(r.get("note")), 4)
+    """triple_plane.md: the Triple Plane's quality against the simulator's relief scale. A measured part
+    (fit_materials.py ``--json``) holds each number per seed, the best mean PSNR marked."""
+    part = data["relief"]
+    rows = part["rows"]
+    lines = []
+    if not part.get("recorded_from"):
+        rows = [r | {"bold": ["psnr_fixed1"]} if r is max(rows, key=lambda r: r["psnr_fixed1"]["mean"]) else r
+                for r in rows]
+        lines = [f"Measured on {_machine(part)} by `{part['command']}` ({len(part['seeds'])} seeds; "
+                 f"{part['conditions']}).", ""]
+    return "\n".join(lines) + _fixed_peak("`sim:stone?size=128&relief=...`", rows,
+                                          lambda r: f"{_relief(r):g}" + _note(r.get("note") if "relief" in r else
+                                                                           _RELIEF_NOTES.get(_relief(r))), 4)
 
 
 def stone_limits(data: dict) -> str:

@@ -97,12 +97,15 @@ def run_page(page, *, screenshot=None, window=(1280, 720), timeout: float = 300.
                  f"--window-size={window[0]},{window[1]}", "--enable-logging=stderr", "--v=0"]
         if budget_ms is not None:
             flags.append(f"--virtual-time-budget={int(budget_ms)}")
-        done = subprocess.run([*flags, "--dump-dom", url], capture_output=True, text=True, timeout=timeout)
-        console = [line for line in done.stderr.splitlines() if ":CONSOLE" in line]
         shot = None
-        if screenshot is not None:
+        if screenshot is not None:  # the DOM and the screenshot of one load (a page's shaders compile once)
             shot = Path(screenshot).resolve()
             shot.parent.mkdir(parents=True, exist_ok=True)
+            shot.unlink(missing_ok=True)
+        done = subprocess.run([*flags, "--dump-dom", *([f"--screenshot={shot}"] if shot else []), url],
+                              capture_output=True, text=True, timeout=timeout)
+        console = [line for line in done.stderr.splitlines() if ":CONSOLE" in line]
+        if shot is not None and not shot.exists():  # a Chromium that takes one of the two per run: load again
             subprocess.run([*flags, f"--screenshot={shot}", url], capture_output=True, text=True,
                            timeout=timeout)
             if not shot.exists():

@@ -69,6 +69,44 @@ def test_rendering_table_renders_what_bench_render_writes():
     assert "0.9 vs 1.0 M queries/s (0.90x), max difference 0" in result and target == "match (met; tested)"
 
 
+def test_evaluation_breakdown_states_what_30_percent_of_the_fma_bound_leaves_the_synthesis():
+    """One level's breakdown: 1 M queries/s on one thread is 1,000 ns per query; at 30% of a 10 GFLOP/s peak a
+    6,000-FLOP query may take 2,000 ns, and with the other stages at 400 ns the synthesis is left 1,600 ns; layers 2..
+    at 2,000 FLOP in 200 ns run at 10 GFLOP/s, all of the peak."""
+    tables = _tables()
+    head = {"command": "python benchmarks/bench_synthesis_eval.py", "commit": "abc1234", "cpu": "CPU",
+            "cpu_isa": "avx2", "cores": 2, "queries": 100, "rows": []}
+    stages = {"synthesis kernel": 0.6, "layer 1 (BLAS + angular kernel)": 0.15, "layers 2.. (native forward)": 0.2,
+              "eval's own work (validation, chunks)": 0.05}
+    breakdown = {"isa": "avx2", "queries_per_second_one_thread": 1e6, "stages": stages,
+                 "fma_peak_gflops_one_thread": 10.0, "decoder_flop_per_query": 6000, "layers_2_on_flop_per_query": 2000}
+    text = tables.evaluation(head | {"breakdowns": [breakdown]})
+    assert "| avx2 | 1.00 | 600 | 150 | 200 | 50 | 1000 | 100% | 2000 | 1600 |" in text, text
+
+
+def test_baselines_small_renders_a_measured_part_with_its_spread():
+    """A part bench_baselines.py writes: each quality number as its mean and min-max over the seeds, the best mean
+    bold, the storage as counted; a recorded part keeps its plain numbers."""
+    tables = _tables()
+
+    def spread(*values):
+        return {"mean": sum(values) / len(values), "range": [min(values), max(values)], "per_seed": list(values)}
+
+    row = {"kind": "triple", "psnr": spread(30.0, 31.0), "psnr_fixed1": spread(40.0, 41.0, 42.0),
+           "dssim": spread(0.03), "flip": spread(0.04, 0.05), "model_bytes": 300812, "positional_bytes": 262144,
+           "fit_seconds": spread(100.0, 110.0), "bold": ["psnr_fixed1"]}
+    part = {"command": "python benchmarks/bench_baselines.py", "commit": "abc1234", "cpu": "CPU", "cpu_isa": "avx2",
+            "cores": 2, "btf": "sim:leather?size=64", "seeds": [0, 1, 2], "conditions": "30 epochs", "rows": [row]}
+    text = tables.baselines_small({"small": part})
+    assert "by `python benchmarks/bench_baselines.py` (`sim:leather?size=64`, 3 seeds; 30 epochs)" in text, text
+    assert ("| triple | **41.00 (40.00-42.00)** | 0.0300 | 0.0450 (0.0400-0.0500) | 300,812 | 262,144 | "
+            "105 (100-110) |") in text, text
+    recorded = {"recorded_from": "the hand-typed docs/results.md", "rows": [
+        {"kind": "pca", "psnr_fixed1": 38.97, "dssim": 0.0513, "flip": 0.0768, "model_bytes": 1, "positional_bytes": 1,
+         "fit_seconds": 3}]}
+    assert "| pca | 38.97 | 0.0513 | 0.0768 | 1 | 1 | 3 |" in tables.baselines_small({"small": recorded})
+
+
 def _recorded_parts(data: dict):
     """The parts of a recorded data file that state a measurement: every dict holding rows or points."""
     if "rows" in data or "points" in data:
@@ -78,19 +116,30 @@ def _recorded_parts(data: dict):
             yield from _recorded_parts(value)
 
 
+def _recorded(data: dict):
+    """The recorded measurements in a data file: the whole file, or each of its parts, that says ``"recorded_from"``
+    (a file whose benchmark now writes some of its parts keeps the others recorded)."""
+    if "recorded_from" in data:
+        yield data
+        return
+    for value in data.values():
+        if isinstance(value, dict):
+            yield from _recorded(value)
+
+
 def test_recorded_measurements_name_their_command_and_machine():
-    """Each recorded data file (``"recorded_from"``, other than speed.json, checked above) states for each part, or
-    for each of its rows, the command and machine (null where the hand-typed text did not say); a recorded prose
-    cell takes its numbers from the row's ``"values"``, numbers all."""
+    """Each recorded data file or part (``"recorded_from"``, other than speed.json, checked above) states for each
+    part, or for each of its rows, the command and machine (null where the hand-typed text did not say); a recorded
+    prose cell takes its numbers from the row's ``"values"``, numbers all."""
     import json
 
     tables = _tables()
-    recorded = {path.stem: json.loads(path.read_text()) for path in sorted(tables.RESULTS.glob("*.json"))
-                if path.stem != "speed"}
-    recorded = {name: data for name, data in recorded.items() if "recorded_from" in data}
-    assert recorded
+    files = {path.stem: json.loads(path.read_text()) for path in sorted(tables.RESULTS.glob("*.json"))
+             if path.stem != "speed"}
+    recorded = [(name, data) for name, whole in files.items() for data in _recorded(whole)]
+    assert "quality" in {name for name, _ in recorded}  # a file whose parts are recorded one by one is read too
     machine = {"command", "cpu", "cpu_isa", "cores"}
-    for name, data in recorded.items():
+    for name, data in recorded:
         assert data["recorded_from"].startswith("the hand-typed "), name
         for part in _recorded_parts(data):
             for row in part.get("rows", []):

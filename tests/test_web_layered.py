@@ -182,7 +182,7 @@ def _viewer_run(directory, tmp_path, name, paint, query):
     page.write_text((directory / "index.html").read_text().replace("</body>", _PAINT.replace("__JOB__", job) +
                                                                     "</body>", 1))
     try:
-        return run_page(page, screenshot=tmp_path / f"{name}.png", window=(900, 600), budget_ms=30000, query=query)
+        return run_page(page, screenshot=tmp_path / f"{name}.png", window=(900, 600), budget_ms=5000, query=query)
     finally:
         page.unlink()
 
