@@ -480,6 +480,17 @@ def _cells(row: dict):
     return c
 
 
+def _numbers(row: dict):
+    """``n(key, spec)``: :func:`_cells`' cell of ``row[key]``, a number measured per seed (``{"mean", "range",
+    "per_seed"}``) written as its mean and min-max (:func:`_spread`)."""
+    c = _cells(row)
+
+    def n(key: str, spec: str) -> str:
+        return c(key, text=_spread(row[key], spec)) if isinstance(row[key], dict) else c(key, spec)
+
+    return n
+
+
 def _note(text: str | None) -> str:
     """`` (text)``, or nothing."""
     return f" ({text})" if text else ""
@@ -726,11 +737,7 @@ def baselines_small(data: dict) -> str:
         f"{part['conditions']}):", ""]
     lines += _head("kind", "PSNR (fixed peak 1) dB", "DSSIM", "FLIP", "storage B", "positional B", "fit s")
     for r in part["rows"]:
-        c = _cells(r)
-
-        def number(key: str, spec: str) -> str:
-            return c(key, text=_spread(r[key], spec)) if isinstance(r[key], dict) else c(key, spec)
-
+        c, number = _cells(r), _numbers(r)
         lines.append(_line(r["kind"], number("psnr_fixed1", ".2f"), number("dssim", ".4f"), number("flip", ".4f"),
                            c("model_bytes", ","), c("positional_bytes", ","), number("fit_seconds", ".0f")))
     return "\n".join(lines)
@@ -822,11 +829,7 @@ def _fixed_peak(first: str, rows: list[dict], label, digits: int) -> str:
     min-max."""
     lines = _head(first, "held-out PSNR, fixed peak 1 (dB)", "DSSIM", "FLIP")
     for r in rows:
-        c = _cells(r)
-
-        def number(key: str, spec: str) -> str:
-            return c(key, text=_spread(r[key], spec)) if isinstance(r[key], dict) else c(key, spec)
-
+        number = _numbers(r)
         lines.append(_line(label(r), number("psnr_fixed1", ".2f"), number("dssim", f".{digits}f"),
                            number("flip", f".{digits}f")))
     return "\n".join(lines)
