@@ -292,11 +292,37 @@ def load_image(path) -> np.ndarray:
 
 
 
+#: The last painted images read, by file (:func:`load_painted_image`): ``(real path, size, modification time)`` ->
+#: the image. A command checks its ``--target`` before anything loads and the Mitsuba plugin reads it again.
+_PAINTED: dict[tuple, np.ndarray] = {}
+_PAINTED_KEPT = 4
+
+
 def load_painted_image(path, name: str = "image") -> np.ndarray:
     """A painted grey image (a layered material's mask, a guided synthesis' target) as ``(H, W)`` float64 in
     ``[0, 1]``: a PNG or JPEG as painted, its stored grey levels over the maximum (a 50% grey is 0.5, a level saved
     as 255 exactly 1); an EXR's values as they are; colour images by the mean of R, G and B. ``name`` (e.g.
-    ``"--mask"``) is named in the error for values outside ``[0, 1]``."""
+    ``"--mask"``) is named in the error for values outside ``[0, 1]``.
+
+    A file read again unchanged (the same size and modification time) is not decoded again: the caller gets a
+    copy of the image read before."""
+    try:
+        stat = os.stat(path)
+        key = (os.path.realpath(path), stat.st_size, stat.st_mtime_ns)
+    except OSError:
+        key = None  # load_image says what is wrong with the path
+    if key in _PAINTED:
+        return _PAINTED[key].copy()
+    image = _read_painted_image(path, name)
+    if key is not None:
+        while len(_PAINTED) >= _PAINTED_KEPT:
+            _PAINTED.pop(next(iter(_PAINTED)))
+        _PAINTED[key] = image.copy()
+    return image
+
+
+def _read_painted_image(path, name: str) -> np.ndarray:
+    """:func:`load_painted_image`'s decoding and checks."""
     image = np.asarray(load_image(path), dtype=np.float64)
     if not str(path).lower().endswith(".exr"):
         # back to the stored levels, on the grid of 16-bit levels (which holds every 8-bit level k / 255 exactly)

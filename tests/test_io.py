@@ -72,3 +72,29 @@ def test_check_image_path_is_the_rule_save_image_applies(tmp_path):
         with pytest.raises(InputError, match=r"unsupported image extension .*expected \.png, \.jpg or \.exr"):
             check_image_path(tmp_path / bad)
     assert not (tmp_path / "a.tiff").exists()
+
+
+def test_a_painted_image_read_again_unchanged_is_not_decoded_again(tmp_path, monkeypatch):
+    """``render --target`` checks the image, then the plugin reads it: one decode. A changed file is read anew, and the
+    caller's copy is its own."""
+    import dynbtf.io as io
+
+    path = tmp_path / "target.png"
+    levels = np.array([[0, 128, 255]], dtype=np.float64) / 255.0
+    save_image(path, srgb_to_linear(np.repeat(levels[..., None], 3, axis=-1)).astype(np.float32))
+    decoded = []
+    monkeypatch.setattr(io, "load_image", lambda p: decoded.append(p) or load_image(p))
+    first = io.load_painted_image(path, "--target")
+    np.testing.assert_array_equal(first, levels)  # the stored grey levels over 255
+    first[:] = 7.0  # the caller's copy
+    np.testing.assert_array_equal(io.load_painted_image(str(path), "--target"), levels)
+    assert len(decoded) == 1
+    save_image(path, np.zeros((1, 3, 3), dtype=np.float32))
+    os.utime(path, ns=(os.stat(path).st_atime_ns, os.stat(path).st_mtime_ns + 10 ** 9))  # a later modification
+    np.testing.assert_array_equal(io.load_painted_image(path, "--target"), np.zeros((1, 3)))
+    assert len(decoded) == 2
+    bad = tmp_path / "bad.exr"
+    save_image(bad, np.full((2, 2, 3), 2.0, dtype=np.float32))
+    for _ in range(2):  # an image that fails its check is not kept: the error comes each time
+        with pytest.raises(InputError, match="--target .*bad.exr: expected grey values in"):
+            io.load_painted_image(bad, "--target")
