@@ -489,18 +489,31 @@ template <class Prec, int NV, int NO>
 int run(FusedL1Args* a) {
     const int H = VW * NV, C = a->out_channels, L = a->n_layers, B = a->images, n = a->texels_per_group;
     const float slope = a->slope;
-    static thread_local Prec prec;  // weight layouts: per thread, reused between calls
-    prec.prepare(a);
     typedef typename Prec::act_t act_t;
-    // per tile: activations act[k] (the input of layer k + 2; act[0] = a1) as the products read them,
-    // gain[k] = lrelu'(pre-activation of act[k]) in fp32, gradients in fp32 and as the products read them
-    alignas(64) static thread_local act_t act[MAX_LAYERS][TILE * MAX_HIDDEN];
-    alignas(64) static thread_local float gain[MAX_LAYERS][TILE * MAX_HIDDEN];
-    alignas(64) static thread_local float a1[TILE * MAX_HIDDEN];
-    alignas(64) static thread_local float dz[2][TILE * MAX_HIDDEN];
-    alignas(64) static thread_local act_t dz_low[TILE * MAX_HIDDEN];
-    alignas(64) static thread_local float out[TILE * OUT_LD];
-    alignas(64) static thread_local float dgrad_p[TILE * MAX_HIDDEN];
+    // per thread, reused between calls: the weight layouts, and per tile the activations act[k] (the input of
+    // layer k + 2; act[0] = a1) as the products read them, gain[k] = lrelu'(pre-activation of act[k]) in fp32,
+    // gradients in fp32 and as the products read them
+    struct Scratch {
+        Prec prec;
+        alignas(64) act_t act[MAX_LAYERS][TILE * MAX_HIDDEN];
+        alignas(64) float gain[MAX_LAYERS][TILE * MAX_HIDDEN];
+        alignas(64) float a1[TILE * MAX_HIDDEN];
+        alignas(64) float dz[2][TILE * MAX_HIDDEN];
+        alignas(64) act_t dz_low[TILE * MAX_HIDDEN];
+        alignas(64) float out[TILE * OUT_LD];
+        alignas(64) float dgrad_p[TILE * MAX_HIDDEN];
+    };
+    static thread_local Scratch scratch;
+    Scratch& own = scratch;  // one thread-local lookup per call, not one per use in the loops
+    auto& prec = own.prec;
+    auto& act = own.act;
+    auto& gain = own.gain;
+    auto& a1 = own.a1;
+    auto& dz = own.dz;
+    auto& dz_low = own.dz_low;
+    auto& out = own.out;
+    auto& dgrad_p = own.dgrad_p;
+    prec.prepare(a);
     alignas(64) float bias_out[OUT_LD] = {0};
     for (int c = 0; c < C; ++c) bias_out[c] = a->biases[L - 1][c];
     const vf one = splat(1.f), zero = vf{}, sl = splat(slope);
