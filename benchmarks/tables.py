@@ -864,9 +864,9 @@ def stone_relief(data: dict) -> str:
                 for r in rows]
         lines = [f"Measured on {_machine(part)} by `{part['command']}` ({len(part['seeds'])} seeds; "
                  f"{part['conditions']}).", ""]
-    return "\n".join(lines) + _fixed_peak("`sim:stone?size=128&relief=...`", rows,
-                                          lambda r: f"{_relief(r):g}" + _note(r.get("note") if "relief" in r else
-                                                                           _RELIEF_NOTES.get(_relief(r))), 4)
+    return "\n".join(lines + [_fixed_peak("`sim:stone?size=128&relief=...`", rows,
+                                           lambda r: f"{_relief(r):g}" + _note(r.get("note") if "relief" in r else
+                                                                            _RELIEF_NOTES.get(_relief(r))), 4)])
 
 
 def stone_limits(data: dict) -> str:
