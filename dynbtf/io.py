@@ -12,6 +12,7 @@ import contextlib
 import errno
 import os
 import tempfile
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -296,6 +297,7 @@ def load_image(path) -> np.ndarray:
 #: the image. A command checks its ``--target`` before anything loads and the Mitsuba plugin reads it again.
 _PAINTED: dict[tuple, np.ndarray] = {}
 _PAINTED_KEPT = 4
+_PAINTED_LOCK = threading.Lock()  # Mitsuba may construct plugins on several threads
 
 
 def load_painted_image(path, name: str = "image") -> np.ndarray:
@@ -311,13 +313,16 @@ def load_painted_image(path, name: str = "image") -> np.ndarray:
         key = (os.path.realpath(path), stat.st_size, stat.st_mtime_ns)
     except OSError:
         key = None  # load_image says what is wrong with the path
-    if key in _PAINTED:
-        return _PAINTED[key].copy()
+    with _PAINTED_LOCK:
+        kept = _PAINTED.get(key)
+    if kept is not None:
+        return kept.copy()
     image = _read_painted_image(path, name)
     if key is not None:
-        while len(_PAINTED) >= _PAINTED_KEPT:
-            _PAINTED.pop(next(iter(_PAINTED)))
-        _PAINTED[key] = image.copy()
+        with _PAINTED_LOCK:
+            while len(_PAINTED) >= _PAINTED_KEPT:
+                _PAINTED.pop(next(iter(_PAINTED)))
+            _PAINTED[key] = image.copy()
     return image
 
 
