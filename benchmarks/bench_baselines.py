@@ -22,14 +22,11 @@ import sys
 import time
 from pathlib import Path
 
+from results_io import spread  # benchmarks/ is on the path of a script run from it
+
 #: The quality numbers kept per seed, and whether a higher value is better.
 QUALITY = {"psnr": True, "psnr_fixed1": True, "dssim": False, "flip": False}
 
-
-def spread(values: list[float]) -> dict:
-    """``{"mean", "range", "per_seed"}`` of one number measured per seed."""
-    return {"mean": float(sum(values) / len(values)), "range": [float(min(values)), float(max(values))],
-            "per_seed": [float(v) for v in values]}
 
 
 def summarize(scores_per_seed: list[list]) -> list[dict]:

@@ -43,6 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
+from results_io import spread  # benchmarks/ is on the path of a script run from it
+
 STRUCTURED = ("woven_fabric", "ceramic_tiles", "brick_wall")
 STOCHASTIC = ("leather", "stone")
 METHODS = ("tile", "hist", "hex", "quilt", "struct")
@@ -121,11 +123,6 @@ def comparison_image(model: Path, material: str, folder: Path, size: int = 512) 
     return path
 
 
-def _spread(values: list[float]) -> dict:
-    """``{"mean", "range", "per_seed"}`` of one number measured per seed."""
-    return {"mean": float(np.mean(values)), "range": [float(min(values)), float(max(values))],
-            "per_seed": [float(v) for v in values]}
-
 
 def measure_material(model: Path, material: str, scales: list[float], seeds: list[int], repeats: int
                      ) -> tuple[list[dict], dict]:
@@ -160,10 +157,10 @@ def measure_material(model: Path, material: str, scales: list[float], seeds: lis
         measured = sorted(per_scale)
         row = {"material": material, "method": method, "chosen": choice.method == method,
                "seeds": list(method_seeds), "scales": measured,
-               "coherence_p90": [_spread([r["p90"] for r in per_scale[s]]) for s in measured],
-               "identity": [_spread([r["identity"] for r in per_scale[s]]) for s in measured],
-               "repetition": _spread([q["repetition"]["score"] for q in quality]),
-               "rgb_w1": _spread([q["rgb_w1_over_std_max"] for q in quality]),
+               "coherence_p90": [spread([r["p90"] for r in per_scale[s]]) for s in measured],
+               "identity": [spread([r["identity"] for r in per_scale[s]]) for s in measured],
+               "repetition": spread([q["repetition"]["score"] for q in quality]),
+               "rgb_w1": spread([q["rgb_w1_over_std_max"] for q in quality]),
                "storage_vs_plane": btf.synthesizer.storage_bytes() / plane_bytes,
                "build_seconds": btf.synthesizer.prepared.build_seconds if method == "struct" else built}
         if measured != sorted(scales):

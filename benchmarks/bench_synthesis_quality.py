@@ -23,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
+from results_io import spread  # benchmarks/ is on the path of a script run from it
 
 #: (label, method, parameters, note): the table's rows.
 ROWS = (("tile", "tile", {}, None), ("linear", "linear", {}, None), ("hist", "hist", {}, "default"),
@@ -37,11 +37,6 @@ NUMBERS = {"feature_w1_mean": lambda r: r["feature_w1_over_std_mean"],
            "repetition": lambda r: r["repetition"]["score"],
            "verbatim": lambda r: r["verbatim_fraction"]}
 
-
-def _spread(values: list[float]) -> dict:
-    """``{"mean", "range", "per_seed"}`` of one number measured per seed."""
-    return {"mean": float(np.mean(values)), "range": [float(min(values)), float(max(values))],
-            "per_seed": [float(v) for v in values]}
 
 
 def measure(model: Path, scale: float, seeds: list[int], repeats: int, quilt_repeats: float) -> list[dict]:
@@ -65,7 +60,7 @@ def measure(model: Path, scale: float, seeds: list[int], repeats: int, quilt_rep
             reports.append(report)
             del btf
         row = {"method": label, "synthesizer": method, "seeds": list(method_seeds),
-               **{key: _spread([get(r) for r in reports]) for key, get in NUMBERS.items()},
+               **{key: spread([get(r) for r in reports]) for key, get in NUMBERS.items()},
                "extra_storage_mb": storage / 1e6, "seconds": time.perf_counter() - start}
         if method == "hist" and not params:
             row["gamma"] = parameters.get("gamma")

@@ -129,7 +129,7 @@ def write_part(path: Path, part: str, rows: list[dict], args) -> None:
     import sys
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from results_io import header, write_result
+    from results_io import header, spread, write_result
 
     data = json.loads(path.read_text()) if path.exists() else {"benchmark": path.stem}
     run = header(path.stem, "fit_materials.py")
@@ -141,8 +141,7 @@ def write_part(path: Path, part: str, rows: list[dict], args) -> None:
         entry = {"material": name.replace("_", " "), "note": MATERIAL_NOTES.get(name), "spec": mine[0]["spec"]}
         for key, values in [(k, [r[k] for r in mine]) for k in QUALITY_KEYS] + [("fit_minutes",
                                                                                   [r["minutes"] for r in mine])]:
-            entry[key] = {"mean": float(sum(values) / len(values)), "range": [float(min(values)), float(max(values))],
-                          "per_seed": [float(v) for v in values]}
+            entry[key] = spread(values)
         table.append(entry)
     data[part] = {key: run[key] for key in ("command", "commit", "cpu", "cpu_isa", "cores")} | {
         "seeds": seeds, "conditions": f"{args.size} x {args.size} simulated BTFs; "

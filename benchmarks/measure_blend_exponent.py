@@ -44,6 +44,8 @@ from dynbtf.infinite_btf import SynthesizedBTF
 from dynbtf.synthesized import synthesized_btf
 from dynbtf.texture import fetch_wrap
 
+from results_io import spread  # benchmarks/ is on the path of a script run from it
+
 GAMMAS = (1.0, 3.0, 5.0, 7.0, 10.0)
 SPECKLE_PAIRS = (((0.0, 0.0), (40.0, 30.0)), ((30.0, 0.0), (45.0, 180.0)))
 
@@ -127,11 +129,6 @@ def blended_area(synth, texels: tuple[int, int], side: int = 4, threshold: float
     return float((weights.max(-1).values < threshold).double().mean())
 
 
-def _spread(values: list[float]) -> dict:
-    """``{"mean", "range", "per_seed"}`` of one number measured per seed."""
-    return {"mean": float(np.mean(values)), "range": [float(min(values)), float(max(values))],
-            "per_seed": [float(v) for v in values]}
-
 
 def measure(path: str, seeds: list[int], label: str | None = None, table_only: bool = False) -> list[dict]:
     """A row per variant: the quality report's numbers, the area blended and the speckle, each per seed."""
@@ -155,7 +152,7 @@ def measure(path: str, seeds: list[int], label: str | None = None, table_only: b
         row = {"model": label or Path(path).stem.replace("_", " "), "variant": name, "method": method,
                "gamma": params.get("gamma"), "decorrelate": params.get("decorrelate", True),
                "seeds": list(seeds[:1] if method == "tile" else seeds),
-               **{key: _spread([s[key] for s in per_seed]) for key in per_seed[0]}}
+               **{key: spread([s[key] for s in per_seed]) for key in per_seed[0]}}
         rows.append(row)
         m = {key: value["mean"] for key, value in row.items() if isinstance(value, dict)}
         print(f"{row['model']:<24} {name:<44} feat {m['feature_w1_mean']:.4f}/{m['feature_w1_max']:.4f} "

@@ -60,6 +60,13 @@ def model_record(path: str | Path) -> dict:
             "held_out_psnr": psnr}
 
 
+def spread(values: list[float]) -> dict:
+    """``{"mean", "range", "per_seed"}`` of one number measured per seed (the tables write it as the mean and its
+    min-max)."""
+    return {"mean": float(sum(values) / len(values)), "range": [float(min(values)), float(max(values))],
+            "per_seed": [float(v) for v in values]}
+
+
 def write_result(path: Path, result: dict) -> None:
     """Write ``result`` as JSON to ``path`` (atomically: a temporary file renamed)."""
     path.parent.mkdir(parents=True, exist_ok=True)
