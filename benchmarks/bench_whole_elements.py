@@ -146,8 +146,8 @@ def fit_model(name: str, folder: Path, minutes: float, texels: str | None = None
 def measure(name: str, model: Path, whole: Path | None) -> list[dict]:
     """A row per method on ``model`` (and ``struct`` on ``whole``, the wall fitted with ``--texels whole``, where
     that resampled it): each measure per seed, with mean and range."""
-    from bench_structured import _spread, coherence
-    from results_io import model_record
+    from bench_structured import coherence
+    from results_io import model_record, spread
 
     from dynbtf.synthesis import cell_quilting
     from dynbtf.synthesis.quilting import min_error_cut, min_error_seam
@@ -173,7 +173,7 @@ def measure(name: str, model: Path, whole: Path | None) -> list[dict]:
             per_seed["coherence_p90"].append(float(r["p90"]))
             per_seed["identity"].append(float(r["identity"]))
         row = {"material": name, "method": label, "model": model_record(fitted)}
-        row.update({key: _spread(values) if values else None for key, values in per_seed.items()})
+        row.update({key: spread(values) if values else None for key, values in per_seed.items()})
         rows.append(row)
         print(f"{name:<18} {label:<22} " + "  ".join(f"{k} {row[k]['mean']:.3f}" for k in per_seed if row[k]),
               file=sys.stderr, flush=True)
