@@ -14,6 +14,8 @@ hist, hex, quilt, struct, and what ``auto`` picks, printed with its measurement)
   area's) -- 256 random 16 x 16 patches against every periodic position of the exemplar decoded the same
   way. Quilting is measured at the first scale only (its plane is generated up front: 25 x 25 repeats of a
   128-texel plane are 655 MB);
+* **broken elements** (struct): the share of the elements of an 8 x 8-repeat window whose inner texels read more
+  than one of the exemplar's elements (:func:`dynbtf.synthesis.elements.broken_elements`, from struct's joints);
 * **repetition** and **RGB W1/std** (max over three (view, light) pairs) from the quality report
   (:func:`dynbtf.synthesis.quality.quality_report`, 8 x 8 repeats, the synthesis at the first scale);
 * **cost**: ``SynthesizedBTF.eval`` per query on the same 2^20 random far-away queries, best of
@@ -128,6 +130,7 @@ def measure_material(model: Path, material: str, scales: list[float], seeds: lis
                      ) -> tuple[list[dict], dict]:
     """A row per method: coherence and identity per scale, repetition and RGB W1/std, each per seed (mean, range),
     cost per query against hist's, storage and build time (printed as a table); and auto's choice."""
+    from dynbtf.synthesis.elements import broken_elements
     from dynbtf.synthesis.quality import quality_report
     from dynbtf.synthesized import synthesized_btf
 
@@ -140,7 +143,7 @@ def measure_material(model: Path, material: str, scales: list[float], seeds: lis
         params = {"repeats": scales[0], "progress": False} if method == "quilt" else {}
         method_seeds = seeds[:1] if method == "tile" else seeds  # tiling draws nothing random
         per_scale: dict[float, list[dict]] = {}
-        quality = []
+        quality, broken = [], []
         for seed in method_seeds:
             start = time.perf_counter()
             btf = synthesized_btf(model, method, scale=scales[0], seed=seed, **params)
@@ -153,6 +156,10 @@ def measure_material(model: Path, material: str, scales: list[float], seeds: lis
                 b = btf if scale == scales[0] else synthesized_btf(model, method, scale=scale, seed=seed, **params)
                 per_scale.setdefault(scale, []).append(coherence(b, scale, seed))
             quality.append(quality_report(btf, repeats=8, seed=seed))
+            if method == "struct":
+                synth = btf.synthesizer
+                broken.append(broken_elements(lambda uv: synth.read_positions(uv)[0], synth.prepared.joints.numpy(),
+                                              repeats=scales[0], far=FAR)[0])
         btf, built = first[method]
         measured = sorted(per_scale)
         row = {"material": material, "method": method, "chosen": choice.method == method,
@@ -161,6 +168,7 @@ def measure_material(model: Path, material: str, scales: list[float], seeds: lis
                "identity": [spread([r["identity"] for r in per_scale[s]]) for s in measured],
                "repetition": spread([q["repetition"]["score"] for q in quality]),
                "rgb_w1": spread([q["rgb_w1_over_std_max"] for q in quality]),
+               "broken_elements": spread(broken) if broken else None,
                "storage_vs_plane": btf.synthesizer.storage_bytes() / plane_bytes,
                "build_seconds": btf.synthesizer.prepared.build_seconds if method == "struct" else built}
         if measured != sorted(scales):

@@ -7,10 +7,13 @@ light recessed mortar, rendered by the library's height-field simulator on the U
 fitted (a Triple Plane, ``--fit-minutes`` each, or read from ``--models DIR/<name>.dbtfm``), then synthesized far
 from the origin (1e6 repeats) with, for three seeds each:
 
-* ``struct``: cells meeting along seams that may run along a row (:func:`dynbtf.synthesis.quilting.min_error_seam`)
-  and pay the copies' spread (:func:`dynbtf.synthesis.cell_quilting.copy_spread`);
-* ``struct, straight cuts``: the same cells with the previous seam rule, one column per row at most
-  (:func:`~dynbtf.synthesis.quilting.min_error_cut`) and no spread: what ``struct`` was before whole elements;
+* ``struct``: cells meeting along seams that may run along a row (:func:`dynbtf.synthesis.quilting.min_error_seam`),
+  pay the copies' spread (:func:`dynbtf.synthesis.cell_quilting.copy_spread`) and pay for every texel off the
+  joints (:func:`dynbtf.synthesis.cell_quilting.joint_crossing`);
+* ``struct, no crossing cost``: the same seams without the crossing cost;
+* ``struct, straight cuts``: the same cells with the first seam rule, one column per row at most
+  (:func:`~dynbtf.synthesis.quilting.min_error_cut`), no spread and no crossing cost: what ``struct`` was before
+  whole elements;
 * ``struct, --texels whole``: ``struct`` on the wall fitted at the size at which its bricks are whole texels
   (``dynbtf fit --texels whole``: 66 x 66 for the ``3 x 6`` bond; the ``4 x 8`` bond keeps its 64 x 64);
 * ``hist``: the paper's method, for scale.
@@ -46,6 +49,8 @@ SIZE = 64
 SEEDS = (0, 1, 2)
 #: The row of ``struct`` on the wall fitted with ``dynbtf fit --texels whole``.
 WHOLE_LABEL = "struct, --texels whole"
+#: The row of ``struct`` whose seams do not pay for crossing elements (what ``struct`` was before they did).
+NO_CROSSING_LABEL = "struct, no crossing cost"
 SCALE = 8.0
 FAR = 1e6
 
@@ -154,19 +159,22 @@ def measure(name: str, model: Path, whole: Path | None) -> list[dict]:
     from dynbtf.synthesized import synthesized_btf
 
     rows = []
-    runs = [("struct", "struct", None, model), ("struct, straight cuts", "struct", "straight", model),
-            ("hist", "hist", None, model)]
+    library = cell_quilting.min_error_seam, cell_quilting.SPREAD_WEIGHT, cell_quilting.CROSSING_WEIGHT
+    spread_weight = cell_quilting.SPREAD_WEIGHT
+    runs = [("struct", "struct", None, model), (NO_CROSSING_LABEL, "struct", "no crossing", model),
+            ("struct, straight cuts", "struct", "straight", model), ("hist", "hist", None, model)]
     if whole is not None:
         runs.insert(1, (WHOLE_LABEL, "struct", None, whole))
     for label, method, rule, fitted in runs:
         per_seed = {"broken_bricks": [], "coherence_p90": [], "identity": []}
         for seed in SEEDS:
-            if rule == "straight":  # the previous seams: one column per row, no spread (cache off: see main)
-                cell_quilting.min_error_seam, cell_quilting.SPREAD_WEIGHT = min_error_cut, 0.0
+            rules = {"straight": (min_error_cut, 0.0, 0.0), "no crossing": (min_error_seam, spread_weight, 0.0)}
+            if rule is not None:  # an earlier seam rule (the material cache is off: see main)
+                cell_quilting.min_error_seam, cell_quilting.SPREAD_WEIGHT, cell_quilting.CROSSING_WEIGHT = rules[rule]
             try:
                 btf = synthesized_btf(fitted, method, seed=seed)
             finally:
-                cell_quilting.min_error_seam, cell_quilting.SPREAD_WEIGHT = min_error_seam, 2.0
+                cell_quilting.min_error_seam, cell_quilting.SPREAD_WEIGHT, cell_quilting.CROSSING_WEIGHT = library
             if method == "struct":
                 per_seed["broken_bricks"].append(broken_bricks(name, btf))
             r = coherence(btf, SCALE, seed)

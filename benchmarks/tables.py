@@ -1165,7 +1165,8 @@ def whole_elements(data: dict) -> str:
             p90, identity = row["coherence_p90"]["range"][1], row["identity"]["range"][1]
             how = " with --texels whole" if row["method"] != "struct" else ""
             verdicts.append(f"{row['material']}{how} {'met' if p90 <= 0.10 and identity <= 0.35 else 'missed'} "
-                            f"(p90 at most {p90:.3f}, identity at most {identity:.3f})")
+                            f"(p90 at most {p90:.3f}, identity at most {identity:.3f}; broken bricks at most "
+                            f"{row['broken_bricks']['range'][1]:.1%})")
     lines += ["", "Targets (struct: coherence p90 at most 0.10 with identity at most 0.35, every seed): "
               + "; ".join(verdicts) + "."]
     return "\n".join(lines)
@@ -1239,6 +1240,12 @@ def structured(data: dict) -> str:
                  f"minutes: {met(max(build) <= 60 and large['build_seconds'] <= 600)})")
     else:
         text += f" (at most 1 minute: {met(max(build) <= 60)})"
+    broken = [(m, r["broken_elements"]) for m, r in ((r["material"], r) for r in data["rows"])
+              if r["method"] == "struct" and m in structured_ and r.get("broken_elements")]
+    if broken:
+        text += (". struct's broken elements (an element of the 8 x 8-repeat window whose inner texels read more "
+                 "than one of the exemplar's elements, found from its joints: `elements.broken_elements`): "
+                 + ", ".join(f"{m} {_spread(b, '.1%')}" for m, b in broken))
     text += (f". A structured material repeats its own lattice, so struct's repetition score there "
              f"({_span(rep_struct, '.2f')}) measures the structure kept, not a repeated exemplar; on the "
              f"stochastic materials it reshuffles coarse cells and scores {_span(rep_stoch, '.2f')} "

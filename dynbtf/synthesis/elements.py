@@ -39,7 +39,7 @@ import torch
 from ..errors import InputError
 from .hash import MASK32, SECOND_STREAM, hash_vertex, mix32
 
-__all__ = ["element_grid", "element_instances", "element_gain", "repeat_elements", "check_variation",
+__all__ = ["element_grid", "element_instances", "broken_elements", "element_gain", "repeat_elements", "check_variation",
            "check_element_grid", "whole_element_size", "VARIATION_SALT", "MAX_VARIATION", "MAX_SHIFT_DENOMINATOR"]
 
 #: Xor-ed into the seed of the variation's hashes (a stream apart from the synthesis's own choices).
@@ -225,3 +225,97 @@ def element_gain(points: torch.Tensor, grid, joints: torch.Tensor, seed: int, br
     y = torch.clamp(torch.floor(frac[:, 1] * h).to(torch.int64), 0, h - 1)
     on_joint = joints.to(points.device)[y, x].bool()
     return torch.where(on_joint[:, None], torch.ones_like(log_gain), torch.exp(log_gain)).to(torch.float32)
+
+
+#: Output elements smaller than this share of the median element are not counted by :func:`broken_elements` (specks
+#: of a joint map that cut a stone's chip or a mortar grain off as an element of its own).
+MIN_ELEMENT_SHARE = 0.3
+
+
+def _periodic_labels(elements: np.ndarray) -> np.ndarray:
+    """Connected components (4-neighbours) of ``elements (H, W)`` bool on the torus: int labels, 0 off them."""
+    from scipy import ndimage
+
+    labels, count = ndimage.label(elements)
+    parent = np.arange(count + 1)
+
+    def root(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for a, b in zip(np.concatenate([labels[0], labels[:, 0]]), np.concatenate([labels[-1], labels[:, -1]])):
+        if a and b:
+            parent[root(int(a))] = root(int(b))
+    return np.array([root(int(a)) for a in range(count + 1)])[labels]
+
+
+def _inner(elements: np.ndarray, periodic: bool) -> np.ndarray:
+    """``elements (H, W)`` bool eroded by one texel (4-neighbours; on the torus when ``periodic``)."""
+    if periodic:
+        return elements & np.roll(elements, 1, 0) & np.roll(elements, -1, 0) & np.roll(elements, 1, 1) \
+            & np.roll(elements, -1, 1)
+    inner = elements.copy()
+    inner[1:] &= elements[:-1]
+    inner[:-1] &= elements[1:]
+    inner[:, 1:] &= elements[:, :-1]
+    inner[:, :-1] &= elements[:, 1:]
+    inner[[0, -1]] = False
+    inner[:, [0, -1]] = False
+    return inner
+
+
+def broken_elements(read_positions, joints, *, repeats: float = 8.0, far: float = 1e6) -> tuple[float, int]:
+    """How many elements of a structured synthesis come from more than one source element: ``(share, counted)``.
+
+    ``read_positions``: a function from ``uv (N, 2)`` float64 tensor (exemplar repeats) to the exemplar positions each
+    query reads, ``(N, 2)`` texels (as :meth:`CellQuilting.read_positions
+    <dynbtf.synthesis.cell_quilting.CellQuilting.read_positions>`'s first result); ``joints (H, W)`` bool, the
+    exemplar's joints (mortar, grout: ``prepared.joints`` of ``struct``).
+
+    A window of ``repeats x repeats`` exemplar repeats, one query per texel centre, ``far`` repeats from the
+    origin, is cut into its elements: the connected regions of texels that read a non-joint texel. The source
+    elements are the exemplar's own regions, connected across its periodic edges. An output element is
+    **broken** when its inner texels (one texel in from the joints, in the output and in the source) read more
+    than one source element: a two-tone brick, a brick with a sliver of another. Elements touching the window's
+    border, and specks below :data:`MIN_ELEMENT_SHARE` of the median element, are not counted. An exemplar with
+    no joints has no elements to break: ``(0.0, 0)``.
+
+    >>> joints = np.zeros((16, 16), bool); joints[:, [0, 8]] = True; joints[[0, 8]] = True  # 7 x 7-texel tiles
+    >>> tiled = lambda uv: torch.remainder(uv * 16, 16)  # tiling: every tile whole
+    >>> broken_elements(tiled, joints, repeats=4)
+    (0.0, 49)
+    >>> def cut(uv):  # the third row of tiles takes its lower half from the next tile along
+    ...     x = uv * 16
+    ...     lower = (x[:, 1:] % 64 >= 20) & (x[:, 1:] % 64 < 24)
+    ...     return torch.remainder(x + lower * x.new_tensor([8.0, 0.0]), 16)
+    >>> broken_elements(cut, joints, repeats=4)
+    (0.14285714285714285, 49)
+    """
+    joints = np.asarray(joints, dtype=bool)
+    h, w = joints.shape
+    if joints.all() or not joints.any():
+        return 0.0, 0
+    from scipy import ndimage
+
+    source = _periodic_labels(~joints)
+    source_inner = _inner(~joints, periodic=True)
+    side_x, side_y = int(round(repeats * w)), int(round(repeats * h))
+    gy, gx = np.mgrid[0:side_y, 0:side_x].reshape(2, -1) + 0.5
+    uv = np.stack([far + gx / w, far + gy / h], -1)
+    positions = read_positions(torch.from_numpy(uv))
+    positions = positions.cpu().numpy() if isinstance(positions, torch.Tensor) else np.asarray(positions)
+    rx = np.floor(positions[:, 0]).astype(np.int64) % w
+    ry = np.floor(positions[:, 1]).astype(np.int64) % h
+    element = ~joints[ry, rx].reshape(side_y, side_x)
+    labels, count = ndimage.label(element)
+    counted = _inner(element, periodic=False) & source_inner[ry, rx].reshape(side_y, side_x)
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    sizes = np.bincount(labels.ravel(), minlength=count + 1)
+    pairs = np.unique(np.stack([labels[counted], source[ry, rx].reshape(side_y, side_x)[counted]]), axis=1)
+    ids, sources = np.unique(pairs[0], return_counts=True)
+    keep = ~np.isin(ids, border) & (sizes[ids] >= MIN_ELEMENT_SHARE * np.median(sizes[ids]))
+    if not keep.any():
+        return 0.0, 0
+    return float((sources[keep] > 1).mean()), int(keep.sum())

@@ -24,7 +24,9 @@ free to run along a row as well: :func:`~dynbtf.synthesis.quilting.min_error_sea
 ``margin`` texels on either side of the straight cell edge, found off-line for every pair of offsets and
 every position of the edge within the repeat, so the seam runs where the two copies agree: along a grout
 line, between yarns, and down a running bond's staggered head joints and along its bed joints, so that every
-brick comes whole from one copy. A query needs its own cell's hash, and near an edge the neighbour's hash and
+brick comes whole from one copy. Agreement alone would let a seam cut through two bricks of one colour (a two-tone
+brick under another light), so a seam also pays for every texel it runs through off the exemplar's joints
+(:func:`joint_crossing`), and crosses an element only where its band holds no path along the joints. A query needs its own cell's hash, and near an edge the neighbour's hash and
 one table entry; it reads one bilinear sample. Where the two cuts of a corner both claim
 a point, it takes the diagonal cell.
 
@@ -69,7 +71,7 @@ from ..structure import StructureAnalysis, analyze_structure
 from ..tiling import Tiling
 
 __all__ = ["CellQuilting", "CellTables", "build_cell_tables", "check_guide", "copy_spread", "elements_of",
-           "DEFAULT_OFFSETS", "MIN_CELL_TEXELS", "SPREAD_WEIGHT"]
+           "joint_crossing", "DEFAULT_OFFSETS", "MIN_CELL_TEXELS", "SPREAD_WEIGHT", "CROSSING_WEIGHT"]
 
 #: Default number of lattice offsets a cell chooses from (``K``).
 DEFAULT_OFFSETS = 16
@@ -322,6 +324,33 @@ def copy_spread(z: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     return np.maximum(squares / k - ((total / k) ** 2).sum(-1), 0.0)
 
 
+#: What a seam pays for each texel it runs through off the joints, in units of the mean difference of two unrelated
+#: texels (:func:`joint_crossing`): so much that a seam runs along the joints wherever its band holds a path
+#: along them, however alike two copies' elements happen to be.
+CROSSING_WEIGHT = 4.0
+
+
+def joint_crossing(joints: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """``(H, W)``: what a seam pays at each texel for crossing an element there: 0 on the ``joints (H, W)`` (bool,
+    :func:`~dynbtf.synthesis.elements.element_grid`'s), elsewhere :data:`CROSSING_WEIGHT` times the mean squared
+    difference of two unrelated texels of ``z (H, W, C)`` (twice its total variance); all 0 when the exemplar has no
+    joints (or nothing but joints).
+
+    The copies' difference and spread alone let a seam cut through two bricks of one colour, where it is hardly
+    visible in one image but makes a two-tone brick or a sliver under other lights and for the per-element
+    variation; this cost keeps every element whole from one copy wherever the band reaches a joint.
+
+    >>> joints = np.zeros((2, 3), bool); joints[:, 1] = True
+    >>> joint_crossing(joints, np.array([[[0.0], [1.0], [2.0]]] * 2)).tolist()
+    [[5.333333333333333, 0.0, 5.333333333333333], [5.333333333333333, 0.0, 5.333333333333333]]
+    """
+    joints = np.asarray(joints, dtype=bool)
+    if joints.all() or not joints.any():
+        return np.zeros(joints.shape)
+    unrelated = 2.0 * float(z.reshape(-1, z.shape[-1]).var(0).sum())
+    return np.where(joints, 0.0, CROSSING_WEIGHT * unrelated)
+
+
 def check_guide(guide, exemplar: torch.Tensor) -> np.ndarray | None:
     """Validate a guide plane: None, or a finite ``(H, W, G)`` array/tensor of the exemplar's size -> float64."""
     if guide is None:
@@ -347,7 +376,8 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
     joints, else 1); ``margin``: half-width of the cut bands as a fraction of the cell side (0 < margin <= 0.5);
     ``guide``: optional ``(H, W, G)`` appearance of the exemplar: the lattice is found on it, and the seams weigh
     its differences equally with the exemplar's. A seam between two copies costs their difference plus the spread
-    of all copies (:func:`copy_spread`), so that it runs along the joints every copy shares.
+    of all copies (:func:`copy_spread`) plus the crossing of elements (:func:`joint_crossing`), so that it runs
+    along the joints every copy shares.
     """
     start = time.perf_counter()
     if isinstance(offsets, bool) or not isinstance(offsets, (int, np.integer)) or not 1 <= int(offsets) <= 64:
@@ -369,8 +399,8 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
     if guide is not None:
         z = np.concatenate([z, _standardized(guide)], -1)
 
-    spread = SPREAD_WEIGHT * copy_spread(z, chosen)
     grid, joints = element_grid(chosen, z)
+    texel_cost = SPREAD_WEIGHT * copy_spread(z, chosen) + joint_crossing(joints, z)  # (H, W), what any seam pays
     if cx == "auto" and nx > 1 and not _bands_reach_joints(grid, w, nx, margin, "u"):
         nx = 1
     if cy == "auto" and ny > 1 and not _bands_reach_joints(grid, h, ny, margin, "v"):
@@ -380,12 +410,13 @@ def build_cell_tables(exemplar: torch.Tensor, *, offsets: int = DEFAULT_OFFSETS,
 
     def band_errors(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Seam costs ``(K, K, len(rows), len(cols))`` of every two copies over a band: their squared difference
-        plus :data:`SPREAD_WEIGHT` times the spread of all copies there (:func:`copy_spread`)."""
+        plus :data:`SPREAD_WEIGHT` times the spread of all copies there (:func:`copy_spread`) plus the cost of
+        crossing an element there (:func:`joint_crossing`)."""
         copies = np.stack([z[(rows[:, None] + dy) % h, (cols[None, :] + dx) % w] for dx, dy in chosen])
         norms = (copies * copies).sum(-1)
         cross = np.einsum("arsc,brsc->abrs", copies, copies, optimize=True)
         return (np.maximum(norms[:, None] + norms[None, :] - 2.0 * cross, 0.0)
-                + spread[rows[:, None] % h, cols[None, :] % w])
+                + texel_cost[rows[:, None] % h, cols[None, :] % w])
 
     vertical = np.zeros((nx, ny, k, k, ty), dtype=np.int16)
     horizontal = np.zeros((nx, ny, k, k, tx), dtype=np.int16)
@@ -443,8 +474,9 @@ class CellQuilting(Tiling):
     #: 2: seams that may run along a row or column (:func:`~dynbtf.synthesis.quilting.min_error_seam`) and pay the
     #: copies' spread (:func:`copy_spread`), so that they follow a running bond's staggered joints. 3: the row shift
     #: fitted to every lattice offset, and ``cells="auto"`` one cell along an axis where two would leave the seams'
-    #: bands short of some row's joints (:func:`_bands_reach_joints`).
-    tables_version = 3
+    #: bands short of some row's joints (:func:`_bands_reach_joints`). 4: seams pay for every texel off the joints
+    #: (:func:`joint_crossing`), so that two bricks of one colour no longer make a cut through them cheap.
+    tables_version = 4
 
     def __init__(self, exemplar, seed: int = 0, *, offsets: int = DEFAULT_OFFSETS, cells="auto", margin: float = 0.25,
                  guide=None, brightness: float = 0.0, tint: float = 0.0, fast: bool | None = None,
