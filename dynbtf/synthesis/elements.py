@@ -275,12 +275,12 @@ def broken_elements(read_positions, joints, *, repeats: float = 8.0, far: float 
     exemplar's joints (mortar, grout: ``prepared.joints`` of ``struct``).
 
     A window of ``repeats x repeats`` exemplar repeats, one query per texel centre, ``far`` repeats from the
-    origin, is cut into its elements: the connected regions of texels that read a non-joint texel. The source
-    elements are the exemplar's own regions, connected across its periodic edges. An output element is
-    **broken** when its inner texels (one texel in from the joints, in the output and in the source) read more
-    than one source element: a two-tone brick, a brick with a sliver of another. Elements touching the window's
-    border, and specks below :data:`MIN_ELEMENT_SHARE` of the median element, are not counted. An exemplar with
-    no joints has no elements to break: ``(0.0, 0)``.
+    origin, is cut into its elements: the connected regions of its inner texels, those one texel in from the joints
+    (4-neighbours) in the output and at the texel they read (so that a hole of a texel in a joint map does not join
+    two bricks). The source elements are the exemplar's own inner regions, connected across its periodic edges. An
+    output element is **broken** when it reads more than one source element: a two-tone brick, a brick with a
+    sliver of another. Elements touching the window's border, and specks below :data:`MIN_ELEMENT_SHARE` of the
+    median element, are not counted. An exemplar with no joints has no elements to break: ``(0.0, 0)``.
 
     >>> joints = np.zeros((16, 16), bool); joints[:, [0, 8]] = True; joints[[0, 8]] = True  # 7 x 7-texel tiles
     >>> tiled = lambda uv: torch.remainder(uv * 16, 16)  # tiling: every tile whole
@@ -299,8 +299,8 @@ def broken_elements(read_positions, joints, *, repeats: float = 8.0, far: float 
         return 0.0, 0
     from scipy import ndimage
 
-    source = _periodic_labels(~joints)
     source_inner = _inner(~joints, periodic=True)
+    source = _periodic_labels(source_inner)
     side_x, side_y = int(round(repeats * w)), int(round(repeats * h))
     gy, gx = np.mgrid[0:side_y, 0:side_x].reshape(2, -1) + 0.5
     uv = np.stack([far + gx / w, far + gy / h], -1)
@@ -308,10 +308,10 @@ def broken_elements(read_positions, joints, *, repeats: float = 8.0, far: float 
     positions = positions.cpu().numpy() if isinstance(positions, torch.Tensor) else np.asarray(positions)
     rx = np.floor(positions[:, 0]).astype(np.int64) % w
     ry = np.floor(positions[:, 1]).astype(np.int64) % h
-    element = ~joints[ry, rx].reshape(side_y, side_x)
-    labels, count = ndimage.label(element)
-    counted = _inner(element, periodic=False) & source_inner[ry, rx].reshape(side_y, side_x)
-    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    counted = _inner(~joints[ry, rx].reshape(side_y, side_x), periodic=False) \
+        & source_inner[ry, rx].reshape(side_y, side_x)
+    labels, count = ndimage.label(counted)
+    border = np.unique(np.concatenate([labels[1], labels[-2], labels[:, 1], labels[:, -2]]))  # (0 and -1: eroded)
     sizes = np.bincount(labels.ravel(), minlength=count + 1)
     pairs = np.unique(np.stack([labels[counted], source[ry, rx].reshape(side_y, side_x)[counted]]), axis=1)
     ids, sources = np.unique(pairs[0], return_counts=True)
