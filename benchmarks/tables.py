@@ -1187,6 +1187,23 @@ def rotation(data: dict) -> str:
     return "\n".join(lines)
 
 
+def between_texels(data: dict) -> str:
+    """measure_between_texels.py: a model's colours between texel centres against its colours at the centres, a
+    row per model and offset."""
+    lines = [f"Measured on {_machine(data)} by `{data['command']}` (`tile`, every texel of one repeat, the quality "
+             f"report's {len(data['pairs'])} view/light pairs; W1/std: the largest over channels and pairs; mean colour "
+             "over the centres': the smallest over the pairs). The models: their size, training and held-out PSNR.", ""]
+    lines += _head("model", "offset from the texel centres (texels)", "RGB W1/std", "mean colour / the centres'")
+    for row in data["rows"]:
+        m = row["model"]
+        psnr = "" if m.get("held_out_psnr") is None else f", {m['held_out_psnr']:.1f} dB"
+        epochs = "" if m.get("epochs") is None else f", {m['epochs']:.3g} epochs"
+        name = f"{Path(m['file']).stem.replace('_', ' ')} ({m['size'][0]}^2{epochs}{psnr})"
+        dx, dy = row["offset_texels"]
+        lines.append(_line(name, f"({dx:g}, {dy:g})", f"{row['rgb_w1']:.3f}", f"{row['mean_ratio']:.3f}"))
+    return "\n".join(lines)
+
+
 def structured(data: dict) -> str:
     """bench_structured.py: coherence and identity per scale, repetition, colour (each the mean over the seeds,
     min-max), cost and storage per method; ``*`` marks auto's choice; then the targets, met or missed."""
@@ -1373,7 +1390,7 @@ RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget
              "blend_exponent_summary": blend_exponent_summary, "structured_construction": structured_construction,
              "structured": structured, "decode_speed": decode_speed, "fit_default": fit_default,
              "fit_many": fit_many, "compiled_material": compiled_material, "whole_elements": whole_elements,
-             "rotation": rotation}
+             "rotation": rotation, "between_texels": between_texels}
 #: Tables rendered from another table's data file (default: ``<name>.json``).
 SOURCES = {"guidance": "guided", "guidance_struct": "guided", "render_scenes": "rendering",
            "blend_exponent_summary": "blend_exponent",
