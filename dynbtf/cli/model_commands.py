@@ -23,7 +23,7 @@ def _open_source(spec: str):
 # TrainConfig field: dynbtf.training.fit.command_line_options).
 _FIT_TRAINING_OPTIONS = ("epochs", "schedule", "max_minutes", "seed", "held_out_fraction", "images_per_step", "lr_scale",
                          "lr_decay", "texels_per_image", "texel_groups", "memory_budget_mb", "workers", "device",
-                         "precision", "max_reflectance")
+                         "precision", "max_reflectance", "subtexel")
 
 
 def fit(

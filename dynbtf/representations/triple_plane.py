@@ -317,6 +317,34 @@ class TriplePlane(Representation):
                                                 target, chunk_texels=chunk_texels, workers=workers,
                                                 texel_groups=texel_groups, precision=precision)
 
+    @property
+    def has_subtexel_term(self) -> bool:
+        """Whether :meth:`subtexel_l1_loss` applies: the plane alone is read between texels (not the parallax
+        model's, whose fetch moves with the view)."""
+        return type(self).extra_positional_channels == 0
+
+    def subtexel_l1_loss(self, neighbours: torch.Tensor, weights: torch.Tensor, w_view: torch.Tensor,
+                         w_light: torch.Tensor, target: torch.Tensor, *, chunk_texels: int = 256, workers: int = 1,
+                         precision: str = "fp32",
+                         angular_taps: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """Mean L1 loss at ``n`` points between texel centres, under ``B`` (view, light) pairs.
+
+        ``neighbours``: int64 ``(4, n)``, each point's four surrounding texels (flat ``row * W + col``);
+        ``weights``: float32 ``(4, n)``, their bilinear weights (what :func:`dynbtf.texture.fetch_wrap` reads at
+        the point); ``w_view, w_light``: ``(B, 3)``; ``target``: ``(B, n, 3)``. The points' features are the
+        weighted sums of the texels' (the bilinear fetch), decoded by the fused loss of
+        :meth:`texel_image_l1_loss`'s generic path. The trainer's sub-texel term (``TrainConfig.subtexel``)
+        passes the same weights' mix of the measured texels as ``target``, so that the model's colours between
+        centres become the mix of its measured ones."""
+        if not self.has_subtexel_term:
+            raise InputError(f"subtexel: the {self.kind!r} representation reads more than its plane between "
+                             "texels; the sub-texel term applies to the Triple Plane ('triple')")
+        plane = self.f_u.reshape(-1, self.f_u.shape[-1])
+        features = sum(weights[k, :, None] * plane.index_select(0, neighbours[k]) for k in range(4))
+        return self.decoder.texel_image_l1_loss(features, self.angular_features(w_view, w_light, angular_taps),
+                                                target, chunk_texels=chunk_texels, workers=workers, texel_groups=1,
+                                                precision=precision)
+
     def param_groups(self) -> list[dict[str, Any]]:
         """Optimizer parameter groups, the paper's recipe: AdamW (PyTorch's default weight
         decay 0.01, "AdamW with the default setting"), lr 1e-3 for the planes, 3e-4 for the decoder."""

@@ -7,7 +7,9 @@ All randomness is counter-based, so any step's batch can be rebuilt from
 
 * the pair order of epoch ``e`` comes from ``numpy.random.default_rng([seed, 1, e])``
   (pass ``k > 0`` of the texel groups: ``[seed, 1, e, k]``);
-* the texel subset, or the groups' start, of step ``s`` from ``default_rng([seed, 2, e, s])``.
+* the texel subset, or the groups' start, of step ``s`` from ``default_rng([seed, 2, e, s])``;
+* the points between texel centres of the sub-texel term (:func:`between_texel_points`), from
+  ``default_rng([seed, 3, e, s])``.
 
 Texel group ``g`` is the ``g``-th block of ``n = N // G`` consecutive flat texels
 (row-major, wrapping) after a random start, so a batch is read with contiguous
@@ -37,7 +39,7 @@ import torch
 from ..errors import InputError
 from .images import ImageStore
 
-__all__ = ["Batch", "BatchSampler"]
+__all__ = ["Batch", "BatchSampler", "between_texel_points"]
 
 
 @dataclass
@@ -187,3 +189,25 @@ class BatchSampler:
         target = self.store.get_blocks(grouped, starts[mine], n, device=self.device)
         local_texels = texels.reshape(self.n_groups, n)[mine].reshape(-1)
         return Batch(grouped.reshape(-1, 2), local_texels, target, len(grouped), len(grouped) / self.n_groups)
+
+
+def between_texel_points(height: int, width: int, count: int, rng: np.random.Generator
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``count`` random points of a ``height x width``-texel repeat, uniform over it, each with the four texels
+    the bilinear fetch mixes there (:func:`dynbtf.texture.fetch_wrap`'s convention: texel ``(col, row)`` has its
+    centre at ``uv = ((col + 1/2) / W, (row + 1/2) / H)``; periodic).
+
+    Returns ``neighbours`` int64 ``(4, count)`` (flat ``row * W + col``: the texel, its right, upper and diagonal
+    neighbours), ``weights`` float32 ``(4, count)`` (bilinear, summing to 1) and ``uv`` float64 ``(count, 2)``.
+
+    >>> neighbours, weights, uv = between_texel_points(2, 4, 3, np.random.default_rng(0))
+    >>> neighbours.shape, weights.shape, bool(np.allclose(weights.sum(0), 1)), uv.shape
+    ((4, 3), (4, 3), True, (3, 2))
+    """
+    x, y = rng.integers(0, width, count), rng.integers(0, height, count)
+    fx, fy = rng.random(count), rng.random(count)
+    right, up = (x + 1) % width, (y + 1) % height
+    neighbours = np.stack([y * width + x, y * width + right, up * width + x, up * width + right])
+    weights = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy]).astype(np.float32)
+    uv = np.stack([(x + 0.5 + fx) / width, (y + 0.5 + fy) / height], -1)
+    return neighbours, weights, uv

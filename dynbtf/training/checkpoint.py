@@ -68,7 +68,7 @@ class Checkpointer:
                                          "supports")
         saved = state.get("fingerprint", {})
         if saved != self.fingerprint:
-            diff = [k for k in self.fingerprint if saved.get(k) != self.fingerprint[k]]
+            diff = [k for k in {**saved, **self.fingerprint} if saved.get(k) != self.fingerprint.get(k)]
             raise InputError(f"{self.path}: checkpoint belongs to a different training run (differs in {diff}); "
                              "delete it or choose another output to start over")
         return state

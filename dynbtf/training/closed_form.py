@@ -55,6 +55,9 @@ def fit_closed_form(compute: Callable[..., Representation], source: BTFSource, o
     if output is None:
         raise InputError("output: a model file path is required")
     config = (config or TrainConfig()).validate()
+    if config.subtexel:
+        raise InputError("--subtexel (TrainConfig.subtexel): a representation fitted in closed form has no training "
+                         "loss to add it to; it applies to the Triple Plane ('triple')")
     output = Path(output)
     train_pairs, held_out = held_out_split(source.n_views, source.n_lights, config.held_out_fraction, config.seed)
     start = time.perf_counter()

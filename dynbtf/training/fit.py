@@ -76,7 +76,7 @@ from ..errors import InputError
 from ..representations.base import Representation
 from ..representations.model_file import load_model, model_size_report, save_model
 from ..decoder.fused_mlp import resolve_precision, single_intra_op_thread
-from .batches import BatchSampler
+from .batches import BatchSampler, between_texel_points
 from .checkpoint import Checkpointer, checkpoint_path
 from .distributed import from_environment
 from .images import ImageStore, held_out_split
@@ -167,6 +167,7 @@ OPTION_RULES: dict[str, _Rule] = {
     "schedule": _Rule("choice", choices=SCHEDULES),
     "monitor_every": _Rule("int", 0, 2 ** 40),
     "min_steps": _Rule("int", 0, 2 ** 40),
+    "subtexel": _Rule("number", 0, 1e3),
 }
 
 
@@ -335,6 +336,11 @@ class TrainConfig:
                             "1/16). auto: converge unless --epochs or --lr-decay is given.")
     monitor_every: int = 0
     min_steps: int = 0
+    subtexel: float = _option(0.0, 0.0, "Weight of a second L1 term at random points between texel centres (an "
+                              "eighth of a step's texels, under the step's first --images-per-step pairs), against "
+                              "the bilinear mix of the measured texels around each, so that the colours a renderer "
+                              "reads between centres are the measured ones' mix (0: off, the paper's recipe; Triple "
+                              "Plane only; docs/triple_plane.md, 'Between texel centres').")
 
     def validate(self) -> "TrainConfig":
         """Check every option's type and range; :class:`InputError` names the option (and its command-line flag)
@@ -415,8 +421,10 @@ def training_provenance(source: BTFSource, held_out: np.ndarray, **extra) -> dic
 
 
 def _fingerprint(rep: Representation, source: BTFSource, config: TrainConfig) -> dict[str, Any]:
+    # subtexel only where used: runs and model files from before it match as they did
     return {"kind": rep.kind, "config": rep.config(), "source": [source.name, *source.shape],
-            **{name: getattr(config, name) for name in TrainConfig.RESULT_FIELDS}}
+            **{name: getattr(config, name) for name in TrainConfig.RESULT_FIELDS},
+            **({"subtexel": config.subtexel} if config.subtexel else {})}
 
 
 def _jsonable(value: Any) -> Any:
@@ -443,7 +451,7 @@ def _already_fitted(output: Path, rep: Representation, source: BTFSource, config
         return None
     current = _jsonable(_fingerprint(rep, source, config) | {"epochs": config.epochs})
     if recorded != current:
-        differ = [k for k in current if recorded.get(k) != current[k]]
+        differ = [k for k in {**recorded, **current} if recorded.get(k) != current.get(k)]
         raise InputError(f"{output}: holds a fit of a different training run (differs in {differ}); delete it or "
                          "choose another output to start over")
     return meta if provenance.get("finished") else None
@@ -645,6 +653,9 @@ class _TrainingRun:
             raise InputError(f"representation's positional plane is "
                              f"{tuple(representation.positional_plane().shape[:2])} but the BTF {source.name!r} is "
                              f"{source.height} x {source.width} texels")
+        if config.subtexel and not getattr(representation, "has_subtexel_term", False):
+            raise InputError(f"--subtexel (TrainConfig.subtexel): the {representation.kind!r} representation has no "
+                             "sub-texel term; it applies to the Triple Plane ('triple')")
         self.source, self.config, self.output = source, config, output
         self.parallel, device = from_environment(resolve_device(config.device))
         self.device = device
@@ -711,9 +722,10 @@ class _TrainingRun:
         return (self.epoch, self.step + 1) if self.step + 1 < self.sampler.steps_per_epoch else (self.epoch + 1, 0)
 
     def _step_inputs(self, epoch: int, step: int):
-        """``(batch, (w_view, w_light, texels, taps))``: step ``(epoch, step)``'s batch and the tensors the loss
-        reads besides its targets (directions, texel indices, the pairs' rows of the angular taps). Prepared by
-        the prefetch thread while the previous step trains."""
+        """``(batch, (w_view, w_light, texels, taps, between))``: step ``(epoch, step)``'s batch and the tensors the
+        loss reads besides its targets (directions, texel indices, the pairs' rows of the angular taps, and the
+        sub-texel term's data or None: :meth:`_between_texels`). Prepared by the prefetch thread while the previous
+        step trains."""
         batch = self.sampler.batch(epoch, step)
         source, device = self.source, self.device
         wv = torch.as_tensor(source.views[batch.pairs[:, 0]], dtype=torch.float32, device=device)
@@ -723,7 +735,26 @@ class _TrainingRun:
         if self.angular_taps is not None and len(batch.pairs):
             rows = torch.as_tensor(batch.pairs[:, 0] * source.n_lights + batch.pairs[:, 1], device=device)
             taps = tuple(t.index_select(0, rows) for t in self.angular_taps)
-        return batch, (wv, wl, texels, taps)
+        between = self._between_texels(batch, epoch, step) if self.config.subtexel and len(batch.pairs) else None
+        return batch, (wv, wl, texels, taps, between)
+
+    def _between_texels(self, batch, epoch: int, step: int):
+        """The sub-texel term's data of step ``(epoch, step)`` (:attr:`TrainConfig.subtexel`): ``(neighbours,
+        weights, target)``: random points between texel centres, an eighth of the step's texels (at least 64),
+        each with its four surrounding texels (int64 ``(4, n)``, flat, periodic) and their bilinear weights
+        (float32 ``(4, n)``; :func:`~dynbtf.training.batches.between_texel_points`), and the bilinear mix of those
+        texels' measured values under the step's first ``B`` pairs (float32 ``(B, n, 3)``). Seeded by the run's
+        seed and the step."""
+        n = max(64, self.sampler.texels_per_step // 8)
+        neighbours, weights, _ = between_texel_points(self.source.height, self.source.width, n,
+                                                      np.random.default_rng([self.config.seed, 3, epoch, step]))
+        pairs = batch.pairs[:self.sampler.b]
+        texels = np.asarray(self.store.get(pairs, neighbours.reshape(-1)), dtype=np.float32).reshape(len(pairs), 4,
+                                                                                                      n, 3)
+        target = np.einsum("kn,bknc->bnc", weights, texels)
+        device = self.device
+        return (torch.from_numpy(neighbours).to(device), torch.from_numpy(weights).to(device),
+                torch.from_numpy(np.ascontiguousarray(target, dtype=np.float32)).to(device))
 
     def _optimizer_step(self, batch, inputs) -> float:
         """One step of the optimizer on ``batch`` (``inputs``: :meth:`_step_inputs`); returns the loss."""
@@ -731,7 +762,7 @@ class _TrainingRun:
         for g in self.optimizer.param_groups:
             g["lr"] = g["initial_lr"] * multiplier
         source = self.source
-        wv, wl, texels, taps = inputs
+        wv, wl, texels, taps, between = inputs
         self.optimizer.zero_grad(set_to_none=True)
         parallel = self.parallel
         if len(batch.pairs) == 0:  # a data-parallel share of an epoch's short last step can be empty
@@ -740,6 +771,11 @@ class _TrainingRun:
             loss = texel_image_loss(self.rep, wv, wl, batch.target, (source.height, source.width), texels,
                                     chunk_texels=self.chunk_texels, workers=self.workers,
                                     texel_groups=batch.groups, precision=self.precision, angular_taps=taps)
+            if between is not None:
+                b = len(between[2])
+                loss = loss + self.config.subtexel * self.rep.subtexel_l1_loss(
+                    *between[:2], wv[:b], wl[:b], between[2], chunk_texels=self.chunk_texels, workers=self.workers,
+                    precision=self.precision, angular_taps=None if taps is None else tuple(t[:b] for t in taps))
             if parallel.world > 1:  # weighted by the share: the mean over processes is the whole step's loss
                 loss = loss * (batch.fraction * parallel.world)
             loss.backward()

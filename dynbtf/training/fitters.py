@@ -105,6 +105,9 @@ def fit_parallax_triple_plane(source: BTFSource, output, config: TrainConfig | N
     and refined by it; a resumed run takes it from its checkpoint. The provenance records the stereo options
     and, when the height was set in this run, the fraction of texels whose estimate was trusted.
     """
+    if config is not None and config.subtexel:
+        raise InputError("--subtexel (TrainConfig.subtexel): the 'triple-parallax' representation has no sub-texel "
+                         "term (its fetch moves with the view); it applies to the Triple Plane ('triple')")
     from ..representations.parallax import ParallaxTriplePlane
     from .fit import checkpoint_path, finished_fit
     from .stereo_height import stereo_height

@@ -273,6 +273,9 @@ def fit_best(source: BTFSource, output, config: TrainConfig | None = None, *, pr
     """
     from .fit import shared_image_cache
 
+    if config is not None and config.subtexel:
+        raise InputError("--subtexel (TrainConfig.subtexel) applies to the Triple Plane only, and --repr auto races "
+                         "it against triple-parallax, which has none: give --repr triple with --subtexel")
     with shared_image_cache():  # the trials and the winner's fit decode the BTF once
         return _fit_best(source, output, config, progress=progress, callback=callback, kind_options=kind_options,
                          started=started)

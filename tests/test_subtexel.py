@@ -1,0 +1,87 @@
+"""The sub-texel term of training (``TrainConfig.subtexel``): its points read what the bilinear fetch reads, its loss
+is the plain L1 of decoded bilinear fetches (value and gradients), and a fit uses it where it applies."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dynbtf.errors import InputError
+from dynbtf.representations.triple_plane import TriplePlane
+from dynbtf.texture import fetch_wrap
+from dynbtf.training.batches import between_texel_points
+from dynbtf.training.fit import TrainConfig, check_options
+
+
+def _mix(plane: torch.Tensor, neighbours: np.ndarray, weights: np.ndarray) -> torch.Tensor:
+    flat = plane.reshape(-1, plane.shape[-1])
+    return sum(torch.from_numpy(weights[k])[:, None] * flat[torch.from_numpy(neighbours[k])] for k in range(4))
+
+
+@pytest.mark.parametrize("size", [(6, 8), (1, 5), (7, 1)])
+def test_points_mix_the_texels_the_bilinear_fetch_reads(size):
+    h, w = size
+    plane = torch.rand(h, w, 5, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    neighbours, weights, uv = between_texel_points(h, w, 500, np.random.default_rng(1))
+    assert ((0 <= uv) & (uv < 1 + 1 / min(h, w))).all() and (weights >= 0).all()
+    reference = fetch_wrap(plane, torch.from_numpy(uv))
+    torch.testing.assert_close(_mix(plane, neighbours, weights.astype(np.float64)), reference, atol=1e-6, rtol=0)
+
+
+def test_subtexel_loss_is_the_l1_of_decoded_bilinear_fetches():
+    model = TriplePlane(6, 8, seed=1)
+    neighbours, weights, uv = between_texel_points(6, 8, 40, np.random.default_rng(2))
+    rng = np.random.default_rng(3)
+    directions = rng.normal(size=(2, 3, 3))
+    directions[..., 2] = np.abs(directions[..., 2]) + 0.2
+    directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
+    w_view, w_light = (torch.from_numpy(d).float() for d in directions)
+    target = torch.rand(3, 40, 3, generator=torch.Generator().manual_seed(4))
+
+    loss = model.subtexel_l1_loss(torch.from_numpy(neighbours), torch.from_numpy(weights), w_view, w_light, target)
+    loss.backward()
+    ours = {name: p.grad.clone() for name, p in model.named_parameters()}
+    model.zero_grad()
+
+    features = fetch_wrap(model.f_u, torch.from_numpy(uv).float())  # (40, C), the fetch a renderer makes
+    n = features.shape[0]
+    decoded = torch.stack([model.decode(features, w_view[b].expand(n, 3), w_light[b].expand(n, 3))
+                           for b in range(3)])
+    reference = (decoded - target).abs().mean()
+    reference.backward()
+    torch.testing.assert_close(loss, reference, atol=1e-5, rtol=1e-5)
+    for name, p in model.named_parameters():
+        torch.testing.assert_close(ours[name], p.grad, atol=1e-5, rtol=1e-4, msg=name)
+
+
+def test_the_option_is_checked_and_refused_where_it_does_not_apply(tmp_path):
+    with pytest.raises(InputError, match=r"--subtexel \(TrainConfig.subtexel\): expected a finite number in "
+                                         r"\[0, 1000\], got -1.0"):
+        check_options(subtexel=-1.0)
+    from dynbtf.data.open import open_btf
+    from dynbtf.training import get_fitter
+
+    with pytest.raises(InputError, match="--subtexel .*'triple-parallax' representation has no sub-texel term"):
+        get_fitter("triple-parallax")(open_btf("sim:leather?size=16"), tmp_path / "m.dbtfm",
+                                      TrainConfig(epochs=1, subtexel=1.0))
+    with pytest.raises(InputError, match="--repr auto races it against triple-parallax"):
+        from dynbtf.training.model_choice import fit_best
+
+        fit_best(open_btf("sim:leather?size=16"), tmp_path / "a.dbtfm", TrainConfig(epochs=1, subtexel=1.0))
+    with pytest.raises(InputError, match="--subtexel .*closed form"):
+        get_fitter("pca")(open_btf("sim:leather?size=16"), tmp_path / "p.dbtfm", TrainConfig(subtexel=0.5))
+
+
+def test_a_fit_with_the_term_records_it_and_a_run_without_it_is_another_run(tmp_path):
+    from dynbtf.data.open import open_btf
+    from dynbtf.representations.model_file import read_model_metadata
+    from dynbtf.training import get_fitter
+
+    source, output = open_btf("sim:leather?size=16"), tmp_path / "m.dbtfm"
+    config = TrainConfig(epochs=1, images_per_step=4, subtexel=0.5, monitor_pairs=2)
+    result = get_fitter("triple")(source, output, config, progress=False)
+    assert result.finished and read_model_metadata(output)["provenance"]["run"]["subtexel"] == 0.5
+    with pytest.raises(InputError, match=r"differs in \['subtexel'\]"):
+        get_fitter("triple")(source, output, TrainConfig(epochs=1, images_per_step=4, monitor_pairs=2),
+                             progress=False)
