@@ -1193,14 +1193,36 @@ def between_texels(data: dict) -> str:
     lines = [f"Measured on {_machine(data)} by `{data['command']}` (`tile`, every texel of one repeat, the quality "
              f"report's {len(data['pairs'])} view/light pairs; W1/std: the largest over channels and pairs; mean colour "
              "over the centres': the smallest over the pairs). The models: their size, training and held-out PSNR.", ""]
-    lines += _head("model", "offset from the texel centres (texels)", "RGB W1/std", "mean colour / the centres'")
+    lines += _head("model", "offset from the texel centres (texels)", "RGB W1/std", "mean colour / the centres'",
+                   "RGB W1/std of the centres' bilinear mix")
     for row in data["rows"]:
         m = row["model"]
         psnr = "" if m.get("held_out_psnr") is None else f", {m['held_out_psnr']:.1f} dB"
         epochs = "" if m.get("epochs") is None else f", {m['epochs']:.3g} epochs"
         name = f"{Path(m['file']).stem.replace('_', ' ')} ({m['size'][0]}^2{epochs}{psnr})"
         dx, dy = row["offset_texels"]
-        lines.append(_line(name, f"({dx:g}, {dy:g})", f"{row['rgb_w1']:.3f}", f"{row['mean_ratio']:.3f}"))
+        floor = row.get("centres_mix_rgb_w1")
+        lines.append(_line(name, f"({dx:g}, {dy:g})", f"{row['rgb_w1']:.3f}", f"{row['mean_ratio']:.3f}",
+                           "-" if floor is None else f"{floor:.3f}"))
+    return "\n".join(lines)
+
+
+def subtexel(data: dict) -> str:
+    """bench_subtexel.py: held-out quality at texel centres and the colours between them, per BTF and sub-texel
+    weight (the mean over the seeds, min-max), and the training time against the fit without the term."""
+    dx, dy = data["offset_texels"]
+    lines = [f"Measured on {_machine(data)} by `{data['command']}` ({len(data['seeds'])} seeds, {data['epochs']} "
+             f"epochs of the fast recipe, {data['precision']} training; between centres: ({dx:g}, {dy:g}) texels off, "
+             "the largest W1/std and smallest mean ratio over the quality report's pairs).", ""]
+    lines += _head("BTF", "--subtexel", "held-out PSNR, fixed peak 1 (dB)", "FLIP", "between centres: RGB W1/std",
+                   "the centres' mix (floor)", "between centres: mean / the centres'", "training time")
+    base = {r["spec"]: r for r in data["rows"] if r["weight"] == 0}
+    for row in data["rows"]:
+        time_ratio = row["training_minutes"]["mean"] / base[row["spec"]]["training_minutes"]["mean"]
+        lines.append(_line(f"`{row['spec']}`", f"{row['weight']:g}", _spread(row["psnr_fixed1"], ".2f"),
+                           _spread(row["flip"], ".4f"), _spread(row["between_rgb_w1"], ".3f"),
+                           f"{row['centres_mix_rgb_w1']['mean']:.3f}", _spread(row["between_mean_ratio"], ".3f"),
+                           f"{time_ratio:.2f}x"))
     return "\n".join(lines)
 
 
@@ -1390,7 +1412,7 @@ RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget
              "blend_exponent_summary": blend_exponent_summary, "structured_construction": structured_construction,
              "structured": structured, "decode_speed": decode_speed, "fit_default": fit_default,
              "fit_many": fit_many, "compiled_material": compiled_material, "whole_elements": whole_elements,
-             "rotation": rotation, "between_texels": between_texels}
+             "rotation": rotation, "between_texels": between_texels, "subtexel": subtexel}
 #: Tables rendered from another table's data file (default: ``<name>.json``).
 SOURCES = {"guidance": "guided", "guidance_struct": "guided", "render_scenes": "rendering",
            "blend_exponent_summary": "blend_exponent",
