@@ -9,7 +9,8 @@ precision), and measured:
 * between texel centres, half a texel off in both directions (the worst place): the **RGB W1/std** against the
   centres' colours and the **mean ratio** (:mod:`measure_between_texels`), beside the W1/std of the centres'
   own bilinear mix, the floor a model whose colours between centres were that mix would reach;
-* the **training minutes** (measured side by side in one run: the ratio is what to read).
+* the **training minutes** (the model file's; fits of one run side by side: the ratio is what to read; a model
+  already finished in ``--out`` is read, not fitted again).
 
 Run: ``python benchmarks/bench_subtexel.py [--specs 'sim:leather?size=64'] [--weights 0.5] [--seeds 3]
 [--epochs 15] [--out DIR]`` (about 2 minutes per fit of a 64 x 64 BTF on 2 cores). Writes
@@ -21,7 +22,6 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -47,10 +47,9 @@ def fit_and_measure(spec: str, weight: float, seed: int, epochs: int, folder: Pa
     precision = "bf16" if active_isa() == "avx512bf16" else "fp32"  # the CPU's fastest training kernel
     config = TrainConfig(epochs=epochs, lr_scale=3.0, lr_decay=0.9 ** (30 / epochs), texel_groups=64, seed=seed,
                          precision=precision, subtexel=weight)
-    start = time.perf_counter()
-    get_fitter("triple")(source, model, config, progress=sys.stderr.isatty())
-    minutes = (time.perf_counter() - start) / 60
+    get_fitter("triple")(source, model, config, progress=sys.stderr.isatty())  # a finished fit in --out: read
     rep, meta = load_model(model)
+    minutes = meta["provenance"]["training_seconds"] / 60
     evaluation = evaluate_model(rep, source, resolve_eval_pairs("held-out", source, meta), images=0, progress=False)
     between = measure(model, [OFFSET])[0]
     row = {"spec": spec, "weight": weight, "seed": seed, "precision": precision, "model": model_record(model),
