@@ -13,8 +13,10 @@ precision), and measured:
   already finished in ``--out`` is read, not fitted again).
 
 Run: ``python benchmarks/bench_subtexel.py [--specs 'sim:leather?size=64'] [--weights 0.5] [--seeds 3]
-[--epochs 15] [--out DIR]`` (about 2 minutes per fit of a 64 x 64 BTF on 2 cores). Writes
-``benchmarks/results/subtexel.json`` (docs/triple_plane.md's table).
+[--epochs 15] [--out DIR] [--images docs/images]`` (about a minute per fit of a 64 x 64 BTF on 2 cores). Writes
+``benchmarks/results/subtexel.json`` (docs/triple_plane.md's table) and, with ``--images``,
+``subtexel_closeup.png``: the seed-0 fits of the BTF whose fits without the term drift most, one per weight (0
+first), each over 12 x 12 texels at 32 pixels per texel.
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ import argparse
 import sys
 import tempfile
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -55,11 +59,27 @@ def fit_and_measure(spec: str, weight: float, seed: int, epochs: int, folder: Pa
     row = {"spec": spec, "weight": weight, "seed": seed, "precision": precision, "model": model_record(model),
            "psnr_fixed1": evaluation.mean["psnr_fixed1"], "flip": evaluation.mean["flip"],
            "between_rgb_w1": between["rgb_w1"], "between_mean_ratio": between["mean_ratio"],
-           "centres_mix_rgb_w1": between["centres_mix_rgb_w1"], "training_minutes": minutes}
+           "centres_mix_rgb_w1": between["centres_mix_rgb_w1"], "training_minutes": minutes, "model_path": model}
     print(f"{spec} weight {weight:g} seed {seed}: {row['psnr_fixed1']:.2f} dB, between W1/std "
           f"{row['between_rgb_w1']:.3f} (mix {row['centres_mix_rgb_w1']:.3f}), mean ratio "
           f"{row['between_mean_ratio']:.3f}, {minutes:.1f} min", file=sys.stderr, flush=True)
     return row
+
+
+def closeups(models: list[Path], folder: Path) -> Path:
+    """``subtexel_closeup.png``: :func:`measure_between_texels.closeup` of each model side by side (one BTF's fits
+    of seed 0, one per weight, 0 first)."""
+    from measure_between_texels import closeup
+
+    from dynbtf.io import load_image, save_image
+
+    with tempfile.TemporaryDirectory() as scratch:
+        panels = [load_image(closeup(model, Path(scratch) / str(k))) for k, model in enumerate(models)]
+    gap = np.ones((panels[0].shape[0], 8, 3), np.float32)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "subtexel_closeup.png"
+    save_image(path, np.concatenate([p for panel in panels for p in (panel, gap)][:-1], 1))
+    return path
 
 
 def main() -> None:
@@ -70,6 +90,7 @@ def main() -> None:
     parser.add_argument("--epochs", type=int, default=15)
     parser.add_argument("--out", type=Path, default=None, help="folder for the models (default: a temporary one)")
     parser.add_argument("--json", type=Path, default=Path(__file__).resolve().parent / "results" / "subtexel.json")
+    parser.add_argument("--images", type=Path, default=None, help="folder for subtexel_closeup.png")
     args = parser.parse_args()
     try:
         weights = [0.0] + [float(w) for w in args.weights.split(",") if w.strip()]
@@ -82,6 +103,14 @@ def main() -> None:
         folder.mkdir(parents=True, exist_ok=True)
         runs = [fit_and_measure(spec.strip(), weight, seed, args.epochs, folder)
                 for spec in args.specs.split(",") if spec.strip() for seed in range(args.seeds) for weight in weights]
+        if args.images is not None and runs:  # the BTF whose fits without the term drift most between centres
+            plain = [r for r in runs if r["weight"] == 0]
+            shown = max(dict.fromkeys(r["spec"] for r in plain),
+                        key=lambda spec: sum(r["between_rgb_w1"] for r in plain if r["spec"] == spec))
+            models = [r["model_path"] for r in runs if r["seed"] == 0 and r["spec"] == shown]
+            print(f"wrote {closeups(models, args.images)} ({shown})", file=sys.stderr)
+    for run in runs:
+        del run["model_path"]
     keys = ("psnr_fixed1", "flip", "between_rgb_w1", "between_mean_ratio", "centres_mix_rgb_w1", "training_minutes")
     rows = []
     for spec in dict.fromkeys(r["spec"] for r in runs):

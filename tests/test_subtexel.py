@@ -57,7 +57,7 @@ def test_subtexel_loss_is_the_l1_of_decoded_bilinear_fetches():
 
 def test_the_option_is_checked_and_refused_where_it_does_not_apply(tmp_path):
     with pytest.raises(InputError, match=r"--subtexel \(TrainConfig.subtexel\): expected a finite number in "
-                                         r"\[0, 1000\], got -1.0"):
+                                         r"\[0, 1000\] \(or unset\), got -1.0"):
         check_options(subtexel=-1.0)
     from dynbtf.data.open import open_btf
     from dynbtf.training import get_fitter
@@ -85,3 +85,21 @@ def test_a_fit_with_the_term_records_it_and_a_run_without_it_is_another_run(tmp_
     with pytest.raises(InputError, match=r"differs in \['subtexel'\]"):
         get_fitter("triple")(source, output, TrainConfig(epochs=1, images_per_step=4, monitor_pairs=2),
                              progress=False)
+
+
+def test_unset_is_the_triple_planes_own_weight_and_nothing_for_the_kinds_without_the_term():
+    from dynbtf.data.open import open_btf
+    from dynbtf.representations.parallax import ParallaxTriplePlane
+    from dynbtf.training.fit import AUTO_SUBTEXEL, subtexel_weight
+    from dynbtf.training.recipe import auto_recipe
+
+    triple, parallax = TriplePlane(4, 4), ParallaxTriplePlane(4, 4)
+    assert subtexel_weight(triple, TrainConfig(subtexel=None)) == AUTO_SUBTEXEL > 0
+    assert subtexel_weight(parallax, TrainConfig(subtexel=None)) == 0.0
+    assert subtexel_weight(triple, TrainConfig()) == 0.0  # the library's default: the paper's recipe
+    assert subtexel_weight(triple, TrainConfig(subtexel=2.0)) == 2.0
+    with pytest.raises(InputError, match="'triple-parallax' representation has no sub-texel term"):
+        subtexel_weight(parallax, TrainConfig(subtexel=1.0))
+    recipe = auto_recipe(open_btf("sim:leather?size=16"))
+    assert recipe.config.subtexel is None and f"sub-texel term x{AUTO_SUBTEXEL:g} with the Triple Plane" in recipe.summary
+    assert auto_recipe(open_btf("sim:leather?size=16"), subtexel=0.0).config.subtexel == 0.0

@@ -167,7 +167,7 @@ OPTION_RULES: dict[str, _Rule] = {
     "schedule": _Rule("choice", choices=SCHEDULES),
     "monitor_every": _Rule("int", 0, 2 ** 40),
     "min_steps": _Rule("int", 0, 2 ** 40),
-    "subtexel": _Rule("number", 0, 1e3),
+    "subtexel": _Rule("number", 0, 1e3, optional=True),
 }
 
 
@@ -336,11 +336,12 @@ class TrainConfig:
                             "1/16). auto: converge unless --epochs or --lr-decay is given.")
     monitor_every: int = 0
     min_steps: int = 0
-    subtexel: float = _option(0.0, 0.0, "Weight of a second L1 term at random points between texel centres (an "
-                              "eighth of a step's texels, under the step's first --images-per-step pairs), against "
-                              "the bilinear mix of the measured texels around each, so that the colours a renderer "
-                              "reads between centres are the measured ones' mix (0: off, the paper's recipe; Triple "
-                              "Plane only; docs/triple_plane.md, 'Between texel centres').")
+    subtexel: float | None = _option(0.0, None, "Weight of a second L1 term at random points between texel centres "
+                                     "(an eighth of a step's texels, under the step's first --images-per-step "
+                                     "pairs), against the bilinear mix of the measured texels around each, so that "
+                                     "the colours a renderer reads between centres are the measured ones' mix (0: "
+                                     "off, the paper's recipe; auto: 0.25 for the Triple Plane, 0 for the kinds "
+                                     "without the term; docs/triple_plane.md, 'Between texel centres').")
 
     def validate(self) -> "TrainConfig":
         """Check every option's type and range; :class:`InputError` names the option (and its command-line flag)
@@ -420,11 +421,31 @@ def training_provenance(source: BTFSource, held_out: np.ndarray, **extra) -> dic
     }
 
 
+#: The sub-texel term's weight where ``TrainConfig.subtexel`` is None (the auto recipe's), for a representation that
+#: has the term (``bench_subtexel.py``: the weight that brought the colours between centres near their floor for
+#: the least held-out PSNR).
+AUTO_SUBTEXEL = 0.25
+
+
+def subtexel_weight(rep: Representation, config: TrainConfig) -> float:
+    """The sub-texel term's weight in a fit of ``rep``: ``config.subtexel``, or where it is None (auto)
+    :data:`AUTO_SUBTEXEL` for a representation with the term and 0 for one without. An explicit weight on a
+    representation without the term raises :class:`InputError`."""
+    has_term = bool(getattr(rep, "has_subtexel_term", False))
+    if config.subtexel is None:
+        return AUTO_SUBTEXEL if has_term else 0.0
+    if config.subtexel and not has_term:
+        raise InputError(f"--subtexel (TrainConfig.subtexel): the {rep.kind!r} representation has no sub-texel "
+                         "term; it applies to the Triple Plane ('triple')")
+    return float(config.subtexel)
+
+
 def _fingerprint(rep: Representation, source: BTFSource, config: TrainConfig) -> dict[str, Any]:
-    # subtexel only where used: runs and model files from before it match as they did
+    # the sub-texel weight only where used: runs and model files from before it match as they did
+    weight = subtexel_weight(rep, config)
     return {"kind": rep.kind, "config": rep.config(), "source": [source.name, *source.shape],
             **{name: getattr(config, name) for name in TrainConfig.RESULT_FIELDS},
-            **({"subtexel": config.subtexel} if config.subtexel else {})}
+            **({"subtexel": weight} if weight else {})}
 
 
 def _jsonable(value: Any) -> Any:
@@ -653,9 +674,7 @@ class _TrainingRun:
             raise InputError(f"representation's positional plane is "
                              f"{tuple(representation.positional_plane().shape[:2])} but the BTF {source.name!r} is "
                              f"{source.height} x {source.width} texels")
-        if config.subtexel and not getattr(representation, "has_subtexel_term", False):
-            raise InputError(f"--subtexel (TrainConfig.subtexel): the {representation.kind!r} representation has no "
-                             "sub-texel term; it applies to the Triple Plane ('triple')")
+        self.subtexel = subtexel_weight(representation, config)
         self.source, self.config, self.output = source, config, output
         self.parallel, device = from_environment(resolve_device(config.device))
         self.device = device
@@ -735,11 +754,11 @@ class _TrainingRun:
         if self.angular_taps is not None and len(batch.pairs):
             rows = torch.as_tensor(batch.pairs[:, 0] * source.n_lights + batch.pairs[:, 1], device=device)
             taps = tuple(t.index_select(0, rows) for t in self.angular_taps)
-        between = self._between_texels(batch, epoch, step) if self.config.subtexel and len(batch.pairs) else None
+        between = self._between_texels(batch, epoch, step) if self.subtexel and len(batch.pairs) else None
         return batch, (wv, wl, texels, taps, between)
 
     def _between_texels(self, batch, epoch: int, step: int):
-        """The sub-texel term's data of step ``(epoch, step)`` (:attr:`TrainConfig.subtexel`): ``(neighbours,
+        """The sub-texel term's data of step ``(epoch, step)`` (:func:`subtexel_weight`): ``(neighbours,
         weights, target)``: random points between texel centres, an eighth of the step's texels (at least 64),
         each with its four surrounding texels (int64 ``(4, n)``, flat, periodic) and their bilinear weights
         (float32 ``(4, n)``; :func:`~dynbtf.training.batches.between_texel_points`), and the bilinear mix of those
@@ -773,7 +792,7 @@ class _TrainingRun:
                                     texel_groups=batch.groups, precision=self.precision, angular_taps=taps)
             if between is not None:
                 b = len(between[2])
-                loss = loss + self.config.subtexel * self.rep.subtexel_l1_loss(
+                loss = loss + self.subtexel * self.rep.subtexel_l1_loss(
                     *between[:2], wv[:b], wl[:b], between[2], chunk_texels=self.chunk_texels, workers=self.workers,
                     precision=self.precision, angular_taps=None if taps is None else tuple(t[:b] for t in taps))
             if parallel.world > 1:  # weighted by the share: the mean over processes is the whole step's loss

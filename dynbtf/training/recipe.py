@@ -47,8 +47,8 @@ from ..data.base import BTFSource
 from ..device import resolve_device
 from ..errors import InputError
 from ..representations.base import Representation
-from .batches import BatchSampler
-from .fit import TrainConfig, texel_image_loss
+from .batches import BatchSampler, between_texel_points
+from .fit import AUTO_SUBTEXEL, TrainConfig, subtexel_weight, texel_image_loss
 from ..decoder.fused_mlp import resolve_precision, single_intra_op_thread
 from .images import ImageStore, held_out_split
 
@@ -145,7 +145,8 @@ def auto_recipe(source: BTFSource, *, minutes: float | None = None, representati
                                  schedule="converge" if converge else "epochs",
                                  monitor_every=overrides.get("monitor_every",
                                                              round(MONITOR_EVERY * step_factor) if converge else 0),
-                                 min_steps=overrides.get("min_steps", round(MIN_STEPS * step_factor) if converge else 0))
+                                 min_steps=overrides.get("min_steps", round(MIN_STEPS * step_factor) if converge else 0),
+                                 subtexel=overrides.get("subtexel", None))  # None: the representation's own
     epochs = config.epochs
     step_seconds = None
     budget_note = ""
@@ -171,6 +172,8 @@ def auto_recipe(source: BTFSource, *, minutes: float | None = None, representati
                f"directions: {schedule}, {config.texel_groups} texel groups, "
                + ("all texels" if config.texels_per_image is None else f"{config.texels_per_image} texels")
                + f" per step, lr x{config.lr_scale:g}, "
+               + (f"sub-texel term x{AUTO_SUBTEXEL:g} with the Triple Plane, " if config.subtexel is None else
+                  f"sub-texel term x{config.subtexel:g}, " if config.subtexel else "")
                + ("images cached in RAM" if cached else "texels read from the BTF each step") + budget_note)
     return Recipe(config, summary, full_epochs, step_seconds)
 
@@ -269,11 +272,24 @@ def measure_step_seconds(source: BTFSource, config: TrainConfig, representation:
     chunk = config.chunk_texels if device.type == "cpu" else n
     with torch.no_grad():
         taps = rep.direction_taps(wv, wl)  # as the fit reads them (once per pair, before training)
+    between = None
+    if subtexel_weight(rep, config):  # the sub-texel term's points and random targets, as the fit reads them
+        neighbours, weights, _ = between_texel_points(source.height, source.width, max(64, n // 8),
+                                                      np.random.default_rng(0))
+        b = config.images_per_step
+        between = (torch.from_numpy(neighbours).to(device), torch.from_numpy(weights).to(device),
+                   torch.rand((b, neighbours.shape[1], 3), generator=torch.Generator().manual_seed(1)).to(device))
+
     def step() -> float:
         t0 = time.perf_counter()
         loss = texel_image_loss(rep, wv, wl, target, (source.height, source.width), texel_t, chunk_texels=chunk,
                                 workers=workers, texel_groups=sampler.n_groups, precision=precision,
                                 angular_taps=taps)
+        if between is not None:
+            b = len(between[2])
+            loss = loss + rep.subtexel_l1_loss(*between[:2], wv[:b], wl[:b], between[2], chunk_texels=chunk,
+                                               workers=workers, precision=precision,
+                                               angular_taps=tuple(t[:b] for t in taps))
         loss.backward()
         return time.perf_counter() - t0
 
