@@ -15,13 +15,13 @@ from dynbtf.training import TrainConfig, fit  # noqa: E402
 from synthetic_btf import synthetic_btf  # noqa: E402
 
 
-def main(out_dir: str, texel_groups: int, images_per_step: int) -> None:
+def main(out_dir: str, texel_groups: int, images_per_step: int, subtexel: float = 0.0) -> None:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)
     btf = synthetic_btf(size=8)
     config = TrainConfig(epochs=2, images_per_step=images_per_step, texel_groups=texel_groups, seed=3, workers=1,
-                         monitor_pairs=2, device="cpu", precision="fp32", lr_scale=3.0)
+                         monitor_pairs=2, device="cpu", precision="fp32", lr_scale=3.0, subtexel=subtexel)
     losses = []
     result = fit(TriplePlane(8, 8, positional_channels=8, angular_channels=4, hidden=16, seed=3), btf, config,
                  out / "model.dbtfm", progress=False, callback=lambda info: losses.append(info["loss"]))
@@ -32,4 +32,4 @@ def main(out_dir: str, texel_groups: int, images_per_step: int) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], int(sys.argv[2]), int(sys.argv[3]))
+    main(sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]) if len(sys.argv) > 4 else 0.0)

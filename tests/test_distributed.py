@@ -19,8 +19,8 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _run(out: Path, groups: int, images: int, processes: int) -> None:
-    args = [str(out), str(groups), str(images)]
+def _run(out: Path, groups: int, images: int, processes: int, subtexel: float) -> None:
+    args = [str(out), str(groups), str(images), str(subtexel)]
     if processes == 1:
         command = [sys.executable, str(SCRIPT), *args]
     else:
@@ -30,10 +30,12 @@ def _run(out: Path, groups: int, images: int, processes: int) -> None:
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
 
 
-@pytest.mark.parametrize("groups, images", [(4, 8), (1, 8)], ids=["texel-groups", "whole-images"])
-def test_two_gloo_processes_follow_the_single_process_loss_curve(tmp_path, groups, images):
-    _run(tmp_path / "one", groups, images, 1)
-    _run(tmp_path / "two", groups, images, 2)
+@pytest.mark.parametrize("groups, images, subtexel", [(4, 8, 0.0), (1, 8, 0.0), (4, 8, 0.5), (1, 8, 0.5)],
+                         ids=["texel-groups", "whole-images", "texel-groups-subtexel", "whole-images-subtexel"])
+def test_two_gloo_processes_follow_the_single_process_loss_curve(tmp_path, groups, images, subtexel):
+    """Also with the sub-texel term, which one process computes for the whole step."""
+    _run(tmp_path / "one", groups, images, 1, subtexel)
+    _run(tmp_path / "two", groups, images, 2, subtexel)
     single = np.array(json.loads((tmp_path / "one" / "losses_rank0.json").read_text()))
     ranks = [np.array(json.loads((tmp_path / "two" / f"losses_rank{r}.json").read_text())) for r in (0, 1)]
     assert len(single) > 20 and all(len(r) == len(single) for r in ranks)

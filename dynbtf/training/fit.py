@@ -754,26 +754,34 @@ class _TrainingRun:
         if self.angular_taps is not None and len(batch.pairs):
             rows = torch.as_tensor(batch.pairs[:, 0] * source.n_lights + batch.pairs[:, 1], device=device)
             taps = tuple(t.index_select(0, rows) for t in self.angular_taps)
-        between = self._between_texels(batch, epoch, step) if self.subtexel and len(batch.pairs) else None
+        # the sub-texel term: one process computes it for the whole step (see _optimizer_step)
+        between = self._between_texels(epoch, step) if self.subtexel and self.parallel.is_main else None
         return batch, (wv, wl, texels, taps, between)
 
-    def _between_texels(self, batch, epoch: int, step: int):
-        """The sub-texel term's data of step ``(epoch, step)`` (:func:`subtexel_weight`): ``(neighbours,
-        weights, target)``: random points between texel centres, an eighth of the step's texels (at least 64),
-        each with its four surrounding texels (int64 ``(4, n)``, flat, periodic) and their bilinear weights
-        (float32 ``(4, n)``; :func:`~dynbtf.training.batches.between_texel_points`), and the bilinear mix of those
-        texels' measured values under the step's first ``B`` pairs (float32 ``(B, n, 3)``). Seeded by the run's
-        seed and the step."""
+    def _between_texels(self, epoch: int, step: int) -> dict[str, Any]:
+        """The sub-texel term's data of step ``(epoch, step)`` (:func:`subtexel_weight`): random points between
+        texel centres, an eighth of the step's texels (at least 64), each with its four surrounding texels
+        (``neighbours``, int64 ``(4, n)``, flat, periodic) and their bilinear ``weights`` (float32 ``(4, n)``;
+        :func:`~dynbtf.training.batches.between_texel_points`), under the whole step's first ``B`` pairs (whatever
+        this process's share of the step: ``w_view``, ``w_light``, ``angular_taps``), and the ``target``: the
+        bilinear mix of those texels' measured values (float32 ``(B, n, 3)``). Seeded by the run's seed and the
+        step."""
+        source, device = self.source, self.device
         n = max(64, self.sampler.texels_per_step // 8)
-        neighbours, weights, _ = between_texel_points(self.source.height, self.source.width, n,
+        neighbours, weights, _ = between_texel_points(source.height, source.width, n,
                                                       np.random.default_rng([self.config.seed, 3, epoch, step]))
-        pairs = batch.pairs[:self.sampler.b]
+        pairs = self.sampler.pairs(epoch, step)[:self.sampler.b]
         texels = np.asarray(self.store.get(pairs, neighbours.reshape(-1)), dtype=np.float32).reshape(len(pairs), 4,
                                                                                                       n, 3)
-        target = np.einsum("kn,bknc->bnc", weights, texels)
-        device = self.device
-        return (torch.from_numpy(neighbours).to(device), torch.from_numpy(weights).to(device),
-                torch.from_numpy(np.ascontiguousarray(target, dtype=np.float32)).to(device))
+        taps = None
+        if self.angular_taps is not None:
+            rows = torch.as_tensor(pairs[:, 0] * source.n_lights + pairs[:, 1], device=device)
+            taps = tuple(t.index_select(0, rows) for t in self.angular_taps)
+        return {"neighbours": torch.from_numpy(neighbours).to(device), "weights": torch.from_numpy(weights).to(device),
+                "w_view": torch.as_tensor(source.views[pairs[:, 0]], dtype=torch.float32, device=device),
+                "w_light": torch.as_tensor(source.lights[pairs[:, 1]], dtype=torch.float32, device=device),
+                "angular_taps": taps,
+                "target": torch.from_numpy(np.einsum("kn,bknc->bnc", weights, texels).astype(np.float32)).to(device)}
 
     def _optimizer_step(self, batch, inputs) -> float:
         """One step of the optimizer on ``batch`` (``inputs``: :meth:`_step_inputs`); returns the loss."""
@@ -784,19 +792,23 @@ class _TrainingRun:
         wv, wl, texels, taps, between = inputs
         self.optimizer.zero_grad(set_to_none=True)
         parallel = self.parallel
-        if len(batch.pairs) == 0:  # a data-parallel share of an epoch's short last step can be empty
-            loss_value = 0.0
-        else:
+        loss = None
+        if len(batch.pairs):  # (a data-parallel share of an epoch's short last step can be empty)
             loss = texel_image_loss(self.rep, wv, wl, batch.target, (source.height, source.width), texels,
                                     chunk_texels=self.chunk_texels, workers=self.workers,
                                     texel_groups=batch.groups, precision=self.precision, angular_taps=taps)
-            if between is not None:
-                b = len(between[2])
-                loss = loss + self.subtexel * self.rep.subtexel_l1_loss(
-                    *between[:2], wv[:b], wl[:b], between[2], chunk_texels=self.chunk_texels, workers=self.workers,
-                    precision=self.precision, angular_taps=None if taps is None else tuple(t[:b] for t in taps))
             if parallel.world > 1:  # weighted by the share: the mean over processes is the whole step's loss
                 loss = loss * (batch.fraction * parallel.world)
+        if between is not None:  # the whole step's sub-texel term, in one process: x world in the mean
+            term = self.rep.subtexel_l1_loss(between["neighbours"], between["weights"], between["w_view"],
+                                             between["w_light"], between["target"], chunk_texels=self.chunk_texels,
+                                             workers=self.workers, precision=self.precision,
+                                             angular_taps=between["angular_taps"])
+            term = term * (self.subtexel * parallel.world)
+            loss = term if loss is None else loss + term
+        if loss is None:
+            loss_value = 0.0
+        else:
             loss.backward()
             loss_value = float(loss.detach())
         parallel.average_gradients(self.rep.parameters())
