@@ -444,7 +444,9 @@ def test_relief_model_marches_the_synthesized_height_like_the_library(relief_mod
 # ---------------------------------------------------------------- struct (lattice-aligned cell quilting) and auto
 @pytest.fixture(scope="module")
 def structured_model():
-    """A random Triple Plane whose positional plane repeats an 8 x 8 element (plus noise): ``auto`` picks struct.
+    """A random Triple Plane whose positional plane repeats an 8 x 8 element (plus noise) framed by a joint (row and
+    column 5 of each element, off the cell edges, so that the seams, which follow the joints, leave the straight
+    edges on both sides): ``auto`` picks struct.
 
     24 x 48 texels: 2 x 1 cells of 24 x 24 texels, cut bands of 6 texels, 16 lattice offsets.
     """
@@ -452,8 +454,10 @@ def structured_model():
 
     m = TriplePlane(24, 48, positional_channels=6, angular_channels=3, hidden=12, seed=5)
     g = torch.Generator().manual_seed(3)
+    element = torch.randn(8, 8, 6, generator=g)
+    element[5, :] = element[:, 5] = -2.0  # the joint
     with torch.no_grad():
-        m.f_u.copy_(torch.randn(8, 8, 6, generator=g).repeat(3, 6, 1) + 0.3 * torch.randn(24, 48, 6, generator=g))
+        m.f_u.copy_(element.repeat(3, 6, 1) + 0.3 * torch.randn(24, 48, 6, generator=g))
         m.decoder.rest[-1].bias.add_(0.6)
     return m
 

@@ -8,6 +8,7 @@ system, a path under a file), e.g. ``dynbtf: error: out.png: no space left on de
 
 from __future__ import annotations
 
+import os
 import sys
 
 from ..errors import DynBTFError
@@ -39,6 +40,12 @@ def main(argv: list[str] | None = None) -> int:
             return status
     except DynBTFError as e:
         print(f"dynbtf: error: {e}", file=sys.stderr)
+        if argv is None and getattr(e, "leave_without_finalizing", False):
+            # a library loaded but unusable (an old LLVM under Dr.Jit) may hang in its shutdown at exit, at
+            # random: the process leaves at once, its one line written
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(2)
         return 2
     except OSError as e:  # the environment refused a read or write (a full disk, a read-only file system)
         from ..io import os_error_message

@@ -134,7 +134,12 @@ def check_llvm(variant: str | None = "llvm_ad_rgb") -> None:
         return
     status = llvm_status()
     if status["problem"]:
-        raise MissingDependencyError(f"Mitsuba variant {variant or 'llvm_ad_rgb'}: {status['problem']}; {LLVM_FIX}")
+        error = MissingDependencyError(f"Mitsuba variant {variant or 'llvm_ad_rgb'}: {status['problem']}; {LLVM_FIX}")
+        # an LLVM Dr.Jit cannot use is mapped into the process: its shutdown at exit may hang, so the command
+        # line leaves without finalizing (dynbtf.cli.main)
+        error.leave_without_finalizing = status["version"] is not None or any("too old" in m
+                                                                             for m in status["messages"])
+        raise error
     apply_isa_target()
 
 
