@@ -746,17 +746,23 @@ class _TrainingRun:
         sub-texel term's data or None: :meth:`_between_texels`). Prepared by the prefetch thread while the previous
         step trains."""
         batch = self.sampler.batch(epoch, step)
-        source, device = self.source, self.device
-        wv = torch.as_tensor(source.views[batch.pairs[:, 0]], dtype=torch.float32, device=device)
-        wl = torch.as_tensor(source.lights[batch.pairs[:, 1]], dtype=torch.float32, device=device)
-        texels = None if batch.texels is None else torch.from_numpy(batch.texels).to(device)
-        taps = None
-        if self.angular_taps is not None and len(batch.pairs):
-            rows = torch.as_tensor(batch.pairs[:, 0] * source.n_lights + batch.pairs[:, 1], device=device)
-            taps = tuple(t.index_select(0, rows) for t in self.angular_taps)
+        wv, wl, taps = self._pair_inputs(batch.pairs)
+        texels = None if batch.texels is None else torch.from_numpy(batch.texels).to(self.device)
         # the sub-texel term: one process computes it for the whole step (see _optimizer_step)
         between = self._between_texels(epoch, step) if self.subtexel and self.parallel.is_main else None
         return batch, (wv, wl, texels, taps, between)
+
+    def _pair_inputs(self, pairs: np.ndarray):
+        """``(w_view, w_light, taps)`` of (view, light) index pairs ``(P, 2)``: their directions ``(P, 3)`` and their
+        rows of the angular taps (None without taps, or for no pairs)."""
+        source, device = self.source, self.device
+        wv = torch.as_tensor(source.views[pairs[:, 0]], dtype=torch.float32, device=device)
+        wl = torch.as_tensor(source.lights[pairs[:, 1]], dtype=torch.float32, device=device)
+        taps = None
+        if self.angular_taps is not None and len(pairs):
+            rows = torch.as_tensor(pairs[:, 0] * source.n_lights + pairs[:, 1], device=device)
+            taps = tuple(t.index_select(0, rows) for t in self.angular_taps)
+        return wv, wl, taps
 
     def _between_texels(self, epoch: int, step: int) -> dict[str, Any]:
         """The sub-texel term's data of step ``(epoch, step)`` (:func:`subtexel_weight`): random points between
@@ -766,21 +772,16 @@ class _TrainingRun:
         this process's share of the step: ``w_view``, ``w_light``, ``angular_taps``), and the ``target``: the
         bilinear mix of those texels' measured values (float32 ``(B, n, 3)``). Seeded by the run's seed and the
         step."""
-        source, device = self.source, self.device
+        device = self.device
         n = max(64, self.sampler.texels_per_step // 8)
-        neighbours, weights, _ = between_texel_points(source.height, source.width, n,
+        neighbours, weights, _ = between_texel_points(self.source.height, self.source.width, n,
                                                       np.random.default_rng([self.config.seed, 3, epoch, step]))
         pairs = self.sampler.pairs(epoch, step)[:self.sampler.b]
         texels = np.asarray(self.store.get(pairs, neighbours.reshape(-1)), dtype=np.float32).reshape(len(pairs), 4,
                                                                                                       n, 3)
-        taps = None
-        if self.angular_taps is not None:
-            rows = torch.as_tensor(pairs[:, 0] * source.n_lights + pairs[:, 1], device=device)
-            taps = tuple(t.index_select(0, rows) for t in self.angular_taps)
+        wv, wl, taps = self._pair_inputs(pairs)
         return {"neighbours": torch.from_numpy(neighbours).to(device), "weights": torch.from_numpy(weights).to(device),
-                "w_view": torch.as_tensor(source.views[pairs[:, 0]], dtype=torch.float32, device=device),
-                "w_light": torch.as_tensor(source.lights[pairs[:, 1]], dtype=torch.float32, device=device),
-                "angular_taps": taps,
+                "w_view": wv, "w_light": wl, "angular_taps": taps,
                 "target": torch.from_numpy(np.einsum("kn,bknc->bnc", weights, texels).astype(np.float32)).to(device)}
 
     def _optimizer_step(self, batch, inputs) -> float:
