@@ -884,6 +884,17 @@ def test_plugin_sample_rotation_matches_synthesized_btf(variant, model_file):
         mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "tile", "rotation": True})
 
 
+def test_plugin_sample_scales_match_synthesized_btf(variant, model_file):
+    """hex with scaled (and turned) samples in the plugin = the library's; struct refuses the parameter, and a
+    value out of [0, 1] is refused by name."""
+    path, model = model_file
+    _assert_plugin_parameters_match(path, model, "hex", {"scale_jitter": 0.4, "rotation": True})
+    with pytest.raises(Exception, match="scaling the samples is for hex, hist, linear"):
+        mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "struct", "scale_jitter": 0.4})
+    with pytest.raises(Exception, match=r"scale_jitter.*a scale jitter in \[0, 1\]"):
+        mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "hist", "scale_jitter": 2.0})
+
+
 def test_plugin_struct_footprints_match_synthesized_btf(variant, structured_file):
     """struct's footprint queries (the exemplar's pyramid at the point query's read position, per-level decoders)
     in the plugin = ``SynthesizedBTF.eval`` with the same footprints."""

@@ -1,4 +1,4 @@
-"""Lattice blending's quarter-turned samples (dynbtf.synthesis.sample_transform), against brute force."""
+"""Lattice blending's quarter-turned and scaled samples (dynbtf.synthesis.sample_transform), against brute force."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from dynbtf.errors import InputError
-from dynbtf.synthesis.hash import hash_vertex, vertex_offsets
+from dynbtf.synthesis.hash import hash_vertex, mix32, vertex_offsets
 from dynbtf.synthesis.lattice import triangle_lattice, vertex_uv
 from dynbtf.synthesis.registry import make_synthesizer
-from dynbtf.synthesis.sample_transform import PIVOT_SHIFT, quarter_turns
+from dynbtf.synthesis.sample_transform import PIVOT_SHIFT, SCALE_STREAM, inverse_scales, quarter_turns, scale_log
 
 
 def _bilinear(plane: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -28,19 +28,24 @@ def _bilinear(plane: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
             + tx * ty * plane[r1, c1])
 
 
-def _brute_force_linear(exemplar: torch.Tensor, uv: torch.Tensor, seed: int):
-    """``linear`` blending with turned samples, from the definition: sample ``k`` reads the exemplar at
-    ``c_k + A_k (q - c_k) + o_k`` (texels; ``c_k`` the vertex's pivot, a texel centre next to it, ``o_k`` its offset,
-    ``q`` the query, ``A_k`` its quarter turns), weighted by the barycentrics."""
+def _brute_force_linear(exemplar: torch.Tensor, uv: torch.Tensor, seed: int, rotation: bool = True,
+                        jitter: float = 0.0):
+    """``linear`` blending with turned and scaled samples, from the definition: sample ``k`` reads the exemplar at
+    ``c_k + A_k (q - c_k) / f_k + o_k`` (texels; ``c_k`` the vertex's pivot, a texel centre next to it, ``o_k`` its
+    offset, ``q`` the query, ``A_k`` its quarter turns, ``f_k = (1 + jitter)^(2 r - 1)`` its scale, ``r`` the top 24
+    bits of its hash's scale stream), weighted by the barycentrics."""
     plane = exemplar.double().numpy()
     h, w, _ = plane.shape
     vertices, bary = triangle_lattice(uv)
     ox, oy = vertex_offsets(vertices[..., 0], vertices[..., 1], seed, w, h)
-    angle = quarter_turns(hash_vertex(vertices[..., 0], vertices[..., 1], seed)).numpy() * (np.pi / 2)
+    hashes = hash_vertex(vertices[..., 0], vertices[..., 1], seed)
+    angle = quarter_turns(hashes).numpy() * (np.pi / 2) if rotation else np.zeros(hashes.shape)
+    r = (mix32(hashes ^ SCALE_STREAM) >> 8).numpy() / 2.0 ** 24
+    factor = (1.0 + jitter) ** (2.0 * r - 1.0)
     centre = np.floor(vertex_uv(vertices).numpy() * np.array([w, h]) + PIVOT_SHIFT) + 0.5  # (N, 3, 2) texels
     q = uv.numpy()[:, None, :] * np.array([w, h])
     d = q - centre
-    c, s = np.round(np.cos(angle)), np.round(np.sin(angle))
+    c, s = np.round(np.cos(angle)) / factor, np.round(np.sin(angle)) / factor
     x = centre[..., 0] + ox.numpy() + c * d[..., 0] - s * d[..., 1]
     y = centre[..., 1] + oy.numpy() + s * d[..., 0] + c * d[..., 1]
     out = 0.0
@@ -81,13 +86,54 @@ def test_a_texel_centre_reads_whole_texels(exemplar):
         assert float((texels - torch.round(texels)).abs().max()) < tolerance
 
 
-@pytest.mark.parametrize("method", ["linear", "hist", "hex"])
-def test_kernels_equal_the_reference_far_from_the_origin(exemplar, method):
+@pytest.mark.parametrize("rotation, jitter", [(False, 0.3), (True, 1.0)])
+def test_scaled_samples_read_where_the_definition_says(exemplar, rotation, jitter):
+    """Scaled (and turned) samples: the fused kernel and the torch reference of ``linear`` = the brute-force
+    definition, near the origin and at 1e9 repeats."""
+    uv = torch.rand(4000, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(4)) * 6.0 - 2.0
+    synth = make_synthesizer("linear", exemplar, seed=5, tileable=False, rotation=rotation, scale_jitter=jitter)
+    expected = _brute_force_linear(exemplar, uv, 5, rotation, jitter)
+    np.testing.assert_allclose(synth.latent(uv).numpy(), expected, atol=5e-5)
+    np.testing.assert_allclose(synth.reference_latent(uv).numpy(), expected, atol=5e-5)
+    unscaled = _brute_force_linear(exemplar, uv, 5, rotation, 0.0)
+    assert np.abs(synth.latent(uv).numpy() - unscaled).max() > 0.5  # the scales change what is read
+    far = uv + torch.tensor([1e9, -3e8], dtype=torch.float64)
+    # (at 1e9 repeats float64 holds uv to 1.2e-7 repeats: 6e-6 texel here, times the blend's slope)
+    np.testing.assert_allclose(synth.latent(far).numpy(), _brute_force_linear(exemplar, far, 5, rotation, jitter),
+                               atol=2e-4)
+
+
+def test_scale_factors_are_log_uniform_and_the_numba_twin_draws_them():
+    """``1 / f`` over many hashes: log-uniform in ``[1 / (1 + j), 1 + j]`` (its quartiles), the compiled twin's
+    to float64 rounding, and exactly 1 with no jitter."""
+    import numba
+
+    from dynbtf.synthesis.kernels import jit_inverse_scales
+
+    @numba.njit
+    def draw(h, log_range):
+        out = np.empty(h.shape[0], dtype=np.float64)
+        for i in range(h.shape[0]):
+            out[i] = jit_inverse_scales(h[i], log_range)
+        return out
+
+    h = torch.randint(0, 1 << 32, (40000,), dtype=torch.int64, generator=torch.Generator().manual_seed(1))
+    inverse = inverse_scales(h, scale_log(0.5))
+    np.testing.assert_allclose(inverse.numpy(), draw(h.numpy(), scale_log(0.5)), rtol=1e-15)  # (exp's last bit)
+    log_f = -np.log(inverse.numpy()) / np.log(1.5)  # uniform in [-1, 1]
+    assert log_f.min() >= -1.0 and log_f.max() <= 1.0
+    np.testing.assert_allclose(np.quantile(log_f, [0.25, 0.5, 0.75]), [-0.5, 0.0, 0.5], atol=0.02)
+    assert torch.equal(inverse_scales(h, 0.0), torch.ones(h.shape, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("method, rotation, jitter", [("linear", True, 0.0), ("hist", True, 0.0), ("hex", True, 0.0),
+                                                      ("hist", False, 0.5), ("hex", True, 0.5)])
+def test_kernels_equal_the_reference_far_from_the_origin(exemplar, method, rotation, jitter):
     """Point and footprint kernels = the torch reference, at 1e9 repeats as near the origin."""
     g = torch.Generator().manual_seed(2)
     uv = torch.rand(3000, 2, dtype=torch.float64, generator=g) * 5.0
     uv[1500:] += torch.tensor([1e9, -3e8], dtype=torch.float64)
-    synth = make_synthesizer(method, exemplar, seed=4, tileable=False, rotation=True)
+    synth = make_synthesizer(method, exemplar, seed=4, tileable=False, rotation=rotation, scale_jitter=jitter)
     reference = synth.reference_latent(uv)
     tolerance = 2e-2 if method == "hist" else 1e-4  # hist: the kernel's tabulated inverse (its own test bounds it)
     np.testing.assert_allclose(synth.latent(uv).numpy(), reference.numpy(), atol=tolerance)
@@ -100,9 +146,14 @@ def test_kernels_equal_the_reference_far_from_the_origin(exemplar, method):
 def test_off_is_the_plain_method_bit_for_bit(exemplar):
     uv = torch.rand(2000, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(3)) * 9.0
     plain = make_synthesizer("hist", exemplar, seed=1)
-    off = make_synthesizer("hist", exemplar, seed=1, rotation=False)
+    off = make_synthesizer("hist", exemplar, seed=1, rotation=False, scale_jitter=0.0)
     assert torch.equal(plain.latent(uv), off.latent(uv))
     assert off.frame_rotation(uv) is None
+    scaled = make_synthesizer("hist", exemplar, seed=1, scale_jitter=0.5)
+    assert scaled.frame_rotation(uv) is None  # a scale leaves the directions as they are
+    turned = make_synthesizer("hist", exemplar, seed=1, rotation=True)
+    both = make_synthesizer("hist", exemplar, seed=1, rotation=True, scale_jitter=0.5)
+    assert torch.equal(turned.frame_rotation(uv), both.frame_rotation(uv))
 
 
 def test_numba_twin_draws_the_same_turns():
@@ -200,12 +251,21 @@ def test_bad_values_are_refused_by_name(exemplar, value):
         make_synthesizer("hist", exemplar, rotation=value)
 
 
+@pytest.mark.parametrize("value", [-0.1, 1.5, math.nan, "big", True])
+def test_bad_scale_jitters_are_refused_by_name(exemplar, value):
+    with pytest.raises(InputError, match=r"scale_jitter: expected a scale jitter in \[0, 1\] \(each sample magnified"):
+        make_synthesizer("hex", exemplar, scale_jitter=value)
+
+
 def test_guidance_refuses_turned_samples(exemplar):
     from dynbtf.synthesis.guided_blending import LabelField
 
     labels = torch.zeros(40, 48, dtype=torch.long)
     with pytest.raises(InputError, match="rotation: the guided methods read their candidates' content unturned"):
         make_synthesizer("guided", exemplar, labels=labels, target=LabelField([[0]]), rotation=True)
+    with pytest.raises(InputError, match="scale_jitter: the guided methods read their candidates' content unturned "
+                                         "and unscaled"):
+        make_synthesizer("guided", exemplar, labels=labels, target=LabelField([[0]]), scale_jitter=0.2)
 
 
 def test_cli_synth_takes_rotation(tmp_path, capsys):
@@ -218,11 +278,18 @@ def test_cli_synth_takes_rotation(tmp_path, capsys):
     common = [str(tmp_path / "m.dbtfm"), "--method", "hist", "--scale", "4", "--resolution", "48"]
     assert main(["synth", *common, "-o", str(tmp_path / "plain.exr")]) == 0
     assert main(["synth", *common, "--rotation", "-o", str(tmp_path / "t.exr")]) == 0
+    assert main(["synth", *common, "--scale-jitter", "0.3", "-o", str(tmp_path / "s.exr")]) == 0
     plain, turned = load_image(tmp_path / "plain.exr"), load_image(tmp_path / "t.exr")
+    scaled = load_image(tmp_path / "s.exr")
     assert np.isfinite(turned).all() and np.abs(turned - plain).max() > 1e-3
+    assert np.isfinite(scaled).all() and np.abs(scaled - plain).max() > 1e-3
     capsys.readouterr()
     for extra, message in ((["--method", "tile", "--rotation"], "--rotation: turning the samples is for hex, hist, "
                                                                 "linear; give it with --method hex"),
+                           (["--method", "struct", "--scale-jitter", "0.2"], "--scale-jitter: scaling the samples is "
+                                                                             "for hex, hist, linear"),
+                           (["--method", "hist", "--scale-jitter", "3"], "--scale-jitter: expected a scale jitter in "
+                                                                         "[0, 1]"),
                            (["--method", "hist", "--rotation", "--layer", str(tmp_path / "m.dbtfm")],
                             "--rotation: turning the samples is for hex")):
         assert main(["synth", str(tmp_path / "m.dbtfm"), *extra, "-o", str(tmp_path / "x.png")]) == 2
@@ -242,10 +309,11 @@ def test_cli_export_turns_the_lattice_methods(tmp_path, capsys):
     save_model(tmp_path / "m.dbtfm", TriplePlane(24, 24, seed=1))
     out = tmp_path / "web"
     assert main(["export", str(tmp_path / "m.dbtfm"), "-o", str(out), "--method", "hist", "--method", "tile",
-                 "--rotation", "--no-viewer"]) == 0
+                 "--rotation", "--scale-jitter", "0.25", "--no-viewer"]) == 0
     manifest = json.loads((out / "manifest.json").read_text())
     methods = manifest["methods"]
     assert methods["hist"]["rotation"] is True and methods["hist"]["frame_exponent"] == 7.0
+    assert methods["hist"]["scale_log"] == pytest.approx(math.log(1.25), rel=1e-12)
     assert not methods["tile"].get("rotation")
     capsys.readouterr()
     assert main(["export", str(tmp_path / "m.dbtfm"), "-o", str(tmp_path / "x"), "--method", "tile",
@@ -263,12 +331,12 @@ def test_cli_compile_keeps_the_turns_and_synth_uses_them(tmp_path, capsys):
     from dynbtf.representations.triple_plane import TriplePlane
 
     save_model(tmp_path / "m.dbtfm", TriplePlane(24, 24, seed=1))
-    assert main(["compile", str(tmp_path / "m.dbtfm"), "--method", "hex", "--rotation", "--no-footprints", "-o",
-                 str(tmp_path / "m.dbtfc")]) == 0
+    assert main(["compile", str(tmp_path / "m.dbtfm"), "--method", "hex", "--rotation", "--scale-jitter", "0.4",
+                 "--no-footprints", "-o", str(tmp_path / "m.dbtfc")]) == 0
     common = ["--scale", "4", "--resolution", "32"]
     assert main(["synth", str(tmp_path / "m.dbtfc"), *common, "-o", str(tmp_path / "a.exr")]) == 0
-    assert main(["synth", str(tmp_path / "m.dbtfm"), "--method", "hex", "--rotation", *common, "-o",
-                 str(tmp_path / "b.exr")]) == 0
+    assert main(["synth", str(tmp_path / "m.dbtfm"), "--method", "hex", "--rotation", "--scale-jitter", "0.4",
+                 *common, "-o", str(tmp_path / "b.exr")]) == 0
     np.testing.assert_array_equal(load_image(tmp_path / "a.exr"), load_image(tmp_path / "b.exr"))
     capsys.readouterr()
     assert main(["compile", str(tmp_path / "m.dbtfm"), "--method", "struct", "--rotation"]) == 2

@@ -92,17 +92,20 @@ def test_shader_matches_synthesized_btf(exports, model, method):
 
 @browser
 @pytest.mark.browser
-def test_turned_samples_in_the_shader_match_synthesized_btf(model, tmp_path):
-    """``rotation=True`` (quarter turns about each vertex's pivot, the directions turned into the frame) in the
-    shader = ``synthesized_btf(model, method, rotation=True)`` for linear, hist and hex, and not the unturned
-    method's values."""
+@pytest.mark.parametrize("variation", [{"rotation": True}, {"scale_jitter": 0.4},
+                                       {"rotation": True, "scale_jitter": 1.0}],
+                         ids=["turned", "scaled", "turned-and-scaled"])
+def test_turned_samples_in_the_shader_match_synthesized_btf(model, tmp_path, variation):
+    """``rotation=True`` (quarter turns about each vertex's pivot, the directions turned into the frame) and
+    ``scale_jitter`` (each sample scaled about the same pivot) in the shader = ``synthesized_btf(model, method,
+    **variation)`` for linear, hist and hex, and not the plain method's values."""
     turned = ("linear", "hist", "hex")
     export = export_web(model, tmp_path / "turned", precision="fp32", methods=turned,
-                        method_params={m: {"rotation": True} for m in turned})
+                        method_params={m: dict(variation) for m in turned})
     points, shift, wv, wl = _queries(1024, seed=3)
     for method in turned:
-        ref = synthesized_btf(model, method, seed=0, rotation=True).eval(points, wv.astype(np.float64),
-                                                                           wl.astype(np.float64))
+        ref = synthesized_btf(model, method, seed=0, **variation).eval(points, wv.astype(np.float64),
+                                                                         wl.astype(np.float64))
         got = eval_in_browser(export.directory, method, points, wv, wl, local_shift=shift).rgb
         peak = np.abs(ref).max()
         exact = shift == 0

@@ -8,6 +8,7 @@ from typing import Optional
 
 import typer
 
+from . import guidance_options
 from ..errors import InputError
 from .app import app
 
@@ -21,8 +22,10 @@ def compile_command(
                                             "(struct for structured materials, else hist; the choice is printed)."),
     seed: int = typer.Option(0, help="Synthesis seed."),
     gamma: Optional[float] = typer.Option(None, "--gamma", help="Blending exponent of hist (when hist is used)."),
-    rotation: bool = typer.Option(False, "--rotation", help="hist, hex, linear: turn each sample by random quarter "
-                                  "turns, the view and light with it (for isotropic materials)."),
+    rotation: bool = guidance_options.ROTATION,
+    scale_jitter: float = guidance_options.SCALE_JITTER,
+    brightness: float = guidance_options.BRIGHTNESS,
+    tint: float = guidance_options.TINT,
     footprints: bool = typer.Option(True, "--footprints/--no-footprints",
                                     help="Also fit the per-level decoders and mean appearance of footprint "
                                          "(filtered) queries: a fit per pyramid level, the slow part, done once."),
@@ -46,15 +49,17 @@ def compile_command(
         if output.suffix != SUFFIX:
             raise InputError(f"-o/--output: expected a {SUFFIX} file name, got {output}")
         check_writable(output, "-o/--output")
-    params = {} if gamma is None else {"gamma": gamma}
-    if rotation:
-        from ..synthesis.registry import methods_taking, takes_parameter
+    from ..synthesis.registry import VARIATIONS, given_variations, methods_taking, takes_parameter, variation_flag
 
-        if not takes_parameter(method, "rotation"):
-            having = methods_taking("rotation")
-            raise InputError(f"--rotation: turning the samples is for {', '.join(having)}; give it with --method "
-                             f"{having[0]}, not {method!r}")
-        params["rotation"] = True
+    params = {} if gamma is None else {"gamma": gamma}
+    given = given_variations({"rotation": rotation, "scale_jitter": scale_jitter, "brightness": brightness,
+                              "tint": tint}, "--")
+    for name, value in given.items():
+        if not takes_parameter(method, name):
+            having = methods_taking(name)
+            raise InputError(f"{variation_flag(name)}: {VARIATIONS[name]} is for {', '.join(having)}; give it with "
+                             f"--method {having[0]}, not {method!r}")
+        params[name] = value
     rep, _ = load_model(model)
     start = time.perf_counter()
     material, how = open_or_compile(rep, method, seed, footprints=footprints, **params)

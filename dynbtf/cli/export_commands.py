@@ -60,6 +60,9 @@ def export_command(
     rotation: bool = typer.Option(False, "--rotation", help="Turn the exported hist, hex and linear materials' "
                                   "samples by random quarter turns (drawn from --seed), the view and light with "
                                   "them (auto and the other methods as they are)."),
+    scale_jitter: float = typer.Option(0.0, "--scale-jitter", help="Magnify the exported hist, hex and linear "
+                                       "materials' samples by random factors between 1/(1 + J) and 1 + J (drawn from "
+                                       "--seed), in [0, 1]; 0: off."),
     brightness: float = typer.Option(0.0, "--brightness", help="struct (give it with --method struct): per-element "
                                      "variation, the standard deviation of each element's log-brightness (drawn "
                                      "from --seed; joints none), in [0, 1]; 0: off."),
@@ -98,15 +101,17 @@ def export_command(
         raise InputError("--cells: sets struct's cells; give it with --method struct (without --layer), not "
                          f"{list(method or ['auto'])}" + (" with --layer" if layer is not None else ""))
     params = {} if cells is None else {"struct": {"cells": int(cells)}}
-    from ..synthesis.registry import VARIATIONS, given_variations, methods_taking, takes_parameter
+    from ..synthesis.registry import VARIATIONS, given_variations, methods_taking, takes_parameter, variation_flag
 
     exported = list(method or DEFAULT_METHODS)
-    for name, value in given_variations({"rotation": rotation, "brightness": brightness, "tint": tint}, "--").items():
+    given = given_variations({"rotation": rotation, "scale_jitter": scale_jitter, "brightness": brightness,
+                              "tint": tint}, "--")
+    for name, value in given.items():
         # each exported method that takes it draws it; auto and the others are exported as they are
         varied = [m for m in exported if takes_parameter(m, name)]
         if not varied or layer is not None or target is not None:
             having = methods_taking(name)
-            raise InputError(f"--{name}: {VARIATIONS[name]} is for {', '.join(having)}; export "
+            raise InputError(f"{variation_flag(name)}: {VARIATIONS[name]} is for {', '.join(having)}; export "
                              f"{'it' if len(having) == 1 else 'one of them'} with --method (without --layer or "
                              f"--target), not {exported}")
         for m in varied:

@@ -25,6 +25,10 @@ BRIGHTNESS: float = typer.Option(0.0, "--brightness", help="struct: per-element 
                                  "--seed; joints none), in [0, 1]; 0: off.")
 TINT: float = typer.Option(0.0, "--tint", help="struct: per-element variation, the standard deviation of each "
                            "element's colour tint (its channels' log gains against each other), in [0, 1]; 0: off.")
+SCALE_JITTER: float = typer.Option(0.0, "--scale-jitter", help="hist, hex, linear: magnify each lattice vertex's "
+                                   "sample by a random factor between 1/(1 + J) and 1 + J (drawn from --seed), in "
+                                   "[0, 1]; 0: off. Reads between texel centres: for models fitted with the "
+                                   "sub-texel term (dynbtf fit's default).")
 ROTATION: bool = typer.Option(False, "--rotation", help="hist, hex, linear: turn each lattice vertex's sample by "
                               "random quarter turns (drawn from --seed), the view and light turned with it; for "
                               "isotropic materials.")

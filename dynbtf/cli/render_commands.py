@@ -66,6 +66,7 @@ def render(
     brightness: float = guidance_options.BRIGHTNESS,
     tint: float = guidance_options.TINT,
     rotation: bool = guidance_options.ROTATION,
+    scale_jitter: float = guidance_options.SCALE_JITTER,
 ) -> None:
     """Path-trace a scene covered by the synthesized BTF with Mitsuba 3 (dynbtf's query at every shading point).
 
@@ -101,7 +102,7 @@ def render(
                           filtered=filtered, echo=typer.echo, memory_mb=memory_mb, layer=layer,
                           mask=the_mask, width=width, target=target, classes=classes, target_size=target_size,
                           target_wrap=target_wrap, target_softness=softness, cells=cells, brightness=brightness,
-                          rotation=rotation,
+                          rotation=rotation, scale_jitter=scale_jitter,
                           tint=tint)
     save_image(output, result.image, exposure=exposure)
     timing = (f"incl. {result.compile_seconds:.1f} s kernel compilation" if result.passes > 1

@@ -151,6 +151,7 @@ def synth(
     brightness: float = guidance_options.BRIGHTNESS,
     tint: float = guidance_options.TINT,
     rotation: bool = guidance_options.ROTATION,
+    scale_jitter: float = guidance_options.SCALE_JITTER,
     memory_mb: Optional[float] = typer.Option(None, "--memory-mb", help="Limit (MB) of the image's estimated "
                                                                         f"working memory (~{BYTES_PER_PIXEL} bytes "
                                                                         "per pixel); default half of this machine's "
@@ -169,6 +170,7 @@ def synth(
     from ..limits import check_scale
     from ..material import open_model_file
     from ..synthesis.base import check_uv
+    from ..synthesis.registry import variation_flag
     from .arguments import check_exposure, parse_theta_phi
 
     _check_outputs(output, report, report_json)
@@ -184,10 +186,12 @@ def synth(
     guidance = _guidance(target, method, layer, report, output, target_size, target_wrap, classes, softness, cells)
     if cells is not None and method != "struct":
         raise InputError(f"--cells: sets struct's cells; give it with --method struct, not {method!r}")
-    variation = _variation({"brightness": brightness, "tint": tint, "rotation": rotation}, method, guidance, layer)
+    variation = _variation({"brightness": brightness, "tint": tint, "rotation": rotation,
+                            "scale_jitter": scale_jitter}, method, guidance, layer)
     rep, material = open_model_file(model, device=where)
     if variation and material is not None:
-        raise InputError(f"{', '.join(f'--{name}' for name in variation)}: {model} is a compiled material, which fixes "
+        raise InputError(f"{', '.join(variation_flag(name) for name in variation)}: {model} is a compiled "
+                         "material, which fixes "
                          "its method's parameters; compile it with them, or give the model file (.dbtfm)")
     if guidance is not None:
         if material is not None:
@@ -289,15 +293,16 @@ def _check_outputs(output: Path | None, report: bool, report_json: Path | None) 
 
 def _variation(values: dict[str, float], method: str, guidance, layer) -> dict[str, float]:
     """The variation parameters that were given (``{}``: none; struct's ``brightness``, ``tint``; lattice
-    blending's ``rotation``), checked: one-line errors, naming the methods that take each."""
-    from ..synthesis.registry import VARIATIONS, given_variations, methods_taking, takes_parameter
+    blending's ``rotation``, ``scale_jitter``), checked: one-line errors, naming the methods that take each."""
+    from ..synthesis.registry import VARIATIONS, given_variations, methods_taking, takes_parameter, variation_flag
 
     given = given_variations(values, "--")
     for name in given:
         if not takes_parameter(method, name) or guidance is not None or layer is not None:
             having = methods_taking(name)
             whose = f"{having[0]}'s" if len(having) == 1 else f"for {', '.join(having)}"
-            raise InputError(f"--{name}: {VARIATIONS[name]} is {whose}; give it with --method {having[0]} (without "
+            raise InputError(f"{variation_flag(name)}: {VARIATIONS[name]} is {whose}; give it with --method "
+                             f"{having[0]} (without "
                              f"--target or --layer), not {method!r}")
     return given
 

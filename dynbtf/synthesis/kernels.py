@@ -20,13 +20,13 @@ from numba.extending import intrinsic
 
 from .hash import SECOND_STREAM, MASK32, fold_coordinate, hash_vertex, mix32, seed_state
 from .lattice import LATTICE_SCALE_HI, LATTICE_SCALE_LO, LATTICE_SCALE, large_scaled_integer
-from .sample_transform import displacement, quarter_turns, turn_cos_sin
+from .sample_transform import displacement, inverse_scales, quarter_turns, turn_cos_sin
 
 __all__ = ["jit_with", "mulmod32_native", "jit_mix32", "jit_seed_state", "jit_fold_coordinate", "jit_hash_vertex",
            "jit_large_scaled_integer", "prefetch", "SMALL_REPEAT", "small_scaled_integer", "scaled_integer", "wrap",
            "modulo", "sample_texels", "POWER_BITS", "int_power", "gain", "split_repeat", "lattice_cell_of",
            "lattice_cell", "vertex_hashes", "barycentrics", "lattice_hashes", "vertex", "CACHE_LINE", "cache_aligned",
-           "bilinear_periodic", "jit_quarter_turns", "sample_displacement"]
+           "bilinear_periodic", "jit_quarter_turns", "jit_inverse_scales", "sample_displacement"]
 
 
 def jit_with(fn, **globals_):
@@ -47,6 +47,7 @@ jit_hash_vertex = jit_with(hash_vertex, fold_coordinate=jit_fold_coordinate, see
 jit_large_scaled_integer = jit_with(large_scaled_integer, _floor=math.floor, _to_float64=np.float64, _to_int64=np.int64)
 jit_quarter_turns = jit_with(quarter_turns, mix32=jit_mix32)
 jit_turn_cos_sin = jit_with(turn_cos_sin)
+jit_inverse_scales = jit_with(inverse_scales, mix32=jit_mix32, _exp=math.exp, _to_float64=np.float64)
 jit_displacement = jit_with(displacement, _floor=math.floor)
 
 
@@ -233,11 +234,11 @@ def vertex(k, base_x, base_y, lower):
 
 
 @numba.njit(inline="always")
-def sample_displacement(k, b0, b1, b2, lower, h, density_w, density_h, t_x, t_y):
+def sample_displacement(k, b0, b1, b2, lower, h, density_w, density_h, t_x, t_y, rotation, log_range):
     """How far (texels, ``(ex, ey)`` float64) sample ``k`` (order of :func:`vertex_hashes`, hash ``h``) of a query with
-    barycentrics ``b0, b1, b2`` and fractions ``t_x, t_y`` from its texel centre moves when turned about the texel
-    centre next to its vertex (its pivot): the scalar twin of :func:`dynbtf.synthesis.sample_transform.lattice_displacements`
-    and ``displacement``."""
+    barycentrics ``b0, b1, b2`` and fractions ``t_x, t_y`` from its texel centre moves when turned (``rotation``)
+    and scaled (``log_range = log(1 + scale_jitter)``, 0: not) about the texel centre next to its vertex (its pivot):
+    the scalar twin of :func:`dynbtf.synthesis.sample_transform.lattice_displacements` and ``displacement``."""
     kx, ky = vertex(k, 0, 0, lower)
     x0, y0 = vertex(0, 0, 0, lower)
     x1, y1 = vertex(1, 0, 0, lower)
@@ -246,8 +247,14 @@ def sample_displacement(k, b0, b1, b2, lower, h, density_w, density_h, t_x, t_y)
     ly = b0 * np.float64(y0 - ky) + b1 * np.float64(y1 - ky) + b2 * np.float64(y2 - ky)
     dx = (lx + 0.5 * ly) / LATTICE_SCALE * density_w
     dy = 0.25 * ly * density_h
-    cos_a, sin_a = jit_turn_cos_sin(jit_quarter_turns(h))
-    return jit_displacement(t_x, t_y, dx, dy, np.float64(cos_a), np.float64(sin_a))
+    cos_a, sin_a = 1.0, 0.0
+    if rotation:
+        c, s = jit_turn_cos_sin(jit_quarter_turns(h))
+        cos_a, sin_a = np.float64(c), np.float64(s)
+    if log_range != 0.0:
+        inverse = jit_inverse_scales(h, log_range)
+        cos_a, sin_a = cos_a * inverse, sin_a * inverse
+    return jit_displacement(t_x, t_y, dx, dy, cos_a, sin_a)
 
 
 #: Bytes of a cache line (x86-64 and ARM64 alike).

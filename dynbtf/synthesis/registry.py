@@ -18,11 +18,11 @@ from . import blending, cell_quilting, guided_blending, hex_tiling, histogram_bl
 from .auto import choose_method
 from .base import SYNTHESIZERS, Synthesizer
 from .elements import check_variation
-from .sample_transform import check_rotation
+from .sample_transform import check_rotation, check_scale_jitter
 
 __all__ = ["SYNTHESIZERS", "synthesizer_class", "make_synthesizer", "model_inputs", "AUTO_CANDIDATES",
            "EXEMPLAR_METHOD", "PAPER_METHOD", "VARIATIONS", "takes_parameter", "methods_taking", "methods_with",
-           "given_variations"]
+           "given_variations", "variation_flag"]
 
 #: The methods ``auto`` chooses between (:func:`dynbtf.synthesis.auto.choose_method`).
 AUTO_CANDIDATES = ("struct", "hist")
@@ -32,9 +32,9 @@ EXEMPLAR_METHOD = "tile"
 PAPER_METHOD = "hist"
 #: The variation controls a method may take, each off by default and drawn from the seed: parameter -> what it does
 #: (for messages). ``struct``'s per-element ``brightness`` and ``tint`` (:mod:`.elements`), lattice blending's
-#: ``rotation`` (:mod:`.sample_transform`).
+#: ``rotation`` and ``scale_jitter`` (:mod:`.sample_transform`).
 VARIATIONS = {"brightness": "per-element variation", "tint": "per-element variation",
-              "rotation": "turning the samples"}
+              "rotation": "turning the samples", "scale_jitter": "scaling the samples"}
 
 
 def synthesizer_class(name: str) -> type[Synthesizer]:
@@ -94,20 +94,30 @@ def given_variations(values: dict[str, Any], prefix: str = "") -> dict[str, Any]
     """The variation controls (:data:`VARIATIONS`) among ``values`` that are on, each checked: an
     :class:`InputError` naming ``prefix + name`` (``prefix="--"``: the command-line flag) for a bad value.
 
-    >>> given_variations({"brightness": 0.1, "tint": 0.0, "rotation": False})
+    >>> given_variations({"brightness": 0.1, "tint": 0.0, "rotation": False, "scale_jitter": 0.0})
     {'brightness': 0.1}
     """
-    checks = {"brightness": check_variation, "tint": check_variation, "rotation": check_rotation}
-    given = {name: checks[name](prefix + name, value) for name, value in values.items()}
+    checks = {"brightness": check_variation, "tint": check_variation, "rotation": check_rotation,
+              "scale_jitter": check_scale_jitter}
+    given = {name: checks[name](variation_flag(name, prefix), value) for name, value in values.items()}
     return {name: value for name, value in given.items() if value}
+
+
+def variation_flag(name: str, prefix: str = "--") -> str:
+    """How a message names variation ``name``: the command-line flag for ``prefix="--"``, else ``prefix + name``.
+
+    >>> variation_flag("scale_jitter"), variation_flag("scale_jitter", "")
+    ('--scale-jitter', 'scale_jitter')
+    """
+    return prefix + (name.replace("_", "-") if prefix == "--" else name)
 
 
 def methods_taking(parameter: str) -> list[str]:
     """The methods built from an exemplar alone (:func:`methods_with`) that take ``parameter``, sorted: what a
     message names when a method that does not take it was given.
 
-    >>> methods_taking("rotation"), methods_taking("brightness")
-    (['hex', 'hist', 'linear'], ['struct'])
+    >>> methods_taking("rotation"), methods_taking("scale_jitter"), methods_taking("brightness")
+    (['hex', 'hist', 'linear'], ['hex', 'hist', 'linear'], ['struct'])
     """
     return [m for m in methods_with() if takes_parameter(m, parameter)]
 

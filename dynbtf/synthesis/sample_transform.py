@@ -1,4 +1,4 @@
-"""Quarter turns of the lattice's samples: orientation variation for isotropic materials, with no resampling.
+"""Quarter turns and scales of the lattice's samples: orientation and size variation, exact far from the origin.
 
 Lattice blending (``linear``, ``hist``, ``hex``) reads, for each of a query's three lattice vertices, the
 exemplar shifted by the vertex's hashed whole-texel offset: every copy keeps the exemplar's orientation, and on an
@@ -29,17 +29,30 @@ the view and the light are turned by the query's **frame angle**: the circular m
 by the method's lattice weights (:func:`frame_direction`; ``hist``: ``b^gamma`` normalized), so that wherever one sample
 shows, its own frame is used, and between samples the frame turns continuously.
 
-The functions below use only arithmetic, ``mix32`` and the replaceable ``_floor``, so the same code runs on torch
-tensors and, compiled by numba (:mod:`dynbtf.synthesis.kernels`), on scalars.
+**Scale jitter.** With ``scale_jitter`` ``j`` each vertex's sample is also magnified by a factor
+``f = (1 + j)^(2 r - 1)``, log-uniform in ``[1 / (1 + j), 1 + j]``, ``r`` drawn from the vertex's hash (a stream
+of its own, 24 bits): sample ``k`` is ``E(v + A (x - v) / f + o)``, so the read point moves by ``(A / f - I) m``
+with the same pivot and the same small ``m``. The directions are not changed (a uniform scale keeps every slope's
+orientation). Unlike a quarter turn, a scale reads between texel centres everywhere, so it needs a feature plane
+that decodes well there: a model fitted with the sub-texel term (``dynbtf fit``'s default for the Triple Plane;
+docs/triple_plane.md, "Between texel centres").
+
+The functions below use only arithmetic, ``mix32`` and the replaceable ``_floor``, ``_exp`` and ``_to_float64``,
+so the same code runs on torch tensors and, compiled by numba (:mod:`dynbtf.synthesis.kernels`), on scalars.
 
 Examples
 --------
 >>> import torch
 >>> quarter_turns(torch.tensor([0, 1, 2, 12345], dtype=torch.int64)).tolist()
 [0, 2, 1, 2]
+>>> f = 1.0 / inverse_scales(torch.arange(100000, dtype=torch.int64), scale_log(0.25))
+>>> round(float(f.min()), 4), round(float(f.max()), 4), round(float(f.log().mean()), 3)
+(0.8, 1.25, 0.0)
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 
@@ -47,15 +60,25 @@ from ..errors import InputError
 from .hash import mix32
 from .lattice import LATTICE_SCALE
 
-__all__ = ["ROTATION_STREAM", "PIVOT_SHIFT", "check_rotation", "quarter_turns", "turn_cos_sin", "displacement",
+__all__ = ["ROTATION_STREAM", "SCALE_STREAM", "PIVOT_SHIFT", "MAX_SCALE_JITTER", "check_rotation",
+           "check_scale_jitter", "scale_log", "quarter_turns", "turn_cos_sin", "inverse_scales", "displacement",
            "lattice_displacements", "frame_direction"]
 
 #: Constant xor-ed into a vertex's hash for its turn (a stream apart from its offset's).
 ROTATION_STREAM = 0x27D4EB2F
+#: Constant xor-ed into a vertex's hash for its scale (a stream apart from its offset's and its turn's).
+SCALE_STREAM = 0x165667B1
+#: Largest ``scale_jitter``: samples magnified between half and twice the exemplar's size.
+MAX_SCALE_JITTER = 1.0
 #: The pivot of a vertex's turn is the texel centre ``floor(V + PIVOT_SHIFT) + 1/2`` (texels, each axis).
 PIVOT_SHIFT = 0.2345
 
 _floor = torch.floor
+_exp = torch.exp
+
+
+def _to_float64(x):
+    return x.to(torch.float64)
 
 
 def check_rotation(name: str, value) -> bool:
@@ -63,6 +86,30 @@ def check_rotation(name: str, value) -> bool:
     if isinstance(value, bool) or (isinstance(value, (int, float)) and value in (0, 1)):
         return bool(value)
     raise InputError(f"{name}: expected true or false (each sample turned by a random quarter turn), got {value!r}")
+
+
+def check_scale_jitter(name: str, value) -> float:
+    """``value`` as a float in ``[0, MAX_SCALE_JITTER]``, else :class:`InputError` naming ``name``."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = math.nan
+    if isinstance(value, bool) or not 0.0 <= v <= MAX_SCALE_JITTER:
+        raise InputError(f"{name}: expected a scale jitter in [0, {MAX_SCALE_JITTER:g}] (each sample magnified by a "
+                         f"factor between 1/(1 + j) and 1 + j; 0: off), got {value!r}")
+    return v
+
+
+def scale_log(jitter: float) -> float:
+    """``log(1 + jitter)``: the half-range of the samples' log scale factors, what the kernels take."""
+    return math.log1p(float(jitter))
+
+
+def inverse_scales(h, log_range):
+    """``1 / f`` (float64) of the samples owned by vertices of hash ``h``: ``f = exp((2 r - 1) log_range)``,
+    ``r = (mix32(h ^ SCALE_STREAM) >> 8) / 2**24`` (exactly 1 where ``log_range`` is 0)."""
+    r = _to_float64(mix32(h ^ SCALE_STREAM) >> 8) * (1.0 / 16777216.0)
+    return _exp((1.0 - 2.0 * r) * log_range)
 
 
 def quarter_turns(h):
@@ -78,7 +125,8 @@ def turn_cos_sin(t):
 
 
 def displacement(t_x, t_y, d_x, d_y, cos_a, sin_a):
-    """How far a turned sample's read point moves, in texels: ``(A - I) m`` with ``A = [[c, -s], [s, c]]`` and
+    """How far a turned (and scaled) sample's read point moves, in texels: ``(A - I) m`` with ``A = [[c, -s], [s, c]]``
+    (a quarter turn, times ``1 / f`` for a scaled sample) and
     ``m = t - floor(t - d + 1/2 + PIVOT_SHIFT)`` the query's offset from the vertex's pivot (``t``: the query's
     fraction from its texel centre below-left, in ``[0, 1)``; ``d``: its offset from the vertex)."""
     m_x = t_x - _floor(t_x - d_x + (0.5 + PIVOT_SHIFT))

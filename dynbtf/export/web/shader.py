@@ -28,7 +28,7 @@ from ...synthesis.hash import MASK32, MIX_MULTIPLIER_1, MIX_MULTIPLIER_2, SECOND
 from ...synthesis.lattice import (_C3, _N1, _N2, LATTICE_SCALE, LATTICE_SCALE_HI, LATTICE_SCALE_LO, MAX_REPEATS,
                                  _scaled_integer, split_uv)
 from ...synthesis.registry import methods_with, synthesizer_class
-from ...synthesis.sample_transform import PIVOT_SHIFT, ROTATION_STREAM
+from ...synthesis.sample_transform import PIVOT_SHIFT, ROTATION_STREAM, SCALE_STREAM
 
 __all__ = ["glsl_source", "shader_cost", "repeat_origin", "RepeatOrigin", "field_origin", "lattice_constants",
            "web_methods", "web_module", "LOCAL_REPEATS", "MAX_MARCH_STEPS"]
@@ -294,6 +294,7 @@ uniform vec2 dynbtf_field_scale;             // its texels per exemplar repeat: 
 uniform int dynbtf_field_wrap;               // 1: it repeats every size repeats, 0: its edge texels extend it
 uniform int dynbtf_rotation;                 // lattice methods: 1: samples turned by quarter turns (sample_transform)
 uniform float dynbtf_frame_exponent;         // ... and the frame's lattice weights b^p (hist: gamma, hex: 7, linear: 1)
+uniform float dynbtf_scale_log;              // lattice methods: log(1 + scale_jitter), 0: samples not scaled
 {method_uniforms}uniform vec4 dynbtf_fh_scale[DYNBTF_AG];
 uniform vec4 dynbtf_fh_bias[DYNBTF_AG];
 uniform vec4 dynbtf_fd_scale[DYNBTF_AG];
@@ -421,7 +422,8 @@ DynbtfTriangle dynbtf_triangle(DynbtfOrigin o, vec2 local) {{
         dynbtf_mod(o.texel.x + dynbtf_mod(w.x, size.x) * (dynbtf_density.x % size.x) + int(p0.x), size.x),
         dynbtf_mod(o.texel.y + dynbtf_mod(w.y, size.y) * (dynbtf_density.y % size.y) + int(p0.y), size.y));
     for (int i = 0; i < 3; ++i) {{ tri.shift[i] = ivec2(0); tri.ts[i] = tri.t; }}
-    if (dynbtf_rotation == 1) {{   // quarter turns about each vertex's pivot (dynbtf.synthesis.sample_transform)
+    if (dynbtf_rotation == 1 || dynbtf_scale_log != 0.0) {{   // turns and scales about each vertex's pivot
+                                                             // (dynbtf.synthesis.sample_transform)
         vec2 steps[3];   // the vertices, from the triangle's base vertex
         if (z > 0.0) {{ steps[0] = vec2(0.0); steps[1] = vec2(0.0, 1.0); steps[2] = vec2(1.0, 0.0); }}
         else {{ steps[0] = vec2(1.0); steps[1] = vec2(1.0, 0.0); steps[2] = vec2(0.0, 1.0); }}
@@ -431,9 +433,14 @@ DynbtfTriangle dynbtf_triangle(DynbtfOrigin o, vec2 local) {{
         s /= s.x + s.y + s.z;
         vec2 frame = vec2(0.0);
         for (int i = 0; i < 3; ++i) {{
-            uint turns = dynbtf_mix32(hashes[i] ^ {ROTATION_STREAM:#010x}u) & 3u;
+            uint turns = dynbtf_rotation == 1 ? dynbtf_mix32(hashes[i] ^ {ROTATION_STREAM:#010x}u) & 3u : 0u;
             vec2 cs = turns == 0u ? vec2(1.0, 0.0) : turns == 1u ? vec2(0.0, 1.0) : turns == 2u ? vec2(-1.0, 0.0)
                                                                                              : vec2(0.0, -1.0);
+            frame += s[i] * cs;
+            if (dynbtf_scale_log != 0.0) {{   // 1 / f, f = exp((2 r - 1) log(1 + j)), r: 24 bits of the hash
+                float r = float(dynbtf_mix32(hashes[i] ^ {SCALE_STREAM:#010x}u) >> 8u) * {_float(1.0 / 16777216.0)};
+                cs *= exp((1.0 - 2.0 * r) * dynbtf_scale_log);
+            }}
             vec2 l = b.x * (steps[0] - steps[i]) + b.y * (steps[1] - steps[i]) + b.z * (steps[2] - steps[i]);
             vec2 d = vec2((l.x + 0.5 * l.y) * {_float(1.0 / LATTICE_SCALE)} * float(dynbtf_density.x),
                           0.25 * l.y * float(dynbtf_density.y));
@@ -442,10 +449,9 @@ DynbtfTriangle dynbtf_triangle(DynbtfOrigin o, vec2 local) {{
             vec2 whole = floor(q);
             tri.shift[i] = ivec2(whole);
             tri.ts[i] = q - whole;
-            frame += s[i] * cs;
         }}
         float len = length(frame);
-        dynbtf_frame = len > 0.0 ? frame / len : vec2(1.0, 0.0);
+        if (dynbtf_rotation == 1) dynbtf_frame = len > 0.0 ? frame / len : vec2(1.0, 0.0);
     }}
     return tri;
 }}

@@ -24,6 +24,7 @@ from ... import jit
 from ...errors import InputError
 from ...synthesis.auto import AUTO
 from ...synthesis.elements import MAX_VARIATION
+from ...synthesis.sample_transform import MAX_SCALE_JITTER
 from ...synthesis.registry import VARIATIONS, methods_taking, methods_with, takes_parameter
 from .evaluator import DynBTFEvaluator, check_renderable
 from .sampling import AUTO_MIN_COSINE_VARIANCE, DEFAULT_TABLE_WEIGHT, SAMPLING_MODES
@@ -62,7 +63,7 @@ DEFAULT_METHOD = AUTO
 
 def check_variation_method(method: str, what: str, parameter: str = "brightness") -> None:
     """A variation parameter (:data:`~dynbtf.synthesis.registry.VARIATIONS`: struct's ``brightness``, ``tint``,
-    lattice blending's ``rotation``) is only for a method that takes it: else a one-line error naming ``what``."""
+    lattice blending's ``rotation``, ``scale_jitter``) is only for a method that takes it: else a one-line error naming ``what``."""
     if not takes_parameter(method, parameter):
         having = methods_taking(parameter)
         raise InputError(f"{what}: {VARIATIONS[parameter]} is for {', '.join(having)}; "
@@ -195,6 +196,8 @@ def _at_least(low: int):
 
 _variation = number_check(lambda v: math.isfinite(v) and 0.0 <= v <= MAX_VARIATION,
                           f"the standard deviation of a log gain in [0, {MAX_VARIATION:g}] (0: off)")
+_scale_jitter = number_check(lambda v: math.isfinite(v) and 0.0 <= v <= MAX_SCALE_JITTER,
+                             f"a scale jitter in [0, {MAX_SCALE_JITTER:g}] (0: off)")
 
 
 
@@ -288,6 +291,15 @@ turned by random quarter turns (drawn from ``seed``) about a texel
 centre next to the vertex, the view and the light turned into the
 query's frame. For isotropic materials.""",
         summary="`hist`, `hex`, `linear`: turn each sample by random quarter turns (for isotropic materials)"),
+    PluginParameter(
+        "scale_jitter", "float", 0.0, check=_scale_jitter,
+        doc="""Lattice blending's (``hist``, ``hex``, ``linear``) sample scales
+(:mod:`dynbtf.synthesis.sample_transform`): each lattice vertex's sample
+magnified by a random factor between ``1 / (1 + scale_jitter)`` and
+``1 + scale_jitter`` (log-uniform, drawn from ``seed``), in [0, 1]. 0: off.
+Reads between texel centres: for models fitted with the sub-texel term.""",
+        summary="`hist`, `hex`, `linear`: magnify each sample by a random factor in [1/(1 + j), 1 + j], j in "
+                "[0, 1] (0: off)"),
     PluginParameter(
         "target", "string", "", shown_default='""',
         doc="""Guided synthesis (:func:`dynbtf.guided.guided_btf`): an image painted

@@ -12,7 +12,7 @@ import numpy as np
 from ...errors import InputError
 from ...jit.llvm import check_llvm
 from ...limits import check_count, check_memory, check_scale
-from ...synthesis.registry import given_variations
+from ...synthesis.registry import given_variations, variation_flag
 from .bsdf import DEFAULT_METHOD, METHODS, check_cells, check_variation_method, load_plugin_model, register_plugin
 from .sampling import SAMPLING_MODES
 from .scenes import LIGHTINGS, SCENES, bsdf_dict, scene_dict
@@ -107,7 +107,7 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
                  width: float = 0.05, softness: float = 0.0, target=None, classes: int = 2,
                  target_size: float = 1.0, target_wrap: str = "repeat", target_softness: float = 0.0,
                  cells: int = 0, brightness: float = 0.0, tint: float = 0.0,
-                 rotation: bool = False) -> RenderResult:
+                 rotation: bool = False, scale_jitter: float = 0.0) -> RenderResult:
     """Path-trace ``scene`` covered by the synthesized BTF of ``model_path``.
 
     Every argument is checked before Mitsuba loads anything, so a mistake raises
@@ -180,6 +180,8 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     rotation : bool
         Lattice blending's quarter turns of the samples (the plugin's ``rotation``;
         :mod:`dynbtf.synthesis.sample_transform`).
+    scale_jitter : float
+        Lattice blending's random scales of the samples, in [0, 1] (the plugin's ``scale_jitter``; 0: off).
 
     Returns
     -------
@@ -196,10 +198,11 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     if int(cells) != cells or cells < 0:
         raise InputError(f"--cells: the cells per repeat, a positive integer (0: the method's own), got {cells}")
     check_cells(int(cells), method, "--cells")
-    variation = given_variations({"brightness": brightness, "tint": tint, "rotation": rotation}, "--")
+    variation = given_variations({"brightness": brightness, "tint": tint, "rotation": rotation,
+                                  "scale_jitter": scale_jitter}, "--")
     for name in variation:
         if method != "auto":  # (auto's choice is checked by the plugin, once resolved)
-            check_variation_method(method, f"--{name}", name)
+            check_variation_method(method, variation_flag(name), name)
     from ...material import CompiledMaterial
 
     paths = [model_path] if layer is None else [model_path, layer]

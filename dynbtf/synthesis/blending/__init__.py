@@ -38,8 +38,8 @@ from ..hash import hash_vertex, vertex_offsets
 from ..histogram import blend_weights
 from ..lattice import split_uv, triangle_lattice
 from ..mip import LevelOfDetail, area_pyramid, level_shapes
-from ..sample_transform import (check_rotation, displacement, frame_direction, lattice_displacements, quarter_turns,
-                                turn_cos_sin)
+from ..sample_transform import (check_rotation, check_scale_jitter, displacement, frame_direction, inverse_scales,
+                                lattice_displacements, quarter_turns, scale_log, turn_cos_sin)
 from ..tileable import make_tileable, seam_discontinuity
 
 __all__ = ["LatticeBlending", "LinearBlending", "LatticePlane", "SEAM_THRESHOLD"]
@@ -105,6 +105,10 @@ class LatticeBlending(Synthesizer):
         Turn each vertex's sample by a random number of quarter turns (from its hash) about a texel centre next
         to the vertex, and the view and the light into the query's frame
         (:mod:`~dynbtf.synthesis.sample_transform`). For isotropic materials.
+    scale_jitter : float, default 0
+        Magnify each vertex's sample by a factor between ``1 / (1 + scale_jitter)`` and ``1 + scale_jitter``
+        (log-uniform, from its hash) about the same pivot; in ``[0, 1]``, 0: off. Reads between texel centres:
+        for models fitted with the sub-texel term (:mod:`~dynbtf.synthesis.sample_transform`).
     """
 
     backends = {"web": f"{__name__}.web"}
@@ -112,9 +116,10 @@ class LatticeBlending(Synthesizer):
     mode: ClassVar[int]
 
     def __init__(self, exemplar, seed: int = 0, *, tileable="auto", band: int | None = None, fast: bool | None = None,
-                 prepared: LatticePlane | None = None, rotation: bool = False) -> None:
+                 prepared: LatticePlane | None = None, rotation: bool = False, scale_jitter: float = 0.0) -> None:
         super().__init__(exemplar, seed)
         self.rotation = check_rotation("rotation", rotation)
+        self.scale_jitter = check_scale_jitter("scale_jitter", scale_jitter)
         self.tileable_option = tileable
         self.band = band
         self.fast = self.device.type == "cpu" if fast is None else bool(fast)
@@ -172,6 +177,24 @@ class LatticeBlending(Synthesizer):
         """Quarter turns ``(N, 3)`` int64 of the samples of lattice ``vertices (N, 3, 2)``."""
         return quarter_turns(hash_vertex(vertices[..., 0], vertices[..., 1], self.seed))
 
+    @property
+    def transformed(self) -> bool:
+        """Whether the samples are turned or scaled (each then has its own read position's fraction)."""
+        return self.rotation or self.scale_jitter > 0.0
+
+    def _sample_matrices(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(c, s)`` float64 ``(N, 3)`` of each sample's map ``[[c, -s], [s, c]]``: its quarter turn (identity
+        without ``rotation``) over its scale factor (1 without ``scale_jitter``)."""
+        hashes = hash_vertex(vertices[..., 0], vertices[..., 1], self.seed)
+        if self.rotation:
+            cos_a, sin_a = (t.to(torch.float64) for t in turn_cos_sin(quarter_turns(hashes)))
+        else:
+            cos_a, sin_a = torch.ones_like(hashes, dtype=torch.float64), torch.zeros_like(hashes, dtype=torch.float64)
+        if self.scale_jitter > 0.0:
+            inverse = inverse_scales(hashes, scale_log(self.scale_jitter))
+            cos_a, sin_a = cos_a * inverse, sin_a * inverse
+        return cos_a, sin_a
+
     def frame_rotation(self, points: torch.Tensor) -> torch.Tensor | None:
         if not self.rotation:
             return None
@@ -195,11 +218,11 @@ class LatticeBlending(Synthesizer):
         dw, dh = self.density
         x = wrapped_texel_position(whole[:, 0], frac[:, 0], dw, pw)[:, None] + ox
         y = wrapped_texel_position(whole[:, 1], frac[:, 1], dh, ph)[:, None] + oy
-        if self.rotation:  # each sample turned about its vertex's pivot, a texel centre next to it
-            cos_a, sin_a = turn_cos_sin(self._turns(vertices))
+        if self.transformed:  # each sample turned and/or scaled about its vertex's pivot, a texel centre next to it
+            cos_a, sin_a = self._sample_matrices(vertices)
             dx, dy = lattice_displacements(vertices, bary, (dw, dh))
             tx, ty = x - 0.5 - torch.floor(x - 0.5), y - 0.5 - torch.floor(y - 0.5)  # fractions from the texel centre
-            ex, ey = displacement(tx, ty, dx, dy, cos_a.to(torch.float64), sin_a.to(torch.float64))
+            ex, ey = displacement(tx, ty, dx, dy, cos_a, sin_a)
             x, y = x + ex, y + ey
         return torch.stack([torch.remainder(x, pw) / pw, torch.remainder(y, ph) / ph], dim=-1), bary
 
@@ -226,7 +249,7 @@ class LatticeBlending(Synthesizer):
                   for k, v in self.kernel_arguments().items()}
         result = lattice_blend(uv.detach().cpu().numpy(), self._numpy("plane", self.prepared.plane), self.density,
                                self.seed, self.mode, out=out, guidance=self.kernel_guidance(uv),
-                               rotation=self.rotation, **kwargs)
+                               rotation=self.rotation, scale_log=scale_log(self.scale_jitter), **kwargs)
         return torch.from_numpy(result)
 
     def kernel_guidance(self, uv: torch.Tensor) -> tuple | None:
@@ -249,7 +272,7 @@ class LatticeBlending(Synthesizer):
         plane = self._numpy(f"plane[{key}]", self.prepared.plane[..., rows])
         return torch.from_numpy(lattice_blend(uv.detach().cpu().numpy(), plane, self.density, self.seed, self.mode,
                                               guidance=self.kernel_guidance(uv), rotation=self.rotation,
-                                              **kwargs))
+                                              scale_log=scale_log(self.scale_jitter), **kwargs))
 
     # ------------------------------------------------------------ footprint queries
     def pyramid(self) -> dict[str, Any]:
@@ -289,7 +312,7 @@ class LatticeBlending(Synthesizer):
             kwargs["luts"] = pyr["luts_numpy"]
         result = filtered_lattice_blend(uv.detach().cpu().numpy(), level, upper, pyr["packed"], self.density,
                                         self.seed, self.mode, guidance=self.kernel_guidance(uv),
-                                        rotation=self.rotation, **kwargs)
+                                        rotation=self.rotation, scale_log=scale_log(self.scale_jitter), **kwargs)
         return torch.from_numpy(result)
 
     def _reference_filtered_latent(self, uv, pyr, level, upper) -> torch.Tensor:
@@ -385,7 +408,8 @@ class LatticeBlending(Synthesizer):
 
     def parameters(self) -> dict[str, Any]:
         return {"tileable": self.prepared.tileable, "band": self.band, "fast": self.fast, "rotation": self.rotation,
-                "seam_before": round(self.prepared.seam_before, 4), "seam_after": round(self.prepared.seam_after, 4)}
+                "scale_jitter": self.scale_jitter, "seam_before": round(self.prepared.seam_before, 4),
+                "seam_after": round(self.prepared.seam_after, 4)}
 
     def storage_bytes(self) -> int:
         return self.prepared.storage_bytes()

@@ -23,9 +23,9 @@ Blend modes: ``MODE_LINEAR`` (weights ``b``), ``MODE_HIST`` (weights
 (weights ``delta_i b_i^7`` with ``delta_i = 1 - beta + beta lum_i``, then the contrast
 gain with exponent ``k``).
 
-With ``rotation`` each sample is turned by its vertex's quarter turns about the vertex's pivot
-(:mod:`~dynbtf.synthesis.sample_transform`): each then has its own bilinear fractions, in rows of the
-scratch of their own. :func:`lattice_frames` gives the turned queries' frames from the same lattice pass.
+With ``rotation`` each sample is turned by its vertex's quarter turns about the vertex's pivot, and with a
+``scale_log`` (``log(1 + scale_jitter)``) scaled about it (:mod:`~dynbtf.synthesis.sample_transform`): each
+sample then has its own bilinear fractions, in rows of the scratch of their own. :func:`lattice_frames` gives the turned queries' frames from the same lattice pass.
 """
 
 from __future__ import annotations
@@ -191,11 +191,11 @@ def _block_lattice(uv, first, count, state, ints, reals):
 
 
 @numba.njit(inline="always")
-def _block_texels(count, pw, ph, density_w, density_h, ints, reals, rotation):
+def _block_texels(count, pw, ph, density_w, density_h, ints, reals, rotation, log_range):
     """Pass 2: each query's bilinear texel position (whole-texel offsets shared by its samples: ``(iu * density)
     mod period`` in int64 without overflow, plus the fraction's texels), then each sample's hashed offset; with
-    the samples turned (``rotation``), each sample's own displacement and bilinear fractions (rows ``_TXK``,
-    ``_TYK``)."""
+    the samples turned (``rotation``) or scaled (``log_range``), each sample's own displacement and bilinear
+    fractions (rows ``_TXK``, ``_TYK``)."""
     inv_pw = 1.0 / pw
     inv_ph = 1.0 / ph
     density_w_mod = density_w % pw
@@ -216,14 +216,14 @@ def _block_texels(count, pw, ph, density_w, density_h, ints, reals, rotation):
         h_ = ints[_HASH + k]
         c0_, c1_, r0_, r1_ = ints[_TEXELS + 4 * k], ints[_TEXELS + 4 * k + 1], ints[_TEXELS + 4 * k + 2], \
             ints[_TEXELS + 4 * k + 3]
-        if not rotation:
+        if not rotation and log_range == 0.0:
             for j in range(count):
                 c0_[j], c1_[j], r0_[j], r1_[j] = sample_texels(h_[j], xi_[j], yi_[j], pw, ph)
             continue
         txk_, tyk_ = reals[_TXK + k], reals[_TYK + k]
         for j in range(count):
             ex, ey = sample_displacement(k, b0_[j], b1_[j], b2_[j], z_[j] > 0, h_[j], density_w, density_h, tx_[j],
-                                         ty_[j])
+                                         ty_[j], rotation, log_range)
             px = tx_[j] + ex
             py = ty_[j] + ey
             sx = math.floor(px)
@@ -253,14 +253,14 @@ def _block_guidance(first, count, pw, ph, ints, reals, states, labels, target, s
 
 
 @numba.njit(inline="always")
-def _block_weights(count, pw, nc, mode, lum, gamma, gamma_int, beta, gain_k, ints, reals, taps, weights, rotation):
+def _block_weights(count, pw, nc, mode, lum, gamma, gamma_int, beta, gain_k, ints, reals, taps, weights, own):
     """Pass 3: the samples' blend weights, then each of the 12 taps' flat index and weight (bilinear fractions
-    shared by the samples, or each sample's own when ``rotation``)."""
+    shared by the samples, or each sample's ``own`` when they are turned or scaled)."""
     l0_, l1_, l2_ = reals[_LUM], reals[_LUM + 1], reals[_LUM + 2]
     if mode == MODE_HEX:  # the samples' bilinear luminances
         for k in range(3):
-            tx_ = reals[_TXK + k] if rotation else reals[_TX]
-            ty_ = reals[_TYK + k] if rotation else reals[_TY]
+            tx_ = reals[_TXK + k] if own else reals[_TX]
+            ty_ = reals[_TYK + k] if own else reals[_TY]
             l_ = reals[_LUM + k]
             c0_, c1_, r0_, r1_ = ints[_TEXELS + 4 * k], ints[_TEXELS + 4 * k + 1], ints[_TEXELS + 4 * k + 2], \
                 ints[_TEXELS + 4 * k + 3]
@@ -274,8 +274,8 @@ def _block_weights(count, pw, nc, mode, lum, gamma, gamma_int, beta, gain_k, int
         s0_[j], s1_[j], s2_[j], scale_[j] = _sample_weights(mode, b0_[j], b1_[j], b2_[j], l0_[j], l1_[j], l2_[j],
                                                             gamma, gamma_int, beta, gain_k)
     for k in range(3):
-        tx_ = reals[_TXK + k] if rotation else reals[_TX]
-        ty_ = reals[_TYK + k] if rotation else reals[_TY]
+        tx_ = reals[_TXK + k] if own else reals[_TX]
+        ty_ = reals[_TYK + k] if own else reals[_TY]
         s_ = reals[_WEIGHT + k]
         c0_, c1_, r0_, r1_ = ints[_TEXELS + 4 * k], ints[_TEXELS + 4 * k + 1], ints[_TEXELS + 4 * k + 2], \
             ints[_TEXELS + 4 * k + 3]
@@ -292,7 +292,7 @@ def _block_weights(count, pw, nc, mode, lum, gamma, gamma_int, beta, gain_k, int
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_k, lut, g_min, inv_step, out,
-            states, labels, target, softness, rotation, n_workers):
+            states, labels, target, softness, rotation, log_range, n_workers):
     n_queries = uv.shape[0]
     ph, pw, nc = plane.shape
     flat = plane.reshape(ph * pw * nc)
@@ -311,11 +311,11 @@ def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_
             first = block * BLOCK
             count = min(BLOCK, n_queries - first)
             _block_lattice(uv, first, count, state, ints, reals)
-            _block_texels(count, pw, ph, density_w, density_h, ints, reals, rotation)
+            _block_texels(count, pw, ph, density_w, density_h, ints, reals, rotation, log_range)
             if guided:
                 _block_guidance(first, count, pw, ph, ints, reals, states, labels, target, softness)
             _block_weights(count, pw, nc, mode, lum, gamma, gamma_int, beta, gain_k, ints, reals, taps, weights,
-                           rotation)
+                           rotation or log_range != 0.0)
             # the block's reads issued before any is used: at random uv they are cache misses on a plane of
             # megabytes, and their latencies overlap
             for m in range(TAPS):
@@ -348,7 +348,8 @@ def _guidance_arguments(guidance: tuple | None, plane_shape: tuple[int, int], n:
 def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], seed: int, mode: int, *,
                   gamma: float = 1.0, luminance: np.ndarray | None = None, beta: float = 0.0, gain_k: float = 1.0,
                   lut: np.ndarray | None = None, g_min: float = 0.0, step: float = 1.0,
-                  out: np.ndarray | None = None, guidance: tuple | None = None, rotation: bool = False) -> np.ndarray:
+                  out: np.ndarray | None = None, guidance: tuple | None = None, rotation: bool = False,
+                  scale_log: float = 0.0) -> np.ndarray:
     """Blend three hashed, whole-texel-offset exemplar samples per query (one fused pass).
 
     Parameters
@@ -379,6 +380,8 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
         read plane's labels int32 ``(H', W')``, the target label per query int32 ``(N,)`` and the softness.
     rotation : bool
         Turn each sample by its vertex's quarter turns (:mod:`~dynbtf.synthesis.sample_transform`).
+    scale_log : float
+        ``log(1 + scale_jitter)``: scale each sample by its vertex's factor (0: not scaled).
 
     Returns
     -------
@@ -398,7 +401,7 @@ def lattice_blend(uv: np.ndarray, plane: np.ndarray, density: tuple[int, int], s
     _kernel(uv, cache_aligned(plane),
             np.ascontiguousarray(luminance, dtype=np.float32), int(density[0]), int(density[1]), int(seed) & 0xFFFFFFFF,
             int(mode), float(gamma), float(beta), float(gain_k), np.ascontiguousarray(lut, dtype=np.float32),
-            float(g_min), 1.0 / float(step), out, *guided, bool(rotation),
+            float(g_min), 1.0 / float(step), out, *guided, bool(rotation), float(scale_log),
             max(1, min(numba.get_num_threads(), -(-n // BLOCK))))
     return out
 
@@ -510,7 +513,7 @@ def _add_level_sample(flat, start, mw, mh, x, y, ratio_w, ratio_h, weight, row):
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _filtered_kernel(uv, level, upper_weight, levels, starts, heights, widths, lums, lum_starts, pw, ph,
                      density_w, density_h, seed, mode, gamma, beta, gain_k, luts, g_min, inv_step, out,
-                     states, labels, target, softness, rotation):
+                     states, labels, target, softness, rotation, log_range):
     n_queries = uv.shape[0]
     nc = out.shape[1]
     state = jit_seed_state(seed)
@@ -548,14 +551,17 @@ def _filtered_kernel(uv, level, upper_weight, levels, starts, heights, widths, l
             y1 = wrap(yi + oy1, ph) + fy
             x2 = wrap(xi + ox2, pw) + fx
             y2 = wrap(yi + oy2, ph) + fy
-            if rotation:  # each sample turned about its vertex's pivot (a texel centre), wrapped into the plane
+            if rotation or log_range != 0.0:  # each sample turned/scaled about its vertex's pivot, wrapped
                 t_x = (fx - 0.5) - math.floor(fx - 0.5)  # the query's fractions from its texel centre
                 t_y = (fy - 0.5) - math.floor(fy - 0.5)
-                ex, ey = sample_displacement(0, b0, b1, b2, lower, h0, density_w, density_h, t_x, t_y)
+                ex, ey = sample_displacement(0, b0, b1, b2, lower, h0, density_w, density_h, t_x, t_y, rotation,
+                                             log_range)
                 x0, y0 = _wrapped(x0 + ex, pw), _wrapped(y0 + ey, ph)
-                ex, ey = sample_displacement(1, b0, b1, b2, lower, h1, density_w, density_h, t_x, t_y)
+                ex, ey = sample_displacement(1, b0, b1, b2, lower, h1, density_w, density_h, t_x, t_y, rotation,
+                                             log_range)
                 x1, y1 = _wrapped(x1 + ex, pw), _wrapped(y1 + ey, ph)
-                ex, ey = sample_displacement(2, b0, b1, b2, lower, h2, density_w, density_h, t_x, t_y)
+                ex, ey = sample_displacement(2, b0, b1, b2, lower, h2, density_w, density_h, t_x, t_y, rotation,
+                                             log_range)
                 x2, y2 = _wrapped(x2 + ex, pw), _wrapped(y2 + ey, ph)
             for c in range(nc):
                 out[n, c] = 0.0
@@ -624,7 +630,8 @@ class PackedPyramid:
 def filtered_lattice_blend(uv: np.ndarray, level: np.ndarray, upper_weight: np.ndarray, pyramid: PackedPyramid,
                            density: tuple[int, int], seed: int, mode: int, *, gamma: float = 1.0, beta: float = 0.0,
                            gain_k: float = 1.0, luts: np.ndarray | None = None, g_min: float = 0.0,
-                           step: float = 1.0, guidance: tuple | None = None, rotation: bool = False) -> np.ndarray:
+                           step: float = 1.0, guidance: tuple | None = None, rotation: bool = False,
+                           scale_log: float = 0.0) -> np.ndarray:
     """:func:`lattice_blend` with every sample read from a pyramid (trilinear): the footprint query.
 
     Parameters
@@ -639,8 +646,9 @@ def filtered_lattice_blend(uv: np.ndarray, level: np.ndarray, upper_weight: np.n
     luts : float32 ``(L, C, S)``
         Per-level inverse tables on the grid ``g_min + k step`` (hist;
         :func:`dynbtf.synthesis.mip.prefiltered_inverse_tables`).
-    rotation : bool
-        The samples' quarter turns, as :func:`lattice_blend`'s.
+    rotation, scale_log
+        The samples' quarter turns and scales, as :func:`lattice_blend`'s (each sample is read at the query's
+        level, not one adjusted by its scale: at most ``log2(1 + scale_jitter)`` octaves finer or coarser).
 
     Each of the three samples sits where the point query reads it (same lattice, hashes and
     whole-texel offsets); at level ``l`` it is a bilinear fetch of level ``l`` at that position.
@@ -659,5 +667,5 @@ def filtered_lattice_blend(uv: np.ndarray, level: np.ndarray, upper_weight: np.n
                      pyramid.heights, pyramid.widths, pyramid.lums, pyramid.lum_starts, pw, ph, int(density[0]),
                      int(density[1]), int(seed) & 0xFFFFFFFF, int(mode), float(gamma), float(beta), float(gain_k),
                      np.ascontiguousarray(luts, dtype=np.float32), float(g_min), 1.0 / float(step), out,
-                     *_guidance_arguments(guidance, (ph, pw), uv.shape[0]), bool(rotation))
+                     *_guidance_arguments(guidance, (ph, pw), uv.shape[0]), bool(rotation), float(scale_log))
     return out

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from ...device import to_host
+from ..sample_transform import scale_log
 from ..web_form import WebForm
 
 MODE = 1
@@ -25,9 +26,11 @@ def cost(groups: int) -> tuple[int, int]:
 
 
 def turn_constants(synthesizer) -> dict:
-    """The samples' quarter turns (``rotation``, :mod:`~dynbtf.synthesis.sample_transform`) as the shader's
-    constants: whether they are on and the exponent of the frame's lattice weights."""
-    return {"rotation": bool(synthesizer.rotation), "frame_exponent": float(synthesizer.frame_exponent)}
+    """The samples' quarter turns and scales (``rotation``, ``scale_jitter``,
+    :mod:`~dynbtf.synthesis.sample_transform`) as the shader's constants: whether they turn, the exponent of the
+    frame's lattice weights, and ``log(1 + scale_jitter)``."""
+    return {"rotation": bool(synthesizer.rotation), "frame_exponent": float(synthesizer.frame_exponent),
+            "scale_log": scale_log(synthesizer.scale_jitter)}
 
 
 def form(synthesizer) -> WebForm:

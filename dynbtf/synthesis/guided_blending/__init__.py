@@ -167,9 +167,10 @@ class _Guidance:
     def __init__(self, exemplar, seed: int = 0, *, labels, target: LabelField, candidates: int = 16,
                  softness: float = 0.0, **params) -> None:
         super().__init__(exemplar, seed, **params)  # the method's own (hist, hex)
-        if self.rotation:
-            raise InputError("rotation: the guided methods read their candidates' content unturned; leave it off "
-                             f"for {self.base_method!r} with guidance")
+        if self.rotation or self.scale_jitter:
+            name = "rotation" if self.rotation else "scale_jitter"
+            raise InputError(f"{name}: the guided methods read their candidates' content unturned and unscaled; "
+                             f"leave it off for {self.base_method!r} with guidance")
         labels = _checked_labels(labels, target, tuple(self.exemplar.shape[:2]))
         if int(candidates) < 1:
             raise InputError(f"candidates: expected at least 1 offset per sample, got {candidates}")

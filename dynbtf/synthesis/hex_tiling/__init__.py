@@ -72,7 +72,7 @@ class HexTiling(LatticeBlending):
     luminance : tensor ``(H, W)``, optional
         Per-texel luminance-like values (any range; min-max normalized). Default:
         the first principal component of the exemplar's channels.
-    tileable, band, fast, prepared, rotation
+    tileable, band, fast, prepared, rotation, scale_jitter
         See :class:`~dynbtf.synthesis.blending.LatticeBlending`.
     """
 
@@ -83,7 +83,8 @@ class HexTiling(LatticeBlending):
 
     def __init__(self, exemplar, seed: int = 0, *, contrast: float = 0.7, beta: float = 0.6, luminance=None,
                  tileable="auto", band: int | None = None, fast: bool | None = None,
-                 prepared: LatticePlane | None = None, rotation: bool = False) -> None:
+                 prepared: LatticePlane | None = None, rotation: bool = False,
+                 scale_jitter: float = 0.0) -> None:
         if not 0.0 < contrast < 1.0:
             raise InputError(f"contrast: expected r in (0, 1) (0.5 = no gain), got {contrast!r}")
         if not 0.0 <= beta <= 1.0:
@@ -98,7 +99,8 @@ class HexTiling(LatticeBlending):
                 raise InputError(f"luminance: expected a finite (H, W) = {shape} plane, got shape "
                                  f"{tuple(luminance.shape)}")
             self.luminance_input = luminance
-        super().__init__(exemplar, seed, tileable=tileable, band=band, fast=fast, prepared=prepared, rotation=rotation)
+        super().__init__(exemplar, seed, tileable=tileable, band=band, fast=fast, prepared=prepared, rotation=rotation,
+                         scale_jitter=scale_jitter)
 
     #: The blend's lattice part ``b^7`` (its luminance factor depends on the content read).
     frame_exponent = 7.0

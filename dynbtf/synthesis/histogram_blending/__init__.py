@@ -77,7 +77,7 @@ class HistogramBlending(LatticeBlending):
         bilinear reads and one inverse table instead of all ``C``). 0: every channel in the PCA.
     lut_size : int, default 4096
         Entries of the inverse-transform table of the fused kernel.
-    tileable, band, fast, prepared, rotation
+    tileable, band, fast, prepared, rotation, scale_jitter
         See :class:`~dynbtf.synthesis.blending.LatticeBlending`.
 
     Attributes
@@ -102,7 +102,8 @@ class HistogramBlending(LatticeBlending):
 
     def __init__(self, exemplar, seed: int = 0, *, gamma: float = DEFAULT_GAMMA, decorrelate: bool = True,
                  separate: int = 0, lut_size: int = 4096, tileable="auto", band: int | None = None, fast: bool | None = None,
-                 prepared: LatticePlane | None = None, rotation: bool = False) -> None:
+                 prepared: LatticePlane | None = None, rotation: bool = False,
+                 scale_jitter: float = 0.0) -> None:
         gamma = positive_number("gamma", gamma, "exponent")
         if int(lut_size) < 2:
             raise InputError(f"lut_size: expected at least 2 entries, got {lut_size!r}")
@@ -110,7 +111,8 @@ class HistogramBlending(LatticeBlending):
         self.decorrelate = bool(decorrelate)
         self.separate = int(separate)
         self.lut_size = int(lut_size)
-        super().__init__(exemplar, seed, tileable=tileable, band=band, fast=fast, prepared=prepared, rotation=rotation)
+        super().__init__(exemplar, seed, tileable=tileable, band=band, fast=fast, prepared=prepared, rotation=rotation,
+                         scale_jitter=scale_jitter)
 
     def prepare(self, source: torch.Tensor) -> LatticePlane:
         h, w, c = source.shape

@@ -238,6 +238,7 @@
     gl.uniform1f(u('dynbtf_gamma'), e.gamma || 1.0);
     gl.uniform1i(u('dynbtf_rotation'), e.rotation ? 1 : 0);
     gl.uniform1f(u('dynbtf_frame_exponent'), e.frame_exponent || 1.0);
+    gl.uniform1f(u('dynbtf_scale_log'), e.scale_log || 0.0);
     gl.uniform1f(u('dynbtf_beta'), e.beta || 0.0);
     gl.uniform1f(u('dynbtf_gain_k'), e.gain_k || 1.0);
     gl.uniform1f(u('dynbtf_g_min'), e.g_min || 0.0);
