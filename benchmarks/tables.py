@@ -1187,6 +1187,22 @@ def rotation(data: dict) -> str:
     return "\n".join(lines)
 
 
+def scale_jitter(data: dict) -> str:
+    """bench_scale_jitter.py: repetition, colour, mean colour and cost per material, model (without or with the
+    sub-texel term) and setting (the mean over the seeds, min-max)."""
+    lines = [f"Measured on {_machine(data)} by `{data['command']}` ({len(data['seeds'])} seeds, {data['repeats']} "
+             "repeats; mean colour: the one farthest from hist's over the quality report's pairs; cost: random "
+             "queries side by side, on the model with the term):", ""]
+    lines += _head("material", "sub-texel term", "setting", "repetition", "RGB W1/std", "mean colour / hist's",
+                   "cost / hist")
+    for row in data["rows"]:
+        cost = row.get("cost_vs_hist")
+        lines.append(_line(row["material"].replace("_", " "), row["subtexel_term"], row["setting"],
+                           _spread(row["repetition"], ".4f"), _spread(row["rgb_w1"], ".3f"),
+                           _spread(row["mean_ratio"], ".3f"), "-" if cost is None else f"{cost:.2f}x"))
+    return "\n".join(lines)
+
+
 def between_texels(data: dict) -> str:
     """measure_between_texels.py: a model's colours between texel centres against its colours at the centres, a
     row per model and offset."""
@@ -1412,7 +1428,7 @@ RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget
              "blend_exponent_summary": blend_exponent_summary, "structured_construction": structured_construction,
              "structured": structured, "decode_speed": decode_speed, "fit_default": fit_default,
              "fit_many": fit_many, "compiled_material": compiled_material, "whole_elements": whole_elements,
-             "rotation": rotation, "between_texels": between_texels, "subtexel": subtexel}
+             "rotation": rotation, "scale_jitter": scale_jitter, "between_texels": between_texels, "subtexel": subtexel}
 #: Tables rendered from another table's data file (default: ``<name>.json``).
 SOURCES = {"guidance": "guided", "guidance_struct": "guided", "render_scenes": "rendering",
            "blend_exponent_summary": "blend_exponent",

@@ -22,6 +22,7 @@ torch.Size([1, 3])
 from __future__ import annotations
 
 import copy
+import warnings
 
 from .errors import InputError
 from .infinite_btf import SynthesizedBTF, same_device
@@ -66,6 +67,8 @@ def synthesized_btf(model, synthesizer: str | Synthesizer = "auto", scale: float
 
         device = resolve_device(device)
     if isinstance(model, (str, bytes)) or hasattr(model, "__fspath__"):
+        if params.get("scale_jitter"):
+            warn_without_subtexel_term(model)
         model, material = open_model_file(model, device=device)
     elif isinstance(model, CompiledMaterial):
         model, material = model.model, model
@@ -79,6 +82,25 @@ def synthesized_btf(model, synthesizer: str | Synthesizer = "auto", scale: float
     material = _material(model, material, synthesizer, seed, footprints, params)
     return SynthesizedBTF(material, scale, chunk_size=chunk_size, precision=precision, workers=workers,
                           device=device, level_decoders=level_decoders)
+
+
+def warn_without_subtexel_term(path) -> bool:
+    """Warn (and return True) when the model file at ``path`` was fitted without the sub-texel term: scaled samples
+    (``scale_jitter``) read its plane between texel centres, where such a model's colours drift
+    (docs/synthesis.md, "Scaled samples"). Files without a training record (not written by ``dynbtf fit``) pass."""
+    from .material import is_compiled_material
+    from .representations.model_file import read_model_metadata
+
+    if is_compiled_material(path):
+        return False
+    training = read_model_metadata(path).get("provenance", {}).get("training")
+    if not isinstance(training, dict) or training.get("subtexel"):
+        return False
+    warnings.warn(f"scale_jitter: {path} was fitted without the sub-texel term, so its colours between texel "
+                  "centres drift and scaled samples show them (darker, other colours); a Triple Plane fitted with the "
+                  "default recipe or --subtexel 0.25 has it, triple-parallax none (docs/synthesis.md, 'Scaled "
+                  "samples')", stacklevel=3)
+    return True
 
 
 def _material(model, material, synthesizer, seed: int, footprints: bool, params: dict) -> CompiledMaterial:

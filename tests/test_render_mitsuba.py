@@ -687,7 +687,7 @@ def test_parameter_table_is_the_documented_one():
         assert f"   * - ``{parameter.name}``\n     - {parameter.type}\n" in PLUGIN_DOC
     assert [p.name for p in PARAMETERS] == ["filename", "method", "scale", "scale_v", "seed", "sampling",
                                             "sampling_weight", "cells", "brightness", "tint", "rotation",
-                                            "target", "classes",
+                                            "scale_jitter", "target", "classes",
                                             "target_size",
                                             "target_wrap",
                                             "softness", "filtered", "ray_cone_angle"]

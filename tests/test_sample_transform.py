@@ -341,3 +341,27 @@ def test_cli_compile_keeps_the_turns_and_synth_uses_them(tmp_path, capsys):
     capsys.readouterr()
     assert main(["compile", str(tmp_path / "m.dbtfm"), "--method", "struct", "--rotation"]) == 2
     assert "--rotation: turning the samples is for hex, hist, linear" in capsys.readouterr().err
+
+
+def test_scale_jitter_warns_for_a_model_fitted_without_the_subtexel_term(tmp_path, capsys):
+    """A model file whose training record has no sub-texel term: ``synthesized_btf(..., scale_jitter=j)`` and
+    ``dynbtf synth --scale-jitter`` warn, naming the file; with the term, or without a training record, they do
+    not."""
+    from dynbtf.cli.main import main
+    from dynbtf.representations.model_file import save_model
+    from dynbtf.representations.triple_plane import TriplePlane
+    from dynbtf.synthesized import synthesized_btf
+
+    model = TriplePlane(16, 16, seed=2)
+    without, with_term, plain = tmp_path / "without.dbtfm", tmp_path / "with.dbtfm", tmp_path / "plain.dbtfm"
+    save_model(without, model, {"training": {"subtexel": 0.0}})
+    save_model(with_term, model, {"training": {"subtexel": 0.25}})
+    save_model(plain, model)
+    with pytest.warns(UserWarning, match=r"scale_jitter: .*without\.dbtfm was fitted without the sub-texel term"):
+        synthesized_btf(without, "hist", scale_jitter=0.3)
+    for path in (with_term, plain):
+        synthesized_btf(path, "hist", scale_jitter=0.3)  # (warnings are errors in this suite)
+    synthesized_btf(without, "hist")  # no scales, no warning
+    with pytest.warns(UserWarning, match="fitted without the sub-texel term"):
+        assert main(["synth", str(without), "--method", "hist", "--scale-jitter", "0.2", "--resolution", "16",
+                     "-o", str(tmp_path / "s.png")]) == 0

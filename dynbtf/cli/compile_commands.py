@@ -60,6 +60,10 @@ def compile_command(
             raise InputError(f"{variation_flag(name)}: {VARIATIONS[name]} is for {', '.join(having)}; give it with "
                              f"--method {having[0]}, not {method!r}")
         params[name] = value
+    if params.get("scale_jitter"):
+        from ..synthesized import warn_without_subtexel_term
+
+        warn_without_subtexel_term(model)
     rep, _ = load_model(model)
     start = time.perf_counter()
     material, how = open_or_compile(rep, method, seed, footprints=footprints, **params)

@@ -116,6 +116,10 @@ def export_command(
                              f"--target), not {exported}")
         for m in varied:
             params.setdefault(m, {})[name] = value
+    if "scale_jitter" in given:
+        from ..synthesized import warn_without_subtexel_term
+
+        warn_without_subtexel_term(model)
     if target is not None:
         if layer is not None:
             raise InputError("--target: guides one material; it does not combine with a layered export (--layer)")

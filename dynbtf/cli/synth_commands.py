@@ -188,6 +188,10 @@ def synth(
         raise InputError(f"--cells: sets struct's cells; give it with --method struct, not {method!r}")
     variation = _variation({"brightness": brightness, "tint": tint, "rotation": rotation,
                             "scale_jitter": scale_jitter}, method, guidance, layer)
+    if variation.get("scale_jitter"):
+        from ..synthesized import warn_without_subtexel_term
+
+        warn_without_subtexel_term(model)
     rep, material = open_model_file(model, device=where)
     if variation and material is not None:
         raise InputError(f"{', '.join(variation_flag(name) for name in variation)}: {model} is a compiled "

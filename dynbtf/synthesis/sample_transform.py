@@ -46,8 +46,8 @@ Examples
 >>> quarter_turns(torch.tensor([0, 1, 2, 12345], dtype=torch.int64)).tolist()
 [0, 2, 1, 2]
 >>> f = 1.0 / inverse_scales(torch.arange(100000, dtype=torch.int64), scale_log(0.25))
->>> round(float(f.min()), 4), round(float(f.max()), 4), round(float(f.log().mean()), 3)
-(0.8, 1.25, 0.0)
+>>> round(float(f.min()), 4), round(float(f.max()), 4), abs(float(f.log().mean())) < 1e-3
+(0.8, 1.25, True)
 """
 
 from __future__ import annotations
