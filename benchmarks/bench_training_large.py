@@ -20,6 +20,12 @@ The full-size file is written once by ``dynbtf simulate leather --grid ubo2014
 --size 400 -o FILE`` (``--components``, default 96: 105 MB; about 4 minutes on 2
 cores) unless ``--btf`` names one.
 
+``--subtexel W[,W ...]`` measures each sub-texel weight (``TrainConfig.subtexel``; the default recipe trains the
+Triple Plane with 0.25), ``--isa LEVEL`` runs the workers on that level of :mod:`dynbtf.cpu` (e.g. ``avx2`` on a CPU
+with more), and ``--json PATH`` writes the rows, each with the projected time of a full-size fit to within 0.5 dB of
+its converged PSNR: ``--steps-to-converge`` (default 5,370: measured by ``measure_fit_curves.py`` on this file with
+the fast recipe, without the term) times the step's median time.
+
 ``--repr triple-parallax`` measures the parallax Triple Plane instead: each run first
 estimates the height by stereo as ``dynbtf fit`` does
 (:func:`dynbtf.training.stereo_height.auto_stereo_options`; its time is printed, its
@@ -63,7 +69,8 @@ def build(kind: str, source, seed: int = 0):
     return rep, time.perf_counter() - start
 
 
-def worker(spec: str, recipe: str, steps: int, warmup: int, memory_mb: float, kind: str = "triple") -> dict:
+def worker(spec: str, recipe: str, steps: int, warmup: int, memory_mb: float, kind: str = "triple",
+           subtexel: float = 0.0) -> dict:
     """One measurement in this process: rate over ``steps`` steps after ``warmup``, and peak RSS."""
     import numpy as np
 
@@ -84,7 +91,8 @@ def worker(spec: str, recipe: str, steps: int, warmup: int, memory_mb: float, ki
         if len(times) >= steps:
             raise Enough
 
-    config = TrainConfig(epochs=1, monitor_pairs=0, memory_budget_mb=memory_mb, **RECIPES[recipe])
+    config = TrainConfig(epochs=1, monitor_pairs=0, memory_budget_mb=memory_mb, subtexel=subtexel,
+                         **RECIPES[recipe])
     with tempfile.TemporaryDirectory() as tmp:
         try:
             fit(rep, source, config, Path(tmp) / "m.dbtfm", progress=False, callback=callback)
@@ -95,10 +103,16 @@ def worker(spec: str, recipe: str, steps: int, warmup: int, memory_mb: float, ki
             "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9}
 
 
-def measure(spec: str, recipe: str, args) -> dict:
+def measure(spec: str, recipe: str, args, subtexel: float = 0.0) -> dict:
+    from dynbtf.cpu import isa_environment
+
     cmd = [sys.executable, __file__, "--worker", spec, "--recipe", recipe, "--steps", str(args.steps),
-           "--warmup", str(args.warmup), "--memory-mb", str(args.memory_mb), "--repr", args.repr]
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True)
+           "--warmup", str(args.warmup), "--memory-mb", str(args.memory_mb), "--repr", args.repr,
+           "--subtexel", f"{subtexel:g}"]
+    env = dict(os.environ)
+    if args.isa:
+        env = {k: v for k, v in env.items() if k not in isa_environment(args.isa)} | isa_environment(args.isa)
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -115,11 +129,18 @@ def main() -> None:
     parser.add_argument("--repr", default="triple", choices=["triple", "triple-parallax"],
                         help="the representation (default %(default)s)")
     parser.add_argument("--recipes", default=",".join(RECIPES), help="comma-separated recipes (default %(default)s)")
+    parser.add_argument("--subtexel", default="0", help="comma-separated sub-texel weights (default %(default)s)")
+    parser.add_argument("--isa", default=None, help="a level of dynbtf.cpu to run the workers on (default: the "
+                                                    "CPU's own)")
+    parser.add_argument("--steps-to-converge", type=int, default=5370,
+                        help="steps of a full-size fit to within 0.5 dB of converged, for the projection")
+    parser.add_argument("--json", type=Path, default=None, help="write the rows here (benchmark JSON)")
     parser.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--recipe", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
-        print(json.dumps(worker(args.worker, args.recipe, args.steps, args.warmup, args.memory_mb, args.repr)))
+        print(json.dumps(worker(args.worker, args.recipe, args.steps, args.warmup, args.memory_mb, args.repr,
+                                float(args.subtexel))))
         return
     big = args.btf
     if big is None:
@@ -131,16 +152,32 @@ def main() -> None:
                             "400", "--components", str(args.components), "-o", big, "--quiet"], check=True)
     print(f"full size: {big} ({Path(big).stat().st_size / 1e6:.0f} MB); cached reference: {args.reference}; "
           f"representation: {args.repr}")
-    print(f"{'recipe':<14} {'cached 128^2 (M samples/s)':>27} {'400^2 DFMF (M samples/s)':>25} {'ratio':>6} "
-          f"{'RSS 400^2 (GB)':>15} {'step 400^2 (s)':>15} {'stereo 128^2 / 400^2 (s)':>25}")
+    print(f"{'recipe':<14} {'sub-texel':>9} {'cached 128^2 (M samples/s)':>27} {'400^2 DFMF (M samples/s)':>25} "
+          f"{'ratio':>6} {'RSS 400^2 (GB)':>15} {'step 400^2 (s)':>15} {'stereo 128^2 / 400^2 (s)':>25}")
+    rows = []
     for recipe in args.recipes.split(","):
-        small = measure(args.reference, recipe, args)
-        large = measure(big, recipe, args)
-        ratio = large["samples_per_second"] / small["samples_per_second"]
-        print(f"{recipe:<14} {small['samples_per_second'] / 1e6:>27.2f} {large['samples_per_second'] / 1e6:>25.2f} "
-              f"{ratio:>6.2f} {large['peak_rss_gb']:>15.2f} {large['step_seconds']:>15.3f} "
-              f"{small['stereo_seconds']:>11.0f} / {large['stereo_seconds']:>11.0f}", flush=True)
+        for weight in (float(w) for w in args.subtexel.split(",")):
+            small = measure(args.reference, recipe, args, weight)
+            large = measure(big, recipe, args, weight)
+            ratio = large["samples_per_second"] / small["samples_per_second"]
+            print(f"{recipe:<14} {weight:>9g} {small['samples_per_second'] / 1e6:>27.2f} "
+                  f"{large['samples_per_second'] / 1e6:>25.2f} {ratio:>6.2f} {large['peak_rss_gb']:>15.2f} "
+                  f"{large['step_seconds']:>15.3f} {small['stereo_seconds']:>11.0f} / {large['stereo_seconds']:>11.0f}",
+                  flush=True)
+            rows.append({"recipe": recipe, "subtexel": weight, "cached_msps": small["samples_per_second"] / 1e6,
+                         "large_msps": large["samples_per_second"] / 1e6, "ratio": ratio,
+                         "peak_rss_gb": large["peak_rss_gb"], "step_seconds": large["step_seconds"],
+                         "projected_minutes": args.steps_to_converge * large["step_seconds"] / 60.0})
     print("targets: ratio >= 0.8, RSS <= 4 GB")
+    if args.json is not None:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from results_io import header, write_result
+
+        from dynbtf.cpu import hardware_isa, isa_description
+
+        write_result(args.json, header("training_large", "bench_training_large.py") | {
+            "isa": args.isa or hardware_isa(), "isa_description": isa_description(args.isa), "representation": args.repr, "steps": args.steps, "warmup": args.warmup,
+            "steps_to_converge": args.steps_to_converge, "reference": args.reference, "rows": rows})
 
 
 if __name__ == "__main__":
