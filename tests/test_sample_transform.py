@@ -323,8 +323,9 @@ def test_cli_export_turns_the_lattice_methods(tmp_path, capsys):
 
 
 def test_cli_compile_keeps_the_turns_and_synth_uses_them(tmp_path, capsys):
-    """``dynbtf compile --rotation`` stores the turns in the material; ``synth`` of the .dbtfc draws them (the image
-    equals synth of the model file with --rotation), and compile refuses them for a method without turns."""
+    """``dynbtf compile --rotation --scale-jitter`` stores the turns and scales in the material, ``--brightness
+    --tint`` struct's variation; ``synth`` of the .dbtfc draws them (the image equals synth of the model file with
+    the same options), and compile refuses each for a method without it, or a value out of range."""
     from dynbtf.cli.main import main
     from dynbtf.io import load_image
     from dynbtf.representations.model_file import save_model
@@ -338,9 +339,23 @@ def test_cli_compile_keeps_the_turns_and_synth_uses_them(tmp_path, capsys):
     assert main(["synth", str(tmp_path / "m.dbtfm"), "--method", "hex", "--rotation", "--scale-jitter", "0.4",
                  *common, "-o", str(tmp_path / "b.exr")]) == 0
     np.testing.assert_array_equal(load_image(tmp_path / "a.exr"), load_image(tmp_path / "b.exr"))
+    # struct's per-element variation is compiled in as well
+    variation = ["--brightness", "0.3", "--tint", "0.1"]
+    assert main(["compile", str(tmp_path / "m.dbtfm"), "--method", "struct", *variation, "--no-footprints", "-o",
+                 str(tmp_path / "s.dbtfc")]) == 0
+    assert main(["synth", str(tmp_path / "s.dbtfc"), *common, "-o", str(tmp_path / "c.exr")]) == 0
+    assert main(["synth", str(tmp_path / "m.dbtfm"), "--method", "struct", *variation, *common, "-o",
+                 str(tmp_path / "d.exr")]) == 0
+    assert main(["synth", str(tmp_path / "m.dbtfm"), "--method", "struct", *common, "-o", str(tmp_path / "e.exr")]) == 0
+    np.testing.assert_array_equal(load_image(tmp_path / "c.exr"), load_image(tmp_path / "d.exr"))
+    assert np.abs(load_image(tmp_path / "c.exr") - load_image(tmp_path / "e.exr")).max() > 1e-3
     capsys.readouterr()
     assert main(["compile", str(tmp_path / "m.dbtfm"), "--method", "struct", "--rotation"]) == 2
     assert "--rotation: turning the samples is for hex, hist, linear" in capsys.readouterr().err
+    assert main(["compile", str(tmp_path / "m.dbtfm"), "--method", "hist", "--brightness", "0.2"]) == 2
+    assert "--brightness: per-element variation is for struct; give it with --method struct" in capsys.readouterr().err
+    assert main(["compile", str(tmp_path / "m.dbtfm"), "--method", "hex", "--scale-jitter", "-1"]) == 2
+    assert "--scale-jitter: expected a scale jitter in [0, 1]" in capsys.readouterr().err
 
 
 def test_scale_jitter_warns_for_a_model_fitted_without_the_subtexel_term(tmp_path, capsys):
