@@ -52,11 +52,6 @@ def grazing_image(btf, repeats: float, side: int) -> np.ndarray:
                                resolution=side))
 
 
-def spread(values) -> dict:
-    return {"mean": float(np.mean(values)), "range": [float(np.min(values)), float(np.max(values))],
-            "values": [float(v) for v in values]}
-
-
 def query_cost(btfs: dict, rng: np.random.Generator) -> dict:
     """Seconds per query of each setting's ``eval`` relative to the first, best of 3 each, alternating."""
     uv = torch.from_numpy(rng.random((QUERIES, 2)) * 45.0)
@@ -81,7 +76,7 @@ def main() -> None:
     from dynbtf.representations.model_file import load_model
     from dynbtf.synthesis.quality import quality_report
     from dynbtf.synthesized import synthesized_btf
-    from results_io import header, model_record, write_result
+    from results_io import header, model_record, panel_strip, spread, write_result
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("models", nargs="+", type=Path)
@@ -120,8 +115,7 @@ def main() -> None:
         "models": [model_record(p) for p in args.models], "rows": rows}
     write_result(args.json, result)
     if panels:
-        gap = np.ones((panels[0].shape[0], 6, 3), dtype=np.float32)
-        strip = np.concatenate([x for p in panels for x in (p, gap)][:-1], 1)
+        strip = panel_strip(panels)
         args.images.mkdir(parents=True, exist_ok=True)
         save_image(args.images / "synthesis_rotation.png", strip / max(float(np.percentile(strip, 99.5)), 1e-6))
         print(f"wrote {args.images / 'synthesis_rotation.png'}")

@@ -62,8 +62,8 @@ def parse_pair(text: str) -> tuple[str, Path, Path]:
 
 
 def main() -> None:
-    from bench_rotation import query_cost, spread
-    from results_io import header, model_record, write_result
+    from bench_rotation import query_cost
+    from results_io import header, model_record, panel_strip, spread, write_result
 
     from dynbtf.io import save_image
     from dynbtf.representations.model_file import load_model
@@ -116,8 +116,7 @@ def main() -> None:
         top = f"hist, scale jitter {max(jitters):g}"
         order = [("with", "hist"), ("with", top), ("without", top)]
         images = [panels[key] for key in order if key in panels]
-        gap = np.ones((images[0].shape[0], 6, 3), dtype=np.float32)
-        strip = np.concatenate([x for p in images for x in (p, gap)][:-1], 1)
+        strip = panel_strip(images)
         args.images.mkdir(parents=True, exist_ok=True)
         save_image(args.images / "synthesis_scale_jitter.png", strip / max(float(np.percentile(strip, 99.5)), 1e-6))
         print(f"wrote {args.images / 'synthesis_scale_jitter.png'}")

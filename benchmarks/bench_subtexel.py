@@ -26,7 +26,6 @@ import sys
 import tempfile
 from pathlib import Path
 
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -70,15 +69,15 @@ def closeups(models: list[Path], folder: Path) -> Path:
     """``subtexel_closeup.png``: :func:`measure_between_texels.closeup` of each model side by side (one BTF's fits
     of seed 0, one per weight, 0 first)."""
     from measure_between_texels import closeup
+    from results_io import panel_strip
 
     from dynbtf.io import load_image, save_image
 
     with tempfile.TemporaryDirectory() as scratch:
         panels = [load_image(closeup(model, Path(scratch) / str(k))) for k, model in enumerate(models)]
-    gap = np.ones((panels[0].shape[0], 8, 3), np.float32)
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "subtexel_closeup.png"
-    save_image(path, np.concatenate([p for panel in panels for p in (panel, gap)][:-1], 1))
+    save_image(path, panel_strip(panels, gap=8))
     return path
 
 

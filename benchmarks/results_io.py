@@ -67,6 +67,14 @@ def spread(values: list[float]) -> dict:
             "per_seed": [float(v) for v in values]}
 
 
+def panel_strip(panels, gap: int = 6):
+    """``panels`` (images ``(H, W_i, 3)`` of one height) side by side, ``gap`` white columns between them."""
+    import numpy as np
+
+    white = np.ones((panels[0].shape[0], gap, 3), dtype=np.float32)
+    return np.concatenate([x for panel in panels for x in (panel, white)][:-1], 1)
+
+
 def write_result(path: Path, result: dict) -> None:
     """Write ``result`` as JSON to ``path`` (atomically: a temporary file renamed)."""
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -74,6 +74,22 @@ def require_positive_ints(owner: str, **values) -> None:
             raise InputError(f"{owner} {name}: expected a positive integer, got {value!r}")
 
 
+def number_in_range(name: str, value, low: float, high: float, expected: str) -> float:
+    """``float(value)`` if it is a number (not a bool) in ``[low, high]``; otherwise :class:`InputError`
+    ``"{name}: expected {expected}, got ..."``.
+
+    >>> number_in_range("tint", "0.25", 0.0, 1.0, "a value in [0, 1]")
+    0.25
+    """
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = math.nan
+    if isinstance(value, bool) or not low <= number <= high:
+        raise InputError(f"{name}: expected {expected}, got {value!r}")
+    return number
+
+
 def positive_number(name: str, value, meaning: str = "number") -> float:
     """``float(value)`` if it is a finite number > 0.
 

@@ -36,7 +36,7 @@ import math
 import numpy as np
 import torch
 
-from ..errors import InputError
+from ..errors import number_in_range
 from .hash import MASK32, SECOND_STREAM, hash_vertex, mix32
 
 __all__ = ["element_grid", "element_instances", "broken_elements", "element_gain", "repeat_elements", "check_variation",
@@ -55,14 +55,8 @@ _JOINT_ITERATIONS = 4  # refinements of the joints' and elements' mean appearanc
 
 def check_variation(name: str, value) -> float:
     """``value`` as a float in ``[0, MAX_VARIATION]``, else an :class:`InputError` naming ``name``."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = math.nan
-    if isinstance(value, bool) or not 0.0 <= v <= MAX_VARIATION:
-        raise InputError(f"{name}: expected the standard deviation of a log gain in [0, {MAX_VARIATION:g}] "
-                         f"(0: off), got {value!r}")
-    return v
+    return number_in_range(name, value, 0.0, MAX_VARIATION,
+                           f"the standard deviation of a log gain in [0, {MAX_VARIATION:g}] (0: off)")
 
 
 def _row_shift(offsets: np.ndarray, rows: int, a: float, c: float) -> tuple[int, int]:

@@ -56,7 +56,7 @@ import math
 
 import torch
 
-from ..errors import InputError
+from ..errors import InputError, number_in_range
 from .hash import mix32
 from .lattice import LATTICE_SCALE
 
@@ -90,14 +90,8 @@ def check_rotation(name: str, value) -> bool:
 
 def check_scale_jitter(name: str, value) -> float:
     """``value`` as a float in ``[0, MAX_SCALE_JITTER]``, else :class:`InputError` naming ``name``."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = math.nan
-    if isinstance(value, bool) or not 0.0 <= v <= MAX_SCALE_JITTER:
-        raise InputError(f"{name}: expected a scale jitter in [0, {MAX_SCALE_JITTER:g}] (each sample magnified by a "
-                         f"factor between 1/(1 + j) and 1 + j; 0: off), got {value!r}")
-    return v
+    return number_in_range(name, value, 0.0, MAX_SCALE_JITTER, f"a scale jitter in [0, {MAX_SCALE_JITTER:g}] (each "
+                           "sample magnified by a factor between 1/(1 + j) and 1 + j; 0: off)")
 
 
 def scale_log(jitter: float) -> float:
