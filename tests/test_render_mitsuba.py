@@ -895,6 +895,18 @@ def test_plugin_sample_scales_match_synthesized_btf(variant, model_file):
         mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "hist", "scale_jitter": 2.0})
 
 
+def test_plugin_warns_when_scales_read_a_model_without_the_subtexel_term(variant, tmp_path):
+    """``scale_jitter`` on a model file whose training record has no sub-texel term: the plugin warns, naming the
+    file (scaled samples read between texel centres, where such a model's colours drift)."""
+    from dynbtf.representations.model_file import save_model
+    from dynbtf.representations.triple_plane import TriplePlane
+
+    path = tmp_path / "old.dbtfm"
+    save_model(path, TriplePlane(16, 16, seed=1), {"training": {"subtexel": 0.0}})
+    with pytest.warns(UserWarning, match=r"old\.dbtfm was fitted without the sub-texel term"):
+        mi.load_dict({"type": "dynbtf", "filename": str(path), "method": "hist", "scale_jitter": 0.2})
+
+
 def test_plugin_struct_footprints_match_synthesized_btf(variant, structured_file):
     """struct's footprint queries (the exemplar's pyramid at the point query's read position, per-level decoders)
     in the plugin = ``SynthesizedBTF.eval`` with the same footprints."""

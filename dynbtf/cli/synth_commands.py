@@ -195,8 +195,8 @@ def synth(
     rep, material = open_model_file(model, device=where)
     if variation and material is not None:
         raise InputError(f"{', '.join(variation_flag(name) for name in variation)}: {model} is a compiled "
-                         "material, which fixes "
-                         "its method's parameters; compile it with them, or give the model file (.dbtfm)")
+                         "material, which fixes its method's parameters; compile it with them, or give the model "
+                         "file (.dbtfm)")
     if guidance is not None:
         if material is not None:
             raise InputError(f"--target: {model} is a compiled material, which fixes its method; guide the model "
@@ -306,8 +306,7 @@ def _variation(values: dict[str, float], method: str, guidance, layer) -> dict[s
             having = methods_taking(name)
             whose = f"{having[0]}'s" if len(having) == 1 else f"for {', '.join(having)}"
             raise InputError(f"{variation_flag(name)}: {VARIATIONS[name]} is {whose}; give it with --method "
-                             f"{having[0]} (without "
-                             f"--target or --layer), not {method!r}")
+                             f"{having[0]} (without --target or --layer), not {method!r}")
     return given
 
 

@@ -63,7 +63,8 @@ DEFAULT_METHOD = AUTO
 
 def check_variation_method(method: str, what: str, parameter: str = "brightness") -> None:
     """A variation parameter (:data:`~dynbtf.synthesis.registry.VARIATIONS`: struct's ``brightness``, ``tint``,
-    lattice blending's ``rotation``, ``scale_jitter``) is only for a method that takes it: else a one-line error naming ``what``."""
+    lattice blending's ``rotation``, ``scale_jitter``) is only for a method that takes it: else a one-line error
+    naming ``what``."""
     if not takes_parameter(method, parameter):
         having = methods_taking(parameter)
         raise InputError(f"{what}: {VARIATIONS[parameter]} is for {', '.join(having)}; "
@@ -488,6 +489,10 @@ class _DynBTFBSDFBody:
         for parameter in PARAMETERS:
             setattr(self, parameter.attribute or parameter.name, parsed[parameter.name])
         model = load_plugin_model(self.filename)  # a representation or a compiled material
+        if self.scale_jitter:
+            from ...synthesized import warn_without_subtexel_term
+
+            warn_without_subtexel_term(self.filename)
         check_cells(self.cells, self.method, "dynbtf BSDF: parameter 'cells'")
         params = {"cells": self.cells} if self.cells else {}
         for name in VARIATIONS:

@@ -203,10 +203,6 @@ def render_scene(model_path, *, scene: str = "plane", method: str = DEFAULT_METH
     for name in variation:
         if method != "auto":  # (auto's choice is checked by the plugin, once resolved)
             check_variation_method(method, variation_flag(name), name)
-    if "scale_jitter" in variation:
-        from ...synthesized import warn_without_subtexel_term
-
-        warn_without_subtexel_term(model_path)
     from ...material import CompiledMaterial
 
     paths = [model_path] if layer is None else [model_path, layer]
