@@ -79,17 +79,35 @@ def _loaded_library() -> str | None:
     return None
 
 
+def _named_major(path: str | None) -> int | None:
+    """The LLVM major version in the file name of an existing library ``path`` (``libLLVM-14.so``,
+    ``libLLVM.so.19.1``; a symbolic link's target's name), else None."""
+    if not path or not os.path.isfile(path):
+        return None
+    named = re.search(r"libLLVM[-.]?(?:so\.)?(\d+)", os.path.basename(os.path.realpath(path)))
+    return int(named.group(1)) if named else None
+
+
 def llvm_status(refresh: bool = False) -> dict:
     """What Dr.Jit's LLVM back end found: ``{"version": (major, minor, patch) or None, "path": str or None,
     "requested": DRJIT_LIBLLVM_PATH or None, "messages": [Dr.Jit's loader lines], "problem": str or None}``.
 
     ``problem`` is ``None`` when the LLVM back end is usable for the plugin (LLVM >= :data:`MIN_LLVM`),
-    else the one-line reason. Loads the library (once per process); compiles nothing.
+    else the one-line reason. Loads the library (once per process; not at all when ``DRJIT_LIBLLVM_PATH`` names an
+    LLVM older than :data:`MIN_LLVM` in its file name, which is refused as it is); compiles nothing.
     """
     global _STATUS
     if _STATUS is not None and not refresh:
         return _STATUS
     requested = os.environ.get("DRJIT_LIBLLVM_PATH") or None
+    named = _named_major(requested)
+    if named is not None and named < MIN_LLVM:  # refused from its name: not loaded into this process at all
+        _STATUS = {"version": None, "path": None, "requested": requested,
+                   "messages": [f"the LLVM version ({named}) named by DRJIT_LIBLLVM_PATH is too old (from the file "
+                                "name; not loaded)"],
+                   "problem": (f"DRJIT_LIBLLVM_PATH names LLVM {named} ({requested}), which is too old (the dynbtf "
+                               f"plugin needs LLVM {MIN_LLVM} or newer)")}
+        return _STATUS
     # Dr.Jit loads LLVM when it is imported, and says why it fails on standard output/error (C code):
     # collected here when this is the first import, else read from the library's file name
     with _captured_output() as messages:
@@ -98,10 +116,6 @@ def llvm_status(refresh: bool = False) -> dict:
             version = tuple(int(x) for x in dr.detail.llvm_version())
         except Exception:  # an older Dr.Jit without llvm_version, or a loader failure
             version = (-1, -1, -1)
-    if not any("too old" in m for m in messages) and requested:
-        named = re.search(r"libLLVM[-.]?(?:so\.)?(\d+)", os.path.basename(os.path.realpath(requested)))
-        if named and int(named.group(1)) < 15 and os.path.exists(requested):
-            messages.append(f"the located LLVM version ({named.group(1)}) is too old (from the file name)")
     found = version if version and version[0] >= 0 else None
     path = _loaded_library() if found else None
     old = next((m for m in messages if "too old" in m), None)
