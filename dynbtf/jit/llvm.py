@@ -109,7 +109,7 @@ def llvm_status(refresh: bool = False) -> dict:
                                f"plugin needs LLVM {MIN_LLVM} or newer)")}
         return _STATUS
     # Dr.Jit loads LLVM when it is imported, and says why it fails on standard output/error (C code):
-    # collected here when this is the first import, else read from the library's file name
+    # collected here when this is the first import (a library named older than MIN_LLVM was refused above)
     with _captured_output() as messages:
         dr = optional_module("drjit", "render", "rendering with Mitsuba 3")
         try:

@@ -25,7 +25,8 @@ gain with exponent ``k``).
 
 With ``rotation`` each sample is turned by its vertex's quarter turns about the vertex's pivot, and with a
 ``scale_log`` (``log(1 + scale_jitter)``) scaled about it (:mod:`~dynbtf.synthesis.sample_transform`): each
-sample then has its own bilinear fractions, in rows of the scratch of their own. :func:`lattice_frames` gives the turned queries' frames from the same lattice pass.
+sample then has its own bilinear fractions, in rows of the scratch of their own. :func:`lattice_frames` gives
+the turned queries' frames from the same lattice pass.
 """
 
 from __future__ import annotations
