@@ -63,6 +63,8 @@ def main() -> None:
                         "over the seeds) as part --part of this JSON file (e.g. benchmarks/results/quality.json, "
                         "docs/results.md's quality tables); its other parts are kept")
     parser.add_argument("--part", default=None, help="the part of --json (default: the kind, '-' written '_')")
+    parser.add_argument("--note", default=None, help="a condition of the run that --json's part states after the "
+                        "others (e.g. that other work shared the machine, so the fit minutes are longer)")
     args = parser.parse_args()
     out = Path(args.out)
     rows = []
@@ -148,7 +150,7 @@ def write_part(path: Path, part: str, rows: list[dict], args) -> None:
         + (f"{args.epochs} epochs, learning rates x{args.lr_scale:g}, {args.texel_groups} texel groups"
            if not (args.default or args.converge) else "the auto recipe")
         + (f", precision {args.precision}" if args.precision else "") + "; each number the mean over the seeds "
-        "(min-max); the held-out split is the seed's", "rows": table}
+        "(min-max); the held-out split is the seed's" + (f"; {args.note}" if args.note else ""), "rows": table}
     write_result(path, data)
 
 

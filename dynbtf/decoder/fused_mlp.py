@@ -172,6 +172,8 @@ def _native_library():
         library.dynbtf_fused_l1_supports.argtypes = [ctypes.c_int32] * 3
         library.dynbtf_fused_l1_item_floats.restype = ctypes.c_int64
         library.dynbtf_fused_l1_item_floats.argtypes = [ctypes.c_int32] * 4
+        library.dynbtf_fused_l1_reduce.argtypes = [ctypes.POINTER(_NativeArgs), ctypes.c_float] + [ctypes.c_void_p] * 3
+        library.dynbtf_fused_l1_reduce.restype = ctypes.c_int
         library.dynbtf_mlp_forward_fp32.argtypes = [ctypes.POINTER(_MlpArgs)]
         library.dynbtf_mlp_forward_fp32.restype = ctypes.c_int
         library.dynbtf_affine_rows_fp32.argtypes = [ctypes.c_int64, ctypes.c_int32, ctypes.c_int32] + \
@@ -304,7 +306,6 @@ def _native_loss(precision, positional_pre, image_pre, weights, biases, slope, t
     groups, b, hidden = image_pre.shape
     n = positional_pre.shape[0] // groups
     items = _work_items(groups, n, chunk)
-    per_group = len(items) // groups  # every group has the same number of items, in group order
     library = _native_library()
     out = weights[-1].shape[0]
     stride = library.dynbtf_fused_l1_item_floats(hidden, out, len(weights), b)
@@ -329,20 +330,19 @@ def _native_loss(precision, positional_pre, image_pre, weights, biases, slope, t
         codes = [fn(ctypes.byref(args))] + [f.result() for f in futures]
     if any(codes):
         raise RuntimeError(f"native fused_mlp kernel refused its arguments (codes {codes})")
-    # the slots' layout: dW_k, dc_k, then dQ (B, H); scaled by `scale` on the way
-    sizes = [w.numel() for w in weights] + [x.numel() for x in biases] + [b * hidden]
-    if groups == 1:
-        parts = list(item_grads.sum(0).mul_(scale).split(sizes))
-        g_image = parts.pop().reshape(1, b, hidden)
-    else:  # dQ per group: the group's items summed; the weights over all items
-        parts = list(item_grads[:, :-b * hidden].sum(0).mul_(scale).split(sizes[:-1]))
-        g_image = item_grads[:, -b * hidden:].reshape(groups, per_group, b, hidden)
-        g_image = (g_image.sum(1) if per_group > 1 else g_image[:, 0].clone()).mul_(scale)
+    # the slots summed in item order, scaled by `scale` (the weights' over all items, dQ per group)
+    weight_grads = torch.empty(stride - b * hidden, dtype=torch.float32)
+    g_image = torch.empty((groups, b, hidden), dtype=torch.float32)
+    loss = torch.empty((), dtype=torch.float64)
+    if library.dynbtf_fused_l1_reduce(ctypes.byref(args), scale, weight_grads.data_ptr(), g_image.data_ptr(),
+                                      loss.data_ptr()):
+        raise RuntimeError(f"native fused_mlp kernel: {len(items)} work items are not {groups} equal groups")
     if scale_positional:
         g_positional.mul_(scale)
+    parts = torch.split_with_sizes(weight_grads, [w.numel() for w in weights] + [x.numel() for x in biases])
     g_weights = [p.view_as(w) for p, w in zip(parts[:len(weights)], weights)]
     g_biases = [p.view_as(x) for p, x in zip(parts[len(weights):], biases)]
-    return item_loss.sum(), g_positional, g_image, g_weights, g_biases
+    return loss, g_positional, g_image, g_weights, g_biases
 
 
 def _native_supports(positional_pre, weights, precision) -> bool:

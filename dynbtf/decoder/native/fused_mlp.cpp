@@ -72,6 +72,12 @@ int dynbtf_fused_l1_args_size(void);  // sizeof(FusedL1Args): the ctypes mirror 
 int dynbtf_fused_l1_supports(int32_t hidden, int32_t out_channels, int32_t n_layers);  // 1 if a path exists
 // floats of one item's gradient slot: the layers' weights and biases, then the item's images' dQ (B x H)
 int64_t dynbtf_fused_l1_item_floats(int32_t hidden, int32_t out_channels, int32_t n_layers, int32_t images);
+// The caller's sums of the item slots once every item is done, each in item order (so the same whatever thread
+// ran which item): weight_grads (item_stride - B H floats: every dW_k, then every dc_k) = scale x the sum over all
+// items; image_grads (G, B, H) = scale x the sum of dQ over group g's items (the items grouped: n_items / G per
+// group, in group order); *loss = the sum of item_loss. Returns 1 where the items are not so grouped.
+int dynbtf_fused_l1_reduce(const FusedL1Args* args, float scale, float* weight_grads, float* image_grads,
+                           double* loss);
 
 // Inference: out = MLP(a) for rows a of layer 1's activations, a = lrelu(x) of its pre-activation x when
 // activate_input is 1, else a = x (the same products as the training forward, fp32, no gradients). Mirrored
@@ -923,6 +929,27 @@ void first_layer_backward_u(const FirstLayerArgs* a, const float* dP, const floa
 }
 
 }  // namespace
+
+extern "C" int dynbtf_fused_l1_reduce(const FusedL1Args* a, float scale, float* weight_grads, float* image_grads,
+                                      double* loss) {
+    if (a->groups < 1 || a->n_items < 1 || a->n_items % a->groups) return 1;
+    const int64_t bh = static_cast<int64_t>(a->images) * a->hidden, n_weights = a->item_stride - bh;
+    const int64_t per_group = a->n_items / a->groups;
+    std::fill(weight_grads, weight_grads + n_weights, 0.f);
+    std::fill(image_grads, image_grads + a->groups * bh, 0.f);
+    double total = 0.0;
+    for (int64_t item = 0; item < a->n_items; ++item) {
+        const float* slot = a->item_grads + item * a->item_stride;
+        for (int64_t j = 0; j < n_weights; ++j) weight_grads[j] += slot[j];
+        float* dq = image_grads + (item / per_group) * bh;
+        for (int64_t j = 0; j < bh; ++j) dq[j] += slot[n_weights + j];
+        total += a->item_loss[item];
+    }
+    for (int64_t j = 0; j < n_weights; ++j) weight_grads[j] *= scale;
+    for (int64_t j = 0; j < a->groups * bh; ++j) image_grads[j] *= scale;
+    *loss = total;
+    return 0;
+}
 
 extern "C" int dynbtf_first_layer_args_size(void) { return static_cast<int>(sizeof(FirstLayerArgs)); }
 
