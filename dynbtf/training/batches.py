@@ -191,6 +191,16 @@ class BatchSampler:
         return Batch(grouped.reshape(-1, 2), local_texels, target, len(grouped), len(grouped) / self.n_groups)
 
 
+def between_texel_count(step_texels: int) -> int:
+    """How many points between texel centres the sub-texel term reads in a step of ``step_texels`` texels: an
+    eighth of them, at least 64.
+
+    >>> between_texel_count(4096), between_texel_count(100)
+    (512, 64)
+    """
+    return max(64, int(step_texels) // 8)
+
+
 def between_texel_points(height: int, width: int, count: int, rng: np.random.Generator
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``count`` random points of a ``height x width``-texel repeat, uniform over it, each with the four texels

@@ -76,7 +76,7 @@ from ..errors import InputError
 from ..representations.base import Representation
 from ..representations.model_file import load_model, model_size_report, save_model
 from ..decoder.fused_mlp import resolve_precision, single_intra_op_thread
-from .batches import BatchSampler, between_texel_points
+from .batches import BatchSampler, between_texel_count, between_texel_points
 from .checkpoint import Checkpointer, checkpoint_path
 from .distributed import from_environment
 from .images import ImageStore, held_out_split
@@ -766,14 +766,14 @@ class _TrainingRun:
 
     def _between_texels(self, epoch: int, step: int) -> dict[str, Any]:
         """The sub-texel term's data of step ``(epoch, step)`` (:func:`subtexel_weight`): random points between
-        texel centres, an eighth of the step's texels (at least 64), each with its four surrounding texels
+        texel centres, :func:`~dynbtf.training.batches.between_texel_count` of them, each with its four surrounding texels
         (``neighbours``, int64 ``(4, n)``, flat, periodic) and their bilinear ``weights`` (float32 ``(4, n)``;
         :func:`~dynbtf.training.batches.between_texel_points`), under the whole step's first ``B`` pairs (whatever
         this process's share of the step: ``w_view``, ``w_light``, ``angular_taps``), and the ``target``: the
         bilinear mix of those texels' measured values (float32 ``(B, n, 3)``). Seeded by the run's seed and the
         step."""
         device = self.device
-        n = max(64, self.sampler.texels_per_step // 8)
+        n = between_texel_count(self.sampler.texels_per_step)
         neighbours, weights, _ = between_texel_points(self.source.height, self.source.width, n,
                                                       np.random.default_rng([self.config.seed, 3, epoch, step]))
         pairs = self.sampler.pairs(epoch, step)[:self.sampler.b]

@@ -47,7 +47,7 @@ from ..data.base import BTFSource
 from ..device import resolve_device
 from ..errors import InputError
 from ..representations.base import Representation
-from .batches import BatchSampler, between_texel_points
+from .batches import BatchSampler, between_texel_count, between_texel_points
 from .fit import AUTO_SUBTEXEL, TrainConfig, subtexel_weight, texel_image_loss
 from ..decoder.fused_mlp import resolve_precision, single_intra_op_thread
 from .images import ImageStore, held_out_split
@@ -274,7 +274,7 @@ def measure_step_seconds(source: BTFSource, config: TrainConfig, representation:
         taps = rep.direction_taps(wv, wl)  # as the fit reads them (once per pair, before training)
     between = None
     if subtexel_weight(rep, config):  # the sub-texel term's points and random targets, as the fit reads them
-        neighbours, weights, _ = between_texel_points(source.height, source.width, max(64, n // 8),
+        neighbours, weights, _ = between_texel_points(source.height, source.width, between_texel_count(n),
                                                       np.random.default_rng(0))
         b = config.images_per_step
         between = (torch.from_numpy(neighbours).to(device), torch.from_numpy(weights).to(device),
