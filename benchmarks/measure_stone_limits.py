@@ -1,6 +1,8 @@
 """What limits the Triple Plane on deep-relief materials: the data, over-fitting, or the model?
 
-Two measurements behind docs/triple_plane.md ("Stone: the limit is parallax"):
+The measurements behind docs/results.md ("Stone: data, fit and model"), docs/parallax.md (the positional fetch)
+and docs/triple_plane.md ("Stone: the limit is parallax"). PSNR is given against each image's peak and against a
+fixed peak of 1 (the tables show the latter).
 
 ``python benchmarks/measure_stone_limits.py oracle SPEC MODEL``
     Scores MODEL on its held-out pairs and on 64 random training pairs (a large gap = over-fitting,
@@ -8,31 +10,44 @@ Two measurements behind docs/triple_plane.md ("Stone: the limit is parallax"):
     the nearest measured light at the same view, and the inverse-angle-weighted blend of the three
     nearest lights. If the oracle reaches a PSNR, the BTF's angular sampling supports it.
 
-``python benchmarks/measure_stone_limits.py views SPEC MAX_THETA OUTPUT``
-    Fits a Triple Plane (lr x3 as in the relief fits of docs/triple_plane.md, up to 64 texel groups, as many optimizer steps as a
-    30-epoch fit of the whole BTF, the same total learning-rate decay) to the sub-BTF of the views
-    with theta <= MAX_THETA degrees (all lights), and scores it on its held-out pairs (10%) and on
+``python benchmarks/measure_stone_limits.py views SPEC MAX_THETA OUTPUT [--seed S]``
+    Fits a Triple Plane (lr x3 as in the relief fits of docs/triple_plane.md, up to 64 texel groups, as many
+    optimizer steps as a 30-epoch fit of the whole BTF, the same total learning-rate decay) to the sub-BTF of the
+    views with theta <= MAX_THETA degrees (all lights), and scores it on its held-out pairs (10%) and on
     64 training pairs. Training PSNR against the range of views shows how much of the model's
     capacity view dependence (parallax, masking) takes. ~3-4 minutes on 2 cores at 128^2.
 
-``python benchmarks/measure_stone_limits.py parallax SPEC {none,oracle,stereo}``
+``python benchmarks/measure_stone_limits.py parallax SPEC {none,wide,oracle,stereo} [--seed S]``
     Fits the Triple Plane with its positional fetch moved, per view, to a point of the surface
     (the fast recipe: 30 epochs, lr x6, 64 texel groups, bf16, with every group's 16 pairs sharing one
-    view), and scores it on the held-out pairs of the usual split (5 %, seed 0) and on 64 training
-    pairs. ``none``: the texel centre, as the paper (the control: it must match ``dynbtf fit``).
+    view), and scores it on the held-out pairs of the seed's split (5 %) and on 64 training
+    pairs. ``none``: the texel centre, as the paper (the control: it must match ``dynbtf fit``);
+    ``wide``: the same with a model twice as wide (f_U 32 channels, 64 hidden units).
     ``oracle``: the visible surface point the simulator traced (simulated BTFs only): what a perfect
     parallax and masking model would fetch. ``stereo``: the visible point traced through a height
     field estimated from the BTF alone by plane-sweep stereo
     (:func:`dynbtf.training.stereo_height.stereo_height`), kept fixed (``dynbtf fit --repr
     triple-parallax`` refines it). ~6 minutes each.
 
-Seeds are fixed; the numbers are reproducible on one machine.
+``python benchmarks/measure_stone_limits.py limits SPEC --seeds 3 --json benchmarks/results/stone.json``
+    Per seed, the view-subset fits (all views, theta <= 30, theta <= 15, the normal view) and the oracles on the
+    all-views fit's held-out pairs: part ``limits`` of the JSON file (each number's mean and min-max over the
+    seeds; its other parts kept), docs/results.md's table. ~15 minutes per seed.
+
+``python benchmarks/measure_stone_limits.py fetch SPEC --seeds 3 --json benchmarks/results/stone.json``
+    Per seed, ``parallax`` with ``wide``, ``stereo`` and ``oracle``: part ``fetch``, docs/parallax.md's table,
+    whose `uv` and refined-parallax rows are the stone rows of quality.json (``fit_materials.py`` with the same
+    recipe and seeds). ~18 minutes per seed.
+
+A seed fixes every random choice of a fit (initialization, batches, held-out split); seed 0 is the split the
+other stone tables use.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -45,7 +60,7 @@ from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.texture import fetch_wrap
 from dynbtf.training.images import held_out_split
 from dynbtf.training.stereo_height import stereo_height
-from dynbtf.metrics.image_metrics import psnr
+from dynbtf.metrics.image_metrics import dssim, flip, psnr, psnr_fixed_range
 from dynbtf.representations.model_file import load_model
 from dynbtf.training import TrainConfig, get_fitter
 from dynbtf.training.evaluate import evaluate_model
@@ -58,7 +73,10 @@ def _training_sample(btf, held_out, n=64, seed=0):
     return [pairs[i] for i in rng.choice(len(pairs), min(n, len(pairs)), replace=False)]
 
 
-def oracle(spec: str, model: str) -> None:
+def oracle(spec: str, model: str) -> dict:
+    """The model's held-out and training scores and the two light oracles' (see the module docstring); printed,
+    and returned as ``{"model_held_out", "model_training", "nearest", "blend3"}``, each ``{"psnr",
+    "psnr_fixed1"}`` (means over the pairs)."""
     btf = open_btf(spec)
     rep, meta = load_model(model)
     held = [tuple(p) for p in meta["provenance"]["held_out_pairs"]]
@@ -70,19 +88,32 @@ def oracle(spec: str, model: str) -> None:
         angle = np.degrees(np.arccos(np.clip(lights[candidates] @ lights[k], -1.0, 1.0)))
         order = np.argsort(angle)
         truth = btf.image(v, k)
-        nearest.append(psnr(truth, btf.image(v, candidates[order[0]])))
         weights = 1.0 / np.maximum(angle[order[:3]], 1e-3)
         weights /= weights.sum()
         estimate = sum(w * btf.image(v, candidates[o]) for w, o in zip(weights, order[:3]))
-        blend3.append(psnr(truth, estimate))
+        for scores, guess in ((nearest, btf.image(v, candidates[order[0]])), (blend3, estimate)):
+            scores.append((psnr(truth, guess), psnr_fixed_range(truth, guess)))
+    held_out, training = evaluate_model(rep, btf, held), evaluate_model(rep, btf, _training_sample(btf, held))
     print(f"{spec}: {len(held)} held-out pairs")
-    print(f"  model, held-out pairs        : {evaluate_model(rep, btf, held).summary()}")
-    print(f"  model, 64 training pairs     : {evaluate_model(rep, btf, _training_sample(btf, held)).summary()}")
-    print(f"  oracle, nearest light        : PSNR {np.mean(nearest):.2f} dB")
-    print(f"  oracle, 3 nearest lights     : PSNR {np.mean(blend3):.2f} dB")
+    print(f"  model, held-out pairs        : {held_out.summary()}")
+    print(f"  model, 64 training pairs     : {training.summary()}")
+    result = {"model_held_out": _scores(held_out), "model_training": _scores(training)}
+    for name, label, scores in (("nearest", "nearest light", nearest), ("blend3", "3 nearest lights", blend3)):
+        result[name] = {"psnr": float(np.mean([a for a, _ in scores])),
+                        "psnr_fixed1": float(np.mean([b for _, b in scores]))}
+        print(f"  oracle, {label:20s} : PSNR {result[name]['psnr']:.2f} dB "
+              f"(fixed peak 1: {result[name]['psnr_fixed1']:.2f})")
+    return result
 
 
-def views(spec: str, max_theta: float, output: str) -> None:
+def _scores(evaluation) -> dict:
+    """``{"psnr", "psnr_fixed1"}``: an evaluation's mean PSNR against each image's peak and against 1."""
+    return {"psnr": float(evaluation.mean["psnr"]), "psnr_fixed1": float(evaluation.mean["psnr_fixed1"])}
+
+
+def views(spec: str, max_theta: float, output: str, seed: int = 0) -> dict:
+    """The view-subset fit (see the module docstring); printed, and returned as ``{"views", "lights", "epochs",
+    "held_out", "training"}`` (the last two ``{"psnr", "psnr_fixed1"}``)."""
     btf = open_btf(spec)
     directions = np.asarray(btf.views)
     theta = np.degrees(np.arccos(np.clip(directions[:, 2], -1.0, 1.0)))
@@ -95,20 +126,26 @@ def views(spec: str, max_theta: float, output: str) -> None:
     train_pairs = sub.n_pairs * 0.9
     epochs = max(30, round(30 * full_pairs / train_pairs))  # as many steps as 30 epochs of the whole BTF
     config = TrainConfig(epochs=epochs, lr_scale=3.0, lr_decay=0.9 ** (30 / epochs), held_out_fraction=0.1,
-                         texel_groups=max(1, min(64, int(train_pairs) // 16)))
+                         texel_groups=max(1, min(64, int(train_pairs) // 16)), seed=seed)
     get_fitter("triple")(sub, output, config)
     rep, meta = load_model(output)
     held = [tuple(p) for p in meta["provenance"]["held_out_pairs"]]
+    held_out, training = evaluate_model(rep, sub, held), evaluate_model(rep, sub, _training_sample(sub, held))
     print(f"views with theta <= {max_theta}: {len(keep)} views x {btf.n_lights} lights, {epochs} epochs")
-    print(f"  held-out pairs    : {evaluate_model(rep, sub, held).summary()}")
-    print(f"  64 training pairs : {evaluate_model(rep, sub, _training_sample(sub, held)).summary()}")
+    print(f"  held-out pairs    : {held_out.summary()}")
+    print(f"  64 training pairs : {training.summary()}")
+    return {"views": int(len(keep)), "lights": int(btf.n_lights), "epochs": epochs, "held_out": _scores(held_out),
+            "training": _scores(training)}
 
 
-def parallax(spec: str, mode: str, epochs: int = 30) -> None:
+def parallax(spec: str, mode: str, epochs: int = 30, seed: int = 0) -> dict:
+    """The fit with a moved positional fetch (see the module docstring); printed, and returned as ``{"held_out":
+    {"psnr", "psnr_fixed1", "dssim", "flip"}, "training": {"psnr", "psnr_fixed1"}, "pairs", "minutes"}`` (means over
+    the pairs)."""
     btf = open_btf(spec)
     size, n_texels, n_views, n_lights = btf.height, btf.height * btf.width, btf.n_views, btf.n_lights
     start = time.time()
-    if mode == "none":
+    if mode in ("none", "wide"):
         fetch_uv = torch.from_numpy(texel_centers_uv(size, size).reshape(-1, 2)).expand(n_views, -1, -1)
     elif mode == "oracle":
         fetch_uv = torch.stack([torch.as_tensor(btf.renderer.view_trace(btf.views[v])["uv"]) for v in range(n_views)])
@@ -125,15 +162,16 @@ def parallax(spec: str, mode: str, epochs: int = 30) -> None:
         images[v] = torch.from_numpy(np.asarray(btf.view_images(v)).reshape(n_lights, n_texels, 3))
     views = torch.tensor(np.asarray(btf.views), dtype=torch.float32)
     lights = torch.tensor(np.asarray(btf.lights), dtype=torch.float32)
-    train, held = held_out_split(n_views, n_lights, 0.05, 0)
+    train, held = held_out_split(n_views, n_lights, 0.05, seed)
     train_lights = [train[train[:, 0] == v, 1] for v in range(n_views)]
-    rep = TriplePlane(size, size, seed=0)
+    wide = dict(positional_channels=32, hidden=64) if mode == "wide" else {}
+    rep = TriplePlane(size, size, seed=seed, **wide)
     groups = [dict(g, lr=g["lr"] * 6.0) for g in rep.param_groups()]
     optimizer = torch.optim.AdamW(groups, fused=True)
     base_lr = [g["lr"] for g in optimizer.param_groups]
     n_groups, per_group = 64, 16
     n = n_texels // n_groups
-    rng = np.random.default_rng(1)
+    rng = np.random.default_rng(1 + seed)  # (seed 0: the generator of the earlier, unseeded version)
     for epoch in range(epochs):
         for g, lr in zip(optimizer.param_groups, base_lr):
             g["lr"] = lr * 0.9 ** epoch
@@ -156,18 +194,98 @@ def parallax(spec: str, mode: str, epochs: int = 30) -> None:
             optimizer.step()
 
     @torch.no_grad()
-    def score(pairs) -> float:
+    def score(pairs, every_metric: bool) -> dict:
         values = []
         for v, k in pairs:
             features = fetch_wrap(rep.f_u, fetch_uv[v])
             model = rep.decode(features, views[v].expand(n_texels, 3), lights[k].expand(n_texels, 3))
-            values.append(psnr(images[v, k].float().numpy().reshape(size, size, 3),
-                               model.numpy().reshape(size, size, 3)))
-        return float(np.mean(values))
+            truth = images[v, k].float().numpy().reshape(size, size, 3)
+            guess = model.numpy().reshape(size, size, 3)
+            values.append({"psnr": psnr(truth, guess), "psnr_fixed1": psnr_fixed_range(truth, guess),
+                           **({"dssim": dssim(truth, guess), "flip": flip(truth, guess)} if every_metric else {})})
+        return {key: float(np.nanmean([v[key] for v in values])) for key in values[0]}
 
-    sample = train[np.random.default_rng(0).choice(len(train), 64, replace=False)]
-    print(f"{spec}, positional fetch at {mode}: held-out PSNR {score(held):.2f} dB ({len(held)} pairs), "
-          f"64 training pairs {score(sample):.2f} dB, {(time.time() - start) / 60:.1f} min")
+    sample = train[np.random.default_rng(seed).choice(len(train), 64, replace=False)]
+    result = {"held_out": score(held, True), "training": score(sample, False), "pairs": len(held),
+              "minutes": (time.time() - start) / 60}
+    print(f"{spec}, positional fetch at {mode} (seed {seed}): held-out PSNR {result['held_out']['psnr']:.2f} dB "
+          f"(fixed peak 1: {result['held_out']['psnr_fixed1']:.2f}; {len(held)} pairs), 64 training pairs "
+          f"{result['training']['psnr']:.2f} dB, {result['minutes']:.1f} min")
+    return result
+
+
+#: The view subsets of ``limits``: the largest view theta (degrees) each keeps.
+LIMIT_THETAS = (90.0, 30.0, 15.0, 0.0)
+#: The rows ``fetch`` measures (the ``parallax`` modes) and the quality.json parts whose stone row it shows between
+#: them, in the table's order: (mode or part, the row's label).
+FETCH_ROWS = (("quality:triple", "`uv` (the paper's Triple Plane, `--repr triple`)"),
+              ("wide", "`uv`, 2x wider model (f_U 32, 64 hidden)"),
+              ("stereo", "visible point of the stereo height, kept fixed"),
+              ("quality:triple_parallax", "visible point of the stereo height, refined by the fit "
+                                          "(`--repr triple-parallax`)"),
+              ("oracle", "visible point the simulator traced (oracle: exact height)"))
+
+
+def _view_subset_label(result: dict, theta: float) -> str:
+    if theta >= 90.0:
+        return f"the fit of all {result['views']} views (lr x3)"
+    if result["views"] == 1:
+        return f"the normal view only (1 x {result['lights']})"
+    return f"views with theta <= {theta:g} deg only ({result['views']} x {result['lights']})"
+
+
+def limits(spec: str, seeds: int, out: Path) -> dict:
+    """Part ``limits``: per seed, the view-subset fits of :data:`LIMIT_THETAS` (models in ``out``) and the oracles on
+    the all-views fit's held-out pairs; each number's spread over the seeds."""
+    from results_io import spread
+
+    runs = []
+    for seed in range(seeds):
+        fits = {theta: views(spec, theta, str(out / f"seed{seed}_views{theta:g}.dbtfm"), seed)
+                for theta in LIMIT_THETAS}
+        runs.append((fits, oracle(spec, str(out / f"seed{seed}_views{LIMIT_THETAS[0]:g}.dbtfm"))))
+    rows = [{"measurement": "oracle: the 3 nearest measured lights at the same view, inverse-angle weights "
+                            "(`oracle`)", "psnr_training": None,
+             "psnr_held_out": spread([o["blend3"]["psnr_fixed1"] for _, o in runs]),
+             "nearest_light_psnr_held_out": spread([o["nearest"]["psnr_fixed1"] for _, o in runs])}]
+    for theta in LIMIT_THETAS:
+        rows.append({"measurement": _view_subset_label(runs[0][0][theta], theta),
+                     "psnr_training": spread([f[theta]["training"]["psnr_fixed1"] for f, _ in runs]),
+                     "psnr_held_out": spread([f[theta]["held_out"]["psnr_fixed1"] for f, _ in runs])})
+    return {"seeds": list(range(seeds)), "conditions": f"`{spec}`; PSNR against a fixed peak of 1; each view-subset "
+            "fit has as many steps as a 30-epoch fit of the whole BTF, 10% of its pairs held out (the seed's split); "
+            "the oracles on the all-views fit's held-out pairs", "rows": rows}
+
+
+def fetch(spec: str, seeds: int) -> dict:
+    """Part ``fetch``: per seed, the ``parallax`` fits of :data:`FETCH_ROWS`; its rows from quality.json name their
+    part (``"from"``)."""
+    from results_io import spread
+
+    results = {mode: [parallax(spec, mode, seed=seed) for seed in range(seeds)]
+               for mode, _ in FETCH_ROWS if not mode.startswith("quality:")}
+    rows = []
+    for mode, label in FETCH_ROWS:
+        if mode.startswith("quality:"):
+            rows.append({"fetch": label, "from": mode})
+            continue
+        held = [r["held_out"] for r in results[mode]]
+        rows.append({"fetch": label, **{key: spread([h[key] for h in held]) for key in ("psnr_fixed1", "dssim",
+                                                                                        "flip")}})
+    return {"seeds": list(range(seeds)), "conditions": f"`{spec}`, held-out pairs of each seed's split (5%); fast "
+            "recipe: 30 epochs, lr x6, 64 texel groups, bf16; PSNR against a fixed peak of 1", "rows": rows}
+
+
+def write_part(path: Path, part: str, measured: dict) -> None:
+    """Part ``part`` of the JSON file ``path`` (its other parts kept): the command and machine, then ``measured``."""
+    import json
+
+    from results_io import header, write_result
+
+    data = json.loads(path.read_text()) if path.exists() else {"benchmark": path.stem}
+    run = header(path.stem, "measure_stone_limits.py")
+    data[part] = {key: run[key] for key in ("command", "commit", "cpu", "cpu_isa", "cores")} | measured
+    write_result(path, data)
 
 
 def main() -> None:
@@ -180,17 +298,35 @@ def main() -> None:
     p.add_argument("spec")
     p.add_argument("max_theta", type=float)
     p.add_argument("output")
+    p.add_argument("--seed", type=int, default=0)
     p = sub.add_parser("parallax")
     p.add_argument("spec")
-    p.add_argument("mode", choices=("none", "oracle", "stereo"))
+    p.add_argument("mode", choices=("none", "wide", "oracle", "stereo"))
     p.add_argument("--epochs", type=int, default=30)
+    p.add_argument("--seed", type=int, default=0)
+    for name in ("limits", "fetch"):
+        p = sub.add_parser(name)
+        p.add_argument("spec")
+        p.add_argument("--seeds", type=int, default=3)
+        p.add_argument("--json", type=Path, default=None, help=f"write part {name!r} of this JSON file (e.g. "
+                       "benchmarks/results/stone.json)")
+        if name == "limits":
+            p.add_argument("--out", type=Path, default=Path("stone_limits_out"), help="where the fits are written")
     args = parser.parse_args()
     if args.command == "oracle":
         oracle(args.spec, args.model)
     elif args.command == "views":
-        views(args.spec, args.max_theta, args.output)
+        views(args.spec, args.max_theta, args.output, args.seed)
+    elif args.command == "parallax":
+        parallax(args.spec, args.mode, args.epochs, args.seed)
     else:
-        parallax(args.spec, args.mode, args.epochs)
+        if args.command == "limits":
+            args.out.mkdir(parents=True, exist_ok=True)
+            measured = limits(args.spec, args.seeds, args.out)
+        else:
+            measured = fetch(args.spec, args.seeds)
+        if args.json is not None:
+            write_part(args.json, args.command, measured)
 
 
 if __name__ == "__main__":

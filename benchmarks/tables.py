@@ -836,8 +836,23 @@ def _fixed_peak(first: str, rows: list[dict], label, digits: int) -> str:
 
 
 def stone_fetch(data: dict) -> str:
-    """parallax.md: the stone's quality by where the positional features are fetched."""
-    return _fixed_peak("positional fetch at", data["fetch"]["rows"], lambda r: r["fetch"], 3)
+    """parallax.md: the stone's quality by where the positional features are fetched. A measured part
+    (``measure_stone_limits.py fetch --json``) holds each number per seed; its rows with ``"from":
+    "quality:PART"`` show the stone row of that part of quality.json (fit_materials.py, the same recipe)."""
+    part = data["fetch"]
+    if part.get("recorded_from"):
+        return _fixed_peak("positional fetch at", part["rows"], lambda r: r["fetch"], 3)
+    quality = _load("quality")
+
+    def shown(row: dict) -> dict:
+        if "from" not in row:
+            return row
+        fitted = next(r for r in quality[row["from"].split(":", 1)[1]]["rows"] if r["material"] == "stone")
+        return {"fetch": row["fetch"]} | {key: fitted[key] for key in ("psnr_fixed1", "dssim", "flip")}
+
+    return "\n".join([f"Measured on {_machine(part)} by `{part['command']}` ({len(part['seeds'])} seeds; "
+                      f"{part['conditions']}; the `--repr` rows: the stone of quality.json).", "",
+                      _fixed_peak("positional fetch at", [shown(r) for r in part["rows"]], lambda r: r["fetch"], 3)])
 
 
 #: What the relief scales of the stone table are (the simulator's ``relief`` option).
@@ -870,13 +885,22 @@ def stone_relief(data: dict) -> str:
 
 
 def stone_limits(data: dict) -> str:
-    """measure_stone_limits.py: data (an oracle), fit (training vs held-out) and model (view subsets) on the stone."""
-    lines = _head("measurement (stone, relief 1, 128^2)", "PSNR on training pairs", "PSNR on held-out pairs")
-    for r in data["limits"]["rows"]:
-        c = _cells(r)
+    """measure_stone_limits.py: data (an oracle), fit (training vs held-out) and model (view subsets) on the stone.
+    A measured part (``limits --json``) holds each number per seed (its mean and min-max)."""
+    part = data["limits"]
+    lines = [] if part.get("recorded_from") else [
+        f"Measured on {_machine(part)} by `{part['command']}` ({len(part['seeds'])} seeds; {part['conditions']}).", ""]
+    lines += _head("measurement (stone, relief 1, 128^2)" if part.get("recorded_from") else "measurement",
+                   "PSNR on training pairs", "PSNR on held-out pairs")
+    for r in part["rows"]:
+        number = _numbers(r)
         alone = r.get("nearest_light_psnr_held_out")
-        lines.append(_line(r["measurement"], c("psnr_training", ".2f"), c("psnr_held_out", ".2f")
-                           + (f" (nearest light alone: {alone:.2f})" if alone is not None else "")))
+        if isinstance(alone, dict):
+            alone = _spread(alone, ".2f")
+        elif alone is not None:
+            alone = f"{alone:.2f}"
+        lines.append(_line(r["measurement"], number("psnr_training", ".2f"), number("psnr_held_out", ".2f")
+                           + (f" (nearest light alone: {alone})" if alone is not None else "")))
     return "\n".join(lines)
 
 

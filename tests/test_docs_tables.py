@@ -107,6 +107,36 @@ def test_baselines_small_renders_a_measured_part_with_its_spread():
     assert "| pca | 38.97 | 0.0513 | 0.0768 | 1 | 1 | 3 |" in tables.baselines_small({"small": recorded})
 
 
+def test_stone_tables_render_measured_parts_and_the_quality_rows_they_name():
+    """measure_stone_limits.py's parts: each number as its mean and min-max over the seeds, the oracle's nearest light
+    beside it; a fetch row ``"from": "quality:PART"`` shows the stone row of that part of quality.json."""
+    import json
+
+    tables = _tables()
+
+    def spread(*values):
+        return {"mean": sum(values) / len(values), "range": [min(values), max(values)], "per_seed": list(values)}
+
+    run = {"command": "python benchmarks/measure_stone_limits.py limits S", "commit": "abc1234", "cpu": "CPU",
+           "cpu_isa": "avx2", "cores": 2, "seeds": [0, 1, 2], "conditions": "fixed peak 1"}
+    limits = run | {"rows": [
+        {"measurement": "oracle", "psnr_training": None, "psnr_held_out": spread(30.0, 31.0),
+         "nearest_light_psnr_held_out": spread(25.0, 26.0)},
+        {"measurement": "all views", "psnr_training": spread(20.0, 21.0, 22.0), "psnr_held_out": spread(21.5)}]}
+    text = tables.stone_limits({"limits": limits})
+    assert "by `python benchmarks/measure_stone_limits.py limits S` (3 seeds; fixed peak 1)" in text, text
+    assert "| oracle | | 30.50 (30.00-31.00) (nearest light alone: 25.50 (25.00-26.00)) |" in text, text
+    assert "| all views | 21.00 (20.00-22.00) | 21.50 |" in text, text
+    fetch = run | {"rows": [{"fetch": "`uv`", "from": "quality:triple"},
+                            {"fetch": "oracle", "psnr_fixed1": spread(31.0, 32.0), "dssim": spread(0.02),
+                             "flip": spread(0.1)}]}
+    text = tables.stone_fetch({"fetch": fetch})
+    stone = next(r for r in json.loads((tables.RESULTS / "quality.json").read_text())["triple"]["rows"]
+                 if r["material"] == "stone")
+    assert f"| `uv` | {tables._spread(stone['psnr_fixed1'], '.2f')} |" in text, text
+    assert "| oracle | 31.50 (31.00-32.00) | 0.020 | 0.100 |" in text, text
+
+
 def _recorded_parts(data: dict):
     """The parts of a recorded data file that state a measurement: every dict holding rows or points."""
     if "rows" in data or "points" in data:
@@ -137,7 +167,7 @@ def test_recorded_measurements_name_their_command_and_machine():
     files = {path.stem: json.loads(path.read_text()) for path in sorted(tables.RESULTS.glob("*.json"))
              if path.stem != "speed"}
     recorded = [(name, data) for name, whole in files.items() for data in _recorded(whole)]
-    assert "quality" in {name for name, _ in recorded}  # a file whose parts are recorded one by one is read too
+    assert "baselines" in {name for name, _ in recorded}  # a file whose parts are recorded one by one is read too
     machine = {"command", "cpu", "cpu_isa", "cores"}
     for name, data in recorded:
         assert data["recorded_from"].startswith("the hand-typed "), name
