@@ -217,13 +217,15 @@ def parallax(spec: str, mode: str, epochs: int = 30, seed: int = 0) -> dict:
 #: The view subsets of ``limits``: the largest view theta (degrees) each keeps.
 LIMIT_THETAS = (90.0, 30.0, 15.0, 0.0)
 #: The rows ``fetch`` measures (the ``parallax`` modes) and the quality.json parts whose stone row it shows between
-#: them, in the table's order: (mode or part, the row's label).
-FETCH_ROWS = (("quality:triple", "`uv` (the paper's Triple Plane, `--repr triple`)"),
+#: them (:data:`QUALITY_PARTS`), in the table's order: (mode or part, the row's label).
+FETCH_ROWS = (("triple", "`uv` (the paper's Triple Plane, `--repr triple`)"),
               ("wide", "`uv`, 2x wider model (f_U 32, 64 hidden)"),
               ("stereo", "visible point of the stereo height, kept fixed"),
-              ("quality:triple_parallax", "visible point of the stereo height, refined by the fit "
+              ("triple_parallax", "visible point of the stereo height, refined by the fit "
                                           "(`--repr triple-parallax`)"),
               ("oracle", "visible point the simulator traced (oracle: exact height)"))
+#: The fits of the fetch table that fit_materials.py makes (quality.json's parts), not this script.
+QUALITY_PARTS = ("triple", "triple_parallax")
 
 
 def _view_subset_label(result: dict, theta: float) -> str:
@@ -259,15 +261,15 @@ def limits(spec: str, seeds: int, out: Path) -> dict:
 
 def fetch(spec: str, seeds: int) -> dict:
     """Part ``fetch``: per seed, the ``parallax`` fits of :data:`FETCH_ROWS`; its rows from quality.json name their
-    part (``"from"``)."""
+    part (``"from": "quality"``, ``"part"``)."""
     from results_io import spread
 
     results = {mode: [parallax(spec, mode, seed=seed) for seed in range(seeds)]
-               for mode, _ in FETCH_ROWS if not mode.startswith("quality:")}
+               for mode, _ in FETCH_ROWS if mode not in QUALITY_PARTS}
     rows = []
     for mode, label in FETCH_ROWS:
-        if mode.startswith("quality:"):
-            rows.append({"fetch": label, "from": mode})
+        if mode in QUALITY_PARTS:
+            rows.append({"fetch": label, "from": "quality", "part": mode})
             continue
         held = [r["held_out"] for r in results[mode]]
         rows.append({"fetch": label, **{key: spread([h[key] for h in held]) for key in ("psnr_fixed1", "dssim",

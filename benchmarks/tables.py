@@ -538,19 +538,26 @@ def _transposed(points: list[dict], *rows: tuple) -> str:
     return "\n".join(_head(label, *map(cell, points)) + [_line(label, *map(cell, points)) for label, cell in rest])
 
 
-#: Measured rows whose result comes from a benchmark's data (``"from"``: the data file, rendered by the function).
+#: Measured rows whose result comes from a benchmark's data (``"from"``: the data file, rendered by the function of
+#: the row's ``"view"``, or where it has none of ``"from"``).
 _MEASURED_FROM = {"structured": "structured_summary", "demo": "demo_summary", "sampling": "sampling_summary",
                   "rendering": "rendering_summary", "compiled_material": "compiled_material_summary",
                   "web": "web_summary", "filtering": "filtering_summary", "training": "training_summary",
-                  "evaluation": "evaluation_summary", "quality": "quality_summary"}
+                  "evaluation": "evaluation_summary", "quality": "quality_summary",
+                  "quality_parallax": "quality_parallax_summary"}
 
 
-def quality_summary(data: dict) -> str:
-    """README.md's Measured line of fit_materials.py's Triple Plane part: held-out PSNR / FLIP per material (the
-    mean over the seeds)."""
-    part = data["triple"]
+def quality_summary(data: dict, part: str = "triple") -> str:
+    """README.md's Measured line of a part of fit_materials.py's data (``triple``, the Triple Plane, or
+    ``triple_parallax``): held-out PSNR / FLIP per material (the mean over the seeds)."""
+    part = data[part]
     seeds = f" (mean of {len(part['seeds'])} seeds)" if part.get("seeds") else ""
     return ", ".join(f"{r['material']} {r['psnr']:.1f} dB / {r['flip']:.3f}" for r in map(_means, part["rows"])) + seeds
+
+
+def quality_parallax_summary(data: dict) -> str:
+    """README.md's Measured line of fit_materials.py's ``triple_parallax`` part (:func:`quality_summary`)."""
+    return quality_summary(data, "triple_parallax")
 
 
 def training_summary(data: dict) -> str:
@@ -631,10 +638,12 @@ def sampling_summary(data: dict) -> str:
 
 def measured(data: dict) -> str:
     """README.md's Measured: a line per result, each pointing at its table in docs/results.md; a row with
-    ``"from"`` takes its result from that benchmark's data (:data:`_MEASURED_FROM`), the others are recorded."""
+    ``"from"`` takes its result from that benchmark's data (rendered by :data:`_MEASURED_FROM` of its ``"view"``, if
+    it names one, else of ``"from"``), the others are recorded."""
     lines = _head("what", "result", spaced=True)
     for r in data["rows"]:
-        result = (globals()[_MEASURED_FROM[r["from"]]](_load(r["from"])) if "from" in r else _filled(r, "result"))
+        result = (globals()[_MEASURED_FROM[r.get("view", r["from"])]](_load(r["from"])) if "from" in r
+                  else _filled(r, "result"))
         lines.append(_line(_filled(r, "what"), result))
     return "\n".join(lines)
 
@@ -837,8 +846,8 @@ def _fixed_peak(first: str, rows: list[dict], label, digits: int) -> str:
 
 def stone_fetch(data: dict) -> str:
     """parallax.md: the stone's quality by where the positional features are fetched. A measured part
-    (``measure_stone_limits.py fetch --json``) holds each number per seed; its rows with ``"from":
-    "quality:PART"`` show the stone row of that part of quality.json (fit_materials.py, the same recipe)."""
+    (``measure_stone_limits.py fetch --json``) holds each number per seed; its rows with ``"from": "quality"`` show
+    the stone row of quality.json's ``"part"`` (fit_materials.py, the same recipe)."""
     part = data["fetch"]
     if part.get("recorded_from"):
         return _fixed_peak("positional fetch at", part["rows"], lambda r: r["fetch"], 3)
@@ -847,7 +856,7 @@ def stone_fetch(data: dict) -> str:
     def shown(row: dict) -> dict:
         if "from" not in row:
             return row
-        fitted = next(r for r in quality[row["from"].split(":", 1)[1]]["rows"] if r["material"] == "stone")
+        fitted = next(r for r in quality[row["part"]]["rows"] if r["material"] == "stone")
         return {"fetch": row["fetch"]} | {key: fitted[key] for key in ("psnr_fixed1", "dssim", "flip")}
 
     return "\n".join([f"Measured on {_machine(part)} by `{part['command']}` ({len(part['seeds'])} seeds; "

@@ -109,7 +109,7 @@ def test_baselines_small_renders_a_measured_part_with_its_spread():
 
 def test_stone_tables_render_measured_parts_and_the_quality_rows_they_name():
     """measure_stone_limits.py's parts: each number as its mean and min-max over the seeds, the oracle's nearest light
-    beside it; a fetch row ``"from": "quality:PART"`` shows the stone row of that part of quality.json."""
+    beside it; a fetch row ``"from": "quality"`` shows the stone row of its ``"part"`` of quality.json."""
     import json
 
     tables = _tables()
@@ -127,7 +127,7 @@ def test_stone_tables_render_measured_parts_and_the_quality_rows_they_name():
     assert "by `python benchmarks/measure_stone_limits.py limits S` (3 seeds; fixed peak 1)" in text, text
     assert "| oracle | | 30.50 (30.00-31.00) (nearest light alone: 25.50 (25.00-26.00)) |" in text, text
     assert "| all views | 21.00 (20.00-22.00) | 21.50 |" in text, text
-    fetch = run | {"rows": [{"fetch": "`uv`", "from": "quality:triple"},
+    fetch = run | {"rows": [{"fetch": "`uv`", "from": "quality", "part": "triple"},
                             {"fetch": "oracle", "psnr_fixed1": spread(31.0, 32.0), "dssim": spread(0.02),
                              "flip": spread(0.1)}]}
     text = tables.stone_fetch({"fetch": fetch})
