@@ -222,7 +222,7 @@ FETCH_ROWS = (("triple", "`uv` (the paper's Triple Plane, `--repr triple`)"),
               ("wide", "`uv`, 2x wider model (f_U 32, 64 hidden)"),
               ("stereo", "visible point of the stereo height, kept fixed"),
               ("triple_parallax", "visible point of the stereo height, refined by the fit "
-                                          "(`--repr triple-parallax`)"),
+                                  "(`--repr triple-parallax`)"),
               ("oracle", "visible point the simulator traced (oracle: exact height)"))
 #: The fits of the fetch table that fit_materials.py makes (quality.json's parts), not this script.
 QUALITY_PARTS = ("triple", "triple_parallax")
