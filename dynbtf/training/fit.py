@@ -767,12 +767,11 @@ class _TrainingRun:
     def _between_texels(self, epoch: int, step: int) -> dict[str, Any]:
         """The sub-texel term's data of step ``(epoch, step)`` (:func:`subtexel_weight`): random points between
         texel centres (:func:`~dynbtf.training.batches.between_texel_count` of them), each with its four
-        surrounding texels (``neighbours``, int64 ``(4, n)``, flat, periodic) and their bilinear ``weights`` (float32
-        ``(4, n)``;
-        :func:`~dynbtf.training.batches.between_texel_points`), under the whole step's first ``B`` pairs (whatever
-        this process's share of the step: ``w_view``, ``w_light``, ``angular_taps``), and the ``target``: the
-        bilinear mix of those texels' measured values (float32 ``(B, n, 3)``). Seeded by the run's seed and the
-        step."""
+        surrounding texels (``neighbours``, int64 ``(4, n)``, flat, periodic) and their bilinear ``weights``
+        (float32 ``(4, n)``; :func:`~dynbtf.training.batches.between_texel_points`), under the whole step's first
+        ``B`` pairs (whatever this process's share of the step: ``w_view``, ``w_light``, ``angular_taps``), and the
+        ``target``: the bilinear mix of those texels' measured values (float32 ``(B, n, 3)``). Seeded by the run's
+        seed and the step."""
         device = self.device
         n = between_texel_count(self.sampler.texels_per_step)
         neighbours, weights, _ = between_texel_points(self.source.height, self.source.width, n,
