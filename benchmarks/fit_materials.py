@@ -61,7 +61,8 @@ def main() -> None:
     parser.add_argument("--precision", default=None, help="training precision (fp32, bf16; default: the recipe's)")
     parser.add_argument("--json", type=Path, default=None, help="write the rows (each number's mean and min-max "
                         "over the seeds) as part --part of this JSON file (e.g. benchmarks/results/quality.json, "
-                        "docs/results.md's quality tables); its other parts are kept")
+                        "docs/results.md's quality tables); its other parts are kept. With --default: the whole file "
+                        "(benchmarks/results/fit_default.json)")
     parser.add_argument("--part", default=None, help="the part of --json (default: the kind, '-' written '_')")
     parser.add_argument("--note", default=None, help="a condition of the run that --json's part states after the "
                         "others (e.g. that other work shared the machine, so the fit minutes are longer)")
@@ -96,7 +97,8 @@ def main() -> None:
                      "psnr_others": by_angle.get("others", {}).get("psnr", float("nan")),
                      "n_grazing": by_angle.get("grazing", {}).get("n", 0), "epochs": prov["epochs_completed"],
                      "minutes": prov["training_seconds"] / 60, "model_bytes": prov["size"]["model_bytes"],
-                     "kind": meta["kind"], "steps": prov.get("schedule", {}).get("steps"), "wall_minutes": wall / 60,
+                     "kind": meta["kind"], "steps": prov.get("schedule", {}).get("steps"),
+                     "stopped": prov.get("schedule", {}).get("stopped"), "wall_minutes": wall / 60,
                      "trials": {k: t["held_out_psnr"] for k, t in
                                 prov.get("representation_choice", {}).get("trials", {}).items()},
                      "stereo_trusted": prov.get("representation_choice", {}).get("stereo_trusted"),
@@ -113,7 +115,9 @@ def main() -> None:
         print(f"| {r['material']} | {r['kind']} | {r['psnr']:.2f} | {r['psnr_grazing']:.2f} / {r['psnr_others']:.2f} | "
               f"{r['psnr_fixed1']:.2f} | {r['dssim']:.4f} | {r['flip']:.4f} | {r['epochs']:.2f} | {r['minutes']:.1f} | "
               f"{r['wall_minutes']:.1f} | {today} |")
-    if args.json is not None:
+    if args.json is not None and args.default:
+        write_default(args.json, rows, args)
+    elif args.json is not None:
         write_part(args.json, args.part or args.repr.replace("-", "_"), rows, args)
 
 
@@ -152,6 +156,36 @@ def write_part(path: Path, part: str, rows: list[dict], args) -> None:
         + (f", precision {args.precision}" if args.precision else "") + "; each number the mean over the seeds "
         "(min-max); the held-out split is the seed's" + (f"; {args.note}" if args.note else ""), "rows": table}
     write_result(path, data)
+
+
+def write_default(path: Path, rows: list[dict], args) -> None:
+    """``--default --json``: the whole file ``path`` (benchmarks/results/fit_default.json, docs/choosing.md's table):
+    the command and machine, and a row per BTF with what ``dynbtf fit`` chose and did under each seed. Per seed
+    (``per_seed`` lists, in seed order): the chosen kind, the trial scores (``trials``: kind -> held-out PSNR, empty
+    where the stereo decided alone), the stereo's trusted fraction, the stop (``stopped``) and the steps; held-out
+    PSNR, FLIP, wall minutes and their ratio to the earlier default's (``vs_earlier``, where a Triple Plane trial
+    gives it) as ``{"mean", "range", "per_seed"}``."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from results_io import header, spread, write_result
+
+    table = []
+    for spec in dict.fromkeys(r["spec"] for r in rows):
+        mine = [r for r in rows if r["spec"] == spec]
+        ratios = [r["wall_minutes"] / r["today_minutes"] for r in mine if r.get("today_minutes")]
+        table.append({"spec": spec, "chosen": [r["kind"] for r in mine], "trials": [r["trials"] for r in mine],
+                      "stereo_trusted": [r["stereo_trusted"] for r in mine], "stopped": [r["stopped"] for r in mine],
+                      "steps": [r["steps"] for r in mine], "psnr": spread([r["psnr"] for r in mine]),
+                      "flip": spread([r["flip"] for r in mine]),
+                      "wall_minutes": spread([r["wall_minutes"] for r in mine]),
+                      "vs_earlier": spread(ratios) if ratios else None})
+    write_result(path, header(path.stem, "fit_materials.py") | {
+        "seeds": sorted({r["seed"] for r in rows}),
+        "conditions": "dynbtf fit with no options (--repr auto, the auto recipe), seeded; held-out PSNR (per-image "
+        "peak) and FLIP over all held-out pairs; wall minutes of the whole fit call (stereo and trials included); "
+        "vs_earlier: divided by the earlier default's time (--repr triple, the reference's step count) at the "
+        "Triple Plane trial's speed" + (f"; {args.note}" if args.note else ""), "rows": table})
 
 
 def earlier_default_minutes(source, provenance: dict) -> float | None:

@@ -22,6 +22,7 @@ import argparse
 import json
 import re
 import sys
+from collections import Counter
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -1401,7 +1402,10 @@ def decode_speed(data: dict) -> str:
 
 
 def fit_default(data: dict) -> str:
-    """choosing.md: what dynbtf fit chooses with no options, against the best of the two kinds, and its time."""
+    """choosing.md: what dynbtf fit chooses with no options, against the best of the two kinds, and its time. A
+    measured file (``fit_materials.py --default --json``) holds each run per seed: :func:`_fit_default_measured`."""
+    if not data.get("recorded_from"):
+        return _fit_default_measured(data)
     lines = _head("material", "chosen (trial PSNR: triple / parallax)", "default: PSNR / FLIP", "best: PSNR / FLIP",
                   "steps (stopped)", "wall min (vs earlier)", "march cost")
     for r in data["rows"]:
@@ -1421,6 +1425,51 @@ def fit_default(data: dict) -> str:
                            f"{best['kind']}: {best['psnr']:.2f} / {best['flip']:.3f}{versus}",
                            f"{r['steps']:,} ({r['stopped']})", wall,
                            f"{r['march_cost']:.1f}x flat" if r.get("march_cost") else "none (flat)"))
+    return "\n".join(lines)
+
+
+def _counted(values: list) -> str:
+    """The one value of a per-seed list, or each value with its count (``triple-parallax 2, triple 1``)."""
+    counts = Counter(values)
+    return str(values[0]) if len(counts) == 1 else ", ".join(f"{v} {n}" for v, n in counts.most_common())
+
+
+def _best_fixed_epochs(spec: str) -> str:
+    """The better of quality.json's two 30-epoch fits of the simulated material ``spec`` names (its PSNR / FLIP,
+    means over the seeds), or ``-`` where quality.json has no such row."""
+    quality = _load("quality")
+    found = {}
+    for part, short in (("triple", "triple"), ("triple_parallax", "parallax")):
+        for r in quality[part]["rows"]:  # (a recorded row names its material: 128 x 128)
+            if r.get("spec", f"sim:{r['material'].replace(' ', '_')}?size=128") == spec:
+                found[short] = _means(r)
+    if not found:
+        return "-"
+    kind, best = max(found.items(), key=lambda item: item[1]["psnr"])
+    return f"{kind}: {best['psnr']:.2f} / {best['flip']:.3f}"
+
+
+def _fit_default_measured(data: dict) -> str:
+    """fit_materials.py --default --json: per BTF, the kind dynbtf fit chose under each seed, the trials' mean scores
+    (where the stereo did not decide alone), the stereo's trusted fraction, the default's quality against the better
+    30-epoch fit of quality.json, its steps, stop and time."""
+    lines = [f"Measured on {_machine(data)} by `{data['command']}` ({len(data['seeds'])} seeds; "
+             f"{data['conditions']}; best: the better of quality.json's 30-epoch fits).", ""]
+    lines += _head("BTF", "chosen", "trial PSNR: triple / parallax", "stereo trusted", "default: PSNR / FLIP",
+                   "best: PSNR / FLIP", "steps (stopped)", "wall min", "vs earlier")
+    for r in data["rows"]:
+        trials = [t for t in r["trials"] if t]
+        trial = (" / ".join(f"{sum(t[k] for t in trials) / len(trials):.2f}" for k in ("triple", "triple-parallax"))
+                 + ("" if len(trials) == len(r["trials"]) else f" ({len(trials)} of {len(r['trials'])} seeds)")
+                 if trials else "none: the stereo decided")
+        trusted = [t for t in r["stereo_trusted"] if t is not None]
+        lines.append(_line(f"`{r['spec']}`", _counted(r["chosen"]), trial,
+                           f"{100 * sum(trusted) / len(trusted):.0f} %" if trusted else "-",
+                           f"**{_spread(r['psnr'], '.2f')}** / {_spread(r['flip'], '.3f')}",
+                           _best_fixed_epochs(r["spec"]),
+                           f"{round(sum(r['steps']) / len(r['steps'])):,} ({_counted(r['stopped'])})",
+                           _spread(r["wall_minutes"], ".1f"),
+                           _spread(r["vs_earlier"], ".2f", "x") if r.get("vs_earlier") else "-"))
     return "\n".join(lines)
 
 

@@ -137,6 +137,34 @@ def test_stone_tables_render_measured_parts_and_the_quality_rows_they_name():
     assert "| oracle | 31.50 (31.00-32.00) | 0.020 | 0.100 |" in text, text
 
 
+def test_fit_default_renders_a_measured_file_per_seed_against_the_best_fixed_epoch_fit():
+    """fit_materials.py --default --json: the chosen kind counted over the seeds, the trials' means (and on how many
+    seeds they ran), the default's PSNR / FLIP as spreads, the better of quality.json's 30-epoch fits of that BTF."""
+    import json
+
+    tables = _tables()
+
+    def spread(*values):
+        return {"mean": sum(values) / len(values), "range": [min(values), max(values)], "per_seed": list(values)}
+
+    row = {"spec": "sim:stone?size=128", "chosen": ["triple-parallax", "triple-parallax", "triple"],
+           "trials": [{"triple": 24.0, "triple-parallax": 30.0}, {}, {"triple": 25.0, "triple-parallax": 28.0}],
+           "stereo_trusted": [0.86, 0.88, 0.9], "stopped": ["converged", "ceiling", "converged"],
+           "steps": [12000, 12210, 11000], "psnr": spread(34.0, 33.0, 35.0), "flip": spread(0.1),
+           "wall_minutes": spread(9.0, 11.0), "vs_earlier": None}
+    data = {"command": "python benchmarks/fit_materials.py --default", "commit": "abc1234", "cpu": "CPU",
+            "cpu_isa": "avx2", "cores": 2, "seeds": [0, 1, 2], "conditions": "seeded", "rows": [row]}
+    quality = json.loads((tables.RESULTS / "quality.json").read_text())
+    fits = {short: tables._means(next(r for r in quality[part]["rows"] if r["material"] == "stone"))
+            for part, short in (("triple", "triple"), ("triple_parallax", "parallax"))}
+    kind, best = max(fits.items(), key=lambda item: item[1]["psnr"])
+    text = tables.fit_default(data)
+    assert "(3 seeds; seeded; best: the better of quality.json's 30-epoch fits)" in text, text
+    assert (f"| `sim:stone?size=128` | triple-parallax 2, triple 1 | 24.50 / 29.00 (2 of 3 seeds) | 88 % | "
+            f"**34.00 (33.00-35.00)** / 0.100 | {kind}: {best['psnr']:.2f} / {best['flip']:.3f} | "
+            "11,737 (converged 2, ceiling 1) | 10.0 (9.0-11.0) | - |") in text, text
+
+
 def _recorded_parts(data: dict):
     """The parts of a recorded data file that state a measurement: every dict holding rows or points."""
     if "rows" in data or "points" in data:
