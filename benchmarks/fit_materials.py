@@ -14,7 +14,9 @@ trial: "-" where the stereo decided alone).
 With ``--seeds N`` each material is fitted with seeds 0..N-1; ``--json FILE`` writes the rows (each number's mean
 and min-max over the seeds) as one part of FILE: ``python benchmarks/fit_materials.py --materials
 stone,leather,lacquered_wood,woven_fabric --seeds 3 --precision bf16 --json benchmarks/results/quality.json`` makes
-docs/results.md's Triple Plane quality table.
+docs/results.md's Triple Plane quality table; ``--default --seeds 3 --specs ... --json
+benchmarks/results/fit_default.json`` writes docs/choosing.md's table of what ``dynbtf fit`` chooses (a row per BTF,
+each run kept per seed).
 Each material is fitted with :func:`dynbtf.training.fit` (resumable: re-running
 with the same ``--out`` continues unfinished fits), evaluated on its held-out
 pairs with :func:`dynbtf.training.evaluate.evaluate_model` (tables and
