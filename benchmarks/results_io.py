@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -34,10 +35,11 @@ def commit() -> str | None:
 
 
 def header(benchmark: str, script: str) -> dict:
-    """The record's common fields: the benchmark, the command that ran it, the commit and the machine."""
+    """The record's common fields: the benchmark, the command that ran it (quoted as a shell needs it), the commit
+    and the machine."""
     from dynbtf.cpu import hardware_isa
 
-    return {"benchmark": benchmark, "command": " ".join(["python", f"benchmarks/{script}", *sys.argv[1:]]),
+    return {"benchmark": benchmark, "command": shlex.join(["python", f"benchmarks/{script}", *sys.argv[1:]]),
             "commit": commit(), "cpu": cpu_model(), "cpu_isa": hardware_isa(), "cores": os.cpu_count()}
 
 
