@@ -137,10 +137,9 @@ def write_part(path: Path, part: str, rows: list[dict], args) -> None:
     import sys
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from results_io import header, spread, write_result
+    from results_io import spread
+    from results_io import write_part as write_json_part
 
-    data = json.loads(path.read_text()) if path.exists() else {"benchmark": path.stem}
-    run = header(path.stem, "fit_materials.py")
     seeds = sorted({r["seed"] for r in rows})
     table = []
     for material in dict.fromkeys(r["material"] for r in rows):
@@ -151,13 +150,12 @@ def write_part(path: Path, part: str, rows: list[dict], args) -> None:
                                                                                   [r["minutes"] for r in mine])]:
             entry[key] = spread(values)
         table.append(entry)
-    data[part] = {key: run[key] for key in ("command", "commit", "cpu", "cpu_isa", "cores")} | {
+    write_json_part(path, part, "fit_materials.py", {
         "seeds": seeds, "conditions": f"{args.size} x {args.size} simulated BTFs; "
         + (f"{args.epochs} epochs, learning rates x{args.lr_scale:g}, {args.texel_groups} texel groups"
            if not (args.default or args.converge) else "the auto recipe")
         + (f", precision {args.precision}" if args.precision else "") + "; each number the mean over the seeds "
-        "(min-max); the held-out split is the seed's" + (f"; {args.note}" if args.note else ""), "rows": table}
-    write_result(path, data)
+        "(min-max); the held-out split is the seed's" + (f"; {args.note}" if args.note else ""), "rows": table})
 
 
 def write_default(path: Path, rows: list[dict], args) -> None:

@@ -278,18 +278,6 @@ def fetch(spec: str, seeds: int) -> dict:
             "recipe: 30 epochs, lr x6, 64 texel groups, bf16; PSNR against a fixed peak of 1", "rows": rows}
 
 
-def write_part(path: Path, part: str, measured: dict) -> None:
-    """Part ``part`` of the JSON file ``path`` (its other parts kept): the command and machine, then ``measured``."""
-    import json
-
-    from results_io import header, write_result
-
-    data = json.loads(path.read_text()) if path.exists() else {"benchmark": path.stem}
-    run = header(path.stem, "measure_stone_limits.py")
-    data[part] = {key: run[key] for key in ("command", "commit", "cpu", "cpu_isa", "cores")} | measured
-    write_result(path, data)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -328,7 +316,9 @@ def main() -> None:
         else:
             measured = fetch(args.spec, args.seeds)
         if args.json is not None:
-            write_part(args.json, args.command, measured)
+            from results_io import write_part
+
+            write_part(args.json, args.command, "measure_stone_limits.py", measured)
 
 
 if __name__ == "__main__":

@@ -77,6 +77,16 @@ def panel_strip(panels, gap: int = 6):
     return np.concatenate([x for panel in panels for x in (panel, white)][:-1], 1)
 
 
+def write_part(path: Path, part: str, script: str, measured: dict) -> None:
+    """Set part ``part`` of the JSON file ``path`` (read, or started as ``{"benchmark": stem}``; its other parts
+    kept) to the command and machine of this run (:func:`header`, run by ``script``) followed by ``measured``, and
+    write the file atomically."""
+    data = json.loads(path.read_text()) if path.exists() else {"benchmark": path.stem}
+    run = header(path.stem, script)
+    data[part] = {key: run[key] for key in ("command", "commit", "cpu", "cpu_isa", "cores")} | measured
+    write_result(path, data)
+
+
 def write_result(path: Path, result: dict) -> None:
     """Write ``result`` as JSON to ``path`` (atomically: a temporary file renamed)."""
     path.parent.mkdir(parents=True, exist_ok=True)

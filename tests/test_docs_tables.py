@@ -207,3 +207,27 @@ def test_recorded_measurements_name_their_command_and_machine():
                     isinstance(x, (int, float)) for x in v) for v in values.values()), (name, values)
             assert "rows" in part or machine <= part.keys(), name
 
+
+
+def test_a_benchmark_part_is_written_beside_the_others_with_its_command_and_machine(tmp_path, monkeypatch):
+    """results_io.write_part: the file's other parts are kept, the new part starts with the run's command (shell
+    quoted), commit and machine, and no temporary file is left."""
+    import json
+    import sys
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import results_io
+
+    monkeypatch.setattr(sys, "argv", ["x.py", "limits", "sim:stone?size=16", "--note", "two words"])
+    path = tmp_path / "stone.json"
+    results_io.write_part(path, "limits", "measure_stone_limits.py", {"seeds": [0, 1]})
+    path.write_text(json.dumps(json.loads(path.read_text()) | {"fetch": {"rows": [1]}}))
+    results_io.write_part(path, "limits", "measure_stone_limits.py", {"seeds": [0, 1, 2]})
+    data = json.loads(path.read_text())
+    assert data["benchmark"] == "stone" and data["fetch"] == {"rows": [1]}
+    part = data["limits"]
+    assert part["command"] == ("python benchmarks/measure_stone_limits.py limits 'sim:stone?size=16' --note "
+                               "'two words'"), part["command"]
+    assert part["seeds"] == [0, 1, 2] and part["cores"] >= 1 and part["cpu_isa"]
+    assert list(part)[:5] == ["command", "commit", "cpu", "cpu_isa", "cores"]
+    assert [p.name for p in tmp_path.iterdir()] == ["stone.json"]
