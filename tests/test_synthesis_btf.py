@@ -62,6 +62,35 @@ def test_features_match_brute_force_at_any_coordinate(exemplar, method, offset):
 
 
 @pytest.mark.parametrize("method", DYNAMIC_BLENDS)
+@pytest.mark.parametrize("workers", [1, 2])
+def test_fused_kernel_answers_every_query_of_every_block_from_its_own_samples(exemplar, method, workers):
+    """The kernel reads one block's texels while the next block's are being fetched (two blocks of taps in flight
+    per worker): across block boundaries, partial last blocks and workers, each query's features are those of the
+    same query asked alone, and a sample of them equals the brute-force definition."""
+    import numba
+
+    from dynbtf.synthesis.blending.kernel import BLOCK
+
+    synth = make_synthesizer(method, exemplar, seed=5)
+    rng = np.random.default_rng(workers)
+    threads = numba.get_num_threads()
+    numba.set_num_threads(min(workers, numba.config.NUMBA_NUM_THREADS))
+    try:
+        for n in (1, BLOCK - 1, BLOCK, BLOCK + 1, 3 * BLOCK + 7):
+            uv = rng.random((n, 2)) * 40 - 20
+            together = synth.latent(torch.from_numpy(uv)).numpy()  # the kernel's output (before any output map)
+            alone = np.concatenate([synth.latent(torch.from_numpy(uv[i:i + 1])).numpy() for i in range(n)])
+            np.testing.assert_array_equal(together, alone, err_msg=f"{n} queries")
+    finally:
+        numba.set_num_threads(threads)
+    picked = rng.choice(n, 12, replace=False)
+    expected = brute_force_lattice_blend(synth, uv[picked], method)
+    scale = exemplar.reshape(-1, 4).std(0).numpy()
+    fast = synth(torch.from_numpy(uv[picked])).numpy()
+    np.testing.assert_allclose(fast / scale, expected / scale, atol=5e-3 if method == "hist" else 2e-5)
+
+
+@pytest.mark.parametrize("method", DYNAMIC_BLENDS)
 def test_blend_is_continuous_across_triangle_edges(exemplar, method):
     synth = make_synthesizer(method, exemplar, seed=2)
     t = torch.linspace(0, 2, 20001, dtype=torch.float64)

@@ -5,11 +5,13 @@ over the block's queries reading and writing rows of a scratch (one query per
 column), with selects instead of branches, so that the compiler runs it in SIMD
 lanes across queries: this is what a renderer pays per shading point for the
 positional features. The passes: the lattice and the vertex hashes; the texel
-addressing; the blend weights and the 12 taps; a prefetch of every tap; the
-blended reads and the inverse LUT. At random uv the reads are cache misses on a
-plane of megabytes: issuing a whole block's misses before using them overlaps
-their latency, and a plane aligned to cache lines (:func:`cache_aligned`) makes
-a 16-channel texel one line, not two (``benchmarks/bench_synthesis_eval.py``).
+addressing; the blend weights and the 12 taps; then the blended reads and the
+inverse LUT. At random uv the reads are cache misses on a plane of megabytes, so
+the blocks are software-pipelined: a block's reads are issued (prefetched) while
+the block before it is blended, one query's 12 taps between two queries' blends,
+and used only after the next block's arithmetic, so that their latencies overlap
+that arithmetic and each other. A plane aligned to cache lines (:func:`cache_aligned`)
+makes a 16-channel texel one line, not two (``benchmarks/bench_synthesis_eval.py``).
 It computes what the torch reference path of :class:`~dynbtf.synthesis.blending.LatticeBlending`
 computes (same lattice arithmetic in float64/int64, same hash -- the functions
 of :mod:`dynbtf.synthesis.hash` compiled as they are; the blend itself in
@@ -303,35 +305,59 @@ def _kernel(uv, plane, lum, density_w, density_h, seed, mode, gamma, beta, gain_
     texel_bytes = 4 * nc  # a texel crosses no cache line of an aligned plane when its size divides a line's
     one_line = (flat.ctypes.data % CACHE_LINE == 0) and (CACHE_LINE % texel_bytes == 0)
     n_blocks = (n_queries + BLOCK - 1) // BLOCK
+    own = rotation or log_range != 0.0
     for worker in numba.prange(n_workers):  # each worker's scratch allocated once; blocks dealt round-robin
         ints = np.empty((_INT_ROWS, BLOCK), dtype=np.int64)
         reals = np.empty((_REAL_ROWS, BLOCK), dtype=np.float64)
-        taps = np.empty((TAPS, BLOCK), dtype=np.int64)  # flat index of each tap's texel
-        weights = np.empty((TAPS, BLOCK), dtype=np.float32)
-        for block in range(worker, n_blocks, n_workers):
-            first = block * BLOCK
-            count = min(BLOCK, n_queries - first)
-            _block_lattice(uv, first, count, state, ints, reals)
-            _block_texels(count, pw, ph, density_w, density_h, ints, reals, rotation, log_range)
-            if guided:
-                _block_guidance(first, count, pw, ph, ints, reals, states, labels, target, softness)
-            _block_weights(count, pw, nc, mode, lum, gamma, gamma_int, beta, gain_k, ints, reals, taps, weights,
-                           rotation or log_range != 0.0)
-            # the block's reads issued before any is used: at random uv they are cache misses on a plane of
-            # megabytes, and their latencies overlap
-            for m in range(TAPS):
-                tap_ = taps[m]
-                for j in range(count):
-                    prefetch(flat, tap_[j])
-                if not one_line:  # a texel may straddle two cache lines
+        # two blocks' taps (flat index of each tap's texel) and weights: the block being read and the next one
+        taps = np.empty((2, TAPS, BLOCK), dtype=np.int64)
+        weights = np.empty((2, TAPS, BLOCK), dtype=np.float32)
+        # software pipeline: the taps of block b are computed, then block b - 1 is read and blended while block
+        # b's reads are issued (a query's 12 prefetches between two queries' blends), so that at random uv the
+        # cache misses of one block overlap the arithmetic of the next, not only each other
+        pending_first, pending_count = -1, 0
+        for block in range(worker, n_blocks + n_workers, n_workers):
+            buffer = (block // n_workers) % 2
+            count = 0
+            if block < n_blocks:
+                first = block * BLOCK
+                count = min(BLOCK, n_queries - first)
+                _block_lattice(uv, first, count, state, ints, reals)
+                _block_texels(count, pw, ph, density_w, density_h, ints, reals, rotation, log_range)
+                if guided:
+                    _block_guidance(first, count, pw, ph, ints, reals, states, labels, target, softness)
+                _block_weights(count, pw, nc, mode, lum, gamma, gamma_int, beta, gain_k, ints, reals, taps[buffer],
+                               weights[buffer], own)
+                if pending_first < 0:  # the first block: nothing to read yet, its reads issued at once
                     for j in range(count):
-                        prefetch(flat, tap_[j] + nc - 1)
-            # pass 4: the three bilinear fetches, blended (float32); then the block's inverse LUTs
-            for j in range(count):
-                _blend_taps(flat, taps, weights, j, out[first + j])
-            if mode == MODE_HIST:
-                for j in range(count):
-                    _inverse_lut(out[first + j], lut, g_min, inv_step)
+                        _prefetch_query(flat, taps[buffer], j, nc, one_line)
+            if pending_first >= 0:  # the block before: its reads, blended, while this block's are issued
+                earlier = taps[1 - buffer]
+                earlier_weights = weights[1 - buffer]
+                current = taps[buffer]
+                for j in range(min(pending_count, count)):
+                    _prefetch_query(flat, current, j, nc, one_line)
+                    _blend_taps(flat, earlier, earlier_weights, j, out[pending_first + j])
+                for j in range(count, pending_count):
+                    _blend_taps(flat, earlier, earlier_weights, j, out[pending_first + j])
+                for j in range(pending_count, count):
+                    _prefetch_query(flat, current, j, nc, one_line)
+                if mode == MODE_HIST:
+                    for j in range(pending_count):
+                        _inverse_lut(out[pending_first + j], lut, g_min, inv_step)
+            pending_first = block * BLOCK if count > 0 else -1
+            pending_count = count
+
+
+@numba.njit(inline="always")
+def _prefetch_query(flat, taps, j, nc, one_line):
+    """Issue the reads of query ``j`` of a block: its 12 taps' texels (and their last channel's cache line when a
+    texel may straddle two)."""
+    for m in range(TAPS):
+        prefetch(flat, taps[m, j])
+    if not one_line:
+        for m in range(TAPS):
+            prefetch(flat, taps[m, j] + nc - 1)
 
 
 def _guidance_arguments(guidance: tuple | None, plane_shape: tuple[int, int], n: int) -> tuple:
