@@ -90,6 +90,30 @@ def test_fused_kernel_answers_every_query_of_every_block_from_its_own_samples(ex
     np.testing.assert_allclose(fast / scale, expected / scale, atol=5e-3 if method == "hist" else 2e-5)
 
 
+@pytest.mark.parametrize("workers", [1, 2])
+def test_tile_kernel_prefetching_ahead_answers_every_query_from_its_own_texels(exemplar, workers):
+    """Plain tiling's kernel requests each query's texels some queries ahead of reading them: across chunks, their
+    ends and workers each query equals the same query asked alone and the torch periodic fetch."""
+    import numba
+
+    from dynbtf.synthesis.tiling.kernel import AHEAD, CHUNK
+    from dynbtf.texture import fetch_wrap
+
+    synth = make_synthesizer("tile", exemplar, seed=0)
+    rng = np.random.default_rng(workers)
+    threads = numba.get_num_threads()
+    numba.set_num_threads(min(workers, numba.config.NUMBA_NUM_THREADS))
+    try:
+        for n in (1, AHEAD - 1, AHEAD + 1, CHUNK, CHUNK + AHEAD + 3, 3 * CHUNK + 7):
+            uv = torch.from_numpy(rng.random((n, 2)) * 200 - 100)
+            together = synth.latent(uv).numpy()
+            alone = np.concatenate([synth.latent(uv[i:i + 1]).numpy() for i in range(n)])
+            np.testing.assert_array_equal(together, alone, err_msg=f"{n} queries")
+            np.testing.assert_allclose(together, fetch_wrap(exemplar, uv).numpy(), atol=2e-5, err_msg=f"{n} queries")
+    finally:
+        numba.set_num_threads(threads)
+
+
 @pytest.mark.parametrize("method", DYNAMIC_BLENDS)
 def test_blend_is_continuous_across_triangle_edges(exemplar, method):
     synth = make_synthesizer(method, exemplar, seed=2)

@@ -34,7 +34,11 @@ class Tiling(Synthesizer):
         super().__init__(exemplar, seed)
         self.prepared = None
         self.fast = self.device.type == "cpu" if fast is None else bool(fast) and self.device.type == "cpu"
-        self._plane_numpy = self.exemplar.cpu().numpy() if self.fast else None
+        self._plane_numpy = None
+        if self.fast:  # aligned to cache lines: a 16-channel texel is one line (the kernel's prefetches)
+            from ..kernels import cache_aligned
+
+            self._plane_numpy = cache_aligned(self.exemplar.cpu().numpy())
         self._pyramid = PlanePyramid(self.exemplar)
 
     def latent(self, uv: torch.Tensor) -> torch.Tensor:
