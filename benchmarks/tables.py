@@ -914,6 +914,28 @@ def stone_limits(data: dict) -> str:
     return "\n".join(lines)
 
 
+def stone_limits_summary(data: dict) -> str:
+    """The sentence that reads measure_stone_limits.py's measured ``limits`` part (means over the seeds): what the
+    data supports (the oracle), whether the fit over-fits (training against held-out) and where capacity goes (the
+    normal view alone against all views)."""
+    part = data["limits"]
+    rows = part["rows"]
+    oracle = next(r for r in rows if r["measurement"].startswith("oracle"))
+    every = next(r for r in rows if r["measurement"].startswith("the fit of all"))
+    normal = next(r for r in rows if r["measurement"].startswith("the normal view only"))
+    views = re.search(r"all (\d+) views", every["measurement"])[1]
+    training, held_out = every["psnr_training"]["mean"], every["psnr_held_out"]["mean"]
+    gap = training - held_out
+    fit = (f"the fit does not over-fit (training {training:.2f} dB, held-out {held_out:.2f})" if gap < 1.0 else
+           f"the fit over-fits by {gap:.1f} dB (training {training:.2f} dB, held-out {held_out:.2f})")
+    return (f"Means of {len(part['seeds'])} seeds, fixed peak 1: an oracle interpolating the 3 nearest measured "
+            f"lights at the same view reaches {oracle['psnr_held_out']['mean']:.2f} dB on held-out pairs (the "
+            f"nearest light alone {oracle['nearest_light_psnr_held_out']['mean']:.2f}), so the grid supports "
+            f"{oracle['psnr_held_out']['mean']:.1f} dB; {fit}; and capacity goes to the view dependence: the normal "
+            f"view alone is fitted to {normal['psnr_training']['mean']:.2f} dB, all {views} views to "
+            f"{training:.2f}.")
+
+
 def fullsize(data: dict) -> str:
     """results.md's full-size table: a line per measurement, its command in the first column."""
     return _prose(data["summary"], ("what", "what"), ("result", "result"), ("target", "target"))
@@ -1517,6 +1539,7 @@ RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget
              "synthesis_methods": synthesis_methods, "synthesis_quality": synthesis_quality,
              "synthesis_quality_summary": synthesis_quality_summary,
              "stone_fetch": stone_fetch, "stone_relief": stone_relief, "stone_limits": stone_limits,
+             "stone_limits_summary": stone_limits_summary,
              "fullsize": fullsize, "training_large": training_large, "fullsize_data_path": fullsize_data_path, "fullsize_curve": fullsize_curve,
              "fullsize_parallax_curve": fullsize_parallax_curve, "sampling": sampling, "web_struct": web_struct,
              "web_frame_time": web_frame_time, "web_agreement": web_agreement, "web_size": web_size,
@@ -1532,7 +1555,7 @@ SOURCES = {"guidance": "guided", "guidance_struct": "guided", "render_scenes": "
            **dict.fromkeys(("quality_triple", "quality_parallax", "quality_compared"), "quality"),
            **dict.fromkeys(("baselines_summary", "baselines_storage", "baselines_small", "neumip_variants",
                             "baselines_synthesis", "synthesis_methods"), "baselines"),
-           **dict.fromkeys(("stone_fetch", "stone_relief", "stone_limits"), "stone"),
+           **dict.fromkeys(("stone_fetch", "stone_relief", "stone_limits", "stone_limits_summary"), "stone"),
            **dict.fromkeys(("fullsize_data_path", "fullsize_curve", "fullsize_parallax_curve"), "fullsize"),
            **dict.fromkeys(("web_struct", "web_frame_time", "web_agreement", "web_size", "web_checks"), "web")}
 _BLOCK = re.compile(r"<!-- table:(?P<name>[a-z_]+) -->\n(?P<body>.*?)\n?<!-- /table:(?P=name) -->", re.S)

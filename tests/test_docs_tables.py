@@ -137,6 +137,33 @@ def test_stone_tables_render_measured_parts_and_the_quality_rows_they_name():
     assert "| oracle | 31.50 (31.00-32.00) | 0.020 | 0.100 |" in text, text
 
 
+def test_stone_limits_sentence_reads_the_means_and_says_whether_the_fit_over_fits():
+    """The stone's limits in one sentence, from the measured part: the oracle's and the fits' means, and "does not
+    over-fit" only while training and held-out PSNR are within 1 dB."""
+    tables = _tables()
+
+    def spread(*values):
+        return {"mean": sum(values) / len(values), "range": [min(values), max(values)], "per_seed": list(values)}
+
+    def part(training, held_out):
+        return {"limits": {"seeds": [0, 1, 2], "rows": [
+            {"measurement": "oracle: the 3 nearest measured lights", "psnr_training": None,
+             "psnr_held_out": spread(30.0, 31.0), "nearest_light_psnr_held_out": spread(25.0, 26.0)},
+            {"measurement": "the fit of all 81 views (lr x3)", "psnr_training": training, "psnr_held_out": held_out},
+            {"measurement": "views with theta <= 30 deg only (19 x 81)", "psnr_training": spread(25.0),
+             "psnr_held_out": spread(24.0)},
+            {"measurement": "the normal view only (1 x 81)", "psnr_training": spread(31.0, 32.0),
+             "psnr_held_out": spread(19.0)}]}}
+
+    text = tables.stone_limits_summary(part(spread(20.0, 22.0), spread(21.5)))
+    assert text.startswith("Means of 3 seeds, fixed peak 1: an oracle interpolating the 3 nearest measured lights at "
+                           "the same view reaches 30.50 dB on held-out pairs (the nearest light alone 25.50), so the "
+                           "grid supports 30.5 dB; the fit does not over-fit (training 21.00 dB, held-out 21.50);"), text
+    assert text.endswith("the normal view alone is fitted to 31.50 dB, all 81 views to 21.00."), text
+    text = tables.stone_limits_summary(part(spread(24.0), spread(21.5)))
+    assert "the fit over-fits by 2.5 dB (training 24.00 dB, held-out 21.50)" in text, text
+
+
 def test_fit_default_renders_a_measured_file_per_seed_against_the_best_fixed_epoch_fit():
     """fit_materials.py --default --json: the chosen kind counted over the seeds, the trials' means (and on how many
     seeds they ran), the default's PSNR / FLIP as spreads, the better of quality.json's 30-epoch fits of that BTF."""
