@@ -13,7 +13,9 @@ It writes ``--json`` (default ``benchmarks/results/synthesis_quality.json``, the
 and results.md's summary, rendered by ``benchmarks/tables.py``) and prints the table.
 
 Run: ``python benchmarks/bench_synthesis_quality.py stone.dbtfm [--fit-minutes 3]`` (e.g. a 128 x 128 Triple Plane
-of ``sim:stone?size=128``; ``--fit-minutes`` only records how it was fitted).
+of ``sim:stone?size=128``; ``--fit-minutes`` or ``--fitted-by COMMAND`` only records how it was fitted). The
+baselines' structured comparison (docs/baselines.md) is the same measurement of a lacquered-wood model at 15x:
+``--scale 15 --quilt-repeats 8 --fitted-by '...' --json benchmarks/results/synthesis_quality_wood.json``.
 """
 
 from __future__ import annotations
@@ -100,6 +102,8 @@ def main() -> None:
     parser.add_argument("--quilt-repeats", type=float, default=4.0, help="repeats quilted up front (quilt's row)")
     parser.add_argument("--fit-minutes", type=float, default=None,
                         help="for the record: the model was fitted by `dynbtf fit SOURCE --repr KIND --minutes M`")
+    parser.add_argument("--fitted-by", default=None,
+                        help="for the record: the command that fitted the model (instead of --fit-minutes)")
     parser.add_argument("--json", type=Path,
                         default=Path(__file__).resolve().parent / "results" / "synthesis_quality.json",
                         help="where to write every number (the docs' table data)")
@@ -122,8 +126,8 @@ def main() -> None:
               f"{cell(r['sliced_w1'], '.4f'):>26} {cell(r['std_ratio_min'], '.3f'):>23} "
               f"{cell(r['rgb_w1_max'], '.3f'):>23} {cell(r['repetition'], '.3f'):>23} "
               f"{cell(r['verbatim'], '.3f'):>23} {r['extra_storage_mb']:>7.2f}MB")
-    fitted = ""
-    if args.fit_minutes is not None:
+    fitted = f"fitted by `{args.fitted_by}`: " if args.fitted_by else ""
+    if args.fit_minutes is not None and not args.fitted_by:
         source = record["source"] + (f"?size={record['size'][0]}" if record.get("size") else "")
         fitted = f"fitted by `dynbtf fit '{source}' --repr {record['kind']} --minutes {args.fit_minutes:g}`: "
     size = f"{record['size'][0]} x {record['size'][1]} " if record.get("size") else ""
