@@ -775,18 +775,6 @@ def baselines_synthesis(data: dict) -> str:
     return "\n".join(lines)
 
 
-def synthesis_methods(data: dict) -> str:
-    """dynbtf compare --synthesis at 15x on the lacquered wood: each method's report and storage."""
-    lines = _head("method", "dynamic", "feature W1/std", "min std ratio", "RGB W1/std max", "repetition", "verbatim",
-                  "extra storage")
-    for r in data["synthesis_methods"]["rows"]:
-        c = _cells(r)
-        lines.append(_line(_named(r, "method"), "yes" if r["dynamic"] else "no", c("feature_w1", ".4f"),
-                           c("std_ratio_min", ".3f"), c("rgb_w1", ".3f"), c("repetition", ".3f"), c("verbatim", ".3f"),
-                           _storage(r)))
-    return "\n".join(lines)
-
-
 def synthesis_quality(data: dict) -> str:
     """bench_synthesis_quality.py: the quality report per method on one fitted model (each number the mean over the
     synthesis seeds, min-max)."""
@@ -1536,7 +1524,7 @@ RENDERERS = {"parallax_quality": parallax_quality, "training": training, "budget
              "quality_compared": quality_compared, "baselines": baselines, "baselines_summary": baselines_summary,
              "baselines_storage": baselines_storage, "baselines_small": baselines_small,
              "neumip_variants": neumip_variants, "baselines_synthesis": baselines_synthesis,
-             "synthesis_methods": synthesis_methods, "synthesis_quality": synthesis_quality,
+             "synthesis_quality": synthesis_quality, "synthesis_quality_wood": synthesis_quality,
              "synthesis_quality_summary": synthesis_quality_summary,
              "stone_fetch": stone_fetch, "stone_relief": stone_relief, "stone_limits": stone_limits,
              "stone_limits_summary": stone_limits_summary,
@@ -1554,7 +1542,7 @@ SOURCES = {"guidance": "guided", "guidance_struct": "guided", "render_scenes": "
            "synthesis_quality_summary": "synthesis_quality", "structured_construction": "structured",
            **dict.fromkeys(("quality_triple", "quality_parallax", "quality_compared"), "quality"),
            **dict.fromkeys(("baselines_summary", "baselines_storage", "baselines_small", "neumip_variants",
-                            "baselines_synthesis", "synthesis_methods"), "baselines"),
+                            "baselines_synthesis"), "baselines"),
            **dict.fromkeys(("stone_fetch", "stone_relief", "stone_limits", "stone_limits_summary"), "stone"),
            **dict.fromkeys(("fullsize_data_path", "fullsize_curve", "fullsize_parallax_curve"), "fullsize"),
            **dict.fromkeys(("web_struct", "web_frame_time", "web_agreement", "web_size", "web_checks"), "web")}
