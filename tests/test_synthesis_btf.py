@@ -16,6 +16,7 @@ import torch
 
 from dynbtf.conventions import spherical_to_direction
 from dynbtf.errors import InputError
+from dynbtf.infinite_btf import _numba_threads
 from dynbtf.representations.base import Representation
 from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.synthesis import make_synthesizer
@@ -73,16 +74,12 @@ def test_fused_kernel_answers_every_query_of_every_block_from_its_own_samples(ex
 
     synth = make_synthesizer(method, exemplar, seed=5)
     rng = np.random.default_rng(workers)
-    threads = numba.get_num_threads()
-    numba.set_num_threads(min(workers, numba.config.NUMBA_NUM_THREADS))
-    try:
+    with _numba_threads(min(workers, numba.config.NUMBA_NUM_THREADS)):
         for n in (1, BLOCK - 1, BLOCK, BLOCK + 1, 3 * BLOCK + 7):
             uv = rng.random((n, 2)) * 40 - 20
             together = synth.latent(torch.from_numpy(uv)).numpy()  # the kernel's output (before any output map)
             alone = np.concatenate([synth.latent(torch.from_numpy(uv[i:i + 1])).numpy() for i in range(n)])
             np.testing.assert_array_equal(together, alone, err_msg=f"{n} queries")
-    finally:
-        numba.set_num_threads(threads)
     picked = rng.choice(n, 12, replace=False)
     expected = brute_force_lattice_blend(synth, uv[picked], method)
     scale = exemplar.reshape(-1, 4).std(0).numpy()
@@ -101,17 +98,13 @@ def test_tile_kernel_prefetching_ahead_answers_every_query_from_its_own_texels(e
 
     synth = make_synthesizer("tile", exemplar, seed=0)
     rng = np.random.default_rng(workers)
-    threads = numba.get_num_threads()
-    numba.set_num_threads(min(workers, numba.config.NUMBA_NUM_THREADS))
-    try:
+    with _numba_threads(min(workers, numba.config.NUMBA_NUM_THREADS)):
         for n in (1, AHEAD - 1, AHEAD + 1, CHUNK, CHUNK + AHEAD + 3, 3 * CHUNK + 7):
             uv = torch.from_numpy(rng.random((n, 2)) * 200 - 100)
             together = synth.latent(uv).numpy()
             alone = np.concatenate([synth.latent(uv[i:i + 1]).numpy() for i in range(n)])
             np.testing.assert_array_equal(together, alone, err_msg=f"{n} queries")
             np.testing.assert_allclose(together, fetch_wrap(exemplar, uv).numpy(), atol=2e-5, err_msg=f"{n} queries")
-    finally:
-        numba.set_num_threads(threads)
 
 
 @pytest.mark.parametrize("method", DYNAMIC_BLENDS)
