@@ -34,13 +34,6 @@ from pathlib import Path
 RESULTS = Path(__file__).resolve().parent / "results" / "gpu.json"
 
 
-def synchronize(device) -> None:
-    import torch
-
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def training_throughput(spec: str, device: str, seconds: float) -> dict:
     """Samples/s of the fast recipe on ``device`` (:func:`bench_training.our_rate`)."""
     import tempfile
@@ -78,30 +71,76 @@ def full_size_fit(spec: str, device: str, minutes: float) -> dict:
             "seconds_to_within_half_db": within, "curve": curve}
 
 
-def evaluation_1080p(device: str, repeats: int = 3) -> dict:
+def evaluation_1080p(device: str, repeats: int = 3, chunk_sizes=(None, 32768, 1 << 21)) -> dict:
+    """1080p hist queries on ``device``: best of ``repeats`` after a warm-up, for each of ``chunk_sizes`` (None: the
+    default of :class:`dynbtf.SynthesizedBTF` there), with the peak device memory of each."""
     import numpy as np
     import torch
 
     import dynbtf
+    from dynbtf.device import synchronize
     from dynbtf.representations.triple_plane import TriplePlane
 
     model = TriplePlane(400, 400, seed=0).eval()
-    synth = dynbtf.synthesized_btf(model, "hist", scale=1.0, seed=0, device=device)
     n = 1920 * 1080
     rng = np.random.default_rng(0)
     uv = torch.from_numpy(rng.random((n, 2)) * 45.0)
     w_view = torch.from_numpy(dynbtf.spherical_to_direction(rng.random(n) * 80, rng.random(n) * 360)).float()
     w_light = torch.from_numpy(dynbtf.spherical_to_direction(rng.random(n) * 80, rng.random(n) * 360)).float()
     uv, w_view, w_light = uv.to(device), w_view.to(device), w_light.to(device)
-    synth.eval(uv[:50000], w_view[:50000], w_light[:50000])
-    best = float("inf")
-    for _ in range(repeats):
+    cuda = torch.device(device).type == "cuda"
+    rows = []
+    for chunk_size in chunk_sizes:
+        synth = dynbtf.synthesized_btf(model, "hist", scale=1.0, seed=0, device=device, chunk_size=chunk_size)
+        synth.eval(uv[:50000], w_view[:50000], w_light[:50000])
+        if cuda:
+            torch.cuda.reset_peak_memory_stats(device)
+        best = float("inf")
+        for _ in range(repeats):
+            synchronize(device)
+            t0 = time.perf_counter()
+            synth.eval(uv, w_view, w_light)
+            synchronize(device)
+            best = min(best, time.perf_counter() - t0)
+        rows.append({"chunk_size": synth.chunk_size, "default": chunk_size is None, "seconds": best,
+                     "queries_per_second": n / best,
+                     "peak_memory_bytes": torch.cuda.max_memory_allocated(device) if cuda else None})
+        print(f"  chunk {synth.chunk_size:>9,}{' (default)' if chunk_size is None else ''}: {1e3 * best:.1f} ms"
+              + (f", peak {rows[-1]['peak_memory_bytes'] / 2**30:.2f} GiB" if cuda else ""), flush=True)
+    return {"device": device, "queries": n, **{k: rows[0][k] for k in ("seconds", "queries_per_second")},
+            "chunk_sizes": rows}
+
+
+def profile(device: str, train_btf: str) -> dict:
+    """Where a GPU's time goes: torch's profiler over one 1080p hist evaluation and over a few seconds of training
+    steps, the operations with the most device time (printed as tables, kept as text)."""
+    import numpy as np
+    import torch
+    from torch.profiler import ProfilerActivity
+
+    import dynbtf
+    from dynbtf.device import synchronize
+    from dynbtf.representations.triple_plane import TriplePlane
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if torch.device(device).type == "cuda" else [])
+    sort = "cuda_time_total" if len(activities) > 1 else "cpu_time_total"
+    n = 1920 * 1080
+    rng = np.random.default_rng(0)
+    uv = torch.from_numpy(rng.random((n, 2)) * 45.0).to(device)
+    w = torch.from_numpy(dynbtf.spherical_to_direction(rng.random(n) * 80, rng.random(n) * 360)).float().to(device)
+    synth = dynbtf.synthesized_btf(TriplePlane(400, 400, seed=0).eval(), "hist", device=device)
+    synth.eval(uv[:50000], w[:50000], w[:50000])
+    synchronize(device)
+    with torch.profiler.profile(activities=activities) as prof:
+        synth.eval(uv, w, w)
         synchronize(device)
-        t0 = time.perf_counter()
-        synth.eval(uv, w_view, w_light)
-        synchronize(device)
-        best = min(best, time.perf_counter() - t0)
-    return {"device": device, "queries": n, "seconds": best, "queries_per_second": n / best}
+    tables = {"evaluation": prof.key_averages().table(sort_by=sort, row_limit=15)}
+    print("profile of one 1080p hist evaluation:\n" + tables["evaluation"], flush=True)
+    with torch.profiler.profile(activities=activities) as prof:
+        training_throughput(train_btf, device, 2.0)
+    tables["training"] = prof.key_averages().table(sort_by=sort, row_limit=20)
+    print("profile of 2 s of training steps (with the fit's set-up):\n" + tables["training"], flush=True)
+    return tables
 
 
 def full_size_file(spec: str, device: str, workdir: Path, components: int = 96) -> tuple[str, dict]:
@@ -147,9 +186,14 @@ def evaluation_agreement(device: str, n: int = 200_000) -> dict:
     for where in ("cpu", device):
         synth = dynbtf.synthesized_btf(model, "hist", scale=1.0, seed=0, device=where)
         out[where] = synth.eval(uv.to(where), w_view.to(where), w_light.to(where)).double().cpu()
-    diff = out[device] - out["cpu"]
-    return {"queries": n, "max_abs_difference": float(diff.abs().max()),
-            "relative_l2_difference": float(diff.norm() / out["cpu"].norm())}
+    diff = (out[device] - out["cpu"]).abs().amax(dim=-1)
+    worst = torch.argsort(diff, descending=True)[:5]
+    return {"queries": n, "max_abs_difference": float(diff.max()),
+            "relative_l2_difference": float((out[device] - out["cpu"]).norm() / out["cpu"].norm()),
+            "p999_abs_difference": float(torch.quantile(diff[:100_000], 0.999)),
+            "queries_over_1e-3": int((diff > 1e-3).sum()),
+            "worst": [{"uv": uv[i].tolist(), "cpu": out["cpu"][i].tolist(), device: out[device][i].tolist()}
+                      for i in worst.tolist()]}
 
 
 def main() -> None:
@@ -162,7 +206,7 @@ def main() -> None:
                              "first, as `dynbtf simulate ... -o X.btf` would, not counted)")
     parser.add_argument("--full-components", type=int, default=96)
     parser.add_argument("--fit-minutes", type=float, default=3.0)
-    parser.add_argument("--skip", nargs="*", default=[], choices=["train", "fit", "eval"])
+    parser.add_argument("--skip", nargs="*", default=[], choices=["train", "fit", "eval", "profile"])
     parser.add_argument("--json", type=Path, default=RESULTS)
     args = parser.parse_args()
 
@@ -188,9 +232,17 @@ def main() -> None:
         write_result(args.json, result)
 
     def train():
+        from dynbtf.data.open import open_btf
+        from dynbtf.training import TrainConfig
+        from dynbtf.training.recipe import measure_step_seconds
+
         row = training_throughput(args.train_btf, args.device, args.train_seconds)
+        # what `dynbtf fit --minutes` plans with: its own measurement of the same recipe's step
+        row["planned_ms_per_step"] = 1e3 * measure_step_seconds(
+            open_btf(args.train_btf), TrainConfig(device=args.device, texel_groups=64, lr_scale=6.0, subtexel=0.0))
         print(f"training ({args.train_btf}, fast recipe): {row['samples_per_second'] / 1e6:.1f} M samples/s, "
-              f"{row['ms_per_step']:.2f} ms/step", flush=True)
+              f"{row['ms_per_step']:.2f} ms/step (the budget planner measures {row['planned_ms_per_step']:.2f})",
+              flush=True)
         return row
 
     def evaluate():
@@ -202,7 +254,9 @@ def main() -> None:
     def agree():
         row = evaluation_agreement(args.device)
         print(f"{args.device} against the CPU, {row['queries']} hist queries: max |difference| "
-              f"{row['max_abs_difference']:.2e}, relative L2 {row['relative_l2_difference']:.2e}", flush=True)
+              f"{row['max_abs_difference']:.2e} (99.9th percentile {row['p999_abs_difference']:.2e}, "
+              f"{row['queries_over_1e-3']} over 1e-3), relative L2 {row['relative_l2_difference']:.2e}; worst: "
+              f"{row['worst'][:2]}", flush=True)
         return row
 
     def full_fit():
@@ -223,6 +277,8 @@ def main() -> None:
         stage("evaluation", evaluate)
         if args.device != "cpu":
             stage("evaluation_agreement", agree)
+    if "profile" not in args.skip:
+        stage("profile", lambda: profile(args.device, args.train_btf))
     if "fit" not in args.skip:
         stage("full_size_fit", full_fit)
     if result["errors"]:

@@ -1,10 +1,10 @@
-"""Run-time device choice: CUDA when present, else the CPU; and values brought back to the host."""
+"""Run-time device choice: CUDA when present, else the CPU; waiting for a device; values brought back to the host."""
 
 from __future__ import annotations
 
 import torch
 
-__all__ = ["resolve_device", "to_host"]
+__all__ = ["resolve_device", "synchronize", "to_host"]
 
 
 def resolve_device(device: str | torch.device | None = None) -> torch.device:
@@ -24,6 +24,17 @@ def resolve_device(device: str | torch.device | None = None) -> torch.device:
     if resolved.type == "cuda" and not torch.cuda.is_available():
         raise InputError(f"device: {device!r} requested but CUDA is not available here; use 'cpu' or 'auto'")
     return resolved
+
+
+def synchronize(device: str | torch.device) -> None:
+    """Wait until ``device`` has run everything launched on it (a GPU runs its work after the launches return, so a
+    clock read without this measures the launches); nothing to wait for on the CPU.
+
+    >>> synchronize("cpu")
+    """
+    device = torch.device(device)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def to_host(x):

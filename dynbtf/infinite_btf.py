@@ -204,6 +204,14 @@ def _decode_footprints(synthesizer, path: DecodePath, points, wv, wl, texels) ->
     return torch.empty_like(rgb).index_copy_(0, perm.to(rgb.device), rgb)
 
 
+CPU_CHUNK = 32768
+"""Queries per chunk of :meth:`SynthesizedBTF.eval` on the CPU: each worker thread's piece, its working set near
+the cache's size."""
+GPU_CHUNK = 1 << 20
+"""Queries per chunk on a GPU: a 1080p frame (2,073,600 queries) in two chunks, each holding about a kilobyte of
+intermediates per query (the taps' features, the decoder's hidden layers) in device memory."""
+
+
 class SynthesizedBTF:
     """An infinite, non-repeating BTF: a compiled material queried at any uv.
 
@@ -214,8 +222,10 @@ class SynthesizedBTF:
         compiled first by :func:`dynbtf.synthesized.synthesized_btf`, which then returns this object.
     scale : float, default 1.0
         Exemplar repeats per unit of the user's ``uv`` (positive).
-    chunk_size : int, default 32768
-        Queries per chunk (bounds memory).
+    chunk_size : int, optional
+        Queries per chunk (bounds memory). Default: 32,768 on the CPU (cache-sized pieces for the worker
+        threads), 1,048,576 on a GPU (a 1080p frame in two launch sequences: small chunks leave the GPU waiting
+        on the Python loop and its per-chunk checks).
     workers : int, optional
         Threads of the CPU fast path (default: torch's intra-op thread count), each running numba and
         torch single-threaded while :meth:`eval` runs.
@@ -255,7 +265,7 @@ class SynthesizedBTF:
     torch.Size([2, 3])
     """
 
-    def __init__(self, material: CompiledMaterial, scale: float = 1.0, *, chunk_size: int = 32768,
+    def __init__(self, material: CompiledMaterial, scale: float = 1.0, *, chunk_size: int | None = None,
                  precision: str = "fp32", workers: int | None = None, device: str | torch.device | None = None,
                  level_decoders: bool = True) -> None:
         if device is not None:
@@ -277,6 +287,8 @@ class SynthesizedBTF:
         self.scale = positive_number("scale", scale, "number of exemplar repeats per uv unit")
         if precision not in PRECISIONS:
             raise InputError(f"precision: expected one of {sorted(PRECISIONS)}, got {precision!r}")
+        if chunk_size is None:
+            chunk_size = CPU_CHUNK if material.model.positional_plane().device.type == "cpu" else GPU_CHUNK
         if int(chunk_size) < 1:
             raise InputError(f"chunk_size: expected a positive number of queries, got {chunk_size}")
         if workers is not None and int(workers) < 1:

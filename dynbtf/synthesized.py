@@ -33,7 +33,7 @@ __all__ = ["synthesized_btf", "auto_method"]
 
 
 def synthesized_btf(model, synthesizer: str | Synthesizer = "auto", scale: float = 1.0, seed: int = 0, *,
-                    footprints: bool = False, chunk_size: int = 32768, precision: str = "fp32",
+                    footprints: bool = False, chunk_size: int | None = None, precision: str = "fp32",
                     workers: int | None = None, device=None, level_decoders: bool = True,
                     **params) -> SynthesizedBTF:
     """The synthesized BTF of ``model`` with ``synthesizer`` and ``seed``, queried at ``scale``.

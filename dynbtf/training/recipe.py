@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from ..data.base import BTFSource
-from ..device import resolve_device
+from ..device import resolve_device, synchronize
 from ..errors import InputError
 from ..representations.base import Representation
 from .batches import BatchSampler, between_texel_count, between_texel_points
@@ -291,6 +291,7 @@ def measure_step_seconds(source: BTFSource, config: TrainConfig, representation:
                                                workers=workers, precision=precision,
                                                angular_taps=tuple(t[:b] for t in taps))
         loss.backward()
+        synchronize(device)  # a GPU runs the step after the launches return
         return time.perf_counter() - t0
 
     with single_intra_op_thread(device.type == "cpu"):
@@ -301,8 +302,10 @@ def measure_step_seconds(source: BTFSource, config: TrainConfig, representation:
         while sum(times) < TIMED_SECONDS and len(times) < MAX_TIMED_STEPS:
             times.append(step())
     seconds = float(np.median(times))
-    if not store.cached:
-        t0 = time.perf_counter()
+    if not store.cached:  # a step's read: the second one (the first also builds the source's factor cache)
         sampler.batch(0, 0)
+        t0 = time.perf_counter()
+        sampler.batch(0, min(1, sampler.steps_per_epoch - 1))
+        synchronize(device)
         seconds += time.perf_counter() - t0
     return seconds * 1.05  # optimizer update and the per-epoch monitor
