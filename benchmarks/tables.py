@@ -94,23 +94,53 @@ def evaluation(data: dict) -> str:
 
 
 def gpu(data: dict) -> str:
-    """gpu_check.py on a GPU machine."""
-    rows = [f"Measured on {data['device_name']} (torch {data['torch']}) by `{data['command']}`.", "",
-            "| what | result |", "|---|---|"]
-    if "training" in data:
-        t = data["training"]
-        rows.append(f"| training, fast recipe, `{t['btf']}` | {t['samples_per_second'] / 1e6:.1f} M samples/s "
-                    f"({t['ms_per_step']:.2f} ms per step) |")
-    if "full_size_fit" in data:
-        f = data["full_size_fit"]
-        rows.append(f"| full-size fit, `{f['btf']}`, `--minutes {f['minutes_budget']:g}` | within 0.5 dB of its best "
-                    f"({f['best_held_out_psnr']:.2f} dB) after {f['seconds_to_within_half_db'] / 60:.1f} min; "
-                    f"{f['steps']} steps ({f['stopped']}) |")
-    if "evaluation" in data:
-        e = data["evaluation"]
-        rows.append(f"| 1080p evaluation, hist | {1e3 * e['seconds']:.0f} ms ({e['queries_per_second'] / 1e6:.1f} M "
-                    "queries/s) |")
-    return "\n".join(rows)
+    """gpu_check.py on a GPU machine: its runs side by side, with the CPU's figures for the same measurement (the
+    best level of training.json and evaluation.json, 2 cores) and the full-size fit's projected time (its measured
+    seconds per step times the CPU convergence curve's steps, training_large.json)."""
+    runs = data["runs"]
+    cpu_train = max((r for r in _load("training")["rows"] if r["btf"].endswith("size=128") and r["variant"] != "naive"),
+                    key=lambda r: r["samples_per_second"])
+    cpu_eval = max((r for r in _load("evaluation")["rows"] if r["method"] == "hist"), key=lambda r: r["ours_qps"])
+    lines = [f"Measured on {data['machine']} (torch {data['torch']}), in {len(runs)} runs: "
+             + "; ".join(f"({i + 1}) `{r['command']}`" + (f" ({r['code']})" if r.get("code") else "")
+                         for i, r in enumerate(runs))
+             + f". The CPU columns: 2 cores of the CPU in the tables above, its best level ({cpu_train['isa']} "
+             f"training, {cpu_eval['isa']} evaluation).", "",
+             "| what | GPU | CPU (2 cores) | run |", "|---|---|---|---|"]
+    for i, r in enumerate(runs, 1):
+        t = r["training"]
+        planned = (f"; the budget planner measures {t['planned_ms_per_step']:.2f} ms" if "planned_ms_per_step" in t
+                   else "")
+        lines.append(f"| training, fast recipe, `{t['btf']}` | **{t['samples_per_second'] / 1e6:.1f} M samples/s** "
+                     f"({t['ms_per_step']:.2f} ms per step{planned}) | {cpu_train['samples_per_second'] / 1e6:.1f} M "
+                     f"({cpu_train['variant']}) | {i} |")
+    for i, r in enumerate(runs, 1):
+        for c in r["evaluation"].get("chunk_sizes", [{"chunk_size": 32768, "default": True,
+                                                       **{k: r["evaluation"][k] for k in ("seconds",
+                                                                                          "queries_per_second")}}]):
+            memory = f", {c['peak_memory_bytes'] / 2**30:.2f} GiB" if c.get("peak_memory_bytes") else ""
+            default = " (the default then)" if c["default"] and "chunk_sizes" not in r["evaluation"] else \
+                (" (the default)" if c["default"] else "")
+            value = f"{1e3 * c['seconds']:.1f} ms, {c['queries_per_second'] / 1e6:.1f} M queries/s{memory}"
+            lines.append(f"| 1080p evaluation, hist, chunks of {c['chunk_size']:,} queries{default} | "
+                         + (f"**{value}**" if c["default"] and "chunk_sizes" in r["evaluation"] else value)
+                         + f" | {2073600 / cpu_eval['ours_qps'] * 1e3:.0f} ms, {cpu_eval['ours_qps'] / 1e6:.1f} M "
+                         f"| {i} |")
+    a = runs[-1]["evaluation_agreement"]
+    lines.append(f"| the GPU's hist answers against the CPU's compiled kernels ({a['queries']:,} queries) | relative "
+                 f"L2 difference {a['relative_l2_difference']:.1e}, largest {a['max_abs_difference']:.1e} | | "
+                 f"{len(runs)} |")
+    fits = [(i, r["full_size_fit"]) for i, r in enumerate(runs, 1) if "full_size_fit" in r]
+    converge = _load("training_large")["steps_to_converge"]
+    for i, f in fits:
+        seconds_per_step = f["curve"][-1][0] / f["steps"]
+        lines.append(f"| full-size fit, `{f['btf']}` ({f['file_components']}-component DFMF file), "
+                     f"`--minutes {f['minutes_budget']:g}` | {f['steps']:,} steps ({f['stopped']}) in "
+                     f"{f['curve'][-1][0] / 60:.1f} min, {f['best_held_out_psnr']:.2f} dB held-out; "
+                     f"{1e3 * seconds_per_step:.0f} ms per step, texels read from the file's factors | | {i} |")
+        lines.append(f"| full-size fit to within 0.5 dB of converged (projected: {converge:,} steps of the CPU's "
+                     f"curve x the step above) | **{converge * seconds_per_step / 60:.1f} min** | see above | {i} |")
+    return "\n".join(lines)
 
 
 def guided(data: dict) -> str:

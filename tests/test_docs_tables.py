@@ -258,3 +258,29 @@ def test_a_benchmark_part_is_written_beside_the_others_with_its_command_and_mach
     assert part["seeds"] == [0, 1, 2] and part["cores"] >= 1 and part["cpu_isa"]
     assert list(part)[:5] == ["command", "commit", "cpu", "cpu_isa", "cores"]
     assert [p.name for p in tmp_path.iterdir()] == ["stone.json"]
+
+
+def test_gpu_table_projects_the_full_size_fit_from_its_measured_step_and_the_cpu_curve(monkeypatch):
+    """gpu_check.py's runs: the projection is the CPU curve's steps to within 0.5 dB times the GPU fit's measured
+    seconds per step (its last monitor time over its steps); the default chunk size is the one set in bold."""
+    tables = _tables()
+    cpu = {"training": {"rows": [{"btf": "sim:leather?size=128", "variant": "fast", "isa": "avx2",
+                                  "samples_per_second": 2e6}]},
+           "evaluation": {"rows": [{"method": "hist", "isa": "avx2", "ours_qps": 4e6}]},
+           "training_large": {"steps_to_converge": 6000}}
+    monkeypatch.setattr(tables, "_load", lambda name: cpu[name])
+    run = {"command": "python benchmarks/gpu_check.py", "training": {"btf": "sim:leather?size=128",
+                                                                     "samples_per_second": 5e7, "ms_per_step": 4.0},
+           "evaluation": {"seconds": 0.04, "queries_per_second": 5.2e7, "chunk_sizes": [
+               {"chunk_size": 1 << 20, "default": True, "seconds": 0.04, "queries_per_second": 5.2e7,
+                "peak_memory_bytes": 2 ** 30},
+               {"chunk_size": 32768, "default": False, "seconds": 0.5, "queries_per_second": 4.1e6,
+                "peak_memory_bytes": 2 ** 28}]},
+           "evaluation_agreement": {"queries": 1000, "relative_l2_difference": 1e-4, "max_abs_difference": 1e-3},
+           "full_size_fit": {"btf": "big.btf", "file_components": 96, "minutes_budget": 3, "steps": 1000,
+                             "stopped": "ceiling", "best_held_out_psnr": 21.0, "curve": [[10.0, 20.0], [50.0, 21.0]]}}
+    text = tables.gpu({"machine": "a GPU", "torch": "2.x", "runs": [run]})
+    assert "**50.0 M samples/s**" in text and "2.0 M (fast)" in text
+    assert "**40.0 ms, 52.0 M queries/s, 1.00 GiB**" in text and "| 500.0 ms, 4.1 M queries/s, 0.25 GiB |" in text
+    assert "50 ms per step" in text
+    assert "**5.0 min**" in text  # 6000 steps x 0.05 s
