@@ -12,6 +12,11 @@ and scored on the same held-out pairs. The rows -- per kind, each number's mean 
 storage, and the best mean of each quality column marked -- become part ``--part`` of the ``--json`` file (its
 other parts kept); docs/results.md's "Baselines: further comparisons" table is generated from it
 (``benchmarks/tables.py``). About 4 minutes per seed on 2 cores for the default 64 x 64 BTF.
+
+``--storage`` measures only what each kind stores (its positional plane and the whole model, float32): one fit of
+one epoch per kind (sizes do not depend on training), part ``storage``, docs/baselines.md's storage table::
+
+    python benchmarks/bench_baselines.py --storage --btf 'sim:leather?size=128'
 """
 
 from __future__ import annotations
@@ -58,11 +63,13 @@ def main() -> None:
                         help="the comparisons' folders (models kept: a second run reuses them)")
     parser.add_argument("--json", type=Path, default=Path(__file__).resolve().parent / "results" / "baselines.json")
     parser.add_argument("--part", default="small", help="the part of --json the rows go to")
+    parser.add_argument("--storage", action="store_true",
+                        help="only each kind's storage (one 1-epoch fit per kind): part 'storage'")
     args = parser.parse_args()
     if args.seeds < 1:
         parser.error(f"--seeds: expected at least 1, got {args.seeds}")
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from results_io import header, write_result
+    from results_io import header, write_part, write_result
 
     from dynbtf.compare import compare_representations
     from dynbtf.data.open import open_btf
@@ -70,6 +77,15 @@ def main() -> None:
 
     source = open_btf(args.btf)
     kinds = args.kinds.split(",")
+    if args.storage:
+        scores = compare_representations(source, args.out / "storage", kinds, TrainConfig(epochs=1, seed=0),
+                                         progress=False)
+        write_part(args.json, "storage", "bench_baselines.py", {
+            "btf": args.btf, "height": source.height, "width": source.width, "n_pairs": source.n_pairs,
+            "conditions": "float32; one 1-epoch fit per kind (what a kind stores does not depend on its training)",
+            "rows": [{"kind": s.kind, "positional_bytes": int(s.positional_bytes), "model_bytes": int(s.storage_bytes)}
+                     for s in scores]})
+        return
     scores_per_seed = []
     start = time.perf_counter()
     for seed in range(args.seeds):

@@ -760,10 +760,16 @@ def baselines_summary(data: dict) -> str:
 
 
 def baselines_storage(data: dict) -> str:
-    """The storage of each kind (float32): its positional plane and the whole model."""
-    lines = _head("kind", "positional plane", "whole model")
-    lines += [_line(_named(r, "kind"), f"{r['positional_bytes']:,} B", f"{r['model_bytes']:,} B")
-              for r in data["storage"]["rows"]]
+    """The storage of each kind (float32): its positional plane (with its values per texel and its size against the
+    Triple Plane's) and the whole model."""
+    part = data["storage"]
+    texels = part["height"] * part["width"]
+    triple = next(r["positional_bytes"] for r in part["rows"] if r["kind"] == "triple")
+    lines = [f"Measured by `{part['command']}` ({part['height']} x {part['width']} texels, {part['n_pairs']:,} "
+             f"(view, light) pairs; {part['conditions']}):", ""]
+    lines += _head("kind", "values per texel", "positional plane", "x the Triple Plane's", "whole model")
+    lines += [_line(r["kind"], f"{r['positional_bytes'] / 4 / texels:g}", f"{r['positional_bytes']:,} B",
+                    f"{r['positional_bytes'] / triple:.2f}x", f"{r['model_bytes']:,} B") for r in part["rows"]]
     return "\n".join(lines)
 
 
