@@ -575,7 +575,28 @@ _MEASURED_FROM = {"structured": "structured_summary", "demo": "demo_summary", "s
                   "rendering": "rendering_summary", "compiled_material": "compiled_material_summary",
                   "web": "web_summary", "filtering": "filtering_summary", "training": "training_summary",
                   "evaluation": "evaluation_summary", "quality": "quality_summary",
-                  "quality_parallax": "quality_parallax_summary"}
+                  "quality_parallax": "quality_parallax_summary", "baselines_storage": "storage_summary",
+                  "gpu": "gpu_summary"}
+
+
+def storage_summary(data: dict) -> str:
+    """README.md's Measured line of bench_baselines.py's storage part: the Triple Plane's model file against the raw
+    BTF it was fitted to (float32 RGB of every (view, light) pair and texel)."""
+    part = data["storage"]
+    triple = next(r for r in part["rows"] if r["kind"] == "triple")
+    raw = part["n_pairs"] * part["height"] * part["width"] * 3 * 4
+    return f"{triple['model_bytes'] / 1e6:.2f} MB vs {raw / 1e9:.2f} GB raw (float32)"
+
+
+def gpu_summary(data: dict) -> str:
+    """README.md's Measured line of gpu_check.py: the last run's training and 1080p evaluation, and the projected
+    full-size fit (:func:`gpu`)."""
+    last = data["runs"][-1]
+    fit = next(r["full_size_fit"] for r in reversed(data["runs"]) if "full_size_fit" in r)
+    minutes = _load("training_large")["steps_to_converge"] * fit["curve"][-1][0] / fit["steps"] / 60
+    return (f"{data['machine'].split(' (')[0]}: training {last['training']['samples_per_second'] / 1e6:.0f} M samples/s; "
+            f"a 1080p `hist` frame in {1e3 * last['evaluation']['seconds']:.0f} ms; a full-size fit to within "
+            f"0.5 dB in {minutes:.1f} min (projected from its measured step)")
 
 
 def quality_summary(data: dict, part: str = "triple") -> str:
