@@ -208,8 +208,9 @@ CPU_CHUNK = 32768
 """Queries per chunk of :meth:`SynthesizedBTF.eval` on the CPU: each worker thread's piece, its working set near
 the cache's size."""
 GPU_CHUNK = 1 << 20
-"""Queries per chunk on a GPU: a 1080p frame (2,073,600 queries) in two chunks, each holding about a kilobyte of
-intermediates per query (the taps' features, the decoder's hidden layers) in device memory."""
+"""Queries per chunk on a GPU: a 1080p frame (2,073,600 queries) in two chunks, each holding about 1.5 kB of
+intermediates per query (the taps' features, the decoder's hidden layers) in device memory, so that a GPU with a
+few gigabytes free runs it."""
 
 
 class SynthesizedBTF:
