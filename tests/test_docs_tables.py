@@ -284,3 +284,33 @@ def test_gpu_table_projects_the_full_size_fit_from_its_measured_step_and_the_cpu
     assert "**40.0 ms, 52.0 M queries/s, 1.00 GiB**" in text and "| 500.0 ms, 4.1 M queries/s, 0.25 GiB |" in text
     assert "50 ms per step" in text
     assert "**5.0 min**" in text  # 6000 steps x 0.05 s
+
+
+def test_stone_fetch_sentence_reads_the_means_and_the_refined_row_from_quality(monkeypatch):
+    """The fetch part's sentence: the means of its measured rows, the refined (`--repr triple-parallax`) row from
+    quality.json's stone row, the gap to the exact height, and which conclusion the numbers support."""
+    tables = _tables()
+
+    def spread(*values):
+        return {"mean": sum(values) / len(values), "range": [min(values), max(values)], "per_seed": list(values)}
+
+    quality = {"triple": {"rows": [{"material": "stone", "psnr_fixed1": spread(22.0, 23.0)}]},
+               "triple_parallax": {"rows": [{"material": "stone", "psnr_fixed1": spread(30.0, 31.0)}]}}
+    monkeypatch.setattr(tables, "_load", lambda name: quality)
+
+    def part(wide: float) -> dict:
+        return {"fetch": {"seeds": [0, 1, 2], "rows": [
+            {"fetch": "`uv` (the paper's Triple Plane)", "from": "quality", "part": "triple"},
+            {"fetch": "`uv`, 2x wider model", "psnr_fixed1": spread(wide, wide)},
+            {"fetch": "visible point of the stereo height, kept fixed", "psnr_fixed1": spread(26.0, 27.0)},
+            {"fetch": "visible point of the stereo height, refined by the fit", "from": "quality",
+             "part": "triple_parallax"},
+            {"fetch": "visible point the simulator traced", "psnr_fixed1": spread(32.0, 33.0)}]}}
+
+    text = tables.stone_fetch_summary(part(24.0))
+    assert text.startswith("The stone (means of 3 seeds, fixed peak 1)"), text
+    assert "exact height the fit reaches 32.50 dB, at that of the stereo height kept fixed 26.50 dB, and refined by " \
+           "the fit (`--repr triple-parallax`) 30.50 dB, 2.0 dB from the exact height" in text, text
+    assert "at `uv` reaches 22.50 dB, and a model twice as wide there 24.00 dB" in text, text
+    assert text.endswith("Parallax and masking, not the model's size, are the stone's limit."), text
+    assert "Doubling the model" in tables.stone_fetch_summary(part(29.0))  # the wide model gains more than half
