@@ -3,6 +3,7 @@
 Usage::
 
     python benchmarks/bench_parallax_eval.py [--size 128] [--queries 500000] [--methods hist,hex] [--max-theta 75]
+                                             [--json benchmarks/results/parallax_eval.json]
 
 Two models of the same size are built: a Triple Plane and a ``triple-parallax`` model whose
 height field is the simulated stone's (pebbles up to ~5 texels high at 128^2; its features are
@@ -11,16 +12,19 @@ random: speed does not depend on their values). For each synthesis method, the s
 angle up to ``--max-theta``, lights random) are evaluated with
 :meth:`dynbtf.infinite_btf.SynthesizedBTF.eval` by both; it prints queries/s of each and their
 ratio, and the same ratio for views at normal incidence only (no march: the cost of the
-representation itself) and at ``--max-theta`` only (the longest marches). One warm-up run,
+representation itself), at ``--max-theta`` only (the longest marches) and at one 45-degree view for
+every query (a camera's rays over a small patch: coherent marches). One warm-up run,
 then the best of ``--repeats``. Timings on shared machines move 10-50% between runs: compare
-the ratios of one run.
+the ratios of one run. The rows are written to ``--json`` (README.md's relief line is generated from them).
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -59,6 +63,7 @@ def main() -> None:
     parser.add_argument("--methods", default="hist,hex")
     parser.add_argument("--max-theta", type=float, default=75.0)
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--json", type=Path, default=Path(__file__).resolve().parent / "results" / "parallax_eval.json")
     args = parser.parse_args()
 
     stone = open_btf(f"sim:stone?size={args.size}")
@@ -75,7 +80,10 @@ def main() -> None:
     lights = directions(args.queries, rng, 80.0)
     view_sets = {"all views": directions(args.queries, rng, args.max_theta),
                  "normal view": directions(args.queries, rng, 0.0, fixed_theta=0.0),
-                 f"views at {args.max_theta:g} deg": directions(args.queries, rng, 0.0, fixed_theta=args.max_theta)}
+                 f"views at {args.max_theta:g} deg": directions(args.queries, rng, 0.0, fixed_theta=args.max_theta),
+                 "one view at 45 deg": np.broadcast_to(directions(1, rng, 0.0, fixed_theta=45.0),
+                                                       (args.queries, 3)).copy()}
+    rows = []
     print("\n| method | views | Triple Plane (M queries/s) | triple-parallax (M queries/s) | cost ratio |")
     print("|---|---|---|---|---|")
     for method in args.methods.split(","):
@@ -89,6 +97,14 @@ def main() -> None:
                 rates[name] = args.queries / seconds / 1e6
             print(f"| {method} | {label} | {rates['flat']:.2f} | {rates['relief']:.3f} | "
                   f"{rates['flat'] / rates['relief']:.1f}x |", flush=True)
+            rows.append({"method": method, "views": label, "flat_mqps": rates["flat"],
+                         "relief_mqps": rates["relief"], "cost_ratio": rates["flat"] / rates["relief"]})
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from results_io import header, write_result
+
+    write_result(args.json, header(args.json.stem, "bench_parallax_eval.py") | {
+        "btf": f"sim:stone?size={args.size}", "relief_depth_texels": depth, "queries": args.queries,
+        "repeats": args.repeats, "max_theta": args.max_theta, "rows": rows})
 
 
 if __name__ == "__main__":

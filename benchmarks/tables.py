@@ -576,7 +576,30 @@ _MEASURED_FROM = {"structured": "structured_summary", "demo": "demo_summary", "s
                   "web": "web_summary", "filtering": "filtering_summary", "training": "training_summary",
                   "evaluation": "evaluation_summary", "quality": "quality_summary",
                   "quality_parallax": "quality_parallax_summary", "baselines_storage": "storage_summary",
-                  "gpu": "gpu_summary"}
+                  "gpu": "gpu_summary", "parallax_eval": "parallax_eval_summary"}
+
+
+def parallax_eval(data: dict) -> str:
+    """bench_parallax_eval.py: queries/s of the Triple Plane and of ``triple-parallax`` per method and set of views,
+    and their ratio (what the march costs)."""
+    lines = [f"Measured on {_machine(data)} by `{data['command']}` (`{data['btf']}`'s height, "
+             f"{data['relief_depth_texels']:.1f} texels deep; {data['queries']:,} queries at 45 repeats, lights random; "
+             f"all views: uniform in solid angle up to {data['max_theta']:g} deg; best of {data['repeats']} after a "
+             "warm-up):", ""]
+    lines += _head("method", "views", "Triple Plane (M queries/s)", "triple-parallax (M queries/s)", "cost ratio")
+    lines += [_line(r["method"], r["views"], f"{r['flat_mqps']:.2f}", f"{r['relief_mqps']:.2f}",
+                    f"**{r['cost_ratio']:.1f}x**") for r in data["rows"]]
+    return "\n".join(lines)
+
+
+def parallax_eval_summary(data: dict) -> str:
+    """README.md's Measured line of bench_parallax_eval.py: what the relief march costs a ``hist`` query against the
+    flat Triple Plane's, with random views and with one view for every query (a camera's coherent rays)."""
+    rows = {r["views"]: r for r in data["rows"] if r["method"] == "hist"}
+    return (f"matches `SynthesizedBTF.eval` (tested); a `hist` query with the march costs "
+            f"{rows['one view at 45 deg']['cost_ratio']:.1f}x a flat one with one 45-degree view for every query "
+            f"(a camera's rays), {rows['all views']['cost_ratio']:.1f}x with views random up to "
+            f"{data['max_theta']:g} degrees (`{data['btf']}`, relief {data['relief_depth_texels']:.0f} texels deep)")
 
 
 def storage_summary(data: dict) -> str:
@@ -1602,7 +1625,7 @@ def compiled_material(data: dict) -> str:
     return f"Measured on {_machine(data)} by `{data['command']}` ({data['conditions']}):\n\n" + table
 
 
-RENDERERS = {"stone_fetch_summary": stone_fetch_summary,
+RENDERERS = {"stone_fetch_summary": stone_fetch_summary, "parallax_eval": parallax_eval,
              "parallax_quality": parallax_quality, "training": training, "budget": budget, "evaluation": evaluation,
              "gpu": gpu, "guided": guided, "guidance": guidance, "guidance_struct": guidance_struct, "web_layered": web_layered, "speed": speed, "rendering": rendering, "runtimes": runtimes,
              "render_scenes": render_scenes,
