@@ -314,3 +314,15 @@ def test_stone_fetch_sentence_reads_the_means_and_the_refined_row_from_quality(m
     assert "at `uv` reaches 22.50 dB, and a model twice as wide there 24.00 dB" in text, text
     assert text.endswith("Parallax and masking, not the model's size, are the stone's limit."), text
     assert "Doubling the model" in tables.stone_fetch_summary(part(29.0))  # the wide model gains more than half
+
+
+def test_relief_cost_line_reads_the_hist_rows_of_bench_parallax_eval():
+    """README's relief line: the hist rows' cost ratios (one coherent view, random views), not hex's."""
+    tables = _tables()
+    rows = [{"method": m, "views": v, "flat_mqps": 6.0, "relief_mqps": 6.0 / ratio, "cost_ratio": ratio}
+            for m, base in (("hist", 1.0), ("hex", 10.0))
+            for v, ratio in (("all views", base * 5.0), ("one view at 45 deg", base * 3.0), ("normal view", 1.5))]
+    text = tables.parallax_eval_summary({"rows": rows, "max_theta": 75.0, "btf": "sim:stone?size=64",
+                                         "relief_depth_texels": 3.2})
+    assert "costs 3.0x a flat one with one 45-degree view" in text, text
+    assert "5.0x with views random up to 75 degrees (`sim:stone?size=64`, relief 3 texels deep)" in text, text
