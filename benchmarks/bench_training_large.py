@@ -20,6 +20,8 @@ The full-size file is written once by ``dynbtf simulate leather --grid ubo2014
 --size 400 -o FILE`` (``--components``, default 96: 105 MB; about 4 minutes on 2
 cores) unless ``--btf`` names one.
 
+A run that writes the file records its wall time, size and peak memory under ``file_written`` of ``--json``.
+
 ``--subtexel W[,W ...]`` measures each sub-texel weight (``TrainConfig.subtexel``; the default recipe trains the
 Triple Plane with 0.25), ``--isa LEVEL`` runs the workers on that level of :mod:`dynbtf.cpu` (e.g. ``avx2`` on a CPU
 with more), and ``--json PATH`` writes the rows, each with the projected time of a full-size fit to within 0.5 dB of
@@ -143,13 +145,20 @@ def main() -> None:
                                 float(args.subtexel))))
         return
     big = args.btf
+    written = None  # the file's writing, when this run wrote it: wall seconds and the process's peak RSS
     if big is None:
         big = str(Path(args.cache_dir) / f"leather400_c{args.components}.btf")
         if not Path(big).exists():
             Path(args.cache_dir).mkdir(parents=True, exist_ok=True)
             print(f"writing {big} (once) ...", flush=True)
-            subprocess.run([sys.executable, "-m", "dynbtf", "simulate", "leather", "--grid", "ubo2014", "--size",
-                            "400", "--components", str(args.components), "-o", big, "--quiet"], check=True)
+            command = ["dynbtf", "simulate", "leather", "--grid", "ubo2014", "--size", "400", "--components",
+                       str(args.components), "-o", big, "--quiet"]
+            started = time.perf_counter()
+            subprocess.run([sys.executable, "-m", *command], check=True)
+            written = {"command": " ".join(command), "seconds": time.perf_counter() - started,
+                       "bytes": Path(big).stat().st_size,  # ru_maxrss: kB on Linux; the largest child so far
+                       "peak_rss_gb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024 / 1e9}
+            print(f"wrote it in {written['seconds'] / 60:.1f} min, peak RSS {written['peak_rss_gb']:.2f} GB")
     print(f"full size: {big} ({Path(big).stat().st_size / 1e6:.0f} MB); cached reference: {args.reference}; "
           f"representation: {args.repr}")
     print(f"{'recipe':<14} {'sub-texel':>9} {'cached 128^2 (M samples/s)':>27} {'400^2 DFMF (M samples/s)':>25} "
@@ -176,8 +185,10 @@ def main() -> None:
         from dynbtf.cpu import hardware_isa, isa_description
 
         write_result(args.json, header("training_large", "bench_training_large.py") | {
-            "isa": args.isa or hardware_isa(), "isa_description": isa_description(args.isa), "representation": args.repr, "steps": args.steps, "warmup": args.warmup,
-            "steps_to_converge": args.steps_to_converge, "reference": args.reference, "rows": rows})
+            "isa": args.isa or hardware_isa(), "isa_description": isa_description(args.isa),
+            "representation": args.repr, "steps": args.steps, "warmup": args.warmup,
+            "steps_to_converge": args.steps_to_converge, "reference": args.reference, "file_written": written,
+            "rows": rows})
 
 
 if __name__ == "__main__":
