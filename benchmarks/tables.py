@@ -576,7 +576,8 @@ _MEASURED_FROM = {"structured": "structured_summary", "demo": "demo_summary", "s
                   "web": "web_summary", "filtering": "filtering_summary", "training": "training_summary",
                   "evaluation": "evaluation_summary", "quality": "quality_summary",
                   "quality_parallax": "quality_parallax_summary", "baselines_storage": "storage_summary",
-                  "gpu": "gpu_summary", "parallax_eval": "parallax_eval_summary"}
+                  "gpu": "gpu_summary", "parallax_eval": "parallax_eval_summary",
+                  "fullsize_data_path": "fullsize_summary"}
 
 
 def parallax_eval(data: dict) -> str:
@@ -600,6 +601,17 @@ def parallax_eval_summary(data: dict) -> str:
             f"{rows['one view at 45 deg']['cost_ratio']:.1f}x a flat one with one 45-degree view for every query "
             f"(a camera's rays), {rows['all views']['cost_ratio']:.1f}x with views random up to "
             f"{data['max_theta']:g} degrees (`{data['btf']}`, relief {data['relief_depth_texels']:.0f} texels deep)")
+
+
+def fullsize_summary(data: dict) -> str:
+    """README.md's Measured line of the full-size BTF: the fast recipe's rate on the DFMF file over its rate on a
+    cached BTF (bench_training_large.py), and the training time at which fullsize.json's convergence curve first
+    comes within 0.5 dB of its last point."""
+    fast = next(r for r in data["rows"] if r["recipe"] == "fast" and not r["subtexel"])
+    points = _load("fullsize")["curve"]["points"]
+    within = next(p for p in points if p["psnr"] >= points[-1]["psnr"] - 0.5)
+    return (f"streamed from its factors at {fast['ratio']:.2f}x the cached speed; within 0.5 dB of converged in "
+            f"{within['minutes']:g} min")
 
 
 def storage_summary(data: dict) -> str:
@@ -1033,8 +1045,41 @@ def stone_limits_summary(data: dict) -> str:
 
 
 def fullsize(data: dict) -> str:
-    """results.md's full-size table: a line per measurement, its command in the first column."""
-    return _prose(data["summary"], ("what", "what"), ("result", "result"), ("target", "target"))
+    """results.md's full-size table: a line per measurement, its command in the first column. A row with ``"from"``
+    is rendered from that benchmark's data by :data:`_FULLSIZE_FROM` of its ``"view"``; the others are recorded."""
+    lines = _head("what", "result", "target")
+    for r in data["summary"]["rows"]:
+        cells = globals()[_FULLSIZE_FROM[r["view"]]](_load(r["from"])) if "from" in r else \
+            tuple(_filled(r, key) for key in ("what", "result", "target"))
+        lines.append(_line(*cells))
+    return "\n".join(lines)
+
+
+#: The full-size table's rows rendered from data: ``"view"`` -> the function of the data file that gives the row's
+#: (what, result, target).
+_FULLSIZE_FROM = {"throughput": "fullsize_throughput", "file": "fullsize_file"}
+
+
+def fullsize_throughput(data: dict) -> tuple[str, str, str]:
+    """The full-size table's throughput row from bench_training_large.py's data: each recipe's rate on the DFMF file
+    over its rate on the cached BTF (without the sub-texel term), and the largest peak RSS."""
+    rows = {r["recipe"]: r for r in data["rows"] if not r["subtexel"]}
+    fast, paper = rows["fast"], rows["paper batches"]
+    peak = max(r["peak_rss_gb"] for r in rows.values())
+    met = all(r["ratio"] >= 0.8 for r in rows.values()) and peak <= 4.0
+    return (f"training throughput, 400 x 400 DFMF file vs a cached 128 x 128 BTF (`{data['command']}`, "
+            f"{_machine(data)})",
+            f"{fast['ratio']:.2f}x (fast recipe, {fast['large_msps']:.1f} vs {fast['cached_msps']:.1f} M samples/s), "
+            f"{paper['ratio']:.2f}x (paper batches); peak memory {peak:.2f} GB",
+            f"at least 0.8x, at most 4 GB ({'met' if met else 'not met'})")
+
+
+def fullsize_file(data: dict) -> tuple[str, str, str]:
+    """The full-size table's row of writing the DFMF file, from the run of bench_training_large.py that wrote it."""
+    written = data["file_written"]
+    return (f"writing the file (`{written['command']}`, {_machine(data)})",
+            f"{written['seconds'] / 60:.1f} min, {written['bytes'] / 1e6:.0f} MB, {written['peak_rss_gb']:.1f} GB "
+            "peak memory", "")
 
 
 def training_large(data: dict) -> str:
@@ -1051,13 +1096,20 @@ def training_large(data: dict) -> str:
     return "\n".join(lines)
 
 
+#: What each recipe of bench_training_large.py is, for the data-path table.
+_RECIPE_NOTES = {"paper batches": "16 whole images per step", "fast": "64 texel groups, what `dynbtf fit` picks"}
+
+
 def fullsize_data_path(data: dict) -> str:
-    """bench_training_large.py: samples/s from the 400 x 400 DFMF file against a cached 128 x 128 BTF."""
-    lines = _head("recipe", "cached 128 x 128 (M samples/s)", "400 x 400 DFMF (M samples/s)", "ratio",
-                  "peak RSS at 400 x 400")
-    lines += [_line(_named(r, "recipe"), f"{r['cached_msps']:.2f}", f"{r['large_msps']:.2f}",
-                    f"**{r['large_msps'] / r['cached_msps']:.2f}**", f"{r['peak_rss_gb']:.2f} GB")
-              for r in data["data_path"]["rows"]]
+    """bench_training_large.py: samples/s from the 400 x 400 DFMF file against a cached 128 x 128 BTF, per recipe
+    (without the sub-texel term), on the CPU's own level."""
+    lines = [f"Measured on {_machine(data)}, level {data['isa_description']}, by `{data['command']}` "
+             f"({data['steps']} timed steps after {data['warmup']} warm-up steps, data waits included):", ""]
+    lines += _head("recipe", "cached 128 x 128 (M samples/s)", "400 x 400 DFMF (M samples/s)", "ratio",
+                   "peak RSS at 400 x 400")
+    lines += [_line(f"{r['recipe']} ({_RECIPE_NOTES[r['recipe']]})", f"{r['cached_msps']:.2f}",
+                    f"{r['large_msps']:.2f}", f"**{r['ratio']:.2f}**", f"{r['peak_rss_gb']:.2f} GB")
+              for r in data["rows"] if not r["subtexel"]]
     return "\n".join(lines)
 
 
@@ -1654,7 +1706,7 @@ SOURCES = {"guidance": "guided", "guidance_struct": "guided", "render_scenes": "
                             "baselines_synthesis"), "baselines"),
            **dict.fromkeys(("stone_fetch", "stone_fetch_summary", "stone_relief", "stone_limits",
                             "stone_limits_summary"), "stone"),
-           **dict.fromkeys(("fullsize_data_path", "fullsize_curve", "fullsize_parallax_curve"), "fullsize"),
+           **dict.fromkeys(("fullsize_curve", "fullsize_parallax_curve"), "fullsize"),
            **dict.fromkeys(("web_struct", "web_frame_time", "web_agreement", "web_size", "web_checks"), "web")}
 _BLOCK = re.compile(r"<!-- table:(?P<name>[a-z_]+) -->\n(?P<body>.*?)\n?<!-- /table:(?P=name) -->", re.S)
 
