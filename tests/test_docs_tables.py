@@ -273,7 +273,7 @@ def test_gpu_table_projects_the_full_size_fit_from_its_measured_step_and_the_cpu
     monkeypatch.setattr(tables, "_load", lambda name: cpu[name])
     run = {"command": "python benchmarks/gpu_check.py", "training": {"btf": "sim:leather?size=128",
                                                                      "samples_per_second": 5e7, "ms_per_step": 4.0},
-           "evaluation": {"seconds": 0.04, "queries_per_second": 5.2e7, "chunk_sizes": [
+           "evaluation": {"queries": 2_000_000, "seconds": 0.04, "queries_per_second": 5.2e7, "chunk_sizes": [
                {"chunk_size": 1 << 20, "default": True, "seconds": 0.04, "queries_per_second": 5.2e7,
                 "peak_memory_bytes": 2 ** 30},
                {"chunk_size": 32768, "default": False, "seconds": 0.5, "queries_per_second": 4.1e6,
@@ -283,6 +283,7 @@ def test_gpu_table_projects_the_full_size_fit_from_its_measured_step_and_the_cpu
                              "stopped": "ceiling", "best_held_out_psnr": 21.0, "curve": [[10.0, 20.0], [50.0, 21.0]]}}
     text = tables.gpu({"machine": "a GPU", "torch": "2.x", "runs": [run]})
     assert "**50.0 M samples/s**" in text and "2.0 M (fast)" in text
+    assert "**40.0 ms, 52.0 M queries/s, 1.00 GiB** | 500 ms, 4.0 M |" in text, text  # the CPU: 2e6 / 4e6 q/s
     assert "**40.0 ms, 52.0 M queries/s, 1.00 GiB**" in text and "| 500.0 ms, 4.1 M queries/s, 0.25 GiB |" in text
     assert "50 ms per step" in text
     assert "**5.0 min**" in text  # 6000 steps x 0.05 s
