@@ -69,7 +69,7 @@ def main() -> None:
     if args.seeds < 1:
         parser.error(f"--seeds: expected at least 1, got {args.seeds}")
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from results_io import header, write_part, write_result
+    from results_io import write_part
 
     from dynbtf.compare import compare_representations
     from dynbtf.data.open import open_btf
@@ -94,18 +94,15 @@ def main() -> None:
         scores_per_seed.append(scores)
         print(f"seed {seed}: " + ", ".join(f"{s.kind} {s.psnr_fixed1:.2f} dB" for s in scores)
               + f" ({(time.perf_counter() - start) / 60:.1f} min so far)", file=sys.stderr, flush=True)
-    data = json.loads(args.json.read_text()) if args.json.exists() else {"benchmark": args.json.stem}
-    run = header(args.json.stem, "bench_baselines.py")
-    data[args.part] = {key: run[key] for key in ("command", "commit", "cpu", "cpu_isa", "cores")} | {
+    write_part(args.json, args.part, "bench_baselines.py", {
         "btf": args.btf, "seeds": list(range(args.seeds)),
         "conditions": f"{args.epochs} epochs, learning rates x{args.lr_scale:g}, {args.texel_groups} texel groups; "
                       f"each number the mean over the seeds (min-max), the held-out split the seed's; "
                       f"{(time.perf_counter() - start) / 60:.1f} min in all",
-        "rows": summarize(scores_per_seed)}
+        "rows": summarize(scores_per_seed)})
     from tables import baselines_small
 
-    print("\n" + baselines_small(data))
-    write_result(args.json, data)
+    print("\n" + baselines_small({"small": json.loads(args.json.read_text())[args.part]}))
 
 
 if __name__ == "__main__":

@@ -134,14 +134,25 @@ def gpu(data: dict) -> str:
     fits = [(i, r["full_size_fit"]) for i, r in enumerate(runs, 1) if "full_size_fit" in r]
     converge = _load("training_large")["steps_to_converge"]
     for i, f in fits:
-        seconds_per_step = f["curve"][-1][0] / f["steps"]
+        seconds_per_step = _seconds_per_step(f)
         lines.append(f"| full-size fit, `{f['btf']}` ({f['file_components']}-component DFMF file), "
                      f"`--minutes {f['minutes_budget']:g}` | {f['steps']:,} steps ({f['stopped']}) in "
                      f"{f['curve'][-1][0] / 60:.1f} min, {f['best_held_out_psnr']:.2f} dB held-out; "
                      f"{1e3 * seconds_per_step:.0f} ms per step, texels read from the file's factors | | {i} |")
         lines.append(f"| full-size fit to within 0.5 dB of converged (projected: {converge:,} steps of the CPU's "
-                     f"curve x the step above) | **{converge * seconds_per_step / 60:.1f} min** | see above | {i} |")
+                     f"curve x the step above) | **{_projected_minutes(f):.1f} min** | see above | {i} |")
     return "\n".join(lines)
+
+
+def _seconds_per_step(fit: dict) -> float:
+    """A gpu_check.py full-size fit's measured seconds per step: its last monitor time over its steps."""
+    return fit["curve"][-1][0] / fit["steps"]
+
+
+def _projected_minutes(fit: dict) -> float:
+    """A full-size fit's projected minutes to within 0.5 dB: the CPU convergence curve's steps (training_large.json)
+    times the fit's measured step (:func:`_seconds_per_step`)."""
+    return _load("training_large")["steps_to_converge"] * _seconds_per_step(fit) / 60
 
 
 def guided(data: dict) -> str:
@@ -629,7 +640,7 @@ def gpu_summary(data: dict) -> str:
     full-size fit (:func:`gpu`)."""
     last = data["runs"][-1]
     fit = next(r["full_size_fit"] for r in reversed(data["runs"]) if "full_size_fit" in r)
-    minutes = _load("training_large")["steps_to_converge"] * fit["curve"][-1][0] / fit["steps"] / 60
+    minutes = _projected_minutes(fit)
     return (f"{data['machine'].split(' (')[0]}: training {last['training']['samples_per_second'] / 1e6:.0f} M "
             "samples/s; "
             f"a 1080p `hist` frame in {1e3 * last['evaluation']['seconds']:.0f} ms; a full-size fit to within "

@@ -16,7 +16,7 @@ import torch
 
 from dynbtf.conventions import spherical_to_direction
 from dynbtf.errors import InputError
-from dynbtf.infinite_btf import _numba_threads
+from dynbtf.infinite_btf import CPU_CHUNK, _numba_threads
 from dynbtf.representations.base import Representation
 from dynbtf.representations.triple_plane import TriplePlane
 from dynbtf.synthesis import make_synthesizer
@@ -320,8 +320,6 @@ def test_batch_shapes_numpy_and_horizon(model):
     assert np.all(out2[0, 0] == 0) and np.array_equal(out2[1:], out[1:])
     # whole chunks below the horizon are zero too (they are never decoded); the others as before
     chunked = synthesized_btf(model, "hist", scale=2.0, chunk_size=3)
-    from dynbtf.infinite_btf import CPU_CHUNK
-
     assert (btf.chunk_size, chunked.chunk_size) == (CPU_CHUNK, 3)  # the CPU's default, and the one asked for
     below[1:3] = [0.6, 0.0, -0.8]  # rows 5..14: the chunks of rows 6..8, 9..11 and 12..14 decode nothing
     for _ in range(2):  # twice: the output buffer of the first call must not show through
