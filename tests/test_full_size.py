@@ -139,7 +139,7 @@ def test_step_timing_warms_up_then_times_at_least_its_seconds(monkeypatch, step_
         clock["steps"] += 1
         return torch.zeros((), requires_grad=True)
 
-    monkeypatch.setattr(recipe_module, "texel_image_loss", fake_loss)
+    monkeypatch.setattr(recipe_module.StepLoss, "batch", fake_loss)
     monkeypatch.setattr(recipe_module.time, "perf_counter", lambda: clock["now"])
     src = synthetic_btf(8, thetas=(0.0, 30.0, 60.0), counts=(1, 6, 8))
     seconds = recipe_module.measure_step_seconds(src, TrainConfig(texel_groups=2, workers=1, device="cpu"), steps=5)

@@ -23,7 +23,7 @@ def _open_source(spec: str):
 # TrainConfig field: dynbtf.training.fit.command_line_options).
 _FIT_TRAINING_OPTIONS = ("epochs", "schedule", "max_minutes", "seed", "held_out_fraction", "images_per_step", "lr_scale",
                          "lr_decay", "texels_per_image", "texel_groups", "memory_budget_mb", "workers", "device",
-                         "precision", "max_reflectance", "subtexel")
+                         "precision", "compile", "max_reflectance", "subtexel")
 
 
 def fit(
@@ -74,6 +74,11 @@ def fit(
     check_writable(output, "-o/--output")  # an unwritable model file fails before any training
     given = {name: value for name, value in training.items() if value is not None}  # None: the recipe chooses
     check_options(**given)  # every number finite and in range before the recipe computes with it
+    if "compile" in given:  # a mode this device cannot run fails before any work
+        from ..device import resolve_device
+        from ..training.step_loss import resolve_compile
+
+        resolve_compile(given["compile"], resolve_device(given.get("device", "auto")))
     if minutes is not None:
         positive_number("--minutes", minutes, "number of minutes")
     if stereo_max_height is not None:

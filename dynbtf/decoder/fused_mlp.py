@@ -512,6 +512,8 @@ def triple_plane_l1_loss(plane: torch.Tensor, texels: torch.Tensor | None, angul
     Returns None where the native kernels do not take the call (another device or dtype, no compiler, a
     precision or layer shape the fused kernel has no path for): the caller uses :func:`decoder_l1_loss`.
     """
+    if torch.compiler.is_compiling():  # torch.compile traces the ordinary ops instead (decoder_l1_loss)
+        return None
     index, weight = taps
     tensors = [plane, angular_planes, first.weight, first.bias, target, weight] + \
         [t for layer in layers for t in (layer.weight, layer.bias)]
@@ -561,7 +563,10 @@ def decoder_l1_loss(positional: torch.Tensor, angular: torch.Tensor, first: nn.L
     acts on ``concat(positional, angular)``, given ``positional (N, C_U)`` (the texels, shared by a group's
     images) and ``angular (G * B, C_A)`` (one vector per image, group-major). Layer 1 is split as
     ``P = W_U positional``, ``Q = W_A angular + b`` and its gradients are written out, so the whole decoder is
-    one autograd node (measured cheaper per step than layer 1 as ordinary ops). Equal to float rounding."""
+    one autograd node (measured cheaper per step than layer 1 as ordinary ops). Equal to float rounding.
+
+    Under ``torch.compile`` (:mod:`dynbtf.training.step_loss`) the loss is written as ordinary ops instead
+    (:func:`_decoder_l1_loss_ops`), float32 only: autograd derives the backward pass and Inductor fuses both."""
     c_u = positional.shape[-1]
     if first.weight.shape[1] != c_u + angular.shape[-1]:
         raise InputError(f"first layer takes {first.weight.shape[1]} inputs, but positional ({c_u}) + angular "
@@ -572,12 +577,31 @@ def decoder_l1_loss(positional: torch.Tensor, angular: torch.Tensor, first: nn.L
                          f"got {tuple(angular.shape)}")
     groups = angular.shape[0] // images
     _check_split_shapes(positional.shape[0], first.weight.shape[0], (groups, images), target, chunk_texels, workers)
+    if torch.compiler.is_compiling():
+        if precision != "fp32":
+            raise InputError(f"precision={precision!r}: a compiled loss computes in float32 (use fp32)")
+        return _decoder_l1_loss_ops(positional, angular, first, layers, float(negative_slope), target, groups)
     weights = [layer.weight for layer in layers]
     biases = [layer.bias for layer in layers]
     dtype = first.weight.dtype
     precision = resolve_precision(precision, first.weight.device)
     return _DecoderL1.apply(positional.to(dtype), angular.to(dtype), first.weight, first.bias, target.to(dtype),
                             float(negative_slope), int(chunk_texels), int(workers), precision, *weights, *biases)
+
+
+def _decoder_l1_loss_ops(positional, angular, first, layers, slope, target, groups):
+    """:func:`decoder_l1_loss` as ordinary differentiable ops (what ``torch.compile`` traces): layer 1 split into
+    its per-texel and per-image products, added by broadcasting over the ``(G, B, n)`` samples."""
+    images, hidden, c_u = target.shape[0], first.weight.shape[0], positional.shape[-1]
+    n = positional.shape[0] // groups
+    x = F.linear(positional, first.weight[:, :c_u]).view(groups, 1, n, hidden) + \
+        F.linear(angular, first.weight[:, c_u:], first.bias).view(groups, images, 1, hidden)
+    x = F.leaky_relu(x, slope)
+    for k, layer in enumerate(layers):
+        x = F.linear(x, layer.weight, layer.bias)
+        if k < len(layers) - 1:
+            x = F.leaky_relu(x, slope)
+    return (x - target.view(images, groups, n, -1).transpose(0, 1)).abs().mean()
 
 
 def _check_split_shapes(n: int, hidden: int, groups_images: tuple[int, int], target, chunk_texels, workers) -> None:

@@ -72,6 +72,7 @@ import torch
 
 from ..data.base import BTFSource
 from ..device import resolve_device
+from .step_loss import COMPILE_MODES, StepLoss, resolve_compile
 from ..errors import InputError
 from ..representations.base import Representation
 from ..representations.model_file import load_model, model_size_report, save_model
@@ -163,6 +164,7 @@ OPTION_RULES: dict[str, _Rule] = {
     "monitor_pairs": _Rule("int", 0, 10 ** 6),
     "device": _Rule("choice", choices=()),  # any string; resolved (and checked) by dynbtf.device
     "precision": _Rule("choice", choices=("auto", "fp32", "bf16")),
+    "compile": _Rule("choice", choices=COMPILE_MODES),
     "max_reflectance": _Rule("number", 0, 1e30, low_open=True),
     "schedule": _Rule("choice", choices=SCHEDULES),
     "monitor_every": _Rule("int", 0, 2 ** 40),
@@ -280,6 +282,11 @@ class TrainConfig:
         gradients in float32: mixed precision; needs a CPU with AVX512-BF16); ``"auto"``
         (default: ``"fp32"``; see :func:`dynbtf.decoder.fused_mlp.resolve_precision`). The precision
         used is recorded in the model file.
+    compile : str
+        How a step's loss runs (:mod:`dynbtf.training.step_loss`): ``"off"`` (eager: the fused kernels),
+        ``"kernels"`` (``torch.compile``: generated fused kernels), ``"graphs"`` (the same replayed as CUDA graphs;
+        CUDA only) or ``"auto"`` (default: :data:`~dynbtf.training.step_loss.AUTO_COMPILE` of the device). The
+        model is the same to float32 rounding.
     max_reflectance : float
         Largest |value| (``pi f_r``, linear RGB) a training target may have (default
         :data:`MAX_REFLECTANCE`): a BTF beyond it decodes to garbage (e.g. flipped exponent bits)
@@ -326,6 +333,10 @@ class TrainConfig:
                              "products, float32 accumulation and parameters; CPUs with AVX512-BF16), or auto "
                              "(fp32: the same model on every CPU to float32 rounding; bf16 may train faster "
                              "where it runs, docs/results.md).")
+    compile: str = _option("auto", "auto", "How a step's loss runs: off (eager, the fused kernels), kernels "
+                           "(torch.compile's generated kernels), graphs (the same replayed as CUDA graphs; CUDA "
+                           "only), or auto (off on the CPU; on a GPU, docs/results.md 'On a GPU'). The model is the "
+                           "same to float32 rounding.")
     max_reflectance: float = _option(MAX_REFLECTANCE, None, "Largest |value| a training image may hold "
                                      "(reflectance pi f_r, linear RGB; default 1e4): beyond it the BTF decodes to "
                                      "garbage and the fit stops naming the image. Raise it for data that really is "
@@ -510,7 +521,8 @@ class _InterruptFlag:
 def _saved_options(config: TrainConfig) -> dict[str, Any]:
     """The options a checkpoint records so that a resumed run (``dynbtf fit`` with a recipe) uses the same ones."""
     # where and how long this run computes is the run's own business, not the recipe's
-    return {k: v for k, v in dataclasses.asdict(config).items() if k not in ("device", "workers", "max_minutes")}
+    return {k: v for k, v in dataclasses.asdict(config).items()
+            if k not in ("device", "workers", "max_minutes", "compile")}
 
 
 def _check_memory(config: TrainConfig, sampler: BatchSampler, store: ImageStore) -> None:
@@ -701,6 +713,8 @@ class _TrainingRun:
         lights = torch.as_tensor(source.lights, dtype=torch.float32, device=device)
         with torch.no_grad():
             self.angular_taps = rep.direction_taps(views.repeat_interleave(len(lights), 0), lights.repeat(len(views), 1))
+        self.loss = StepLoss(rep, compile=resolve_compile(config.compile, device), chunk_texels=self.chunk_texels,
+                             workers=self.workers, precision=self.precision)
         # fused: one kernel per step for all parameters (same update, less time per step on the CPU)
         self.optimizer = torch.optim.AdamW(_param_groups(rep, config.lr_scale), fused=True)
         self.monitor = HeldOutMonitor(self.store, self.held_out, config.monitor_pairs, config.seed, device)
@@ -789,22 +803,18 @@ class _TrainingRun:
         multiplier = self.schedule.lr_multiplier(self.epoch, self.done_steps, self.record)
         for g in self.optimizer.param_groups:
             g["lr"] = g["initial_lr"] * multiplier
-        source = self.source
         wv, wl, texels, taps, between = inputs
         self.optimizer.zero_grad(set_to_none=True)
+        self.loss.begin_step()
         parallel = self.parallel
         loss = None
         if len(batch.pairs):  # (a data-parallel share of an epoch's short last step can be empty)
-            loss = texel_image_loss(self.rep, wv, wl, batch.target, (source.height, source.width), texels,
-                                    chunk_texels=self.chunk_texels, workers=self.workers,
-                                    texel_groups=batch.groups, precision=self.precision, angular_taps=taps)
+            loss = self.loss.batch(wv, wl, batch.target, texels, texel_groups=batch.groups, angular_taps=taps)
             if parallel.world > 1:  # weighted by the share: the mean over processes is the whole step's loss
                 loss = loss * (batch.fraction * parallel.world)
         if between is not None:  # the whole step's sub-texel term, in one process: x world in the mean
-            term = self.rep.subtexel_l1_loss(between["neighbours"], between["weights"], between["w_view"],
-                                             between["w_light"], between["target"], chunk_texels=self.chunk_texels,
-                                             workers=self.workers, precision=self.precision,
-                                             angular_taps=between["angular_taps"])
+            term = self.loss.between_texels(between["neighbours"], between["weights"], between["w_view"],
+                                            between["w_light"], between["target"], between["angular_taps"])
             term = term * (self.subtexel * parallel.world)
             loss = term if loss is None else loss + term
         if loss is None:

@@ -48,7 +48,8 @@ from ..device import resolve_device, synchronize
 from ..errors import InputError
 from ..representations.base import Representation
 from .batches import BatchSampler, between_texel_count, between_texel_points
-from .fit import AUTO_SUBTEXEL, TrainConfig, subtexel_weight, texel_image_loss
+from .fit import AUTO_SUBTEXEL, TrainConfig, subtexel_weight
+from .step_loss import StepLoss, resolve_compile
 from ..decoder.fused_mlp import resolve_precision, single_intra_op_thread
 from .images import ImageStore, held_out_split
 
@@ -280,16 +281,17 @@ def measure_step_seconds(source: BTFSource, config: TrainConfig, representation:
         between = (torch.from_numpy(neighbours).to(device), torch.from_numpy(weights).to(device),
                    torch.rand((b, neighbours.shape[1], 3), generator=torch.Generator().manual_seed(1)).to(device))
 
+    step_loss = StepLoss(rep, compile=resolve_compile(config.compile, device), chunk_texels=chunk, workers=workers,
+                         precision=precision)
+
     def step() -> float:
         t0 = time.perf_counter()
-        loss = texel_image_loss(rep, wv, wl, target, (source.height, source.width), texel_t, chunk_texels=chunk,
-                                workers=workers, texel_groups=sampler.n_groups, precision=precision,
-                                angular_taps=taps)
+        step_loss.begin_step()
+        loss = step_loss.batch(wv, wl, target, texel_t, texel_groups=sampler.n_groups, angular_taps=taps)
         if between is not None:
             b = len(between[2])
-            loss = loss + rep.subtexel_l1_loss(*between[:2], wv[:b], wl[:b], between[2], chunk_texels=chunk,
-                                               workers=workers, precision=precision,
-                                               angular_taps=tuple(t[:b] for t in taps))
+            loss = loss + step_loss.between_texels(*between[:2], wv[:b], wl[:b], between[2],
+                                                   tuple(t[:b] for t in taps))
         loss.backward()
         synchronize(device)  # a GPU runs the step after the launches return
         return time.perf_counter() - t0
