@@ -108,13 +108,25 @@ def gpu(data: dict) -> str:
              f"training, {cpu_eval['isa']} evaluation).", "",
              "| what | GPU | CPU (2 cores) | run |", "|---|---|---|---|"]
     for i, r in enumerate(runs, 1):
-        t = r["training"]
-        planned = (f"; the budget planner measures {t['planned_ms_per_step']:.2f} ms" if "planned_ms_per_step" in t
-                   else "")
-        lines.append(f"| training, fast recipe, `{t['btf']}` | **{t['samples_per_second'] / 1e6:.1f} M samples/s** "
-                     f"({t['ms_per_step']:.2f} ms per step{planned}) | {cpu_train['samples_per_second'] / 1e6:.1f} M "
-                     f"({cpu_train['variant']}) | {i} |")
+        t = r.get("training")
+        if t is None:
+            continue
+        # runs before --compile measured the eager step alone
+        modes = t.get("compile_modes") or {"off": t}
+        for mode, m in modes.items():
+            if "error" in m:
+                lines.append(f"| training, fast recipe, `{t['btf']}`, `--compile {mode}` | failed | | {i} |")
+                continue
+            planned = (f"; the budget planner measures {t['planned_ms_per_step']:.2f} ms"
+                       if "planned_ms_per_step" in t and mode == t.get("fastest_compile", "off") else "")
+            bold = "**" if mode == t.get("fastest_compile", "off") else ""
+            lines.append(f"| training, fast recipe, `{t['btf']}`, `--compile {mode}` | {bold}"
+                         f"{m['samples_per_second'] / 1e6:.1f} M samples/s{bold} ({m['ms_per_step']:.2f} ms per "
+                         f"step{planned}) | {cpu_train['samples_per_second'] / 1e6:.1f} M ({cpu_train['variant']}) "
+                         f"| {i} |")
     for i, r in enumerate(runs, 1):
+        if "evaluation" not in r:
+            continue
         for c in r["evaluation"].get("chunk_sizes", [{"chunk_size": 32768, "default": True,
                                                        **{k: r["evaluation"][k] for k in ("seconds",
                                                                                           "queries_per_second")}}]):
@@ -127,16 +139,18 @@ def gpu(data: dict) -> str:
                          + f" | {r['evaluation']['queries'] / cpu_eval['ours_qps'] * 1e3:.0f} ms, "
                          f"{cpu_eval['ours_qps'] / 1e6:.1f} M "
                          f"| {i} |")
-    a = runs[-1]["evaluation_agreement"]
+    i, a = next((i, r["evaluation_agreement"]) for i, r in reversed(list(enumerate(runs, 1)))
+                if "evaluation_agreement" in r)
     lines.append(f"| the GPU's hist answers against the CPU's compiled kernels ({a['queries']:,} queries) | relative "
                  f"L2 difference {a['relative_l2_difference']:.1e}, largest {a['max_abs_difference']:.1e} | | "
-                 f"{len(runs)} |")
+                 f"{i} |")
     fits = [(i, r["full_size_fit"]) for i, r in enumerate(runs, 1) if "full_size_fit" in r]
     converge = _load("training_large")["steps_to_converge"]
     for i, f in fits:
         seconds_per_step = _seconds_per_step(f)
         lines.append(f"| full-size fit, `{f['btf']}` ({f['file_components']}-component DFMF file), "
-                     f"`--minutes {f['minutes_budget']:g}` | {f['steps']:,} steps ({f['stopped']}) in "
+                     f"`--minutes {f['minutes_budget']:g} --compile {f.get('compile', 'off')}` | {f['steps']:,} "
+                     f"steps ({f['stopped']}) in "
                      f"{f['curve'][-1][0] / 60:.1f} min, {f['best_held_out_psnr']:.2f} dB held-out; "
                      f"{1e3 * seconds_per_step:.0f} ms per step, texels read from the file's factors | | {i} |")
         lines.append(f"| full-size fit to within 0.5 dB of converged (projected: {converge:,} steps of the CPU's "
@@ -638,13 +652,15 @@ def storage_summary(data: dict) -> str:
 def gpu_summary(data: dict) -> str:
     """README.md's Measured line of gpu_check.py: the last run's training and 1080p evaluation, and the projected
     full-size fit (:func:`gpu`)."""
-    last = data["runs"][-1]
-    fit = next(r["full_size_fit"] for r in reversed(data["runs"]) if "full_size_fit" in r)
-    minutes = _projected_minutes(fit)
-    return (f"{data['machine'].split(' (')[0]}: training {last['training']['samples_per_second'] / 1e6:.0f} M "
-            "samples/s; "
-            f"a 1080p `hist` frame in {1e3 * last['evaluation']['seconds']:.0f} ms; a full-size fit to within "
-            f"0.5 dB in {minutes:.1f} min (projected from its measured step)")
+    def last(key: str) -> dict:
+        return next(r[key] for r in reversed(data["runs"]) if key in r)
+
+    training, fit = last("training"), last("full_size_fit")
+    fastest = training.get("fastest_compile", "off")
+    rate = (training.get("compile_modes") or {"off": training})[fastest]["samples_per_second"]
+    return (f"{data['machine'].split(' (')[0]}: training {rate / 1e6:.0f} M samples/s (`--compile {fastest}`); "
+            f"a 1080p `hist` frame in {1e3 * last('evaluation')['seconds']:.0f} ms; a full-size fit to within "
+            f"0.5 dB in {_projected_minutes(fit):.1f} min (projected from its measured step)")
 
 
 def quality_summary(data: dict, part: str = "triple") -> str:

@@ -289,6 +289,37 @@ def test_gpu_table_projects_the_full_size_fit_from_its_measured_step_and_the_cpu
     assert "**5.0 min**" in text  # 6000 steps x 0.05 s
 
 
+def test_gpu_table_has_a_row_per_compile_mode_and_the_summary_takes_the_fastest(monkeypatch):
+    """A run that measured the compile modes: a row each, the fastest in bold with the planner's figure beside it, a
+    failed mode says so; a run without evaluation adds no evaluation rows, and the agreement row names the run that
+    measured it; the README line reads the last run's fastest mode."""
+    tables = _tables()
+    cpu = {"training": {"rows": [{"btf": "sim:leather?size=128", "variant": "fast", "isa": "avx2",
+                                  "samples_per_second": 2e6}]},
+           "evaluation": {"rows": [{"method": "hist", "isa": "avx2", "ours_qps": 4e6}]},
+           "training_large": {"steps_to_converge": 6000}}
+    monkeypatch.setattr(tables, "_load", lambda name: cpu[name])
+    first = {"command": "one", "training": {"btf": "sim:leather?size=128", "samples_per_second": 5e7,
+                                             "ms_per_step": 4.0},
+             "evaluation": {"queries": 2_000_000, "seconds": 0.04, "queries_per_second": 5.2e7},
+             "evaluation_agreement": {"queries": 1000, "relative_l2_difference": 1e-4, "max_abs_difference": 1e-3},
+             "full_size_fit": {"btf": "big.btf", "file_components": 96, "minutes_budget": 3, "steps": 1000,
+                               "stopped": "ceiling", "best_held_out_psnr": 21.0, "curve": [[10.0, 20.0], [50.0, 21.0]]}}
+    modes = {"off": {"samples_per_second": 6e7, "ms_per_step": 4.0},
+             "graphs": {"samples_per_second": 1.2e8, "ms_per_step": 2.0},
+             "kernels": {"compile": "kernels", "error": "Traceback ..."}}
+    second = {"command": "two", "training": {"btf": "sim:leather?size=128", **modes["off"], "compile_modes": modes,
+                                              "fastest_compile": "graphs", "planned_ms_per_step": 1.5}}
+    text = tables.gpu({"machine": "a GPU", "torch": "2.x", "runs": [first, second]})
+    assert "`--compile graphs` | **120.0 M samples/s** (2.00 ms per step; the budget planner measures 1.50 ms) |" \
+        in text
+    assert "`--compile off` | 60.0 M samples/s (4.00 ms per step) | 2.0 M (fast) | 2 |" in text
+    assert "`--compile kernels` | failed | | 2 |" in text
+    assert text.count("1080p evaluation") == 1 and "largest 1.0e-03 | | 1 |" in text
+    summary = tables.gpu_summary({"machine": "a GPU (80 GB)", "runs": [first, second]})
+    assert summary.startswith("a GPU: training 120 M samples/s (`--compile graphs`); a 1080p `hist` frame in 40 ms")
+
+
 def test_stone_fetch_sentence_reads_the_means_and_the_refined_row_from_quality(monkeypatch):
     """The fetch part's sentence: the means of its measured rows, the refined (`--repr triple-parallax`) row from
     quality.json's stone row, the gap to the exact height, and which conclusion the numbers support."""

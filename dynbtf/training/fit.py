@@ -335,8 +335,8 @@ class TrainConfig:
                              "where it runs, docs/results.md).")
     compile: str = _option("auto", "auto", "How a step's loss runs: off (eager, the fused kernels), kernels "
                            "(torch.compile's generated kernels), graphs (the same replayed as CUDA graphs; CUDA "
-                           "only), or auto (off on the CPU; on a GPU, docs/results.md 'On a GPU'). The model is the "
-                           "same to float32 rounding.")
+                           "only), or auto (off on the CPU, graphs on a GPU with Triton: docs/results.md 'On a "
+                           "GPU'). The model is the same to float32 rounding.")
     max_reflectance: float = _option(MAX_REFLECTANCE, None, "Largest |value| a training image may hold "
                                      "(reflectance pi f_r, linear RGB; default 1e4): beyond it the BTF decodes to "
                                      "garbage and the fit stops naming the image. Raise it for data that really is "

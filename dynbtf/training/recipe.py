@@ -286,6 +286,7 @@ def measure_step_seconds(source: BTFSource, config: TrainConfig, representation:
 
     def step() -> float:
         t0 = time.perf_counter()
+        rep.zero_grad(set_to_none=True)  # as the fit does (a CUDA graph's gradient outputs are not accumulated into)
         step_loss.begin_step()
         loss = step_loss.batch(wv, wl, target, texel_t, texel_groups=sampler.n_groups, angular_taps=taps)
         if between is not None:

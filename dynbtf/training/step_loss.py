@@ -12,7 +12,7 @@ of four modes (``TrainConfig.compile``, ``dynbtf fit --compile``):
   forward and backward pass (Triton on a GPU, C++ on the CPU);
 * ``"graphs"``: the same, with the kernels of a step replayed as CUDA graphs (``mode="reduce-overhead"``): one
   launch per graph instead of one per kernel, for GPUs whose steps are short enough to be launch-bound; CUDA only;
-* ``"auto"``: :data:`AUTO_COMPILE` of the device type.
+* ``"auto"``: :data:`AUTO_COMPILE` of the device type (``"off"`` on a GPU without Triton).
 
 Compiling costs seconds to a minute at a run's first step (and once more for an epoch's shorter last step); the
 values are those of the eager loss to float32 rounding (not bit-identical: the generated kernels sum in their own
@@ -33,9 +33,10 @@ __all__ = ["COMPILE_MODES", "AUTO_COMPILE", "resolve_compile", "StepLoss"]
 #: The values of ``TrainConfig.compile``.
 COMPILE_MODES = ("auto", "off", "kernels", "graphs")
 
-#: What ``"auto"`` is on each device type (others: ``"off"``). The CPU's native kernels beat Inductor's generated ones
-#: (they keep the decoder's activations in cache); on a GPU see docs/results.md, "On a GPU".
-AUTO_COMPILE = {"cpu": "off", "cuda": "off"}
+#: What ``"auto"`` is on each device type (others: ``"off"``). On the CPU the native fused kernels beat Inductor's
+#: generated ones (they keep the decoder's activations in cache); on a GPU the CUDA graphs are the fastest of the
+#: three (``benchmarks/gpu_check.py``; docs/results.md, "On a GPU").
+AUTO_COMPILE = {"cpu": "off", "cuda": "graphs"}
 
 
 def resolve_compile(mode: str, device: torch.device | str) -> str:
@@ -56,15 +57,20 @@ def resolve_compile(mode: str, device: torch.device | str) -> str:
         raise InputError(f"--compile (TrainConfig.compile): expected one of {', '.join(map(repr, COMPILE_MODES))}, "
                          f"got {mode!r}")
     if mode == "auto":
-        return AUTO_COMPILE.get(device.type, "off")
+        chosen = AUTO_COMPILE.get(device.type, "off")
+        return chosen if chosen == "off" or device.type != "cuda" or _has_triton() else "off"
     if mode == "graphs" and device.type != "cuda":
         raise InputError(f"--compile graphs: CUDA graphs need a CUDA device, got {str(device)!r}; use kernels or off")
-    if mode != "off" and device.type == "cuda":
-        from torch.utils._triton import has_triton
-
-        if not has_triton():
-            raise InputError(f"--compile {mode}: torch.compile needs Triton on a GPU (pip install triton); use off")
+    if mode != "off" and device.type == "cuda" and not _has_triton():
+        raise InputError(f"--compile {mode}: torch.compile needs Triton on a GPU (pip install triton); use off")
     return mode
+
+
+def _has_triton() -> bool:
+    """Whether ``torch.compile`` can generate GPU kernels here (Triton installed, with a GPU it supports)."""
+    from torch.utils._triton import has_triton
+
+    return bool(has_triton())
 
 
 class StepLoss:
