@@ -58,7 +58,12 @@ def run(spec: str, name: str, eval_every: float, seed: int, kind: str = "triple"
     monitor = HeldOutMonitor(ImageStore(source, int(config.memory_budget_mb * 1024 ** 2)), held_out, 16, seed)
     curve = [{"seconds": 0.0, "psnr": monitor.score(rep, predict_images), "step": 0}]
     state = {"train_seconds": 0.0, "next": eval_every, "wall": time.perf_counter()}
-    head = {"name": name, "btf": spec, "repr": kind, "size": [source.height, source.width],
+    from results_io import header
+
+    from dynbtf.cpu import active_isa
+
+    head = {**header("fit_curves", "measure_fit_curves.py"), "isa": active_isa(),
+            "name": name, "btf": spec, "repr": kind, "size": [source.height, source.width],
             "directions": [source.n_views, source.n_lights], "recipe": recipe.summary, "curve": curve,
             "stereo_seconds": stereo_seconds}
     Path(out_dir).mkdir(parents=True, exist_ok=True)

@@ -118,8 +118,15 @@ class StepLoss:
         with warnings.catch_warnings():  # torch's own: importing Inductor touches its deprecated torch.jit API
             warnings.filterwarnings("ignore", message=r"`torch\.jit\.script_method` is deprecated",
                                     category=DeprecationWarning)
-            return torch.compile(function, dynamic=False,
-                                 mode="reduce-overhead" if self.compile == "graphs" else None)
+            compiled = torch.compile(function, dynamic=False,
+                                     mode="reduce-overhead" if self.compile == "graphs" else None)
+
+        def call(*args, **kwargs):
+            with warnings.catch_warnings():  # float32 products are asked for: Inductor's advice to use TF32 is not
+                warnings.filterwarnings("ignore", message="TensorFloat32 tensor cores", category=UserWarning)
+                return compiled(*args, **kwargs)
+
+        return call
 
     def begin_step(self) -> None:
         """Mark a new step (CUDA graphs: the previous step's graph outputs may be overwritten from here on)."""
