@@ -110,3 +110,21 @@ def test_compiled_steps_train_as_the_eager_ones(device, mode):
     assert runs[mode][0] == pytest.approx(runs["off"][0], rel=1e-5)
     for name, eager in runs["off"][1].items():
         assert float((runs[mode][1][name] - eager).abs().max()) <= 1e-5 * float(eager.abs().max()), name
+
+
+def test_auto_compiles_on_a_gpu_only_the_kinds_measured_to_pay(monkeypatch):
+    """--compile auto: CUDA graphs for the Triple Plane on a GPU with Triton; the parallax model (its march would be
+    traced step by step) and a GPU without Triton stay eager; the CPU stays on its native kernels."""
+    from dynbtf.representations.parallax import ParallaxTriplePlane
+    from dynbtf.training import step_loss
+
+    triple, parallax = TriplePlane(4, 4), ParallaxTriplePlane(4, 4)
+    monkeypatch.setattr(step_loss, "_has_triton", lambda: True)
+    assert resolve_compile("auto", "cuda", triple) == "graphs" == resolve_compile("auto", "cuda")
+    assert resolve_compile("auto", "cuda", parallax) == "off"
+    assert resolve_compile("graphs", "cuda", parallax) == "graphs"  # asked for: done
+    assert resolve_compile("auto", "cpu", triple) == "off"
+    monkeypatch.setattr(step_loss, "_has_triton", lambda: False)
+    assert resolve_compile("auto", "cuda", triple) == "off"
+    with pytest.raises(InputError, match="--compile kernels: torch.compile needs Triton on a GPU"):
+        resolve_compile("kernels", "cuda", triple)

@@ -199,6 +199,9 @@ class Representation(nn.Module, abc.ABC):
     #: True when :meth:`texel_image_l1_loss` is a fused kernel that can run in bf16 arithmetic
     #: (:func:`dynbtf.decoder.fused_mlp.split_mlp_l1_loss`); the default loss is generic and fp32 only.
     has_fused_loss: ClassVar[bool] = False
+    #: True where ``--compile auto`` compiles :meth:`texel_image_l1_loss` on a GPU (:mod:`dynbtf.training.step_loss`):
+    #: only where compiling was measured to pay; the others train eagerly there unless ``--compile`` asks.
+    compiled_on_gpu: ClassVar[bool] = False
 
     def param_groups(self) -> list[dict[str, Any]]:
         """Optimizer groups (dicts with ``params``, ``lr``, ``weight_decay``, ``name``).

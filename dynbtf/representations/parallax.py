@@ -331,6 +331,8 @@ class ParallaxTriplePlane(TriplePlane):
     use_compiled_kernels = True
     #: The fit loop gives every texel group images of one view (see :mod:`dynbtf.training.fit`).
     view_coherent_batches = True
+    #: Compiling its loss traces the march step by step and takes longer than a short fit: not by default.
+    compiled_on_gpu = False
     separate_channels = 1  # the height: synthesized on its own (its own histogram transform, outside the PCA)
 
     def __init__(self, height: int, width: int, positional_channels: int = 16, angular_resolution: int = 20,

@@ -352,6 +352,7 @@ class TriplePlane(Representation):
                 {"params": list(self.decoder.parameters()), "lr": 3e-4, "weight_decay": 0.01, "name": "decoder"}]
 
     has_fused_loss = True
+    compiled_on_gpu = True
 
     def fast_decoder(self) -> FoldableDecoder:
         """The decoder, the angular fetch and the ``(f_H, f_D)`` planes, for fast synthesis."""

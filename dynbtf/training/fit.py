@@ -285,7 +285,7 @@ class TrainConfig:
     compile : str
         How a step's loss runs (:mod:`dynbtf.training.step_loss`): ``"off"`` (eager: the fused kernels),
         ``"kernels"`` (``torch.compile``: generated fused kernels), ``"graphs"`` (the same replayed as CUDA graphs;
-        CUDA only) or ``"auto"`` (default: :data:`~dynbtf.training.step_loss.AUTO_COMPILE` of the device). The
+        CUDA only) or ``"auto"`` (default: :func:`~dynbtf.training.step_loss.resolve_compile`). The
         model is the same to float32 rounding.
     max_reflectance : float
         Largest |value| (``pi f_r``, linear RGB) a training target may have (default
@@ -335,8 +335,8 @@ class TrainConfig:
                              "where it runs, docs/results.md).")
     compile: str = _option("auto", "auto", "How a step's loss runs: off (eager, the fused kernels), kernels "
                            "(torch.compile's generated kernels), graphs (the same replayed as CUDA graphs; CUDA "
-                           "only), or auto (off on the CPU, graphs on a GPU with Triton: docs/results.md 'On a "
-                           "GPU'). The model is the same to float32 rounding.")
+                           "only), or auto (off on the CPU; graphs on a GPU with Triton for the Triple Plane: "
+                           "docs/results.md 'On a GPU'). The model is the same to float32 rounding.")
     max_reflectance: float = _option(MAX_REFLECTANCE, None, "Largest |value| a training image may hold "
                                      "(reflectance pi f_r, linear RGB; default 1e4): beyond it the BTF decodes to "
                                      "garbage and the fit stops naming the image. Raise it for data that really is "
@@ -713,7 +713,7 @@ class _TrainingRun:
         lights = torch.as_tensor(source.lights, dtype=torch.float32, device=device)
         with torch.no_grad():
             self.angular_taps = rep.direction_taps(views.repeat_interleave(len(lights), 0), lights.repeat(len(views), 1))
-        self.loss = StepLoss(rep, compile=resolve_compile(config.compile, device), chunk_texels=self.chunk_texels,
+        self.loss = StepLoss(rep, compile=resolve_compile(config.compile, device, rep), chunk_texels=self.chunk_texels,
                              workers=self.workers, precision=self.precision)
         # fused: one kernel per step for all parameters (same update, less time per step on the CPU)
         self.optimizer = torch.optim.AdamW(_param_groups(rep, config.lr_scale), fused=True)

@@ -12,7 +12,8 @@ of four modes (``TrainConfig.compile``, ``dynbtf fit --compile``):
   forward and backward pass (Triton on a GPU, C++ on the CPU);
 * ``"graphs"``: the same, with the kernels of a step replayed as CUDA graphs (``mode="reduce-overhead"``): one
   launch per graph instead of one per kernel, for GPUs whose steps are short enough to be launch-bound; CUDA only;
-* ``"auto"``: :data:`AUTO_COMPILE` of the device type (``"off"`` on a GPU without Triton).
+* ``"auto"``: :data:`AUTO_COMPILE` of the device type for representations whose ``compiled_on_gpu`` is set (the
+  Triple Plane), ``"off"`` for the others and on a GPU without Triton.
 
 Compiling costs seconds to a minute at a run's first step (and once more for an epoch's shorter last step); the
 values are those of the eager loss to float32 rounding (not bit-identical: the generated kernels sum in their own
@@ -39,8 +40,11 @@ COMPILE_MODES = ("auto", "off", "kernels", "graphs")
 AUTO_COMPILE = {"cpu": "off", "cuda": "graphs"}
 
 
-def resolve_compile(mode: str, device: torch.device | str) -> str:
-    """``mode`` (:data:`COMPILE_MODES`) on ``device``: ``"off"``, ``"kernels"`` or ``"graphs"``.
+def resolve_compile(mode: str, device: torch.device | str, representation=None) -> str:
+    """``mode`` (:data:`COMPILE_MODES`) on ``device`` for ``representation``: ``"off"``, ``"kernels"`` or ``"graphs"``.
+
+    ``"auto"`` compiles on a GPU only a representation whose ``compiled_on_gpu`` says it pays (the Triple Plane; the
+    parallax model's march takes minutes to compile).
 
     :class:`InputError` for an unknown mode, ``"graphs"`` off CUDA, and a compiling mode where ``torch.compile`` has
     no back end (a GPU without Triton).
@@ -58,6 +62,8 @@ def resolve_compile(mode: str, device: torch.device | str) -> str:
                          f"got {mode!r}")
     if mode == "auto":
         chosen = AUTO_COMPILE.get(device.type, "off")
+        if representation is not None and device.type != "cpu" and not representation.compiled_on_gpu:
+            return "off"
         return chosen if chosen == "off" or device.type != "cuda" or _has_triton() else "off"
     if mode == "graphs" and device.type != "cuda":
         raise InputError(f"--compile graphs: CUDA graphs need a CUDA device, got {str(device)!r}; use kernels or off")
