@@ -72,7 +72,6 @@ import torch
 
 from ..data.base import BTFSource
 from ..device import resolve_device
-from .step_loss import COMPILE_MODES, StepLoss, resolve_compile
 from ..errors import InputError
 from ..representations.base import Representation
 from ..representations.model_file import load_model, model_size_report, save_model
@@ -83,6 +82,7 @@ from .distributed import from_environment
 from .images import ImageStore, held_out_split
 from .monitor import HeldOutMonitor
 from .schedule import ANNEAL_FLOOR, SCHEDULES, make_schedule
+from .step_loss import COMPILE_MODES, StepLoss, resolve_compile
 
 __all__ = ["TrainConfig", "FitResult", "fit", "check_options", "TrainingDiverged", "StopTraining", "budget_left",
            "WRITE_RESERVE_SECONDS", "shared_image_cache", "steps_after_this_fit", "implausible_targets",
@@ -713,8 +713,8 @@ class _TrainingRun:
         lights = torch.as_tensor(source.lights, dtype=torch.float32, device=device)
         with torch.no_grad():
             self.angular_taps = rep.direction_taps(views.repeat_interleave(len(lights), 0), lights.repeat(len(views), 1))
-        self.loss = StepLoss(rep, compile=resolve_compile(config.compile, device, rep), chunk_texels=self.chunk_texels,
-                             workers=self.workers, precision=self.precision)
+        self.loss = StepLoss(rep, compile=resolve_compile(config.compile, device, rep),
+                             chunk_texels=self.chunk_texels, workers=self.workers, precision=self.precision)
         # fused: one kernel per step for all parameters (same update, less time per step on the CPU)
         self.optimizer = torch.optim.AdamW(_param_groups(rep, config.lr_scale), fused=True)
         self.monitor = HeldOutMonitor(self.store, self.held_out, config.monitor_pairs, config.seed, device)

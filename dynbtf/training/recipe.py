@@ -281,8 +281,8 @@ def measure_step_seconds(source: BTFSource, config: TrainConfig, representation:
         between = (torch.from_numpy(neighbours).to(device), torch.from_numpy(weights).to(device),
                    torch.rand((b, neighbours.shape[1], 3), generator=torch.Generator().manual_seed(1)).to(device))
 
-    step_loss = StepLoss(rep, compile=resolve_compile(config.compile, device, rep), chunk_texels=chunk, workers=workers,
-                         precision=precision)
+    step_loss = StepLoss(rep, compile=resolve_compile(config.compile, device, rep), chunk_texels=chunk,
+                         workers=workers, precision=precision)
 
     def step() -> float:
         t0 = time.perf_counter()

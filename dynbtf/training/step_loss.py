@@ -15,7 +15,7 @@ of four modes (``TrainConfig.compile``, ``dynbtf fit --compile``):
 * ``"auto"``: :data:`AUTO_COMPILE` of the device type for representations whose ``compiled_on_gpu`` is set (the
   Triple Plane), ``"off"`` for the others and on a GPU without Triton.
 
-Compiling costs seconds to a minute at a run's first step (and once more for an epoch's shorter last step); the
+Compiling happens at a run's first step (and once more for an epoch's shorter last step, if it has one); the
 values are those of the eager loss to float32 rounding (not bit-identical: the generated kernels sum in their own
 order).
 """
@@ -44,7 +44,7 @@ def resolve_compile(mode: str, device: torch.device | str, representation=None) 
     """``mode`` (:data:`COMPILE_MODES`) on ``device`` for ``representation``: ``"off"``, ``"kernels"`` or ``"graphs"``.
 
     ``"auto"`` compiles on a GPU only a representation whose ``compiled_on_gpu`` says it pays (the Triple Plane; the
-    parallax model's march takes minutes to compile).
+    parallax model's march takes longer to compile than a short fit lasts).
 
     :class:`InputError` for an unknown mode, ``"graphs"`` off CUDA, and a compiling mode where ``torch.compile`` has
     no back end (a GPU without Triton).
