@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -190,3 +191,32 @@ def test_usage_errors_are_messages_not_tracebacks(capsys, argv, message):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err and "Usage: dynbtf" in err
+
+
+def test_every_help_text_shows_its_bracketed_words(capsys):
+    """Rich reads ``[word]`` in a help text as a markup tag and drops it (``[defaults]`` of a TOML manifest vanished
+    from ``fit-many --help``): every command's and option's help escapes such brackets, and the rendered help of the
+    one that has them shows them."""
+    import click
+    import typer.main
+
+    from dynbtf.cli.main import app
+
+    tag = re.compile(r"(?<!\\)\[/?[A-Za-z_@#][^\[\]\s]*\]")
+    def commands(group, prefix=""):
+        for name, command in group.commands.items():
+            yield prefix + name, command
+            if isinstance(command, click.Group):
+                yield from commands(command, prefix + name + " ")
+
+    checked = 0
+    for name, command in commands(typer.main.get_command(app)):
+        checked += 1
+        texts = [command.help or ""] + [p.help or "" for p in command.params if isinstance(p, click.Parameter)
+                                        and getattr(p, "help", None)]
+        for text in texts:
+            assert not tag.search(text), (name, tag.search(text).group(0), text)
+    assert checked >= 15  # every command of the CLI
+    code, out, _ = run(capsys, "fit-many", "--help")
+    text = " ".join(out.replace("\u2502", " ").split())
+    assert code == 0 and "TOML manifest: [defaults] and one [[source]] table per BTF" in text

@@ -12,7 +12,7 @@ from .app import app
 
 @app.command("fit-many")
 def fit_many_command(
-    manifest: Path = typer.Argument(..., help="TOML manifest: [defaults] and one [[source]] table per BTF, with "
+    manifest: Path = typer.Argument(..., help="TOML manifest: \\[defaults] and one \\[\\[source]] table per BTF, with "
                                               "any `dynbtf fit` option (docs/cluster.md)."),
     output: Path = typer.Option(..., "-o", "--output", help="Directory for the models, results.csv, "
                                                             "results.json and index.html."),
