@@ -6,15 +6,17 @@ steps on the CPU, smaller, as a smoke test). Three measurements, each printed as
 
 1. **training throughput**: samples/s of :func:`dynbtf.training.fit` on the GPU (``--device cuda``: the whole
    step's texels in one chunk, every op on the device) with the fast recipe (64 texel groups of 16 pairs, lr x6)
-   on a 128 x 128 simulated BTF, ``--train-seconds`` of optimizer steps after a warm-up;
+   on a 128 x 128 simulated BTF, ``--train-seconds`` of optimizer steps after a warm-up, once per
+   ``--compile-modes`` (``TrainConfig.compile``: eager, Inductor's kernels, CUDA graphs) one after the other in
+   this process, and the budget planner's own measurement of the fastest;
 2. **a 1080p evaluation**: 1920 x 1080 queries of :meth:`dynbtf.SynthesizedBTF.eval` (hist, random uv in
    ``[0, 45)^2``, random directions) on the GPU, best of 3 after a warm-up; and the same synthesized BTF's
    answers on the GPU against the CPU's compiled kernels (largest and relative L2 difference);
 3. **a full-size fit**: a 400 x 400 BTF on the UBO2014 grid (151 x 151 directions; rendered on the GPU and
    written as a 96-component DFMF file first, as ``dynbtf simulate leather --grid ubo2014 --size 400 -o X.btf``
-   does, not counted) fitted with ``dynbtf fit``'s auto recipe under ``--fit-minutes``; the held-out monitor's
-   curve gives the time at which the fit came within 0.5 dB of the best it reached (the converged PSNR when it
-   converged).
+   does, not counted) fitted with ``dynbtf fit``'s auto recipe under ``--fit-minutes``, in the fastest mode of
+   (1); the held-out monitor's curve gives the time at which the fit came within 0.5 dB of the best it reached (the
+   converged PSNR when it converged).
 
 A measurement that fails is printed with its traceback and recorded under ``errors``; the others still run.
 
@@ -69,8 +71,7 @@ def full_size_fit(spec: str, device: str, minutes: float, compile: str = "auto")
     best = max(p for _, p in curve)
     within = next(t for t, p in curve if p >= best - 0.5)
     return {"btf": spec, "device": device, "compile": compile, "recipe": summary, "minutes_budget": minutes,
-            "wall_seconds": wall,
-            "steps": schedule["steps"], "stopped": schedule["stopped"], "best_held_out_psnr": best,
+            "wall_seconds": wall, "steps": schedule["steps"], "stopped": schedule["stopped"], "best_held_out_psnr": best,
             "seconds_to_within_half_db": within, "curve": curve}
 
 
@@ -212,8 +213,8 @@ def main() -> None:
     parser.add_argument("--full-components", type=int, default=96)
     parser.add_argument("--fit-minutes", type=float, default=3.0)
     parser.add_argument("--compile-modes", nargs="*", default=["off", "kernels", "graphs"],
-                        help="TrainConfig.compile modes whose training throughput is measured side by side; the full "
-                             "-size fit uses the fastest")
+                        help="TrainConfig.compile modes whose training throughput is measured side by side; "
+                             "the full-size fit uses the fastest")
     parser.add_argument("--skip", nargs="*", default=[], choices=["train", "fit", "eval", "profile"])
     parser.add_argument("--json", type=Path, default=RESULTS)
     args = parser.parse_args()
