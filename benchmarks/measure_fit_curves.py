@@ -20,6 +20,10 @@ the fit is about an hour on 2 cores).
 ``--out-dir`` writes the curve elsewhere (the figure is drawn from ``docs/images`` only); ``--model PATH``
 keeps the fitted model.
 The curve file is rewritten after every score (``"finished": false`` until the end).
+
+``--json FILE --part NAME`` also keeps the finished curve as part ``NAME`` of a results file (docs/results.md's
+full-size curve is ``--json benchmarks/results/fullsize.json --part curve``); ``--record CURVE_FILE`` does that for
+a curve file written earlier (its own command, commit and machine are kept).
 """
 
 from __future__ import annotations
@@ -99,6 +103,37 @@ def run(spec: str, name: str, eval_every: float, seed: int, kind: str = "triple"
     return out
 
 
+def curve_part(curve: dict, note: str | None = None) -> dict:
+    """What a results file keeps of a finished curve file: its command, commit, machine and active instruction-set
+    level (``isa``), what was fitted, the scores (``points``: minutes of training, step, held-out PSNR; the start
+    left out), the final PSNR, the training minutes (and steps) after which the curve stays within 0.5 dB of it, the mean
+    seconds per step, and ``note`` (e.g. what else ran on the machine)."""
+    if not curve.get("finished"):
+        raise SystemExit(f"measure_fit_curves: the curve {curve.get('name')!r} is not finished (its fit is still "
+                         "running, or was stopped): nothing to record")
+    if "command" not in curve:
+        raise SystemExit(f"measure_fit_curves: the curve {curve.get('name')!r} does not record its command and "
+                         "machine (written by an earlier version): measure it again")
+    keep = ("command", "commit", "cpu", "cpu_isa", "cores", "isa", "btf", "repr", "size", "directions", "recipe",
+            "stereo_seconds")
+    return {key: curve[key] for key in keep} | {
+        "points": [{"minutes": p["seconds"] / 60, "step": p["step"], "psnr": p["psnr"]} for p in curve["curve"][1:]],
+        "final_psnr": curve["final_psnr"], "minutes_to_within_0_5_db": curve["seconds_to_within_0_5_db"] / 60,
+        "steps_to_within_0_5_db": next(p["step"] for p in curve["curve"]
+                                       if p["seconds"] == curve["seconds_to_within_0_5_db"]),
+        "training_minutes": curve["training_seconds"] / 60, "steps": curve["steps"],
+        "seconds_per_step": curve["training_seconds"] / curve["steps"]} | ({"note": note} if note else {})
+
+
+def record(curve: dict, path: Path, part: str, note: str | None = None) -> None:
+    """Set part ``part`` of the results file ``path`` (its other parts kept) to :func:`curve_part` of ``curve``."""
+    from results_io import write_result
+
+    data = json.loads(path.read_text()) if path.exists() else {"benchmark": path.stem}
+    data[part] = curve_part(curve, note)
+    write_result(path, data)
+
+
 def plot() -> Path:
     import matplotlib
 
@@ -111,13 +146,14 @@ def plot() -> Path:
     for r in runs:
         t = np.array([p["seconds"] for p in r["curve"]]) / 60
         y = np.array([p["psnr"] for p in r["curve"]])
-        label = (f"{r.get('repr', 'triple')}, {r['size'][0]} x {r['size'][1]} texels, {r['directions'][0]} x {r['directions'][1]} directions "
-                 f"(final {r['final_psnr']:.1f} dB)")
+        level = f", {r['isa']}" + (" forced" if r["isa"] != r["cpu_isa"] else "") if "isa" in r else ""
+        label = (f"{r.get('repr', 'triple')}, {r['size'][0]} x {r['size'][1]} texels, {r['directions'][0]} x "
+                 f"{r['directions'][1]} directions{level} (final {r['final_psnr']:.1f} dB)")
         line, = ax.plot(t, y, marker="o", ms=3, label=label)
         ax.axvline(r["seconds_to_within_0_5_db"] / 60, color=line.get_color(), ls=":", lw=1)
     ax.set_xlabel("training time (minutes, 2 CPU cores)")
     ax.set_ylabel("held-out PSNR (dB, per-image peak)")
-    ax.set_title("dynbtf fit (auto recipe): held-out PSNR vs time; dotted: within 0.5 dB of final")
+    ax.set_title("dynbtf fit, auto recipe (dotted: within 0.5 dB of the final PSNR)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
@@ -137,11 +173,23 @@ def main() -> None:
     parser.add_argument("--out-dir", default=str(IMAGES), help="where the curve file goes (default %(default)s)")
     parser.add_argument("--model", default=None, help="keep the fitted model here (default: not kept)")
     parser.add_argument("--plot-only", action="store_true", help="only redraw the figure")
+    parser.add_argument("--json", type=Path, default=None, help="also keep the finished curve in this results file")
+    parser.add_argument("--part", default="curve", help="its part in --json (default %(default)s)")
+    parser.add_argument("--record", type=Path, default=None,
+                        help="record this finished curve file in --json (no fit)")
+    parser.add_argument("--note", default=None, help="kept with the curve in --json (e.g. what shared the machine)")
     args = parser.parse_args()
+    if args.record is not None:
+        if args.json is None:
+            parser.error("--record needs --json (the results file to keep the curve in)")
+        record(json.loads(args.record.read_text()), args.json, args.part, args.note)
+        return
     if not args.plot_only:
         if not args.btf or not args.name:
             parser.error("--btf and --name are required (or --plot-only)")
-        run(args.btf, args.name, args.eval_every, args.seed, args.repr, Path(args.out_dir), args.model)
+        curve = run(args.btf, args.name, args.eval_every, args.seed, args.repr, Path(args.out_dir), args.model)
+        if args.json is not None:
+            record(curve, args.json, args.part, args.note)
         if Path(args.out_dir).resolve() != IMAGES:
             return  # the figure shows docs/images' curves
     print(f"wrote {plot()}")

@@ -6,6 +6,8 @@ import importlib.util
 import re
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -262,15 +264,22 @@ def test_a_benchmark_part_is_written_beside_the_others_with_its_command_and_mach
     assert [p.name for p in tmp_path.iterdir()] == ["stone.json"]
 
 
-def test_gpu_table_projects_the_full_size_fit_from_its_measured_step_and_the_cpu_curve(monkeypatch):
-    """gpu_check.py's runs: the projection is the CPU curve's steps to within 0.5 dB times the GPU fit's measured
-    seconds per step (its last monitor time over its steps); the default chunk size is the one set in bold."""
+def _gpu_tables(monkeypatch):
+    """tables.py with the CPU's figures the GPU table compares with: 2 M samples/s of training, 4 M hist queries/s,
+    a measured curve within 0.5 dB of its final PSNR from step 6,000."""
     tables = _tables()
     cpu = {"training": {"rows": [{"btf": "sim:leather?size=128", "variant": "fast", "isa": "avx2",
                                   "samples_per_second": 2e6}]},
            "evaluation": {"rows": [{"method": "hist", "isa": "avx2", "ours_qps": 4e6}]},
-           "training_large": {"steps_to_converge": 6000}}
+           "fullsize": {"curve": {"steps_to_within_0_5_db": 6000}}}
     monkeypatch.setattr(tables, "_load", lambda name: cpu[name])
+    return tables
+
+
+def test_gpu_table_projects_the_full_size_fit_from_its_measured_step_and_the_cpu_curve(monkeypatch):
+    """gpu_check.py's runs: the projection is the CPU curve's steps to within 0.5 dB times the GPU fit's measured
+    seconds per step (its last monitor time over its steps); the default chunk size is the one set in bold."""
+    tables = _gpu_tables(monkeypatch)
     run = {"command": "python benchmarks/gpu_check.py", "training": {"btf": "sim:leather?size=128",
                                                                      "samples_per_second": 5e7, "ms_per_step": 4.0},
            "evaluation": {"queries": 2_000_000, "seconds": 0.04, "queries_per_second": 5.2e7, "chunk_sizes": [
@@ -293,12 +302,7 @@ def test_gpu_table_has_a_row_per_compile_mode_and_the_summary_takes_the_fastest(
     """A run that measured the compile modes: a row each, the fastest in bold with the planner's figure beside it, a
     failed mode says so; a run without evaluation adds no evaluation rows, and the agreement row names the run that
     measured it; the README line reads the last run's fastest mode."""
-    tables = _tables()
-    cpu = {"training": {"rows": [{"btf": "sim:leather?size=128", "variant": "fast", "isa": "avx2",
-                                  "samples_per_second": 2e6}]},
-           "evaluation": {"rows": [{"method": "hist", "isa": "avx2", "ours_qps": 4e6}]},
-           "training_large": {"steps_to_converge": 6000}}
-    monkeypatch.setattr(tables, "_load", lambda name: cpu[name])
+    tables = _gpu_tables(monkeypatch)
     first = {"command": "one", "training": {"btf": "sim:leather?size=128", "samples_per_second": 5e7,
                                              "ms_per_step": 4.0},
              "evaluation": {"queries": 2_000_000, "seconds": 0.04, "queries_per_second": 5.2e7},
@@ -365,7 +369,7 @@ def test_relief_cost_line_reads_the_hist_rows_of_bench_parallax_eval():
 def test_fullsize_rows_come_from_bench_training_large_and_say_whether_the_target_holds(monkeypatch):
     """The full-size table's throughput row: both recipes' ratios without the sub-texel term, the largest peak RSS,
     and "met" only when every ratio is at least 0.8 and the memory at most 4 GB; the file row from the run that
-    wrote it; README's line takes the curve's first point within 0.5 dB of its last."""
+    wrote it; README's line takes the minutes after which the measured curve stays within 0.5 dB of its end."""
     tables = _tables()
     machine = {"command": "python benchmarks/bench_training_large.py", "cpu": "CPU", "cpu_isa": "avx2", "cores": 2}
 
@@ -383,7 +387,56 @@ def test_fullsize_rows_come_from_bench_training_large_and_say_whether_the_target
     assert result == "0.90x (fast recipe, 9.9 vs 11.0 M samples/s), 0.85x (paper batches); peak memory 1.10 GB"
     assert target.endswith("(met)") and tables.fullsize_throughput(data(0.7))[2].endswith("(not met)")
     assert tables.fullsize_file(data(0.85))[1] == "4.2 min, 105 MB, 2.2 GB peak memory"
-    curve = {"curve": {"points": [{"minutes": 3, "psnr": 20.0}, {"minutes": 9, "psnr": 26.6},
-                                  {"minutes": 12, "psnr": 27.0}]}}
+    curve = {"curve": {"minutes_to_within_0_5_db": 9.0, "isa": "avx2"}}
     monkeypatch.setattr(tables, "_load", lambda name: curve)
-    assert tables.fullsize_summary(data(0.85)).endswith("0.90x the cached speed; within 0.5 dB of converged in 9 min")
+    assert tables.fullsize_summary(data(0.85)).endswith(
+        "0.90x the cached speed; within 0.5 dB of the final PSNR in 9 min of training (avx2)")
+
+
+def _finished_curve(minutes_psnr, isa="avx2"):
+    """A curve file as measure_fit_curves.py writes it: scores every 3 min (``minutes_psnr``), 10 steps a minute."""
+    curve = [{"seconds": 0.0, "psnr": 1.0, "step": 0}] + [{"seconds": 60.0 * m, "psnr": p, "step": 10 * m}
+                                                          for m, p in minutes_psnr]
+    final = curve[-1]["psnr"]
+    within = next(q["seconds"] for q in curve if all(r["psnr"] >= final - 0.5 for r in curve[curve.index(q):]))
+    return {"benchmark": "fit_curves", "command": "python benchmarks/measure_fit_curves.py --btf big.btf",
+            "commit": "abc1234", "cpu": "Some CPU", "cpu_isa": "avx512bf16", "cores": 2, "isa": isa, "name": "big",
+            "btf": "/data/big.btf", "repr": "triple", "size": [400, 400], "directions": [151, 151],
+            "recipe": "recipe for 400 x 400 texels", "stereo_seconds": 0.0, "curve": curve, "finished": True,
+            "final_psnr": final, "seconds_to_within_0_5_db": within, "training_seconds": curve[-1]["seconds"],
+            "steps": curve[-1]["step"]}
+
+
+def test_a_recorded_fit_curve_renders_its_scores_and_its_time_to_within_half_a_db(tmp_path, monkeypatch):
+    """measure_fit_curves.py --record: the finished curve becomes a part of the results file (the others kept);
+    the table shows at most 10 evenly spaced scores and the last, and the minutes after which the curve stays within
+    0.5 dB of its final PSNR (not the first time it got there); the full-size row states the 2-hour AVX2 target."""
+    import json
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import measure_fit_curves
+
+    tables = _tables()
+    scores = [(3 * k, 20.0 + min(k, 10) * 0.7) for k in range(1, 25)]  # 27.0 from 30 min on
+    scores[5] = (18, 26.8)  # within 0.5 dB once at 18 min, then below again
+    path = tmp_path / "fullsize.json"
+    path.write_text(json.dumps({"benchmark": "fullsize", "parallax_curve": {"points": []}}))
+    measure_fit_curves.record(_finished_curve(scores), path, "curve", note="other work shared the cores")
+    data = json.loads(path.read_text())
+    assert "parallax_curve" in data and data["curve"]["minutes_to_within_0_5_db"] == 30.0
+    assert data["curve"]["points"][0] == {"minutes": 3.0, "step": 30, "psnr": pytest.approx(20.7)}
+    assert data["curve"]["steps_to_within_0_5_db"] == 300
+    text = tables.fullsize_curve(data)
+    header = text.splitlines()[2]
+    assert header.startswith("| training time (min) | 9 | 18 | 27 | 36 |") and header.endswith("| 72 |"), header
+    assert "level avx2 (forced)" in text and "(`big.btf`, the recipe for 400 x 400 texels;" in text
+    assert "16 pairs; other work shared the cores):" in text
+    assert "Within 0.5 dB of the final 27.00 dB after **30 min** of training; 720 steps in 72 min" in text
+    what, result, target = tables.fullsize_curve_row(data)
+    assert result.startswith("**30 min** (27.0 dB at the end") and target == "at most 2 h on AVX2 (met)"
+    slow = json.loads(path.read_text())
+    slow["curve"]["minutes_to_within_0_5_db"] = 130.0
+    assert tables.fullsize_curve_row(slow)[2] == "at most 2 h on AVX2 (not met)"
+    unfinished = _finished_curve(scores) | {"finished": False}
+    with pytest.raises(SystemExit, match="is not finished"):
+        measure_fit_curves.record(unfinished, path, "curve")
