@@ -263,9 +263,7 @@ def main() -> None:
             raise RuntimeError("no compile mode ran: " + ", ".join(modes))
         best = max(ran, key=lambda m: ran[m]["samples_per_second"])
         fastest["compile"] = best
-        row = dict(ran.get("off", ran[best]))
-        row["compile_modes"] = modes
-        row["fastest_compile"] = best
+        row = {"btf": args.train_btf, "device": args.device, "compile_modes": modes, "fastest_compile": best}
         # what `dynbtf fit --minutes` plans with: its own measurement of the same recipe's step
         row["planned_ms_per_step"] = 1e3 * measure_step_seconds(
             open_btf(args.train_btf), TrainConfig(device=args.device, texel_groups=64, lr_scale=6.0, subtexel=0.0,

@@ -34,6 +34,11 @@ def _machine(data: dict) -> str:
     return f"{data['cpu']} ({data['cores']} cores, best level {data['cpu_isa']})"
 
 
+def _level(isa: str, cpu_isa: str) -> str:
+    """An instruction-set level a measurement ran on, ``" (forced)"`` after it when below the CPU's best."""
+    return isa + (" (forced)" if isa != cpu_isa else "")
+
+
 def training(data: dict) -> str:
     """bench_training.py: a row per (level, BTF, variant)."""
     lines = [f"Measured on {_machine(data)} by `{data['command']}` ({data['seconds_per_variant']:g} s of training "
@@ -686,8 +691,7 @@ def training_summary(data: dict) -> str:
             ratios = {r["btf"]: r["ratio_to_naive"] for r in data["rows"]
                       if r["isa"] == isa and r["variant"] == variant}
             if ratios:
-                forced = " (forced)" if isa != data["cpu_isa"] else ""
-                per_level.append(f"{isa}{forced}{label} "
+                per_level.append(f"{_level(isa, data['cpu_isa'])}{label} "
                                  + " / ".join(f"{ratios[b]:.1f}x" for b in btfs if b in ratios))
     return (f"ours over the naive recipe's samples/s ({' / '.join(f'`{b}`' for b in btfs)}): " + "; ".join(per_level)
             + "; [per level](docs/results.md#training-speed)")
@@ -698,7 +702,7 @@ def evaluation_summary(data: dict) -> str:
     the share of the FMA bound."""
     rows = [r for r in data["rows"] if r["method"] == "hist"]
     return ("ours over naive PyTorch: " + "; ".join(
-        f"{r['isa']}{' (forced)' if r['isa'] != data['cpu_isa'] else ''} {r['ours_qps'] / r['naive_qps']:.1f}x "
+        f"{_level(r['isa'], data['cpu_isa'])} {r['ours_qps'] / r['naive_qps']:.1f}x "
         f"({r['ours_qps'] / 1e6:.2f} M queries/s, "
         f"{r['share_of_fma_bound']:.0%} of the FMA bound)" for r in rows)
         + "; [per level](docs/results.md#synthesis-evaluation-speed)")
@@ -1150,7 +1154,7 @@ def fullsize_curve(data: dict) -> str:
     time, at most :data:`_CURVE_COLUMNS` of its scores (evenly spaced, the last always), and the time after which it
     stays within 0.5 dB of its final PSNR."""
     c = data["curve"]
-    level = c["isa"] + (" (forced)" if c["isa"] != c["cpu_isa"] else "")
+    level = _level(c["isa"], c["cpu_isa"])
     every = -(-len(c["points"]) // _CURVE_COLUMNS)
     points = c["points"][every - 1::every]
     points += [] if points[-1] is c["points"][-1] else [c["points"][-1]]
@@ -1174,7 +1178,7 @@ def fullsize_curve_row(data: dict) -> tuple[str, str, str]:
     """The full-size table's row of the convergence curve (:func:`fullsize_curve`), against the 2-hour target of a
     full-size fit on AVX2."""
     c = data["curve"]
-    level = c["isa"] + (" (forced)" if c["isa"] != c["cpu_isa"] else "")
+    level = _level(c["isa"], c["cpu_isa"])
     met = c["minutes_to_within_0_5_db"] <= 120
     return (f"time to within 0.5 dB of the final held-out PSNR (`{c['command']}`, {_machine(c)}, level {level})",
             f"**{c['minutes_to_within_0_5_db']:.0f} min** ({c['final_psnr']:.1f} dB at the end; the whole fit "
