@@ -70,7 +70,8 @@ def single_thread():
 
 @pytest.fixture(scope="session", autouse=True)
 def small_level_decoder_fit():
-    """The per-level decoders' fit at a sixteenth of its default size in tests (4,096 footprints, 300 steps).
+    """The per-level decoders' fit at a sixteenth of its default size in tests (4,096 footprints, 300 steps), and the
+    top level's mean appearance in a quarter of its steps (500).
 
     The tests hold the footprint path to references computed with the same fit (the plugin against
     ``SynthesizedBTF.eval``, convergence to brute-force means with tolerances that the small fit meets);
@@ -83,6 +84,7 @@ def small_level_decoder_fit():
         patch.setattr(fits, "LEVEL_FIT_QUERIES", 4096)
         patch.setattr(fits, "LEVEL_FIT_STEPS", 300)
         patch.setattr(fits, "LEVEL_FIT_BATCH", 1024)
+        patch.setattr(fits, "MEAN_FIT_STEPS", 500)
         yield
 
 

@@ -140,7 +140,7 @@ class GaussianTransform:
         """Exact ``T^-1(g)`` for ``g (..., C)``: ``np.interp(Phi(g), (arange(N) + .5) / N, sorted)`` (float64)."""
         g = g.to(torch.float64)
         n = self.n
-        flat = g.reshape(-1, g.shape[-1]).T  # (C, M)
+        flat = g.reshape(-1, g.shape[-1]).T.contiguous()  # (C, M), each channel's values together for the gathers
         pos = (torch.special.ndtr(flat) * n - 0.5).clamp(0.0, n - 1.0)
         lo = torch.floor(pos).to(torch.int64).clamp_max(n - 2) if n > 1 else torch.zeros_like(pos, dtype=torch.int64)
         t = pos - lo

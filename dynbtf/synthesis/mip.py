@@ -165,8 +165,12 @@ def prefiltered_inverse_tables(transform, levels: list[torch.Tensor], g_min: flo
         if not bool((spread > 0).any()):
             tables.append(transform.inverse(grid).T)
             continue
-        values = transform.inverse(grid[None] + nodes[:, None, None] * spread[None, None, :])  # (K, size, C)
-        tables.append((weights[:, None, None] * values).sum(0).T)
+        # node by node: (size, C) at a time, not (K, size, C) at once -- with many channels (a spherical-harmonics
+        # plane has hundreds) the whole stack is gigabytes of fresh temporaries, each page faulted in
+        expected = torch.zeros_like(grid)
+        for node, weight in zip(nodes, weights):
+            expected += weight * transform.inverse(grid + node * spread[None, :])
+        tables.append(expected.T)
     tables[0] = transform.inverse(grid).T  # level 0 is the point query's table
     return torch.stack(tables).to(torch.float32).contiguous()
 
