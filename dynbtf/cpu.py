@@ -19,8 +19,8 @@ variable ``DYNBTF_CPU_ISA`` names a lower one: ``DYNBTF_CPU_ISA=avx2`` on an AVX
 every dynbtf kernel as an AVX2 machine would, so the AVX2 path can be measured and tested anywhere.
 Forcing works only before PyTorch, MKL and numba start: ``import dynbtf`` applies
 :func:`isa_environment` to ``os.environ`` when ``DYNBTF_CPU_ISA`` is set (``ATEN_CPU_CAPABILITY``,
-``MKL_ENABLE_INSTRUCTIONS``, ``MKL_CBWR``, ``ONEDNN_MAX_CPU_ISA``, ``NUMBA_CPU_NAME``; variables the user set
-already are kept), and :func:`check_forced_environment` says when a library was loaded before that. It also
+``MKL_ENABLE_INSTRUCTIONS``, ``MKL_CBWR``, ``ONEDNN_MAX_CPU_ISA``, ``NUMBA_CPU_NAME``, and a cache of
+``torch.compile``'s kernels of the level's own, :func:`inductor_cache_dir`; variables the user set already are kept), and :func:`check_forced_environment` says when a library was loaded before that. It also
 asks MKL for reproducible results whatever the level (``MKL_CBWR``, :data:`MKL_REPRODUCIBLE`).
 A level above the CPU's is an error, not a silent fallback.
 
@@ -40,7 +40,7 @@ from functools import lru_cache
 from .errors import InputError
 
 __all__ = ["ISAS", "ISA_ENV", "cpu_features", "hardware_isa", "active_isa", "isa_environment",
-           "apply_isa_environment", "check_forced_environment", "isa_description", "vector_width"]
+           "inductor_cache_dir", "apply_isa_environment", "check_forced_environment", "isa_description", "vector_width"]
 
 #: The levels, lowest first.
 ISAS = ("portable", "avx2", "avx512", "avx512bf16")
@@ -152,14 +152,34 @@ def vector_width(isa: str) -> int:
 
 def isa_environment(isa: str) -> dict[str, str]:
     """The environment variables that make a process run at level ``isa``: ``DYNBTF_CPU_ISA`` and the
-    settings of PyTorch (``ATEN_CPU_CAPABILITY``), MKL, oneDNN and numba that match it (x86-64 only;
-    on other machines only ``DYNBTF_CPU_ISA``). Give them to a new process (``subprocess``'s ``env``)."""
+    settings of PyTorch (``ATEN_CPU_CAPABILITY``, and :func:`inductor_cache_dir` for ``torch.compile``), MKL, oneDNN
+    and numba that match it (x86-64 only; on other machines only ``DYNBTF_CPU_ISA``). Give them to a new process (``subprocess``'s ``env``)."""
     if isa not in ISAS:
         raise InputError(f"isa: expected one of {', '.join(ISAS)}, got {isa!r}")
     env = {ISA_ENV: isa}
     if _is_x86():
-        env |= _LIBRARY_SETTINGS[isa]
+        env |= _LIBRARY_SETTINGS[isa] | {"TORCHINDUCTOR_CACHE_DIR": inductor_cache_dir(isa)}
     return env
+
+
+def inductor_cache_dir(isa: str) -> str:
+    """The directory of PyTorch Inductor's compiled kernels (``torch.compile``, ``--compile kernels``) at a forced
+    level: one per level, beside Inductor's own default. Inductor generates each level's vector code (it reads
+    ``ATEN_CPU_CAPABILITY``) but its cache does not tell the levels apart: a kernel compiled at the CPU's level and
+    loaded at a forced AVX2 fails (``RuntimeError: tuple args required``).
+
+    >>> inductor_cache_dir("avx2").endswith("-dynbtf-avx2")
+    True
+    """
+    import getpass
+    import re
+    import tempfile
+
+    try:
+        user = getpass.getuser()
+    except (KeyError, OSError):  # no name for this uid (some containers)
+        user = str(os.getuid()) if hasattr(os, "getuid") else "user"
+    return os.path.join(tempfile.gettempdir(), f"torchinductor_{re.sub(r'[^A-Za-z0-9_.-]', '_', user)}-dynbtf-{isa}")
 
 
 def apply_isa_environment() -> None:

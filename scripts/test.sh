@@ -15,8 +15,8 @@ echo "== import layers (import-linter)"
 # numbers they compute (DYNBTF_CPU_ISA=avx2 bash scripts/test.sh runs the whole suite on it)
 if [ $# -eq 0 ] && [ -z "${DYNBTF_CPU_ISA:-}" ] && \
    "$PY" -c "import sys, dynbtf.cpu as c; sys.exit(0 if c.ISAS.index(c.hardware_isa()) > c.ISAS.index('avx2') else 1)"; then
-  echo "== the AVX2 path (DYNBTF_CPU_ISA=avx2): kernels, training, evaluation, one-truth tests"
+  echo "== the AVX2 path (DYNBTF_CPU_ISA=avx2): kernels, training (compiled too), evaluation, one-truth tests"
   DYNBTF_CPU_ISA=avx2 "$PY" -m pytest -q -p no:cacheprovider tests/test_native_kernel.py tests/test_triple_plane.py \
     tests/test_training.py tests/test_fast_decode.py tests/test_one_truth.py tests/test_parallax_kernels.py \
-    tests/test_visible_fetch.py tests/test_cpu_levels.py
+    tests/test_visible_fetch.py tests/test_cpu_levels.py tests/test_step_loss.py
 fi

@@ -44,6 +44,9 @@ def test_forcing_a_level_checks_it(monkeypatch):
     if cpu._is_x86():
         assert env["ATEN_CPU_CAPABILITY"] == "avx2" and env["MKL_ENABLE_INSTRUCTIONS"] == "AVX2"
         assert env["NUMBA_CPU_NAME"] == "haswell" and env["MKL_CBWR"] == "AVX2,STRICT"
+        # torch.compile's kernels of each level in a cache of their own (Inductor's keys do not tell levels apart)
+        caches = {level: cpu.isa_environment(level)["TORCHINDUCTOR_CACHE_DIR"] for level in cpu.ISAS}
+        assert len(set(caches.values())) == len(cpu.ISAS) and caches["avx2"] == cpu.inductor_cache_dir("avx2")
 
 
 def test_a_level_above_the_cpu_is_refused_before_its_code_runs(monkeypatch):
@@ -56,10 +59,10 @@ def test_a_level_above_the_cpu_is_refused_before_its_code_runs(monkeypatch):
 def test_forcing_avx2_reaches_torch_mkl_and_numba():
     code = ("import os, dynbtf, torch, numba; from dynbtf.cpu import active_isa, isa_description; "
             "print(active_isa(), torch.backends.cpu.get_cpu_capability(), os.environ['MKL_ENABLE_INSTRUCTIONS'], "
-            "numba.config.CPU_NAME)")
+            "numba.config.CPU_NAME, os.path.basename(os.environ['TORCHINDUCTOR_CACHE_DIR']).split('-', 1)[1])")
     env = {k: v for k, v in os.environ.items() if k not in cpu.isa_environment("avx2")} | {cpu.ISA_ENV: "avx2"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
-    assert out.split() == ["avx2", "AVX2", "AVX2", "haswell"]
+    assert out.split() == ["avx2", "AVX2", "AVX2", "haswell", "dynbtf-avx2"]
     # torch at work before dynbtf could tell it (ATen picks its kernels at its first operation): the mismatch is
     # named, not silently measured
     late = "import torch; torch.ones(2) + 1; import dynbtf.cpu as c; print(c.check_forced_environment())"
