@@ -20,7 +20,8 @@ every dynbtf kernel as an AVX2 machine would, so the AVX2 path can be measured a
 Forcing works only before PyTorch, MKL and numba start: ``import dynbtf`` applies
 :func:`isa_environment` to ``os.environ`` when ``DYNBTF_CPU_ISA`` is set (``ATEN_CPU_CAPABILITY``,
 ``MKL_ENABLE_INSTRUCTIONS``, ``MKL_CBWR``, ``ONEDNN_MAX_CPU_ISA``, ``NUMBA_CPU_NAME``, and a cache of
-``torch.compile``'s kernels of the level's own, :func:`inductor_cache_dir`; variables the user set already are kept), and :func:`check_forced_environment` says when a library was loaded before that. It also
+``torch.compile``'s kernels of the level's own, :func:`inductor_cache_dir`; variables the user set already are
+kept), and :func:`check_forced_environment` says when a library was loaded before that. It also
 asks MKL for reproducible results whatever the level (``MKL_CBWR``, :data:`MKL_REPRODUCIBLE`).
 A level above the CPU's is an error, not a silent fallback.
 
@@ -39,8 +40,8 @@ from functools import lru_cache
 
 from .errors import InputError
 
-__all__ = ["ISAS", "ISA_ENV", "cpu_features", "hardware_isa", "active_isa", "isa_environment",
-           "inductor_cache_dir", "apply_isa_environment", "check_forced_environment", "isa_description", "vector_width"]
+__all__ = ["ISAS", "ISA_ENV", "cpu_features", "hardware_isa", "active_isa", "isa_environment", "inductor_cache_dir",
+           "apply_isa_environment", "check_forced_environment", "isa_description", "vector_width"]
 
 #: The levels, lowest first.
 ISAS = ("portable", "avx2", "avx512", "avx512bf16")
@@ -153,7 +154,8 @@ def vector_width(isa: str) -> int:
 def isa_environment(isa: str) -> dict[str, str]:
     """The environment variables that make a process run at level ``isa``: ``DYNBTF_CPU_ISA`` and the
     settings of PyTorch (``ATEN_CPU_CAPABILITY``, and :func:`inductor_cache_dir` for ``torch.compile``), MKL, oneDNN
-    and numba that match it (x86-64 only; on other machines only ``DYNBTF_CPU_ISA``). Give them to a new process (``subprocess``'s ``env``)."""
+    and numba that match it (x86-64 only; on other machines only ``DYNBTF_CPU_ISA``). Give them to a new process
+    (``subprocess``'s ``env``)."""
     if isa not in ISAS:
         raise InputError(f"isa: expected one of {', '.join(ISAS)}, got {isa!r}")
     env = {ISA_ENV: isa}
