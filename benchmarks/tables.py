@@ -150,7 +150,7 @@ def gpu(data: dict) -> str:
                  f"L2 difference {a['relative_l2_difference']:.1e}, largest {a['max_abs_difference']:.1e} | | "
                  f"{i} |")
     fits = [(i, r["full_size_fit"]) for i, r in enumerate(runs, 1) if "full_size_fit" in r]
-    converge = _load("fullsize")["curve"]["steps_to_within_0_5_db"]
+    converge = _steps_to_half_db()
     for i, f in fits:
         seconds_per_step = _seconds_per_step(f)
         lines.append(f"| full-size fit, `{f['btf']}` ({f['file_components']}-component DFMF file), "
@@ -168,11 +168,16 @@ def _seconds_per_step(fit: dict) -> float:
     return fit["curve"][-1][0] / fit["steps"]
 
 
+def _steps_to_half_db() -> int:
+    """The steps after which the CPU's measured full-size convergence curve stays within 0.5 dB of its final PSNR
+    (fullsize.json, :func:`fullsize_curve`)."""
+    return _load("fullsize")["curve"]["steps_to_within_0_5_db"]
+
+
 def _projected_minutes(fit: dict) -> float:
-    """A full-size fit's projected minutes to within 0.5 dB: the steps after which the CPU's measured convergence
-    curve stays within 0.5 dB of its final PSNR (fullsize.json, :func:`fullsize_curve`) times the fit's measured step
+    """A full-size fit's projected minutes to within 0.5 dB: :func:`_steps_to_half_db` times the fit's measured step
     (:func:`_seconds_per_step`)."""
-    return _load("fullsize")["curve"]["steps_to_within_0_5_db"] * _seconds_per_step(fit) / 60
+    return _steps_to_half_db() * _seconds_per_step(fit) / 60
 
 
 def guided(data: dict) -> str:
