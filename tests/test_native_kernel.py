@@ -276,9 +276,10 @@ def test_texel_blocks_convert_every_float16_exactly():
         ctypes.c_void_p(starts.ctypes.data), ctypes.c_int64(16), ctypes.c_void_p(gathered.ctypes.data)) == 1
 
 
-def triple_plane_problem(seed=0, side=16, groups=4, images=3, texels_per_group=24):
+def triple_plane_problem(seed=0, side=16, groups=4, images=3, texels_per_group=24, texel_taps=None):
     """A perturbed Triple Plane, a step's texels (with repeats), its pairs' taps and targets 0.3 away from the
-    float64 prediction."""
+    float64 prediction. With ``texel_taps = J``, ``texels`` is ``(indices (J, N), weights (J, N))``: each row the
+    weighted sum of J texels."""
     from dynbtf.representations.triple_plane import TriplePlane
 
     gen = torch.Generator().manual_seed(seed)
@@ -287,6 +288,9 @@ def triple_plane_problem(seed=0, side=16, groups=4, images=3, texels_per_group=2
         for p in model.parameters():
             p.add_(0.1 * torch.randn(p.shape, generator=gen))
     texels = torch.randint(0, side * side, (groups * texels_per_group,), generator=gen)
+    if texel_taps is not None:
+        texels = (torch.randint(0, side * side, (texel_taps, groups * texels_per_group), generator=gen),
+                  torch.rand(texel_taps, groups * texels_per_group, generator=gen))
     directions = [nn.functional.normalize(torch.rand(groups * images, 3, generator=gen) + torch.tensor([0, 0, 0.3]),
                                           dim=-1) for _ in range(2)]
     taps = model.direction_taps(*directions)
@@ -304,7 +308,12 @@ def reference_triple_plane_prediction(model, texels, taps, images):
     groups = index.shape[0] // images
     angular_planes = torch.cat([model.f_h.reshape(-1, model.f_h.shape[-1]), model.f_d.reshape(-1, model.f_d.shape[-1])])
     angular = (angular_planes[index] * weight.to(angular_planes.dtype)[..., None]).sum(2).reshape(index.shape[0], -1)
-    features = model.f_u.reshape(-1, model.f_u.shape[-1])[texels].view(groups, 1, -1, model.f_u.shape[-1])
+    plane = model.f_u.reshape(-1, model.f_u.shape[-1])
+    if isinstance(texels, tuple):  # (indices (J, N), weights (J, N)): weighted sums of texels
+        features = sum(w.to(plane.dtype)[:, None] * plane[i] for i, w in zip(*texels))
+    else:
+        features = plane[texels]
+    features = features.view(groups, 1, -1, model.f_u.shape[-1])
     n = features.shape[2]
     angular = angular.view(groups, images, 1, -1)
     x = torch.cat([features.expand(-1, images, -1, -1), angular.expand(-1, -1, n, -1)], -1)  # (G, B, n, in)
@@ -317,20 +326,22 @@ def reference_triple_plane_prediction(model, texels, taps, images):
 
 
 @needs_native
-@pytest.mark.parametrize("workers", [1, 2])
-def test_triple_plane_loss_in_native_kernels_matches_float64_autograd(workers):
+@pytest.mark.parametrize("workers, texel_taps", [(1, None), (2, None), (2, 4), (1, 1)])
+def test_triple_plane_loss_in_native_kernels_matches_float64_autograd(workers, texel_taps):
     """The plane fetches and layer 1 in dynbtf_first_layer_forward / _backward, layers 2.. in the fused kernel: the
-    loss and the gradient of every parameter equal float64 autograd of the written-out model, repeated texels included."""
+    loss and the gradient of every parameter equal float64 autograd of the written-out model, repeated texels
+    included; with texel weights, each row the weighted sum of ``texel_taps`` texels (the sub-texel term's points)."""
     import copy
 
-    model, texels, taps, target = triple_plane_problem()
+    model, texels, taps, target = triple_plane_problem(texel_taps=texel_taps)
     reference = copy.deepcopy(model).double()
     loss = reference_triple_plane_prediction(reference, texels, taps, target.shape[0]).sub(target.double()).abs().mean()
     loss.backward()
     angular_planes = torch.cat([model.f_h.reshape(-1, 8), model.f_d.reshape(-1, 8)])
-    native_loss = fused_mlp.triple_plane_l1_loss(model.f_u.reshape(-1, 16), texels, angular_planes, taps,
+    indices, weights = texels if texel_taps else (texels, None)
+    native_loss = fused_mlp.triple_plane_l1_loss(model.f_u.reshape(-1, 16), indices, angular_planes, taps,
                                                  model.decoder.first, model.decoder.rest, 0.01, target,
-                                                 chunk_texels=8, workers=workers)
+                                                 chunk_texels=8, workers=workers, texel_weights=weights)
     assert native_loss is not None, "the native kernels should take a CPU float32 Triple Plane"
     native_loss.backward()
     torch.testing.assert_close(native_loss.double(), loss.detach(), rtol=1e-5, atol=0)
@@ -376,6 +387,14 @@ def test_triple_plane_loss_declines_or_refuses_what_its_kernels_do_not_take():
         fused_mlp.triple_plane_l1_loss(model.f_u.reshape(-1, 16), outside, angular_planes, taps, *args, target)
     with pytest.raises(InputError, match="first layer takes 32 inputs"):
         fused_mlp.triple_plane_l1_loss(model.f_u.reshape(-1, 16)[:, :15], texels, angular_planes, taps, *args, target)
+    with pytest.raises(InputError, match=r"texel_weights: expected \(J, N\) with texels int64 of the same shape"):
+        fused_mlp.triple_plane_l1_loss(model.f_u.reshape(-1, 16), texels, angular_planes, taps, *args, target,
+                                       texel_weights=torch.ones(2, texels.shape[0]))
+    outside = torch.stack([texels, texels])
+    outside[1, 3] = -1
+    with pytest.raises(InputError, match="texel or angular tap index outside its plane"):
+        fused_mlp.triple_plane_l1_loss(model.f_u.reshape(-1, 16), outside, angular_planes, taps, *args, target,
+                                       texel_weights=torch.ones(outside.shape))
 
 
 def copy_double(model):

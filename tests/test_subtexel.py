@@ -29,7 +29,12 @@ def test_points_mix_the_texels_the_bilinear_fetch_reads(size):
     torch.testing.assert_close(_mix(plane, neighbours, weights.astype(np.float64)), reference, atol=1e-6, rtol=0)
 
 
-def test_subtexel_loss_is_the_l1_of_decoded_bilinear_fetches():
+@pytest.mark.parametrize("with_taps", [False, True])
+def test_subtexel_loss_is_the_l1_of_decoded_bilinear_fetches(with_taps):
+    """The torch path, and with the pairs' angular taps (what the fit passes) the native kernels' weighted texel
+    fetch where they run: the same value and gradients as decoding the renderer's bilinear fetch."""
+    from dynbtf.decoder import fused_mlp
+
     model = TriplePlane(6, 8, seed=1)
     neighbours, weights, uv = between_texel_points(6, 8, 40, np.random.default_rng(2))
     rng = np.random.default_rng(3)
@@ -39,7 +44,15 @@ def test_subtexel_loss_is_the_l1_of_decoded_bilinear_fetches():
     w_view, w_light = (torch.from_numpy(d).float() for d in directions)
     target = torch.rand(3, 40, 3, generator=torch.Generator().manual_seed(4))
 
-    loss = model.subtexel_l1_loss(torch.from_numpy(neighbours), torch.from_numpy(weights), w_view, w_light, target)
+    taps = model.direction_taps(w_view, w_light) if with_taps else None
+    calls = []
+    real = fused_mlp._TriplePlaneL1.apply
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(fused_mlp._TriplePlaneL1, "apply", lambda *a: calls.append(1) or real(*a))
+        loss = model.subtexel_l1_loss(torch.from_numpy(neighbours), torch.from_numpy(weights), w_view, w_light,
+                                      target, chunk_texels=8, workers=2, angular_taps=taps)
+    native = with_taps and fused_mlp._native_library() is not None
+    assert calls == ([1] if native else [])
     loss.backward()
     ours = {name: p.grad.clone() for name, p in model.named_parameters()}
     model.zero_grad()

@@ -150,11 +150,13 @@ class _FirstLayerArgs(ctypes.Structure):
     """``FirstLayerArgs`` of ``dynbtf/decoder/native/fused_mlp.cpp`` (same field order)."""
 
     _fields_ = [("hidden", ctypes.c_int32), ("positional", ctypes.c_int32), ("angular", ctypes.c_int32),
-                ("plane_channels", ctypes.c_int32), ("taps", ctypes.c_int32), ("rows", ctypes.c_int64),
+                ("plane_channels", ctypes.c_int32), ("taps", ctypes.c_int32), ("texel_taps", ctypes.c_int32),
+                ("rows", ctypes.c_int64),
                 ("images", ctypes.c_int64), ("plane_rows", ctypes.c_int64), ("angular_rows", ctypes.c_int64),
                 ("positional_scale", ctypes.c_float), ("weight", ctypes.c_void_p), ("bias", ctypes.c_void_p),
                 ("plane", ctypes.c_void_p),
-                ("texels", ctypes.c_void_p), ("angular_planes", ctypes.c_void_p), ("tap_index", ctypes.c_void_p),
+                ("texels", ctypes.c_void_p), ("texel_weight", ctypes.c_void_p), ("angular_planes", ctypes.c_void_p),
+                ("tap_index", ctypes.c_void_p),
                 ("tap_weight", ctypes.c_void_p), ("positional_pre", ctypes.c_void_p),
                 ("angular_features", ctypes.c_void_p), ("image_pre", ctypes.c_void_p)]
 
@@ -449,8 +451,8 @@ class _TriplePlaneL1(torch.autograd.Function):
     gradient computed in the forward pass (the kernels produce them together)."""
 
     @staticmethod
-    def forward(ctx, plane, angular_planes, first_weight, first_bias, texels, tap_index, tap_weight, target, slope,
-                chunk, workers, precision, *weights_and_biases):
+    def forward(ctx, plane, angular_planes, first_weight, first_bias, texels, texel_weights, tap_index, tap_weight,
+                target, slope, chunk, workers, precision, *weights_and_biases):
         n_layers = len(weights_and_biases) // 2
         weights = [w.detach().contiguous() for w in weights_and_biases[:n_layers]]
         biases = [b.detach().contiguous() for b in weights_and_biases[n_layers:]]
@@ -458,16 +460,19 @@ class _TriplePlaneL1(torch.autograd.Function):
         first_weight, first_bias = first_weight.detach().contiguous(), first_bias.detach().contiguous()
         hidden, positional = first_weight.shape[0], plane.shape[1]
         images, planes, taps = tap_index.shape
-        rows = plane.shape[0] if texels is None else texels.shape[0]
+        rows = plane.shape[0] if texels is None else texels.shape[-1]
         positional_pre = torch.empty((rows, hidden), dtype=torch.float32)
         angular = torch.empty((images, planes * angular_planes.shape[1]), dtype=torch.float32)
         image_pre = torch.empty((images, hidden), dtype=torch.float32)
         args = _FirstLayerArgs(
             hidden=hidden, positional=positional, angular=angular.shape[1], plane_channels=angular_planes.shape[1],
-            taps=taps, rows=rows, images=images, plane_rows=plane.shape[0], angular_rows=angular_planes.shape[0],
+            taps=taps, texel_taps=1 if texel_weights is None else texel_weights.shape[0], rows=rows, images=images,
+            plane_rows=plane.shape[0], angular_rows=angular_planes.shape[0],
             positional_scale=1.0 / target.numel(), weight=first_weight.data_ptr(), bias=first_bias.data_ptr(),
             plane=plane.data_ptr(),
-            texels=None if texels is None else texels.data_ptr(), angular_planes=angular_planes.data_ptr(),
+            texels=None if texels is None else texels.data_ptr(),
+            texel_weight=None if texel_weights is None else texel_weights.data_ptr(),
+            angular_planes=angular_planes.data_ptr(),
             tap_index=tap_index.data_ptr(), tap_weight=tap_weight.data_ptr(), positional_pre=positional_pre.data_ptr(),
             angular_features=angular.data_ptr(), image_pre=image_pre.data_ptr())
         library = _native_library()
@@ -494,16 +499,18 @@ class _TriplePlaneL1(torch.autograd.Function):
     def backward(ctx, grad_loss):
         g_plane, g_angular_planes, g_first_weight, g_first_bias, *g_params = _times(ctx.saved_tensors, grad_loss)
         return (g_plane, g_angular_planes, g_first_weight, g_first_bias, None, None, None, None, None, None, None,
-                None, *g_params)
+                None, None, *g_params)
 
 
 def triple_plane_l1_loss(plane: torch.Tensor, texels: torch.Tensor | None, angular_planes: torch.Tensor,
                          taps: tuple[torch.Tensor, torch.Tensor], first: nn.Linear, layers: Sequence[nn.Linear],
                          negative_slope: float, target: torch.Tensor, *, chunk_texels: int = 256, workers: int = 1,
-                         precision: str = "fp32") -> torch.Tensor | None:
+                         precision: str = "fp32", texel_weights: torch.Tensor | None = None) -> torch.Tensor | None:
     """:func:`decoder_l1_loss` with the plane fetches included, all in native kernels: the mean L1 loss of a
     Triple Plane decoder on ``plane[texels]`` (``plane (T, C_U)``, the positional plane flattened; ``texels``
-    int64 ``(N,)`` or None for all ``T``) and, per image, the angular features fetched from ``angular_planes``
+    int64 ``(N,)`` or None for all ``T``; with ``texel_weights`` float32 ``(J, N)``, ``texels`` is ``(J, N)`` and
+    row ``r`` reads ``sum_j texel_weights[j, r] * plane[texels[j, r]]``, e.g. the bilinear mix of 4 texels at a
+    point between centres) and, per image, the angular features fetched from ``angular_planes``
     (``(A, C)``: ``f_H`` and ``f_D`` flattened and stacked) at ``taps = (index, weight)``, each
     ``(G * B, planes, K)`` (:meth:`dynbtf.representations.triple_plane.TriplePlane.direction_taps`); ``target``
     ``(B, N, 3)``. Gradients flow to ``plane``, ``angular_planes`` and every layer; repeated texels and taps add
@@ -519,9 +526,17 @@ def triple_plane_l1_loss(plane: torch.Tensor, texels: torch.Tensor | None, angul
         [t for layer in layers for t in (layer.weight, layer.bias)]
     if not all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors):
         return None
-    if index.dtype != torch.int64 or index.ndim != 3 or weight.shape != index.shape or \
-            (texels is not None and (texels.dtype != torch.int64 or texels.ndim != 1)):
+    if index.dtype != torch.int64 or index.ndim != 3 or weight.shape != index.shape or (
+            texel_weights is None and texels is not None and (texels.dtype != torch.int64 or texels.ndim != 1)):
         return None
+    if texel_weights is not None:
+        if texels is None or texels.dtype != torch.int64 or texels.ndim != 2 or texel_weights.shape != texels.shape \
+                or not 1 <= texels.shape[0] <= 16:
+            raise InputError(f"texel_weights: expected (J, N) with texels int64 of the same shape and 1 <= J <= 16, "
+                             f"got {tuple(texel_weights.shape)} and "
+                             f"{None if texels is None else (tuple(texels.shape), texels.dtype)}")
+        if texel_weights.device.type != "cpu" or texel_weights.dtype != torch.float32:
+            return None
     try:
         precision = resolve_precision(precision, "cpu")
     except InputError:
@@ -537,14 +552,16 @@ def triple_plane_l1_loss(plane: torch.Tensor, texels: torch.Tensor | None, angul
     if library is None or not _native_supports(torch.empty((0, hidden)), weights, precision) \
             or not library.dynbtf_first_layer_supports(hidden, plane.shape[1], planes * angular_planes.shape[1]):
         return None
-    rows = plane.shape[0] if texels is None else texels.shape[0]
+    rows = plane.shape[0] if texels is None else texels.shape[-1]
     b = target.shape[0]
     if images % b or rows % (images // b):
         raise InputError(f"taps: expected (G * {b}, planes, K) with G dividing the {rows} texels, "
                          f"got {tuple(index.shape)}")
     _check_split_shapes(rows, hidden, (images // b, b), target, chunk_texels, workers)
     return _TriplePlaneL1.apply(plane, angular_planes, first.weight, first.bias,
-                                None if texels is None else texels.contiguous(), index.contiguous(),
+                                None if texels is None else texels.contiguous(),
+                                None if texel_weights is None else texel_weights.detach().contiguous(),
+                                index.contiguous(),
                                 weight.contiguous(), target, float(negative_slope), int(chunk_texels), int(workers),
                                 precision, *weights, *[layer.bias for layer in layers])
 

@@ -305,9 +305,7 @@ class TriplePlane(Representation):
         plane = self.f_u.reshape(-1, self.f_u.shape[-1])
         if angular_taps is not None and type(self).extra_positional_channels == 0:
             # the fetches and layer 1 in native kernels too (None where they do not run: torch below)
-            angular_planes = torch.cat([self.f_h.reshape(-1, self.f_h.shape[-1]),
-                                        self.f_d.reshape(-1, self.f_d.shape[-1])])
-            loss = triple_plane_l1_loss(plane, texels, angular_planes, angular_taps, self.decoder.first,
+            loss = triple_plane_l1_loss(plane, texels, self._stacked_angular_planes(), angular_taps, self.decoder.first,
                                         self.decoder.rest, self.decoder.negative_slope, target,
                                         chunk_texels=chunk_texels, workers=workers, precision=precision)
             if loss is not None:
@@ -316,6 +314,10 @@ class TriplePlane(Representation):
         return self.decoder.texel_image_l1_loss(features, self.angular_features(w_view, w_light, angular_taps),
                                                 target, chunk_texels=chunk_texels, workers=workers,
                                                 texel_groups=texel_groups, precision=precision)
+
+    def _stacked_angular_planes(self) -> torch.Tensor:
+        """``f_H`` and ``f_D`` flattened and stacked, ``(2 * 20 * 20, C_A)``: what :meth:`direction_taps` indexes."""
+        return torch.cat([self.f_h.reshape(-1, self.f_h.shape[-1]), self.f_d.reshape(-1, self.f_d.shape[-1])])
 
     @property
     def has_subtexel_term(self) -> bool:
@@ -332,7 +334,9 @@ class TriplePlane(Representation):
         ``neighbours``: int64 ``(4, n)``, each point's four surrounding texels (flat ``row * W + col``);
         ``weights``: float32 ``(4, n)``, their bilinear weights (what :func:`dynbtf.texture.fetch_wrap` reads at
         the point); ``w_view, w_light``: ``(B, 3)``; ``target``: ``(B, n, 3)``. The points' features are the
-        weighted sums of the texels' (the bilinear fetch), decoded by the fused loss of
+        weighted sums of the texels' (the bilinear fetch), decoded by the fused loss: with ``angular_taps`` (the
+        fit passes them) the weighted fetch and layer 1 run in the native kernels too
+        (:func:`~dynbtf.decoder.fused_mlp.triple_plane_l1_loss` with ``texel_weights``), else
         :meth:`texel_image_l1_loss`'s generic path. The trainer's sub-texel term (``TrainConfig.subtexel``)
         passes the same weights' mix of the measured texels as ``target``, so that the model's colours between
         centres become the mix of its measured ones."""
@@ -340,6 +344,13 @@ class TriplePlane(Representation):
             raise InputError(f"subtexel: the {self.kind!r} representation reads more than its plane between "
                              "texels; the sub-texel term applies to the Triple Plane ('triple')")
         plane = self.f_u.reshape(-1, self.f_u.shape[-1])
+        if angular_taps is not None:  # the weighted fetch and layer 1 in native kernels (None where they do not run)
+            loss = triple_plane_l1_loss(plane, neighbours, self._stacked_angular_planes(), angular_taps,
+                                        self.decoder.first, self.decoder.rest, self.decoder.negative_slope, target,
+                                        chunk_texels=chunk_texels, workers=workers, precision=precision,
+                                        texel_weights=weights)
+            if loss is not None:
+                return loss
         features = sum(weights[k, :, None] * plane.index_select(0, neighbours[k]) for k in range(4))
         return self.decoder.texel_image_l1_loss(features, self.angular_features(w_view, w_light, angular_taps),
                                                 target, chunk_texels=chunk_texels, workers=workers, texel_groups=1,

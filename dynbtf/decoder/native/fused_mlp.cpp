@@ -106,6 +106,8 @@ int dynbtf_affine_rows_fp32(int64_t rows, int32_t in, int32_t out, const float* 
 // takes layer 1 split in two parts, one per texel and one per image:
 //
 //   P[r] = W_U f_U[texel[r]]                       (N rows: the step's texels; no bias)
+//   P[r] = W_U sum_j w[j, r] f_U[texel[j, r]]       (with texel weights: N points between texel centres, each
+//                                                   the weighted sum of J texels, e.g. J = 4 bilinear taps)
 //   a[i] = sum_k weight[i, k] f_A[index[i, k]]     (image i's angular features: bilinear taps of the stacked
 //                                                   angular planes [f_H; f_D], per plane)
 //   Q[i] = W_A a[i] + b_1                          (one row per image)
@@ -115,6 +117,7 @@ int dynbtf_affine_rows_fp32(int64_t rows, int32_t in, int32_t out, const float* 
 //
 //   dW_U = sum_r dP[r] f_U[texel[r]]^T    dW_A = sum_i dQ[i] a[i]^T    db_1 = sum_i dQ[i]
 //   df_U[texel[r]] += W_U^T dP[r]         df_A[index[i, k]] += weight[i, k] W_A^T dQ[i]
+//   (with texel weights: df_U[texel[j, r]] += w[j, r] W_U^T dP[r])
 //
 // with the fp32 register blocks of the fused kernel, on the calling thread, every sum in one fixed order
 // (repeated texels and taps add up in row order, as torch's index_add_). Small products next to the fused
@@ -126,6 +129,7 @@ struct FirstLayerArgs {
     int32_t angular;          // C_A: the angular planes' channels times the planes
     int32_t plane_channels;   // channels of one angular plane
     int32_t taps;             // taps per plane and image (4: bilinear)
+    int32_t texel_taps;       // J: texels per row (1 without texel weights)
     int64_t rows;             // N: the step's texels
     int64_t images;           // the step's images (G * B)
     int64_t plane_rows;       // rows of `plane`: every texel index is checked against it
@@ -134,7 +138,8 @@ struct FirstLayerArgs {
     const float* weight;      // (H, C_U + C_A): layer 1's weight, row-major (torch's nn.Linear layout)
     const float* bias;        // (H,)
     const float* plane;       // (plane_rows, C_U): f_U flattened
-    const int64_t* texels;    // (N,): rows of `plane` (null: rows 0 .. N-1)
+    const int64_t* texels;    // (J, N): rows of `plane` (null: rows 0 .. N-1, J = 1)
+    const float* texel_weight;  // (J, N): each row's weights of its J texels (null: J = 1, weight 1)
     const float* angular_planes;  // (angular_rows, plane_channels): [f_H; f_D] flattened
     const int64_t* tap_index;     // (images, planes, taps): rows of angular_planes
     const float* tap_weight;      // (images, planes, taps)
@@ -796,10 +801,11 @@ bool first_layer_supported(int hidden, int positional, int angular) {
 int first_layer_check(const FirstLayerArgs* a) {
     if (!first_layer_supported(a->hidden, a->positional, a->angular) || a->plane_channels < 1 || a->taps < 1 ||
         a->angular % a->plane_channels || a->rows < 0 || a->images < 0 || a->rows > (int64_t(1) << 24) ||
-        a->images > (int64_t(1) << 24))
+        a->images > (int64_t(1) << 24) || a->texel_taps < 1 || a->texel_taps > 16 ||
+        ((a->texel_taps > 1 || a->texel_weight) && !(a->texels && a->texel_weight)))
         return 1;
     if (a->texels) {
-        for (int64_t r = 0; r < a->rows; ++r)
+        for (int64_t r = 0; r < a->texel_taps * a->rows; ++r)
             if (a->texels[r] < 0 || a->texels[r] >= a->plane_rows) return 2;
     } else if (a->rows > a->plane_rows) {
         return 2;
@@ -847,12 +853,26 @@ void rows_times_backward(int64_t rows, int H, const float* x, const float* dy, c
     });
 }
 
-// the step's positional rows f_U[texel[r]] as one contiguous (N, C_U) block
+// the step's positional rows f_U[texel[r]] (with texel weights: sum_j w[j, r] f_U[texel[j, r]], j in order) as
+// one contiguous (N, C_U) block
 void gather_positional(const FirstLayerArgs* a, std::vector<float>& x) {
     const int CU = a->positional;
-    x.resize(static_cast<size_t>(a->rows) * CU);
-    for (int64_t r = 0; r < a->rows; ++r)
-        std::memcpy(x.data() + r * CU, a->plane + (a->texels ? a->texels[r] : r) * CU, sizeof(float) * CU);
+    const int64_t N = a->rows;
+    x.resize(static_cast<size_t>(N) * CU);
+    if (!a->texel_weight) {
+        for (int64_t r = 0; r < N; ++r)
+            std::memcpy(x.data() + r * CU, a->plane + (a->texels ? a->texels[r] : r) * CU, sizeof(float) * CU);
+        return;
+    }
+    for (int64_t r = 0; r < N; ++r) {
+        float* row = x.data() + r * CU;
+        for (int c = 0; c < CU; ++c) row[c] = 0.f;
+        for (int j = 0; j < a->texel_taps; ++j) {
+            const float w = a->texel_weight[j * N + r];
+            const float* texel = a->plane + a->texels[j * N + r] * CU;
+            for (int c = 0; c < CU; ++c) row[c] += w * texel[c];
+        }
+    }
 }
 
 // the columns [c0, c0 + n) of layer 1's weight: transposed (n, H) for the forward products, or as given (H, n)
@@ -895,9 +915,13 @@ void first_layer_backward(const FirstLayerArgs* a, const float* dP, const float*
     gather_positional(a, x);
     weight_columns(a, 0, CU, false, w);
     rows_times_backward<NU>(a->rows, H, x.data(), dP, w.data(), grad_w_u.data(), grad_x.data());
-    for (int64_t r = 0; r < a->rows; ++r) {  // in row order: repeated texels add up
-        float* g = grad_plane + (a->texels ? a->texels[r] : r) * CU;
-        for (int c = 0; c < CU; ++c) g[c] += a->positional_scale * grad_x[r * CU + c];
+    for (int64_t r = 0; r < a->rows; ++r) {  // in row order (each row's texels in order): repeats add up
+        for (int j = 0; j < a->texel_taps; ++j) {
+            const int64_t at = j * a->rows + r;
+            float* g = grad_plane + (a->texels ? a->texels[at] : r) * CU;
+            const float scale = a->texel_weight ? a->positional_scale * a->texel_weight[at] : a->positional_scale;
+            for (int c = 0; c < CU; ++c) g[c] += scale * grad_x[r * CU + c];
+        }
     }
     weight_columns(a, CU, CA, false, w);
     rows_times_backward<NA>(a->images, H, a->angular_features, dQ, w.data(), grad_w_a.data(), grad_x.data());
