@@ -277,7 +277,7 @@ def resolve_precision(precision: str, device: torch.device | str = "cpu") -> str
     device = torch.device(device)
     if precision not in ("auto", "fp32", "bf16"):
         raise InputError(f"precision: expected 'auto', 'fp32' or 'bf16', got {precision!r}")
-    if precision == "auto":
+    if precision in ("auto", "fp32"):
         return "fp32"
     available = native_precisions() if device.type == "cpu" else ()
     if precision == "bf16" and "bf16" not in available:
@@ -300,7 +300,7 @@ def _work_items(groups: int, n: int, chunk: int) -> torch.Tensor:
 
 
 def _native_loss(precision, positional_pre, image_pre, weights, biases, slope, target, chunk, workers, scale,
-                 scale_positional=True):
+                 scale_positional=True, library=None):
     """The native kernel over every ``(group, chunk of texels)`` item, on ``workers`` threads that take items
     from a shared counter. Returns the same sums as :func:`_chunk_range` over all items: ``(loss, g_positional,
     g_image, g_weights, g_biases)``, the gradients times ``scale``, each item's summed in item order
@@ -308,7 +308,7 @@ def _native_loss(precision, positional_pre, image_pre, weights, biases, slope, t
     groups, b, hidden = image_pre.shape
     n = positional_pre.shape[0] // groups
     items = _work_items(groups, n, chunk)
-    library = _native_library()
+    library = library or _native_library()
     out = weights[-1].shape[0]
     stride = library.dynbtf_fused_l1_item_floats(hidden, out, len(weights), b)
     item_grads = torch.empty((len(items), stride), dtype=torch.float32)
@@ -347,15 +347,18 @@ def _native_loss(precision, positional_pre, image_pre, weights, biases, slope, t
     return loss, g_positional, g_image, g_weights, g_biases
 
 
-def _native_supports(positional_pre, weights, precision) -> bool:
-    """Whether the native kernel handles this call: CPU float32, the precision available, square hidden
-    layers, and a layer shape the kernel reports it has a path for (``dynbtf_fused_l1_supports``)."""
+def _native_supports(positional_pre, weights, precision, library=None) -> bool:
+    """Whether the native kernel (``library``, default :func:`_native_library`) handles this call: CPU float32,
+    the precision available, square hidden layers, and a layer shape the kernel reports it has a path for
+    (``dynbtf_fused_l1_supports``)."""
     hidden = positional_pre.shape[1]
+    library = library or _native_library()
+    if library is None or precision not in (("fp32", "bf16") if library.dynbtf_fused_l1_has_bf16() else ("fp32",)):
+        return False
     if not (positional_pre.device.type == "cpu" and positional_pre.dtype == torch.float32
-            and precision in native_precisions()
             and all(tuple(w.shape) == (hidden, hidden) for w in weights[:-1]) and weights[-1].shape[1] == hidden):
         return False
-    return bool(_native_library().dynbtf_fused_l1_supports(hidden, weights[-1].shape[0], len(weights)))
+    return bool(library.dynbtf_fused_l1_supports(hidden, weights[-1].shape[0], len(weights)))
 
 
 def _fused_sums(positional_pre, image_pre, target, slope, chunk, workers, precision, weights, biases):
@@ -367,9 +370,10 @@ def _fused_sums(positional_pre, image_pre, target, slope, chunk, workers, precis
     args = (positional_pre.detach().contiguous(), image_pre.detach().contiguous(),
             [w.detach().contiguous() for w in weights], [x.detach().contiguous() for x in biases], slope,
             target.contiguous())
-    if _native_supports(positional_pre, weights, precision):
+    library = _native_library()
+    if _native_supports(positional_pre, weights, precision, library):
         with single_intra_op_thread():
-            return _native_loss(precision, *args, chunk, workers, scale)
+            return _native_loss(precision, *args, chunk, workers, scale, library=library)
     if precision != "fp32":
         raise InputError(f"precision={precision!r} needs the native CPU kernel; it is not available here")
     items = _chunks(groups, n, chunk)
@@ -484,7 +488,7 @@ class _TriplePlaneL1(torch.autograd.Function):
         with single_intra_op_thread():
             loss, g_positional, g_image, g_weights, g_biases = _native_loss(
                 precision, positional_pre, image_pre.view(groups, -1, hidden), weights, biases, slope,
-                target.contiguous(), chunk, workers, 1.0 / target.numel(), scale_positional=False)
+                target.contiguous(), chunk, workers, 1.0 / target.numel(), scale_positional=False, library=library)
         g_image = g_image.reshape(images, hidden).contiguous()
         g_first_weight, g_first_bias = torch.empty_like(first_weight), torch.empty_like(first_bias)
         g_plane, g_angular_planes = torch.zeros_like(plane), torch.zeros_like(angular_planes)
@@ -549,7 +553,7 @@ def triple_plane_l1_loss(plane: torch.Tensor, texels: torch.Tensor | None, angul
                          f"{plane.shape[1] + planes * angular_planes.shape[1]}")
     library = _native_library()
     weights = [layer.weight for layer in layers]
-    if library is None or not _native_supports(torch.empty((0, hidden)), weights, precision) \
+    if library is None or not _native_supports(torch.empty((0, hidden)), weights, precision, library) \
             or not library.dynbtf_first_layer_supports(hidden, plane.shape[1], planes * angular_planes.shape[1]):
         return None
     rows = plane.shape[0] if texels is None else texels.shape[-1]

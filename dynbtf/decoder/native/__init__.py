@@ -99,6 +99,9 @@ def _compile(compiler: str, flags: list[str], source: Path, target: Path) -> str
             os.unlink(tmp)
 
 
+_NOT_LOADED = object()
+
+
 def load_library(name: str, isa: str | None = None) -> ctypes.CDLL | None:
     """The compiled kernel ``dynbtf/decoder/native/<name>.cpp`` for instruction-set level ``isa`` (default: the
     active one, :func:`dynbtf.cpu.active_isa`) as a :class:`ctypes.CDLL`, or None if unavailable.
@@ -111,6 +114,9 @@ def load_library(name: str, isa: str | None = None) -> ctypes.CDLL | None:
     from ...errors import InputError
 
     isa = isa or active_isa()
+    loaded = _LOADED.get((name, isa), _NOT_LOADED)  # (a level in _LOADED was checked when it was first asked for)
+    if loaded is not _NOT_LOADED:
+        return loaded
     if isa not in ISAS:
         raise InputError(f"isa: expected one of {', '.join(ISAS)}, got {isa!r}")
     if ISAS.index(isa) > ISAS.index(hardware_isa()):
