@@ -345,9 +345,12 @@ class TriplePlane(Representation):
                              "texels; the sub-texel term applies to the Triple Plane ('triple')")
         plane = self.f_u.reshape(-1, self.f_u.shape[-1])
         if angular_taps is not None:  # the weighted fetch and layer 1 in native kernels (None where they do not run)
+            # a few chunks per thread: the term's points are one group, and a chunk each would leave a thread
+            # waiting on the other one wherever the prefetch thread shares its core
+            chunk = min(chunk_texels, max(8, neighbours.shape[1] // (4 * workers)))
             loss = triple_plane_l1_loss(plane, neighbours, self._stacked_angular_planes(), angular_taps,
                                         self.decoder.first, self.decoder.rest, self.decoder.negative_slope, target,
-                                        chunk_texels=chunk_texels, workers=workers, precision=precision,
+                                        chunk_texels=chunk, workers=workers, precision=precision,
                                         texel_weights=weights)
             if loss is not None:
                 return loss
