@@ -176,7 +176,9 @@ def main() -> None:
             rows.append({"recipe": recipe, "subtexel": weight, "cached_msps": small["samples_per_second"] / 1e6,
                          "large_msps": large["samples_per_second"] / 1e6, "ratio": ratio,
                          "peak_rss_gb": large["peak_rss_gb"], "step_seconds": large["step_seconds"],
-                         "projected_minutes": args.steps_to_converge * large["step_seconds"] / 60.0})
+                         "projected_minutes": args.steps_to_converge * large["step_seconds"] / 60.0,
+                         "stereo_seconds_cached": small["stereo_seconds"],
+                         "stereo_seconds_large": large["stereo_seconds"]})
     print("targets: ratio >= 0.8, RSS <= 4 GB")
     if args.json is not None:
         sys.path.insert(0, str(Path(__file__).resolve().parent))
