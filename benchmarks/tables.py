@@ -1094,7 +1094,8 @@ def fullsize(data: dict) -> str:
 
 #: The full-size table's rows rendered from data: ``"view"`` -> the function of the data file that gives the row's
 #: (what, result, target).
-_FULLSIZE_FROM = {"throughput": "fullsize_throughput", "file": "fullsize_file", "curve": "fullsize_curve_row"}
+_FULLSIZE_FROM = {"throughput": "fullsize_throughput", "file": "fullsize_file", "curve": "fullsize_curve_row",
+                  "parallax_throughput": "fullsize_parallax_throughput"}
 
 
 def fullsize_throughput(data: dict) -> tuple[str, str, str]:
@@ -1109,6 +1110,24 @@ def fullsize_throughput(data: dict) -> tuple[str, str, str]:
             f"{fast['ratio']:.2f}x (fast recipe, {fast['large_msps']:.1f} vs {fast['cached_msps']:.1f} M samples/s), "
             f"{paper['ratio']:.2f}x (paper batches); peak memory {peak:.2f} GB",
             f"at least 0.8x, at most 4 GB ({'met' if met else 'not met'})")
+
+
+def fullsize_parallax_throughput(data: dict) -> tuple[str, str, str]:
+    """The full-size table's ``triple-parallax`` row from bench_training_large.py ``--repr triple-parallax``: the
+    fast recipe's rate on the DFMF file and on the cached BTF, its step time and peak RSS (the stereo height's
+    memory included), and the stereo's seconds at both sizes."""
+    if data.get("representation") != "triple-parallax":
+        raise ValueError(f"fullsize_parallax_throughput: a run of --repr triple-parallax expected, got "
+                         f"{data.get('representation')!r}")
+    row = next(r for r in data["rows"] if r["recipe"] == "fast" and not r["subtexel"])
+    peak = row["peak_rss_gb"]
+    return (f"`triple-parallax`: training throughput and peak memory, stereo height included (`{data['command']}`, "
+            f"{_machine(data)}, level {data['isa']})",
+            f"{row['large_msps']:.2f} M samples/s on the 400 x 400 file vs {row['cached_msps']:.2f} on the cached "
+            f"128 x 128 ({row['ratio']:.2f}x; {row['step_seconds']:.2f} s per step); peak memory **{peak:.2f} GB**; "
+            f"the stereo height {row['stereo_seconds_large']:.0f} s at 400 x 400, "
+            f"{row['stereo_seconds_cached']:.0f} s at 128 x 128",
+            f"at most 4 GB ({'met' if peak <= 4.0 else 'not met'})")
 
 
 def fullsize_file(data: dict) -> tuple[str, str, str]:

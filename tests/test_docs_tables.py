@@ -393,6 +393,27 @@ def test_fullsize_rows_come_from_bench_training_large_and_say_whether_the_target
         "0.90x the cached speed; within 0.5 dB of the final PSNR in 9 min of training (avx2)")
 
 
+def test_fullsize_parallax_row_comes_from_a_triple_parallax_run_of_bench_training_large():
+    """The parallax row: the fast recipe's rates without the sub-texel term, its step, peak memory against 4 GB and
+    the stereo's seconds at both sizes; a Triple Plane run is refused (its numbers would pass for the parallax's)."""
+    tables = _tables()
+    run = {"command": "python benchmarks/bench_training_large.py --repr triple-parallax", "cpu": "CPU",
+           "cpu_isa": "avx512bf16", "cores": 2, "isa": "avx512bf16", "representation": "triple-parallax",
+           "rows": [{"recipe": "fast", "subtexel": 0.0, "cached_msps": 6.06, "large_msps": 3.434, "ratio": 0.567,
+                     "step_seconds": 0.751, "peak_rss_gb": 1.96, "stereo_seconds_cached": 12.6,
+                     "stereo_seconds_large": 37.2}]}
+    what, result, target = tables.fullsize_parallax_throughput(run)
+    assert what.startswith("`triple-parallax`: training throughput and peak memory, stereo height included "
+                           "(`python benchmarks/bench_training_large.py --repr triple-parallax`")
+    assert result == ("3.43 M samples/s on the 400 x 400 file vs 6.06 on the cached 128 x 128 (0.57x; 0.75 s per "
+                      "step); peak memory **1.96 GB**; the stereo height 37 s at 400 x 400, 13 s at 128 x 128")
+    assert target == "at most 4 GB (met)"
+    run["rows"][0]["peak_rss_gb"] = 4.5
+    assert tables.fullsize_parallax_throughput(run)[2] == "at most 4 GB (not met)"
+    with pytest.raises(ValueError, match="a run of --repr triple-parallax expected, got 'triple'"):
+        tables.fullsize_parallax_throughput(run | {"representation": "triple"})
+
+
 def _finished_curve(minutes_psnr, isa="avx2"):
     """A curve file as measure_fit_curves.py writes it: scores every 3 min (``minutes_psnr``), 10 steps a minute."""
     curve = [{"seconds": 0.0, "psnr": 1.0, "step": 0}] + [{"seconds": 60.0 * m, "psnr": p, "step": 10 * m}
