@@ -1095,7 +1095,7 @@ def fullsize(data: dict) -> str:
 #: The full-size table's rows rendered from data: ``"view"`` -> the function of the data file that gives the row's
 #: (what, result, target).
 _FULLSIZE_FROM = {"throughput": "fullsize_throughput", "file": "fullsize_file", "curve": "fullsize_curve_row",
-                  "parallax_throughput": "fullsize_parallax_throughput"}
+                  "parallax_throughput": "fullsize_parallax_throughput", "parallax_curve": "fullsize_parallax_curve_row"}
 
 
 def fullsize_throughput(data: dict) -> tuple[str, str, str]:
@@ -1177,7 +1177,12 @@ def fullsize_curve(data: dict) -> str:
     """measure_fit_curves.py on the full-size file (``--json ... --part curve``): held-out PSNR against training
     time, at most :data:`_CURVE_COLUMNS` of its scores (evenly spaced, the last always), and the time after which it
     stays within 0.5 dB of its final PSNR."""
-    c = data["curve"]
+    return _curve_table(data["curve"])
+
+
+def _curve_table(c: dict) -> str:
+    """A measured convergence curve (a part measure_fit_curves.py ``--json`` wrote) as :func:`fullsize_curve` shows
+    it."""
     level = _level(c["isa"], c["cpu_isa"])
     every = -(-len(c["points"]) // _CURVE_COLUMNS)
     points = c["points"][every - 1::every]
@@ -1188,9 +1193,10 @@ def fullsize_curve(data: dict) -> str:
     lines += _transposed(points, ("training time (min)", lambda p: f"{p['minutes']:.0f}"),
                          ("step", lambda p: f"{p['step']:,}"),
                          ("held-out PSNR (dB)", lambda p: f"{p['psnr']:.2f}")).split("\n")
+    stereo = f" (the stereo height before it: {c['stereo_seconds']:.0f} s)" if c.get("stereo_seconds") else ""
     lines += ["", f"Within 0.5 dB of the final {c['final_psnr']:.2f} dB after **{c['minutes_to_within_0_5_db']:.0f} "
               f"min** of training; {c['steps']:,} steps in {c['training_minutes']:.0f} min in all, "
-              f"{c['seconds_per_step']:.2f} s per step."]
+              f"{c['seconds_per_step']:.2f} s per step{stereo}."]
     return "\n".join(lines)
 
 
@@ -1211,9 +1217,27 @@ def fullsize_curve_row(data: dict) -> tuple[str, str, str]:
 
 
 def fullsize_parallax_curve(data: dict) -> str:
-    """The same with --repr triple-parallax."""
-    return _transposed(data["parallax_curve"]["points"], ("training (min)", _minutes),
+    """The same with --repr triple-parallax (``--part parallax_curve``; a part recorded from the hand-typed table:
+    its scores alone)."""
+    c = data["parallax_curve"]
+    if "recorded_from" not in c:
+        return _curve_table(c)
+    return _transposed(c["points"], ("training (min)", _minutes),
                        ("step", lambda p: f"{p['step']:,}"), ("held-out PSNR (dB)", lambda p: f"{p['psnr']:.2f}"))
+
+
+def fullsize_parallax_curve_row(data: dict) -> tuple[str, str, str]:
+    """The full-size table's ``triple-parallax`` convergence row from the measured ``parallax_curve`` part, beside
+    the Triple Plane's measured curve, against the 90-minute target of a full-size parallax fit."""
+    c, flat = data["parallax_curve"], data["curve"]
+    met = c["minutes_to_within_0_5_db"] <= 90
+    return (f"`triple-parallax`: time to within 0.5 dB of the final held-out PSNR (`{c['command']}`, "
+            f"{_machine(c)}, level {_level(c['isa'], c['cpu_isa'])})",
+            f"**{c['minutes_to_within_0_5_db']:.0f} min** of training (step {c['steps_to_within_0_5_db']:,} of "
+            f"{c['steps']:,}, {c['seconds_per_step']:.2f} s per step; the stereo height before it "
+            f"{c['stereo_seconds']:.0f} s), {c['final_psnr']:.2f} dB at the end; the Triple Plane's curve above ends "
+            f"at {flat['final_psnr']:.2f} dB",
+            f"at most 90 min ({'met' if met else 'not met'})")
 
 
 def sampling(data: dict) -> str:

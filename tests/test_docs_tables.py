@@ -461,3 +461,35 @@ def test_a_recorded_fit_curve_renders_its_scores_and_its_time_to_within_half_a_d
     unfinished = _finished_curve(scores) | {"finished": False}
     with pytest.raises(SystemExit, match="is not finished"):
         measure_fit_curves.record(unfinished, path, "curve")
+
+
+def test_a_measured_parallax_curve_renders_like_the_flat_one_and_its_row_states_the_90_minute_target(tmp_path,
+                                                                                                   monkeypatch):
+    """measure_fit_curves.py --repr triple-parallax --part parallax_curve: the same table as the flat curve's (its
+    stereo seconds stated), and the full-size row with the step it stays within 0.5 dB from, beside the flat curve's
+    end, against 90 minutes."""
+    import json
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import measure_fit_curves
+
+    tables = _tables()
+    path = tmp_path / "fullsize.json"
+    path.write_text(json.dumps({"benchmark": "fullsize"}))
+    measure_fit_curves.record(_finished_curve([(3 * k, 20.0 + min(k, 10) * 0.7) for k in range(1, 25)]), path,
+                              "curve")
+    relief = _finished_curve([(5 * k, 22.0 + min(k, 12) * 0.75) for k in range(1, 15)], isa="avx512bf16")
+    measure_fit_curves.record(relief | {"repr": "triple-parallax", "stereo_seconds": 31.4}, path, "parallax_curve")
+    data = json.loads(path.read_text())
+    text = tables.fullsize_parallax_curve(data)
+    assert text.startswith("Measured on Some CPU (2 cores, best level avx512bf16), level avx512bf16, by "), text[:120]
+    assert text.rstrip().endswith("Within 0.5 dB of the final 31.00 dB after **60 min** of training; 700 steps in "
+                                  "70 min in all, 6.00 s per step (the stereo height before it: 31 s).")
+    what, result, target = tables.fullsize_parallax_curve_row(data)
+    assert what.startswith("`triple-parallax`: time to within 0.5 dB of the final held-out PSNR "
+                           "(`python benchmarks/measure_fit_curves.py --btf big.btf`")
+    assert result == ("**60 min** of training (step 600 of 700, 6.00 s per step; the stereo height before it 31 s), "
+                      "31.00 dB at the end; the Triple Plane's curve above ends at 27.00 dB")
+    assert target == "at most 90 min (met)"
+    data["parallax_curve"]["minutes_to_within_0_5_db"] = 95.0
+    assert tables.fullsize_parallax_curve_row(data)[2] == "at most 90 min (not met)"
