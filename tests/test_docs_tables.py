@@ -402,14 +402,12 @@ def test_fullsize_parallax_row_comes_from_a_triple_parallax_run_of_bench_trainin
            "rows": [{"recipe": "fast", "subtexel": 0.0, "cached_msps": 6.06, "large_msps": 3.434, "ratio": 0.567,
                      "step_seconds": 0.751, "peak_rss_gb": 1.96, "stereo_seconds_cached": 12.6,
                      "stereo_seconds_large": 37.2}]}
-    what, result, target = tables.fullsize_parallax_throughput(run)
-    assert what.startswith("`triple-parallax`: training throughput and peak memory, stereo height included "
-                           "(`python benchmarks/bench_training_large.py --repr triple-parallax`")
-    assert result == ("3.43 M samples/s on the 400 x 400 file vs 6.06 on the cached 128 x 128 (0.57x; 0.75 s per "
-                      "step); peak memory **1.96 GB**; the stereo height 37 s at 400 x 400, 13 s at 128 x 128")
-    assert target == "at most 4 GB (met)"
-    run["rows"][0]["peak_rss_gb"] = 4.5
-    assert tables.fullsize_parallax_throughput(run)[2] == "at most 4 GB (not met)"
+    _check_row(tables.fullsize_parallax_throughput, run,
+               "`triple-parallax`: training throughput and peak memory, stereo height included "
+               "(`python benchmarks/bench_training_large.py --repr triple-parallax`",
+               "3.43 M samples/s on the 400 x 400 file vs 6.06 on the cached 128 x 128 (0.57x; 0.75 s per step); "
+               "peak memory **1.96 GB**; the stereo height 37 s at 400 x 400, 13 s at 128 x 128",
+               "at most 4 GB", lambda d: d["rows"][0].update(peak_rss_gb=4.5))
     with pytest.raises(ValueError, match="a run of --repr triple-parallax expected, got 'triple'"):
         tables.fullsize_parallax_throughput(run | {"representation": "triple"})
 
@@ -485,11 +483,19 @@ def test_a_measured_parallax_curve_renders_like_the_flat_one_and_its_row_states_
     assert text.startswith("Measured on Some CPU (2 cores, best level avx512bf16), level avx512bf16, by "), text[:120]
     assert text.rstrip().endswith("Within 0.5 dB of the final 31.00 dB after **60 min** of training; 700 steps in "
                                   "70 min in all, 6.00 s per step (the stereo height before it: 31 s).")
-    what, result, target = tables.fullsize_parallax_curve_row(data)
-    assert what.startswith("`triple-parallax`: time to within 0.5 dB of the final held-out PSNR "
-                           "(`python benchmarks/measure_fit_curves.py --btf big.btf`")
-    assert result == ("**60 min** of training (step 600 of 700, 6.00 s per step; the stereo height before it 31 s), "
-                      "31.00 dB at the end; the Triple Plane's curve above ends at 27.00 dB")
-    assert target == "at most 90 min (met)"
-    data["parallax_curve"]["minutes_to_within_0_5_db"] = 95.0
-    assert tables.fullsize_parallax_curve_row(data)[2] == "at most 90 min (not met)"
+    _check_row(tables.fullsize_parallax_curve_row, data,
+               "`triple-parallax`: time to within 0.5 dB of the final held-out PSNR "
+               "(`python benchmarks/measure_fit_curves.py --btf big.btf`",
+               "**60 min** of training (step 600 of 700, 6.00 s per step; the stereo height before it 31 s), "
+               "31.00 dB at the end; the Triple Plane's curve above ends at 27.00 dB",
+               "at most 90 min", lambda d: d["parallax_curve"].update(minutes_to_within_0_5_db=95.0))
+
+
+def _check_row(render, data: dict, what: str, result: str, target: str, spoil) -> None:
+    """A summary row ``render(data)``: its first cell starts with ``what``, its result is ``result``, its target
+    ``target`` is met; after ``spoil(data)`` it is not."""
+    cells = render(data)
+    assert cells[0].startswith(what), cells[0]
+    assert cells[1:] == (result, f"{target} (met)")
+    spoil(data)
+    assert render(data)[2] == f"{target} (not met)"
