@@ -27,6 +27,7 @@
 #include <cmath>
 #include <algorithm>
 #include <type_traits>
+#include <memory>
 #include <vector>
 #if defined(__AVX512BF16__) && defined(__AVX512BW__)
 #include <immintrin.h>
@@ -163,6 +164,17 @@ constexpr int MAX_HIDDEN = 128;
 constexpr int MAX_LAYERS = 8;
 constexpr int MAX_OUT = 16;
 constexpr int TILE = 64;   // samples per tile (one image x up to TILE texels); a multiple of 8
+
+// This thread's T, made on its first call and kept for the thread's life. Returned as a pointer loaded from
+// thread-local storage: bound to a thread_local object itself, GCC recomputes the object's address inside the
+// loops (a __tls_get_addr call in a shared library, measured at about a tenth of the bf16 kernel's time); a
+// loaded pointer it keeps in a register.
+template <class T>
+T* thread_scratch() {
+    static thread_local std::unique_ptr<T> held;
+    if (!held) held.reset(new T);
+    return held.get();
+}
 
 // The build's vector unit (dynbtf/decoder/native/__init__.py compiles one library per level):
 // VW float32 lanes per vector and NREG vector registers, which size the register blocks below.
@@ -514,8 +526,7 @@ int run(FusedL1Args* a) {
         alignas(64) float out[TILE * OUT_LD];
         alignas(64) float dgrad_p[TILE * MAX_HIDDEN];
     };
-    static thread_local Scratch scratch;
-    Scratch& own = scratch;  // one thread-local lookup per call, not one per use in the loops
+    Scratch& own = *thread_scratch<Scratch>();  // one thread-local lookup per call (see thread_scratch)
     auto& prec = own.prec;
     auto& act = own.act;
     auto& gain = own.gain;
@@ -648,10 +659,16 @@ int run(FusedL1Args* a) {
 template <int NV, int NO>
 int run_forward(MlpArgs* a) {
     const int H = VW * NV, C = a->out_channels, L = a->n_layers;
-    static thread_local Fp32 prec;
+    struct Scratch {
+        Fp32 prec;
+        alignas(64) float act[MAX_LAYERS][TILE * MAX_HIDDEN];
+        alignas(64) float out[TILE * OUT_LD];
+    };
+    Scratch& own = *thread_scratch<Scratch>();  // one thread-local lookup per call (see thread_scratch)
+    auto& prec = own.prec;
+    auto& act = own.act;
+    auto& out = own.out;
     prec.prepare(H, C, L, a->weights);
-    alignas(64) static thread_local float act[MAX_LAYERS][TILE * MAX_HIDDEN];
-    alignas(64) static thread_local float out[TILE * OUT_LD];
     alignas(64) float bias_out[OUT_LD] = {0};
     for (int c = 0; c < C; ++c) bias_out[c] = a->biases[L - 1][c];
     for (int64_t r0 = 0; r0 < a->rows; r0 += TILE) {
