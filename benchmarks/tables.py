@@ -1095,7 +1095,8 @@ def fullsize(data: dict) -> str:
 #: The full-size table's rows rendered from data: ``"view"`` -> the function of the data file that gives the row's
 #: (what, result, target).
 _FULLSIZE_FROM = {"throughput": "fullsize_throughput", "file": "fullsize_file", "curve": "fullsize_curve_row",
-                  "parallax_throughput": "fullsize_parallax_throughput", "parallax_curve": "fullsize_parallax_curve_row"}
+                  "parallax_throughput": "fullsize_parallax_throughput",
+                  "parallax_curve": "fullsize_parallax_curve_row"}
 
 
 def fullsize_throughput(data: dict) -> tuple[str, str, str]:

@@ -116,3 +116,19 @@ def test_unset_is_the_triple_planes_own_weight_and_nothing_for_the_kinds_without
     recipe = auto_recipe(open_btf("sim:leather?size=16"))
     assert recipe.config.subtexel is None and f"sub-texel term x{AUTO_SUBTEXEL:g} with the Triple Plane" in recipe.summary
     assert auto_recipe(open_btf("sim:leather?size=16"), subtexel=0.0).config.subtexel == 0.0
+
+
+def test_the_image_cache_refuses_texels_outside_the_images():
+    """ImageStore.get gathers flat (image, texel) rows: an index outside the image would read a neighbouring image,
+    so it is refused with the valid range."""
+    from dynbtf.data.open import open_btf
+    from dynbtf.training.images import ImageStore
+
+    store = ImageStore(open_btf("sim:leather?size=8&grid=ubo2003"))
+    pairs = np.array([[0, 0], [1, 2]])
+    got = store.get(pairs, np.array([0, 63, 5]))
+    assert got.shape == (2, 3, 3) and got.dtype == np.float32
+    np.testing.assert_array_equal(got[1, 1], store.image(1, 2)[63])
+    for bad in (np.array([64]), np.array([-1, 3])):
+        with pytest.raises(InputError, match=r"get: texel indices must be in \[0, 64\), got"):
+            store.get(pairs, bad)

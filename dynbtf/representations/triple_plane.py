@@ -316,7 +316,8 @@ class TriplePlane(Representation):
                                                 texel_groups=texel_groups, precision=precision)
 
     def _stacked_angular_planes(self) -> torch.Tensor:
-        """``f_H`` and ``f_D`` flattened and stacked, ``(2 * 20 * 20, C_A)``: what :meth:`direction_taps` indexes."""
+        """``f_H`` and ``f_D`` flattened and stacked, ``(2 * rows * columns, C_A)``: the rows :meth:`direction_taps`
+        indexes."""
         return torch.cat([self.f_h.reshape(-1, self.f_h.shape[-1]), self.f_d.reshape(-1, self.f_d.shape[-1])])
 
     @property

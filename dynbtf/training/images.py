@@ -180,6 +180,9 @@ class ImageStore:
             import torch
 
             texels = np.asarray(texels, dtype=np.int64)
+            if texels.size and (texels.min() < 0 or texels.max() >= self.n_texels):
+                raise InputError(f"get: texel indices must be in [0, {self.n_texels}), got {texels.min()} .. "
+                                 f"{texels.max()}")
             flat = torch.from_numpy((rows[:, None] * self.n_texels + texels[None, :]).reshape(-1))
             out = torch.from_numpy(self._cache).view(-1, 3).index_select(0, flat).float()
             out = out.view(len(rows), len(texels), 3)
