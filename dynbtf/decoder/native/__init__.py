@@ -114,13 +114,13 @@ def load_library(name: str, isa: str | None = None) -> ctypes.CDLL | None:
     from ...errors import InputError
 
     isa = isa or active_isa()
-    loaded = _LOADED.get((name, isa), _NOT_LOADED)  # (a level in _LOADED was checked when it was first asked for)
-    if loaded is not _NOT_LOADED:
-        return loaded
     if isa not in ISAS:
         raise InputError(f"isa: expected one of {', '.join(ISAS)}, got {isa!r}")
     if ISAS.index(isa) > ISAS.index(hardware_isa()):
         raise InputError(f"isa={isa!r}: this CPU runs at most {hardware_isa()!r}")
+    loaded = _LOADED.get((name, isa), _NOT_LOADED)  # a library loaded before: no lock
+    if loaded is not _NOT_LOADED:
+        return loaded
     key_name = (name, isa)
     with _LOCK:
         if key_name in _LOADED:
