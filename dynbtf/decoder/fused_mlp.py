@@ -253,13 +253,13 @@ def native_affine_rows(x: np.ndarray, weight: np.ndarray, bias: np.ndarray, out:
     return code == 0
 
 
-def native_precisions() -> tuple[str, ...]:
+def native_precisions(library=None) -> tuple[str, ...]:
     """Precisions the native CPU kernel offers on this machine: ``("fp32", "bf16")``, ``("fp32",)`` or ``()``.
 
     ``bf16`` needs a CPU with AVX512-BF16 (bfloat16 dot products); without a C++ compiler there is no
     native kernel and training uses the PyTorch path (fp32). :func:`dynbtf.decoder.native.status` says why.
     """
-    library = _native_library()
+    library = library or _native_library()
     if library is None:
         return ()
     return ("fp32", "bf16") if library.dynbtf_fused_l1_has_bf16() else ("fp32",)
@@ -353,7 +353,7 @@ def _native_supports(positional_pre, weights, precision, library=None) -> bool:
     (``dynbtf_fused_l1_supports``)."""
     hidden = positional_pre.shape[1]
     library = library or _native_library()
-    if library is None or precision not in (("fp32", "bf16") if library.dynbtf_fused_l1_has_bf16() else ("fp32",)):
+    if precision not in native_precisions(library):
         return False
     if not (positional_pre.device.type == "cpu" and positional_pre.dtype == torch.float32
             and all(tuple(w.shape) == (hidden, hidden) for w in weights[:-1]) and weights[-1].shape[1] == hidden):
